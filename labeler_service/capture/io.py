@@ -1,0 +1,262 @@
+"""Reading and writing captures: C3D (ezc3d), TRC (text) and NPZ (numpy, lossless and fast).
+
+Every reader returns a :class:`Capture` in millimetres, Z up, NaN for missing samples:
+(0, 0, 0) samples and negative C3D residuals become NaN, metres are converted, and a take
+recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is recorded in
+``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject named after
+the file stem. Problems raise :class:`CaptureError` naming the file, never a bare traceback.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from labeler_service.capture.model import Capture, is_ghost, split_label
+from labeler_service.errors import CaptureError, CaptureFormatError
+
+SUFFIXES = (".c3d", ".trc", ".npz")
+_UNIT_SCALE = {"mm": 1.0, "millimeters": 1.0, "cm": 10.0, "m": 1000.0, "meters": 1000.0}
+
+
+def read_capture(path: str | Path, up: str = "z", subject: str | None = None) -> Capture:
+    """Reads a C3D, TRC or NPZ capture.
+
+    ``up`` is the file's vertical axis (``"z"`` or ``"y"``); a Y-up take is rotated to Z up.
+    ``subject`` forces one subject prefix on every label (replacing any prefix in the file).
+    """
+    p = Path(path)
+    if up not in ("z", "y"):
+        raise ValueError(f"up must be 'z' or 'y', got {up!r}")
+    if not p.is_file():
+        raise CaptureError(f"{p}: no such file")
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".c3d":
+            cap = _read_c3d(p)
+        elif suffix == ".trc":
+            cap = _read_trc(p)
+        elif suffix == ".npz":
+            cap = _read_npz(p)
+        else:
+            raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
+    except (CaptureError, ValueError) as exc:
+        if isinstance(exc, CaptureError):
+            raise
+        raise CaptureFormatError(f"{p}: {exc}") from exc
+    except Exception as exc:  # a broken file makes ezc3d raise anything
+        raise CaptureFormatError(f"{p}: cannot be read as {suffix[1:].upper()}: {exc}") from exc
+    if up == "y":
+        cap = _y_up_to_z_up(cap)
+    if subject is not None:
+        cap = cap.with_subject(subject)
+    else:
+        cap = _default_subject(cap, p.stem)
+    return cap
+
+
+def write_capture(capture: Capture, path: str | Path) -> Path:
+    """Writes a capture as C3D, TRC or NPZ (by suffix), creating parent folders."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        if suffix == ".c3d":
+            _write_c3d(capture, p)
+        elif suffix == ".trc":
+            _write_trc(capture, p)
+        else:
+            _write_npz(capture, p)
+    except OSError as exc:
+        raise CaptureError(f"{p}: cannot write: {exc}") from exc
+    return p
+
+
+# ------------------------------------------------------------------------------ helpers
+def _finish(
+    positions: np.ndarray, labels: list[str], rate: float, source: Path, notes: list[str]
+) -> Capture:
+    """Applies the shared missing-sample and label rules, then builds the Capture."""
+    pos = np.ascontiguousarray(positions, dtype=np.float32)
+    zero = np.all(pos == 0.0, axis=2)
+    if zero.any():
+        pos[zero] = np.nan
+        notes.append(f"{int(zero.sum())} (0,0,0) samples mapped to missing")
+    labels = _unique_labels([x.strip() for x in labels], notes)
+    return Capture(positions=pos, labels=tuple(labels), rate=rate, source=str(source), notes=notes)
+
+
+def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
+    seen: dict[str, int] = {}
+    out = []
+    for i, label in enumerate(labels):
+        name = label or f"*{i}"
+        if name in seen:
+            seen[name] += 1
+            new = f"{name}~{seen[name]}"
+            notes.append(f"duplicate label {name!r} renamed {new!r}")
+            name = new
+        else:
+            seen[name] = 0
+        out.append(name)
+    return out
+
+
+def _default_subject(cap: Capture, stem: str) -> Capture:
+    named = [x for x in cap.labels if not is_ghost(x)]
+    if named and all(split_label(x)[0] is None for x in named):
+        subject = stem.replace(":", "_") or "subject"
+        return cap.with_subject(subject)
+    return cap
+
+
+def _y_up_to_z_up(cap: Capture) -> Capture:
+    x, y, z = (cap.positions[..., i] for i in range(3))
+    rotated = np.stack([x, -z, y], axis=-1)
+    return cap.with_positions(rotated, notes=(*cap.notes, "rotated from Y up to Z up"))
+
+
+def _unit_scale(units: str, source: Path, notes: list[str]) -> float:
+    u = units.strip().lower()
+    if not u:
+        notes.append("no UNITS parameter: assumed mm")
+        return 1.0
+    if u not in _UNIT_SCALE:
+        raise CaptureFormatError(f"{source}: unknown point units {units!r}")
+    scale = _UNIT_SCALE[u]
+    if scale != 1.0:
+        notes.append(f"converted {u} to mm")
+    return scale
+
+
+# --------------------------------------------------------------------------------- C3D
+def _c3d_labels(point: dict, n: int) -> list[str]:
+    labels: list[str] = list(point.get("LABELS", {}).get("value", []))
+    k = 2
+    while len(labels) < n and f"LABELS{k}" in point:
+        labels += list(point[f"LABELS{k}"]["value"])
+        k += 1
+    if len(labels) < n:
+        labels += [f"*{i}" for i in range(len(labels), n)]
+    return labels[:n]
+
+
+def _read_c3d(path: Path) -> Capture:
+    import ezc3d
+
+    c = ezc3d.c3d(str(path))
+    point = c["parameters"]["POINT"]
+    data = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, M, F)
+    n_markers = data.shape[1]
+    notes: list[str] = []
+    rate_values = point.get("RATE", {}).get("value", [])
+    if len(rate_values) == 0 or not float(rate_values[0]) > 0:
+        raise CaptureFormatError(f"{path}: no POINT:RATE")
+    rate = float(rate_values[0])
+    units = point.get("UNITS", {}).get("value", [])
+    scale = _unit_scale(units[0] if len(units) else "", path, notes)
+    pos = np.transpose(data[:3], (2, 1, 0)) * scale  # (F, M, 3)
+    residuals = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, F)
+    if residuals.size:
+        neg = residuals[0].T < 0
+        if neg.any():
+            pos[neg] = np.nan
+            notes.append(f"{int(neg.sum())} samples with negative residual mapped to missing")
+    return _finish(pos, _c3d_labels(point, n_markers), rate, path, notes)
+
+
+def _write_c3d(capture: Capture, path: Path) -> None:
+    import ezc3d
+
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [capture.rate]
+    c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)
+    c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = [""] * capture.n_markers
+    c.add_parameter("POINT", "UNITS", ["mm"])
+    pts = np.ones((4, capture.n_markers, capture.n_frames), dtype=np.float64)
+    pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0))
+    c["data"]["points"] = pts
+    residuals = np.zeros((1, capture.n_markers, capture.n_frames), dtype=np.float64)
+    residuals[0, np.isnan(pts[0])] = -1.0
+    c["data"]["meta_points"]["residuals"] = residuals
+    c["data"]["meta_points"]["camera_masks"] = np.zeros(
+        (7, capture.n_markers, capture.n_frames), dtype=bool
+    )
+    c.write(str(path))
+
+
+# --------------------------------------------------------------------------------- TRC
+def _read_trc(path: Path) -> Capture:
+    text = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    if len(text) < 5 or not text[0].startswith("PathFileType"):
+        raise CaptureFormatError(f"{path}: not a TRC file (no PathFileType header)")
+    keys = text[1].split("\t")
+    vals = text[2].split("\t")
+    header = {k.strip(): v.strip() for k, v in zip(keys, vals, strict=False)}
+    notes: list[str] = []
+    try:
+        rate = float(header.get("DataRate") or header.get("CameraRate") or "nan")
+        n_markers = int(header["NumMarkers"])
+    except (KeyError, ValueError) as exc:
+        raise CaptureFormatError(f"{path}: bad TRC header: {exc}") from exc
+    scale = _unit_scale(header.get("Units", "mm"), path, notes)
+    names = [x.strip() for x in text[3].split("\t")[2:]]
+    labels = [x for x in names if x][:n_markers]
+    if len(labels) != n_markers:
+        raise CaptureFormatError(f"{path}: header says {n_markers} markers, found {len(labels)}")
+    rows = []
+    for lineno, line in enumerate(text[5:], start=6):
+        if not line.strip():
+            continue
+        cells = line.split("\t")
+        values = cells[2 : 2 + 3 * n_markers]
+        values += [""] * (3 * n_markers - len(values))
+        try:
+            rows.append([float(v) if v.strip() else math.nan for v in values])
+        except ValueError as exc:
+            raise CaptureFormatError(f"{path}: line {lineno}: {exc}") from exc
+    pos = np.asarray(rows, dtype=np.float64).reshape(len(rows), n_markers, 3) * scale
+    return _finish(pos, labels, rate, path, notes)
+
+
+def _write_trc(capture: Capture, path: Path) -> None:
+    f, m = capture.n_frames, capture.n_markers
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
+        "OrigDataStartFrame\tOrigNumFrames",
+        f"{capture.rate:g}\t{capture.rate:g}\t{f}\t{m}\tmm\t{capture.rate:g}\t1\t{f}",
+        "Frame#\tTime\t" + "\t".join(f"{x}\t\t" for x in capture.labels).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(m)),
+        "",
+    ]
+    pos = capture.positions
+    for i in range(f):
+        cells = ["" if np.isnan(v) else repr(float(v)) for v in pos[i].reshape(-1)]
+        lines.append(f"{i + 1}\t{i / capture.rate:.6f}\t" + "\t".join(cells))
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+# --------------------------------------------------------------------------------- NPZ
+def _read_npz(path: Path) -> Capture:
+    with np.load(path, allow_pickle=False) as z:
+        try:
+            positions = z["positions"]
+            labels = [str(x) for x in z["labels"]]
+            rate = float(z["rate"])
+        except KeyError as exc:
+            raise CaptureFormatError(f"{path}: NPZ capture lacks {exc}") from exc
+    return _finish(positions, labels, rate, path, [])
+
+
+def _write_npz(capture: Capture, path: Path) -> None:
+    np.savez_compressed(
+        path,
+        positions=capture.positions,
+        labels=np.asarray(capture.labels, dtype=str),
+        rate=np.float64(capture.rate),
+    )

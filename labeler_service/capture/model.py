@@ -1,0 +1,211 @@
+"""The ``Capture`` value: labeled (or not) marker trajectories in millimetres, NaN = missing."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from labeler_service.errors import CaptureFormatError
+
+_GHOST = re.compile(r"^\*\d+$")
+
+
+def split_label(label: str) -> tuple[str | None, str]:
+    """``"subj:LASI"`` -> ``("subj", "LASI")``; ``"LASI"`` -> ``(None, "LASI")``.
+
+    The split is at the first colon, Vicon style.
+    """
+    subject, sep, marker = label.partition(":")
+    if not sep:
+        return None, label
+    return subject, marker
+
+
+def is_ghost(label: str) -> bool:
+    """True for an unlabeled track (``*N``, with or without a subject prefix)."""
+    return bool(_GHOST.match(split_label(label)[1]))
+
+
+@dataclass(frozen=True, eq=False)
+class Capture:
+    """Marker trajectories of one take.
+
+    ``positions`` is ``(frames, markers, 3)`` float32 in millimetres, right-handed, Z up, NaN
+    where a marker is missing. ``labels`` are ``subject:marker`` (or ``*N`` for unlabeled
+    tracks). ``notes`` records what the reader changed on load (unit conversion, axis rotation,
+    zero samples mapped to NaN) so summaries can say so.
+    """
+
+    positions: np.ndarray
+    labels: tuple[str, ...]
+    rate: float
+    source: str = ""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        pos = np.asarray(self.positions)
+        if pos.ndim != 3 or pos.shape[2] != 3:
+            raise CaptureFormatError(
+                f"{self.source or 'capture'}: positions must be (frames, markers, 3), "
+                f"got shape {pos.shape}"
+            )
+        if pos.dtype != np.float32 or not pos.flags.c_contiguous:
+            pos = np.ascontiguousarray(pos, dtype=np.float32)
+        object.__setattr__(self, "positions", pos)
+        labels = tuple(str(x) for x in self.labels)
+        if len(labels) != pos.shape[1]:
+            raise CaptureFormatError(
+                f"{self.source or 'capture'}: {len(labels)} labels for {pos.shape[1]} markers"
+            )
+        object.__setattr__(self, "labels", labels)
+        if not (np.isfinite(self.rate) and self.rate > 0):
+            raise CaptureFormatError(f"{self.source or 'capture'}: invalid frame rate {self.rate}")
+        object.__setattr__(self, "rate", float(self.rate))
+        object.__setattr__(self, "notes", tuple(self.notes))
+
+    # ----------------------------------------------------------------- shape and naming
+    @property
+    def n_frames(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def n_markers(self) -> int:
+        return int(self.positions.shape[1])
+
+    @property
+    def duration(self) -> float:
+        return self.n_frames / self.rate
+
+    @property
+    def times(self) -> np.ndarray:
+        """Capture time of every frame in seconds (first frame at 0)."""
+        return np.arange(self.n_frames, dtype=np.float64) / self.rate
+
+    @property
+    def ghost_mask(self) -> np.ndarray:
+        """``(markers,)`` bool: columns that are unlabeled tracks (``*N``)."""
+        return np.array([is_ghost(x) for x in self.labels], dtype=bool)
+
+    @property
+    def subjects(self) -> tuple[str, ...]:
+        """Subject names in order of first appearance (ghost columns excluded)."""
+        seen: dict[str, None] = {}
+        for label in self.labels:
+            if is_ghost(label):
+                continue
+            subject, _ = split_label(label)
+            seen.setdefault(subject or "", None)
+        return tuple(seen)
+
+    def subject_columns(self, subject: str) -> np.ndarray:
+        """Column indices of one subject's (non-ghost) markers."""
+        cols = [
+            i
+            for i, label in enumerate(self.labels)
+            if not is_ghost(label) and (split_label(label)[0] or "") == subject
+        ]
+        return np.asarray(cols, dtype=np.intp)
+
+    # --------------------------------------------------------------------- statistics
+    @property
+    def visible(self) -> np.ndarray:
+        """``(frames, markers)`` bool: the sample is present."""
+        return ~np.isnan(self.positions).any(axis=2)
+
+    @property
+    def missing_fraction(self) -> float:
+        if self.positions.size == 0:
+            return 0.0
+        return float(1.0 - self.visible.mean())
+
+    def empty_columns(self) -> np.ndarray:
+        """Indices of markers that are never visible."""
+        return np.flatnonzero(~self.visible.any(axis=0))
+
+    def gaps(self) -> list[tuple[int, int, int]]:
+        """Runs of missing samples strictly inside each marker's visible span.
+
+        Returns ``(marker, first_missing_frame, length)``; leading/trailing absence and
+        never-visible markers are not gaps.
+        """
+        out: list[tuple[int, int, int]] = []
+        vis = self.visible
+        for m in range(self.n_markers):
+            idx = np.flatnonzero(vis[:, m])
+            if idx.size < 2:
+                continue
+            steps = np.diff(idx)
+            for k in np.flatnonzero(steps > 1):
+                out.append((m, int(idx[k] + 1), int(steps[k] - 1)))
+        return out
+
+    # ----------------------------------------------------------------- transformations
+    def with_positions(self, positions: np.ndarray, **changes: object) -> Capture:
+        return replace(self, positions=positions, **changes)  # type: ignore[arg-type]
+
+    def select(self, columns: Sequence[int] | np.ndarray) -> Capture:
+        cols = np.asarray(columns, dtype=np.intp)
+        return replace(
+            self,
+            positions=self.positions[:, cols],
+            labels=tuple(self.labels[i] for i in cols),
+        )
+
+    def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Capture:
+        """A frame range (``step`` > 1 decimates and divides the rate)."""
+        if step < 1:
+            raise ValueError(f"step must be >= 1, got {step}")
+        return replace(
+            self,
+            positions=self.positions[start:stop:step],
+            rate=self.rate / step,
+        )
+
+    def without_empty(self) -> Capture:
+        """Drops markers that are never visible (e.g. CMU's empty duplicate ``RBAC-1``)."""
+        empty = set(self.empty_columns().tolist())
+        if not empty:
+            return self
+        keep = [i for i in range(self.n_markers) if i not in empty]
+        dropped = ", ".join(self.labels[i] for i in sorted(empty))
+        return replace(
+            self.select(keep), notes=(*self.notes, f"dropped never-visible markers: {dropped}")
+        )
+
+    def with_subject(self, subject: str) -> Capture:
+        """Every non-ghost label re-prefixed with ``subject:`` (any old prefix is replaced)."""
+        if not subject or ":" in subject:
+            raise ValueError(f"invalid subject name {subject!r}")
+        labels = tuple(
+            label if is_ghost(label) else f"{subject}:{split_label(label)[1]}"
+            for label in self.labels
+        )
+        return replace(self, labels=labels)
+
+    @staticmethod
+    def concat_markers(captures: Iterable[Capture], source: str = "") -> Capture:
+        """Side-by-side join of captures with the same rate and frame count."""
+        caps = list(captures)
+        if not caps:
+            raise ValueError("nothing to join")
+        rate, n = caps[0].rate, caps[0].n_frames
+        for c in caps[1:]:
+            if abs(c.rate - rate) > 1e-6 or c.n_frames != n:
+                raise CaptureFormatError(
+                    f"cannot join {c.source}: {c.n_frames} frames at {c.rate} Hz, "
+                    f"expected {n} at {rate} Hz"
+                )
+        labels = tuple(label for c in caps for label in c.labels)
+        if len(set(labels)) != len(labels):
+            dup = sorted({x for x in labels if labels.count(x) > 1})
+            raise CaptureFormatError(f"duplicate labels after join: {', '.join(dup[:5])}")
+        return Capture(
+            positions=np.concatenate([c.positions for c in caps], axis=1),
+            labels=labels,
+            rate=rate,
+            source=source,
+            notes=tuple(n for c in caps for n in c.notes),
+        )

@@ -1,0 +1,72 @@
+"""``mocap-labeler info FILE``: rate, frames, subjects, markers, missing fraction, gaps."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from labeler_service.capture import Capture, read_capture
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", help="capture file (.c3d, .trc, .npz)")
+    p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def summarize(cap: Capture) -> dict:
+    """The numbers ``info`` prints, as a plain dict."""
+    gaps = cap.gaps()
+    lengths = np.array([g[2] for g in gaps], dtype=np.int64)
+    vis = cap.visible
+    subjects = {}
+    for s in cap.subjects:
+        cols = cap.subject_columns(s)
+        subjects[s or "(no prefix)"] = {
+            "markers": int(cols.size),
+            "missing_fraction": round(float(1 - vis[:, cols].mean()), 4) if cols.size else 0.0,
+        }
+    ghosts = int(cap.ghost_mask.sum())
+    return {
+        "file": cap.source,
+        "rate_hz": cap.rate,
+        "frames": cap.n_frames,
+        "duration_s": round(cap.duration, 3),
+        "markers": cap.n_markers,
+        "unlabeled_tracks": ghosts,
+        "subjects": subjects,
+        "missing_fraction": round(cap.missing_fraction, 4),
+        "never_visible": [cap.labels[i] for i in cap.empty_columns()],
+        "gaps": int(len(gaps)),
+        "gap_frames_max": int(lengths.max()) if lengths.size else 0,
+        "gap_frames_median": float(np.median(lengths)) if lengths.size else 0.0,
+        "notes": list(cap.notes),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    cap = read_capture(args.file, up=args.up)
+    s = summarize(cap)
+    if args.json:
+        print(json.dumps(s))
+        return 0
+    print(f"{s['file']}")
+    print(
+        f"  {s['frames']} frames at {s['rate_hz']:g} Hz ({s['duration_s']:.2f} s), "
+        f"{s['markers']} markers, {s['missing_fraction']:.1%} samples missing"
+    )
+    for name, sub in s["subjects"].items():
+        print(f"  subject {name}: {sub['markers']} markers, {sub['missing_fraction']:.1%} missing")
+    if s["unlabeled_tracks"]:
+        print(f"  {s['unlabeled_tracks']} unlabeled tracks (*N)")
+    if s["never_visible"]:
+        print(f"  never visible: {', '.join(s['never_visible'])}")
+    print(
+        f"  {s['gaps']} gaps inside tracks (longest {s['gap_frames_max']} frames, "
+        f"median {s['gap_frames_median']:g})"
+    )
+    for note in s["notes"]:
+        print(f"  note: {note}")
+    return 0

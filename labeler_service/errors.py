@@ -1,0 +1,54 @@
+"""Every exception the project raises on purpose.
+
+::
+
+    MocapError                      base; the CLI prints its message and exits 2
+    ├── CaptureError                a capture file cannot be read or written
+    │   └── CaptureFormatError      the file is readable but its content is wrong
+    ├── SceneError                  compose / simulate / corrupt got impossible parameters
+    ├── ModelError                  a subject model (template) file is invalid or mismatched
+    ├── LabelerError                the labeler was used out of order (e.g. no training window)
+    ├── ProtocolError               a wire message is malformed (counted, never fatal)
+    │   (attribute ``reason``: a short machine-readable tag used in drop metrics)
+    └── ConfigError                 service settings are invalid
+
+Chain with ``raise ... from exc`` so the original cause stays visible in logs.
+"""
+
+from __future__ import annotations
+
+
+class MocapError(Exception):
+    """Base of every deliberate error; its message is meant for a person."""
+
+
+class CaptureError(MocapError):
+    """A capture file could not be read or written (names the file)."""
+
+
+class CaptureFormatError(CaptureError):
+    """A capture file was read but its content is unusable (names the file and the problem)."""
+
+
+class SceneError(MocapError):
+    """Scene composition, simulation or corruption got parameters it cannot satisfy."""
+
+
+class ModelError(MocapError):
+    """A subject model file is invalid or does not match the data."""
+
+
+class LabelerError(MocapError):
+    """The labeler was used out of order or with inconsistent input."""
+
+
+class ProtocolError(MocapError):
+    """A wire message is malformed. ``reason`` is a short tag for drop metrics."""
+
+    def __init__(self, message: str, reason: str = "malformed") -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class ConfigError(MocapError):
+    """Service settings are invalid."""
