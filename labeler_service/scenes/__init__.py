@@ -1,0 +1,1 @@
+"""Scenes: multi-person composition from real takes, simulation, seeded corruptions."""
