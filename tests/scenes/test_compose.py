@@ -1,0 +1,271 @@
+"""compose: drift removal, yaw, placement on the circle, names, rates, errors, CLI."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import Capture, read_capture
+from labeler_service.cli import main
+from labeler_service.errors import SceneError
+from labeler_service.scenes.compose import (
+    YAW_JITTER_DEG,
+    TakeSpec,
+    body_centre,
+    compose_scene,
+    heading,
+)
+
+# a small "body": left/right pairs so the heading is defined, facing +x when yaw = 0
+_NAMES = ("LSHO", "RSHO", "LASI", "RASI", "LKNE", "RKNE", "CLAV", "C7", "LFHD", "RFHD")
+_LOCAL = np.array(
+    [
+        [0, 180, 1400],
+        [0, -180, 1400],
+        [60, 120, 950],
+        [60, -120, 950],
+        [40, 100, 500],
+        [40, -100, 500],
+        [80, 0, 1380],
+        [-80, 0, 1450],
+        [90, 60, 1650],
+        [90, -60, 1650],
+    ],
+    dtype=np.float64,
+)
+
+
+def synthetic_take(
+    rng: np.random.Generator,
+    frames: int = 300,
+    rate: float = 120.0,
+    name: str = "take",
+    facing_deg: float = 0.0,
+    drift_mm_s: float = 400.0,
+    prefix: bool = True,
+) -> Capture:
+    """A rigid, bobbing marker body that drifts and turns a little: enough for compose."""
+    t = np.arange(frames) / rate
+    yaw = math.radians(facing_deg) + 0.2 * np.sin(2 * np.pi * 0.3 * t)
+    start = rng.uniform(-2000, 2000, size=2)
+    direction = rng.normal(size=2)
+    direction /= np.linalg.norm(direction)
+    drift = start + drift_mm_s * t[:, None] * direction
+    c, s = np.cos(yaw), np.sin(yaw)
+    x = c[:, None] * _LOCAL[None, :, 0] - s[:, None] * _LOCAL[None, :, 1]
+    y = s[:, None] * _LOCAL[None, :, 0] + c[:, None] * _LOCAL[None, :, 1]
+    z = _LOCAL[None, :, 2] + 30 * np.sin(2 * np.pi * 1.5 * t)[:, None]
+    pos = np.stack([x + drift[:, None, 0], y + drift[:, None, 1], z + 0 * x], axis=-1)
+    labels = tuple(f"{name}:{n}" if prefix else n for n in _NAMES)
+    return Capture(positions=pos.astype(np.float32), labels=labels, rate=rate, source=name)
+
+
+def _centres(scene: Capture) -> dict[str, np.ndarray]:
+    out = {}
+    for subject in scene.subjects:
+        cols = scene.subject_columns(subject)
+        out[subject] = body_centre(scene.positions[:, cols].astype(np.float64))
+    return out
+
+
+def test_drift_removed_and_placed_on_circle(rng):
+    takes = [synthetic_take(rng, name=f"S{i}", facing_deg=rng.uniform(0, 360)) for i in range(3)]
+    scene = compose_scene(takes, radius=400.0, frames=240, seed=7)
+    centres = _centres(scene)
+    assert list(centres) == ["S0", "S1", "S2"]
+    angles = []
+    for c in centres.values():
+        # drift gone: the centre sits on one point the whole time
+        assert np.abs(c - c[0]).max() < 1.0
+        assert np.linalg.norm(c[0]) == pytest.approx(400.0, abs=1.0)
+        angles.append(math.atan2(c[0, 1], c[0, 0]))
+    gaps = np.sort(np.diff(np.sort(np.unwrap(angles))) % (2 * np.pi))
+    assert gaps == pytest.approx([2 * np.pi / 3] * 2, abs=1e-3)
+
+
+def test_two_takes_face_each_other_and_interleave(rng):
+    takes = [synthetic_take(rng, name="A", facing_deg=30), synthetic_take(rng, name="B")]
+    scene = compose_scene(takes, radius=300.0, frames=200, seed=3)
+    centres = _centres(scene)
+    a, b = centres["A"][0], centres["B"][0]
+    assert np.linalg.norm(a - b) == pytest.approx(600.0, abs=2.0)
+    for subject, c in centres.items():
+        sub = scene.select(scene.subject_columns(subject))
+        to_centre = math.degrees(math.atan2(-c[0, 1], -c[0, 0]))
+        diff = (math.degrees(heading(sub)) - to_centre + 180) % 360 - 180
+        assert abs(diff) <= YAW_JITTER_DEG + 0.5
+
+
+def test_shape_and_vertical_motion_kept(rng):
+    take = synthetic_take(rng, name="A")
+    scene = compose_scene([take], radius=250.0, frames=100, seed=0)
+    src = take.positions[:100].astype(np.float64)
+    out = scene.positions.astype(np.float64)
+    np.testing.assert_allclose(out[..., 2], src[..., 2], atol=1e-3)
+    d_src = np.linalg.norm(src[:, :, None] - src[:, None], axis=-1)
+    d_out = np.linalg.norm(out[:, :, None] - out[:, None], axis=-1)
+    np.testing.assert_allclose(d_out, d_src, atol=0.05)
+
+
+def test_labels_prefixed_and_unique(rng):
+    a = synthetic_take(rng, name="Same")
+    b = synthetic_take(rng, name="Same")
+    c = synthetic_take(rng, name="stem_name", prefix=False)
+    scene = compose_scene([a, b, c], radius=300.0, frames=50, seed=1)
+    assert scene.subjects == ("Same", "Same_2", "stem_name")
+    assert len(set(scene.labels)) == len(scene.labels)
+    assert all(label.split(":", 1)[0] in scene.subjects for label in scene.labels)
+    assert "Same_2:LSHO" in scene.labels
+
+
+def test_seeded_reproducible(rng):
+    takes = [synthetic_take(rng, name=f"S{i}") for i in range(2)]
+    one = compose_scene(takes, radius=300.0, frames=80, seed=11)
+    two = compose_scene(takes, radius=300.0, frames=80, seed=11)
+    other = compose_scene(takes, radius=300.0, frames=80, seed=12)
+    np.testing.assert_array_equal(one.positions, two.positions)
+    assert one.labels == two.labels
+    assert np.nanmax(np.abs(one.positions - other.positions)) > 10.0
+
+
+def test_sparse_and_empty_markers_dropped_with_note(rng):
+    take = synthetic_take(rng, name="A")
+    pos = take.positions.copy()
+    pos[:, 0] = np.nan  # never visible
+    pos[:70, 1] = np.nan  # visible in 30 of the 100 window frames
+    take = take.with_positions(pos)
+    scene = compose_scene([take], radius=300.0, frames=100, seed=0)
+    assert "A:LSHO" not in scene.labels and "A:RSHO" not in scene.labels
+    assert scene.n_markers == len(_NAMES) - 2
+    assert any("never-visible" in n and "LSHO" in n for n in scene.notes)
+    assert any("< 50%" in n and "RSHO" in n for n in scene.notes)
+
+
+def test_start_and_rate_decimation(rng):
+    fast = synthetic_take(rng, frames=600, rate=240.0, name="Fast")
+    slow = synthetic_take(rng, frames=300, rate=120.0, name="Slow")
+    scene = compose_scene(
+        [TakeSpec(capture=fast, start=10), slow], radius=300.0, frames=120, seed=2, rate=120.0
+    )
+    assert scene.rate == 120.0 and scene.n_frames == 120
+    cols = scene.subject_columns("Fast")
+    np.testing.assert_allclose(
+        scene.positions[:, cols, 2], fast.positions[10 : 10 + 240 : 2, :, 2], atol=1e-3
+    )
+
+
+def test_y_up_take(rng):
+    take = synthetic_take(rng, name="A")
+    x, y, z = (take.positions[..., i] for i in range(3))
+    y_up = take.with_positions(np.stack([x, z, -y], axis=-1))
+    scene = compose_scene([TakeSpec(capture=y_up, up="y")], radius=0.0, frames=50, seed=0)
+    np.testing.assert_allclose(scene.positions[..., 2], take.positions[:50, :, 2], atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("text", "expect"),
+    [
+        ("walk.c3d", (0, "z")),
+        ("walk.c3d:240", (240, "z")),
+        ("walk.c3d:12:y", (12, "y")),
+        ("walk.c3d::Y", (0, "y")),
+    ],
+)
+def test_take_syntax(text, expect):
+    spec = TakeSpec.parse(text)
+    assert (spec.start, spec.up) == expect
+    assert str(spec.path) == "walk.c3d"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("walk.c3d:x", "not a frame number"),
+        ("walk.c3d:-3", ">= 0"),
+        ("walk.c3d:0:q", "unknown up axis"),
+        ("walk.c3d:0:z:extra", "FILE[:start[:up]]"),
+        (":0", "FILE[:start[:up]]"),
+    ],
+)
+def test_take_syntax_errors(text, message):
+    with pytest.raises(SceneError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        TakeSpec.parse(text)
+
+
+def test_errors(rng):
+    a = synthetic_take(rng, frames=200, rate=120.0, name="A")
+    b = synthetic_take(rng, frames=200, rate=100.0, name="B")
+    with pytest.raises(SceneError, match="--rate"):
+        compose_scene([a, b], radius=300.0, frames=50, seed=0)
+    with pytest.raises(SceneError, match="not a whole number"):
+        compose_scene([a, b], radius=300.0, frames=50, seed=0, rate=120.0)
+    with pytest.raises(SceneError, match="only 100 frames available"):
+        compose_scene([a], radius=300.0, frames=101, seed=0, rate=60.0)
+    with pytest.raises(SceneError, match="only 50 frames available from frame 150"):
+        compose_scene([TakeSpec(capture=a, start=150)], radius=300.0, frames=60, seed=0)
+    for radius in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(SceneError, match="radius"):
+            compose_scene([a], radius=radius, frames=10, seed=0)
+    for frames in (0, -5):
+        with pytest.raises(SceneError, match="frames"):
+            compose_scene([a], radius=300.0, frames=frames, seed=0)
+    with pytest.raises(SceneError, match="at least one take"):
+        compose_scene([], radius=300.0, frames=10, seed=0)
+    two = Capture.concat_markers([a, synthetic_take(rng, frames=200, name="C")])
+    with pytest.raises(SceneError, match="single-person"):
+        compose_scene([two], radius=300.0, frames=10, seed=0)
+
+
+def test_cli_writes_scene_and_reports(rng, tmp_path, capsys):
+    from labeler_service.capture import write_capture
+
+    paths = []
+    for name in ("A", "B"):
+        p = tmp_path / f"{name}.npz"
+        write_capture(synthetic_take(rng, name=name), p)
+        paths.append(str(p))
+    out = tmp_path / "scene.c3d"
+    argv = ["compose", str(out), *paths, "--radius", "300", "--frames", "90", "--seed", "4"]
+    assert main(argv) == 0
+    line = capsys.readouterr().out.strip()
+    assert "2 subjects" in line and "90 frames" in line and "120 Hz" in line
+    scene = read_capture(out)
+    assert scene.subjects == ("A", "B") and scene.n_frames == 90
+    assert main([*argv[:-2], "--seed", "4", "--rate", "50"]) == 2
+    assert "not a whole number" in capsys.readouterr().err
+    assert main(["compose", str(out), paths[0] + ":zz", *argv[3:]]) == 2
+    assert "bad take" in capsys.readouterr().err
+
+
+@pytest.mark.realdata
+def test_real_cmu_takes(real_path):
+    a = real_path("cmu_01_01_playground.c3d")
+    b = real_path("cmu_02_05_expressions.c3d")
+    scene = compose_scene([str(a), f"{b}:200"], radius=300.0, frames=600, seed=5)
+    assert scene.subjects == ("cmu_01_01_playground", "TakeoMonday")
+    assert not any(label.endswith("RBAC-1") for label in scene.labels)
+    assert any("RBAC-1" in n for n in scene.notes)
+    centres = _centres(scene)
+    for c in centres.values():
+        assert np.abs(c - c[0]).max() < 1.0
+    gap = np.linalg.norm(centres["cmu_01_01_playground"][0] - centres["TakeoMonday"][0])
+    assert gap == pytest.approx(600.0, abs=2.0)
+    # markers of the two people come close: arms interleave
+    pa = scene.positions[:, scene.subject_columns("cmu_01_01_playground")]
+    pb = scene.positions[:, scene.subject_columns("TakeoMonday")]
+    closest = np.nanmin(np.linalg.norm(pa[:, :, None] - pb[:, None], axis=-1), axis=(1, 2))
+    assert np.nanmedian(closest) < 200.0
+
+
+@pytest.mark.realdata
+def test_real_mixed_rates(real_path):
+    a = real_path("cmu_01_01_playground.c3d")
+    k = real_path("kneel_to_prone_62markers_240hz.c3d")
+    with pytest.raises(SceneError, match="--rate"):
+        compose_scene([str(a), str(k)], radius=300.0, frames=300, seed=0)
+    scene = compose_scene([str(a), str(k)], radius=300.0, frames=300, seed=0, rate=120.0)
+    assert scene.rate == 120.0 and len(scene.subjects) == 2
+    with pytest.raises(SceneError, match="frames available"):
+        compose_scene([str(k)], radius=300.0, frames=900, seed=0, rate=120.0)
