@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.capture import Capture, is_ghost, read_capture, split_label
+from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import SceneError
 
 #: A marker must be visible in at least this fraction of the window to be kept.
