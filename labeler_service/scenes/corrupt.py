@@ -1,0 +1,250 @@
+"""Seeded corruptions that turn a labeled capture into what a live system delivers.
+
+A labeled capture (the truth) becomes a stream of frames of anonymous points: optional
+down-sampling (seed 003 Fig. 6), marker gaps with known truth (for recovery scoring, seed 003
+Fig. 8), random contiguous drop-outs, ghost points near the performers, measurement jitter, and
+a per-frame shuffle. Missing samples are simply absent from a frame. Columns named ``*N`` in
+the capture are ghost tracks: their points are fed with the rest and carry truth -1.
+
+``iter_stream`` yields frames lazily (long soak runs), ``corrupt`` collects them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from labeler_service.capture import Capture
+from labeler_service.errors import SceneError
+
+
+@dataclass(frozen=True)
+class CorruptionSpec:
+    """What to do to a capture before it is streamed. Every random choice uses ``seed``.
+
+    - ``downsample``: keep every N-th frame (the rate is divided by N).
+    - ``gaps``, ``gap_frames``: for each subject, ``gaps`` randomly chosen markers are removed
+      for ``gap_frames`` consecutive frames; one such gap event per subject starts every
+      ``gap_period`` frames (default ``4 * gap_frames``) after ``protect_frames``.
+    - ``dropouts``: fraction of the remaining visible samples dropped as contiguous runs of
+      mean length ``dropout_frames`` (occlusion-like), after ``protect_frames``.
+    - ``ghosts``: mean number of ghost points per frame, each living a few frames 20-100 mm
+      from a random visible marker.
+    - ``jitter_mm``: Gaussian noise (standard deviation, per axis) on every point.
+    - ``shuffle``: permute the points of every frame.
+    - ``protect_frames``: the first frames (after down-sampling) get no gaps, drop-outs or
+      ghosts (the labeler's supervised training window).
+    """
+
+    downsample: int = 1
+    gaps: int = 0
+    gap_frames: int = 20
+    gap_period: int | None = None
+    dropouts: float = 0.0
+    dropout_frames: int = 10
+    ghosts: float = 0.0
+    ghost_life_frames: float = 5.0
+    jitter_mm: float = 0.0
+    shuffle: bool = True
+    protect_frames: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        checks = {
+            "downsample": self.downsample >= 1,
+            "gaps": self.gaps >= 0,
+            "gap_frames": self.gap_frames >= 1,
+            "gap_period": self.gap_period is None or self.gap_period >= self.gap_frames,
+            "dropouts": 0.0 <= self.dropouts < 1.0,
+            "dropout_frames": self.dropout_frames >= 1,
+            "ghosts": self.ghosts >= 0.0 and np.isfinite(self.ghosts),
+            "ghost_life_frames": self.ghost_life_frames >= 1.0,
+            "jitter_mm": self.jitter_mm >= 0.0 and np.isfinite(self.jitter_mm),
+            "protect_frames": self.protect_frames >= 0,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise SceneError(f"invalid corruption setting: {bad[0]}={getattr(self, bad[0])!r}")
+
+
+@dataclass
+class StreamFrame:
+    """One corrupted frame: anonymous points, their true marker index (-1 = ghost), time."""
+
+    index: int
+    t: float
+    points: np.ndarray  # (N, 3) float32
+    truth: np.ndarray  # (N,) int32
+
+
+@dataclass
+class StreamFrames:
+    """A whole corrupted capture, with the truth needed to score a labeler on it."""
+
+    marker_names: tuple[str, ...]
+    rate: float
+    times: np.ndarray  # (F,)
+    points: list[np.ndarray] = field(repr=False)
+    truth: list[np.ndarray] = field(repr=False)
+    positions: np.ndarray = field(repr=False)  # (F, M, 3) true positions, NaN = not captured
+    removed: np.ndarray = field(repr=False)  # (F, M) visible samples removed by gaps/drop-outs
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.points)
+
+
+@dataclass
+class StreamPlan:
+    """The truth behind a corrupted stream: marker positions, what was removed, the rate."""
+
+    marker_cols: np.ndarray
+    ghost_cols: np.ndarray
+    positions: np.ndarray  # (F, M, 3) markers only
+    ghost_positions: np.ndarray  # (F, G, 3) ghost tracks already in the capture
+    removed: np.ndarray  # (F, M)
+    rate: float
+    marker_names: tuple[str, ...]
+
+
+def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> StreamPlan:
+    cap = capture.frames(step=spec.downsample) if spec.downsample > 1 else capture
+    if cap.n_frames == 0:
+        raise SceneError(f"{capture.source or 'capture'}: no frames left after down-sampling")
+    ghost = cap.ghost_mask
+    marker_cols = np.flatnonzero(~ghost)
+    ghost_cols = np.flatnonzero(ghost)
+    positions = cap.positions[:, marker_cols]
+    visible = ~np.isnan(positions).any(axis=2)
+    n_frames, n_markers = visible.shape
+    removed = np.zeros_like(visible)
+    start = min(spec.protect_frames, n_frames)
+    names = tuple(cap.labels[i] for i in marker_cols)
+
+    if spec.gaps > 0:
+        period = spec.gap_period or 4 * spec.gap_frames
+        sub = Capture(positions, names, cap.rate)
+        for subject in sub.subjects:
+            cols = sub.subject_columns(subject)
+            k = min(spec.gaps, cols.size)
+            for f0 in range(start, n_frames - spec.gap_frames + 1, period):
+                chosen = rng.choice(cols, size=k, replace=False)
+                removed[f0 : f0 + spec.gap_frames, chosen] = True
+
+    if spec.dropouts > 0.0 and n_frames > start:
+        span = n_frames - start
+        runs = int(round(spec.dropouts * span * n_markers / spec.dropout_frames))
+        lengths = rng.geometric(1.0 / spec.dropout_frames, size=runs)
+        firsts = rng.integers(start, n_frames, size=runs)
+        cols = rng.integers(0, n_markers, size=runs)
+        for f0, n, m in zip(firsts, lengths, cols, strict=True):
+            removed[f0 : f0 + n, m] = True
+
+    removed &= visible
+    return StreamPlan(
+        marker_cols=marker_cols,
+        ghost_cols=ghost_cols,
+        positions=positions,
+        ghost_positions=cap.positions[:, ghost_cols],
+        removed=removed,
+        rate=cap.rate,
+        marker_names=names,
+    )
+
+
+def _ghost_births(
+    spec: CorruptionSpec, rng: np.random.Generator, anchors: np.ndarray, n_alive: int
+) -> np.ndarray:
+    """New ghost points for this frame (positions), keeping the mean count near ``ghosts``."""
+    if anchors.shape[0] == 0:
+        return np.empty((0, 3), dtype=np.float32)
+    rate = spec.ghosts / spec.ghost_life_frames
+    n = int(rng.poisson(rate))
+    if n_alive == 0 and spec.ghosts > 0 and rng.random() < 0.1:
+        n = max(n, 1)
+    if n == 0:
+        return np.empty((0, 3), dtype=np.float32)
+    base = anchors[rng.integers(0, anchors.shape[0], size=n)]
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    radius = rng.uniform(20.0, 100.0, size=(n, 1))
+    return (base + direction * radius).astype(np.float32)
+
+
+def iter_stream(
+    capture: Capture, spec: CorruptionSpec | None = None
+) -> tuple[StreamPlan, Iterator[StreamFrame]]:
+    """The corruption plan (truth) and a lazy iterator of corrupted frames."""
+    spec = spec or CorruptionSpec()
+    rng = np.random.default_rng(spec.seed)
+    plan = _plan(capture, spec, rng)
+
+    def frames() -> Iterator[StreamFrame]:
+        # Ghosts alive: position (G,3), drift per frame (G,3), frames left (G,)
+        g_pos = np.empty((0, 3), dtype=np.float32)
+        g_vel = np.empty((0, 3), dtype=np.float32)
+        g_left = np.empty((0,), dtype=np.int64)
+        for f in range(plan.positions.shape[0]):
+            keep = ~np.isnan(plan.positions[f]).any(axis=1) & ~plan.removed[f]
+            idx = np.flatnonzero(keep).astype(np.int32)
+            pts = [plan.positions[f, idx]]
+            truth = [idx]
+            gp = plan.ghost_positions[f]
+            gp = gp[~np.isnan(gp).any(axis=1)]
+            if gp.shape[0]:
+                pts.append(gp)
+                truth.append(np.full(gp.shape[0], -1, dtype=np.int32))
+            if spec.ghosts > 0 and f >= spec.protect_frames:
+                if g_left.size:
+                    g_pos = g_pos + g_vel
+                    alive = g_left > 0
+                    g_pos, g_vel, g_left = g_pos[alive], g_vel[alive], g_left[alive] - 1
+                born = _ghost_births(spec, rng, plan.positions[f, idx], g_left.size)
+                if born.shape[0]:
+                    g_pos = np.concatenate([g_pos, born])
+                    g_vel = np.concatenate(
+                        [g_vel, rng.normal(0.0, 2.0, size=born.shape).astype(np.float32)]
+                    )
+                    life = rng.geometric(1.0 / spec.ghost_life_frames, size=born.shape[0])
+                    g_left = np.concatenate([g_left, life - 1])
+                if g_pos.shape[0]:
+                    pts.append(g_pos)
+                    truth.append(np.full(g_pos.shape[0], -1, dtype=np.int32))
+            points = np.concatenate(pts).astype(np.float32, copy=False)
+            labels = np.concatenate(truth).astype(np.int32, copy=False)
+            if spec.jitter_mm > 0:
+                points = points + rng.normal(0.0, spec.jitter_mm, size=points.shape).astype(
+                    np.float32
+                )
+            if spec.shuffle and points.shape[0] > 1:
+                order = rng.permutation(points.shape[0])
+                points, labels = points[order], labels[order]
+            yield StreamFrame(
+                index=f,
+                t=f / plan.rate,
+                points=np.ascontiguousarray(points, dtype=np.float32),
+                truth=labels,
+            )
+
+    return plan, frames()
+
+
+def corrupt(capture: Capture, spec: CorruptionSpec | None = None) -> StreamFrames:
+    """All corrupted frames of ``capture`` at once, with their truth."""
+    plan, frames = iter_stream(capture, spec)
+    points, truth = [], []
+    for fr in frames:
+        points.append(fr.points)
+        truth.append(fr.truth)
+    n = len(points)
+    return StreamFrames(
+        marker_names=plan.marker_names,
+        rate=plan.rate,
+        times=np.arange(n, dtype=np.float64) / plan.rate,
+        points=points,
+        truth=truth,
+        positions=plan.positions,
+        removed=plan.removed,
+    )

@@ -1,0 +1,88 @@
+"""Seeded corruptions: shuffle, gaps with truth, drop-outs, ghosts, down-sampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from synthetic import moving_clusters
+
+from labeler_service.capture import Capture
+from labeler_service.errors import SceneError
+from labeler_service.scenes.corrupt import CorruptionSpec, corrupt, iter_stream
+
+
+def test_shuffle_keeps_points_and_truth(rng) -> None:
+    cap = moving_clusters(rng)
+    s = corrupt(cap, CorruptionSpec(seed=3))
+    assert s.n_frames == cap.n_frames and s.marker_names == cap.labels
+    for f in (0, 50, 119):
+        np.testing.assert_array_equal(s.points[f], cap.positions[f, s.truth[f]])
+    # Shuffled: the order is not the column order in general.
+    assert any(not np.array_equal(t, np.sort(t)) for t in s.truth[:10])
+
+
+def test_seeded_and_reproducible(rng) -> None:
+    cap = moving_clusters(rng)
+    spec = CorruptionSpec(gaps=1, gap_frames=5, ghosts=2.0, jitter_mm=0.5, seed=9)
+    a, b = corrupt(cap, spec), corrupt(cap, spec)
+    for f in range(cap.n_frames):
+        np.testing.assert_array_equal(a.points[f], b.points[f])
+    c = corrupt(cap, CorruptionSpec(gaps=1, gap_frames=5, ghosts=2.0, jitter_mm=0.5, seed=10))
+    assert any(
+        a.points[f].shape != c.points[f].shape or not np.array_equal(a.points[f], c.points[f])
+        for f in range(cap.n_frames)
+    )
+
+
+def test_gaps_remove_contiguous_runs_after_protected_window(rng) -> None:
+    cap = moving_clusters(rng, frames=200)
+    s = corrupt(cap, CorruptionSpec(gaps=2, gap_frames=10, protect_frames=30, seed=1))
+    assert not s.removed[:30].any()
+    # Every gap event removes 2 markers per subject for 10 frames.
+    per_frame = s.removed.sum(axis=1)
+    assert set(np.unique(per_frame[30:])) <= {0, 4}
+    assert per_frame[30:40].tolist() == [4] * 10
+    for f in range(30, 200):
+        gone = np.flatnonzero(s.removed[f])
+        assert not np.isin(gone, s.truth[f]).any()
+    # Truth of removed samples is kept for recovery scoring.
+    assert np.isfinite(s.positions[s.removed]).all()
+
+
+def test_ghosts_average_near_requested_rate(rng) -> None:
+    cap = moving_clusters(rng, frames=600)
+    s = corrupt(cap, CorruptionSpec(ghosts=3.0, protect_frames=50, seed=2))
+    n_ghosts = np.array([(t < 0).sum() for t in s.truth])
+    assert n_ghosts[:50].sum() == 0
+    assert 1.5 < n_ghosts[50:].mean() < 4.5
+    # Ghosts lie near the performers: within 150 mm of some true marker.
+    f = int(np.argmax(n_ghosts))
+    g = s.points[f][s.truth[f] < 0]
+    d = np.linalg.norm(g[:, None] - cap.positions[f][None], axis=2).min(axis=1)
+    assert (d < 150).all()
+
+
+def test_downsample_and_dropouts(rng) -> None:
+    cap = moving_clusters(rng, frames=400)
+    s = corrupt(cap, CorruptionSpec(downsample=4, dropouts=0.1, seed=4))
+    assert s.n_frames == 100 and s.rate == pytest.approx(30.0)
+    assert 0.03 < s.removed.mean() < 0.2
+    np.testing.assert_allclose(s.positions[1], cap.positions[4])
+
+
+def test_ghost_columns_are_fed_with_truth_minus_one(rng) -> None:
+    cap = moving_clusters(rng, subjects=1, frames=20)
+    ghost = np.full((20, 1, 3), np.nan, dtype=np.float32)
+    ghost[5:8, 0] = [0.0, 0.0, 500.0]
+    both = Capture.concat_markers([cap, Capture(ghost, ("*0",), cap.rate)])
+    plan, frames = iter_stream(both, CorruptionSpec(seed=0))
+    assert plan.marker_names == cap.labels
+    counts = [int((fr.truth < 0).sum()) for fr in frames]
+    assert counts[5:8] == [1, 1, 1] and sum(counts) == 3
+
+
+def test_bad_settings_raise() -> None:
+    with pytest.raises(SceneError, match="downsample"):
+        CorruptionSpec(downsample=0)
+    with pytest.raises(SceneError, match="ghosts"):
+        CorruptionSpec(ghosts=-1)
