@@ -1,0 +1,377 @@
+"""Wire protocol v1: msgpack maps, one frame per UDP datagram or MQTT message.
+
+Every message is a map with ``v`` (= 1) and ``type``. Arrays travel as raw little-endian bytes
+(``ndarray.tobytes()``), so encoding and decoding never loop over markers in Python.
+
+=============  =========  ==================================================================
+type           direction  keys (besides ``v``, ``type``)
+=============  =========  ==================================================================
+``frame``      in         ``stream``, ``seq`` (uint), ``t`` (s), ``points`` (N*3 float32),
+                          optional ``labels`` (N x str|nil), optional ``sent`` (ns, sender)
+``subscribe``  in (UDP)   ``stream`` (name or ``*``) — registers/renews a UDP subscriber
+``model``      out        ``stream``, ``model`` (id), ``names`` (M), ``subjects``
+                          ([name, start, count]...), ``rate``
+``labeled``    out        ``stream``, ``model``, ``seq``, ``t``, ``positions`` (M*3 float32),
+                          ``state`` (M uint8), ``unlabeled`` (K*3 float32), ``src`` (input
+                          ``sent`` or nil), ``recv``, ``sent`` (ns), ``proc_us``
+``status``     out        ``stream``, ``state`` (starting/online/offline), ``time`` (s)
+=============  =========  ==================================================================
+
+``type`` may be omitted on input frames (DESIGN.md's minimal frame). Validation happens here,
+once: :func:`decode` either returns a typed message with finite, correctly shaped arrays or
+raises :class:`~labeler_service.errors.ProtocolError` whose ``reason`` tags the drop metric.
+``docs/protocol.md`` has a byte-level example.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+
+from labeler_service.errors import ProtocolError
+
+VERSION = 1
+#: Stream names become MQTT topic levels: letters, digits, ``_ . -``; 1-64 characters.
+STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+_F32 = np.dtype("<f4")
+_U8 = np.dtype("u1")
+_U64_MAX = 2**64 - 1
+
+#: The reasons a message is rejected (drop-metric label values).
+REJECT_REASONS = (
+    "oversize",
+    "not_msgpack",
+    "not_map",
+    "version",
+    "type",
+    "stream",
+    "seq",
+    "time",
+    "points",
+    "non_finite",
+    "too_many_points",
+    "labels",
+    "field",
+)
+
+
+@dataclass(slots=True)
+class FrameMsg:
+    """An unlabeled (or, in the training window, labeled) input frame."""
+
+    stream: str
+    seq: int
+    t: float
+    points: np.ndarray  # (N, 3) float32, finite
+    labels: tuple[str | None, ...] | None = None
+    sent: int | None = None  # sender wall clock, ns since the epoch
+
+
+@dataclass(slots=True)
+class SubscribeMsg:
+    stream: str  # a name or "*"
+
+
+@dataclass(slots=True)
+class ModelMsg:
+    stream: str
+    model: int
+    names: tuple[str, ...]
+    subjects: tuple[tuple[str, int, int], ...]
+    rate: float
+
+
+@dataclass(slots=True)
+class LabeledMsg:
+    stream: str
+    model: int
+    seq: int
+    t: float
+    positions: np.ndarray  # (M, 3) float32, NaN = missing
+    state: np.ndarray  # (M,) uint8 MarkerState
+    unlabeled: np.ndarray  # (K, 3) float32
+    src: int | None
+    recv: int
+    sent: int
+    proc_us: float
+
+
+@dataclass(slots=True)
+class StatusMsg:
+    stream: str
+    state: str
+    time: float
+
+
+Message = FrameMsg | SubscribeMsg | ModelMsg | LabeledMsg | StatusMsg
+_STATUS_STATES = ("starting", "online", "offline")
+
+
+# ----------------------------------------------------------------------------- encoding
+def _pack(obj: dict) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def encode_frame(
+    stream: str,
+    seq: int,
+    t: float,
+    points: np.ndarray,
+    labels: list[str | None] | tuple[str | None, ...] | None = None,
+    sent: int | None = None,
+) -> bytes:
+    """An input frame. ``sent`` defaults to now (``time.time_ns()``) for latency measurement."""
+    msg: dict = {
+        "v": VERSION,
+        "type": "frame",
+        "stream": stream,
+        "seq": int(seq),
+        "t": float(t),
+        "points": np.ascontiguousarray(points, dtype=_F32).tobytes(),
+        "sent": time.time_ns() if sent is None else int(sent),
+    }
+    if labels is not None:
+        msg["labels"] = list(labels)
+    return _pack(msg)
+
+
+def encode_subscribe(stream: str = "*") -> bytes:
+    return _pack({"v": VERSION, "type": "subscribe", "stream": stream})
+
+
+def encode_model(
+    stream: str,
+    model: int,
+    names: tuple[str, ...],
+    subjects: tuple[tuple[str, int, int], ...],
+    rate: float,
+) -> bytes:
+    return _pack(
+        {
+            "v": VERSION,
+            "type": "model",
+            "stream": stream,
+            "model": int(model),
+            "names": list(names),
+            "subjects": [list(s) for s in subjects],
+            "rate": float(rate),
+        }
+    )
+
+
+def encode_labeled(
+    stream: str,
+    model: int,
+    seq: int,
+    t: float,
+    positions: np.ndarray,
+    state: np.ndarray,
+    unlabeled: np.ndarray,
+    src: int | None,
+    recv: int,
+    proc_us: float,
+    sent: int | None = None,
+) -> bytes:
+    """A labeled frame; ``sent`` defaults to now, stamped just before packing."""
+    return _pack(
+        {
+            "v": VERSION,
+            "type": "labeled",
+            "stream": stream,
+            "model": int(model),
+            "seq": int(seq),
+            "t": float(t),
+            "positions": np.ascontiguousarray(positions, dtype=_F32).tobytes(),
+            "state": np.ascontiguousarray(state, dtype=_U8).tobytes(),
+            "unlabeled": np.ascontiguousarray(unlabeled, dtype=_F32).tobytes(),
+            "src": src,
+            "recv": int(recv),
+            "sent": time.time_ns() if sent is None else int(sent),
+            "proc_us": float(proc_us),
+        }
+    )
+
+
+def encode_status(stream: str, state: str, when: float | None = None) -> bytes:
+    if state not in _STATUS_STATES:
+        raise ValueError(f"status state must be one of {_STATUS_STATES}, got {state!r}")
+    return _pack(
+        {
+            "v": VERSION,
+            "type": "status",
+            "stream": stream,
+            "state": state,
+            "time": time.time() if when is None else float(when),
+        }
+    )
+
+
+def labeled_size_bound(n_markers: int, n_unlabeled: int, stream: str = "x" * 64) -> int:
+    """Upper bound of an encoded labeled frame's size in bytes (docs/protocol.md, UDP cap)."""
+    # 13 bytes per marker (12 position + 1 state), 12 per unlabeled point; fixed keys and
+    # scalars stay under 200 bytes, plus the stream name and three bin headers (5 bytes each).
+    return 13 * n_markers + 12 * n_unlabeled + len(stream.encode()) + 200 + 15
+
+
+# ----------------------------------------------------------------------------- decoding
+def _reject(reason: str, message: str) -> ProtocolError:
+    return ProtocolError(message, reason=reason)
+
+
+def _get_stream(m: dict, wildcard: bool = False) -> str:
+    s = m.get("stream", "default")
+    if wildcard and s == "*":
+        return s
+    if not isinstance(s, str) or not STREAM_NAME.match(s):
+        raise _reject("stream", f"bad stream name {s!r}")
+    return s
+
+
+def _get_uint(m: dict, key: str, reason: str) -> int:
+    v = m.get(key)
+    if not isinstance(v, int) or isinstance(v, bool) or not 0 <= v <= _U64_MAX:
+        raise _reject(reason, f"{key} must be an unsigned integer, got {v!r}")
+    return v
+
+
+def _get_float(m: dict, key: str, reason: str) -> float:
+    v = m.get(key)
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise _reject(reason, f"{key} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _get_array(m: dict, key: str, dtype: np.dtype, width: int, max_rows: int) -> np.ndarray:
+    b = m.get(key)
+    if not isinstance(b, bytes):
+        raise _reject("points", f"{key} must be raw bytes, got {type(b).__name__}")
+    item = dtype.itemsize * width
+    if len(b) % item:
+        raise _reject("points", f"{key}: {len(b)} bytes is not a multiple of {item}")
+    n = len(b) // item
+    if n > max_rows:
+        raise _reject("too_many_points", f"{key}: {n} rows exceeds the cap of {max_rows}")
+    a = np.frombuffer(b, dtype=dtype)
+    return a.reshape(n, width) if width > 1 else a
+
+
+def _decode_frame(m: dict, max_points: int) -> FrameMsg:
+    stream = _get_stream(m)
+    seq = _get_uint(m, "seq", "seq")
+    t = _get_float(m, "t", "time")
+    points = _get_array(m, "points", _F32, 3, max_points)
+    if not np.isfinite(points).all():
+        raise _reject("non_finite", "points contain NaN or infinity")
+    labels = m.get("labels")
+    if labels is not None:
+        if not isinstance(labels, list) or len(labels) != len(points):
+            raise _reject("labels", f"labels must be a list of {len(points)} entries")
+        for lab in labels:
+            if lab is not None and not (isinstance(lab, str) and 0 < len(lab) <= 128):
+                raise _reject("labels", f"label {lab!r} must be a string or nil")
+        labels = tuple(labels)
+    sent = m.get("sent")
+    if sent is not None:
+        sent = _get_uint(m, "sent", "field")
+    return FrameMsg(stream, seq, t, points.astype(np.float32), labels, sent)
+
+
+def _decode_model(m: dict) -> ModelMsg:
+    names = m.get("names")
+    subjects = m.get("subjects")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise _reject("field", "model names must be a list of strings")
+    if not isinstance(subjects, list):
+        raise _reject("field", "model subjects must be a list")
+    subj: list[tuple[str, int, int]] = []
+    for s in subjects:
+        ok = isinstance(s, list) and len(s) == 3 and isinstance(s[0], str)
+        if not ok or not all(isinstance(x, int) and x >= 0 for x in s[1:]):
+            raise _reject("field", f"model subject entry {s!r} must be [name, start, count]")
+        if s[1] + s[2] > len(names):
+            raise _reject("field", f"model subject {s[0]!r} runs past the marker list")
+        subj.append((s[0], s[1], s[2]))
+    return ModelMsg(
+        _get_stream(m),
+        _get_uint(m, "model", "field"),
+        tuple(names),
+        tuple(subj),
+        _get_float(m, "rate", "field"),
+    )
+
+
+def _decode_labeled(m: dict, max_points: int) -> LabeledMsg:
+    positions = _get_array(m, "positions", _F32, 3, 1 << 20)
+    state = _get_array(m, "state", _U8, 1, 1 << 20)
+    if len(state) != len(positions):
+        raise _reject("points", f"{len(state)} states for {len(positions)} markers")
+    src = m.get("src")
+    if src is not None:
+        src = _get_uint(m, "src", "field")
+    return LabeledMsg(
+        _get_stream(m),
+        _get_uint(m, "model", "field"),
+        _get_uint(m, "seq", "seq"),
+        _get_float(m, "t", "time"),
+        positions,
+        state,
+        _get_array(m, "unlabeled", _F32, 3, max_points),
+        src,
+        _get_uint(m, "recv", "field"),
+        _get_uint(m, "sent", "field"),
+        _get_float(m, "proc_us", "field"),
+    )
+
+
+def _decode_status(m: dict) -> StatusMsg:
+    state = m.get("state")
+    if state not in _STATUS_STATES:
+        raise _reject("field", f"status state must be one of {_STATUS_STATES}, got {state!r}")
+    return StatusMsg(_get_stream(m), state, _get_float(m, "time", "time"))
+
+
+def decode(payload: bytes, max_points: int = 2000, max_bytes: int = 65_507) -> Message:
+    """Decodes and validates one message; raises :class:`ProtocolError` with a ``reason``.
+
+    Checks, in order: size (``oversize``), msgpack (``not_msgpack``), a map (``not_map``),
+    ``v == 1`` (``version``), a known ``type`` (``type``), then the type's fields: stream name,
+    ``seq`` an unsigned int, ``t`` finite, ``points`` a whole number of float32 triples
+    (``points``) no more than ``max_points`` (``too_many_points``) all finite (``non_finite``),
+    ``labels`` one string-or-nil per point (``labels``).
+    """
+    if len(payload) > max_bytes:
+        raise _reject("oversize", f"message of {len(payload)} bytes exceeds {max_bytes}")
+    try:
+        m = msgpack.unpackb(
+            payload,
+            raw=False,
+            strict_map_key=True,
+            max_str_len=1 << 16,
+            max_bin_len=max_bytes,
+            max_array_len=1 << 16,
+            max_map_len=64,
+            max_ext_len=0,
+        )
+    except Exception as exc:  # msgpack raises several unrelated types for bad input
+        raise _reject("not_msgpack", f"not a msgpack message: {exc}") from exc
+    if not isinstance(m, dict):
+        raise _reject("not_map", f"message must be a map, got {type(m).__name__}")
+    if m.get("v") != VERSION or isinstance(m.get("v"), bool):
+        raise _reject("version", f"unsupported protocol version {m.get('v')!r}")
+    kind = m.get("type", "frame")
+    if kind == "frame":
+        return _decode_frame(m, max_points)
+    if kind == "labeled":
+        return _decode_labeled(m, max_points)
+    if kind == "model":
+        return _decode_model(m)
+    if kind == "status":
+        return _decode_status(m)
+    if kind == "subscribe":
+        return SubscribeMsg(_get_stream(m, wildcard=True))
+    raise _reject("type", f"unknown message type {kind!r}")

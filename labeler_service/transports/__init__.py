@@ -1,0 +1,1 @@
+"""Transports: the interface (``base``), in-memory (tests), UDP and MQTT."""

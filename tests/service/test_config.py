@@ -1,0 +1,72 @@
+"""Settings: file + MOCAP_ environment precedence, and clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from labeler_service.config import load_settings
+from labeler_service.errors import ConfigError
+
+
+def test_defaults_bind_udp_to_loopback_and_use_the_online_labeler(monkeypatch):
+    for k in list(__import__("os").environ):
+        if k.startswith("MOCAP_"):
+            monkeypatch.delenv(k)
+    s = load_settings()
+    assert s.udp.host == "127.0.0.1" and s.udp.enabled and not s.mqtt.enabled
+    assert s.labeler == "online"
+    assert [x.name for x in s.streams] == ["default"]
+
+
+def test_environment_overrides_the_file(tmp_path, monkeypatch):
+    f = tmp_path / "s.toml"
+    f.write_text('queue_size = 8\n[udp]\nport = 1111\n[mqtt]\nhost = "broker"\n'
+                 '[[streams]]\nname = "vol1"\nrate = 240\n')  # fmt: skip
+    monkeypatch.setenv("MOCAP_UDP__PORT", "2222")
+    monkeypatch.setenv("MOCAP_MQTT__ENABLED", "true")
+    s = load_settings(f)
+    assert s.udp.port == 2222 and s.mqtt.enabled and s.mqtt.host == "broker"
+    assert s.queue_size == 8 and s.streams[0].name == "vol1" and s.streams[0].rate == 240
+
+
+def test_json_file_and_labeler_config_embedding(tmp_path):
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"labeler_config": {"K": 3}, "labeler": "baseline"}))
+    s = load_settings(f)
+    assert s.labeler_config.K == 3 and s.labeler == "baseline"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "needle"),
+    [
+        ({"queue_size": 0}, "queue_size"),
+        ({"udp": {"port": 70000}}, "udp.port"),
+        ({"udp": {"publish_to": ["nohost"]}}, "host:port"),
+        ({"streams": [{"name": "a/b"}]}, "streams.0.name"),
+        ({"streams": [{"name": "a"}, {"name": "a"}]}, "repeated: a"),
+        ({"streams": [{"name": "a", "model": "/nonexistent.json"}]}, "does not exist"),
+        ({"labeler": "magic"}, "labeler"),
+        ({"labeler_config": {"K": 0}}, "labeler_config.K"),
+        ({"mqtt": {"ca_file": "/nonexistent.pem"}}, "mqtt.ca_file"),
+        ({"bogus": 1}, "bogus"),
+    ],
+)
+def test_invalid_settings_raise_config_error_naming_the_field(overrides, needle):
+    with pytest.raises(ConfigError, match="invalid service settings") as info:
+        load_settings(**overrides)
+    assert needle in str(info.value)
+
+
+def test_unreadable_files_raise_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_settings(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[udp\n")
+    with pytest.raises(ConfigError, match="cannot be parsed"):
+        load_settings(bad)
+    other = tmp_path / "s.yaml"
+    other.write_text("a: 1")
+    with pytest.raises(ConfigError, match="use .toml or .json"):
+        load_settings(other)

@@ -1,0 +1,327 @@
+"""Server logic over the in-memory transport: start-up modes, drops by reason, backpressure,
+status, shutdown, and a fuzz of the ingest loop."""
+
+from __future__ import annotations
+
+import asyncio
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads
+
+from labeler_service.config import load_settings
+from labeler_service.model import LabelerModel, save_model
+from labeler_service.protocol import LabeledMsg, ModelMsg, StatusMsg, decode, encode_frame
+from labeler_service.server import Server
+from labeler_service.stream import make_labeler
+from labeler_service.structure import train_subject
+from labeler_service.transports.memory import MemoryTransport
+
+
+def _settings(**over):
+    base = {"labeler": "baseline", "metrics_port": None, "warmup": True, "queue_size": 256}
+    base.update(over)
+    return load_settings(**base)
+
+
+async def _feed(mem, payloads, pause=0.0):
+    for p in payloads:
+        mem.inject(p)
+        await asyncio.sleep(pause)
+
+
+async def _labeled(mem, n, timeout=10.0):
+    out = []
+    while len(out) < n:
+        msg = decode(await mem.next_sent("labeled", timeout))
+        out.append(msg)
+    return out
+
+
+def test_stream_starts_from_labeled_init_frames_and_labels_correctly(rng):
+    cap = moving_clusters(rng, subjects=3, markers=5, frames=120)
+    frames = frames_of(cap, np.random.default_rng(3))
+    payloads = [
+        encode_frame("default", f, f / cap.rate, p, [cap.labels[i] for i in t] if f < 30 else None)
+        for f, (p, t) in enumerate(frames)
+    ]
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(), [mem]) as srv:
+            await _feed(mem, payloads, pause=0.001)
+            got = await _labeled(mem, 90)
+            models = [decode(p) for s, k, p, _ in mem.sent if k == "model"]
+            first_model = next(i for i, x in enumerate(mem.sent) if x[1] == "model")
+            first_labeled = next(i for i, x in enumerate(mem.sent) if x[1] == "labeled")
+            return srv.metrics.snapshot(), got, models, first_model < first_labeled
+
+    snap, got, models, model_first = run(go())
+    assert model_first, "the model message must precede the first labeled frame"
+    model = models[0]
+    assert isinstance(model, ModelMsg) and len(model.names) == 15
+    assert [s[0] for s in model.subjects] == ["S0", "S1", "S2"]
+    assert [m.seq for m in got] == list(range(30, 120))
+    correct = 0
+    for m in got:
+        pts, truth = frames[m.seq]
+        for j, name in enumerate(model.names):
+            if m.state[j] == 1:
+                i = np.flatnonzero((pts == m.positions[j]).all(axis=1))
+                correct += int(cap.labels[truth[i[0]]] == name)
+    assert correct == 90 * 15  # clean, well-separated clusters: the baseline is perfect
+    assert snap["streams"]["default"]["frames_out"] == 90
+    assert snap["drops"] == {}
+
+
+def test_stream_starts_from_a_model_file(tmp_path, rng):
+    cap = moving_clusters(rng, subjects=2, markers=5, frames=60)
+    subjects = []
+    for s in cap.subjects:
+        cols = cap.subject_columns(s)
+        markers = [cap.labels[c].split(":")[1] for c in cols]
+        subjects.append(train_subject(s, markers, cap.positions[:, cols], cap.rate))
+    path = tmp_path / "model.json"
+    save_model(LabelerModel(rate=cap.rate, subjects=subjects), path)
+    calls = []
+
+    def factory(kind, names, rate, config, model_path=None):
+        calls.append((names, rate, model_path))
+        return make_labeler("baseline", names, rate, config, model_path=model_path)
+
+    async def go():
+        mem = MemoryTransport()
+        s = _settings(streams=[{"name": "vol", "model": str(path)}])
+        async with Server(s, [mem], factory=factory) as srv:
+            model = decode(mem.retained[("vol", "model")])
+            mem.inject(encode_frame("vol", 0, 0.0, cap.positions[0][::-1].copy()))
+            got = await _labeled(mem, 1)
+            return srv, model, got
+
+    srv, model, got = run(go())
+    assert calls[-1] == ((), cap.rate, path)  # calls[0]: the synthetic warm-up labeler
+    assert model.names == cap.labels and model.rate == cap.rate
+    assert got[0].seq == 0 and got[0].positions.shape == (10, 3)
+
+
+def test_malformed_messages_are_counted_by_reason_and_the_stream_survives(rng):
+    cap = moving_clusters(rng, frames=80)
+    good = stream_payloads(cap, rng, init=20)
+    bad = {
+        "not_msgpack": b"\xc1\xc1",
+        "version": msgpack.packb({"v": 9, "stream": "default", "seq": 1, "t": 0, "points": b""}),
+        "non_finite": encode_frame("default", 10_000, 0.0, np.array([[np.nan, 0, 0]], np.float32)),
+        "too_many_points": encode_frame("default", 10_001, 0.0, np.zeros((50, 3), np.float32)),
+        "points": msgpack.packb({"v": 1, "seq": 1, "t": 0, "points": b"\x00" * 5}),
+        "oversize": b"\x00" * 70_000,
+    }
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(max_points=40), [mem]) as srv:
+            await _feed(mem, good[:40], pause=0.001)
+            for p in bad.values():
+                mem.inject(p)
+            await _feed(mem, good[40:], pause=0.001)
+            got = await _labeled(mem, 60)
+            return srv.metrics, got
+
+    metrics, got = run(go())
+    for reason in bad:
+        assert metrics.drops(reason) == 1, reason
+    assert [m.seq for m in got] == list(range(20, 80))
+    assert all((m.state == 1).all() for m in got)  # labeling continued unharmed
+
+
+def test_duplicate_and_late_seq_are_dropped_and_gaps_counted(rng):
+    cap = moving_clusters(rng, frames=60)
+    p = stream_payloads(cap, rng, init=10)
+    order = p[:20] + [p[19], p[15]] + p[25:]  # duplicate 19, late 15, gap 20..24
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(), [mem]) as srv:
+            await _feed(mem, order, pause=0.001)
+            got = await _labeled(mem, 10 + 35)
+            return srv.metrics, got
+
+    metrics, got = run(go())
+    assert metrics.drops("duplicate") == 1 and metrics.drops("late") == 1
+    assert metrics.value("mocap_seq_gap_frames_total", stream="default") == 5
+    assert [m.seq for m in got] == list(range(10, 20)) + list(range(25, 60))
+
+
+def test_a_restarted_sender_is_accepted_after_a_large_seq_jump_back(rng):
+    cap = moving_clusters(rng, frames=40)
+    first = stream_payloads(cap, rng, init=10, seq0=5000)
+    again = stream_payloads(cap, rng, init=10, seq0=0)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(), [mem]) as srv:
+            await _feed(mem, first + again, pause=0.001)
+            got = await _labeled(mem, 30 + 40)  # labeled frames of a started stream are output
+            return srv.metrics, got
+
+    metrics, got = run(go())
+    assert metrics.drops() == 0
+    assert [m.seq for m in got[30:]] == list(range(40))
+
+
+def test_falling_behind_keeps_the_newest_frames_and_counts_drops(rng):
+    cap = moving_clusters(rng, frames=200)
+    p = stream_payloads(cap, rng, init=5)
+
+    def factory(kind, names, rate, config, model_path=None):
+        return SlowLabeler(names, rate, delay_s=0.004)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(queue_size=4), [mem], factory=factory) as srv:
+            await _feed(mem, p[:6], pause=0.01)  # init + first unlabeled (trains)
+            await _labeled(mem, 1)
+            mem.inject(b"")  # a reject in between must not disturb the queue
+            for x in p[6:]:  # 194 frames in one burst, no yield in between
+                mem.inject(x)
+            depth = len(srv._queues["default"])
+            got = await _labeled(mem, 4)  # at most queue_size remain after the burst
+            await asyncio.sleep(0.1)
+            return srv.metrics, got, depth
+
+    metrics, got, depth = run(go())
+    assert depth <= 4
+    assert metrics.drops("queue_full") == 194 - 4
+    assert [m.seq for m in got] == [196, 197, 198, 199]  # the newest survive
+
+
+def test_unknown_streams_no_model_and_labeler_failures_are_counted(rng):
+    cap = moving_clusters(rng, frames=40)
+    p = stream_payloads(cap, rng, init=10)
+    fails = {12, 13}
+
+    def factory(kind, names, rate, config, model_path=None):
+        return SlowLabeler(names, rate, fail_on=fails)
+
+    async def go():
+        mem = MemoryTransport()
+        s = _settings(allow_new_streams=False, warmup=False,
+                      streams=[{"name": "default"}, {"name": "empty"}])  # fmt: skip
+        async with Server(s, [mem], factory=factory) as srv:
+            mem.inject(encode_frame("other", 0, 0.0, np.zeros((1, 3), np.float32)))
+            mem.inject(encode_frame("empty", 0, 0.0, np.zeros((1, 3), np.float32)))
+            await _feed(mem, p, pause=0.001)
+            got = await _labeled(mem, 30 - len(fails))
+            return srv.metrics, got
+
+    metrics, got = run(go())
+    assert metrics.drops("unknown_stream") == 1
+    assert metrics.drops("no_model") == 1
+    assert metrics.drops("labeler_error") == 2
+    assert got[-1].seq == 39
+
+
+def test_status_is_retained_online_then_offline_and_tasks_end(rng):
+    async def go():
+        mem = MemoryTransport()
+        srv = Server(_settings(streams=[{"name": "a"}, {"name": "b"}]), [mem])
+        async with srv:
+            online = {s: decode(mem.retained[(s, "status")]).state for s in ("a", "b")}
+            tasks = list(srv._tasks)
+            assert srv.ready.is_set()
+        offline = {s: decode(mem.retained[(s, "status")]).state for s in ("a", "b")}
+        states = [decode(p).state for s, k, p, _ in mem.sent if k == "status" and s == "a"]
+        return online, offline, states, tasks, mem
+
+    online, offline, states, tasks, mem = run(go())
+    assert online == {"a": "online", "b": "online"}
+    assert offline == {"a": "offline", "b": "offline"}
+    assert states == ["starting", "online", "offline"]
+    assert all(t.done() for t in tasks) and mem.closed
+
+
+def test_warmup_runs_before_ready_and_send_failures_are_counted(rng):
+    calls = []
+
+    def factory(kind, names, rate, config, model_path=None):
+        calls.append(names)
+        return make_labeler("baseline", names, rate, config)
+
+    cap = moving_clusters(rng, frames=30)
+    p = stream_payloads(cap, rng, init=10)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=True), [mem], factory=factory) as srv:
+            assert len(calls) == 1  # the synthetic warm-up labeler, before ready
+            mem.fail_sends = True
+            await _feed(mem, p, pause=0.001)
+            await asyncio.sleep(0.1)
+            return srv.metrics
+
+    metrics = run(go())
+    assert metrics.drops("send_error") >= 20  # 20 labeled frames (+ model messages)
+    assert metrics.value("mocap_frames_out_total", stream="default") == 0
+
+
+def test_model_message_repeats_every_second(rng):
+    cap = moving_clusters(rng, frames=20)
+    p = stream_payloads(cap, rng, init=10)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_repeat_s=0.1), [mem]):
+            await _feed(mem, p, pause=0.001)
+            await asyncio.sleep(0.55)
+        return [k for _, k, _, _ in mem.sent].count("model")
+
+    assert run(go()) >= 5
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.one_of(st.binary(max_size=64), st.builds(
+    lambda seq, n, stream: encode_frame(stream, seq, seq / 100.0, np.ones((n, 3), np.float32)),
+    st.integers(0, 2**64 - 1), st.integers(0, 5), st.sampled_from(["default", "x", "y"]),
+)), max_size=40))  # fmt: skip
+def test_fuzz_server_loop_survives_anything_and_keeps_labeling(garbage):
+    cap = moving_clusters(np.random.default_rng(0), frames=30)
+    p = stream_payloads(cap, np.random.default_rng(1), init=10, stream="fuzzed")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(), [mem]) as srv:
+            for g in garbage:
+                mem.inject(g)
+            await _feed(mem, p, pause=0.0005)
+            got = await _labeled(mem, 20)
+            return srv, got
+
+    srv, got = run(go(), timeout=30)
+    assert srv.metrics.drops("internal") == 0
+    fuzzed = [m for m in got if m.stream == "fuzzed"]
+    assert [m.seq for m in fuzzed][-1] == 29
+
+
+@pytest.mark.parametrize("kind", ["labeled", "model", "status"])
+def test_outgoing_kinds_sent_to_the_service_are_rejected(kind):
+    from labeler_service.protocol import encode_labeled, encode_model, encode_status
+
+    payload = {
+        "labeled": encode_labeled(
+            "s", 1, 1, 0.0, np.zeros((1, 3)), np.ones(1), np.zeros((0, 3)), None, 1, 1.0
+        ),  # fmt: skip
+        "model": encode_model("s", 1, ("a:x",), (("a", 0, 1),), 100.0),
+        "status": encode_status("s", "online"),
+    }[kind]
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(), [mem]) as srv:
+            mem.inject(payload)
+            await asyncio.sleep(0.05)
+            return srv.metrics.drops("type")
+
+    assert run(go()) == 1
+    assert isinstance(decode(payload), LabeledMsg | ModelMsg | StatusMsg)
