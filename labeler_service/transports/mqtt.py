@@ -1,0 +1,291 @@
+"""MQTT through aiomqtt: the service transport and the tools' client, both reconnecting.
+
+Topics (``topic_prefix`` defaults to ``mocap``): ``mocap/<stream>/unlabeled`` (in),
+``mocap/<stream>/labeled`` (out, QoS 0), ``mocap/<stream>/model`` (out, retained),
+``mocap/<stream>/status`` (out, retained; the connection's last will sets it to ``offline``).
+
+MQTT allows one last will per connection, so the service opens one connection per configured
+stream, each with the will on its own status topic. Reconnection lives outside the client
+(aiomqtt's recipe): :class:`ReconnectingClient` runs ``async with Client(...)`` in a loop with
+exponential backoff (``reconnect_min_s`` doubling to ``reconnect_max_s``), re-subscribes and
+re-publishes the retained payloads after every (re)connect. While the broker is down, labeled
+frames for MQTT are counted as ``send_error`` and UDP keeps flowing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import ssl
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+
+import aiomqtt
+
+from labeler_service.config import MqttSettings
+from labeler_service.protocol import encode_status
+from labeler_service.transports.base import DropOldestQueue, Incoming, iterate_queue
+
+log = logging.getLogger(__name__)
+
+
+def topic(prefix: str, stream: str, kind: str) -> str:
+    return f"{prefix}/{stream}/{kind}"
+
+
+def _tls(settings: MqttSettings) -> aiomqtt.TLSParameters | None:
+    if not settings.tls:
+        return None
+    return aiomqtt.TLSParameters(
+        ca_certs=str(settings.ca_file) if settings.ca_file else None,
+        certfile=str(settings.cert_file) if settings.cert_file else None,
+        keyfile=str(settings.key_file) if settings.key_file else None,
+        cert_reqs=ssl.CERT_NONE if settings.tls_insecure else ssl.CERT_REQUIRED,
+    )
+
+
+class ReconnectingClient:
+    """One MQTT connection kept alive: connect, subscribe, hand messages over, reconnect.
+
+    ``on_message(message, recv_ns)`` is called for every message; ``on_connect(client)`` after
+    every (re)connect and subscription (re-publish retained state there). ``publish`` returns
+    False (and counts ``dropped``) while disconnected instead of waiting.
+    """
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        identifier: str,
+        topics: list[str],
+        on_message: Callable[[aiomqtt.Message, int], None],
+        on_connect: Callable[[aiomqtt.Client], Awaitable[None]] | None = None,
+        will: aiomqtt.Will | None = None,
+    ) -> None:
+        self.settings = settings
+        self.identifier = identifier
+        self.topics = topics
+        self.on_message = on_message
+        self.on_connect = on_connect
+        self.will = will
+        self.client: aiomqtt.Client | None = None
+        self.connected = asyncio.Event()
+        self.connects = 0
+        self.failures = 0
+        self.dropped = 0
+
+    def _make(self) -> aiomqtt.Client:
+        s = self.settings
+        return aiomqtt.Client(
+            s.host,
+            s.port,
+            username=s.username,
+            password=s.password.get_secret_value() if s.password else None,
+            identifier=self.identifier,
+            will=self.will,
+            keepalive=s.keepalive_s,
+            tls_params=_tls(s),
+            tls_insecure=s.tls_insecure if s.tls else None,
+            timeout=5.0,
+        )
+
+    async def run(self) -> None:
+        """Runs until cancelled; never raises for broker trouble."""
+        backoff = self.settings.reconnect_min_s
+        while True:
+            try:
+                async with self._make() as client:
+                    for t in self.topics:
+                        await client.subscribe(t, qos=0)
+                    if self.on_connect is not None:
+                        await self.on_connect(client)
+                    self.client = client
+                    self.connected.set()
+                    self.connects += 1
+                    backoff = self.settings.reconnect_min_s
+                    log.info("mqtt %s: connected to %s:%d", self.identifier, self.settings.host,
+                             self.settings.port)  # fmt: skip
+                    async for message in client.messages:
+                        self.on_message(message, time.time_ns())
+            except aiomqtt.MqttError as exc:
+                self.failures += 1
+                level = logging.WARNING if self.failures <= 3 or self.connects else logging.DEBUG
+                log.log(level, "mqtt %s: %s; retrying in %.1f s", self.identifier, exc, backoff)
+            finally:
+                self.client = None
+                self.connected.clear()
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, self.settings.reconnect_max_s)
+
+    async def publish(self, t: str, payload: bytes, retain: bool = False, qos: int = 0) -> bool:
+        client = self.client
+        if client is None:
+            self.dropped += 1
+            return False
+        try:
+            await client.publish(t, payload, qos=qos, retain=retain, timeout=2.0)
+        except aiomqtt.MqttError:
+            self.dropped += 1
+            return False
+        return True
+
+
+class MqttTransport:
+    """The service's MQTT transport: one :class:`ReconnectingClient` per configured stream."""
+
+    name = "mqtt"
+
+    def __init__(self, settings: MqttSettings, streams: list[str], queue_size: int = 1024):
+        self.settings = settings
+        self.streams = list(streams)
+        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self.retained: dict[tuple[str, str], bytes] = {}
+        self.clients: dict[str, ReconnectingClient] = {}
+        self._tasks: list[asyncio.Task] = []
+        pid = os.getpid()
+        prefix = settings.topic_prefix
+        for s in self.streams:
+            self.clients[s] = ReconnectingClient(
+                settings,
+                identifier=f"{settings.client_id_prefix}-{s}-{pid}",
+                topics=[topic(prefix, s, "unlabeled")],
+                on_message=self._receiver(s),
+                on_connect=self._republisher(s),
+                will=aiomqtt.Will(
+                    topic(prefix, s, "status"), encode_status(s, "offline"), qos=1, retain=True
+                ),
+            )
+
+    def _receiver(self, stream: str) -> Callable[[aiomqtt.Message, int], None]:
+        def receive(message: aiomqtt.Message, recv_ns: int) -> None:
+            payload = message.payload
+            if not isinstance(payload, bytes | bytearray):
+                payload = str(payload if payload is not None else "").encode()
+            self._queue.put(Incoming(bytes(payload), recv_ns, self.name, None, stream))
+
+        return receive
+
+    def _republisher(self, stream: str) -> Callable[[aiomqtt.Client], Awaitable[None]]:
+        async def republish(client: aiomqtt.Client) -> None:
+            for (s, kind), payload in list(self.retained.items()):
+                if s == stream:
+                    await client.publish(
+                        topic(self.settings.topic_prefix, s, kind), payload, qos=1, retain=True
+                    )
+
+        return republish
+
+    @property
+    def received_dropped(self) -> int:
+        return self._queue.dropped
+
+    async def wait_connected(self, timeout: float) -> bool:
+        """True when every stream's connection is up within ``timeout`` seconds."""
+        try:
+            async with asyncio.timeout(timeout):
+                for c in self.clients.values():
+                    await c.connected.wait()
+        except TimeoutError:
+            return False
+        return True
+
+    async def __aenter__(self) -> MqttTransport:
+        for s, c in self.clients.items():
+            self._tasks.append(asyncio.create_task(c.run(), name=f"mqtt-{s}"))
+        # a short grace period so "starting" reaches the broker; no hard dependency on it
+        await self.wait_connected(2.0)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        tasks, self._tasks = self._tasks, []
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    def messages(self) -> AsyncIterator[Incoming]:
+        return iterate_queue(self._queue)
+
+    async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
+        client = self.clients.get(stream)
+        if client is None:
+            return  # a UDP-only stream (not configured for MQTT)
+        if retain:
+            if self.retained.get((stream, kind)) == payload and kind == "model":
+                return  # unchanged and retained by the broker already
+            self.retained[(stream, kind)] = payload
+        ok = await client.publish(
+            topic(self.settings.topic_prefix, stream, kind),
+            payload,
+            retain=retain,
+            qos=1 if kind == "status" else 0,
+        )
+        if not ok and kind == "labeled":
+            raise ConnectionError(f"mqtt: not connected to {self.settings.host}:"
+                                  f"{self.settings.port}")  # fmt: skip
+
+
+class MqttEndpoint:
+    """The tools' side (replay, subscribe): one reconnecting connection to a broker.
+
+    ``publish(kind, payload)`` sends on ``<prefix>/<stream>/<kind>``; ``messages()`` yields what
+    arrives on ``topics`` with the topic's stream in ``Incoming.stream``.
+    """
+
+    name = "mqtt"
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        stream: str,
+        topics: list[str] | None = None,
+        identifier: str | None = None,
+        queue_size: int = 8192,
+    ) -> None:
+        self.settings = settings
+        self.stream = stream
+        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self.client = ReconnectingClient(
+            settings,
+            identifier or f"mocap-tool-{os.getpid()}-{id(self):x}",
+            topics or [],
+            self._receive,
+        )
+        self._task: asyncio.Task | None = None
+
+    def _receive(self, message: aiomqtt.Message, recv_ns: int) -> None:
+        payload = message.payload
+        if not isinstance(payload, bytes | bytearray):
+            return
+        parts = str(message.topic).split("/")
+        stream = parts[-2] if len(parts) >= 3 else None
+        self._queue.put(Incoming(bytes(payload), recv_ns, self.name, None, stream))
+
+    @property
+    def received_dropped(self) -> int:
+        return self._queue.dropped
+
+    async def __aenter__(self) -> MqttEndpoint:
+        self._task = asyncio.create_task(self.client.run(), name=f"mqtt-{self.client.identifier}")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+            self._task = None
+
+    async def wait_connected(self, timeout: float) -> bool:
+        try:
+            async with asyncio.timeout(timeout):
+                await self.client.connected.wait()
+        except TimeoutError:
+            return False
+        return True
+
+    async def publish(self, kind: str, payload: bytes) -> bool:
+        return await self.client.publish(
+            topic(self.settings.topic_prefix, self.stream, kind), payload
+        )
+
+    def messages(self) -> AsyncIterator[Incoming]:
+        return iterate_queue(self._queue)
