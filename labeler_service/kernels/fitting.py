@@ -1,0 +1,335 @@
+"""Fitting rigid bodies (seed 003 Sec. 3.2, Eq. 5 and Algorithm 1).
+
+Score of an assignment of a body's markers to points (Eq. 5, plus a motion term)::
+
+    C = (sum_links exp(-(D_ij - D'_ij)^2 / (2 A_ij^2)) + w sum_markers exp(-d2_m / 2))
+        / (links + w markers)
+
+``A`` is floored at ``max(a_floor, a_rel D)`` (skin markers slide more on long links). A
+marker may be "missing": each of its links then scores
+``miss_term = exp(-c^2/2)``, i.e. the paper's large constant for ``D'`` expressed as a distance
+off by ``c`` deviations, and its motion term is that of a point on the gate. So a candidate is
+taken only when it fits its links better than ``c`` deviations on average, and ghosts or very
+noisy points stay unlabeled. Links whose ``D`` or ``A`` are unknown score ``miss_term``.
+``d2_m`` is the squared Mahalanobis distance of the point to the marker's prediction (Eq. 3-4):
+it breaks ties between shapes that fit equally well.
+
+The exhaustive search enumerates every option of every marker (its candidates not yet taken,
+plus "missing"; two markers never share a point) depth first, best candidates first, and
+prunes a branch when its partial sum plus an upper bound of what is left (1 per remaining link,
+the best motion term per remaining marker) cannot beat the best complete assignment: branch and
+bound returns exactly the ``itertools.product`` optimum (ties: the first in product order).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+
+
+@njit
+def _pair_term(Db, Ab, pi, pj, a_floor, a_rel, miss_term, points, qi, qj):
+    """One link of Eq. 5: markers at body positions ``pi``, ``pj`` on points ``qi``, ``qj``."""
+    if qi < 0 or qj < 0:
+        return miss_term
+    d = Db[pi, pj]
+    a = Ab[pi, pj]
+    if not (d == d and a == a):
+        return miss_term
+    dx = np.float64(points[qi, 0]) - np.float64(points[qj, 0])
+    dy = np.float64(points[qi, 1]) - np.float64(points[qj, 1])
+    dz = np.float64(points[qi, 2]) - np.float64(points[qj, 2])
+    dp = np.sqrt(dx * dx + dy * dy + dz * dz)
+    if a < a_floor:
+        a = a_floor
+    if a < a_rel * d:
+        a = a_rel * d
+    e = (d - dp) / a
+    return np.exp(-0.5 * e * e)
+
+
+@njit
+def _search_body(
+    n,
+    perm,
+    opts,
+    nopts,
+    mot,
+    Db,
+    Ab,
+    a_floor,
+    a_rel,
+    miss_term,
+    w,
+    points,
+    choice,
+    partial,
+    best_choice,
+):
+    """Exhaustive branch-and-bound search over one body; returns the best normalised score.
+
+    Position ``k`` of the search is body member ``perm[k]``; its options are
+    ``opts[k, :nopts[k]]`` (point index or -1 = missing) with motion terms ``mot[k, o]``.
+    ``best_choice[k]`` receives the chosen option index of position ``k``.
+    """
+    links = n * (n - 1) // 2
+    norm = links + w * n
+    if n == 0 or norm <= 0.0:
+        return 0.0
+    # rem[k]: upper bound of everything positions > k can still add
+    rem = partial[n + 1 :]
+    acc = 0.0
+    for k in range(n - 1, -1, -1):
+        rem[k] = acc
+        best_m = 0.0
+        for o in range(nopts[k]):
+            if mot[k, o] > best_m:
+                best_m = mot[k, o]
+        acc += k + w * best_m
+    best = -1.0
+    depth = 0
+    choice[0] = -1
+    partial[0] = 0.0
+    while depth >= 0:
+        choice[depth] += 1
+        o = choice[depth]
+        if o >= nopts[depth]:
+            depth -= 1
+            continue
+        q = opts[depth, o]
+        dup = False
+        if q >= 0:
+            for l in range(depth):
+                if opts[l, choice[l]] == q:
+                    dup = True
+                    break
+        if dup:
+            continue
+        val = partial[depth] + w * mot[depth, o]
+        pd = perm[depth]
+        for l in range(depth):
+            val += _pair_term(
+                Db, Ab, pd, perm[l], a_floor, a_rel, miss_term, points, q, opts[l, choice[l]]
+            )
+        if val + rem[depth] <= best:
+            continue
+        if depth == n - 1:
+            best = val
+            for k in range(n):
+                best_choice[k] = choice[k]
+            continue
+        depth += 1
+        partial[depth] = val
+        choice[depth] = -1
+    return best / norm
+
+
+@njit
+def _point_markers(cand, ncand, n_points, pm_ptr, pm_idx):
+    """CSR index point -> markers that have it as a candidate."""
+    for j in range(n_points + 1):
+        pm_ptr[j] = 0
+    m = cand.shape[0]
+    for i in range(m):
+        for c in range(ncand[i]):
+            pm_ptr[cand[i, c] + 1] += 1
+    for j in range(n_points):
+        pm_ptr[j + 1] += pm_ptr[j]
+    fill = pm_ptr[:n_points].copy()
+    for i in range(m):
+        for c in range(ncand[i]):
+            j = cand[i, c]
+            pm_idx[fill[j]] = i
+            fill[j] += 1
+
+
+@njit
+def _build_options(
+    b,
+    body_markers,
+    body_size,
+    assigned,
+    owner,
+    cand,
+    cand_d2,
+    ncand,
+    miss_mot,
+    perm,
+    opts,
+    nopts,
+    mot,
+):
+    """Options of each member of body ``b`` in search order (fixed members first, then by
+    increasing number of options). Returns the member count."""
+    n = body_size[b]
+    # counts per member for ordering
+    cnt = np.empty(8, np.int64)
+    for k in range(n):
+        mk = body_markers[b, k]
+        if assigned[mk] != -2:
+            cnt[k] = 0
+        else:
+            c = 1
+            for o in range(ncand[mk]):
+                if owner[cand[mk, o]] < 0:
+                    c += 1
+            cnt[k] = c
+    # insertion sort of member positions by count (stable)
+    for k in range(n):
+        perm[k] = k
+    for k in range(1, n):
+        v = perm[k]
+        l = k - 1
+        while l >= 0 and cnt[perm[l]] > cnt[v]:
+            perm[l + 1] = perm[l]
+            l -= 1
+        perm[l + 1] = v
+    for k in range(n):
+        mk = body_markers[b, perm[k]]
+        a = assigned[mk]
+        if a != -2:
+            opts[k, 0] = a
+            mot[k, 0] = miss_mot
+            if a >= 0:
+                for o in range(ncand[mk]):
+                    if cand[mk, o] == a:
+                        mot[k, 0] = np.exp(-0.5 * cand_d2[mk, o])
+                        break
+            nopts[k] = 1
+            continue
+        c = 0
+        for o in range(ncand[mk]):
+            j = cand[mk, o]
+            if owner[j] < 0:
+                opts[k, c] = j
+                mot[k, c] = np.exp(-0.5 * cand_d2[mk, o])
+                c += 1
+        opts[k, c] = -1
+        mot[k, c] = miss_mot
+        nopts[k] = c + 1
+    return n
+
+
+@njit
+def _fit_bodies(
+    body_markers,
+    body_size,
+    Db,
+    Ab,
+    cand,
+    cand_d2,
+    ncand,
+    points,
+    mb_ptr,
+    mb_idx,
+    a_floor,
+    a_rel,
+    miss_term,
+    w,
+    gate,
+    assigned,
+    owner,
+    body_score,
+    pm_ptr,
+    pm_idx,
+    satisfied,
+    need,
+    best,
+    perm,
+    opts,
+    nopts,
+    mot,
+    choice,
+    partial,
+    best_choice,
+):
+    """Algorithm 1: satisfy the best-scoring body, fix its markers and points, recompute only
+    the bodies whose candidate sets changed, until every body is satisfied.
+
+    In: ``assigned (M,)`` = -2 (undecided) or fixed (point, -1), ``owner (N,)`` = -1 or fixed.
+    Out: ``assigned[m]`` = point index or -1 (missing), ``owner[j]`` = marker or -1,
+    ``body_score[b]`` = Eq. 5 score of the assignment each body was satisfied with.
+    """
+    nb = body_markers.shape[0]
+    n_points = points.shape[0]
+    miss_mot = np.exp(-0.5 * gate)
+    _point_markers(cand, ncand, n_points, pm_ptr, pm_idx)
+    for b in range(nb):
+        # a body with no undecided marker is satisfied already (second pass, re-acquisition)
+        und = False
+        for k in range(body_size[b]):
+            if assigned[body_markers[b, k]] == -2:
+                und = True
+                break
+        satisfied[b] = not und
+        need[b] = True
+        body_score[b] = -1.0
+    for _it in range(nb):
+        # lines 5-11: (re)search the bodies that need it
+        for b in range(nb):
+            if satisfied[b] or not need[b]:
+                continue
+            n = _build_options(
+                b,
+                body_markers,
+                body_size,
+                assigned,
+                owner,
+                cand,
+                cand_d2,
+                ncand,
+                miss_mot,
+                perm,
+                opts,
+                nopts,
+                mot,
+            )
+            s = _search_body(
+                n,
+                perm,
+                opts,
+                nopts,
+                mot,
+                Db[b],
+                Ab[b],
+                a_floor,
+                a_rel,
+                miss_term,
+                w,
+                points,
+                choice,
+                partial,
+                best_choice,
+            )
+            for k in range(8):
+                best[b, k] = -1
+            for k in range(n):
+                best[b, perm[k]] = opts[k, best_choice[k]]
+            body_score[b] = s
+            need[b] = False
+        # line 12: the best unsatisfied body
+        r = -1
+        rs = -2.0
+        for b in range(nb):
+            if not satisfied[b] and body_score[b] > rs:
+                rs = body_score[b]
+                r = b
+        if r < 0:
+            break
+        satisfied[r] = True
+        # lines 13-19: fix its markers and points; flag bodies whose candidates changed
+        for k in range(body_size[r]):
+            mk = body_markers[r, k]
+            if assigned[mk] != -2:
+                continue
+            q = best[r, k]
+            assigned[mk] = q
+            for e in range(mb_ptr[mk], mb_ptr[mk + 1]):
+                need[mb_idx[e]] = True
+            if q >= 0:
+                owner[q] = mk
+                for e in range(pm_ptr[q], pm_ptr[q + 1]):
+                    m2 = pm_idx[e]
+                    for e2 in range(mb_ptr[m2], mb_ptr[m2 + 1]):
+                        need[mb_idx[e2]] = True

@@ -1,0 +1,250 @@
+"""The whole per-frame loop of the online labeler in one numba entry point.
+
+Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3) -> Mahalanobis gating with at
+most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> Kalman update
+of the observed markers (Eq. 4) -> recovery of hidden markers from their bodies (Sec. 3.3; the
+recovered position also updates the Kalman state with a larger ``R``, so a marker hidden for
+long is predicted from its body, not from a stale state) -> sliding-window structure update
+(Eq. 1-2) -> reference snapshots of fully observed bodies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+from labeler_service.kernels.fitting import _fit_bodies
+from labeler_service.kernels.gating import _common_mode, _gate, _regate
+from labeler_service.kernels.kalman import _predict, _start_or_update
+from labeler_service.kernels.rigid import _recover, _snapshot
+from labeler_service.kernels.window import _window_update
+
+OBSERVED = 1
+RECOVERED = 2
+
+
+@njit
+def _process_frame(
+    points,
+    dt,
+    x,
+    P,
+    q,
+    active,
+    r,
+    r_rec,
+    s_min,
+    v0,
+    p_cap,
+    vel_decay,
+    gate,
+    K,
+    s,
+    cand,
+    cand_d2,
+    ncand,
+    body_markers,
+    body_size,
+    mb_ptr,
+    mb_idx,
+    D,
+    A,
+    D0,
+    A0,
+    ring,
+    ptr,
+    s1,
+    s2,
+    cnt,
+    min_samples,
+    a_floor,
+    a_rel,
+    miss_term,
+    w,
+    rec_members,
+    rec_size,
+    rec_ref,
+    rec_ok,
+    method,
+    assigned,
+    owner,
+    body_score,
+    pm_ptr,
+    pm_idx,
+    satisfied,
+    need,
+    best,
+    perm,
+    opts,
+    nopts,
+    mot,
+    choice,
+    partial,
+    best_choice,
+    obs,
+    rec,
+    has_rec,
+    missing,
+    src,
+    dst,
+    R,
+    t,
+    point_labels,
+    out_pos,
+    out_state,
+    subj_ptr,
+    subj_idx,
+    cm_radius,
+    cm_iters,
+    cm_buf,
+    cm_shift,
+    reacq_radius,
+):
+    """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
+    m_total = x.shape[0]
+    n = points.shape[0]
+    # Eq. 3: predict; S = H P H^T + R
+    _predict(x, P, q, active, dt, p_cap)
+    if cm_iters > 0:
+        _common_mode(x, active, subj_ptr, subj_idx, points, cm_radius, cm_iters, cm_buf, cm_shift)
+    for i in range(m_total):
+        s[i] = P[i, 0] + r
+        if s[i] < s_min:  # gate floor: radius^2 = s_min * gate
+            s[i] = s_min
+    _gate(x, s, active, points, gate, K, cand, cand_d2, ncand)
+    # Algorithm 1
+    for i in range(m_total):
+        assigned[i] = -2
+    for j in range(n):
+        owner[j] = -1
+    _fit_bodies(
+        body_markers,
+        body_size,
+        D,
+        A,
+        cand,
+        cand_d2,
+        ncand,
+        points,
+        mb_ptr,
+        mb_idx,
+        a_floor,
+        a_rel,
+        miss_term,
+        w,
+        gate,
+        assigned,
+        owner,
+        body_score,
+        pm_ptr,
+        pm_idx,
+        satisfied,
+        need,
+        best,
+        perm,
+        opts,
+        nopts,
+        mot,
+        choice,
+        partial,
+        best_choice,
+    )
+    # re-acquisition: markers of bodies left with no observed marker search the points nobody
+    # took within a wide radius, then Algorithm 1 runs again on those bodies only
+    if reacq_radius > 0.0:
+        n_lost = 0
+        for i in range(m_total):
+            missing[i] = False
+        for b in range(body_markers.shape[0]):
+            seen = False
+            for k in range(body_size[b]):
+                if assigned[body_markers[b, k]] >= 0:
+                    seen = True
+                    break
+            if not seen:
+                for k in range(body_size[b]):
+                    missing[body_markers[b, k]] = True
+        for i in range(m_total):
+            if missing[i] and assigned[i] == -1:
+                assigned[i] = -2
+                n_lost += 1
+            else:
+                missing[i] = False
+        if n_lost > 0:
+            _regate(x, missing, points, owner, reacq_radius, gate, K, cand, cand_d2, ncand)
+            _fit_bodies(
+                body_markers,
+                body_size,
+                D,
+                A,
+                cand,
+                cand_d2,
+                ncand,
+                points,
+                mb_ptr,
+                mb_idx,
+                a_floor,
+                a_rel,
+                miss_term,
+                w,
+                gate,
+                assigned,
+                owner,
+                body_score,
+                pm_ptr,
+                pm_idx,
+                satisfied,
+                need,
+                best,
+                perm,
+                opts,
+                nopts,
+                mot,
+                choice,
+                partial,
+                best_choice,
+            )
+            for i in range(m_total):
+                if assigned[i] == -2:
+                    assigned[i] = -1
+    for j in range(n):
+        point_labels[j] = owner[j]
+    # Eq. 4 for observed markers
+    for i in range(m_total):
+        a = assigned[i]
+        if a >= 0:
+            for c in range(3):
+                obs[i, c] = points[a, c]
+            _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
+            out_state[i] = OBSERVED
+            for c in range(3):
+                out_pos[i, c] = obs[i, c]
+        else:
+            for c in range(3):
+                obs[i, c] = np.nan
+            missing[i] = active[i]
+            out_state[i] = 0
+            for c in range(3):
+                out_pos[i, c] = np.nan
+    for i in range(m_total):
+        if assigned[i] >= 0:
+            missing[i] = False
+    # Sec. 3.3: recovery from rigid bodies
+    _recover(
+        missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t
+    )
+    for i in range(m_total):
+        if not missing[i]:
+            continue
+        if has_rec[i]:
+            _start_or_update(x, P, i, rec[i, 0], rec[i, 1], rec[i, 2], r_rec, v0)
+            out_state[i] = RECOVERED
+            for c in range(3):
+                out_pos[i, c] = rec[i, c]
+        else:
+            for c in range(3, 6):
+                x[i, c] *= vel_decay
+    # Eq. 1-2: sliding window
+    _window_update(body_markers, body_size, obs, ring, ptr, s1, s2, cnt, D0, A0, min_samples, D, A)
+    # reference snapshots of the recovery sets
+    _snapshot(assigned, obs, rec_members, rec_size, rec_ref, rec_ok)

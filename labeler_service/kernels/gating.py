@@ -1,0 +1,128 @@
+"""Mahalanobis gating (seed 003 Sec. 3.1): legitimate candidates of each marker.
+
+With the factorised filter the innovation covariance is ``S = (p_pp + r) I``, so the squared
+Mahalanobis distance of point ``j`` to marker ``m`` is ``|y_j - H x_m|^2 / S_m``. Points under the
+chi-square gate are kept, at most ``K`` of them, best first (ties: lower point index first).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+
+
+@njit
+def _gate(pred, s, active, points, gate, K, cand, cand_d2, ncand):
+    """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place."""
+    m = pred.shape[0]
+    n = points.shape[0]
+    for i in range(m):
+        ncand[i] = 0
+        if not active[i]:
+            continue
+        px, py, pz = pred[i, 0], pred[i, 1], pred[i, 2]
+        inv = 1.0 / s[i]
+        for j in range(n):
+            dx = points[j, 0] - px
+            dy = points[j, 1] - py
+            dz = points[j, 2] - pz
+            d2 = (dx * dx + dy * dy + dz * dz) * inv
+            if not d2 < gate:  # also rejects NaN
+                continue
+            c = ncand[i]
+            if c == K and not d2 < cand_d2[i, K - 1]:
+                continue
+            k = c if c < K else K - 1
+            while k > 0 and d2 < cand_d2[i, k - 1]:
+                if k < K:
+                    cand[i, k] = cand[i, k - 1]
+                    cand_d2[i, k] = cand_d2[i, k - 1]
+                k -= 1
+            cand[i, k] = j
+            cand_d2[i, k] = d2
+            if c < K:
+                ncand[i] = c + 1
+
+
+@njit
+def _common_mode(x, active, subj_ptr, subj_idx, points, radius, iters, buf, shift):
+    """Per-subject common-mode correction of the predictions, in place.
+
+    For every subject the offset from each tracked marker's prediction to its nearest point
+    (within ``radius`` mm) is collected; the per-axis median of these offsets (at least 3) is
+    added to the subject's predicted positions, ``iters`` times. Whole-body jumps that no
+    per-marker motion model foresees (a capture's per-frame re-centring, a sudden step at a low
+    rate) are thereby absorbed before the Mahalanobis gate. ``shift (S, 3)`` receives the
+    total correction per subject.
+    """
+    n = points.shape[0]
+    r2 = radius * radius
+    for s in range(subj_ptr.shape[0] - 1):
+        for a in range(3):
+            shift[s, a] = 0.0
+        for _it in range(iters):
+            c = 0
+            for e in range(subj_ptr[s], subj_ptr[s + 1]):
+                i = subj_idx[e]
+                if not active[i] or x[i, 0] != x[i, 0]:  # noqa: PLR0124 (NaN test)
+                    continue
+                best = r2
+                bj = -1
+                for j in range(n):
+                    dx = points[j, 0] - x[i, 0]
+                    dy = points[j, 1] - x[i, 1]
+                    dz = points[j, 2] - x[i, 2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < best:
+                        best = d2
+                        bj = j
+                if bj >= 0:
+                    for a in range(3):
+                        buf[a, c] = points[bj, a] - x[i, a]
+                    c += 1
+            if c < 3:
+                break
+            for a in range(3):
+                d = np.median(buf[a, :c])
+                shift[s, a] += d
+                for e in range(subj_ptr[s], subj_ptr[s + 1]):
+                    i = subj_idx[e]
+                    if active[i]:
+                        x[i, a] += d
+
+
+@njit
+def _regate(x, lost, points, owner, radius, gate, K, cand, cand_d2, ncand):
+    """Re-acquisition gate for ``lost`` markers: the ``K`` nearest points not yet owned within
+    ``radius`` mm of the prediction; ``cand_d2`` is scaled so that ``radius`` maps to ``gate``."""
+    m = x.shape[0]
+    n = points.shape[0]
+    scale = gate / (radius * radius)
+    for i in range(m):
+        if not lost[i]:
+            continue
+        ncand[i] = 0
+        px, py, pz = x[i, 0], x[i, 1], x[i, 2]
+        for j in range(n):
+            if owner[j] >= 0:
+                continue
+            dx = points[j, 0] - px
+            dy = points[j, 1] - py
+            dz = points[j, 2] - pz
+            d2 = (dx * dx + dy * dy + dz * dz) * scale
+            if not d2 < gate:
+                continue
+            c = ncand[i]
+            if c == K and not d2 < cand_d2[i, K - 1]:
+                continue
+            k = c if c < K else K - 1
+            while k > 0 and d2 < cand_d2[i, k - 1]:
+                if k < K:
+                    cand[i, k] = cand[i, k - 1]
+                    cand_d2[i, k] = cand_d2[i, k - 1]
+                k -= 1
+            cand[i, k] = j
+            cand_d2[i, k] = d2
+            if c < K:
+                ncand[i] = c + 1

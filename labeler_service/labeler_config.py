@@ -1,0 +1,83 @@
+"""``LabelerConfig``: every tunable of the online labeler, with documented defaults.
+
+The service exposes it in its settings; ``docs/algorithm.md`` explains each choice.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class LabelerConfig(BaseModel):
+    """Parameters of the seed-003 labeler (defaults measured on the acceptance scenes)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    # motion model (Eq. 3-4) and gating
+    gate_chi2: float = Field(
+        16.27, gt=0, description="Mahalanobis gate, chi-square with 3 dof (16.27 = 99.9 %)"
+    )
+    K: int = Field(4, ge=1, le=16, description="at most K candidates per marker (best first)")
+    min_gate_mm: float = Field(
+        30.0,
+        gt=0,
+        description="the gate never shrinks below this radius: real captures have heavy-tailed "
+        "prediction errors (p99.9 ~ 20 mm at 120 Hz on the CMU takes)",
+    )
+    common_mode_radius_mm: float = Field(
+        120.0, gt=0, description="nearest-point radius of the per-subject common-mode shift"
+    )
+    common_mode_iters: int = Field(
+        2, ge=0, le=5, description="iterations of the common-mode shift (0 = off)"
+    )
+    reacquire_mm: float = Field(
+        250.0,
+        ge=0,
+        description="bodies with no observed marker search free points this far (0 = off)",
+    )
+    measurement_noise_mm: float = Field(
+        1.0, gt=0, description="R = (this)^2 I per axis: reconstruction noise of a point"
+    )
+    recovered_noise_mm: float = Field(
+        6.0, gt=0, description="R used when a recovered position updates the Kalman state"
+    )
+    max_position_sd_mm: float = Field(
+        150.0, gt=0, description="cap on the predicted position deviation of a lost marker"
+    )
+    velocity_decay: float = Field(
+        0.8, ge=0, le=1, description="velocity factor per frame while a marker is unrecoverable"
+    )
+    # structure model (Eq. 1-2) and fitting (Eq. 5, Algorithm 1)
+    window_T: int = Field(240, ge=2, le=4096, description="sliding window of Eq. 1-2 (frames)")
+    min_window_samples: int = Field(
+        10, ge=1, description="pair samples needed before the window replaces the trained D, A"
+    )
+    a_floor_mm: float = Field(2.0, gt=0, description="A is floored at this value in Eq. 5")
+    a_relative: float = Field(
+        0.02, ge=0, description="A is also floored at this fraction of D (long links slide more)"
+    )
+    missing_sigma: float = Field(
+        3.0,
+        gt=0,
+        description='"missing" scores each link as a distance off by this many A (Eq. 5)',
+    )
+    motion_weight: float = Field(
+        0.25, ge=0, description="weight of the Kalman likelihood term per marker beside Eq. 5"
+    )
+    # rigid bodies (structure.py)
+    body_tolerance_mm: float = Field(6.0, gt=0, description="largest cost A + w D inside a body")
+    body_distance_weight: float = Field(0.02, ge=0, description="w: preference for close pairs")
+    body_min_size: int = Field(3, ge=1, le=8)
+    body_max_size: int = Field(6, ge=1, le=8)
+    # missing markers (Sec. 3.3)
+    recovery_set_size: int = Field(
+        6, ge=1, le=7, description="markers (lowest A + w D) a hidden marker is recovered from"
+    )
+    recovery: Literal["kabsch", "displacement"] = Field(
+        "kabsch", description="rigid fit of the visible body markers, or the paper's averaging"
+    )
+    init_frames: int = Field(
+        50, ge=3, description="labeled frames expected before training (informational)"
+    )
