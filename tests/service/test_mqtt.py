@@ -1,0 +1,149 @@
+"""The service against a real Mosquitto (fixture ``broker``): frames in and out over MQTT,
+retained model/status, the last will, and a broker stop/restart."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from service.helpers import moving_clusters, run
+
+from labeler_service.config import load_settings
+from labeler_service.replay import open_sender, replay
+from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+from labeler_service.server import Server
+from labeler_service.subscribe import Subscriber
+
+pytestmark = pytest.mark.broker
+
+
+def _settings(broker, udp: bool = False, **over):
+    base = {
+        "labeler": "baseline", "metrics_port": None, "queue_size": 256,
+        "udp": {"enabled": udp, "port": 0},
+        "mqtt": {"enabled": True, "host": broker.host, "port": broker.port,
+                 "reconnect_min_s": 0.1, "reconnect_max_s": 0.5},
+        "streams": [{"name": "vol"}],
+    }  # fmt: skip
+    base.update(over)
+    return load_settings(**base)
+
+
+def test_frames_in_and_out_over_mqtt_with_retained_model_and_status(broker, rng):
+    cap = moving_clusters(rng, subjects=2, markers=5, frames=120, rate=120.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=20, seed=3))
+
+    async def go():
+        async with Server(_settings(broker)) as srv:
+            async with Subscriber(f"{broker.url}/vol") as sub:
+                assert await sub.wait_status("vol", "online", 5.0)
+                async with open_sender(f"{broker.url}/vol") as (send, stream):
+                    stats = await replay(frames, send, stream=stream, init_frames=20, speed=2.0)
+                got = []
+                async with asyncio.timeout(10):
+                    async for r in sub.frames():
+                        got.append(r)
+                        if r.msg.seq == 119:
+                            break
+            # a late subscriber: model and status are retained by the broker
+            async with Subscriber(f"{broker.url}/vol") as late:
+                assert await late.wait_status("vol", "online", 5.0)
+                async with asyncio.timeout(5):
+                    while "vol" not in late.models:
+                        await asyncio.sleep(0.01)
+                late_names = late.models["vol"].names
+            metrics = srv.metrics
+        async with Subscriber(f"{broker.url}/vol") as after:
+            assert await after.wait_status("vol", "offline", 5.0)
+        return stats, got, late_names, metrics
+
+    stats, got, late_names, metrics = run(go())
+    assert stats.failed == 0
+    assert [r.msg.seq for r in got] == list(range(20, 120))
+    assert late_names == got[0].names == tuple(sorted(cap.labels))
+    assert all((r.msg.state == 1).all() for r in got)
+    assert metrics.drops() == 0
+
+
+def test_last_will_marks_the_stream_offline_when_the_service_dies(broker):
+    env = dict(os.environ, MOCAP_LABELER="baseline", MOCAP_UDP__ENABLED="false",
+               MOCAP_METRICS_PORT="0", MOCAP_MQTT__ENABLED="true",
+               MOCAP_MQTT__PORT=str(broker.port), MOCAP_STREAMS='[{"name": "vol"}]')  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "labeler_service.cli", "serve", "--log-level", "WARNING"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+
+    async def go():
+        async with Subscriber(f"{broker.url}/vol") as sub:
+            assert await sub.wait_status("vol", "online", 30.0)
+            proc.kill()  # no goodbye: only the broker's last will can say offline
+            return await sub.wait_status("vol", "offline", 10.0)
+
+    try:
+        assert run(go())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
+
+
+def test_broker_restart_labeled_frames_resume_within_5_s_and_udp_keeps_flowing(broker, rng):
+    cap = moving_clusters(rng, subjects=2, markers=5, frames=400, rate=100.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=20, seed=4))
+
+    async def go():
+        async with Server(_settings(broker, udp=True)) as srv:
+            host, port = srv.transports[0].address
+            async with (
+                Subscriber(f"{broker.url}/vol") as mq,
+                Subscriber(f"udp://{host}:{port}/vol") as ud,
+                open_sender(f"udp://{host}:{port}/vol") as (send, stream),
+            ):
+                feeder = asyncio.create_task(
+                    replay(frames, send, stream=stream, init_frames=20, speed=1.0, loops=3)
+                )
+                await asyncio.sleep(1.0)
+                n_mqtt_before = mq.stats.frames
+                broker.stop()
+                udp_at_stop = ud.stats.frames
+                await asyncio.sleep(1.0)
+                udp_during = ud.stats.frames - udp_at_stop
+                mqtt_at_restart = mq.stats.frames
+                broker.start()
+                t_restart = time.monotonic()
+                resumed = None
+                while time.monotonic() - t_restart < 10.0:
+                    if mq.stats.frames > mqtt_at_restart:
+                        resumed = time.monotonic() - t_restart
+                        break
+                    await asyncio.sleep(0.02)
+                feeder.cancel()
+                await asyncio.gather(feeder, return_exceptions=True)
+            return n_mqtt_before, udp_during, resumed, srv.metrics
+
+    before, udp_during, resumed, metrics = run(go())
+    assert before > 50
+    assert udp_during > 50  # 100 Hz over UDP while the broker is down
+    assert resumed is not None and resumed < 5.0, resumed
+    assert metrics.drops("send_error") > 0  # MQTT sends failed while down, counted
+
+
+def test_topic_and_payload_stream_must_agree(broker):
+    from labeler_service.protocol import encode_frame
+
+    async def go():
+        async with Server(_settings(broker)) as srv:
+            async with open_sender(f"{broker.url}/vol") as (send, _):
+                await send(encode_frame("other", 0, 0.0, np.zeros((1, 3), np.float32)))
+            async with asyncio.timeout(5):
+                while srv.metrics.drops("stream_mismatch") == 0:
+                    await asyncio.sleep(0.02)
+            return srv.metrics.drops("stream_mismatch")
+
+    assert run(go()) == 1
