@@ -1,0 +1,6 @@
+"""The articulated multi-person simulator behind ``mocap-labeler simulate``.
+
+``body`` (segments, joints, markers, forward kinematics), ``motion`` (walk / hug / pile joint
+angle and root trajectories), ``occlusion`` (soft-tissue wobble, jitter, proximity-driven gaps,
+ghost points). :func:`labeler_service.scenes.simulate.simulate_scene` wires them together.
+"""
