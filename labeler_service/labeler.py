@@ -85,6 +85,22 @@ class Labeler:
     def n_bodies(self) -> int:
         return int(self._body_markers.shape[0]) if self._ready else 0
 
+    def body_extent(self) -> np.ndarray:
+        """``(M,)`` mm: per marker the longest marker-pair distance ``D`` of the smallest rigid
+        body containing it (seed 003 Fig. 8 normalises recovery errors by it); NaN for markers
+        without a body, or everywhere before training."""
+        m = len(self._names)
+        out = np.full(m, np.nan)
+        if not self._ready:
+            return out
+        for b in range(self._body_markers.shape[0]):
+            k = int(self._body_size[b])
+            ext = float(np.nanmax(self._D0[b, :k, :k])) if k > 1 else np.nan
+            for i in self._body_markers[b, :k]:
+                if not np.isfinite(out[i]) or ext < out[i]:
+                    out[i] = ext
+        return out
+
     # ------------------------------------------------------------------ per frame
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None
@@ -160,7 +176,8 @@ class Labeler:
             self._has_rec, self._missing, self._src, self._dst, self._R, self._t,
             self._point_labels[:n], self._out_pos, self._out_state, self._subj_ptr,
             self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
-            self._cm_shift, c.reacquire_mm,
+            self._cm_shift, c.reacquire_mm, c.verify_mm, c.reacquire_near_mm,
+            self._miss_reacq, c.reacquire_all, c.robust_fit_mm,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ training
@@ -272,6 +289,7 @@ class Labeler:
         self._s_min = c.min_gate_mm**2 / c.gate_chi2
         self._p_cap = c.max_position_sd_mm**2
         self._miss_term = float(np.exp(-0.5 * c.missing_sigma**2))
+        self._miss_reacq = float(np.exp(-0.5 * c.reacquire_sigma**2))
         self._method = 1 if c.recovery == "kabsch" else 0
         K = c.K
         self._s = np.zeros(m)

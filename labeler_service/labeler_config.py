@@ -37,6 +37,25 @@ class LabelerConfig(BaseModel):
         ge=0,
         description="bodies with no observed marker search free points this far (0 = off)",
     )
+    reacquire_sigma: float = Field(
+        2.0,
+        gt=0,
+        description="missing_sigma of the wide re-acquisition pass (stricter: it sees more points)",
+    )
+    reacquire_all: bool = Field(
+        False,
+        description="the wide pass serves every missing marker (False: only bodies that saw "
+        "nothing)",
+    )
+    verify_mm: float = Field(
+        8.0,
+        ge=0,
+        description="an ambiguous marker farther than this from its rigid-neighbourhood (Kabsch) "
+        "estimate moves to a free point twice as close (0 = no 3D check)",
+    )
+    reacquire_near_mm: float = Field(
+        12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
+    )
     measurement_noise_mm: float = Field(
         1.0, gt=0, description="R = (this)^2 I per axis: reconstruction noise of a point"
     )
@@ -73,7 +92,12 @@ class LabelerConfig(BaseModel):
     body_max_size: int = Field(6, ge=1, le=8)
     # missing markers (Sec. 3.3)
     recovery_set_size: int = Field(
-        6, ge=1, le=7, description="markers (lowest A + w D) a hidden marker is recovered from"
+        4, ge=1, le=7, description="neighbours (lowest A + w D) a hidden marker is recovered from"
+    )
+    robust_fit_mm: float = Field(
+        5.0,
+        gt=0,
+        description="Kabsch recovery drops neighbours whose residual exceeds this (while > 3)",
     )
     recovery: Literal["kabsch", "displacement"] = Field(
         "kabsch", description="rigid fit of the visible body markers, or the paper's averaging"

@@ -16,7 +16,7 @@ from labeler_service._numba import njit
 from labeler_service.kernels.fitting import _fit_bodies
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _start_or_update
-from labeler_service.kernels.rigid import _recover, _snapshot
+from labeler_service.kernels.rigid import _recover, _snapshot, _verify
 from labeler_service.kernels.window import _window_update
 
 OBSERVED = 1
@@ -99,6 +99,11 @@ def _process_frame(
     cm_buf,
     cm_shift,
     reacq_radius,
+    verify_mm,
+    reacq_near_mm,
+    miss_reacq,
+    reacq_all,
+    robust_mm,
 ):
     """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
     m_total = x.shape[0]
@@ -149,27 +154,23 @@ def _process_frame(
         partial,
         best_choice,
     )
-    # re-acquisition: markers of bodies left with no observed marker search the points nobody
-    # took within a wide radius, then Algorithm 1 runs again on those bodies only
+    # re-acquisition: markers still missing search the points nobody took within a wide radius,
+    # then Algorithm 1 runs again on their bodies only (the other markers stay fixed)
     if reacq_radius > 0.0:
         n_lost = 0
         for i in range(m_total):
-            missing[i] = False
-        for b in range(body_markers.shape[0]):
-            seen = False
-            for k in range(body_size[b]):
-                if assigned[body_markers[b, k]] >= 0:
-                    seen = True
-                    break
-            if not seen:
+            missing[i] = active[i] and assigned[i] == -1
+        if not reacq_all:  # only markers whose bodies saw nothing
+            for b in range(body_markers.shape[0]):
                 for k in range(body_size[b]):
-                    missing[body_markers[b, k]] = True
+                    if assigned[body_markers[b, k]] >= 0:
+                        for k2 in range(body_size[b]):
+                            missing[body_markers[b, k2]] = False
+                        break
         for i in range(m_total):
-            if missing[i] and assigned[i] == -1:
+            if missing[i]:
                 assigned[i] = -2
                 n_lost += 1
-            else:
-                missing[i] = False
         if n_lost > 0:
             _regate(x, missing, points, owner, reacq_radius, gate, K, cand, cand_d2, ncand)
             _fit_bodies(
@@ -185,7 +186,7 @@ def _process_frame(
                 mb_idx,
                 a_floor,
                 a_rel,
-                miss_term,
+                miss_reacq,
                 w,
                 gate,
                 assigned,
@@ -207,14 +208,36 @@ def _process_frame(
             for i in range(m_total):
                 if assigned[i] == -2:
                     assigned[i] = -1
+    for i in range(m_total):
+        a = assigned[i]
+        for c in range(3):
+            obs[i, c] = points[a, c] if a >= 0 else np.nan
+    if verify_mm > 0.0:
+        _verify(
+            assigned,
+            owner,
+            ncand,
+            active,
+            points,
+            obs,
+            rec_members,
+            rec_size,
+            rec_ref,
+            rec_ok,
+            verify_mm,
+            reacq_near_mm,
+            src,
+            dst,
+            R,
+            t,
+            robust_mm,
+        )
     for j in range(n):
         point_labels[j] = owner[j]
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]
         if a >= 0:
-            for c in range(3):
-                obs[i, c] = points[a, c]
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
             out_state[i] = OBSERVED
             for c in range(3):
@@ -231,7 +254,20 @@ def _process_frame(
             missing[i] = False
     # Sec. 3.3: recovery from rigid bodies
     _recover(
-        missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t
+        missing,
+        rec_members,
+        rec_size,
+        rec_ref,
+        rec_ok,
+        obs,
+        method,
+        rec,
+        has_rec,
+        src,
+        dst,
+        R,
+        t,
+        robust_mm,
     )
     for i in range(m_total):
         if not missing[i]:

@@ -51,8 +51,36 @@ def _kabsch(src, dst, n, R, t):
 
 
 @njit
+def _robust_kabsch(src, dst, n, R, t, tau):
+    """Kabsch fit that drops the worst-fitting member and refits while its residual exceeds
+    ``tau`` mm and more than 3 members remain (a marker's neighbourhood may span a joint that
+    has moved since the snapshot). Returns the members kept (compacted to the front)."""
+    while True:
+        _kabsch(src, dst, n, R, t)
+        if n <= 3:
+            return n
+        worst = -1.0
+        wi = -1
+        for i in range(n):
+            e2 = 0.0
+            for a in range(3):
+                d = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
+                d -= dst[i, a]
+                e2 += d * d
+            if e2 > worst:
+                worst = e2
+                wi = i
+        if worst <= tau * tau:
+            return n
+        n -= 1
+        for a in range(3):
+            src[wi, a] = src[n, a]
+            dst[wi, a] = dst[n, a]
+
+
+@njit
 def _recover(
-    missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t
+    missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t, tau
 ):
     """Recovers every marker with ``missing[m]`` into ``rec (M, 3)`` (``has_rec[m]`` says which
     succeeded) from its recovery set: ``rec_members[m, 1:rec_size[m]]`` (``rec_members[m, 0]``
@@ -75,7 +103,7 @@ def _recover(
         if c == 0:
             continue
         if method == 1 and c >= 3:
-            _kabsch(src, dst, c, R, t)
+            _robust_kabsch(src, dst, c, R, t, tau)
             for a in range(3):
                 rec[m, a] = (
                     R[a, 0] * rec_ref[m, 0, 0]
@@ -109,3 +137,103 @@ def _snapshot(assigned, obs, rec_members, rec_size, rec_ref, rec_ok):
                 for a in range(3):
                     rec_ref[m, k, a] = obs[rec_members[m, k], a]
             rec_ok[m] = True
+
+
+@njit
+def _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, out, tau):
+    """Kabsch estimate of marker ``m`` from its observed recovery-set members (3+ needed);
+    returns the number of members used (0 when fewer than 3)."""
+    c = 0
+    for k in range(1, rec_size[m]):
+        mk = rec_members[m, k]
+        if obs[mk, 0] == obs[mk, 0]:
+            for a in range(3):
+                src[c, a] = rec_ref[m, k, a]
+                dst[c, a] = obs[mk, a]
+            c += 1
+    if c < 3:
+        return 0
+    _robust_kabsch(src, dst, c, R, t, tau)
+    for a in range(3):
+        out[a] = (
+            R[a, 0] * rec_ref[m, 0, 0]
+            + R[a, 1] * rec_ref[m, 0, 1]
+            + R[a, 2] * rec_ref[m, 0, 2]
+            + t[a]
+        )
+    return c
+
+
+@njit
+def _verify(
+    assigned,
+    owner,
+    ncand,
+    active,
+    points,
+    obs,
+    rec_members,
+    rec_size,
+    rec_ref,
+    rec_ok,
+    verify_mm,
+    reacquire_mm,
+    src,
+    dst,
+    R,
+    t,
+    tau,
+):
+    """3D check of the fit against each marker's rigid neighbourhood (after Algorithm 1).
+
+    Eq. 5 only sees distances, so a ghost can fit a body's links as well as the true point. For
+    every marker that had several candidates or ended missing, the Kabsch estimate from its
+    observed recovery set is computed; an ambiguous observed marker whose point is more than
+    ``verify_mm`` from the estimate moves to a free point at most half as far, and a missing
+    marker takes the nearest free point within ``reacquire_mm`` of the estimate (re-acquisition
+    predicted from the rigid body, not from a stale Kalman state). ``obs`` is kept in sync.
+    Returns the number of changes.
+    """
+    n = points.shape[0]
+    est = np.empty(3)
+    changes = 0
+    for m in range(assigned.shape[0]):
+        if not active[m] or not rec_ok[m]:
+            continue
+        a = assigned[m]
+        if a >= 0 and ncand[m] < 2:
+            continue
+        if _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau) == 0:
+            continue
+        if a >= 0:
+            e2 = 0.0
+            for c in range(3):
+                d = points[a, c] - est[c]
+                e2 += d * d
+            if e2 <= verify_mm * verify_mm:
+                continue
+            lim = 0.25 * e2  # half the distance
+        else:
+            lim = reacquire_mm * reacquire_mm
+        best = lim
+        bj = -1
+        for j in range(n):
+            if owner[j] >= 0:
+                continue
+            d2 = 0.0
+            for c in range(3):
+                d = points[j, c] - est[c]
+                d2 += d * d
+            if d2 < best:
+                best = d2
+                bj = j
+        if bj < 0:
+            continue
+        if a >= 0:
+            owner[a] = -1
+        owner[bj] = m
+        assigned[m] = bj
+        for c in range(3):
+            obs[m, c] = points[bj, c]
+        changes += 1
+    return changes
