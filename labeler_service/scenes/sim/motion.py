@@ -66,7 +66,7 @@ def _rest_pose(n: int) -> np.ndarray:
     """Standing, arms slightly out, elbows and knees a little bent (degrees)."""
     a = np.zeros((n, len(SEGMENTS), 3))
     for side in ("l", "r"):
-        a[:, SEG[f"{side}_upperarm"]] = (0.0, 8.0, 0.0)
+        a[:, SEG[f"{side}_upperarm"]] = (0.0, 14.0, 0.0)
         a[:, SEG[f"{side}_forearm"]] = (12.0, 0.0, 0.0)
         a[:, SEG[f"{side}_shank"]] = (3.0, 0.0, 0.0)
     return a
@@ -89,7 +89,7 @@ _LIMITS = {
     "pelvis": ((-20, 60), (-20, 20), (-30, 30)),
     "torso": ((-25, 90), (-30, 30), (-40, 40)),
     "head": ((-40, 60), (-35, 35), (-70, 70)),
-    "upperarm": ((-50, 170), (-10, 150), (-70, 90)),
+    "upperarm": ((-50, 170), (8, 150), (-70, 90)),
     "forearm": ((0, 150), (0, 0), (-60, 80)),
     "hand": ((-60, 60), (-20, 30), (0, 0)),
     "thigh": ((-25, 130), (-15, 45), (-40, 40)),
@@ -111,10 +111,15 @@ def _fidget(
     return noise * amp[None] * scale[:, None, None]
 
 
-def _clip(a: np.ndarray) -> np.ndarray:
+def _clip(a: np.ndarray, soft: float = 3.0) -> np.ndarray:
+    """Joint limits as a *smooth* clamp (softplus of width ``soft`` deg at both bounds), so a
+    limited angle never has a velocity jump."""
     lo = np.array([[lim[0] for lim in _LIMITS[_kind(s)]] for s in SEGMENTS], dtype=float)
     hi = np.array([[lim[1] for lim in _LIMITS[_kind(s)]] for s in SEGMENTS], dtype=float)
-    return np.clip(a, lo, hi)
+    fixed = lo == hi
+    above = lo + soft * np.logaddexp(0.0, (a - lo) / soft)
+    out = hi - soft * np.logaddexp(0.0, (hi - above) / soft)
+    return np.where(fixed, lo, out)
 
 
 def _gait(phase: np.ndarray, amp: np.ndarray) -> np.ndarray:
