@@ -129,10 +129,16 @@ class ServiceMetrics:
     ) -> None:
         self._child(self.frames_out, stream).inc()
         self._child(self.labeling, stream).observe(label_s)
-        self._recent_label.setdefault(stream, _Recent()).add(label_s)
+        recent = self._recent_label.get(stream)
+        if recent is None:
+            recent = self._recent_label[stream] = _Recent()
+        recent.add(label_s)
         if latency_s is not None:
             self._child(self.latency, stream).observe(latency_s)
-            self._recent_latency.setdefault(stream, _Recent()).add(latency_s)
+            recent = self._recent_latency.get(stream)
+            if recent is None:
+                recent = self._recent_latency[stream] = _Recent()
+            recent.add(latency_s)
         self._child(self.markers, stream, "observed").inc(observed)
         self._child(self.markers, stream, "recovered").inc(recovered)
         self._child(self.markers, stream, "missing").inc(missing)

@@ -133,8 +133,7 @@ async def open_sender(
         async with UdpClient(ep.host, ep.port) as udp:
 
             async def send_udp(payload: bytes) -> bool:
-                udp.send(payload)
-                return True
+                return udp.send(payload)
 
             yield send_udp, stream
         return

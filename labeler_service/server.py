@@ -264,6 +264,9 @@ class Server:
     async def _worker(self, state: StreamState) -> None:
         queue = self._queues[state.name]
         while True:
+            # yield once per frame: readers drain the sockets into the drop-oldest queues
+            # first, so a backlog is dropped (counted) rather than aged in kernel buffers
+            await asyncio.sleep(0)
             msg, recv_ns = await queue.get()
             self.metrics.queue_depth.labels(state.name).set(len(queue))
             try:

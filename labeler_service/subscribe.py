@@ -41,6 +41,7 @@ class Received:
     msg: LabeledMsg
     names: tuple[str, ...]
     recv_ns: int
+    nbytes: int = 0  # encoded message size
 
     @property
     def latency_ms(self) -> float | None:
@@ -182,7 +183,7 @@ class Subscriber:
             if model is None or model.model != msg.model or len(model.names) != len(msg.state):
                 self.stats.undecodable += 1
                 return
-            r = Received(msg, model.names, inc.recv_ns)
+            r = Received(msg, model.names, inc.recv_ns, len(inc.payload))
             self.stats.add(r)
             self._out.put(r)
         elif isinstance(msg, ModelMsg):

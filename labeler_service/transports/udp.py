@@ -20,7 +20,7 @@ import time
 from collections.abc import AsyncIterator
 
 from labeler_service.config import UDP_MAX_PAYLOAD, UdpSettings
-from labeler_service.errors import ProtocolError
+from labeler_service.errors import ConfigError, ProtocolError
 from labeler_service.transports.base import DropOldestQueue, Incoming, iterate_queue
 
 log = logging.getLogger(__name__)
@@ -32,23 +32,59 @@ def parse_hostport(dest: str) -> Addr:
     return host.strip("[]"), int(port)
 
 
-class _Protocol(asyncio.DatagramProtocol):
-    def __init__(self, queue: DropOldestQueue[Incoming], name: str) -> None:
+class _Socket:
+    """A non-blocking UDP socket read with ``loop.add_reader``.
+
+    Every readiness event drains *all* pending datagrams into the bounded queue, so when the
+    service falls behind the backlog lands in our drop-oldest queues (counted) instead of
+    piling up unseen in the kernel buffer (asyncio's DatagramTransport reads one datagram per
+    loop iteration).
+    """
+
+    def __init__(self, queue: DropOldestQueue[Incoming], name: str, buffer: int) -> None:
         self.queue = queue
         self.name = name
         self.errors = 0
-        self.closed = asyncio.get_running_loop().create_future()
+        self.send_errors = 0
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        _tune(self.sock, buffer)
+        self._loop: asyncio.AbstractEventLoop | None = None
 
-    def datagram_received(self, data: bytes, addr: Addr) -> None:
-        self.queue.put(Incoming(data, time.time_ns(), self.name, addr))
+    def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._loop.add_reader(self.sock.fileno(), self._readable)
 
-    def error_received(self, exc: Exception) -> None:
-        # ICMP port unreachable from a vanished subscriber and the like: counted, not fatal
-        self.errors += 1
+    def _readable(self) -> None:
+        recv = self.sock.recvfrom
+        put = self.queue.put
+        for _ in range(100_000):
+            try:
+                data, addr = recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                # ICMP port unreachable from a vanished peer and the like: counted, not fatal
+                self.errors += 1
+                return
+            put(Incoming(data, time.time_ns(), self.name, addr))
 
-    def connection_lost(self, exc: Exception | None) -> None:
-        if not self.closed.done():
-            self.closed.set_result(None)
+    def sendto(self, payload: bytes, addr: Addr | None) -> bool:
+        try:
+            if addr is None:
+                self.sock.send(payload)
+            else:
+                self.sock.sendto(payload, addr)
+        except OSError:  # buffer full, unreachable: UDP is best effort, count it
+            self.send_errors += 1
+            return False
+        return True
+
+    def close(self) -> None:
+        if self._loop is not None:
+            self._loop.remove_reader(self.sock.fileno())
+            self._loop = None
+        self.sock.close()
 
 
 def _tune(sock: socket.socket, size: int) -> None:
@@ -67,41 +103,45 @@ class UdpTransport:
     def __init__(self, settings: UdpSettings, queue_size: int = 1024) -> None:
         self.settings = settings
         self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
-        self._transport: asyncio.DatagramTransport | None = None
-        self._protocol: _Protocol | None = None
+        self._sock: _Socket | None = None
         self._static = [parse_hostport(d) for d in settings.publish_to]
         # subscriber address -> (stream or "*", last renewal, monotonic s)
         self.subscribers: dict[Addr, tuple[str, float]] = {}
         self.retained: dict[tuple[str, str], bytes] = {}
-        self.send_errors = 0
+
+    @property
+    def send_errors(self) -> int:
+        return self._sock.send_errors if self._sock is not None else 0
 
     @property
     def address(self) -> Addr:
         """The bound ``(host, port)`` (port 0 in the settings picks a free one)."""
-        if self._transport is None:
+        if self._sock is None:
             raise RuntimeError("UdpTransport is not open")
-        return self._transport.get_extra_info("sockname")[:2]
+        return self._sock.sock.getsockname()[:2]
 
     @property
     def received_dropped(self) -> int:
         return self._queue.dropped
 
     async def __aenter__(self) -> UdpTransport:
-        loop = asyncio.get_running_loop()
-        self._transport, self._protocol = await loop.create_datagram_endpoint(
-            lambda: _Protocol(self._queue, self.name),
-            local_addr=(self.settings.host, self.settings.port),
-        )
-        _tune(self._transport.get_extra_info("socket"), self.settings.socket_buffer_bytes)
+        sock = _Socket(self._queue, self.name, self.settings.socket_buffer_bytes)
+        try:
+            sock.sock.bind((self.settings.host, self.settings.port))
+        except OSError as exc:
+            sock.close()
+            raise ConfigError(
+                f"udp: cannot bind {self.settings.host}:{self.settings.port}: {exc}"
+            ) from exc
+        sock.start()
+        self._sock = sock
         log.info("udp: listening on %s:%d", *self.address)
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        if self._transport is not None:
-            self._transport.close()
-            assert self._protocol is not None
-            await self._protocol.closed
-            self._transport = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
 
     def messages(self) -> AsyncIterator[Incoming]:
         return iterate_queue(self._queue)
@@ -128,14 +168,11 @@ class UdpTransport:
                 log.info("udp: subscriber %s:%d expired", addr[0], addr[1])
 
     def _sendto(self, payload: bytes, addr: Addr) -> None:
-        assert self._transport is not None
-        try:
-            self._transport.sendto(payload, addr)
-        except OSError:
-            self.send_errors += 1
+        assert self._sock is not None
+        self._sock.sendto(payload, addr)
 
     async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
-        if self._transport is None:
+        if self._sock is None:
             raise RuntimeError("UdpTransport is not open")
         if len(payload) > UDP_MAX_PAYLOAD:
             raise ProtocolError(
@@ -165,34 +202,41 @@ class UdpClient:
         self.remote = (host, port)
         self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
         self._buffer = buffer
-        self._transport: asyncio.DatagramTransport | None = None
-        self._protocol: _Protocol | None = None
+        self._sock: _Socket | None = None
 
     @property
     def received_dropped(self) -> int:
         return self._queue.dropped
 
     async def __aenter__(self) -> UdpClient:
-        loop = asyncio.get_running_loop()
-        self._transport, self._protocol = await loop.create_datagram_endpoint(
-            lambda: _Protocol(self._queue, self.name), remote_addr=self.remote
-        )
-        _tune(self._transport.get_extra_info("socket"), self._buffer)
+        sock = _Socket(self._queue, self.name, self._buffer)
+        try:
+            sock.sock.connect(self.remote)
+        except OSError as exc:
+            sock.close()
+            raise ConfigError(
+                f"udp: cannot reach {self.remote[0]}:{self.remote[1]}: {exc}"
+            ) from exc
+        sock.start()
+        self._sock = sock
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        if self._transport is not None:
-            self._transport.close()
-            assert self._protocol is not None
-            await self._protocol.closed
-            self._transport = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
 
-    def send(self, payload: bytes) -> None:
-        if self._transport is None:
+    @property
+    def send_errors(self) -> int:
+        return self._sock.send_errors if self._sock is not None else 0
+
+    def send(self, payload: bytes) -> bool:
+        """Sends one datagram; False when the kernel refused it (counted in ``send_errors``)."""
+        if self._sock is None:
             raise RuntimeError("UdpClient is not open")
         if len(payload) > UDP_MAX_PAYLOAD:
             raise ProtocolError(f"udp: message of {len(payload)} bytes is too large", "oversize")
-        self._transport.sendto(payload)
+        return self._sock.sendto(payload, None)
 
     def messages(self) -> AsyncIterator[Incoming]:
         return iterate_queue(self._queue)

@@ -1,0 +1,177 @@
+"""``mocap-labeler bench latency``: end-to-end latency through a real transport.
+
+A simulated scene (``--subjects`` performers at ``--rate`` Hz; ``--sim-seconds`` simulated and
+played forward/backward until ``--seconds`` are covered) is replayed unlabeled to
+``mocap-labeler serve`` running as a subprocess, over loopback UDP or a local Mosquitto
+(started on a free port unless ``--broker URL`` is given); a subscriber in this process
+receives the labeled frames. Latency = subscriber receipt - sender stamp (same clock). Prints
+one JSON object on the last line with ``--json``.
+
+``--start model`` (default) starts the stream from a subject model trained offline on the
+scene's labeled init window (the production set-up: no training stall); ``--start init`` trains
+in the service from the labeled init frames in the stream (one-time stall, reported separately
+as ``training_stall_frames``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--subjects", type=int, default=10, help="performers (1-10)")
+    p.add_argument("--rate", type=float, default=360.0, help="capture rate (Hz)")
+    p.add_argument("--seconds", type=float, default=20.0, help="streamed duration (s)")
+    p.add_argument("--transport", choices=["udp", "mqtt"], default="udp")
+    p.add_argument("--broker", default=None, metavar="URL", help="mqtt://host:port (else a "
+                   "local mosquitto is started)")  # fmt: skip
+    p.add_argument("--scenario", default="hug", help="simulated scenario (walk, hug, pile)")
+    p.add_argument("--sim-seconds", type=float, default=5.0, help="simulated scene length (s)")
+    p.add_argument("--start", choices=["model", "init"], default="model",
+                   help="stream start-up: offline model or in-stream training window")  # fmt: skip
+    p.add_argument("--init-frames", type=int, default=None,
+                   help="labeled frames first (default: 5 with model, 50 with init)")  # fmt: skip
+    p.add_argument("--labeler", choices=["online", "baseline"], default="online")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workdir", type=Path, default=None, help="keep service log/config here")
+    p.add_argument("--json", action="store_true", help="print the result as JSON (last line)")
+
+
+def _scene(args):
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(performers=args.subjects, seconds=min(args.sim_seconds, args.seconds),
+                         scenario=args.scenario, seed=args.seed, rate=args.rate)  # fmt: skip
+    return corrupt(cap, CorruptionSpec(protect_frames=50, seed=args.seed))
+
+
+async def bench(args, workdir: Path) -> dict:
+    import numpy as np
+
+    from labeler_service.commands._pipeline import percentiles, run_pipeline, train_model_file
+    from labeler_service.transports.broker import LocalBroker
+
+    init = args.init_frames if args.init_frames is not None else (
+        5 if args.start == "model" else 50)  # fmt: skip
+    frames = _scene(args)
+    n_total = int(round(args.seconds * frames.rate))
+    loops = max(1, int(np.ceil((n_total - 1) / max(frames.n_frames - 1, 1))))
+    stream = "bench"
+    stream_cfg: dict = {"name": stream, "rate": frames.rate}
+    if args.start == "model":
+        stream_cfg["model"] = str(train_model_file(frames, 50, workdir / "model.json"))
+    settings: dict = {
+        "labeler": args.labeler, "metrics_port": 0, "log_interval_s": 5.0,
+        "udp": {"enabled": args.transport == "udp", "port": 0},
+        "streams": [stream_cfg], "max_points": 4000,
+    }  # fmt: skip
+    broker = None
+    broker_url = args.broker
+    if args.transport == "mqtt":
+        if broker_url is None:
+            broker = LocalBroker(workdir)
+            broker.start()
+            broker_url = broker.url
+        from labeler_service.transports.url import parse_endpoint
+
+        ep = parse_endpoint(broker_url)
+        settings["mqtt"] = {"enabled": True, "host": ep.host, "port": ep.port}
+    try:
+        # cut the ping-pong playback to exactly n_total frames
+        from labeler_service.replay import frame_order
+
+        order = frame_order(frames.n_frames, loops)[:n_total]
+        frames = _reindex(frames, order)
+        res = await run_pipeline(frames, settings, workdir, transport=args.transport,
+                                 stream=stream, init_frames=init, speed=1.0,
+                                 broker_url=broker_url)  # fmt: skip
+    finally:
+        if broker is not None:
+            broker.close()
+    expected = res.sent - (init if args.start == "init" else 0)
+    received = res.received
+    lat = np.array([r.latency_ms for r in received if r.latency_ms is not None])
+    proc_ms = np.array([r.msg.proc_us / 1e3 for r in received])
+    seqs = np.array([r.msg.seq for r in received])
+    # frames after the start-up (first unlabeled frame + 1 s): steady state
+    first_unlabeled = init
+    steady = seqs >= first_unlabeled + int(frames.rate)
+    lat_all = percentiles(lat)
+    lat_steady = percentiles(lat[steady])
+    src = np.array([r.msg.src for r in received], dtype=np.int64)
+    recv = np.array([r.msg.recv for r in received], dtype=np.int64)
+    sent = np.array([r.msg.sent for r in received], dtype=np.int64)
+    got = np.array([r.recv_ns for r in received], dtype=np.int64)
+    legs = {
+        "to_service": (recv - src) / 1e6,
+        "in_service": (sent - recv) / 1e6,
+        "to_subscriber": (got - sent) / 1e6,
+    }
+    stall = int(np.count_nonzero(lat[seqs >= first_unlabeled] > 1000.0 / frames.rate))
+    return {
+        "transport": args.transport,
+        "labeler": args.labeler,
+        "start": args.start,
+        "subjects": args.subjects,
+        "markers": len(frames.marker_names),
+        "rate": frames.rate,
+        "seconds": args.seconds,
+        "points_per_frame_mean": float(np.mean([len(p) for p in frames.points])),
+        "frames_sent": res.sent,
+        "frames_received": len(received),
+        "drops": int(expected - len(received)),
+        "service_drops": res.drops_service,
+        "latency_ms_p50": lat_all["p50"],
+        "latency_ms_p99": lat_all["p99"],
+        "latency_ms_p99_9": lat_all["p99.9"],
+        "latency_ms_max": float(lat.max()) if lat.size else float("nan"),
+        "steady_latency_ms_p50": lat_steady["p50"],
+        "steady_latency_ms_p99": lat_steady["p99"],
+        "steady_latency_ms_p99_9": lat_steady["p99.9"],
+        "frames_over_one_period": stall,
+        "labeling_ms_p50": percentiles(proc_ms)["p50"],
+        "labeling_ms_p99": percentiles(proc_ms)["p99"],
+        "labeled_bytes_max": res.max_payload,
+        **{f"{k}_ms_p50": percentiles(v[steady])["p50"] for k, v in legs.items()},
+        **{f"{k}_ms_p99": percentiles(v[steady])["p99"] for k, v in legs.items()},
+        "service_exit_code": res.service_returncode,
+    }
+
+
+def _reindex(frames, order):
+    from dataclasses import replace
+
+    import numpy as np
+
+    return replace(
+        frames,
+        times=np.arange(len(order), dtype=np.float64) / frames.rate,
+        points=[frames.points[i] for i in order],
+        truth=[frames.truth[i] for i in order],
+        positions=frames.positions[order],
+        removed=frames.removed[order],
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        out = asyncio.run(bench(args, args.workdir))
+    else:
+        with tempfile.TemporaryDirectory(prefix="mocap-bench-") as d:
+            out = asyncio.run(bench(args, Path(d)))
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k:>26}: {v}")
+    ok = out["drops"] == 0 and out["service_exit_code"] == 0
+    if not ok:
+        print("bench: frames were lost or the service did not exit cleanly", file=sys.stderr)
+    return 0
