@@ -13,11 +13,13 @@ forearm    elbow (3 dof)       cylinder around radius / ulna
 =========  ==================  =========================================
 
 Markers sit on a staggered grid (``spacing`` mm; 215 markers at the default 27 mm). Near each
-joint the skin is blended: a marker's position is the linear blend of its two bones (weights
-from a smooth step along the bone), so the surface is not piecewise rigid, as on a person.
+joint the skin is blended: a marker follows its parent bone and a fraction (its weight, a
+smooth step along the bone) of the child's joint rotation, so the surface is not piecewise
+rigid, as on a person.
 The girdle follows the arm with a scapulo-humeral rhythm plus an independent shrug, which is
-what a 3-segment skeleton cannot express. Soft-tissue artefact is smooth (low-pass) noise of
-``noise_mm`` std per axis plus 0.3 mm white measurement noise.
+what a 3-segment skeleton cannot express. Soft-tissue artefact is smooth in time (low-pass
+1.5 Hz) and in space (Gaussian kernel, 30 mm: skin slides in patches), ``noise_mm`` std per axis,
+plus 0.3 mm white measurement noise.
 
 Motions (120 Hz): ``rom`` (range of motion, training), ``jumping_jack``, ``swimming``, ``curls``.
 Ground truth per marker (true segment, blend weights, rest position) and per frame (world
@@ -136,13 +138,13 @@ def build_body(spacing: float = 27.0) -> ShoulderBody:
             torso.append([a_x * np.cos(p), b_y * np.sin(p), z])
     torso = np.asarray(torso)
     # girdle share: upper lateral torso, blended over ~40 mm
-    g = _smoothstep((torso[:, 0] - 80.0) / 50.0) * _smoothstep((torso[:, 2] - 1320.0) / 40.0)
+    g = _smoothstep((torso[:, 0] - 60.0) / 80.0) * _smoothstep((torso[:, 2] - 1290.0) / 75.0)
     w_torso = np.zeros((len(torso), 4))
     w_torso[:, 0], w_torso[:, 1] = 1.0 - g, g
 
     upper, s_up = _cylinder(_GH, _U0, 44.0, 45.0, _L_UPPER - 40.0, spacing)
     w_up = np.zeros((len(upper), 4))
-    to_girdle = 1.0 - _smoothstep((s_up - 40.0) / 55.0)  # deltoid blends with the girdle
+    to_girdle = 0.4 * (1.0 - _smoothstep((s_up - 45.0) / 35.0))  # deltoid blends with the girdle
     to_fore = _smoothstep((s_up - (_L_UPPER - 45.0)) / 45.0) * 0.5
     w_up[:, 1], w_up[:, 3] = to_girdle, to_fore
     w_up[:, 2] = 1.0 - to_girdle - to_fore
@@ -166,9 +168,10 @@ def build_body(spacing: float = 27.0) -> ShoulderBody:
 # ----------------------------------------------------------------------------- motion
 def _smooth_random(rng: np.random.Generator, n: int, rate: float, cutoff: float) -> np.ndarray:
     """Zero-mean, unit-std smooth noise (white noise low-passed at ``cutoff`` Hz)."""
-    x = rng.standard_normal(n + 200)
+    pad = int(2.0 * rate / cutoff)  # filter start-up transients die out inside the padding
+    x = rng.standard_normal(n + 2 * pad)
     sos = butter(2, cutoff / (0.5 * rate), output="sos")
-    y = sosfiltfilt(sos, x)[100:-100]
+    y = sosfiltfilt(sos, x)[pad:-pad]
     return y / max(float(np.std(y)), 1e-12)
 
 
@@ -189,7 +192,7 @@ def _angles(name: str, n: int, rate: float, rng: np.random.Generator) -> dict[st
         twist = deg(45) * np.sin(2 * np.pi * 0.17 * t + ph[2])
         elbow = deg(65) + deg(60) * np.sin(2 * np.pi * 0.13 * t + ph[3])
         pron = deg(50) * np.sin(2 * np.pi * 0.19 * t + ph[4])
-        shrug = deg(10) * np.sin(2 * np.pi * 0.23 * t + ph[5]) + wander(deg(3))
+        shrug = deg(12) * np.sin(2 * np.pi * 0.23 * t + ph[5]) + wander(deg(3))
         trunk = np.stack([wander(deg(6), 0.2), wander(deg(6), 0.2), wander(deg(10), 0.2)], 1)
         root = np.stack([wander(40, 0.2), wander(40, 0.2), wander(15, 0.3)], 1)
     elif name == "jumping_jack":
@@ -242,12 +245,13 @@ def _about(R: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return T
 
 
-def _pose(a: dict[str, np.ndarray]) -> np.ndarray:
-    """World transforms ``(F, 4, 4, 4)`` [frame, bone] of the chain, rest space -> world.
+def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """World transforms ``(F, 4, 4, 4)`` [frame, bone] of the chain (rest space -> world) and
+    the joint rotations ``(F, 3, 3, 3)`` [frame, joint] of each child relative to its parent.
 
     Arm: abduction about -Y (anterior) beyond the 50 deg rest pose, flexion about +X, axial
-    twist about the arm axis. Girdle: 35 % of the arm elevation (scapulo-humeral rhythm) plus
-    the shrug about +Y at the SC joint, 25 % of flexion as protraction about +Z. Elbow: flexion
+    twist about the arm axis. Girdle: 40 % of the arm elevation (scapulo-humeral rhythm) plus
+    the shrug about -Y at the SC joint, 20 % of flexion as protraction about +Z. Elbow: flexion
     about the axis normal to the arm in the abduction plane, pronation about the forearm, a
     small carrying-angle change (so its centre is identifiable).
     """
@@ -262,8 +266,8 @@ def _pose(a: dict[str, np.ndarray]) -> np.ndarray:
 
     elev = a["abd"] - _ABD0
     r_arm = rot(-y_axis, elev) @ rot(x_axis, a["flex"]) @ rot(_U0, a["twist"])
-    girdle_rot = rot(-y_axis, 0.35 * np.maximum(a["abd"], 0.0) + a["shrug"] - 0.35 * _ABD0)
-    r_gird = rot(z_axis, 0.25 * a["flex"]) @ girdle_rot
+    girdle_rot = rot(-y_axis, 0.40 * (np.maximum(a["abd"], 0.0) - _ABD0) + a["shrug"])
+    r_gird = rot(z_axis, 0.20 * a["flex"]) @ girdle_rot
     flex_axis = np.cross(_U0, y_axis)
     flex_axis /= np.linalg.norm(flex_axis)
     r_elb = rot(-y_axis, a["elbow"]) @ rot(flex_axis, a["carry"]) @ rot(_U0, a["pron"])
@@ -275,7 +279,28 @@ def _pose(a: dict[str, np.ndarray]) -> np.ndarray:
     t_gird = root @ _about(r_gird, _SC)
     t_arm = t_gird @ _about(r_arm, _GH)
     t_fore = t_arm @ _about(r_elb, _ELBOW)
-    return np.stack([root, t_gird, t_arm, t_fore], axis=1)
+    return np.stack([root, t_gird, t_arm, t_fore], axis=1), np.stack([r_gird, r_arm, r_elb], 1)
+
+
+def _skin(body: ShoulderBody, T: np.ndarray, rel: np.ndarray) -> np.ndarray:
+    """Marker positions ``(F, M, 3)``: a marker blended between a parent bone and its child
+    (weight ``w`` on the child) follows the parent and a fraction ``w`` of the child's joint
+    rotation (rotation-vector scaling about the joint centre) -- skin near a joint turns part of
+    the way, without the volume collapse of linear blending under large joint angles.
+    """
+    n = T.shape[0]
+    pos = np.empty((n, body.n_markers, 3))
+    for m in range(body.n_markers):
+        bones = np.flatnonzero(body.weights[m] > 1e-9)
+        parent = int(bones[0])
+        Tm = T[:, parent]
+        if bones.size > 1:
+            child = int(bones[1])
+            frac = body.weights[m, child]
+            rv = Rotation.from_matrix(rel[:, child - 1]).as_rotvec() * frac
+            Tm = Tm @ _about(Rotation.from_rotvec(rv).as_matrix(), body.joints[child - 1])
+        pos[:, m] = Tm[:, :3, :3] @ body.rest[m] + Tm[:, :3, 3]
+    return pos
 
 
 def simulate_motion(
@@ -287,7 +312,7 @@ def simulate_motion(
     gap_rate: float = 0.0,
     random_state: int | np.random.Generator | None = None,
 ) -> ShoulderMotion:
-    """Simulates one motion of ``body``: linear-blend-skinned markers plus soft-tissue noise.
+    """Simulates one motion of ``body``: skinned markers (:func:`_skin`) plus soft-tissue noise.
 
     ``gap_rate`` is the expected number of occlusion gaps (10-60 frames) per marker per 1000
     frames, to exercise missing-sample handling.
@@ -297,14 +322,17 @@ def simulate_motion(
     if noise_mm < 0 or gap_rate < 0 or rate <= 0:
         raise SceneError("noise_mm, gap_rate must be >= 0 and rate > 0")
     rng = np.random.default_rng(random_state)
-    T = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4)
-    rest_h = np.concatenate([body.rest, np.ones((body.n_markers, 1))], axis=1)
-    per_bone = np.einsum("fbij,mj->fbmi", T[:, :, :3, :], rest_h)  # (F, B, M, 3)
-    pos = np.einsum("mb,fbmi->fmi", body.weights, per_bone)
+    T, rel = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4), (F, 3, 3, 3)
+    pos = _skin(body, T, rel)
     if noise_mm > 0:
-        m3 = body.n_markers * 3
-        soft = np.stack([_smooth_random(rng, n_frames, rate, 1.5) for _ in range(m3)], 1)
-        pos += noise_mm * soft.reshape(n_frames, body.n_markers, 3)
+        m = body.n_markers
+        soft = np.stack([_smooth_random(rng, n_frames, rate, 1.5) for _ in range(m * 3)], 1)
+        soft = soft.reshape(n_frames, m, 3)
+        d2 = ((body.rest[:, None] - body.rest[None]) ** 2).sum(-1)
+        kernel = np.exp(-d2 / (2.0 * 30.0**2))
+        soft = np.einsum("mk,fki->fmi", kernel, soft)
+        soft /= soft.std(axis=0, keepdims=True)
+        pos += noise_mm * soft
         pos += 0.3 * rng.standard_normal(pos.shape)
     if gap_rate > 0:
         n_gaps = rng.poisson(gap_rate * n_frames / 1000.0, size=body.n_markers)

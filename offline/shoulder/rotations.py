@@ -1,0 +1,226 @@
+"""Step 2a: per-triangle rotations and their log map (seed 000, Sec. 3.2).
+
+For triangle ``i`` at frame ``t`` the rotational displacement from the rest pose is the unit
+quaternion ``q_i^t`` of Horn's closed-form absolute orientation [Hor87]: with the centred rest
+vertices ``a_j`` and current vertices ``b_j``, ``S = sum_j a_j b_j^T`` and the symmetric 4x4
+matrix ``N(S)`` of Horn's Eq. (Sec. 4 of [Hor87]), ``q`` is the eigenvector of the largest
+eigenvalue of ``N``. The feature of the triangle is ``F_i = [v_i^1 ... v_i^T]`` with
+``v = log(q)`` the logarithm map of Lee and Shin [LS02]: ``q = (cos|v|, sin|v| v/|v|)``, i.e.
+``v`` is the rotation axis times *half* the rotation angle, taken on the hemisphere ``w >= 0``.
+
+The eigenvector is found in a numba kernel by repeated squaring of ``N + s I`` (``s`` bounds
+``|lambda|`` so the shifted matrix is positive semi-definite and its dominant eigenvector is
+Horn's): 18 squarings raise the eigenvalue ratio to the power 2^18, then two plain power steps
+polish the vector. Its plain-numpy twin (``numpy.linalg.eigh``) is in tests/shoulder/reference.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+
+
+@njit
+def _horn_kernel(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
+    """``ref`` (T,3,3) centred rest triangles, ``cur`` (F,T,3,3) -> ``out`` (F,T,4) (w,x,y,z)."""
+    n_frames, n_tri = cur.shape[0], cur.shape[1]
+    N = np.empty((4, 4))
+    B = np.empty((4, 4))
+    C = np.empty((4, 4))
+    v = np.empty(4)
+    w = np.empty(4)
+    for f in range(n_frames):
+        for i in range(n_tri):
+            # centre the current triangle; NaN anywhere -> NaN quaternion
+            cx = (cur[f, i, 0, 0] + cur[f, i, 1, 0] + cur[f, i, 2, 0]) / 3.0
+            cy = (cur[f, i, 0, 1] + cur[f, i, 1, 1] + cur[f, i, 2, 1]) / 3.0
+            cz = (cur[f, i, 0, 2] + cur[f, i, 1, 2] + cur[f, i, 2, 2]) / 3.0
+            if np.isnan(cx) or np.isnan(cy) or np.isnan(cz):
+                for k in range(4):
+                    out[f, i, k] = np.nan
+                continue
+            sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
+            s = 0.0
+            for j in range(3):
+                ax, ay, az = ref[i, j, 0], ref[i, j, 1], ref[i, j, 2]
+                bx, by, bz = cur[f, i, j, 0] - cx, cur[f, i, j, 1] - cy, cur[f, i, j, 2] - cz
+                sxx += ax * bx
+                sxy += ax * by
+                sxz += ax * bz
+                syx += ay * bx
+                syy += ay * by
+                syz += ay * bz
+                szx += az * bx
+                szy += az * by
+                szz += az * bz
+                s += 0.5 * (ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz)
+            # Horn's N (1987, Sec. 4): q maximising q^T N q rotates ref onto cur
+            N[0, 0] = sxx + syy + szz
+            N[0, 1] = syz - szy
+            N[0, 2] = szx - sxz
+            N[0, 3] = sxy - syx
+            N[1, 1] = sxx - syy - szz
+            N[1, 2] = sxy + syx
+            N[1, 3] = szx + sxz
+            N[2, 2] = -sxx + syy - szz
+            N[2, 3] = syz + szy
+            N[3, 3] = -sxx - syy + szz
+            for r in range(4):
+                for c in range(r):
+                    N[r, c] = N[c, r]
+            # B = (N + s I) / scale is PSD; its dominant eigenvector is Horn's quaternion
+            scale = 2.0 * s + 1e-300
+            for r in range(4):
+                for c in range(4):
+                    B[r, c] = N[r, c] / scale
+                B[r, r] += s / scale
+            for _ in range(18):
+                tr = 0.0
+                for r in range(4):
+                    for c in range(4):
+                        acc = 0.0
+                        for k in range(4):
+                            acc += B[r, k] * B[k, c]
+                        C[r, c] = acc
+                    tr += C[r, r]
+                if not tr > 0.0:
+                    break
+                for r in range(4):
+                    for c in range(4):
+                        B[r, c] = C[r, c] / tr
+            # the column of largest norm is (a multiple of) the dominant eigenvector
+            best, best_n = 0, -1.0
+            for c in range(4):
+                nrm = B[0, c] ** 2 + B[1, c] ** 2 + B[2, c] ** 2 + B[3, c] ** 2
+                if nrm > best_n:
+                    best, best_n = c, nrm
+            for r in range(4):
+                v[r] = B[r, best]
+            for _ in range(2):  # polish with the unsquared shifted matrix
+                for r in range(4):
+                    acc = s * v[r]
+                    for k in range(4):
+                        acc += N[r, k] * v[k]
+                    w[r] = acc
+                nrm = np.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2 + w[3] ** 2)
+                if not nrm > 0.0:
+                    break
+                for r in range(4):
+                    v[r] = w[r] / nrm
+            nrm = np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2 + v[3] ** 2)
+            sign = 1.0 if v[0] >= 0.0 else -1.0
+            for r in range(4):
+                out[f, i, r] = sign * v[r] / nrm
+
+
+def horn_quaternions(ref: np.ndarray, cur: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(F, T, 4)`` (w, x, y, z; w >= 0) rotating each rest triangle onto its
+    current pose by Horn's method [Hor87]; NaN where a vertex is missing.
+
+    ``ref`` is ``(T, 3, 3)`` [triangle, vertex, xyz] rest positions, ``cur`` ``(F, T, 3, 3)``.
+    """
+    ref = np.asarray(ref, dtype=np.float64)
+    cur = np.asarray(cur, dtype=np.float64)
+    if ref.ndim != 3 or ref.shape[1:] != (3, 3):
+        raise ValueError(f"ref must be (triangles, 3, 3), got {ref.shape}")
+    if cur.ndim != 4 or cur.shape[1:] != ref.shape:
+        raise ValueError(f"cur must be (frames, {ref.shape[0]}, 3, 3), got {cur.shape}")
+    if not np.isfinite(ref).all():
+        raise ValueError("ref contains NaN or inf")
+    ref_c = np.ascontiguousarray(ref - ref.mean(axis=1, keepdims=True))
+    out = np.empty((cur.shape[0], cur.shape[1], 4))
+    _horn_kernel(ref_c, np.ascontiguousarray(cur), out)
+    return out
+
+
+def continuous_sign(q: np.ndarray, start: int = 0, max_step_deg: float = 60.0) -> np.ndarray:
+    """Signs of quaternions ``(F, T, 4)`` made continuous in time; impossible jumps set to NaN.
+
+    ``q`` and ``-q`` are the same rotation and Horn's method returns either. Walking away from
+    frame ``start`` (the rest pose, where every ``q`` is the identity), each quaternion takes the
+    sign closest to the last trusted one of its triangle. A quaternion more than
+    ``max_step_deg`` (times the frames elapsed) away from the last trusted one is physically
+    impossible for a skin triangle at capture rates -- it is a flat triangle's ill-conditioned
+    estimate -- so it becomes NaN (later filled by interpolation) and cannot flip the sign of
+    the rest of the sequence. Without this a rotation passing 180 degrees jumps across the log
+    map's cut and one rigid segment's triangles scatter (our addition; the paper is silent).
+    """
+    q = np.array(q, dtype=np.float64, copy=True)
+    n, t = q.shape[0], q.shape[1]
+    half_step = np.deg2rad(max_step_deg) / 2.0
+    for order in (range(start, n), range(start, -1, -1)):
+        last = np.zeros((t, 4))
+        last[:, 0] = 1.0
+        age = np.zeros(t)
+        for f in order:
+            cur = q[f]
+            dot = np.einsum("ti,ti->t", cur, last)
+            ok = np.isfinite(dot)
+            flip = ok & (dot < 0)
+            cur[flip] *= -1.0
+            age += 1.0
+            limit = np.cos(np.minimum(half_step * age, np.pi / 2))
+            jump = ok & (np.abs(dot) < limit)
+            if f != start:
+                cur[jump] = np.nan
+            good = ok & ~jump
+            last[good] = cur[good]
+            age[good] = 0.0
+    return q
+
+
+def log_map(q: np.ndarray) -> np.ndarray:
+    """Logarithm map of unit quaternions ``(..., 4)`` (w, x, y, z) -> ``(..., 3)`` [LS02].
+
+    ``log(q) = atan2(|u|, w) u / |u|`` with ``u = (x, y, z)``, so ``|v|`` is half the rotation
+    angle; on the hemisphere ``w >= 0`` ``|v| <= pi / 2``, and up to ``pi`` for ``w < 0`` (sign
+    chosen by :func:`continuous_sign`); NaN stays NaN.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    u = q[..., 1:]
+    nu = np.linalg.norm(u, axis=-1, keepdims=True)
+    theta = np.arctan2(nu, q[..., :1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = np.where(nu > 1e-12, theta / np.where(nu > 1e-12, nu, 1.0), 1.0)
+    return u * factor
+
+
+def exp_map(v: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`log_map`: ``(..., 3)`` -> unit quaternions ``(..., 4)``."""
+    v = np.asarray(v, dtype=np.float64)
+    nv = np.linalg.norm(v, axis=-1, keepdims=True)
+    sinc = np.where(nv > 1e-12, np.sin(nv) / np.where(nv > 1e-12, nv, 1.0), 1.0)
+    return np.concatenate([np.cos(nv), v * sinc], axis=-1)
+
+
+def fill_gaps(x: np.ndarray) -> np.ndarray:
+    """Linear interpolation in time of NaN rows of ``x`` (F, D) per column; ends held constant.
+
+    A column with no finite value becomes 0 (identity rotation in log space).
+    """
+    x = np.array(x, dtype=np.float64, copy=True)
+    t = np.arange(x.shape[0])
+    bad = np.isnan(x)
+    for c in np.flatnonzero(bad.any(axis=0)):
+        good = ~bad[:, c]
+        x[:, c] = np.interp(t, t[good], x[good, c]) if good.any() else 0.0
+    return x
+
+
+def triangle_features(
+    positions: np.ndarray, rest: np.ndarray, faces: np.ndarray, rest_frame: int = 0
+) -> np.ndarray:
+    """Clustering features ``(T, 3F)``: row ``i`` is ``F_i = [v_i^1 ... v_i^F]`` (Sec. 3.2).
+
+    ``positions`` (F, M, 3) mm (NaN = missing), ``rest`` (M, 3) (the pose of frame
+    ``rest_frame``), ``faces`` (T, 3). Quaternion signs follow :func:`continuous_sign`. Frames
+    where a triangle has a missing vertex (or an impossible jump) get its log-map vector
+    interpolated in time (:func:`fill_gaps`).
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    q = horn_quaternions(rest[faces], pos[:, faces])  # (F, T, 4)
+    v = log_map(continuous_sign(q, rest_frame))  # (F, T, 3)
+    f, t = v.shape[:2]
+    v = fill_gaps(v.reshape(f, t * 3)).reshape(f, t, 3)
+    return np.ascontiguousarray(v.transpose(1, 0, 2).reshape(t, f * 3))
