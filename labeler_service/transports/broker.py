@@ -51,7 +51,7 @@ class LocalBroker:
         self.conf = Path(workdir) / "mosquitto.conf"
         self.conf.write_text(
             f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
-            "log_dest none\n"
+            "set_tcp_nodelay true\nlog_dest none\n"
         )
         self.proc: subprocess.Popen | None = None
 

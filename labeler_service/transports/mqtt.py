@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import socket
 import ssl
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -87,6 +88,8 @@ class ReconnectingClient:
             tls_params=_tls(s),
             tls_insecure=s.tls_insecure if s.tls else None,
             timeout=5.0,
+            # small frames must not wait for Nagle + delayed ACK (~40 ms on Linux)
+            socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),),
         )
 
     async def run(self) -> None:
