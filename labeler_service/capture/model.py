@@ -117,9 +117,15 @@ class Capture:
 
     @property
     def missing_fraction(self) -> float:
-        if self.positions.size == 0:
+        """Missing samples of the labeled markers (ghost ``*N`` columns are not counted,
+        unless every column is one, as in a raw unlabeled capture)."""
+        vis = self.visible
+        named = ~self.ghost_mask
+        if named.any():
+            vis = vis[:, named]
+        if vis.size == 0:
             return 0.0
-        return float(1.0 - self.visible.mean())
+        return float(1.0 - vis.mean())
 
     def empty_columns(self) -> np.ndarray:
         """Indices of markers that are never visible."""

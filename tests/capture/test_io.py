@@ -104,6 +104,9 @@ def test_gaps_and_empty_columns(rng) -> None:
     assert cap2.empty_columns().tolist() == [0]
     assert cap2.without_empty().n_markers == cap.n_markers - 1
     assert cap.subjects == ("A", "B")
+    # The ghost column (*0) does not count as missing data.
+    named = cap.visible[:, :-1]
+    assert cap.missing_fraction == pytest.approx(1 - named.mean())
 
 
 @pytest.mark.realdata
