@@ -70,3 +70,15 @@ def test_unreadable_files_raise_config_error(tmp_path):
     other.write_text("a: 1")
     with pytest.raises(ConfigError, match="use .toml or .json"):
         load_settings(other)
+
+
+def test_the_docker_example_settings_are_valid(monkeypatch):
+    from pathlib import Path
+
+    for k in list(__import__("os").environ):
+        if k.startswith("MOCAP_"):
+            monkeypatch.delenv(k)
+    path = Path(__file__).resolve().parents[2] / "docker" / "service.toml"
+    s = load_settings(path)
+    assert s.mqtt.enabled and s.mqtt.host == "mosquitto" and s.udp.host == "0.0.0.0"
+    assert [x.name for x in s.streams] == ["volume1"]
