@@ -75,13 +75,17 @@ async def replay(
     loops: int = 1,
     seq0: int = 0,
     on_frame: Callable[[int, int], None] | None = None,
+    max_frames: int | None = None,
 ) -> ReplayStats:
-    """Sends ``frames`` (see the module docstring); ``on_frame(seq, frame_index)`` after each."""
+    """Sends ``frames`` (see the module docstring); ``on_frame(seq, frame_index)`` after each.
+
+    ``max_frames`` stops after that many frames (e.g. a duration cut from a looped scene).
+    """
     if speed < 0 or not np.isfinite(speed):
         raise ConfigError(f"--speed must be >= 0 (0 = as fast as possible), got {speed}")
     if loops < 1:
         raise ConfigError(f"--loops must be >= 1, got {loops}")
-    order = frame_order(frames.n_frames, loops)
+    order = frame_order(frames.n_frames, loops)[:max_frames]
     dt = 1.0 / frames.rate
     stats = ReplayStats(first_seq=seq0)
     t_start = time.perf_counter()

@@ -170,6 +170,7 @@ async def run_pipeline(
     keep_frames: bool = True,
     rss_every_s: float | None = None,
     progress=None,
+    max_frames: int | None = None,
 ) -> PipelineResult:
     """Runs replay -> service subprocess -> subscriber once; see the module docstring."""
     from labeler_service.replay import open_sender, replay
@@ -207,7 +208,8 @@ async def run_pipeline(
             try:
                 async with open_sender(url) as (send, _):
                     st = await replay(frames, send, stream=stream, init_frames=init_frames,
-                                      speed=speed, loops=loops, on_frame=progress)  # fmt: skip
+                                      speed=speed, loops=loops, on_frame=progress,
+                                      max_frames=max_frames)  # fmt: skip
                 res.sent = st.sent
                 await asyncio.sleep(0.5)  # let the last frames arrive
             finally:

@@ -83,14 +83,9 @@ async def bench(args, workdir: Path) -> dict:
         ep = parse_endpoint(broker_url)
         settings["mqtt"] = {"enabled": True, "host": ep.host, "port": ep.port}
     try:
-        # cut the ping-pong playback to exactly n_total frames
-        from labeler_service.replay import frame_order
-
-        order = frame_order(frames.n_frames, loops)[:n_total]
-        frames = _reindex(frames, order)
         res = await run_pipeline(frames, settings, workdir, transport=args.transport,
-                                 stream=stream, init_frames=init, speed=1.0,
-                                 broker_url=broker_url)  # fmt: skip
+                                 stream=stream, init_frames=init, speed=1.0, loops=loops,
+                                 max_frames=n_total, broker_url=broker_url)  # fmt: skip
     finally:
         if broker is not None:
             broker.close()
@@ -142,21 +137,6 @@ async def bench(args, workdir: Path) -> dict:
         **{f"{k}_ms_p99": percentiles(v[steady])["p99"] for k, v in legs.items()},
         "service_exit_code": res.service_returncode,
     }
-
-
-def _reindex(frames, order):
-    from dataclasses import replace
-
-    import numpy as np
-
-    return replace(
-        frames,
-        times=np.arange(len(order), dtype=np.float64) / frames.rate,
-        points=[frames.points[i] for i in order],
-        truth=[frames.truth[i] for i in order],
-        positions=frames.positions[order],
-        removed=frames.removed[order],
-    )
 
 
 def run(args: argparse.Namespace) -> int:
