@@ -311,7 +311,7 @@ class Labeler:
         self._best_choice = np.zeros(8, dtype=np.int64)
         self._obs = np.full((m, 3), np.nan)
         self._rec = np.full((m, 3), np.nan)
-        self._has_rec = np.zeros(m, dtype=np.bool_)
+        self._has_rec = np.zeros(m, dtype=np.int64)
         self._missing = np.zeros(m, dtype=np.bool_)
         self._src = np.zeros((8, 3))
         self._dst = np.zeros((8, 3))

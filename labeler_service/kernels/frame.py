@@ -154,23 +154,38 @@ def _process_frame(
         partial,
         best_choice,
     )
-    # re-acquisition: markers still missing search the points nobody took within a wide radius,
-    # then Algorithm 1 runs again on their bodies only (the other markers stay fixed)
+    # re-acquisition: bodies with fewer than two observed markers are released (their markers
+    # not held by a better-seen body search again) and, with every missing marker when
+    # ``reacq_all``, look for free points within a wide radius; Algorithm 1 then runs again on
+    # those bodies only (everything else stays fixed)
     if reacq_radius > 0.0:
         n_lost = 0
+        nb = body_markers.shape[0]
         for i in range(m_total):
-            missing[i] = active[i] and assigned[i] == -1
-        if not reacq_all:  # only markers whose bodies saw nothing
-            for b in range(body_markers.shape[0]):
+            missing[i] = False
+        for b in range(nb):
+            c = 0
+            for k in range(body_size[b]):
+                if assigned[body_markers[b, k]] >= 0:
+                    c += 1
+            satisfied[b] = c >= 2  # scratch: a well-seen body
+            if not satisfied[b]:
                 for k in range(body_size[b]):
-                    if assigned[body_markers[b, k]] >= 0:
-                        for k2 in range(body_size[b]):
-                            missing[body_markers[b, k2]] = False
-                        break
+                    missing[body_markers[b, k]] = True
+        for b in range(nb):
+            if satisfied[b]:
+                for k in range(body_size[b]):
+                    missing[body_markers[b, k]] = False
         for i in range(m_total):
-            if missing[i]:
+            if reacq_all and active[i] and assigned[i] == -1:
+                missing[i] = True
+            if missing[i] and active[i]:
+                if assigned[i] >= 0:
+                    owner[assigned[i]] = -1
                 assigned[i] = -2
                 n_lost += 1
+            else:
+                missing[i] = False
         if n_lost > 0:
             _regate(x, missing, points, owner, reacq_radius, gate, K, cand, cand_d2, ncand)
             _fit_bodies(
@@ -272,8 +287,10 @@ def _process_frame(
     for i in range(m_total):
         if not missing[i]:
             continue
-        if has_rec[i]:
-            _start_or_update(x, P, i, rec[i, 0], rec[i, 1], rec[i, 2], r_rec, v0)
+        if has_rec[i] > 0:
+            # a rigid (3+ neighbours) estimate steers the Kalman state; a weaker one barely
+            rr = r_rec if has_rec[i] >= 3 else 25.0 * r_rec
+            _start_or_update(x, P, i, rec[i, 0], rec[i, 1], rec[i, 2], rr, v0)
             out_state[i] = RECOVERED
             for c in range(3):
                 out_pos[i, c] = rec[i, c]

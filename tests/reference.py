@@ -1,0 +1,260 @@
+"""Plain-numpy twins of the numba kernels in ``labeler_service.kernels`` (slow, obvious).
+
+Each twin follows the paper's formula directly (the full 6x6 Kalman filter, scipy's Mahalanobis
+distance, ``itertools.product`` for the exhaustive search, Algorithm 1 recomputing every body at
+every step) so the tests can compare the optimised kernels with them.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from scipy.spatial.distance import mahalanobis
+
+# --------------------------------------------------------------------------- Kalman (Eq. 3-4)
+
+
+def kalman_full_predict(x, P6, q, dt):
+    """Eq. 3 with the full matrices: ``x (6,)``, ``P6 (6, 6)``."""
+    F = np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+    G = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+    Q = q * np.kron(G, np.eye(3))
+    return F @ x, F @ P6 @ F.T + Q
+
+
+def kalman_full_update(x, P6, z, r):
+    """Eq. 4 with the full matrices."""
+    H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    S = H @ P6 @ H.T + r * np.eye(3)
+    K = P6 @ H.T @ np.linalg.inv(S)
+    x = x + K @ (z - H @ x)
+    P6 = (np.eye(6) - K @ H) @ P6
+    return x, P6
+
+
+def p2_to_p6(p):
+    """Factorised ``(p_pp, p_pv, p_vv)`` -> full ``P2 (x) I3``."""
+    return np.kron(np.array([[p[0], p[1]], [p[1], p[2]]]), np.eye(3))
+
+
+# --------------------------------------------------------------------------- gating
+
+
+def gate(pred, s, active, points, gate_chi2, K):
+    """Candidates per marker with scipy's Mahalanobis distance (``S = s I``), best K first."""
+    out = []
+    for i in range(pred.shape[0]):
+        if not active[i]:
+            out.append(([], []))
+            continue
+        vi = np.eye(3) / s[i]
+        found = []
+        for j in range(points.shape[0]):
+            if not (np.isfinite(points[j]).all() and np.isfinite(pred[i, :3]).all()):
+                continue
+            d2 = mahalanobis(points[j].astype(float), pred[i, :3], vi) ** 2
+            if d2 < gate_chi2:
+                found.append((d2, j))
+        found.sort()
+        found = found[:K]
+        out.append(([j for _, j in found], [d for d, _ in found]))
+    return out
+
+
+def regate(x, lost, points, owner, radius, gate_chi2, K):
+    """The re-acquisition gate: free points within ``radius`` of lost markers, K nearest."""
+    out = {}
+    for i in np.flatnonzero(lost):
+        found = []
+        for j in range(points.shape[0]):
+            if owner[j] >= 0:
+                continue
+            d2 = float(np.sum((points[j] - x[i, :3]) ** 2)) * gate_chi2 / radius**2
+            if d2 < gate_chi2:
+                found.append((d2, j))
+        found.sort()
+        out[int(i)] = [j for _, j in found[:K]]
+    return out
+
+
+def common_mode(x, active, groups, points, radius, iters):
+    """Per-subject median nearest-point offset, applied ``iters`` times."""
+    x = x.copy()
+    shifts = []
+    for g in groups:
+        total = np.zeros(3)
+        for _ in range(iters):
+            offs = []
+            for i in g:
+                if not active[i] or not np.isfinite(x[i, 0]):
+                    continue
+                d = np.linalg.norm(points - x[i, :3], axis=1)
+                if d.size and d.min() < radius:
+                    offs.append(points[int(np.argmin(d))] - x[i, :3])
+            if len(offs) < 3:
+                break
+            delta = np.median(np.asarray(offs), axis=0)
+            total += delta
+            for i in g:
+                if active[i]:
+                    x[i, :3] += delta
+        shifts.append(total)
+    return x, np.asarray(shifts)
+
+
+# --------------------------------------------------------------------------- Eq. 5
+
+
+def pair_term(D, A, a_floor, a_rel, miss_term, pa, pb):
+    if pa is None or pb is None or not (np.isfinite(D) and np.isfinite(A)):
+        return miss_term
+    a = max(A, a_floor, a_rel * D)
+    d = np.linalg.norm(np.asarray(pa, float) - np.asarray(pb, float))
+    return float(np.exp(-((D - d) ** 2) / (2 * a * a)))
+
+
+def score(assign, perm, mot_of, Db, Ab, a_floor, a_rel, miss_term, w, points):
+    """Normalised Eq. 5 + motion score of one assignment (option per search position)."""
+    n = len(assign)
+    total = w * sum(mot_of[k] for k in range(n))
+    for k in range(n):
+        for l in range(k):
+            pa = None if assign[k] < 0 else points[assign[k]]
+            pb = None if assign[l] < 0 else points[assign[l]]
+            total += pair_term(Db[perm[k], perm[l]], Ab[perm[k], perm[l]], a_floor, a_rel,
+                               miss_term, pa, pb)  # fmt: skip
+    return total / (n * (n - 1) / 2 + w * n)
+
+
+def search_body(n, perm, opts, nopts, mot, Db, Ab, a_floor, a_rel, miss_term, w, points):
+    """Exhaustive search with ``itertools.product``: best score and option indices (the first
+    maximum in product order)."""
+    best, arg = -1.0, None
+    for combo in itertools.product(*[range(nopts[k]) for k in range(n)]):
+        pts = [int(opts[k, o]) for k, o in enumerate(combo)]
+        used = [p for p in pts if p >= 0]
+        if len(used) != len(set(used)):
+            continue
+        s = score(pts, perm, [mot[k, o] for k, o in enumerate(combo)], Db, Ab, a_floor, a_rel,
+                  miss_term, w, points)  # fmt: skip
+        if s > best + 1e-12:
+            best, arg = s, combo
+    return best, arg
+
+
+def fit_bodies(body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, a_floor, a_rel,
+               miss_term, w, gate_chi2):  # fmt: skip
+    """Algorithm 1 literally: every step re-searches every unsatisfied body, satisfies the best.
+
+    Returns ``assigned (M,)`` (point or -1) and ``owner (N,)``.
+    """
+    m_total = cand.shape[0]
+    assigned = np.full(m_total, -2)
+    owner = np.full(points.shape[0], -1)
+    miss_mot = np.exp(-0.5 * gate_chi2)
+    nb = body_markers.shape[0]
+    satisfied = [body_size[b] == 0 for b in range(nb)]
+    while not all(satisfied):
+        results = []
+        for b in range(nb):
+            if satisfied[b]:
+                continue
+            members = list(body_markers[b, : body_size[b]])
+            counts = []
+            for mk in members:
+                if assigned[mk] != -2:
+                    counts.append(0)
+                else:
+                    counts.append(1 + sum(owner[cand[mk, o]] < 0 for o in range(ncand[mk])))
+            perm = sorted(range(len(members)), key=lambda k: counts[k])
+            K1 = cand.shape[1] + 1
+            opts = np.zeros((8, K1), dtype=np.int64)
+            mot = np.zeros((8, K1))
+            nopts = np.zeros(8, dtype=np.int64)
+            for pos, k in enumerate(perm):
+                mk = members[k]
+                if assigned[mk] != -2:
+                    opts[pos, 0] = assigned[mk]
+                    mot[pos, 0] = miss_mot
+                    for o in range(ncand[mk]):
+                        if cand[mk, o] == assigned[mk]:
+                            mot[pos, 0] = np.exp(-0.5 * cand_d2[mk, o])
+                            break
+                    nopts[pos] = 1
+                    continue
+                c = 0
+                for o in range(ncand[mk]):
+                    if owner[cand[mk, o]] < 0:
+                        opts[pos, c] = cand[mk, o]
+                        mot[pos, c] = np.exp(-0.5 * cand_d2[mk, o])
+                        c += 1
+                opts[pos, c] = -1
+                mot[pos, c] = miss_mot
+                nopts[pos] = c + 1
+            s, arg = search_body(len(members), perm, opts, nopts, mot, Db[b], Ab[b], a_floor,
+                                 a_rel, miss_term, w, points)  # fmt: skip
+            chosen = {members[k]: int(opts[pos, arg[pos]]) for pos, k in enumerate(perm)}
+            results.append((s, b, chosen))
+        best = max(r[0] for r in results)
+        s, r, chosen = next(x for x in results if x[0] == best)
+        satisfied[r] = True
+        for mk, p in chosen.items():
+            if assigned[mk] == -2:
+                assigned[mk] = p
+                if p >= 0:
+                    owner[p] = mk
+    return assigned, owner
+
+
+# --------------------------------------------------------------------------- Eq. 1-2
+
+
+def window_stats(history, min_samples, D0, A0):
+    """Mean and deviation of the finite values of ``history (T,)``; trained values below
+    ``min_samples``."""
+    h = np.asarray(history, dtype=np.float64)
+    h = h[np.isfinite(h)]
+    if h.size < max(1, min_samples):
+        return D0, A0
+    return float(h.mean()), float(h.std())
+
+
+# --------------------------------------------------------------------------- recovery
+
+
+def kabsch(src, dst):
+    """``R, t`` minimising ``|R src + t - dst|`` (scipy-free SVD form, reflection excluded)."""
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return R, cd - R @ cs
+
+
+def robust_kabsch(src, dst, tau):
+    src, dst = src.copy(), dst.copy()
+    while True:
+        R, t = kabsch(src, dst)
+        if len(src) <= 3:
+            return R, t, len(src)
+        res = np.linalg.norm(src @ R.T + t - dst, axis=1)
+        wi = int(np.argmax(res))
+        if res[wi] <= tau:
+            return R, t, len(src)
+        last = len(src) - 1
+        src[wi], dst[wi] = src[last].copy(), dst[last].copy()
+        src, dst = src[:last], dst[:last]
+
+
+def recover(m, members, ref, obs, method, tau):
+    """Estimate of marker ``m`` from its recovery set (``members[0] == m``); None if impossible."""
+    idx = [k for k in range(1, len(members)) if np.isfinite(obs[members[k], 0])]
+    if not idx:
+        return None
+    src = np.array([ref[k] for k in idx], dtype=float)
+    dst = np.array([obs[members[k]] for k in idx], dtype=float)
+    if method == "kabsch" and len(idx) >= 3:
+        R, t, _ = robust_kabsch(src, dst, tau)
+        return R @ ref[0] + t
+    return np.mean(dst + ref[0] - src, axis=0)
