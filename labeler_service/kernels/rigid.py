@@ -82,11 +82,14 @@ def _robust_kabsch(src, dst, n, R, t, tau):
 def _recover(
     missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t, tau
 ):
-    """Recovers every marker with ``missing[m]`` into ``rec (M, 3)`` (``has_rec[m]``: how many
-    neighbours were used, 0 = not recovered) from its recovery set: ``rec_members[m, 1:rec_size[m]]`` (``rec_members[m, 0]``
-    is ``m``), whose positions at the last frame where the whole set was observed are
-    ``rec_ref[m]``. ``obs (M, 3)`` holds this frame's observed positions (NaN otherwise).
-    ``method`` 1 = Kabsch (3+ observed), else / fallback = displacement averaging."""
+    """Recovers every marker with ``missing[m]`` into ``rec (M, 3)``.
+
+    ``has_rec[m]`` receives how many neighbours were used (0 = not recovered). The recovery set
+    of ``m`` is ``rec_members[m, 1:rec_size[m]]`` (``rec_members[m, 0]`` is ``m``); ``rec_ref[m]``
+    holds the set's positions the last time all were observed; ``obs (M, 3)`` this frame's
+    observed positions (NaN otherwise). ``method`` 1 = Kabsch (3+ observed), else (or with
+    fewer) displacement averaging.
+    """
     m_total = missing.shape[0]
     for m in range(m_total):
         has_rec[m] = 0
