@@ -157,6 +157,10 @@ class ServiceSettings(BaseSettings):
     log_interval_s: float = Field(10.0, gt=0)
     #: Run every kernel on a synthetic frame before reporting ready.
     warmup: bool = True
+    #: Label in one worker thread per stream (numba kernels release the GIL). Measured slower
+    #: on 2 cores (GIL hand-offs between the loop and the labeling thread; docs/service.md),
+    #: so off by default: labeling runs inline on the event loop.
+    labeling_thread: bool = False
 
     @field_validator("streams")
     @classmethod

@@ -41,7 +41,8 @@ async def _labeled(mem, n, timeout=10.0):
     return out
 
 
-def test_stream_starts_from_labeled_init_frames_and_labels_correctly(rng):
+@pytest.mark.parametrize("thread", [False, True], ids=["inline", "labeling-thread"])
+def test_stream_starts_from_labeled_init_frames_and_labels_correctly(rng, thread):
     cap = moving_clusters(rng, subjects=3, markers=5, frames=120)
     frames = frames_of(cap, np.random.default_rng(3))
     payloads = [
@@ -51,7 +52,7 @@ def test_stream_starts_from_labeled_init_frames_and_labels_correctly(rng):
 
     async def go():
         mem = MemoryTransport()
-        async with Server(_settings(), [mem]) as srv:
+        async with Server(_settings(labeling_thread=thread), [mem]) as srv:
             await _feed(mem, payloads, pause=0.001)
             got = await _labeled(mem, 90)
             models = [decode(p) for s, k, p, _ in mem.sent if k == "model"]
