@@ -34,7 +34,9 @@ async def _main(args: argparse.Namespace) -> int:
 
         async def consume() -> None:
             last_t, last_n = time.monotonic(), 0
+            n = 0
             async for r in sub.frames():
+                n += 1
                 if recorder is not None:
                     recorder.add(r, sub.models[r.msg.stream].rate)
                 now = time.monotonic()
@@ -43,8 +45,9 @@ async def _main(args: argparse.Namespace) -> int:
                     print(("\r" + line) if tty else line, end="" if tty else "\n",
                           file=sys.stderr, flush=True)  # fmt: skip
                     last_t, last_n = now, sub.stats.frames
-                if args.frames is not None and sub.stats.frames >= args.frames:
+                if args.frames is not None and n >= args.frames:
                     stop.set()
+                    return
 
         task = asyncio.create_task(consume(), name="subscribe-consume")
         await stop.wait()
