@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
 import logging
 import signal
 import sys
@@ -43,6 +44,10 @@ async def serve(settings, stop: asyncio.Event | None = None) -> None:
                     parts.append(f"mqtt://{settings.mqtt.host}:{settings.mqtt.port}")
             if srv.metrics_port is not None:
                 parts.append(f"metrics http://{settings.metrics_host}:{srv.metrics_port}/metrics")
+            # the long-lived objects (kernels, templates, state) leave the GC's generations, so
+            # collections during streaming only scan per-frame garbage
+            gc.collect()
+            gc.freeze()
             print(f"ready {' '.join(parts)}", flush=True)
             await stop.wait()
     finally:
