@@ -1,4 +1,4 @@
-"""UDP on asyncio ``DatagramProtocol``: the service endpoint and a small client endpoint.
+"""UDP with non-blocking sockets on the asyncio loop: the service endpoint and a client endpoint.
 
 The service binds one socket (loopback by default). Frames arrive from any sender; outgoing
 messages go to the fixed ``publish_to`` destinations and to subscribers that registered with a
