@@ -5,6 +5,7 @@ Not used by the service itself, which connects to whatever broker its settings n
 
 from __future__ import annotations
 
+import os
 import shutil
 import socket
 import subprocess
@@ -38,7 +39,12 @@ class LocalBroker:
     ``mosquitto`` binary is missing.
     """
 
-    def __init__(self, workdir: Path | None = None, binary: str | None = None) -> None:
+    def __init__(
+        self,
+        workdir: Path | None = None,
+        binary: str | None = None,
+        users: dict[str, str] | None = None,
+    ) -> None:
         self.binary = binary or mosquitto_binary()
         if self.binary is None:
             raise ConfigError("the mosquitto binary was not found (apt install mosquitto)")
@@ -49,11 +55,28 @@ class LocalBroker:
         self.host = "127.0.0.1"
         self.port = free_port()
         self.conf = Path(workdir) / "mosquitto.conf"
+        auth = "allow_anonymous true\n"
+        if users:
+            auth = f"allow_anonymous false\npassword_file {self._password_file(workdir, users)}\n"
+        # started as root, mosquitto drops to user "mosquitto", which cannot read our files
+        stay = "user root\n" if hasattr(os, "geteuid") and os.geteuid() == 0 else ""
         self.conf.write_text(
-            f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
+            f"listener {self.port} 127.0.0.1\n{stay}{auth}persistence false\n"
             "set_tcp_nodelay true\nlog_dest none\n"
         )
         self.proc: subprocess.Popen | None = None
+
+    def _password_file(self, workdir: Path, users: dict[str, str]) -> Path:
+        tool = shutil.which("mosquitto_passwd") or str(
+            Path(self.binary).parent / "mosquitto_passwd"
+        )
+        path = Path(workdir) / "passwd"
+        path.write_text("")
+        for user, password in users.items():
+            subprocess.run([tool, "-b", str(path), user, password], check=True,
+                           capture_output=True)  # fmt: skip
+        path.chmod(0o600)
+        return path
 
     @property
     def url(self) -> str:

@@ -147,3 +147,33 @@ def test_topic_and_payload_stream_must_agree(broker):
             return srv.metrics.drops("stream_mismatch")
 
     assert run(go()) == 1
+
+
+def test_credentials_are_required_and_used(tmp_path):
+    import shutil
+
+    from labeler_service.transports.broker import LocalBroker
+
+    if shutil.which("mosquitto_passwd") is None:
+        pytest.skip("mosquitto_passwd not found")
+    secured = LocalBroker(tmp_path, users={"labeler": "s3cret"})
+    secured.start()
+
+    async def go():
+        s = load_settings(labeler="baseline", metrics_port=None, udp={"enabled": False},
+                          streams=[{"name": "vol"}],
+                          mqtt={"enabled": True, "host": secured.host, "port": secured.port,
+                                "username": "labeler", "password": "s3cret"})  # fmt: skip
+        async with Server(s):
+            url = f"mqtt://labeler:s3cret@{secured.host}:{secured.port}/vol"
+            async with Subscriber(url) as good:
+                ok = await good.wait_status("vol", "online", 5.0)
+            async with Subscriber(f"{secured.url}/vol") as anonymous:
+                refused = not await anonymous.wait_status("vol", "online", 1.5)
+        return ok, refused
+
+    try:
+        ok, refused = run(go())
+    finally:
+        secured.close()
+    assert ok and refused
