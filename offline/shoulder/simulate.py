@@ -137,21 +137,21 @@ def build_body(spacing: float = 27.0) -> ShoulderBody:
             # y > 0 in front: phi = 0 is the lateral side (x = a_x)
             torso.append([a_x * np.cos(p), b_y * np.sin(p), z])
     torso = np.asarray(torso)
-    # girdle share: upper lateral torso, blended over ~40 mm
-    g = _smoothstep((torso[:, 0] - 60.0) / 80.0) * _smoothstep((torso[:, 2] - 1290.0) / 75.0)
+    # girdle share: upper lateral torso, blended over 40 mm
+    g = _smoothstep((torso[:, 0] - 75.0) / 40.0) * _smoothstep((torso[:, 2] - 1305.0) / 40.0)
     w_torso = np.zeros((len(torso), 4))
     w_torso[:, 0], w_torso[:, 1] = 1.0 - g, g
 
     upper, s_up = _cylinder(_GH, _U0, 44.0, 45.0, _L_UPPER - 40.0, spacing)
     w_up = np.zeros((len(upper), 4))
-    to_girdle = 0.4 * (1.0 - _smoothstep((s_up - 45.0) / 35.0))  # deltoid blends with the girdle
-    to_fore = _smoothstep((s_up - (_L_UPPER - 45.0)) / 45.0) * 0.5
+    to_girdle = 0.25 * (1.0 - _smoothstep((s_up - 45.0) / 30.0))  # deltoid blends with the girdle
+    to_fore = _smoothstep((s_up - (_L_UPPER - 70.0)) / 30.0) * 0.3
     w_up[:, 1], w_up[:, 3] = to_girdle, to_fore
     w_up[:, 2] = 1.0 - to_girdle - to_fore
 
     fore, s_fo = _cylinder(_ELBOW, _U0, 34.0, 20.0, _L_FORE - 60.0, spacing)
     w_fo = np.zeros((len(fore), 4))
-    to_upper = 0.5 * (1.0 - _smoothstep((s_fo - 10.0) / 45.0))
+    to_upper = 0.3 * (1.0 - _smoothstep((s_fo - 20.0) / 30.0))
     w_fo[:, 2], w_fo[:, 3] = to_upper, 1.0 - to_upper
 
     rest = np.concatenate([torso, upper, fore])
@@ -231,6 +231,7 @@ def _angles(name: str, n: int, rate: float, rng: np.random.Generator) -> dict[st
     else:
         raise SceneError(f"unknown shoulder motion {name!r} (choose from {', '.join(MOTIONS)})")
     return {
+        "tilt": wander(deg(6), 0.3),
         "abd": abd, "flex": flex, "twist": twist, "elbow": elbow, "pron": pron,
         "shrug": shrug, "trunk": trunk, "root": root, "carry": z + deg(6) * np.sin(elbow),
     }  # fmt: skip
@@ -251,7 +252,8 @@ def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
     Arm: abduction about -Y (anterior) beyond the 50 deg rest pose, flexion about +X, axial
     twist about the arm axis. Girdle: 40 % of the arm elevation (scapulo-humeral rhythm) plus
-    the shrug about -Y at the SC joint, 20 % of flexion as protraction about +Z. Elbow: flexion
+    the shrug about -Y at the SC joint, 20 % of flexion as protraction about +Z, a small
+    random tilt about the clavicle. Elbow: flexion
     about the axis normal to the arm in the abduction plane, pronation about the forearm, a
     small carrying-angle change (so its centre is identifiable).
     """
@@ -267,7 +269,8 @@ def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     elev = a["abd"] - _ABD0
     r_arm = rot(-y_axis, elev) @ rot(x_axis, a["flex"]) @ rot(_U0, a["twist"])
     girdle_rot = rot(-y_axis, 0.40 * (np.maximum(a["abd"], 0.0) - _ABD0) + a["shrug"])
-    r_gird = rot(z_axis, 0.20 * a["flex"]) @ girdle_rot
+    clav = (_GH - _SC) / np.linalg.norm(_GH - _SC)
+    r_gird = rot(z_axis, 0.20 * a["flex"]) @ girdle_rot @ rot(clav, a["tilt"])
     flex_axis = np.cross(_U0, y_axis)
     flex_axis /= np.linalg.norm(flex_axis)
     r_elb = rot(-y_axis, a["elbow"]) @ rot(flex_axis, a["carry"]) @ rot(_U0, a["pron"])
@@ -283,24 +286,15 @@ def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _skin(body: ShoulderBody, T: np.ndarray, rel: np.ndarray) -> np.ndarray:
-    """Marker positions ``(F, M, 3)``: a marker blended between a parent bone and its child
-    (weight ``w`` on the child) follows the parent and a fraction ``w`` of the child's joint
-    rotation (rotation-vector scaling about the joint centre) -- skin near a joint turns part of
-    the way, without the volume collapse of linear blending under large joint angles.
+    """Marker positions ``(F, M, 3)`` by linear blend skinning of the true bones.
+
+    ``rel`` (the joint rotations) is unused by linear blending and kept for the rotation-
+    fraction variant documented in docs/shoulder.md.
     """
-    n = T.shape[0]
-    pos = np.empty((n, body.n_markers, 3))
-    for m in range(body.n_markers):
-        bones = np.flatnonzero(body.weights[m] > 1e-9)
-        parent = int(bones[0])
-        Tm = T[:, parent]
-        if bones.size > 1:
-            child = int(bones[1])
-            frac = body.weights[m, child]
-            rv = Rotation.from_matrix(rel[:, child - 1]).as_rotvec() * frac
-            Tm = Tm @ _about(Rotation.from_rotvec(rv).as_matrix(), body.joints[child - 1])
-        pos[:, m] = Tm[:, :3, :3] @ body.rest[m] + Tm[:, :3, 3]
-    return pos
+    del rel
+    rest_h = np.concatenate([body.rest, np.ones((body.n_markers, 1))], axis=1)
+    per_bone = np.einsum("fbij,mj->fbmi", T[:, :, :3, :], rest_h)  # (F, B, M, 3)
+    return np.einsum("mb,fbmi->fmi", body.weights, per_bone)
 
 
 def simulate_motion(
