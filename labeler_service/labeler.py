@@ -177,7 +177,8 @@ class Labeler:
             self._point_labels[:n], self._out_pos, self._out_state, self._subj_ptr,
             self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
             self._cm_shift, c.reacquire_mm, c.verify_mm, c.reacquire_near_mm,
-            self._miss_reacq, c.reacquire_all, c.robust_fit_mm,
+            self._miss_reacq, c.reacquire_all, c.robust_fit_mm, c.reject_mm * max(1.0, dt * 120.0),
+            c.jump_mm, c.suspect_mm,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ training

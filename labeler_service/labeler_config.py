@@ -56,6 +56,24 @@ class LabelerConfig(BaseModel):
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )
+    reject_mm: float = Field(
+        25.0,
+        gt=0,
+        description="a marker re-acquired this frame is dropped if its point is this far from "
+        "its rigid-neighbourhood estimate and no free point is closer (at 120 Hz; scaled by "
+        "the time step at lower rates)",
+    )
+    jump_mm: float = Field(
+        8.0,
+        gt=0,
+        description="a point this far from the Kalman prediction triggers the 3D check",
+    )
+    suspect_mm: float = Field(
+        60.0,
+        ge=0,
+        description="a free point this close to a labeled marker's prediction triggers its 3D "
+        "check (0 = off)",
+    )
     measurement_noise_mm: float = Field(
         1.0, gt=0, description="R = (this)^2 I per axis: reconstruction noise of a point"
     )

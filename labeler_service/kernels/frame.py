@@ -104,6 +104,9 @@ def _process_frame(
     miss_reacq,
     reacq_all,
     robust_mm,
+    reject_mm,
+    jump_mm,
+    suspect_mm,
 ):
     """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
     m_total = x.shape[0]
@@ -233,6 +236,8 @@ def _process_frame(
             owner,
             ncand,
             active,
+            out_state,
+            x,
             points,
             obs,
             rec_members,
@@ -241,6 +246,10 @@ def _process_frame(
             rec_ok,
             verify_mm,
             reacq_near_mm,
+            reject_mm,
+            jump_mm,
+            suspect_mm,
+            missing,
             src,
             dst,
             R,

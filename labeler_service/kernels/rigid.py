@@ -173,6 +173,8 @@ def _verify(
     owner,
     ncand,
     active,
+    prev_state,
+    x,
     points,
     obs,
     rec_members,
@@ -181,6 +183,10 @@ def _verify(
     rec_ok,
     verify_mm,
     reacquire_mm,
+    reject_mm,
+    jump_mm,
+    suspect_mm,
+    suspect,
     src,
     dst,
     R,
@@ -189,27 +195,59 @@ def _verify(
 ):
     """3D check of the fit against each marker's rigid neighbourhood (after Algorithm 1).
 
-    Eq. 5 only sees distances, so a ghost can fit a body's links as well as the true point. For
-    every marker that had several candidates or ended missing, the Kabsch estimate from its
-    observed recovery set is computed; an ambiguous observed marker whose point is more than
-    ``verify_mm`` from the estimate moves to a free point at most half as far, and a missing
-    marker takes the nearest free point within ``reacquire_mm`` of the estimate (re-acquisition
-    predicted from the rigid body, not from a stale Kalman state). ``obs`` is kept in sync.
-    Returns the number of changes.
+    Eq. 5 only sees distances, so a ghost, or another person's marker at the place of a hidden
+    one, can fit a body's links as well as the true point. For every marker that is suspect -
+    several candidates, not observed in the previous frame (``prev_state != 1``), a point more
+    than ``jump_mm`` from the Kalman prediction ``x``, a free point within ``suspect_mm`` of its
+    prediction (a reappearing marker whose label another point has taken), or missing - the
+    Kabsch estimate from its
+    observed recovery set (3+ neighbours) is computed:
+
+    - an observed marker whose point is more than ``verify_mm`` from the estimate moves to a
+      free point at most half as far; failing that, a marker that was not observed in the
+      previous frame drops a point farther than ``reject_mm`` from the estimate (it stays
+      missing);
+    - a missing marker takes the nearest free point within ``reacquire_mm`` of the estimate
+      (re-acquisition predicted from the rigid body, not from a stale Kalman state).
+
+    ``obs`` is kept in sync. Returns the number of changes.
     """
     n = points.shape[0]
     est = np.empty(3)
     changes = 0
-    for m in range(assigned.shape[0]):
+    m_total = assigned.shape[0]
+    s2 = suspect_mm * suspect_mm
+    for m in range(m_total):
+        suspect[m] = False
+    for j in range(n):
+        if owner[j] >= 0:
+            continue
+        for m in range(m_total):
+            if assigned[m] < 0 or suspect[m]:
+                continue
+            d2 = 0.0
+            for c in range(3):
+                d = points[j, c] - x[m, c]
+                d2 += d * d
+            suspect[m] = d2 < s2
+    for m in range(m_total):
         if not active[m] or not rec_ok[m]:
             continue
         a = assigned[m]
-        if a >= 0 and ncand[m] < 2:
+        fresh = prev_state[m] != 1
+        jumped = False
+        if a >= 0 and not fresh:
+            i2 = 0.0
+            for c in range(3):
+                d = points[a, c] - x[m, c]
+                i2 += d * d
+            jumped = i2 > jump_mm * jump_mm  # far from the Kalman prediction
+        if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m]:
             continue
         if _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau) == 0:
             continue
+        e2 = 0.0
         if a >= 0:
-            e2 = 0.0
             for c in range(3):
                 d = points[a, c] - est[c]
                 e2 += d * d
@@ -231,6 +269,12 @@ def _verify(
                 best = d2
                 bj = j
         if bj < 0:
+            if a >= 0 and fresh and e2 > reject_mm * reject_mm:
+                owner[a] = -1
+                assigned[m] = -1
+                for c in range(3):
+                    obs[m, c] = np.nan
+                changes += 1
             continue
         if a >= 0:
             owner[a] = -1
