@@ -1,0 +1,93 @@
+"""``mocap-labeler train shoulder TRAIN --out DIR``: the data-driven shoulder skeleton (seed 000).
+
+::
+
+    mocap-labeler train shoulder TRAIN.c3d [--test NAME=FILE | FILE ...] --out DIR
+        [--k 3 4 5 6] [--restarts 1000] [--seed 0] [--faces FILE] [--truth FILE]
+        [--subject NAME] [--max-strain 2.0] [--structure auto|chain|tree] [--no-plots]
+
+TRAIN is the training capture (range of motion). Each ``--test`` is a test motion with the same
+markers (labels matched by name; a marker the test lacks counts as missing); its name is NAME or
+the file stem. ``--faces`` gives the marker surface (else built from the rest pose, see
+:mod:`offline.shoulder.triangles`); ``--truth`` a ``truth.npz`` from ``simulate-shoulder`` to
+check segments and joint centres. With several subjects in TRAIN, ``--subject`` picks the one
+to segment (default: the one with most markers); other subjects (e.g. a handled box) and
+unlabeled tracks are excluded. Writes to DIR: ``report.md``, ``results.json``,
+``skeleton_k<k>.json``, ``faces.txt``, plots ``error_train.png``, ``error_test_full.png``,
+``error_test_reduced.png``, ``segments_k<k>.png``. The last stdout line is a JSON summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("train", help="training capture (.c3d, .trc, .npz)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument(
+        "--test", action="append", default=[], metavar="NAME=FILE",
+        help="test motion (repeatable); NAME defaults to the file stem",
+    )  # fmt: skip
+    p.add_argument("--k", type=int, nargs="+", default=[3, 4, 5, 6], help="segment counts")
+    p.add_argument("--restarts", type=int, default=1000, help="k-means restarts [1000]")
+    p.add_argument("--seed", type=int, default=0, help="random seed [0]")
+    p.add_argument("--faces", help="marker-surface triangles (three marker names per line)")
+    p.add_argument("--truth", help="ground truth truth.npz from simulate-shoulder")
+    p.add_argument("--subject", help="subject to segment (default: the one with most markers)")
+    p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the files")
+    p.add_argument("--max-strain", type=float, default=2.0, help="near-rigid triangle filter [2.0]")
+    p.add_argument(
+        "--structure", choices=("auto", "chain", "tree"), default="auto",
+        help="skeleton structure [auto: the paper's chain unless a tree fits far better]",
+    )  # fmt: skip
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+
+
+def _parse_tests(items: list[str]) -> list[tuple[str, Path]]:
+    from labeler_service.errors import CaptureError
+
+    out, seen = [], set()
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep:
+            name, path = Path(item).stem, item
+        if not name or not path:
+            raise CaptureError(f"--test expects NAME=FILE or FILE, got {item!r}")
+        if name in seen:
+            raise CaptureError(f"--test name {name!r} given twice")
+        seen.add(name)
+        out.append((name, Path(path)))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from offline.shoulder.pipeline import TrainConfig, train
+
+    cfg = TrainConfig(
+        train=Path(args.train),
+        tests=_parse_tests(args.test),
+        out=Path(args.out),
+        ks=tuple(sorted(set(args.k))),
+        restarts=args.restarts,
+        seed=args.seed,
+        faces=Path(args.faces) if args.faces else None,
+        truth=Path(args.truth) if args.truth else None,
+        subject=args.subject,
+        up=args.up,
+        max_strain=args.max_strain,
+        structure=args.structure,
+        plots=not args.no_plots,
+        argv=" ".join(["mocap-labeler", "train", "shoulder", *sys.argv[3:]])
+        if len(sys.argv) > 3
+        else "",
+    )
+    t0 = time.perf_counter()
+    summary = train(cfg)
+    summary["wall_s"] = round(time.perf_counter() - t0, 2)
+    print(json.dumps(summary))
+    return 0
