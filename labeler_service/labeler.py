@@ -209,6 +209,7 @@ class Labeler:
                     distance_weight=c.body_distance_weight,
                     min_size=c.body_min_size,
                     max_size=c.body_max_size,
+                    all_seeds=c.body_all_seeds,
                 )
             )
         return LabelerModel(rate=rate, subjects=subjects, source="training window")

@@ -106,6 +106,9 @@ class LabelerConfig(BaseModel):
     # rigid bodies (structure.py)
     body_tolerance_mm: float = Field(6.0, gt=0, description="largest cost A + w D inside a body")
     body_distance_weight: float = Field(0.02, ge=0, description="w: preference for close pairs")
+    body_all_seeds: bool = Field(
+        True, description="every marker seeds a body (more, overlapping bodies)"
+    )
     body_min_size: int = Field(3, ge=1, le=8)
     body_max_size: int = Field(6, ge=1, le=8)
     # missing markers (Sec. 3.3)

@@ -76,8 +76,13 @@ def select_bodies(
     distance_weight: float = 0.02,
     min_size: int = 3,
     max_size: int = 6,
+    all_seeds: bool = False,
 ) -> list[list[int]]:
-    """Rigid bodies by low distance deviation (the rule in the module docstring)."""
+    """Rigid bodies by low distance deviation (the rule in the module docstring).
+
+    With ``all_seeds`` every marker seeds a body (not only those no body covers yet); bodies
+    contained in another are then dropped.
+    """
     if not 1 <= min_size <= max_size <= 8:
         raise LabelerError(
             f"body sizes must satisfy 1 <= min <= max <= 8, got {min_size}, {max_size}"
@@ -97,7 +102,7 @@ def select_bodies(
     bodies: list[list[int]] = []
     seen: set[tuple[int, ...]] = set()
     for s in seed_order:
-        if covered[s]:
+        if covered[s] and not all_seeds:
             continue
         members = [int(s)]
         worst = sub[s].copy()  # largest cost of each candidate to the current members
@@ -121,6 +126,13 @@ def select_bodies(
             continue
         seen.add(key)
         bodies.append([int(idx[k]) for k in key])
+    if all_seeds:
+        sets = [set(b) for b in bodies]
+        bodies = [
+            b
+            for i, b in enumerate(bodies)
+            if not any(i != j and sets[i] < sets[j] for j in range(len(sets)))
+        ]
     return bodies
 
 
@@ -197,6 +209,7 @@ def train_subject(
     min_size: int = 3,
     max_size: int = 6,
     min_pair_frames: int = 3,
+    all_seeds: bool = False,
 ) -> SubjectTemplate:
     """The template of one subject from its labeled frames ``pos`` ``(F, M, 3)`` (NaN missing).
 
@@ -218,6 +231,7 @@ def train_subject(
         distance_weight=distance_weight,
         min_size=min_size,
         max_size=max_size,
+        all_seeds=all_seeds,
     )
     shapes = [reference_shape(pos, b, D) for b in bodies]
     q = motion_noise(pos, rate)

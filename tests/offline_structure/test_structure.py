@@ -1,0 +1,106 @@
+"""``StructureTrainer`` and ``train structure``: templates from labeled captures."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from labeler.scene import articulated
+
+from labeler_service.capture import Capture, write_capture
+from labeler_service.cli import main
+from labeler_service.errors import ModelError
+from labeler_service.labeler import Labeler
+from labeler_service.model import load_model
+from offline.structure import StructureTrainer
+
+
+def _capture(rng, subjects=2, frames=200):
+    pos, names = articulated(rng, subjects=subjects, frames=frames)
+    return Capture(pos, names, 120.0, source="synthetic")
+
+
+def test_fit_learns_one_template_per_subject(rng):
+    cap = _capture(rng)
+    est = StructureTrainer(max_size=4)
+    assert not hasattr(est, "model_")
+    assert est.fit([cap]) is est
+    model = est.model_
+    assert [s.name for s in model.subjects] == ["P0", "P1"]
+    for s in model.subjects:
+        assert {i for b in s.bodies for i in b} == set(range(8))
+        assert all(3 <= len(b) <= 4 for b in s.bodies)
+        # each body lies on one rigid segment (a* or b* markers), never across the joint
+        for b in s.bodies:
+            assert len({s.markers[i][0] for i in b}) == 1
+        shapes = [np.asarray(x) for x in s.shapes]
+        for b, shape in zip(s.bodies, shapes, strict=True):
+            np.testing.assert_allclose(shape.mean(axis=0), 0, atol=1e-3)
+            d_shape = np.linalg.norm(shape[:, None] - shape[None], axis=2)
+            np.testing.assert_allclose(d_shape, s.D_array()[np.ix_(b, b)], atol=1.0)
+        assert all(q > 0 for q in s.motion_noise)
+
+
+def test_fit_is_deterministic_and_pools_captures(rng):
+    a = _capture(rng, frames=120)
+    b = _capture(np.random.default_rng(7), frames=80)
+    m1 = StructureTrainer().fit([a, b]).model_
+    m2 = StructureTrainer().fit([a, b]).model_
+    assert m1.model_dump() == m2.model_dump()
+    assert StructureTrainer().fit([a, b]).n_frames_ == 200
+
+
+def test_model_drives_labeler_from_one_labeled_frame(rng):
+    cap = _capture(rng, frames=300)
+    model = StructureTrainer().fit([cap.frames(0, 100)]).model_
+    lab = Labeler.from_model(model, 120.0)
+    order = [cap.labels.index(n) for n in lab.marker_names]
+    pos = cap.positions[:, order]
+    correct = 0
+    for f in range(100, 300):
+        perm = rng.permutation(pos.shape[1])
+        out = lab.process(pos[f, perm], f / 120.0, perm if f == 100 else None)
+        correct += int(np.count_nonzero(out.point_labels == perm))
+    assert correct == 200 * pos.shape[1]
+
+
+def test_unlabeled_capture_is_a_model_error(rng):
+    cap = _capture(rng, subjects=1, frames=20)
+    raw = Capture(cap.positions, tuple(f"*{i}" for i in range(cap.n_markers)), 120.0)
+    with pytest.raises(ModelError, match="no labeled markers"):
+        StructureTrainer().fit([raw])
+    with pytest.raises(ModelError, match="at least one capture"):
+        StructureTrainer().fit([])
+
+
+def test_cli_writes_a_loadable_model(rng, tmp_path, capsys):
+    cap = _capture(rng, frames=150)
+    src = tmp_path / "take.npz"
+    write_capture(cap, src)
+    out = tmp_path / "model.json"
+    assert main(["train", "structure", str(src), "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["subjects"]["P0"]["markers"] == 8
+    model = load_model(out)
+    assert model.version == 1 and len(model.subjects) == 2
+
+
+@pytest.mark.realdata
+def test_technical_clusters_each_land_in_one_body(real_path):
+    model = StructureTrainer().fit([real_path("clusters_73markers_100hz.c3d")]).model_
+    s = model.subjects[0]
+    groups = {
+        "LARM": ["LARM1", "LARM2", "LARM3"],
+        "LFARM": ["LFARM1", "LFARM2", "LFARM3"],
+        "RARM": ["RAMR1", "RARM2", "RARM3"],  # (sic) the file's spelling
+        "RFARM": ["RFARM1", "RFARM2", "RFARM3"],
+        "LTHI": ["LTHI1", "LTHI2", "LTHI3"],
+        "RTHI": ["RTHI1", "RTHI2", "RTHI3"],
+        "LLEG": ["LLEG1", "LLEG2", "LLEG3"],
+        "RLEG": ["RLEG1", "RLEG2", "RLEG3"],
+    }
+    for name, members in groups.items():
+        idx = {s.markers.index(m) for m in members}
+        assert any(idx <= set(b) for b in s.bodies), f"{name} cluster split across bodies"
+    assert {i for b in s.bodies for i in b} == set(range(len(s.markers)))
