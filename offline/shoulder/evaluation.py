@@ -135,7 +135,7 @@ def acceptance(errors: dict, mg03: dict) -> dict:
                 }  # fmt: skip
             if 4 in e and 5 in e:
                 rel = abs(e[5] - e[4]) / e[4]
-                rules[f"{key}: |e5 - e4| <= 5% e4"] = {
+                rules[f"{key}: abs(e5 - e4) <= 5% e4"] = {
                     "value": rel, "limit": 0.05, "pass": rel <= 0.05,
                 }  # fmt: skip
             if 4 in e and motion in mg03 and mset in mg03[motion]:

@@ -19,10 +19,12 @@ no meaningful rotation, and one such outlier can capture a whole k-means cluster
 whose edge-length ratio (95th / 5th percentile over the frames, worst edge) exceeds
 ``max_strain`` (default 2.0; soft-tissue noise alone gives about 1.5 on a 27 mm grid) are left
 out of the clustering; their markers are still segmented (by the rigid fit of the clusters,
-:mod:`skinning`).
+:mod:`skinning`). Likewise triangles with a vertex missing in more than 20 % of the frames:
+interpolating their rotation across long gaps makes them outliers.
 
 Rest pose: the frame where the most markers are visible (the first such frame); a marker missing
-there takes its sample from the nearest frame in time where it is visible.
+there takes its sample from the nearest frame in time where it is visible, carried to the rest
+frame by the rigid motion (Kabsch) of its six nearest markers visible in both frames.
 """
 
 from __future__ import annotations
@@ -49,7 +51,20 @@ def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:
     rest = pos[frame].copy()
     for m in np.flatnonzero(~vis[frame]):
         idx = np.flatnonzero(vis[:, m])
-        rest[m] = pos[idx[np.argmin(np.abs(idx - frame))], m]
+        g = idx[np.argmin(np.abs(idx - frame))]
+        # carry the marker from frame g to the rest frame with its nearest neighbours' motion
+        both = np.flatnonzero(vis[g] & vis[frame])
+        both = both[both != m]
+        if both.size >= 3:
+            near = both[np.argsort(np.linalg.norm(pos[g, both] - pos[g, m], axis=1))[:6]]
+            a, b = pos[g, near], pos[frame, near]
+            ca, cb = a.mean(axis=0), b.mean(axis=0)
+            U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+            d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+            R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+            rest[m] = R @ (pos[g, m] - ca) + cb
+        else:
+            rest[m] = pos[g, m]
     return frame, rest
 
 
@@ -152,16 +167,26 @@ def edge_strain(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def rigid_faces(
-    positions: np.ndarray, faces: np.ndarray, max_strain: float = 2.0, min_keep: int = 0
+    positions: np.ndarray,
+    faces: np.ndarray,
+    max_strain: float = 2.0,
+    min_keep: int = 0,
+    max_missing: float = 0.2,
 ) -> np.ndarray:
-    """Indices of the near-rigid faces (:func:`edge_strain` <= ``max_strain``).
+    """Indices of the faces to cluster: near-rigid (:func:`edge_strain` <= ``max_strain``) and
+    complete in at least ``1 - max_missing`` of the frames (a long interpolated gap makes a
+    triangle's features an outlier).
 
-    If fewer than ``min_keep`` pass, the ``min_keep`` least strained faces are returned instead.
+    If fewer than ``min_keep`` pass, the ``min_keep`` best (complete first, then least
+    strained) are returned instead.
     """
     strain = edge_strain(positions, faces)
-    keep = np.flatnonzero(strain <= max_strain)
+    missing = np.isnan(np.asarray(positions)[:, faces, 0]).any(axis=2).mean(axis=0)
+    score = np.where(missing <= max_missing, strain, np.inf)
+    keep = np.flatnonzero(score <= max_strain)
     if keep.size < min_keep:
-        keep = np.sort(np.argsort(strain, kind="stable")[: min(min_keep, len(faces))])
+        rank = np.lexsort((strain, missing > max_missing))
+        keep = np.sort(rank[: min(min_keep, len(faces))])
     return keep
 
 
