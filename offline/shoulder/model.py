@@ -93,6 +93,7 @@ class ShoulderSkeleton:
     (``"auto"``, ``"chain"`` or ``"tree"``, see :mod:`joints`), ``min_markers`` (a cluster
     owning fewer markers cannot carry a bone -- Sec. 3.4 needs four per segment -- and is merged
     into its neighbours, :func:`~offline.shoulder.skinning.merge_small_segments`),
+    ``core_rounds`` (>= 1: fit, select the rigid core, refit, repeated),
     ``random_state``.
 
     Fitted attributes: ``surface_`` (:class:`Surface`), ``triangle_labels_`` (clustered faces),
@@ -116,6 +117,7 @@ class ShoulderSkeleton:
         keep_variance: float = 0.999,
         structure: str = "auto",
         min_markers: int = 4,
+        core_rounds: int = 2,
         random_state: int | np.random.Generator | None = None,
     ) -> None:
         self.n_segments = n_segments
@@ -125,6 +127,7 @@ class ShoulderSkeleton:
         self.keep_variance = keep_variance
         self.structure = structure
         self.min_markers = min_markers
+        self.core_rounds = core_rounds
         self.random_state = random_state
 
     # ------------------------------------------------------------------------- fitting
@@ -161,8 +164,9 @@ class ShoulderSkeleton:
             faces, tri, S = faces[keep_tri], tri[keep_tri], present.size
         members = segment_members(labels, S, faces, tri)
         R, t = segment_fits(pos, rest, members)
-        core = core_members(rigid_residuals(pos, rest, R, t), labels, members)
-        R, t = segment_fits(pos, rest, core)
+        for _ in range(self.core_rounds):  # refit on the rigid core; re-select against it
+            core = core_members(rigid_residuals(pos, rest, R, t), labels, members)
+            R, t = segment_fits(pos, rest, core)
         # step 5a (needed by 3 and 4): skin weights from rigid-prediction likelihoods
         resid = rigid_residuals(pos, rest, R, t)
         cand = boundary_candidates(labels, surf.neighbors)
