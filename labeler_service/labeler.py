@@ -178,7 +178,8 @@ class Labeler:
             self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
             self._cm_shift, c.reacquire_mm, c.verify_mm, c.reacquire_near_mm,
             self._miss_reacq, c.reacquire_all, c.robust_fit_mm, c.reject_mm * max(1.0, dt * 120.0),
-            c.jump_mm, c.suspect_mm,
+            c.jump_mm, c.suspect_mm, self._n_reject, c.reject_limit, self._age, c.snapshot_age,
+            c.reacquire_estimate_mm, c.reacquire_keep_observed,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ training
@@ -315,6 +316,8 @@ class Labeler:
         self._rec = np.full((m, 3), np.nan)
         self._has_rec = np.zeros(m, dtype=np.int64)
         self._missing = np.zeros(m, dtype=np.bool_)
+        self._n_reject = np.zeros(m, dtype=np.int64)
+        self._age = np.zeros(m, dtype=np.int64)
         self._src = np.zeros((8, 3))
         self._dst = np.zeros((8, 3))
         self._R = np.zeros((3, 3))
@@ -379,8 +382,11 @@ class Labeler:
                 self._D, self._A,
             )  # fmt: skip
             self._frame_no += 1
-            seen = np.where(np.isfinite(obs[:, 0]), 0, -1).astype(np.int32)
-            _snapshot(seen, obs, self._rec_members, self._rec_size, self._rec_ref, self._rec_ok)
+            seen = np.isfinite(obs[:, 0])
+            self._age = np.where(seen, self._age + 1, 0)
+            _snapshot(
+                self._age, 1, obs, self._rec_members, self._rec_size, self._rec_ref, self._rec_ok
+            )
         self._t_prev = t_prev
 
     # ------------------------------------------------------------------ warm-up

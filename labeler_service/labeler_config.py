@@ -37,13 +37,25 @@ class LabelerConfig(BaseModel):
         ge=0,
         description="bodies with no observed marker search free points this far (0 = off)",
     )
+    reacquire_estimate_mm: float = Field(
+        60.0,
+        gt=0,
+        description="the wide pass searches this close to a marker's rigid-neighbourhood "
+        "estimate when 3+ neighbours give one (else reacquire_mm around its prediction)",
+    )
+    reacquire_keep_observed: bool = Field(
+        True,
+        description="the wide pass keeps the markers of weakly seen bodies that were observed in "
+        "the previous frame too (it always releases fresh acquisitions there, undoing a wrong "
+        "partial re-acquisition)",
+    )
     reacquire_sigma: float = Field(
         2.0,
         gt=0,
         description="missing_sigma of the wide re-acquisition pass (stricter: it sees more points)",
     )
     reacquire_all: bool = Field(
-        False,
+        True,
         description="the wide pass serves every missing marker (False: only bodies that saw "
         "nothing)",
     )
@@ -62,6 +74,9 @@ class LabelerConfig(BaseModel):
         description="a marker re-acquired this frame is dropped if its point is this far from "
         "its rigid-neighbourhood estimate and no free point is closer (at 120 Hz; scaled by "
         "the time step at lower rates)",
+    )
+    reject_limit: int = Field(
+        3, ge=0, description="at most this many rejections in a row per marker (no lock-out)"
     )
     jump_mm: float = Field(
         8.0,
@@ -119,6 +134,12 @@ class LabelerConfig(BaseModel):
         5.0,
         gt=0,
         description="Kabsch recovery drops neighbours whose residual exceeds this (while > 3)",
+    )
+    snapshot_age: int = Field(
+        10,
+        ge=1,
+        description="a recovery snapshot is taken only of markers observed this many frames in "
+        "a row",
     )
     recovery: Literal["kabsch", "displacement"] = Field(
         "kabsch", description="rigid fit of the visible body markers, or the paper's averaging"

@@ -63,14 +63,14 @@ def gate(pred, s, active, points, gate_chi2, K):
 
 
 def regate(x, lost, points, owner, radius, gate_chi2, K):
-    """The re-acquisition gate: free points within ``radius`` of lost markers, K nearest."""
+    """The re-acquisition gate: free points within ``radius[i]`` of lost markers, K nearest."""
     out = {}
     for i in np.flatnonzero(lost):
         found = []
         for j in range(points.shape[0]):
             if owner[j] >= 0:
                 continue
-            d2 = float(np.sum((points[j] - x[i, :3]) ** 2)) * gate_chi2 / radius**2
+            d2 = float(np.sum((points[j] - x[i, :3]) ** 2)) * gate_chi2 / radius[i] ** 2
             if d2 < gate_chi2:
                 found.append((d2, j))
         found.sort()

@@ -16,7 +16,7 @@ from labeler_service._numba import njit
 from labeler_service.kernels.fitting import _fit_bodies
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _start_or_update
-from labeler_service.kernels.rigid import _recover, _snapshot, _verify
+from labeler_service.kernels.rigid import _recover, _set_estimate, _snapshot, _verify
 from labeler_service.kernels.window import _window_update
 
 OBSERVED = 1
@@ -107,10 +107,17 @@ def _process_frame(
     reject_mm,
     jump_mm,
     suspect_mm,
+    n_reject,
+    reject_limit,
+    age,
+    snap_age,
+    reacq_est_mm,
+    reacq_keep,
 ):
     """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
     m_total = x.shape[0]
     n = points.shape[0]
+    est4 = np.empty(3)
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, q, active, dt, p_cap)
     if cm_iters > 0:
@@ -182,6 +189,8 @@ def _process_frame(
         for i in range(m_total):
             if reacq_all and active[i] and assigned[i] == -1:
                 missing[i] = True
+            if reacq_keep and assigned[i] >= 0 and out_state[i] == OBSERVED:
+                missing[i] = False  # tracked through the previous frame: keep
             if missing[i] and active[i]:
                 if assigned[i] >= 0:
                     owner[assigned[i]] = -1
@@ -190,7 +199,28 @@ def _process_frame(
             else:
                 missing[i] = False
         if n_lost > 0:
-            _regate(x, missing, points, owner, reacq_radius, gate, K, cand, cand_d2, ncand)
+            # centre: the rigid estimate from the neighbours seen so far, else the prediction
+            for i in range(m_total):
+                a = assigned[i]
+                for c in range(3):
+                    obs[i, c] = points[a, c] if a >= 0 else np.nan
+            for i in range(m_total):
+                if not missing[i]:
+                    continue
+                kept = 0
+                if rec_ok[i]:
+                    kept = _set_estimate(
+                        i, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est4, robust_mm
+                    )
+                if kept >= 3:
+                    for c in range(3):
+                        rec[i, c] = est4[c]
+                    s[i] = reacq_est_mm
+                else:
+                    for c in range(3):
+                        rec[i, c] = x[i, c]
+                    s[i] = reacq_radius
+            _regate(rec, missing, points, owner, s, gate, K, cand, cand_d2, ncand)
             _fit_bodies(
                 body_markers,
                 body_size,
@@ -255,6 +285,8 @@ def _process_frame(
             R,
             t,
             robust_mm,
+            n_reject,
+            reject_limit,
         )
     for j in range(n):
         point_labels[j] = owner[j]
@@ -262,11 +294,14 @@ def _process_frame(
     for i in range(m_total):
         a = assigned[i]
         if a >= 0:
+            n_reject[i] = 0
+            age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
             out_state[i] = OBSERVED
             for c in range(3):
                 out_pos[i, c] = obs[i, c]
         else:
+            age[i] = 0
             for c in range(3):
                 obs[i, c] = np.nan
             missing[i] = active[i]
@@ -309,4 +344,4 @@ def _process_frame(
     # Eq. 1-2: sliding window
     _window_update(body_markers, body_size, obs, ring, ptr, s1, s2, cnt, D0, A0, min_samples, D, A)
     # reference snapshots of the recovery sets
-    _snapshot(assigned, obs, rec_members, rec_size, rec_ref, rec_ok)
+    _snapshot(age, snap_age, obs, rec_members, rec_size, rec_ref, rec_ok)

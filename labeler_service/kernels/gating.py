@@ -93,17 +93,18 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, radius, iters, buf, shif
 
 
 @njit
-def _regate(x, lost, points, owner, radius, gate, K, cand, cand_d2, ncand):
+def _regate(centre, lost, points, owner, radius, gate, K, cand, cand_d2, ncand):
     """Re-acquisition gate for ``lost`` markers: the ``K`` nearest points not yet owned within
-    ``radius`` mm of the prediction; ``cand_d2`` is scaled so that ``radius`` maps to ``gate``."""
-    m = x.shape[0]
+    ``radius[i]`` mm of ``centre[i]`` (the rigid-body estimate, else the Kalman prediction);
+    ``cand_d2`` is scaled so that the radius maps to ``gate``."""
+    m = centre.shape[0]
     n = points.shape[0]
-    scale = gate / (radius * radius)
     for i in range(m):
         if not lost[i]:
             continue
         ncand[i] = 0
-        px, py, pz = x[i, 0], x[i, 1], x[i, 2]
+        scale = gate / (radius[i] * radius[i])
+        px, py, pz = centre[i, 0], centre[i, 1], centre[i, 2]
         for j in range(n):
             if owner[j] >= 0:
                 continue

@@ -124,15 +124,17 @@ def _recover(
 
 
 @njit
-def _snapshot(assigned, obs, rec_members, rec_size, rec_ref, rec_ok):
-    """Stores the recovery-set positions of every marker whose whole set is observed."""
-    for m in range(assigned.shape[0]):
+def _snapshot(age, min_age, obs, rec_members, rec_size, rec_ref, rec_ok):
+    """Stores the recovery-set positions of every marker whose whole set is observed and has
+    been for at least ``min_age`` frames in a row (``age``): a fresh, possibly wrong, assignment
+    never becomes the reference that later checks it."""
+    for m in range(age.shape[0]):
         n = rec_size[m]
         if n == 0:
             continue
         full = True
         for k in range(n):
-            if assigned[rec_members[m, k]] < 0:
+            if age[rec_members[m, k]] < min_age or age[rec_members[m, k]] < 1:
                 full = False
                 break
         if full:
@@ -145,7 +147,7 @@ def _snapshot(assigned, obs, rec_members, rec_size, rec_ref, rec_ok):
 @njit
 def _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, out, tau):
     """Kabsch estimate of marker ``m`` from its observed recovery-set members (3+ needed);
-    returns the number of members used (0 when fewer than 3)."""
+    returns the number of members the robust fit kept (0 when fewer than 3 were observed)."""
     c = 0
     for k in range(1, rec_size[m]):
         mk = rec_members[m, k]
@@ -156,7 +158,7 @@ def _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, out, t
             c += 1
     if c < 3:
         return 0
-    _robust_kabsch(src, dst, c, R, t, tau)
+    c = _robust_kabsch(src, dst, c, R, t, tau)
     for a in range(3):
         out[a] = (
             R[a, 0] * rec_ref[m, 0, 0]
@@ -192,6 +194,8 @@ def _verify(
     R,
     t,
     tau,
+    n_reject,
+    reject_limit,
 ):
     """3D check of the fit against each marker's rigid neighbourhood (after Algorithm 1).
 
@@ -205,8 +209,10 @@ def _verify(
 
     - an observed marker whose point is more than ``verify_mm`` from the estimate moves to a
       free point at most half as far; failing that, a marker that was not observed in the
-      previous frame drops a point farther than ``reject_mm`` from the estimate (it stays
-      missing);
+      previous frame drops a point farther than ``reject_mm`` from an estimate that at least 4
+      mutually consistent neighbours support (it stays missing), at most ``reject_limit``
+      frames in a row (``n_reject`` counts them): real bodies are not perfectly rigid, and a
+      marker that really moved on its body must not be locked out;
     - a missing marker takes the nearest free point within ``reacquire_mm`` of the estimate
       (re-acquisition predicted from the rigid body, not from a stale Kalman state).
 
@@ -244,7 +250,8 @@ def _verify(
             jumped = i2 > jump_mm * jump_mm  # far from the Kalman prediction
         if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m]:
             continue
-        if _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau) == 0:
+        kept = _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau)
+        if kept == 0:
             continue
         e2 = 0.0
         if a >= 0:
@@ -269,7 +276,14 @@ def _verify(
                 best = d2
                 bj = j
         if bj < 0:
-            if a >= 0 and fresh and e2 > reject_mm * reject_mm:
+            if (
+                a >= 0
+                and fresh
+                and kept >= 4
+                and n_reject[m] < reject_limit
+                and e2 > reject_mm * reject_mm
+            ):
+                n_reject[m] += 1
                 owner[a] = -1
                 assigned[m] = -1
                 for c in range(3):

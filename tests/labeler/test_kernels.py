@@ -94,8 +94,9 @@ def test_regate_only_free_points_within_radius(rng):
     cand = np.full((6, K), -7, dtype=np.int32)
     cand_d2 = np.zeros((6, K))
     ncand = np.full(6, 9, dtype=np.int32)
-    _regate(x, lost, points, owner, 120.0, 16.0, K, cand, cand_d2, ncand)
-    expected = ref.regate(x, lost, points, owner, 120.0, 16.0, K)
+    radius = rng.uniform(60.0, 200.0, 6)
+    _regate(x, lost, points, owner, radius, 16.0, K, cand, cand_d2, ncand)
+    expected = ref.regate(x, lost, points, owner, radius, 16.0, K)
     for i, js in expected.items():
         assert list(cand[i, : ncand[i]]) == js
     assert ncand[1] == 9 and ncand[4] == 9  # untouched
