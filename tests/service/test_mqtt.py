@@ -152,10 +152,10 @@ def test_topic_and_payload_stream_must_agree(broker):
 def test_credentials_are_required_and_used(tmp_path):
     import shutil
 
-    from labeler_service.transports.broker import LocalBroker
+    from labeler_service.transports.broker import LocalBroker, mosquitto_binary
 
-    if shutil.which("mosquitto_passwd") is None:
-        pytest.skip("mosquitto_passwd not found")
+    if mosquitto_binary() is None or shutil.which("mosquitto_passwd") is None:
+        pytest.skip("mosquitto / mosquitto_passwd not found (apt install mosquitto)")
     secured = LocalBroker(tmp_path, users={"labeler": "s3cret"})
     secured.start()
 
