@@ -35,6 +35,9 @@ def mosquitto_binary() -> str | None:
 class LocalBroker:
     """One Mosquitto process on ``127.0.0.1:port``; ``stop``/``start`` keep the port.
 
+    ``users`` (name -> password) turns anonymous access off; ``tls`` = (CA, certificate, key)
+    files makes the listener TLS-only.
+
     Use as a context manager or call ``start``/``stop``. Raises :class:`ConfigError` when the
     ``mosquitto`` binary is missing.
     """
@@ -44,6 +47,7 @@ class LocalBroker:
         workdir: Path | None = None,
         binary: str | None = None,
         users: dict[str, str] | None = None,
+        tls: tuple[Path, Path, Path] | None = None,
     ) -> None:
         self.binary = binary or mosquitto_binary()
         if self.binary is None:
@@ -58,6 +62,8 @@ class LocalBroker:
         auth = "allow_anonymous true\n"
         if users:
             auth = f"allow_anonymous false\npassword_file {self._password_file(workdir, users)}\n"
+        if tls is not None:  # (cafile, certfile, keyfile): the listener speaks TLS only
+            auth += f"cafile {tls[0]}\ncertfile {tls[1]}\nkeyfile {tls[2]}\n"
         # started as root, mosquitto drops to user "mosquitto", which cannot read our files
         stay = "user root\n" if hasattr(os, "geteuid") and os.geteuid() == 0 else ""
         self.conf.write_text(

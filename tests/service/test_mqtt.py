@@ -177,3 +177,53 @@ def test_credentials_are_required_and_used(tmp_path):
     finally:
         secured.close()
     assert ok and refused
+
+
+def _certificates(d):
+    """A throw-away CA and a server certificate for 127.0.0.1 (openssl CLI)."""
+    import shutil
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl not found")
+
+    def ssl(*args):
+        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=d)
+
+    ssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=test-ca",
+        "-keyout", "ca.key", "-out", "ca.pem")  # fmt: skip
+    ssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=127.0.0.1", "-keyout",
+        "server.key", "-out", "server.csr")  # fmt: skip
+    (d / "san.ext").write_text("subjectAltName=IP:127.0.0.1\n")
+    ssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+        "-CAcreateserial", "-days", "1", "-extfile", "san.ext", "-out", "server.pem")  # fmt: skip
+    return d / "ca.pem", d / "server.pem", d / "server.key"
+
+
+def test_tls_connection_with_a_private_ca(tmp_path):
+    from labeler_service.config import MqttSettings
+    from labeler_service.transports.broker import LocalBroker, mosquitto_binary
+
+    if mosquitto_binary() is None:
+        pytest.skip("mosquitto not found (apt install mosquitto)")
+    ca, cert, key = _certificates(tmp_path)
+    secured = LocalBroker(tmp_path, tls=(ca, cert, key))
+    secured.start()
+
+    async def go():
+        s = load_settings(labeler="baseline", metrics_port=None, udp={"enabled": False},
+                          streams=[{"name": "vol"}],
+                          mqtt={"enabled": True, "host": secured.host, "port": secured.port,
+                                "tls": True, "ca_file": str(ca)})  # fmt: skip
+        async with Server(s):
+            url = f"mqtts://{secured.host}:{secured.port}/vol"
+            async with Subscriber(url, mqtt=MqttSettings(ca_file=ca)) as good:
+                ok = await good.wait_status("vol", "online", 5.0)
+            async with Subscriber(f"{secured.url}/vol") as plain:  # no TLS: refused
+                refused = not await plain.wait_status("vol", "online", 1.5)
+        return ok, refused
+
+    try:
+        ok, refused = run(go())
+    finally:
+        secured.close()
+    assert ok and refused
