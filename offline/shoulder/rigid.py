@@ -42,10 +42,10 @@ def fit_rigid(
     safe = np.where(ok, wsum, 1.0)
     d0 = np.where(vis[..., None], dst, 0.0)
     cs = (W @ src) / safe[:, None]
-    cd = np.einsum("fm,fmi->fi", W, d0) / safe[:, None]
+    cd = np.matmul(W[:, None, :], d0)[:, 0] / safe[:, None]
     a = src[None] - cs[:, None]
     b = d0 - cd[:, None]
-    H = np.einsum("fm,fmi,fmj->fij", W, a, b)
+    H = np.matmul((W[:, :, None] * a).transpose(0, 2, 1), b)
     R = _rotation_from_cov(H)
     t = cd - np.einsum("fij,fj->fi", R, cs)
     R[~ok] = np.nan
@@ -66,7 +66,7 @@ def fit_rotation_about(
     ok = (vis.sum(axis=1) >= min_points) & np.isfinite(pivot_world).all(axis=1)
     a = src - pivot_rest[None]
     b = np.where(vis[..., None], dst - pivot_world[:, None], 0.0)
-    H = np.einsum("fm,mi,fmj->fij", vis.astype(np.float64), a, b)
+    H = np.matmul(a.T[None], b)  # missing samples are zero in b
     R = _rotation_from_cov(np.nan_to_num(H))
     t = pivot_world - np.einsum("fij,j->fi", R, pivot_rest)
     R[~ok] = np.nan
@@ -95,7 +95,7 @@ def fill_transforms(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def apply(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``R @ p + t`` for transforms (F, 3, 3), (F, 3) and rest points (M, 3) -> (F, M, 3)."""
-    return np.einsum("fij,mj->fmi", R, points) + t[:, None, :]
+    return np.matmul(R, points.T).transpose(0, 2, 1) + t[:, None, :]
 
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:

@@ -76,8 +76,13 @@ def pose_chain(
 
 def skin(rest: np.ndarray, weights: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Linear blend skinning: ``(F, M, 3)`` from weights ``(M, S)`` and bone transforms."""
-    per_bone = np.einsum("fsij,mj->fsmi", R, rest) + t[:, :, None, :]
-    return np.einsum("ms,fsmi->fmi", weights, per_bone)
+    out = np.zeros((R.shape[0], rest.shape[0], 3))
+    for s in range(R.shape[1]):
+        w = weights[:, s]
+        if not (w > 0).any():
+            continue
+        out += w[None, :, None] * (np.matmul(R[:, s], rest.T).transpose(0, 2, 1) + t[:, s, None])
+    return out
 
 
 def error_stats(synth: np.ndarray, captured: np.ndarray) -> ErrorStats:
