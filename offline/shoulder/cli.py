@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -65,6 +64,27 @@ def _parse_tests(items: list[str]) -> list[tuple[str, Path]]:
     return out
 
 
+def _command_line(args: argparse.Namespace) -> str:
+    """The command as it would be typed (for the report), rebuilt from the parsed options."""
+    parts = ["mocap-labeler", "train", "shoulder", str(args.train)]
+    parts += [x for t in args.test for x in ("--test", t)]
+    parts += ["--out", str(args.out), "--k", *map(str, sorted(set(args.k)))]
+    parts += ["--restarts", str(args.restarts), "--seed", str(args.seed)]
+    for flag, value in (("--faces", args.faces), ("--truth", args.truth),
+                        ("--subject", args.subject)):  # fmt: skip
+        if value:
+            parts += [flag, str(value)]
+    if args.up != "z":
+        parts += ["--up", args.up]
+    if args.max_strain != 2.0:
+        parts += ["--max-strain", str(args.max_strain)]
+    if args.structure != "auto":
+        parts += ["--structure", args.structure]
+    if args.no_plots:
+        parts.append("--no-plots")
+    return " ".join(parts)
+
+
 def run(args: argparse.Namespace) -> int:
     from offline.shoulder.pipeline import TrainConfig, train
 
@@ -82,9 +102,7 @@ def run(args: argparse.Namespace) -> int:
         max_strain=args.max_strain,
         structure=args.structure,
         plots=not args.no_plots,
-        argv=" ".join(["mocap-labeler", "train", "shoulder", *sys.argv[3:]])
-        if len(sys.argv) > 3
-        else "",
+        argv=_command_line(args),
     )
     t0 = time.perf_counter()
     summary = train(cfg)

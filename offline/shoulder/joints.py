@@ -37,19 +37,6 @@ def choose_root(R: np.ndarray) -> int:
     return int(np.argmin(med))
 
 
-def adjacency(labels: np.ndarray, faces: np.ndarray, k: int) -> np.ndarray:
-    """``A[a, b]``: mesh edges joining a marker of segment ``a`` to one of segment ``b``."""
-    A = np.zeros((k, k), dtype=np.int64)
-    edges = np.unique(
-        np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [0, 2]]]), axis=1),
-        axis=0,
-    )
-    la, lb = labels[edges[:, 0]], labels[edges[:, 1]]
-    diff = la != lb
-    np.add.at(A, (la[diff], lb[diff]), 1)
-    return A + A.T
-
-
 def best_chain(cost: np.ndarray, root: int) -> tuple[list, float]:
     """The single chain from ``root`` through every segment with the smallest summed joint
     cost (exhaustive over the at most 5! = 120 orders; ties -> lexicographically first)."""

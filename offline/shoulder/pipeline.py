@@ -93,28 +93,20 @@ def load_test(path: Path, labels: tuple[str, ...], up: str) -> tuple[np.ndarray,
     return pos, notes
 
 
-class _Progress:
-    """rich progress bars on stderr (disabled when stderr is not a terminal)."""
+def _progress(enabled: bool | None):  # -> rich.progress.Progress (a context manager)
+    """rich progress bars on stderr (shown only when stderr is a terminal unless forced)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
-    def __init__(self, enabled: bool | None) -> None:
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-        enabled = sys.stderr.isatty() if enabled is None else enabled
-        self.bar = Progress(
-            "[progress.description]{task.description}",
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=Console(stderr=True),
-            disable=not enabled,
-        )
-
-    def __enter__(self) -> Progress:  # noqa: F821 (rich type)
-        return self.bar.__enter__()
-
-    def __exit__(self, *exc: object) -> None:
-        self.bar.__exit__(*exc)  # type: ignore[arg-type]
+    enabled = sys.stderr.isatty() if enabled is None else enabled
+    return Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        disable=not enabled,
+    )
 
 
 def train(cfg: TrainConfig) -> dict:
@@ -152,7 +144,7 @@ def train(cfg: TrainConfig) -> dict:
     joints: dict[str, dict] = {}
     seg_info: dict[str, dict] = {}
     rng = np.random.default_rng(cfg.seed)
-    with _Progress(cfg.progress) as bar:
+    with _progress(cfg.progress) as bar:
         for k in cfg.ks:
             task = bar.add_task(f"k={k} k-means", total=cfg.restarts)
             t = time.perf_counter()

@@ -13,13 +13,15 @@ forearm    elbow (3 dof)       cylinder around radius / ulna
 =========  ==================  =========================================
 
 Markers sit on a staggered grid (``spacing`` mm; 215 markers at the default 27 mm). Near each
-joint the skin is blended: a marker follows its parent bone and a fraction (its weight, a
-smooth step along the bone) of the child's joint rotation, so the surface is not piecewise
-rigid, as on a person.
-The girdle follows the arm with a scapulo-humeral rhythm plus an independent shrug, which is
-what a 3-segment skeleton cannot express. Soft-tissue artefact is smooth in time (low-pass
-1.5 Hz) and in space (Gaussian kernel, 30 mm: skin slides in patches), ``noise_mm`` std per axis,
-plus 0.3 mm white measurement noise.
+joint the skin is blended: a marker's position is the linear blend of its two bones' transforms
+(on the torso the girdle's share rises from 0 to 1 over 40 mm; the top of the upper arm takes up
+to 0.25 of the girdle, skin around the elbow up to 0.3 of the neighbour), so the surface is not
+piecewise rigid, as on a person; under large joint angles blended skin folds, which the
+near-rigid triangle filter of :mod:`triangles` is there for. The girdle follows the arm with a
+scapulo-humeral rhythm plus an independent shrug, which is what a 3-segment skeleton cannot
+express. Soft-tissue artefact is smooth in time (low-pass 1.5 Hz) and in space (Gaussian
+kernel, 30 mm: skin slides in patches), ``noise_mm`` std per axis, plus 0.3 mm white
+measurement noise.
 
 Motions (120 Hz): ``rom`` (range of motion, training), ``jumping_jack``, ``swimming``, ``curls``.
 Ground truth per marker (true segment, blend weights, rest position) and per frame (world
@@ -285,13 +287,8 @@ def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([root, t_gird, t_arm, t_fore], axis=1), np.stack([r_gird, r_arm, r_elb], 1)
 
 
-def _skin(body: ShoulderBody, T: np.ndarray, rel: np.ndarray) -> np.ndarray:
-    """Marker positions ``(F, M, 3)`` by linear blend skinning of the true bones.
-
-    ``rel`` (the joint rotations) is unused by linear blending and kept for the rotation-
-    fraction variant documented in docs/shoulder.md.
-    """
-    del rel
+def _skin(body: ShoulderBody, T: np.ndarray) -> np.ndarray:
+    """Marker positions ``(F, M, 3)`` by linear blend skinning of the true bones."""
     rest_h = np.concatenate([body.rest, np.ones((body.n_markers, 1))], axis=1)
     per_bone = np.einsum("fbij,mj->fbmi", T[:, :, :3, :], rest_h)  # (F, B, M, 3)
     return np.einsum("mb,fbmi->fmi", body.weights, per_bone)
@@ -316,8 +313,8 @@ def simulate_motion(
     if noise_mm < 0 or gap_rate < 0 or rate <= 0:
         raise SceneError("noise_mm, gap_rate must be >= 0 and rate > 0")
     rng = np.random.default_rng(random_state)
-    T, rel = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4), (F, 3, 3, 3)
-    pos = _skin(body, T, rel)
+    T, _ = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4)
+    pos = _skin(body, T)
     if noise_mm > 0:
         m = body.n_markers
         soft = np.stack([_smooth_random(rng, n_frames, rate, 1.5) for _ in range(m * 3)], 1)
