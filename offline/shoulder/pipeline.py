@@ -157,6 +157,7 @@ def train(cfg: TrainConfig) -> dict:
             timings[f"fit_k{k}_s"] = time.perf_counter() - t
             models[k] = model
             t = time.perf_counter()
+            ev = bar.add_task(f"k={k} synthesis", total=len(motions))
             for name, p in motions.items():
                 for mset in ("full", "reduced"):
                     errors[name][mset][str(k)] = model.score(p, mset).as_dict()
@@ -167,6 +168,7 @@ def train(cfg: TrainConfig) -> dict:
                     )
                     if je:
                         joints.setdefault(str(k), {})[name] = je
+                bar.advance(ev)
             timings[f"evaluate_k{k}_s"] = time.perf_counter() - t
             seg_info[str(k)] = {
                 "n_segments": model.n_segments_,

@@ -84,6 +84,8 @@ def plot_error_vs_k(
             ys = [by_k[str(k)]["avg"] for k in ks]
             label = f"{motion} ({s})" if mset is None else motion
             ax.plot(ks, ys, marker="o", linestyle="-" if s == "full" else "--", label=label)
+    all_ks = sorted({int(k) for m in motions for s in sets for k in errors[m][s]})
+    ax.set_xticks(all_ks)
     ax.set_xlabel("number of segments k")
     ax.set_ylabel("average synthesis error (mm)")
     ax.set_title(title)

@@ -39,6 +39,14 @@ def test_four_segments_find_the_bones(small):
     np.testing.assert_allclose(m4.weights_.sum(axis=1), 1.0)
 
 
+def test_fit_is_reproducible(small):
+    _, train, _, models = small
+    again = ShoulderSkeleton(4, n_restarts=50, random_state=4).fit(train.capture.positions)
+    np.testing.assert_array_equal(again.labels_, models[4].labels_)
+    np.testing.assert_allclose(again.joints_, models[4].joints_)
+    assert again.reduced_[0].tolist() == models[4].reduced_[0].tolist()
+
+
 def test_error_drops_from_three_to_four_and_joints_are_found(small):
     _, train, test, models = small
     for capture in (train.capture, test.capture):
