@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-strain", type=float, default=2.0, help="near-rigid triangle filter [2.0]")
     p.add_argument(
         "--structure", choices=("auto", "chain", "tree"), default="auto",
-        help="skeleton structure [auto: the paper's chain unless a tree fits far better]",
+        help="skeleton structure [auto: the paper's chain unless the tree reproduces the "
+        "training surface better]",
     )  # fmt: skip
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 

@@ -6,9 +6,10 @@ the rest pose). Which segment follows which is decided kinematically: a ball joi
 between every pair of segments (below) and its weighted RMS residual (mm) is the cost of
 linking them. The chain is the order from the root with the smallest summed cost; the tree is
 the minimum spanning tree over the same costs (the alternative the paper's Sec. 5 suggests,
-[OBBH00]). ``structure="auto"`` (default) keeps the chain unless it costs more than 1.5x the
-tree -- which happens when k-means splits off a sideways patch (part of the chest) that is not
-a link of the arm; the report says which was used.
+[OBBH00]). With ``structure="auto"`` (default) the model builds both and keeps the tree only if
+it reproduces the training surface (full marker set) more than 1 % better -- which happens when
+k-means splits off a patch that is not a link of the arm (a ring of skin near the shoulder): in
+a chain every bone below it would hang from that small, noisy bone. The report says which.
 
 Joint centre: a ball joint is a point fixed in both adjacent bones. With each bone's rigid
 motion ``(R_p^t, t_p^t)``, ``(R_c^t, t_c^t)`` from the rest pose, find rest-space points
@@ -72,21 +73,21 @@ def spanning_tree(cost: np.ndarray, root: int) -> tuple[list, np.ndarray, float]
 
 
 def skeleton_structure(
-    cost: np.ndarray, root: int, structure: str = "auto", chain_slack: float = 1.5
+    cost: np.ndarray, root: int, structure: str = "chain"
 ) -> tuple[list, np.ndarray]:
-    """``(order, parent)`` of the skeleton (module doc). ``structure``: ``"chain"`` (the
-    paper's), ``"tree"`` ([OBBH00]) or ``"auto"`` (the best chain unless its summed joint cost
-    exceeds ``chain_slack`` times the tree's)."""
-    if structure not in ("auto", "chain", "tree"):
-        raise ValueError(f"structure must be auto, chain or tree, got {structure!r}")
-    chain, c_chain = best_chain(cost, root)
-    order, parent, c_tree = spanning_tree(cost, root)
-    if structure == "chain" or (structure == "auto" and c_chain <= chain_slack * c_tree + 1e-9):
-        parent = -np.ones(cost.shape[0], dtype=np.intp)
-        for a, b in zip(chain[:-1], chain[1:], strict=True):
-            parent[b] = a
-        return chain, parent
-    return order, parent
+    """``(order, parent)`` of the skeleton: ``"chain"`` (the paper's, :func:`best_chain`) or
+    ``"tree"`` ([OBBH00], :func:`spanning_tree`). ``"auto"`` is decided by the model, which
+    builds both and keeps the one that reproduces the training surface best."""
+    if structure == "tree":
+        order, parent, _ = spanning_tree(cost, root)
+        return order, parent
+    if structure != "chain":
+        raise ValueError(f"structure must be chain or tree, got {structure!r}")
+    chain, _ = best_chain(cost, root)
+    parent = -np.ones(cost.shape[0], dtype=np.intp)
+    for a, b in zip(chain[:-1], chain[1:], strict=True):
+        parent[b] = a
+    return chain, parent
 
 
 def is_chain(parent: np.ndarray) -> bool:

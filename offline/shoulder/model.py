@@ -100,8 +100,9 @@ class ShoulderSkeleton:
     ``labels_`` (M,) segment of every marker, ``n_segments_`` (segments realised, <= k),
     ``merged_`` (clusters merged away for owning too few markers),
     ``chain_`` (segments, parents first), ``parent_`` (S,) (-1 for the root), ``is_chain_``,
-    ``joint_costs_`` (S, S) RMS residual of a ball joint between each pair (mm), ``joints_`` (S, 3)
-    rest-space centre of each bone's joint with its parent (NaN for the root),
+    ``joint_costs_`` (S, S) RMS residual of a ball joint between each pair (mm),
+    ``structure_errors_`` (training full-set error of the chain and the tree when ``"auto"``),
+    ``joints_`` (S, 3) rest-space centre of each bone's joint with its parent (NaN for the root),
     ``joint_rms_`` (S,) mm, ``weights_`` (M, S), ``sigma2_`` (mm^2), ``fit_markers_`` (list of
     marker indices per segment: its rigid core, used for its motion and the full-set pose),
     ``reduced_`` (list, up to ``n_reduced`` indices per segment), ``inertia_`` of the chosen
@@ -180,11 +181,27 @@ class ShoulderSkeleton:
                 j, r = joint_centre(R[:, p], t[:, p], R[:, c], t[:, c], x0)
                 pair_joint[p, c] = pair_joint[c, p] = j
                 cost[p, c] = cost[c, p] = r if np.isfinite(r) else 1e9
-        order, parent = skeleton_structure(cost, choose_root(R), self.structure)
-        joints = np.full((S, 3), np.nan)
-        rms = np.full(S, np.nan)
-        for c in order[1:]:
-            joints[c], rms[c] = pair_joint[int(parent[c]), c], cost[int(parent[c]), c]
+        root = choose_root(R)
+        kinds = ("chain", "tree") if self.structure == "auto" else (self.structure,)
+        candidates = {}
+        for kind in kinds:
+            order, parent = skeleton_structure(cost, root, kind)
+            joints = np.full((S, 3), np.nan)
+            rms = np.full(S, np.nan)
+            for c in order[1:]:
+                joints[c], rms[c] = pair_joint[int(parent[c]), c], cost[int(parent[c]), c]
+            candidates[kind] = (order, parent, joints, rms)
+        self.structure_errors_ = {}
+        if len(candidates) > 1:
+            for kind, (order, parent, joints, _) in candidates.items():
+                js = {c: joints[c] for c in order[1:]}
+                Rk, tk = pose_chain(pos, rest, order, parent, js, core)
+                self.structure_errors_[kind] = error_stats(skin(rest, W, Rk, tk), pos).avg
+            e = self.structure_errors_
+            kind = "tree" if e["tree"] < 0.99 * e["chain"] else "chain"
+        else:
+            kind = kinds[0]
+        order, parent, joints, rms = candidates[kind]
         # step 4: reduced marker set (Eq. 1-3) from each segment's dense-set motion
         e_r = np.stack([rigid_deviation(pos, rest, R[:, s], t[:, s]) for s in range(S)], axis=1)
         fit_markers, reduced = [], []

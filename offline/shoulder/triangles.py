@@ -19,8 +19,10 @@ no meaningful rotation, and one such outlier can capture a whole k-means cluster
 whose edge-length ratio (95th / 5th percentile over the frames, worst edge) exceeds
 ``max_strain`` (default 2.0; soft-tissue noise alone gives about 1.5 on a 27 mm grid) are left
 out of the clustering; their markers are still segmented (by the rigid fit of the clusters,
-:mod:`skinning`). Likewise triangles with a vertex missing in more than 20 % of the frames:
-interpolating their rotation across long gaps makes them outliers.
+:mod:`skinning`). Likewise triangles that fold (1st-percentile area below 0.3 of the median:
+a vertex crosses the opposite edge, the triangle comes back mirrored with nearly unchanged
+edges and a rotation 180 deg off) and triangles with a vertex missing in more than 20 % of the
+frames (interpolating their rotation across long gaps makes them outliers).
 
 Rest pose: the frame where the most markers are visible (the first such frame); a marker missing
 there takes its sample from the nearest frame in time where it is visible, carried to the rest
@@ -166,26 +168,42 @@ def edge_strain(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.inf)
 
 
+def area_ratio(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """1st percentile over the visible frames of each triangle's area over its median area.
+
+    A folding triangle (a vertex crossing the opposite edge) passes through zero area and comes
+    back mirrored with nearly the same edge lengths; its Horn rotation then jumps by 180 deg.
+    """
+    p = np.asarray(positions, dtype=np.float64)[:, faces]  # (F, T, 3, 3)
+    a = 0.5 * np.linalg.norm(np.cross(p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0]), axis=2)
+    med = np.nanmedian(a, axis=0)
+    lo = np.nanpercentile(a, 1.0, axis=0)
+    return np.where(np.isfinite(lo) & (med > 0), lo / np.where(med > 0, med, 1.0), 0.0)
+
+
 def rigid_faces(
     positions: np.ndarray,
     faces: np.ndarray,
     max_strain: float = 2.0,
     min_keep: int = 0,
     max_missing: float = 0.2,
+    min_area_ratio: float = 0.3,
 ) -> np.ndarray:
-    """Indices of the faces to cluster: near-rigid (:func:`edge_strain` <= ``max_strain``) and
-    complete in at least ``1 - max_missing`` of the frames (a long interpolated gap makes a
-    triangle's features an outlier).
+    """Indices of the faces to cluster: near-rigid (:func:`edge_strain` <= ``max_strain``), not
+    folding (:func:`area_ratio` >= ``min_area_ratio``) and complete in at least
+    ``1 - max_missing`` of the frames (a long interpolated gap makes a triangle's features an
+    outlier).
 
     If fewer than ``min_keep`` pass, the ``min_keep`` best (complete first, then least
     strained) are returned instead.
     """
     strain = edge_strain(positions, faces)
     missing = np.isnan(np.asarray(positions)[:, faces, 0]).any(axis=2).mean(axis=0)
-    score = np.where(missing <= max_missing, strain, np.inf)
+    folds = area_ratio(positions, faces) < min_area_ratio
+    score = np.where((missing <= max_missing) & ~folds, strain, np.inf)
     keep = np.flatnonzero(score <= max_strain)
     if keep.size < min_keep:
-        rank = np.lexsort((strain, missing > max_missing))
+        rank = np.lexsort((strain, folds, missing > max_missing))
         keep = np.sort(rank[: min(min_keep, len(faces))])
     return keep
 

@@ -37,17 +37,17 @@ def test_joint_centre_recovers_a_ball_joint(rng):
     assert 1.0 < rms < 5.0
 
 
-def test_structure_prefers_chain_and_falls_back_to_tree():
+def test_chain_and_tree_structures():
     chainy = np.array([[0, 5, 50, 60], [5, 0, 4, 50], [50, 4, 0, 6], [60, 50, 6, 0]], float)
     order, parent = skeleton_structure(chainy, root=0)
     assert order == [0, 1, 2, 3] and is_chain(parent)
     assert best_chain(chainy, 0)[1] == pytest.approx(15.0)
-    # segment 3 only fits as a side branch of 0: the chain would cost far more than the tree
+    # segment 3 only fits as a side branch of 0: the tree attaches it there
     star = np.array([[0, 5, 50, 4], [5, 0, 4, 90], [50, 4, 0, 90], [4, 90, 90, 0]], float)
-    order, parent = skeleton_structure(star, root=0)
+    order, parent = skeleton_structure(star, root=0, structure="tree")
     assert not is_chain(parent) and parent[3] == 0 and parent[1] == 0 and parent[2] == 1
     order, parent = skeleton_structure(star, root=0, structure="chain")
-    assert is_chain(parent)
+    assert is_chain(parent) and order[0] == 0
     with pytest.raises(ValueError, match="structure"):
         skeleton_structure(star, 0, structure="star")
 
