@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         tracemalloc.start()
     heap0 = rss0 = 0.0
     objs0 = 0
+    rss_mid = float("nan")
     gc.collect()
     for k, fr in enumerate(frames):
         if k >= INIT + args.frames:
@@ -121,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
             heap0 = tracemalloc.get_traced_memory()[0] / 1024 if args.trace_heap else np.nan
             rss0 = _rss_kib()
             objs0 = len(gc.get_objects())
+        if i == (MARK + args.frames) // 2:
+            rss_mid = _rss_kib()
         if sys.stderr.isatty() and i % 1000 == 0:
             print(f"\r{i}/{args.frames}", end="", file=sys.stderr)
     heap1 = tracemalloc.get_traced_memory()[0] / 1024 if args.trace_heap else np.nan
@@ -148,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         "p99_over_p50": round(float(np.percentile(t, 99)) / p50, 3),
         "rss_kib_at_1000": round(rss0, 1),
         "rss_growth_kib": round(rss1 - rss0, 1),
+        "rss_growth_second_half_kib": round(rss1 - rss_mid, 1),
         "gc_objects_growth": objs1 - objs0,
         "heap_growth_kib": None if not args.trace_heap else round(heap1 - heap0, 1),
         "warmup_s": round(warm_s, 3),
