@@ -268,7 +268,8 @@ def write_report(path: Path, cfg: TrainConfig, r: dict, plots: list[str], labels
         f"{100 * r['missing_fraction']:.2f} % samples missing); frames: {frames}",
         f"- marker surface: {r['faces']} triangles "
         f"({'from ' + str(cfg.faces) if cfg.faces else 'automatic, Delaunay + kNN + sliver filter'}"
-        f"), {r['clustered_faces']} near-rigid ones clustered (edge strain <= {cfg.max_strain})",
+        f"), {r['clustered_faces']} clustered (near-rigid: edge strain <= {cfg.max_strain}, "
+        "no fold, complete in >= 80 % of frames)",
         f"- k-means: k = {', '.join(map(str, ks))}, {r['restarts']} random restarts each, "
         f"seed {r['seed']}; rest pose = frame {r['rest_frame']}",
     ]
