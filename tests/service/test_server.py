@@ -326,3 +326,30 @@ def test_outgoing_kinds_sent_to_the_service_are_rejected(kind):
 
     assert run(go()) == 1
     assert isinstance(decode(payload), LabeledMsg | ModelMsg | StatusMsg)
+
+
+def test_prometheus_endpoint_serves_the_counters(rng):
+    import urllib.request
+
+    cap = moving_clusters(rng, frames=30)
+    p = stream_payloads(cap, rng, init=10)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(metrics_port=0), [mem]) as srv:
+            await _feed(mem, p + [b"junk"], pause=0.001)
+            await _labeled(mem, 20)
+            await asyncio.sleep(0.05)
+            url = f"http://127.0.0.1:{srv.metrics_port}/metrics"
+            text = await asyncio.to_thread(
+                lambda: urllib.request.urlopen(url, timeout=5).read().decode()
+            )
+            line = srv.metrics.log_line()
+        return text, line
+
+    text, line = run(go())
+    assert 'mocap_frames_in_total{stream="default"} 30.0' in text
+    assert 'mocap_frames_out_total{stream="default"} 20.0' in text
+    assert 'mocap_dropped_total{reason="not_msgpack",stream=""} 1.0' in text
+    assert "mocap_labeling_seconds_bucket" in text and "mocap_ready 1.0" in text
+    assert "[default] in=30 out=20" in line and "not_msgpack=1" in line
