@@ -38,7 +38,7 @@ class LabelerConfig(BaseModel):
         description="bodies with no observed marker search free points this far (0 = off)",
     )
     reacquire_estimate_mm: float = Field(
-        60.0,
+        45.0,
         gt=0,
         description="the wide pass searches this close to a marker's rigid-neighbourhood "
         "estimate when 3+ neighbours give one (else reacquire_mm around its prediction)",
