@@ -93,7 +93,8 @@ class ShoulderSkeleton:
     (``"auto"``, ``"chain"`` or ``"tree"``, see :mod:`joints`), ``min_markers`` (a cluster
     owning fewer markers cannot carry a bone -- Sec. 3.4 needs four per segment -- and is merged
     into its neighbours, :func:`~offline.shoulder.skinning.merge_small_segments`),
-    ``core_rounds`` (>= 1: fit, select the rigid core, refit, repeated),
+    ``core_rounds`` (>= 1: fit, select the rigid core, refit, repeated), ``core_factor`` (a
+    core marker's own rigid residual is at most this times its segment's median),
     ``random_state``.
 
     Fitted attributes: ``surface_`` (:class:`Surface`), ``triangle_labels_`` (clustered faces),
@@ -119,6 +120,7 @@ class ShoulderSkeleton:
         structure: str = "auto",
         min_markers: int = 4,
         core_rounds: int = 2,
+        core_factor: float = 2.5,
         random_state: int | np.random.Generator | None = None,
     ) -> None:
         self.n_segments = n_segments
@@ -129,6 +131,7 @@ class ShoulderSkeleton:
         self.structure = structure
         self.min_markers = min_markers
         self.core_rounds = core_rounds
+        self.core_factor = core_factor
         self.random_state = random_state
 
     # ------------------------------------------------------------------------- fitting
@@ -166,7 +169,7 @@ class ShoulderSkeleton:
         members = segment_members(labels, S, faces, tri)
         R, t = segment_fits(pos, rest, members)
         for _ in range(self.core_rounds):  # refit on the rigid core; re-select against it
-            core = core_members(rigid_residuals(pos, rest, R, t), labels, members)
+            core = core_members(rigid_residuals(pos, rest, R, t), labels, members, self.core_factor)
             R, t = segment_fits(pos, rest, core)
         # step 5a (needed by 3 and 4): skin weights from rigid-prediction likelihoods
         resid = rigid_residuals(pos, rest, R, t)
