@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import select
 import socket
 import ssl
 import time
@@ -44,6 +45,44 @@ def _tls(settings: MqttSettings) -> aiomqtt.TLSParameters | None:
         keyfile=str(settings.key_file) if settings.key_file else None,
         cert_reqs=ssl.CERT_NONE if settings.tls_insecure else ssl.CERT_REQUIRED,
     )
+
+
+def drain_reads(client: aiomqtt.Client) -> bool:
+    """Makes one readiness event read *every* MQTT packet already received.
+
+    aiomqtt's socket reader calls paho's ``loop_read``, which reads one QoS-0 packet per
+    event; when the service is busy labeling, the rest of the backlog would wait in the TCP
+    buffer (and the broker), out of reach of our drop-oldest queues. This swaps the reader for
+    one that loops while the socket stays readable. Relies on aiomqtt 2.x internals
+    (``_client``, ``_disconnected``); returns False (leaving aiomqtt's reader) if they change.
+    """
+    paho = getattr(client, "_client", None)
+    disconnected = getattr(client, "_disconnected", None)
+    sock = paho.socket() if paho is not None else None
+    if sock is None or disconnected is None:
+        return False
+    fd = sock.fileno()
+    loop = asyncio.get_running_loop()
+
+    def drain() -> None:
+        try:
+            for _ in range(10_000):
+                paho.loop_read()
+                raw = paho.socket()
+                if raw is None:
+                    return
+                pending = getattr(raw, "pending", None)  # TLS: decrypted bytes buffered
+                if pending is not None and pending() > 0:
+                    continue
+                if not select.select([fd], [], [], 0)[0]:
+                    return
+        except Exception as exc:  # a broken connection: let aiomqtt see it, as its reader does
+            if not disconnected.done():
+                disconnected.set_exception(exc)
+
+    loop.remove_reader(fd)
+    loop.add_reader(fd, drain)
+    return True
 
 
 class ReconnectingClient:
@@ -98,6 +137,7 @@ class ReconnectingClient:
         while True:
             try:
                 async with self._make() as client:
+                    drain_reads(client)
                     for t in self.topics:
                         await client.subscribe(t, qos=0)
                     if self.on_connect is not None:
