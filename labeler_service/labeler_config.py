@@ -65,6 +65,12 @@ class LabelerConfig(BaseModel):
         description="an ambiguous marker farther than this from its rigid-neighbourhood (Kabsch) "
         "estimate moves to a free point twice as close (0 = no 3D check)",
     )
+    verify_every: int = Field(
+        8, ge=0, description="every marker gets the 3D check at least once in this many frames"
+    )
+    swap_check: bool = Field(
+        True, description="the 3D check may exchange the points of two markers (swaps)"
+    )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )

@@ -113,6 +113,9 @@ def _process_frame(
     snap_age,
     reacq_est_mm,
     reacq_keep,
+    verify_every,
+    frame_no,
+    swap_check,
 ):
     """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
     m_total = x.shape[0]
@@ -287,6 +290,9 @@ def _process_frame(
             robust_mm,
             n_reject,
             reject_limit,
+            verify_every,
+            frame_no,
+            swap_check,
         )
     for j in range(n):
         point_labels[j] = owner[j]

@@ -196,6 +196,9 @@ def _verify(
     tau,
     n_reject,
     reject_limit,
+    verify_every,
+    frame_no,
+    swap_check,
 ):
     """3D check of the fit against each marker's rigid neighbourhood (after Algorithm 1).
 
@@ -203,12 +206,15 @@ def _verify(
     one, can fit a body's links as well as the true point. For every marker that is suspect -
     several candidates, not observed in the previous frame (``prev_state != 1``), a point more
     than ``jump_mm`` from the Kalman prediction ``x``, a free point within ``suspect_mm`` of its
-    prediction (a reappearing marker whose label another point has taken), or missing - the
-    Kabsch estimate from its
-    observed recovery set (3+ neighbours) is computed:
+    prediction (a reappearing marker whose label another point has taken), its turn in a round
+    robin over ``verify_every`` frames, or missing - the Kabsch estimate from its observed
+    recovery set (3+ neighbours) is computed:
 
     - an observed marker whose point is more than ``verify_mm`` from the estimate moves to a
-      free point at most half as far; failing that, a marker that was not observed in the
+      free point at most half as far; with ``swap_check``, if another marker holds that point
+      and the exchange halves the two markers' summed distances to their estimates, the two
+      swap (persistent swaps between performers in contact); failing that, a marker that was
+      not observed in the
       previous frame drops a point farther than ``reject_mm`` from an estimate that at least 4
       mutually consistent neighbours support (it stays missing), at most ``reject_limit``
       frames in a row (``n_reject`` counts them): real bodies are not perfectly rigid, and a
@@ -220,6 +226,7 @@ def _verify(
     """
     n = points.shape[0]
     est = np.empty(3)
+    est2 = np.empty(3)
     changes = 0
     m_total = assigned.shape[0]
     s2 = suspect_mm * suspect_mm
@@ -248,7 +255,8 @@ def _verify(
                 d = points[a, c] - x[m, c]
                 i2 += d * d
             jumped = i2 > jump_mm * jump_mm  # far from the Kalman prediction
-        if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m]:
+        turn = verify_every > 0 and (m + frame_no) % verify_every == 0  # round robin
+        if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m] and not turn:
             continue
         kept = _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau)
         if kept == 0:
@@ -275,6 +283,45 @@ def _verify(
             if d2 < best:
                 best = d2
                 bj = j
+        if bj < 0 and a >= 0 and swap_check:
+            # the point the estimate wants may be held by another marker: swap when both fit
+            # their rigid neighbourhoods better after the exchange
+            best = 0.25 * e2
+            bk = -1
+            for j in range(n):
+                if owner[j] < 0 or j == a:
+                    continue
+                d2 = 0.0
+                for c in range(3):
+                    d = points[j, c] - est[c]
+                    d2 += d * d
+                if d2 < best:
+                    best = d2
+                    bk = j
+            if bk >= 0:
+                m2 = owner[bk]
+                if rec_ok[m2]:
+                    k2 = _set_estimate(
+                        m2, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est2, tau
+                    )
+                    if k2 > 0:
+                        now2 = 0.0
+                        sw2 = 0.0
+                        for c in range(3):
+                            d = points[bk, c] - est2[c]
+                            now2 += d * d
+                            d = points[a, c] - est2[c]
+                            sw2 += d * d
+                        if np.sqrt(best) + np.sqrt(sw2) < 0.5 * (np.sqrt(e2) + np.sqrt(now2)):
+                            owner[a] = m2
+                            owner[bk] = m
+                            assigned[m] = bk
+                            assigned[m2] = a
+                            for c in range(3):
+                                obs[m, c] = points[bk, c]
+                                obs[m2, c] = points[a, c]
+                            changes += 1
+                            continue
         if bj < 0:
             if (
                 a >= 0
