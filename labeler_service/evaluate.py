@@ -110,14 +110,12 @@ def score_labeler(
     warm = getattr(labeler, "warmup", None)
     if callable(warm):
         warm()
-    extent = getattr(labeler, "body_extent", None)
-    body_extent = np.asarray(extent(), dtype=np.float64) if callable(extent) else None
 
     correct = visible = ghosts = ghosts_labeled = 0
     per_frame = np.full(n, np.nan)
     times_ns: list[int] = []
     errors: list[float] = []
-    ratios: list[float] = []
+    error_markers: list[int] = []
     removed_total = 0
     for f in range(n):
         pts, truth = stream.points[f], stream.truth[f]
@@ -148,12 +146,18 @@ def score_labeler(
                     out.positions[rec].astype(np.float64) - stream.positions[f, rec], axis=1
                 )
                 errors.extend(err.tolist())
-                if body_extent is not None:
-                    ratios.extend((err / body_extent[rec]).tolist())
+                error_markers.extend(rec.tolist())
     times_ms = np.asarray(times_ns, dtype=np.float64) / 1e6
     if times_ms.size == 0:
         times_ms = np.asarray([np.nan])
     err_arr = np.asarray(errors)
+    # Body extents are known once the labeler has trained: ask after the run.
+    extent = getattr(labeler, "body_extent", None)
+    ratios = np.empty(0)
+    if callable(extent) and err_arr.size:
+        body_extent = np.asarray(extent(), dtype=np.float64)
+        ratios = err_arr / body_extent[np.asarray(error_markers, dtype=np.intp)]
+        ratios = ratios[np.isfinite(ratios)]
     has_recovery = removed_total > 0 and method != "closest-point"
     return MethodScore(
         method=method,
@@ -161,7 +165,7 @@ def score_labeler(
         ghost_labeled_rate=ghosts_labeled / ghosts if ghosts else None,
         recovery_mean_mm=float(err_arr.mean()) if err_arr.size else None,
         recovery_p95_mm=float(np.percentile(err_arr, 95)) if err_arr.size else None,
-        recovery_mean_ratio=float(np.mean(ratios)) if ratios else None,
+        recovery_mean_ratio=float(np.mean(ratios)) if ratios.size else None,
         recovery_rate=(err_arr.size / removed_total) if has_recovery else None,
         ms_per_frame_p50=float(np.median(times_ms)),
         ms_per_frame_p99=float(np.percentile(times_ms, 99)),

@@ -8,8 +8,11 @@ scored on are *composed*: every take keeps its real markers, noise and occlusion
 3. it is turned by a yaw so that its mean heading faces the circle centre (plus a small seeded
    random offset); the heading is the mean over the window of ``left x up`` where ``left`` is
    the mean horizontal vector from every ``R*`` marker to its ``L*`` twin (``RSHO -> LSHO``),
-4. its horizontal drift is removed: the per-frame median ``(x, y)`` of the visible markers
-   (the body centre ``c_t``) is subtracted, the vertical motion is kept,
+4. its horizontal drift is removed: the per-frame median ``(x, y)`` of the visible markers,
+   smoothed in time by a Gaussian of ``CENTRE_SMOOTH_S`` seconds (the body centre ``c_t``), is
+   subtracted; the vertical motion is kept. Smoothing matters: the raw median jumps by
+   centimetres when markers drop out or limbs swing, and subtracting it would make the whole
+   body jump between frames, which no real performer does,
 5. it is placed at angle ``phase + 2 pi k / n`` on a circle of radius ``radius`` around the
    origin (``phase`` seeded),
 6. its labels get its subject name (the take's own prefix, else the file stem; duplicates
@@ -35,6 +38,7 @@ from labeler_service.errors import SceneError
 
 #: A marker must be visible in at least this fraction of the window to be kept.
 MIN_VISIBLE_FRACTION = 0.5
+CENTRE_SMOOTH_S = 0.25  # Gaussian smoothing of the removed horizontal drift (seconds)
 #: Half-width of the seeded random yaw offset added to "facing the centre" (degrees).
 YAW_JITTER_DEG = 10.0
 
@@ -127,10 +131,11 @@ def decimation_step(take_rate: float, rate: float, name: str = "take") -> int:
     return int(step)
 
 
-def body_centre(positions: np.ndarray) -> np.ndarray:
+def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
     """``(F, 2)`` horizontal body centre: per-frame median ``x, y`` of the visible markers.
 
-    Frames where nothing is visible are linearly interpolated from their neighbours.
+    Frames where nothing is visible are linearly interpolated from their neighbours. With
+    ``sigma_frames > 0`` the track is smoothed by a Gaussian of that width (in frames).
     """
     f = positions.shape[0]
     vis = ~np.isnan(positions).any(axis=2)
@@ -145,6 +150,14 @@ def body_centre(positions: np.ndarray) -> np.ndarray:
         t = np.arange(f)
         for axis in (0, 1):
             centre[~ok, axis] = np.interp(t[~ok], t[ok], centre[ok, axis])
+    if sigma_frames > 0:
+        from scipy.ndimage import gaussian_filter1d
+
+        # Smooth around the straight-line drift so that the ends do not lag behind a walk.
+        t = np.arange(f, dtype=np.float64)
+        trend = np.polynomial.polynomial.polyfit(t, centre, 1)  # (2, 2): intercept, slope
+        line = trend[0] + t[:, None] * trend[1]
+        centre = line + gaussian_filter1d(centre - line, sigma_frames, axis=0, mode="nearest")
     return centre
 
 
@@ -299,7 +312,7 @@ def compose_scene(
         x, y = pos[..., 0].copy(), pos[..., 1].copy()
         pos[..., 0] = c * x - s * y
         pos[..., 1] = s * x + c * y
-        pos[..., :2] -= body_centre(pos)[:, None, :]
+        pos[..., :2] -= body_centre(pos, CENTRE_SMOOTH_S * out_rate)[:, None, :]
         pos[..., 0] += radius * math.cos(theta)
         pos[..., 1] += radius * math.sin(theta)
         placed = win.with_positions(pos.astype(np.float32), rate=out_rate, notes=())

@@ -38,7 +38,9 @@ class _Oracle:
         self.marker_names = stream.marker_names
 
     def body_extent(self) -> np.ndarray:
-        return np.full(len(self.marker_names), 100.0)
+        # Like the online labeler: bodies exist only after the training window.
+        value = 100.0 if self.f > 0 else np.nan
+        return np.full(len(self.marker_names), value)
 
     def process(self, points, t, labels=None) -> LabeledFrame:
         f = self.f
