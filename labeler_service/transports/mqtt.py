@@ -48,13 +48,15 @@ def _tls(settings: MqttSettings) -> aiomqtt.TLSParameters | None:
 
 
 def drain_reads(client: aiomqtt.Client) -> bool:
-    """Makes one readiness event read *every* MQTT packet already received.
+    """Makes one socket readiness event read *every* MQTT packet already received.
 
-    aiomqtt's socket reader calls paho's ``loop_read``, which reads one QoS-0 packet per
-    event; when the service is busy labeling, the rest of the backlog would wait in the TCP
-    buffer (and the broker), out of reach of our drop-oldest queues. This swaps the reader for
-    one that loops while the socket stays readable. Relies on aiomqtt 2.x internals
-    (``_client``, ``_disconnected``); returns False (leaving aiomqtt's reader) if they change.
+    aiomqtt's reader calls paho's ``loop_read``, which reads one QoS-0 packet per event, and
+    ``client.messages`` yields one message per event-loop iteration: while the service is busy
+    labeling, a backlog would wait in TCP buffers and aiomqtt's unbounded queue, out of reach of
+    our drop-oldest queues. This reader loops while the socket stays readable (the messages land
+    in aiomqtt's queue, which :meth:`ReconnectingClient.run` empties each time). Relies on
+    aiomqtt 2.x internals (``_client``, ``_disconnected``); returns False, changing nothing, if
+    they are not there.
     """
     paho = getattr(client, "_client", None)
     disconnected = getattr(client, "_disconnected", None)
@@ -138,6 +140,7 @@ class ReconnectingClient:
             try:
                 async with self._make() as client:
                     drain_reads(client)
+                    pending = getattr(client, "_queue", None)  # aiomqtt's message queue
                     for t in self.topics:
                         await client.subscribe(t, qos=0)
                     if self.on_connect is not None:
@@ -149,8 +152,18 @@ class ReconnectingClient:
                     log.info("mqtt %s: connected to %s:%d", self.identifier, self.settings.host,
                              self.settings.port)  # fmt: skip
                     async for message in client.messages:
-                        self.on_message(message, time.time_ns())
+                        now = time.time_ns()
+                        self.on_message(message, now)
+                        # everything else already received goes over now, not one per
+                        # loop iteration (see drain_reads)
+                        while pending is not None and not pending.empty():
+                            self.on_message(pending.get_nowait(), now)
             except aiomqtt.MqttError as exc:
+                task = asyncio.current_task()
+                if task is not None and task.cancelling():
+                    # cancelled while disconnecting: aiomqtt's __aexit__ may turn the
+                    # CancelledError into an MqttError; never reconnect after a cancel
+                    raise asyncio.CancelledError from exc
                 self.failures += 1
                 level = logging.WARNING if self.failures <= 3 or self.connects else logging.DEBUG
                 log.log(level, "mqtt %s: %s; retrying in %.1f s", self.identifier, exc, backoff)

@@ -227,3 +227,46 @@ def test_tls_connection_with_a_private_ca(tmp_path):
     finally:
         secured.close()
     assert ok and refused
+
+
+def _publish_burst(broker, topic, payloads):
+    import paho.mqtt.client as paho
+
+    c = paho.Client(paho.CallbackAPIVersion.VERSION2)
+    c.connect(broker.host, broker.port)
+    c.loop_start()
+    infos = [c.publish(topic, p, qos=0) for p in payloads]
+    for info in infos:
+        info.wait_for_publish(5)
+    c.loop_stop()
+    c.disconnect()
+
+
+def test_a_backlog_over_mqtt_lands_in_the_drop_oldest_queue(broker, rng):
+    """When labeling is slow, frames queued in TCP must reach our queue (and be dropped there,
+    counted) rather than wait in socket buffers: one readiness event reads every packet."""
+    from service.helpers import SlowLabeler, stream_payloads
+
+    cap = moving_clusters(rng, frames=105)
+    payloads = stream_payloads(cap, rng, init=5, stream="vol")
+
+    def factory(kind, names, rate, config, model_path=None):
+        return SlowLabeler(names, rate, delay_s=0.02)
+
+    async def go():
+        async with Server(_settings(broker, queue_size=4, warmup=False), factory=factory) as srv:
+            async with open_sender(f"{broker.url}/vol") as (send, _):
+                for p in payloads[:6]:
+                    await send(p)
+                await asyncio.sleep(0.5)  # init frames + the first unlabeled (trains)
+                # 99 frames in one burst from another thread (this loop is busy labeling)
+                await asyncio.to_thread(_publish_burst, broker, "mocap/vol/unlabeled",
+                                        payloads[6:])  # fmt: skip
+                async with asyncio.timeout(10):
+                    while srv.metrics.value("mocap_frames_in_total", stream="vol") < 105:
+                        await asyncio.sleep(0.01)
+                await asyncio.sleep(0.3)
+            return srv.metrics
+
+    metrics = run(go())
+    assert metrics.drops("queue_full") >= 85  # 99 - queue_size 4 - a few labeled meanwhile
