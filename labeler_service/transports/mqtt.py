@@ -32,6 +32,10 @@ from labeler_service.transports.base import DropOldestQueue, Incoming, iterate_q
 log = logging.getLogger(__name__)
 
 
+#: Outgoing QoS-0 messages queued in paho (not yet written to the socket) at most.
+MAX_OUTGOING = 256
+
+
 def topic(prefix: str, stream: str, kind: str) -> str:
     return f"{prefix}/{stream}/{kind}"
 
@@ -174,12 +178,31 @@ class ReconnectingClient:
             backoff = min(backoff * 2, self.settings.reconnect_max_s)
 
     async def publish(self, t: str, payload: bytes, retain: bool = False, qos: int = 0) -> bool:
+        """Publishes one message; False (counted in ``dropped``) when it cannot go out.
+
+        QoS 0 is fire-and-forget: handed to paho's outgoing queue without waiting for the
+        write (aiomqtt would wait for it, up to the timeout, on a connection that just died:
+        the labeling loop must never wait on the broker). That queue is bounded by
+        ``MAX_OUTGOING``; beyond it messages are dropped. QoS > 0 waits for the broker's
+        acknowledgement, at most 1 s.
+        """
         client = self.client
         if client is None:
             self.dropped += 1
             return False
+        paho = getattr(client, "_client", None)
+        backlog = getattr(paho, "_out_packet", None)
+        if qos == 0 and paho is not None and backlog is not None:
+            if len(backlog) >= MAX_OUTGOING:
+                self.dropped += 1
+                return False
+            info = paho.publish(t, payload, qos=0, retain=retain)
+            if info.rc != 0:
+                self.dropped += 1
+                return False
+            return True
         try:
-            await client.publish(t, payload, qos=qos, retain=retain, timeout=2.0)
+            await client.publish(t, payload, qos=qos, retain=retain, timeout=1.0)
         except aiomqtt.MqttError:
             self.dropped += 1
             return False
