@@ -15,7 +15,6 @@ frames for MQTT are counted as ``send_error`` and UDP keeps flowing.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import os
 import select
@@ -181,10 +180,9 @@ class ReconnectingClient:
     async def publish(self, t: str, payload: bytes, retain: bool = False, qos: int = 0) -> bool:
         """Publishes one message; False (counted in ``dropped``) when it cannot go out.
 
-        QoS 0 is fire-and-forget: handed to paho and written at once as far as the socket
-        takes it, without waiting for a confirmation (aiomqtt would wait, up to its timeout, on
-        a connection that just died: the labeling loop must never wait on the broker). The queue
-        is bounded by
+        QoS 0 is fire-and-forget: handed to paho's outgoing queue without waiting for the
+        write (aiomqtt would wait for it, up to the timeout, on a connection that just died:
+        the labeling loop must never wait on the broker). That queue is bounded by
         ``MAX_OUTGOING``; beyond it messages are dropped. QoS > 0 waits for the broker's
         acknowledgement, at most 1 s.
         """
@@ -202,10 +200,6 @@ class ReconnectingClient:
             if info.rc != 0:
                 self.dropped += 1
                 return False
-            # write now, not when aiomqtt's writer callback next runs: the loop labels the
-            # next frame first, which would hold this one back by a labeling time
-            with contextlib.suppress(Exception):
-                paho.loop_write()
             return True
         try:
             await client.publish(t, payload, qos=qos, retain=retain, timeout=1.0)
