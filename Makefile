@@ -24,5 +24,10 @@ lint: $(STAMP)
 	$(BIN)/ruff check labeler_service offline tests benchmarks
 	$(BIN)/ruff format --check labeler_service offline tests benchmarks
 
+bench: $(STAMP)
+	$(BIN)/python benchmarks/acceptance.py --out reports/acceptance.json
+	$(BIN)/python benchmarks/bench_labeler.py --frames 10000
+	$(BIN)/mocap-labeler bench latency --subjects 10 --rate 360 --seconds 20 --transport udp --json
+
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
