@@ -71,6 +71,11 @@ class LabelerConfig(BaseModel):
     swap_check: bool = Field(
         True, description="the 3D check may exchange the points of two markers (swaps)"
     )
+    contest: bool = Field(
+        True,
+        description="after Algorithm 1, a point held by a marker that jumped more than jump_mm "
+        "for it goes back to the marker tracked onto it in the previous frame",
+    )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )

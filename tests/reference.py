@@ -258,3 +258,60 @@ def recover(m, members, ref, obs, method, tau):
         R, t, _ = robust_kabsch(src, dst, tau)
         return R @ ref[0] + t
     return np.mean(dst + ref[0] - src, axis=0)
+
+
+def set_estimate(m, members, ref, obs, tau):
+    """Robust Kabsch estimate of ``m`` from its observed recovery-set members; None with fewer
+    than 3."""
+    idx = [k for k in range(1, len(members)) if np.isfinite(obs[members[k], 0])]
+    if len(idx) < 3:
+        return None
+    src = np.array([ref[k] for k in idx], dtype=float)
+    dst = np.array([obs[members[k]] for k in idx], dtype=float)
+    R, t, _ = robust_kabsch(src, dst, tau)
+    return R @ ref[0] + t
+
+
+def contest(assigned, owner, active, prev_state, x, points, obs, members, refs, rec_ok, jump,
+            verify, tau):  # fmt: skip
+    """Track continuity after Algorithm 1, marker by marker in index order: a point held by a
+    marker that jumped more than ``jump`` for it goes to the nearest marker tracked in the
+    previous frame and missing now, if that one predicts it within ``jump`` and at half the
+    distance, unless the holder's rigid estimate is within ``verify`` of the point or the
+    taker's estimate is farther from it than the holder's. ``members[m]`` and ``refs[m]`` are
+    the recovery set and its snapshot. Returns the number of hand-overs (arrays in place)."""
+    changes = 0
+    for m in range(len(assigned)):
+        a = assigned[m]
+        if a < 0:
+            continue
+        jump_m = np.linalg.norm(points[a] - x[m, :3])
+        if jump_m <= jump:
+            continue
+        takers = [
+            (np.linalg.norm(points[a] - x[m2, :3]), m2)
+            for m2 in range(len(assigned))
+            if assigned[m2] < 0 and active[m2] and prev_state[m2] == 1
+        ]
+        takers = [(d, m2) for d, m2 in takers if d < min(jump, 0.5 * jump_m)]
+        if not takers:
+            continue
+        m2 = min(takers)[1]  # nearest (ties: lowest index)
+        e_m = np.inf
+        if rec_ok[m]:
+            est = set_estimate(m, members[m], refs[m], obs, tau)
+            if est is not None:
+                e_m = np.linalg.norm(points[a] - est)
+        if e_m <= verify:
+            continue
+        if rec_ok[m2]:
+            est = set_estimate(m2, members[m2], refs[m2], obs, tau)
+            if est is not None and np.linalg.norm(points[a] - est) > e_m:
+                continue
+        owner[a] = m2
+        assigned[m2] = a
+        assigned[m] = -1
+        obs[m2] = points[a]
+        obs[m] = np.nan
+        changes += 1
+    return changes

@@ -1,11 +1,13 @@
 """The whole per-frame loop of the online labeler in one numba entry point.
 
 Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3) -> Mahalanobis gating with at
-most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> Kalman update
-of the observed markers (Eq. 4) -> recovery of hidden markers from their bodies (Sec. 3.3; the
-recovered position also updates the Kalman state with a larger ``R``, so a marker hidden for
-long is predicted from its body, not from a stale state) -> sliding-window structure update
-(Eq. 1-2) -> reference snapshots of fully observed bodies.
+most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> track
+continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition and 3D
+check (ours, see docs/algorithm.md) -> Kalman update of the observed markers (Eq. 4) -> recovery
+of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
+state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
+stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
+observed bodies.
 """
 
 from __future__ import annotations
@@ -16,7 +18,13 @@ from labeler_service._numba import njit
 from labeler_service.kernels.fitting import _fit_bodies
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _start_or_update
-from labeler_service.kernels.rigid import _recover, _set_estimate, _snapshot, _verify
+from labeler_service.kernels.rigid import (
+    _contest,
+    _recover,
+    _set_estimate,
+    _snapshot,
+    _verify,
+)
 from labeler_service.kernels.window import _window_update
 
 OBSERVED = 1
@@ -116,6 +124,7 @@ def _process_frame(
     verify_every,
     frame_no,
     swap_check,
+    contest,
 ):
     """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
     m_total = x.shape[0]
@@ -167,6 +176,33 @@ def _process_frame(
         partial,
         best_choice,
     )
+    # track continuity: points the fit gave to a marker that jumped for them go back to the
+    # marker tracked onto them in the previous frame
+    if contest:
+        for i in range(m_total):
+            a = assigned[i]
+            for c in range(3):
+                obs[i, c] = points[a, c] if a >= 0 else np.nan
+        _contest(
+            assigned,
+            owner,
+            active,
+            out_state,
+            x,
+            points,
+            obs,
+            rec_members,
+            rec_size,
+            rec_ref,
+            rec_ok,
+            jump_mm,
+            verify_mm,
+            src,
+            dst,
+            R,
+            t,
+            robust_mm,
+        )
     # re-acquisition: bodies with fewer than two observed markers are released (their markers
     # not held by a better-seen body search again) and, with every missing marker when
     # ``reacq_all``, look for free points within a wide radius; Algorithm 1 then runs again on

@@ -345,3 +345,101 @@ def _verify(
             obs[m, c] = points[bj, c]
         changes += 1
     return changes
+
+
+@njit
+def _estimate_distance(m, a, points, rec_members, rec_size, rec_ref, rec_ok, obs, src, dst, R, t,
+                       est, tau):  # fmt: skip
+    """Distance (mm) from point ``a`` to the Kabsch estimate of marker ``m`` (Sec. 3.3 with
+    3+ observed neighbours); ``inf`` when there is no estimate."""
+    if not rec_ok[m]:
+        return np.inf
+    if _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau) == 0:
+        return np.inf
+    e2 = 0.0
+    for c in range(3):
+        d = points[a, c] - est[c]
+        e2 += d * d
+    return np.sqrt(e2)
+
+
+@njit
+def _contest(
+    assigned,
+    owner,
+    active,
+    prev_state,
+    x,
+    points,
+    obs,
+    rec_members,
+    rec_size,
+    rec_ref,
+    rec_ok,
+    jump_mm,
+    verify_mm,
+    src,
+    dst,
+    R,
+    t,
+    tau,
+):
+    """Track continuity after Algorithm 1: a point goes back to the marker that was tracked onto
+    it when the fit gave it to a marker that had to jump for it.
+
+    Eq. 5 only sees distances, and in close contact another person's marker sits where a hidden
+    one would be; a body that spans a joint fits its links loosely and loses the greedy order
+    (Algorithm 1 line 12) to the hidden marker's body. For every point ``a`` held by a marker
+    ``m`` more than ``jump_mm`` from its Kalman prediction (Eq. 3), the closest marker ``m2``
+    that was observed in the previous frame (``prev_state == 1``), is missing after the fit, and
+    predicts ``a`` within ``jump_mm`` and at half ``m``'s distance, takes the point (``m`` is
+    missing) unless a rigid neighbourhood decides otherwise: ``m`` keeps it when its Kabsch
+    estimate (3+ observed neighbours) lies within ``verify_mm`` of the point, and ``m2`` does
+    not take it when its own estimate is farther from the point than ``m``'s.
+
+    ``obs (M, 3)`` holds the observed positions (NaN otherwise) and is kept in sync. Returns the
+    number of points handed over.
+    """
+    m_total = assigned.shape[0]
+    est = np.empty(3)
+    changes = 0
+    for m in range(m_total):
+        a = assigned[m]
+        if a < 0:
+            continue
+        i2 = 0.0
+        for c in range(3):
+            d = points[a, c] - x[m, c]
+            i2 += d * d
+        if i2 <= jump_mm * jump_mm:
+            continue
+        lim2 = min(jump_mm * jump_mm, 0.25 * i2)
+        bm = -1
+        for m2 in range(m_total):
+            if assigned[m2] >= 0 or not active[m2] or prev_state[m2] != 1:
+                continue
+            d2 = 0.0
+            for c in range(3):
+                d = points[a, c] - x[m2, c]
+                d2 += d * d
+            if d2 < lim2:
+                lim2 = d2
+                bm = m2
+        if bm < 0:
+            continue
+        e_m = _estimate_distance(m, a, points, rec_members, rec_size, rec_ref, rec_ok, obs,
+                                 src, dst, R, t, est, tau)  # fmt: skip
+        if e_m <= verify_mm:
+            continue
+        e_bm = _estimate_distance(bm, a, points, rec_members, rec_size, rec_ref, rec_ok, obs,
+                                  src, dst, R, t, est, tau)  # fmt: skip
+        if np.isfinite(e_bm) and e_bm > e_m:
+            continue
+        owner[a] = bm
+        assigned[bm] = a
+        assigned[m] = -1
+        for c in range(3):
+            obs[bm, c] = points[a, c]
+            obs[m, c] = np.nan
+        changes += 1
+    return changes

@@ -9,7 +9,7 @@ import reference as ref
 from labeler_service.kernels.fitting import _fit_bodies, _search_body
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _update
-from labeler_service.kernels.rigid import _kabsch, _recover, _robust_kabsch
+from labeler_service.kernels.rigid import _contest, _kabsch, _recover, _robust_kabsch
 from labeler_service.kernels.window import _window_update
 
 
@@ -369,3 +369,115 @@ def test_recover_matches_twin(rng, method):
         np.testing.assert_allclose(rec[i], expected, atol=1e-7)
     if method == "kabsch":  # exact for a rigid motion
         np.testing.assert_allclose(rec[[1, 4]], shape[[1, 4]] @ R0.T + 50.0, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- track continuity
+def _contest_scene(rng, m=12):
+    """Markers on a rigid cloud; recovery sets of 5; all observed at their true points."""
+    shape = rng.normal(0, 80, (m, 3))
+    members = np.full((m, 8), -1, dtype=np.int64)
+    size = np.zeros(m, dtype=np.int64)
+    refs = np.zeros((m, 8, 3))
+    for i in range(m):
+        order = np.argsort(np.linalg.norm(shape - shape[i], axis=1))[:5]
+        members[i, :5] = order  # itself first (distance 0)
+        size[i] = 5
+        refs[i, :5] = shape[order]
+    R0 = _rot(rng)
+    pos = shape @ R0.T + 30.0
+    x = np.zeros((m, 6))
+    x[:, :3] = pos + rng.normal(0, 1.0, (m, 3))
+    return pos, members, size, refs, x
+
+
+def _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, jump, verify):
+    m = assigned.shape[0]
+    return _contest(
+        assigned, owner, np.ones(m, dtype=bool), prev, x, points, obs, members, size, refs, ok,
+        jump, verify, np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)), np.zeros(3), 5.0,
+    )  # fmt: skip
+
+
+def test_contest_returns_a_point_to_its_tracked_marker(rng):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = pos.copy()
+    assigned = np.arange(m, dtype=np.int32)
+    # marker 3 (tracked) lost its point to marker 7, which jumped 25 mm for it; 7's own point is
+    # hidden in this frame (point 7 is a leftover nobody holds)
+    x[7, :3] = pos[3] + np.array([25.0, 0.0, 0.0])
+    assigned[3] = -1
+    assigned[7] = 3
+    owner = np.full(m, -1, dtype=np.int32)
+    for i in range(m):
+        if assigned[i] >= 0:
+            owner[assigned[i]] = i
+    owner[7] = -1
+    prev = np.ones(m, dtype=np.uint8)
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    ok = np.ones(m, dtype=bool)
+    state = (assigned.copy(), owner.copy(), obs.copy())
+    n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+    assert n == 1
+    assert assigned[3] == 3 and owner[3] == 3 and assigned[7] == -1
+    assert np.isnan(obs[7]).all()
+    np.testing.assert_allclose(obs[3], points[3])
+    # the same frame with marker 3 not tracked in the previous frame: nothing changes
+    a2, o2, ob2 = (s.copy() for s in state)
+    prev[3] = 2
+    assert _run_contest(a2, o2, prev, x, points, ob2, members, size, refs, ok, 8.0, 8.0) == 0
+    np.testing.assert_array_equal(a2, state[0])
+
+
+def test_contest_keeps_a_point_the_holders_body_supports(rng):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = pos.copy()
+    assigned = np.arange(m, dtype=np.int32)
+    owner = np.arange(m, dtype=np.int32)
+    # marker 5 jumped 20 mm (its prediction was off) but sits exactly where its neighbours say;
+    # marker 2 lost its point and predicts marker 5's point closely: 5 keeps it
+    x[5, :3] = pos[5] + np.array([0.0, 20.0, 0.0])
+    x[2, :3] = pos[5] + 1.0
+    assigned[2] = -1
+    owner[2] = -1
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    prev = np.ones(m, dtype=np.uint8)
+    ok = np.ones(m, dtype=bool)
+    n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+    assert n == 0
+    assert assigned[5] == 5 and assigned[2] == -1
+
+
+def test_contest_matches_twin(rng):
+    moved = 0
+    for trial in range(40):
+        pos, members, size, refs, x = _contest_scene(rng, m=14)
+        m = pos.shape[0]
+        points = pos + rng.normal(0, 2.0, pos.shape)
+        # random assignment: a permutation with a few markers missing
+        perm = rng.permutation(m).astype(np.int32)
+        assigned = np.where(rng.random(m) < 0.6, np.arange(m), perm).astype(np.int32)
+        _, first = np.unique(assigned, return_index=True)
+        keep = np.zeros(m, dtype=bool)
+        keep[first] = True
+        assigned[~keep | (rng.random(m) < 0.25)] = -1
+        owner = np.full(m, -1, dtype=np.int32)
+        owner[assigned[assigned >= 0]] = np.flatnonzero(assigned >= 0)
+        # predictions: some sharp, some off by up to 40 mm
+        x[:, :3] = pos + rng.normal(0, 1.0, (m, 3)) * rng.choice([1.0, 15.0], size=(m, 1))
+        prev = rng.choice(np.array([0, 1, 2], dtype=np.uint8), size=m, p=[0.1, 0.7, 0.2])
+        ok = rng.random(m) < 0.8
+        obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+        a_r, o_r, ob_r = assigned.copy(), owner.copy(), obs.copy()
+        n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+        mem = [list(members[i, : size[i]]) for i in range(m)]
+        n_r = ref.contest(
+            a_r, o_r, np.ones(m, dtype=bool), prev, x, points, ob_r, mem, refs, ok, 8.0, 8.0, 5.0
+        )
+        assert n == n_r, trial
+        moved += n
+        np.testing.assert_array_equal(assigned, a_r)
+        np.testing.assert_array_equal(owner, o_r)
+        np.testing.assert_allclose(obs, ob_r, atol=1e-9)
+    assert moved > 0  # the random frames do exercise hand-overs
