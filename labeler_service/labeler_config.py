@@ -87,7 +87,10 @@ class LabelerConfig(BaseModel):
         "the time step at lower rates)",
     )
     reject_limit: int = Field(
-        3, ge=0, description="at most this many rejections in a row per marker (no lock-out)"
+        6,
+        ge=0,
+        description="at most this many rejections in a row per marker (no lock-out); ghosts "
+        "live a few frames, a marker that really moved is accepted after this many",
     )
     jump_mm: float = Field(
         8.0,

@@ -9,7 +9,7 @@ import reference as ref
 from labeler_service.kernels.fitting import _fit_bodies, _search_body
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _update
-from labeler_service.kernels.rigid import _contest, _kabsch, _recover, _robust_kabsch
+from labeler_service.kernels.rigid import _contest, _kabsch, _recover, _robust_kabsch, _verify
 from labeler_service.kernels.window import _window_update
 
 
@@ -481,3 +481,47 @@ def test_contest_matches_twin(rng):
         np.testing.assert_array_equal(owner, o_r)
         np.testing.assert_allclose(obs, ob_r, atol=1e-9)
     assert moved > 0  # the random frames do exercise hand-overs
+
+
+# --------------------------------------------------------------------------- 3D check
+def _run_verify(assigned, owner, prev, x, points, obs, members, size, refs, n_reject, limit):
+    m = assigned.shape[0]
+    return _verify(
+        assigned, owner, np.ones(m, dtype=np.int32), np.ones(m, dtype=bool), prev, x, points,
+        obs, members, size, refs, np.ones(m, dtype=bool), 8.0, 12.0, 25.0, 8.0, 0.0,
+        np.zeros(m, dtype=bool), np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)),
+        np.zeros(3), 5.0, n_reject, limit, 0, 0, True,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("leap_mm", "prev", "used", "refused"),
+    [
+        (40.0, 2, 0, True),  # re-acquisition 40 mm off its estimate: refused
+        (40.0, 2, 5, True),  # the sixth refusal in a row
+        (40.0, 2, 6, False),  # the refusals in a row are used up: accepted (no lock-out)
+        (15.0, 2, 0, False),  # re-acquisition 15 mm off: only a closer free point would win
+        (40.0, 1, 0, False),  # tracked through the previous frame: kept
+    ],
+)
+def test_verify_refuses_a_reacquisition_off_the_rigid_estimate(rng, leap_mm, prev, used, refused):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    # marker 4's own point is hidden; a ghost sits leap_mm from where it is predicted
+    x[4, :3] = pos[4]
+    ghost = pos[4] + leap_mm * np.array([0.0, 0.6, 0.8])
+    points = np.vstack([np.delete(pos, 4, axis=0), ghost[None]])
+    assigned = np.array([i if i < 4 else i - 1 for i in range(m)], dtype=np.int32)
+    assigned[4] = m - 1
+    owner = np.full(m, -1, dtype=np.int32)
+    owner[assigned] = np.arange(m)
+    obs = points[assigned].copy()
+    prev_state = np.ones(m, dtype=np.uint8)
+    prev_state[4] = prev
+    n_reject = np.zeros(m, dtype=np.int64)
+    n_reject[4] = used
+    _run_verify(assigned, owner, prev_state, x, points, obs, members, size, refs, n_reject, 6)
+    assert (assigned[4] == -1) == refused
+    assert n_reject[4] == used + int(refused)
+    others = np.delete(np.arange(m), 4)
+    np.testing.assert_array_equal(assigned[others], [i if i < 4 else i - 1 for i in others])
