@@ -180,7 +180,7 @@ class Labeler:
             self._miss_reacq, c.reacquire_all, c.robust_fit_mm, c.reject_mm * max(1.0, dt * 120.0),
             c.jump_mm, c.suspect_mm, self._n_reject, c.reject_limit, self._age, c.snapshot_age,
             c.reacquire_estimate_mm, c.reacquire_keep_observed, c.verify_every, self._frame_no,
-            c.swap_check, c.contest,
+            c.swap_check, c.contest, c.reacquire_loose_mm,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ training

@@ -43,6 +43,13 @@ class LabelerConfig(BaseModel):
         description="the wide pass searches this close to a marker's rigid-neighbourhood "
         "estimate when 3+ neighbours give one (else reacquire_mm around its prediction)",
     )
+    reacquire_loose_mm: float = Field(
+        90.0,
+        gt=0,
+        description="the wide pass searches this far from a rigid-neighbourhood estimate whose "
+        "kept neighbours still disagree by more than robust_fit_mm (a joint moved while the "
+        "marker was hidden)",
+    )
     reacquire_keep_observed: bool = Field(
         True,
         description="the wide pass keeps the markers of weakly seen bodies that were observed in "

@@ -315,3 +315,8 @@ def contest(assigned, owner, active, prev_state, x, points, obs, members, refs, 
         obs[m] = np.nan
         changes += 1
     return changes
+
+
+def max_residual(src, dst, R, t):
+    """Largest ``|R src_i + t - dst_i|``."""
+    return float(np.max(np.linalg.norm(np.asarray(src) @ R.T + t - np.asarray(dst), axis=1)))

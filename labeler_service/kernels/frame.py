@@ -20,6 +20,7 @@ from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _start_or_update
 from labeler_service.kernels.rigid import (
     _contest,
+    _max_residual,
     _recover,
     _set_estimate,
     _snapshot,
@@ -125,6 +126,7 @@ def _process_frame(
     frame_no,
     swap_check,
     contest,
+    reacq_loose_mm,
 ):
     """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
     m_total = x.shape[0]
@@ -255,6 +257,10 @@ def _process_frame(
                     for c in range(3):
                         rec[i, c] = est4[c]
                     s[i] = reacq_est_mm
+                    if _max_residual(src, dst, kept, R, t) > robust_mm:
+                        # the neighbours kept still disagree (a joint moved while the marker
+                        # was hidden): the estimate is loose, so is the search
+                        s[i] = reacq_loose_mm
                 else:
                     for c in range(3):
                         rec[i, c] = x[i, c]

@@ -443,3 +443,18 @@ def _contest(
             obs[m, c] = np.nan
         changes += 1
     return changes
+
+
+@njit
+def _max_residual(src, dst, n, R, t):
+    """Largest distance (mm) between ``R @ src_i + t`` and ``dst_i`` over the first ``n`` rows:
+    how far the neighbours kept by a Kabsch estimate (Sec. 3.3) are from one rigid motion."""
+    worst = 0.0
+    for i in range(n):
+        e2 = 0.0
+        for a in range(3):
+            d = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a] - dst[i, a]
+            e2 += d * d
+        if e2 > worst:
+            worst = e2
+    return np.sqrt(worst)

@@ -9,7 +9,14 @@ import reference as ref
 from labeler_service.kernels.fitting import _fit_bodies, _search_body
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _update
-from labeler_service.kernels.rigid import _contest, _kabsch, _recover, _robust_kabsch, _verify
+from labeler_service.kernels.rigid import (
+    _contest,
+    _kabsch,
+    _max_residual,
+    _recover,
+    _robust_kabsch,
+    _verify,
+)
 from labeler_service.kernels.window import _window_update
 
 
@@ -525,3 +532,23 @@ def test_verify_refuses_a_reacquisition_off_the_rigid_estimate(rng, leap_mm, pre
     assert n_reject[4] == used + int(refused)
     others = np.delete(np.arange(m), 4)
     np.testing.assert_array_equal(assigned[others], [i if i < 4 else i - 1 for i in others])
+
+
+def test_max_residual_matches_twin_and_flags_a_moved_pair(rng):
+    src = rng.normal(0, 100, (4, 3))
+    R0 = _rot(rng)
+    dst = src @ R0.T + 20.0
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    _kabsch(src, dst, 4, R, t)
+    assert _max_residual(src, dst, 4, R, t) < 1e-6
+    # two of four neighbours moved together (a joint bent): no rigid fit of all four, and the
+    # robust fit can drop only one of them
+    dst[2:] += np.array([0.0, 40.0, 0.0])
+    kept = _robust_kabsch(src.copy(), dst.copy(), 4, R, t, 5.0)
+    assert kept == 3
+    s2, d2 = src.copy(), dst.copy()
+    _robust_kabsch(s2, d2, 4, R, t, 5.0)
+    res = _max_residual(s2, d2, kept, R, t)
+    assert res > 5.0
+    assert res == pytest.approx(ref.max_residual(s2[:kept], d2[:kept], R, t), abs=1e-9)
