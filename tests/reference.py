@@ -272,12 +272,13 @@ def set_estimate(m, members, ref, obs, tau):
     return R @ ref[0] + t
 
 
-def contest(assigned, owner, active, prev_state, x, points, obs, members, refs, rec_ok, jump,
-            verify, tau):  # fmt: skip
+def contest(assigned, owner, active, prev_state, x, s, gate, points, obs, members, refs, rec_ok,
+            jump, verify, tau):  # fmt: skip
     """Track continuity after Algorithm 1, marker by marker in index order: a point held by a
-    marker that jumped more than ``jump`` for it goes to the nearest marker tracked in the
-    previous frame and missing now, if that one predicts it within ``jump`` and at half the
-    distance, unless the holder's rigid estimate is within ``verify`` of the point or the
+    marker that jumped more than ``jump`` for it goes to the marker missing now with the smallest
+    squared Mahalanobis distance ``|y - x|^2 / s`` to it, if that is below ``gate`` and a quarter
+    of the holder's (a marker tracked in the previous frame must also predict it within
+    ``jump``), unless the holder's rigid estimate is within ``verify`` of the point or the
     taker's estimate is farther from it than the holder's. ``members[m]`` and ``refs[m]`` are
     the recovery set and its snapshot. Returns the number of hand-overs (arrays in place)."""
     changes = 0
@@ -288,12 +289,16 @@ def contest(assigned, owner, active, prev_state, x, points, obs, members, refs, 
         jump_m = np.linalg.norm(points[a] - x[m, :3])
         if jump_m <= jump:
             continue
-        takers = [
-            (np.linalg.norm(points[a] - x[m2, :3]), m2)
-            for m2 in range(len(assigned))
-            if assigned[m2] < 0 and active[m2] and prev_state[m2] == 1
-        ]
-        takers = [(d, m2) for d, m2 in takers if d < min(jump, 0.5 * jump_m)]
+        limit = min(gate, 0.25 * jump_m**2 / s[m])
+        takers = []
+        for m2 in range(len(assigned)):
+            if assigned[m2] >= 0 or not active[m2]:
+                continue
+            d = np.linalg.norm(points[a] - x[m2, :3])
+            if prev_state[m2] == 1 and d >= jump:
+                continue
+            if d**2 / s[m2] < limit:
+                takers.append((d**2 / s[m2], m2))
         if not takers:
             continue
         m2 = min(takers)[1]  # nearest (ties: lowest index)

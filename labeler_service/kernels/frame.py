@@ -191,6 +191,8 @@ def _process_frame(
             active,
             out_state,
             x,
+            s,
+            gate,
             points,
             obs,
             rec_members,

@@ -370,6 +370,8 @@ def _contest(
     active,
     prev_state,
     x,
+    s,
+    gate,
     points,
     obs,
     rec_members,
@@ -390,12 +392,14 @@ def _contest(
     Eq. 5 only sees distances, and in close contact another person's marker sits where a hidden
     one would be; a body that spans a joint fits its links loosely and loses the greedy order
     (Algorithm 1 line 12) to the hidden marker's body. For every point ``a`` held by a marker
-    ``m`` more than ``jump_mm`` from its Kalman prediction (Eq. 3), the closest marker ``m2``
-    that was observed in the previous frame (``prev_state == 1``), is missing after the fit, and
-    predicts ``a`` within ``jump_mm`` and at half ``m``'s distance, takes the point (``m`` is
-    missing) unless a rigid neighbourhood decides otherwise: ``m`` keeps it when its Kabsch
-    estimate (3+ observed neighbours) lies within ``verify_mm`` of the point, and ``m2`` does
-    not take it when its own estimate is farther from the point than ``m``'s.
+    ``m`` more than ``jump_mm`` from its Kalman prediction (Eq. 3), the marker ``m2`` missing
+    after the fit with the smallest squared Mahalanobis distance ``d2 / s[m2]`` to ``a`` (``s``
+    the innovation variance of the gate), if that is below ``gate`` and a quarter of ``m``'s,
+    takes the point (``m`` is missing); a marker observed in the previous frame
+    (``prev_state == 1``) must moreover predict ``a`` within ``jump_mm``. A rigid neighbourhood
+    can veto: ``m`` keeps the point when its Kabsch estimate (3+ observed neighbours) lies
+    within ``verify_mm`` of it, and ``m2`` does not take it when its own estimate is farther
+    from the point than ``m``'s.
 
     ``obs (M, 3)`` holds the observed positions (NaN otherwise) and is kept in sync. Returns the
     number of points handed over.
@@ -413,17 +417,21 @@ def _contest(
             i2 += d * d
         if i2 <= jump_mm * jump_mm:
             continue
-        lim2 = min(jump_mm * jump_mm, 0.25 * i2)
+        # takers compete on the Mahalanobis distance (Sec. 3.1): at most a quarter of the
+        # holder's and inside the gate
+        lim = min(gate, 0.25 * i2 / s[m])
         bm = -1
         for m2 in range(m_total):
-            if assigned[m2] >= 0 or not active[m2] or prev_state[m2] != 1:
+            if assigned[m2] >= 0 or not active[m2]:
                 continue
             d2 = 0.0
             for c in range(3):
                 d = points[a, c] - x[m2, c]
                 d2 += d * d
-            if d2 < lim2:
-                lim2 = d2
+            if prev_state[m2] == 1 and d2 >= jump_mm * jump_mm:
+                continue  # a tracked marker takes back only a point it predicts sharply
+            if d2 / s[m2] < lim:
+                lim = d2 / s[m2]
                 bm = m2
         if bm < 0:
             continue

@@ -397,11 +397,17 @@ def _contest_scene(rng, m=12):
     return pos, members, size, refs, x
 
 
-def _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, jump, verify):
+S_FLOOR = 30.0**2 / 16.27  # innovation variance at the 30 mm gate floor
+
+
+def _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, jump, verify,
+                 s=None):  # fmt: skip
     m = assigned.shape[0]
+    s = np.full(m, S_FLOOR) if s is None else s
     return _contest(
-        assigned, owner, np.ones(m, dtype=bool), prev, x, points, obs, members, size, refs, ok,
-        jump, verify, np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)), np.zeros(3), 5.0,
+        assigned, owner, np.ones(m, dtype=bool), prev, x, s, 16.27, points, obs, members, size,
+        refs, ok, jump, verify, np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)),
+        np.zeros(3), 5.0,
     )  # fmt: skip
 
 
@@ -429,11 +435,48 @@ def test_contest_returns_a_point_to_its_tracked_marker(rng):
     assert assigned[3] == 3 and owner[3] == 3 and assigned[7] == -1
     assert np.isnan(obs[7]).all()
     np.testing.assert_allclose(obs[3], points[3])
-    # the same frame with marker 3 not tracked in the previous frame: nothing changes
-    a2, o2, ob2 = (s.copy() for s in state)
+    # marker 3 hidden before (not tracked): it still predicts the point 16 times better in
+    # Mahalanobis terms, so it takes it back
+    a2, o2, ob2 = (v.copy() for v in state)
     prev[3] = 2
-    assert _run_contest(a2, o2, prev, x, points, ob2, members, size, refs, ok, 8.0, 8.0) == 0
-    np.testing.assert_array_equal(a2, state[0])
+    assert _run_contest(a2, o2, prev, x, points, ob2, members, size, refs, ok, 8.0, 8.0) == 1
+    assert a2[3] == 3 and a2[7] == -1
+    # ... but not when it predicts the point 15 mm off (not a quarter of 25 mm, squared) ...
+    a3, o3, ob3 = (v.copy() for v in state)
+    x3 = x.copy()
+    x3[3, :3] = pos[3] + np.array([0.0, 0.0, 15.0])
+    assert _run_contest(a3, o3, prev, x3, points, ob3, members, size, refs, ok, 8.0, 8.0) == 0
+    np.testing.assert_array_equal(a3, state[0])
+    # ... unless the holder's own prediction is sharper (its 25 mm jump is then implausible)
+    s = np.full(m, S_FLOOR)
+    s[7] = 0.25 * S_FLOOR
+    assert _run_contest(a3, o3, prev, x3, points, ob3, members, size, refs, ok, 8.0, 8.0, s) == 1
+    assert a3[3] == 3
+
+
+def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = pos.copy()
+    assigned = np.arange(m, dtype=np.int32)
+    owner = np.arange(m, dtype=np.int32)
+    # marker 6 jumped 40 mm onto point 6; marker 9 (tracked, missing) predicts it 10 mm off:
+    # a quarter of the holder's Mahalanobis distance, but beyond jump_mm for a tracked marker
+    x[6, :3] = pos[6] + np.array([40.0, 0.0, 0.0])
+    x[9, :3] = pos[6] + np.array([0.0, 10.0, 0.0])
+    assigned[9] = -1
+    owner[9] = -1
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    prev = np.ones(m, dtype=np.uint8)
+    ok = np.zeros(m, dtype=bool)  # no rigid veto either way
+    assert (
+        _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0) == 0
+    )
+    prev[9] = 2  # the same prediction from a marker that was hidden: it takes the point
+    assert (
+        _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0) == 1
+    )
+    assert assigned[9] == 6 and assigned[6] == -1
 
 
 def test_contest_keeps_a_point_the_holders_body_supports(rng):
@@ -476,12 +519,16 @@ def test_contest_matches_twin(rng):
         prev = rng.choice(np.array([0, 1, 2], dtype=np.uint8), size=m, p=[0.1, 0.7, 0.2])
         ok = rng.random(m) < 0.8
         obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+        s = S_FLOOR * rng.choice([1.0, 1.0, 4.0], size=m)  # some markers hidden for a while
         a_r, o_r, ob_r = assigned.copy(), owner.copy(), obs.copy()
-        n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+        n = _run_contest(
+            assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0, s
+        )
         mem = [list(members[i, : size[i]]) for i in range(m)]
         n_r = ref.contest(
-            a_r, o_r, np.ones(m, dtype=bool), prev, x, points, ob_r, mem, refs, ok, 8.0, 8.0, 5.0
-        )
+            a_r, o_r, np.ones(m, dtype=bool), prev, x, s, 16.27, points, ob_r, mem, refs, ok, 8.0,
+            8.0, 5.0,
+        )  # fmt: skip
         assert n == n_r, trial
         moved += n
         np.testing.assert_array_equal(assigned, a_r)
