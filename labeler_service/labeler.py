@@ -177,7 +177,7 @@ class Labeler:
             self._point_labels[:n], self._out_pos, self._out_state, self._subj_ptr,
             self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
             self._cm_shift, c.reacquire_mm, c.verify_mm, c.reacquire_near_mm,
-            self._miss_reacq, c.reacquire_all, c.robust_fit_mm, c.reject_mm * max(1.0, dt * 120.0),
+            self._miss_reacq, c.reacquire_all, c.robust_fit_mm, c.reject_mm,
             c.jump_mm, c.suspect_mm, self._n_reject, c.reject_limit, self._age, c.snapshot_age,
             c.reacquire_estimate_mm, c.reacquire_keep_observed, c.verify_every, self._frame_no,
             c.swap_check, c.contest, c.reacquire_loose_mm,

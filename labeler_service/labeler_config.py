@@ -90,8 +90,8 @@ class LabelerConfig(BaseModel):
         25.0,
         gt=0,
         description="a marker re-acquired this frame is dropped if its point is this far from "
-        "its rigid-neighbourhood estimate and no free point is closer (at 120 Hz; scaled by "
-        "the time step at lower rates)",
+        "its rigid-neighbourhood estimate and no free point is closer (at any rate: the estimate "
+        "comes from the same frame's neighbours)",
     )
     reject_limit: int = Field(
         6,
