@@ -13,6 +13,25 @@ from labeler_service._numba import njit
 
 
 @njit
+def _insert(i, j, d2, K, cand, cand_d2, ncand):
+    """Puts point ``j`` at distance ``d2`` into marker ``i``'s sorted list of at most ``K``
+    candidates (ties: the earlier point stays first)."""
+    c = ncand[i]
+    if c == K and not d2 < cand_d2[i, K - 1]:
+        return
+    k = c if c < K else K - 1
+    while k > 0 and d2 < cand_d2[i, k - 1]:
+        if k < K:
+            cand[i, k] = cand[i, k - 1]
+            cand_d2[i, k] = cand_d2[i, k - 1]
+        k -= 1
+    cand[i, k] = j
+    cand_d2[i, k] = d2
+    if c < K:
+        ncand[i] = c + 1
+
+
+@njit
 def _gate(pred, s, active, points, gate, K, cand, cand_d2, ncand):
     """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place."""
     m = pred.shape[0]
@@ -28,21 +47,8 @@ def _gate(pred, s, active, points, gate, K, cand, cand_d2, ncand):
             dy = points[j, 1] - py
             dz = points[j, 2] - pz
             d2 = (dx * dx + dy * dy + dz * dz) * inv
-            if not d2 < gate:  # also rejects NaN
-                continue
-            c = ncand[i]
-            if c == K and not d2 < cand_d2[i, K - 1]:
-                continue
-            k = c if c < K else K - 1
-            while k > 0 and d2 < cand_d2[i, k - 1]:
-                if k < K:
-                    cand[i, k] = cand[i, k - 1]
-                    cand_d2[i, k] = cand_d2[i, k - 1]
-                k -= 1
-            cand[i, k] = j
-            cand_d2[i, k] = d2
-            if c < K:
-                ncand[i] = c + 1
+            if d2 < gate:  # also rejects NaN
+                _insert(i, j, d2, K, cand, cand_d2, ncand)
 
 
 @njit
@@ -112,18 +118,5 @@ def _regate(centre, lost, points, owner, radius, gate, K, cand, cand_d2, ncand):
             dy = points[j, 1] - py
             dz = points[j, 2] - pz
             d2 = (dx * dx + dy * dy + dz * dz) * scale
-            if not d2 < gate:
-                continue
-            c = ncand[i]
-            if c == K and not d2 < cand_d2[i, K - 1]:
-                continue
-            k = c if c < K else K - 1
-            while k > 0 and d2 < cand_d2[i, k - 1]:
-                if k < K:
-                    cand[i, k] = cand[i, k - 1]
-                    cand_d2[i, k] = cand_d2[i, k - 1]
-                k -= 1
-            cand[i, k] = j
-            cand_d2[i, k] = d2
-            if c < K:
-                ncand[i] = c + 1
+            if d2 < gate:  # also rejects NaN
+                _insert(i, j, d2, K, cand, cand_d2, ncand)
