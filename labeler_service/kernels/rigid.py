@@ -79,6 +79,33 @@ def _robust_kabsch(src, dst, n, R, t, tau):
 
 
 @njit
+def _gather(m, rec_members, rec_size, rec_ref, obs, src, dst):
+    """Pairs (reference, observed) of ``m``'s recovery-set members seen this frame into
+    ``src``/``dst``; returns how many."""
+    c = 0
+    for k in range(1, rec_size[m]):
+        mk = rec_members[m, k]
+        if obs[mk, 0] == obs[mk, 0]:  # observed (not NaN)
+            for a in range(3):
+                src[c, a] = rec_ref[m, k, a]
+                dst[c, a] = obs[mk, a]
+            c += 1
+    return c
+
+
+@njit
+def _place(m, rec_ref, R, t, out):
+    """``out = R @ rec_ref[m, 0] + t``: marker ``m``'s reference position moved by the fit."""
+    for a in range(3):
+        out[a] = (
+            R[a, 0] * rec_ref[m, 0, 0]
+            + R[a, 1] * rec_ref[m, 0, 1]
+            + R[a, 2] * rec_ref[m, 0, 2]
+            + t[a]
+        )
+
+
+@njit
 def _recover(
     missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t, tau
 ):
@@ -95,25 +122,12 @@ def _recover(
         has_rec[m] = 0
         if not missing[m] or not rec_ok[m]:
             continue
-        c = 0
-        for k in range(1, rec_size[m]):
-            mk = rec_members[m, k]
-            if obs[mk, 0] == obs[mk, 0]:
-                for a in range(3):
-                    src[c, a] = rec_ref[m, k, a]
-                    dst[c, a] = obs[mk, a]
-                c += 1
+        c = _gather(m, rec_members, rec_size, rec_ref, obs, src, dst)
         if c == 0:
             continue
         if method == 1 and c >= 3:
             _robust_kabsch(src, dst, c, R, t, tau)
-            for a in range(3):
-                rec[m, a] = (
-                    R[a, 0] * rec_ref[m, 0, 0]
-                    + R[a, 1] * rec_ref[m, 0, 1]
-                    + R[a, 2] * rec_ref[m, 0, 2]
-                    + t[a]
-                )
+            _place(m, rec_ref, R, t, rec[m])
         else:
             for a in range(3):
                 acc = 0.0
@@ -148,24 +162,11 @@ def _snapshot(age, min_age, obs, rec_members, rec_size, rec_ref, rec_ok):
 def _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, out, tau):
     """Kabsch estimate of marker ``m`` from its observed recovery-set members (3+ needed);
     returns the number of members the robust fit kept (0 when fewer than 3 were observed)."""
-    c = 0
-    for k in range(1, rec_size[m]):
-        mk = rec_members[m, k]
-        if obs[mk, 0] == obs[mk, 0]:
-            for a in range(3):
-                src[c, a] = rec_ref[m, k, a]
-                dst[c, a] = obs[mk, a]
-            c += 1
+    c = _gather(m, rec_members, rec_size, rec_ref, obs, src, dst)
     if c < 3:
         return 0
     c = _robust_kabsch(src, dst, c, R, t, tau)
-    for a in range(3):
-        out[a] = (
-            R[a, 0] * rec_ref[m, 0, 0]
-            + R[a, 1] * rec_ref[m, 0, 1]
-            + R[a, 2] * rec_ref[m, 0, 2]
-            + t[a]
-        )
+    _place(m, rec_ref, R, t, out)
     return c
 
 
