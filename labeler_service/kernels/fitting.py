@@ -212,6 +212,70 @@ def _build_options(
 
 
 @njit
+def _flag(b, need, satisfied, queue, nq):
+    """Queues body ``b`` for a re-search (once); returns the new queue length."""
+    if not need[b] and not satisfied[b]:
+        need[b] = True
+        queue[nq] = b
+        nq += 1
+    return nq
+
+
+@njit
+def _first(score, b1, b2):
+    """Line 12's order: the higher score first, ties by the lower body index."""
+    return score[b1] > score[b2] or (score[b1] == score[b2] and b1 < b2)
+
+
+@njit
+def _heap_fix(heap, pos, size, score, i):
+    """Restores the heap order around slot ``i`` after ``score[heap[i]]`` changed."""
+    b = heap[i]
+    while i > 0:  # up
+        up = (i - 1) // 2
+        if not _first(score, b, heap[up]):
+            break
+        heap[i] = heap[up]
+        pos[heap[i]] = i
+        i = up
+    while True:  # down
+        c = 2 * i + 1
+        if c >= size:
+            break
+        if c + 1 < size and _first(score, heap[c + 1], heap[c]):
+            c += 1
+        if not _first(score, heap[c], b):
+            break
+        heap[i] = heap[c]
+        pos[heap[i]] = i
+        i = c
+    heap[i] = b
+    pos[b] = i
+
+
+@njit
+def _still_feasible(b, body_markers, body_size, assigned, owner, best):
+    """Whether body ``b``'s last best assignment survives the markers and points fixed since.
+
+    Fixing markers and taking points only removes options, and a fixed marker scores exactly
+    what the same option scored in the search, so a best assignment that is still feasible is
+    still the best (an exact tie with another assignment aside: the new search order might
+    list that one first). Re-searching is then wasted: with overlapping bodies most of the
+    bodies flagged after each step are in this case.
+    """
+    for k in range(body_size[b]):
+        mk = body_markers[b, k]
+        q = best[b, k]
+        a = assigned[mk]
+        if a != -2:
+            if a != q:
+                return False
+        elif q >= 0 and owner[q] >= 0:
+            return False
+    return True
+
+
+@njit
 def _fit_bodies(
     body_markers,
     body_size,
@@ -265,10 +329,26 @@ def _fit_bodies(
         satisfied[b] = not und
         need[b] = True
         body_score[b] = -1.0
-    for _it in range(nb):
+    # bodies to (re)search, each once (``need``), and an indexed max-heap of the unsatisfied
+    # searched bodies by (score, lower index): line 12 without a scan of every body per step
+    queue = np.empty(nb, np.int64)
+    nq = 0
+    heap = np.empty(nb, np.int64)
+    pos = np.full(nb, -1, np.int64)
+    size = 0
+    for b in range(nb):
+        if not satisfied[b]:
+            queue[nq] = b
+            nq += 1
+    while True:
         # lines 5-11: (re)search the bodies that need it
-        for b in range(nb):
-            if satisfied[b] or not need[b]:
+        for e in range(nq):
+            b = queue[e]
+            need[b] = False
+            if satisfied[b]:
+                continue
+            if body_score[b] >= 0.0 and _still_feasible(b, body_markers, body_size, assigned,
+                                                        owner, best):  # fmt: skip
                 continue
             n = _build_options(
                 b,
@@ -307,16 +387,22 @@ def _fit_bodies(
             for k in range(n):
                 best[b, perm[k]] = opts[k, best_choice[k]]
             body_score[b] = s
-            need[b] = False
+            if pos[b] < 0:
+                heap[size] = b
+                pos[b] = size
+                size += 1
+            _heap_fix(heap, pos, size, body_score, pos[b])
+        nq = 0
         # line 12: the best unsatisfied body
-        r = -1
-        rs = -2.0
-        for b in range(nb):
-            if not satisfied[b] and body_score[b] > rs:
-                rs = body_score[b]
-                r = b
-        if r < 0:
+        if size == 0:
             break
+        r = heap[0]
+        size -= 1
+        pos[r] = -1
+        if size > 0:
+            heap[0] = heap[size]
+            pos[heap[0]] = 0
+            _heap_fix(heap, pos, size, body_score, 0)
         satisfied[r] = True
         # lines 13-19: fix its markers and points; flag bodies whose candidates changed
         for k in range(body_size[r]):
@@ -326,10 +412,10 @@ def _fit_bodies(
             q = best[r, k]
             assigned[mk] = q
             for e in range(mb_ptr[mk], mb_ptr[mk + 1]):
-                need[mb_idx[e]] = True
+                nq = _flag(mb_idx[e], need, satisfied, queue, nq)
             if q >= 0:
                 owner[q] = mk
                 for e in range(pm_ptr[q], pm_ptr[q + 1]):
                     m2 = pm_idx[e]
                     for e2 in range(mb_ptr[m2], mb_ptr[m2 + 1]):
-                        need[mb_idx[e2]] = True
+                        nq = _flag(mb_idx[e2], need, satisfied, queue, nq)

@@ -26,6 +26,7 @@ from labeler_service.kernels.rigid import (
     _snapshot,
     _verify,
 )
+from labeler_service.kernels.spatial import _index
 from labeler_service.kernels.window import _window_update
 
 OBSERVED = 1
@@ -132,15 +133,18 @@ def _process_frame(
     m_total = x.shape[0]
     n = points.shape[0]
     est4 = np.empty(3)
+    index = _index(points)
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, q, active, dt, p_cap)
     if cm_iters > 0:
-        _common_mode(x, active, subj_ptr, subj_idx, points, cm_radius, cm_iters, cm_buf, cm_shift)
+        _common_mode(
+            x, active, subj_ptr, subj_idx, points, index, cm_radius, cm_iters, cm_buf, cm_shift
+        )
     for i in range(m_total):
         s[i] = P[i, 0] + r
         if s[i] < s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = s_min
-    _gate(x, s, active, points, gate, K, cand, cand_d2, ncand)
+    _gate(x, s, active, points, index, gate, K, cand, cand_d2, ncand)
     # Algorithm 1
     for i in range(m_total):
         assigned[i] = -2
@@ -267,7 +271,7 @@ def _process_frame(
                     for c in range(3):
                         rec[i, c] = x[i, c]
                     s[i] = reacq_radius
-            _regate(rec, missing, points, owner, s, gate, K, cand, cand_d2, ncand)
+            _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
             _fit_bodies(
                 body_markers,
                 body_size,
@@ -316,6 +320,7 @@ def _process_frame(
             out_state,
             x,
             points,
+            index,
             obs,
             rec_members,
             rec_size,

@@ -10,17 +10,24 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
+from labeler_service.kernels.spatial import ANY, _nearest, _span
+
+
+@njit
+def _before(d2, j, d2_other, j_other):
+    """Candidate order: smaller distance first, ties by point index."""
+    return d2 < d2_other or (d2 == d2_other and j < j_other)
 
 
 @njit
 def _insert(i, j, d2, K, cand, cand_d2, ncand):
     """Puts point ``j`` at distance ``d2`` into marker ``i``'s sorted list of at most ``K``
-    candidates (ties: the earlier point stays first)."""
+    candidates (ties: the lower point index first, in whatever order points arrive)."""
     c = ncand[i]
-    if c == K and not d2 < cand_d2[i, K - 1]:
+    if c == K and not _before(d2, j, cand_d2[i, K - 1], cand[i, K - 1]):
         return
     k = c if c < K else K - 1
-    while k > 0 and d2 < cand_d2[i, k - 1]:
+    while k > 0 and _before(d2, j, cand_d2[i, k - 1], cand[i, k - 1]):
         if k < K:
             cand[i, k] = cand[i, k - 1]
             cand_d2[i, k] = cand_d2[i, k - 1]
@@ -32,17 +39,20 @@ def _insert(i, j, d2, K, cand, cand_d2, ncand):
 
 
 @njit
-def _gate(pred, s, active, points, gate, K, cand, cand_d2, ncand):
-    """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place."""
+def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
+    """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place (``index``: the
+    sweep index of ``points``, :func:`.spatial._index`)."""
     m = pred.shape[0]
-    n = points.shape[0]
+    order = index[0]
     for i in range(m):
         ncand[i] = 0
         if not active[i]:
             continue
         px, py, pz = pred[i, 0], pred[i, 1], pred[i, 2]
         inv = 1.0 / s[i]
-        for j in range(n):
+        lo, hi = _span(index, pred[i], np.sqrt(gate * s[i]))
+        for k in range(lo, hi):
+            j = order[k]
             dx = points[j, 0] - px
             dy = points[j, 1] - py
             dz = points[j, 2] - pz
@@ -52,7 +62,7 @@ def _gate(pred, s, active, points, gate, K, cand, cand_d2, ncand):
 
 
 @njit
-def _common_mode(x, active, subj_ptr, subj_idx, points, radius, iters, buf, shift):
+def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, buf, shift):
     """Per-subject common-mode correction of the predictions, in place.
 
     For every subject the offset from each tracked marker's prediction to its nearest point
@@ -62,8 +72,8 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, radius, iters, buf, shif
     rate) are thereby absorbed before the Mahalanobis gate. ``shift (S, 3)`` receives the
     total correction per subject.
     """
-    n = points.shape[0]
     r2 = radius * radius
+    anyone = np.empty(0, np.int32)  # ANY reads no owner
     for s in range(subj_ptr.shape[0] - 1):
         for a in range(3):
             shift[s, a] = 0.0
@@ -73,16 +83,7 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, radius, iters, buf, shif
                 i = subj_idx[e]
                 if not active[i] or x[i, 0] != x[i, 0]:  # noqa: PLR0124 (NaN test)
                     continue
-                best = r2
-                bj = -1
-                for j in range(n):
-                    dx = points[j, 0] - x[i, 0]
-                    dy = points[j, 1] - x[i, 1]
-                    dz = points[j, 2] - x[i, 2]
-                    d2 = dx * dx + dy * dy + dz * dz
-                    if d2 < best:
-                        best = d2
-                        bj = j
+                bj, _d2 = _nearest(points, index, x[i], r2, anyone, ANY, -1)
                 if bj >= 0:
                     for a in range(3):
                         buf[a, c] = points[bj, a] - x[i, a]
@@ -99,19 +100,21 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, radius, iters, buf, shif
 
 
 @njit
-def _regate(centre, lost, points, owner, radius, gate, K, cand, cand_d2, ncand):
+def _regate(centre, lost, points, index, owner, radius, gate, K, cand, cand_d2, ncand):
     """Re-acquisition gate for ``lost`` markers: the ``K`` nearest points not yet owned within
     ``radius[i]`` mm of ``centre[i]`` (the rigid-body estimate, else the Kalman prediction);
     ``cand_d2`` is scaled so that the radius maps to ``gate``."""
     m = centre.shape[0]
-    n = points.shape[0]
+    order = index[0]
     for i in range(m):
         if not lost[i]:
             continue
         ncand[i] = 0
         scale = gate / (radius[i] * radius[i])
         px, py, pz = centre[i, 0], centre[i, 1], centre[i, 2]
-        for j in range(n):
+        lo, hi = _span(index, centre[i], radius[i])
+        for k in range(lo, hi):
+            j = order[k]
             if owner[j] >= 0:
                 continue
             dx = points[j, 0] - px

@@ -17,37 +17,135 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
+from labeler_service.kernels.spatial import FREE, OWNED, _nearest
 
 
 @njit
 def _kabsch(src, dst, n, R, t):
     """Least-squares rigid transform of the first ``n`` rows of ``src`` onto ``dst``:
-    fills ``R (3, 3)`` and ``t (3,)`` so that ``R @ src_i + t ~ dst_i``."""
-    cs = np.zeros(3)
-    cd = np.zeros(3)
+    fills ``R (3, 3)`` and ``t (3,)`` so that ``R @ src_i + t ~ dst_i``.
+
+    The minimiser over proper rotations (the Kabsch problem with reflections excluded), solved
+    in Horn's closed form: the unit quaternion is the eigenvector of the largest eigenvalue of a
+    symmetric 4x4 matrix built from the cross-covariance, found by cyclic Jacobi rotations.
+    No LAPACK call and no allocation: a tenth of the time of an SVD, and this runs for every
+    recovered or checked marker of every frame.
+    """
+    cs0 = cs1 = cs2 = 0.0
+    cd0 = cd1 = cd2 = 0.0
     for i in range(n):
-        for a in range(3):
-            cs[a] += src[i, a]
-            cd[a] += dst[i, a]
-    for a in range(3):
-        cs[a] /= n
-        cd[a] /= n
-    h = np.zeros((3, 3))
+        cs0 += src[i, 0]
+        cs1 += src[i, 1]
+        cs2 += src[i, 2]
+        cd0 += dst[i, 0]
+        cd1 += dst[i, 1]
+        cd2 += dst[i, 2]
+    cs0 /= n
+    cs1 /= n
+    cs2 /= n
+    cd0 /= n
+    cd1 /= n
+    cd2 /= n
+    sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
     for i in range(n):
-        for a in range(3):
-            for c in range(3):
-                h[a, c] += (src[i, a] - cs[a]) * (dst[i, c] - cd[c])
-    u, _s, vt = np.linalg.svd(h)
-    # R = V diag(1, 1, d) U^T with d = sign(det(V U^T))
-    v = vt.T
-    ut = u.T
-    d = np.linalg.det(v @ ut)
-    sgn = 1.0 if d >= 0.0 else -1.0
-    for a in range(3):
-        for c in range(3):
-            R[a, c] = v[a, 0] * ut[0, c] + v[a, 1] * ut[1, c] + sgn * v[a, 2] * ut[2, c]
-    for a in range(3):
-        t[a] = cd[a] - (R[a, 0] * cs[0] + R[a, 1] * cs[1] + R[a, 2] * cs[2])
+        ax = src[i, 0] - cs0
+        ay = src[i, 1] - cs1
+        az = src[i, 2] - cs2
+        bx = dst[i, 0] - cd0
+        by = dst[i, 1] - cd1
+        bz = dst[i, 2] - cd2
+        sxx += ax * bx
+        sxy += ax * by
+        sxz += ax * bz
+        syx += ay * bx
+        syy += ay * by
+        syz += ay * bz
+        szx += az * bx
+        szy += az * by
+        szz += az * bz
+    q0, q1, q2, q3 = _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz)
+    R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
+    R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+    R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+    R[1, 0] = 2.0 * (q2 * q1 + q0 * q3)
+    R[1, 1] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3
+    R[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+    R[2, 0] = 2.0 * (q3 * q1 - q0 * q2)
+    R[2, 1] = 2.0 * (q3 * q2 + q0 * q1)
+    R[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
+    t[0] = cd0 - (R[0, 0] * cs0 + R[0, 1] * cs1 + R[0, 2] * cs2)
+    t[1] = cd1 - (R[1, 0] * cs0 + R[1, 1] * cs1 + R[1, 2] * cs2)
+    t[2] = cd2 - (R[2, 0] * cs0 + R[2, 1] * cs1 + R[2, 2] * cs2)
+
+
+@njit
+def _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz):
+    """Unit quaternion ``(w, x, y, z)`` of the rotation that best maps the centred source onto
+    the centred target, from their cross-covariance ``s_ab = sum src_a dst_b`` (Horn 1987):
+    the eigenvector of the largest eigenvalue of the symmetric matrix ``N`` below."""
+    a = np.empty((4, 4))
+    a[0, 0] = sxx + syy + szz
+    a[0, 1] = a[1, 0] = syz - szy
+    a[0, 2] = a[2, 0] = szx - sxz
+    a[0, 3] = a[3, 0] = sxy - syx
+    a[1, 1] = sxx - syy - szz
+    a[1, 2] = a[2, 1] = sxy + syx
+    a[1, 3] = a[3, 1] = szx + sxz
+    a[2, 2] = -sxx + syy - szz
+    a[2, 3] = a[3, 2] = syz + szy
+    a[3, 3] = -sxx - syy + szz
+    v = np.zeros((4, 4))
+    for i in range(4):
+        v[i, i] = 1.0
+    scale = 0.0
+    for i in range(4):
+        for j in range(4):
+            scale += a[i, j] * a[i, j]
+    tiny = 1e-30 * scale
+    for _sweep in range(50):
+        off = 0.0
+        for p in range(3):
+            for q in range(p + 1, 4):
+                off += a[p, q] * a[p, q]
+        if off <= tiny:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                # the rotation that zeroes a[p, q] (Numerical Recipes' stable form)
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                tt = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    tt = -tt
+                c = 1.0 / np.sqrt(tt * tt + 1.0)
+                sn = tt * c
+                for k in range(4):
+                    akp = a[k, p]
+                    akq = a[k, q]
+                    a[k, p] = c * akp - sn * akq
+                    a[k, q] = sn * akp + c * akq
+                for k in range(4):
+                    apk = a[p, k]
+                    aqk = a[q, k]
+                    a[p, k] = c * apk - sn * aqk
+                    a[q, k] = sn * apk + c * aqk
+                for k in range(4):
+                    vkp = v[k, p]
+                    vkq = v[k, q]
+                    v[k, p] = c * vkp - sn * vkq
+                    v[k, q] = sn * vkp + c * vkq
+    best = 0
+    for i in range(1, 4):
+        if a[i, i] > a[best, best]:
+            best = i
+    q0 = v[0, best]
+    q1 = v[1, best]
+    q2 = v[2, best]
+    q3 = v[3, best]
+    norm = np.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    return q0 / norm, q1 / norm, q2 / norm, q3 / norm
 
 
 @njit
@@ -179,6 +277,7 @@ def _verify(
     prev_state,
     x,
     points,
+    index,
     obs,
     rec_members,
     rec_size,
@@ -272,33 +371,11 @@ def _verify(
             lim = 0.25 * e2  # half the distance
         else:
             lim = reacquire_mm * reacquire_mm
-        best = lim
-        bj = -1
-        for j in range(n):
-            if owner[j] >= 0:
-                continue
-            d2 = 0.0
-            for c in range(3):
-                d = points[j, c] - est[c]
-                d2 += d * d
-            if d2 < best:
-                best = d2
-                bj = j
+        bj, best = _nearest(points, index, est, lim, owner, FREE, -1)
         if bj < 0 and a >= 0 and swap_check:
             # the point the estimate wants may be held by another marker: swap when both fit
             # their rigid neighbourhoods better after the exchange
-            best = 0.25 * e2
-            bk = -1
-            for j in range(n):
-                if owner[j] < 0 or j == a:
-                    continue
-                d2 = 0.0
-                for c in range(3):
-                    d = points[j, c] - est[c]
-                    d2 += d * d
-                if d2 < best:
-                    best = d2
-                    bk = j
+            bk, best = _nearest(points, index, est, 0.25 * e2, owner, OWNED, a)
             if bk >= 0:
                 m2 = owner[bk]
                 if rec_ok[m2]:

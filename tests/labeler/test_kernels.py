@@ -17,6 +17,7 @@ from labeler_service.kernels.rigid import (
     _robust_kabsch,
     _verify,
 )
+from labeler_service.kernels.spatial import _index
 from labeler_service.kernels.window import _window_update
 
 
@@ -61,7 +62,7 @@ def _run_gate(pred, s, active, points, g, K):
     cand = np.zeros((m, K), dtype=np.int32)
     cand_d2 = np.zeros((m, K))
     ncand = np.zeros(m, dtype=np.int32)
-    _gate(pred, s, active, points, g, K, cand, cand_d2, ncand)
+    _gate(pred, s, active, points, _index(points), g, K, cand, cand_d2, ncand)
     return cand, cand_d2, ncand
 
 
@@ -102,7 +103,7 @@ def test_regate_only_free_points_within_radius(rng):
     cand_d2 = np.zeros((6, K))
     ncand = np.full(6, 9, dtype=np.int32)
     radius = rng.uniform(60.0, 200.0, 6)
-    _regate(x, lost, points, owner, radius, 16.0, K, cand, cand_d2, ncand)
+    _regate(x, lost, points, _index(points), owner, radius, 16.0, K, cand, cand_d2, ncand)
     expected = ref.regate(x, lost, points, owner, radius, 16.0, K)
     for i, js in expected.items():
         assert list(cand[i, : ncand[i]]) == js
@@ -122,7 +123,9 @@ def test_common_mode_matches_twin(rng):
     subj_ptr = np.array([0, 8, 14])
     subj_idx = np.arange(14)
     out = np.zeros((2, 3))
-    _common_mode(x, active, subj_ptr, subj_idx, points, 120.0, 2, np.zeros((3, 14)), out)
+    _common_mode(
+        x, active, subj_ptr, subj_idx, points, _index(points), 120.0, 2, np.zeros((3, 14)), out
+    )
     np.testing.assert_allclose(x, xr, atol=1e-6)
     np.testing.assert_allclose(out, sr, atol=1e-6)
     np.testing.assert_allclose(out, shift, atol=1.5)  # and it finds the jump
@@ -327,6 +330,32 @@ def test_kabsch_matches_twin_and_recovers_rotation(rng):
     line = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])
     _kabsch(line, line + 1.0, 3, R, t)
     assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_kabsch_equals_svd_twin_on_hard_cases(rng):
+    """Horn's quaternion solution is the SVD solution: noisy sets, half-turns, 3-point sets,
+    and mirrored targets (where the best proper rotation is not a reflection)."""
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    for case in range(60):
+        n = 3 + case % 5
+        src = rng.normal(0, 100, (n, 3))
+        R0 = _rot(rng)
+        if case % 6 == 1:  # a half-turn: the quaternion's scalar part is ~0
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            R0 = 2.0 * np.outer(axis, axis) - np.eye(3)
+        dst = src @ R0.T + rng.normal(0, 50, 3) + rng.normal(0, 2.0, (n, 3))
+        if case % 6 == 2:
+            dst[:, 0] *= -1.0  # mirrored
+        _kabsch(src, dst, n, R, t)
+        Rr, tr = ref.kabsch(src, dst)
+        cost = np.sum((src @ R.T + t - dst) ** 2)
+        cost_r = np.sum((src @ Rr.T + tr - dst) ** 2)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        assert cost == pytest.approx(cost_r, rel=1e-9, abs=1e-6)
+        if case % 6 != 2:  # a unique optimum: the same rotation
+            np.testing.assert_allclose(R, Rr, atol=1e-7)
 
 
 def test_robust_kabsch_drops_outlier(rng):
@@ -542,7 +571,7 @@ def _run_verify(assigned, owner, prev, x, points, obs, members, size, refs, n_re
     m = assigned.shape[0]
     return _verify(
         assigned, owner, np.ones(m, dtype=np.int32), np.ones(m, dtype=bool), prev, x, points,
-        obs, members, size, refs, np.ones(m, dtype=bool), 8.0, 12.0, 25.0, 8.0, 0.0,
+        _index(points), obs, members, size, refs, np.ones(m, dtype=bool), 8.0, 12.0, 25.0, 8.0, 0.0,
         np.zeros(m, dtype=bool), np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)),
         np.zeros(3), 5.0, n_reject, limit, 0, 0, True,
     )  # fmt: skip
