@@ -80,8 +80,9 @@ def _start_or_update(x, P, i, z0, z1, z2, r, v0):
 
 
 @njit
-def _update(x, P, z, has, r):
-    """Eq. 4 update in place of every marker with ``has[i]`` using row ``z[i]``."""
+def _update(x, P, z, has, r, v0):
+    """:func:`_start_or_update` in place of every marker with ``has[i]`` and a finite row
+    ``z[i]``."""
     for i in range(x.shape[0]):
-        if has[i]:
-            _update_one(x, P, i, z[i, 0], z[i, 1], z[i, 2], r)
+        if has[i] and z[i, 0] == z[i, 0]:
+            _start_or_update(x, P, i, z[i, 0], z[i, 1], z[i, 2], r, v0)

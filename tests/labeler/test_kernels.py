@@ -36,7 +36,7 @@ def test_factorised_kalman_equals_full_filter(rng, dt):
     P6 = [ref.p2_to_p6(P[i]) for i in range(m)]
     active = np.ones(m, dtype=bool)
     _predict(x, P, q, active, dt, 1e12)
-    _update(x, P, z, active, 1.5)
+    _update(x, P, z, active, 1.5, 1e6)
     for i in range(m):
         xr, Pr = ref.kalman_full_predict(xs[i], P6[i], q[i], dt)
         xr, Pr = ref.kalman_full_update(xr, Pr, z[i], 1.5)
