@@ -37,6 +37,8 @@ def _index(points):
     for j in range(n):
         for a in range(2):
             v = points[j, a]
+            if not np.isfinite(v):
+                continue
             if v < lo[a]:
                 lo[a] = v
             if v > hi[a]:
