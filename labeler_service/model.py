@@ -19,6 +19,7 @@ A template (seed 003, Sec. 3.1) holds, per subject:
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Literal
 
@@ -53,13 +54,11 @@ class SubjectTemplate(BaseModel):
             mat = getattr(self, key)
             if len(mat) != m or any(len(row) != m for row in mat):
                 raise ValueError(f"{where}: {key} must be {m}x{m}")
-            for row in mat:
-                for v in row:
-                    if v is not None and not (np.isfinite(v) and v >= 0):
-                        raise ValueError(f"{where}: {key} has a negative or non-finite entry")
+            if any(v is not None and not (math.isfinite(v) and v >= 0) for row in mat for v in row):
+                raise ValueError(f"{where}: {key} has a negative or non-finite entry")
         if len(self.motion_noise) != m:
             raise ValueError(f"{where}: motion_noise needs {m} values")
-        if any(not (np.isfinite(q) and q > 0) for q in self.motion_noise):
+        if any(not (math.isfinite(q) and q > 0) for q in self.motion_noise):
             raise ValueError(f"{where}: motion_noise must be positive and finite")
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")

@@ -136,17 +136,6 @@ def select_bodies(
     return bodies
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation ``R`` and translation ``t`` minimising ``|R src + t - dst|`` (rows are points)."""
-    cs = src.mean(axis=0)
-    cd = dst.mean(axis=0)
-    h = (src - cs).T @ (dst - cd)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return r, cd - r @ cs
-
-
 def _body_frame(shape: np.ndarray) -> np.ndarray:
     c = shape - shape.mean(axis=0)
     _, _, vt = np.linalg.svd(c, full_matrices=True)
@@ -174,12 +163,11 @@ def reference_shape(pos: np.ndarray, body: list[int], D: np.ndarray) -> np.ndarr
     full = np.flatnonzero(np.isfinite(sub).all(axis=(1, 2)))
     if full.size == 0:
         return _body_frame(_mds(D[np.ix_(body, body)]))
-    ref = sub[full[0]]
-    acc = np.zeros_like(ref)
-    for k in full:
-        r, t = kabsch(sub[k], ref)
-        acc += sub[k] @ r.T + t
-    return _body_frame(acc / full.size)
+    from labeler_service.kernels.rigid import _aligned_mean
+
+    mean = np.empty((len(body), 3))
+    _aligned_mean(np.ascontiguousarray(sub[full]), sub[full[0]].copy(), mean)
+    return _body_frame(mean)
 
 
 def motion_noise(pos: np.ndarray, rate: float, floor: float = 1.0e4) -> np.ndarray:

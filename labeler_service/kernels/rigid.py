@@ -149,6 +149,26 @@ def _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz):
 
 
 @njit
+def _aligned_mean(frames, ref, out):
+    """Mean of ``frames (F, n, 3)``, each moved onto ``ref (n, 3)`` by its Kabsch fit, into
+    ``out (n, 3)`` (a body's reference shape from its complete training frames)."""
+    n = ref.shape[0]
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    out[:] = 0.0
+    for f in range(frames.shape[0]):
+        src = frames[f]
+        _kabsch(src, ref, n, R, t)
+        for i in range(n):
+            for a in range(3):
+                out[i, a] += R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
+    if frames.shape[0] > 0:
+        for i in range(n):
+            for a in range(3):
+                out[i, a] /= frames.shape[0]
+
+
+@njit
 def _robust_kabsch(src, dst, n, R, t, tau):
     """Kabsch fit that drops the worst-fitting member and refits while its residual exceeds
     ``tau`` mm and more than 3 members remain (a marker's neighbourhood may span a joint that
