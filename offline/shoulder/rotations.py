@@ -8,10 +8,10 @@ eigenvalue of ``N``. The feature of the triangle is ``F_i = [v_i^1 ... v_i^T]`` 
 ``v = log(q)`` the logarithm map of Lee and Shin [LS02]: ``q = (cos|v|, sin|v| v/|v|)``, i.e.
 ``v`` is the rotation axis times *half* the rotation angle, taken on the hemisphere ``w >= 0``.
 
-The eigenvector is found in a numba kernel by repeated squaring of ``N + s I`` (``s`` bounds
-``|lambda|`` so the shifted matrix is positive semi-definite and its dominant eigenvector is
-Horn's): 18 squarings raise the eigenvalue ratio to the power 2^18, then two plain power steps
-polish the vector. Its plain-numpy twin (``numpy.linalg.eigh``) is in tests/shoulder/reference.py.
+The eigenvector comes from the labeler's own Horn solver
+(:func:`labeler_service.kernels.rigid._horn_quaternion`: cyclic Jacobi rotations of ``N``, no
+LAPACK call), the one the online labeler's Kabsch fits use. Its plain-numpy twin
+(``numpy.linalg.eigh``) is in tests/shoulder/reference.py.
 """
 
 from __future__ import annotations
@@ -19,17 +19,13 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
+from labeler_service.kernels.rigid import _horn_quaternion
 
 
 @njit
 def _horn_kernel(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
     """``ref`` (T,3,3) centred rest triangles, ``cur`` (F,T,3,3) -> ``out`` (F,T,4) (w,x,y,z)."""
     n_frames, n_tri = cur.shape[0], cur.shape[1]
-    N = np.empty((4, 4))
-    B = np.empty((4, 4))
-    C = np.empty((4, 4))
-    v = np.empty(4)
-    w = np.empty(4)
     for f in range(n_frames):
         for i in range(n_tri):
             # centre the current triangle; NaN anywhere -> NaN quaternion
@@ -41,7 +37,6 @@ def _horn_kernel(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
                     out[f, i, k] = np.nan
                 continue
             sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
-            s = 0.0
             for j in range(3):
                 ax, ay, az = ref[i, j, 0], ref[i, j, 1], ref[i, j, 2]
                 bx, by, bz = cur[f, i, j, 0] - cx, cur[f, i, j, 1] - cy, cur[f, i, j, 2] - cz
@@ -54,64 +49,12 @@ def _horn_kernel(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
                 szx += az * bx
                 szy += az * by
                 szz += az * bz
-                s += 0.5 * (ax * ax + ay * ay + az * az + bx * bx + by * by + bz * bz)
-            # Horn's N (1987, Sec. 4): q maximising q^T N q rotates ref onto cur
-            N[0, 0] = sxx + syy + szz
-            N[0, 1] = syz - szy
-            N[0, 2] = szx - sxz
-            N[0, 3] = sxy - syx
-            N[1, 1] = sxx - syy - szz
-            N[1, 2] = sxy + syx
-            N[1, 3] = szx + sxz
-            N[2, 2] = -sxx + syy - szz
-            N[2, 3] = syz + szy
-            N[3, 3] = -sxx - syy + szz
-            for r in range(4):
-                for c in range(r):
-                    N[r, c] = N[c, r]
-            # B = (N + s I) / scale is PSD; its dominant eigenvector is Horn's quaternion
-            scale = 2.0 * s + 1e-300
-            for r in range(4):
-                for c in range(4):
-                    B[r, c] = N[r, c] / scale
-                B[r, r] += s / scale
-            for _ in range(18):
-                tr = 0.0
-                for r in range(4):
-                    for c in range(4):
-                        acc = 0.0
-                        for k in range(4):
-                            acc += B[r, k] * B[k, c]
-                        C[r, c] = acc
-                    tr += C[r, r]
-                if not tr > 0.0:
-                    break
-                for r in range(4):
-                    for c in range(4):
-                        B[r, c] = C[r, c] / tr
-            # the column of largest norm is (a multiple of) the dominant eigenvector
-            best, best_n = 0, -1.0
-            for c in range(4):
-                nrm = B[0, c] ** 2 + B[1, c] ** 2 + B[2, c] ** 2 + B[3, c] ** 2
-                if nrm > best_n:
-                    best, best_n = c, nrm
-            for r in range(4):
-                v[r] = B[r, best]
-            for _ in range(2):  # polish with the unsquared shifted matrix
-                for r in range(4):
-                    acc = s * v[r]
-                    for k in range(4):
-                        acc += N[r, k] * v[k]
-                    w[r] = acc
-                nrm = np.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2 + w[3] ** 2)
-                if not nrm > 0.0:
-                    break
-                for r in range(4):
-                    v[r] = w[r] / nrm
-            nrm = np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2 + v[3] ** 2)
-            sign = 1.0 if v[0] >= 0.0 else -1.0
-            for r in range(4):
-                out[f, i, r] = sign * v[r] / nrm
+            q0, q1, q2, q3 = _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz)
+            sign = 1.0 if q0 >= 0.0 else -1.0
+            out[f, i, 0] = sign * q0
+            out[f, i, 1] = sign * q1
+            out[f, i, 2] = sign * q2
+            out[f, i, 3] = sign * q3
 
 
 def horn_quaternions(ref: np.ndarray, cur: np.ndarray) -> np.ndarray:
