@@ -46,24 +46,18 @@ def _kabsch(src, dst, n, R, t):
     cd0 /= n
     cd1 /= n
     cd2 /= n
-    sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
+    cov = COV0
     for i in range(n):
-        ax = src[i, 0] - cs0
-        ay = src[i, 1] - cs1
-        az = src[i, 2] - cs2
-        bx = dst[i, 0] - cd0
-        by = dst[i, 1] - cd1
-        bz = dst[i, 2] - cd2
-        sxx += ax * bx
-        sxy += ax * by
-        sxz += ax * bz
-        syx += ay * bx
-        syy += ay * by
-        syz += ay * bz
-        szx += az * bx
-        szy += az * by
-        szz += az * bz
-    q0, q1, q2, q3 = _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz)
+        cov = _cov_add(
+            cov,
+            src[i, 0] - cs0,
+            src[i, 1] - cs1,
+            src[i, 2] - cs2,
+            dst[i, 0] - cd0,
+            dst[i, 1] - cd1,
+            dst[i, 2] - cd2,
+        )
+    q0, q1, q2, q3 = _horn_quaternion(cov)
     R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
     R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
     R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
@@ -78,11 +72,33 @@ def _kabsch(src, dst, n, R, t):
     t[2] = cd2 - (R[2, 0] * cs0 + R[2, 1] * cs1 + R[2, 2] * cs2)
 
 
+COV0 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 @njit
-def _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz):
+def _cov_add(cov, ax, ay, az, bx, by, bz):
+    """``cov + a b^T`` for a cross-covariance kept as the 9-tuple
+    ``(s_xx, s_xy, s_xz, s_yx, ..., s_zz)`` (``a`` a centred source point, ``b`` its target)."""
+    return (
+        cov[0] + ax * bx,
+        cov[1] + ax * by,
+        cov[2] + ax * bz,
+        cov[3] + ay * bx,
+        cov[4] + ay * by,
+        cov[5] + ay * bz,
+        cov[6] + az * bx,
+        cov[7] + az * by,
+        cov[8] + az * bz,
+    )
+
+
+@njit
+def _horn_quaternion(cov):
     """Unit quaternion ``(w, x, y, z)`` of the rotation that best maps the centred source onto
-    the centred target, from their cross-covariance ``s_ab = sum src_a dst_b`` (Horn 1987):
-    the eigenvector of the largest eigenvalue of the symmetric matrix ``N`` below."""
+    the centred target, from their cross-covariance ``s_ab = sum src_a dst_b`` (the 9-tuple of
+    :func:`_cov_add`; Horn 1987): the eigenvector of the largest eigenvalue of the symmetric
+    matrix ``N`` below."""
+    sxx, sxy, sxz, syx, syy, syz, szx, szy, szz = cov
     a = np.empty((4, 4))
     a[0, 0] = sxx + syy + szz
     a[0, 1] = a[1, 0] = syz - szy

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.kernels.rigid import _horn_quaternion
+from labeler_service.kernels.rigid import COV0, _cov_add, _horn_quaternion
 
 
 @njit
@@ -36,20 +36,12 @@ def _horn_kernel(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
                 for k in range(4):
                     out[f, i, k] = np.nan
                 continue
-            sxx = sxy = sxz = syx = syy = syz = szx = szy = szz = 0.0
+            cov = COV0
             for j in range(3):
-                ax, ay, az = ref[i, j, 0], ref[i, j, 1], ref[i, j, 2]
-                bx, by, bz = cur[f, i, j, 0] - cx, cur[f, i, j, 1] - cy, cur[f, i, j, 2] - cz
-                sxx += ax * bx
-                sxy += ax * by
-                sxz += ax * bz
-                syx += ay * bx
-                syy += ay * by
-                syz += ay * bz
-                szx += az * bx
-                szy += az * by
-                szz += az * bz
-            q0, q1, q2, q3 = _horn_quaternion(sxx, sxy, sxz, syx, syy, syz, szx, szy, szz)
+                cov = _cov_add(cov, ref[i, j, 0], ref[i, j, 1], ref[i, j, 2],
+                               cur[f, i, j, 0] - cx, cur[f, i, j, 1] - cy,
+                               cur[f, i, j, 2] - cz)  # fmt: skip
+            q0, q1, q2, q3 = _horn_quaternion(cov)
             sign = 1.0 if q0 >= 0.0 else -1.0
             out[f, i, 0] = sign * q0
             out[f, i, 1] = sign * q1
