@@ -171,14 +171,11 @@ class Labeler:
         _process_frame(
             pts, dt, self._x, self._P, self._q, self._active, self._r, self._r_rec, self._s_min, V0,
             self._p_cap, c.velocity_decay, c.gate_chi2, c.K, self._s, self._cand,
-            self._cand_d2, self._ncand, self._body_markers, self._body_size, self._mb_ptr,
-            self._mb_idx, self._D, self._A, self._D0, self._A0, self._ring, ptr, self._s1,
+            self._cand_d2, self._ncand, self._bodies, self._D0, self._A0, self._ring, ptr, self._s1,
             self._s2, self._cnt, c.min_window_samples, c.a_floor_mm, c.a_relative, self._miss_term,
             c.motion_weight, self._rec_members, self._rec_size, self._rec_ref, self._rec_ok,
             self._method, self._assigned,
-            self._owner[:n], self._body_score, self._pm_ptr[: n + 1], self._pm_idx,
-            self._satisfied, self._need, self._best, self._perm, self._opts, self._nopts,
-            self._mot, self._choice, self._partial, self._best_choice, self._obs, self._rec,
+            self._owner[:n], self._fit, self._obs, self._rec,
             self._has_rec, self._missing, self._src, self._dst, self._R, self._t,
             self._point_labels[:n], self._out_pos, self._out_state, self._subj_ptr,
             self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
@@ -239,6 +236,8 @@ class Labeler:
 
     def _build(self, model: LabelerModel) -> None:
         """State arrays (struct of arrays) from a template."""
+        from labeler_service.kernels.fitting import fit_scratch
+
         c = self.config
         m = len(self._names)
         bodies: list[list[int]] = []
@@ -293,6 +292,14 @@ class Labeler:
                 self._mb_idx[fill[i]] = b
                 fill[i] += 1
         self._active = counts[1:] > 0
+        self._bodies = (
+            self._body_markers,
+            self._body_size,
+            self._D,
+            self._A,
+            self._mb_ptr,
+            self._mb_idx,
+        )
         self._q = np.where(np.isfinite(q), q, 1.0e6)
         self._x = np.full((m, 6), np.nan)
         self._P = np.zeros((m, 3))
@@ -309,18 +316,7 @@ class Labeler:
         self._cand_d2 = np.zeros((m, K))
         self._ncand = np.zeros(m, dtype=np.int32)
         self._assigned = np.zeros(m, dtype=np.int32)
-        self._body_score = np.zeros(nb)
-        self._pm_idx = np.zeros(max(1, m * K), dtype=np.int32)
-        self._satisfied = np.zeros(nb, dtype=np.bool_)
-        self._need = np.zeros(nb, dtype=np.bool_)
-        self._best = np.zeros((nb, 8), dtype=np.int32)
-        self._perm = np.zeros(8, dtype=np.int64)
-        self._opts = np.zeros((8, K + 1), dtype=np.int64)
-        self._nopts = np.zeros(8, dtype=np.int64)
-        self._mot = np.zeros((8, K + 1))
-        self._choice = np.zeros(8, dtype=np.int64)
-        self._partial = np.zeros(18)
-        self._best_choice = np.zeros(8, dtype=np.int64)
+        self._fit = fit_scratch(m, nb, K)
         self._obs = np.full((m, 3), np.nan)
         self._rec = np.full((m, 3), np.nan)
         self._has_rec = np.zeros(m, dtype=np.int64)
@@ -364,7 +360,6 @@ class Labeler:
     def _grow(self, n: int) -> None:
         """(Re)allocates the per-point scratch buffers for up to ``n`` points."""
         self._owner = np.zeros(n, dtype=np.int32)
-        self._pm_ptr = np.zeros(n + 1, dtype=np.int64)
         self._point_labels = np.zeros(n, dtype=np.int32)
 
     def _warm_start(self) -> None:

@@ -275,49 +275,48 @@ def _still_feasible(b, body_markers, body_size, assigned, owner, best):
     return True
 
 
+def fit_scratch(n_markers: int, n_bodies: int, K: int) -> tuple:
+    """Preallocated scratch of :func:`_fit_bodies` (one per labeler): ``body_score (B,)``,
+    ``pm_idx (M K,)``, ``satisfied (B,)``, ``need (B,)``, ``best (B, 8)``, and the per-body
+    search buffers ``perm``, ``opts``, ``nopts``, ``mot``, ``choice``, ``partial``,
+    ``best_choice`` (bodies have at most 8 markers, each at most ``K`` + 1 options)."""
+    return (
+        np.zeros(n_bodies),
+        np.zeros(max(1, n_markers * K), dtype=np.int32),
+        np.zeros(n_bodies, dtype=np.bool_),
+        np.zeros(n_bodies, dtype=np.bool_),
+        np.zeros((n_bodies, 8), dtype=np.int32),
+        np.zeros(8, dtype=np.int64),
+        np.zeros((8, K + 1), dtype=np.int64),
+        np.zeros(8, dtype=np.int64),
+        np.zeros((8, K + 1)),
+        np.zeros(8, dtype=np.int64),
+        np.zeros(18),
+        np.zeros(8, dtype=np.int64),
+    )
+
+
 @njit
 def _fit_bodies(
-    body_markers,
-    body_size,
-    Db,
-    Ab,
-    cand,
-    cand_d2,
-    ncand,
-    points,
-    mb_ptr,
-    mb_idx,
-    a_floor,
-    a_rel,
-    miss_term,
-    w,
-    gate,
-    assigned,
-    owner,
-    body_score,
-    pm_ptr,
-    pm_idx,
-    satisfied,
-    need,
-    best,
-    perm,
-    opts,
-    nopts,
-    mot,
-    choice,
-    partial,
-    best_choice,
-):
+    bodies, cand, cand_d2, ncand, points, a_floor, a_rel, miss_term, w, gate, assigned, owner,
+    scratch,
+):  # fmt: skip
     """Algorithm 1: satisfy the best-scoring body, fix its markers and points, recompute only
     the bodies whose candidate sets changed, until every body is satisfied.
 
     In: ``assigned (M,)`` = -2 (undecided) or fixed (point, -1), ``owner (N,)`` = -1 or fixed.
     Out: ``assigned[m]`` = point index or -1 (missing), ``owner[j]`` = marker or -1,
     ``body_score[b]`` = Eq. 5 score of the assignment each body was satisfied with.
+    ``bodies`` = ``(body_markers (B, 8), body_size (B,), D (B, 8, 8), A (B, 8, 8), mb_ptr,
+    mb_idx)`` (marker -> bodies CSR); ``scratch`` from :func:`fit_scratch`.
     """
+    body_markers, body_size, Db, Ab, mb_ptr, mb_idx = bodies
+    body_score, pm_idx, satisfied, need, best = scratch[:5]
+    perm, opts, nopts, mot, choice, partial, best_choice = scratch[5:]
     nb = body_markers.shape[0]
     n_points = points.shape[0]
     miss_mot = np.exp(-0.5 * gate)
+    pm_ptr = np.empty(n_points + 1, np.int64)
     _point_markers(cand, ncand, n_points, pm_ptr, pm_idx)
     for b in range(nb):
         # a body with no undecided marker is satisfied already (second pass, re-acquisition)

@@ -53,12 +53,7 @@ def _process_frame(
     cand,
     cand_d2,
     ncand,
-    body_markers,
-    body_size,
-    mb_ptr,
-    mb_idx,
-    D,
-    A,
+    bodies,
     D0,
     A0,
     ring,
@@ -78,19 +73,7 @@ def _process_frame(
     method,
     assigned,
     owner,
-    body_score,
-    pm_ptr,
-    pm_idx,
-    satisfied,
-    need,
-    best,
-    perm,
-    opts,
-    nopts,
-    mot,
-    choice,
-    partial,
-    best_choice,
+    fit,
     obs,
     rec,
     has_rec,
@@ -134,6 +117,8 @@ def _process_frame(
     n = points.shape[0]
     est4 = np.empty(3)
     index = _index(points)
+    body_markers, body_size, D, A = bodies[:4]
+    satisfied = fit[2]  # Algorithm 1's scratch, reused between its passes
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, q, active, dt, p_cap)
     if cm_iters > 0:
@@ -151,16 +136,11 @@ def _process_frame(
     for j in range(n):
         owner[j] = -1
     _fit_bodies(
-        body_markers,
-        body_size,
-        D,
-        A,
+        bodies,
         cand,
         cand_d2,
         ncand,
         points,
-        mb_ptr,
-        mb_idx,
         a_floor,
         a_rel,
         miss_term,
@@ -168,19 +148,7 @@ def _process_frame(
         gate,
         assigned,
         owner,
-        body_score,
-        pm_ptr,
-        pm_idx,
-        satisfied,
-        need,
-        best,
-        perm,
-        opts,
-        nopts,
-        mot,
-        choice,
-        partial,
-        best_choice,
+        fit,
     )
     # track continuity: points the fit gave to a marker that jumped for them go back to the
     # marker tracked onto them in the previous frame
@@ -273,16 +241,11 @@ def _process_frame(
                     s[i] = reacq_radius
             _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
             _fit_bodies(
-                body_markers,
-                body_size,
-                D,
-                A,
+                bodies,
                 cand,
                 cand_d2,
                 ncand,
                 points,
-                mb_ptr,
-                mb_idx,
                 a_floor,
                 a_rel,
                 miss_reacq,
@@ -290,19 +253,7 @@ def _process_frame(
                 gate,
                 assigned,
                 owner,
-                body_score,
-                pm_ptr,
-                pm_idx,
-                satisfied,
-                need,
-                best,
-                perm,
-                opts,
-                nopts,
-                mot,
-                choice,
-                partial,
-                best_choice,
+                fit,
             )
             for i in range(m_total):
                 if assigned[i] == -2:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import reference as ref
 
-from labeler_service.kernels.fitting import _fit_bodies, _search_body
+from labeler_service.kernels.fitting import _fit_bodies, _search_body, fit_scratch
 from labeler_service.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.kernels.kalman import _predict, _update
 from labeler_service.kernels.rigid import (
@@ -248,12 +248,8 @@ def _fit(scene, K=3):
     assigned = np.full(m, -2, dtype=np.int32)
     owner = np.full(n, -1, dtype=np.int32)
     _fit_bodies(
-        body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, mb_ptr, mb_idx, 2.0, 0.02,
-        np.exp(-4.5), 0.25, 16.0, assigned, owner, np.zeros(nb), np.zeros(n + 1, np.int64),
-        np.zeros(m * K, np.int32), np.zeros(nb, np.bool_), np.zeros(nb, np.bool_),
-        np.zeros((nb, 8), np.int32), np.zeros(8, np.int64), np.zeros((8, K + 1), np.int64),
-        np.zeros(8, np.int64), np.zeros((8, K + 1)), np.zeros(8, np.int64), np.zeros(18),
-        np.zeros(8, np.int64),
+        (body_markers, body_size, Db, Ab, mb_ptr, mb_idx), cand, cand_d2, ncand, points, 2.0,
+        0.02, np.exp(-4.5), 0.25, 16.0, assigned, owner, fit_scratch(m, nb, K),
     )  # fmt: skip
     return assigned, owner
 
