@@ -173,10 +173,10 @@ class Labeler:
             self._p_cap, c.velocity_decay, c.gate_chi2, c.K, self._s, self._cand,
             self._cand_d2, self._ncand, self._bodies, self._D0, self._A0, self._ring, ptr, self._s1,
             self._s2, self._cnt, c.min_window_samples, c.a_floor_mm, c.a_relative, self._miss_term,
-            c.motion_weight, self._rec_members, self._rec_size, self._rec_ref, self._rec_ok,
+            c.motion_weight, self._rset,
             self._method, self._assigned,
             self._owner[:n], self._fit, self._obs, self._rec,
-            self._has_rec, self._missing, self._src, self._dst, self._R, self._t,
+            self._has_rec, self._missing, self._kab,
             self._point_labels[:n], self._out_pos, self._out_state, self._subj_ptr,
             self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
             self._cm_shift, c.reacquire_mm, c.verify_mm, c.reacquire_near_mm,
@@ -237,6 +237,7 @@ class Labeler:
     def _build(self, model: LabelerModel) -> None:
         """State arrays (struct of arrays) from a template."""
         from labeler_service.kernels.fitting import fit_scratch
+        from labeler_service.kernels.rigid import kabsch_scratch
 
         c = self.config
         m = len(self._names)
@@ -273,6 +274,7 @@ class Labeler:
             self._A0[b, :k, :k] = a0[b]
         self._rec_ref = np.zeros((m, 8, 3))
         self._rec_ok = np.zeros(m, dtype=np.bool_)
+        self._rset = (self._rec_members, self._rec_size, self._rec_ref, self._rec_ok)
         self._D = self._D0.copy()
         self._A = self._A0.copy()
         self._ring = np.full((nb, 8, 8, T), np.nan, dtype=np.float32)
@@ -323,10 +325,7 @@ class Labeler:
         self._missing = np.zeros(m, dtype=np.bool_)
         self._n_reject = np.zeros(m, dtype=np.int64)
         self._age = np.zeros(m, dtype=np.int64)
-        self._src = np.zeros((8, 3))
-        self._dst = np.zeros((8, 3))
-        self._R = np.zeros((3, 3))
-        self._t = np.zeros(3)
+        self._kab = kabsch_scratch()
         groups = list(subjects_of(self._names).values())
         self._subj_ptr = np.cumsum([0] + [len(g) for g in groups]).astype(np.int64)
         self._subj_idx = np.array([i for g in groups for i in g], dtype=np.int64)
@@ -387,9 +386,7 @@ class Labeler:
             self._frame_no += 1
             seen = np.isfinite(obs[:, 0])
             self._age = np.where(seen, self._age + 1, 0)
-            _snapshot(
-                self._age, 1, obs, self._rec_members, self._rec_size, self._rec_ref, self._rec_ok
-            )
+            _snapshot(self._age, 1, obs, self._rset)
         self._t_prev = t_prev
 
     # ------------------------------------------------------------------ warm-up

@@ -66,10 +66,7 @@ def _process_frame(
     a_rel,
     miss_term,
     w,
-    rec_members,
-    rec_size,
-    rec_ref,
-    rec_ok,
+    rset,
     method,
     assigned,
     owner,
@@ -78,10 +75,7 @@ def _process_frame(
     rec,
     has_rec,
     missing,
-    src,
-    dst,
-    R,
-    t,
+    kab,
     point_labels,
     out_pos,
     out_state,
@@ -167,16 +161,10 @@ def _process_frame(
             gate,
             points,
             obs,
-            rec_members,
-            rec_size,
-            rec_ref,
-            rec_ok,
+            rset,
             jump_mm,
             verify_mm,
-            src,
-            dst,
-            R,
-            t,
+            kab,
             robust_mm,
         )
     # re-acquisition: bodies with fewer than two observed markers are released (their markers
@@ -223,15 +211,13 @@ def _process_frame(
                 if not missing[i]:
                     continue
                 kept = 0
-                if rec_ok[i]:
-                    kept = _set_estimate(
-                        i, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est4, robust_mm
-                    )
+                if rset[3][i]:
+                    kept = _set_estimate(i, rset, obs, kab, est4, robust_mm)
                 if kept >= 3:
                     for c in range(3):
                         rec[i, c] = est4[c]
                     s[i] = reacq_est_mm
-                    if _max_residual(src, dst, kept, R, t) > robust_mm:
+                    if _max_residual(kab[0], kab[1], kept, kab[2], kab[3]) > robust_mm:
                         # the neighbours kept still disagree (a joint moved while the marker
                         # was hidden): the estimate is loose, so is the search
                         s[i] = reacq_loose_mm
@@ -273,20 +259,14 @@ def _process_frame(
             points,
             index,
             obs,
-            rec_members,
-            rec_size,
-            rec_ref,
-            rec_ok,
+            rset,
             verify_mm,
             reacq_near_mm,
             reject_mm,
             jump_mm,
             suspect_mm,
             missing,
-            src,
-            dst,
-            R,
-            t,
+            kab,
             robust_mm,
             n_reject,
             reject_limit,
@@ -318,22 +298,7 @@ def _process_frame(
         if assigned[i] >= 0:
             missing[i] = False
     # Sec. 3.3: recovery from rigid bodies
-    _recover(
-        missing,
-        rec_members,
-        rec_size,
-        rec_ref,
-        rec_ok,
-        obs,
-        method,
-        rec,
-        has_rec,
-        src,
-        dst,
-        R,
-        t,
-        robust_mm,
-    )
+    _recover(missing, rset, obs, method, rec, has_rec, kab, robust_mm)
     for i in range(m_total):
         if not missing[i]:
             continue
@@ -350,4 +315,4 @@ def _process_frame(
     # Eq. 1-2: sliding window
     _window_update(body_markers, body_size, obs, ring, ptr, s1, s2, cnt, D0, A0, min_samples, D, A)
     # reference snapshots of the recovery sets
-    _snapshot(age, snap_age, obs, rec_members, rec_size, rec_ref, rec_ok)
+    _snapshot(age, snap_age, obs, rset)

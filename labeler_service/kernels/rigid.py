@@ -212,10 +212,18 @@ def _robust_kabsch(src, dst, n, R, t, tau):
             dst[wi, a] = dst[n, a]
 
 
+def kabsch_scratch() -> tuple:
+    """``(src (8, 3), dst (8, 3), R (3, 3), t (3,))``: the buffers of one Kabsch fit over a
+    recovery set (at most 8 members)."""
+    return np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)), np.zeros(3)
+
+
 @njit
-def _gather(m, rec_members, rec_size, rec_ref, obs, src, dst):
+def _gather(m, rset, obs, src, dst):
     """Pairs (reference, observed) of ``m``'s recovery-set members seen this frame into
-    ``src``/``dst``; returns how many."""
+    ``src``/``dst``; returns how many. ``rset`` = ``(rec_members (M, 8), rec_size (M,),
+    rec_ref (M, 8, 3), rec_ok (M,))``, the recovery sets of the module docstring."""
+    rec_members, rec_size, rec_ref = rset[:3]
     c = 0
     for k in range(1, rec_size[m]):
         mk = rec_members[m, k]
@@ -240,23 +248,23 @@ def _place(m, rec_ref, R, t, out):
 
 
 @njit
-def _recover(
-    missing, rec_members, rec_size, rec_ref, rec_ok, obs, method, rec, has_rec, src, dst, R, t, tau
-):
+def _recover(missing, rset, obs, method, rec, has_rec, kab, tau):
     """Recovers every marker with ``missing[m]`` into ``rec (M, 3)``.
 
     ``has_rec[m]`` receives how many neighbours were used (0 = not recovered). The recovery set
     of ``m`` is ``rec_members[m, 1:rec_size[m]]`` (``rec_members[m, 0]`` is ``m``); ``rec_ref[m]``
     holds the set's positions the last time all were observed; ``obs (M, 3)`` this frame's
     observed positions (NaN otherwise). ``method`` 1 = Kabsch (3+ observed), else (or with
-    fewer) displacement averaging.
+    fewer) displacement averaging. ``kab``: :func:`kabsch_scratch`.
     """
+    rec_ref, rec_ok = rset[2:]
+    src, dst, R, t = kab
     m_total = missing.shape[0]
     for m in range(m_total):
         has_rec[m] = 0
         if not missing[m] or not rec_ok[m]:
             continue
-        c = _gather(m, rec_members, rec_size, rec_ref, obs, src, dst)
+        c = _gather(m, rset, obs, src, dst)
         if c == 0:
             continue
         if method == 1 and c >= 3:
@@ -272,10 +280,11 @@ def _recover(
 
 
 @njit
-def _snapshot(age, min_age, obs, rec_members, rec_size, rec_ref, rec_ok):
+def _snapshot(age, min_age, obs, rset):
     """Stores the recovery-set positions of every marker whose whole set is observed and has
     been for at least ``min_age`` frames in a row (``age``): a fresh, possibly wrong, assignment
     never becomes the reference that later checks it."""
+    rec_members, rec_size, rec_ref, rec_ok = rset
     for m in range(age.shape[0]):
         n = rec_size[m]
         if n == 0:
@@ -293,14 +302,15 @@ def _snapshot(age, min_age, obs, rec_members, rec_size, rec_ref, rec_ok):
 
 
 @njit
-def _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, out, tau):
+def _set_estimate(m, rset, obs, kab, out, tau):
     """Kabsch estimate of marker ``m`` from its observed recovery-set members (3+ needed);
     returns the number of members the robust fit kept (0 when fewer than 3 were observed)."""
-    c = _gather(m, rec_members, rec_size, rec_ref, obs, src, dst)
+    src, dst, R, t = kab
+    c = _gather(m, rset, obs, src, dst)
     if c < 3:
         return 0
     c = _robust_kabsch(src, dst, c, R, t, tau)
-    _place(m, rec_ref, R, t, out)
+    _place(m, rset[2], R, t, out)
     return c
 
 
@@ -315,20 +325,14 @@ def _verify(
     points,
     index,
     obs,
-    rec_members,
-    rec_size,
-    rec_ref,
-    rec_ok,
+    rset,
     verify_mm,
     reacquire_mm,
     reject_mm,
     jump_mm,
     suspect_mm,
     suspect,
-    src,
-    dst,
-    R,
-    t,
+    kab,
     tau,
     n_reject,
     reject_limit,
@@ -363,6 +367,7 @@ def _verify(
     n = points.shape[0]
     est = np.empty(3)
     est2 = np.empty(3)
+    rec_ok = rset[3]
     changes = 0
     m_total = assigned.shape[0]
     s2 = suspect_mm * suspect_mm
@@ -394,7 +399,7 @@ def _verify(
         turn = verify_every > 0 and (m + frame_no) % verify_every == 0  # round robin
         if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m] and not turn:
             continue
-        kept = _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau)
+        kept = _set_estimate(m, rset, obs, kab, est, tau)
         if kept == 0:
             continue
         e2 = 0.0
@@ -415,9 +420,7 @@ def _verify(
             if bk >= 0:
                 m2 = owner[bk]
                 if rec_ok[m2]:
-                    k2 = _set_estimate(
-                        m2, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est2, tau
-                    )
+                    k2 = _set_estimate(m2, rset, obs, kab, est2, tau)
                     if k2 > 0:
                         now2 = 0.0
                         sw2 = 0.0
@@ -462,13 +465,12 @@ def _verify(
 
 
 @njit
-def _estimate_distance(m, a, points, rec_members, rec_size, rec_ref, rec_ok, obs, src, dst, R, t,
-                       est, tau):  # fmt: skip
+def _estimate_distance(m, a, points, rset, obs, kab, est, tau):
     """Distance (mm) from point ``a`` to the Kabsch estimate of marker ``m`` (Sec. 3.3 with
     3+ observed neighbours); ``inf`` when there is no estimate."""
-    if not rec_ok[m]:
+    if not rset[3][m]:
         return np.inf
-    if _set_estimate(m, rec_members, rec_size, rec_ref, obs, src, dst, R, t, est, tau) == 0:
+    if _set_estimate(m, rset, obs, kab, est, tau) == 0:
         return np.inf
     e2 = 0.0
     for c in range(3):
@@ -488,16 +490,10 @@ def _contest(
     gate,
     points,
     obs,
-    rec_members,
-    rec_size,
-    rec_ref,
-    rec_ok,
+    rset,
     jump_mm,
     verify_mm,
-    src,
-    dst,
-    R,
-    t,
+    kab,
     tau,
 ):
     """Track continuity after Algorithm 1: a point goes back to the marker that was tracked onto
@@ -549,12 +545,10 @@ def _contest(
                 bm = m2
         if bm < 0:
             continue
-        e_m = _estimate_distance(m, a, points, rec_members, rec_size, rec_ref, rec_ok, obs,
-                                 src, dst, R, t, est, tau)  # fmt: skip
+        e_m = _estimate_distance(m, a, points, rset, obs, kab, est, tau)
         if e_m <= verify_mm:
             continue
-        e_bm = _estimate_distance(bm, a, points, rec_members, rec_size, rec_ref, rec_ok, obs,
-                                  src, dst, R, t, est, tau)  # fmt: skip
+        e_bm = _estimate_distance(bm, a, points, rset, obs, kab, est, tau)
         if np.isfinite(e_bm) and e_bm > e_m:
             continue
         owner[a] = bm

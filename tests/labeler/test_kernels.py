@@ -16,6 +16,7 @@ from labeler_service.kernels.rigid import (
     _recover,
     _robust_kabsch,
     _verify,
+    kabsch_scratch,
 )
 from labeler_service.kernels.spatial import _index
 from labeler_service.kernels.window import _window_update
@@ -390,10 +391,7 @@ def test_recover_matches_twin(rng, method):
     rec = np.full((m, 3), np.nan)
     has = np.zeros(m, dtype=np.int64)
     code = 1 if method == "kabsch" else 0
-    _recover(
-        missing, members, size, refs, ok, obs, code, rec, has, np.zeros((8, 3)),
-        np.zeros((8, 3)), np.zeros((3, 3)), np.zeros(3), 5.0,
-    )  # fmt: skip
+    _recover(missing, (members, size, refs, ok), obs, code, rec, has, kabsch_scratch(), 5.0)
     assert (has > 0).tolist() == missing.tolist()
     assert has[1] == 4 and has[4] == 4  # neighbours used (6 is unseen)
     for i in (1, 4):
@@ -430,9 +428,8 @@ def _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok,
     m = assigned.shape[0]
     s = np.full(m, S_FLOOR) if s is None else s
     return _contest(
-        assigned, owner, np.ones(m, dtype=bool), prev, x, s, 16.27, points, obs, members, size,
-        refs, ok, jump, verify, np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)),
-        np.zeros(3), 5.0,
+        assigned, owner, np.ones(m, dtype=bool), prev, x, s, 16.27, points, obs,
+        (members, size, refs, ok), jump, verify, kabsch_scratch(), 5.0,
     )  # fmt: skip
 
 
@@ -567,9 +564,8 @@ def _run_verify(assigned, owner, prev, x, points, obs, members, size, refs, n_re
     m = assigned.shape[0]
     return _verify(
         assigned, owner, np.ones(m, dtype=np.int32), np.ones(m, dtype=bool), prev, x, points,
-        _index(points), obs, members, size, refs, np.ones(m, dtype=bool), 8.0, 12.0, 25.0, 8.0, 0.0,
-        np.zeros(m, dtype=bool), np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)),
-        np.zeros(3), 5.0, n_reject, limit, 0, 0, True,
+        _index(points), obs, (members, size, refs, np.ones(m, dtype=bool)), 8.0, 12.0, 25.0, 8.0,
+        0.0, np.zeros(m, dtype=bool), kabsch_scratch(), 5.0, n_reject, limit, 0, 0, True,
     )  # fmt: skip
 
 
