@@ -350,37 +350,13 @@ def _fit_bodies(
                                                         owner, best):  # fmt: skip
                 continue
             n = _build_options(
-                b,
-                body_markers,
-                body_size,
-                assigned,
-                owner,
-                cand,
-                cand_d2,
-                ncand,
-                miss_mot,
-                perm,
-                opts,
-                nopts,
-                mot,
-            )
+                b, body_markers, body_size, assigned, owner, cand, cand_d2, ncand, miss_mot, perm,
+                opts, nopts, mot,
+            )  # fmt: skip
             s = _search_body(
-                n,
-                perm,
-                opts,
-                nopts,
-                mot,
-                Db[b],
-                Ab[b],
-                a_floor,
-                a_rel,
-                miss_term,
-                w,
-                points,
-                choice,
-                partial,
-                best_choice,
-            )
+                n, perm, opts, nopts, mot, Db[b], Ab[b], a_floor, a_rel, miss_term, w, points,
+                choice, partial, best_choice,
+            )  # fmt: skip
             for k in range(8):
                 best[b, k] = -1
             for k in range(n):

@@ -130,20 +130,9 @@ def _process_frame(
     for j in range(n):
         owner[j] = -1
     _fit_bodies(
-        bodies,
-        cand,
-        cand_d2,
-        ncand,
-        points,
-        a_floor,
-        a_rel,
-        miss_term,
-        w,
-        gate,
-        assigned,
-        owner,
+        bodies, cand, cand_d2, ncand, points, a_floor, a_rel, miss_term, w, gate, assigned, owner,
         fit,
-    )
+    )  # fmt: skip
     # track continuity: points the fit gave to a marker that jumped for them go back to the
     # marker tracked onto them in the previous frame
     if contest:
@@ -152,21 +141,9 @@ def _process_frame(
             for c in range(3):
                 obs[i, c] = points[a, c] if a >= 0 else np.nan
         _contest(
-            assigned,
-            owner,
-            active,
-            out_state,
-            x,
-            s,
-            gate,
-            points,
-            obs,
-            rset,
-            jump_mm,
-            verify_mm,
-            kab,
-            robust_mm,
-        )
+            assigned, owner, active, out_state, x, s, gate, points, obs, rset, jump_mm, verify_mm,
+            kab, robust_mm,
+        )  # fmt: skip
     # re-acquisition: bodies with fewer than two observed markers are released (their markers
     # not held by a better-seen body search again) and, with every missing marker when
     # ``reacq_all``, look for free points within a wide radius; Algorithm 1 then runs again on
@@ -227,20 +204,9 @@ def _process_frame(
                     s[i] = reacq_radius
             _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
             _fit_bodies(
-                bodies,
-                cand,
-                cand_d2,
-                ncand,
-                points,
-                a_floor,
-                a_rel,
-                miss_reacq,
-                w,
-                gate,
-                assigned,
-                owner,
-                fit,
-            )
+                bodies, cand, cand_d2, ncand, points, a_floor, a_rel, miss_reacq, w, gate,
+                assigned, owner, fit,
+            )  # fmt: skip
             for i in range(m_total):
                 if assigned[i] == -2:
                     assigned[i] = -1
@@ -250,30 +216,10 @@ def _process_frame(
             obs[i, c] = points[a, c] if a >= 0 else np.nan
     if verify_mm > 0.0:
         _verify(
-            assigned,
-            owner,
-            ncand,
-            active,
-            out_state,
-            x,
-            points,
-            index,
-            obs,
-            rset,
-            verify_mm,
-            reacq_near_mm,
-            reject_mm,
-            jump_mm,
-            suspect_mm,
-            missing,
-            kab,
-            robust_mm,
-            n_reject,
-            reject_limit,
-            verify_every,
-            frame_no,
-            swap_check,
-        )
+            assigned, owner, ncand, active, out_state, x, points, index, obs, rset, verify_mm,
+            reacq_near_mm, reject_mm, jump_mm, suspect_mm, missing, kab, robust_mm, n_reject,
+            reject_limit, verify_every, frame_no, swap_check,
+        )  # fmt: skip
     for j in range(n):
         point_labels[j] = owner[j]
     # Eq. 4 for observed markers
