@@ -39,26 +39,36 @@ def _insert(i, j, d2, K, cand, cand_d2, ncand):
 
 
 @njit
+def _candidates(i, centre, scale, radius, points, index, owner, free_only, gate, K, cand, cand_d2,
+                ncand):  # fmt: skip
+    """Marker ``i``'s candidates: the ``K`` points (free ones only with ``free_only``) whose
+    ``|y - centre|^2 * scale`` is under ``gate``, i.e. within ``radius`` mm, best first."""
+    ncand[i] = 0
+    order = index[0]
+    px, py, pz = centre[0], centre[1], centre[2]
+    lo, hi = _span(index, centre, radius)
+    for k in range(lo, hi):
+        j = order[k]
+        if free_only and owner[j] >= 0:
+            continue
+        dx = points[j, 0] - px
+        dy = points[j, 1] - py
+        dz = points[j, 2] - pz
+        d2 = (dx * dx + dy * dy + dz * dz) * scale
+        if d2 < gate:  # also rejects NaN
+            _insert(i, j, d2, K, cand, cand_d2, ncand)
+
+
+@njit
 def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
     """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place (``index``: the
     sweep index of ``points``, :func:`.spatial._index`)."""
-    m = pred.shape[0]
-    order = index[0]
-    for i in range(m):
+    anyone = np.empty(0, np.int32)  # every point is a candidate: no owner is read
+    for i in range(pred.shape[0]):
         ncand[i] = 0
-        if not active[i]:
-            continue
-        px, py, pz = pred[i, 0], pred[i, 1], pred[i, 2]
-        inv = 1.0 / s[i]
-        lo, hi = _span(index, pred[i], np.sqrt(gate * s[i]))
-        for k in range(lo, hi):
-            j = order[k]
-            dx = points[j, 0] - px
-            dy = points[j, 1] - py
-            dz = points[j, 2] - pz
-            d2 = (dx * dx + dy * dy + dz * dz) * inv
-            if d2 < gate:  # also rejects NaN
-                _insert(i, j, d2, K, cand, cand_d2, ncand)
+        if active[i]:
+            _candidates(i, pred[i], 1.0 / s[i], np.sqrt(gate * s[i]), points, index, anyone,
+                        False, gate, K, cand, cand_d2, ncand)  # fmt: skip
 
 
 @njit
@@ -104,22 +114,7 @@ def _regate(centre, lost, points, index, owner, radius, gate, K, cand, cand_d2, 
     """Re-acquisition gate for ``lost`` markers: the ``K`` nearest points not yet owned within
     ``radius[i]`` mm of ``centre[i]`` (the rigid-body estimate, else the Kalman prediction);
     ``cand_d2`` is scaled so that the radius maps to ``gate``."""
-    m = centre.shape[0]
-    order = index[0]
-    for i in range(m):
-        if not lost[i]:
-            continue
-        ncand[i] = 0
-        scale = gate / (radius[i] * radius[i])
-        px, py, pz = centre[i, 0], centre[i, 1], centre[i, 2]
-        lo, hi = _span(index, centre[i], radius[i])
-        for k in range(lo, hi):
-            j = order[k]
-            if owner[j] >= 0:
-                continue
-            dx = points[j, 0] - px
-            dy = points[j, 1] - py
-            dz = points[j, 2] - pz
-            d2 = (dx * dx + dy * dy + dz * dz) * scale
-            if d2 < gate:  # also rejects NaN
-                _insert(i, j, d2, K, cand, cand_d2, ncand)
+    for i in range(centre.shape[0]):
+        if lost[i]:
+            _candidates(i, centre[i], gate / (radius[i] * radius[i]), radius[i], points, index,
+                        owner, True, gate, K, cand, cand_d2, ncand)  # fmt: skip
