@@ -34,6 +34,15 @@ RECOVERED = 2
 
 
 @njit
+def _observed(assigned, points, obs):
+    """``obs[m]`` = the point marker ``m`` is assigned to, NaN when it has none."""
+    for i in range(assigned.shape[0]):
+        a = assigned[i]
+        for c in range(3):
+            obs[i, c] = points[a, c] if a >= 0 else np.nan
+
+
+@njit
 def _process_frame(
     points,
     dt,
@@ -136,10 +145,7 @@ def _process_frame(
     # track continuity: points the fit gave to a marker that jumped for them go back to the
     # marker tracked onto them in the previous frame
     if contest:
-        for i in range(m_total):
-            a = assigned[i]
-            for c in range(3):
-                obs[i, c] = points[a, c] if a >= 0 else np.nan
+        _observed(assigned, points, obs)
         _contest(
             assigned, owner, active, out_state, x, s, gate, points, obs, rset, jump_mm, verify_mm,
             kab, robust_mm,
@@ -180,10 +186,7 @@ def _process_frame(
                 missing[i] = False
         if n_lost > 0:
             # centre: the rigid estimate from the neighbours seen so far, else the prediction
-            for i in range(m_total):
-                a = assigned[i]
-                for c in range(3):
-                    obs[i, c] = points[a, c] if a >= 0 else np.nan
+            _observed(assigned, points, obs)
             for i in range(m_total):
                 if not missing[i]:
                     continue
@@ -210,10 +213,7 @@ def _process_frame(
             for i in range(m_total):
                 if assigned[i] == -2:
                     assigned[i] = -1
-    for i in range(m_total):
-        a = assigned[i]
-        for c in range(3):
-            obs[i, c] = points[a, c] if a >= 0 else np.nan
+    _observed(assigned, points, obs)
     if verify_mm > 0.0:
         _verify(
             assigned, owner, ncand, active, out_state, x, points, index, obs, rset, verify_mm,
@@ -226,6 +226,7 @@ def _process_frame(
     for i in range(m_total):
         a = assigned[i]
         if a >= 0:
+            missing[i] = False  # the 3D check used it as scratch
             n_reject[i] = 0
             age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
@@ -240,9 +241,6 @@ def _process_frame(
             out_state[i] = 0
             for c in range(3):
                 out_pos[i, c] = np.nan
-    for i in range(m_total):
-        if assigned[i] >= 0:
-            missing[i] = False
     # Sec. 3.3: recovery from rigid bodies
     _recover(missing, rset, obs, method, rec, has_rec, kab, robust_mm)
     for i in range(m_total):
