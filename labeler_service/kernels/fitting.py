@@ -318,16 +318,6 @@ def _fit_bodies(
     miss_mot = np.exp(-0.5 * gate)
     pm_ptr = np.empty(n_points + 1, np.int64)
     _point_markers(cand, ncand, n_points, pm_ptr, pm_idx)
-    for b in range(nb):
-        # a body with no undecided marker is satisfied already (second pass, re-acquisition)
-        und = False
-        for k in range(body_size[b]):
-            if assigned[body_markers[b, k]] == -2:
-                und = True
-                break
-        satisfied[b] = not und
-        need[b] = True
-        body_score[b] = -1.0
     # bodies to (re)search, each once (``need``), and an indexed max-heap of the unsatisfied
     # searched bodies by (score, lower index): line 12 without a scan of every body per step
     queue = np.empty(nb, np.int64)
@@ -336,9 +326,16 @@ def _fit_bodies(
     pos = np.full(nb, -1, np.int64)
     size = 0
     for b in range(nb):
-        if not satisfied[b]:
-            queue[nq] = b
-            nq += 1
+        # a body with no undecided marker is satisfied already (second pass, re-acquisition)
+        und = False
+        for k in range(body_size[b]):
+            if assigned[body_markers[b, k]] == -2:
+                und = True
+                break
+        satisfied[b] = not und
+        need[b] = False
+        body_score[b] = -1.0
+        nq = _flag(b, need, satisfied, queue, nq)
     while True:
         # lines 5-11: (re)search the bodies that need it
         for e in range(nq):
