@@ -89,6 +89,7 @@ def main() -> int:
             print(f"{name} {label}: {json.dumps(results[name][label])}", file=sys.stderr)
     text = json.dumps(results)
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(results, indent=2))
     print(text)
     return 0
