@@ -126,11 +126,18 @@ def mqtt_settings_for(ep: Endpoint, base: MqttSettings | None = None) -> MqttSet
 
 @asynccontextmanager
 async def open_sender(
-    url: str, mqtt: MqttSettings | None = None, connect_timeout: float = 10.0
+    url: str,
+    mqtt: MqttSettings | None = None,
+    connect_timeout: float = 10.0,
+    stream: str | None = None,
 ) -> AsyncIterator[tuple[SendFn, str]]:
-    """``(send, stream)`` for a replay URL. MQTT waits up to ``connect_timeout`` to connect."""
+    """``(send, stream)`` for a replay URL. MQTT waits up to ``connect_timeout`` to connect.
+
+    ``stream`` overrides the URL's stream (else ``default``); over MQTT the frames go to that
+    stream's topic, so topic and payload agree when the caller encodes the returned name.
+    """
     ep = parse_endpoint(url)
-    stream = ep.stream or "default"
+    stream = stream or ep.stream or "default"
     if ep.scheme == "udp":
         from labeler_service.transports.udp import UdpClient
 

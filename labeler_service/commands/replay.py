@@ -46,9 +46,9 @@ async def _main(args: argparse.Namespace) -> int:
         f"-> {args.to}",
         file=sys.stderr,
     )
-    async with open_sender(args.to) as (send, stream):
+    async with open_sender(args.to, stream=args.stream) as (send, stream):
         stats = await replay(
-            frames, send, stream=args.stream or stream, init_frames=args.init_frames,
+            frames, send, stream=stream, init_frames=args.init_frames,
             speed=args.speed, loops=args.loops,
         )  # fmt: skip
     print(

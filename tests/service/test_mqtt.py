@@ -270,3 +270,26 @@ def test_a_backlog_over_mqtt_lands_in_the_drop_oldest_queue(broker, rng):
 
     metrics = run(go())
     assert metrics.drops("queue_full") >= 85  # 99 - queue_size 4 - a few labeled meanwhile
+
+
+def test_replay_command_stream_option_sets_the_topic_too(broker, rng, tmp_path):
+    """``replay --to mqtt://.../vol --stream other`` publishes on ``mocap/other/unlabeled``."""
+    from labeler_service.capture import write_capture
+    from labeler_service.cli import build_parser
+    from labeler_service.commands.replay import _main
+
+    write_capture(moving_clusters(rng, frames=30), tmp_path / "scene.npz")
+    argv = ["replay", str(tmp_path / "scene.npz"), "--to", f"{broker.url}/vol", "--stream",
+            "other", "--init-frames", "10", "--speed", "0"]  # fmt: skip
+    args = build_parser(argv).parse_args(argv)
+
+    async def go():
+        async with Server(_settings(broker, streams=[{"name": "other"}], warmup=False)) as srv:
+            assert await _main(args) == 0
+            async with asyncio.timeout(10):
+                while srv.metrics.value("mocap_frames_in_total", stream="other") < 30:
+                    await asyncio.sleep(0.02)
+            return srv.metrics
+
+    metrics = run(go())
+    assert metrics.drops() == 0
