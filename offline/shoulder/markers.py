@@ -20,20 +20,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from offline.shoulder.rigid import apply
-
-
-def rigid_deviation(
-    positions: np.ndarray, rest: np.ndarray, R: np.ndarray, t: np.ndarray
-) -> np.ndarray:
-    """Eq. 1 for every marker: ``e_r`` (M,) in mm^2 (NaN-aware, scaled to all frames)."""
-    pred = apply(R, t, rest)
-    d2 = ((positions - pred) ** 2).sum(axis=2)  # (F, M)
-    d2 = np.where(np.isfinite(d2), d2, np.nan)
-    with np.errstate(invalid="ignore"):
-        mean = np.nanmean(d2, axis=0) if np.isfinite(d2).any() else np.full(rest.shape[0], np.inf)
-    return np.where(np.isfinite(mean), mean * positions.shape[0], np.inf)
-
 
 def distance_energy(p: np.ndarray, chosen: np.ndarray, d_t: float) -> np.ndarray:
     """Eq. 2-3: ``e_d`` of candidate positions ``p`` (n, 3) given chosen positions (c, 3)."""

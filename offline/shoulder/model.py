@@ -20,7 +20,7 @@ from offline.shoulder.joints import (
     joint_centre,
     skeleton_structure,
 )
-from offline.shoulder.markers import rigid_deviation, select_markers
+from offline.shoulder.markers import select_markers
 from offline.shoulder.rotations import triangle_features
 from offline.shoulder.segmentation import RestartKMeans
 from offline.shoulder.skinning import (
@@ -206,7 +206,7 @@ class ShoulderSkeleton:
             kind = kinds[0]
         order, parent, joints, rms = candidates[kind]
         # step 4: reduced marker set (Eq. 1-3) from each segment's dense-set motion
-        e_r = np.stack([rigid_deviation(pos, rest, R[:, s], t[:, s]) for s in range(S)], axis=1)
+        e_r = resid * pos.shape[0]  # Eq. 1: mean over visible frames, scaled to all frames
         fit_markers, reduced = [], []
         for s in range(S):
             fit_markers.append(core[s])
