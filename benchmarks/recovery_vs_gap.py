@@ -18,10 +18,8 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from labeler_service.capture import Capture, read_capture
-from labeler_service.frame import MarkerState
+from labeler_service.evaluate import score_labeler
 from labeler_service.labeler import Labeler
 from labeler_service.labeler_config import LabelerConfig
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
@@ -31,42 +29,26 @@ METHODS = ("kabsch", "displacement")
 
 
 def measure(cap: Capture, method: str, gaps: int, length: int, seed: int) -> dict:
-    """Recovery errors (mm and ratio) and labeling accuracy for one setting."""
-    st = corrupt(cap, CorruptionSpec(gaps=gaps, gap_frames=length, protect_frames=INIT, seed=seed))
-    lab = Labeler(st.marker_names, st.rate, LabelerConfig(recovery=method))
-    errs, ratios = [], []
-    removed = correct = visible = 0
-    extent = None
-    for f in range(st.n_frames):
-        truth = st.truth[f]
-        out = lab.process(st.points[f], float(st.times[f]), truth if f < INIT else None)
-        if f < INIT:
-            continue
-        if extent is None:
-            extent = lab.body_extent()
-        real = truth >= 0
-        correct += int(np.count_nonzero(out.point_labels[real] == truth[real]))
-        visible += int(np.count_nonzero(real))
-        gone = np.flatnonzero(st.removed[f])
-        removed += gone.size
-        rec = gone[out.state[gone] == MarkerState.RECOVERED]
-        if rec.size:
-            e = np.linalg.norm(out.positions[rec].astype(float) - st.positions[f, rec], axis=1)
-            errs.extend(e.tolist())
-            ratios.extend((e / extent[rec]).tolist())
-    e = np.asarray(errs)
-    r = np.asarray(ratios)
-    r = r[np.isfinite(r)]
+    """Recovery errors (mm and ratio) and labeling accuracy for one setting, scored by
+    :func:`labeler_service.evaluate.score_labeler` (what ``evaluate`` reports)."""
+    spec = CorruptionSpec(gaps=gaps, gap_frames=length, protect_frames=INIT, seed=seed)
+    stream = corrupt(cap, spec)
+    lab = Labeler(stream.marker_names, stream.rate, LabelerConfig(recovery=method))
+    s = score_labeler(lab, stream, INIT, method)
+
+    def r(x: float | None, nd: int) -> float | None:
+        return None if x is None else round(x, nd)
+
     return {
         "gap_frames": length,
         "method": method,
-        "recovered": int(e.size),
-        "removed": removed,
-        "recovery_rate": round(e.size / removed, 4) if removed else None,
-        "mean_mm": round(float(e.mean()), 3) if e.size else None,
-        "p95_mm": round(float(np.percentile(e, 95)), 3) if e.size else None,
-        "mean_ratio": round(float(r.mean()), 5) if r.size else None,
-        "accuracy": round(correct / visible, 6),
+        "recovered": s.recovered,
+        "removed": s.removed,
+        "recovery_rate": r(s.recovery_rate, 4),
+        "mean_mm": r(s.recovery_mean_mm, 3),
+        "p95_mm": r(s.recovery_p95_mm, 3),
+        "mean_ratio": r(s.recovery_mean_ratio, 5),
+        "accuracy": round(s.accuracy, 6),
     }
 
 

@@ -79,6 +79,10 @@ class MethodScore:
     ms_per_frame_p50: float
     ms_per_frame_p99: float
     per_frame_accuracy: np.ndarray = field(repr=False)
+    #: Samples removed by ``--gaps`` after the init window, and how many of them came back
+    #: RECOVERED (the counts behind ``recovery_rate``; not part of ``summary()``).
+    removed: int = 0
+    recovered: int = 0
 
     def summary(self) -> dict[str, Any]:
         def r(x: float | None, nd: int = 6) -> float | None:
@@ -170,6 +174,8 @@ def score_labeler(
         ms_per_frame_p50=float(np.median(times_ms)),
         ms_per_frame_p99=float(np.percentile(times_ms, 99)),
         per_frame_accuracy=per_frame,
+        removed=removed_total,
+        recovered=int(err_arr.size),
     )
 
 

@@ -72,6 +72,15 @@ def test_scores_count_only_after_init_window(rng) -> None:
     assert flawed.accuracy == pytest.approx(1 - 8 / 80, abs=0.01)
 
 
+def test_recovery_counts_stay_out_of_the_summary(rng) -> None:
+    cap = moving_clusters(rng, frames=100)
+    stream = corrupt(cap, CorruptionSpec(gaps=1, gap_frames=5, protect_frames=20, seed=0))
+    score = score_labeler(_Oracle(stream), stream, init_frames=20, method="x")
+    removed = int(stream.removed[20:].sum())
+    assert score.removed == score.recovered == removed > 0
+    assert not {"removed", "recovered"} & score.summary().keys()
+
+
 def test_evaluate_report_has_contract_keys(rng) -> None:
     cap = moving_clusters(rng, frames=150)
     report, scores = evaluate(cap, methods=["closest-point"], ghosts=1.0, init_frames=30)
