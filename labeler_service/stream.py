@@ -3,7 +3,8 @@
 A stream (one capture volume) starts in one of two ways:
 
 1. **From a subject model file** (``streams[].model``, the ``train structure`` output): the
-   labeler is built and warmed at start-up; frames are labeled from the first one.
+   labeler is built at start-up (after the server's kernel warm-up); frames are labeled from
+   the first one.
 2. **From labeled init frames in the stream** (seed 003's supervised training window): frames
    carrying ``labels`` are buffered; when the first unlabeled frame arrives, the marker set is
    the union of the init labels (sorted by subject, then marker), the rate
@@ -181,9 +182,6 @@ class StreamState:
         self.model_payload = encode_model(
             self.name, self.model_id, self.names, subject_slices(self.names), self.rate
         )
-        warm = getattr(labeler, "warmup", None)
-        if callable(warm):
-            warm()
         log.info(
             "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz)",
             self.name,
