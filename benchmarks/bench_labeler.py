@@ -28,8 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from labeler_service.capture import Capture, read_capture
+from labeler_service.evaluate import WARMUP_FRAMES
 from labeler_service.labeler import Labeler
 from labeler_service.scenes.corrupt import CorruptionSpec, iter_stream
+from labeler_service.scenes.sim import SCENARIOS
 
 INIT = 50
 MARK = 1000  # memory baseline frame
@@ -72,7 +74,7 @@ def _capture(args: argparse.Namespace) -> Capture:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--performers", type=int, default=6)
-    p.add_argument("--scenario", default="hug", choices=("walk", "hug", "pile"))
+    p.add_argument("--scenario", default="hug", choices=SCENARIOS)
     p.add_argument("--frames", type=int, default=10_000, help="labeled frames after training")
     p.add_argument("--rate", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=1)
@@ -131,8 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     objs1 = len(gc.get_objects())
     tracemalloc.stop()
     n = len(plan.marker_names)
-    subjects = len({name.partition(":")[0] for name in plan.marker_names})
-    t = times[10:]  # the first labeled frames after training are not steady state
+    subjects = len(cap.subjects)
+    t = times[WARMUP_FRAMES:]  # the first labeled frames after training are not steady state
     p50 = float(np.median(t))
     result = {
         "source": args.capture or f"simulate {args.performers} {args.scenario} seed {args.seed}",
@@ -145,8 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         "ms_per_frame_p99": round(float(np.percentile(t, 99)), 4),
         "ms_per_frame_max": round(float(t.max()), 4),
         "ms_per_performer_p50": round(p50 / subjects, 4),
-        "cpu_ms_per_frame_p50": round(float(np.median(cpu[10:])), 4),
-        "cpu_ms_per_frame_p99": round(float(np.percentile(cpu[10:], 99)), 4),
+        "cpu_ms_per_frame_p50": round(float(np.median(cpu[WARMUP_FRAMES:])), 4),
+        "cpu_ms_per_frame_p99": round(float(np.percentile(cpu[WARMUP_FRAMES:], 99)), 4),
         "load_average_1min": round(_load(), 2),
         "p99_over_p50": round(float(np.percentile(t, 99)) / p50, 3),
         "rss_kib_at_1000": round(rss0, 1),

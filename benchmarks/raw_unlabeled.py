@@ -28,6 +28,7 @@ import numpy as np
 from labeler_service.capture import read_capture
 from labeler_service.data import real_file
 from labeler_service.errors import MocapError
+from labeler_service.evaluate import WARMUP_FRAMES
 from labeler_service.frame import MarkerState
 from labeler_service.labeler import Labeler
 
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             recovered += out.n_recovered
         final_state = out.state
     frames = cap.n_frames - init
-    t = np.asarray(times[init + 10 :])
+    t = np.asarray(times[init + WARMUP_FRAMES :])
     result = {
         "capture": str(path),
         "frames": frames,

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-SCENARIOS = ("walk", "hug", "pile")
+from labeler_service.scenes.sim import SCENARIOS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,10 +33,9 @@ def run(args: argparse.Namespace) -> int:
     path = write_capture(scene, args.out)
     ghosts = int(scene.ghost_mask.sum())
     labeled = scene.n_markers - ghosts
-    missing = 1.0 - float(scene.visible[:, ~scene.ghost_mask].mean())
     print(
         f"{path}: {args.scenario}, {len(scene.subjects)} subjects ({', '.join(scene.subjects)}), "
         f"{labeled} markers + {ghosts} ghost columns, {scene.n_frames} frames at "
-        f"{scene.rate:g} Hz, {missing:.1%} of marker samples occluded"
+        f"{scene.rate:g} Hz, {scene.missing_fraction:.1%} of marker samples occluded"
     )
     return 0

@@ -25,6 +25,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from labeler_service.capture import Capture
 from labeler_service.errors import SceneError
+from labeler_service.scenes.sim import SCENARIOS
 from labeler_service.scenes.sim.body import (
     MARKER_NAMES,
     MARKER_SEGMENT,
@@ -34,7 +35,7 @@ from labeler_service.scenes.sim.body import (
     make_body,
     place_points,
 )
-from labeler_service.scenes.sim.motion import SCENARIOS, Motion, plan_motion
+from labeler_service.scenes.sim.motion import Motion, plan_motion
 from labeler_service.scenes.sim.occlusion import (
     OcclusionModel,
     ghost_points,

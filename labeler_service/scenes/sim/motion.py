@@ -25,7 +25,6 @@ from scipy.ndimage import gaussian_filter1d
 
 from labeler_service.scenes.sim.body import SEG, SEGMENTS
 
-SCENARIOS = ("walk", "hug", "pile")
 #: Horizontal clearance between neighbours on the start circle (mm).
 START_SPACING = 1300.0
 
