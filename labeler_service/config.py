@@ -183,9 +183,6 @@ class ServiceSettings(BaseSettings):
         # environment beats the file (passed as init kwargs), which beats the defaults
         return env_settings, init_settings
 
-    def stream(self, name: str) -> StreamSettings | None:
-        return next((s for s in self.streams if s.name == name), None)
-
 
 def _format_errors(exc: ValidationError) -> str:
     lines = []

@@ -44,8 +44,6 @@ class ReplayStats:
     failed: int = 0
     seconds: float = 0.0
     max_late_ms: float = 0.0
-    first_seq: int = 0
-    last_seq: int = -1
 
     @property
     def rate(self) -> float:
@@ -87,7 +85,7 @@ async def replay(
         raise ConfigError(f"--loops must be >= 1, got {loops}")
     order = frame_order(frames.n_frames, loops)[:max_frames]
     dt = 1.0 / frames.rate
-    stats = ReplayStats(first_seq=seq0)
+    stats = ReplayStats()
     t_start = time.perf_counter()
     for k, f in enumerate(order):
         if speed > 0:
@@ -106,7 +104,6 @@ async def replay(
             stats.sent += 1
         else:
             stats.failed += 1
-        stats.last_seq = seq
         if on_frame is not None:
             on_frame(seq, int(f))
     stats.seconds = time.perf_counter() - t_start

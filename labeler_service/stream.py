@@ -44,14 +44,6 @@ LabelerFactory = Callable[[tuple[str, ...], float], FrameLabeler]
 
 
 # ------------------------------------------------------------------------- labeler factory
-def online_available() -> bool:
-    try:
-        import labeler_service.labeler  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def make_labeler(
     kind: str,
     marker_names: tuple[str, ...],

@@ -61,7 +61,6 @@ class SubscriberStats:
     recovered: int = 0
     missing: int = 0
     unlabeled: int = 0
-    proc_us: list[float] = field(default_factory=list)
     latencies_ms: list[float] = field(default_factory=list)
     last_seq: dict[str, int] = field(default_factory=dict)
 
@@ -83,7 +82,6 @@ class SubscriberStats:
         self.recovered += rec
         self.missing += len(st) - obs - rec
         self.unlabeled += len(m.unlabeled)
-        self.proc_us.append(m.proc_us)
         lat = r.latency_ms
         if lat is not None:
             self.latencies_ms.append(lat)

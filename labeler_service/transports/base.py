@@ -23,9 +23,6 @@ from typing import Any, Generic, Protocol, TypeVar
 
 T = TypeVar("T")
 
-#: Outgoing message kinds (also the MQTT topic suffixes).
-KINDS = ("labeled", "model", "status")
-
 
 @dataclass(slots=True)
 class Incoming:
