@@ -29,11 +29,12 @@ from labeler_service.scenes.sim import SCENARIOS
 from labeler_service.scenes.sim.body import (
     MARKER_NAMES,
     MARKER_SEGMENT,
-    SEG,
+    SEGMENTS,
     Body,
     forward_kinematics,
     make_body,
     place_points,
+    segment_kind,
 )
 from labeler_service.scenes.sim.motion import Motion, plan_motion
 from labeler_service.scenes.sim.occlusion import (
@@ -53,9 +54,8 @@ FLOOR_CLEARANCE_MM = 8.0
 
 
 def _wobble_amplitude() -> np.ndarray:
-    from labeler_service.scenes.sim.body import SEGMENTS
-
-    kinds = [SEGMENTS[s].split("_", 1)[-1] for s in MARKER_SEGMENT]
+    """Wobble s.d. (mm) of every marker, from the kind of its segment."""
+    kinds = [segment_kind(SEGMENTS[s]) for s in MARKER_SEGMENT]
     return np.array([WOBBLE_MM.get(k, WOBBLE_DEFAULT_MM) for k in kinds])
 
 
@@ -67,7 +67,9 @@ def pose_markers(body: Body, motion: Motion, rate: float) -> np.ndarray:
     rot, org = forward_kinematics(body, root, motion.yaw, motion.angles)
     markers = place_points(rot, org, MARKER_SEGMENT, body.markers)
     contacts = place_points(rot, org, body.contact_segments, body.contacts)
-    lowest = np.minimum(contacts[..., 2].min(axis=1), markers[..., 2].min(axis=1) - 8.0)
+    lowest = np.minimum(
+        contacts[..., 2].min(axis=1), markers[..., 2].min(axis=1) - FLOOR_CLEARANCE_MM
+    )
     z = -lowest
     if f > 3:
         z = gaussian_filter1d(z, max(0.5, 0.012 * rate), mode="nearest")
@@ -156,4 +158,4 @@ def simulate_scene(
     )
 
 
-__all__ = ["MAX_PERFORMERS", "SCENARIOS", "SEG", "simulate_scene"]
+__all__ = ["MAX_PERFORMERS", "SCENARIOS", "simulate_scene"]

@@ -40,6 +40,13 @@ SEGMENTS = (
     "r_foot",
 )
 SEG = {name: i for i, name in enumerate(SEGMENTS)}
+
+
+def segment_kind(segment: str) -> str:
+    """``"l_thigh"`` -> ``"thigh"``; ``"pelvis"`` -> ``"pelvis"`` (the side-free kind)."""
+    return segment.split("_", 1)[1] if "_" in segment else segment
+
+
 PARENT = np.array([-1, 0, 1, 1, 3, 4, 1, 6, 7, 0, 9, 10, 0, 12, 13], dtype=np.intp)
 
 # joint position of each segment in its parent's rest frame (units of H; left side y > 0)
@@ -163,10 +170,6 @@ class Body:
     markers: np.ndarray  # (markers, 3) mm, in the own segment's frame
     contacts: np.ndarray  # (contacts, 3) mm
     contact_segments: np.ndarray  # (contacts,)
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return MARKER_NAMES
 
 
 def make_body(

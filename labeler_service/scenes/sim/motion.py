@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from labeler_service.scenes.sim.body import SEG, SEGMENTS
+from labeler_service.scenes.sim.body import SEG, SEGMENTS, segment_kind
 
 #: Horizontal clearance between neighbours on the start circle (mm).
 START_SPACING = 1300.0
@@ -97,15 +97,11 @@ _LIMITS = {
 }
 
 
-def _kind(seg: str) -> str:
-    return seg.split("_", 1)[1] if "_" in seg else seg
-
-
 def _fidget(
     rng: np.random.Generator, n: int, rate: float, scale: np.ndarray, hz: float = 0.7
 ) -> np.ndarray:
     """Low-pass joint-angle noise (deg) with the :data:`_FIDGET` s.d. times ``scale`` (F,)."""
-    amp = np.array([_FIDGET[_kind(s)] for s in SEGMENTS])  # (S, 3)
+    amp = np.array([_FIDGET[segment_kind(s)] for s in SEGMENTS])  # (S, 3)
     noise = smooth_noise(rng, n, rate, (len(SEGMENTS), 3), hz=hz)
     return noise * amp[None] * scale[:, None, None]
 
@@ -113,8 +109,8 @@ def _fidget(
 def _clip(a: np.ndarray, soft: float = 3.0) -> np.ndarray:
     """Joint limits as a *smooth* clamp (softplus of width ``soft`` deg at both bounds), so a
     limited angle never has a velocity jump."""
-    lo = np.array([[lim[0] for lim in _LIMITS[_kind(s)]] for s in SEGMENTS], dtype=float)
-    hi = np.array([[lim[1] for lim in _LIMITS[_kind(s)]] for s in SEGMENTS], dtype=float)
+    lo = np.array([[lim[0] for lim in _LIMITS[segment_kind(s)]] for s in SEGMENTS], dtype=float)
+    hi = np.array([[lim[1] for lim in _LIMITS[segment_kind(s)]] for s in SEGMENTS], dtype=float)
     fixed = lo == hi
     above = lo + soft * np.logaddexp(0.0, (a - lo) / soft)
     out = hi - soft * np.logaddexp(0.0, (hi - above) / soft)
@@ -131,7 +127,6 @@ def _gait(phase: np.ndarray, amp: np.ndarray) -> np.ndarray:
         a[:, SEG[f"{side}_foot"], 0] = amp * 8.0 * np.sin(ph - math.pi / 2)
         a[:, SEG[f"{side}_upperarm"], 0] = amp * 16.0 * np.sin(ph + math.pi)
         a[:, SEG[f"{side}_forearm"], 0] = amp * 8.0 * (1.0 + np.sin(ph + math.pi))
-    a[:, SEG["pelvis"], 2] = 0.0
     a[:, SEG["torso"], 2] = -amp * 5.0 * np.sin(phase)
     a[:, SEG["pelvis"], 1] = amp * 3.0 * np.sin(2 * phase)
     return a
@@ -311,11 +306,10 @@ def plan_motion(
     if scenario == "walk":
         return [_walk(k, n, heights[k], t, rate, rng, layout) for k in range(n)]
     if scenario == "hug":
-        f = len(t)
         direction = rng.normal(size=2)
         direction /= np.linalg.norm(direction)
         sway = 45.0 * np.sin(2 * math.pi * 0.35 * t + rng.uniform(0, 6.3))[:, None] * direction
-        bend = 5.0 * np.sin(2 * math.pi * 0.35 * t + rng.uniform(0, 6.3)) + np.zeros(f)
+        bend = 5.0 * np.sin(2 * math.pi * 0.35 * t + rng.uniform(0, 6.3))
         return [_hug(k, n, heights[k], t, rate, rng, layout, (sway, bend)) for k in range(n)]
     if scenario == "pile":
         modes = rng.choice(["kneel", "crouch", "lie"], size=n, p=[0.4, 0.3, 0.3])
