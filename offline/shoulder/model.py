@@ -8,7 +8,7 @@ steps for one ``n_segments``; :class:`MG03Baseline` is the comparison of Table 3
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from offline.shoulder.joints import (
 )
 from offline.shoulder.markers import select_markers
 from offline.shoulder.rotations import triangle_features
-from offline.shoulder.segmentation import RestartKMeans
+from offline.shoulder.segmentation import RestartKMeans, reduce_features
 from offline.shoulder.skinning import (
     boundary_candidates,
     core_members,
@@ -54,10 +54,18 @@ class Surface:
     kept: np.ndarray  # indices of the near-rigid faces that are clustered
     features: np.ndarray  # (len(kept), 3F)
     neighbors: list
+    _reduced: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def clustered_faces(self) -> np.ndarray:
         return self.faces[self.kept]
+
+    def reduced_features(self, keep_variance: float) -> np.ndarray:
+        """``reduce_features(features, keep_variance)``, computed once per ``keep_variance``
+        (every ``k`` clusters the same features)."""
+        if keep_variance not in self._reduced:
+            self._reduced[keep_variance] = reduce_features(self.features, keep_variance)
+        return self._reduced[keep_variance]
 
 
 def prepare_surface(
@@ -153,7 +161,7 @@ class ShoulderSkeleton:
             n_restarts=self.n_restarts,
             keep_variance=self.keep_variance,
             random_state=self.random_state,
-        ).fit(surf.features, progress=progress)
+        ).fit(surf.features, progress, surf.reduced_features(self.keep_variance))
         tri = km.labels_
         S = int(tri.max()) + 1
         rest, faces = surf.rest, surf.clustered_faces

@@ -134,8 +134,17 @@ class RestartKMeans:
         self.keep_variance = keep_variance
         self.random_state = random_state
 
-    def fit(self, X: np.ndarray, progress: Callable[[int], None] | None = None) -> RestartKMeans:
-        """Clusters the rows of ``X`` (n, D). ``progress(n_done)`` is called after each batch."""
+    def fit(
+        self,
+        X: np.ndarray,
+        progress: Callable[[int], None] | None = None,
+        reduced: np.ndarray | None = None,
+    ) -> RestartKMeans:
+        """Clusters the rows of ``X`` (n, D). ``progress(n_done)`` is called after each batch.
+
+        ``reduced``: ``reduce_features(X, keep_variance)`` when the caller already has it (the
+        same features clustered for several ``k``); computed here otherwise.
+        """
         X = np.asarray(X, dtype=np.float64)
         if X.ndim != 2:
             raise ValueError(f"X must be (samples, features), got shape {X.shape}")
@@ -149,7 +158,12 @@ class RestartKMeans:
         if not 0.0 < self.keep_variance <= 1.0:
             raise ValueError(f"keep_variance must be in (0, 1], got {self.keep_variance}")
         rng = _as_rng(self.random_state)
-        Z = reduce_features(X, self.keep_variance)
+        if reduced is None:
+            Z = reduce_features(X, self.keep_variance)
+        else:
+            Z = np.asarray(reduced, dtype=np.float64)
+            if Z.ndim != 2 or Z.shape[0] != n:
+                raise ValueError(f"reduced must be ({n}, d), got shape {Z.shape}")
         best_labels, best_inertia = None, np.inf
         inertias = np.empty(self.n_restarts)
         n_iter = 0

@@ -76,3 +76,15 @@ def test_validation(rng):
         RestartKMeans(2).fit(np.zeros(5))
     with pytest.raises(ValueError, match="keep_variance"):
         RestartKMeans(2, keep_variance=0.0).fit(X)
+
+
+def test_precomputed_reduction_gives_the_same_fit(rng):
+    X, _ = _blobs(rng, k=4, n=15, d=40, spread=1.0)
+    Z = reduce_features(X, 0.999)
+    own = RestartKMeans(4, n_restarts=30, keep_variance=0.999, random_state=2).fit(X)
+    given = RestartKMeans(4, n_restarts=30, keep_variance=0.999, random_state=2).fit(X, reduced=Z)
+    np.testing.assert_array_equal(own.labels_, given.labels_)
+    np.testing.assert_array_equal(own.inertias_, given.inertias_)
+    assert own.inertia_ == given.inertia_
+    with pytest.raises(ValueError, match="reduced"):
+        RestartKMeans(4).fit(X, reduced=Z[:-1])
