@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import sys
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
+from _common import emit
 
 from labeler_service.capture import Capture, read_capture
 from labeler_service.evaluate import WARMUP_FRAMES
@@ -159,12 +159,9 @@ def main(argv: list[str] | None = None) -> int:
         "warmup_s": round(warm_s, 3),
         "scene_s": round(t_sim, 3),
     }
-    line = json.dumps(result)
     if sys.stderr.isatty():
-        print(file=sys.stderr)
-    print(line)
-    if args.out:
-        Path(args.out).write_text(line + "\n")
+        print(file=sys.stderr)  # end the progress line before the JSON
+    emit(result, args.out)
     return 0
 
 

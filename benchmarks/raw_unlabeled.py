@@ -18,12 +18,11 @@ marker was re-acquired after an occlusion: the expected case).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from _common import emit
 
 from labeler_service.capture import read_capture
 from labeler_service.data import real_file
@@ -104,10 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         "ms_per_frame_p50": round(float(np.median(t)), 4),
         "ms_per_frame_p99": round(float(np.percentile(t, 99)), 4),
     }
-    line = json.dumps(result)
-    print(line)
-    if args.out:
-        Path(args.out).write_text(line + "\n")
+    emit(result, args.out)
     return 0
 
 

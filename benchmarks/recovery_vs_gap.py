@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from _common import emit
+
 from labeler_service.capture import Capture, read_capture
 from labeler_service.evaluate import score_labeler
 from labeler_service.labeler import Labeler
@@ -106,10 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         plot(rows, args.plot, f"recovery vs gap length ({Path(source).name}, {args.gaps} gaps)")
         result["plot"] = args.plot
-    line = json.dumps(result)
-    print(line)
-    if args.out:
-        Path(args.out).write_text(line + "\n")
+    emit(result, args.out)
     return 0
 
 
