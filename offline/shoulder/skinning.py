@@ -73,12 +73,10 @@ def hard_labels(
     m = rest.shape[0]
     votes = vote_labels(faces, tri_labels, m, k)
     labels = np.where(votes.sum(axis=1) > 0, np.argmax(votes, axis=1), -1)
-    members = [np.flatnonzero(labels == s) for s in range(k)]
-    for s in range(k):  # a cluster that won no marker keeps the markers of its triangles
-        if members[s].size < 3:
-            members[s] = np.unique(faces[tri_labels == s])
     if (labels < 0).any():
-        R, t = segment_fits(positions, rest, members)
+        # a cluster that won fewer than 3 markers moves with the markers of its triangles (a
+        # marker labelled s is on one of them: its votes for s are its largest, so > 0)
+        R, t = segment_fits(positions, rest, segment_members(labels, k, faces, tri_labels))
         e = rigid_residuals(positions, rest, R, t)
         free = labels < 0
         labels[free] = np.argmin(e[free], axis=1)
