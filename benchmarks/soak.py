@@ -9,7 +9,8 @@ JSON object (last line):
 - ``rss_mb_end``: median RSS over the last minute; ``rss_growth_pct`` their relative change
   (acceptance: within 5 %);
 - ``errors``: service drops that mean a fault (``labeler_error``, ``internal``, ``send_error``,
-  protocol rejects) - acceptance 0; ``queue_full`` (falling behind) is reported separately;
+  protocol rejects) - acceptance 0; ``queue_full`` and ``rx_overflow`` (falling behind) are
+  reported separately;
 - frames sent/received and latency percentiles.
 
     .venv/bin/python benchmarks/soak.py --minutes 10 --subjects 10 --rate 360
@@ -32,7 +33,7 @@ from labeler_service.transports.broker import LocalBroker
 
 #: Service drop reasons that are not faults (falling behind, sender-side seq trouble); every
 #: other reason counts in ``errors``.
-NOT_FAULTS = ("queue_full", "duplicate", "late")
+NOT_FAULTS = ("queue_full", "rx_overflow", "duplicate", "late")
 
 
 def main() -> int:

@@ -27,7 +27,8 @@ SERVICE_DROP_REASONS = (
     "init_overflow",  # more init frames than max_init_frames
     "labeler_error",  # the labeler raised on this frame (logged; state kept)
     "output_oversize",  # labeled frame larger than a datagram (not sent on UDP)
-    "send_error",  # a transport failed to send (e.g. broker down)
+    "send_error",  # a transport failed to send (e.g. broker down; UDP: per refused datagram)
+    "rx_overflow",  # a transport's receive queue was full: the oldest raw message was discarded
     "internal",  # an unexpected error while handling one message (logged with traceback)
 )
 

@@ -7,8 +7,10 @@
                                                                                         v
     transport.send(stream, "labeled" | "model" | "status")  <---- encode_labeled ------+
 
-Tasks are named (``ingest-udp``, ``stream-<name>``, ``model-repeat``, ``metrics-log``); leaving
-the ``async with`` publishes ``offline`` status, cancels every task, then awaits them. Kernels
+Tasks are named (``ingest-udp``, ``stream-<name>``, ``model-repeat``, ``transport-drops``,
+``metrics-log``); leaving the ``async with`` publishes ``offline`` status, cancels every task,
+then awaits them. What the transports drop themselves (receive-queue overflow, datagrams the
+kernel refused) is added to the drop metric once a second. Kernels
 are compiled on a synthetic scene before the status turns ``online`` and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
 per stream (the first unlabeled frame, which trains the labeler), which runs in a worker thread
@@ -121,6 +123,7 @@ class Server:
         self.streams: dict[str, StreamState] = {}
         self._queues: dict[str, DropOldestQueue[tuple[FrameMsg, int]]] = {}
         self._published_model: dict[str, int] = {}
+        self._transport_drops: dict[tuple[str, str, str], int] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
         self._tasks: list[asyncio.Task] = []
         self._stack: AsyncExitStack | None = None
@@ -153,6 +156,7 @@ class Server:
             for t in self.transports:
                 self._spawn(self._ingest(t), f"ingest-{t.name}")
             self._spawn(self._model_repeat(), "model-repeat")
+            self._spawn(self._transport_drops_loop(), "transport-drops")
             self._spawn(self._log_loop(), "metrics-log")
             if self.settings.metrics_port is not None:
                 self.metrics_port = self.metrics.serve_http(
@@ -182,6 +186,7 @@ class Server:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        self._count_transport_drops()
         for ex in self._executors.values():
             ex.shutdown(wait=True, cancel_futures=True)
         self._executors.clear()
@@ -344,6 +349,24 @@ class Server:
             for state in list(self.streams.values()):
                 if state.model_payload is not None:
                     await self._publish_model(state)
+
+    def _count_transport_drops(self) -> None:
+        """Adds what each transport dropped since the last call to ``mocap_dropped_total``."""
+        for t in self.transports or ():
+            counts = getattr(t, "drop_counts", None)
+            if counts is None:
+                continue
+            for (stream, reason), n in counts().items():
+                key = (t.name, stream, reason)
+                delta = n - self._transport_drops.get(key, 0)
+                if delta > 0:
+                    self._transport_drops[key] = n
+                    self.metrics.drop(reason, stream, delta)
+
+    async def _transport_drops_loop(self) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            self._count_transport_drops()
 
     async def _log_loop(self) -> None:
         while True:

@@ -8,6 +8,9 @@ A transport is an async context manager (it owns sockets and tasks) with
   (``labeled``, ``model``, ``status``) for ``stream``. ``retain=True`` keeps the latest payload
   per (stream, kind) and replays it to late subscribers (MQTT retained flag; UDP on
   registration) and after reconnects.
+* optionally ``drop_counts()`` — cumulative counts of what the transport dropped itself, by
+  ``(stream, reason)`` (e.g. ``("", "rx_overflow")``); the server adds the increments to
+  ``mocap_dropped_total`` once a second (no per-frame cost).
 
 :class:`~labeler_service.transports.memory.MemoryTransport` implements it without sockets for
 pipeline and server tests (after httpx ``MockTransport``).

@@ -42,6 +42,10 @@ class MemoryTransport:
     def messages(self) -> AsyncIterator[Incoming]:
         return iterate_queue(self._in)
 
+    def drop_counts(self) -> dict[tuple[str, str], int]:
+        """Injected messages the full inbox discarded (``rx_overflow``), as UDP and MQTT do."""
+        return {("", "rx_overflow"): self._in.dropped}
+
     async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
         if self.fail_sends:
             raise ConnectionError("memory transport: sends disabled")

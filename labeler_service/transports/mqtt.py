@@ -96,7 +96,7 @@ class ReconnectingClient:
 
     ``on_message(message, recv_ns)`` is called for every message; ``on_connect(client)`` after
     every (re)connect and subscription (re-publish retained state there). ``publish`` returns
-    False (and counts ``dropped``) while disconnected instead of waiting.
+    False while disconnected instead of waiting (the caller counts it).
     """
 
     def __init__(
@@ -118,7 +118,6 @@ class ReconnectingClient:
         self.connected = asyncio.Event()
         self.connects = 0
         self.failures = 0
-        self.dropped = 0
 
     def _make(self) -> aiomqtt.Client:
         s = self.settings
@@ -178,7 +177,7 @@ class ReconnectingClient:
             backoff = min(backoff * 2, self.settings.reconnect_max_s)
 
     async def publish(self, t: str, payload: bytes, retain: bool = False, qos: int = 0) -> bool:
-        """Publishes one message; False (counted in ``dropped``) when it cannot go out.
+        """Publishes one message; False when it cannot go out.
 
         QoS 0 is fire-and-forget: handed to paho's outgoing queue without waiting for the
         write (aiomqtt would wait for it, up to the timeout, on a connection that just died:
@@ -188,23 +187,17 @@ class ReconnectingClient:
         """
         client = self.client
         if client is None:
-            self.dropped += 1
             return False
         paho = getattr(client, "_client", None)
         backlog = getattr(paho, "_out_packet", None)
         if qos == 0 and paho is not None and backlog is not None:
             if len(backlog) >= MAX_OUTGOING:
-                self.dropped += 1
                 return False
             info = paho.publish(t, payload, qos=0, retain=retain)
-            if info.rc != 0:
-                self.dropped += 1
-                return False
-            return True
+            return info.rc == 0
         try:
             await client.publish(t, payload, qos=qos, retain=retain, timeout=1.0)
         except aiomqtt.MqttError:
-            self.dropped += 1
             return False
         return True
 
@@ -254,9 +247,12 @@ class MqttTransport:
 
         return republish
 
-    @property
-    def received_dropped(self) -> int:
-        return self._queue.dropped
+    def drop_counts(self) -> dict[tuple[str, str], int]:
+        """Cumulative drops inside the transport by ``(stream, reason)``: ``rx_overflow`` (the
+        receive queue was full, the oldest message went). A failed labeled publish raises
+        (the server counts ``send_error``); model and status are retained here and re-published
+        after a reconnect, so a failed publish of those loses nothing."""
+        return {("", "rx_overflow"): self._queue.dropped}
 
     async def wait_connected(self, timeout: float) -> bool:
         """True when every stream's connection is up within ``timeout`` seconds."""

@@ -8,7 +8,9 @@ server repeats the model message every second anyway.
 
 A datagram is at most 65 507 bytes (:data:`~labeler_service.config.UDP_MAX_PAYLOAD`); larger
 outgoing payloads raise :class:`~labeler_service.errors.ProtocolError` (``oversize``) and are
-counted by the caller.
+counted by the caller. A datagram the kernel refuses (send buffer full, unreachable) is counted
+per stream and destination; :meth:`UdpTransport.drop_counts` hands these and the receive
+queue's overflow to the server's metrics.
 """
 
 from __future__ import annotations
@@ -44,8 +46,6 @@ class _Socket:
     def __init__(self, queue: DropOldestQueue[Incoming], name: str, buffer: int) -> None:
         self.queue = queue
         self.name = name
-        self.errors = 0
-        self.send_errors = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
         _tune(self.sock, buffer)
@@ -64,8 +64,8 @@ class _Socket:
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:
-                # ICMP port unreachable from a vanished peer and the like: counted, not fatal
-                self.errors += 1
+                # ICMP port unreachable after a send to a vanished peer (connected sockets):
+                # an error report, not a lost datagram; not fatal
                 return
             put(Incoming(data, time.time_ns(), self.name, addr))
 
@@ -75,8 +75,7 @@ class _Socket:
                 self.sock.send(payload)
             else:
                 self.sock.sendto(payload, addr)
-        except OSError:  # buffer full, unreachable: UDP is best effort, count it
-            self.send_errors += 1
+        except OSError:  # buffer full, unreachable: UDP is best effort (callers count it)
             return False
         return True
 
@@ -108,10 +107,7 @@ class UdpTransport:
         # subscriber address -> (stream or "*", last renewal, monotonic s)
         self.subscribers: dict[Addr, tuple[str, float]] = {}
         self.retained: dict[tuple[str, str], bytes] = {}
-
-    @property
-    def send_errors(self) -> int:
-        return self._sock.send_errors if self._sock is not None else 0
+        self._send_failed: dict[str, int] = {}  # stream -> datagrams the kernel refused
 
     @property
     def address(self) -> Addr:
@@ -120,9 +116,13 @@ class UdpTransport:
             raise RuntimeError("UdpTransport is not open")
         return self._sock.sock.getsockname()[:2]
 
-    @property
-    def received_dropped(self) -> int:
-        return self._queue.dropped
+    def drop_counts(self) -> dict[tuple[str, str], int]:
+        """Cumulative drops inside the transport by ``(stream, reason)``: ``rx_overflow`` (the
+        receive queue was full, the oldest datagram went) and ``send_error`` (datagrams the
+        kernel refused, per destination)."""
+        out = {("", "rx_overflow"): self._queue.dropped}
+        out.update({(s, "send_error"): n for s, n in self._send_failed.items()})
+        return out
 
     async def __aenter__(self) -> UdpTransport:
         sock = _Socket(self._queue, self.name, self.settings.socket_buffer_bytes)
@@ -158,7 +158,7 @@ class UdpTransport:
             log.info("udp: subscriber %s:%d for stream %s", addr[0], addr[1], stream)
             for (s, _), payload in list(self.retained.items()):
                 if stream in ("*", s):
-                    self._sendto(payload, addr)
+                    self._sendto(s, payload, addr)
 
     def _expire(self) -> None:
         cutoff = time.monotonic() - self.settings.subscriber_ttl_s
@@ -167,9 +167,10 @@ class UdpTransport:
                 del self.subscribers[addr]
                 log.info("udp: subscriber %s:%d expired", addr[0], addr[1])
 
-    def _sendto(self, payload: bytes, addr: Addr) -> None:
+    def _sendto(self, stream: str, payload: bytes, addr: Addr) -> None:
         assert self._sock is not None
-        self._sock.sendto(payload, addr)
+        if not self._sock.sendto(payload, addr):
+            self._send_failed[stream] = self._send_failed.get(stream, 0) + 1
 
     async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
         if self._sock is None:
@@ -182,12 +183,12 @@ class UdpTransport:
         if retain:
             self.retained[(stream, kind)] = payload
         for addr in self._static:
-            self._sendto(payload, addr)
+            self._sendto(stream, payload, addr)
         if kind == "model":
             self._expire()  # once a second is often enough
         for addr, (want, _) in self.subscribers.items():
             if want == "*" or want == stream:
-                self._sendto(payload, addr)
+                self._sendto(stream, payload, addr)
 
 
 class UdpClient:
@@ -226,12 +227,8 @@ class UdpClient:
             self._sock.close()
             self._sock = None
 
-    @property
-    def send_errors(self) -> int:
-        return self._sock.send_errors if self._sock is not None else 0
-
     def send(self, payload: bytes) -> bool:
-        """Sends one datagram; False when the kernel refused it (counted in ``send_errors``)."""
+        """Sends one datagram; False when the kernel refused it (the caller counts it)."""
         if self._sock is None:
             raise RuntimeError("UdpClient is not open")
         if len(payload) > UDP_MAX_PAYLOAD:

@@ -353,3 +353,17 @@ def test_prometheus_endpoint_serves_the_counters(rng):
     assert 'mocap_dropped_total{reason="not_msgpack",stream=""} 1.0' in text
     assert "mocap_labeling_seconds_bucket" in text and "mocap_ready 1.0" in text
     assert "[default] in=30 out=20" in line and "not_msgpack=1" in line
+
+
+def test_a_full_transport_inbox_is_counted_as_rx_overflow():
+    async def go():
+        mem = MemoryTransport(maxsize=4)
+        async with Server(_settings(warmup=False), [mem]) as srv:
+            for _ in range(10):  # no yield: the ingest task cannot drain in between
+                mem.inject(b"")
+            await asyncio.sleep(0.05)
+        return srv.metrics
+
+    metrics = run(go())
+    assert metrics.drops("rx_overflow") == 6
+    assert metrics.drops("not_msgpack") == 4  # the newest four reached the decoder

@@ -162,3 +162,15 @@ def test_serve_command_rejects_bad_settings_with_a_clear_message(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 2
     assert "queue_size" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_datagrams_the_kernel_refuses_are_counted_as_send_error():
+    # a broadcast destination without SO_BROADCAST: every sendto fails (EACCES)
+    async def go():
+        s = _settings(udp={"port": 0, "publish_to": ["255.255.255.255:9"]}, warmup=False)
+        async with Server(s) as srv:
+            pass
+        return srv.metrics
+
+    metrics = run(go())
+    assert metrics.drops("send_error", stream="default") == 3  # starting, online, offline
