@@ -26,7 +26,8 @@ frames (interpolating their rotation across long gaps makes them outliers).
 
 Rest pose: the frame where the most markers are visible (the first such frame); a marker missing
 there takes its sample from the nearest frame in time where it is visible, carried to the rest
-frame by the rigid motion (Kabsch) of its six nearest markers visible in both frames.
+frame by the rigid motion (the labeler's Kabsch kernel, :func:`labeler_service.kernels.rigid.
+_kabsch`) of its six nearest markers visible in both frames.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from labeler_service.capture import split_label
 from labeler_service.errors import CaptureFormatError, ModelError
+from labeler_service.kernels.rigid import _kabsch
 
 
 def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:
@@ -59,12 +61,9 @@ def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:
         both = both[both != m]
         if both.size >= 3:
             near = both[np.argsort(np.linalg.norm(pos[g, both] - pos[g, m], axis=1))[:6]]
-            a, b = pos[g, near], pos[frame, near]
-            ca, cb = a.mean(axis=0), b.mean(axis=0)
-            U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-            d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-            R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-            rest[m] = R @ (pos[g, m] - ca) + cb
+            R, t = np.empty((3, 3)), np.empty(3)
+            _kabsch(pos[g, near], pos[frame, near], near.size, R, t)
+            rest[m] = R @ pos[g, m] + t
         else:
             rest[m] = pos[g, m]
     return frame, rest
