@@ -26,9 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.commands._pipeline import percentiles, run_pipeline, train_model_file
+from labeler_service.commands._pipeline import run_pipeline, train_model_file
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
 from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.subscribe import percentiles
 from labeler_service.transports.broker import LocalBroker
 
 #: Service drop reasons that are not faults (falling behind, sender-side seq trouble); every

@@ -34,6 +34,14 @@ from labeler_service.transports.url import Endpoint, parse_endpoint
 log = logging.getLogger(__name__)
 
 
+def percentiles(values, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
+    """``{"p50": ..., "p99": ..., "p99.9": ...}`` of ``values`` (NaN for none)."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        return {f"p{q:g}": float("nan") for q in qs}
+    return {f"p{q:g}": float(x) for q, x in zip(qs, np.percentile(v, qs), strict=True)}
+
+
 @dataclass(slots=True)
 class Received:
     """One decoded labeled frame with the marker names of its model."""
@@ -87,10 +95,7 @@ class SubscriberStats:
             self.latencies_ms.append(lat)
 
     def latency_percentiles(self, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
-        if not self.latencies_ms:
-            return {f"p{q:g}": float("nan") for q in qs}
-        v = np.percentile(np.asarray(self.latencies_ms), qs)
-        return {f"p{q:g}": float(x) for q, x in zip(qs, v, strict=True)}
+        return percentiles(self.latencies_ms, qs)
 
     def summary_line(self, window_frames: int, window_s: float) -> str:
         lat = self.latency_percentiles((50.0, 99.0))

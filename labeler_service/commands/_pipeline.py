@@ -19,8 +19,6 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from labeler_service.errors import MocapError
 from labeler_service.scenes.corrupt import StreamFrames
 
@@ -230,10 +228,3 @@ async def run_pipeline(
         res.drops_service = service_drops(res.service)
     res.service_returncode = svc.returncode
     return res
-
-
-def percentiles(values, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
-    v = np.asarray(values, dtype=np.float64)
-    if v.size == 0:
-        return {f"p{q:g}": float("nan") for q in qs}
-    return {f"p{q:g}": float(x) for q, x in zip(qs, np.percentile(v, qs), strict=True)}

@@ -54,7 +54,8 @@ def _scene(args):
 async def bench(args, workdir: Path) -> dict:
     import numpy as np
 
-    from labeler_service.commands._pipeline import percentiles, run_pipeline, train_model_file
+    from labeler_service.commands._pipeline import run_pipeline, train_model_file
+    from labeler_service.subscribe import percentiles
     from labeler_service.transports.broker import LocalBroker
 
     init = args.init_frames if args.init_frames is not None else (

@@ -186,7 +186,7 @@ async def _run_pipeline(args, frames, workdir: Path):
 def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import write_capture
     from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-    from labeler_service.subscribe import Recorder
+    from labeler_service.subscribe import Recorder, percentiles
 
     t_start = time.perf_counter()
     cap, what = _scene(args.seed, args.frames)
@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
     )
     proc = np.array([r.msg.proc_us / 1e3 for r in res.received])
     expected = res.sent - args.init_frames
-    q = lambda v, p: float(np.percentile(v, p)) if v.size else float("nan")  # noqa: E731
+    lat_q, steady_q, proc_q = percentiles(lat), percentiles(steady), percentiles(proc)
     report = {
         "scene": what,
         "subjects": len(cap.subjects),
@@ -230,13 +230,13 @@ def run(args: argparse.Namespace) -> int:
         "frames_received": len(res.received),
         "frames_lost": int(expected - len(res.received)),
         "service_drops": res.drops_service,
-        "latency_ms_p50": q(lat, 50),
-        "latency_ms_p99": q(lat, 99),
-        "latency_ms_p99_9": q(lat, 99.9),
-        "steady_latency_ms_p50": q(steady, 50),
-        "steady_latency_ms_p99": q(steady, 99),
-        "labeling_ms_p50": q(proc, 50),
-        "labeling_ms_p99": q(proc, 99),
+        "latency_ms_p50": lat_q["p50"],
+        "latency_ms_p99": lat_q["p99"],
+        "latency_ms_p99_9": lat_q["p99.9"],
+        "steady_latency_ms_p50": steady_q["p50"],
+        "steady_latency_ms_p99": steady_q["p99"],
+        "labeling_ms_p50": proc_q["p50"],
+        "labeling_ms_p99": proc_q["p99"],
         "seconds": time.perf_counter() - t_start,
     }
     rec = Recorder()
