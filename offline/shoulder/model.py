@@ -43,6 +43,8 @@ from offline.shoulder.synthesis import (
 )
 from offline.shoulder.triangles import auto_faces, marker_neighbors, rest_pose, rigid_faces
 
+Pose = tuple[np.ndarray, np.ndarray]  # bone transforms R (F, S, 3, 3), t (F, S, 3)
+
 
 @dataclass(frozen=True)
 class Surface:
@@ -271,7 +273,12 @@ class ShoulderSkeleton:
 
     def score(self, positions: np.ndarray, marker_set: str = "full") -> ErrorStats:
         """Synthesis error (Table 2) of a capture with the same markers as the training one."""
-        return error_stats(self.synthesize(positions, marker_set), positions)
+        return self.score_pose(positions, *self.pose(positions, marker_set))
+
+    def score_pose(self, positions: np.ndarray, R: np.ndarray, t: np.ndarray) -> ErrorStats:
+        """:meth:`score` for a pose ``(R, t)`` already estimated by :meth:`pose` from
+        ``positions`` (callers that need the pose too estimate it once)."""
+        return error_stats(skin(self.surface_.rest, self.weights_, R, t), positions)
 
     def joint_trajectories(self, R: np.ndarray, t: np.ndarray) -> dict[int, np.ndarray]:
         """World position ``(F, 3)`` of each joint (keyed by child segment) for a pose."""
@@ -287,27 +294,35 @@ class MG03Baseline:
 
     ``skeleton`` is a fitted 3-segment :class:`ShoulderSkeleton`. Fitted attribute:
     ``weights_`` (M, 4) over (its 3 bones, the halfway bone), from :func:`fit_weights_nnls`.
+    Each method takes an optional ``pose``: the skeleton's ``(R, t)`` for these positions and
+    marker set when the caller already has it (``skeleton.pose(positions, marker_set)``).
     """
 
     def __init__(self, skeleton: ShoulderSkeleton, frame_step: int = 4) -> None:
         self.skeleton = skeleton
         self.frame_step = frame_step
 
-    def _bones(self, positions: np.ndarray, marker_set: str) -> tuple[np.ndarray, np.ndarray]:
+    def _bones(
+        self, positions: np.ndarray, marker_set: str, pose: Pose | None
+    ) -> tuple[np.ndarray, np.ndarray]:
         sk = self.skeleton
-        R, t = sk.pose(positions, marker_set)
+        R, t = sk.pose(positions, marker_set) if pose is None else pose
         first = sk.chain_[1]
         return mg03_bones(R, t, sk.chain_, sk.joints_[first])
 
-    def fit(self, positions: np.ndarray) -> MG03Baseline:
+    def fit(self, positions: np.ndarray, pose: Pose | None = None) -> MG03Baseline:
         pos = np.asarray(positions, dtype=np.float64)
-        R, t = self._bones(pos, "full")
+        R, t = self._bones(pos, "full", pose)
         self.weights_ = fit_weights_nnls(pos, self.skeleton.surface_.rest, R, t, self.frame_step)
         return self
 
-    def synthesize(self, positions: np.ndarray, marker_set: str = "reduced") -> np.ndarray:
-        R, t = self._bones(np.asarray(positions, dtype=np.float64), marker_set)
+    def synthesize(
+        self, positions: np.ndarray, marker_set: str = "reduced", pose: Pose | None = None
+    ) -> np.ndarray:
+        R, t = self._bones(np.asarray(positions, dtype=np.float64), marker_set, pose)
         return skin(self.skeleton.surface_.rest, self.weights_, R, t)
 
-    def score(self, positions: np.ndarray, marker_set: str = "reduced") -> ErrorStats:
-        return error_stats(self.synthesize(positions, marker_set), positions)
+    def score(
+        self, positions: np.ndarray, marker_set: str = "reduced", pose: Pose | None = None
+    ) -> ErrorStats:
+        return error_stats(self.synthesize(positions, marker_set, pose), positions)

@@ -143,6 +143,7 @@ def train(cfg: TrainConfig) -> dict:
     }
     joints: dict[str, dict] = {}
     seg_info: dict[str, dict] = {}
+    k3_poses: dict[str, dict] = {}  # motion -> marker set -> k=3 pose, reused by MG03
     rng = np.random.default_rng(cfg.seed)
     with _progress(cfg.progress) as bar:
         for k in cfg.ks:
@@ -159,10 +160,13 @@ def train(cfg: TrainConfig) -> dict:
             t = time.perf_counter()
             ev = bar.add_task(f"k={k} synthesis", total=len(motions))
             for name, p in motions.items():
-                for mset in ("full", "reduced"):
-                    errors[name][mset][str(k)] = model.score(p, mset).as_dict()
+                poses = {mset: model.pose(p, mset) for mset in ("full", "reduced")}
+                for mset, (R, tt) in poses.items():
+                    errors[name][mset][str(k)] = model.score_pose(p, R, tt).as_dict()
+                if k == 3:
+                    k3_poses[name] = poses
                 if truth is not None:
-                    R, tt = model.pose(p, "full")
+                    R, tt = poses["full"]
                     je = joint_errors(
                         truth, model.labels_, model.parent_, model.joint_trajectories(R, tt), name
                     )
@@ -190,9 +194,11 @@ def train(cfg: TrainConfig) -> dict:
     mg03: dict[str, dict] = {}
     if 3 in models and models[3].n_segments_ >= 2:
         t = time.perf_counter()
-        base = MG03Baseline(models[3]).fit(pos)
+        base = MG03Baseline(models[3]).fit(pos, k3_poses[cfg.train.stem]["full"])
         for name, p in motions.items():
-            mg03[name] = {s: base.score(p, s).as_dict() for s in ("reduced", "full")}
+            mg03[name] = {
+                s: base.score(p, s, k3_poses[name][s]).as_dict() for s in ("reduced", "full")
+            }
         timings["mg03_s"] = time.perf_counter() - t
     checks = acceptance(errors, mg03)
 

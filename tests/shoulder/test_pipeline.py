@@ -70,6 +70,17 @@ def test_mg03_is_worse_than_four_segments(small):
     assert ours < base.score(test.capture.positions, "reduced").avg
 
 
+def test_a_given_pose_scores_as_the_pose_computed_inside(small):
+    _, train, test, models = small
+    m3, p_train, p_test = models[3], train.capture.positions, test.capture.positions
+    assert m3.score_pose(p_test, *m3.pose(p_test, "reduced")) == m3.score(p_test, "reduced")
+    own = MG03Baseline(m3).fit(p_train)
+    given = MG03Baseline(m3).fit(p_train, m3.pose(p_train, "full"))
+    np.testing.assert_array_equal(own.weights_, given.weights_)
+    for mset in ("reduced", "full"):
+        assert given.score(p_test, mset, m3.pose(p_test, mset)) == own.score(p_test, mset)
+
+
 def test_skeleton_file_is_self_consistent(small):
     _, train, _, models = small
     d = skeleton_dict(models[4], train.capture.labels)
