@@ -26,11 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.commands._pipeline import run_pipeline, train_model_file
-from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.commands._pipeline import (
+    run_pipeline,
+    service_settings,
+    simulated_frames,
+    train_model_file,
+)
+from labeler_service.replay import loops_to_cover
 from labeler_service.subscribe import percentiles
-from labeler_service.transports.broker import LocalBroker
 
 #: Service drop reasons that are not faults (falling behind, sender-side seq trouble); every
 #: other reason counts in ``errors``.
@@ -47,35 +50,18 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
 
-    cap = simulate_scene(performers=args.subjects, seconds=args.sim_seconds, scenario="hug",
-                         seed=args.seed, rate=args.rate)  # fmt: skip
-    frames = corrupt(cap, CorruptionSpec(protect_frames=50, seed=args.seed))
+    frames = simulated_frames(args.subjects, args.sim_seconds, args.rate, args.seed)
     n_total = int(args.minutes * 60 * frames.rate)
-    loops = max(1, int(np.ceil((n_total - 1) / max(frames.n_frames - 1, 1))))
     with tempfile.TemporaryDirectory(prefix="mocap-soak-") as d:
         work = Path(d)
         model = train_model_file(frames, 50, work / "model.json")
-        settings: dict = {
-            "metrics_port": 0, "log_interval_s": 30.0, "max_points": 4000,
-            "udp": {"enabled": args.transport == "udp", "port": 0},
-            "streams": [{"name": "soak", "model": str(model), "rate": frames.rate}],
-        }  # fmt: skip
-        broker = None
-        url = None
-        if args.transport == "mqtt":
-            broker = LocalBroker(work)
-            broker.start()
-            url = broker.url
-            settings["mqtt"] = {"enabled": True, "host": broker.host, "port": broker.port}
-        try:
-            res = asyncio.run(run_pipeline(
-                frames, settings, work, transport=args.transport, stream="soak", init_frames=5,
-                speed=1.0, loops=loops, max_frames=n_total, broker_url=url, keep_frames=False,
-                rss_every_s=5.0,
-            ))  # fmt: skip
-        finally:
-            if broker is not None:
-                broker.close()
+        stream = {"name": "soak", "model": str(model), "rate": frames.rate}
+        res = asyncio.run(run_pipeline(
+            frames, service_settings(args.transport, stream, 30.0), work,
+            transport=args.transport, stream="soak", init_frames=5, speed=1.0,
+            loops=loops_to_cover(frames.n_frames, n_total), max_frames=n_total,
+            keep_frames=False, rss_every_s=5.0,
+        ))  # fmt: skip
         log_tail = (work / "service.log").read_text()[-1500:]
     t = np.array([x[0] for x in res.rss])
     rss = np.array([x[1] for x in res.rss], dtype=np.float64) / 2**20

@@ -64,6 +64,13 @@ def frame_order(n: int, loops: int) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def loops_to_cover(n_frames: int, n_total: int) -> int:
+    """Passes of :func:`frame_order` over ``n_frames`` frames that give at least ``n_total``."""
+    if n_frames == 1:
+        return max(1, n_total)
+    return max(1, -(-(n_total - 1) // (n_frames - 1)))
+
+
 async def replay(
     frames: StreamFrames,
     send: SendFn,

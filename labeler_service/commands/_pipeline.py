@@ -3,6 +3,7 @@
 scene -> corrupt -> replay (this process) -> ``mocap-labeler serve`` (a subprocess, over a
 real transport) -> subscriber (this process). The service runs as a separate process so its
 latency includes a real socket hop each way; its Prometheus endpoint is scraped at the end.
+:func:`simulated_frames` and :func:`service_settings` are the benchmarks' common set-up.
 """
 
 from __future__ import annotations
@@ -21,6 +22,26 @@ from pathlib import Path
 
 from labeler_service.errors import MocapError
 from labeler_service.scenes.corrupt import StreamFrames
+
+
+def simulated_frames(
+    subjects: int, seconds: float, rate: float, seed: int, scenario: str = "hug"
+) -> StreamFrames:
+    """A simulated scene, shuffled, its first 50 frames kept whole (the training window)."""
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(performers=subjects, seconds=seconds, scenario=scenario, seed=seed,
+                         rate=rate)  # fmt: skip
+    return corrupt(cap, CorruptionSpec(protect_frames=50, seed=seed))
+
+
+def service_settings(transport: str, stream: dict, log_interval_s: float, **extra) -> dict:
+    """``serve`` settings for one stream (``run_pipeline`` adds the broker for MQTT)."""
+    return {
+        "metrics_port": 0, "log_interval_s": log_interval_s, "max_points": 4000,
+        "udp": {"enabled": transport == "udp", "port": 0}, "streams": [stream], **extra,
+    }  # fmt: skip
 
 
 def train_model_file(frames: StreamFrames, init_frames: int, path: Path, config=None) -> Path:
@@ -171,60 +192,72 @@ async def run_pipeline(
     progress=None,
     max_frames: int | None = None,
 ) -> PipelineResult:
-    """Runs replay -> service subprocess -> subscriber once; see the module docstring."""
+    """Runs replay -> service subprocess -> subscriber once; see the module docstring.
+
+    Over MQTT the service is pointed at ``broker_url`` (its host and port go into the
+    settings); without one, a throw-away Mosquitto (:class:`LocalBroker` in ``workdir``) runs
+    for the duration of the call.
+    """
     from labeler_service.replay import open_sender, replay
     from labeler_service.subscribe import Subscriber
+    from labeler_service.transports.broker import LocalBroker
+    from labeler_service.transports.url import parse_endpoint
 
     res = PipelineResult()
-    async with ServiceProcess(settings, workdir) as svc:
-        if transport == "udp":
-            assert svc.udp is not None
-            url = f"udp://{svc.udp[0]}:{svc.udp[1]}/{stream}"
-        else:
+    with contextlib.ExitStack() as broker:
+        if transport == "mqtt":
             if broker_url is None:
-                raise MocapError("an MQTT run needs a broker URL")
-            url = f"{broker_url}/{stream}"
-        async with Subscriber(url) as sub:
-            if not await sub.wait_status(stream, "online", 30.0):
-                raise MocapError(f"no 'online' status for stream {stream} from {url}")
-            received = res.received
+                broker_url = broker.enter_context(LocalBroker(workdir)).url
+            ep = parse_endpoint(broker_url)
+            mqtt = {**settings.get("mqtt", {}), "enabled": True, "host": ep.host, "port": ep.port}
+            settings = {**settings, "mqtt": mqtt}
+        async with ServiceProcess(settings, workdir) as svc:
+            if transport == "udp":
+                assert svc.udp is not None
+                url = f"udp://{svc.udp[0]}:{svc.udp[1]}/{stream}"
+            else:
+                url = f"{broker_url}/{stream}"
+            async with Subscriber(url) as sub:
+                if not await sub.wait_status(stream, "online", 30.0):
+                    raise MocapError(f"no 'online' status for stream {stream} from {url}")
+                received = res.received
 
-            async def consume() -> None:
-                async for r in sub.frames():
-                    if keep_frames:
-                        received.append(r)
-                    res.max_payload = max(res.max_payload, r.nbytes)
+                async def consume() -> None:
+                    async for r in sub.frames():
+                        if keep_frames:
+                            received.append(r)
+                        res.max_payload = max(res.max_payload, r.nbytes)
 
-            async def sample_rss() -> None:
-                t0 = time.monotonic()
-                while rss_every_s is not None:
-                    res.rss.append((time.monotonic() - t0, rss_bytes(svc.pid)))
-                    await asyncio.sleep(rss_every_s)
+                async def sample_rss() -> None:
+                    t0 = time.monotonic()
+                    while rss_every_s is not None:
+                        res.rss.append((time.monotonic() - t0, rss_bytes(svc.pid)))
+                        await asyncio.sleep(rss_every_s)
 
-            tasks = [asyncio.create_task(consume(), name="pipeline-consume"),
-                     asyncio.create_task(sample_rss(), name="pipeline-rss")]  # fmt: skip
-            t0 = time.perf_counter()
-            # no cyclic-GC pauses in this (measuring) process while frames flow: what it
-            # allocates per frame is acyclic and freed by reference counting
-            gc_was_enabled = gc.isenabled()
-            gc.disable()
-            try:
-                async with open_sender(url) as (send, _):
-                    st = await replay(frames, send, stream=stream, init_frames=init_frames,
-                                      speed=speed, loops=loops, on_frame=progress,
-                                      max_frames=max_frames)  # fmt: skip
-                res.sent = st.sent
-                await asyncio.sleep(0.5)  # let the last frames arrive
-            finally:
-                if gc_was_enabled:
-                    gc.enable()
-                for t in tasks:
-                    t.cancel()
-                await asyncio.gather(*tasks, return_exceptions=True)
-            res.seconds = time.perf_counter() - t0
-            res.stats = sub.stats
-        with contextlib.suppress(OSError):
-            res.service = svc.scrape()
-        res.drops_service = service_drops(res.service)
+                tasks = [asyncio.create_task(consume(), name="pipeline-consume"),
+                         asyncio.create_task(sample_rss(), name="pipeline-rss")]  # fmt: skip
+                t0 = time.perf_counter()
+                # no cyclic-GC pauses in this (measuring) process while frames flow: what it
+                # allocates per frame is acyclic and freed by reference counting
+                gc_was_enabled = gc.isenabled()
+                gc.disable()
+                try:
+                    async with open_sender(url) as (send, _):
+                        st = await replay(frames, send, stream=stream, init_frames=init_frames,
+                                          speed=speed, loops=loops, on_frame=progress,
+                                          max_frames=max_frames)  # fmt: skip
+                    res.sent = st.sent
+                    await asyncio.sleep(0.5)  # let the last frames arrive
+                finally:
+                    if gc_was_enabled:
+                        gc.enable()
+                    for t in tasks:
+                        t.cancel()
+                    await asyncio.gather(*tasks, return_exceptions=True)
+                res.seconds = time.perf_counter() - t0
+                res.stats = sub.stats
+            with contextlib.suppress(OSError):
+                res.service = svc.scrape()
+            res.drops_service = service_drops(res.service)
     res.service_returncode = svc.returncode
     return res

@@ -42,54 +42,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON (last line)")
 
 
-def _scene(args):
-    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-    from labeler_service.scenes.simulate import simulate_scene
-
-    cap = simulate_scene(performers=args.subjects, seconds=min(args.sim_seconds, args.seconds),
-                         scenario=args.scenario, seed=args.seed, rate=args.rate)  # fmt: skip
-    return corrupt(cap, CorruptionSpec(protect_frames=50, seed=args.seed))
-
-
 async def bench(args, workdir: Path) -> dict:
     import numpy as np
 
-    from labeler_service.commands._pipeline import run_pipeline, train_model_file
+    from labeler_service.commands._pipeline import (
+        run_pipeline,
+        service_settings,
+        simulated_frames,
+        train_model_file,
+    )
+    from labeler_service.replay import loops_to_cover
     from labeler_service.subscribe import percentiles
-    from labeler_service.transports.broker import LocalBroker
 
     init = args.init_frames if args.init_frames is not None else (
         5 if args.start == "model" else 50)  # fmt: skip
-    frames = _scene(args)
+    frames = simulated_frames(args.subjects, min(args.sim_seconds, args.seconds), args.rate,
+                              args.seed, args.scenario)  # fmt: skip
     n_total = int(round(args.seconds * frames.rate))
-    loops = max(1, int(np.ceil((n_total - 1) / max(frames.n_frames - 1, 1))))
     stream = "bench"
     stream_cfg: dict = {"name": stream, "rate": frames.rate}
     if args.start == "model":
         stream_cfg["model"] = str(train_model_file(frames, 50, workdir / "model.json"))
-    settings: dict = {
-        "labeler": args.labeler, "metrics_port": 0, "log_interval_s": 5.0,
-        "udp": {"enabled": args.transport == "udp", "port": 0},
-        "streams": [stream_cfg], "max_points": 4000,
-    }  # fmt: skip
-    broker = None
-    broker_url = args.broker
-    if args.transport == "mqtt":
-        if broker_url is None:
-            broker = LocalBroker(workdir)
-            broker.start()
-            broker_url = broker.url
-        from labeler_service.transports.url import parse_endpoint
-
-        ep = parse_endpoint(broker_url)
-        settings["mqtt"] = {"enabled": True, "host": ep.host, "port": ep.port}
-    try:
-        res = await run_pipeline(frames, settings, workdir, transport=args.transport,
-                                 stream=stream, init_frames=init, speed=1.0, loops=loops,
-                                 max_frames=n_total, broker_url=broker_url)  # fmt: skip
-    finally:
-        if broker is not None:
-            broker.close()
+    settings = service_settings(args.transport, stream_cfg, 5.0, labeler=args.labeler)
+    res = await run_pipeline(frames, settings, workdir, transport=args.transport, stream=stream,
+                             init_frames=init, speed=1.0,
+                             loops=loops_to_cover(frames.n_frames, n_total), max_frames=n_total,
+                             broker_url=args.broker)  # fmt: skip
     expected = res.sent - (init if args.start == "init" else 0)
     received = res.received
     lat = np.array([r.latency_ms for r in received if r.latency_ms is not None])
@@ -109,6 +87,8 @@ async def bench(args, workdir: Path) -> dict:
         "in_service": (sent - recv) / 1e6,
         "to_subscriber": (got - sent) / 1e6,
     }
+    leg_q = {k: percentiles(v[steady]) for k, v in legs.items()}
+    proc_q = percentiles(proc_ms)
     stall = int(np.count_nonzero(lat[seqs >= first_unlabeled] > 1000.0 / frames.rate))
     return {
         "transport": args.transport,
@@ -131,11 +111,11 @@ async def bench(args, workdir: Path) -> dict:
         "steady_latency_ms_p99": lat_steady["p99"],
         "steady_latency_ms_p99_9": lat_steady["p99.9"],
         "frames_over_one_period": stall,
-        "labeling_ms_p50": percentiles(proc_ms)["p50"],
-        "labeling_ms_p99": percentiles(proc_ms)["p99"],
+        "labeling_ms_p50": proc_q["p50"],
+        "labeling_ms_p99": proc_q["p99"],
         "labeled_bytes_max": res.max_payload,
-        **{f"{k}_ms_p50": percentiles(v[steady])["p50"] for k, v in legs.items()},
-        **{f"{k}_ms_p99": percentiles(v[steady])["p99"] for k, v in legs.items()},
+        **{f"{k}_ms_p50": q["p50"] for k, q in leg_q.items()},
+        **{f"{k}_ms_p99": q["p99"] for k, q in leg_q.items()},
         "service_exit_code": res.service_returncode,
     }
 

@@ -15,7 +15,7 @@ from labeler_service.capture import read_capture, write_capture
 from labeler_service.config import load_settings
 from labeler_service.errors import ConfigError
 from labeler_service.protocol import FrameMsg, decode
-from labeler_service.replay import frame_order, replay
+from labeler_service.replay import frame_order, loops_to_cover, replay
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
 from labeler_service.server import Server
 from labeler_service.subscribe import Received, Recorder
@@ -27,6 +27,14 @@ def test_frame_order_ping_pongs_without_repeating_the_turning_frame():
     assert frame_order(4, 3).tolist() == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
     assert frame_order(3, 1).tolist() == [0, 1, 2]
     assert frame_order(1, 3).tolist() == [0, 0, 0]
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 17])
+def test_loops_to_cover_is_the_fewest_passes_that_reach_the_total(n):
+    for total in range(0, 60):
+        loops = loops_to_cover(n, total)
+        assert len(frame_order(n, loops)) >= total
+        assert loops == 1 or len(frame_order(n, loops - 1)) < total
 
 
 def test_replay_sends_labeled_init_frames_then_unlabeled_with_increasing_seq(rng):
