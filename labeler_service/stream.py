@@ -31,7 +31,7 @@ import numpy as np
 from labeler_service.capture import split_label
 from labeler_service.config import ServiceSettings, StreamSettings
 from labeler_service.errors import LabelerError, ModelError
-from labeler_service.frame import FrameLabeler, LabeledFrame, MarkerState
+from labeler_service.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeler_config import LabelerConfig
 from labeler_service.protocol import FrameMsg, encode_labeled, encode_model
 
@@ -282,8 +282,7 @@ class StreamState:
         unl = out.point_labels < 0
         unlabeled = f.points[unl]
         state = out.state
-        observed = int(np.count_nonzero(state == MarkerState.OBSERVED))
-        recovered = int(np.count_nonzero(state == MarkerState.RECOVERED))
+        observed, recovered = out.n_observed, out.n_recovered
         sent = time.time_ns()
         payload = encode_labeled(
             self.name,

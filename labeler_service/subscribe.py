@@ -21,6 +21,7 @@ import numpy as np
 
 from labeler_service.config import MqttSettings
 from labeler_service.errors import ProtocolError
+from labeler_service.frame import MarkerState
 from labeler_service.protocol import (
     LabeledMsg,
     ModelMsg,
@@ -84,8 +85,8 @@ class SubscriberStats:
         if last is None or m.seq > last:
             self.last_seq[m.stream] = m.seq
         st = m.state
-        obs = int(np.count_nonzero(st == 1))
-        rec = int(np.count_nonzero(st == 2))
+        obs = int(np.count_nonzero(st == MarkerState.OBSERVED))
+        rec = int(np.count_nonzero(st == MarkerState.RECOVERED))
         self.observed += obs
         self.recovered += rec
         self.missing += len(st) - obs - rec
