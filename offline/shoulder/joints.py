@@ -52,13 +52,12 @@ def best_chain(cost: np.ndarray, root: int) -> tuple[list, float]:
     return best, best_cost
 
 
-def spanning_tree(cost: np.ndarray, root: int) -> tuple[list, np.ndarray, float]:
-    """Minimum spanning tree from ``root`` (Prim) over joint costs: ``(order, parent, cost)``
-    with ``order`` parents first and ``parent[root] = -1`` ([OBBH00])."""
+def spanning_tree(cost: np.ndarray, root: int) -> tuple[list, np.ndarray]:
+    """Minimum spanning tree from ``root`` (Prim) over joint costs: ``(order, parent)`` with
+    ``order`` parents first and ``parent[root] = -1`` ([OBBH00])."""
     k = cost.shape[0]
     parent = -np.ones(k, dtype=np.intp)
     order = [root]
-    total = 0.0
     while len(order) < k:
         best = None
         for a in order:
@@ -68,8 +67,7 @@ def spanning_tree(cost: np.ndarray, root: int) -> tuple[list, np.ndarray, float]
         assert best is not None
         parent[best[1]] = best[2]
         order.append(best[1])
-        total += best[0]
-    return order, parent, total
+    return order, parent
 
 
 def skeleton_structure(
@@ -79,8 +77,7 @@ def skeleton_structure(
     ``"tree"`` ([OBBH00], :func:`spanning_tree`). ``"auto"`` is decided by the model, which
     builds both and keeps the one that reproduces the training surface best."""
     if structure == "tree":
-        order, parent, _ = spanning_tree(cost, root)
-        return order, parent
+        return spanning_tree(cost, root)
     if structure != "chain":
         raise ValueError(f"structure must be chain or tree, got {structure!r}")
     chain, _ = best_chain(cost, root)

@@ -179,7 +179,7 @@ class ShoulderSkeleton:
         members = segment_members(labels, S, faces, tri)
         R, t = segment_fits(pos, rest, members)
         for _ in range(self.core_rounds):  # refit on the rigid core; re-select against it
-            core = core_members(rigid_residuals(pos, rest, R, t), labels, members, self.core_factor)
+            core = core_members(rigid_residuals(pos, rest, R, t), members, self.core_factor)
             R, t = segment_fits(pos, rest, core)
         # step 5a (needed by 3 and 4): skin weights from rigid-prediction likelihoods
         resid = rigid_residuals(pos, rest, R, t)

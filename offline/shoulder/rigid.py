@@ -25,18 +25,17 @@ def _rotation_from_cov(H: np.ndarray) -> np.ndarray:
 
 
 def fit_rigid(
-    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, min_points: int = 3
+    src: np.ndarray, dst: np.ndarray, min_points: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rigid ``(R (F,3,3), t (F,3))`` with ``dst[f] ~ R[f] @ src + t[f]`` in least squares.
 
-    ``src`` (M, 3) rest positions, ``dst`` (F, M, 3) with NaN for missing samples, ``weights``
-    (M,) optional. Frames with fewer than ``min_points`` visible points get NaN.
+    ``src`` (M, 3) rest positions, ``dst`` (F, M, 3) with NaN for missing samples. Frames with
+    fewer than ``min_points`` visible points get NaN.
     """
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
-    w = np.ones(src.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
     vis = ~np.isnan(dst).any(axis=2)
-    W = vis * w[None, :]  # (F, M)
+    W = vis.astype(np.float64)  # (F, M): a missing sample has zero weight
     wsum = W.sum(axis=1)
     ok = (vis.sum(axis=1) >= min_points) & (wsum > 0)
     safe = np.where(ok, wsum, 1.0)

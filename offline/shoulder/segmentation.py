@@ -28,14 +28,6 @@ from collections.abc import Callable
 import numpy as np
 
 
-def _as_rng(random_state: int | np.random.Generator | None) -> np.random.Generator:
-    return (
-        random_state
-        if isinstance(random_state, np.random.Generator)
-        else np.random.default_rng(random_state)
-    )
-
-
 def reduce_features(X: np.ndarray, keep_variance: float = 1.0 - 1e-6) -> np.ndarray:
     """Coordinates ``(n, d)`` of the rows of ``X`` in their principal subspace.
 
@@ -157,7 +149,7 @@ class RestartKMeans:
             raise ValueError("n_restarts, max_iter and batch_size must be >= 1")
         if not 0.0 < self.keep_variance <= 1.0:
             raise ValueError(f"keep_variance must be in (0, 1], got {self.keep_variance}")
-        rng = _as_rng(self.random_state)
+        rng = np.random.default_rng(self.random_state)  # a Generator is used as is
         if reduced is None:
             Z = reduce_features(X, self.keep_variance)
         else:

@@ -248,9 +248,8 @@ def _about(R: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return T
 
 
-def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """World transforms ``(F, 4, 4, 4)`` [frame, bone] of the chain (rest space -> world) and
-    the joint rotations ``(F, 3, 3, 3)`` [frame, joint] of each child relative to its parent.
+def _pose(a: dict[str, np.ndarray]) -> np.ndarray:
+    """World transforms ``(F, 4, 4, 4)`` [frame, bone] of the chain (rest space -> world).
 
     Arm: abduction about -Y (anterior) beyond the 50 deg rest pose, flexion about +X, axial
     twist about the arm axis. Girdle: 40 % of the arm elevation (scapulo-humeral rhythm) plus
@@ -284,7 +283,7 @@ def _pose(a: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     t_gird = root @ _about(r_gird, _SC)
     t_arm = t_gird @ _about(r_arm, _GH)
     t_fore = t_arm @ _about(r_elb, _ELBOW)
-    return np.stack([root, t_gird, t_arm, t_fore], axis=1), np.stack([r_gird, r_arm, r_elb], 1)
+    return np.stack([root, t_gird, t_arm, t_fore], axis=1)
 
 
 def _skin(body: ShoulderBody, T: np.ndarray) -> np.ndarray:
@@ -313,7 +312,7 @@ def simulate_motion(
     if noise_mm < 0 or gap_rate < 0 or rate <= 0:
         raise SceneError("noise_mm, gap_rate must be >= 0 and rate > 0")
     rng = np.random.default_rng(random_state)
-    T, _ = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4)
+    T = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4)
     pos = _skin(body, T)
     if noise_mm > 0:
         m = body.n_markers

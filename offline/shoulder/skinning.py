@@ -120,7 +120,7 @@ def segment_members(labels: np.ndarray, k: int, faces: np.ndarray, tri_labels: n
 
 
 def core_members(
-    residuals: np.ndarray, labels: np.ndarray, members: Sequence[np.ndarray], factor: float = 2.5
+    residuals: np.ndarray, members: Sequence[np.ndarray], factor: float = 2.5
 ) -> list[np.ndarray]:
     """The rigid core of each segment: its markers whose own rigid residual is at most
     ``factor`` times the segment's median (skin near a joint that turns only part of the way is

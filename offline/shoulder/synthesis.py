@@ -94,11 +94,6 @@ def error_stats(synth: np.ndarray, captured: np.ndarray) -> ErrorStats:
     return ErrorStats(float(d.mean()), float(d.max()), float(d.std()), int(d.size))
 
 
-def per_sample_error(synth: np.ndarray, captured: np.ndarray) -> np.ndarray:
-    """``(F, M)`` error, NaN where the captured sample is missing."""
-    return np.linalg.norm(synth - captured, axis=2)
-
-
 # ------------------------------------------------------------------------------ MG03
 def half_rotation(R_parent: np.ndarray, R_child: np.ndarray) -> np.ndarray:
     """``R_parent @ exp(log(R_parent^T R_child) / 2)`` per frame (the halfway bone's rotation)."""

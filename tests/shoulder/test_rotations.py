@@ -60,7 +60,7 @@ def test_horn_validates_shapes():
         horn_quaternions(np.full((1, 3, 3), np.nan), np.zeros((1, 1, 3, 3)))
 
 
-def test_log_map_is_half_angle_axis_and_inverts_exp(rng):
+def test_log_map_is_half_angle_axis_and_inverts_exp():
     rots = Rotation.random(100, random_state=3)
     q = _wxyz(rots)
     v = log_map(q)
