@@ -57,6 +57,22 @@ class _Recent:
         return tuple(float(x) for x in np.percentile(v, qs))
 
 
+@dataclass(slots=True)
+class _StreamOut:
+    """One stream's bound metric children for :meth:`ServiceMetrics.frame_out` (no label
+    lookups per frame)."""
+
+    frames_out: Counter
+    labeling: Histogram
+    latency: Histogram | None  # bound at the first frame with a sender stamp
+    observed: Counter
+    recovered: Counter
+    missing: Counter
+    unlabeled: Counter
+    recent_label: _Recent
+    recent_latency: _Recent
+
+
 class ServiceMetrics:
     """All counters of one server. ``snapshot()`` gives plain numbers for tests and logs."""
 
@@ -96,6 +112,7 @@ class ServiceMetrics:
         self.ready = Gauge("mocap_ready", "1 once kernels are warm and serving", registry=r)
         self._recent_label: dict[str, _Recent] = {}
         self._recent_latency: dict[str, _Recent] = {}
+        self._out: dict[str, _StreamOut] = {}
         self._children: dict[tuple, object] = {}
         self._http: tuple | None = None
         self._drops: dict[tuple[str, str], int] = {}
@@ -115,6 +132,9 @@ class ServiceMetrics:
     def frame_in(self, stream: str) -> None:
         self._child(self.frames_in, stream).inc()
 
+    def queue(self, stream: str, depth: int) -> None:
+        self._child(self.queue_depth, stream).set(depth)
+
     def gap(self, stream: str, n: int) -> None:
         self._child(self.seq_gap, stream).inc(n)
 
@@ -128,22 +148,36 @@ class ServiceMetrics:
         missing: int,
         unlabeled: int,
     ) -> None:
-        self._child(self.frames_out, stream).inc()
-        self._child(self.labeling, stream).observe(label_s)
-        recent = self._recent_label.get(stream)
-        if recent is None:
-            recent = self._recent_label[stream] = _Recent()
-        recent.add(label_s)
+        c = self._out.get(stream)
+        if c is None:
+            c = self._out[stream] = self._bind_out(stream)
+        c.frames_out.inc()
+        c.labeling.observe(label_s)
+        c.recent_label.add(label_s)
         if latency_s is not None:
-            self._child(self.latency, stream).observe(latency_s)
-            recent = self._recent_latency.get(stream)
-            if recent is None:
-                recent = self._recent_latency[stream] = _Recent()
-            recent.add(latency_s)
-        self._child(self.markers, stream, "observed").inc(observed)
-        self._child(self.markers, stream, "recovered").inc(recovered)
-        self._child(self.markers, stream, "missing").inc(missing)
-        self._child(self.unlabeled, stream).inc(unlabeled)
+            if c.latency is None:
+                c.latency = self._child(self.latency, stream)
+            c.latency.observe(latency_s)
+            c.recent_latency.add(latency_s)
+        c.observed.inc(observed)
+        c.recovered.inc(recovered)
+        c.missing.inc(missing)
+        c.unlabeled.inc(unlabeled)
+
+    def _bind_out(self, stream: str) -> _StreamOut:
+        label = self._recent_label[stream] = _Recent()
+        latency = self._recent_latency[stream] = _Recent()
+        return _StreamOut(
+            self._child(self.frames_out, stream),
+            self._child(self.labeling, stream),
+            None,
+            self._child(self.markers, stream, "observed"),
+            self._child(self.markers, stream, "recovered"),
+            self._child(self.markers, stream, "missing"),
+            self._child(self.unlabeled, stream),
+            label,
+            latency,
+        )
 
     # ---------------------------------------------------------------- reading
     def value(self, name: str, **labels: str) -> float:

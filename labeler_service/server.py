@@ -284,7 +284,7 @@ class Server:
             # first, so a backlog is dropped (counted) rather than aged in kernel buffers
             await asyncio.sleep(0)
             msg, recv_ns = await queue.get()
-            self.metrics.queue_depth.labels(state.name).set(len(queue))
+            self.metrics.queue(state.name, len(queue))
             try:
                 if executor is not None:
                     out = await loop.run_in_executor(executor, state.process, msg, recv_ns)
