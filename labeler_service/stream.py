@@ -171,14 +171,13 @@ class StreamState:
         self._index = {n: i for i, n in enumerate(self.names)}
         self.rate = float(rate)
         self.model_id += 1
-        self.model_payload = encode_model(
-            self.name, self.model_id, self.names, subject_slices(self.names), self.rate
-        )
+        subjects = subject_slices(self.names)
+        self.model_payload = encode_model(self.name, self.model_id, self.names, subjects, self.rate)
         log.info(
             "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz)",
             self.name,
             len(self.names),
-            len(subject_slices(self.names)),
+            len(subjects),
             self.rate,
         )
 
@@ -187,8 +186,8 @@ class StreamState:
             return self.rate
         t = np.array([f.t for f in self.init_frames], dtype=np.float64)
         dt = np.diff(np.sort(t))
-        dt = dt[dt > 0]
-        if dt.size == 0:
+        forward = dt > 0
+        if not forward.any():
             raise LabelerError(
                 f"stream {self.name}: cannot infer the frame rate from the init frames; set "
                 "streams[].rate"
@@ -196,10 +195,10 @@ class StreamState:
         # seq steps tell how many frames each dt spans (init frames may have gaps)
         seqs = np.array(sorted(f.seq for f in self.init_frames), dtype=np.float64)
         steps = np.diff(seqs)
-        ok = (steps > 0) & (np.diff(np.sort(t)) > 0)
+        ok = (steps > 0) & forward
         if ok.any():
-            return float(1.0 / np.median(np.diff(np.sort(t))[ok] / steps[ok]))
-        return float(1.0 / np.median(dt))
+            return float(1.0 / np.median(dt[ok] / steps[ok]))
+        return float(1.0 / np.median(dt[forward]))
 
     def start_from_init_frames(self) -> None:
         """Builds the labeler from the buffered init frames (mode 2) and feeds them to it.
