@@ -21,6 +21,7 @@ from offline.shoulder.joints import (
     skeleton_structure,
 )
 from offline.shoulder.markers import select_markers
+from offline.shoulder.rigid import apply_point
 from offline.shoulder.rotations import triangle_features
 from offline.shoulder.segmentation import RestartKMeans, reduce_features
 from offline.shoulder.skinning import (
@@ -283,8 +284,7 @@ class ShoulderSkeleton:
     def joint_trajectories(self, R: np.ndarray, t: np.ndarray) -> dict[int, np.ndarray]:
         """World position ``(F, 3)`` of each joint (keyed by child segment) for a pose."""
         return {
-            c: np.einsum("fij,j->fi", R[:, self.parent_[c]], self.joints_[c])
-            + t[:, self.parent_[c]]
+            c: apply_point(R[:, self.parent_[c]], t[:, self.parent_[c]], self.joints_[c])
             for c in self.chain_[1:]
         }
 

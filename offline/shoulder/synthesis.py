@@ -25,7 +25,13 @@ import numpy as np
 from scipy.optimize import nnls
 from scipy.spatial.transform import Rotation
 
-from offline.shoulder.rigid import fill_transforms, fit_rigid, fit_rotation_about
+from offline.shoulder.rigid import (
+    apply,
+    apply_point,
+    fill_transforms,
+    fit_rigid,
+    fit_rotation_about,
+)
 
 
 @dataclass(frozen=True)
@@ -66,7 +72,7 @@ def pose_chain(
     for child in order[1:]:
         p = int(parent[child])
         j = joints[child]
-        J = np.einsum("fij,j->fi", R[:, p], j) + t[:, p]
+        J = apply_point(R[:, p], t[:, p], j)
         idx = fit_markers[child]
         Rc, tc = fit_rotation_about(j, J, rest[idx], positions[:, idx])
         Rc, tc = fill_transforms(Rc, tc)
@@ -81,7 +87,7 @@ def skin(rest: np.ndarray, weights: np.ndarray, R: np.ndarray, t: np.ndarray) ->
         w = weights[:, s]
         if not (w > 0).any():
             continue
-        out += w[None, :, None] * (np.matmul(R[:, s], rest.T).transpose(0, 2, 1) + t[:, s, None])
+        out += w[None, :, None] * apply(R[:, s], t[:, s], rest)
     return out
 
 
@@ -108,7 +114,7 @@ def mg03_bones(
     """Adds the MG03 halfway bone (index ``S``) at the root's first joint (the shoulder)."""
     root, first = order[0], order[1]
     Rh = half_rotation(R[:, root], R[:, first])
-    J = np.einsum("fij,j->fi", R[:, root], shoulder) + t[:, root]
+    J = apply_point(R[:, root], t[:, root], shoulder)
     th = J - np.einsum("fij,j->fi", Rh, shoulder)
     return (np.concatenate([R, Rh[:, None]], axis=1), np.concatenate([t, th[:, None]], axis=1))
 
