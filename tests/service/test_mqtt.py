@@ -149,6 +149,25 @@ def test_topic_and_payload_stream_must_agree(broker):
     assert run(go()) == 1
 
 
+def _online_for(secured, mqtt: dict, url: str, client=None) -> tuple[bool, bool]:
+    """A service on ``secured`` (``mqtt``: its extra MQTT settings): (a subscriber at ``url``
+    sees it online, a plain anonymous subscriber is refused)."""
+
+    async def go():
+        s = load_settings(labeler="baseline", metrics_port=None, udp={"enabled": False},
+                          streams=[{"name": "vol"}],
+                          mqtt={"enabled": True, "host": secured.host, "port": secured.port,
+                                **mqtt})  # fmt: skip
+        async with Server(s):
+            async with Subscriber(url, mqtt=client) as good:
+                ok = await good.wait_status("vol", "online", 5.0)
+            async with Subscriber(f"{secured.url}/vol") as plain:
+                refused = not await plain.wait_status("vol", "online", 1.5)
+        return ok, refused
+
+    return run(go())
+
+
 def test_credentials_are_required_and_used(tmp_path):
     import shutil
 
@@ -156,26 +175,9 @@ def test_credentials_are_required_and_used(tmp_path):
 
     if mosquitto_binary() is None or shutil.which("mosquitto_passwd") is None:
         pytest.skip("mosquitto / mosquitto_passwd not found (apt install mosquitto)")
-    secured = LocalBroker(tmp_path, users={"labeler": "s3cret"})
-    secured.start()
-
-    async def go():
-        s = load_settings(labeler="baseline", metrics_port=None, udp={"enabled": False},
-                          streams=[{"name": "vol"}],
-                          mqtt={"enabled": True, "host": secured.host, "port": secured.port,
-                                "username": "labeler", "password": "s3cret"})  # fmt: skip
-        async with Server(s):
-            url = f"mqtt://labeler:s3cret@{secured.host}:{secured.port}/vol"
-            async with Subscriber(url) as good:
-                ok = await good.wait_status("vol", "online", 5.0)
-            async with Subscriber(f"{secured.url}/vol") as anonymous:
-                refused = not await anonymous.wait_status("vol", "online", 1.5)
-        return ok, refused
-
-    try:
-        ok, refused = run(go())
-    finally:
-        secured.close()
+    with LocalBroker(tmp_path, users={"labeler": "s3cret"}) as secured:
+        url = f"mqtt://labeler:s3cret@{secured.host}:{secured.port}/vol"
+        ok, refused = _online_for(secured, {"username": "labeler", "password": "s3cret"}, url)
     assert ok and refused
 
 
@@ -206,26 +208,11 @@ def test_tls_connection_with_a_private_ca(tmp_path):
     if mosquitto_binary() is None:
         pytest.skip("mosquitto not found (apt install mosquitto)")
     ca, cert, key = _certificates(tmp_path)
-    secured = LocalBroker(tmp_path, tls=(ca, cert, key))
-    secured.start()
-
-    async def go():
-        s = load_settings(labeler="baseline", metrics_port=None, udp={"enabled": False},
-                          streams=[{"name": "vol"}],
-                          mqtt={"enabled": True, "host": secured.host, "port": secured.port,
-                                "tls": True, "ca_file": str(ca)})  # fmt: skip
-        async with Server(s):
-            url = f"mqtts://{secured.host}:{secured.port}/vol"
-            async with Subscriber(url, mqtt=MqttSettings(ca_file=ca)) as good:
-                ok = await good.wait_status("vol", "online", 5.0)
-            async with Subscriber(f"{secured.url}/vol") as plain:  # no TLS: refused
-                refused = not await plain.wait_status("vol", "online", 1.5)
-        return ok, refused
-
-    try:
-        ok, refused = run(go())
-    finally:
-        secured.close()
+    with LocalBroker(tmp_path, tls=(ca, cert, key)) as secured:
+        url = f"mqtts://{secured.host}:{secured.port}/vol"
+        # the plain subscriber has no TLS: refused
+        ok, refused = _online_for(secured, {"tls": True, "ca_file": str(ca)}, url,
+                                  client=MqttSettings(ca_file=ca))  # fmt: skip
     assert ok and refused
 
 
