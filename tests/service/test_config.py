@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -10,10 +11,15 @@ from labeler_service.config import load_settings
 from labeler_service.errors import ConfigError
 
 
-def test_defaults_bind_udp_to_loopback_and_use_the_online_labeler(monkeypatch):
-    for k in list(__import__("os").environ):
+@pytest.fixture
+def clean_env(monkeypatch):
+    """No ``MOCAP_`` variables from the caller's environment."""
+    for k in list(os.environ):
         if k.startswith("MOCAP_"):
             monkeypatch.delenv(k)
+
+
+def test_defaults_bind_udp_to_loopback_and_use_the_online_labeler(clean_env):
     s = load_settings()
     assert s.udp.host == "127.0.0.1" and s.udp.enabled and not s.mqtt.enabled
     assert s.labeler == "online"
@@ -72,12 +78,9 @@ def test_unreadable_files_raise_config_error(tmp_path):
         load_settings(other)
 
 
-def test_the_docker_example_settings_are_valid(monkeypatch):
+def test_the_docker_example_settings_are_valid(clean_env):
     from pathlib import Path
 
-    for k in list(__import__("os").environ):
-        if k.startswith("MOCAP_"):
-            monkeypatch.delenv(k)
     path = Path(__file__).resolve().parents[2] / "docker" / "service.toml"
     s = load_settings(path)
     assert s.mqtt.enabled and s.mqtt.host == "mosquitto" and s.udp.host == "0.0.0.0"
