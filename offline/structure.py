@@ -17,7 +17,7 @@ import numpy as np
 
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import ModelError
-from labeler_service.model import LabelerModel, make_subject
+from labeler_service.model import LabelerModel
 from labeler_service.structure import motion_noise, train_subject
 
 
@@ -97,18 +97,10 @@ class StructureTrainer:
                 min_pair_frames=self.min_pair_frames,
                 all_seeds=self.all_seeds,
             )
-            q = np.mean(noises, axis=0)  # per-capture noise (rate dependent), averaged
-            templates.append(
-                make_subject(
-                    t.name,
-                    t.markers,
-                    t.D_array(),
-                    t.A_array(),
-                    t.bodies,
-                    [np.asarray(s) for s in t.shapes],
-                    q,
-                )  # fmt: skip
-            )
+            # the pooled frames' motion noise is replaced: noise depends on the rate, so it is
+            # learned per capture and averaged (positive and finite like each capture's)
+            q = np.mean(noises, axis=0)
+            templates.append(t.model_copy(update={"motion_noise": [float(x) for x in q]}))
         rates = sorted({c.rate for c in caps})
         self.model_ = LabelerModel(
             rate=rates[0],
