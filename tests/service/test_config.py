@@ -11,15 +11,15 @@ from labeler_service.config import load_settings
 from labeler_service.errors import ConfigError
 
 
-@pytest.fixture
+@pytest.fixture(autouse=True)
 def clean_env(monkeypatch):
-    """No ``MOCAP_`` variables from the caller's environment."""
+    """No ``MOCAP_`` variables from the caller's environment (they beat files and overrides)."""
     for k in list(os.environ):
         if k.startswith("MOCAP_"):
             monkeypatch.delenv(k)
 
 
-def test_defaults_bind_udp_to_loopback_and_use_the_online_labeler(clean_env):
+def test_defaults_bind_udp_to_loopback_and_use_the_online_labeler():
     s = load_settings()
     assert s.udp.host == "127.0.0.1" and s.udp.enabled and not s.mqtt.enabled
     assert s.labeler == "online"
@@ -78,7 +78,7 @@ def test_unreadable_files_raise_config_error(tmp_path):
         load_settings(other)
 
 
-def test_the_docker_example_settings_are_valid(clean_env):
+def test_the_docker_example_settings_are_valid():
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[2] / "docker" / "service.toml"
