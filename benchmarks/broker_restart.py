@@ -24,6 +24,7 @@ from labeler_service.replay import open_sender, replay
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
 from labeler_service.scenes.simulate import simulate_scene
 from labeler_service.subscribe import Subscriber
+from labeler_service.transports.base import cancel_and_wait
 from labeler_service.transports.broker import LocalBroker
 
 
@@ -66,8 +67,7 @@ async def run(args, work: Path) -> dict:
                         break
                     await asyncio.sleep(0.005)
                 await asyncio.sleep(1.0)
-                feeder.cancel()
-                await asyncio.gather(feeder, return_exceptions=True)
+                await cancel_and_wait([feeder])
                 drops = service_drops(svc.scrape())
     finally:
         broker.close()

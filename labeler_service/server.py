@@ -36,7 +36,12 @@ from labeler_service.frame import FrameLabeler
 from labeler_service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
 from labeler_service.stream import StreamState, make_labeler
-from labeler_service.transports.base import DropOldestQueue, Incoming, Transport
+from labeler_service.transports.base import (
+    DropOldestQueue,
+    Incoming,
+    Transport,
+    cancel_and_wait,
+)
 
 log = logging.getLogger(__name__)
 
@@ -183,9 +188,7 @@ class Server:
             with contextlib.suppress(Exception):
                 await self._status(name, "offline")
         tasks, self._tasks = self._tasks, []
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait(tasks)
         self._count_transport_drops()
         for ex in self._executors.values():
             ex.shutdown(wait=True, cancel_futures=True)

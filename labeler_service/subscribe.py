@@ -29,7 +29,7 @@ from labeler_service.protocol import (
     decode,
     encode_subscribe,
 )
-from labeler_service.transports.base import DropOldestQueue, Incoming
+from labeler_service.transports.base import DropOldestQueue, Incoming, cancel_and_wait
 from labeler_service.transports.url import Endpoint, parse_endpoint
 
 log = logging.getLogger(__name__)
@@ -160,9 +160,7 @@ class Subscriber:
 
     async def __aexit__(self, *exc: object) -> None:
         tasks, self._tasks = self._tasks, []
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait(tasks)
         await self._stack.aclose()
 
     async def _renew(self) -> None:

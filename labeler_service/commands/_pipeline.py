@@ -200,6 +200,7 @@ async def run_pipeline(
     """
     from labeler_service.replay import open_sender, replay
     from labeler_service.subscribe import Subscriber
+    from labeler_service.transports.base import cancel_and_wait
     from labeler_service.transports.broker import LocalBroker
     from labeler_service.transports.url import parse_endpoint
 
@@ -251,9 +252,7 @@ async def run_pipeline(
                 finally:
                     if gc_was_enabled:
                         gc.enable()
-                    for t in tasks:
-                        t.cancel()
-                    await asyncio.gather(*tasks, return_exceptions=True)
+                    await cancel_and_wait(tasks)
                 res.seconds = time.perf_counter() - t0
                 res.stats = sub.stats
             with contextlib.suppress(OSError):

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -85,6 +85,14 @@ class DropOldestQueue(Generic[T]):
 
     def get_nowait(self) -> T | None:
         return self._items.popleft() if self._items else None
+
+
+async def cancel_and_wait(tasks: Iterable[asyncio.Task]) -> None:
+    """Cancels every task, then waits until all have ended (their exceptions are dropped)."""
+    tasks = list(tasks)
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
 
 
 async def iterate_queue(queue: DropOldestQueue[T]) -> AsyncIterator[T]:

@@ -27,7 +27,12 @@ import aiomqtt
 
 from labeler_service.config import MqttSettings
 from labeler_service.protocol import encode_status
-from labeler_service.transports.base import DropOldestQueue, Incoming, iterate_queue
+from labeler_service.transports.base import (
+    DropOldestQueue,
+    Incoming,
+    cancel_and_wait,
+    iterate_queue,
+)
 
 log = logging.getLogger(__name__)
 
@@ -273,9 +278,7 @@ class MqttTransport:
 
     async def __aexit__(self, *exc: object) -> None:
         tasks, self._tasks = self._tasks, []
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await cancel_and_wait(tasks)
 
     def messages(self) -> AsyncIterator[Incoming]:
         return iterate_queue(self._queue)
@@ -345,8 +348,7 @@ class MqttEndpoint:
 
     async def __aexit__(self, *exc: object) -> None:
         if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
+            await cancel_and_wait([self._task])
             self._task = None
 
     async def wait_connected(self, timeout: float) -> bool:
