@@ -278,6 +278,8 @@ def _decode_frame(m: dict, max_points: int) -> FrameMsg:
     sent = m.get("sent")
     if sent is not None:
         sent = _get_uint(m, "sent", "field")
+    # a writeable native copy: frombuffer's array is read-only, and numba would compile a
+    # second specialization of every kernel for read-only arrays
     return FrameMsg(stream, seq, t, points.astype(np.float32), labels, sent)
 
 
