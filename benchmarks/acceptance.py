@@ -6,7 +6,8 @@ Scenes (as in the issue):
   (c) a simulated 6-performer hug (10 s, seed 1).
 (a) and (b) need the real captures (MOCAP_DATA_DIR or ../shared/data/real) and are skipped
 without them. Settings: plain, --downsample 4, --ghosts 3, --gaps 2 --gap-frames 20. Every
-number comes from ``labeler_service.evaluate.evaluate``, exactly what ``mocap-labeler evaluate``
+number comes from ``labeler_service.evaluation.scoring.evaluate``, exactly what ``mocap-labeler
+evaluate``
 prints; the same scene files can be written with ``--write DIR`` to rerun any cell by hand.
 
     .venv/bin/python benchmarks/acceptance.py --out acceptance.json
@@ -20,10 +21,10 @@ import sys
 from pathlib import Path
 
 from labeler_service.capture import Capture, write_capture
-from labeler_service.data import real_file
-from labeler_service.evaluate import evaluate
+from labeler_service.evaluation.scoring import evaluate
 from labeler_service.scenes.compose import compose_scene
 from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.testing.realdata import real_file
 
 SETTINGS: dict[str, dict] = {
     "plain": {},

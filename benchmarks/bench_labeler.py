@@ -28,8 +28,8 @@ import numpy as np
 from _common import emit
 
 from labeler_service.capture import Capture, read_capture
-from labeler_service.evaluate import WARMUP_FRAMES
-from labeler_service.labeler import Labeler
+from labeler_service.evaluation.scoring import WARMUP_FRAMES
+from labeler_service.labeling.labeler import Labeler
 from labeler_service.scenes.corrupt import CorruptionSpec, iter_stream
 from labeler_service.scenes.sim import SCENARIOS
 

@@ -36,7 +36,7 @@ def main() -> int:
     args = ap.parse_args()
 
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_shoulder_"))
-    cli = [sys.executable, "-m", "labeler_service.cli"]
+    cli = [sys.executable, "-m", "labeler_service.cli.main"]
     sim = root / "sim"
     subprocess.run(
         [*cli, "simulate-shoulder", str(sim), "--frames", str(args.frames), "--seed",

@@ -19,13 +19,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from labeler_service.commands._pipeline import ServiceProcess, service_drops
-from labeler_service.replay import open_sender, replay
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
 from labeler_service.scenes.simulate import simulate_scene
-from labeler_service.subscribe import Subscriber
-from labeler_service.transports.base import cancel_and_wait
-from labeler_service.transports.broker import LocalBroker
+from labeler_service.service.transports.base import cancel_and_wait
+from labeler_service.testing.broker import LocalBroker
+from labeler_service.testing.harness import ServiceProcess, service_drops
+from labeler_service.tools.replay import open_sender, replay
+from labeler_service.tools.subscribe import Subscriber
 
 
 async def run(args, work: Path) -> dict:

@@ -25,11 +25,11 @@ import numpy as np
 from _common import emit
 
 from labeler_service.capture import read_capture
-from labeler_service.data import real_file
 from labeler_service.errors import MocapError
-from labeler_service.evaluate import WARMUP_FRAMES
-from labeler_service.frame import MarkerState
-from labeler_service.labeler import Labeler
+from labeler_service.evaluation.scoring import WARMUP_FRAMES
+from labeler_service.labeling.frame import MarkerState
+from labeler_service.labeling.labeler import Labeler
+from labeler_service.testing.realdata import real_file
 
 DEFAULT = "raw_unlabeled_kneel_to_run_240hz.c3d"
 

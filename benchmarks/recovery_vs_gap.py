@@ -21,9 +21,9 @@ from pathlib import Path
 from _common import emit
 
 from labeler_service.capture import Capture, read_capture
-from labeler_service.evaluate import score_labeler
-from labeler_service.labeler import Labeler
-from labeler_service.labeler_config import LabelerConfig
+from labeler_service.evaluation.scoring import score_labeler
+from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.labeler import Labeler
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
 
 INIT = 50
@@ -32,7 +32,7 @@ METHODS = ("kabsch", "displacement")
 
 def measure(cap: Capture, method: str, gaps: int, length: int, seed: int) -> dict:
     """Recovery errors (mm and ratio) and labeling accuracy for one setting, scored by
-    :func:`labeler_service.evaluate.score_labeler` (what ``evaluate`` reports)."""
+    :func:`labeler_service.evaluation.scoring.score_labeler` (what ``evaluate`` reports)."""
     spec = CorruptionSpec(gaps=gaps, gap_frames=length, protect_frames=INIT, seed=seed)
     stream = corrupt(cap, spec)
     lab = Labeler(stream.marker_names, stream.rate, LabelerConfig(recovery=method))

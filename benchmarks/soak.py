@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.commands._pipeline import (
+from labeler_service.testing.harness import (
     run_pipeline,
     service_settings,
     simulated_frames,
     train_model_file,
 )
-from labeler_service.replay import loops_to_cover
-from labeler_service.subscribe import percentiles
+from labeler_service.tools.replay import loops_to_cover
+from labeler_service.tools.subscribe import percentiles
 
 #: Service drop reasons that are not faults (falling behind, sender-side seq trouble); every
 #: other reason counts in ``errors``.

@@ -1,11 +1,12 @@
 """Offline training of subject templates (``mocap-labeler train structure``), sklearn style.
 
-``StructureTrainer(...).fit(captures)`` learns one :class:`~labeler_service.model.SubjectTemplate`
+``StructureTrainer(...).fit(captures)`` learns one
+:class:`~labeler_service.labeling.templates.SubjectTemplate`
 per subject with the same code the online labeler uses on its training window
-(:func:`labeler_service.structure.train_subject`): D and A (seed 003 Eq. 1-2), rigid bodies,
+(:func:`labeler_service.labeling.training.train_subject`): D and A (seed 003 Eq. 1-2), rigid bodies,
 reference shapes and per-marker motion noise. Frames of several captures are pooled per
 subject; the motion noise is learned per capture (it depends on the rate) and averaged.
-The fitted template set is ``model_`` (a :class:`~labeler_service.model.LabelerModel`).
+The fitted template set is ``model_`` (a :class:`~labeler_service.labeling.templates.LabelerModel`).
 """
 
 from __future__ import annotations
@@ -17,14 +18,14 @@ import numpy as np
 
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import ModelError
-from labeler_service.model import LabelerModel
-from labeler_service.structure import motion_noise, train_subject
+from labeler_service.labeling.templates import LabelerModel
+from labeler_service.labeling.training import motion_noise, train_subject
 
 
 class StructureTrainer:
     """Learns subject templates from labeled captures.
 
-    Parameters are those of the rigid-body rule (see :mod:`labeler_service.structure`):
+    Parameters are those of the rigid-body rule (see :mod:`labeler_service.labeling.training`):
     ``tolerance_mm`` (largest ``A + distance_weight D`` inside a body), ``distance_weight``,
     ``min_size``/``max_size`` (markers per body, 1-8), ``min_pair_frames`` (samples needed for a
     pair's statistics), ``all_seeds`` (every marker seeds a body: offline there is time for the

@@ -18,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from labeler_service.model import save_model
+    from labeler_service.labeling.templates import save_model
     from offline.structure import StructureTrainer
 
     trainer = StructureTrainer(

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from labeler_service.data import real_data_dir
+from labeler_service.testing.realdata import real_data_dir
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Plain-numpy twins of the numba kernels in ``labeler_service.kernels`` (slow, obvious).
+"""Plain-numpy twins of the numba kernels in ``labeler_service.labeling.kernels`` (slow, obvious).
 
 Each twin follows the paper's formula directly (the full 6x6 Kalman filter, scipy's Mahalanobis
 distance, ``itertools.product`` for the exhaustive search, Algorithm 1 recomputing every body at

@@ -9,7 +9,8 @@ eigenvalue of ``N``. The feature of the triangle is ``F_i = [v_i^1 ... v_i^T]`` 
 ``v`` is the rotation axis times *half* the rotation angle, taken on the hemisphere ``w >= 0``.
 
 The eigenvector comes from the labeler's own Horn solver
-(:func:`labeler_service.kernels.rigid._horn_quaternion`: cyclic Jacobi rotations of ``N``, no
+(:func:`labeler_service.labeling.kernels.rigid._horn_quaternion`: cyclic Jacobi rotations of ``N``,
+no
 LAPACK call), the one the online labeler's Kabsch fits use. Its plain-numpy twin
 (``numpy.linalg.eigh``) is in tests/shoulder/reference.py.
 """
@@ -19,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.kernels.rigid import COV0, _cov_add, _horn_quaternion
+from labeler_service.labeling.kernels.rigid import COV0, _cov_add, _horn_quaternion
 
 
 @njit

@@ -26,7 +26,8 @@ frames (interpolating their rotation across long gaps makes them outliers).
 
 Rest pose: the frame where the most markers are visible (the first such frame); a marker missing
 there takes its sample from the nearest frame in time where it is visible, carried to the rest
-frame by the rigid motion (the labeler's Kabsch kernel, :func:`labeler_service.kernels.rigid.
+frame by the rigid motion (the labeler's Kabsch kernel,
+:func:`labeler_service.labeling.kernels.rigid.
 _kabsch`) of its six nearest markers visible in both frames.
 """
 
@@ -40,7 +41,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from labeler_service.capture import split_label
 from labeler_service.errors import CaptureFormatError, ModelError
-from labeler_service.kernels.rigid import _kabsch
+from labeler_service.labeling.kernels.rigid import _kabsch
 
 
 def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from labeler_service.capture import Capture, is_ghost, read_capture, split_label, write_capture
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 from labeler_service.errors import CaptureError, CaptureFormatError
 
 REAL_FILES = [

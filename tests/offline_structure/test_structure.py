@@ -6,13 +6,13 @@ import json
 
 import numpy as np
 import pytest
-from labeler.scene import articulated
+from labeling.scene import articulated
 
 from labeler_service.capture import Capture, write_capture
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 from labeler_service.errors import ModelError
-from labeler_service.labeler import Labeler
-from labeler_service.model import load_model
+from labeler_service.labeling.labeler import Labeler
+from labeler_service.labeling.templates import load_model
 from offline.structure import StructureTrainer
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from labeler_service.capture import Capture, read_capture
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 from labeler_service.errors import SceneError
 from labeler_service.scenes.compose import (
     CENTRE_SMOOTH_S,

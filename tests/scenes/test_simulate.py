@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 from labeler_service.capture import read_capture
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 from labeler_service.errors import SceneError
 from labeler_service.scenes.compose import CENTRE_SMOOTH_S, body_centre, compose_scene
 from labeler_service.scenes.sim.body import MARKER_NAMES, MARKER_SEGMENT, SEGMENTS
@@ -274,7 +274,7 @@ def test_compose_simulated_takes():
 
 def test_hug_defeats_closest_point_at_30hz():
     """The acceptance property on a smaller scene: nearest-neighbour tracking fails."""
-    from labeler_service.evaluate import evaluate
+    from labeler_service.evaluation.scoring import evaluate
 
     cap = simulate_scene(4, 5.0, "hug", seed=1)
     report, _ = evaluate(cap, methods=["closest-point"], downsample=4, init_frames=13)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from labeler_service.transports.broker import LocalBroker, mosquitto_binary
+from labeler_service.testing.broker import LocalBroker, mosquitto_binary
 
 
 @pytest.fixture

@@ -9,8 +9,8 @@ import numpy as np
 from synthetic import moving_clusters
 
 from labeler_service.capture import Capture
-from labeler_service.frame import LabeledFrame, MarkerState
-from labeler_service.protocol import encode_frame
+from labeler_service.labeling.frame import LabeledFrame, MarkerState
+from labeler_service.service.protocol import encode_frame
 
 __all__ = ["SlowLabeler", "frames_of", "moving_clusters", "run", "stream_payloads"]
 

@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from labeler_service.config import load_settings
 from labeler_service.errors import ConfigError
+from labeler_service.service.settings import load_settings
 
 
 @pytest.fixture(autouse=True)

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from service.helpers import moving_clusters, run
 
-from labeler_service.config import load_settings
-from labeler_service.replay import open_sender, replay
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-from labeler_service.server import Server
-from labeler_service.subscribe import Subscriber
+from labeler_service.service.server import Server
+from labeler_service.service.settings import load_settings
+from labeler_service.tools.replay import open_sender, replay
+from labeler_service.tools.subscribe import Subscriber
 
 pytestmark = pytest.mark.broker
 
@@ -75,7 +75,7 @@ def test_last_will_marks_the_stream_offline_when_the_service_dies(broker):
                MOCAP_METRICS_PORT="0", MOCAP_MQTT__ENABLED="true",
                MOCAP_MQTT__PORT=str(broker.port), MOCAP_STREAMS='[{"name": "vol"}]')  # fmt: skip
     proc = subprocess.Popen(
-        [sys.executable, "-m", "labeler_service.cli", "serve", "--log-level", "WARNING"],
+        [sys.executable, "-m", "labeler_service.cli.main", "serve", "--log-level", "WARNING"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )  # fmt: skip
 
@@ -135,7 +135,7 @@ def test_broker_restart_labeled_frames_resume_within_5_s_and_udp_keeps_flowing(b
 
 
 def test_topic_and_payload_stream_must_agree(broker):
-    from labeler_service.protocol import encode_frame
+    from labeler_service.service.protocol import encode_frame
 
     async def go():
         async with Server(_settings(broker)) as srv:
@@ -171,7 +171,7 @@ def _online_for(secured, mqtt: dict, url: str, client=None) -> tuple[bool, bool]
 def test_credentials_are_required_and_used(tmp_path):
     import shutil
 
-    from labeler_service.transports.broker import LocalBroker, mosquitto_binary
+    from labeler_service.testing.broker import LocalBroker, mosquitto_binary
 
     if mosquitto_binary() is None or shutil.which("mosquitto_passwd") is None:
         pytest.skip("mosquitto / mosquitto_passwd not found (apt install mosquitto)")
@@ -202,8 +202,8 @@ def _certificates(d):
 
 
 def test_tls_connection_with_a_private_ca(tmp_path):
-    from labeler_service.config import MqttSettings
-    from labeler_service.transports.broker import LocalBroker, mosquitto_binary
+    from labeler_service.service.settings import MqttSettings
+    from labeler_service.testing.broker import LocalBroker, mosquitto_binary
 
     if mosquitto_binary() is None:
         pytest.skip("mosquitto not found (apt install mosquitto)")
@@ -262,8 +262,8 @@ def test_a_backlog_over_mqtt_lands_in_the_drop_oldest_queue(broker, rng):
 def test_replay_command_stream_option_sets_the_topic_too(broker, rng, tmp_path):
     """``replay --to mqtt://.../vol --stream other`` publishes on ``mocap/other/unlabeled``."""
     from labeler_service.capture import write_capture
-    from labeler_service.cli import build_parser
-    from labeler_service.commands.replay import _main
+    from labeler_service.cli.main import build_parser
+    from labeler_service.cli.replay_capture import _main
 
     write_capture(moving_clusters(rng, frames=30), tmp_path / "scene.npz")
     argv = ["replay", str(tmp_path / "scene.npz"), "--to", f"{broker.url}/vol", "--stream",

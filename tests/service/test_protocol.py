@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from labeler_service.errors import ProtocolError
-from labeler_service.protocol import (
+from labeler_service.service.protocol import (
     REJECT_REASONS,
     FrameMsg,
     LabeledMsg,

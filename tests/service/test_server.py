@@ -12,13 +12,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads
 
-from labeler_service.config import load_settings
-from labeler_service.model import LabelerModel, save_model
-from labeler_service.protocol import LabeledMsg, ModelMsg, StatusMsg, decode, encode_frame
-from labeler_service.server import Server
-from labeler_service.stream import make_labeler
-from labeler_service.structure import train_subject
-from labeler_service.transports.memory import MemoryTransport
+from labeler_service.labeling.templates import LabelerModel, save_model
+from labeler_service.labeling.training import train_subject
+from labeler_service.service.protocol import LabeledMsg, ModelMsg, StatusMsg, decode, encode_frame
+from labeler_service.service.server import Server
+from labeler_service.service.settings import load_settings
+from labeler_service.service.stream import make_labeler
+from labeler_service.service.transports.memory import MemoryTransport
 
 
 def _settings(**over):
@@ -307,7 +307,7 @@ def test_fuzz_server_loop_survives_anything_and_keeps_labeling(garbage):
 
 @pytest.mark.parametrize("kind", ["labeled", "model", "status"])
 def test_outgoing_kinds_sent_to_the_service_are_rejected(kind):
-    from labeler_service.protocol import encode_labeled, encode_model, encode_status
+    from labeler_service.service.protocol import encode_labeled, encode_model, encode_status
 
     payload = {
         "labeled": encode_labeled(

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from service.helpers import moving_clusters, run
 
-from labeler_service.config import UDP_MAX_PAYLOAD, UdpSettings, load_settings
 from labeler_service.errors import ProtocolError
-from labeler_service.replay import open_sender, replay
 from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-from labeler_service.server import Server
-from labeler_service.subscribe import Subscriber
-from labeler_service.transports.udp import UdpTransport
+from labeler_service.service.server import Server
+from labeler_service.service.settings import UDP_MAX_PAYLOAD, UdpSettings, load_settings
+from labeler_service.service.transports.udp import UdpTransport
+from labeler_service.tools.replay import open_sender, replay
+from labeler_service.tools.subscribe import Subscriber
 
 
 def _settings(**over):
@@ -137,7 +137,7 @@ def test_udp_transport_refuses_oversize_output_and_expires_silent_subscribers():
 def test_serve_command_reports_ready_and_shuts_down_on_sigterm(tmp_path):
     env = dict(os.environ, MOCAP_LABELER="baseline", MOCAP_UDP__PORT="0", MOCAP_METRICS_PORT="0")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "labeler_service.cli", "serve", "--log-level", "WARNING"],
+        [sys.executable, "-m", "labeler_service.cli.main", "serve", "--log-level", "WARNING"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
     )  # fmt: skip
     try:
@@ -157,7 +157,7 @@ def test_serve_command_rejects_bad_settings_with_a_clear_message(tmp_path):
     bad = tmp_path / "s.toml"
     bad.write_text("queue_size = -1\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "labeler_service.cli", "serve", "--config", str(bad)],
+        [sys.executable, "-m", "labeler_service.cli.main", "serve", "--config", str(bad)],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 2

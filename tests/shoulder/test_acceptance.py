@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 
 
 @pytest.mark.slow

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 from offline.shoulder.evaluation import adjusted_rand_index, read_truth
 from offline.shoulder.model import MG03Baseline, ShoulderSkeleton, prepare_surface
 from offline.shoulder.report import FORMAT, skeleton_dict

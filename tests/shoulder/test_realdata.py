@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 
 FILE = "shoulder_upper_body_with_box_100hz.c3d"
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from labeler_service.cli import main
+from labeler_service.cli.main import main
 from labeler_service.errors import SceneError
 from offline.shoulder.simulate import (
     JOINT_SEGMENTS,

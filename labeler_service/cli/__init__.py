@@ -1,0 +1,1 @@
+"""One module per ``mocap-labeler`` command (see ``labeler_service.cli.main``)."""

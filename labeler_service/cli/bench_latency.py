@@ -1,0 +1,138 @@
+"""``mocap-labeler bench latency``: end-to-end latency through a real transport.
+
+A simulated scene (``--subjects`` performers at ``--rate`` Hz; ``--sim-seconds`` simulated and
+played forward/backward until ``--seconds`` are covered) is replayed unlabeled to
+``mocap-labeler serve`` running as a subprocess, over loopback UDP or a local Mosquitto
+(started on a free port unless ``--broker URL`` is given); a subscriber in this process
+receives the labeled frames. Latency = subscriber receipt - sender stamp (same clock). Prints
+one JSON object on the last line with ``--json``.
+
+``--start model`` (default) starts the stream from a subject model trained offline on the
+scene's labeled init window (the production set-up: no training stall); ``--start init`` trains
+in the service from the labeled init frames in the stream (one-time stall, reported separately
+as ``training_stall_frames``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--subjects", type=int, default=10, help="performers (1-10)")
+    p.add_argument("--rate", type=float, default=360.0, help="capture rate (Hz)")
+    p.add_argument("--seconds", type=float, default=20.0, help="streamed duration (s)")
+    p.add_argument("--transport", choices=["udp", "mqtt"], default="udp")
+    p.add_argument("--broker", default=None, metavar="URL", help="mqtt://host:port (else a "
+                   "local mosquitto is started)")  # fmt: skip
+    p.add_argument("--scenario", default="hug", help="simulated scenario (walk, hug, pile)")
+    p.add_argument("--sim-seconds", type=float, default=5.0, help="simulated scene length (s)")
+    p.add_argument("--start", choices=["model", "init"], default="model",
+                   help="stream start-up: offline model or in-stream training window")  # fmt: skip
+    p.add_argument("--init-frames", type=int, default=None,
+                   help="labeled frames first (default: 5 with model, 50 with init)")  # fmt: skip
+    p.add_argument("--labeler", choices=["online", "baseline"], default="online")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workdir", type=Path, default=None, help="keep service log/config here")
+    p.add_argument("--json", action="store_true", help="print the result as JSON (last line)")
+
+
+async def bench(args, workdir: Path) -> dict:
+    import numpy as np
+
+    from labeler_service.testing.harness import (
+        run_pipeline,
+        service_settings,
+        simulated_frames,
+        train_model_file,
+    )
+    from labeler_service.tools.replay import loops_to_cover
+    from labeler_service.tools.subscribe import percentiles
+
+    init = args.init_frames if args.init_frames is not None else (
+        5 if args.start == "model" else 50)  # fmt: skip
+    frames = simulated_frames(args.subjects, min(args.sim_seconds, args.seconds), args.rate,
+                              args.seed, args.scenario)  # fmt: skip
+    n_total = int(round(args.seconds * frames.rate))
+    stream = "bench"
+    stream_cfg: dict = {"name": stream, "rate": frames.rate}
+    if args.start == "model":
+        stream_cfg["model"] = str(train_model_file(frames, 50, workdir / "model.json"))
+    settings = service_settings(args.transport, stream_cfg, 5.0, labeler=args.labeler)
+    res = await run_pipeline(frames, settings, workdir, transport=args.transport, stream=stream,
+                             init_frames=init, speed=1.0,
+                             loops=loops_to_cover(frames.n_frames, n_total), max_frames=n_total,
+                             broker_url=args.broker)  # fmt: skip
+    expected = res.sent - (init if args.start == "init" else 0)
+    received = res.received
+    lat = np.array([r.latency_ms for r in received if r.latency_ms is not None])
+    proc_ms = np.array([r.msg.proc_us / 1e3 for r in received])
+    seqs = np.array([r.msg.seq for r in received])
+    # frames after the start-up (first unlabeled frame + 1 s): steady state
+    first_unlabeled = init
+    steady = seqs >= first_unlabeled + int(frames.rate)
+    lat_all = percentiles(lat)
+    lat_steady = percentiles(lat[steady])
+    src = np.array([r.msg.src for r in received], dtype=np.int64)
+    recv = np.array([r.msg.recv for r in received], dtype=np.int64)
+    sent = np.array([r.msg.sent for r in received], dtype=np.int64)
+    got = np.array([r.recv_ns for r in received], dtype=np.int64)
+    legs = {
+        "to_service": (recv - src) / 1e6,
+        "in_service": (sent - recv) / 1e6,
+        "to_subscriber": (got - sent) / 1e6,
+    }
+    leg_q = {k: percentiles(v[steady]) for k, v in legs.items()}
+    proc_q = percentiles(proc_ms)
+    stall = int(np.count_nonzero(lat[seqs >= first_unlabeled] > 1000.0 / frames.rate))
+    return {
+        "transport": args.transport,
+        "labeler": args.labeler,
+        "start": args.start,
+        "subjects": args.subjects,
+        "markers": len(frames.marker_names),
+        "rate": frames.rate,
+        "seconds": args.seconds,
+        "points_per_frame_mean": float(np.mean([len(p) for p in frames.points])),
+        "frames_sent": res.sent,
+        "frames_received": len(received),
+        "drops": int(expected - len(received)),
+        "service_drops": res.drops_service,
+        "latency_ms_p50": lat_all["p50"],
+        "latency_ms_p99": lat_all["p99"],
+        "latency_ms_p99_9": lat_all["p99.9"],
+        "latency_ms_max": float(lat.max()) if lat.size else float("nan"),
+        "steady_latency_ms_p50": lat_steady["p50"],
+        "steady_latency_ms_p99": lat_steady["p99"],
+        "steady_latency_ms_p99_9": lat_steady["p99.9"],
+        "frames_over_one_period": stall,
+        "labeling_ms_p50": proc_q["p50"],
+        "labeling_ms_p99": proc_q["p99"],
+        "labeled_bytes_max": res.max_payload,
+        **{f"{k}_ms_p50": q["p50"] for k, q in leg_q.items()},
+        **{f"{k}_ms_p99": q["p99"] for k, q in leg_q.items()},
+        "service_exit_code": res.service_returncode,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.workdir is not None:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        out = asyncio.run(bench(args, args.workdir))
+    else:
+        with tempfile.TemporaryDirectory(prefix="mocap-bench-") as d:
+            out = asyncio.run(bench(args, Path(d)))
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for k, v in out.items():
+            print(f"{k:>26}: {v}")
+    ok = out["drops"] == 0 and out["service_exit_code"] == 0
+    if not ok:
+        print("bench: frames were lost or the service did not exit cleanly", file=sys.stderr)
+    return 0

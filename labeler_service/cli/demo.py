@@ -1,0 +1,262 @@
+"""``mocap-labeler demo``: the whole pipeline in one command on loopback UDP (no broker).
+
+scene -> replay (shuffled, gaps, ghosts; first ``--init-frames`` frames labeled) ->
+``mocap-labeler serve`` (a subprocess; the stream starts from the labeled init frames, the
+paper's training window) -> subscriber. The scene is composed from two real CMU takes when the
+real captures are present (``MOCAP_DATA_DIR`` or ``../shared/data/real``), else simulated.
+
+Scoring compares what the subscriber received with the truth. An observed marker's published
+position is exactly the input point it was given, so per ``seq`` each published observed
+position is matched to its input point, whose true label is known:
+
+- ``accuracy``: correctly labeled visible true markers / visible true markers, over the frames
+  after the init window (a frame lost on the way counts as unlabeled);
+- ``ghost_labeled_rate``: ghost points published as some marker / ghost points;
+- ``recovery_mean_mm``/``recovery_p95_mm``: error of the recovered positions of markers removed
+  by the gaps (truth known);
+- latency p50/p99/p99.9 (sender stamp -> subscriber receipt) and labeling time per frame.
+
+Writes ``report.json``, ``latency_histogram.png`` and ``accuracy_over_time.png`` (plus the
+scene and the labeled output as C3D) into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from labeler_service.testing.realdata import real_file
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("reports/demo"), help="report folder")
+    p.add_argument("--seed", type=int, default=7, help="scene and corruption seed")
+    p.add_argument("--frames", type=int, default=1200, help="scene length (frames)")
+    p.add_argument("--init-frames", type=int, default=50, help="labeled training window")
+    p.add_argument("--gaps", type=int, default=1, help="markers hidden per subject per gap")
+    p.add_argument("--gap-frames", type=int, default=20, help="frames per gap")
+    p.add_argument("--ghosts", type=float, default=1.0, help="mean ghost points per frame")
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed x capture rate")
+    p.add_argument("--labeler", choices=["online", "baseline"], default="online")
+
+
+def _scene(seed: int, frames: int):
+    a = real_file("cmu_01_01_playground.c3d")
+    b = real_file("cmu_02_05_expressions.c3d")
+    if a is not None and b is not None:
+        from labeler_service.scenes.compose import compose_scene
+
+        cap = compose_scene([f"{a}:600", str(b)], radius=300.0, frames=frames, seed=seed)
+        return cap, "two real CMU takes composed at radius 300 mm"
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(performers=4, seconds=frames / 120.0, scenario="hug", seed=seed)
+    return cap, "simulated 4-performer hug (no real captures found)"
+
+
+def score(frames, received, init_frames: int) -> dict:
+    """Scores received labeled frames against the stream's truth (see the module docstring)."""
+    names = frames.marker_names
+    by_seq = {r.msg.seq: r for r in received}
+    col_of: dict[tuple[str, ...], np.ndarray] = {}
+    per_frame = np.full(frames.n_frames, np.nan)
+    correct = total = ghosts = ghosts_labeled = 0
+    rec_err: list[float] = []
+    for f in range(init_frames, frames.n_frames):
+        truth = frames.truth[f]
+        true_pts = truth >= 0
+        n_true = int(true_pts.sum())
+        total += n_true
+        ghosts += int((~true_pts).sum())
+        r = by_seq.get(f)
+        if r is None:
+            per_frame[f] = 0.0
+            continue
+        if r.names not in col_of:  # service marker j -> column in the truth's marker list
+            idx = {n: i for i, n in enumerate(names)}
+            col_of[r.names] = np.array([idx.get(n, -1) for n in r.names], dtype=np.int64)
+        cols = col_of[r.names]
+        point_of = {frames.points[f][i].tobytes(): i for i in range(len(truth))}
+        ok = 0
+        for j in np.flatnonzero(r.msg.state == 1):
+            i = point_of.get(r.msg.positions[j].tobytes())
+            if i is None:
+                continue
+            if truth[i] < 0:
+                ghosts_labeled += 1
+            elif truth[i] == cols[j]:
+                ok += 1
+        correct += ok
+        per_frame[f] = ok / n_true if n_true else np.nan
+        removed = np.flatnonzero(frames.removed[f])
+        if removed.size:
+            pos_of = {c: j for j, c in enumerate(cols) if c >= 0}
+            for m in removed:
+                j = pos_of.get(int(m))
+                if j is not None and r.msg.state[j] == 2:
+                    rec_err.append(
+                        float(np.linalg.norm(r.msg.positions[j] - frames.positions[f, m]))
+                    )
+    err = np.asarray(rec_err)
+    n_removed = int(frames.removed[init_frames:].sum())
+    return {
+        "accuracy": correct / total if total else float("nan"),
+        "ghost_labeled_rate": ghosts_labeled / ghosts if ghosts else 0.0,
+        "recovered_fraction": err.size / n_removed if n_removed else None,
+        "recovery_mean_mm": float(err.mean()) if err.size else None,
+        "recovery_p95_mm": float(np.percentile(err, 95)) if err.size else None,
+        "per_frame_accuracy": per_frame,
+    }
+
+
+def _plots(out: Path, latency_ms: np.ndarray, per_frame: np.ndarray, rate: float, init: int):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    hi = np.percentile(latency_ms, 99.9) if latency_ms.size else 1.0
+    ax.hist(np.clip(latency_ms, 0, hi), bins=80, color="#3b75af")
+    for q, c in ((50, "k"), (99, "r")):
+        if latency_ms.size:
+            v = np.percentile(latency_ms, q)
+            ax.axvline(v, color=c, ls="--", lw=1, label=f"p{q} {v:.2f} ms")
+    ax.set_xlabel("end-to-end latency (ms): sender stamp -> subscriber receipt")
+    ax.set_ylabel("frames")
+    ax.set_title("demo: replay -> service (UDP loopback) -> subscriber")
+    ax.legend()
+    fig.tight_layout()
+    p1 = out / "latency_histogram.png"
+    fig.savefig(p1, dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    t = np.arange(per_frame.size) / rate
+    ax.plot(t[init:], 100 * per_frame[init:], lw=0.8)
+    ax.axvspan(0, init / rate, color="0.85", label="labeled training window")
+    ax.set_ylim(max(0, np.nanmin(100 * per_frame[init:]) - 5) if per_frame.size > init else 0, 101)
+    ax.set_xlabel("capture time (s)")
+    ax.set_ylabel("correctly labeled (%)")
+    ax.set_title("per-frame labeling accuracy of the streamed output")
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    p2 = out / "accuracy_over_time.png"
+    fig.savefig(p2, dpi=110)
+    plt.close(fig)
+    return p1, p2
+
+
+async def _run_pipeline(args, frames, workdir: Path):
+    from labeler_service.testing.harness import run_pipeline
+
+    settings = {
+        "labeler": args.labeler, "metrics_port": 0, "log_interval_s": 5.0,
+        "udp": {"port": 0}, "streams": [{"name": "demo", "rate": frames.rate}],
+        # absorbs the one-time training stall at the first unlabeled frame (docs/service.md)
+        "queue_size": 256,
+    }  # fmt: skip
+    progress = None
+    bar = None
+    if sys.stderr.isatty():
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        task = bar.add_task("streaming", total=frames.n_frames)
+        bar.start()
+
+        def progress(seq: int, f: int) -> None:
+            bar.update(task, completed=seq + 1)
+
+    try:
+        return await run_pipeline(frames, settings, workdir, stream="demo",
+                                  init_frames=args.init_frames, speed=args.speed,
+                                  progress=progress)  # fmt: skip
+    finally:
+        if bar is not None:
+            bar.stop()
+
+
+def run(args: argparse.Namespace) -> int:
+    from labeler_service.capture import write_capture
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.tools.subscribe import Recorder, percentiles
+
+    t_start = time.perf_counter()
+    cap, what = _scene(args.seed, args.frames)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    write_capture(cap, out / "scene.c3d")
+    spec = CorruptionSpec(gaps=args.gaps, gap_frames=args.gap_frames, ghosts=args.ghosts,
+                          protect_frames=args.init_frames, seed=args.seed)  # fmt: skip
+    frames = corrupt(cap, spec)
+    print(f"scene: {what}: {len(cap.subjects)} subjects, {len(frames.marker_names)} markers, "
+          f"{frames.n_frames} frames at {frames.rate:g} Hz")  # fmt: skip
+    print(f"streaming over loopback UDP at {args.speed:g}x ({frames.n_frames / frames.rate / max(args.speed, 1e-9):.0f} s), "  # noqa: E501
+          f"first {args.init_frames} frames labeled, {args.gaps} gap(s)/subject, "
+          f"{args.ghosts:g} ghosts/frame")  # fmt: skip
+    res = asyncio.run(_run_pipeline(args, frames, out))
+    s = score(frames, res.received, args.init_frames)
+    lat = np.array([r.latency_ms for r in res.received if r.latency_ms is not None])
+    # after start-up: from 1 s past the training window (the first unlabeled frame trains)
+    start = args.init_frames + frames.rate
+    steady = np.array(
+        [r.latency_ms for r in res.received if r.msg.seq >= start and r.latency_ms is not None]
+    )
+    proc = np.array([r.msg.proc_us / 1e3 for r in res.received])
+    expected = res.sent - args.init_frames
+    lat_q, steady_q, proc_q = percentiles(lat), percentiles(steady), percentiles(proc)
+    report = {
+        "scene": what,
+        "subjects": len(cap.subjects),
+        "markers": len(frames.marker_names),
+        "frames": frames.n_frames,
+        "rate": frames.rate,
+        "init_frames": args.init_frames,
+        "labeler": args.labeler,
+        "transport": "udp (loopback)",
+        "accuracy": s["accuracy"],
+        "ghost_labeled_rate": s["ghost_labeled_rate"],
+        "recovered_fraction": s["recovered_fraction"],
+        "recovery_mean_mm": s["recovery_mean_mm"],
+        "recovery_p95_mm": s["recovery_p95_mm"],
+        "frames_sent": res.sent,
+        "frames_received": len(res.received),
+        "frames_lost": int(expected - len(res.received)),
+        "service_drops": res.drops_service,
+        "latency_ms_p50": lat_q["p50"],
+        "latency_ms_p99": lat_q["p99"],
+        "latency_ms_p99_9": lat_q["p99.9"],
+        "steady_latency_ms_p50": steady_q["p50"],
+        "steady_latency_ms_p99": steady_q["p99"],
+        "labeling_ms_p50": proc_q["p50"],
+        "labeling_ms_p99": proc_q["p99"],
+        "seconds": time.perf_counter() - t_start,
+    }
+    rec = Recorder()
+    for r in res.received:
+        rec.add(r, frames.rate)
+    rec.write(out / "labeled.c3d")
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    p1, p2 = _plots(out, lat, s["per_frame_accuracy"], frames.rate, args.init_frames)
+    rec_txt = ("-" if s["recovery_mean_mm"] is None else
+               f"{s['recovery_mean_mm']:.1f} mm mean, {s['recovery_p95_mm']:.1f} mm p95 "
+               f"({100 * s['recovered_fraction']:.0f} % of hidden samples recovered)")  # fmt: skip
+    print(f"accuracy        {100 * s['accuracy']:.2f} % of visible markers labeled correctly")
+    print(f"ghosts labeled  {100 * s['ghost_labeled_rate']:.2f} %")
+    print(f"recovery        {rec_txt}")
+    print(f"latency         p50 {report['latency_ms_p50']:.2f} ms, p99 "
+          f"{report['latency_ms_p99']:.2f} ms, p99.9 {report['latency_ms_p99_9']:.2f} ms "
+          f"(labeling {report['labeling_ms_p50']:.2f} ms p50); after start-up p99 "
+          f"{report['steady_latency_ms_p99']:.2f} ms")  # fmt: skip
+    print(f"frames          {len(res.received)}/{expected} labeled frames received, "
+          f"drops {res.drops_service or 'none'}")  # fmt: skip
+    print(f"report          {out / 'report.json'}, {p1.name}, {p2.name}, labeled.c3d "
+          f"({report['seconds']:.0f} s)")  # fmt: skip
+    return 0

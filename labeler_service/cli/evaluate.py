@@ -1,0 +1,134 @@
+"""``mocap-labeler evaluate TRUTH``: score labelers on a labeled capture (DESIGN.md contract).
+
+With ``--json`` the last line of stdout is one JSON object. ``--plot FILE.png`` also runs
+down-sampling factors 1, 2 and 4 and draws accuracy against the factor per method (seed 003
+Fig. 6 analogue).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from labeler_service.capture import read_capture
+from labeler_service.evaluation.scoring import evaluate, resolve_methods
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("truth", help="labeled capture (.c3d/.trc/.npz); *N columns are ghosts")
+    p.add_argument(
+        "--method",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help="labeler(s) to score: online, closest-point (comma or space separated; "
+        "default: every available one)",
+    )
+    p.add_argument("--downsample", type=int, default=1, help="keep every N-th frame")
+    p.add_argument("--init-frames", type=int, default=50, help="labeled training frames")
+    p.add_argument("--gaps", type=int, default=0, help="markers removed per subject per event")
+    p.add_argument("--gap-frames", type=int, default=20, help="length of each gap (frames)")
+    p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
+    p.add_argument("--json", action="store_true", help="print the report as JSON (last line)")
+    p.add_argument("--plot", type=Path, default=None, help="PNG: accuracy vs down-sampling")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _methods(arg: list[str] | None) -> list[str] | None:
+    if not arg:
+        return None
+    return [m.strip() for a in arg for m in a.split(",") if m.strip()]
+
+
+def run(args: argparse.Namespace) -> int:
+    cap = read_capture(args.truth, up=args.up)
+    methods = _methods(args.method)
+    show = not args.no_progress and sys.stderr.isatty()
+    common = dict(
+        methods=methods,
+        init_frames=args.init_frames,
+        gaps=args.gaps,
+        gap_frames=args.gap_frames,
+        ghosts=args.ghosts,
+        seed=args.seed,
+        show_progress=show,
+    )
+    report, _ = evaluate(cap, downsample=args.downsample, **common)
+    for note in report["notes"]:
+        print(f"note: {note}", file=sys.stderr)
+    if args.plot is not None:
+        curves = {}
+        for factor in (1, 2, 4):
+            rep = (
+                report
+                if factor == args.downsample
+                else evaluate(cap, downsample=factor, **common)[0]
+            )
+            for name, s in rep["methods"].items():
+                curves.setdefault(name, []).append((factor, s["accuracy"]))
+        plot_accuracy_vs_downsampling(curves, args.plot, title=Path(args.truth).name)
+        report["plot"] = str(args.plot)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        _print_table(report)
+    return 0
+
+
+def _print_table(report: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(
+        title=f"{report['frames']} frames, {report['subjects']} subjects, "
+        f"{report['markers']} markers at {report['rate_hz']:g} Hz"
+    )
+    cols = [
+        "accuracy",
+        "ghost_labeled_rate",
+        "recovery_mean_mm",
+        "recovery_mean_ratio",
+        "ms_per_frame_p50",
+        "ms_per_frame_p99",
+    ]
+    t.add_column("method")
+    for c in cols:
+        t.add_column(c, justify="right")
+    for name, s in report["methods"].items():
+        t.add_row(name, *["-" if s[c] is None else f"{s[c]:.4g}" for c in cols])
+    Console().print(t)
+
+
+def plot_accuracy_vs_downsampling(
+    curves: dict[str, list[tuple[int, float]]], out: Path, title: str = ""
+) -> Path:
+    """Accuracy (%) against down-sampling factor, one line per method (seed 003 Fig. 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=120)
+    for name, pts in curves.items():
+        xs = [p[0] for p in pts]
+        ys = [100 * p[1] for p in pts]
+        ax.plot(xs, ys, marker="o", label=name)
+    ax.set_xscale("log", base=2)
+    ax.set_xticks([1, 2, 4], labels=["1", "2", "4"])
+    ax.set_xlabel("down-sampling factor")
+    ax.set_ylabel("labels correct (%)")
+    ax.set_title(f"accuracy vs down-sampling {title}".strip())
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+__all__ = ["add_arguments", "plot_accuracy_vs_downsampling", "resolve_methods", "run"]

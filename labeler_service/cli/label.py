@@ -1,0 +1,143 @@
+"""``mocap-labeler label IN OUT [--model MODEL]``: batch-label a capture with the online labeler.
+
+The capture is replayed frame by frame through the same
+:class:`~labeler_service.labeling.labeler.Labeler`
+the service runs: every frame's visible points (labeled columns and unlabeled ``*N`` tracks
+alike) are given anonymously, in a shuffled order.
+
+- Without ``--model`` the first ``--init-frames`` frames carry the capture's own labels and are
+  the training window (seed 003); the marker set is the capture's labeled columns.
+- With ``--model`` the marker set is the model's; the capture's columns with those names label
+  the first ``--init-frames`` frames (default 1), which give the initial assignment.
+
+OUT holds one column per marker (observed and, unless ``--drop-recovered``, recovered
+positions) plus the points that stayed unlabeled as ``*N`` columns. If the input carries labels
+after the init window, the summary also says how often the labeler agreed with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", metavar="IN", help="capture to label (.c3d/.trc/.npz)")
+    p.add_argument("output", metavar="OUT", help="labeled capture to write")
+    p.add_argument("--model", help="subject template (train structure); else train on IN")
+    p.add_argument(
+        "--init-frames",
+        type=int,
+        default=None,
+        help="labeled frames at the start (default 50, or 1 with --model)",
+    )
+    p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of IN")
+    p.add_argument("--seed", type=int, default=0, help="seed of the per-frame shuffle")
+    p.add_argument("--drop-recovered", action="store_true", help="write only observed samples")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from labeler_service.capture import Capture, read_capture, write_capture
+    from labeler_service.errors import LabelerError
+    from labeler_service.labeling.frame import MarkerState
+    from labeler_service.labeling.labeler import Labeler
+    from labeler_service.labeling.templates import load_model
+
+    cap = read_capture(args.input, up=args.up)
+    model = load_model(args.model) if args.model else None
+    init = args.init_frames if args.init_frames is not None else (1 if model else 50)
+    if init < 1:
+        raise LabelerError(f"--init-frames must be >= 1, got {init}")
+    if cap.n_frames <= init:
+        raise LabelerError(f"{args.input}: {cap.n_frames} frames, not more than {init} init frames")
+    if model is not None:
+        lab = Labeler.from_model(model, cap.rate)
+    else:
+        names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
+        if not names:
+            raise LabelerError(
+                f"{args.input} has no labeled markers: give --model, or label its first frames"
+            )
+        lab = Labeler(names, cap.rate)
+    index = {n: i for i, n in enumerate(lab.marker_names)}
+    col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)
+    if not (col_label >= 0).any():
+        raise LabelerError(f"{args.input}: none of its labels is a marker of the model")
+    lab.warmup()
+
+    m = len(lab.marker_names)
+    out = np.full((cap.n_frames, m, 3), np.nan, dtype=np.float32)
+    extra: list[np.ndarray] = []
+    rng = np.random.default_rng(args.seed)
+    agree = compared = observed = recovered = 0
+    vis = cap.visible
+    show = not args.no_progress and sys.stderr.isatty()
+    bar = None
+    if show:
+        from rich.console import Console
+        from rich.progress import Progress
+
+        bar = Progress(console=Console(stderr=True), transient=True)
+        bar.start()
+        task = bar.add_task("labeling", total=cap.n_frames)
+    try:
+        for f in range(cap.n_frames):
+            cols = np.flatnonzero(vis[f])
+            cols = cols[rng.permutation(cols.size)]
+            pts = cap.positions[f, cols]
+            truth = col_label[cols]
+            res = lab.process(pts, f / cap.rate, truth if f < init else None)
+            keep = res.state == MarkerState.OBSERVED
+            if not args.drop_recovered:
+                keep |= res.state == MarkerState.RECOVERED
+            out[f, keep] = res.positions[keep]
+            loose = pts[res.point_labels < 0]
+            extra.append(loose)
+            if f >= init:
+                observed += res.n_observed
+                recovered += res.n_recovered
+                known = truth >= 0
+                compared += int(np.count_nonzero(known))
+                agree += int(np.count_nonzero(res.point_labels[known] == truth[known]))
+            if bar is not None and f % 25 == 0:
+                bar.update(task, completed=f + 1)
+    finally:
+        if bar is not None:
+            bar.stop()
+    n_extra = max((e.shape[0] for e in extra), default=0)
+    loose_cols = np.full((cap.n_frames, n_extra, 3), np.nan, dtype=np.float32)
+    for f, e in enumerate(extra):
+        loose_cols[f, : e.shape[0]] = e
+    result = Capture(
+        np.concatenate([out, loose_cols], axis=1),
+        lab.marker_names + tuple(f"*{i}" for i in range(n_extra)),
+        cap.rate,
+        source=args.output,
+        notes=(f"labeled by mocap-labeler label from {args.input}",),
+    )
+    write_capture(result, args.output)
+    frames = cap.n_frames - init
+    summary = {
+        "input": args.input,
+        "output": args.output,
+        "frames": frames,
+        "markers": m,
+        "observed_per_frame": round(observed / frames, 3),
+        "recovered_per_frame": round(recovered / frames, 3),
+        "agreement_with_input_labels": round(agree / compared, 6) if compared else None,
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"{args.output}: {frames} frames labeled, {summary['observed_per_frame']} of {m} "
+            f"markers observed and {summary['recovered_per_frame']} recovered per frame"
+        )
+        if compared:
+            print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
+    return 0

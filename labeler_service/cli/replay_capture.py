@@ -1,0 +1,62 @@
+"""``mocap-labeler replay FILE --to URL``: stream a capture unlabeled to the service."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", type=Path, help="labeled capture (.c3d, .trc, .npz)")
+    p.add_argument("--to", required=True, metavar="URL",
+                   help="udp://host:port[/stream] or mqtt://host:port/stream")  # fmt: skip
+    p.add_argument("--stream", default=None, help="stream name (default: from the URL, else "
+                   "'default')")  # fmt: skip
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="playback speed x capture rate (0 = as fast as possible)")  # fmt: skip
+    p.add_argument("--init-frames", type=int, default=50,
+                   help="first frames sent with their labels (training window)")  # fmt: skip
+    p.add_argument("--downsample", type=int, default=1, help="keep every N-th frame")
+    p.add_argument("--gaps", type=int, default=0, help="markers removed per subject per gap")
+    p.add_argument("--gap-frames", type=int, default=20, help="length of each gap (frames)")
+    p.add_argument("--dropouts", type=float, default=0.0, help="fraction of samples dropped")
+    p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
+    p.add_argument("--jitter", type=float, default=0.0, help="Gaussian noise per axis (mm)")
+    p.add_argument("--no-shuffle", action="store_true", help="keep the capture's point order")
+    p.add_argument("--loops", type=int, default=1, help="passes, alternating direction")
+    p.add_argument("--up", choices=["z", "y"], default="z", help="vertical axis of the file")
+    p.add_argument("--seed", type=int, default=0, help="corruption seed")
+
+
+async def _main(args: argparse.Namespace) -> int:
+    from labeler_service.scenes.corrupt import CorruptionSpec
+    from labeler_service.tools.replay import open_sender, prepare, replay
+
+    spec = CorruptionSpec(
+        downsample=args.downsample, gaps=args.gaps, gap_frames=args.gap_frames,
+        dropouts=args.dropouts, ghosts=args.ghosts, jitter_mm=args.jitter,
+        shuffle=not args.no_shuffle, protect_frames=args.init_frames, seed=args.seed,
+    )  # fmt: skip
+    frames = prepare(args.file, spec, up=args.up)
+    print(
+        f"replay {args.file.name}: {frames.n_frames} frames x {args.loops}, "
+        f"{len(frames.marker_names)} markers, {frames.rate:g} Hz at speed {args.speed:g} "
+        f"-> {args.to}",
+        file=sys.stderr,
+    )
+    async with open_sender(args.to, stream=args.stream) as (send, stream):
+        stats = await replay(
+            frames, send, stream=stream, init_frames=args.init_frames,
+            speed=args.speed, loops=args.loops,
+        )  # fmt: skip
+    print(
+        f"sent {stats.sent} frames ({stats.failed} failed) in {stats.seconds:.1f} s "
+        f"({stats.rate:.0f}/s, latest send {stats.max_late_ms:.1f} ms behind schedule)"
+    )
+    return 0 if stats.failed == 0 else 1
+
+
+def run(args: argparse.Namespace) -> int:
+    return asyncio.run(_main(args))

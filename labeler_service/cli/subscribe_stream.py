@@ -1,0 +1,69 @@
+"""``mocap-labeler subscribe --from URL [--out FILE]``: live summary of labeled frames."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import signal
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--from", dest="url", required=True, metavar="URL",
+                   help="udp://service-host:port[/stream] or mqtt://host:port/stream")  # fmt: skip
+    p.add_argument("--out", type=Path, default=None, help="record labeled frames to C3D")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+
+
+async def _main(args: argparse.Namespace) -> int:
+    from labeler_service.tools.subscribe import Recorder, Subscriber
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if args.seconds is not None:
+        loop.call_later(args.seconds, stop.set)
+    recorder = Recorder() if args.out is not None else None
+    tty = sys.stderr.isatty()
+    async with Subscriber(args.url) as sub:
+
+        async def consume() -> None:
+            last_t, last_n = time.monotonic(), 0
+            n = 0
+            async for r in sub.frames():
+                n += 1
+                if recorder is not None:
+                    recorder.add(r, sub.models[r.msg.stream].rate)
+                now = time.monotonic()
+                if now - last_t >= 1.0:
+                    line = sub.stats.summary_line(sub.stats.frames - last_n, now - last_t)
+                    print(("\r" + line) if tty else line, end="" if tty else "\n",
+                          file=sys.stderr, flush=True)  # fmt: skip
+                    last_t, last_n = now, sub.stats.frames
+                if args.frames is not None and n >= args.frames:
+                    stop.set()
+                    return
+
+        task = asyncio.create_task(consume(), name="subscribe-consume")
+        await stop.wait()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        s = sub.stats
+        lat = s.latency_percentiles()
+        print(("\n" if tty else "") + f"received {s.frames} labeled frames, missing seq "
+              f"{s.missing_seq}, undecodable {s.undecodable}, latency p50 {lat['p50']:.2f} ms "
+              f"p99 {lat['p99']:.2f} ms p99.9 {lat['p99.9']:.2f} ms")  # fmt: skip
+    if recorder is not None:
+        n = recorder.write(args.out)
+        print(f"wrote {n} frames to {args.out}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    return asyncio.run(_main(args))

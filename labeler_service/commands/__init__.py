@@ -1,1 +1,0 @@
-"""One module per ``mocap-labeler`` command (see ``labeler_service.cli``)."""

@@ -1,0 +1,69 @@
+"""What every frame labeler returns, and the interface they share.
+
+A labeler is anything with ``marker_names`` and ``process(points, t, labels=None)``: the
+online labeler (seed 003, ``labeler_service.labeling.labeler``) and the closest-point baseline
+(``labeler_service.labeling.baseline``) both fit, so ``evaluate``, ``label`` and the service treat
+them
+alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Protocol
+
+import numpy as np
+
+
+class MarkerState(IntEnum):
+    """Per-marker state in a labeled frame (wire values too)."""
+
+    MISSING = 0  # neither seen nor recovered: position is NaN
+    OBSERVED = 1  # a point of this frame carries the label
+    RECOVERED = 2  # hidden this frame; position estimated (e.g. from its rigid body)
+
+
+@dataclass(slots=True)
+class LabeledFrame:
+    """The labeler's answer for one input frame.
+
+    ``point_labels[i]`` is the marker index (into ``marker_names``) given to input point ``i``,
+    or -1 when the point stays unlabeled (ghost or unknown). ``positions`` and ``state`` cover
+    every marker of the model, ``(M, 3)`` float32 mm (NaN when missing) and ``(M,)`` uint8
+    :class:`MarkerState`. ``process_us`` is the labeling time of this frame.
+    """
+
+    t: float
+    point_labels: np.ndarray
+    positions: np.ndarray
+    state: np.ndarray
+    process_us: float = 0.0
+
+    @property
+    def n_observed(self) -> int:
+        return int(np.count_nonzero(self.state == MarkerState.OBSERVED))
+
+    @property
+    def n_recovered(self) -> int:
+        return int(np.count_nonzero(self.state == MarkerState.RECOVERED))
+
+    @property
+    def n_unlabeled(self) -> int:
+        return int(np.count_nonzero(self.point_labels < 0))
+
+
+class FrameLabeler(Protocol):
+    """The interface shared by the online labeler and the closest-point baseline.
+
+    ``process`` takes one frame of anonymous points ``(N, 3)`` float32 mm (finite; missing
+    points are simply absent) and its capture time. During the training window the caller
+    passes ``labels`` too: ``(N,)`` int marker indices, -1 for points without a label.
+    """
+
+    @property
+    def marker_names(self) -> tuple[str, ...]: ...
+
+    def process(
+        self, points: np.ndarray, t: float, labels: np.ndarray | None = None
+    ) -> LabeledFrame: ...

@@ -1,0 +1,120 @@
+"""Mahalanobis gating (seed 003 Sec. 3.1): legitimate candidates of each marker.
+
+With the factorised filter the innovation covariance is ``S = (p_pp + r) I``, so the squared
+Mahalanobis distance of point ``j`` to marker ``m`` is ``|y_j - H x_m|^2 / S_m``. Points under the
+chi-square gate are kept, at most ``K`` of them, best first (ties: lower point index first).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+from labeler_service.labeling.kernels.spatial import ANY, _nearest, _span
+
+
+@njit
+def _before(d2, j, d2_other, j_other):
+    """Candidate order: smaller distance first, ties by point index."""
+    return d2 < d2_other or (d2 == d2_other and j < j_other)
+
+
+@njit
+def _insert(i, j, d2, K, cand, cand_d2, ncand):
+    """Puts point ``j`` at distance ``d2`` into marker ``i``'s sorted list of at most ``K``
+    candidates (ties: the lower point index first, in whatever order points arrive)."""
+    c = ncand[i]
+    if c == K and not _before(d2, j, cand_d2[i, K - 1], cand[i, K - 1]):
+        return
+    k = c if c < K else K - 1
+    while k > 0 and _before(d2, j, cand_d2[i, k - 1], cand[i, k - 1]):
+        if k < K:
+            cand[i, k] = cand[i, k - 1]
+            cand_d2[i, k] = cand_d2[i, k - 1]
+        k -= 1
+    cand[i, k] = j
+    cand_d2[i, k] = d2
+    if c < K:
+        ncand[i] = c + 1
+
+
+@njit
+def _candidates(i, centre, scale, radius, points, index, owner, free_only, gate, K, cand, cand_d2,
+                ncand):  # fmt: skip
+    """Marker ``i``'s candidates: the ``K`` points (free ones only with ``free_only``) whose
+    ``|y - centre|^2 * scale`` is under ``gate``, i.e. within ``radius`` mm, best first."""
+    ncand[i] = 0
+    order = index[0]
+    px, py, pz = centre[0], centre[1], centre[2]
+    lo, hi = _span(index, centre, radius)
+    for k in range(lo, hi):
+        j = order[k]
+        if free_only and owner[j] >= 0:
+            continue
+        dx = points[j, 0] - px
+        dy = points[j, 1] - py
+        dz = points[j, 2] - pz
+        d2 = (dx * dx + dy * dy + dz * dz) * scale
+        if d2 < gate:  # also rejects NaN
+            _insert(i, j, d2, K, cand, cand_d2, ncand)
+
+
+@njit
+def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
+    """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place (``index``: the
+    sweep index of ``points``, :func:`.spatial._index`)."""
+    anyone = np.empty(0, np.int32)  # every point is a candidate: no owner is read
+    for i in range(pred.shape[0]):
+        ncand[i] = 0
+        if active[i]:
+            _candidates(i, pred[i], 1.0 / s[i], np.sqrt(gate * s[i]), points, index, anyone,
+                        False, gate, K, cand, cand_d2, ncand)  # fmt: skip
+
+
+@njit
+def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, buf, shift):
+    """Per-subject common-mode correction of the predictions, in place.
+
+    For every subject the offset from each tracked marker's prediction to its nearest point
+    (within ``radius`` mm) is collected; the per-axis median of these offsets (at least 3) is
+    added to the subject's predicted positions, ``iters`` times. Whole-body jumps that no
+    per-marker motion model foresees (a capture's per-frame re-centring, a sudden step at a low
+    rate) are thereby absorbed before the Mahalanobis gate. ``shift (S, 3)`` receives the
+    total correction per subject.
+    """
+    r2 = radius * radius
+    anyone = np.empty(0, np.int32)  # ANY reads no owner
+    for s in range(subj_ptr.shape[0] - 1):
+        for a in range(3):
+            shift[s, a] = 0.0
+        for _it in range(iters):
+            c = 0
+            for e in range(subj_ptr[s], subj_ptr[s + 1]):
+                i = subj_idx[e]
+                if not active[i] or x[i, 0] != x[i, 0]:  # noqa: PLR0124 (NaN test)
+                    continue
+                bj, _d2 = _nearest(points, index, x[i], r2, anyone, ANY, -1)
+                if bj >= 0:
+                    for a in range(3):
+                        buf[a, c] = points[bj, a] - x[i, a]
+                    c += 1
+            if c < 3:
+                break
+            for a in range(3):
+                d = np.median(buf[a, :c])
+                shift[s, a] += d
+                for e in range(subj_ptr[s], subj_ptr[s + 1]):
+                    i = subj_idx[e]
+                    if active[i]:
+                        x[i, a] += d
+
+
+@njit
+def _regate(centre, lost, points, index, owner, radius, gate, K, cand, cand_d2, ncand):
+    """Re-acquisition gate for ``lost`` markers: the ``K`` nearest points not yet owned within
+    ``radius[i]`` mm of ``centre[i]`` (the rigid-body estimate, else the Kalman prediction);
+    ``cand_d2`` is scaled so that the radius maps to ``gate``."""
+    for i in range(centre.shape[0]):
+        if lost[i]:
+            _candidates(i, centre[i], gate / (radius[i] * radius[i]), radius[i], points, index,
+                        owner, True, gate, K, cand, cand_d2, ncand)  # fmt: skip

@@ -1,0 +1,577 @@
+"""Missing-marker recovery (seed 003 Sec. 3.3) and the Kabsch fit behind it.
+
+Each marker has a recovery set: itself and the (up to 7) markers most rigidly linked to it
+(lowest ``A + w D``, the rigid-body cost of :mod:`labeler_service.labeling.training`), and a
+snapshot
+``ref`` of the set's positions the last time all of them were observed. A hidden marker is
+estimated from the members observed now:
+
+- ``displacement`` (the paper): the average over observed markers ``k`` of
+  ``y_k + (ref_m - ref_k)``: each visible marker predicts the hidden one by its last displacement;
+- ``kabsch``: the rotation and translation that best map the observed markers' ``ref`` onto their
+  current positions (least squares, reflection excluded) applied to ``ref_m``. Needs 3 observed
+  markers; with fewer it falls back to displacement averaging.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+from labeler_service.labeling.kernels.spatial import FREE, OWNED, _nearest
+
+
+@njit
+def _kabsch(src, dst, n, R, t):
+    """Least-squares rigid transform of the first ``n`` rows of ``src`` onto ``dst``:
+    fills ``R (3, 3)`` and ``t (3,)`` so that ``R @ src_i + t ~ dst_i``.
+
+    The minimiser over proper rotations (the Kabsch problem with reflections excluded), solved
+    in Horn's closed form: the unit quaternion is the eigenvector of the largest eigenvalue of a
+    symmetric 4x4 matrix built from the cross-covariance, found by cyclic Jacobi rotations.
+    No LAPACK call and no allocation: a tenth of the time of an SVD, and this runs for every
+    recovered or checked marker of every frame.
+    """
+    cs0 = cs1 = cs2 = 0.0
+    cd0 = cd1 = cd2 = 0.0
+    for i in range(n):
+        cs0 += src[i, 0]
+        cs1 += src[i, 1]
+        cs2 += src[i, 2]
+        cd0 += dst[i, 0]
+        cd1 += dst[i, 1]
+        cd2 += dst[i, 2]
+    cs0 /= n
+    cs1 /= n
+    cs2 /= n
+    cd0 /= n
+    cd1 /= n
+    cd2 /= n
+    cov = COV0
+    for i in range(n):
+        cov = _cov_add(
+            cov,
+            src[i, 0] - cs0,
+            src[i, 1] - cs1,
+            src[i, 2] - cs2,
+            dst[i, 0] - cd0,
+            dst[i, 1] - cd1,
+            dst[i, 2] - cd2,
+        )
+    q0, q1, q2, q3 = _horn_quaternion(cov)
+    R[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
+    R[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+    R[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+    R[1, 0] = 2.0 * (q2 * q1 + q0 * q3)
+    R[1, 1] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3
+    R[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+    R[2, 0] = 2.0 * (q3 * q1 - q0 * q2)
+    R[2, 1] = 2.0 * (q3 * q2 + q0 * q1)
+    R[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
+    t[0] = cd0 - (R[0, 0] * cs0 + R[0, 1] * cs1 + R[0, 2] * cs2)
+    t[1] = cd1 - (R[1, 0] * cs0 + R[1, 1] * cs1 + R[1, 2] * cs2)
+    t[2] = cd2 - (R[2, 0] * cs0 + R[2, 1] * cs1 + R[2, 2] * cs2)
+
+
+COV0 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@njit
+def _cov_add(cov, ax, ay, az, bx, by, bz):
+    """``cov + a b^T`` for a cross-covariance kept as the 9-tuple
+    ``(s_xx, s_xy, s_xz, s_yx, ..., s_zz)`` (``a`` a centred source point, ``b`` its target)."""
+    return (
+        cov[0] + ax * bx,
+        cov[1] + ax * by,
+        cov[2] + ax * bz,
+        cov[3] + ay * bx,
+        cov[4] + ay * by,
+        cov[5] + ay * bz,
+        cov[6] + az * bx,
+        cov[7] + az * by,
+        cov[8] + az * bz,
+    )
+
+
+@njit
+def _horn_quaternion(cov):
+    """Unit quaternion ``(w, x, y, z)`` of the rotation that best maps the centred source onto
+    the centred target, from their cross-covariance ``s_ab = sum src_a dst_b`` (the 9-tuple of
+    :func:`_cov_add`; Horn 1987): the eigenvector of the largest eigenvalue of the symmetric
+    matrix ``N`` below."""
+    sxx, sxy, sxz, syx, syy, syz, szx, szy, szz = cov
+    a = np.empty((4, 4))
+    a[0, 0] = sxx + syy + szz
+    a[0, 1] = a[1, 0] = syz - szy
+    a[0, 2] = a[2, 0] = szx - sxz
+    a[0, 3] = a[3, 0] = sxy - syx
+    a[1, 1] = sxx - syy - szz
+    a[1, 2] = a[2, 1] = sxy + syx
+    a[1, 3] = a[3, 1] = szx + sxz
+    a[2, 2] = -sxx + syy - szz
+    a[2, 3] = a[3, 2] = syz + szy
+    a[3, 3] = -sxx - syy + szz
+    v = np.zeros((4, 4))
+    for i in range(4):
+        v[i, i] = 1.0
+    scale = 0.0
+    for i in range(4):
+        for j in range(4):
+            scale += a[i, j] * a[i, j]
+    tiny = 1e-30 * scale
+    for _sweep in range(50):
+        off = 0.0
+        for p in range(3):
+            for q in range(p + 1, 4):
+                off += a[p, q] * a[p, q]
+        if off <= tiny:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                # the rotation that zeroes a[p, q] (Numerical Recipes' stable form)
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                tt = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    tt = -tt
+                c = 1.0 / np.sqrt(tt * tt + 1.0)
+                sn = tt * c
+                for k in range(4):
+                    akp = a[k, p]
+                    akq = a[k, q]
+                    a[k, p] = c * akp - sn * akq
+                    a[k, q] = sn * akp + c * akq
+                for k in range(4):
+                    apk = a[p, k]
+                    aqk = a[q, k]
+                    a[p, k] = c * apk - sn * aqk
+                    a[q, k] = sn * apk + c * aqk
+                for k in range(4):
+                    vkp = v[k, p]
+                    vkq = v[k, q]
+                    v[k, p] = c * vkp - sn * vkq
+                    v[k, q] = sn * vkp + c * vkq
+    best = 0
+    for i in range(1, 4):
+        if a[i, i] > a[best, best]:
+            best = i
+    q0 = v[0, best]
+    q1 = v[1, best]
+    q2 = v[2, best]
+    q3 = v[3, best]
+    norm = np.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    return q0 / norm, q1 / norm, q2 / norm, q3 / norm
+
+
+@njit
+def _aligned_mean(frames, ref, out):
+    """Mean of ``frames (F, n, 3)``, each moved onto ``ref (n, 3)`` by its Kabsch fit, into
+    ``out (n, 3)`` (a body's reference shape from its complete training frames)."""
+    n = ref.shape[0]
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    out[:] = 0.0
+    for f in range(frames.shape[0]):
+        src = frames[f]
+        _kabsch(src, ref, n, R, t)
+        for i in range(n):
+            for a in range(3):
+                out[i, a] += R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
+    if frames.shape[0] > 0:
+        for i in range(n):
+            for a in range(3):
+                out[i, a] /= frames.shape[0]
+
+
+@njit
+def _robust_kabsch(src, dst, n, R, t, tau):
+    """Kabsch fit that drops the worst-fitting member and refits while its residual exceeds
+    ``tau`` mm and more than 3 members remain (a marker's neighbourhood may span a joint that
+    has moved since the snapshot). Returns the members kept (compacted to the front)."""
+    while True:
+        _kabsch(src, dst, n, R, t)
+        if n <= 3:
+            return n
+        worst = -1.0
+        wi = -1
+        for i in range(n):
+            e2 = 0.0
+            for a in range(3):
+                d = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
+                d -= dst[i, a]
+                e2 += d * d
+            if e2 > worst:
+                worst = e2
+                wi = i
+        if worst <= tau * tau:
+            return n
+        n -= 1
+        for a in range(3):
+            src[wi, a] = src[n, a]
+            dst[wi, a] = dst[n, a]
+
+
+def kabsch_scratch() -> tuple:
+    """``(src (8, 3), dst (8, 3), R (3, 3), t (3,))``: the buffers of one Kabsch fit over a
+    recovery set (at most 8 members)."""
+    return np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)), np.zeros(3)
+
+
+@njit
+def _gather(m, rset, obs, src, dst):
+    """Pairs (reference, observed) of ``m``'s recovery-set members seen this frame into
+    ``src``/``dst``; returns how many. ``rset`` = ``(rec_members (M, 8), rec_size (M,),
+    rec_ref (M, 8, 3), rec_ok (M,))``, the recovery sets of the module docstring."""
+    rec_members, rec_size, rec_ref = rset[:3]
+    c = 0
+    for k in range(1, rec_size[m]):
+        mk = rec_members[m, k]
+        if obs[mk, 0] == obs[mk, 0]:  # observed (not NaN)
+            for a in range(3):
+                src[c, a] = rec_ref[m, k, a]
+                dst[c, a] = obs[mk, a]
+            c += 1
+    return c
+
+
+@njit
+def _place(m, rec_ref, R, t, out):
+    """``out = R @ rec_ref[m, 0] + t``: marker ``m``'s reference position moved by the fit."""
+    for a in range(3):
+        out[a] = (
+            R[a, 0] * rec_ref[m, 0, 0]
+            + R[a, 1] * rec_ref[m, 0, 1]
+            + R[a, 2] * rec_ref[m, 0, 2]
+            + t[a]
+        )
+
+
+@njit
+def _recover(missing, rset, obs, method, rec, has_rec, kab, tau):
+    """Recovers every marker with ``missing[m]`` into ``rec (M, 3)``.
+
+    ``has_rec[m]`` receives how many neighbours were used (0 = not recovered). The recovery set
+    of ``m`` is ``rec_members[m, 1:rec_size[m]]`` (``rec_members[m, 0]`` is ``m``); ``rec_ref[m]``
+    holds the set's positions the last time all were observed; ``obs (M, 3)`` this frame's
+    observed positions (NaN otherwise). ``method`` 1 = Kabsch (3+ observed), else (or with
+    fewer) displacement averaging. ``kab``: :func:`kabsch_scratch`.
+    """
+    rec_ref, rec_ok = rset[2:]
+    src, dst, R, t = kab
+    m_total = missing.shape[0]
+    for m in range(m_total):
+        has_rec[m] = 0
+        if not missing[m] or not rec_ok[m]:
+            continue
+        c = _gather(m, rset, obs, src, dst)
+        if c == 0:
+            continue
+        if method == 1 and c >= 3:
+            _robust_kabsch(src, dst, c, R, t, tau)
+            _place(m, rec_ref, R, t, rec[m])
+        else:
+            for a in range(3):
+                acc = 0.0
+                for i in range(c):
+                    acc += dst[i, a] + rec_ref[m, 0, a] - src[i, a]
+                rec[m, a] = acc / c
+        has_rec[m] = c
+
+
+@njit
+def _snapshot(age, min_age, obs, rset):
+    """Stores the recovery-set positions of every marker whose whole set is observed and has
+    been for at least ``min_age`` frames in a row (``age``): a fresh, possibly wrong, assignment
+    never becomes the reference that later checks it."""
+    rec_members, rec_size, rec_ref, rec_ok = rset
+    for m in range(age.shape[0]):
+        n = rec_size[m]
+        if n == 0:
+            continue
+        full = True
+        for k in range(n):
+            if age[rec_members[m, k]] < min_age or age[rec_members[m, k]] < 1:
+                full = False
+                break
+        if full:
+            for k in range(n):
+                for a in range(3):
+                    rec_ref[m, k, a] = obs[rec_members[m, k], a]
+            rec_ok[m] = True
+
+
+@njit
+def _set_estimate(m, rset, obs, kab, out, tau):
+    """Kabsch estimate of marker ``m`` from its observed recovery-set members (3+ needed);
+    returns the number of members the robust fit kept (0 when fewer than 3 were observed)."""
+    src, dst, R, t = kab
+    c = _gather(m, rset, obs, src, dst)
+    if c < 3:
+        return 0
+    c = _robust_kabsch(src, dst, c, R, t, tau)
+    _place(m, rset[2], R, t, out)
+    return c
+
+
+@njit
+def _verify(
+    assigned,
+    owner,
+    ncand,
+    active,
+    prev_state,
+    x,
+    points,
+    index,
+    obs,
+    rset,
+    verify_mm,
+    reacquire_mm,
+    reject_mm,
+    jump_mm,
+    suspect_mm,
+    suspect,
+    kab,
+    tau,
+    n_reject,
+    reject_limit,
+    verify_every,
+    frame_no,
+    swap_check,
+):
+    """3D check of the fit against each marker's rigid neighbourhood (after Algorithm 1).
+
+    Eq. 5 only sees distances, so a ghost, or another person's marker at the place of a hidden
+    one, can fit a body's links as well as the true point. For every marker that is suspect -
+    several candidates, not observed in the previous frame (``prev_state != 1``), a point more
+    than ``jump_mm`` from the Kalman prediction ``x``, a free point within ``suspect_mm`` of its
+    prediction (a reappearing marker whose label another point has taken), its turn in a round
+    robin over ``verify_every`` frames, or missing - the Kabsch estimate from its observed
+    recovery set (3+ neighbours) is computed:
+
+    - an observed marker whose point is more than ``verify_mm`` from the estimate moves to a
+      free point at most half as far; with ``swap_check``, if another marker holds that point
+      and the exchange halves the two markers' summed distances to their estimates, the two
+      swap (persistent swaps between performers in contact); failing that, a marker that was
+      not observed in the
+      previous frame drops a point farther than ``reject_mm`` from an estimate that at least 4
+      mutually consistent neighbours support (it stays missing), at most ``reject_limit``
+      frames in a row (``n_reject`` counts them): real bodies are not perfectly rigid, and a
+      marker that really moved on its body must not be locked out;
+    - a missing marker takes the nearest free point within ``reacquire_mm`` of the estimate
+      (re-acquisition predicted from the rigid body, not from a stale Kalman state).
+
+    ``obs`` is kept in sync. Returns the number of changes.
+    """
+    n = points.shape[0]
+    est = np.empty(3)
+    est2 = np.empty(3)
+    rec_ok = rset[3]
+    changes = 0
+    m_total = assigned.shape[0]
+    s2 = suspect_mm * suspect_mm
+    for m in range(m_total):
+        suspect[m] = False
+    for j in range(n):
+        if owner[j] >= 0:
+            continue
+        for m in range(m_total):
+            if assigned[m] < 0 or suspect[m]:
+                continue
+            d2 = 0.0
+            for c in range(3):
+                d = points[j, c] - x[m, c]
+                d2 += d * d
+            suspect[m] = d2 < s2
+    for m in range(m_total):
+        if not active[m] or not rec_ok[m]:
+            continue
+        a = assigned[m]
+        fresh = prev_state[m] != 1
+        jumped = False
+        if a >= 0 and not fresh:
+            i2 = 0.0
+            for c in range(3):
+                d = points[a, c] - x[m, c]
+                i2 += d * d
+            jumped = i2 > jump_mm * jump_mm  # far from the Kalman prediction
+        turn = verify_every > 0 and (m + frame_no) % verify_every == 0  # round robin
+        if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m] and not turn:
+            continue
+        kept = _set_estimate(m, rset, obs, kab, est, tau)
+        if kept == 0:
+            continue
+        e2 = 0.0
+        if a >= 0:
+            for c in range(3):
+                d = points[a, c] - est[c]
+                e2 += d * d
+            if e2 <= verify_mm * verify_mm:
+                continue
+            lim = 0.25 * e2  # half the distance
+        else:
+            lim = reacquire_mm * reacquire_mm
+        bj, best = _nearest(points, index, est, lim, owner, FREE, -1)
+        if bj < 0 and a >= 0 and swap_check:
+            # the point the estimate wants may be held by another marker: swap when both fit
+            # their rigid neighbourhoods better after the exchange
+            bk, best = _nearest(points, index, est, 0.25 * e2, owner, OWNED, a)
+            if bk >= 0:
+                m2 = owner[bk]
+                if rec_ok[m2]:
+                    k2 = _set_estimate(m2, rset, obs, kab, est2, tau)
+                    if k2 > 0:
+                        now2 = 0.0
+                        sw2 = 0.0
+                        for c in range(3):
+                            d = points[bk, c] - est2[c]
+                            now2 += d * d
+                            d = points[a, c] - est2[c]
+                            sw2 += d * d
+                        if np.sqrt(best) + np.sqrt(sw2) < 0.5 * (np.sqrt(e2) + np.sqrt(now2)):
+                            owner[a] = m2
+                            owner[bk] = m
+                            assigned[m] = bk
+                            assigned[m2] = a
+                            for c in range(3):
+                                obs[m, c] = points[bk, c]
+                                obs[m2, c] = points[a, c]
+                            changes += 1
+                            continue
+        if bj < 0:
+            if (
+                a >= 0
+                and fresh
+                and kept >= 4
+                and n_reject[m] < reject_limit
+                and e2 > reject_mm * reject_mm
+            ):
+                n_reject[m] += 1
+                owner[a] = -1
+                assigned[m] = -1
+                for c in range(3):
+                    obs[m, c] = np.nan
+                changes += 1
+            continue
+        if a >= 0:
+            owner[a] = -1
+        owner[bj] = m
+        assigned[m] = bj
+        for c in range(3):
+            obs[m, c] = points[bj, c]
+        changes += 1
+    return changes
+
+
+@njit
+def _estimate_distance(m, a, points, rset, obs, kab, est, tau):
+    """Distance (mm) from point ``a`` to the Kabsch estimate of marker ``m`` (Sec. 3.3 with
+    3+ observed neighbours); ``inf`` when there is no estimate."""
+    if not rset[3][m]:
+        return np.inf
+    if _set_estimate(m, rset, obs, kab, est, tau) == 0:
+        return np.inf
+    e2 = 0.0
+    for c in range(3):
+        d = points[a, c] - est[c]
+        e2 += d * d
+    return np.sqrt(e2)
+
+
+@njit
+def _contest(
+    assigned,
+    owner,
+    active,
+    prev_state,
+    x,
+    s,
+    gate,
+    points,
+    obs,
+    rset,
+    jump_mm,
+    verify_mm,
+    kab,
+    tau,
+):
+    """Track continuity after Algorithm 1: a point goes back to the marker that was tracked onto
+    it when the fit gave it to a marker that had to jump for it.
+
+    Eq. 5 only sees distances, and in close contact another person's marker sits where a hidden
+    one would be; a body that spans a joint fits its links loosely and loses the greedy order
+    (Algorithm 1 line 12) to the hidden marker's body. For every point ``a`` held by a marker
+    ``m`` more than ``jump_mm`` from its Kalman prediction (Eq. 3), the marker ``m2`` missing
+    after the fit with the smallest squared Mahalanobis distance ``d2 / s[m2]`` to ``a`` (``s``
+    the innovation variance of the gate), if that is below ``gate`` and a quarter of ``m``'s,
+    takes the point (``m`` is missing); a marker observed in the previous frame
+    (``prev_state == 1``) must moreover predict ``a`` within ``jump_mm``. A rigid neighbourhood
+    can veto: ``m`` keeps the point when its Kabsch estimate (3+ observed neighbours) lies
+    within ``verify_mm`` of it, and ``m2`` does not take it when its own estimate is farther
+    from the point than ``m``'s.
+
+    ``obs (M, 3)`` holds the observed positions (NaN otherwise) and is kept in sync. Returns the
+    number of points handed over.
+    """
+    m_total = assigned.shape[0]
+    est = np.empty(3)
+    changes = 0
+    for m in range(m_total):
+        a = assigned[m]
+        if a < 0:
+            continue
+        i2 = 0.0
+        for c in range(3):
+            d = points[a, c] - x[m, c]
+            i2 += d * d
+        if i2 <= jump_mm * jump_mm:
+            continue
+        # takers compete on the Mahalanobis distance (Sec. 3.1): at most a quarter of the
+        # holder's and inside the gate
+        lim = min(gate, 0.25 * i2 / s[m])
+        bm = -1
+        for m2 in range(m_total):
+            if assigned[m2] >= 0 or not active[m2]:
+                continue
+            d2 = 0.0
+            for c in range(3):
+                d = points[a, c] - x[m2, c]
+                d2 += d * d
+            if prev_state[m2] == 1 and d2 >= jump_mm * jump_mm:
+                continue  # a tracked marker takes back only a point it predicts sharply
+            if d2 / s[m2] < lim:
+                lim = d2 / s[m2]
+                bm = m2
+        if bm < 0:
+            continue
+        e_m = _estimate_distance(m, a, points, rset, obs, kab, est, tau)
+        if e_m <= verify_mm:
+            continue
+        e_bm = _estimate_distance(bm, a, points, rset, obs, kab, est, tau)
+        if np.isfinite(e_bm) and e_bm > e_m:
+            continue
+        owner[a] = bm
+        assigned[bm] = a
+        assigned[m] = -1
+        for c in range(3):
+            obs[bm, c] = points[a, c]
+            obs[m, c] = np.nan
+        changes += 1
+    return changes
+
+
+@njit
+def _max_residual(src, dst, n, R, t):
+    """Largest distance (mm) between ``R @ src_i + t`` and ``dst_i`` over the first ``n`` rows:
+    how far the neighbours kept by a Kabsch estimate (Sec. 3.3) are from one rigid motion."""
+    worst = 0.0
+    for i in range(n):
+        e2 = 0.0
+        for a in range(3):
+            d = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a] - dst[i, a]
+            e2 += d * d
+        if e2 > worst:
+            worst = e2
+    return np.sqrt(worst)

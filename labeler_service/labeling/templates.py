@@ -1,0 +1,169 @@
+"""Subject templates: the one versioned schema shared by the service and the offline trainer.
+
+A template (seed 003, Sec. 3.1) holds, per subject:
+
+- ``markers``: marker names (without the ``subject:`` prefix), in model order;
+- ``D`` and ``A``: mean and standard deviation of every marker-pair distance (Eq. 1-2), mm,
+  ``null`` where a pair was never seen together;
+- ``bodies``: rigid bodies, each a list of 3-8 marker indices into ``markers``;
+- ``shapes``: per body the reference shape, marker coordinates (mm) in a body frame (origin at
+  the centroid, axes = principal axes), used by the Kabsch recovery and by
+  :meth:`~labeler_service.labeling.labeler.Labeler.from_model` registration;
+- ``motion_noise``: per marker the process noise of the constant-velocity Kalman filter
+  (Eq. 3), as the variance of acceleration per axis, (mm/s^2)^2.
+
+``save_model``/``load_model`` write and read JSON; every inconsistency raises
+:class:`~labeler_service.errors.ModelError` with a message naming the subject and field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from labeler_service.errors import ModelError
+
+SCHEMA_VERSION = 1
+
+
+class SubjectTemplate(BaseModel):
+    """Structure and motion model of one subject (seed 003 Sec. 3.1)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    markers: list[str] = Field(min_length=1)
+    D: list[list[float | None]]
+    A: list[list[float | None]]
+    bodies: list[list[int]]
+    shapes: list[list[list[float]]]
+    motion_noise: list[float]
+
+    @model_validator(mode="after")
+    def _check(self) -> SubjectTemplate:
+        m = len(self.markers)
+        where = f"subject {self.name!r}"
+        if len(set(self.markers)) != m:
+            raise ValueError(f"{where}: duplicate marker names")
+        for key in ("D", "A"):
+            mat = getattr(self, key)
+            if len(mat) != m or any(len(row) != m for row in mat):
+                raise ValueError(f"{where}: {key} must be {m}x{m}")
+            if any(v is not None and not (math.isfinite(v) and v >= 0) for row in mat for v in row):
+                raise ValueError(f"{where}: {key} has a negative or non-finite entry")
+        if len(self.motion_noise) != m:
+            raise ValueError(f"{where}: motion_noise needs {m} values")
+        if any(not (math.isfinite(q) and q > 0) for q in self.motion_noise):
+            raise ValueError(f"{where}: motion_noise must be positive and finite")
+        if len(self.shapes) != len(self.bodies):
+            raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
+        for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):
+            if not 1 <= len(body) <= 8:
+                raise ValueError(f"{where}: body {b} has {len(body)} markers (1-8 allowed)")
+            if len(set(body)) != len(body) or any(not 0 <= i < m for i in body):
+                raise ValueError(f"{where}: body {b} has repeated or out-of-range indices")
+            if len(shape) != len(body) or any(len(p) != 3 for p in shape):
+                raise ValueError(f"{where}: shape of body {b} must be {len(body)}x3")
+            if not np.all(np.isfinite(np.asarray(shape, dtype=float))):
+                raise ValueError(f"{where}: shape of body {b} is not finite")
+        return self
+
+    # numpy views (float64, NaN where unknown)
+    def D_array(self) -> np.ndarray:
+        return np.array([[np.nan if v is None else v for v in r] for r in self.D], dtype=float)
+
+    def A_array(self) -> np.ndarray:
+        return np.array([[np.nan if v is None else v for v in r] for r in self.A], dtype=float)
+
+
+class LabelerModel(BaseModel):
+    """A versioned set of subject templates (schema ``version: 1``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    version: Literal[1] = SCHEMA_VERSION
+    rate: float = Field(gt=0, description="frame rate (Hz) of the training data")
+    subjects: list[SubjectTemplate] = Field(min_length=1)
+    source: str = ""
+
+    @model_validator(mode="after")
+    def _unique(self) -> LabelerModel:
+        names = [s.name for s in self.subjects]
+        if len(set(names)) != len(names):
+            raise ValueError("duplicate subject names")
+        return self
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        """``subject:marker`` labels in model order (subjects, then their markers)."""
+        return tuple(f"{s.name}:{m}" for s in self.subjects for m in s.markers)
+
+
+def _matrix(a: np.ndarray) -> list[list[float | None]]:
+    return [[None if not np.isfinite(v) else round(float(v), 4) for v in row] for row in a]
+
+
+def make_subject(
+    name: str,
+    markers: list[str],
+    D: np.ndarray,
+    A: np.ndarray,
+    bodies: list[list[int]],
+    shapes: list[np.ndarray],
+    motion_noise: np.ndarray,
+) -> SubjectTemplate:
+    """Builds a validated template from numpy arrays (NaN -> ``null``)."""
+    try:
+        return SubjectTemplate(
+            name=name,
+            markers=list(markers),
+            D=_matrix(np.asarray(D)),
+            A=_matrix(np.asarray(A)),
+            bodies=[[int(i) for i in b] for b in bodies],
+            shapes=[np.round(np.asarray(s, dtype=float), 4).tolist() for s in shapes],
+            motion_noise=[float(q) for q in np.asarray(motion_noise)],
+        )
+    except ValidationError as exc:
+        raise ModelError(f"invalid template for subject {name!r}: {_first_error(exc)}") from exc
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err.get("loc", ()))
+    msg = str(err.get("msg", "invalid"))
+    return f"{loc}: {msg}" if loc else msg
+
+
+def save_model(model: LabelerModel, path: str | Path) -> None:
+    """Writes ``model`` as JSON."""
+    p = Path(path)
+    try:
+        p.write_text(model.model_dump_json(indent=1))
+    except OSError as exc:
+        raise ModelError(f"{p}: cannot write model: {exc}") from exc
+
+
+def load_model(path: str | Path) -> LabelerModel:
+    """Reads and validates a JSON model; raises :class:`ModelError` naming the problem."""
+    p = Path(path)
+    try:
+        raw = json.loads(p.read_text())
+    except OSError as exc:
+        raise ModelError(f"{p}: cannot read model: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ModelError(f"{p}: not JSON: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ModelError(f"{p}: a model is a JSON object")
+    if raw.get("version") != SCHEMA_VERSION:
+        raise ModelError(
+            f"{p}: unsupported model version {raw.get('version')!r} (expected {SCHEMA_VERSION})"
+        )
+    try:
+        return LabelerModel.model_validate(raw)
+    except ValidationError as exc:
+        raise ModelError(f"{p}: invalid model: {_first_error(exc)}") from exc

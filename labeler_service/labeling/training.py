@@ -1,0 +1,226 @@
+"""Training subject templates from labeled frames (seed 003 Sec. 3.1).
+
+Used twice: by :class:`~labeler_service.labeling.labeler.Labeler` on its training window and by the
+offline trainer (``mocap-labeler train structure``).
+
+Structure model (Eq. 1-2): ``D[i, j]`` is the mean and ``A[i, j]`` the standard deviation of the
+distance between markers ``i`` and ``j`` over the frames where both are visible (missing samples
+are skipped; a pair seen fewer than ``min_pair_frames`` times stays unknown, NaN).
+
+Rigid bodies (our rule; the paper only says "groups with small group-internal deviation, 3-8
+markers"): the cost of a pair is ``c[i, j] = A[i, j] + distance_weight * D[i, j]``, i.e. its
+distance deviation plus a small preference for close markers (markers on one segment are
+close; during a quiet training window far pairs can look rigid by accident). Seeds are the
+markers in increasing order of their own rigidity (mean of their two lowest costs). Starting
+from each seed not yet covered by a body, we greedily add the marker whose *largest* cost to the
+current members is smallest, while that largest cost is at most ``tolerance_mm`` and the body has
+fewer than ``max_size`` markers. A body that ends with fewer than ``min_size`` markers is
+completed with the lowest-cost markers regardless of the tolerance (the fit then simply allows
+the larger ``A`` of those pairs). Every usable marker is therefore in at least one body; bodies
+may share markers, which links them during fitting. Duplicate bodies are dropped.
+
+Reference shape of a body: the frames where the whole body is visible are aligned (Kabsch) to
+the first such frame and averaged, then expressed in the body frame (centroid origin, principal
+axes). When the body is never fully visible, classical multidimensional scaling of ``D``
+gives the shape.
+
+Motion noise (Eq. 3, ``Q``): per marker the mean squared second difference of its positions,
+scaled to an acceleration variance per axis ``(mm/s^2)^2``; it includes the measurement noise
+at that rate, which is what the gate must tolerate. Markers with too few samples take the
+subject median.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service.errors import LabelerError
+from labeler_service.labeling.templates import SubjectTemplate, make_subject
+
+
+def pair_statistics(pos: np.ndarray, min_pair_frames: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 1-2 over all frames: ``D`` (mean distance) and ``A`` (its deviation), NaN-robust.
+
+    ``pos`` is ``(F, M, 3)`` with NaN for missing samples. Returns ``(M, M)`` float64 arrays,
+    NaN where a pair was seen together fewer than ``min_pair_frames`` times.
+    """
+    p = np.asarray(pos, dtype=np.float64)
+    f, m, _ = p.shape
+    s1 = np.zeros((m, m))
+    s2 = np.zeros((m, m))
+    n = np.zeros((m, m))
+    for k in range(f):
+        d = np.sqrt(((p[k, :, None, :] - p[k, None, :, :]) ** 2).sum(-1))
+        ok = np.isfinite(d)
+        d = np.where(ok, d, 0.0)
+        s1 += d
+        s2 += d * d
+        n += ok
+    with np.errstate(invalid="ignore", divide="ignore"):
+        D = s1 / n
+        A = np.sqrt(np.maximum(s2 / n - D * D, 0.0))
+    bad = n < max(1, min_pair_frames)
+    D[bad] = np.nan
+    A[bad] = np.nan
+    np.fill_diagonal(D, 0.0)
+    np.fill_diagonal(A, 0.0)
+    return D, A
+
+
+def select_bodies(
+    D: np.ndarray,
+    A: np.ndarray,
+    usable: np.ndarray,
+    *,
+    tolerance_mm: float = 6.0,
+    distance_weight: float = 0.02,
+    min_size: int = 3,
+    max_size: int = 6,
+    all_seeds: bool = False,
+) -> list[list[int]]:
+    """Rigid bodies by low distance deviation (the rule in the module docstring).
+
+    With ``all_seeds`` every marker seeds a body (not only those no body covers yet); bodies
+    contained in another are then dropped.
+    """
+    if not 1 <= min_size <= max_size <= 8:
+        raise LabelerError(
+            f"body sizes must satisfy 1 <= min <= max <= 8, got {min_size}, {max_size}"
+        )
+    idx = np.flatnonzero(usable)
+    if idx.size == 0:
+        return []
+    cost = A + distance_weight * D
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    sub = cost[np.ix_(idx, idx)].copy()
+    np.fill_diagonal(sub, np.inf)
+    if idx.size <= min_size:
+        return [idx.tolist()]
+    two = np.sort(sub, axis=1)[:, :2]
+    seed_order = np.argsort(two.mean(axis=1), kind="stable")
+    covered = np.zeros(idx.size, dtype=bool)
+    bodies: list[list[int]] = []
+    seen: set[tuple[int, ...]] = set()
+    for s in seed_order:
+        if covered[s] and not all_seeds:
+            continue
+        members = [int(s)]
+        worst = sub[s].copy()  # largest cost of each candidate to the current members
+        worst[s] = np.inf
+        while len(members) < max_size:
+            j = int(np.argmin(worst))
+            if not np.isfinite(worst[j]) or (worst[j] > tolerance_mm and len(members) >= min_size):
+                break
+            members.append(j)
+            worst = np.maximum(worst, sub[j])
+            worst[members] = np.inf
+        if len(members) < min_size:  # complete with the lowest-cost markers to the seed
+            for j in np.argsort(sub[s], kind="stable"):
+                if len(members) >= min_size or not np.isfinite(sub[s, j]):
+                    break
+                if int(j) not in members:
+                    members.append(int(j))
+        key = tuple(sorted(members))
+        covered[members] = True
+        if key in seen:
+            continue
+        seen.add(key)
+        bodies.append([int(idx[k]) for k in key])
+    if all_seeds:
+        sets = [set(b) for b in bodies]
+        bodies = [
+            b
+            for i, b in enumerate(bodies)
+            if not any(i != j and sets[i] < sets[j] for j in range(len(sets)))
+        ]
+    return bodies
+
+
+def _body_frame(shape: np.ndarray) -> np.ndarray:
+    c = shape - shape.mean(axis=0)
+    _, _, vt = np.linalg.svd(c, full_matrices=True)
+    if np.linalg.det(vt) < 0:
+        vt[2] *= -1
+    return c @ vt.T
+
+
+def _mds(Dsub: np.ndarray) -> np.ndarray:
+    n = Dsub.shape[0]
+    d2 = np.nan_to_num(Dsub, nan=float(np.nanmean(Dsub)) if np.isfinite(Dsub).any() else 0.0) ** 2
+    j = np.eye(n) - 1.0 / n
+    b = -0.5 * j @ d2 @ j
+    w, v = np.linalg.eigh(b)
+    order = np.argsort(w)[::-1][:3]
+    coords = v[:, order] * np.sqrt(np.maximum(w[order], 0.0))
+    if coords.shape[1] < 3:
+        coords = np.pad(coords, ((0, 0), (0, 3 - coords.shape[1])))
+    return coords
+
+
+def reference_shape(pos: np.ndarray, body: list[int], D: np.ndarray) -> np.ndarray:
+    """Mean shape of one body in its body frame (Kabsch-aligned average of complete frames)."""
+    sub = np.asarray(pos[:, body, :], dtype=np.float64)
+    full = np.flatnonzero(np.isfinite(sub).all(axis=(1, 2)))
+    if full.size == 0:
+        return _body_frame(_mds(D[np.ix_(body, body)]))
+    from labeler_service.labeling.kernels.rigid import _aligned_mean
+
+    mean = np.empty((len(body), 3))
+    _aligned_mean(np.ascontiguousarray(sub[full]), sub[full[0]].copy(), mean)
+    return _body_frame(mean)
+
+
+def motion_noise(pos: np.ndarray, rate: float, floor: float = 1.0e4) -> np.ndarray:
+    """Per-marker acceleration variance per axis, (mm/s^2)^2, from second differences."""
+    p = np.asarray(pos, dtype=np.float64)
+    m = p.shape[1]
+    q = np.full(m, np.nan)
+    if p.shape[0] >= 3:
+        a = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * rate * rate
+        ok = np.isfinite(a).all(axis=2)
+        for i in range(m):
+            if ok[:, i].sum() >= 2:
+                q[i] = float(np.mean(a[ok[:, i], i] ** 2))
+    fill = float(np.nanmedian(q)) if np.isfinite(q).any() else floor * 100.0
+    q = np.where(np.isfinite(q), q, fill)
+    return np.maximum(q, floor)
+
+
+def train_subject(
+    name: str,
+    markers: list[str],
+    pos: np.ndarray,
+    rate: float,
+    *,
+    tolerance_mm: float = 6.0,
+    distance_weight: float = 0.02,
+    min_size: int = 3,
+    max_size: int = 6,
+    min_pair_frames: int = 3,
+    all_seeds: bool = False,
+) -> SubjectTemplate:
+    """The template of one subject from its labeled frames ``pos`` ``(F, M, 3)`` (NaN missing).
+
+    Markers visible in fewer than ``min_pair_frames`` frames get no body (they can never be
+    labeled by the fit, but they do not break anything).
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    if pos.ndim != 3 or pos.shape[1] != len(markers) or pos.shape[2] != 3:
+        raise LabelerError(
+            f"subject {name!r}: positions must be (frames, {len(markers)}, 3), got {pos.shape}"
+        )
+    D, A = pair_statistics(pos, min_pair_frames)
+    usable = np.isfinite(pos).all(axis=2).sum(axis=0) >= min_pair_frames
+    bodies = select_bodies(
+        D,
+        A,
+        usable,
+        tolerance_mm=tolerance_mm,
+        distance_weight=distance_weight,
+        min_size=min_size,
+        max_size=max_size,
+        all_seeds=all_seeds,
+    )
+    shapes = [reference_shape(pos, b, D) for b in bodies]
+    q = motion_noise(pos, rate)
+    return make_subject(name, markers, D, A, bodies, shapes, q)

@@ -1,0 +1,267 @@
+"""Service metrics: Prometheus counters/histograms on a private registry, plus a log line.
+
+Exposed as Prometheus text on ``metrics_host:metrics_port`` (``/metrics``) and summarised by a
+periodic log line. Every drop has a ``reason``: the protocol's reject reasons
+(:data:`~labeler_service.service.protocol.REJECT_REASONS`) and the service's own ones
+(:data:`SERVICE_DROP_REASONS`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
+
+log = logging.getLogger(__name__)
+
+SERVICE_DROP_REASONS = (
+    "queue_full",  # processing fell behind: the oldest queued frame was discarded
+    "duplicate",  # seq equal to the last one seen on the stream
+    "late",  # seq lower than the last one seen
+    "no_model",  # unlabeled frame on a stream with neither model nor labeled init frames
+    "unknown_stream",  # stream not configured and allow_new_streams is off (or too many)
+    "stream_mismatch",  # MQTT topic and payload disagree on the stream
+    "init_overflow",  # more init frames than max_init_frames
+    "labeler_error",  # the labeler raised on this frame (logged; state kept)
+    "output_oversize",  # labeled frame larger than a datagram (not sent on UDP)
+    "send_error",  # a transport failed to send (e.g. broker down; UDP: per refused datagram)
+    "rx_overflow",  # a transport's receive queue was full: the oldest raw message was discarded
+    "internal",  # an unexpected error while handling one message (logged with traceback)
+)
+
+_MS_BUCKETS = (
+    0.00005, 0.0001, 0.0002, 0.0003, 0.0005, 0.00075, 0.001, 0.0015, 0.002, 0.0025,
+    0.003, 0.004, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0,
+)  # fmt: skip
+
+
+@dataclass
+class _Recent:
+    """A ring of the latest samples (seconds) for the log line's percentiles."""
+
+    size: int = 4096
+    values: np.ndarray = field(default_factory=lambda: np.full(4096, np.nan))
+    i: int = 0
+
+    def add(self, v: float) -> None:
+        self.values[self.i % self.size] = v
+        self.i += 1
+
+    def percentiles(self, qs: tuple[float, ...]) -> tuple[float, ...]:
+        v = self.values[: min(self.i, self.size)]
+        if v.size == 0:
+            return tuple(float("nan") for _ in qs)
+        return tuple(float(x) for x in np.percentile(v, qs))
+
+
+@dataclass(slots=True)
+class _StreamOut:
+    """One stream's bound metric children for :meth:`ServiceMetrics.frame_out` (no label
+    lookups per frame)."""
+
+    frames_out: Counter
+    labeling: Histogram
+    latency: Histogram | None  # bound at the first frame with a sender stamp
+    observed: Counter
+    recovered: Counter
+    missing: Counter
+    unlabeled: Counter
+    recent_label: _Recent
+    recent_latency: _Recent
+
+
+class ServiceMetrics:
+    """All counters of one server. ``snapshot()`` gives plain numbers for tests and logs."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.frames_in = Counter(
+            "mocap_frames_in", "Frames accepted for labeling", ["stream"], registry=r
+        )
+        self.frames_out = Counter(
+            "mocap_frames_out", "Labeled frames published", ["stream"], registry=r
+        )
+        self.dropped = Counter(
+            "mocap_dropped", "Messages dropped, by reason", ["stream", "reason"], registry=r
+        )
+        self.seq_gap = Counter(
+            "mocap_seq_gap_frames", "Frames missing from seq gaps (predicted across)",
+            ["stream"], registry=r,
+        )  # fmt: skip
+        self.labeling = Histogram(
+            "mocap_labeling_seconds", "Labeler time per frame", ["stream"],
+            buckets=_MS_BUCKETS, registry=r,
+        )  # fmt: skip
+        self.latency = Histogram(
+            "mocap_latency_seconds",
+            "Service-side end-to-end latency: sender stamp to labeled frame sent",
+            ["stream"], buckets=_MS_BUCKETS, registry=r,
+        )  # fmt: skip
+        self.markers = Counter(
+            "mocap_markers", "Markers per state in published frames", ["stream", "state"],
+            registry=r,
+        )  # fmt: skip
+        self.unlabeled = Counter(
+            "mocap_unlabeled_points", "Input points left unlabeled", ["stream"], registry=r
+        )
+        self.queue_depth = Gauge("mocap_queue_depth", "Queued frames", ["stream"], registry=r)
+        self.ready = Gauge("mocap_ready", "1 once kernels are warm and serving", registry=r)
+        self._recent_label: dict[str, _Recent] = {}
+        self._recent_latency: dict[str, _Recent] = {}
+        self._out: dict[str, _StreamOut] = {}
+        self._children: dict[tuple, object] = {}
+        self._http: tuple | None = None
+        self._drops: dict[tuple[str, str], int] = {}
+
+    # ---------------------------------------------------------------- recording
+    def _child(self, metric, *labels: str):
+        key = (id(metric), labels)
+        c = self._children.get(key)
+        if c is None:
+            c = self._children[key] = metric.labels(*labels)
+        return c
+
+    def drop(self, reason: str, stream: str = "", n: int = 1) -> None:
+        self._child(self.dropped, stream, reason).inc(n)
+        self._drops[(stream, reason)] = self._drops.get((stream, reason), 0) + n
+
+    def frame_in(self, stream: str) -> None:
+        self._child(self.frames_in, stream).inc()
+
+    def queue(self, stream: str, depth: int) -> None:
+        self._child(self.queue_depth, stream).set(depth)
+
+    def gap(self, stream: str, n: int) -> None:
+        self._child(self.seq_gap, stream).inc(n)
+
+    def frame_out(
+        self,
+        stream: str,
+        label_s: float,
+        latency_s: float | None,
+        observed: int,
+        recovered: int,
+        missing: int,
+        unlabeled: int,
+    ) -> None:
+        c = self._out.get(stream)
+        if c is None:
+            c = self._out[stream] = self._bind_out(stream)
+        c.frames_out.inc()
+        c.labeling.observe(label_s)
+        c.recent_label.add(label_s)
+        if latency_s is not None:
+            if c.latency is None:
+                c.latency = self._child(self.latency, stream)
+            c.latency.observe(latency_s)
+            c.recent_latency.add(latency_s)
+        c.observed.inc(observed)
+        c.recovered.inc(recovered)
+        c.missing.inc(missing)
+        c.unlabeled.inc(unlabeled)
+
+    def _bind_out(self, stream: str) -> _StreamOut:
+        label = self._recent_label[stream] = _Recent()
+        latency = self._recent_latency[stream] = _Recent()
+        return _StreamOut(
+            self._child(self.frames_out, stream),
+            self._child(self.labeling, stream),
+            None,
+            self._child(self.markers, stream, "observed"),
+            self._child(self.markers, stream, "recovered"),
+            self._child(self.markers, stream, "missing"),
+            self._child(self.unlabeled, stream),
+            label,
+            latency,
+        )
+
+    # ---------------------------------------------------------------- reading
+    def value(self, name: str, **labels: str) -> float:
+        v = self.registry.get_sample_value(name, labels)
+        return 0.0 if v is None else float(v)
+
+    def drops(self, reason: str | None = None, stream: str | None = None) -> int:
+        return sum(
+            n
+            for (s, r), n in self._drops.items()
+            if (reason is None or r == reason) and (stream is None or s == stream)
+        )
+
+    def snapshot(self) -> dict:
+        """Totals per stream and drops per reason, as plain numbers."""
+        streams = sorted(
+            {k[1][0] for k in self._children if k[0] == id(self.frames_in)}
+            | {k[1][0] for k in self._children if k[0] == id(self.frames_out)}
+        )
+        out: dict = {"streams": {}, "drops": {}}
+        for (_, reason), n in self._drops.items():
+            out["drops"][reason] = out["drops"].get(reason, 0) + n
+        for s in streams:
+            lab = self._recent_label.get(s, _Recent()).percentiles((50, 99))
+            lat = self._recent_latency.get(s, _Recent()).percentiles((50, 99))
+            out["streams"][s] = {
+                "frames_in": self.value("mocap_frames_in_total", stream=s),
+                "frames_out": self.value("mocap_frames_out_total", stream=s),
+                "observed": self.value("mocap_markers_total", stream=s, state="observed"),
+                "recovered": self.value("mocap_markers_total", stream=s, state="recovered"),
+                "unlabeled": self.value("mocap_unlabeled_points_total", stream=s),
+                "gap_frames": self.value("mocap_seq_gap_frames_total", stream=s),
+                "labeling_ms_p50": lab[0] * 1e3,
+                "labeling_ms_p99": lab[1] * 1e3,
+                "latency_ms_p50": lat[0] * 1e3,
+                "latency_ms_p99": lat[1] * 1e3,
+            }
+        return out
+
+    def log_line(self) -> str:
+        snap = self.snapshot()
+        parts = []
+        for s, v in snap["streams"].items():
+            parts.append(
+                f"[{s}] in={v['frames_in']:.0f} out={v['frames_out']:.0f} "
+                f"label p50/p99={v['labeling_ms_p50']:.2f}/{v['labeling_ms_p99']:.2f} ms "
+                f"latency p99={v['latency_ms_p99']:.2f} ms recovered={v['recovered']:.0f}"
+            )
+        drops = ", ".join(f"{r}={n}" for r, n in sorted(snap["drops"].items())) or "none"
+        return " ".join(parts or ["no streams yet"]) + f" drops: {drops}"
+
+    # ---------------------------------------------------------------- HTTP endpoint
+    def serve_http(self, host: str, port: int) -> int:
+        """Starts the Prometheus text endpoint in a daemon thread; returns the bound port."""
+        server, thread = start_http_server(port, addr=host, registry=self.registry)
+        self._http = (server, thread)
+        return int(server.server_address[1])
+
+    def close(self) -> None:
+        if self._http is not None:
+            server, thread = self._http
+            server.shutdown()
+            server.server_close()
+            thread.join(timeout=5)
+            self._http = None
+
+
+class RateLimitedLog:
+    """Logs at most one line per key every ``period`` seconds, counting what it suppressed."""
+
+    def __init__(self, logger: logging.Logger, period: float = 5.0) -> None:
+        self.logger = logger
+        self.period = period
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def warning(self, key: str, msg: str, *args: object) -> bool:
+        now = time.monotonic()
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return False
+        n = self._suppressed.pop(key, 0)
+        self._last[key] = now
+        suffix = f" ({n} similar suppressed)" if n else ""
+        self.logger.warning(msg + suffix, *args)
+        return True

@@ -1,0 +1,377 @@
+"""The asyncio service: transports in, one worker per stream, labeled frames out.
+
+::
+
+    transport.messages() --decode/validate--> per-stream DropOldestQueue --worker--> labeler
+         (udp, mqtt, memory)   (rejects counted)     (keep newest, drops counted)      |
+                                                                                        v
+    transport.send(stream, "labeled" | "model" | "status")  <---- encode_labeled ------+
+
+Tasks are named (``ingest-udp``, ``stream-<name>``, ``model-repeat``, ``transport-drops``,
+``metrics-log``); leaving the ``async with`` publishes ``offline`` status, cancels every task,
+then awaits them. What the transports drop themselves (receive-queue overflow, datagrams the
+kernel refused) is added to the drop metric once a second. Kernels
+are compiled on a synthetic scene before the status turns ``online`` and ``ready`` is set.
+Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
+per stream (the first unlabeled frame, which trains the labeler), which runs in a worker thread
+so other streams keep flowing. ``labeling_thread = true`` labels every frame in one thread per
+stream instead (the numba kernels release the GIL).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import AsyncExitStack
+
+import numpy as np
+
+from labeler_service.errors import LabelerError, MocapError, ProtocolError
+from labeler_service.labeling.frame import FrameLabeler
+from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
+from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
+from labeler_service.service.settings import ServiceSettings, StreamSettings
+from labeler_service.service.stream import StreamState, make_labeler
+from labeler_service.service.transports.base import (
+    DropOldestQueue,
+    Incoming,
+    Transport,
+    cancel_and_wait,
+)
+
+log = logging.getLogger(__name__)
+
+
+def build_transports(settings: ServiceSettings) -> list[Transport]:
+    """The transports the settings enable (UDP and/or MQTT)."""
+    out: list[Transport] = []
+    if settings.udp.enabled:
+        from labeler_service.service.transports.udp import UdpTransport
+
+        out.append(UdpTransport(settings.udp))
+    if settings.mqtt.enabled:
+        from labeler_service.service.transports.mqtt import MqttTransport
+
+        out.append(MqttTransport(settings.mqtt, [s.name for s in settings.streams]))
+    if not out:
+        raise MocapError("no transport enabled: set udp.enabled or mqtt.enabled")
+    return out
+
+
+def synthetic_warmup_frames(
+    seed: int = 0, subjects: int = 2, markers: int = 6, frames: int = 80, rate: float = 120.0
+) -> tuple[tuple[str, ...], list[tuple[np.ndarray, float, np.ndarray | None]]]:
+    """A tiny scene (rigid clusters moving smoothly) to compile every kernel before serving.
+
+    Returns marker names and ``(points, t, labels or None)`` frames: the first half labeled
+    (training window), the rest unlabeled with one marker hidden now and then (recovery path)
+    and a ghost point.
+    """
+    rng = np.random.default_rng(seed)
+    names = tuple(f"W{s}:m{i}" for s in range(subjects) for i in range(markers))
+    shapes = rng.normal(scale=60.0, size=(subjects, markers, 3))
+    out = []
+    for f in range(frames):
+        t = f / rate
+        pos = []
+        for s in range(subjects):
+            a = 0.5 * np.sin(2.0 * t + s)
+            rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+            centre = np.array([600.0 * s + 200.0 * t, 50.0 * np.sin(3 * t), 1000.0])
+            pos.append(centre + shapes[s] @ rot.T)
+        p = np.concatenate(pos).astype(np.float32)
+        idx = np.arange(len(names), dtype=np.int32)
+        if f >= frames // 2 and f % 5 == 0:
+            keep = idx != (f // 5) % len(names)
+            p, idx = p[keep], idx[keep]
+        p = np.concatenate([p, p[:1] + np.float32(80.0)])
+        idx = np.concatenate([idx, [-1]]).astype(np.int32)
+        order = rng.permutation(len(p))
+        out.append((p[order], t, idx[order] if f < frames // 2 else None))
+    return names, out
+
+
+def warm_up(kind: str, config, factory: Callable[..., FrameLabeler] = make_labeler) -> float:
+    """Runs a labeler of ``kind`` over the synthetic scene (numba compiles or loads its cache);
+    returns the seconds it took."""
+    t0 = time.perf_counter()
+    names, frames = synthetic_warmup_frames()
+    labeler = factory(kind, names, 120.0, config)
+    warm = getattr(labeler, "warmup", None)
+    if callable(warm):
+        warm()
+    try:
+        for points, t, labels in frames:
+            labeler.process(points, t, labels)
+    except Exception as exc:
+        raise LabelerError(f"labeler warm-up failed ({kind}): {exc}") from exc
+    return time.perf_counter() - t0
+
+
+class Server:
+    """The labeling service over the given transports. Use as ``async with Server(...)``."""
+
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        transports: Sequence[Transport] | None = None,
+        factory: Callable[..., FrameLabeler] = make_labeler,
+    ) -> None:
+        self.settings = settings
+        self.transports = list(transports) if transports is not None else None
+        self.factory = factory
+        self.metrics = ServiceMetrics()
+        self.streams: dict[str, StreamState] = {}
+        self._queues: dict[str, DropOldestQueue[tuple[FrameMsg, int]]] = {}
+        self._published_model: dict[str, int] = {}
+        self._transport_drops: dict[tuple[str, str, str], int] = {}
+        self._executors: dict[str, ThreadPoolExecutor] = {}
+        self._tasks: list[asyncio.Task] = []
+        self._stack: AsyncExitStack | None = None
+        self._rlog = RateLimitedLog(log)
+        self.ready: asyncio.Event | None = None
+        self.metrics_port: int | None = None
+        self.warmup_s = 0.0
+
+    # ------------------------------------------------------------------ lifecycle
+    async def __aenter__(self) -> Server:
+        self.ready = asyncio.Event()
+        if self.transports is None:
+            self.transports = build_transports(self.settings)
+        self._stack = AsyncExitStack()
+        try:
+            for t in self.transports:
+                await self._stack.enter_async_context(t)  # type: ignore[arg-type]
+            for s in self.settings.streams:
+                await self._status(s.name, "starting")
+            if self.settings.warmup:
+                self.warmup_s = await asyncio.to_thread(
+                    warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
+                )
+                log.info("kernels warm (%.2f s)", self.warmup_s)
+            for s in self.settings.streams:
+                state = self._new_stream(s.name, s)
+                if s.model is not None:
+                    await asyncio.to_thread(state.start_from_model)
+                    await self._publish_model(state)
+            for t in self.transports:
+                self._spawn(self._ingest(t), f"ingest-{t.name}")
+            self._spawn(self._model_repeat(), "model-repeat")
+            self._spawn(self._transport_drops_loop(), "transport-drops")
+            self._spawn(self._log_loop(), "metrics-log")
+            if self.settings.metrics_port is not None:
+                self.metrics_port = self.metrics.serve_http(
+                    self.settings.metrics_host, self.settings.metrics_port
+                )
+                log.info("metrics on http://%s:%d/metrics", self.settings.metrics_host,
+                         self.metrics_port)  # fmt: skip
+            for name in self.streams:
+                await self._status(name, "online")
+        except BaseException:
+            await self._shutdown()
+            raise
+        self.metrics.ready.set(1)
+        self.ready.set()
+        log.info("ready: %s", ", ".join(t.name for t in self.transports))
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self._shutdown()
+
+    async def _shutdown(self) -> None:
+        self.metrics.ready.set(0)
+        for name in list(self.streams):
+            with contextlib.suppress(Exception):
+                await self._status(name, "offline")
+        tasks, self._tasks = self._tasks, []
+        await cancel_and_wait(tasks)
+        self._count_transport_drops()
+        for ex in self._executors.values():
+            ex.shutdown(wait=True, cancel_futures=True)
+        self._executors.clear()
+        self.metrics.close()
+        if self._stack is not None:
+            stack, self._stack = self._stack, None
+            await stack.aclose()
+        log.info("stopped: %s", self.metrics.log_line())
+
+    def _spawn(self, coro, name: str) -> asyncio.Task:
+        task = asyncio.create_task(coro, name=name)
+        self._tasks.append(task)
+        return task
+
+    # ------------------------------------------------------------------ streams
+    def _new_stream(self, name: str, s: StreamSettings | None) -> StreamState:
+        state = StreamState(name, self.settings, s, self.factory)
+        self.streams[name] = state
+        self._queues[name] = DropOldestQueue(self.settings.queue_size)
+        if self.settings.labeling_thread:
+            self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"label-{name}")
+        self._spawn(self._worker(state), f"stream-{name}")
+        return state
+
+    def _stream_for(self, name: str) -> StreamState | None:
+        state = self.streams.get(name)
+        if state is not None:
+            return state
+        if not self.settings.allow_new_streams or len(self.streams) >= self.settings.max_streams:
+            return None
+        log.info("stream %s: new (starts from labeled init frames)", name)
+        state = self._new_stream(name, None)
+        self._spawn(self._status(name, "online"), f"status-{name}")
+        return state
+
+    # ------------------------------------------------------------------ ingest
+    async def _ingest(self, transport: Transport) -> None:
+        """Decodes every message of one transport; a bad one is counted and skipped."""
+        async for inc in transport.messages():
+            try:
+                self._handle(transport, inc)
+            except ProtocolError as exc:
+                self.metrics.drop(exc.reason)
+                self._rlog.warning(
+                    f"reject-{exc.reason}", "%s: rejected message (%s): %s", transport.name,
+                    exc.reason, exc,
+                )  # fmt: skip
+            except Exception:  # never let one message end the loop
+                self.metrics.drop("internal")
+                if self._rlog.warning("ingest-internal", "%s: internal error", transport.name):
+                    log.exception("ingest error")
+
+    def _handle(self, transport: Transport, inc: Incoming) -> None:
+        msg = decode(inc.payload, self.settings.max_points, self.settings.max_message_bytes)
+        if isinstance(msg, FrameMsg):
+            self._on_frame(msg, inc)
+        elif isinstance(msg, SubscribeMsg):
+            sub = getattr(transport, "subscribe", None)
+            if sub is None or inc.reply_to is None:
+                raise ProtocolError(f"{transport.name}: subscribe is UDP only", "type")
+            sub(inc.reply_to, msg.stream)
+        else:
+            raise ProtocolError(f"{type(msg).__name__} is not accepted by the service", "type")
+
+    def _on_frame(self, msg: FrameMsg, inc: Incoming) -> None:
+        if inc.stream is not None and inc.stream != msg.stream:
+            self.metrics.drop("stream_mismatch")
+            self._rlog.warning("mismatch", "topic stream %s carried stream %s", inc.stream,
+                               msg.stream)  # fmt: skip
+            return
+        state = self._stream_for(msg.stream)
+        if state is None:
+            self.metrics.drop("unknown_stream", msg.stream)
+            self._rlog.warning("unknown", "frame for unknown stream %s dropped", msg.stream)
+            return
+        reason, gap = state.check_seq(msg.seq)
+        if reason is not None:
+            self.metrics.drop(reason, msg.stream)
+            return
+        if gap:
+            self.metrics.gap(msg.stream, gap)
+        self.metrics.frame_in(msg.stream)
+        if self._queues[msg.stream].put((msg, inc.recv_ns)) is not None:
+            self.metrics.drop("queue_full", msg.stream)
+            self._rlog.warning(f"queue-{msg.stream}", "stream %s: falling behind, dropping the "
+                               "oldest frame", msg.stream)  # fmt: skip
+
+    # ------------------------------------------------------------------ workers
+    async def _worker(self, state: StreamState) -> None:
+        queue = self._queues[state.name]
+        loop = asyncio.get_running_loop()
+        executor = self._executors.get(state.name)
+        while True:
+            # yield once per frame: readers drain the sockets into the drop-oldest queues
+            # first, so a backlog is dropped (counted) rather than aged in kernel buffers
+            await asyncio.sleep(0)
+            msg, recv_ns = await queue.get()
+            self.metrics.queue(state.name, len(queue))
+            try:
+                if executor is not None:
+                    out = await loop.run_in_executor(executor, state.process, msg, recv_ns)
+                elif state.heavy(msg):
+                    out = await asyncio.to_thread(state.process, msg, recv_ns)
+                else:
+                    out = state.process(msg, recv_ns)
+            except LabelerError as exc:
+                reason = "labeler_error" if state.started else "no_model"
+                self.metrics.drop(reason, state.name)
+                self._rlog.warning(f"{reason}-{state.name}", "%s", exc)
+                continue
+            except OverflowError as exc:
+                self.metrics.drop("init_overflow", state.name)
+                self._rlog.warning(f"init-{state.name}", "%s", exc)
+                continue
+            except Exception:
+                self.metrics.drop("labeler_error", state.name)
+                if self._rlog.warning(f"err-{state.name}", "stream %s: labeler failed on seq %d",
+                                      state.name, msg.seq):  # fmt: skip
+                    log.exception("labeler error")
+                continue
+            if out is None:
+                continue
+            if self._published_model.get(state.name) != state.model_id:
+                await self._publish_model(state)
+            sent_ok = await self._send_all(state.name, "labeled", out.payload)
+            if sent_ok:
+                self.metrics.frame_out(
+                    state.name, out.label_s, out.latency_s, out.observed, out.recovered,
+                    out.missing, out.unlabeled,
+                )  # fmt: skip
+
+    async def _send_all(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> bool:
+        ok = False
+        assert self.transports is not None
+        for t in self.transports:
+            try:
+                await t.send(stream, kind, payload, retain)
+                ok = True
+            except ProtocolError as exc:
+                self.metrics.drop("output_oversize", stream)
+                self._rlog.warning(f"oversize-{stream}", "%s", exc)
+            except Exception as exc:
+                self.metrics.drop("send_error", stream)
+                self._rlog.warning(f"send-{t.name}", "%s: send failed: %s", t.name, exc)
+        return ok
+
+    async def _publish_model(self, state: StreamState) -> None:
+        if state.model_payload is None:
+            return
+        self._published_model[state.name] = state.model_id
+        await self._send_all(state.name, "model", state.model_payload, retain=True)
+
+    async def _status(self, stream: str, status: str) -> None:
+        await self._send_all(stream, "status", encode_status(stream, status), retain=True)
+
+    async def _model_repeat(self) -> None:
+        """Re-sends every model message once per ``model_repeat_s`` (late UDP subscribers)."""
+        while True:
+            await asyncio.sleep(self.settings.model_repeat_s)
+            for state in list(self.streams.values()):
+                if state.model_payload is not None:
+                    await self._publish_model(state)
+
+    def _count_transport_drops(self) -> None:
+        """Adds what each transport dropped since the last call to ``mocap_dropped_total``."""
+        for t in self.transports or ():
+            counts = getattr(t, "drop_counts", None)
+            if counts is None:
+                continue
+            for (stream, reason), n in counts().items():
+                key = (t.name, stream, reason)
+                delta = n - self._transport_drops.get(key, 0)
+                if delta > 0:
+                    self._transport_drops[key] = n
+                    self.metrics.drop(reason, stream, delta)
+
+    async def _transport_drops_loop(self) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            self._count_transport_drops()
+
+    async def _log_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.log_interval_s)
+            log.info("%s", self.metrics.log_line())

@@ -1,0 +1,227 @@
+"""Service settings: a TOML/JSON file, overridden by ``MOCAP_`` environment variables.
+
+Precedence, highest first: environment (``MOCAP_UDP__PORT=9999``, nested fields joined with
+``__``), the file given to ``serve --config``, then the defaults below. Everything is validated
+once at start-up; an invalid value raises :class:`~labeler_service.errors.ConfigError` naming the
+field and the problem (the CLI prints it and exits 2).
+
+Example (``docker/service.toml`` is a complete one)::
+
+    queue_size = 64
+    [udp]
+    host = "127.0.0.1"
+    port = 9870
+    [mqtt]
+    enabled = true
+    host = "mosquitto"
+    [[streams]]
+    name = "volume1"
+    model = "models/volume1.npz"   # else: trained from labeled init frames in the stream
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from labeler_service.errors import ConfigError
+from labeler_service.labeling.config import LabelerConfig
+from labeler_service.service.protocol import STREAM_NAME
+
+#: Largest UDP payload over IPv4 (65 535 - 8 UDP header - 20 IP header).
+UDP_MAX_PAYLOAD = 65_507
+
+
+def check_stream_name(name: str) -> str:
+    """Stream names become MQTT topic levels: letters, digits, ``_ . -``; 1-64 characters."""
+    if not STREAM_NAME.match(name):
+        raise ValueError(
+            f"stream name {name!r} must be 1-64 characters of letters, digits, '_', '.', '-'"
+        )
+    return name
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class UdpSettings(_Section):
+    """Loopback by default; bind ``0.0.0.0`` deliberately to listen on the network."""
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = Field(9870, ge=0, le=65535)
+    #: Fixed destinations (``host:port``) that receive every labeled/model/status datagram,
+    #: in addition to subscribers that registered with a ``subscribe`` datagram.
+    publish_to: list[str] = Field(default_factory=list)
+    #: A registered subscriber that has not renewed within this many seconds is dropped.
+    subscriber_ttl_s: float = Field(5.0, gt=0)
+    max_subscribers: int = Field(64, ge=1)
+    #: Kernel receive/send buffer sizes requested (capped by net.core.rmem_max/wmem_max).
+    socket_buffer_bytes: int = Field(4 * 1024 * 1024, ge=65536)
+
+    @field_validator("publish_to")
+    @classmethod
+    def _check_destinations(cls, v: list[str]) -> list[str]:
+        for dest in v:
+            host, sep, port = dest.rpartition(":")
+            if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+                raise ValueError(f"destination {dest!r} must be host:port")
+        return v
+
+
+class MqttSettings(_Section):
+    """Broker connection; one client per configured stream (each with its own last will)."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = Field(1883, ge=1, le=65535)
+    username: str | None = None
+    password: SecretStr | None = None
+    tls: bool = False
+    ca_file: Path | None = None
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    tls_insecure: bool = False
+    keepalive_s: int = Field(10, ge=2, le=3600)
+    client_id_prefix: str = "mocap-labeler"
+    topic_prefix: str = "mocap"
+    #: Reconnect backoff: starts at ``reconnect_min_s``, doubles, capped at ``reconnect_max_s``.
+    reconnect_min_s: float = Field(0.2, gt=0)
+    reconnect_max_s: float = Field(2.0, gt=0)
+
+    @field_validator("ca_file", "cert_file", "key_file")
+    @classmethod
+    def _file_exists(cls, v: Path | None) -> Path | None:
+        if v is not None and not Path(v).is_file():
+            raise ValueError(f"file {v} does not exist")
+        return v
+
+
+class StreamSettings(_Section):
+    """One capture volume. Start-up: from ``model`` when given, else from labeled init frames."""
+
+    name: str = "default"
+    #: Subject model file (``train structure`` output). None: train from labeled init frames.
+    model: Path | None = None
+    #: Capture rate in Hz. None: estimated from the init frames' times (model: its rate).
+    rate: float | None = Field(None, gt=0)
+
+    @field_validator("name")
+    @classmethod
+    def _check_name(cls, v: str) -> str:
+        return check_stream_name(v)
+
+    @field_validator("model")
+    @classmethod
+    def _model_exists(cls, v: Path | None) -> Path | None:
+        if v is not None and not Path(v).is_file():
+            raise ValueError(f"model file {v} does not exist")
+        return v
+
+
+class ServiceSettings(BaseSettings):
+    """Everything ``serve`` needs. See the module docstring for sources and precedence."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="MOCAP_", env_nested_delimiter="__", extra="forbid", case_sensitive=False
+    )
+
+    udp: UdpSettings = Field(default_factory=UdpSettings)
+    mqtt: MqttSettings = Field(default_factory=MqttSettings)
+    streams: list[StreamSettings] = Field(default_factory=lambda: [StreamSettings()])
+    #: Accept frames for streams not listed above (UDP; they start from labeled init frames).
+    allow_new_streams: bool = True
+    max_streams: int = Field(16, ge=1)
+    #: Labeler: ``online`` (seed 003 Algorithm 1) or ``baseline`` (closest point).
+    labeler: Literal["online", "baseline"] = "online"
+    #: The online labeler's tunables (``labeler_service.labeling.config.LabelerConfig``).
+    labeler_config: LabelerConfig = Field(default_factory=LabelerConfig)
+    #: Init frames buffered at most while waiting for the first unlabeled frame.
+    max_init_frames: int = Field(2000, ge=1)
+    #: Input validation caps (checked once, at decode).
+    max_points: int = Field(2000, ge=1)
+    max_message_bytes: int = Field(UDP_MAX_PAYLOAD, ge=64)
+    #: Per-stream frame queue; when full the oldest frame is dropped (counted).
+    queue_size: int = Field(32, ge=1)
+    #: Model message repeat period (UDP; MQTT keeps it retained too).
+    model_repeat_s: float = Field(1.0, gt=0, le=1.0)
+    #: Prometheus text endpoint; port 0 picks a free one, None disables it.
+    metrics_host: str = "127.0.0.1"
+    metrics_port: int | None = Field(9108, ge=0, le=65535)
+    log_interval_s: float = Field(10.0, gt=0)
+    #: Run every kernel on a synthetic frame before reporting ready.
+    warmup: bool = True
+    #: Label in one worker thread per stream (numba kernels release the GIL). Measured slower
+    #: on 2 cores (GIL hand-offs between the loop and the labeling thread; docs/service.md),
+    #: so off by default: labeling runs inline on the event loop.
+    labeling_thread: bool = False
+
+    @field_validator("streams")
+    @classmethod
+    def _unique_streams(cls, v: list[StreamSettings]) -> list[StreamSettings]:
+        names = [s.name for s in v]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"stream names must be unique, repeated: {', '.join(dupes)}")
+        return v
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # environment beats the file (passed as init kwargs), which beats the defaults
+        return env_settings, init_settings
+
+
+def _format_errors(exc: ValidationError) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(settings)"
+        lines.append(f"  {loc}: {err['msg']}")
+    return "\n".join(lines)
+
+
+def read_settings_file(path: str | Path) -> dict[str, Any]:
+    """Reads a ``.toml`` or ``.json`` settings file into a dict (no validation yet)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"settings file {p} does not exist")
+    try:
+        if p.suffix.lower() == ".toml":
+            with p.open("rb") as f:
+                data = tomllib.load(f)
+        elif p.suffix.lower() == ".json":
+            data = json.loads(p.read_text(encoding="utf-8"))
+        else:
+            raise ConfigError(f"settings file {p}: use .toml or .json, not {p.suffix or 'none'}")
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"settings file {p} cannot be parsed: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"settings file {p} must hold a table/object at the top level")
+    return data
+
+
+def load_settings(path: str | Path | None = None, **overrides: Any) -> ServiceSettings:
+    """Settings from ``path`` (optional), ``MOCAP_`` env vars and ``overrides`` (tests, tools).
+
+    ``overrides`` merge over the file's top-level keys. Raises :class:`ConfigError` listing
+    every invalid field.
+    """
+    data = read_settings_file(path) if path is not None else {}
+    data.update(overrides)
+    where = f" in {path}" if path is not None else ""
+    try:
+        return ServiceSettings(**data)
+    except ValidationError as exc:
+        raise ConfigError(f"invalid service settings{where}:\n{_format_errors(exc)}") from exc

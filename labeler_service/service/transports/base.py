@@ -1,0 +1,101 @@
+"""The transport interface: a source of raw messages and a sink for outgoing ones.
+
+A transport is an async context manager (it owns sockets and tasks) with
+
+* ``messages()`` — an async iterator of :class:`Incoming` (raw payload, receipt time, where it
+  came from). Decoding and validation belong to the server (``protocol.decode``), once.
+* ``send(stream, kind, payload, retain=False)`` — publish one encoded message of ``kind``
+  (``labeled``, ``model``, ``status``) for ``stream``. ``retain=True`` keeps the latest payload
+  per (stream, kind) and replays it to late subscribers (MQTT retained flag; UDP on
+  registration) and after reconnects.
+* optionally ``drop_counts()`` — cumulative counts of what the transport dropped itself, by
+  ``(stream, reason)`` (e.g. ``("", "rx_overflow")``); the server adds the increments to
+  ``mocap_dropped_total`` once a second (no per-frame cost).
+
+:class:`~labeler_service.service.transports.memory.MemoryTransport` implements it without sockets
+for
+pipeline and server tests (after httpx ``MockTransport``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import AsyncIterator, Iterable
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
+
+T = TypeVar("T")
+
+
+@dataclass(slots=True)
+class Incoming:
+    """One received message before decoding."""
+
+    payload: bytes
+    recv_ns: int  # time.time_ns() at receipt
+    transport: str  # "udp", "mqtt", "memory"
+    reply_to: Any = None  # UDP: sender address (for subscribe); else None
+    stream: str | None = None  # MQTT: the topic's stream (must match the payload's)
+
+
+class Transport(Protocol):
+    name: str
+
+    async def __aenter__(self) -> Transport: ...
+
+    async def __aexit__(self, *exc: object) -> None: ...
+
+    def messages(self) -> AsyncIterator[Incoming]: ...
+
+    async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None: ...
+
+
+class DropOldestQueue(Generic[T]):
+    """A bounded FIFO for real-time data: when full, ``put`` discards the oldest item.
+
+    ``put`` never blocks and returns the discarded item (or ``None``) so the caller can count
+    it; ``dropped`` counts them all. ``get`` waits for an item.
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"maxsize must be >= 1, got {maxsize}")
+        self.maxsize = maxsize
+        self.dropped = 0
+        self._items: deque[T] = deque()
+        self._event = asyncio.Event()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, item: T) -> T | None:
+        old = None
+        if len(self._items) >= self.maxsize:
+            old = self._items.popleft()
+            self.dropped += 1
+        self._items.append(item)
+        self._event.set()
+        return old
+
+    async def get(self) -> T:
+        while not self._items:
+            self._event.clear()
+            await self._event.wait()
+        return self._items.popleft()
+
+    def get_nowait(self) -> T | None:
+        return self._items.popleft() if self._items else None
+
+
+async def cancel_and_wait(tasks: Iterable[asyncio.Task]) -> None:
+    """Cancels every task, then waits until all have ended (their exceptions are dropped)."""
+    tasks = list(tasks)
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+
+
+async def iterate_queue(queue: DropOldestQueue[T]) -> AsyncIterator[T]:
+    while True:
+        yield await queue.get()

@@ -1,0 +1,368 @@
+"""MQTT through aiomqtt: the service transport and the tools' client, both reconnecting.
+
+Topics (``topic_prefix`` defaults to ``mocap``): ``mocap/<stream>/unlabeled`` (in),
+``mocap/<stream>/labeled`` (out, QoS 0), ``mocap/<stream>/model`` (out, retained),
+``mocap/<stream>/status`` (out, retained; the connection's last will sets it to ``offline``).
+
+MQTT allows one last will per connection, so the service opens one connection per configured
+stream, each with the will on its own status topic. Reconnection lives outside the client
+(aiomqtt's recipe): :class:`ReconnectingClient` runs ``async with Client(...)`` in a loop with
+exponential backoff (``reconnect_min_s`` doubling to ``reconnect_max_s``), re-subscribes and
+re-publishes the retained payloads after every (re)connect. While the broker is down, labeled
+frames for MQTT are counted as ``send_error`` and UDP keeps flowing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import select
+import socket
+import ssl
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+
+import aiomqtt
+
+from labeler_service.service.protocol import encode_status
+from labeler_service.service.settings import MqttSettings
+from labeler_service.service.transports.base import (
+    DropOldestQueue,
+    Incoming,
+    cancel_and_wait,
+    iterate_queue,
+)
+
+log = logging.getLogger(__name__)
+
+
+#: Outgoing QoS-0 messages queued in paho (not yet written to the socket) at most.
+MAX_OUTGOING = 256
+
+
+def topic(prefix: str, stream: str, kind: str) -> str:
+    return f"{prefix}/{stream}/{kind}"
+
+
+def _tls(settings: MqttSettings) -> aiomqtt.TLSParameters | None:
+    if not settings.tls:
+        return None
+    return aiomqtt.TLSParameters(
+        ca_certs=str(settings.ca_file) if settings.ca_file else None,
+        certfile=str(settings.cert_file) if settings.cert_file else None,
+        keyfile=str(settings.key_file) if settings.key_file else None,
+        cert_reqs=ssl.CERT_NONE if settings.tls_insecure else ssl.CERT_REQUIRED,
+    )
+
+
+def drain_reads(client: aiomqtt.Client) -> bool:
+    """Makes one socket readiness event read *every* MQTT packet already received.
+
+    aiomqtt's reader calls paho's ``loop_read``, which reads one QoS-0 packet per event, and
+    ``client.messages`` yields one message per event-loop iteration: while the service is busy
+    labeling, a backlog would wait in TCP buffers and aiomqtt's unbounded queue, out of reach of
+    our drop-oldest queues. This reader loops while the socket stays readable (the messages land
+    in aiomqtt's queue, which :meth:`ReconnectingClient.run` empties each time). Relies on
+    aiomqtt 2.x internals (``_client``, ``_disconnected``); returns False, changing nothing, if
+    they are not there.
+    """
+    paho = getattr(client, "_client", None)
+    disconnected = getattr(client, "_disconnected", None)
+    sock = paho.socket() if paho is not None else None
+    if sock is None or disconnected is None:
+        return False
+    fd = sock.fileno()
+    loop = asyncio.get_running_loop()
+
+    def drain() -> None:
+        try:
+            for _ in range(10_000):
+                paho.loop_read()
+                raw = paho.socket()
+                if raw is None:
+                    return
+                pending = getattr(raw, "pending", None)  # TLS: decrypted bytes buffered
+                if pending is not None and pending() > 0:
+                    continue
+                if not select.select([fd], [], [], 0)[0]:
+                    return
+        except Exception as exc:  # a broken connection: let aiomqtt see it, as its reader does
+            if not disconnected.done():
+                disconnected.set_exception(exc)
+
+    loop.remove_reader(fd)
+    loop.add_reader(fd, drain)
+    return True
+
+
+class ReconnectingClient:
+    """One MQTT connection kept alive: connect, subscribe, hand messages over, reconnect.
+
+    ``on_message(message, recv_ns)`` is called for every message; ``on_connect(client)`` after
+    every (re)connect and subscription (re-publish retained state there). ``publish`` returns
+    False while disconnected instead of waiting (the caller counts it).
+    """
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        identifier: str,
+        topics: list[str],
+        on_message: Callable[[aiomqtt.Message, int], None],
+        on_connect: Callable[[aiomqtt.Client], Awaitable[None]] | None = None,
+        will: aiomqtt.Will | None = None,
+    ) -> None:
+        self.settings = settings
+        self.identifier = identifier
+        self.topics = topics
+        self.on_message = on_message
+        self.on_connect = on_connect
+        self.will = will
+        self.client: aiomqtt.Client | None = None
+        self.connected = asyncio.Event()
+        self.connects = 0
+        self.failures = 0
+
+    def _make(self) -> aiomqtt.Client:
+        s = self.settings
+        return aiomqtt.Client(
+            s.host,
+            s.port,
+            username=s.username,
+            password=s.password.get_secret_value() if s.password else None,
+            identifier=self.identifier,
+            will=self.will,
+            keepalive=s.keepalive_s,
+            tls_params=_tls(s),
+            tls_insecure=s.tls_insecure if s.tls else None,
+            timeout=5.0,
+            # small frames must not wait for Nagle + delayed ACK (~40 ms on Linux)
+            socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),),
+        )
+
+    async def run(self) -> None:
+        """Runs until cancelled; never raises for broker trouble."""
+        backoff = self.settings.reconnect_min_s
+        while True:
+            try:
+                async with self._make() as client:
+                    drain_reads(client)
+                    pending = getattr(client, "_queue", None)  # aiomqtt's message queue
+                    for t in self.topics:
+                        await client.subscribe(t, qos=0)
+                    if self.on_connect is not None:
+                        await self.on_connect(client)
+                    self.client = client
+                    self.connected.set()
+                    self.connects += 1
+                    backoff = self.settings.reconnect_min_s
+                    log.info("mqtt %s: connected to %s:%d", self.identifier, self.settings.host,
+                             self.settings.port)  # fmt: skip
+                    async for message in client.messages:
+                        now = time.time_ns()
+                        self.on_message(message, now)
+                        # everything else already received goes over now, not one per
+                        # loop iteration (see drain_reads)
+                        while pending is not None and not pending.empty():
+                            self.on_message(pending.get_nowait(), now)
+            except aiomqtt.MqttError as exc:
+                task = asyncio.current_task()
+                if task is not None and task.cancelling():
+                    # cancelled while disconnecting: aiomqtt's __aexit__ may turn the
+                    # CancelledError into an MqttError; never reconnect after a cancel
+                    raise asyncio.CancelledError from exc
+                self.failures += 1
+                level = logging.WARNING if self.failures <= 3 or self.connects else logging.DEBUG
+                log.log(level, "mqtt %s: %s; retrying in %.1f s", self.identifier, exc, backoff)
+            finally:
+                self.client = None
+                self.connected.clear()
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, self.settings.reconnect_max_s)
+
+    async def publish(self, t: str, payload: bytes, retain: bool = False, qos: int = 0) -> bool:
+        """Publishes one message; False when it cannot go out.
+
+        QoS 0 is fire-and-forget: handed to paho's outgoing queue without waiting for the
+        write (aiomqtt would wait for it, up to the timeout, on a connection that just died:
+        the labeling loop must never wait on the broker). That queue is bounded by
+        ``MAX_OUTGOING``; beyond it messages are dropped. QoS > 0 waits for the broker's
+        acknowledgement, at most 1 s.
+        """
+        client = self.client
+        if client is None:
+            return False
+        paho = getattr(client, "_client", None)
+        backlog = getattr(paho, "_out_packet", None)
+        if qos == 0 and paho is not None and backlog is not None:
+            if len(backlog) >= MAX_OUTGOING:
+                return False
+            info = paho.publish(t, payload, qos=0, retain=retain)
+            return info.rc == 0
+        try:
+            await client.publish(t, payload, qos=qos, retain=retain, timeout=1.0)
+        except aiomqtt.MqttError:
+            return False
+        return True
+
+
+class MqttTransport:
+    """The service's MQTT transport: one :class:`ReconnectingClient` per configured stream."""
+
+    name = "mqtt"
+
+    def __init__(self, settings: MqttSettings, streams: list[str], queue_size: int = 1024):
+        self.settings = settings
+        self.streams = list(streams)
+        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self.retained: dict[tuple[str, str], bytes] = {}
+        self.clients: dict[str, ReconnectingClient] = {}
+        self._tasks: list[asyncio.Task] = []
+        pid = os.getpid()
+        prefix = settings.topic_prefix
+        for s in self.streams:
+            self.clients[s] = ReconnectingClient(
+                settings,
+                identifier=f"{settings.client_id_prefix}-{s}-{pid}",
+                topics=[topic(prefix, s, "unlabeled")],
+                on_message=self._receiver(s),
+                on_connect=self._republisher(s),
+                will=aiomqtt.Will(
+                    topic(prefix, s, "status"), encode_status(s, "offline"), qos=1, retain=True
+                ),
+            )
+
+    def _receiver(self, stream: str) -> Callable[[aiomqtt.Message, int], None]:
+        def receive(message: aiomqtt.Message, recv_ns: int) -> None:
+            payload = message.payload
+            if not isinstance(payload, bytes | bytearray):
+                payload = str(payload if payload is not None else "").encode()
+            self._queue.put(Incoming(bytes(payload), recv_ns, self.name, None, stream))
+
+        return receive
+
+    def _republisher(self, stream: str) -> Callable[[aiomqtt.Client], Awaitable[None]]:
+        async def republish(client: aiomqtt.Client) -> None:
+            for (s, kind), payload in list(self.retained.items()):
+                if s == stream:
+                    await client.publish(
+                        topic(self.settings.topic_prefix, s, kind), payload, qos=1, retain=True
+                    )
+
+        return republish
+
+    def drop_counts(self) -> dict[tuple[str, str], int]:
+        """Cumulative drops inside the transport by ``(stream, reason)``: ``rx_overflow`` (the
+        receive queue was full, the oldest message went). A failed labeled publish raises
+        (the server counts ``send_error``); model and status are retained here and re-published
+        after a reconnect, so a failed publish of those loses nothing."""
+        return {("", "rx_overflow"): self._queue.dropped}
+
+    async def wait_connected(self, timeout: float) -> bool:
+        """True when every stream's connection is up within ``timeout`` seconds."""
+        try:
+            async with asyncio.timeout(timeout):
+                for c in self.clients.values():
+                    await c.connected.wait()
+        except TimeoutError:
+            return False
+        return True
+
+    async def __aenter__(self) -> MqttTransport:
+        for s, c in self.clients.items():
+            self._tasks.append(asyncio.create_task(c.run(), name=f"mqtt-{s}"))
+        # a short grace period so "starting" reaches the broker; no hard dependency on it
+        await self.wait_connected(2.0)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        tasks, self._tasks = self._tasks, []
+        await cancel_and_wait(tasks)
+
+    def messages(self) -> AsyncIterator[Incoming]:
+        return iterate_queue(self._queue)
+
+    async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
+        client = self.clients.get(stream)
+        if client is None:
+            return  # a UDP-only stream (not configured for MQTT)
+        if retain:
+            if self.retained.get((stream, kind)) == payload and kind == "model":
+                return  # unchanged and retained by the broker already
+            self.retained[(stream, kind)] = payload
+        ok = await client.publish(
+            topic(self.settings.topic_prefix, stream, kind),
+            payload,
+            retain=retain,
+            qos=1 if kind == "status" else 0,
+        )
+        if not ok and kind == "labeled":
+            raise ConnectionError(f"mqtt: not connected to {self.settings.host}:"
+                                  f"{self.settings.port}")  # fmt: skip
+
+
+class MqttEndpoint:
+    """The tools' side (replay, subscribe): one reconnecting connection to a broker.
+
+    ``publish(kind, payload)`` sends on ``<prefix>/<stream>/<kind>``; ``messages()`` yields what
+    arrives on ``topics`` with the topic's stream in ``Incoming.stream``.
+    """
+
+    name = "mqtt"
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        stream: str,
+        topics: list[str] | None = None,
+        identifier: str | None = None,
+        queue_size: int = 8192,
+    ) -> None:
+        self.settings = settings
+        self.stream = stream
+        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self.client = ReconnectingClient(
+            settings,
+            identifier or f"mocap-tool-{os.getpid()}-{id(self):x}",
+            topics or [],
+            self._receive,
+        )
+        self._task: asyncio.Task | None = None
+
+    def _receive(self, message: aiomqtt.Message, recv_ns: int) -> None:
+        payload = message.payload
+        if not isinstance(payload, bytes | bytearray):
+            return
+        parts = str(message.topic).split("/")
+        stream = parts[-2] if len(parts) >= 3 else None
+        self._queue.put(Incoming(bytes(payload), recv_ns, self.name, None, stream))
+
+    @property
+    def received_dropped(self) -> int:
+        return self._queue.dropped
+
+    async def __aenter__(self) -> MqttEndpoint:
+        self._task = asyncio.create_task(self.client.run(), name=f"mqtt-{self.client.identifier}")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._task is not None:
+            await cancel_and_wait([self._task])
+            self._task = None
+
+    async def wait_connected(self, timeout: float) -> bool:
+        try:
+            async with asyncio.timeout(timeout):
+                await self.client.connected.wait()
+        except TimeoutError:
+            return False
+        return True
+
+    async def publish(self, kind: str, payload: bytes) -> bool:
+        return await self.client.publish(
+            topic(self.settings.topic_prefix, self.stream, kind), payload
+        )
+
+    def messages(self) -> AsyncIterator[Incoming]:
+        return iterate_queue(self._queue)

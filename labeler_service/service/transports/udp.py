@@ -1,0 +1,240 @@
+"""UDP with non-blocking sockets on the asyncio loop: the service endpoint and a client endpoint.
+
+The service binds one socket (loopback by default). Frames arrive from any sender; outgoing
+messages go to the fixed ``publish_to`` destinations and to subscribers that registered with a
+``subscribe`` datagram (renewed at least every ``subscriber_ttl_s``). Retained payloads (model,
+status) are sent to a subscriber when it registers, so a late subscriber decodes at once; the
+server repeats the model message every second anyway.
+
+A datagram is at most 65 507 bytes (:data:`~labeler_service.service.settings.UDP_MAX_PAYLOAD`);
+larger
+outgoing payloads raise :class:`~labeler_service.errors.ProtocolError` (``oversize``) and are
+counted by the caller. A datagram the kernel refuses (send buffer full, unreachable) is counted
+per stream and destination; :meth:`UdpTransport.drop_counts` hands these and the receive
+queue's overflow to the server's metrics.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import time
+from collections.abc import AsyncIterator
+
+from labeler_service.errors import ConfigError, ProtocolError
+from labeler_service.service.settings import UDP_MAX_PAYLOAD, UdpSettings
+from labeler_service.service.transports.base import DropOldestQueue, Incoming, iterate_queue
+
+log = logging.getLogger(__name__)
+Addr = tuple[str, int]
+
+
+def parse_hostport(dest: str) -> Addr:
+    host, _, port = dest.rpartition(":")
+    return host.strip("[]"), int(port)
+
+
+class _Socket:
+    """A non-blocking UDP socket read with ``loop.add_reader``.
+
+    Every readiness event drains *all* pending datagrams into the bounded queue, so when the
+    service falls behind the backlog lands in our drop-oldest queues (counted) instead of
+    piling up unseen in the kernel buffer (asyncio's DatagramTransport reads one datagram per
+    loop iteration).
+    """
+
+    def __init__(self, queue: DropOldestQueue[Incoming], name: str, buffer: int) -> None:
+        self.queue = queue
+        self.name = name
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        _tune(self.sock, buffer)
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._loop.add_reader(self.sock.fileno(), self._readable)
+
+    def _readable(self) -> None:
+        recv = self.sock.recvfrom
+        put = self.queue.put
+        for _ in range(100_000):
+            try:
+                data, addr = recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                # ICMP port unreachable after a send to a vanished peer (connected sockets):
+                # an error report, not a lost datagram; not fatal
+                return
+            put(Incoming(data, time.time_ns(), self.name, addr))
+
+    def sendto(self, payload: bytes, addr: Addr | None) -> bool:
+        try:
+            if addr is None:
+                self.sock.send(payload)
+            else:
+                self.sock.sendto(payload, addr)
+        except OSError:  # buffer full, unreachable: UDP is best effort (callers count it)
+            return False
+        return True
+
+    def close(self) -> None:
+        if self._loop is not None:
+            self._loop.remove_reader(self.sock.fileno())
+            self._loop = None
+        self.sock.close()
+
+
+def _tune(sock: socket.socket, size: int) -> None:
+    for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, size)
+        except OSError:  # pragma: no cover - platform limits
+            log.debug("could not set socket buffer %s to %d", opt, size)
+
+
+class UdpTransport:
+    """The service's UDP endpoint (see the module docstring)."""
+
+    name = "udp"
+
+    def __init__(self, settings: UdpSettings, queue_size: int = 1024) -> None:
+        self.settings = settings
+        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self._sock: _Socket | None = None
+        self._static = [parse_hostport(d) for d in settings.publish_to]
+        # subscriber address -> (stream or "*", last renewal, monotonic s)
+        self.subscribers: dict[Addr, tuple[str, float]] = {}
+        self.retained: dict[tuple[str, str], bytes] = {}
+        self._send_failed: dict[str, int] = {}  # stream -> datagrams the kernel refused
+
+    @property
+    def address(self) -> Addr:
+        """The bound ``(host, port)`` (port 0 in the settings picks a free one)."""
+        if self._sock is None:
+            raise RuntimeError("UdpTransport is not open")
+        return self._sock.sock.getsockname()[:2]
+
+    def drop_counts(self) -> dict[tuple[str, str], int]:
+        """Cumulative drops inside the transport by ``(stream, reason)``: ``rx_overflow`` (the
+        receive queue was full, the oldest datagram went) and ``send_error`` (datagrams the
+        kernel refused, per destination)."""
+        out = {("", "rx_overflow"): self._queue.dropped}
+        out.update({(s, "send_error"): n for s, n in self._send_failed.items()})
+        return out
+
+    async def __aenter__(self) -> UdpTransport:
+        sock = _Socket(self._queue, self.name, self.settings.socket_buffer_bytes)
+        try:
+            sock.sock.bind((self.settings.host, self.settings.port))
+        except OSError as exc:
+            sock.close()
+            raise ConfigError(
+                f"udp: cannot bind {self.settings.host}:{self.settings.port}: {exc}"
+            ) from exc
+        sock.start()
+        self._sock = sock
+        log.info("udp: listening on %s:%d", *self.address)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def messages(self) -> AsyncIterator[Incoming]:
+        return iterate_queue(self._queue)
+
+    def subscribe(self, addr: Addr, stream: str) -> None:
+        """Registers or renews a subscriber; new ones receive the retained payloads at once."""
+        is_new = addr not in self.subscribers
+        if is_new and len(self.subscribers) >= self.settings.max_subscribers:
+            self._expire()
+            if len(self.subscribers) >= self.settings.max_subscribers:
+                raise ProtocolError(f"udp: subscriber limit reached, {addr} refused", "field")
+        self.subscribers[addr] = (stream, time.monotonic())
+        if is_new:
+            log.info("udp: subscriber %s:%d for stream %s", addr[0], addr[1], stream)
+            for (s, _), payload in list(self.retained.items()):
+                if stream in ("*", s):
+                    self._sendto(s, payload, addr)
+
+    def _expire(self) -> None:
+        cutoff = time.monotonic() - self.settings.subscriber_ttl_s
+        for addr, (_, last) in list(self.subscribers.items()):
+            if last < cutoff:
+                del self.subscribers[addr]
+                log.info("udp: subscriber %s:%d expired", addr[0], addr[1])
+
+    def _sendto(self, stream: str, payload: bytes, addr: Addr) -> None:
+        assert self._sock is not None
+        if not self._sock.sendto(payload, addr):
+            self._send_failed[stream] = self._send_failed.get(stream, 0) + 1
+
+    async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
+        if self._sock is None:
+            raise RuntimeError("UdpTransport is not open")
+        if len(payload) > UDP_MAX_PAYLOAD:
+            raise ProtocolError(
+                f"udp: {kind} message of {len(payload)} bytes exceeds {UDP_MAX_PAYLOAD}",
+                "oversize",
+            )
+        if retain:
+            self.retained[(stream, kind)] = payload
+        for addr in self._static:
+            self._sendto(stream, payload, addr)
+        if kind == "model":
+            self._expire()  # once a second is often enough
+        for addr, (want, _) in self.subscribers.items():
+            if want == "*" or want == stream:
+                self._sendto(stream, payload, addr)
+
+
+class UdpClient:
+    """A client endpoint: sends to ``remote`` and receives what comes back to its port.
+
+    Used by ``replay`` (send frames) and ``subscribe`` (register, then receive labeled frames).
+    """
+
+    name = "udp"
+
+    def __init__(self, host: str, port: int, queue_size: int = 4096, buffer: int = 4 << 20):
+        self.remote = (host, port)
+        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self._buffer = buffer
+        self._sock: _Socket | None = None
+
+    @property
+    def received_dropped(self) -> int:
+        return self._queue.dropped
+
+    async def __aenter__(self) -> UdpClient:
+        sock = _Socket(self._queue, self.name, self._buffer)
+        try:
+            sock.sock.connect(self.remote)
+        except OSError as exc:
+            sock.close()
+            raise ConfigError(
+                f"udp: cannot reach {self.remote[0]}:{self.remote[1]}: {exc}"
+            ) from exc
+        sock.start()
+        self._sock = sock
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def send(self, payload: bytes) -> bool:
+        """Sends one datagram; False when the kernel refused it (the caller counts it)."""
+        if self._sock is None:
+            raise RuntimeError("UdpClient is not open")
+        if len(payload) > UDP_MAX_PAYLOAD:
+            raise ProtocolError(f"udp: message of {len(payload)} bytes is too large", "oversize")
+        return self._sock.sendto(payload, None)
+
+    def messages(self) -> AsyncIterator[Incoming]:
+        return iterate_queue(self._queue)

@@ -1,0 +1,52 @@
+"""Endpoint URLs of the tools: ``udp://host:port[/stream]``, ``mqtt://[user:pass@]host:port/stream``
+(``mqtts://`` for TLS)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from urllib.parse import unquote, urlsplit
+
+from labeler_service.errors import ConfigError
+from labeler_service.service.protocol import STREAM_NAME
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    scheme: str  # "udp" | "mqtt"
+    host: str
+    port: int
+    stream: str | None  # None: not given (UDP: every stream for a subscriber)
+    username: str | None = None
+    password: str | None = None
+    tls: bool = False
+
+
+_DEFAULT_PORTS = {"udp": 9870, "mqtt": 1883, "mqtts": 8883}
+
+
+def parse_endpoint(url: str) -> Endpoint:
+    """Parses a tool URL; raises :class:`ConfigError` saying what is wrong."""
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if scheme not in _DEFAULT_PORTS:
+        raise ConfigError(
+            f"URL {url!r}: scheme must be udp://, mqtt:// or mqtts://, got {scheme or 'none'}"
+        )
+    if not parts.hostname:
+        raise ConfigError(f"URL {url!r} has no host")
+    try:
+        port = parts.port or _DEFAULT_PORTS[scheme]
+    except ValueError as exc:
+        raise ConfigError(f"URL {url!r}: bad port") from exc
+    stream = parts.path.strip("/") or None
+    if stream is not None and not STREAM_NAME.match(stream):
+        raise ConfigError(f"URL {url!r}: bad stream name {stream!r} (letters, digits, _ . -)")
+    return Endpoint(
+        scheme="mqtt" if scheme == "mqtts" else scheme,
+        host=parts.hostname,
+        port=port,
+        stream=stream,
+        username=unquote(parts.username) if parts.username else None,
+        password=unquote(parts.password) if parts.password else None,
+        tls=scheme == "mqtts",
+    )

@@ -1,0 +1,1 @@
+"""Client tools around the service: capture replay and the labeled-frame subscriber."""

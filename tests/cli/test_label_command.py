@@ -1,0 +1,59 @@
+"""``mocap-labeler label``: batch labeling through the online pipeline."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from labeling.scene import articulated
+
+from labeler_service.capture import Capture, read_capture, write_capture
+from labeler_service.cli.main import main
+
+
+@pytest.fixture
+def take(rng, tmp_path):
+    pos, names = articulated(rng, subjects=2, frames=160)
+    pos[100:110, 3] = np.nan  # a short occlusion
+    path = tmp_path / "take.npz"
+    write_capture(Capture(pos, names, 120.0, source="take"), path)
+    return path, pos, names
+
+
+def test_label_without_model_trains_on_first_frames(take, tmp_path, capsys):
+    src, pos, names = take
+    out = tmp_path / "out.npz"
+    assert main(["label", str(src), str(out), "--init-frames", "40", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["agreement_with_input_labels"] == 1.0
+    res = read_capture(out)
+    assert res.labels[: len(names)] == names
+    # observed samples are the input's; the occluded one is recovered close to the truth
+    np.testing.assert_allclose(res.positions[120, : len(names)], pos[120], atol=1e-4)
+    assert np.all(np.isfinite(res.positions[105, 3]))
+
+
+def test_label_with_model(take, tmp_path, capsys):
+    src, _, names = take
+    model = tmp_path / "m.json"
+    assert main(["train", "structure", str(src), "--out", str(model)]) == 0
+    out = tmp_path / "out.npz"
+    assert main(["label", str(src), str(out), "--model", str(model), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["agreement_with_input_labels"] >= 0.999
+    assert summary["markers"] == len(names)
+
+
+def test_label_errors_are_clean(take, tmp_path, capsys):
+    src, pos, _ = take
+    raw = tmp_path / "raw.npz"
+    write_capture(Capture(pos, tuple(f"*{i}" for i in range(pos.shape[1])), 120.0), raw)
+    assert main(["label", str(raw), str(tmp_path / "o.npz")]) == 2
+    assert "no labeled markers" in capsys.readouterr().err
+    assert main(["label", str(src), str(tmp_path / "o.npz"), "--init-frames", "500"]) == 2
+    assert "init frames" in capsys.readouterr().err
+    bad = tmp_path / "bad.json"
+    bad.write_text("{}")
+    assert main(["label", str(src), str(tmp_path / "o.npz"), "--model", str(bad)]) == 2
+    assert "model version" in capsys.readouterr().err

@@ -1,0 +1,622 @@
+"""Every numba kernel of the labeler against its plain-numpy twin in ``tests/reference.py``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import reference as ref
+
+from labeler_service.labeling.kernels.fitting import _fit_bodies, _search_body, fit_scratch
+from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
+from labeler_service.labeling.kernels.kalman import _predict, _update
+from labeler_service.labeling.kernels.rigid import (
+    _contest,
+    _kabsch,
+    _max_residual,
+    _recover,
+    _robust_kabsch,
+    _verify,
+    kabsch_scratch,
+)
+from labeler_service.labeling.kernels.spatial import _index
+from labeler_service.labeling.kernels.window import _window_update
+
+
+# --------------------------------------------------------------------------- Kalman
+@pytest.mark.parametrize("dt", [1 / 360, 1 / 120, 1 / 30, 0.25])
+def test_factorised_kalman_equals_full_filter(rng, dt):
+    m = 5
+    x = rng.normal(0, 100, (m, 6))
+    a = rng.uniform(0.5, 4, m)
+    c = rng.uniform(10, 1e4, m)
+    b = rng.uniform(-0.9, 0.9, m) * np.sqrt(a * c)
+    P = np.stack([a, b, c], axis=1)
+    q = rng.uniform(1e3, 1e6, m)
+    z = x[:, :3] + rng.normal(0, 5, (m, 3))
+    xs = [x[i].copy() for i in range(m)]
+    P6 = [ref.p2_to_p6(P[i]) for i in range(m)]
+    active = np.ones(m, dtype=bool)
+    _predict(x, P, q, active, dt, 1e12)
+    _update(x, P, z, active, 1.5, 1e6)
+    for i in range(m):
+        xr, Pr = ref.kalman_full_predict(xs[i], P6[i], q[i], dt)
+        xr, Pr = ref.kalman_full_update(xr, Pr, z[i], 1.5)
+        np.testing.assert_allclose(x[i], xr, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(ref.p2_to_p6(P[i]), Pr, rtol=1e-9, atol=1e-9)
+
+
+def test_predict_caps_variance_and_skips_inactive(rng):
+    x = rng.normal(0, 10, (3, 6))
+    x0 = x.copy()
+    P = np.tile([1e4, 10.0, 1e6], (3, 1))
+    active = np.array([True, False, True])
+    _predict(x, P, np.full(3, 1e6), active, 0.1, 100.0)
+    assert np.all(P[active, 0] <= 100.0 + 1e-9)
+    np.testing.assert_array_equal(x[1], x0[1])
+    # the capped covariance stays positive semi-definite
+    assert np.all(P[active, 1] ** 2 <= P[active, 0] * P[active, 2] + 1e-9)
+
+
+# --------------------------------------------------------------------------- gating
+def _run_gate(pred, s, active, points, g, K):
+    m = pred.shape[0]
+    cand = np.zeros((m, K), dtype=np.int32)
+    cand_d2 = np.zeros((m, K))
+    ncand = np.zeros(m, dtype=np.int32)
+    _gate(pred, s, active, points, _index(points), g, K, cand, cand_d2, ncand)
+    return cand, cand_d2, ncand
+
+
+@pytest.mark.parametrize("K", [1, 2, 4])
+def test_gate_matches_scipy_mahalanobis(rng, K):
+    pred = rng.normal(0, 50, (12, 6))
+    s = rng.uniform(20, 400, 12)
+    points = rng.normal(0, 50, (30, 3)).astype(np.float32)
+    points[3] = np.nan  # a NaN point never becomes a candidate
+    pred[5, :3] = np.nan  # nor is a marker without a state gated
+    active = rng.random(12) < 0.8
+    cand, cand_d2, ncand = _run_gate(pred, s, active, points, 9.0, K)
+    expected = ref.gate(pred, s, active, points, 9.0, K)
+    for i, (js, ds) in enumerate(expected):
+        assert ncand[i] == len(js)
+        assert list(cand[i, : ncand[i]]) == js
+        np.testing.assert_allclose(cand_d2[i, : ncand[i]], ds, rtol=1e-5)
+
+
+def test_gate_degenerate_inputs():
+    pred = np.zeros((2, 6))
+    none = np.zeros((0, 3), dtype=np.float32)
+    _, _, ncand = _run_gate(pred, np.ones(2), np.ones(2, bool), none, 16.0, 3)
+    assert ncand.tolist() == [0, 0]
+    same = np.zeros((4, 3), dtype=np.float32)  # four identical points: ties by index
+    cand, d2, ncand = _run_gate(pred, np.ones(2), np.ones(2, bool), same, 16.0, 3)
+    assert ncand.tolist() == [3, 3] and cand[0].tolist() == [0, 1, 2]
+    assert np.all(d2 == 0)
+
+
+def test_regate_only_free_points_within_radius(rng):
+    x = rng.normal(0, 100, (6, 6))
+    points = rng.normal(0, 100, (40, 3)).astype(np.float32)
+    owner = np.where(rng.random(40) < 0.3, 1, -1).astype(np.int32)
+    lost = np.array([True, False, True, True, False, True])
+    K = 3
+    cand = np.full((6, K), -7, dtype=np.int32)
+    cand_d2 = np.zeros((6, K))
+    ncand = np.full(6, 9, dtype=np.int32)
+    radius = rng.uniform(60.0, 200.0, 6)
+    _regate(x, lost, points, _index(points), owner, radius, 16.0, K, cand, cand_d2, ncand)
+    expected = ref.regate(x, lost, points, owner, radius, 16.0, K)
+    for i, js in expected.items():
+        assert list(cand[i, : ncand[i]]) == js
+    assert ncand[1] == 9 and ncand[4] == 9  # untouched
+
+
+def test_common_mode_matches_twin(rng):
+    groups = [np.arange(0, 8), np.arange(8, 14)]
+    truth = rng.normal(0, 300, (14, 3))
+    shift = np.array([[40.0, -25.0, 5.0], [-10.0, 0.0, 30.0]])
+    x = np.zeros((14, 6))
+    x[:8, :3] = truth[:8] - shift[0]
+    x[8:, :3] = truth[8:] - shift[1]
+    points = (truth + rng.normal(0, 0.5, truth.shape)).astype(np.float32)
+    active = np.ones(14, dtype=bool)
+    xr, sr = ref.common_mode(x, active, groups, points, 120.0, 2)
+    subj_ptr = np.array([0, 8, 14])
+    subj_idx = np.arange(14)
+    out = np.zeros((2, 3))
+    _common_mode(
+        x, active, subj_ptr, subj_idx, points, _index(points), 120.0, 2, np.zeros((3, 14)), out
+    )
+    np.testing.assert_allclose(x, xr, atol=1e-6)
+    np.testing.assert_allclose(out, sr, atol=1e-6)
+    np.testing.assert_allclose(out, shift, atol=1.5)  # and it finds the jump
+
+
+# --------------------------------------------------------------------------- Eq. 5 search
+def _random_body(rng, n, K, n_points=12, miss_prob=0.2):
+    points = rng.normal(0, 80, (n_points, 3)).astype(np.float32)
+    true_pts = rng.choice(n_points, n, replace=False)
+    Db = np.zeros((8, 8))
+    Ab = np.full((8, 8), np.nan)
+    for i in range(n):
+        for j in range(n):
+            if i != j:
+                Db[i, j] = np.linalg.norm(points[true_pts[i]] - points[true_pts[j]]) + rng.normal(
+                    0, 2
+                )
+                Ab[i, j] = rng.uniform(0.5, 4)
+    Db = (Db + Db.T) / 2
+    Ab = np.where(np.isnan(Ab), np.nan, (Ab + Ab.T) / 2)
+    if n > 2:
+        Db[0, 1] = Db[1, 0] = np.nan  # an unknown link
+    opts = np.full((8, K + 1), -1, dtype=np.int64)
+    nopts = np.zeros(8, dtype=np.int64)
+    mot = np.zeros((8, K + 1))
+    for k in range(n):
+        cands = list(rng.choice(n_points, rng.integers(0, K + 1), replace=False))
+        if rng.random() > miss_prob and true_pts[k] not in cands:
+            cands = [int(true_pts[k])] + cands[: K - 1]
+        for o, c in enumerate(cands):
+            opts[k, o] = c
+            mot[k, o] = np.exp(-0.5 * rng.uniform(0, 9))
+        mot[k, len(cands)] = np.exp(-0.5 * 16)
+        nopts[k] = len(cands) + 1
+    return points, Db, Ab, opts, nopts, mot
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 6])
+def test_branch_and_bound_equals_itertools_product(rng, n):
+    for _ in range(25):
+        points, Db, Ab, opts, nopts, mot = _random_body(rng, n, 3)
+        perm = rng.permutation(8).astype(np.int64)
+        perm[:n] = rng.permutation(n)
+        choice = np.zeros(8, dtype=np.int64)
+        partial = np.zeros(18)
+        best_choice = np.zeros(8, dtype=np.int64)
+        args = (n, perm, opts, nopts, mot, Db, Ab, 2.0, 0.02, np.exp(-4.5), 0.25, points)
+        s = _search_body(*args, choice, partial, best_choice)
+        sr, arg = ref.search_body(*args)
+        assert s == pytest.approx(sr, abs=1e-9)
+        chosen = [int(opts[k, best_choice[k]]) for k in range(n)]
+        np.testing.assert_allclose(
+            ref.score(chosen, perm, [mot[k, best_choice[k]] for k in range(n)], *args[5:]),
+            sr,
+            atol=1e-9,
+        )
+
+
+def test_search_prefers_observed_consistent_points_over_missing():
+    # three markers on a rigid triangle, a ghost far off the shape
+    points = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0], [40, 40, 40]], dtype=np.float32)
+    Db = np.zeros((8, 8))
+    Ab = np.ones((8, 8))
+    tri = points[:3].astype(float)
+    for i in range(3):
+        for j in range(3):
+            Db[i, j] = np.linalg.norm(tri[i] - tri[j])
+    opts = np.full((8, 3), -1, dtype=np.int64)
+    opts[0, :2] = [0, 3]
+    opts[1, :2] = [1, 3]
+    opts[2, :1] = [3]  # the true point of marker 2 is absent: only the ghost is a candidate
+    nopts = np.array([3, 3, 2, 0, 0, 0, 0, 0])
+    mot = np.full((8, 3), 0.5)
+    perm = np.arange(8)
+    best = np.zeros(8, dtype=np.int64)
+    _search_body(
+        3, perm, opts, nopts, mot, Db, Ab, 2.0, 0.0, np.exp(-4.5), 0.25, points,
+        np.zeros(8, dtype=np.int64), np.zeros(18), best,
+    )  # fmt: skip
+    assert [int(opts[k, best[k]]) for k in range(3)] == [0, 1, -1]
+
+
+def _random_scene(rng, nb=5, m=14, n_points=18, K=3):
+    body_markers = np.full((nb, 8), -1, dtype=np.int32)
+    body_size = np.zeros(nb, dtype=np.int32)
+    for b in range(nb):
+        k = int(rng.integers(2, 5))
+        body_markers[b, :k] = rng.choice(m, k, replace=False)
+        body_size[b] = k
+    points = rng.normal(0, 100, (n_points, 3)).astype(np.float32)
+    truth = rng.choice(n_points, m, replace=False) if n_points >= m else None
+    Db = np.full((nb, 8, 8), np.nan)
+    Ab = np.full((nb, 8, 8), np.nan)
+    for b in range(nb):
+        for i in range(body_size[b]):
+            for j in range(body_size[b]):
+                pi, pj = truth[body_markers[b, i]], truth[body_markers[b, j]]
+                Db[b, i, j] = np.linalg.norm(points[pi] - points[pj])
+                Ab[b, i, j] = 1.5
+    cand = np.zeros((m, K), dtype=np.int32)
+    cand_d2 = np.zeros((m, K))
+    ncand = np.zeros(m, dtype=np.int32)
+    for i in range(m):
+        cs = list(rng.choice(n_points, K, replace=False))
+        if truth[i] not in cs and rng.random() < 0.8:
+            cs[0] = truth[i]
+        c = int(rng.integers(0, K + 1))
+        cand[i, :c] = cs[:c]
+        cand_d2[i, :c] = np.sort(rng.uniform(0, 10, c))
+        ncand[i] = c
+    mb = [[b for b in range(nb) if i in body_markers[b, : body_size[b]]] for i in range(m)]
+    mb_ptr = np.cumsum([0] + [len(x) for x in mb]).astype(np.int64)
+    mb_idx = np.array([b for x in mb for b in x] or [0], dtype=np.int32)
+    return body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, mb_ptr, mb_idx
+
+
+def _fit(scene, K=3):
+    body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, mb_ptr, mb_idx = scene
+    m, nb, n = cand.shape[0], body_markers.shape[0], points.shape[0]
+    assigned = np.full(m, -2, dtype=np.int32)
+    owner = np.full(n, -1, dtype=np.int32)
+    _fit_bodies(
+        (body_markers, body_size, Db, Ab, mb_ptr, mb_idx), cand, cand_d2, ncand, points, 2.0,
+        0.02, np.exp(-4.5), 0.25, 16.0, assigned, owner, fit_scratch(m, nb, K),
+    )  # fmt: skip
+    return assigned, owner
+
+
+def test_algorithm1_equals_literal_recompute_everything(rng):
+    for _ in range(20):
+        scene = _random_scene(rng)
+        assigned, owner = _fit(scene)
+        body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, _, _ = scene
+        a_ref, o_ref = ref.fit_bodies(
+            body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, 2.0, 0.02,
+            np.exp(-4.5), 0.25, 16.0,
+        )  # fmt: skip
+        in_body = np.zeros(cand.shape[0], bool)
+        for b in range(body_markers.shape[0]):
+            in_body[body_markers[b, : body_size[b]]] = True
+        np.testing.assert_array_equal(assigned[in_body], a_ref[in_body])
+        np.testing.assert_array_equal(owner, o_ref)
+        # a point is never given to two markers
+        used = assigned[assigned >= 0]
+        assert used.size == np.unique(used).size
+
+
+# --------------------------------------------------------------------------- Eq. 1-2
+def test_window_matches_twin_with_missing_samples(rng):
+    nb, T, m = 2, 7, 6
+    body_markers = np.array([[0, 1, 2, -1, -1, -1, -1, -1], [2, 3, 4, 5, -1, -1, -1, -1]])
+    body_size = np.array([3, 4])
+    ring = np.full((nb, 8, 8, T), np.nan, dtype=np.float32)
+    s1 = np.zeros((nb, 8, 8))
+    s2 = np.zeros((nb, 8, 8))
+    cnt = np.zeros((nb, 8, 8), dtype=np.int64)
+    D0 = np.full((nb, 8, 8), 11.0)
+    A0 = np.full((nb, 8, 8), 3.0)
+    D = D0.copy()
+    A = A0.copy()
+    hist = []
+    for f in range(20):
+        obs = rng.normal(0, 100, (m, 3))
+        obs[rng.random(m) < 0.25] = np.nan
+        hist.append(obs)
+        _window_update(body_markers, body_size, obs, ring, f % T, s1, s2, cnt, D0, A0, 3, D, A)
+        for b in range(nb):
+            k = body_size[b]
+            for i in range(k):
+                for j in range(i + 1, k):
+                    mi, mj = body_markers[b, i], body_markers[b, j]
+                    h = [np.linalg.norm(o[mi] - o[mj]) for o in hist[-T:]]
+                    h = np.asarray(h, dtype=np.float32)
+                    dr, ar = ref.window_stats(h, 3, 11.0, 3.0)
+                    assert D[b, i, j] == pytest.approx(dr, rel=1e-6)
+                    assert A[b, i, j] == pytest.approx(ar, rel=1e-4, abs=1e-3)
+                    assert D[b, j, i] == D[b, i, j]
+
+
+# --------------------------------------------------------------------------- recovery
+def _rot(rng):
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_kabsch_matches_twin_and_recovers_rotation(rng):
+    src = rng.normal(0, 100, (6, 3))
+    R0 = _rot(rng)
+    dst = src @ R0.T + np.array([10.0, -5.0, 3.0])
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    _kabsch(src, dst, 6, R, t)
+    Rr, tr = ref.kabsch(src, dst)
+    np.testing.assert_allclose(R, Rr, atol=1e-9)
+    np.testing.assert_allclose(t, tr, atol=1e-7)
+    np.testing.assert_allclose(R, R0, atol=1e-9)
+    # degenerate: three collinear points still give a proper rotation (det +1)
+    line = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    _kabsch(line, line + 1.0, 3, R, t)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_kabsch_equals_svd_twin_on_hard_cases(rng):
+    """Horn's quaternion solution is the SVD solution: noisy sets, half-turns, 3-point sets,
+    and mirrored targets (where the best proper rotation is not a reflection)."""
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    for case in range(60):
+        n = 3 + case % 5
+        src = rng.normal(0, 100, (n, 3))
+        R0 = _rot(rng)
+        if case % 6 == 1:  # a half-turn: the quaternion's scalar part is ~0
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            R0 = 2.0 * np.outer(axis, axis) - np.eye(3)
+        dst = src @ R0.T + rng.normal(0, 50, 3) + rng.normal(0, 2.0, (n, 3))
+        if case % 6 == 2:
+            dst[:, 0] *= -1.0  # mirrored
+        _kabsch(src, dst, n, R, t)
+        Rr, tr = ref.kabsch(src, dst)
+        cost = np.sum((src @ R.T + t - dst) ** 2)
+        cost_r = np.sum((src @ Rr.T + tr - dst) ** 2)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        assert cost == pytest.approx(cost_r, rel=1e-9, abs=1e-6)
+        if case % 6 != 2:  # a unique optimum: the same rotation
+            np.testing.assert_allclose(R, Rr, atol=1e-7)
+
+
+def test_robust_kabsch_drops_outlier(rng):
+    src = rng.normal(0, 100, (6, 3))
+    R0 = _rot(rng)
+    dst = src @ R0.T
+    dst[2] += 40.0  # a neighbour across a joint that moved
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    kept = _robust_kabsch(src.copy(), dst.copy(), 6, R, t, 5.0)
+    Rr, tr, kept_r = ref.robust_kabsch(src, dst, 5.0)
+    assert kept == kept_r == 5
+    np.testing.assert_allclose(R, R0, atol=1e-8)
+    np.testing.assert_allclose(R, Rr, atol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["kabsch", "displacement"])
+def test_recover_matches_twin(rng, method):
+    m = 7
+    members = np.full((m, 8), -1, dtype=np.int64)
+    size = np.zeros(m, dtype=np.int64)
+    refs = np.zeros((m, 8, 3))
+    ok = np.ones(m, dtype=bool)
+    shape = rng.normal(0, 80, (m, 3))
+    for i in range(m):
+        mem = [i] + [j for j in range(m) if j != i][:5]
+        members[i, : len(mem)] = mem
+        size[i] = len(mem)
+        refs[i, : len(mem)] = shape[mem]
+    R0 = _rot(rng)
+    obs = shape @ R0.T + 50.0
+    missing = np.zeros(m, dtype=bool)
+    missing[[1, 4]] = True
+    obs[[1, 4]] = np.nan
+    obs[6] = np.nan  # not missing, just unseen: fewer neighbours
+    rec = np.full((m, 3), np.nan)
+    has = np.zeros(m, dtype=np.int64)
+    code = 1 if method == "kabsch" else 0
+    _recover(missing, (members, size, refs, ok), obs, code, rec, has, kabsch_scratch(), 5.0)
+    assert (has > 0).tolist() == missing.tolist()
+    assert has[1] == 4 and has[4] == 4  # neighbours used (6 is unseen)
+    for i in (1, 4):
+        expected = ref.recover(i, list(members[i, : size[i]]), refs[i], obs, method, 5.0)
+        np.testing.assert_allclose(rec[i], expected, atol=1e-7)
+    if method == "kabsch":  # exact for a rigid motion
+        np.testing.assert_allclose(rec[[1, 4]], shape[[1, 4]] @ R0.T + 50.0, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- track continuity
+def _contest_scene(rng, m=12):
+    """Markers on a rigid cloud; recovery sets of 5; all observed at their true points."""
+    shape = rng.normal(0, 80, (m, 3))
+    members = np.full((m, 8), -1, dtype=np.int64)
+    size = np.zeros(m, dtype=np.int64)
+    refs = np.zeros((m, 8, 3))
+    for i in range(m):
+        order = np.argsort(np.linalg.norm(shape - shape[i], axis=1))[:5]
+        members[i, :5] = order  # itself first (distance 0)
+        size[i] = 5
+        refs[i, :5] = shape[order]
+    R0 = _rot(rng)
+    pos = shape @ R0.T + 30.0
+    x = np.zeros((m, 6))
+    x[:, :3] = pos + rng.normal(0, 1.0, (m, 3))
+    return pos, members, size, refs, x
+
+
+S_FLOOR = 30.0**2 / 16.27  # innovation variance at the 30 mm gate floor
+
+
+def _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, jump, verify,
+                 s=None):  # fmt: skip
+    m = assigned.shape[0]
+    s = np.full(m, S_FLOOR) if s is None else s
+    return _contest(
+        assigned, owner, np.ones(m, dtype=bool), prev, x, s, 16.27, points, obs,
+        (members, size, refs, ok), jump, verify, kabsch_scratch(), 5.0,
+    )  # fmt: skip
+
+
+def test_contest_returns_a_point_to_its_tracked_marker(rng):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = pos.copy()
+    assigned = np.arange(m, dtype=np.int32)
+    # marker 3 (tracked) lost its point to marker 7, which jumped 25 mm for it; 7's own point is
+    # hidden in this frame (point 7 is a leftover nobody holds)
+    x[7, :3] = pos[3] + np.array([25.0, 0.0, 0.0])
+    assigned[3] = -1
+    assigned[7] = 3
+    owner = np.full(m, -1, dtype=np.int32)
+    for i in range(m):
+        if assigned[i] >= 0:
+            owner[assigned[i]] = i
+    owner[7] = -1
+    prev = np.ones(m, dtype=np.uint8)
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    ok = np.ones(m, dtype=bool)
+    state = (assigned.copy(), owner.copy(), obs.copy())
+    n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+    assert n == 1
+    assert assigned[3] == 3 and owner[3] == 3 and assigned[7] == -1
+    assert np.isnan(obs[7]).all()
+    np.testing.assert_allclose(obs[3], points[3])
+    # marker 3 hidden before (not tracked): it still predicts the point 16 times better in
+    # Mahalanobis terms, so it takes it back
+    a2, o2, ob2 = (v.copy() for v in state)
+    prev[3] = 2
+    assert _run_contest(a2, o2, prev, x, points, ob2, members, size, refs, ok, 8.0, 8.0) == 1
+    assert a2[3] == 3 and a2[7] == -1
+    # ... but not when it predicts the point 15 mm off (not a quarter of 25 mm, squared) ...
+    a3, o3, ob3 = (v.copy() for v in state)
+    x3 = x.copy()
+    x3[3, :3] = pos[3] + np.array([0.0, 0.0, 15.0])
+    assert _run_contest(a3, o3, prev, x3, points, ob3, members, size, refs, ok, 8.0, 8.0) == 0
+    np.testing.assert_array_equal(a3, state[0])
+    # ... unless the holder's own prediction is sharper (its 25 mm jump is then implausible)
+    s = np.full(m, S_FLOOR)
+    s[7] = 0.25 * S_FLOOR
+    assert _run_contest(a3, o3, prev, x3, points, ob3, members, size, refs, ok, 8.0, 8.0, s) == 1
+    assert a3[3] == 3
+
+
+def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = pos.copy()
+    assigned = np.arange(m, dtype=np.int32)
+    owner = np.arange(m, dtype=np.int32)
+    # marker 6 jumped 40 mm onto point 6; marker 9 (tracked, missing) predicts it 10 mm off:
+    # a quarter of the holder's Mahalanobis distance, but beyond jump_mm for a tracked marker
+    x[6, :3] = pos[6] + np.array([40.0, 0.0, 0.0])
+    x[9, :3] = pos[6] + np.array([0.0, 10.0, 0.0])
+    assigned[9] = -1
+    owner[9] = -1
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    prev = np.ones(m, dtype=np.uint8)
+    ok = np.zeros(m, dtype=bool)  # no rigid veto either way
+    assert (
+        _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0) == 0
+    )
+    prev[9] = 2  # the same prediction from a marker that was hidden: it takes the point
+    assert (
+        _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0) == 1
+    )
+    assert assigned[9] == 6 and assigned[6] == -1
+
+
+def test_contest_keeps_a_point_the_holders_body_supports(rng):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = pos.copy()
+    assigned = np.arange(m, dtype=np.int32)
+    owner = np.arange(m, dtype=np.int32)
+    # marker 5 jumped 20 mm (its prediction was off) but sits exactly where its neighbours say;
+    # marker 2 lost its point and predicts marker 5's point closely: 5 keeps it
+    x[5, :3] = pos[5] + np.array([0.0, 20.0, 0.0])
+    x[2, :3] = pos[5] + 1.0
+    assigned[2] = -1
+    owner[2] = -1
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    prev = np.ones(m, dtype=np.uint8)
+    ok = np.ones(m, dtype=bool)
+    n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+    assert n == 0
+    assert assigned[5] == 5 and assigned[2] == -1
+
+
+def test_contest_matches_twin(rng):
+    moved = 0
+    for trial in range(40):
+        pos, members, size, refs, x = _contest_scene(rng, m=14)
+        m = pos.shape[0]
+        points = pos + rng.normal(0, 2.0, pos.shape)
+        # random assignment: a permutation with a few markers missing
+        perm = rng.permutation(m).astype(np.int32)
+        assigned = np.where(rng.random(m) < 0.6, np.arange(m), perm).astype(np.int32)
+        _, first = np.unique(assigned, return_index=True)
+        keep = np.zeros(m, dtype=bool)
+        keep[first] = True
+        assigned[~keep | (rng.random(m) < 0.25)] = -1
+        owner = np.full(m, -1, dtype=np.int32)
+        owner[assigned[assigned >= 0]] = np.flatnonzero(assigned >= 0)
+        # predictions: some sharp, some off by up to 40 mm
+        x[:, :3] = pos + rng.normal(0, 1.0, (m, 3)) * rng.choice([1.0, 15.0], size=(m, 1))
+        prev = rng.choice(np.array([0, 1, 2], dtype=np.uint8), size=m, p=[0.1, 0.7, 0.2])
+        ok = rng.random(m) < 0.8
+        obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+        s = S_FLOOR * rng.choice([1.0, 1.0, 4.0], size=m)  # some markers hidden for a while
+        a_r, o_r, ob_r = assigned.copy(), owner.copy(), obs.copy()
+        n = _run_contest(
+            assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0, s
+        )
+        mem = [list(members[i, : size[i]]) for i in range(m)]
+        n_r = ref.contest(
+            a_r, o_r, np.ones(m, dtype=bool), prev, x, s, 16.27, points, ob_r, mem, refs, ok, 8.0,
+            8.0, 5.0,
+        )  # fmt: skip
+        assert n == n_r, trial
+        moved += n
+        np.testing.assert_array_equal(assigned, a_r)
+        np.testing.assert_array_equal(owner, o_r)
+        np.testing.assert_allclose(obs, ob_r, atol=1e-9)
+    assert moved > 0  # the random frames do exercise hand-overs
+
+
+# --------------------------------------------------------------------------- 3D check
+def _run_verify(assigned, owner, prev, x, points, obs, members, size, refs, n_reject, limit):
+    m = assigned.shape[0]
+    return _verify(
+        assigned, owner, np.ones(m, dtype=np.int32), np.ones(m, dtype=bool), prev, x, points,
+        _index(points), obs, (members, size, refs, np.ones(m, dtype=bool)), 8.0, 12.0, 25.0, 8.0,
+        0.0, np.zeros(m, dtype=bool), kabsch_scratch(), 5.0, n_reject, limit, 0, 0, True,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("leap_mm", "prev", "used", "refused"),
+    [
+        (40.0, 2, 0, True),  # re-acquisition 40 mm off its estimate: refused
+        (40.0, 2, 5, True),  # the sixth refusal in a row
+        (40.0, 2, 6, False),  # the refusals in a row are used up: accepted (no lock-out)
+        (15.0, 2, 0, False),  # re-acquisition 15 mm off: only a closer free point would win
+        (40.0, 1, 0, False),  # tracked through the previous frame: kept
+    ],
+)
+def test_verify_refuses_a_reacquisition_off_the_rigid_estimate(rng, leap_mm, prev, used, refused):
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    # marker 4's own point is hidden; a ghost sits leap_mm from where it is predicted
+    x[4, :3] = pos[4]
+    ghost = pos[4] + leap_mm * np.array([0.0, 0.6, 0.8])
+    points = np.vstack([np.delete(pos, 4, axis=0), ghost[None]])
+    assigned = np.array([i if i < 4 else i - 1 for i in range(m)], dtype=np.int32)
+    assigned[4] = m - 1
+    owner = np.full(m, -1, dtype=np.int32)
+    owner[assigned] = np.arange(m)
+    obs = points[assigned].copy()
+    prev_state = np.ones(m, dtype=np.uint8)
+    prev_state[4] = prev
+    n_reject = np.zeros(m, dtype=np.int64)
+    n_reject[4] = used
+    _run_verify(assigned, owner, prev_state, x, points, obs, members, size, refs, n_reject, 6)
+    assert (assigned[4] == -1) == refused
+    assert n_reject[4] == used + int(refused)
+    others = np.delete(np.arange(m), 4)
+    np.testing.assert_array_equal(assigned[others], [i if i < 4 else i - 1 for i in others])
+
+
+def test_max_residual_matches_twin_and_flags_a_moved_pair(rng):
+    src = rng.normal(0, 100, (4, 3))
+    R0 = _rot(rng)
+    dst = src @ R0.T + 20.0
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    _kabsch(src, dst, 4, R, t)
+    assert _max_residual(src, dst, 4, R, t) < 1e-6
+    # two of four neighbours moved together (a joint bent): no rigid fit of all four, and the
+    # robust fit can drop only one of them
+    dst[2:] += np.array([0.0, 40.0, 0.0])
+    kept = _robust_kabsch(src.copy(), dst.copy(), 4, R, t, 5.0)
+    assert kept == 3
+    s2, d2 = src.copy(), dst.copy()
+    _robust_kabsch(s2, d2, 4, R, t, 5.0)
+    res = _max_residual(s2, d2, kept, R, t)
+    assert res > 5.0
+    assert res == pytest.approx(ref.max_residual(s2[:kept], d2[:kept], R, t), abs=1e-9)

@@ -1,0 +1,197 @@
+"""Behaviour of the online labeler on a synthetic articulated scene."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.scene import articulated, frame_points
+
+from labeler_service.errors import LabelerError, ModelError
+from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.frame import MarkerState
+from labeler_service.labeling.labeler import Labeler
+
+INIT = 40
+
+
+def run(lab, rng, pos, hidden=None, ghosts=None, init=INIT, rate=120.0, step=1):
+    """Feeds every ``step``-th frame; returns accuracy, per-frame outputs and truths."""
+    outs, truths = [], []
+    correct = total = 0
+    for k, f in enumerate(range(0, pos.shape[0], step)):
+        pts, truth = frame_points(rng, pos[f], None if hidden is None else hidden[f])
+        if ghosts is not None and k >= init:
+            pts = np.concatenate([pts, ghosts[f]]).astype(np.float32)
+            truth = np.concatenate([truth, np.full(len(ghosts[f]), -1, np.int32)])
+        out = lab.process(pts, f / rate, truth if k < init else None)
+        if k >= init:
+            correct += int(np.count_nonzero(out.point_labels[truth >= 0] == truth[truth >= 0]))
+            total += int(np.count_nonzero(truth >= 0))
+        outs.append(out)
+        truths.append(truth)
+    return correct / total, outs, truths
+
+
+def test_labels_every_marker_of_interleaved_subjects(rng):
+    pos, names = articulated(rng)
+    lab = Labeler(names, 120.0)
+    acc, outs, _ = run(lab, rng, pos)
+    assert lab.trained and lab.n_bodies >= 2 * 3
+    assert acc == 1.0
+    assert all(o.n_observed == len(names) for o in outs[INIT:])
+    assert outs[-1].positions.dtype == np.float32 and outs[-1].state.dtype == np.uint8
+
+
+def test_training_window_output_and_bodies_cover_markers(rng):
+    pos, names = articulated(rng, subjects=2, frames=60)
+    lab = Labeler(names, 120.0)
+    pts, truth = frame_points(rng, pos[0])
+    out = lab.process(pts, 0.0, truth)
+    assert not lab.trained
+    np.testing.assert_array_equal(out.point_labels, truth)
+    np.testing.assert_allclose(out.positions[truth], pts)
+    run(lab, rng, pos[1:], init=INIT - 1)
+    model = lab.model
+    assert model is not None and [s.name for s in model.subjects] == ["P0", "P1"]
+    for subj in model.subjects:
+        covered = {i for b in subj.bodies for i in b}
+        assert covered == set(range(len(subj.markers)))
+        assert all(3 <= len(b) <= 8 for b in subj.bodies)
+
+
+def test_low_rate_uses_actual_time_step(rng):
+    pos, names = articulated(rng, frames=600)
+    lab = Labeler(names, 30.0)
+    acc, _, _ = run(lab, rng, pos, step=4, init=30)
+    assert acc >= 0.99
+
+
+def test_ghosts_stay_unlabeled(rng):
+    pos, names = articulated(rng)
+    ghosts = []
+    for f in range(pos.shape[0]):
+        anchor = pos[f, rng.integers(0, pos.shape[1], 3)]
+        d = rng.normal(size=(3, 3))
+        d *= rng.uniform(40, 100, (3, 1)) / np.linalg.norm(d, axis=1, keepdims=True)
+        ghosts.append((anchor + d).astype(np.float32))
+    lab = Labeler(names, 120.0)
+    acc, outs, truths = run(lab, rng, pos, ghosts=ghosts)
+    labeled = sum(int(np.count_nonzero(o.point_labels[t < 0] >= 0)) for o, t in
+                  zip(outs[INIT:], truths[INIT:], strict=True))  # fmt: skip
+    n_ghosts = sum(int(np.count_nonzero(t < 0)) for t in truths[INIT:])
+    assert labeled / n_ghosts <= 0.01
+    assert acc >= 0.995
+
+
+@pytest.mark.parametrize("recovery", ["kabsch", "displacement"])
+def test_hidden_marker_is_recovered_and_reacquired(rng, recovery):
+    pos, names = articulated(rng)
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    m = names.index("P1:b2")
+    hidden[100:130, m] = True
+    lab = Labeler(names, 120.0, LabelerConfig(recovery=recovery))
+    acc, outs, truths = run(lab, rng, pos, hidden=hidden)
+    errs = []
+    for f in range(100, 130):
+        assert outs[f].state[m] == MarkerState.RECOVERED
+        errs.append(np.linalg.norm(outs[f].positions[m] - pos[f, m]))
+    assert np.mean(errs) < (5.0 if recovery == "kabsch" else 40.0)
+    for f in range(131, pos.shape[0]):  # found again when it reappears
+        assert outs[f].state[m] == MarkerState.OBSERVED
+        assert outs[f].point_labels[np.flatnonzero(truths[f] == m)[0]] == m
+    assert acc >= 0.999
+
+
+def test_whole_segment_hidden_for_long_is_reacquired(rng):
+    pos, names = articulated(rng, frames=400)
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    seg = [names.index(f"P2:b{i}") for i in range(4)]
+    hidden[80:200][:, seg] = True  # a full second without any marker of the segment
+    lab = Labeler(names, 120.0)
+    _, outs, truths = run(lab, rng, pos, hidden=hidden)
+    for f in range(215, 400):
+        for m in seg:
+            j = np.flatnonzero(truths[f] == m)[0]
+            assert outs[f].point_labels[j] == m
+
+
+def test_marker_never_seen_in_training_does_not_crash(rng):
+    pos, names = articulated(rng, subjects=2, frames=150)
+    late = names.index("P0:a3")
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    hidden[:INIT, late] = True
+    lab = Labeler(names, 120.0)
+    acc, outs, truths = run(lab, rng, pos, hidden=hidden)
+    assert outs[-1].state[late] == MarkerState.MISSING
+    assert np.isnan(outs[-1].positions[late]).all()
+    others = [o.point_labels[t != late] == t[t != late] for o, t in
+              zip(outs[INIT:], truths[INIT:], strict=True)]  # fmt: skip
+    assert np.mean(np.concatenate(others)) == 1.0
+
+
+def test_from_model_needs_one_labeled_frame(rng):
+    pos, names = articulated(rng, subjects=2)
+    trainer = Labeler(names, 120.0)
+    run(trainer, rng, pos[: INIT + 1])
+    model = trainer.model
+    lab = Labeler.from_model(model, 120.0)
+    assert lab.marker_names == model.marker_names
+    pts, truth = frame_points(rng, pos[0])
+    with pytest.raises(LabelerError, match="first frame must carry labels"):
+        Labeler.from_model(model, 120.0).process(pts, 0.0)
+    # a model's marker order need not be the capture's: map through the names
+    perm = [names.index(n) for n in lab.marker_names]
+    acc, _, _ = run(lab, rng, pos[:, perm], init=1)
+    assert acc == 1.0
+
+
+def test_bad_input_raises_labeler_error(rng):
+    lab = Labeler(["s:a", "s:b", "s:c"], 120.0)
+    with pytest.raises(LabelerError, match=r"\(N, 3\)"):
+        lab.process(np.zeros((4, 2), np.float32), 0.0)
+    with pytest.raises(LabelerError, match="finite"):
+        lab.process(np.full((1, 3), np.nan, np.float32), 0.0)
+    with pytest.raises(LabelerError, match="labels for"):
+        lab.process(np.zeros((2, 3), np.float32), 0.0, np.array([0]))
+    lab.process(np.eye(3, dtype=np.float32) * 100, 0.0, np.arange(3))
+    with pytest.raises(LabelerError, match="at least 3 labeled frames"):
+        lab.process(np.eye(3, dtype=np.float32) * 100, 0.01)
+    with pytest.raises(LabelerError, match="unique"):
+        Labeler(["a", "a"], 120.0)
+    with pytest.raises(LabelerError, match="rate"):
+        Labeler(["a"], 0.0)
+
+
+def test_model_marker_missing_from_labeler_is_a_model_error(rng):
+    pos, names = articulated(rng, subjects=1, frames=50)
+    trainer = Labeler(names, 120.0)
+    run(trainer, rng, pos[: INIT + 1])
+    lab = Labeler(names[:-1], 120.0)
+    lab.model = trainer.model
+    pts, truth = frame_points(rng, pos[0, :-1])
+    lab.process(pts, 0.0, truth)
+    with pytest.raises(ModelError, match="not a labeler marker"):
+        lab.process(pts, 0.01)
+
+
+def test_warmup_leaves_state_untouched(rng):
+    pos, names = articulated(rng, subjects=2, frames=80)
+    a = Labeler(names, 120.0)
+    a.warmup()
+    b = Labeler(names, 120.0)
+    r1 = np.random.default_rng(3)
+    r2 = np.random.default_rng(3)
+    _, oa, _ = run(a, r1, pos)
+    _, ob, _ = run(b, r2, pos)
+    for x, y in zip(oa, ob, strict=True):
+        np.testing.assert_array_equal(x.point_labels, y.point_labels)
+        np.testing.assert_array_equal(x.positions, y.positions)
+
+
+def test_body_extent_after_training(rng):
+    pos, names = articulated(rng, subjects=1, frames=60)
+    lab = Labeler(names, 120.0)
+    assert np.isnan(lab.body_extent()).all()
+    run(lab, rng, pos)
+    ext = lab.body_extent()
+    assert np.all(np.isfinite(ext)) and np.all((ext > 10) & (ext < 600))

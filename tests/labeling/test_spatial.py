@@ -1,0 +1,96 @@
+"""The sweep index answers exactly what a scan of every point answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import reference as ref
+
+from labeler_service.labeling.kernels.gating import _gate, _regate
+from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _index, _nearest
+
+
+def _cloud(rng, n, spread=4000.0):
+    """Points spread like performers on a stage (wide in x and y), with exact duplicates and
+    non-finite rows."""
+    pts = rng.uniform(-spread / 2, spread / 2, (n, 3))
+    pts[:, 2] = rng.uniform(0, 1800, n)
+    pts[5] = pts[17]  # an exact duplicate: a tie at any centre
+    pts[9] = np.nan
+    pts[11, 1] = np.inf
+    return pts.astype(np.float32)
+
+
+def _brute_nearest(points, centre, lim2, owner, which, skip):
+    best, bj = lim2, -1
+    for j in range(points.shape[0]):
+        if which == FREE and owner[j] >= 0:
+            continue
+        if which == OWNED and (owner[j] < 0 or j == skip):
+            continue
+        d2 = float(np.sum((points[j].astype(np.float64) - centre) ** 2))
+        if d2 < best:  # in index order, so ties keep the lower index
+            best, bj = d2, j
+    return bj
+
+
+@pytest.mark.parametrize("which", [ANY, FREE, OWNED])
+def test_nearest_equals_a_full_scan(rng, which):
+    points = _cloud(rng, 400)
+    index = _index(points)
+    owner = np.where(rng.random(400) < 0.4, 3, -1).astype(np.int32)
+    for q in range(300):
+        centre = points[q % 400].astype(np.float64) + rng.normal(0, 30, 3)
+        if q % 7 == 0:
+            centre = points[17].astype(np.float64)  # on the duplicate pair
+        if not np.isfinite(centre).all():
+            continue
+        lim2 = float(rng.uniform(10, 300)) ** 2
+        skip = int(rng.integers(0, 400))
+        j, _ = _nearest(points, index, centre, lim2, owner, which, skip)
+        assert j == _brute_nearest(points, centre, lim2, owner, which, skip)
+
+
+def test_index_sorts_along_the_wider_axis_and_puts_non_finite_last(rng):
+    points = _cloud(rng, 50)
+    points[:, 1] *= 0.1  # x is now the wide axis
+    order, keys, axis = _index(points)
+    assert axis == 0
+    assert np.all(np.diff(keys[np.isfinite(keys)]) >= 0)
+    assert sorted(order.tolist()) == list(range(50))
+    assert not np.isfinite(keys[-1])  # the NaN row sorts last
+
+
+def test_gate_ties_go_to_the_lower_index_whatever_the_sweep_order():
+    # two points mirrored about the prediction: the sweep meets point 1 (smaller x) first,
+    # yet point 0 must be the first candidate, as in a scan in index order
+    pred = np.zeros((1, 6))
+    points = np.array([[10.0, 0, 0], [-10.0, 0, 0], [0, 0, 50.0]], dtype=np.float32)
+    cand = np.zeros((1, 3), dtype=np.int32)
+    cand_d2 = np.zeros((1, 3))
+    ncand = np.zeros(1, dtype=np.int32)
+    _gate(pred, np.ones(1), np.ones(1, bool), points, _index(points), 1e4, 3, cand, cand_d2, ncand)
+    assert ncand[0] == 3 and cand[0].tolist() == [0, 1, 2]
+
+
+@pytest.mark.parametrize("K", [1, 4])
+def test_gate_and_regate_on_a_stage_equal_the_twins(rng, K):
+    points = _cloud(rng, 600)
+    m = 200
+    pred = np.zeros((m, 6))
+    pred[:, :3] = points[rng.integers(0, 600, m)] + rng.normal(0, 15, (m, 3))
+    s = rng.uniform(20, 2000, m)
+    active = rng.random(m) < 0.9
+    index = _index(points)
+    cand = np.zeros((m, K), dtype=np.int32)
+    cand_d2 = np.zeros((m, K))
+    ncand = np.zeros(m, dtype=np.int32)
+    _gate(pred, s, active, points, index, 16.27, K, cand, cand_d2, ncand)
+    for i, (js, _ds) in enumerate(ref.gate(pred, s, active, points, 16.27, K)):
+        assert list(cand[i, : ncand[i]]) == js
+    owner = np.where(rng.random(600) < 0.5, 1, -1).astype(np.int32)
+    lost = rng.random(m) < 0.5
+    radius = rng.uniform(20.0, 300.0, m)
+    _regate(pred, lost, points, index, owner, radius, 16.27, K, cand, cand_d2, ncand)
+    for i, js in ref.regate(pred, lost, points, owner, radius, 16.27, K).items():
+        assert list(cand[i, : ncand[i]]) == js
