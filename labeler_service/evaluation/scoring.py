@@ -141,9 +141,14 @@ class Scorer:
     series of frames in which its point carries a wrong label; frames where the marker is not
     visible neither extend nor end a run, a correct or unlabeled frame ends it;
     ``max_swap_frames`` is the longest run over markers.
+
+    Storage is allocated (and touched) up front for ``n_frames`` frames, so a long run adds no
+    objects and no memory per frame (``benchmarks/bench_labeler.py`` measures leaks with it).
     """
 
-    def __init__(self, marker_names: Sequence[str], init_frames: int, method: str = "") -> None:
+    def __init__(
+        self, marker_names: Sequence[str], init_frames: int, n_frames: int, method: str = ""
+    ) -> None:
         self.names = tuple(marker_names)
         self.method = method
         self.init_frames = int(init_frames)
@@ -152,11 +157,11 @@ class Scorer:
         self._subject = np.array([index[s] for s in subj], dtype=np.int64)
         m = len(self.names)
         self._seen = np.zeros(m, dtype=bool)
-        self._rows: list[np.ndarray] = []
-        self._frames: list[int] = []
-        self._per_frame: list[tuple[int, float]] = []
+        self.n_frames = int(n_frames)
+        self._raster = np.full((self.n_frames, m), NOT_VISIBLE, dtype=np.int8)
+        self._per_frame = np.full(self.n_frames, np.nan)
+        self._times_ms = np.full(self.n_frames, np.nan)
         self.ghosts = self.ghosts_taken = 0
-        self._times_ns: list[int] = []
         self._rec_err: list[float] = []
         self._rec_marker: list[int] = []
         self.removed = 0
@@ -180,8 +185,8 @@ class Scorer:
             self._seen[truth[real]] = True
             return
         if dt_ns is not None and f >= self.init_frames + WARMUP_FRAMES:
-            self._times_ns.append(int(dt_ns))
-        row = np.zeros(len(self.names), dtype=np.int8)
+            self._times_ms[f] = dt_ns / 1e6
+        row = self._raster[f]
         tm = truth[real]
         if out is None:
             row[tm] = UNLABELED
@@ -212,27 +217,17 @@ class Scorer:
         self.ghosts += int(truth.size - tm.size)
         nv = tm.size
         ok = int(np.count_nonzero(row == CORRECT))
-        self._per_frame.append((f, ok / nv if nv else float("nan")))
-        self._rows.append(row)
-        self._frames.append(f)
+        self._per_frame[f] = ok / nv if nv else np.nan
 
     def result(
         self,
-        n_frames: int | None = None,
         body_extent: np.ndarray | None = None,
         recovery: bool = True,
     ) -> MethodScore:
-        """The scores so far. ``n_frames`` sizes ``per_frame_accuracy`` and the raster (default:
-        the last frame added + 1); ``body_extent`` (``(M,)`` mm) gives ``recovery_mean_ratio``;
+        """The scores so far. ``body_extent`` (``(M,)`` mm) gives ``recovery_mean_ratio``;
         ``recovery=False`` reports no recovery rate (a method that recovers nothing)."""
-        m = len(self.names)
-        n = n_frames if n_frames is not None else (self._frames[-1] + 1 if self._frames else 0)
-        raster = np.zeros((n, m), dtype=np.int8)
-        if self._rows:
-            raster[np.asarray(self._frames)] = np.stack(self._rows)
-        per_frame = np.full(n, np.nan)
-        for f, a in self._per_frame:
-            per_frame[f] = a
+        raster = self._raster.copy()
+        per_frame = self._per_frame.copy()
         vis = raster != NOT_VISIBLE
         visible = int(vis.sum())
         correct = int((raster == CORRECT).sum())
@@ -261,7 +256,7 @@ class Scorer:
             }
             for j in order
         ]
-        times_ms = np.asarray(self._times_ns, dtype=np.float64) / 1e6
+        times_ms = self._times_ms[np.isfinite(self._times_ms)]
         if times_ms.size == 0:
             times_ms = np.asarray([np.nan])
         err = np.asarray(self._rec_err)
@@ -332,7 +327,7 @@ def score_labeler(
     warm = getattr(labeler, "warmup", None)
     if callable(warm):
         warm()
-    scorer = Scorer(stream.marker_names, init_frames, method)
+    scorer = Scorer(stream.marker_names, init_frames, n, method)
     for f in range(n):
         pts, truth = stream.points[f], stream.truth[f]
         labels = truth if f < init_frames else None
@@ -347,7 +342,7 @@ def score_labeler(
     # Body extents are known once the labeler has trained: ask after the run.
     extent = getattr(labeler, "body_extent", None)
     body_extent = np.asarray(extent(), dtype=np.float64) if callable(extent) else None
-    return scorer.result(n, body_extent, recovery=method != "closest-point")
+    return scorer.result(body_extent, recovery=method != "closest-point")
 
 
 def resolve_methods(requested: Sequence[str] | None) -> tuple[list[str], list[str]]:

@@ -136,14 +136,14 @@ def test_unseen_at_init_counted_and_kept_in_accuracy(rng) -> None:
 
 
 def test_lost_frame_counts_every_visible_point_unlabeled(stream) -> None:
-    sc = Scorer(stream.marker_names, init_frames=20)
+    sc = Scorer(stream.marker_names, init_frames=20, n_frames=stream.n_frames)
     for f in range(stream.n_frames):
         out = None if f == 50 else _Scripted(stream, lambda *a: None)
         if out is not None:
             out.f = f
             out = out.process(stream.points[f], 0.0)
         sc.add(f, stream.truth[f], out)
-    s = sc.result(stream.n_frames)
+    s = sc.result()
     assert s.errors["unlabeled"] == int((stream.truth[50] >= 0).sum())
     assert s.per_frame_accuracy[50] == 0.0
 
