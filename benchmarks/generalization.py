@@ -22,17 +22,17 @@ reported separately and must meet the same bars without having been looked at.
   gait_bts_yup_22markers_100hz, shoulder_upper_body_with_box_100hz (Daphnee),
   sprint_51markers_250hz, walk_qualisys_wands_55markers_200hz
 
-Matrix, per group (scenes never mix the groups): with the group's takes in the order above,
-take ``i`` is composed with take ``i+1`` and with take ``i+3`` (so every take has four
-partners' worth of scenes), radius 220, 280 or 350 mm and seed by scene number, start offset
-moved on by 2 s in a take's second scene when the take is long enough. The scene rate is the
-lowest native rate of its takes (never upsampled; other takes are resampled); the scene lasts
-at most ``--seconds`` (6 s) and ``--max-frames`` (900) frames; a shorter take leaves the volume
-when it ends. Cells per scene: ``rate`` (plain), ``half`` and ``quarter`` (``--downsample`` 2
-and 4), ``ghosts3`` (``--ghosts 3``), ``gaps2`` (``--gaps 2``, 0.2 s each) and ``occlude2``
-(``--occlude 2``, 0.3 s each), all at the scene rate unless named. Every take is also scored
-alone at its own rate (``alone``). The init window is 0.4 s at every rate (50 frames at
-120 Hz, 20 at 50 Hz, 5 at 12.5 Hz). Every random choice is seeded.
+Matrix, per group (scenes never mix the groups): with the group's takes in the order above, take
+``i`` is composed with take ``i+1`` and with take ``i+3`` (every take has four partners), and
+every pair ``--seeds`` (2) times; radius 220, 280 or 350 mm and seed by scene number, the start
+offset moved on by 2 s per earlier scene of the take (wrapping so that 3 s are left). The scene
+rate is the lowest native rate of its takes (never upsampled; other takes are resampled); the
+scene lasts at most ``--seconds`` (8 s) and ``--max-frames`` (1200) frames; a shorter take
+leaves the volume when it ends. Cells per scene: ``rate`` (plain), ``half`` and ``quarter``
+(``--downsample`` 2 and 4), ``ghosts3`` (``--ghosts 3``), ``gaps2`` (``--gaps 2``, 0.2 s each)
+and ``occlude2`` (``--occlude 2``, 0.3 s each), all at the scene rate unless named. Every take
+is also scored alone at its own rate (``alone``). The init window is 0.4 s at every rate (48
+frames at 120 Hz, 20 at 50 Hz, 5 at 12.5 Hz). Every random choice is seeded.
 
 Reported: one line per cell on stderr while running, then one JSON object: every cell (with
 the ``compose``/``evaluate`` commands that reproduce it), and per group and cell the worst
@@ -169,16 +169,19 @@ class Scene:
 
 
 def _start(t: Take, uses: dict[str, int]) -> int:
-    """The take's first full frame; in its second scene 2 s later when that leaves 3 s."""
+    """The take's first full frame, moved on by 2 s per earlier scene of the take, wrapping
+    around so that at least 3 s of the take are left after it (short takes always start at
+    their first full frame)."""
     cap, first = load(t)
     k = uses.get(t.key, 0)
     uses[t.key] = k + 1
-    moved = first + int(round(k * SECOND_START_S * cap.rate))
-    fits = (cap.n_frames - moved) / cap.rate >= MIN_SCENE_S
-    return moved if k and fits else first
+    span = cap.n_frames - first - int(MIN_SCENE_S * cap.rate)
+    if span <= 0:
+        return first
+    return first + int(round(k * SECOND_START_S * cap.rate)) % span
 
 
-def matrix(split: str, quick: bool) -> list[Scene]:
+def matrix(split: str, quick: bool, seeds: int = 2) -> list[Scene]:
     """The scenes of the matrix (see the module docstring), pairs and then takes alone."""
     scenes: list[Scene] = []
     for group in GROUPS:
@@ -189,6 +192,7 @@ def matrix(split: str, quick: bool) -> list[Scene]:
         uses: dict[str, int] = {}
 
         pairs = [(i, (i + 1) % n) for i in range(n)] + [(i, (i + 3) % n) for i in range(n)]
+        pairs = pairs * seeds  # the same pairs again: another seed, radius and start
         if quick:
             pairs = pairs[:2]
         for number, (i, j) in enumerate(pairs):
@@ -199,7 +203,7 @@ def matrix(split: str, quick: bool) -> list[Scene]:
                     group=group,
                     takes=((a, _start(a, uses)), (b, _start(b, uses))),
                     radius=RADII[number % len(RADII)],
-                    seed=100 + number + (0 if group == "tune" else 50),
+                    seed=100 + number + (0 if group == "tune" else 500),
                 )
             )
         for t in takes if not quick else [t for t in takes if "tennis" in t.file][:1]:
@@ -317,8 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="2 scenes per group, 3 cells, tennis")
     p.add_argument("--cells", nargs="+", default=None, help="cells to run (default: all)")
     p.add_argument("--only", nargs="+", default=None, help="scene names to run")
-    p.add_argument("--seconds", type=float, default=6.0, help="longest scene (s)")
-    p.add_argument("--max-frames", type=int, default=900, help="longest scene (frames)")
+    p.add_argument("--seeds", type=int, default=2, help="scenes per pair of takes")
+    p.add_argument("--seconds", type=float, default=8.0, help="longest scene (s)")
+    p.add_argument("--max-frames", type=int, default=1200, help="longest scene (frames)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes")
     p.add_argument("--out", default=None, help="also write the JSON here")
     args = p.parse_args(argv)
@@ -327,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)  # fmt: skip
         return 2
     t0 = time.perf_counter()
-    scenes = matrix(args.split, args.quick)
+    scenes = matrix(args.split, args.quick, args.seeds)
     if args.only:
         scenes = [s for s in scenes if s.name in args.only]
     cells = tuple(args.cells or (QUICK_CELLS if args.quick else _cells(1.0)))
