@@ -34,11 +34,12 @@ and ``occlude2`` (``--occlude 2``, 0.3 s each), all at the scene rate unless nam
 is also scored alone at its own rate (``alone``). The init window is 0.4 s at every rate (48
 frames at 120 Hz, 20 at 50 Hz, 5 at 12.5 Hz). Every random choice is seeded.
 
-Reported: one line per cell on stderr while running, then one JSON object: every cell (with
-the ``compose``/``evaluate`` commands that reproduce it), and per group and cell the worst
-scene, the mean, the pooled error anatomy and the longest swap. ``accuracy_seen`` counts every
-visible sample except those of markers the init window never showed (``unseen_at_init``); the
-issue's bars are on it.
+Reported: one line per cell on stderr while running, then one JSON object: every cell (with the
+``compose``/``evaluate`` commands that reproduce it), and per group and cell the worst scene,
+the mean, the pooled error anatomy and the longest swap. ``leaves`` names the takes that end
+before the scene does (their performer leaves; the labeler keeps their labels).
+``accuracy_seen`` counts every visible sample except those of markers the init window never
+showed (``unseen_at_init``); the issue's bars are on it.
 
     .venv/bin/python benchmarks/generalization.py --out generalization.json      # full
     .venv/bin/python benchmarks/generalization.py --quick                         # a subset
@@ -225,6 +226,12 @@ def run_scene(scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: 
         rate=rate,
     )
     alone = len(scene.takes) == 1
+    # a take shorter than the scene leaves the volume when it ends (its labels stay in the model)
+    leaves = [
+        t.key
+        for t, s in scene.takes
+        if (load(t)[0].n_frames - s) / load(t)[0].rate < frames / rate - 1e-9
+    ]
     chosen = {"alone": {}} if alone else {k: v for k, v in _cells(rate).items() if k in cells}
     out = []
     compose_cmd = (
@@ -243,6 +250,7 @@ def run_scene(scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: 
                 "group": scene.group,
                 "cell": cell,
                 "takes": [t.key for t, _ in scene.takes],
+                "leaves": leaves,
                 "rate_hz": report["rate_hz"],
                 "frames": report["frames"],
                 "markers": report["markers"],
@@ -297,6 +305,11 @@ def summarize(results: list[dict]) -> dict[str, Any]:
                     markers[w["marker"]] = markers.get(w["marker"], 0) + w["errors"]
             top = sorted(markers.items(), key=lambda kv: -kv[1])[:10]
             ghosts = [r["ghost_labeled_rate"] for r in rows if r["ghost_labeled_rate"] is not None]
+            present = [
+                r["ghost_labeled_rate"]
+                for r in rows
+                if r["ghost_labeled_rate"] is not None and not r["leaves"]
+            ]
             out.setdefault(group, {})[cell] = {
                 "scenes": len(rows),
                 "worst_accuracy_seen": worst["accuracy_seen"],
@@ -310,6 +323,10 @@ def summarize(results: list[dict]) -> dict[str, Any]:
                 "max_swap_scene": swap["scene"],
                 "max_swap": swap["max_swap"],
                 "ghost_labeled_rate_max": max(ghosts) if ghosts else None,
+                "ghost_labeled_rate_mean": round(float(np.mean(ghosts)), 6) if ghosts else None,
+                # scenes where nobody leaves (a departed performer's labels take ghosts)
+                "ghost_labeled_rate_max_all_present": max(present) if present else None,
+                "scenes_with_a_leaver": sum(1 for r in rows if r["leaves"]),
                 "worst_markers": [{"marker": m, "errors": e} for m, e in top],
             }
     return out
