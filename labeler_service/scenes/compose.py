@@ -205,23 +205,6 @@ def resample(cap: Capture, start: int, rate: float, frames: int, name: str = "ta
     return cap.with_positions(pos.astype(np.float32), rate=float(rate))
 
 
-def decimation_step(take_rate: float, rate: float, name: str = "take") -> int:
-    """Integer step that brings ``take_rate`` to ``rate``; a non-integer ratio is an error.
-
-    (``compose`` resamples any ratio now, see :func:`resample`; this stays for callers that
-    need plain decimation.)"""
-    if not (math.isfinite(rate) and rate > 0):
-        raise SceneError(f"--rate must be a positive number of Hz, got {rate}")
-    ratio = take_rate / rate
-    step = round(ratio)
-    if step < 1 or abs(ratio - step) > 1e-6 * max(1.0, ratio):
-        raise SceneError(
-            f"{name}: cannot decimate {take_rate:g} Hz to {rate:g} Hz "
-            f"(ratio {ratio:.4g} is not a whole number)"
-        )
-    return int(step)
-
-
 def detect_up(cap: Capture, name: str = "take") -> tuple[str, str]:
     """``("z" | "y", reason)``: the take's vertical axis, from the body's extent over time.
 
