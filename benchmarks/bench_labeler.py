@@ -28,7 +28,7 @@ import numpy as np
 from _common import emit
 
 from labeler_service.capture import Capture, read_capture
-from labeler_service.evaluation.scoring import WARMUP_FRAMES
+from labeler_service.evaluation.scoring import WARMUP_FRAMES, Scorer
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.scenes.corrupt import CorruptionSpec, iter_stream
 from labeler_service.scenes.sim import SCENARIOS
@@ -96,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
 
     times = np.empty(args.frames)
     cpu = np.empty(args.frames)
-    correct = visible = 0
+    # the scorer of ``evaluate``; it allocates its storage here, before the memory baseline
+    scorer = Scorer(plan.marker_names, INIT, INIT + args.frames)
     if args.trace_heap:
         tracemalloc.start()
     heap0 = rss0 = 0.0
@@ -112,14 +113,12 @@ def main(argv: list[str] | None = None) -> int:
         out = lab.process(fr.points, fr.t, labels)
         dt = time.perf_counter_ns() - t1
         dc = time.thread_time_ns() - c1
+        scorer.add(k, fr.truth, out)
         if k < INIT:
             continue
         i = k - INIT
         times[i] = dt / 1e6
         cpu[i] = dc / 1e6
-        real = fr.truth >= 0
-        correct += int(np.count_nonzero(out.point_labels[real] == fr.truth[real]))
-        visible += int(np.count_nonzero(real))
         if i == MARK:
             heap0 = tracemalloc.get_traced_memory()[0] / 1024 if args.trace_heap else np.nan
             rss0 = _rss_kib()
@@ -142,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         "subjects": subjects,
         "markers": n,
         "rate_hz": plan.rate,
-        "accuracy": round(correct / visible, 6),
+        "accuracy": round(scorer.result().accuracy, 6),
         "ms_per_frame_p50": round(p50, 4),
         "ms_per_frame_p99": round(float(np.percentile(t, 99)), 4),
         "ms_per_frame_max": round(float(t.max()), 4),

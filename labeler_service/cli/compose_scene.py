@@ -1,7 +1,9 @@
-"""``mocap-labeler compose OUT TAKE[:start[:up]]... --radius MM --frames N --seed S [--rate HZ]``.
+"""``mocap-labeler compose OUT TAKE[:start[:up[:subject]]]... --radius MM --frames N --seed S
+[--rate HZ]``.
 
-Builds a multi-person scene from single-person labeled takes (see
-:mod:`labeler_service.scenes.compose`) and writes it in any format ``write_capture`` supports.
+Builds a multi-person scene from labeled takes (see :mod:`labeler_service.scenes.compose`) and
+writes it in any format ``write_capture`` supports. Prints one summary line, then one line per
+decision compose made (up axis, subject, facing, resampling, markers dropped, leaving).
 """
 
 from __future__ import annotations
@@ -14,13 +16,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "takes",
         nargs="+",
-        metavar="TAKE[:start[:up]]",
-        help="single-person labeled take; start = first frame (default 0), up = y for Y-up takes",
+        metavar="TAKE[:start[:up[:subject]]]",
+        help="labeled take; start = first frame (default 0); up = z, y or auto (default: "
+        "detected, an ambiguous take must say); subject = the one to take from a "
+        "multi-subject file",
     )
     p.add_argument("--radius", type=float, required=True, help="circle radius in mm (e.g. 300)")
     p.add_argument("--frames", type=int, required=True, help="frames in the scene (output rate)")
     p.add_argument("--seed", type=int, required=True, help="seed for phase and yaw offsets")
-    p.add_argument("--rate", type=float, default=None, help="decimate every take to this rate (Hz)")
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=None,
+        help="resample every take to this rate (Hz, at most the lowest take rate)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,4 +44,6 @@ def run(args: argparse.Namespace) -> int:
         f"{path}: {len(subjects)} subjects ({', '.join(subjects)}), {scene.n_markers} markers, "
         f"{scene.n_frames} frames at {scene.rate:g} Hz"
     )
+    for note in scene.notes:
+        print(f"  {note}")
     return 0

@@ -7,7 +7,9 @@ real captures are present (``MOCAP_DATA_DIR`` or ``../shared/data/real``), else 
 
 Scoring compares what the subscriber received with the truth. An observed marker's published
 position is exactly the input point it was given, so per ``seq`` each published observed
-position is matched to its input point, whose true label is known:
+position is matched to its input point, whose true label is known; the resulting labeled frames
+are scored by :class:`~labeler_service.evaluation.scoring.Scorer`, the scorer of ``evaluate``
+(same definitions, same error anatomy):
 
 - ``accuracy``: correctly labeled visible true markers / visible true markers, over the frames
   after the init window (a frame lost on the way counts as unlabeled);
@@ -60,59 +62,43 @@ def _scene(seed: int, frames: int):
     return cap, "simulated 4-performer hug (no real captures found)"
 
 
-def score(frames, received, init_frames: int) -> dict:
-    """Scores received labeled frames against the stream's truth (see the module docstring)."""
+def score(frames, received, init_frames: int):
+    """Scores received labeled frames against the stream's truth (see the module docstring)
+    with the scorer ``evaluate`` uses (:class:`~labeler_service.evaluation.scoring.Scorer`):
+    each message becomes the :class:`LabeledFrame` the service computed, in the truth's
+    marker order. A frame lost on the way is scored as all-unlabeled."""
+    from labeler_service.evaluation.scoring import Scorer
+    from labeler_service.labeling.frame import LabeledFrame
+
     names = frames.marker_names
+    index = {n: i for i, n in enumerate(names)}
     by_seq = {r.msg.seq: r for r in received}
     col_of: dict[tuple[str, ...], np.ndarray] = {}
-    per_frame = np.full(frames.n_frames, np.nan)
-    correct = total = ghosts = ghosts_labeled = 0
-    rec_err: list[float] = []
-    for f in range(init_frames, frames.n_frames):
+    scorer = Scorer(names, init_frames, frames.n_frames)
+    m = len(names)
+    for f in range(frames.n_frames):
         truth = frames.truth[f]
-        true_pts = truth >= 0
-        n_true = int(true_pts.sum())
-        total += n_true
-        ghosts += int((~true_pts).sum())
-        r = by_seq.get(f)
-        if r is None:
-            per_frame[f] = 0.0
-            continue
-        if r.names not in col_of:  # service marker j -> column in the truth's marker list
-            idx = {n: i for i, n in enumerate(names)}
-            col_of[r.names] = np.array([idx.get(n, -1) for n in r.names], dtype=np.int64)
-        cols = col_of[r.names]
-        point_of = {frames.points[f][i].tobytes(): i for i in range(len(truth))}
-        ok = 0
-        for j in np.flatnonzero(r.msg.state == 1):
-            i = point_of.get(r.msg.positions[j].tobytes())
-            if i is None:
-                continue
-            if truth[i] < 0:
-                ghosts_labeled += 1
-            elif truth[i] == cols[j]:
-                ok += 1
-        correct += ok
-        per_frame[f] = ok / n_true if n_true else np.nan
-        removed = np.flatnonzero(frames.removed[f])
-        if removed.size:
-            pos_of = {c: j for j, c in enumerate(cols) if c >= 0}
-            for m in removed:
-                j = pos_of.get(int(m))
-                if j is not None and r.msg.state[j] == 2:
-                    rec_err.append(
-                        float(np.linalg.norm(r.msg.positions[j] - frames.positions[f, m]))
-                    )
-    err = np.asarray(rec_err)
-    n_removed = int(frames.removed[init_frames:].sum())
-    return {
-        "accuracy": correct / total if total else float("nan"),
-        "ghost_labeled_rate": ghosts_labeled / ghosts if ghosts else 0.0,
-        "recovered_fraction": err.size / n_removed if n_removed else None,
-        "recovery_mean_mm": float(err.mean()) if err.size else None,
-        "recovery_p95_mm": float(np.percentile(err, 95)) if err.size else None,
-        "per_frame_accuracy": per_frame,
-    }
+        r = by_seq.get(f) if f >= init_frames else None
+        out = None
+        if r is not None:
+            if r.names not in col_of:  # service marker j -> column in the truth's marker list
+                col_of[r.names] = np.array([index.get(n, -1) for n in r.names], dtype=np.int64)
+            cols = col_of[r.names]
+            known = cols >= 0  # the service publishes the truth's markers (same scene)
+            # an observed marker's published position is exactly its input point
+            point_of = {frames.points[f][i].tobytes(): i for i in range(len(truth))}
+            labels = np.full(len(truth), -1, dtype=np.int32)
+            for j in np.flatnonzero((r.msg.state == 1) & known):
+                i = point_of.get(r.msg.positions[j].tobytes())
+                if i is not None:
+                    labels[i] = cols[j]
+            state = np.zeros(m, dtype=np.uint8)
+            positions = np.full((m, 3), np.nan, dtype=np.float32)
+            state[cols[known]] = r.msg.state[known]
+            positions[cols[known]] = r.msg.positions[known]
+            out = LabeledFrame(float(frames.times[f]), labels, positions, state)
+        scorer.add(f, truth, out, removed=frames.removed[f], positions=frames.positions[f])
+    return scorer.result()
 
 
 def _plots(out: Path, latency_ms: np.ndarray, per_frame: np.ndarray, rate: float, init: int):
@@ -202,7 +188,8 @@ def run(args: argparse.Namespace) -> int:
           f"first {args.init_frames} frames labeled, {args.gaps} gap(s)/subject, "
           f"{args.ghosts:g} ghosts/frame")  # fmt: skip
     res = asyncio.run(_run_pipeline(args, frames, out))
-    s = score(frames, res.received, args.init_frames)
+    scored = score(frames, res.received, args.init_frames)
+    s = scored.summary()
     lat = np.array([r.latency_ms for r in res.received if r.latency_ms is not None])
     # after start-up: from 1 s past the training window (the first unlabeled frame trains)
     start = args.init_frames + frames.rate
@@ -223,9 +210,12 @@ def run(args: argparse.Namespace) -> int:
         "transport": "udp (loopback)",
         "accuracy": s["accuracy"],
         "ghost_labeled_rate": s["ghost_labeled_rate"],
-        "recovered_fraction": s["recovered_fraction"],
+        "recovered_fraction": s["recovery_rate"],
         "recovery_mean_mm": s["recovery_mean_mm"],
         "recovery_p95_mm": s["recovery_p95_mm"],
+        "errors": s["errors"],
+        "max_swap_frames": s["max_swap_frames"],
+        "worst_markers": s["worst_markers"][:5],
         "frames_sent": res.sent,
         "frames_received": len(res.received),
         "frames_lost": int(expected - len(res.received)),
@@ -244,12 +234,12 @@ def run(args: argparse.Namespace) -> int:
         rec.add(r, frames.rate)
     rec.write(out / "labeled.c3d")
     (out / "report.json").write_text(json.dumps(report, indent=2))
-    p1, p2 = _plots(out, lat, s["per_frame_accuracy"], frames.rate, args.init_frames)
+    p1, p2 = _plots(out, lat, scored.per_frame_accuracy, frames.rate, args.init_frames)
     rec_txt = ("-" if s["recovery_mean_mm"] is None else
                f"{s['recovery_mean_mm']:.1f} mm mean, {s['recovery_p95_mm']:.1f} mm p95 "
-               f"({100 * s['recovered_fraction']:.0f} % of hidden samples recovered)")  # fmt: skip
+               f"({100 * s['recovery_rate']:.0f} % of hidden samples recovered)")  # fmt: skip
     print(f"accuracy        {100 * s['accuracy']:.2f} % of visible markers labeled correctly")
-    print(f"ghosts labeled  {100 * s['ghost_labeled_rate']:.2f} %")
+    print(f"ghosts labeled  {100 * (s['ghost_labeled_rate'] or 0.0):.2f} %")
     print(f"recovery        {rec_txt}")
     print(f"latency         p50 {report['latency_ms_p50']:.2f} ms, p99 "
           f"{report['latency_ms_p99']:.2f} ms, p99.9 {report['latency_ms_p99_9']:.2f} ms "

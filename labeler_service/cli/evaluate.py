@@ -2,7 +2,8 @@
 
 With ``--json`` the last line of stdout is one JSON object. ``--plot FILE.png`` also runs
 down-sampling factors 1, 2 and 4 and draws accuracy against the factor per method (seed 003
-Fig. 6 analogue).
+Fig. 6 analogue), and writes ``FILE_errors.png``: the per-marker error raster of the first
+method at the requested setting.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import sys
 from pathlib import Path
 
 from labeler_service.capture import read_capture
+from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 
 
@@ -30,6 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-frames", type=int, default=50, help="labeled training frames")
     p.add_argument("--gaps", type=int, default=0, help="markers removed per subject per event")
     p.add_argument("--gap-frames", type=int, default=20, help="length of each gap (frames)")
+    p.add_argument(
+        "--occlude", type=int, default=0, help="body-part occlusions per subject (120 mm)"
+    )
+    p.add_argument("--occlude-frames", type=int, default=15, help="frames each part is hidden")
     p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
     p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
@@ -54,10 +60,12 @@ def run(args: argparse.Namespace) -> int:
         gaps=args.gaps,
         gap_frames=args.gap_frames,
         ghosts=args.ghosts,
+        occlude=args.occlude,
+        occlude_frames=args.occlude_frames,
         seed=args.seed,
         show_progress=show,
     )
-    report, _ = evaluate(cap, downsample=args.downsample, **common)
+    report, scores = evaluate(cap, downsample=args.downsample, **common)
     for note in report["notes"]:
         print(f"note: {note}", file=sys.stderr)
     if args.plot is not None:
@@ -72,6 +80,14 @@ def run(args: argparse.Namespace) -> int:
                 curves.setdefault(name, []).append((factor, s["accuracy"]))
         plot_accuracy_vs_downsampling(curves, args.plot, title=Path(args.truth).name)
         report["plot"] = str(args.plot)
+        raster = plot_error_raster(
+            scores[report["method"]],
+            errors_path(args.plot),
+            rate=report["rate_hz"],
+            init_frames=args.init_frames,
+            title=f"{Path(args.truth).name} ({report['method']})",
+        )
+        report["errors_plot"] = str(raster)
     if args.json:
         print(json.dumps(report))
     else:
@@ -100,7 +116,24 @@ def _print_table(report: dict) -> None:
         t.add_column(c, justify="right")
     for name, s in report["methods"].items():
         t.add_row(name, *["-" if s[c] is None else f"{s[c]:.4g}" for c in cols])
-    Console().print(t)
+    console = Console()
+    console.print(t)
+    e = report["errors"]
+    console.print(
+        f"{report['method']}: {report['visible']} visible samples scored; errors: "
+        f"{e['same_subject']} same-subject, {e['cross_subject']} cross-subject, "
+        f"{e['unlabeled']} unlabeled; {e['ghost_taken']} ghost points labeled; "
+        f"{report['unseen_at_init']} samples of markers unseen in the init window"
+    )
+    swap = report["max_swap"]
+    if swap:
+        console.print(
+            f"longest swap: {report['max_swap_frames']} frames ({swap['marker']}, frames "
+            f"{swap['first_frame']}-{swap['last_frame']})"
+        )
+    worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
+    if worst:
+        console.print(f"worst markers: {worst}")
 
 
 def plot_accuracy_vs_downsampling(

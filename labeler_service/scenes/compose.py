@@ -3,29 +3,38 @@
 No public, labeled, real multi-person optical capture exists, so the scenes the labeler is
 scored on are *composed*: every take keeps its real markers, noise and occlusion gaps, but
 
-1. it is cut to a window (``start``, ``frames``) after decimation to a common rate,
-2. markers never visible, or visible in less than half of the window, are dropped,
-3. it is turned by a yaw so that its mean heading faces the circle centre (plus a small seeded
+1. its vertical axis is found (Z or Y up: detected from the body's extent over time when that
+   is unambiguous, else it must be given) and one subject is picked from a multi-subject file,
+2. it is resampled to the output rate (linear interpolation between the take's samples, any
+   rate at or below the take's own) and cut to a window (``start``, ``frames``); a take that
+   ends before the window does leaves the volume: its markers vanish,
+3. markers never visible, or visible in less than half of the frames the take covers, are
+   dropped,
+4. it is turned by a yaw so that its mean heading faces the circle centre (plus a small seeded
    random offset); the heading is the mean over the window of ``left x up`` where ``left`` is
-   the mean horizontal vector from every ``R*`` marker to its ``L*`` twin (``RSHO -> LSHO``),
-4. its horizontal drift is removed: the per-frame median ``(x, y)`` of the visible markers,
+   the mean horizontal vector from every right marker to its left twin (``RSHO -> LSHO``,
+   ``Shoulder_R -> Shoulder_L``, ``r knee -> l knee``, ...), or, without such pairs, the
+   horizontal principal axes of the body,
+5. its horizontal drift is removed: the per-frame median ``(x, y)`` of the visible markers,
    smoothed in time by a Gaussian of ``CENTRE_SMOOTH_S`` seconds (the body centre ``c_t``), is
    subtracted; the vertical motion is kept. Smoothing matters: the raw median jumps by
    centimetres when markers drop out or limbs swing, and subtracting it would make the whole
    body jump between frames, which no real performer does,
-5. it is placed at angle ``phase + 2 pi k / n`` on a circle of radius ``radius`` around the
+6. it is placed at angle ``phase + 2 pi k / n`` on a circle of radius ``radius`` around the
    origin (``phase`` seeded),
-6. its labels get its subject name (the take's own prefix, else the file stem; duplicates
+7. its labels get its subject name (the take's own prefix, else the file stem; duplicates
    become ``name_2``, ``name_3``).
 
-With two takes at radius 300 mm the two people stand 600 mm apart facing each other: their arms
-interleave, which is what makes closest-point labeling fail (seed 003, Sec. 1 and 4: the
-5-person dog pile and 10-person hug at 120 Hz).
+Every decision that could be wrong (up axis, facing method, resampling, leaving) is written in
+the scene's ``notes``. With two takes at radius 300 mm the two people stand 600 mm apart facing
+each other: their arms interleave, which is what makes closest-point labeling fail (seed 003,
+Sec. 1 and 4: the 5-person dog pile and 10-person hug at 120 Hz).
 """
 
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -41,21 +50,33 @@ MIN_VISIBLE_FRACTION = 0.5
 CENTRE_SMOOTH_S = 0.25  # Gaussian smoothing of the removed horizontal drift (seconds)
 #: Half-width of the seeded random yaw offset added to "facing the centre" (degrees).
 YAW_JITTER_DEG = 10.0
+#: Up-axis detection: the taller of Y and Z (median per-frame body extent) wins when it is at
+#: least this many times the other ...
+UP_EXTENT_RATIO = 1.5
+#: ... or when it is the only one whose per-frame lowest marker stays above the floor (the
+#: 5th percentile of the per-frame minimum is at least this, mm; floors are at 0 in labs).
+FLOOR_MM = -100.0
+UP_AXES = ("auto", "z", "y")
+#: Twin markers named ``L*``/``R*``: enough of them and no other naming convention is tried.
+MIN_CLASSIC_PAIRS = 3
 
 
 @dataclass(frozen=True)
 class TakeSpec:
-    """One performer: a labeled single-person take and where its window starts.
+    """One performer: a labeled take, where its window starts, its up axis and subject.
 
-    ``path`` is read with :func:`read_capture` (``up`` = ``"y"`` for Y-up takes); instead of a
-    path an in-memory ``capture`` may be given (tests, simulated takes). ``start`` is the first
-    frame of the window in the take's own frame numbering (before decimation).
+    ``path`` is read with :func:`read_capture`; instead of a path an in-memory ``capture`` may
+    be given (tests, simulated takes). ``start`` is the first frame of the window in the take's
+    own frame numbering (before resampling). ``up`` is ``"z"``, ``"y"`` (rotated to Z up) or
+    ``"auto"`` (detected, see :func:`detect_up`; an ambiguous take is an error asking for it).
+    ``subject`` picks one subject of a multi-subject file (required there).
     """
 
     path: Path | None = None
     start: int = 0
-    up: str = "z"
+    up: str = "auto"
     capture: Capture | None = None
+    subject: str | None = None
 
     def __post_init__(self) -> None:
         if (self.path is None) == (self.capture is None):
@@ -64,15 +85,19 @@ class TakeSpec:
             raise SceneError(f"take start must be an integer frame, got {self.start!r}")
         if self.start < 0:
             raise SceneError(f"take start must be >= 0, got {self.start}")
-        if self.up not in ("z", "y"):
-            raise SceneError(f"unknown up axis {self.up!r} (use 'z' or 'y')")
+        if self.up not in UP_AXES:
+            raise SceneError(f"unknown up axis {self.up!r} (use 'z', 'y' or 'auto')")
+        if self.subject is not None and (not self.subject or ":" in self.subject):
+            raise SceneError(f"invalid subject name {self.subject!r}")
 
     @classmethod
     def parse(cls, text: str) -> TakeSpec:
-        """``FILE[:start[:up]]`` -> TakeSpec, e.g. ``walk.c3d:240:y``."""
+        """``FILE[:start[:up[:subject]]]`` -> TakeSpec, e.g. ``walk.c3d:240:y`` or
+        ``two.c3d:0::Viktor`` (an empty field keeps its default: 0, auto)."""
+        syntax = "FILE[:start[:up[:subject]]]"
         parts = str(text).split(":")
-        if len(parts) > 3 or not parts[0]:
-            raise SceneError(f"bad take {text!r}: expected FILE[:start[:up]]")
+        if len(parts) > 4 or not parts[0]:
+            raise SceneError(f"bad take {text!r}: expected {syntax}")
         start = 0
         if len(parts) >= 2 and parts[1] != "":
             try:
@@ -83,10 +108,11 @@ class TakeSpec:
                 ) from None
             if start < 0:
                 raise SceneError(f"bad take {text!r}: start must be >= 0")
-        up = parts[2].lower() if len(parts) == 3 and parts[2] else "z"
-        if up not in ("z", "y"):
-            raise SceneError(f"bad take {text!r}: unknown up axis {parts[2]!r} (use z or y)")
-        return cls(path=Path(parts[0]), start=start, up=up)
+        up = parts[2].lower() if len(parts) >= 3 and parts[2] else "auto"
+        if up not in UP_AXES:
+            raise SceneError(f"bad take {text!r}: unknown up axis {parts[2]!r} (use z, y or auto)")
+        subject = parts[3] if len(parts) == 4 and parts[3] else None
+        return cls(path=Path(parts[0]), start=start, up=up, subject=subject)
 
     @property
     def name(self) -> str:
@@ -94,14 +120,44 @@ class TakeSpec:
             return self.capture.source or "capture"
         return str(self.path)
 
-    def load(self) -> Capture:
+    def load(self) -> tuple[Capture, list[str]]:
+        """The take in Z up, reduced to its subject, and notes on the up axis and subject."""
         if self.capture is not None:
-            if self.up == "y":
-                x, y, z = (self.capture.positions[..., i] for i in range(3))
-                return self.capture.with_positions(np.stack([x, -z, y], axis=-1))
-            return self.capture
-        assert self.path is not None
-        return read_capture(self.path, up=self.up)
+            cap = self.capture
+        else:
+            assert self.path is not None
+            cap = read_capture(self.path)
+        notes: list[str] = []
+        cap = self._pick_subject(cap, notes)
+        up = self.up
+        if up == "auto":
+            up, why = detect_up(cap, self.name)
+            notes.append(f"up axis {up} (detected: {why})")
+        else:
+            notes.append(f"up axis {up} (given)")
+        if up == "y":
+            x, y, z = (cap.positions[..., i] for i in range(3))
+            cap = cap.with_positions(np.stack([x, -z, y], axis=-1))
+        return cap, notes
+
+    def _pick_subject(self, cap: Capture, notes: list[str]) -> Capture:
+        subjects = [s for s in cap.subjects if s]
+        if self.subject is None:
+            if len(subjects) > 1:
+                raise SceneError(
+                    f"{self.name}: expected a single-person take, found subjects "
+                    f"{', '.join(subjects)}: pick one with FILE:start:up:SUBJECT"
+                )
+            return cap
+        if self.subject not in subjects:
+            raise SceneError(
+                f"{self.name}: no subject {self.subject!r} (found {', '.join(subjects) or 'none'})"
+            )
+        cols = np.concatenate([cap.subject_columns(self.subject), np.flatnonzero(cap.ghost_mask)])
+        if len(subjects) > 1:
+            others = ", ".join(s for s in subjects if s != self.subject)
+            notes.append(f"subject {self.subject} picked (left out: {others})")
+        return cap.select(np.sort(cols))
 
 
 TakeLike = TakeSpec | Capture | str | Path
@@ -117,18 +173,72 @@ def _as_spec(take: TakeLike) -> TakeSpec:
     raise SceneError(f"cannot use {type(take).__name__} as a take")
 
 
-def decimation_step(take_rate: float, rate: float, name: str = "take") -> int:
-    """Integer step that brings ``take_rate`` to ``rate``; a non-integer ratio is an error."""
+def resample(cap: Capture, start: int, rate: float, frames: int, name: str = "take") -> Capture:
+    """``frames`` frames at ``rate`` Hz from the take's frame ``start`` on, by linear
+    interpolation between neighbouring samples (a sample between a visible and a missing one is
+    missing). A rate above the take's own is an error (no upsampling). Frames after the end of
+    the take are missing: the performer has left. A whole ratio lands on the take's samples
+    exactly (plain decimation)."""
     if not (math.isfinite(rate) and rate > 0):
         raise SceneError(f"--rate must be a positive number of Hz, got {rate}")
-    ratio = take_rate / rate
-    step = round(ratio)
-    if step < 1 or abs(ratio - step) > 1e-6 * max(1.0, ratio):
+    if rate > cap.rate * (1 + 1e-9):
         raise SceneError(
-            f"{name}: cannot decimate {take_rate:g} Hz to {rate:g} Hz "
-            f"(ratio {ratio:.4g} is not a whole number)"
+            f"{name}: cannot resample {cap.rate:g} Hz up to {rate:g} Hz (choose a rate at or "
+            f"below the lowest take rate)"
         )
-    return int(step)
+    if start >= cap.n_frames:
+        raise SceneError(f"{name}: start frame {start} is past its last frame {cap.n_frames - 1}")
+    step = cap.rate / rate
+    at = start + np.arange(frames, dtype=np.float64) * step
+    i0 = np.floor(at + 1e-9).astype(np.int64)
+    w = at - i0
+    w[w < 1e-9] = 0.0
+    inside = (i0 < cap.n_frames) & ((w == 0.0) | (i0 + 1 < cap.n_frames))
+    pos = np.full((frames, cap.n_markers, 3), np.nan, dtype=np.float64)
+    src = cap.positions.astype(np.float64)
+    k = np.flatnonzero(inside)
+    a = src[i0[k]]
+    b = src[np.minimum(i0[k] + 1, cap.n_frames - 1)]
+    wk = w[k][:, None, None]
+    # w == 0 takes the sample as is (b may be missing or past the end)
+    pos[k] = np.where(wk == 0.0, a, (1.0 - wk) * a + wk * b)
+    return cap.with_positions(pos.astype(np.float32), rate=float(rate))
+
+
+def detect_up(cap: Capture, name: str = "take") -> tuple[str, str]:
+    """``("z" | "y", reason)``: the take's vertical axis, from the body's extent over time.
+
+    For each of Y and Z: the median over frames of the body's extent along it (max - min of the
+    visible markers: a standing or moving person is taller than wide) and whether the lowest
+    marker stays above the floor (5th percentile of the per-frame minimum >= ``FLOOR_MM``).
+    The answer is the axis that is ``UP_EXTENT_RATIO`` times taller and above the floor, or
+    else the only axis above the floor. Anything else is ambiguous: a :class:`SceneError` asks
+    for ``:z`` or ``:y``.
+    """
+    pos = cap.positions[:, ~cap.ghost_mask]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=RuntimeWarning)  # all-NaN frames
+        hi, lo = np.nanmax(pos, axis=1), np.nanmin(pos, axis=1)  # (F, 3)
+    ok = np.isfinite(hi).all(axis=1)
+    if ok.sum() < 1:
+        raise SceneError(f"{name}: no visible marker: cannot tell its up axis")
+    extent = np.median(hi[ok] - lo[ok], axis=0)
+    floor = np.percentile(lo[ok], 5, axis=0)
+    ey, ez = float(extent[1]), float(extent[2])
+    above = {"y": bool(floor[1] >= FLOOR_MM), "z": bool(floor[2] >= FLOOR_MM)}
+    facts = (
+        f"median body extent y {ey:.0f} mm, z {ez:.0f} mm; lowest marker "
+        f"y {floor[1]:.0f} mm, z {floor[2]:.0f} mm"
+    )
+    tall = "z" if ez >= ey else "y"
+    ratio = max(ey, ez) / max(min(ey, ez), 1e-9)
+    if ratio >= UP_EXTENT_RATIO and above[tall]:
+        return tall, facts
+    if above["y"] != above["z"]:
+        return ("y" if above["y"] else "z"), facts + " (the other axis goes below the floor)"
+    raise SceneError(
+        f"{name}: cannot tell whether Y or Z is up ({facts}): append :z or :y to the take"
+    )
 
 
 def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
@@ -161,20 +271,59 @@ def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
     return centre
 
 
-def heading(capture: Capture) -> float | None:
-    """Mean facing direction (radians, about +Z) over the capture, or None if unknown.
+_PREFIX = re.compile(r"^(left|right|l|r)([ _.\-]?)(.+)$", re.IGNORECASE)
+_SUFFIX = re.compile(r"^(.+?)([ _.\-]?)(left|right|l|r)$", re.IGNORECASE)
 
-    ``left`` is the mean horizontal vector ``L* - R*`` over every left/right marker pair
-    (``LSHO/RSHO``, ``LASI/RASI``, ...); facing = ``left x up`` = ``(left_y, -left_x)``. The
-    per-frame unit headings are averaged on the circle.
+
+def _side_key(token: str) -> tuple[str, str]:
+    """``"L"`` -> ``("l", "upper")``: which side, and the spelling (so ``L`` pairs with ``R``,
+    ``l`` with ``r``, ``Left`` with ``Right``)."""
+    low = token.lower()
+    side = low[0]
+    form = "word" if len(low) > 1 else ("upper" if token.isupper() else "lower")
+    return side, form
+
+
+def side_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
+    """``(left, right)`` index pairs of twin markers.
+
+    The classic convention first: ``L*`` / ``R*`` (``LSHO``/``RSHO``). When it finds fewer
+    than ``MIN_CLASSIC_PAIRS`` pairs (a BTS take has ``LATT``/``RATT`` beside ``l knee``), every
+    convention: a side token (``L``, ``R``, ``l``, ``r``, ``Left``, ``Right``) as
+    prefix or suffix, with or without a separator (space, ``_``, ``.``, ``-``): ``L_IAS``,
+    ``Shoulder_L``, ``R.Knee``, ``r knee``, ``ASISr``. Two names pair when everything but the
+    side agrees (stem, separator, position and spelling of the side).
     """
-    names = [split_label(label)[1] for label in capture.labels]
     index = {n: i for i, n in enumerate(names)}
-    pairs = [
+    classic = [
         (i, index["R" + n[1:]])
         for i, n in enumerate(names)
         if len(n) > 1 and n[0] == "L" and "R" + n[1:] in index
     ]
+    if len(classic) >= MIN_CLASSIC_PAIRS:
+        return classic
+    keyed: dict[tuple[str, ...], dict[str, int]] = {}
+    for i, n in enumerate(names):
+        for kind, pattern in (("pre", _PREFIX), ("suf", _SUFFIX)):
+            m = pattern.match(n)
+            if m is None:
+                continue
+            token, sep, stem = (m[1], m[2], m[3]) if kind == "pre" else (m[3], m[2], m[1])
+            side, form = _side_key(token)
+            keyed.setdefault((kind, sep, stem, form), {}).setdefault(side, i)
+    pairs = {(d["l"], d["r"]) for d in keyed.values() if "l" in d and "r" in d}
+    return sorted(pairs)
+
+
+def heading(capture: Capture) -> float | None:
+    """Mean facing direction (radians, about +Z) over the capture, or None if unknown.
+
+    ``left`` is the mean horizontal vector ``left - right`` over every twin marker pair
+    (:func:`side_pairs`: ``LSHO/RSHO``, ``Shoulder_L/Shoulder_R``, ...); facing = ``left x up``
+    = ``(left_y, -left_x)``. The per-frame unit headings are averaged on the circle.
+    """
+    names = [split_label(label)[1] for label in capture.labels]
+    pairs = side_pairs(names)
     if not pairs:
         return None
     li = np.array([p[0] for p in pairs])
@@ -194,6 +343,49 @@ def heading(capture: Capture) -> float | None:
     if np.linalg.norm(mean) < 1e-3:
         return None
     return float(math.atan2(mean[1], mean[0]))
+
+
+def principal_heading(capture: Capture) -> tuple[float, str] | None:
+    """Facing from the body's horizontal principal axes, for takes without twin markers.
+
+    Per frame, the widest horizontal axis of the marker cloud is taken as left-right, so the
+    facing line is across it; lines are averaged as axes (doubled angles). The sign (front or
+    back) comes from the direction of horizontal travel when the take travels more than
+    300 mm along that line, else it is unknown (``+`` kept) and the returned note says so.
+    """
+    pos = capture.positions.astype(np.float64)[..., :2]
+    vis = ~np.isnan(pos).any(axis=2)
+    angles, weights = [], []
+    for f in range(pos.shape[0]):
+        p = pos[f, vis[f]]
+        if p.shape[0] < 3:
+            continue
+        q = p - p.mean(axis=0)
+        evals, evecs = np.linalg.eigh(q.T @ q / p.shape[0])
+        if evals[1] <= 1e-9:
+            continue
+        wide = evecs[:, 1]
+        angles.append(math.atan2(wide[1], wide[0]) - math.pi / 2)  # across the widest axis
+        weights.append(1.0 - evals[0] / evals[1])  # anisotropy: a round cloud says nothing
+    if not angles:
+        return None
+    a = np.asarray(angles)
+    w = np.asarray(weights)
+    c, s = float(np.sum(w * np.cos(2 * a))), float(np.sum(w * np.sin(2 * a)))
+    if math.hypot(c, s) < 1e-6 * max(w.sum(), 1e-9):
+        return None
+    face = 0.5 * math.atan2(s, c)
+    ok = vis.any(axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        centre = np.nanmean(np.where(vis[..., None], pos, np.nan), axis=1)[ok]
+    travel = centre[-1] - centre[0] if centre.shape[0] > 1 else np.zeros(2)
+    along = float(travel @ np.array([math.cos(face), math.sin(face)]))
+    if abs(along) > 300.0:
+        if along < 0:
+            face += math.pi
+        return face, "facing from principal axes, front = direction of travel"
+    return face, "facing from principal axes, front/back unknown"
 
 
 def _subject_name(cap: Capture, fallback: str) -> str:
@@ -219,18 +411,6 @@ def _unique(names: Sequence[str]) -> list[str]:
     return out
 
 
-def _window(spec: TakeSpec, cap: Capture, step: int, frames: int) -> Capture:
-    available = max(0, -(-(cap.n_frames - spec.start) // step))
-    if available < frames:
-        at = f" from frame {spec.start}" if spec.start else ""
-        dec = f" after decimation by {step}" if step > 1 else ""
-        raise SceneError(
-            f"{spec.name}: only {available} frames available{at} at {cap.rate / step:g} Hz{dec}; "
-            f"{frames} requested"
-        )
-    return cap.frames(spec.start, None, step).frames(0, frames)
-
-
 def compose_scene(
     takes: Sequence[TakeLike],
     radius: float,
@@ -240,10 +420,10 @@ def compose_scene(
 ) -> Capture:
     """Places single-person takes on a circle so that they interact (see the module docstring).
 
-    ``takes`` are :class:`TakeSpec` (or ``"FILE[:start[:up]]"`` strings, paths, or in-memory
-    :class:`Capture` objects). ``radius`` is in mm, ``frames`` the window length at the output
-    rate, ``rate`` (Hz) decimates every take by an integer factor; without it all takes must
-    share one rate. The result is reproducible for a given ``seed``.
+    ``takes`` are :class:`TakeSpec` (or ``"FILE[:start[:up[:subject]]]"`` strings, paths, or
+    in-memory :class:`Capture` objects). ``radius`` is in mm, ``frames`` the window length at
+    the output rate, ``rate`` (Hz) resamples every take (at or below each take's own rate);
+    without it all takes must share one rate. The result is reproducible for a given ``seed``.
     """
     specs = [_as_spec(t) for t in takes]
     if not specs:
@@ -258,25 +438,28 @@ def compose_scene(
 
     loaded = [s.load() for s in specs]
     if rate is None:
-        rates = {round(c.rate, 6) for c in loaded}
+        rates = {round(c.rate, 6) for c, _ in loaded}
         if len(rates) > 1:
             listing = ", ".join(
-                f"{s.name} {c.rate:g} Hz" for s, c in zip(specs, loaded, strict=True)
+                f"{s.name} {c.rate:g} Hz" for s, (c, _) in zip(specs, loaded, strict=True)
             )
-            raise SceneError(f"takes have different rates ({listing}): pass --rate HZ to decimate")
-        out_rate = loaded[0].rate
+            raise SceneError(
+                f"takes have different rates ({listing}): pass --rate HZ to resample "
+                f"(at most {min(rates):g})"
+            )
+        out_rate = loaded[0][0].rate
     else:
         out_rate = float(rate)
 
     n = len(specs)
     phase = rng.uniform(0.0, 2.0 * math.pi)
     jitter = np.deg2rad(rng.uniform(-YAW_JITTER_DEG, YAW_JITTER_DEG, size=n))
-    names = _unique([_subject_name(c, s.name) for s, c in zip(specs, loaded, strict=True)])
+    names = _unique([_subject_name(c, s.name) for s, (c, _) in zip(specs, loaded, strict=True)])
 
     parts: list[Capture] = []
     notes: list[str] = []
-    for k, (spec, cap, name) in enumerate(zip(specs, loaded, names, strict=True)):
-        step = decimation_step(cap.rate, out_rate, spec.name) if rate is not None else 1
+    for k, (spec, (cap, load_notes), name) in enumerate(zip(specs, loaded, names, strict=True)):
+        notes += [f"{name}: {x}" for x in load_notes]
         ghosts = cap.ghost_mask
         if ghosts.any():
             cap = cap.select(np.flatnonzero(~ghosts))
@@ -284,14 +467,25 @@ def compose_scene(
         if cap.n_markers == 0:
             raise SceneError(f"{spec.name}: no labeled markers")
         notes += [f"{name}: {x}" for x in cap.notes]
-        win = _window(spec, cap, step, frames)
+        win = resample(cap, spec.start, out_rate, frames, spec.name)
+        # frames the take covers (after its end the performer has left the volume)
+        covered = min(
+            frames,
+            int(math.floor((cap.n_frames - 1 - spec.start) * out_rate / cap.rate + 1e-9)) + 1,
+        )
+        if covered < frames:
+            notes.append(
+                f"{name}: the take ends at scene frame {covered} of {frames}: the performer "
+                "leaves the volume (markers vanish)"
+            )
         win = win.with_positions(win.positions, notes=()).without_empty()
         notes += [f"{name}: {x}" for x in win.notes]
-        frac = win.visible.mean(axis=0) if win.n_markers else np.zeros(0)
+        frac = win.visible[:covered].mean(axis=0) if win.n_markers else np.zeros(0)
         sparse = np.flatnonzero(frac < MIN_VISIBLE_FRACTION)
         if sparse.size:
             notes.append(
-                f"{name}: dropped markers visible in < {MIN_VISIBLE_FRACTION:.0%} of the window: "
+                f"{name}: dropped markers visible in < {MIN_VISIBLE_FRACTION:.0%} of the "
+                f"{covered} frames the take covers: "
                 + ", ".join(f"{win.labels[i]} ({frac[i]:.0%})" for i in sparse)
             )
             win = win.select(np.flatnonzero(frac >= MIN_VISIBLE_FRACTION))
@@ -299,11 +493,18 @@ def compose_scene(
             raise SceneError(f"{spec.name}: no marker is visible in the chosen window")
 
         theta = phase + 2.0 * math.pi * k / n
-        face = heading(win)
+        inside = win.frames(0, covered)
+        face = heading(inside)
+        if face is not None:
+            how = "facing from left/right marker pairs"
+        else:
+            fallback = principal_heading(inside)
+            face, how = fallback if fallback is not None else (None, "")
         if face is None:
-            notes.append(f"{name}: no left/right marker pairs, heading unknown: not turned")
+            notes.append(f"{name}: no left/right pairs and no principal axis: not turned")
             yaw = float(jitter[k])
         else:
+            notes.append(f"{name}: {how}")
             yaw = (theta + math.pi) - face + float(jitter[k])
         # turn first, then remove the drift: the per-axis median is not rotation-equivariant,
         # so measuring the centre after the turn puts it exactly on the placement point
@@ -312,15 +513,17 @@ def compose_scene(
         x, y = pos[..., 0].copy(), pos[..., 1].copy()
         pos[..., 0] = c * x - s * y
         pos[..., 1] = s * x + c * y
-        pos[..., :2] -= body_centre(pos, CENTRE_SMOOTH_S * out_rate)[:, None, :]
+        pos[:covered, :, :2] -= body_centre(pos[:covered], CENTRE_SMOOTH_S * out_rate)[:, None]
         pos[..., 0] += radius * math.cos(theta)
         pos[..., 1] += radius * math.sin(theta)
         placed = win.with_positions(pos.astype(np.float32), rate=out_rate, notes=())
         parts.append(placed.with_subject(name))
+        resampled = (
+            "" if abs(cap.rate - out_rate) < 1e-9 else f" resampled {cap.rate:g} -> {out_rate:g} Hz"
+        )
         notes.append(
-            f"{name}: from {spec.name} frame {spec.start}"
-            + (f" every {step}" if step > 1 else "")
-            + f", placed at {math.degrees(theta) % 360:.1f} deg, yaw {math.degrees(yaw) % 360:.1f}"
+            f"{name}: from {spec.name} frame {spec.start}{resampled}, placed at "
+            f"{math.degrees(theta) % 360:.1f} deg, yaw {math.degrees(yaw) % 360:.1f}"
         )
 
     scene = Capture.concat_markers(parts, source="compose: " + " + ".join(s.name for s in specs))

@@ -2,9 +2,10 @@
 
 A labeled capture (the truth) becomes a stream of frames of anonymous points: optional
 down-sampling (seed 003 Fig. 6), marker gaps with known truth (for recovery scoring, seed 003
-Fig. 8), random contiguous drop-outs, ghost points near the performers, measurement jitter, and
-a per-frame shuffle. Missing samples are simply absent from a frame. Columns named ``*N`` in
-the capture are ghost tracks: their points are fed with the rest and carry truth -1.
+Fig. 8), occluded body parts that reappear one marker at a time, random contiguous drop-outs,
+ghost points near the performers, measurement jitter, and a per-frame shuffle. Missing samples
+are simply absent from a frame. Columns named ``*N`` in the capture are ghost tracks: their
+points are fed with the rest and carry truth -1.
 
 ``iter_stream`` yields frames lazily (long soak runs), ``corrupt`` collects them.
 """
@@ -28,6 +29,12 @@ class CorruptionSpec:
     - ``gaps``, ``gap_frames``: for each subject, ``gaps`` randomly chosen markers are removed
       for ``gap_frames`` consecutive frames; one such gap event per subject starts every
       ``gap_period`` frames (default ``4 * gap_frames``) after ``protect_frames``.
+    - ``occlude``, ``occlude_frames``: ``occlude`` times per subject, every marker within
+      ``occlude_radius_mm`` (120 mm) of a random visible marker of that subject is hidden for
+      ``occlude_frames`` frames; then the hidden markers reappear one at a time, in random
+      order, ``occlude_stagger`` frames apart (a hand coming out from behind the body). The
+      events of one subject fall in separate, equal slices of the frames after
+      ``protect_frames``.
     - ``dropouts``: fraction of the remaining visible samples dropped as contiguous runs of
       mean length ``dropout_frames`` (occlusion-like), after ``protect_frames``.
     - ``ghosts``: mean number of ghost points per frame, each living a few frames 20-100 mm
@@ -42,6 +49,10 @@ class CorruptionSpec:
     gaps: int = 0
     gap_frames: int = 20
     gap_period: int | None = None
+    occlude: int = 0
+    occlude_frames: int = 15
+    occlude_radius_mm: float = 120.0
+    occlude_stagger: int = 2
     dropouts: float = 0.0
     dropout_frames: int = 10
     ghosts: float = 0.0
@@ -57,6 +68,10 @@ class CorruptionSpec:
             "gaps": self.gaps >= 0,
             "gap_frames": self.gap_frames >= 1,
             "gap_period": self.gap_period is None or self.gap_period >= self.gap_frames,
+            "occlude": self.occlude >= 0,
+            "occlude_frames": self.occlude_frames >= 1,
+            "occlude_radius_mm": self.occlude_radius_mm > 0 and np.isfinite(self.occlude_radius_mm),
+            "occlude_stagger": self.occlude_stagger >= 0,
             "dropouts": 0.0 <= self.dropouts < 1.0,
             "dropout_frames": self.dropout_frames >= 1,
             "ghosts": self.ghosts >= 0.0 and np.isfinite(self.ghosts),
@@ -90,6 +105,8 @@ class StreamFrames:
     truth: list[np.ndarray] = field(repr=False)
     positions: np.ndarray = field(repr=False)  # (F, M, 3) true positions, NaN = not captured
     removed: np.ndarray = field(repr=False)  # (F, M) visible samples removed by gaps/drop-outs
+    #: ``--occlude`` events: (first hidden frame, hidden marker indices in reappearance order)
+    occlusions: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)
 
     @property
     def n_frames(self) -> int:
@@ -107,6 +124,7 @@ class StreamPlan:
     removed: np.ndarray  # (F, M)
     rate: float
     marker_names: tuple[str, ...]
+    occlusions: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)
 
 
 def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> StreamPlan:
@@ -133,6 +151,8 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
                 chosen = rng.choice(cols, size=k, replace=False)
                 removed[f0 : f0 + spec.gap_frames, chosen] = True
 
+    occlusions = _occlusions(spec, rng, positions, visible, names, cap.rate, start, removed)
+
     if spec.dropouts > 0.0 and n_frames > start:
         span = n_frames - start
         runs = int(round(spec.dropouts * span * n_markers / spec.dropout_frames))
@@ -151,7 +171,51 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
         removed=removed,
         rate=cap.rate,
         marker_names=names,
+        occlusions=occlusions,
     )
+
+
+def _occlusions(
+    spec: CorruptionSpec,
+    rng: np.random.Generator,
+    positions: np.ndarray,
+    visible: np.ndarray,
+    names: tuple[str, ...],
+    rate: float,
+    start: int,
+    removed: np.ndarray,
+) -> list[tuple[int, tuple[int, ...]]]:
+    """Marks ``--occlude`` events in ``removed`` (in place) and returns them."""
+    events: list[tuple[int, tuple[int, ...]]] = []
+    n_frames = positions.shape[0]
+    if spec.occlude <= 0:
+        return events
+    sub = Capture(positions, names, rate)
+    for subject in sub.subjects:
+        cols = sub.subject_columns(subject)
+        # longest possible event: hidden frames + every marker back one at a time
+        tail = spec.occlude_frames + spec.occlude_stagger * (cols.size - 1)
+        span = n_frames - start - tail
+        if span < spec.occlude:
+            raise SceneError(
+                f"--occlude {spec.occlude} x {spec.occlude_frames} frames does not fit in "
+                f"{n_frames - start} frames after the init window"
+            )
+        edges = np.linspace(start, start + span, spec.occlude + 1).astype(np.int64)
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            f0 = int(rng.integers(lo, max(hi, lo + 1)))
+            seen = cols[visible[f0, cols]]
+            if seen.size == 0:
+                continue
+            centre = positions[f0, rng.choice(seen)]
+            d = np.linalg.norm(positions[f0, seen] - centre, axis=1)
+            hidden = seen[d <= spec.occlude_radius_mm]
+            order = rng.permutation(hidden)
+            back = f0 + spec.occlude_frames
+            for k, m in enumerate(order):
+                removed[f0 : back + k * spec.occlude_stagger, m] = True
+            events.append((f0, tuple(int(m) for m in order)))
+    return events
 
 
 def _ghost_births(
@@ -247,4 +311,5 @@ def corrupt(capture: Capture, spec: CorruptionSpec | None = None) -> StreamFrame
         truth=truth,
         positions=plan.positions,
         removed=plan.removed,
+        occlusions=plan.occlusions,
     )

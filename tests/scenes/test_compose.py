@@ -1,4 +1,5 @@
-"""compose: drift removal, yaw, placement on the circle, names, rates, errors, CLI."""
+"""compose: drift removal, yaw, placement on the circle, names, rates, errors, CLI; any take:
+resampling, one subject of many, leaving, naming conventions, up axis."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from labeler_service.capture import Capture, read_capture
+from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.cli.main import main
 from labeler_service.errors import SceneError
 from labeler_service.scenes.compose import (
@@ -16,7 +17,11 @@ from labeler_service.scenes.compose import (
     TakeSpec,
     body_centre,
     compose_scene,
+    detect_up,
     heading,
+    principal_heading,
+    resample,
+    side_pairs,
 )
 
 # a small "body": left/right pairs so the heading is defined, facing +x when yaw = 0
@@ -170,15 +175,17 @@ def test_y_up_take(rng):
 @pytest.mark.parametrize(
     ("text", "expect"),
     [
-        ("walk.c3d", (0, "z")),
-        ("walk.c3d:240", (240, "z")),
-        ("walk.c3d:12:y", (12, "y")),
-        ("walk.c3d::Y", (0, "y")),
+        ("walk.c3d", (0, "auto", None)),
+        ("walk.c3d:240", (240, "auto", None)),
+        ("walk.c3d:12:y", (12, "y", None)),
+        ("walk.c3d::Y", (0, "y", None)),
+        ("walk.c3d:5:z:Viktor", (5, "z", "Viktor")),
+        ("walk.c3d:::Viktor", (0, "auto", "Viktor")),
     ],
 )
 def test_take_syntax(text, expect):
     spec = TakeSpec.parse(text)
-    assert (spec.start, spec.up) == expect
+    assert (spec.start, spec.up, spec.subject) == expect
     assert str(spec.path) == "walk.c3d"
 
 
@@ -188,8 +195,8 @@ def test_take_syntax(text, expect):
         ("walk.c3d:x", "not a frame number"),
         ("walk.c3d:-3", ">= 0"),
         ("walk.c3d:0:q", "unknown up axis"),
-        ("walk.c3d:0:z:extra", "FILE[:start[:up]]"),
-        (":0", "FILE[:start[:up]]"),
+        ("walk.c3d:0:z:S:extra", "FILE[:start[:up[:subject]]]"),
+        (":0", "FILE[:start[:up[:subject]]]"),
     ],
 )
 def test_take_syntax_errors(text, message):
@@ -202,12 +209,10 @@ def test_errors(rng):
     b = synthetic_take(rng, frames=200, rate=100.0, name="B")
     with pytest.raises(SceneError, match="--rate"):
         compose_scene([a, b], radius=300.0, frames=50, seed=0)
-    with pytest.raises(SceneError, match="not a whole number"):
+    with pytest.raises(SceneError, match="cannot resample 100 Hz up to 120 Hz"):
         compose_scene([a, b], radius=300.0, frames=50, seed=0, rate=120.0)
-    with pytest.raises(SceneError, match="only 100 frames available"):
-        compose_scene([a], radius=300.0, frames=101, seed=0, rate=60.0)
-    with pytest.raises(SceneError, match="only 50 frames available from frame 150"):
-        compose_scene([TakeSpec(capture=a, start=150)], radius=300.0, frames=60, seed=0)
+    with pytest.raises(SceneError, match="start frame 200 is past its last frame 199"):
+        compose_scene([TakeSpec(capture=a, start=200)], radius=300.0, frames=60, seed=0)
     for radius in (-1.0, float("nan"), float("inf")):
         with pytest.raises(SceneError, match="radius"):
             compose_scene([a], radius=radius, frames=10, seed=0)
@@ -217,8 +222,10 @@ def test_errors(rng):
     with pytest.raises(SceneError, match="at least one take"):
         compose_scene([], radius=300.0, frames=10, seed=0)
     two = Capture.concat_markers([a, synthetic_take(rng, frames=200, name="C")])
-    with pytest.raises(SceneError, match="single-person"):
+    with pytest.raises(SceneError, match="single-person.*pick one"):
         compose_scene([two], radius=300.0, frames=10, seed=0)
+    with pytest.raises(SceneError, match="no subject 'D'"):
+        compose_scene([TakeSpec(capture=two, subject="D")], radius=300.0, frames=10, seed=0)
 
 
 def test_cli_writes_scene_and_reports(rng, tmp_path, capsys):
@@ -236,8 +243,11 @@ def test_cli_writes_scene_and_reports(rng, tmp_path, capsys):
     assert "2 subjects" in line and "90 frames" in line and "120 Hz" in line
     scene = read_capture(out)
     assert scene.subjects == ("A", "B") and scene.n_frames == 90
-    assert main([*argv[:-2], "--seed", "4", "--rate", "50"]) == 2
-    assert "not a whole number" in capsys.readouterr().err
+    assert "up axis z (detected" in line
+    assert main([*argv[:-2], "--seed", "4", "--rate", "240"]) == 2
+    assert "cannot resample" in capsys.readouterr().err
+    assert main([*argv[:-2], "--seed", "4", "--rate", "50"]) == 0
+    assert "resampled 120 -> 50 Hz" in capsys.readouterr().out
     assert main(["compose", str(out), paths[0] + ":zz", *argv[3:]]) == 2
     assert "bad take" in capsys.readouterr().err
 
@@ -278,5 +288,200 @@ def test_real_mixed_rates(real_path):
         compose_scene([str(a), str(k)], radius=300.0, frames=300, seed=0)
     scene = compose_scene([str(a), str(k)], radius=300.0, frames=300, seed=0, rate=120.0)
     assert scene.rate == 120.0 and len(scene.subjects) == 2
-    with pytest.raises(SceneError, match="frames available"):
-        compose_scene([str(k)], radius=300.0, frames=900, seed=0, rate=120.0)
+    # 1745 frames at 240 Hz cover 873 frames at 120 Hz: then the performer leaves
+    long = compose_scene([str(k)], radius=300.0, frames=900, seed=0, rate=120.0)
+    assert long.visible[:873].any(axis=1).all() and not long.visible[873:].any()
+    assert any("leaves the volume" in n for n in long.notes)
+
+
+# ----------------------------------------------------------------- any real take
+def _renamed(take: Capture, rename) -> Capture:
+    labels = []
+    for label in take.labels:
+        subject, name = split_label(label)
+        labels.append(f"{subject}:{rename(name)}" if subject else rename(name))
+    return Capture(take.positions, tuple(labels), take.rate, source=take.source)
+
+
+def _y_up(take: Capture) -> Capture:
+    x, y, z = (take.positions[..., i] for i in range(3))
+    return take.with_positions(np.stack([x, z, -y], axis=-1))
+
+
+def test_resample_interpolates_any_lower_rate(rng):
+    take = synthetic_take(rng, frames=400, rate=120.0, name="A", drift_mm_s=0.0)
+    out = resample(take, 7, 50.0, 100)
+    assert out.rate == 50.0 and out.n_frames == 100
+    # heights bob as 30 sin(2 pi 1.5 t): compare with the motion at the new times
+    t = (7 + np.arange(100) * 120.0 / 50.0) / 120.0
+    expect = 30 * np.sin(2 * np.pi * 1.5 * t)
+    got = out.positions[:, 0, 2] - 1400.0
+    assert np.abs(got - expect).max() < 0.6  # linear interpolation of a 1.5 Hz sine at 120 Hz
+    # a whole ratio is plain decimation
+    np.testing.assert_array_equal(resample(take, 3, 40.0, 50).positions, take.positions[3::3][:50])
+    with pytest.raises(SceneError, match="cannot resample 120 Hz up to 130 Hz"):
+        resample(take, 0, 130.0, 10)
+
+
+def test_resample_keeps_gaps_missing(rng):
+    take = synthetic_take(rng, frames=100, rate=100.0, name="A")
+    pos = take.positions.copy()
+    pos[10, 0] = np.nan
+    out = resample(take.with_positions(pos), 0, 30.0, 30)  # times 0, 3.33, 6.67, 10, 13.3 ...
+    assert np.isnan(out.positions[3, 0]).all()  # exactly on the missing sample
+    assert np.isfinite(out.positions[2, 0]).all() and np.isfinite(out.positions[4, 0]).all()
+    pos[13, 1] = np.nan
+    out = resample(take.with_positions(pos), 0, 30.0, 30)
+    assert np.isnan(out.positions[4, 1]).all()  # 13.33 lies between 13 (missing) and 14
+
+
+def test_scene_at_a_rate_that_is_no_whole_fraction(rng):
+    a = synthetic_take(rng, frames=600, rate=250.0, name="A")
+    b = synthetic_take(rng, frames=300, rate=100.0, name="B")
+    scene = compose_scene([a, b], radius=300.0, frames=120, seed=0, rate=60.0)
+    assert scene.rate == 60.0 and scene.n_frames == 120
+    assert any("A: from" in n and "resampled 250 -> 60 Hz" in n for n in scene.notes)
+
+
+def test_one_subject_of_a_multi_subject_file(rng):
+    a = synthetic_take(rng, name="Derrick")
+    b = synthetic_take(rng, name="Viktor")
+    two = Capture.concat_markers([a, b], source="two.c3d")
+    scene = compose_scene(
+        [TakeSpec(capture=two, subject="Viktor"), a], radius=300.0, frames=60, seed=0
+    )
+    assert scene.subjects == ("Viktor", "Derrick")
+    cols = scene.subject_columns("Viktor")
+    assert len(cols) == len(_NAMES)
+    np.testing.assert_allclose(scene.positions[:, cols, 2], b.positions[:60, :, 2], atol=1e-3)
+    assert any("subject Viktor picked (left out: Derrick)" in n for n in scene.notes)
+
+
+def test_short_take_leaves_the_volume(rng):
+    short = synthetic_take(rng, frames=100, name="Short")
+    pos = short.positions.copy()
+    pos[:55, 0] = np.nan  # visible in 45 of its 100 frames: dropped
+    pos[:40, 1] = np.nan  # visible in 60 of its 100 frames (but only 30 % of the scene): kept
+    short = short.with_positions(pos)
+    long = synthetic_take(rng, frames=300, name="Long")
+    scene = compose_scene([short, long], radius=300.0, frames=200, seed=1)
+    cols = scene.subject_columns("Short")
+    assert "Short:LSHO" not in scene.labels and "Short:RSHO" in scene.labels
+    vis = scene.visible[:, cols]
+    assert vis[:100].any(axis=1).all() and not vis[100:].any()
+    assert scene.visible[:, scene.subject_columns("Long")].all()
+    assert any("ends at scene frame 100 of 200" in n for n in scene.notes)
+    # the drift of the covered part is removed as usual: the body stays on its spot
+    centre = np.nanmedian(scene.positions[:100, cols, :2], axis=1)
+    assert np.ptp(centre, axis=0).max() < 60.0
+
+
+@pytest.mark.parametrize(
+    "rename",
+    [
+        lambda n: (n[1:] + "_" + n[0]) if n[0] in "LR" and n[1:] != "" else n,  # SHO_L
+        lambda n: (n[0] + "_" + n[1:]) if n[0] in "LR" else n,  # L_SHO
+        lambda n: (n[0] + "." + n[1:].title()) if n[0] in "LR" else n,  # L.Sho
+        lambda n: (n[0].lower() + " " + n[1:].lower()) if n[0] in "LR" else n,  # l sho
+        lambda n: (n[1:] + n[0].lower()) if n[0] in "LR" else n,  # SHOl
+        lambda n: ({"L": "Left", "R": "Right"}[n[0]] + n[1:]) if n[0] in "LR" else n,
+    ],
+    ids=["suffix_L", "prefix_L_", "prefix_R.", "prefix_r_space", "suffix_l", "Left"],
+)
+def test_facing_from_other_naming_conventions(rng, rename):
+    take = synthetic_take(rng, name="A", facing_deg=40.0)
+    other = _renamed(take, rename)
+    assert other.labels != take.labels
+    names = [split_label(x)[1] for x in other.labels]
+    assert len(side_pairs(names)) == 4
+    assert heading(other) == pytest.approx(heading(take), abs=1e-9)
+
+
+def test_side_pairs_need_matching_spelling():
+    names = ["L_KNE", "R_KNE", "Lx", "rx", "KNEE_L", "KNEE.R", "C7", "LONE"]
+    assert side_pairs(names) == [(0, 1)]
+    classic = ["LSHO", "RSHO", "LKNE", "RKNE", "LASI", "RASI", "Elbow_L", "Elbow_R"]
+    assert side_pairs(classic) == [(0, 1), (2, 3), (4, 5)]  # enough L*/R*: only those
+    few = ["LSHO", "RSHO", "Elbow_L", "Elbow_R"]
+    assert side_pairs(few) == [(0, 1), (2, 3)]  # too few: every convention
+
+
+def test_principal_axes_fallback(rng):
+    take = synthetic_take(rng, name="A", facing_deg=70.0, drift_mm_s=0.0)
+    anonymous = _renamed(take, lambda n: f"m{_NAMES.index(n)}")
+    assert heading(anonymous) is None
+    face, how = principal_heading(anonymous)
+    true = heading(take)
+    diff = (face - true + math.pi / 2) % math.pi - math.pi / 2  # as a line: sign unknown
+    assert abs(diff) < math.radians(5)
+    assert "unknown" in how
+    scene = compose_scene([anonymous], radius=300.0, frames=100, seed=0)
+    assert any("principal axes" in n for n in scene.notes)
+
+
+def test_principal_axes_sign_from_travel(rng):
+    take = synthetic_take(rng, frames=300, name="A", facing_deg=0.0, drift_mm_s=0.0)
+    walk = take.positions.copy()
+    walk[..., 0] += 800.0 * np.arange(300)[:, None] / 120.0  # walking forward (+x)
+    anonymous = _renamed(take.with_positions(walk), lambda n: f"m{_NAMES.index(n)}")
+    face, how = principal_heading(anonymous)
+    assert abs(math.remainder(face - 0.0, 2 * math.pi)) < math.radians(10)
+    assert "travel" in how
+
+
+def test_up_axis_detected_and_said(rng):
+    take = synthetic_take(rng, name="A")
+    assert detect_up(take)[0] == "z"
+    assert detect_up(_y_up(take))[0] == "y"
+    scene = compose_scene([TakeSpec(capture=_y_up(take))], radius=0.0, frames=50, seed=0)
+    np.testing.assert_allclose(scene.positions[..., 2], take.positions[:50, :, 2], atol=1e-3)
+    assert any("up axis y (detected" in n for n in scene.notes)
+    given = compose_scene([TakeSpec(capture=take, up="z")], radius=0.0, frames=50, seed=0)
+    assert any("up axis z (given)" in n for n in given.notes)
+
+
+def test_ambiguous_up_axis_must_be_given(rng):
+    take = synthetic_take(rng, name="A")
+    pos = take.positions.copy()
+    pos[..., 1] = pos[..., 2] * 0.9 + 200.0  # as tall along y as along z, both above 0
+    flat = take.with_positions(pos)
+    with pytest.raises(SceneError, match="append :z or :y"):
+        compose_scene([flat], radius=0.0, frames=50, seed=0)
+    scene = compose_scene([TakeSpec(capture=flat, up="z")], radius=0.0, frames=50, seed=0)
+    assert scene.n_frames == 50
+
+
+def test_below_the_floor_decides_a_lying_take(rng):
+    # a take only a little taller along z than along y, but y goes far below the floor
+    take = synthetic_take(rng, name="A")
+    pos = take.positions.copy()
+    pos[..., 1] = pos[..., 2] * 0.8 - 2000.0
+    assert detect_up(take.with_positions(pos))[0] == "z"
+
+
+@pytest.mark.realdata
+def test_real_takes_of_other_conventions(real_path):
+    bts = real_path("gait_bts_yup_22markers_100hz.c3d")
+    box = real_path("shoulder_upper_body_with_box_100hz.c3d")
+    two = real_path("two_players_shifted_copy_50hz.c3d")
+    dance = real_path("dance_qualisys_28markers_60hz.c3d")
+    jump = real_path("broad_jump_arm_swing_31markers_240hz.c3d")
+    # the BTS take is Y up and empty before frame 239: detected, said, turned to Z up
+    scene = compose_scene([f"{bts}:300", f"{box}:0:z:Daphnee", f"{two}:0::Viktor"],
+                          radius=300.0, frames=150, seed=3, rate=50.0)  # fmt: skip
+    assert scene.subjects == ("gait_bts_yup_22markers_100hz", "Daphnee", "Viktor")
+    notes = "\n".join(scene.notes)
+    assert "gait_bts_yup_22markers_100hz: up axis y (detected" in notes
+    assert "Daphnee: up axis z (given)" in notes
+    assert "subject Viktor picked (left out: Derrick)" in notes
+    feet = scene.positions[:, scene.subject_columns("gait_bts_yup_22markers_100hz"), 2]
+    assert 0 < np.nanpercentile(feet, 5) < 200 and np.nanpercentile(feet, 95) > 1000
+    # upper body only: as wide as tall, so the up axis must be given
+    with pytest.raises(SceneError, match="append :z or :y"):
+        compose_scene([f"{box}:0::Daphnee"], radius=0.0, frames=50, seed=0)
+    # twin markers found under every naming convention of the real takes
+    # (the box file's l/m suffixes are lateral/medial: only its three r/l twins count)
+    for path, pairs in ((bts, 8), (box, 3), (dance, 13), (jump, 14)):
+        cap = read_capture(path)
+        assert len(side_pairs([split_label(x)[1] for x in cap.labels])) == pairs, path.name
+    assert "facing from left/right marker pairs" in notes

@@ -86,3 +86,55 @@ def test_bad_settings_raise() -> None:
         CorruptionSpec(downsample=0)
     with pytest.raises(SceneError, match="ghosts"):
         CorruptionSpec(ghosts=-1)
+
+
+def test_occlude_hides_a_body_part_that_reappears_one_marker_at_a_time(rng) -> None:
+    cap = moving_clusters(rng, subjects=2, markers=8, frames=400)
+    spec = CorruptionSpec(occlude=3, occlude_frames=15, protect_frames=40, seed=5)
+    s = corrupt(cap, spec)
+    assert not s.removed[:40].any()
+    assert len(s.occlusions) == 6  # 3 per subject
+    firsts = [f0 for f0, _ in s.occlusions]
+    for f0, order in s.occlusions:
+        hidden = np.asarray(order)
+        assert hidden.size >= 1
+        assert len({int(s.marker_names[m][1]) for m in hidden}) == 1  # one subject ("S0:m3")
+        # every marker within 120 mm of some hidden marker's centre is hidden: the part is
+        # the 120 mm ball around one of them
+        pos = s.positions[f0]
+        cols = np.array(
+            [i for i, n in enumerate(s.marker_names) if n[:2] == s.marker_names[hidden[0]][:2]]
+        )
+        balls = [
+            set(cols[np.linalg.norm(pos[cols] - pos[c], axis=1) <= 120.0].tolist()) for c in hidden
+        ]
+        assert set(hidden.tolist()) in balls
+        # hidden together for 15 frames, then back one at a time, 2 frames apart
+        assert s.removed[f0 : f0 + 15, hidden].all()
+        assert not s.removed[f0 - 1, hidden].any() or f0 - 1 in firsts
+        back = [f0 + int(np.argmin(s.removed[f0:, m])) for m in hidden]
+        assert back == [f0 + 15 + 2 * k for k in range(hidden.size)]
+    for f in range(s.n_frames):
+        assert not np.isin(np.flatnonzero(s.removed[f]), s.truth[f]).any()
+    again = corrupt(cap, spec)
+    assert again.occlusions == s.occlusions
+    other = corrupt(cap, CorruptionSpec(occlude=3, occlude_frames=15, protect_frames=40, seed=6))
+    assert other.occlusions != s.occlusions
+
+
+def test_occlude_events_spread_over_the_stream(rng) -> None:
+    cap = moving_clusters(rng, subjects=1, markers=6, frames=600)
+    s = corrupt(cap, CorruptionSpec(occlude=4, occlude_frames=10, protect_frames=50, seed=2))
+    firsts = sorted(f0 for f0, _ in s.occlusions)
+    assert len(firsts) == 4 and firsts[0] >= 50
+    # one event per quarter of the frames after the window: no two in one quarter
+    quarters = np.floor((np.asarray(firsts) - 50) / ((600 - 50 - 10 - 2 * 5) / 4))
+    assert len(set(quarters.tolist())) == 4
+
+
+def test_occlude_that_cannot_fit_is_an_error(rng) -> None:
+    cap = moving_clusters(rng, subjects=1, markers=6, frames=60)
+    with pytest.raises(SceneError, match="--occlude"):
+        corrupt(cap, CorruptionSpec(occlude=2, occlude_frames=40, protect_frames=20))
+    with pytest.raises(SceneError, match="occlude_frames"):
+        CorruptionSpec(occlude=1, occlude_frames=0)
