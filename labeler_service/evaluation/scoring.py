@@ -27,26 +27,15 @@ import numpy as np
 
 from labeler_service.capture import Capture
 from labeler_service.errors import MocapError, SceneError
-from labeler_service.labeling.baseline import ClosestPointLabeler
 from labeler_service.labeling.frame import FrameLabeler, MarkerState
+from labeler_service.labeling.registry import make_labeler
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
 WARMUP_FRAMES = 10  # frames after the init window whose time is not counted
 
-Factory = Callable[[tuple[str, ...], float], FrameLabeler]
-
-
-def _online(names: tuple[str, ...], rate: float) -> FrameLabeler:
-    from labeler_service.labeling.labeler import Labeler
-
-    return Labeler(names, rate)
-
-
-def _closest(names: tuple[str, ...], rate: float) -> FrameLabeler:
-    return ClosestPointLabeler(names, rate)
-
-
-METHODS: dict[str, Factory] = {"online": _online, "closest-point": _closest}
+#: ``evaluate``'s method name -> the labeler kind of :func:`~labeler_service.labeling.registry.
+#: make_labeler`
+METHODS: dict[str, str] = {"online": "online", "closest-point": "baseline"}
 
 
 def available_methods() -> dict[str, str | None]:
@@ -111,9 +100,7 @@ def score_labeler(
     n = stream.n_frames
     if n <= init_frames:
         raise SceneError(f"{n} frames is not more than the {init_frames}-frame init window")
-    warm = getattr(labeler, "warmup", None)
-    if callable(warm):
-        warm()
+    labeler.warmup()
 
     correct = visible = ghosts = ghosts_labeled = 0
     per_frame = np.full(n, np.nan)
@@ -156,10 +143,9 @@ def score_labeler(
         times_ms = np.asarray([np.nan])
     err_arr = np.asarray(errors)
     # Body extents are known once the labeler has trained: ask after the run.
-    extent = getattr(labeler, "body_extent", None)
     ratios = np.empty(0)
-    if callable(extent) and err_arr.size:
-        body_extent = np.asarray(extent(), dtype=np.float64)
+    if err_arr.size:
+        body_extent = np.asarray(labeler.body_extent(), dtype=np.float64)
         ratios = err_arr / body_extent[np.asarray(error_markers, dtype=np.intp)]
         ratios = ratios[np.isfinite(ratios)]
     has_recovery = removed_total > 0 and method != "closest-point"
@@ -230,7 +216,7 @@ def evaluate(
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
     for name in names:
-        labeler = METHODS[name](stream.marker_names, stream.rate)
+        labeler = make_labeler(METHODS[name], marker_names=stream.marker_names, rate=stream.rate)
         scores[name] = _with_progress(
             lambda cb, lab=labeler, nm=name: score_labeler(lab, stream, init_frames, nm, cb),
             total=stream.n_frames,
