@@ -98,7 +98,7 @@ def score(frames, received, init_frames: int) -> dict:
         if removed.size:
             pos_of = {c: j for j, c in enumerate(cols) if c >= 0}
             for m in removed:
-                j = pos_of.get(int(m))
+                j = pos_of.get(int(m))  # type: ignore[assignment]
                 if j is not None and r.msg.state[j] == 2:
                     rec_err.append(
                         float(np.linalg.norm(r.msg.positions[j] - frames.positions[f, m]))

@@ -218,7 +218,7 @@ def evaluate(
     for name in names:
         labeler = make_labeler(METHODS[name], marker_names=stream.marker_names, rate=stream.rate)
         scores[name] = _with_progress(
-            lambda cb, lab=labeler, nm=name: score_labeler(lab, stream, init_frames, nm, cb),
+            lambda cb, lab=labeler, nm=name: score_labeler(lab, stream, init_frames, nm, cb),  # type: ignore[misc]
             total=stream.n_frames,
             label=name,
             enabled=show_progress,

@@ -147,7 +147,7 @@ def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
         for axis in (0, 1):
             centre[ok, axis] = np.nanmedian(positions[ok, :, axis], axis=1)
     if not ok.all():
-        t = np.arange(f)
+        t: np.ndarray = np.arange(f)
         for axis in (0, 1):
             centre[~ok, axis] = np.interp(t[~ok], t[ok], centre[ok, axis])
     if sigma_frames > 0:

@@ -19,6 +19,7 @@ import time
 import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 from labeler_service.errors import MocapError
 from labeler_service.scenes.corrupt import StreamFrames
@@ -72,7 +73,7 @@ class ServiceProcess:
         self.metrics_port: int | None = None
         self.returncode: int | None = None
         self.log_path = self.workdir / "service.log"
-        self._log = None
+        self._log: IO[str] | None = None
 
     @property
     def pid(self) -> int:

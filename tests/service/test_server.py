@@ -12,12 +12,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads
 
+from labeler_service.labeling.registry import make_labeler
 from labeler_service.labeling.templates import LabelerModel, save_model
 from labeler_service.labeling.training import train_subject
 from labeler_service.service.protocol import LabeledMsg, ModelMsg, StatusMsg, decode, encode_frame
 from labeler_service.service.server import Server
 from labeler_service.service.settings import load_settings
-from labeler_service.labeling.registry import make_labeler
 from labeler_service.service.transports.memory import MemoryTransport
 
 

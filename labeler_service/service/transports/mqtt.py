@@ -127,6 +127,12 @@ class ReconnectingClient:
                     backoff = self.settings.reconnect_min_s
                     log.info("mqtt %s: connected to %s:%d", self.identifier, self.settings.host,
                              self.settings.port)  # fmt: skip
+                    # Python 3.11's wait_for (inside aiomqtt's subscribe/publish) can swallow
+                    # a cancel that lands as it completes; messages already flow (retained
+                    # ones arrive with the SUBACK), so a caller may have cancelled us by now
+                    task = asyncio.current_task()
+                    if task is not None and task.cancelling():
+                        raise asyncio.CancelledError
                     # messages reach on_message through the forwarding queue as they are
                     # read; iterating only waits for the disconnect (it raises MqttError)
                     async for _ in client.messages:
