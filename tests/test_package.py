@@ -30,6 +30,7 @@ def test_import_and_help_do_not_load_numba_or_matplotlib():
 
 
 def test_every_name_in_all_resolves_and_dir_lists_them():
+    assert set(labeler_service.__all__) == {"__version__", *labeler_service._EXPORTS}
     for name in labeler_service.__all__:
         assert getattr(labeler_service, name) is not None, name
     assert set(labeler_service.__all__) <= set(dir(labeler_service))

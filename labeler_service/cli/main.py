@@ -25,7 +25,10 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
     "serve": ("labeler_service.cli.serve", "the streaming labeling service (UDP/MQTT)"),
     "replay": ("labeler_service.cli.replay_capture", "stream a capture unlabeled to the service"),
     "subscribe": ("labeler_service.cli.subscribe_stream", "receive labeled frames, summarise"),
-    "label": ("labeler_service.cli.label", "batch-label a capture with the online labeler"),
+    "label": (
+        "labeler_service.cli.label",
+        "batch-label a capture with the online labeler (Yu, Li and Deng 2007)",
+    ),
     "info": ("labeler_service.cli.info", "summary of a capture file"),
     "compose": ("labeler_service.cli.compose_scene", "multi-person scene from single takes"),
     "simulate": ("labeler_service.cli.simulate_scene", "simulated multi-person scene"),
@@ -42,7 +45,10 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
         "offline training",
         {
             "structure": ("offline.structure_cli", "subject templates from labeled captures"),
-            "shoulder": ("offline.shoulder.cli", "data-driven shoulder skeleton (seed 000)"),
+            "shoulder": (
+                "offline.shoulder.cli",
+                "data-driven shoulder skeleton (Hong, Park and Hodgins 2009)",
+            ),
         },
     ),
 }

@@ -265,7 +265,7 @@ def train(cfg: TrainConfig) -> dict:
 def write_report(path: Path, cfg: TrainConfig, r: dict, plots: list[str], labels: tuple) -> None:
     """The Markdown report tying tables, plots and checks together."""
     ks = r["ks"]
-    L: list[str] = ["# Data-driven shoulder skeleton (seed 000: Hong, Park and Hodgins 2009)", ""]
+    L: list[str] = ["# Data-driven shoulder skeleton (Hong, Park and Hodgins 2009)", ""]
     if cfg.argv:
         L += ["Command:", "", f"    {cfg.argv}", ""]
     frames = ", ".join(f"{n} {f}" for n, f in r["frames"].items())

@@ -1,4 +1,4 @@
-"""Step 2a: per-triangle rotations and their log map (Hong, Park and Hodgins 2009, Sec. 3.2).
+"""Step 2a: per-triangle rotations and their log map (Hong et al. 2009, Sec. 3.2).
 
 For triangle ``i`` at frame ``t`` the rotational displacement from the rest pose is the unit
 quaternion ``q_i^t`` of Horn's closed-form absolute orientation [Hor87]: with the centred rest

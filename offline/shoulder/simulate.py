@@ -1,4 +1,4 @@
-"""Synthetic dense shoulder capture with ground truth (the data of seed 000, Sec. 3.1, simulated).
+"""Synthetic dense shoulder capture with ground truth (Hong et al. 2009, Sec. 3.1, simulated).
 
 A right upper body is modelled as a 4-bone chain in a rest pose (mm, Z up, X lateral to the
 right, Y anterior):

@@ -1,4 +1,4 @@
-"""Step 1: the marker surface (Hong, Park and Hodgins 2009, Sec. 3.1, Fig. 1b) and the rest pose.
+"""Step 1: the marker surface (Hong et al. 2009, Sec. 3.1, Fig. 1b) and the rest pose.
 
 The paper meshes its ~200 markers by hand (Park and Hodgins 2006). Here the faces either come
 from a file (``--faces``: one triangle per line, three marker names or 0-based column indices,
