@@ -33,8 +33,7 @@ from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
 WARMUP_FRAMES = 10  # frames after the init window whose time is not counted
 
-#: ``evaluate``'s method name -> the labeler kind of :func:`~labeler_service.labeling.registry.
-#: make_labeler`
+#: ``evaluate``'s method name -> the registry's labeler kind (``make_labeler``)
 METHODS: dict[str, str] = {"online": "online", "closest-point": "baseline"}
 
 
