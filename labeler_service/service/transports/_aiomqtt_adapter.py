@@ -20,7 +20,7 @@ no public spelling:
 
 Incoming messages need no private access: aiomqtt's public ``queue_type`` argument takes our
 :func:`forwarding_queue`, whose ``put_nowait`` hands every message to the transport at once
-(with its receipt time) instead of queueing it for one-per-loop-iteration iteration.
+(with its receipt time) instead of queueing it to be handed out one per loop iteration.
 
 ``tests/service/test_aiomqtt_adapter.py`` is the guard: it fails loudly, naming the attribute,
 when an aiomqtt or paho release changes any of this. :func:`check_client` makes the same check
@@ -92,8 +92,8 @@ def install_batch_reader(client: aiomqtt.Client) -> None:
     paho: paho_mqtt.Client = client._client
     disconnected: asyncio.Future[Any] = client._disconnected
     sock = paho.socket()
-    if sock is None:
-        raise TransportError("mqtt: connected client without a socket")
+    if sock is None:  # the connection died already: aiomqtt reports it to the reconnect loop
+        return
     fd = sock.fileno()
     loop = asyncio.get_running_loop()
 
