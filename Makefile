@@ -23,6 +23,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check labeler_service offline tests benchmarks
 	$(BIN)/ruff format --check labeler_service offline tests benchmarks
+	$(BIN)/mypy labeler_service offline
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/acceptance.py --out reports/acceptance.json

@@ -8,8 +8,10 @@
     ├── SceneError                  compose / simulate / corrupt got impossible parameters
     ├── ModelError                  a subject model (template) file is invalid or mismatched
     ├── LabelerError                the labeler was used out of order (e.g. no training window)
+    ├── InitBufferFullError         a stream's buffer of labeled init frames is full (frame dropped)
     ├── ProtocolError               a wire message is malformed (counted, never fatal)
     │   (attribute ``reason``: a short machine-readable tag used in drop metrics)
+    ├── TransportError              a transport cannot deliver now (broker down, link disabled)
     └── ConfigError                 service settings are invalid
 
 Chain with ``raise ... from exc`` so the original cause stays visible in logs.
@@ -42,12 +44,22 @@ class LabelerError(MocapError):
     """The labeler was used out of order or with inconsistent input."""
 
 
+class InitBufferFullError(MocapError):
+    """A stream already holds ``max_init_frames`` labeled init frames; the new one is dropped
+    (counted as ``init_overflow``)."""
+
+
 class ProtocolError(MocapError):
     """A wire message is malformed. ``reason`` is a short tag for drop metrics."""
 
     def __init__(self, message: str, reason: str = "malformed") -> None:
         super().__init__(message)
         self.reason = reason
+
+
+class TransportError(MocapError):
+    """A transport could not deliver a message now (not connected, sends disabled); the server
+    counts it as ``send_error`` and carries on."""
 
 
 class ConfigError(MocapError):

@@ -3,9 +3,9 @@
 ``StructureTrainer(...).fit(captures)`` learns one
 :class:`~labeler_service.labeling.templates.SubjectTemplate`
 per subject with the same code the online labeler uses on its training window
-(:func:`labeler_service.labeling.training.train_subject`): D and A (seed 003 Eq. 1-2), rigid bodies,
-reference shapes and per-marker motion noise. Frames of several captures are pooled per
-subject; the motion noise is learned per capture (it depends on the rate) and averaged.
+(:func:`labeler_service.labeling.training.train_subject`): D and A (Yu et al. 2007, Eq. 1-2),
+rigid bodies, reference shapes and per-marker motion noise. Frames of several captures are
+pooled per subject; the motion noise is learned per capture (it depends on the rate) and averaged.
 The fitted template set is ``model_`` (a :class:`~labeler_service.labeling.templates.LabelerModel`).
 """
 

@@ -1,6 +1,14 @@
 """Capture values and file I/O (C3D, TRC, NPZ)."""
 
 from labeler_service.capture.io import SUFFIXES, read_capture, write_capture
-from labeler_service.capture.model import Capture, is_ghost, split_label
+from labeler_service.capture.model import Capture, is_ghost, split_label, subject_groups
 
-__all__ = ["SUFFIXES", "Capture", "is_ghost", "read_capture", "split_label", "write_capture"]
+__all__ = [
+    "SUFFIXES",
+    "Capture",
+    "is_ghost",
+    "read_capture",
+    "split_label",
+    "subject_groups",
+    "write_capture",
+]

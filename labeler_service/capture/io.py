@@ -87,7 +87,9 @@ def _finish(
         pos[zero] = np.nan
         notes.append(f"{int(zero.sum())} (0,0,0) samples mapped to missing")
     labels = _unique_labels([x.strip() for x in labels], notes)
-    return Capture(positions=pos, labels=tuple(labels), rate=rate, source=str(source), notes=notes)
+    return Capture(
+        positions=pos, labels=tuple(labels), rate=rate, source=str(source), notes=tuple(notes)
+    )
 
 
 def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:

@@ -29,6 +29,21 @@ def is_ghost(label: str) -> bool:
     return bool(_GHOST.match(split_label(label)[1]))
 
 
+def subject_groups(labels: Iterable[str], *, skip_ghosts: bool = False) -> dict[str, list[int]]:
+    """Subject name -> indices of its labels, subjects in order of first appearance.
+
+    The one grouping of ``subject:marker`` names by subject (capture columns, the labeler's
+    marker list, the model message). A label without a prefix belongs to subject ``""``;
+    ``skip_ghosts`` leaves unlabeled tracks (``*N``) out.
+    """
+    out: dict[str, list[int]] = {}
+    for i, label in enumerate(labels):
+        if skip_ghosts and is_ghost(label):
+            continue
+        out.setdefault(split_label(label)[0] or "", []).append(i)
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Capture:
     """Marker trajectories of one take.
@@ -92,21 +107,11 @@ class Capture:
     @property
     def subjects(self) -> tuple[str, ...]:
         """Subject names in order of first appearance (ghost columns excluded)."""
-        seen: dict[str, None] = {}
-        for label in self.labels:
-            if is_ghost(label):
-                continue
-            subject, _ = split_label(label)
-            seen.setdefault(subject or "", None)
-        return tuple(seen)
+        return tuple(subject_groups(self.labels, skip_ghosts=True))
 
     def subject_columns(self, subject: str) -> np.ndarray:
         """Column indices of one subject's (non-ghost) markers."""
-        cols = [
-            i
-            for i, label in enumerate(self.labels)
-            if not is_ghost(label) and (split_label(label)[0] or "") == subject
-        ]
+        cols = subject_groups(self.labels, skip_ghosts=True).get(subject, [])
         return np.asarray(cols, dtype=np.intp)
 
     # --------------------------------------------------------------------- statistics

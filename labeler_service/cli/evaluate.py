@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     for note in report["notes"]:
         print(f"note: {note}", file=sys.stderr)
     if args.plot is not None:
-        curves = {}
+        curves: dict = {}
         for factor in (1, 2, 4):
             rep = (
                 report

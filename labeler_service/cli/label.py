@@ -6,7 +6,7 @@ the service runs: every frame's visible points (labeled columns and unlabeled ``
 alike) are given anonymously, in a shuffled order.
 
 - Without ``--model`` the first ``--init-frames`` frames carry the capture's own labels and are
-  the training window (seed 003); the marker set is the capture's labeled columns.
+  the training window (Yu, Li and Deng 2007); the marker set is the capture's labeled columns.
 - With ``--model`` the marker set is the model's; the capture's columns with those names label
   the first ``--init-frames`` frames (default 1), which give the initial assignment.
 
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import Capture, read_capture, write_capture
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
-    from labeler_service.labeling.labeler import Labeler
+    from labeler_service.labeling.registry import make_labeler
     from labeler_service.labeling.templates import load_model
 
     cap = read_capture(args.input, up=args.up)
@@ -55,15 +55,12 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(f"--init-frames must be >= 1, got {init}")
     if cap.n_frames <= init:
         raise LabelerError(f"{args.input}: {cap.n_frames} frames, not more than {init} init frames")
-    if model is not None:
-        lab = Labeler.from_model(model, cap.rate)
-    else:
-        names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
-        if not names:
-            raise LabelerError(
-                f"{args.input} has no labeled markers: give --model, or label its first frames"
-            )
-        lab = Labeler(names, cap.rate)
+    names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
+    if model is None and not names:
+        raise LabelerError(
+            f"{args.input} has no labeled markers: give --model, or label its first frames"
+        )
+    lab = make_labeler("online", marker_names=names, rate=cap.rate, model=model)
     index = {n: i for i, n in enumerate(lab.marker_names)}
     col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)
     if not (col_label >= 0).any():

@@ -13,6 +13,7 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from labeler_service import __version__
 from labeler_service.errors import MocapError
@@ -24,7 +25,10 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
     "serve": ("labeler_service.cli.serve", "the streaming labeling service (UDP/MQTT)"),
     "replay": ("labeler_service.cli.replay_capture", "stream a capture unlabeled to the service"),
     "subscribe": ("labeler_service.cli.subscribe_stream", "receive labeled frames, summarise"),
-    "label": ("labeler_service.cli.label", "batch-label a capture with the online labeler"),
+    "label": (
+        "labeler_service.cli.label",
+        "batch-label a capture with the online labeler (Yu, Li and Deng 2007)",
+    ),
     "info": ("labeler_service.cli.info", "summary of a capture file"),
     "compose": ("labeler_service.cli.compose_scene", "multi-person scene from single takes"),
     "simulate": ("labeler_service.cli.simulate_scene", "simulated multi-person scene"),
@@ -41,23 +45,26 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
         "offline training",
         {
             "structure": ("offline.structure_cli", "subject templates from labeled captures"),
-            "shoulder": ("offline.shoulder.cli", "data-driven shoulder skeleton (seed 000)"),
+            "shoulder": (
+                "offline.shoulder.cli",
+                "data-driven shoulder skeleton (Hong, Park and Hodgins 2009)",
+            ),
         },
     ),
 }
 
 
-def _add(sub: argparse._SubParsersAction, name: str, entry: object, argv: Sequence[str]) -> None:
+def _add(sub: argparse._SubParsersAction, name: str, entry: Any, argv: Sequence[str]) -> None:
     """Adds one (possibly nested) command; imports its module only if ``argv`` selects it."""
     selected = bool(argv) and argv[0] == name
-    if isinstance(entry[1], dict):  # type: ignore[index]
-        group_help, children = entry  # type: ignore[misc]
+    if isinstance(entry[1], dict):
+        group_help, children = entry
         p = sub.add_parser(name, help=group_help, description=group_help)
         inner = p.add_subparsers(dest=f"{name}_command", metavar="COMMAND", required=True)
         for child, child_entry in children.items():
             _add(inner, child, child_entry, argv[1:] if selected else ())
         return
-    module_name, help_text = entry  # type: ignore[misc]
+    module_name, help_text = entry
     p = sub.add_parser(name, help=help_text, description=help_text)
     if selected:
         module = importlib.import_module(module_name)

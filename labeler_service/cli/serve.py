@@ -37,11 +37,8 @@ async def serve(settings, stop: asyncio.Event | None = None) -> None:
         async with Server(settings) as srv:
             parts = []
             for t in srv.transports or []:
-                addr = getattr(t, "address", None)
-                if addr is not None:
-                    parts.append(f"udp://{addr[0]}:{addr[1]}")
-                else:
-                    parts.append(f"mqtt://{settings.mqtt.host}:{settings.mqtt.port}")
+                host, port = t.address
+                parts.append(f"{t.name}://{host}:{port}")
             if srv.metrics_port is not None:
                 parts.append(f"metrics http://{settings.metrics_host}:{srv.metrics_port}/metrics")
             # the long-lived objects (kernels, templates, state) leave the GC's generations, so

@@ -27,26 +27,14 @@ import numpy as np
 
 from labeler_service.capture import Capture, split_label
 from labeler_service.errors import MocapError, SceneError
-from labeler_service.labeling.baseline import ClosestPointLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
+from labeler_service.labeling.registry import make_labeler
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
 WARMUP_FRAMES = 10  # frames after the init window whose time is not counted
 
-Factory = Callable[[tuple[str, ...], float], FrameLabeler]
-
-
-def _online(names: tuple[str, ...], rate: float) -> FrameLabeler:
-    from labeler_service.labeling.labeler import Labeler
-
-    return Labeler(names, rate)
-
-
-def _closest(names: tuple[str, ...], rate: float) -> FrameLabeler:
-    return ClosestPointLabeler(names, rate)
-
-
-METHODS: dict[str, Factory] = {"online": _online, "closest-point": _closest}
+#: ``evaluate``'s method name -> the registry's labeler kind (``make_labeler``)
+METHODS: dict[str, str] = {"online": "online", "closest-point": "baseline"}
 
 
 def available_methods() -> dict[str, str | None]:
@@ -306,7 +294,7 @@ def _longest_swap(raster: np.ndarray, names: Sequence[str]) -> tuple[int, dict[s
         if lengths[k] > best:
             best = int(lengths[k])
             where = {
-                "marker": names[j],
+                "marker": names[int(j)],
                 "first_frame": int(frames[starts[k]]),
                 "last_frame": int(frames[stops[k] - 1]),
             }
@@ -324,9 +312,7 @@ def score_labeler(
     n = stream.n_frames
     if n <= init_frames:
         raise SceneError(f"{n} frames is not more than the {init_frames}-frame init window")
-    warm = getattr(labeler, "warmup", None)
-    if callable(warm):
-        warm()
+    labeler.warmup()
     scorer = Scorer(stream.marker_names, init_frames, n, method)
     for f in range(n):
         pts, truth = stream.points[f], stream.truth[f]
@@ -340,8 +326,7 @@ def score_labeler(
             f, truth, out, removed=stream.removed[f], positions=stream.positions[f], dt_ns=dt
         )
     # Body extents are known once the labeler has trained: ask after the run.
-    extent = getattr(labeler, "body_extent", None)
-    body_extent = np.asarray(extent(), dtype=np.float64) if callable(extent) else None
+    body_extent = np.asarray(labeler.body_extent(), dtype=np.float64)
     return scorer.result(body_extent, recovery=method != "closest-point")
 
 
@@ -400,9 +385,9 @@ def evaluate(
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
     for name in names:
-        labeler = METHODS[name](stream.marker_names, stream.rate)
+        labeler = make_labeler(METHODS[name], marker_names=stream.marker_names, rate=stream.rate)
         scores[name] = _with_progress(
-            lambda cb, lab=labeler, nm=name: score_labeler(lab, stream, init_frames, nm, cb),
+            lambda cb, lab=labeler, nm=name: score_labeler(lab, stream, init_frames, nm, cb),  # type: ignore[misc]
             total=stream.n_frames,
             label=name,
             enabled=show_progress,

@@ -1,6 +1,7 @@
-"""The closest-point baseline of seed 003: each label takes the point nearest its last position.
+"""The closest-point baseline of Yu, Li and Deng (2007): each label takes the point nearest its
+last position.
 
-Seed 003 (Sec. 4) compares against a tracker that "assumes the correct correspondence is the
+Yu et al. (Sec. 4) compare against a tracker that "assumes the correct correspondence is the
 closest point in the next frame". Our implementation makes the two choices the paper leaves
 open explicit:
 
@@ -52,6 +53,13 @@ class ClosestPointLabeler:
     @property
     def marker_names(self) -> tuple[str, ...]:
         return self._names
+
+    def warmup(self) -> None:
+        """Nothing to compile: the baseline is numpy and scipy only."""
+
+    def body_extent(self) -> np.ndarray:
+        """All NaN: the baseline has no rigid bodies (and recovers nothing)."""
+        return np.full(len(self._names), np.nan)
 
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None

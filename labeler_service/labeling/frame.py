@@ -1,10 +1,10 @@
 """What every frame labeler returns, and the interface they share.
 
-A labeler is anything with ``marker_names`` and ``process(points, t, labels=None)``: the
-online labeler (seed 003, ``labeler_service.labeling.labeler``) and the closest-point baseline
-(``labeler_service.labeling.baseline``) both fit, so ``evaluate``, ``label`` and the service treat
-them
-alike.
+A labeler is anything with :class:`FrameLabeler`'s ``marker_names``, ``process(points, t,
+labels=None)``, ``warmup()`` and ``body_extent()``: the online labeler (Yu, Li and Deng 2007,
+``labeler_service.labeling.labeler``) and the closest-point baseline
+(``labeler_service.labeling.baseline``) both fit, so ``evaluate``, ``label`` and the service
+treat them alike.
 """
 
 from __future__ import annotations
@@ -59,6 +59,11 @@ class FrameLabeler(Protocol):
     ``process`` takes one frame of anonymous points ``(N, 3)`` float32 mm (finite; missing
     points are simply absent) and its capture time. During the training window the caller
     passes ``labels`` too: ``(N,)`` int marker indices, -1 for points without a label.
+
+    ``warmup()`` compiles (or loads) whatever the labeler runs per frame without touching its
+    state, so the first real frame pays no compile time. ``body_extent()`` is ``(M,)`` mm per
+    marker, the longest marker-pair distance of its smallest rigid body (NaN for a marker
+    without one, or before training); scorers divide recovery errors by it.
     """
 
     @property
@@ -67,3 +72,7 @@ class FrameLabeler(Protocol):
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None
     ) -> LabeledFrame: ...
+
+    def warmup(self) -> None: ...
+
+    def body_extent(self) -> np.ndarray: ...

@@ -163,11 +163,9 @@ def reference_shape(pos: np.ndarray, body: list[int], D: np.ndarray) -> np.ndarr
     full = np.flatnonzero(np.isfinite(sub).all(axis=(1, 2)))
     if full.size == 0:
         return _body_frame(_mds(D[np.ix_(body, body)]))
-    from labeler_service.labeling.kernels.rigid import _aligned_mean
+    from labeler_service.labeling.geometry import aligned_mean
 
-    mean = np.empty((len(body), 3))
-    _aligned_mean(np.ascontiguousarray(sub[full]), sub[full[0]].copy(), mean)
-    return _body_frame(mean)
+    return _body_frame(aligned_mean(sub[full], sub[full[0]]))
 
 
 def motion_noise(pos: np.ndarray, rate: float, floor: float = 1.0e4) -> np.ndarray:
@@ -177,7 +175,7 @@ def motion_noise(pos: np.ndarray, rate: float, floor: float = 1.0e4) -> np.ndarr
     q = np.full(m, np.nan)
     if p.shape[0] >= 3:
         a = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * rate * rate
-        ok = np.isfinite(a).all(axis=2)
+        ok = np.all(np.isfinite(a), axis=2)
         for i in range(m):
             if ok[:, i].sum() >= 2:
                 q[i] = float(np.mean(a[ok[:, i], i] ** 2))

@@ -257,7 +257,7 @@ def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
         for axis in (0, 1):
             centre[ok, axis] = np.nanmedian(positions[ok, :, axis], axis=1)
     if not ok.all():
-        t = np.arange(f)
+        t: np.ndarray = np.arange(f)
         for axis in (0, 1):
             centre[~ok, axis] = np.interp(t[~ok], t[ok], centre[ok, axis])
     if sigma_frames > 0:
@@ -354,7 +354,7 @@ def principal_heading(capture: Capture) -> tuple[float, str] | None:
     300 mm along that line, else it is unknown (``+`` kept) and the returned note says so.
     """
     pos = capture.positions.astype(np.float64)[..., :2]
-    vis = ~np.isnan(pos).any(axis=2)
+    vis = np.logical_not(np.isnan(pos).any(axis=2))
     angles, weights = [], []
     for f in range(pos.shape[0]):
         p = pos[f, vis[f]]

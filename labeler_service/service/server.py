@@ -24,18 +24,18 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AsyncExitStack
 
 import numpy as np
 
-from labeler_service.errors import LabelerError, MocapError, ProtocolError
-from labeler_service.labeling.frame import FrameLabeler
+from labeler_service.errors import InitBufferFullError, LabelerError, MocapError, ProtocolError
+from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
 from labeler_service.service.settings import ServiceSettings, StreamSettings
-from labeler_service.service.stream import StreamState, make_labeler
+from labeler_service.service.stream import StreamState
 from labeler_service.service.transports.base import (
     DropOldestQueue,
     Incoming,
@@ -95,15 +95,13 @@ def synthetic_warmup_frames(
     return names, out
 
 
-def warm_up(kind: str, config, factory: Callable[..., FrameLabeler] = make_labeler) -> float:
+def warm_up(kind: str, config, factory: LabelerFactory = make_labeler) -> float:
     """Runs a labeler of ``kind`` over the synthetic scene (numba compiles or loads its cache);
     returns the seconds it took."""
     t0 = time.perf_counter()
     names, frames = synthetic_warmup_frames()
-    labeler = factory(kind, names, 120.0, config)
-    warm = getattr(labeler, "warmup", None)
-    if callable(warm):
-        warm()
+    labeler = factory(kind, marker_names=names, rate=120.0, config=config)
+    labeler.warmup()
     try:
         for points, t, labels in frames:
             labeler.process(points, t, labels)
@@ -119,7 +117,7 @@ class Server:
         self,
         settings: ServiceSettings,
         transports: Sequence[Transport] | None = None,
-        factory: Callable[..., FrameLabeler] = make_labeler,
+        factory: LabelerFactory = make_labeler,
     ) -> None:
         self.settings = settings
         self.transports = list(transports) if transports is not None else None
@@ -247,10 +245,7 @@ class Server:
         if isinstance(msg, FrameMsg):
             self._on_frame(msg, inc)
         elif isinstance(msg, SubscribeMsg):
-            sub = getattr(transport, "subscribe", None)
-            if sub is None or inc.reply_to is None:
-                raise ProtocolError(f"{transport.name}: subscribe is UDP only", "type")
-            sub(inc.reply_to, msg.stream)
+            transport.subscribe(inc.reply_to, msg.stream)
         else:
             raise ProtocolError(f"{type(msg).__name__} is not accepted by the service", "type")
 
@@ -300,7 +295,7 @@ class Server:
                 self.metrics.drop(reason, state.name)
                 self._rlog.warning(f"{reason}-{state.name}", "%s", exc)
                 continue
-            except OverflowError as exc:
+            except InitBufferFullError as exc:
                 self.metrics.drop("init_overflow", state.name)
                 self._rlog.warning(f"init-{state.name}", "%s", exc)
                 continue
@@ -356,10 +351,7 @@ class Server:
     def _count_transport_drops(self) -> None:
         """Adds what each transport dropped since the last call to ``mocap_dropped_total``."""
         for t in self.transports or ():
-            counts = getattr(t, "drop_counts", None)
-            if counts is None:
-                continue
-            for (stream, reason), n in counts().items():
+            for (stream, reason), n in t.drop_counts().items():
                 key = (t.name, stream, reason)
                 delta = n - self._transport_drops.get(key, 0)
                 if delta > 0:

@@ -5,10 +5,10 @@ A stream (one capture volume) starts in one of two ways:
 1. **From a subject model file** (``streams[].model``, the ``train structure`` output): the
    labeler is built at start-up (after the server's kernel warm-up); frames are labeled from
    the first one.
-2. **From labeled init frames in the stream** (seed 003's supervised training window): frames
-   carrying ``labels`` are buffered; when the first unlabeled frame arrives, the marker set is
-   the union of the init labels (sorted by subject, then marker), the rate
-   comes from the settings or the init frames' times, the labeler is built and fed the init
+2. **From labeled init frames in the stream** (the supervised training window of Yu, Li and
+   Deng 2007): frames carrying ``labels`` are buffered; when the first unlabeled frame
+   arrives, the marker set is the union of the init labels (sorted by subject, then marker),
+   the rate comes from the settings or the init frames' times, the labeler is built and fed the init
    frames with their labels, then labels the new frame.
 
 ``seq`` handling: a duplicate or lower ``seq`` is dropped (``duplicate``/``late``); a jump back
@@ -22,16 +22,14 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from labeler_service.capture import split_label
-from labeler_service.errors import LabelerError, ModelError
-from labeler_service.labeling.config import LabelerConfig
+from labeler_service.capture import split_label, subject_groups
+from labeler_service.errors import InitBufferFullError, LabelerError, ModelError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
+from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
 
@@ -39,39 +37,6 @@ log = logging.getLogger(__name__)
 
 #: A ``seq`` this far below the last one means the sender restarted (not a late frame).
 SEQ_RESTART = 1000
-
-LabelerFactory = Callable[[tuple[str, ...], float], FrameLabeler]
-
-
-# ------------------------------------------------------------------------- labeler factory
-def make_labeler(
-    kind: str,
-    marker_names: tuple[str, ...],
-    rate: float,
-    config: LabelerConfig | None = None,
-    model_path: Path | None = None,
-) -> FrameLabeler:
-    """The one place that builds a labeler: ``online`` (seed 003) or ``baseline``.
-
-    With ``model_path`` the online labeler starts from the trained subject templates
-    (``Labeler.from_model``); otherwise from ``marker_names`` and the labeled init frames the
-    caller feeds it.
-    """
-    if kind == "baseline":
-        if model_path is not None and not marker_names:
-            from labeler_service.labeling.templates import load_model
-
-            marker_names = load_model(model_path).marker_names
-        from labeler_service.labeling.baseline import ClosestPointLabeler
-
-        return ClosestPointLabeler(marker_names, rate)
-    from labeler_service.labeling.labeler import Labeler
-
-    if model_path is not None:
-        from labeler_service.labeling.templates import load_model
-
-        return Labeler.from_model(load_model(model_path), rate, config)
-    return Labeler(marker_names, rate, config)
 
 
 def _natural(s: str) -> tuple:
@@ -90,15 +55,18 @@ def group_by_subject(names: list[str]) -> tuple[str, ...]:
 
 
 def subject_slices(names: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
-    """``(subject, start, count)`` runs of a subject-grouped marker list (model message)."""
+    """``(subject, start, count)`` runs of a subject-grouped marker list (model message); a
+    subject whose markers are not contiguous gets one run per stretch."""
     out: list[tuple[str, int, int]] = []
-    for i, n in enumerate(names):
-        s = split_label(n)[0] or ""
-        if out and out[-1][0] == s and out[-1][1] + out[-1][2] == i:
-            out[-1] = (s, out[-1][1], out[-1][2] + 1)
-        else:
-            out.append((s, i, 1))
-    return tuple(out)
+    for subject, cols in subject_groups(names).items():
+        start = prev = cols[0]
+        for i in cols[1:]:
+            if i != prev + 1:
+                out.append((subject, start, prev - start + 1))
+                start = i
+            prev = i
+        out.append((subject, start, prev - start + 1))
+    return tuple(sorted(out, key=lambda run: run[1]))
 
 
 @dataclass(slots=True)
@@ -122,7 +90,7 @@ class StreamState:
         name: str,
         settings: ServiceSettings,
         stream_settings: StreamSettings | None = None,
-        factory: Callable[..., FrameLabeler] = make_labeler,
+        factory: LabelerFactory = make_labeler,
     ) -> None:
         self.name = name
         self.settings = settings
@@ -160,7 +128,7 @@ class StreamState:
             rate = load_model(path).rate
         self._install(
             self._factory(
-                self.settings.labeler, (), rate, self.settings.labeler_config, model_path=path
+                self.settings.labeler, rate=rate, config=self.settings.labeler_config, model=path
             ),
             rate,
         )
@@ -216,7 +184,12 @@ class StreamState:
             raise LabelerError(f"stream {self.name}: the init frames carry no labels")
         rate = self._estimate_rate()
         self._install(
-            self._factory(self.settings.labeler, names, rate, self.settings.labeler_config),
+            self._factory(
+                self.settings.labeler,
+                marker_names=names,
+                rate=rate,
+                config=self.settings.labeler_config,
+            ),
             rate,
         )
         assert self.labeler is not None
@@ -256,12 +229,12 @@ class StreamState:
         """Labels one frame. Returns ``None`` while the training window is being buffered.
 
         Raises :class:`LabelerError` when an unlabeled frame arrives before any model or init
-        frame (``no_model``) and ``OverflowError`` when the init buffer is full.
+        frame (``no_model``) and :class:`InitBufferFullError` when the init buffer is full.
         """
         if self.labeler is None:
             if f.labels is not None:
                 if len(self.init_frames) >= self.settings.max_init_frames:
-                    raise OverflowError(f"stream {self.name}: init buffer full")
+                    raise InitBufferFullError(f"stream {self.name}: init buffer full")
                 self.init_frames.append(f)
                 return None
             if not self.init_frames:

@@ -49,9 +49,10 @@ class LocalBroker:
         users: dict[str, str] | None = None,
         tls: tuple[Path, Path, Path] | None = None,
     ) -> None:
-        self.binary = binary or mosquitto_binary()
-        if self.binary is None:
+        found = binary or mosquitto_binary()
+        if found is None:
             raise ConfigError("the mosquitto binary was not found (apt install mosquitto)")
+        self.binary: str = found
         self._tmp = None
         if workdir is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="mocap-broker-")

@@ -19,6 +19,7 @@ import time
 import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 from labeler_service.errors import MocapError
 from labeler_service.scenes.corrupt import StreamFrames
@@ -46,10 +47,10 @@ def service_settings(transport: str, stream: dict, log_interval_s: float, **extr
 
 def train_model_file(frames: StreamFrames, init_frames: int, path: Path, config=None) -> Path:
     """A subject model (``train structure`` schema) from the labeled init window of a stream."""
-    from labeler_service.labeling.labeler import Labeler
+    from labeler_service.labeling.registry import make_labeler
     from labeler_service.labeling.templates import save_model
 
-    lab = Labeler(frames.marker_names, frames.rate, config)
+    lab = make_labeler("online", marker_names=frames.marker_names, rate=frames.rate, config=config)
     for f in range(min(init_frames, frames.n_frames)):
         lab.process(frames.points[f], float(frames.times[f]), frames.truth[f])
     save_model(lab.train_model(), path)
@@ -72,7 +73,7 @@ class ServiceProcess:
         self.metrics_port: int | None = None
         self.returncode: int | None = None
         self.log_path = self.workdir / "service.log"
-        self._log = None
+        self._log: IO[str] | None = None
 
     @property
     def pid(self) -> int:

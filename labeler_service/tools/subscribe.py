@@ -16,6 +16,7 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,10 @@ from labeler_service.service.protocol import (
 from labeler_service.service.settings import MqttSettings
 from labeler_service.service.transports.base import DropOldestQueue, Incoming, cancel_and_wait
 from labeler_service.service.transports.url import Endpoint, parse_endpoint
+
+if TYPE_CHECKING:
+    from labeler_service.service.transports.mqtt import MqttEndpoint
+    from labeler_service.service.transports.udp import UdpClient
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +136,7 @@ class Subscriber:
         self._status_changed = asyncio.Event()
         self._tasks: list[asyncio.Task] = []
         self._stack = contextlib.AsyncExitStack()
-        self._transport = None
+        self._transport: UdpClient | MqttEndpoint | None = None
 
     @property
     def dropped(self) -> int:
@@ -143,8 +148,9 @@ class Subscriber:
         if ep.scheme == "udp":
             from labeler_service.service.transports.udp import UdpClient
 
-            self._transport = await self._stack.enter_async_context(UdpClient(ep.host, ep.port))
-            self._tasks.append(asyncio.create_task(self._renew(), name="subscribe-renew"))
+            udp = await self._stack.enter_async_context(UdpClient(ep.host, ep.port))
+            self._transport = udp
+            self._tasks.append(asyncio.create_task(self._renew(udp), name="subscribe-renew"))
         else:
             from labeler_service.service.transports.mqtt import MqttEndpoint, topic
             from labeler_service.tools.replay import mqtt_settings_for
@@ -163,14 +169,15 @@ class Subscriber:
         await cancel_and_wait(tasks)
         await self._stack.aclose()
 
-    async def _renew(self) -> None:
+    async def _renew(self, udp: UdpClient) -> None:
         payload = encode_subscribe(self.stream or "*")
         while True:
             with contextlib.suppress(OSError):
-                self._transport.send(payload)
+                udp.send(payload)
             await asyncio.sleep(self.renew_s)
 
     async def _pump(self) -> None:
+        assert self._transport is not None
         async for inc in self._transport.messages():
             self._handle(inc)
 

@@ -1,4 +1,4 @@
-"""Data-driven shoulder skeleton (seed 000: Hong, Park and Hodgins 2009).
+"""Data-driven shoulder skeleton (Hong, Park and Hodgins 2009).
 
 Pipeline (``mocap-labeler train shoulder``), one module per step of the paper:
 :mod:`triangles` (marker surface), :mod:`rotations` (Horn's absolute orientation, log map,

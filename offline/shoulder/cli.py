@@ -1,4 +1,5 @@
-"""``mocap-labeler train shoulder TRAIN --out DIR``: the data-driven shoulder skeleton (seed 000).
+"""``mocap-labeler train shoulder TRAIN --out DIR``: the data-driven shoulder skeleton of Hong,
+Park and Hodgins (2009).
 
 ::
 

@@ -1,4 +1,4 @@
-"""Step 3: skeleton and joint centres (seed 000, Sec. 3.3, after [AKP*04] and [OBBH00]).
+"""Step 3: skeleton and joint centres (Hong et al. 2009, Sec. 3.3, after [AKP*04] and [OBBH00]).
 
 Structure: the paper's skeleton branches from the spine at the upper chest and is one chain to
 the wrist. The root is the segment that rotates least in the world (median rotation angle from

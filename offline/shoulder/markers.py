@@ -1,4 +1,4 @@
-"""Step 4: reduced marker set, four markers per segment (seed 000, Sec. 3.4, Eq. 1-3).
+"""Step 4: reduced marker set, four markers per segment (Hong et al. 2009, Sec. 3.4, Eq. 1-3).
 
 For each segment independently, greedily pick the marker of lowest energy
 ``e = omega * e_r + (1 - omega) * e_d`` (``omega = 0.5``):

@@ -1,4 +1,4 @@
-"""The data-driven shoulder skeleton as a scikit-learn style estimator (seed 000, Sec. 3).
+"""The data-driven shoulder skeleton as a scikit-learn style estimator (Hong et al. 2009, Sec. 3).
 
 :func:`prepare_surface` does the work shared by every number of segments (rest pose, marker
 surface, near-rigid triangles, log-map features); :class:`ShoulderSkeleton` then runs the five
@@ -290,7 +290,7 @@ class ShoulderSkeleton:
 
 
 class MG03Baseline:
-    """Mohr and Gleicher's extra shoulder joint on a 3-segment skeleton (Table 3 of seed 000).
+    """Mohr and Gleicher's extra shoulder joint on a 3-segment skeleton (Hong et al. 2009, Table 3).
 
     ``skeleton`` is a fitted 3-segment :class:`ShoulderSkeleton`. Fitted attribute:
     ``weights_`` (M, 4) over (its 3 bones, the halfway bone), from :func:`fit_weights_nnls`.

@@ -154,7 +154,7 @@ def train(cfg: TrainConfig) -> dict:
                 n_restarts=cfg.restarts,
                 structure=cfg.structure,
                 random_state=np.random.default_rng(rng.integers(2**63)),
-            ).fit(pos, surface, progress=lambda n, task=task: bar.update(task, completed=n))
+            ).fit(pos, surface, progress=lambda n, task=task: bar.update(task, completed=n))  # type: ignore[misc]
             timings[f"fit_k{k}_s"] = time.perf_counter() - t
             models[k] = model
             t = time.perf_counter()
@@ -213,11 +213,11 @@ def train(cfg: TrainConfig) -> dict:
         plots.append(train_plot.name)
         if test_names:
             for mset, fig in (("full", 6), ("reduced", 7)):
-                p = plot_error_vs_k(
+                test_plot = plot_error_vs_k(
                     out / f"error_test_{mset}.png", errors, test_names, mset,
                     f"Test motions, {mset} set (Fig. {fig} analogue)",
                 )  # fmt: skip
-                plots.append(p.name)
+                plots.append(test_plot.name)
         for k, model in models.items():
             title = f"k={k}: segments, reduced markers (o), joints (x)"
             plots.append(plot_segmentation(out / f"segments_k{k}.png", model, title).name)
@@ -265,7 +265,7 @@ def train(cfg: TrainConfig) -> dict:
 def write_report(path: Path, cfg: TrainConfig, r: dict, plots: list[str], labels: tuple) -> None:
     """The Markdown report tying tables, plots and checks together."""
     ks = r["ks"]
-    L: list[str] = ["# Data-driven shoulder skeleton (seed 000: Hong, Park and Hodgins 2009)", ""]
+    L: list[str] = ["# Data-driven shoulder skeleton (Hong, Park and Hodgins 2009)", ""]
     if cfg.argv:
         L += ["Command:", "", f"    {cfg.argv}", ""]
     frames = ", ".join(f"{n} {f}" for n, f in r["frames"].items())

@@ -34,7 +34,7 @@ def skeleton_dict(model: ShoulderSkeleton, labels: Sequence[str]) -> dict:
                 "parent": None if p < 0 else p,
                 "joint_mm": None if p < 0 else _r(model.joints_[s]),
                 "joint_rms_mm": None if p < 0 else round(float(model.joint_rms_[s]), 3),
-                "markers": [labels[i] for i in np.flatnonzero(model.labels_ == s)],
+                "markers": [labels[int(i)] for i in np.flatnonzero(model.labels_ == s)],
                 "core": [labels[i] for i in model.fit_markers_[s]],
                 "reduced": [labels[i] for i in model.reduced_[s]],
             }

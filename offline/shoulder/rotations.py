@@ -1,4 +1,4 @@
-"""Step 2a: per-triangle rotations and their log map (seed 000, Sec. 3.2).
+"""Step 2a: per-triangle rotations and their log map (Hong et al. 2009, Sec. 3.2).
 
 For triangle ``i`` at frame ``t`` the rotational displacement from the rest pose is the unit
 quaternion ``q_i^t`` of Horn's closed-form absolute orientation [Hor87]: with the centred rest
@@ -8,10 +8,9 @@ eigenvalue of ``N``. The feature of the triangle is ``F_i = [v_i^1 ... v_i^T]`` 
 ``v = log(q)`` the logarithm map of Lee and Shin [LS02]: ``q = (cos|v|, sin|v| v/|v|)``, i.e.
 ``v`` is the rotation axis times *half* the rotation angle, taken on the hemisphere ``w >= 0``.
 
-The eigenvector comes from the labeler's own Horn solver
-(:func:`labeler_service.labeling.kernels.rigid._horn_quaternion`: cyclic Jacobi rotations of ``N``,
-no
-LAPACK call), the one the online labeler's Kabsch fits use. Its plain-numpy twin
+The eigenvector comes from the labeler's own Horn solver through its public, validating entry
+:func:`labeler_service.labeling.geometry.horn_quaternions` (cyclic Jacobi rotations of ``N``, no
+LAPACK call; the one the online labeler's Kabsch fits use). Its plain-numpy twin
 (``numpy.linalg.eigh``) is in tests/shoulder/reference.py.
 """
 
@@ -19,55 +18,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from labeler_service._numba import njit
-from labeler_service.labeling.kernels.rigid import COV0, _cov_add, _horn_quaternion
+from labeler_service.labeling.geometry import horn_quaternions
 
-
-@njit
-def _horn_kernel(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
-    """``ref`` (T,3,3) centred rest triangles, ``cur`` (F,T,3,3) -> ``out`` (F,T,4) (w,x,y,z)."""
-    n_frames, n_tri = cur.shape[0], cur.shape[1]
-    for f in range(n_frames):
-        for i in range(n_tri):
-            # centre the current triangle; NaN anywhere -> NaN quaternion
-            cx = (cur[f, i, 0, 0] + cur[f, i, 1, 0] + cur[f, i, 2, 0]) / 3.0
-            cy = (cur[f, i, 0, 1] + cur[f, i, 1, 1] + cur[f, i, 2, 1]) / 3.0
-            cz = (cur[f, i, 0, 2] + cur[f, i, 1, 2] + cur[f, i, 2, 2]) / 3.0
-            if np.isnan(cx) or np.isnan(cy) or np.isnan(cz):
-                for k in range(4):
-                    out[f, i, k] = np.nan
-                continue
-            cov = COV0
-            for j in range(3):
-                cov = _cov_add(cov, ref[i, j, 0], ref[i, j, 1], ref[i, j, 2],
-                               cur[f, i, j, 0] - cx, cur[f, i, j, 1] - cy,
-                               cur[f, i, j, 2] - cz)  # fmt: skip
-            q0, q1, q2, q3 = _horn_quaternion(cov)
-            sign = 1.0 if q0 >= 0.0 else -1.0
-            out[f, i, 0] = sign * q0
-            out[f, i, 1] = sign * q1
-            out[f, i, 2] = sign * q2
-            out[f, i, 3] = sign * q3
-
-
-def horn_quaternions(ref: np.ndarray, cur: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(F, T, 4)`` (w, x, y, z; w >= 0) rotating each rest triangle onto its
-    current pose by Horn's method [Hor87]; NaN where a vertex is missing.
-
-    ``ref`` is ``(T, 3, 3)`` [triangle, vertex, xyz] rest positions, ``cur`` ``(F, T, 3, 3)``.
-    """
-    ref = np.asarray(ref, dtype=np.float64)
-    cur = np.asarray(cur, dtype=np.float64)
-    if ref.ndim != 3 or ref.shape[1:] != (3, 3):
-        raise ValueError(f"ref must be (triangles, 3, 3), got {ref.shape}")
-    if cur.ndim != 4 or cur.shape[1:] != ref.shape:
-        raise ValueError(f"cur must be (frames, {ref.shape[0]}, 3, 3), got {cur.shape}")
-    if not np.isfinite(ref).all():
-        raise ValueError("ref contains NaN or inf")
-    ref_c = np.ascontiguousarray(ref - ref.mean(axis=1, keepdims=True))
-    out = np.empty((cur.shape[0], cur.shape[1], 4))
-    _horn_kernel(ref_c, np.ascontiguousarray(cur), out)
-    return out
+__all__ = [
+    "continuous_sign",
+    "exp_map",
+    "fill_gaps",
+    "horn_quaternions",
+    "log_map",
+    "triangle_features",
+]
 
 
 def continuous_sign(q: np.ndarray, start: int = 0, max_step_deg: float = 60.0) -> np.ndarray:

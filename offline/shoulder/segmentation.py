@@ -1,4 +1,4 @@
-"""Step 2b: rigid segmentation by k-means with many random restarts (seed 000, Sec. 3.2).
+"""Step 2b: rigid segmentation by k-means with many random restarts (Hong et al. 2009, Sec. 3.2).
 
 Triangles whose log-map feature vectors ``F_i`` (:func:`~offline.shoulder.rotations.
 triangle_features`) are close rotate together. The paper runs standard k-means 1000 times from
@@ -98,7 +98,7 @@ def _lloyd_batch(
 
 
 class RestartKMeans:
-    """k-means keeping the best of ``n_restarts`` random initialisations (seed 000, Sec. 3.2).
+    """k-means keeping the best of ``n_restarts`` random initialisations (Hong et al., Sec. 3.2).
 
     Parameters follow scikit-learn: ``n_clusters``, ``n_restarts`` (paper: 1000), ``max_iter``
     per run, ``batch_size`` restarts per vectorised batch, ``keep_variance`` of the exact

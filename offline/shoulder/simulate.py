@@ -1,4 +1,4 @@
-"""Synthetic dense shoulder capture with ground truth (the data of seed 000, Sec. 3.1, simulated).
+"""Synthetic dense shoulder capture with ground truth (Hong et al. 2009, Sec. 3.1, simulated).
 
 A right upper body is modelled as a 4-bone chain in a rest pose (mm, Z up, X lateral to the
 right, Y anterior):
@@ -132,13 +132,13 @@ def build_body(spacing: float = 27.0) -> ShoulderBody:
         speed = np.hypot(a_x * np.sin(phi), b_y * np.cos(phi))
         phi += spacing / speed
     n_rows = max(2, round((z_hi - z_lo) / spacing) + 1)
-    torso = []
+    rows: list[list[float]] = []
     for i, z in enumerate(np.linspace(z_lo, z_hi, n_rows)):
         for j in range(len(phis) - (i % 2)):
             p = phis[j] if i % 2 == 0 else 0.5 * (phis[j] + phis[j + 1])
             # y > 0 in front: phi = 0 is the lateral side (x = a_x)
-            torso.append([a_x * np.cos(p), b_y * np.sin(p), z])
-    torso = np.asarray(torso)
+            rows.append([a_x * np.cos(p), b_y * np.sin(p), z])
+    torso = np.asarray(rows)
     # girdle share: upper lateral torso, blended over 40 mm
     g = _smoothstep((torso[:, 0] - 75.0) / 40.0) * _smoothstep((torso[:, 2] - 1305.0) / 40.0)
     w_torso = np.zeros((len(torso), 4))

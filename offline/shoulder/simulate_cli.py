@@ -51,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
         motions.append(m)
         written[name] = str(path)
     truth = out / "truth.npz"
-    np.savez_compressed(truth, **truth_arrays(body, motions))
+    arrays: dict = truth_arrays(body, motions)
+    np.savez_compressed(truth, **arrays)
     print(
         json.dumps(
             {

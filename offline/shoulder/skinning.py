@@ -1,4 +1,4 @@
-"""Step 5a: markers to segments, and skin weights (seed 000, Sec. 3.5, after [PH06]).
+"""Step 5a: markers to segments, and skin weights (Hong et al. 2009, Sec. 3.5, after [PH06]).
 
 * Hard label: each marker takes the cluster of most of its (near-rigid) triangles. A marker on
   no clustered triangle takes the segment whose rigid motion predicts it best.

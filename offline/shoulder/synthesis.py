@@ -1,4 +1,4 @@
-"""Step 5b: joint angles from markers, linear-blend-skinning synthesis, errors (seed 000, Sec. 4).
+"""Step 5b: joint angles from markers, skinning synthesis, errors (Hong et al. 2009, Sec. 4).
 
 Pose (joint angles) from a marker set, top-down along the chain: the root bone is a rigid fit
 of its markers; each next bone is the rotation about its joint centre (placed by the already

@@ -1,4 +1,4 @@
-"""Step 1: the marker surface (seed 000, Sec. 3.1, Fig. 1b) and the rest pose.
+"""Step 1: the marker surface (Hong et al. 2009, Sec. 3.1, Fig. 1b) and the rest pose.
 
 The paper meshes its ~200 markers by hand (Park and Hodgins 2006). Here the faces either come
 from a file (``--faces``: one triangle per line, three marker names or 0-based column indices,
@@ -26,9 +26,9 @@ frames (interpolating their rotation across long gaps makes them outliers).
 
 Rest pose: the frame where the most markers are visible (the first such frame); a marker missing
 there takes its sample from the nearest frame in time where it is visible, carried to the rest
-frame by the rigid motion (the labeler's Kabsch kernel,
-:func:`labeler_service.labeling.kernels.rigid.
-_kabsch`) of its six nearest markers visible in both frames.
+frame by the rigid motion (the labeler's Kabsch fit,
+:func:`labeler_service.labeling.geometry.kabsch`) of its six nearest markers visible in both
+frames.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from labeler_service.capture import split_label
 from labeler_service.errors import CaptureFormatError, ModelError
-from labeler_service.labeling.kernels.rigid import _kabsch
+from labeler_service.labeling.geometry import kabsch
 
 
 def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:
@@ -49,7 +49,7 @@ def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:
     pos = np.asarray(positions, dtype=np.float64)
     if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] == 0:
         raise ValueError(f"positions must be (frames, markers, 3), got {pos.shape}")
-    vis = ~np.isnan(pos).any(axis=2)
+    vis = ~np.any(np.isnan(pos), axis=2)
     if not vis.any(axis=0).all():
         raise CaptureFormatError("some markers are never visible: drop them first")
     frame = int(np.argmax(vis.sum(axis=1)))
@@ -62,8 +62,7 @@ def rest_pose(positions: np.ndarray) -> tuple[int, np.ndarray]:
         both = both[both != m]
         if both.size >= 3:
             near = both[np.argsort(np.linalg.norm(pos[g, both] - pos[g, m], axis=1))[:6]]
-            R, t = np.empty((3, 3)), np.empty(3)
-            _kabsch(pos[g, near], pos[frame, near], near.size, R, t)
+            R, t = kabsch(pos[g, near], pos[frame, near])
             rest[m] = R @ pos[g, m] + t
         else:
             rest[m] = pos[g, m]

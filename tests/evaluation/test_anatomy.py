@@ -41,6 +41,12 @@ class _Scripted:
             t, out.astype(np.int32), np.full((m, 3), np.nan, np.float32), np.zeros(m, np.uint8)
         )
 
+    def warmup(self) -> None:
+        pass
+
+    def body_extent(self) -> np.ndarray:
+        return np.full(len(self.marker_names), np.nan)
+
 
 def _swap(out, truth, a, b) -> None:
     ia, ib = np.flatnonzero(truth == a), np.flatnonzero(truth == b)

@@ -37,6 +37,9 @@ class _Oracle:
         self.stream, self.error, self.wrong_every, self.f = stream, error_mm, wrong_every, 0
         self.marker_names = stream.marker_names
 
+    def warmup(self) -> None:
+        pass
+
     def body_extent(self) -> np.ndarray:
         # Like the online labeler: bodies exist only after the training window.
         value = 100.0 if self.f > 0 else np.nan

@@ -60,6 +60,12 @@ class SlowLabeler:
     def marker_names(self):
         return self._names
 
+    def warmup(self):
+        pass
+
+    def body_extent(self):
+        return np.full(len(self._names), np.nan)
+
     def process(self, points, t, labels=None):
         self.calls += 1
         if self.calls in self.fail_on:

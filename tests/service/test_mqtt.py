@@ -237,8 +237,8 @@ def test_a_backlog_over_mqtt_lands_in_the_drop_oldest_queue(broker, rng):
     cap = moving_clusters(rng, frames=105)
     payloads = stream_payloads(cap, rng, init=5, stream="vol")
 
-    def factory(kind, names, rate, config, model_path=None):
-        return SlowLabeler(names, rate, delay_s=0.02)
+    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+        return SlowLabeler(marker_names, rate, delay_s=0.02)
 
     async def go():
         async with Server(_settings(broker, queue_size=4, warmup=False), factory=factory) as srv:

@@ -12,12 +12,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads
 
+from labeler_service.labeling.registry import make_labeler
 from labeler_service.labeling.templates import LabelerModel, save_model
 from labeler_service.labeling.training import train_subject
 from labeler_service.service.protocol import LabeledMsg, ModelMsg, StatusMsg, decode, encode_frame
 from labeler_service.service.server import Server
 from labeler_service.service.settings import load_settings
-from labeler_service.service.stream import make_labeler
 from labeler_service.service.transports.memory import MemoryTransport
 
 
@@ -89,9 +89,9 @@ def test_stream_starts_from_a_model_file(tmp_path, rng):
     save_model(LabelerModel(rate=cap.rate, subjects=subjects), path)
     calls = []
 
-    def factory(kind, names, rate, config, model_path=None):
-        calls.append((names, rate, model_path))
-        return make_labeler("baseline", names, rate, config, model_path=model_path)
+    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+        calls.append((marker_names, rate, model))
+        return make_labeler("baseline", marker_names=marker_names, rate=rate, model=model)
 
     async def go():
         mem = MemoryTransport()
@@ -176,8 +176,8 @@ def test_falling_behind_keeps_the_newest_frames_and_counts_drops(rng):
     cap = moving_clusters(rng, frames=200)
     p = stream_payloads(cap, rng, init=5)
 
-    def factory(kind, names, rate, config, model_path=None):
-        return SlowLabeler(names, rate, delay_s=0.004)
+    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+        return SlowLabeler(marker_names, rate, delay_s=0.004)
 
     async def go():
         mem = MemoryTransport()
@@ -203,8 +203,8 @@ def test_unknown_streams_no_model_and_labeler_failures_are_counted(rng):
     p = stream_payloads(cap, rng, init=10)
     fails = {12, 13}
 
-    def factory(kind, names, rate, config, model_path=None):
-        return SlowLabeler(names, rate, fail_on=fails)
+    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+        return SlowLabeler(marker_names, rate, fail_on=fails)
 
     async def go():
         mem = MemoryTransport()
@@ -246,9 +246,9 @@ def test_status_is_retained_online_then_offline_and_tasks_end(rng):
 def test_warmup_runs_before_ready_and_send_failures_are_counted(rng):
     calls = []
 
-    def factory(kind, names, rate, config, model_path=None):
-        calls.append(names)
-        return make_labeler("baseline", names, rate, config)
+    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+        calls.append(marker_names)
+        return make_labeler("baseline", marker_names=marker_names, rate=rate)
 
     cap = moving_clusters(rng, frames=30)
     p = stream_payloads(cap, rng, init=10)

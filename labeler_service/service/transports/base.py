@@ -8,9 +8,17 @@ A transport is an async context manager (it owns sockets and tasks) with
   (``labeled``, ``model``, ``status``) for ``stream``. ``retain=True`` keeps the latest payload
   per (stream, kind) and replays it to late subscribers (MQTT retained flag; UDP on
   registration) and after reconnects.
-* optionally ``drop_counts()`` — cumulative counts of what the transport dropped itself, by
+* ``drop_counts()`` — cumulative counts of what the transport dropped itself, by
   ``(stream, reason)`` (e.g. ``("", "rx_overflow")``); the server adds the increments to
   ``mocap_dropped_total`` once a second (no per-frame cost).
+* ``subscribe(reply_to, stream)`` — registers the sender of a ``subscribe`` message (UDP);
+  a transport without subscriptions raises :class:`~labeler_service.errors.ProtocolError`
+  (reason ``type``), which the server counts like any rejected message.
+* ``address`` — the ``(host, port)`` the transport serves on (UDP: the bound socket; MQTT: the
+  broker), for the ``ready`` line of ``serve``.
+
+A failed ``send`` raises :class:`~labeler_service.errors.TransportError` (counted as
+``send_error``) or :class:`~labeler_service.errors.ProtocolError` (``output_oversize``).
 
 :class:`~labeler_service.service.transports.memory.MemoryTransport` implements it without sockets
 for
@@ -40,6 +48,8 @@ class Incoming:
 
 
 class Transport(Protocol):
+    """Everything the server uses of a transport (see the module docstring)."""
+
     name: str
 
     async def __aenter__(self) -> Transport: ...
@@ -49,6 +59,13 @@ class Transport(Protocol):
     def messages(self) -> AsyncIterator[Incoming]: ...
 
     async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None: ...
+
+    def subscribe(self, reply_to: Any, stream: str) -> None: ...
+
+    def drop_counts(self) -> dict[tuple[str, str], int]: ...
+
+    @property
+    def address(self) -> tuple[str, int]: ...
 
 
 class DropOldestQueue(Generic[T]):

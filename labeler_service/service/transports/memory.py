@@ -6,6 +6,7 @@ import asyncio
 import time
 from collections.abc import AsyncIterator
 
+from labeler_service.errors import ProtocolError, TransportError
 from labeler_service.service.transports.base import DropOldestQueue, Incoming, iterate_queue
 
 
@@ -15,7 +16,7 @@ class MemoryTransport:
     ``inject(payload)`` delivers a message as if it came from the network; everything the
     server sends lands in ``sent`` (a list of ``(stream, kind, payload, retain)``) and in the
     ``outbox`` queue, which tests await with :meth:`next_sent`. ``retained`` mirrors MQTT's
-    retained messages.
+    retained messages; ``subscribers`` records ``subscribe`` messages as UDP would.
     """
 
     name = "memory"
@@ -28,6 +29,7 @@ class MemoryTransport:
         self.entered = False
         self.closed = False
         self.fail_sends = False  # tests: simulate a broken link
+        self.subscribers: dict[object, str] = {}
 
     async def __aenter__(self) -> MemoryTransport:
         self.entered = True
@@ -42,13 +44,23 @@ class MemoryTransport:
     def messages(self) -> AsyncIterator[Incoming]:
         return iterate_queue(self._in)
 
+    @property
+    def address(self) -> tuple[str, int]:
+        return ("memory", 0)
+
+    def subscribe(self, reply_to: object, stream: str) -> None:
+        """Records a subscriber (the address a test passed to :meth:`inject`)."""
+        if reply_to is None:
+            raise ProtocolError("memory: subscribe needs a reply address", "type")
+        self.subscribers[reply_to] = stream
+
     def drop_counts(self) -> dict[tuple[str, str], int]:
         """Injected messages the full inbox discarded (``rx_overflow``), as UDP and MQTT do."""
         return {("", "rx_overflow"): self._in.dropped}
 
     async def send(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> None:
         if self.fail_sends:
-            raise ConnectionError("memory transport: sends disabled")
+            raise TransportError("memory transport: sends disabled")
         if retain:
             self.retained[(stream, kind)] = payload
         item = (stream, kind, payload, retain)

@@ -10,6 +10,10 @@ stream, each with the will on its own status topic. Reconnection lives outside t
 exponential backoff (``reconnect_min_s`` doubling to ``reconnect_max_s``), re-subscribes and
 re-publishes the retained payloads after every (re)connect. While the broker is down, labeled
 frames for MQTT are counted as ``send_error`` and UDP keeps flowing.
+
+aiomqtt is used through its public API; the three latency needs it has no public spelling for
+(batch reads, fire-and-forget QoS-0 publish, the QoS-0 outgoing bound) live in
+:mod:`._aiomqtt_adapter`, with a guard test.
 """
 
 from __future__ import annotations
@@ -17,16 +21,17 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
-import select
 import socket
 import ssl
-import time
 from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
 
 import aiomqtt
 
+from labeler_service.errors import ProtocolError, TransportError
 from labeler_service.service.protocol import encode_status
 from labeler_service.service.settings import MqttSettings
+from labeler_service.service.transports import _aiomqtt_adapter as adapter
 from labeler_service.service.transports.base import (
     DropOldestQueue,
     Incoming,
@@ -54,46 +59,6 @@ def _tls(settings: MqttSettings) -> aiomqtt.TLSParameters | None:
         keyfile=str(settings.key_file) if settings.key_file else None,
         cert_reqs=ssl.CERT_NONE if settings.tls_insecure else ssl.CERT_REQUIRED,
     )
-
-
-def drain_reads(client: aiomqtt.Client) -> bool:
-    """Makes one socket readiness event read *every* MQTT packet already received.
-
-    aiomqtt's reader calls paho's ``loop_read``, which reads one QoS-0 packet per event, and
-    ``client.messages`` yields one message per event-loop iteration: while the service is busy
-    labeling, a backlog would wait in TCP buffers and aiomqtt's unbounded queue, out of reach of
-    our drop-oldest queues. This reader loops while the socket stays readable (the messages land
-    in aiomqtt's queue, which :meth:`ReconnectingClient.run` empties each time). Relies on
-    aiomqtt 2.x internals (``_client``, ``_disconnected``); returns False, changing nothing, if
-    they are not there.
-    """
-    paho = getattr(client, "_client", None)
-    disconnected = getattr(client, "_disconnected", None)
-    sock = paho.socket() if paho is not None else None
-    if sock is None or disconnected is None:
-        return False
-    fd = sock.fileno()
-    loop = asyncio.get_running_loop()
-
-    def drain() -> None:
-        try:
-            for _ in range(10_000):
-                paho.loop_read()
-                raw = paho.socket()
-                if raw is None:
-                    return
-                pending = getattr(raw, "pending", None)  # TLS: decrypted bytes buffered
-                if pending is not None and pending() > 0:
-                    continue
-                if not select.select([fd], [], [], 0)[0]:
-                    return
-        except Exception as exc:  # a broken connection: let aiomqtt see it, as its reader does
-            if not disconnected.done():
-                disconnected.set_exception(exc)
-
-    loop.remove_reader(fd)
-    loop.add_reader(fd, drain)
-    return True
 
 
 class ReconnectingClient:
@@ -126,7 +91,7 @@ class ReconnectingClient:
 
     def _make(self) -> aiomqtt.Client:
         s = self.settings
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             s.host,
             s.port,
             username=s.username,
@@ -139,7 +104,11 @@ class ReconnectingClient:
             timeout=5.0,
             # small frames must not wait for Nagle + delayed ACK (~40 ms on Linux)
             socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),),
+            # every received message goes straight to on_message (with its receipt time)
+            queue_type=adapter.forwarding_queue(self.on_message),
         )
+        adapter.check_client(client)
+        return client
 
     async def run(self) -> None:
         """Runs until cancelled; never raises for broker trouble."""
@@ -147,8 +116,7 @@ class ReconnectingClient:
         while True:
             try:
                 async with self._make() as client:
-                    drain_reads(client)
-                    pending = getattr(client, "_queue", None)  # aiomqtt's message queue
+                    adapter.install_batch_reader(client)
                     for t in self.topics:
                         await client.subscribe(t, qos=0)
                     if self.on_connect is not None:
@@ -159,13 +127,16 @@ class ReconnectingClient:
                     backoff = self.settings.reconnect_min_s
                     log.info("mqtt %s: connected to %s:%d", self.identifier, self.settings.host,
                              self.settings.port)  # fmt: skip
-                    async for message in client.messages:
-                        now = time.time_ns()
-                        self.on_message(message, now)
-                        # everything else already received goes over now, not one per
-                        # loop iteration (see drain_reads)
-                        while pending is not None and not pending.empty():
-                            self.on_message(pending.get_nowait(), now)
+                    # Python 3.11's wait_for (inside aiomqtt's subscribe/publish) can swallow
+                    # a cancel that lands as it completes; messages already flow (retained
+                    # ones arrive with the SUBACK), so a caller may have cancelled us by now
+                    task = asyncio.current_task()
+                    if task is not None and task.cancelling():
+                        raise asyncio.CancelledError
+                    # messages reach on_message through the forwarding queue as they are
+                    # read; iterating only waits for the disconnect (it raises MqttError)
+                    async for _ in client.messages:
+                        pass
             except aiomqtt.MqttError as exc:
                 task = asyncio.current_task()
                 if task is not None and task.cancelling():
@@ -193,13 +164,10 @@ class ReconnectingClient:
         client = self.client
         if client is None:
             return False
-        paho = getattr(client, "_client", None)
-        backlog = getattr(paho, "_out_packet", None)
-        if qos == 0 and paho is not None and backlog is not None:
-            if len(backlog) >= MAX_OUTGOING:
-                return False
-            info = paho.publish(t, payload, qos=0, retain=retain)
-            return info.rc == 0
+        if qos == 0:
+            return adapter.publish_nowait(
+                client, t, payload, retain=retain, max_outgoing=MAX_OUTGOING
+            )
         try:
             await client.publish(t, payload, qos=qos, retain=retain, timeout=1.0)
         except aiomqtt.MqttError:
@@ -259,6 +227,15 @@ class MqttTransport:
         after a reconnect, so a failed publish of those loses nothing."""
         return {("", "rx_overflow"): self._queue.dropped}
 
+    @property
+    def address(self) -> tuple[str, int]:
+        """The broker's ``(host, port)``."""
+        return (self.settings.host, self.settings.port)
+
+    def subscribe(self, reply_to: Any, stream: str) -> None:
+        """Always refuses: MQTT clients subscribe at the broker (``subscribe`` is UDP only)."""
+        raise ProtocolError("mqtt: subscribe is UDP only (use the broker's topics)", "type")
+
     async def wait_connected(self, timeout: float) -> bool:
         """True when every stream's connection is up within ``timeout`` seconds."""
         try:
@@ -274,6 +251,11 @@ class MqttTransport:
             self._tasks.append(asyncio.create_task(c.run(), name=f"mqtt-{s}"))
         # a short grace period so "starting" reaches the broker; no hard dependency on it
         await self.wait_connected(2.0)
+        for task in self._tasks:
+            if task.done() and not task.cancelled() and task.exception() is not None:
+                tasks, self._tasks = self._tasks, []
+                await cancel_and_wait(tasks)
+                raise TransportError(f"mqtt: {task.exception()}") from task.exception()
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -298,8 +280,8 @@ class MqttTransport:
             qos=1 if kind == "status" else 0,
         )
         if not ok and kind == "labeled":
-            raise ConnectionError(f"mqtt: not connected to {self.settings.host}:"
-                                  f"{self.settings.port}")  # fmt: skip
+            raise TransportError(f"mqtt: not connected to {self.settings.host}:"
+                                 f"{self.settings.port}")  # fmt: skip
 
 
 class MqttEndpoint:

@@ -1,0 +1,117 @@
+"""The one place that builds a labeler: every command, the service and the scorer ask here.
+
+======================  =========================================================================
+kind                    labeler
+======================  =========================================================================
+``online``              :class:`~labeler_service.labeling.labeler.Labeler`, the online labeler of
+                        Yu, Li and Deng (2007): Kalman gating + rigid-body fitting + recovery
+``baseline``            :class:`~labeler_service.labeling.baseline.ClosestPointLabeler`, the
+                        closest-point tracker the paper compares against
+                        (alias ``closest-point``, the name ``evaluate`` reports it under)
+======================  =========================================================================
+
+A labeler starts either from ``marker_names`` (the labeled init frames the caller then feeds
+train it) or from ``model``, a subject template written by ``train structure`` (a
+:class:`~labeler_service.labeling.templates.LabelerModel` or the path of its JSON file).
+The labeler modules are imported only when built, so importing this module stays cheap.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal, Protocol, overload
+
+from labeler_service.errors import LabelerError
+
+if TYPE_CHECKING:
+    from labeler_service.labeling.config import LabelerConfig
+    from labeler_service.labeling.frame import FrameLabeler
+    from labeler_service.labeling.labeler import Labeler
+    from labeler_service.labeling.templates import LabelerModel
+
+#: Every kind :func:`make_labeler` builds (aliases map onto these).
+KINDS: tuple[str, ...] = ("online", "baseline")
+ALIASES: dict[str, str] = {"closest-point": "baseline"}
+
+
+class LabelerFactory(Protocol):
+    """The signature of :func:`make_labeler`; the service accepts any such callable (tests
+    inject slow or failing labelers through it)."""
+
+    def __call__(
+        self,
+        kind: str,
+        *,
+        marker_names: Sequence[str] = (),
+        rate: float,
+        config: LabelerConfig | None = None,
+        model: LabelerModel | str | os.PathLike[str] | None = None,
+    ) -> FrameLabeler: ...
+
+
+@overload
+def make_labeler(
+    kind: Literal["online"],
+    *,
+    marker_names: Sequence[str] = (),
+    rate: float,
+    config: LabelerConfig | None = None,
+    model: LabelerModel | str | os.PathLike[str] | None = None,
+) -> Labeler: ...
+
+
+@overload
+def make_labeler(
+    kind: str,
+    *,
+    marker_names: Sequence[str] = (),
+    rate: float,
+    config: LabelerConfig | None = None,
+    model: LabelerModel | str | os.PathLike[str] | None = None,
+) -> FrameLabeler: ...
+
+
+def make_labeler(
+    kind: str,
+    *,
+    marker_names: Sequence[str] = (),
+    rate: float,
+    config: LabelerConfig | None = None,
+    model: LabelerModel | str | os.PathLike[str] | None = None,
+) -> FrameLabeler:
+    """A labeler of ``kind`` (table above) for ``marker_names`` at ``rate`` Hz.
+
+    With ``model`` the marker set is the model's (``marker_names`` is then ignored) and the
+    online labeler starts from its templates (``Labeler.from_model``); ``config`` tunes the
+    online labeler only. Raises :class:`~labeler_service.errors.LabelerError` for an unknown kind
+    or an empty marker set, :class:`~labeler_service.errors.ModelError` for a bad model file.
+    """
+    name = ALIASES.get(kind, kind)
+    if name not in KINDS:
+        choices = ", ".join((*KINDS, *ALIASES))
+        raise LabelerError(f"unknown labeler kind {kind!r} (choose from {choices})")
+    loaded = _load(model)
+    if name == "baseline":
+        from labeler_service.labeling.baseline import ClosestPointLabeler
+
+        names = loaded.marker_names if loaded is not None else tuple(marker_names)
+        if not names:
+            raise LabelerError("a labeler needs at least one marker name")
+        return ClosestPointLabeler(names, rate)
+    from labeler_service.labeling.labeler import Labeler
+
+    if loaded is not None:
+        return Labeler.from_model(loaded, rate, config)
+    return Labeler(marker_names, rate, config)
+
+
+def _load(model: LabelerModel | str | os.PathLike[str] | None) -> LabelerModel | None:
+    if model is None:
+        return None
+    if isinstance(model, str | os.PathLike):
+        from labeler_service.labeling.templates import load_model
+
+        return load_model(Path(model))
+    return model
