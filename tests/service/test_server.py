@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads
+from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads, until
 
 from labeler_service.labeling.templates import LabelerModel, save_model
 from labeler_service.labeling.training import train_subject
@@ -259,7 +259,7 @@ def test_warmup_runs_before_ready_and_send_failures_are_counted(rng):
             assert len(calls) == 1  # the synthetic warm-up labeler, before ready
             mem.fail_sends = True
             await _feed(mem, p, pause=0.001)
-            await asyncio.sleep(0.1)
+            await until(lambda: srv.metrics.drops("send_error") >= 20, "20 failed sends")
             return srv.metrics
 
     metrics = run(go())
@@ -275,10 +275,15 @@ def test_model_message_repeats_every_second(rng):
         mem = MemoryTransport()
         async with Server(_settings(model_repeat_s=0.1), [mem]):
             await _feed(mem, p, pause=0.001)
-            await asyncio.sleep(0.55)
-        return [k for _, k, _, _ in mem.sent].count("model")
+            await _labeled(mem, 10)
+            n = len(mem.sent)
+            # no new frame comes in: only the repeat task can send the model again
+            await until(lambda: [k for _, k, _, _ in mem.sent[n:]].count("model") >= 5,
+                        "five repeated model messages")  # fmt: skip
+        return [decode(x) for _, k, x, _ in mem.sent[n:] if k == "model"]
 
-    assert run(go()) >= 5
+    repeats = run(go())
+    assert all(isinstance(m, ModelMsg) and len(m.names) == 12 for m in repeats)
 
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -321,7 +326,7 @@ def test_outgoing_kinds_sent_to_the_service_are_rejected(kind):
         mem = MemoryTransport()
         async with Server(_settings(), [mem]) as srv:
             mem.inject(payload)
-            await asyncio.sleep(0.05)
+            await until(lambda: srv.metrics.drops(), "the reject")
             return srv.metrics.drops("type")
 
     assert run(go()) == 1
@@ -361,7 +366,7 @@ def test_a_full_transport_inbox_is_counted_as_rx_overflow():
         async with Server(_settings(warmup=False), [mem]) as srv:
             for _ in range(10):  # no yield: the ingest task cannot drain in between
                 mem.inject(b"")
-            await asyncio.sleep(0.05)
+            await until(lambda: srv.metrics.drops("not_msgpack") >= 4, "the decoder's rejects")
         return srv.metrics
 
     metrics = run(go())
