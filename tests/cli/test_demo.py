@@ -1,0 +1,29 @@
+"""``mocap-labeler demo``, shortened with ``--frames``: the whole job in the suite."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from labeler_service.capture import read_capture
+from labeler_service.cli.main import main
+
+
+def test_short_demo_prints_accuracy_and_writes_its_report(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--frames", "240", "--speed", "4", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    m = re.search(r"^accuracy\s+([0-9.]+) % of visible markers labeled correctly$", text, re.M)
+    assert m, text
+    report = json.loads((out / "report.json").read_text())
+    assert float(m.group(1)) == pytest.approx(100 * report["accuracy"], abs=0.006)
+    assert report["labeler"] == "online" and report["frames"] == 240
+    assert report["accuracy"] >= 0.97
+    assert report["frames_received"] >= 0.95 * (report["frames_sent"] - report["init_frames"])
+    for name in ("latency_histogram.png", "accuracy_over_time.png"):
+        assert (out / name).stat().st_size > 1000
+    labeled = read_capture(out / "labeled.c3d")
+    assert labeled.n_frames == report["frames_received"]
+    assert labeled.rate == pytest.approx(report["rate"])
