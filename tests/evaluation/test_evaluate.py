@@ -33,8 +33,11 @@ CONTRACT_KEYS = {
 class _Oracle:
     """Labels with the truth it is handed, recovers removed markers with a fixed error."""
 
-    def __init__(self, stream, error_mm: float = 0.0, wrong_every: int = 0) -> None:
+    def __init__(
+        self, stream, error_mm: float = 0.0, wrong_every: int = 0, wrong_before: int | None = None
+    ) -> None:
         self.stream, self.error, self.wrong_every, self.f = stream, error_mm, wrong_every, 0
+        self.wrong_before = wrong_before
         self.marker_names = stream.marker_names
 
     def body_extent(self) -> np.ndarray:
@@ -46,7 +49,8 @@ class _Oracle:
         f = self.f
         self.f += 1
         truth = self.stream.truth[f].copy()
-        if self.wrong_every and f % self.wrong_every == 0:
+        early = self.wrong_before is None or f < self.wrong_before
+        if self.wrong_every and f % self.wrong_every == 0 and early:
             truth[truth >= 0] = -1
         m = len(self.marker_names)
         state = np.zeros(m, np.uint8)
@@ -67,9 +71,14 @@ def test_scores_count_only_after_init_window(rng) -> None:
     assert perfect.recovery_mean_mm == pytest.approx(3.0, abs=1e-3)
     assert perfect.recovery_mean_ratio == pytest.approx(0.03, abs=1e-4)
     assert perfect.recovery_rate == 1.0
+    assert np.isnan(perfect.per_frame_accuracy[:20]).all()  # the init window is not scored
+    assert (perfect.per_frame_accuracy[20:] == 1.0).all()
     flawed = score_labeler(_Oracle(stream, wrong_every=10), stream, init_frames=20, method="x")
     # Frames 20, 30, ..., 90 get every label wrong: 8 of 80 scored frames.
     assert flawed.accuracy == pytest.approx(1 - 8 / 80, abs=0.01)
+    # wrong only inside the init window (frames 0, 3, ..., 18): nothing scored is wrong
+    early = _Oracle(stream, wrong_every=3, wrong_before=20)
+    assert score_labeler(early, stream, init_frames=20, method="x").accuracy == 1.0
 
 
 def test_recovery_counts_stay_out_of_the_summary(rng) -> None:
