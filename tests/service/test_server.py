@@ -33,7 +33,7 @@ async def _feed(mem, payloads, pause=0.0):
         await asyncio.sleep(pause)
 
 
-async def _labeled(mem, n, timeout=10.0):
+async def _labeled(mem, n, timeout=30.0):
     out = []
     while len(out) < n:
         msg = decode(await mem.next_sent("labeled", timeout))
@@ -304,7 +304,7 @@ def test_fuzz_server_loop_survives_anything_and_keeps_labeling(garbage):
             got = await _labeled(mem, 20)
             return srv, got
 
-    srv, got = run(go(), timeout=30)
+    srv, got = run(go(), timeout=60)
     assert srv.metrics.drops("internal") == 0
     fuzzed = [m for m in got if m.stream == "fuzzed"]
     assert [m.seq for m in fuzzed][-1] == 29
@@ -372,3 +372,38 @@ def test_a_full_transport_inbox_is_counted_as_rx_overflow():
     metrics = run(go())
     assert metrics.drops("rx_overflow") == 6
     assert metrics.drops("not_msgpack") == 4  # the newest four reached the decoder
+
+
+@pytest.mark.parametrize("thread", [False, True], ids=["inline", "labeling-thread"])
+def test_labeling_thread_setting_moves_labeling_off_the_event_loop(rng, thread):
+    import threading
+
+    seen: list[str] = []
+
+    class _Where(SlowLabeler):
+        def process(self, points, t, labels=None):
+            seen.append(threading.current_thread().name)
+            return super().process(points, t, labels)
+
+    def factory(kind, names, rate, config, model_path=None):
+        return _Where(names, rate)
+
+    cap = moving_clusters(rng, frames=30)
+    p = stream_payloads(cap, rng, init=10)
+
+    async def go():
+        mem = MemoryTransport()
+        s = _settings(labeling_thread=thread, warmup=False)
+        async with Server(s, [mem], factory=factory):
+            await _feed(mem, p, pause=0.001)
+            await _labeled(mem, 20)
+        return threading.current_thread().name
+
+    loop_thread = run(go())
+    assert len(seen) == 30
+    # the first unlabeled frame trains (a worker thread either way); the rest: see the setting
+    after = seen[11:]
+    if thread:
+        assert all(n.startswith("label-default") for n in after), set(after)
+    else:
+        assert all(n == loop_thread for n in after), set(after)
