@@ -213,6 +213,15 @@ MUTANTS: list[Mutant] = [
         k="falling_behind",
     ),
     Mutant(
+        "mqtt-gives-up-reconnecting",
+        "labeler_service/service/transports/mqtt.py",
+        "            backoff = min(backoff * 2, self.settings.reconnect_max_s)",
+        "            backoff = 1e6",
+        (T + "service/test_mqtt.py",),
+        "after a failed reconnect the service waits (practically) forever",
+        k="broker_restart",
+    ),
+    Mutant(
         "non-finite-check-skips-rows",
         "labeler_service/service/protocol.py",
         "    if not np.isfinite(points).all():",

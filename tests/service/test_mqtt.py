@@ -286,7 +286,7 @@ def test_a_backlog_over_mqtt_lands_in_the_drop_oldest_queue(broker, rng):
         return made[-1]
 
     async def go():
-        witness = _Witness(broker, "mocap/vol/unlabeled", 99)
+        witness = _Witness(broker, "mocap/vol/unlabeled", 105)  # 6 paced + the burst
         try:
             assert await asyncio.to_thread(witness.subscribed.wait, 10.0)
             s = _settings(broker, queue_size=4, warmup=False)
