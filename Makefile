@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench mutants clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,11 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/acceptance.py --out reports/acceptance.json
 	$(BIN)/python benchmarks/bench_labeler.py --frames 10000
 	$(BIN)/mocap-labeler bench latency --subjects 10 --rate 360 --seconds 20 --transport udp --json
+
+# a curated mutation check (scripts/mutant_list.py): one JSON line, >= 90 % must be killed
+mutants: $(STAMP)
+	bash scripts/ensure-mosquitto.sh
+	$(BIN)/python scripts/mutants.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -33,8 +33,11 @@ CONTRACT_KEYS = {
 class _Oracle:
     """Labels with the truth it is handed, recovers removed markers with a fixed error."""
 
-    def __init__(self, stream, error_mm: float = 0.0, wrong_every: int = 0) -> None:
+    def __init__(
+        self, stream, error_mm: float = 0.0, wrong_every: int = 0, wrong_before: int | None = None
+    ) -> None:
         self.stream, self.error, self.wrong_every, self.f = stream, error_mm, wrong_every, 0
+        self.wrong_before = wrong_before
         self.marker_names = stream.marker_names
 
     def warmup(self) -> None:
@@ -49,7 +52,8 @@ class _Oracle:
         f = self.f
         self.f += 1
         truth = self.stream.truth[f].copy()
-        if self.wrong_every and f % self.wrong_every == 0:
+        early = self.wrong_before is None or f < self.wrong_before
+        if self.wrong_every and f % self.wrong_every == 0 and early:
             truth[truth >= 0] = -1
         m = len(self.marker_names)
         state = np.zeros(m, np.uint8)
@@ -70,9 +74,14 @@ def test_scores_count_only_after_init_window(rng) -> None:
     assert perfect.recovery_mean_mm == pytest.approx(3.0, abs=1e-3)
     assert perfect.recovery_mean_ratio == pytest.approx(0.03, abs=1e-4)
     assert perfect.recovery_rate == 1.0
+    assert np.isnan(perfect.per_frame_accuracy[:20]).all()  # the init window is not scored
+    assert (perfect.per_frame_accuracy[20:] == 1.0).all()
     flawed = score_labeler(_Oracle(stream, wrong_every=10), stream, init_frames=20, method="x")
     # Frames 20, 30, ..., 90 get every label wrong: 8 of 80 scored frames.
     assert flawed.accuracy == pytest.approx(1 - 8 / 80, abs=0.01)
+    # wrong only inside the init window (frames 0, 3, ..., 18): nothing scored is wrong
+    early = _Oracle(stream, wrong_every=3, wrong_before=20)
+    assert score_labeler(early, stream, init_frames=20, method="x").accuracy == 1.0
 
 
 def test_recovery_counts_stay_out_of_the_summary(rng) -> None:
@@ -89,10 +98,25 @@ def test_evaluate_report_has_contract_keys(rng) -> None:
     report, scores = evaluate(cap, methods=["closest-point"], ghosts=1.0, init_frames=30)
     assert report.keys() >= CONTRACT_KEYS
     assert report["method"] == "closest-point"
-    assert report["accuracy"] == report["baseline_accuracy"] > 0.9
+    assert report["accuracy"] > 0.9
     assert report["frames"] == 120 and report["subjects"] == 2 and report["markers"] == 12
     assert report["recovery_mean_mm"] is None  # the baseline recovers nothing: no number
     assert scores["closest-point"].per_frame_accuracy.shape == (150,)
+
+
+def test_report_keeps_the_labeler_and_the_baseline_apart(rng) -> None:
+    """Crowded fast clusters: the online labeler is right where the closest-point baseline
+    swaps, so ``accuracy`` and ``baseline_accuracy`` must come from different methods."""
+    cap = moving_clusters(rng, subjects=3, markers=8, frames=480, spacing_mm=60.0,
+                          speed_mm_s=900.0)  # fmt: skip
+    report, scores = evaluate(cap, methods=["online", "closest-point"], init_frames=30,
+                              downsample=4)  # fmt: skip
+    assert report["method"] == "online"
+    online, base = scores["online"].accuracy, scores["closest-point"].accuracy
+    assert report["accuracy"] == pytest.approx(online, abs=1e-6) and online >= 0.99
+    assert report["baseline_accuracy"] == pytest.approx(base, abs=1e-6) and base < 0.95
+    assert report["methods"]["closest-point"]["accuracy"] == report["baseline_accuracy"]
+    assert report["methods"]["online"]["accuracy"] == report["accuracy"]
 
 
 def test_unknown_method_and_short_capture(rng) -> None:

@@ -12,7 +12,7 @@ from labeler_service.capture import Capture
 from labeler_service.labeling.frame import LabeledFrame, MarkerState
 from labeler_service.service.protocol import encode_frame
 
-__all__ = ["SlowLabeler", "frames_of", "moving_clusters", "run", "stream_payloads"]
+__all__ = ["SlowLabeler", "frames_of", "moving_clusters", "run", "stream_payloads", "until"]
 
 
 def run(coro, timeout: float = 60.0):
@@ -23,6 +23,20 @@ def run(coro, timeout: float = 60.0):
             return await coro
 
     return asyncio.run(bounded())
+
+
+async def until(predicate, what: str, timeout: float = 30.0, poll: float = 0.01) -> None:
+    """Waits until ``predicate()`` is true: an event, not a clock, decides when a test goes on.
+
+    ``timeout`` is generous (a loaded machine is slow, not wrong); on expiry the test fails
+    naming ``what`` it waited for.
+    """
+    try:
+        async with asyncio.timeout(timeout):
+            while not predicate():
+                await asyncio.sleep(poll)
+    except TimeoutError:
+        raise AssertionError(f"timed out after {timeout:g} s waiting for {what}") from None
 
 
 def frames_of(cap: Capture, rng: np.random.Generator):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads
+from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads, until
 
 from labeler_service.labeling.registry import make_labeler
 from labeler_service.labeling.templates import LabelerModel, save_model
@@ -33,7 +33,7 @@ async def _feed(mem, payloads, pause=0.0):
         await asyncio.sleep(pause)
 
 
-async def _labeled(mem, n, timeout=10.0):
+async def _labeled(mem, n, timeout=30.0):
     out = []
     while len(out) < n:
         msg = decode(await mem.next_sent("labeled", timeout))
@@ -259,7 +259,7 @@ def test_warmup_runs_before_ready_and_send_failures_are_counted(rng):
             assert len(calls) == 1  # the synthetic warm-up labeler, before ready
             mem.fail_sends = True
             await _feed(mem, p, pause=0.001)
-            await asyncio.sleep(0.1)
+            await until(lambda: srv.metrics.drops("send_error") >= 20, "20 failed sends")
             return srv.metrics
 
     metrics = run(go())
@@ -275,10 +275,15 @@ def test_model_message_repeats_every_second(rng):
         mem = MemoryTransport()
         async with Server(_settings(model_repeat_s=0.1), [mem]):
             await _feed(mem, p, pause=0.001)
-            await asyncio.sleep(0.55)
-        return [k for _, k, _, _ in mem.sent].count("model")
+            await _labeled(mem, 10)
+            n = len(mem.sent)
+            # no new frame comes in: only the repeat task can send the model again
+            await until(lambda: [k for _, k, _, _ in mem.sent[n:]].count("model") >= 5,
+                        "five repeated model messages")  # fmt: skip
+        return [decode(x) for _, k, x, _ in mem.sent[n:] if k == "model"]
 
-    assert run(go()) >= 5
+    repeats = run(go())
+    assert all(isinstance(m, ModelMsg) and len(m.names) == 12 for m in repeats)
 
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -299,7 +304,7 @@ def test_fuzz_server_loop_survives_anything_and_keeps_labeling(garbage):
             got = await _labeled(mem, 20)
             return srv, got
 
-    srv, got = run(go(), timeout=30)
+    srv, got = run(go(), timeout=60)
     assert srv.metrics.drops("internal") == 0
     fuzzed = [m for m in got if m.stream == "fuzzed"]
     assert [m.seq for m in fuzzed][-1] == 29
@@ -321,7 +326,7 @@ def test_outgoing_kinds_sent_to_the_service_are_rejected(kind):
         mem = MemoryTransport()
         async with Server(_settings(), [mem]) as srv:
             mem.inject(payload)
-            await asyncio.sleep(0.05)
+            await until(lambda: srv.metrics.drops(), "the reject")
             return srv.metrics.drops("type")
 
     assert run(go()) == 1
@@ -361,9 +366,44 @@ def test_a_full_transport_inbox_is_counted_as_rx_overflow():
         async with Server(_settings(warmup=False), [mem]) as srv:
             for _ in range(10):  # no yield: the ingest task cannot drain in between
                 mem.inject(b"")
-            await asyncio.sleep(0.05)
+            await until(lambda: srv.metrics.drops("not_msgpack") >= 4, "the decoder's rejects")
         return srv.metrics
 
     metrics = run(go())
     assert metrics.drops("rx_overflow") == 6
     assert metrics.drops("not_msgpack") == 4  # the newest four reached the decoder
+
+
+@pytest.mark.parametrize("thread", [False, True], ids=["inline", "labeling-thread"])
+def test_labeling_thread_setting_moves_labeling_off_the_event_loop(rng, thread):
+    import threading
+
+    seen: list[str] = []
+
+    class _Where(SlowLabeler):
+        def process(self, points, t, labels=None):
+            seen.append(threading.current_thread().name)
+            return super().process(points, t, labels)
+
+    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+        return _Where(marker_names, rate)
+
+    cap = moving_clusters(rng, frames=30)
+    p = stream_payloads(cap, rng, init=10)
+
+    async def go():
+        mem = MemoryTransport()
+        s = _settings(labeling_thread=thread, warmup=False)
+        async with Server(s, [mem], factory=factory):
+            await _feed(mem, p, pause=0.001)
+            await _labeled(mem, 20)
+        return threading.current_thread().name
+
+    loop_thread = run(go())
+    assert len(seen) == 30
+    # the first unlabeled frame trains (a worker thread either way); the rest: see the setting
+    after = seen[11:]
+    if thread:
+        assert all(n.startswith("label-default") for n in after), set(after)
+    else:
+        assert all(n == loop_thread for n in after), set(after)

@@ -134,11 +134,15 @@ def test_mg03_half_rotation_and_nnls_weights(rng):
     half = half_rotation(RA, RA @ rel)
     np.testing.assert_allclose(half @ half.transpose(0, 2, 1), np.eye(3)[None].repeat(n, 0),
                                atol=1e-12)  # fmt: skip
+    # relative to the parent: half the angle about the same axis (y), as a rotation vector
     np.testing.assert_allclose(
-        Rotation.from_matrix(np.einsum("fji,fjk->fik", RA, half)).magnitude(),
-        np.abs(np.linspace(-1, 1, n)) / 2,
+        Rotation.from_matrix(np.einsum("fji,fjk->fik", RA, half)).as_rotvec(),
+        np.outer(np.linspace(-1, 1, n) / 2, [0, 1.0, 0]),
         atol=1e-9,
     )
+    # and in the world frame (a relative rotation applied on the wrong side differs here)
+    np.testing.assert_allclose(half, RA @ Rotation.from_rotvec(
+        np.outer(np.linspace(-1, 1, n) / 2, [0, 1.0, 0])).as_matrix(), atol=1e-9)  # fmt: skip
     R = np.stack([RA, RA @ rel], 1)
     t = rng.normal(scale=3.0, size=(n, 2, 3))
     rest = rng.normal(scale=60.0, size=(4, 3))

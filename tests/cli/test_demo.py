@@ -1,0 +1,38 @@
+"""``mocap-labeler demo``, shortened with ``--frames``: the whole job in the suite."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from labeler_service.capture import read_capture
+from labeler_service.cli.main import main
+
+
+@pytest.mark.parametrize("data", ["found", "none"])
+def test_short_demo_prints_accuracy_and_writes_its_report(
+    request, tmp_path, capsys, monkeypatch, data
+):
+    if data == "found":
+        request.getfixturevalue("real_dir")  # skips with a reason when the captures are absent
+    else:  # a fresh clone without the real captures: the built-in simulator
+        (tmp_path / "empty").mkdir()
+        monkeypatch.setenv("MOCAP_DATA_DIR", str(tmp_path / "empty"))
+    out = tmp_path / "demo"
+    assert main(["demo", "--frames", "240", "--speed", "4", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    m = re.search(r"^accuracy\s+([0-9.]+) % of visible markers labeled correctly$", text, re.M)
+    assert m, text
+    report = json.loads((out / "report.json").read_text())
+    assert float(m.group(1)) == pytest.approx(100 * report["accuracy"], abs=0.006)
+    assert report["labeler"] == "online" and report["frames"] == 240
+    assert ("simulated" in report["scene"]) == (data == "none")
+    assert report["accuracy"] >= 0.97
+    assert report["frames_received"] >= 0.95 * (report["frames_sent"] - report["init_frames"])
+    for name in ("latency_histogram.png", "accuracy_over_time.png"):
+        assert (out / name).stat().st_size > 1000
+    labeled = read_capture(out / "labeled.c3d")
+    assert labeled.n_frames == report["frames_received"]
+    assert labeled.rate == pytest.approx(report["rate"])
