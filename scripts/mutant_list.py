@@ -108,9 +108,9 @@ MUTANTS: list[Mutant] = [
     # ------------------------------------------------------------------ service
     Mutant(
         "online-model-file-ignores-the-model",
-        "labeler_service/service/stream.py",
-        "        return Labeler.from_model(load_model(model_path), rate, config)",
-        "        return Labeler(load_model(model_path).marker_names, rate, config)",
+        "labeler_service/labeling/registry.py",
+        "        return Labeler.from_model(loaded, rate, config)",
+        "        return Labeler(loaded.marker_names, rate, config)",
         (ONLINE,),
         "a stream started from a model file trains from its first frames instead",
         k="udp and model-file and inline",
@@ -304,16 +304,16 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "scoring-counts-the-init-window",
         "labeler_service/evaluation/scoring.py",
-        "        if f < init_frames:\n            continue",
-        "        if f < 0:\n            continue",
+        "        if f < self.init_frames:\n            self._seen[truth[real]] = True",
+        "        if f < 0:\n            self._seen[truth[real]] = True",
         (T + "evaluation/test_evaluate.py",),
         "the supervised init frames count as correctly labeled",
     ),
     Mutant(
         "recovery-error-against-the-previous-frame",
         "labeler_service/evaluation/scoring.py",
-        "out.positions[rec].astype(np.float64) - stream.positions[f, rec]",
-        "out.positions[rec].astype(np.float64) - stream.positions[f - 1, rec]",
+        "positions=stream.positions[f], dt_ns=dt",
+        "positions=stream.positions[max(f - 1, 0)], dt_ns=dt",
         (T + "evaluation/test_evaluate.py",),
         "recovery errors are measured against the wrong frame's truth",
     ),
