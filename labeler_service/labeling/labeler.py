@@ -82,6 +82,7 @@ class Labeler:
         self._bodies: Bodies
         self._recovery: Recovery
         self._scratch: Scratch
+        self._fields: tuple[tuple, ...] = ()  # the same as plain tuples, for the kernel call
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -173,6 +174,7 @@ class Labeler:
         n = pts.shape[0]
         if n > self._scratch.owner.shape[0]:
             self._scratch = grow_scratch(self._scratch, n)
+            self._pack()
         ptr = self._frame_no % self._bodies.ring.shape[3]
         self._frame_no += 1
         self._run(pts, dt, ptr)
@@ -185,19 +187,15 @@ class Labeler:
         )
 
     def _run(self, pts: np.ndarray, dt: float, ptr: int) -> None:
-        from labeler_service.labeling.kernels.step import _process_frame
+        from labeler_service.labeling.kernels.step import _process_frame_fields
 
-        _process_frame(
-            pts,
-            dt,
-            ptr,
-            self._frame_no,
-            self._tracks,
-            self._bodies,
-            self._recovery,
-            self._scratch,
-            self._params,
-        )
+        _process_frame_fields(pts, dt, ptr, self._frame_no, *self._fields)
+
+    def _pack(self) -> None:
+        """The kernel call's arguments: each structure as a plain tuple of its (shared) arrays
+        (:func:`~labeler_service.labeling.kernels.step._process_frame_fields` says why)."""
+        state = (self._tracks, self._bodies, self._recovery, self._scratch, self._params)
+        self._fields = tuple(tuple(s) for s in state)
 
     # ------------------------------------------------------------------ training
     def train_model(self) -> LabelerModel:
@@ -277,6 +275,7 @@ class Labeler:
         self._bodies = new_bodies(m, bodies, d0, a0, c.window_T)
         self._recovery = recovery
         self._scratch = new_scratch(m, len(bodies), len(groups), c.K, max(64, 2 * m))
+        self._pack()
 
     def _recovery_sets(
         self,

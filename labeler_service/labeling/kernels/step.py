@@ -19,6 +19,7 @@ from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
+from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.rigid import (
     _contest,
     _max_residual,
@@ -28,7 +29,14 @@ from labeler_service.labeling.kernels.rigid import (
     _verify,
 )
 from labeler_service.labeling.kernels.spatial import _index
-from labeler_service.labeling.kernels.state import NONE, UNDECIDED
+from labeler_service.labeling.kernels.state import (
+    NONE,
+    UNDECIDED,
+    Bodies,
+    Recovery,
+    Scratch,
+    Tracks,
+)
 from labeler_service.labeling.kernels.window import _window_update
 
 
@@ -152,6 +160,29 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     _window_update(bodies, obs, ptr, params.min_window_samples)
     # reference snapshots of the recovery sets
     _snapshot(tracks.age, params.snapshot_age, obs, recovery)
+
+
+@njit
+def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch, params):
+    """:func:`_process_frame` called with each structure as a plain tuple of its fields
+    (``tuple(tracks)``, ...), as the Labeler calls it.
+
+    Numba types every argument of a call from Python; for a named tuple it spells out the class
+    and every field name, which costs about 1 us per structure and frame (+5 us a frame, 1.5 %
+    of a 6-performer frame). A plain tuple takes the fast path; the names come back here, at
+    compile time, for free. Nested structures (``scratch.fit``, ``scratch.kab``) stay named.
+    """
+    _process_frame(
+        points,
+        dt,
+        ptr,
+        frame_no,
+        Tracks(*tracks),
+        Bodies(*bodies),
+        Recovery(*recovery),
+        Scratch(*scratch),
+        Params(*params),
+    )
 
 
 @njit
