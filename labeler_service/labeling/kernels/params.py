@@ -116,8 +116,10 @@ def _doc() -> str:
 
 
 def _params_type() -> Any:
-    # one namedtuple class, pickled by reference (numba's on-disk cache stores argument types)
-    cls = namedtuple("Params", [*_CONVERT, *DERIVED], module=__name__)
+    # one module-level class, pickled by reference (numba's on-disk cache stores argument
+    # types); the fields are computed, so type checkers see a plain factory call
+    factory: Callable[..., Any] = namedtuple
+    cls = factory("Params", [*_CONVERT, *DERIVED], module=__name__)
     cls.__doc__ = _doc()
     return cls
 

@@ -8,6 +8,10 @@ of hidden markers from their bodies (Sec. 3.3; the recovered position also updat
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
 stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
 observed bodies.
+
+The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
+``Scratch``) and the settings ``Params`` of :mod:`.params`; every step reads them by field
+name and updates them in place.
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     x, P, active, state, pos = tracks.x, tracks.P, tracks.active, tracks.state, tracks.pos
     s, assigned, owner, obs = scratch.s, scratch.assigned, scratch.owner, scratch.obs
     rec, has_rec, missing = scratch.rec, scratch.has_rec, scratch.missing
+    age, n_reject = tracks.age, tracks.n_reject
     r, v0 = params.r, params.v0
     m_total = x.shape[0]
     n = points.shape[0]
@@ -118,14 +123,14 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         a = assigned[i]
         if a >= 0:
             missing[i] = False  # the 3D check used it as scratch
-            tracks.n_reject[i] = 0
-            tracks.age[i] += 1
+            n_reject[i] = 0
+            age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
             state[i] = OBSERVED
             for c in range(3):
                 pos[i, c] = obs[i, c]
         else:
-            tracks.age[i] = 0
+            age[i] = 0
             for c in range(3):
                 obs[i, c] = np.nan
             missing[i] = active[i]
@@ -159,7 +164,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     # Eq. 1-2: sliding window
     _window_update(bodies, obs, ptr, params.min_window_samples)
     # reference snapshots of the recovery sets
-    _snapshot(tracks.age, params.snapshot_age, obs, recovery)
+    _snapshot(age, params.snapshot_age, obs, recovery)
 
 
 @njit
@@ -198,7 +203,8 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     """
     x, active, state = tracks.x, tracks.active, tracks.state
     s, assigned, owner, obs = scratch.s, scratch.assigned, scratch.owner, scratch.obs
-    rec, missing, kab = scratch.rec, scratch.missing, scratch.kab
+    rec, missing, kab, rec_ok = scratch.rec, scratch.missing, scratch.kab, recovery.ok
+    src, dst, R, t = kab.src, kab.dst, kab.R, kab.t  # the last Kabsch fit of _set_estimate
     body_markers, body_size = bodies.members, bodies.size
     satisfied = scratch.fit.satisfied  # Algorithm 1's scratch, reused between its passes
     robust_mm = params.robust_fit_mm
@@ -241,13 +247,13 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
         if not missing[i]:
             continue
         kept = 0
-        if recovery.ok[i]:
+        if rec_ok[i]:
             kept = _set_estimate(i, recovery, obs, kab, est4, robust_mm)
         if kept >= 3:
             for c in range(3):
                 rec[i, c] = est4[c]
             s[i] = params.reacquire_estimate_mm
-            if _max_residual(kab.src, kab.dst, kept, kab.R, kab.t) > robust_mm:
+            if _max_residual(src, dst, kept, R, t) > robust_mm:
                 # the neighbours kept still disagree (a joint moved while the marker was
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
