@@ -32,6 +32,7 @@ from labeler_service.labeling.kernels.state import (
     Recovery,
     Scratch,
     Tracks,
+    fields,
     grow_scratch,
     new_bodies,
     new_recovery,
@@ -195,7 +196,7 @@ class Labeler:
         """The kernel call's arguments: each structure as a plain tuple of its (shared) arrays
         (:func:`~labeler_service.labeling.kernels.step._process_frame_fields` says why)."""
         state = (self._tracks, self._bodies, self._recovery, self._scratch, self._params)
-        self._fields = tuple(tuple(s) for s in state)
+        self._fields = tuple(fields(s) for s in state)
 
     # ------------------------------------------------------------------ training
     def train_model(self) -> LabelerModel:

@@ -26,7 +26,8 @@ params)``); leaf kernels that a plain-numpy twin checks (Kalman, gate, Kabsch) k
 **Adding state touches one place**: a field in the NamedTuple and its allocation in the
 builder next to it (the Labeler and the tests build structures only through the builders);
 numba compiles for the new type on first use, and every kernel that receives the structure can
-read the field. Where future state goes is said in each docstring.
+read the field. Where future state goes is said in each docstring. (A new *nested* structure
+also needs its name back in :func:`.step._process_frame_fields`, as ``Scratch.fit`` has.)
 
 Sentinels of the assignment (``Scratch.assigned``, ``owner``) and marker states are named
 module constants (numba reads module-level ints as compile-time constants): ``UNDECIDED``,
@@ -322,6 +323,13 @@ def new_scratch(n_markers: int, n_bodies: int, n_subjects: int, K: int, n_points
         fit=new_fit_scratch(m, n_bodies, K),
         kab=new_kabsch_scratch(),
     )
+
+
+def fields(structure: tuple) -> tuple:
+    """``structure`` as a plain tuple of its fields, nested structures too (the same arrays):
+    how the Labeler passes the state to :func:`.step._process_frame_fields`, which names them
+    again at compile time."""
+    return tuple(fields(v) if isinstance(v, tuple) else v for v in structure)
 
 
 def grow_scratch(scratch: Scratch, n_points: int) -> Scratch:

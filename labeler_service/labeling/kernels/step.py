@@ -37,6 +37,8 @@ from labeler_service.labeling.kernels.state import (
     NONE,
     UNDECIDED,
     Bodies,
+    FitScratch,
+    KabschScratch,
     Recovery,
     Scratch,
     Tracks,
@@ -170,13 +172,15 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
 @njit
 def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch, params):
     """:func:`_process_frame` called with each structure as a plain tuple of its fields
-    (``tuple(tracks)``, ...), as the Labeler calls it.
+    (:func:`.state.fields`), as the Labeler calls it.
 
     Numba types every argument of a call from Python; for a named tuple it spells out the class
-    and every field name, which costs about 1 us per structure and frame (+5 us a frame, 1.5 %
+    and every field name, which costs about 1 us per structure and frame (+6 us a frame, 1.5 %
     of a 6-performer frame). A plain tuple takes the fast path; the names come back here, at
-    compile time, for free. Nested structures (``scratch.fit``, ``scratch.kab``) stay named.
+    compile time, for free (``scratch`` ends with the nested ``fit`` and ``kab``).
     """
+    fit, kab = scratch[-2], scratch[-1]
+    named = scratch[:-2] + (FitScratch(*fit), KabschScratch(*kab))
     _process_frame(
         points,
         dt,
@@ -185,7 +189,7 @@ def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, s
         Tracks(*tracks),
         Bodies(*bodies),
         Recovery(*recovery),
-        Scratch(*scratch),
+        Scratch(*named),
         Params(*params),
     )
 
