@@ -289,31 +289,17 @@ def _fit_bodies(bodies, points, miss_term, scratch, params):
     (missing), ``owner[j]`` = marker or ``NONE``, ``scratch.fit.score[b]`` = Eq. 5 score of the
     assignment each body was satisfied with.
     """
-    body_markers, body_size, mb_ptr, mb_idx = (
-        bodies.members,
-        bodies.size,
-        bodies.mb_ptr,
-        bodies.mb_idx,
-    )
-    Db, Ab = bodies.D, bodies.A
+    body_markers, body_size = bodies.members, bodies.size
+    Db, Ab, mb_ptr, mb_idx = bodies.D, bodies.A, bodies.mb_ptr, bodies.mb_idx
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     assigned, owner = scratch.assigned, scratch.owner
     fit = scratch.fit
-    body_score, pm_idx, satisfied, need, best = (
-        fit.score,
-        fit.pm_idx,
-        fit.satisfied,
-        fit.need,
-        fit.best,
-    )
+    body_score, pm_idx, best = fit.score, fit.pm_idx, fit.best
+    satisfied, need = fit.satisfied, fit.need
     perm, opts, nopts, mot = fit.perm, fit.opts, fit.nopts, fit.mot
     choice, partial, best_choice = fit.choice, fit.partial, fit.best_choice
-    a_floor, a_rel, w, gate = (
-        params.a_floor_mm,
-        params.a_relative,
-        params.motion_weight,
-        params.gate_chi2,
-    )
+    a_floor, a_rel = params.a_floor_mm, params.a_relative
+    w, gate = params.motion_weight, params.gate_chi2
     nb = body_markers.shape[0]
     n_points = points.shape[0]
     miss_mot = np.exp(-0.5 * gate)

@@ -69,20 +69,9 @@ def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
         ncand[i] = 0
         if active[i]:
             radius = np.sqrt(gate * s[i])
+            sc = 1.0 / s[i]
             _candidates(
-                i,
-                pred[i],
-                1.0 / s[i],
-                radius,
-                points,
-                index,
-                anyone,
-                False,
-                gate,
-                K,
-                cand,
-                cand_d2,
-                ncand,
+                i, pred[i], sc, radius, points, index, anyone, False, gate, K, cand, cand_d2, ncand
             )
 
 
@@ -131,19 +120,8 @@ def _regate(centre, lost, points, index, owner, radius, gate, K, cand, cand_d2, 
     ``cand_d2`` is scaled so that the radius maps to ``gate``."""
     for i in range(centre.shape[0]):
         if lost[i]:
-            scale = gate / (radius[i] * radius[i])
+            sc = gate / (radius[i] * radius[i])
+            r = radius[i]
             _candidates(
-                i,
-                centre[i],
-                scale,
-                radius[i],
-                points,
-                index,
-                owner,
-                True,
-                gate,
-                K,
-                cand,
-                cand_d2,
-                ncand,
+                i, centre[i], sc, r, points, index, owner, True, gate, K, cand, cand_d2, ncand
             )

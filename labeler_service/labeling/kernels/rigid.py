@@ -283,12 +283,8 @@ def _snapshot(age, min_age, obs, recovery):
     """Stores the recovery-set positions of every marker whose whole set is observed and has
     been for at least ``min_age`` frames in a row (``age``): a fresh, possibly wrong, assignment
     never becomes the reference that later checks it."""
-    rec_members, rec_size, rec_ref, rec_ok = (
-        recovery.members,
-        recovery.size,
-        recovery.ref,
-        recovery.ok,
-    )
+    rec_members, rec_size = recovery.members, recovery.size
+    rec_ref, rec_ok = recovery.ref, recovery.ok
     for m in range(age.shape[0]):
         n = rec_size[m]
         if n == 0:
@@ -489,13 +485,8 @@ def _contest(points, tracks, recovery, scratch, params):
     Changes ``scratch.assigned``, ``owner``; ``scratch.obs (M, 3)`` holds the observed
     positions (NaN otherwise) and is kept in sync. Returns the number of points handed over.
     """
-    assigned, owner, obs, s, kab = (
-        scratch.assigned,
-        scratch.owner,
-        scratch.obs,
-        scratch.s,
-        scratch.kab,
-    )
+    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    s, kab = scratch.s, scratch.kab
     active, prev_state, x = tracks.active, tracks.state, tracks.x
     gate, jump_mm, verify_mm = params.gate_chi2, params.jump_mm, params.verify_mm
     tau = params.robust_fit_mm

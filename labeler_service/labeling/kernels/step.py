@@ -76,34 +76,16 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, tracks.q, active, dt, params.p_cap)
     if params.common_mode_iters > 0:
-        _common_mode(
-            x,
-            active,
-            tracks.subj_ptr,
-            tracks.subj_idx,
-            points,
-            index,
-            params.common_mode_radius_mm,
-            params.common_mode_iters,
-            scratch.cm_buf,
-            scratch.cm_shift,
-        )
+        subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
+        radius, iters = params.common_mode_radius_mm, params.common_mode_iters
+        buf, shift = scratch.cm_buf, scratch.cm_shift
+        _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, buf, shift)
     for i in range(m_total):
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
-    _gate(
-        x,
-        s,
-        active,
-        points,
-        index,
-        params.gate_chi2,
-        params.K,
-        scratch.cand,
-        scratch.cand_d2,
-        scratch.ncand,
-    )
+    cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
+    _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
     for i in range(m_total):
         assigned[i] = UNDECIDED
@@ -140,16 +122,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             for c in range(3):
                 pos[i, c] = np.nan
     # Sec. 3.3: recovery from rigid bodies
-    _recover(
-        missing,
-        recovery,
-        obs,
-        params.recovery,
-        rec,
-        has_rec,
-        scratch.kab,
-        params.robust_fit_mm,
-    )
+    method, tau = params.recovery, params.robust_fit_mm
+    _recover(missing, recovery, obs, method, rec, has_rec, scratch.kab, tau)
     for i in range(m_total):
         if not missing[i]:
             continue
@@ -265,19 +239,9 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             for c in range(3):
                 rec[i, c] = x[i, c]
             s[i] = params.reacquire_mm
-    _regate(
-        rec,
-        missing,
-        points,
-        index,
-        owner,
-        s,
-        params.gate_chi2,
-        params.K,
-        scratch.cand,
-        scratch.cand_d2,
-        scratch.ncand,
-    )
+    cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
+    gate, K = params.gate_chi2, params.K
+    _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
