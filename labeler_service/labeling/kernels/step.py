@@ -149,7 +149,7 @@ def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, s
     (:func:`.state.fields`), as the Labeler calls it.
 
     Numba types every argument of a call from Python; for a named tuple it spells out the class
-    and every field name, which costs about 1 us per structure and frame (+6 us a frame, 1.5 %
+    and every field name, which costs about 1 us per structure and frame (+5 us a frame, 1.4 %
     of a 6-performer frame). A plain tuple takes the fast path; the names come back here, at
     compile time, for free (``scratch`` ends with the nested ``fit`` and ``kab``).
     """
