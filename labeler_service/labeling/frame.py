@@ -17,11 +17,21 @@ import numpy as np
 
 
 class MarkerState(IntEnum):
-    """Per-marker state in a labeled frame (wire values too)."""
+    """Per-marker state in a labeled frame (wire values too).
+
+    The numba kernels use the plain ``int`` copies below (``MISSING``, ``OBSERVED``,
+    ``RECOVERED``): numba reads module-level ints as compile-time constants, and this enum stays
+    the one definition of the values.
+    """
 
     MISSING = 0  # neither seen nor recovered: position is NaN
     OBSERVED = 1  # a point of this frame carries the label
     RECOVERED = 2  # hidden this frame; position estimated (e.g. from its rigid body)
+
+
+MISSING = int(MarkerState.MISSING)
+OBSERVED = int(MarkerState.OBSERVED)
+RECOVERED = int(MarkerState.RECOVERED)
 
 
 @dataclass(slots=True)

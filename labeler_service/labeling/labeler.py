@@ -25,11 +25,24 @@ from labeler_service.capture import split_label
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState
+from labeler_service.labeling.kernels.params import kernel_params
+from labeler_service.labeling.kernels.state import (
+    MAX_BODY,
+    Bodies,
+    Recovery,
+    Scratch,
+    Tracks,
+    fields,
+    grow_scratch,
+    new_bodies,
+    new_recovery,
+    new_scratch,
+    new_tracks,
+)
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.labeling.training import train_subject
 
 MIN_TRAIN_FRAMES = 3
-V0 = 1.0e6  # initial velocity variance of a new track, (mm/s)^2 (1 m/s deviation)
 
 
 def subjects_of(marker_names: Sequence[str]) -> dict[str, list[int]]:
@@ -57,6 +70,7 @@ class Labeler:
         self._names = names
         self.rate = float(rate)
         self.config = config or LabelerConfig()
+        self._params = kernel_params(self.config)
         self._index = {n: i for i, n in enumerate(names)}
         self._pending: list[tuple[float, np.ndarray]] = []
         self.model: LabelerModel | None = None
@@ -64,6 +78,12 @@ class Labeler:
         self._built = False
         self._t_prev = np.nan
         self._frame_no = 0
+        # the kernel state (kernels/state.py), built from the model by _build
+        self._tracks: Tracks
+        self._bodies: Bodies
+        self._recovery: Recovery
+        self._scratch: Scratch
+        self._fields: tuple[tuple, ...] = ()  # the same as plain tuples, for the kernel call
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -90,7 +110,7 @@ class Labeler:
 
     @property
     def n_bodies(self) -> int:
-        return int(self._body_markers.shape[0]) if self._ready else 0
+        return int(self._bodies.members.shape[0]) if self._ready else 0
 
     def body_extent(self) -> np.ndarray:
         """``(M,)`` mm: per marker the longest marker-pair distance ``D`` of the smallest rigid
@@ -100,10 +120,11 @@ class Labeler:
         out = np.full(m, np.nan)
         if not self._ready:
             return out
-        for b in range(self._body_markers.shape[0]):
-            k = int(self._body_size[b])
-            ext = float(np.nanmax(self._D0[b, :k, :k])) if k > 1 else np.nan
-            for i in self._body_markers[b, :k]:
+        bodies = self._bodies
+        for b in range(bodies.members.shape[0]):
+            k = int(bodies.size[b])
+            ext = float(np.nanmax(bodies.D0[b, :k, :k])) if k > 1 else np.nan
+            for i in bodies.members[b, :k]:
                 if not np.isfinite(out[i]) or ext < out[i]:
                     out[i] = ext
         return out
@@ -152,40 +173,30 @@ class Labeler:
             dt = 1.0 / self.rate
         self._t_prev = t
         n = pts.shape[0]
-        if n > self._owner.shape[0]:
-            self._grow(n)
-        ptr = self._frame_no % self._ring.shape[3]
+        if n > self._scratch.owner.shape[0]:
+            self._scratch = grow_scratch(self._scratch, n)
+            self._pack()
+        ptr = self._frame_no % self._bodies.ring.shape[3]
         self._frame_no += 1
-        self._run(pts, dt, ptr, n)
+        self._run(pts, dt, ptr)
         return LabeledFrame(
             t=t,
-            point_labels=self._point_labels[:n].copy(),
-            positions=self._out_pos.copy(),
-            state=self._out_state.copy(),
+            point_labels=self._scratch.owner[:n].copy(),
+            positions=self._tracks.pos.copy(),
+            state=self._tracks.state.copy(),
             process_us=(time.perf_counter_ns() - t0) / 1e3,
         )
 
-    def _run(self, pts: np.ndarray, dt: float, ptr: int, n: int) -> None:
-        from labeler_service.labeling.kernels.step import _process_frame
+    def _run(self, pts: np.ndarray, dt: float, ptr: int) -> None:
+        from labeler_service.labeling.kernels.step import _process_frame_fields
 
-        c = self.config
-        _process_frame(
-            pts, dt, self._x, self._P, self._q, self._active, self._r, self._r_rec, self._s_min, V0,
-            self._p_cap, c.velocity_decay, c.gate_chi2, c.K, self._s, self._cand,
-            self._cand_d2, self._ncand, self._bodies, self._D0, self._A0, self._ring, ptr, self._s1,
-            self._s2, self._cnt, c.min_window_samples, c.a_floor_mm, c.a_relative, self._miss_term,
-            c.motion_weight, self._rset,
-            self._method, self._assigned,
-            self._owner[:n], self._fit, self._obs, self._rec,
-            self._has_rec, self._missing, self._kab,
-            self._point_labels[:n], self._out_pos, self._out_state, self._subj_ptr,
-            self._subj_idx, c.common_mode_radius_mm, c.common_mode_iters, self._cm_buf,
-            self._cm_shift, c.reacquire_mm, c.verify_mm, c.reacquire_near_mm,
-            self._miss_reacq, c.reacquire_all, c.robust_fit_mm, c.reject_mm,
-            c.jump_mm, c.suspect_mm, self._n_reject, c.reject_limit, self._age, c.snapshot_age,
-            c.reacquire_estimate_mm, c.reacquire_keep_observed, c.verify_every, self._frame_no,
-            c.swap_check, c.contest, c.reacquire_loose_mm,
-        )  # fmt: skip
+        _process_frame_fields(pts, dt, ptr, self._frame_no, *self._fields)
+
+    def _pack(self) -> None:
+        """The kernel call's arguments: each structure as a plain tuple of its (shared) arrays
+        (:func:`~labeler_service.labeling.kernels.step._process_frame_fields` says why)."""
+        state = (self._tracks, self._bodies, self._recovery, self._scratch, self._params)
+        self._fields = tuple(fields(s) for s in state)
 
     # ------------------------------------------------------------------ training
     def train_model(self) -> LabelerModel:
@@ -236,18 +247,14 @@ class Labeler:
         self._ready = True
 
     def _build(self, model: LabelerModel) -> None:
-        """State arrays (struct of arrays) from a template."""
-        from labeler_service.labeling.kernels.fitting import fit_scratch
-        from labeler_service.labeling.kernels.rigid import kabsch_scratch
-
+        """The kernel state (:mod:`~labeler_service.labeling.kernels.state`) from a template."""
         c = self.config
         m = len(self._names)
         bodies: list[list[int]] = []
         d0: list[np.ndarray] = []
         a0: list[np.ndarray] = []
         q = np.full(m, np.nan)
-        self._rec_members = np.full((m, 8), -1, dtype=np.int64)
-        self._rec_size = np.zeros(m, dtype=np.int64)
+        recovery = new_recovery(m)
         for subj in model.subjects:
             try:
                 gidx = [self._index[f"{subj.name}:{mk}"] for mk in subj.markers]
@@ -256,88 +263,28 @@ class Labeler:
             Dm = subj.D_array()
             Am = subj.A_array()
             q[gidx] = subj.motion_noise
-            self._recovery_sets(gidx, Dm, Am, subj.bodies)
+            self._recovery_sets(recovery, gidx, Dm, Am, subj.bodies)
             for body in subj.bodies:
                 bodies.append([gidx[i] for i in body])
                 d0.append(Dm[np.ix_(body, body)])
                 a0.append(Am[np.ix_(body, body)])
-        nb = len(bodies)
-        T = c.window_T
-        self._body_markers = np.full((nb, 8), -1, dtype=np.int32)
-        self._body_size = np.zeros(nb, dtype=np.int32)
-        self._D0 = np.full((nb, 8, 8), np.nan)
-        self._A0 = np.full((nb, 8, 8), np.nan)
-        for b, body in enumerate(bodies):
-            k = len(body)
-            self._body_markers[b, :k] = body
-            self._body_size[b] = k
-            self._D0[b, :k, :k] = d0[b]
-            self._A0[b, :k, :k] = a0[b]
-        self._rec_ref = np.zeros((m, 8, 3))
-        self._rec_ok = np.zeros(m, dtype=np.bool_)
-        self._rset = (self._rec_members, self._rec_size, self._rec_ref, self._rec_ok)
-        self._D = self._D0.copy()
-        self._A = self._A0.copy()
-        self._ring = np.full((nb, 8, 8, T), np.nan, dtype=np.float32)
-        self._s1 = np.zeros((nb, 8, 8))
-        self._s2 = np.zeros((nb, 8, 8))
-        self._cnt = np.zeros((nb, 8, 8), dtype=np.int64)
-        # marker -> bodies (CSR)
-        counts = np.zeros(m + 1, dtype=np.int64)
+        active = np.zeros(m, dtype=np.bool_)
         for body in bodies:
-            for i in body:
-                counts[i + 1] += 1
-        self._mb_ptr = np.cumsum(counts).astype(np.int64)
-        self._mb_idx = np.zeros(max(1, int(self._mb_ptr[-1])), dtype=np.int32)
-        fill = self._mb_ptr[:-1].copy()
-        for b, body in enumerate(bodies):
-            for i in body:
-                self._mb_idx[fill[i]] = b
-                fill[i] += 1
-        self._active = counts[1:] > 0
-        self._bodies = (
-            self._body_markers,
-            self._body_size,
-            self._D,
-            self._A,
-            self._mb_ptr,
-            self._mb_idx,
-        )
-        self._q = np.where(np.isfinite(q), q, 1.0e6)
-        self._x = np.full((m, 6), np.nan)
-        self._P = np.zeros((m, 3))
-        self._r = c.measurement_noise_mm**2
-        self._r_rec = c.recovered_noise_mm**2
-        self._s_min = c.min_gate_mm**2 / c.gate_chi2
-        self._p_cap = c.max_position_sd_mm**2
-        self._miss_term = float(np.exp(-0.5 * c.missing_sigma**2))
-        self._miss_reacq = float(np.exp(-0.5 * c.reacquire_sigma**2))
-        self._method = 1 if c.recovery == "kabsch" else 0
-        K = c.K
-        self._s = np.zeros(m)
-        self._cand = np.zeros((m, K), dtype=np.int32)
-        self._cand_d2 = np.zeros((m, K))
-        self._ncand = np.zeros(m, dtype=np.int32)
-        self._assigned = np.zeros(m, dtype=np.int32)
-        self._fit = fit_scratch(m, nb, K)
-        self._obs = np.full((m, 3), np.nan)
-        self._rec = np.full((m, 3), np.nan)
-        self._has_rec = np.zeros(m, dtype=np.int64)
-        self._missing = np.zeros(m, dtype=np.bool_)
-        self._n_reject = np.zeros(m, dtype=np.int64)
-        self._age = np.zeros(m, dtype=np.int64)
-        self._kab = kabsch_scratch()
+            active[body] = True
         groups = list(subjects_of(self._names).values())
-        self._subj_ptr = np.cumsum([0] + [len(g) for g in groups]).astype(np.int64)
-        self._subj_idx = np.array([i for g in groups for i in g], dtype=np.int64)
-        self._cm_buf = np.zeros((3, m))
-        self._cm_shift = np.zeros((len(groups), 3))
-        self._out_pos = np.full((m, 3), np.nan, dtype=np.float32)
-        self._out_state = np.zeros(m, dtype=np.uint8)
-        self._grow(max(64, 2 * m))
+        self._tracks = new_tracks(np.where(np.isfinite(q), q, 1.0e6), active, groups)
+        self._bodies = new_bodies(m, bodies, d0, a0, c.window_T)
+        self._recovery = recovery
+        self._scratch = new_scratch(m, len(bodies), len(groups), c.K, max(64, 2 * m))
+        self._pack()
 
     def _recovery_sets(
-        self, gidx: list[int], Dm: np.ndarray, Am: np.ndarray, bodies: list[list[int]]
+        self,
+        recovery: Recovery,
+        gidx: list[int],
+        Dm: np.ndarray,
+        Am: np.ndarray,
+        bodies: list[list[int]],
     ) -> None:
         """Recovery set of each body marker: itself and the markers of lowest ``A + w D``."""
         c = self.config
@@ -348,19 +295,14 @@ class Labeler:
         cost = np.where(np.isfinite(cost), cost, np.inf)
         np.fill_diagonal(cost, np.inf)
         cost[:, ~in_body] = np.inf
-        k = min(7, c.recovery_set_size)
+        k = min(MAX_BODY - 1, c.recovery_set_size)
         for i in np.flatnonzero(in_body):
             order = [
                 int(j) for j in np.argsort(cost[i], kind="stable")[:k] if np.isfinite(cost[i, j])
             ]
             members = [gidx[i]] + [gidx[j] for j in order]
-            self._rec_members[gidx[i], : len(members)] = members
-            self._rec_size[gidx[i]] = len(members)
-
-    def _grow(self, n: int) -> None:
-        """(Re)allocates the per-point scratch buffers for up to ``n`` points."""
-        self._owner = np.zeros(n, dtype=np.int32)
-        self._point_labels = np.zeros(n, dtype=np.int32)
+            recovery.members[gidx[i], : len(members)] = members
+            recovery.size[gidx[i]] = len(members)
 
     def _warm_start(self) -> None:
         """Runs the Kalman filter (Eq. 3-4) and the window (Eq. 1-2) over the labeled frames."""
@@ -368,26 +310,23 @@ class Labeler:
         from labeler_service.labeling.kernels.rigid import _snapshot
         from labeler_service.labeling.kernels.window import _window_update
 
-        c = self.config
+        p = self._params
+        tr = self._tracks
         t_prev = np.nan
-        T = self._ring.shape[3]
+        T = self._bodies.ring.shape[3]
         for t, pos in self._pending:
             dt = t - t_prev
             if not (np.isfinite(dt) and dt > 0):
                 dt = 1.0 / self.rate
             t_prev = t
-            _predict(self._x, self._P, self._q, self._active, dt, self._p_cap)
+            _predict(tr.x, tr.P, tr.q, tr.active, dt, p.p_cap)
             obs = pos.astype(np.float64)
-            _update(self._x, self._P, obs, self._active, self._r, V0)
-            _window_update(
-                self._body_markers, self._body_size, obs, self._ring, self._frame_no % T,
-                self._s1, self._s2, self._cnt, self._D0, self._A0, c.min_window_samples,
-                self._D, self._A,
-            )  # fmt: skip
+            _update(tr.x, tr.P, obs, tr.active, p.r, p.v0)
+            _window_update(self._bodies, obs, self._frame_no % T, p.min_window_samples)
             self._frame_no += 1
             seen = np.isfinite(obs[:, 0])
-            self._age = np.where(seen, self._age + 1, 0)
-            _snapshot(self._age, 1, obs, self._rset)
+            tr.age[:] = np.where(seen, tr.age + 1, 0)
+            _snapshot(tr.age, 1, obs, self._recovery)
         self._t_prev = t_prev
 
     # ------------------------------------------------------------------ warm-up

@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 import reference as ref
 
-from labeler_service.labeling.kernels.fitting import _fit_bodies, _search_body, fit_scratch
+from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.kernels.fitting import _fit_bodies, _search_body
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _update
+from labeler_service.labeling.kernels.params import DISPLACEMENT, KABSCH, kernel_params
 from labeler_service.labeling.kernels.rigid import (
     _contest,
     _kabsch,
@@ -16,10 +18,41 @@ from labeler_service.labeling.kernels.rigid import (
     _recover,
     _robust_kabsch,
     _verify,
-    kabsch_scratch,
 )
 from labeler_service.labeling.kernels.spatial import _index
+from labeler_service.labeling.kernels.state import (
+    UNDECIDED,
+    new_bodies,
+    new_kabsch_scratch,
+    new_recovery,
+    new_scratch,
+    new_tracks,
+)
 from labeler_service.labeling.kernels.window import _window_update
+
+
+def _tracks(x, prev_state, n_reject=None):
+    """Tracks of ``len(x)`` active markers (one subject) holding ``x``, the previous frame's
+    ``state`` and ``n_reject`` (the arrays themselves: the kernels change them in place)."""
+    m = x.shape[0]
+    tr = new_tracks(np.full(m, 1e6), np.ones(m, dtype=bool), [range(m)])
+    tr = tr._replace(x=x, state=prev_state)
+    return tr if n_reject is None else tr._replace(n_reject=n_reject)
+
+
+def _recovery(members, size, refs, ok):
+    rc = new_recovery(members.shape[0])
+    rc.members[:] = members
+    rc.size[:] = size
+    rc.ref[:] = refs
+    rc.ok[:] = ok
+    return rc
+
+
+def _scratch(m, n_points, K=3, n_bodies=1, **arrays):
+    """Scratch for ``m`` markers whose ``arrays`` (``assigned``, ``owner``, ...) are the
+    caller's own (changed in place)."""
+    return new_scratch(m, n_bodies, 1, K, n_points)._replace(**arrays)
 
 
 # --------------------------------------------------------------------------- Kalman
@@ -202,10 +235,8 @@ def test_search_prefers_observed_consistent_points_over_missing():
     mot = np.full((8, 3), 0.5)
     perm = np.arange(8)
     best = np.zeros(8, dtype=np.int64)
-    _search_body(
-        3, perm, opts, nopts, mot, Db, Ab, 2.0, 0.0, np.exp(-4.5), 0.25, points,
-        np.zeros(8, dtype=np.int64), np.zeros(18), best,
-    )  # fmt: skip
+    args = (3, perm, opts, nopts, mot, Db, Ab, 2.0, 0.0, np.exp(-4.5), 0.25, points)
+    _search_body(*args, np.zeros(8, dtype=np.int64), np.zeros(18), best)
     assert [int(opts[k, best[k]]) for k in range(3)] == [0, 1, -1]
 
 
@@ -246,12 +277,24 @@ def _random_scene(rng, nb=5, m=14, n_points=18, K=3):
 def _fit(scene, K=3):
     body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, mb_ptr, mb_idx = scene
     m, nb, n = cand.shape[0], body_markers.shape[0], points.shape[0]
-    assigned = np.full(m, -2, dtype=np.int32)
+    members = [list(body_markers[b, : body_size[b]]) for b in range(nb)]
+    k = body_size
+    D0 = [Db[b, : k[b], : k[b]] for b in range(nb)]
+    A0 = [Ab[b, : k[b], : k[b]] for b in range(nb)]
+    bodies = new_bodies(m, members, D0, A0, 2)
+    np.testing.assert_array_equal(bodies.D, Db)  # NaN outside each body, as in the scene
+    # the builder's marker -> bodies index is the scene's
+    np.testing.assert_array_equal(bodies.mb_ptr, mb_ptr)
+    np.testing.assert_array_equal(bodies.mb_idx[: mb_ptr[-1]], mb_idx[: mb_ptr[-1]])
+    assigned = np.full(m, UNDECIDED, dtype=np.int32)
     owner = np.full(n, -1, dtype=np.int32)
-    _fit_bodies(
-        (body_markers, body_size, Db, Ab, mb_ptr, mb_idx), cand, cand_d2, ncand, points, 2.0,
-        0.02, np.exp(-4.5), 0.25, 16.0, assigned, owner, fit_scratch(m, nb, K),
-    )  # fmt: skip
+    scratch = _scratch(
+        m, n, K, nb, cand=cand, cand_d2=cand_d2, ncand=ncand, assigned=assigned, owner=owner
+    )
+    params = kernel_params(
+        LabelerConfig(a_floor_mm=2.0, a_relative=0.02, motion_weight=0.25, gate_chi2=16.0, K=K)
+    )
+    _fit_bodies(bodies, points, np.exp(-4.5), scratch, params)
     return assigned, owner
 
 
@@ -261,9 +304,20 @@ def test_algorithm1_equals_literal_recompute_everything(rng):
         assigned, owner = _fit(scene)
         body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, _, _ = scene
         a_ref, o_ref = ref.fit_bodies(
-            body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, 2.0, 0.02,
-            np.exp(-4.5), 0.25, 16.0,
-        )  # fmt: skip
+            body_markers,
+            body_size,
+            Db,
+            Ab,
+            cand,
+            cand_d2,
+            ncand,
+            points,
+            2.0,
+            0.02,
+            np.exp(-4.5),
+            0.25,
+            16.0,
+        )
         in_body = np.zeros(cand.shape[0], bool)
         for b in range(body_markers.shape[0]):
             in_body[body_markers[b, : body_size[b]]] = True
@@ -277,22 +331,17 @@ def test_algorithm1_equals_literal_recompute_everything(rng):
 # --------------------------------------------------------------------------- Eq. 1-2
 def test_window_matches_twin_with_missing_samples(rng):
     nb, T, m = 2, 7, 6
-    body_markers = np.array([[0, 1, 2, -1, -1, -1, -1, -1], [2, 3, 4, 5, -1, -1, -1, -1]])
-    body_size = np.array([3, 4])
-    ring = np.full((nb, 8, 8, T), np.nan, dtype=np.float32)
-    s1 = np.zeros((nb, 8, 8))
-    s2 = np.zeros((nb, 8, 8))
-    cnt = np.zeros((nb, 8, 8), dtype=np.int64)
-    D0 = np.full((nb, 8, 8), 11.0)
-    A0 = np.full((nb, 8, 8), 3.0)
-    D = D0.copy()
-    A = A0.copy()
+    members = [[0, 1, 2], [2, 3, 4, 5]]
+    D0 = [np.full((len(b), len(b)), 11.0) for b in members]
+    A0 = [np.full((len(b), len(b)), 3.0) for b in members]
+    bodies = new_bodies(m, members, D0, A0, T)
+    body_markers, body_size, D, A = bodies.members, bodies.size, bodies.D, bodies.A
     hist = []
     for f in range(20):
         obs = rng.normal(0, 100, (m, 3))
         obs[rng.random(m) < 0.25] = np.nan
         hist.append(obs)
-        _window_update(body_markers, body_size, obs, ring, f % T, s1, s2, cnt, D0, A0, 3, D, A)
+        _window_update(bodies, obs, f % T, 3)
         for b in range(nb):
             k = body_size[b]
             for i in range(k):
@@ -390,8 +439,9 @@ def test_recover_matches_twin(rng, method):
     obs[6] = np.nan  # not missing, just unseen: fewer neighbours
     rec = np.full((m, 3), np.nan)
     has = np.zeros(m, dtype=np.int64)
-    code = 1 if method == "kabsch" else 0
-    _recover(missing, (members, size, refs, ok), obs, code, rec, has, kabsch_scratch(), 5.0)
+    code = KABSCH if method == "kabsch" else DISPLACEMENT
+    rc = _recovery(members, size, refs, ok)
+    _recover(missing, rc, obs, code, rec, has, new_kabsch_scratch(), 5.0)
     assert (has > 0).tolist() == missing.tolist()
     assert has[1] == 4 and has[4] == 4  # neighbours used (6 is unseen)
     for i in (1, 4):
@@ -423,14 +473,16 @@ def _contest_scene(rng, m=12):
 S_FLOOR = 30.0**2 / 16.27  # innovation variance at the 30 mm gate floor
 
 
-def _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, jump, verify,
-                 s=None):  # fmt: skip
+CHECKS = kernel_params(LabelerConfig(gate_chi2=16.27, jump_mm=8.0, verify_mm=8.0))
+
+
+def _run_contest(assigned, owner, prev, x, points, obs, sets, s=None):
+    """``_contest`` on the caller's arrays (changed in place); ``sets`` = ``(members, size,
+    refs, ok)``; ``jump_mm`` = ``verify_mm`` = 8 mm, ``robust_fit_mm`` = 5 mm (the defaults)."""
     m = assigned.shape[0]
     s = np.full(m, S_FLOOR) if s is None else s
-    return _contest(
-        assigned, owner, np.ones(m, dtype=bool), prev, x, s, 16.27, points, obs,
-        (members, size, refs, ok), jump, verify, kabsch_scratch(), 5.0,
-    )  # fmt: skip
+    scratch = _scratch(m, points.shape[0], assigned=assigned, owner=owner, obs=obs, s=s)
+    return _contest(points, _tracks(x, prev), _recovery(*sets), scratch, CHECKS)
 
 
 def test_contest_returns_a_point_to_its_tracked_marker(rng):
@@ -452,7 +504,7 @@ def test_contest_returns_a_point_to_its_tracked_marker(rng):
     obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
     ok = np.ones(m, dtype=bool)
     state = (assigned.copy(), owner.copy(), obs.copy())
-    n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+    n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok))
     assert n == 1
     assert assigned[3] == 3 and owner[3] == 3 and assigned[7] == -1
     assert np.isnan(obs[7]).all()
@@ -461,18 +513,18 @@ def test_contest_returns_a_point_to_its_tracked_marker(rng):
     # Mahalanobis terms, so it takes it back
     a2, o2, ob2 = (v.copy() for v in state)
     prev[3] = 2
-    assert _run_contest(a2, o2, prev, x, points, ob2, members, size, refs, ok, 8.0, 8.0) == 1
+    assert _run_contest(a2, o2, prev, x, points, ob2, (members, size, refs, ok)) == 1
     assert a2[3] == 3 and a2[7] == -1
     # ... but not when it predicts the point 15 mm off (not a quarter of 25 mm, squared) ...
     a3, o3, ob3 = (v.copy() for v in state)
     x3 = x.copy()
     x3[3, :3] = pos[3] + np.array([0.0, 0.0, 15.0])
-    assert _run_contest(a3, o3, prev, x3, points, ob3, members, size, refs, ok, 8.0, 8.0) == 0
+    assert _run_contest(a3, o3, prev, x3, points, ob3, (members, size, refs, ok)) == 0
     np.testing.assert_array_equal(a3, state[0])
     # ... unless the holder's own prediction is sharper (its 25 mm jump is then implausible)
     s = np.full(m, S_FLOOR)
     s[7] = 0.25 * S_FLOOR
-    assert _run_contest(a3, o3, prev, x3, points, ob3, members, size, refs, ok, 8.0, 8.0, s) == 1
+    assert _run_contest(a3, o3, prev, x3, points, ob3, (members, size, refs, ok), s) == 1
     assert a3[3] == 3
 
 
@@ -491,13 +543,9 @@ def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
     obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
     prev = np.ones(m, dtype=np.uint8)
     ok = np.zeros(m, dtype=bool)  # no rigid veto either way
-    assert (
-        _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0) == 0
-    )
+    assert _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok)) == 0
     prev[9] = 2  # the same prediction from a marker that was hidden: it takes the point
-    assert (
-        _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0) == 1
-    )
+    assert _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok)) == 1
     assert assigned[9] == 6 and assigned[6] == -1
 
 
@@ -516,7 +564,7 @@ def test_contest_keeps_a_point_the_holders_body_supports(rng):
     obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
     prev = np.ones(m, dtype=np.uint8)
     ok = np.ones(m, dtype=bool)
-    n = _run_contest(assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0)
+    n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok))
     assert n == 0
     assert assigned[5] == 5 and assigned[2] == -1
 
@@ -543,14 +591,25 @@ def test_contest_matches_twin(rng):
         obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
         s = S_FLOOR * rng.choice([1.0, 1.0, 4.0], size=m)  # some markers hidden for a while
         a_r, o_r, ob_r = assigned.copy(), owner.copy(), obs.copy()
-        n = _run_contest(
-            assigned, owner, prev, x, points, obs, members, size, refs, ok, 8.0, 8.0, s
-        )
+        n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok), s)
         mem = [list(members[i, : size[i]]) for i in range(m)]
         n_r = ref.contest(
-            a_r, o_r, np.ones(m, dtype=bool), prev, x, s, 16.27, points, ob_r, mem, refs, ok, 8.0,
-            8.0, 5.0,
-        )  # fmt: skip
+            a_r,
+            o_r,
+            np.ones(m, dtype=bool),
+            prev,
+            x,
+            s,
+            16.27,
+            points,
+            ob_r,
+            mem,
+            refs,
+            ok,
+            8.0,
+            8.0,
+            5.0,
+        )
         assert n == n_r, trial
         moved += n
         np.testing.assert_array_equal(assigned, a_r)
@@ -561,12 +620,16 @@ def test_contest_matches_twin(rng):
 
 # --------------------------------------------------------------------------- 3D check
 def _run_verify(assigned, owner, prev, x, points, obs, members, size, refs, n_reject, limit):
+    """``_verify`` on the caller's arrays (changed in place), every marker a single candidate:
+    the default distances (verify 8, near 12, reject 25, jump 8, robust fit 5 mm), no suspect
+    points, no round robin, swaps allowed."""
     m = assigned.shape[0]
-    return _verify(
-        assigned, owner, np.ones(m, dtype=np.int32), np.ones(m, dtype=bool), prev, x, points,
-        _index(points), obs, (members, size, refs, np.ones(m, dtype=bool)), 8.0, 12.0, 25.0, 8.0,
-        0.0, np.zeros(m, dtype=bool), kabsch_scratch(), 5.0, n_reject, limit, 0, 0, True,
-    )  # fmt: skip
+    ncand = np.ones(m, dtype=np.int32)
+    scratch = _scratch(m, points.shape[0], assigned=assigned, owner=owner, obs=obs, ncand=ncand)
+    rc = _recovery(members, size, refs, np.ones(m, dtype=bool))
+    params = kernel_params(LabelerConfig(suspect_mm=0.0, verify_every=0, reject_limit=limit))
+    tracks = _tracks(x, prev, n_reject)
+    return _verify(points, _index(points), 0, tracks, rc, scratch, params)
 
 
 @pytest.mark.parametrize(

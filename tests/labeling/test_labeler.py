@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from labeling.scene import articulated, frame_points
@@ -195,3 +197,31 @@ def test_body_extent_after_training(rng):
     run(lab, rng, pos)
     ext = lab.body_extent()
     assert np.all(np.isfinite(ext)) and np.all((ext > 10) & (ext < 600))
+
+
+def test_named_entry_and_field_tuple_entry_agree(rng):
+    """The Labeler calls the per-frame kernel with plain tuples (fast to type); the named entry
+    it forwards to gives the same frames, state included."""
+    from labeler_service.labeling.kernels.step import _process_frame
+
+    pos, names = articulated(rng, subjects=2, frames=90)
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    hidden[60:75, names.index("P1:b2")] = True
+    a = Labeler(names, 120.0)
+    run(a, rng, pos[: INIT + 5])
+    b = copy.deepcopy(a)
+
+    def named(pts, dt, ptr):
+        _process_frame(
+            pts, dt, ptr, b._frame_no, b._tracks, b._bodies, b._recovery, b._scratch, b._params
+        )
+
+    b._run = named
+    for f in range(INIT + 5, pos.shape[0]):
+        pts, _ = frame_points(rng, pos[f], hidden[f])
+        oa, ob = a.process(pts, f / 120.0), b.process(pts, f / 120.0)
+        np.testing.assert_array_equal(oa.point_labels, ob.point_labels)
+        np.testing.assert_array_equal(oa.positions, ob.positions)
+        np.testing.assert_array_equal(oa.state, ob.state)
+    np.testing.assert_array_equal(a._tracks.x, b._tracks.x)
+    np.testing.assert_array_equal(a._bodies.D, b._bodies.D)

@@ -54,7 +54,8 @@ def test_nearest_equals_a_full_scan(rng, which):
 def test_index_sorts_along_the_wider_axis_and_puts_non_finite_last(rng):
     points = _cloud(rng, 50)
     points[:, 1] *= 0.1  # x is now the wide axis
-    order, keys, axis = _index(points)
+    index = _index(points)
+    order, keys, axis = index.order, index.keys, index.axis  # a SweepIndex, read by name
     assert axis == 0
     assert np.all(np.diff(keys[np.isfinite(keys)]) >= 0)
     assert sorted(order.tolist()) == list(range(50))

@@ -9,5 +9,9 @@ and each kernel has a plain-numpy twin in ``tests/reference.py``.
   Algorithm 1;
 - :mod:`.rigid`: Kabsch fit and missing-marker recovery (Sec. 3.3);
 - :mod:`.window`: sliding-window update of D and A (Eq. 1-2);
-- :mod:`.frame`: the whole per-frame loop, one entry point.
+- :mod:`.spatial`: the sweep index behind every "points near here" query;
+- :mod:`.step`: the whole per-frame loop, one entry point;
+- :mod:`.state`: the state it works on, as named structures (``Tracks``, ``Bodies``,
+  ``Recovery``, ``Scratch``) and their builders;
+- :mod:`.params`: every setting as one named tuple ``Params``, built from ``LabelerConfig``.
 """

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
+from labeler_service.labeling.kernels.state import MAX_BODY, NONE, UNDECIDED
 
 
 @njit
@@ -164,10 +165,10 @@ def _build_options(
     increasing number of options). Returns the member count."""
     n = body_size[b]
     # counts per member for ordering
-    cnt = np.empty(8, np.int64)
+    cnt = np.empty(MAX_BODY, np.int64)
     for k in range(n):
         mk = body_markers[b, k]
-        if assigned[mk] != -2:
+        if assigned[mk] != UNDECIDED:
             cnt[k] = 0
         else:
             c = 1
@@ -188,7 +189,7 @@ def _build_options(
     for k in range(n):
         mk = body_markers[b, perm[k]]
         a = assigned[mk]
-        if a != -2:
+        if a != UNDECIDED:
             opts[k, 0] = a
             mot[k, 0] = miss_mot
             if a >= 0:
@@ -205,7 +206,7 @@ def _build_options(
                 opts[k, c] = j
                 mot[k, c] = np.exp(-0.5 * cand_d2[mk, o])
                 c += 1
-        opts[k, c] = -1
+        opts[k, c] = NONE
         mot[k, c] = miss_mot
         nopts[k] = c + 1
     return n
@@ -267,7 +268,7 @@ def _still_feasible(b, body_markers, body_size, assigned, owner, best):
         mk = body_markers[b, k]
         q = best[b, k]
         a = assigned[mk]
-        if a != -2:
+        if a != UNDECIDED:
             if a != q:
                 return False
         elif q >= 0 and owner[q] >= 0:
@@ -275,44 +276,30 @@ def _still_feasible(b, body_markers, body_size, assigned, owner, best):
     return True
 
 
-def fit_scratch(n_markers: int, n_bodies: int, K: int) -> tuple:
-    """Preallocated scratch of :func:`_fit_bodies` (one per labeler): ``body_score (B,)``,
-    ``pm_idx (M K,)``, ``satisfied (B,)``, ``need (B,)``, ``best (B, 8)``, and the per-body
-    search buffers ``perm``, ``opts``, ``nopts``, ``mot``, ``choice``, ``partial``,
-    ``best_choice`` (bodies have at most 8 markers, each at most ``K`` + 1 options)."""
-    return (
-        np.zeros(n_bodies),
-        np.zeros(max(1, n_markers * K), dtype=np.int32),
-        np.zeros(n_bodies, dtype=np.bool_),
-        np.zeros(n_bodies, dtype=np.bool_),
-        np.zeros((n_bodies, 8), dtype=np.int32),
-        np.zeros(8, dtype=np.int64),
-        np.zeros((8, K + 1), dtype=np.int64),
-        np.zeros(8, dtype=np.int64),
-        np.zeros((8, K + 1)),
-        np.zeros(8, dtype=np.int64),
-        np.zeros(18),
-        np.zeros(8, dtype=np.int64),
-    )
-
-
 @njit
-def _fit_bodies(
-    bodies, cand, cand_d2, ncand, points, a_floor, a_rel, miss_term, w, gate, assigned, owner,
-    scratch,
-):  # fmt: skip
+def _fit_bodies(bodies, points, miss_term, scratch, params):
     """Algorithm 1: satisfy the best-scoring body, fix its markers and points, recompute only
     the bodies whose candidate sets changed, until every body is satisfied.
 
-    In: ``assigned (M,)`` = -2 (undecided) or fixed (point, -1), ``owner (N,)`` = -1 or fixed.
-    Out: ``assigned[m]`` = point index or -1 (missing), ``owner[j]`` = marker or -1,
-    ``body_score[b]`` = Eq. 5 score of the assignment each body was satisfied with.
-    ``bodies`` = ``(body_markers (B, 8), body_size (B,), D (B, 8, 8), A (B, 8, 8), mb_ptr,
-    mb_idx)`` (marker -> bodies CSR); ``scratch`` from :func:`fit_scratch`.
+    Reads the gate's ``scratch.cand``, ``cand_d2``, ``ncand`` and the structure model
+    ``bodies`` (:class:`.state.Bodies`); ``miss_term`` is the Eq. 5 score of a missing
+    marker's link (``params.miss_term``, or ``params.miss_reacq`` in the wide pass).
+    In: ``scratch.assigned (M,)`` = ``UNDECIDED`` or fixed (point, ``NONE``),
+    ``scratch.owner (N,)`` = ``NONE`` or fixed. Out: ``assigned[m]`` = point index or ``NONE``
+    (missing), ``owner[j]`` = marker or ``NONE``, ``scratch.fit.score[b]`` = Eq. 5 score of the
+    assignment each body was satisfied with.
     """
-    body_markers, body_size, Db, Ab, mb_ptr, mb_idx = bodies
-    body_score, pm_idx, satisfied, need, best = scratch[:5]
-    perm, opts, nopts, mot, choice, partial, best_choice = scratch[5:]
+    body_markers, body_size = bodies.members, bodies.size
+    Db, Ab, mb_ptr, mb_idx = bodies.D, bodies.A, bodies.mb_ptr, bodies.mb_idx
+    cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
+    assigned, owner = scratch.assigned, scratch.owner
+    fit = scratch.fit
+    body_score, pm_idx, best = fit.score, fit.pm_idx, fit.best
+    satisfied, need = fit.satisfied, fit.need
+    perm, opts, nopts, mot = fit.perm, fit.opts, fit.nopts, fit.mot
+    choice, partial, best_choice = fit.choice, fit.partial, fit.best_choice
+    a_floor, a_rel = params.a_floor_mm, params.a_relative
+    w, gate = params.motion_weight, params.gate_chi2
     nb = body_markers.shape[0]
     n_points = points.shape[0]
     miss_mot = np.exp(-0.5 * gate)
@@ -329,7 +316,7 @@ def _fit_bodies(
         # a body with no undecided marker is satisfied already (second pass, re-acquisition)
         und = False
         for k in range(body_size[b]):
-            if assigned[body_markers[b, k]] == -2:
+            if assigned[body_markers[b, k]] == UNDECIDED:
                 und = True
                 break
         satisfied[b] = not und
@@ -343,19 +330,44 @@ def _fit_bodies(
             need[b] = False
             if satisfied[b]:
                 continue
-            if body_score[b] >= 0.0 and _still_feasible(b, body_markers, body_size, assigned,
-                                                        owner, best):  # fmt: skip
+            if body_score[b] >= 0.0 and _still_feasible(
+                b, body_markers, body_size, assigned, owner, best
+            ):
                 continue
             n = _build_options(
-                b, body_markers, body_size, assigned, owner, cand, cand_d2, ncand, miss_mot, perm,
-                opts, nopts, mot,
-            )  # fmt: skip
+                b,
+                body_markers,
+                body_size,
+                assigned,
+                owner,
+                cand,
+                cand_d2,
+                ncand,
+                miss_mot,
+                perm,
+                opts,
+                nopts,
+                mot,
+            )
             s = _search_body(
-                n, perm, opts, nopts, mot, Db[b], Ab[b], a_floor, a_rel, miss_term, w, points,
-                choice, partial, best_choice,
-            )  # fmt: skip
-            for k in range(8):
-                best[b, k] = -1
+                n,
+                perm,
+                opts,
+                nopts,
+                mot,
+                Db[b],
+                Ab[b],
+                a_floor,
+                a_rel,
+                miss_term,
+                w,
+                points,
+                choice,
+                partial,
+                best_choice,
+            )
+            for k in range(MAX_BODY):
+                best[b, k] = NONE
             for k in range(n):
                 best[b, perm[k]] = opts[k, best_choice[k]]
             body_score[b] = s
@@ -379,7 +391,7 @@ def _fit_bodies(
         # lines 13-19: fix its markers and points; flag bodies whose candidates changed
         for k in range(body_size[r]):
             mk = body_markers[r, k]
-            if assigned[mk] != -2:
+            if assigned[mk] != UNDECIDED:
                 continue
             q = best[r, k]
             assigned[mk] = q

@@ -39,12 +39,13 @@ def _insert(i, j, d2, K, cand, cand_d2, ncand):
 
 
 @njit
-def _candidates(i, centre, scale, radius, points, index, owner, free_only, gate, K, cand, cand_d2,
-                ncand):  # fmt: skip
+def _candidates(
+    i, centre, scale, radius, points, index, owner, free_only, gate, K, cand, cand_d2, ncand
+):
     """Marker ``i``'s candidates: the ``K`` points (free ones only with ``free_only``) whose
     ``|y - centre|^2 * scale`` is under ``gate``, i.e. within ``radius`` mm, best first."""
     ncand[i] = 0
-    order = index[0]
+    order = index.order
     px, py, pz = centre[0], centre[1], centre[2]
     lo, hi = _span(index, centre, radius)
     for k in range(lo, hi):
@@ -67,8 +68,11 @@ def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
     for i in range(pred.shape[0]):
         ncand[i] = 0
         if active[i]:
-            _candidates(i, pred[i], 1.0 / s[i], np.sqrt(gate * s[i]), points, index, anyone,
-                        False, gate, K, cand, cand_d2, ncand)  # fmt: skip
+            radius = np.sqrt(gate * s[i])
+            sc = 1.0 / s[i]
+            _candidates(
+                i, pred[i], sc, radius, points, index, anyone, False, gate, K, cand, cand_d2, ncand
+            )
 
 
 @njit
@@ -116,5 +120,8 @@ def _regate(centre, lost, points, index, owner, radius, gate, K, cand, cand_d2, 
     ``cand_d2`` is scaled so that the radius maps to ``gate``."""
     for i in range(centre.shape[0]):
         if lost[i]:
-            _candidates(i, centre[i], gate / (radius[i] * radius[i]), radius[i], points, index,
-                        owner, True, gate, K, cand, cand_d2, ncand)  # fmt: skip
+            sc = gate / (radius[i] * radius[i])
+            r = radius[i]
+            _candidates(
+                i, centre[i], sc, r, points, index, owner, True, gate, K, cand, cand_d2, ncand
+            )

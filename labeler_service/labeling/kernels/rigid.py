@@ -18,7 +18,10 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
+from labeler_service.labeling.frame import OBSERVED
+from labeler_service.labeling.kernels.params import KABSCH
 from labeler_service.labeling.kernels.spatial import FREE, OWNED, _nearest
+from labeler_service.labeling.kernels.state import NONE
 
 
 @njit
@@ -213,18 +216,12 @@ def _robust_kabsch(src, dst, n, R, t, tau):
             dst[wi, a] = dst[n, a]
 
 
-def kabsch_scratch() -> tuple:
-    """``(src (8, 3), dst (8, 3), R (3, 3), t (3,))``: the buffers of one Kabsch fit over a
-    recovery set (at most 8 members)."""
-    return np.zeros((8, 3)), np.zeros((8, 3)), np.zeros((3, 3)), np.zeros(3)
-
-
 @njit
-def _gather(m, rset, obs, src, dst):
+def _gather(m, recovery, obs, src, dst):
     """Pairs (reference, observed) of ``m``'s recovery-set members seen this frame into
-    ``src``/``dst``; returns how many. ``rset`` = ``(rec_members (M, 8), rec_size (M,),
-    rec_ref (M, 8, 3), rec_ok (M,))``, the recovery sets of the module docstring."""
-    rec_members, rec_size, rec_ref = rset[:3]
+    ``src``/``dst``; returns how many (``recovery``: :class:`.state.Recovery`, the recovery
+    sets of the module docstring)."""
+    rec_members, rec_size, rec_ref = recovery.members, recovery.size, recovery.ref
     c = 0
     for k in range(1, rec_size[m]):
         mk = rec_members[m, k]
@@ -249,26 +246,27 @@ def _place(m, rec_ref, R, t, out):
 
 
 @njit
-def _recover(missing, rset, obs, method, rec, has_rec, kab, tau):
+def _recover(missing, recovery, obs, method, rec, has_rec, kab, tau):
     """Recovers every marker with ``missing[m]`` into ``rec (M, 3)``.
 
     ``has_rec[m]`` receives how many neighbours were used (0 = not recovered). The recovery set
-    of ``m`` is ``rec_members[m, 1:rec_size[m]]`` (``rec_members[m, 0]`` is ``m``); ``rec_ref[m]``
-    holds the set's positions the last time all were observed; ``obs (M, 3)`` this frame's
-    observed positions (NaN otherwise). ``method`` 1 = Kabsch (3+ observed), else (or with
-    fewer) displacement averaging. ``kab``: :func:`kabsch_scratch`.
+    of ``m`` is ``recovery.members[m, 1:size[m]]`` (``members[m, 0]`` is ``m``);
+    ``recovery.ref[m]`` holds the set's positions the last time all were observed; ``obs (M, 3)``
+    this frame's observed positions (NaN otherwise). ``method`` ``KABSCH`` (3+ observed), else
+    (or with fewer) displacement averaging (``DISPLACEMENT``, :mod:`.params`). ``kab``:
+    :class:`.state.KabschScratch`; ``tau``: ``robust_fit_mm``.
     """
-    rec_ref, rec_ok = rset[2:]
-    src, dst, R, t = kab
+    rec_ref, rec_ok = recovery.ref, recovery.ok
+    src, dst, R, t = kab.src, kab.dst, kab.R, kab.t
     m_total = missing.shape[0]
     for m in range(m_total):
         has_rec[m] = 0
         if not missing[m] or not rec_ok[m]:
             continue
-        c = _gather(m, rset, obs, src, dst)
+        c = _gather(m, recovery, obs, src, dst)
         if c == 0:
             continue
-        if method == 1 and c >= 3:
+        if method == KABSCH and c >= 3:
             _robust_kabsch(src, dst, c, R, t, tau)
             _place(m, rec_ref, R, t, rec[m])
         else:
@@ -281,11 +279,12 @@ def _recover(missing, rset, obs, method, rec, has_rec, kab, tau):
 
 
 @njit
-def _snapshot(age, min_age, obs, rset):
+def _snapshot(age, min_age, obs, recovery):
     """Stores the recovery-set positions of every marker whose whole set is observed and has
     been for at least ``min_age`` frames in a row (``age``): a fresh, possibly wrong, assignment
     never becomes the reference that later checks it."""
-    rec_members, rec_size, rec_ref, rec_ok = rset
+    rec_members, rec_size = recovery.members, recovery.size
+    rec_ref, rec_ok = recovery.ref, recovery.ok
     for m in range(age.shape[0]):
         n = rec_size[m]
         if n == 0:
@@ -303,44 +302,20 @@ def _snapshot(age, min_age, obs, rset):
 
 
 @njit
-def _set_estimate(m, rset, obs, kab, out, tau):
+def _set_estimate(m, recovery, obs, kab, out, tau):
     """Kabsch estimate of marker ``m`` from its observed recovery-set members (3+ needed);
     returns the number of members the robust fit kept (0 when fewer than 3 were observed)."""
-    src, dst, R, t = kab
-    c = _gather(m, rset, obs, src, dst)
+    src, dst, R, t = kab.src, kab.dst, kab.R, kab.t
+    c = _gather(m, recovery, obs, src, dst)
     if c < 3:
         return 0
     c = _robust_kabsch(src, dst, c, R, t, tau)
-    _place(m, rset[2], R, t, out)
+    _place(m, recovery.ref, R, t, out)
     return c
 
 
 @njit
-def _verify(
-    assigned,
-    owner,
-    ncand,
-    active,
-    prev_state,
-    x,
-    points,
-    index,
-    obs,
-    rset,
-    verify_mm,
-    reacquire_mm,
-    reject_mm,
-    jump_mm,
-    suspect_mm,
-    suspect,
-    kab,
-    tau,
-    n_reject,
-    reject_limit,
-    verify_every,
-    frame_no,
-    swap_check,
-):
+def _verify(points, index, frame_no, tracks, recovery, scratch, params):
     """3D check of the fit against each marker's rigid neighbourhood (after Algorithm 1).
 
     Eq. 5 only sees distances, so a ghost, or another person's marker at the place of a hidden
@@ -349,7 +324,7 @@ def _verify(
     than ``jump_mm`` from the Kalman prediction ``x``, a free point within ``suspect_mm`` of its
     prediction (a reappearing marker whose label another point has taken), its turn in a round
     robin over ``verify_every`` frames, or missing - the Kabsch estimate from its observed
-    recovery set (3+ neighbours) is computed:
+    recovery set (3+ neighbours, ``robust_fit_mm``) is computed:
 
     - an observed marker whose point is more than ``verify_mm`` from the estimate moves to a
       free point at most half as far; with ``swap_check``, if another marker holds that point
@@ -360,15 +335,25 @@ def _verify(
       mutually consistent neighbours support (it stays missing), at most ``reject_limit``
       frames in a row (``n_reject`` counts them): real bodies are not perfectly rigid, and a
       marker that really moved on its body must not be locked out;
-    - a missing marker takes the nearest free point within ``reacquire_mm`` of the estimate
-      (re-acquisition predicted from the rigid body, not from a stale Kalman state).
+    - a missing marker takes the nearest free point within ``reacquire_near_mm`` of the
+      estimate (re-acquisition predicted from the rigid body, not from a stale Kalman state).
 
-    ``obs`` is kept in sync. Returns the number of changes.
+    Reads and changes ``scratch.assigned``, ``owner`` and keeps ``scratch.obs`` in sync;
+    ``tracks.state`` is the previous frame's, ``tracks.n_reject`` is updated;
+    ``scratch.missing`` is its scratch flag "suspect". ``index``: the sweep index of
+    ``points``; ``frame_no`` drives the round robin. Returns the number of changes.
     """
+    assigned, owner, ncand, obs = scratch.assigned, scratch.owner, scratch.ncand, scratch.obs
+    suspect, kab = scratch.missing, scratch.kab
+    active, prev_state, x, n_reject = tracks.active, tracks.state, tracks.x, tracks.n_reject
+    verify_mm, reacquire_mm = params.verify_mm, params.reacquire_near_mm
+    reject_mm, jump_mm, suspect_mm = params.reject_mm, params.jump_mm, params.suspect_mm
+    tau, reject_limit = params.robust_fit_mm, params.reject_limit
+    verify_every, swap_check = params.verify_every, params.swap_check
     n = points.shape[0]
     est = np.empty(3)
     est2 = np.empty(3)
-    rec_ok = rset[3]
+    rec_ok = recovery.ok
     changes = 0
     m_total = assigned.shape[0]
     s2 = suspect_mm * suspect_mm
@@ -389,7 +374,7 @@ def _verify(
         if not active[m] or not rec_ok[m]:
             continue
         a = assigned[m]
-        fresh = prev_state[m] != 1
+        fresh = prev_state[m] != OBSERVED
         jumped = False
         if a >= 0 and not fresh:
             i2 = 0.0
@@ -400,7 +385,7 @@ def _verify(
         turn = verify_every > 0 and (m + frame_no) % verify_every == 0  # round robin
         if a >= 0 and ncand[m] < 2 and not fresh and not jumped and not suspect[m] and not turn:
             continue
-        kept = _set_estimate(m, rset, obs, kab, est, tau)
+        kept = _set_estimate(m, recovery, obs, kab, est, tau)
         if kept == 0:
             continue
         e2 = 0.0
@@ -421,7 +406,7 @@ def _verify(
             if bk >= 0:
                 m2 = owner[bk]
                 if rec_ok[m2]:
-                    k2 = _set_estimate(m2, rset, obs, kab, est2, tau)
+                    k2 = _set_estimate(m2, recovery, obs, kab, est2, tau)
                     if k2 > 0:
                         now2 = 0.0
                         sw2 = 0.0
@@ -449,14 +434,14 @@ def _verify(
                 and e2 > reject_mm * reject_mm
             ):
                 n_reject[m] += 1
-                owner[a] = -1
-                assigned[m] = -1
+                owner[a] = NONE
+                assigned[m] = NONE
                 for c in range(3):
                     obs[m, c] = np.nan
                 changes += 1
             continue
         if a >= 0:
-            owner[a] = -1
+            owner[a] = NONE
         owner[bj] = m
         assigned[m] = bj
         for c in range(3):
@@ -466,12 +451,12 @@ def _verify(
 
 
 @njit
-def _estimate_distance(m, a, points, rset, obs, kab, est, tau):
+def _estimate_distance(m, a, points, recovery, obs, kab, est, tau):
     """Distance (mm) from point ``a`` to the Kabsch estimate of marker ``m`` (Sec. 3.3 with
     3+ observed neighbours); ``inf`` when there is no estimate."""
-    if not rset[3][m]:
+    if not recovery.ok[m]:
         return np.inf
-    if _set_estimate(m, rset, obs, kab, est, tau) == 0:
+    if _set_estimate(m, recovery, obs, kab, est, tau) == 0:
         return np.inf
     e2 = 0.0
     for c in range(3):
@@ -481,22 +466,7 @@ def _estimate_distance(m, a, points, rset, obs, kab, est, tau):
 
 
 @njit
-def _contest(
-    assigned,
-    owner,
-    active,
-    prev_state,
-    x,
-    s,
-    gate,
-    points,
-    obs,
-    rset,
-    jump_mm,
-    verify_mm,
-    kab,
-    tau,
-):
+def _contest(points, tracks, recovery, scratch, params):
     """Track continuity after Algorithm 1: a point goes back to the marker that was tracked onto
     it when the fit gave it to a marker that had to jump for it.
 
@@ -504,17 +474,22 @@ def _contest(
     one would be; a body that spans a joint fits its links loosely and loses the greedy order
     (Algorithm 1 line 12) to the hidden marker's body. For every point ``a`` held by a marker
     ``m`` more than ``jump_mm`` from its Kalman prediction (Eq. 3), the marker ``m2`` missing
-    after the fit with the smallest squared Mahalanobis distance ``d2 / s[m2]`` to ``a`` (``s``
-    the innovation variance of the gate), if that is below ``gate`` and a quarter of ``m``'s,
-    takes the point (``m`` is missing); a marker observed in the previous frame
-    (``prev_state == 1``) must moreover predict ``a`` within ``jump_mm``. A rigid neighbourhood
-    can veto: ``m`` keeps the point when its Kabsch estimate (3+ observed neighbours) lies
-    within ``verify_mm`` of it, and ``m2`` does not take it when its own estimate is farther
-    from the point than ``m``'s.
+    after the fit with the smallest squared Mahalanobis distance ``d2 / s[m2]`` to ``a``
+    (``scratch.s`` the innovation variance of the gate), if that is below ``gate_chi2`` and a
+    quarter of ``m``'s, takes the point (``m`` is missing); a marker observed in the previous
+    frame (``tracks.state == OBSERVED``) must moreover predict ``a`` within ``jump_mm``. A rigid
+    neighbourhood can veto: ``m`` keeps the point when its Kabsch estimate (3+ observed
+    neighbours) lies within ``verify_mm`` of it, and ``m2`` does not take it when its own
+    estimate is farther from the point than ``m``'s.
 
-    ``obs (M, 3)`` holds the observed positions (NaN otherwise) and is kept in sync. Returns the
-    number of points handed over.
+    Changes ``scratch.assigned``, ``owner``; ``scratch.obs (M, 3)`` holds the observed
+    positions (NaN otherwise) and is kept in sync. Returns the number of points handed over.
     """
+    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    s, kab = scratch.s, scratch.kab
+    active, prev_state, x = tracks.active, tracks.state, tracks.x
+    gate, jump_mm, verify_mm = params.gate_chi2, params.jump_mm, params.verify_mm
+    tau = params.robust_fit_mm
     m_total = assigned.shape[0]
     est = np.empty(3)
     changes = 0
@@ -539,22 +514,22 @@ def _contest(
             for c in range(3):
                 d = points[a, c] - x[m2, c]
                 d2 += d * d
-            if prev_state[m2] == 1 and d2 >= jump_mm * jump_mm:
+            if prev_state[m2] == OBSERVED and d2 >= jump_mm * jump_mm:
                 continue  # a tracked marker takes back only a point it predicts sharply
             if d2 / s[m2] < lim:
                 lim = d2 / s[m2]
                 bm = m2
         if bm < 0:
             continue
-        e_m = _estimate_distance(m, a, points, rset, obs, kab, est, tau)
+        e_m = _estimate_distance(m, a, points, recovery, obs, kab, est, tau)
         if e_m <= verify_mm:
             continue
-        e_bm = _estimate_distance(bm, a, points, rset, obs, kab, est, tau)
+        e_bm = _estimate_distance(bm, a, points, recovery, obs, kab, est, tau)
         if np.isfinite(e_bm) and e_bm > e_m:
             continue
         owner[a] = bm
         assigned[bm] = a
-        assigned[m] = -1
+        assigned[m] = NONE
         for c in range(3):
             obs[bm, c] = points[a, c]
             obs[m, c] = np.nan

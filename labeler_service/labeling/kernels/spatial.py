@@ -11,11 +11,13 @@ Results are those of the full scan: candidates are ordered by distance, ties by 
 whatever order the slab is visited in. Points with a non-finite key sort last and are never
 visited (they fail every distance test of the full scan too).
 
-An index is the tuple ``(order, keys, axis)``: ``keys`` the sorted coordinates (``inf`` for
-non-finite), ``order`` the point index of each key.
+An index is a :class:`SweepIndex` ``(order, keys, axis)``: ``keys`` the sorted coordinates
+(``inf`` for non-finite), ``order`` the point index of each key, ``axis`` the coordinate sorted.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -23,9 +25,19 @@ from labeler_service._numba import njit
 
 # slab bound slack (mm): a point exactly on the radius must not be lost to float rounding
 _SLACK = 1e-6
+# which points :func:`_nearest` considers
 ANY = 0
-FREE = 1
-OWNED = 2
+FREE = 1  # not owned by a marker
+OWNED = 2  # owned by a marker
+
+
+class SweepIndex(NamedTuple):
+    """The points of one frame sorted along ``axis`` (0 = x, 1 = y): ``keys (N,)`` the sorted
+    coordinates, ``order (N,)`` the point of each key."""
+
+    order: np.ndarray
+    keys: np.ndarray
+    axis: int
 
 
 @njit
@@ -52,15 +64,15 @@ def _index(points):
     keys = np.empty(n)
     for k in range(n):
         keys[k] = raw[order[k]]
-    return order, keys, axis
+    return SweepIndex(order, keys, axis)
 
 
 @njit
 def _span(index, centre, radius):
     """``[lo, hi)``: the positions in ``index`` whose key is within ``radius`` of ``centre``'s
     (``centre`` a 3-vector; empty when it is not finite)."""
-    keys = index[1]
-    c = centre[index[2]]
+    keys = index.keys
+    c = centre[index.axis]
     if not (np.isfinite(c) and radius >= 0.0):
         return 0, 0
     r = radius + _SLACK
@@ -75,7 +87,7 @@ def _nearest(points, index, centre, lim2, owner, which, skip):
     ``which`` = ``ANY``, ``FREE`` (``owner < 0``) or ``OWNED`` (``owner >= 0``, not ``skip``).
     Returns ``(j, d2)``, ``j = -1`` when there is none."""
     lo, hi = _span(index, centre, np.sqrt(lim2) if lim2 > 0.0 else 0.0)
-    order = index[0]
+    order = index.order
     best = lim2
     bj = -1
     for k in range(lo, hi):

@@ -8,6 +8,10 @@ of hidden markers from their bodies (Sec. 3.3; the recovered position also updat
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
 stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
 observed bodies.
+
+The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
+``Scratch``) and the settings ``Params`` of :mod:`.params`; every step reads them by field
+name and updates them in place.
 """
 
 from __future__ import annotations
@@ -15,9 +19,11 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
+from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
+from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.rigid import (
     _contest,
     _max_residual,
@@ -27,10 +33,17 @@ from labeler_service.labeling.kernels.rigid import (
     _verify,
 )
 from labeler_service.labeling.kernels.spatial import _index
+from labeler_service.labeling.kernels.state import (
+    NONE,
+    UNDECIDED,
+    Bodies,
+    FitScratch,
+    KabschScratch,
+    Recovery,
+    Scratch,
+    Tracks,
+)
 from labeler_service.labeling.kernels.window import _window_update
-
-OBSERVED = 1
-RECOVERED = 2
 
 
 @njit
@@ -43,185 +56,52 @@ def _observed(assigned, points, obs):
 
 
 @njit
-def _process_frame(
-    points,
-    dt,
-    x,
-    P,
-    q,
-    active,
-    r,
-    r_rec,
-    s_min,
-    v0,
-    p_cap,
-    vel_decay,
-    gate,
-    K,
-    s,
-    cand,
-    cand_d2,
-    ncand,
-    bodies,
-    D0,
-    A0,
-    ring,
-    ptr,
-    s1,
-    s2,
-    cnt,
-    min_samples,
-    a_floor,
-    a_rel,
-    miss_term,
-    w,
-    rset,
-    method,
-    assigned,
-    owner,
-    fit,
-    obs,
-    rec,
-    has_rec,
-    missing,
-    kab,
-    point_labels,
-    out_pos,
-    out_state,
-    subj_ptr,
-    subj_idx,
-    cm_radius,
-    cm_iters,
-    cm_buf,
-    cm_shift,
-    reacq_radius,
-    verify_mm,
-    reacq_near_mm,
-    miss_reacq,
-    reacq_all,
-    robust_mm,
-    reject_mm,
-    jump_mm,
-    suspect_mm,
-    n_reject,
-    reject_limit,
-    age,
-    snap_age,
-    reacq_est_mm,
-    reacq_keep,
-    verify_every,
-    frame_no,
-    swap_check,
-    contest,
-    reacq_loose_mm,
-):
-    """Labels one frame in place: ``point_labels (N,)``, ``out_pos (M, 3)``, ``out_state (M,)``."""
+def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch, params):
+    """Labels one frame of ``points (N, 3)`` in place (the order of the module docstring).
+
+    ``dt``: seconds since the previous frame; ``ptr``: this frame's slot in the sliding window
+    ``bodies.ring``; ``frame_no``: frames labeled so far (the 3D check's round robin). The
+    structures are those of :mod:`.state` (``params``: :mod:`.params`). Out:
+    ``scratch.owner[:N]`` (point -> marker or ``NONE``), ``tracks.pos (M, 3)`` and
+    ``tracks.state (M,)``.
+    """
+    x, P, active, state, pos = tracks.x, tracks.P, tracks.active, tracks.state, tracks.pos
+    s, assigned, owner, obs = scratch.s, scratch.assigned, scratch.owner, scratch.obs
+    rec, has_rec, missing = scratch.rec, scratch.has_rec, scratch.missing
+    age, n_reject = tracks.age, tracks.n_reject
+    r, v0 = params.r, params.v0
     m_total = x.shape[0]
     n = points.shape[0]
-    est4 = np.empty(3)
     index = _index(points)
-    body_markers, body_size, D, A = bodies[:4]
-    satisfied = fit[2]  # Algorithm 1's scratch, reused between its passes
     # Eq. 3: predict; S = H P H^T + R
-    _predict(x, P, q, active, dt, p_cap)
-    if cm_iters > 0:
-        _common_mode(
-            x, active, subj_ptr, subj_idx, points, index, cm_radius, cm_iters, cm_buf, cm_shift
-        )
+    _predict(x, P, tracks.q, active, dt, params.p_cap)
+    if params.common_mode_iters > 0:
+        subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
+        radius, iters = params.common_mode_radius_mm, params.common_mode_iters
+        buf, shift = scratch.cm_buf, scratch.cm_shift
+        _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, buf, shift)
     for i in range(m_total):
         s[i] = P[i, 0] + r
-        if s[i] < s_min:  # gate floor: radius^2 = s_min * gate
-            s[i] = s_min
-    _gate(x, s, active, points, index, gate, K, cand, cand_d2, ncand)
+        if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
+            s[i] = params.s_min
+    cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
+    _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
     for i in range(m_total):
-        assigned[i] = -2
+        assigned[i] = UNDECIDED
     for j in range(n):
-        owner[j] = -1
-    _fit_bodies(
-        bodies, cand, cand_d2, ncand, points, a_floor, a_rel, miss_term, w, gate, assigned, owner,
-        fit,
-    )  # fmt: skip
+        owner[j] = NONE
+    _fit_bodies(bodies, points, params.miss_term, scratch, params)
     # track continuity: points the fit gave to a marker that jumped for them go back to the
     # marker tracked onto them in the previous frame
-    if contest:
+    if params.contest:
         _observed(assigned, points, obs)
-        _contest(
-            assigned, owner, active, out_state, x, s, gate, points, obs, rset, jump_mm, verify_mm,
-            kab, robust_mm,
-        )  # fmt: skip
-    # re-acquisition: bodies with fewer than two observed markers are released (their markers
-    # not held by a better-seen body search again) and, with every missing marker when
-    # ``reacq_all``, look for free points within a wide radius; Algorithm 1 then runs again on
-    # those bodies only (everything else stays fixed)
-    if reacq_radius > 0.0:
-        n_lost = 0
-        nb = body_markers.shape[0]
-        for i in range(m_total):
-            missing[i] = False
-        for b in range(nb):
-            c = 0
-            for k in range(body_size[b]):
-                if assigned[body_markers[b, k]] >= 0:
-                    c += 1
-            satisfied[b] = c >= 2  # scratch: a well-seen body
-            if not satisfied[b]:
-                for k in range(body_size[b]):
-                    missing[body_markers[b, k]] = True
-        for b in range(nb):
-            if satisfied[b]:
-                for k in range(body_size[b]):
-                    missing[body_markers[b, k]] = False
-        for i in range(m_total):
-            if reacq_all and active[i] and assigned[i] == -1:
-                missing[i] = True
-            if reacq_keep and assigned[i] >= 0 and out_state[i] == OBSERVED:
-                missing[i] = False  # tracked through the previous frame: keep
-            if missing[i] and active[i]:
-                if assigned[i] >= 0:
-                    owner[assigned[i]] = -1
-                assigned[i] = -2
-                n_lost += 1
-            else:
-                missing[i] = False
-        if n_lost > 0:
-            # centre: the rigid estimate from the neighbours seen so far, else the prediction
-            _observed(assigned, points, obs)
-            for i in range(m_total):
-                if not missing[i]:
-                    continue
-                kept = 0
-                if rset[3][i]:
-                    kept = _set_estimate(i, rset, obs, kab, est4, robust_mm)
-                if kept >= 3:
-                    for c in range(3):
-                        rec[i, c] = est4[c]
-                    s[i] = reacq_est_mm
-                    if _max_residual(kab[0], kab[1], kept, kab[2], kab[3]) > robust_mm:
-                        # the neighbours kept still disagree (a joint moved while the marker
-                        # was hidden): the estimate is loose, so is the search
-                        s[i] = reacq_loose_mm
-                else:
-                    for c in range(3):
-                        rec[i, c] = x[i, c]
-                    s[i] = reacq_radius
-            _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
-            _fit_bodies(
-                bodies, cand, cand_d2, ncand, points, a_floor, a_rel, miss_reacq, w, gate,
-                assigned, owner, fit,
-            )  # fmt: skip
-            for i in range(m_total):
-                if assigned[i] == -2:
-                    assigned[i] = -1
+        _contest(points, tracks, recovery, scratch, params)
+    if params.reacquire_mm > 0.0:
+        _reacquire(points, index, tracks, bodies, recovery, scratch, params)
     _observed(assigned, points, obs)
-    if verify_mm > 0.0:
-        _verify(
-            assigned, owner, ncand, active, out_state, x, points, index, obs, rset, verify_mm,
-            reacq_near_mm, reject_mm, jump_mm, suspect_mm, missing, kab, robust_mm, n_reject,
-            reject_limit, verify_every, frame_no, swap_check,
-        )  # fmt: skip
-    for j in range(n):
-        point_labels[j] = owner[j]
+    if params.verify_mm > 0.0:
+        _verify(points, index, frame_no, tracks, recovery, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]
@@ -230,33 +110,139 @@ def _process_frame(
             n_reject[i] = 0
             age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
-            out_state[i] = OBSERVED
+            state[i] = OBSERVED
             for c in range(3):
-                out_pos[i, c] = obs[i, c]
+                pos[i, c] = obs[i, c]
         else:
             age[i] = 0
             for c in range(3):
                 obs[i, c] = np.nan
             missing[i] = active[i]
-            out_state[i] = 0
+            state[i] = MISSING
             for c in range(3):
-                out_pos[i, c] = np.nan
+                pos[i, c] = np.nan
     # Sec. 3.3: recovery from rigid bodies
-    _recover(missing, rset, obs, method, rec, has_rec, kab, robust_mm)
+    method, tau = params.recovery, params.robust_fit_mm
+    _recover(missing, recovery, obs, method, rec, has_rec, scratch.kab, tau)
     for i in range(m_total):
         if not missing[i]:
             continue
         if has_rec[i] > 0:
             # a rigid (3+ neighbours) estimate steers the Kalman state; a weaker one barely
-            rr = r_rec if has_rec[i] >= 3 else 25.0 * r_rec
+            rr = params.r_rec if has_rec[i] >= 3 else 25.0 * params.r_rec
             _start_or_update(x, P, i, rec[i, 0], rec[i, 1], rec[i, 2], rr, v0)
-            out_state[i] = RECOVERED
+            state[i] = RECOVERED
             for c in range(3):
-                out_pos[i, c] = rec[i, c]
+                pos[i, c] = rec[i, c]
         else:
             for c in range(3, 6):
-                x[i, c] *= vel_decay
+                x[i, c] *= params.velocity_decay
     # Eq. 1-2: sliding window
-    _window_update(body_markers, body_size, obs, ring, ptr, s1, s2, cnt, D0, A0, min_samples, D, A)
+    _window_update(bodies, obs, ptr, params.min_window_samples)
     # reference snapshots of the recovery sets
-    _snapshot(age, snap_age, obs, rset)
+    _snapshot(age, params.snapshot_age, obs, recovery)
+
+
+@njit
+def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch, params):
+    """:func:`_process_frame` called with each structure as a plain tuple of its fields
+    (:func:`.state.fields`), as the Labeler calls it.
+
+    Numba types every argument of a call from Python; for a named tuple it spells out the class
+    and every field name, which costs about 1 us per structure and frame (+5 us a frame, 1.4 %
+    of a 6-performer frame). A plain tuple takes the fast path; the names come back here, at
+    compile time, for free (``scratch`` ends with the nested ``fit`` and ``kab``).
+    """
+    fit, kab = scratch[-2], scratch[-1]
+    named = scratch[:-2] + (FitScratch(*fit), KabschScratch(*kab))
+    _process_frame(
+        points,
+        dt,
+        ptr,
+        frame_no,
+        Tracks(*tracks),
+        Bodies(*bodies),
+        Recovery(*recovery),
+        Scratch(*named),
+        Params(*params),
+    )
+
+
+@njit
+def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
+    """The wide re-acquisition pass (ours, docs/algorithm.md) after Algorithm 1.
+
+    Bodies with fewer than two observed markers are released (their markers not held by a
+    better-seen body search again) and, with every missing marker when ``reacquire_all``, look
+    for free points within a wide radius: ``reacquire_estimate_mm`` around the rigid estimate
+    of 3+ observed neighbours (``reacquire_loose_mm`` when those disagree), else
+    ``reacquire_mm`` around the prediction. Algorithm 1 then runs again on those bodies only
+    (everything else stays fixed), with the stricter ``miss_reacq``.
+    """
+    x, active, state = tracks.x, tracks.active, tracks.state
+    s, assigned, owner, obs = scratch.s, scratch.assigned, scratch.owner, scratch.obs
+    rec, missing, kab, rec_ok = scratch.rec, scratch.missing, scratch.kab, recovery.ok
+    src, dst, R, t = kab.src, kab.dst, kab.R, kab.t  # the last Kabsch fit of _set_estimate
+    body_markers, body_size = bodies.members, bodies.size
+    satisfied = scratch.fit.satisfied  # Algorithm 1's scratch, reused between its passes
+    robust_mm = params.robust_fit_mm
+    m_total = x.shape[0]
+    est4 = np.empty(3)
+    n_lost = 0
+    nb = body_markers.shape[0]
+    for i in range(m_total):
+        missing[i] = False
+    for b in range(nb):
+        c = 0
+        for k in range(body_size[b]):
+            if assigned[body_markers[b, k]] >= 0:
+                c += 1
+        satisfied[b] = c >= 2  # scratch: a well-seen body
+        if not satisfied[b]:
+            for k in range(body_size[b]):
+                missing[body_markers[b, k]] = True
+    for b in range(nb):
+        if satisfied[b]:
+            for k in range(body_size[b]):
+                missing[body_markers[b, k]] = False
+    for i in range(m_total):
+        if params.reacquire_all and active[i] and assigned[i] == NONE:
+            missing[i] = True
+        if params.reacquire_keep_observed and assigned[i] >= 0 and state[i] == OBSERVED:
+            missing[i] = False  # tracked through the previous frame: keep
+        if missing[i] and active[i]:
+            if assigned[i] >= 0:
+                owner[assigned[i]] = NONE
+            assigned[i] = UNDECIDED
+            n_lost += 1
+        else:
+            missing[i] = False
+    if n_lost == 0:
+        return
+    # centre: the rigid estimate from the neighbours seen so far, else the prediction
+    _observed(assigned, points, obs)
+    for i in range(m_total):
+        if not missing[i]:
+            continue
+        kept = 0
+        if rec_ok[i]:
+            kept = _set_estimate(i, recovery, obs, kab, est4, robust_mm)
+        if kept >= 3:
+            for c in range(3):
+                rec[i, c] = est4[c]
+            s[i] = params.reacquire_estimate_mm
+            if _max_residual(src, dst, kept, R, t) > robust_mm:
+                # the neighbours kept still disagree (a joint moved while the marker was
+                # hidden): the estimate is loose, so is the search
+                s[i] = params.reacquire_loose_mm
+        else:
+            for c in range(3):
+                rec[i, c] = x[i, c]
+            s[i] = params.reacquire_mm
+    cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
+    gate, K = params.gate_chi2, params.K
+    _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
+    _fit_bodies(bodies, points, params.miss_reacq, scratch, params)
+    for i in range(m_total):
+        if assigned[i] == UNDECIDED:
+            assigned[i] = NONE

@@ -13,9 +13,13 @@ from labeler_service._numba import njit
 
 
 @njit
-def _window_update(body_markers, body_size, obs, ring, ptr, s1, s2, cnt, D0, A0, min_samples, D, A):
+def _window_update(bodies, obs, ptr, min_samples):
     """Pushes the distances of frame ``obs (M, 3)`` (NaN rows = not observed) at ring slot
-    ``ptr`` and refreshes ``D``, ``A`` of the touched links in place."""
+    ``ptr`` of ``bodies.ring`` and refreshes ``bodies.D``, ``bodies.A`` of the touched links in
+    place (:class:`.state.Bodies`)."""
+    body_markers, body_size = bodies.members, bodies.size
+    ring, s1, s2, cnt = bodies.ring, bodies.s1, bodies.s2, bodies.cnt
+    D0, A0, D, A = bodies.D0, bodies.A0, bodies.D, bodies.A
     nb = body_markers.shape[0]
     for b in range(nb):
         n = body_size[b]

@@ -1,0 +1,337 @@
+"""The online labeler's state as named structures (struct of arrays), and their builders.
+
+The per-frame entry :func:`.step._process_frame` takes one frame (points, ``dt``, ring slot,
+frame number) and five structures, each a :class:`typing.NamedTuple` of arrays that numba
+passes as one argument and reads by field name (``tracks.x``, not ``t[3]``):
+
+============  ==========================================================  ==========
+structure     holds                                                        rows
+============  ==========================================================  ==========
+``Tracks``    per-marker motion state (Kalman filter, Eq. 3-4) and the     M markers
+              bookkeeping of each track (age, rejections, last state)
+``Bodies``    the structure model: rigid bodies, ``D``, ``A`` (Eq. 1-2,    B bodies
+              Eq. 5) and their sliding window
+``Recovery``  per-marker recovery set and its reference snapshot          M markers
+              (Sec. 3.3)
+``Scratch``   buffers rewritten every frame (gate candidates, the         M, N
+              assignment, Algorithm 1 and Kabsch work space)
+``Params``    every setting (:mod:`.params`, built from ``LabelerConfig``)  scalars
+============  ==========================================================  ==========
+
+The arrays are allocated once, by the ``new_*`` builders below, and updated in place by the
+kernels: no allocation per frame. Each structure is also the argument of the smaller kernels
+that need most of it (``_fit_bodies(bodies, ...)``, ``_verify(..., tracks, recovery, scratch,
+params)``); leaf kernels that a plain-numpy twin checks (Kalman, gate, Kabsch) keep plain arrays.
+
+**Adding state touches one place**: a field in the NamedTuple and its allocation in the
+builder next to it (the Labeler and the tests build structures only through the builders);
+numba compiles for the new type on first use, and every kernel that receives the structure can
+read the field. Where future state goes is said in each docstring. (A new *nested* structure
+also needs its name back in :func:`.step._process_frame_fields`, as ``Scratch.fit`` has.)
+
+Sentinels of the assignment (``Scratch.assigned``, ``owner``) and marker states are named
+module constants (numba reads module-level ints as compile-time constants): ``UNDECIDED``,
+``NONE`` here, ``MISSING``/``OBSERVED``/``RECOVERED`` from
+:class:`~labeler_service.labeling.frame.MarkerState`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+MAX_BODY = 8  # markers per rigid body and per recovery set (the marker itself and 7 neighbours)
+UNDECIDED = -2  # ``assigned[m]``: not decided yet by Algorithm 1 (searched again)
+NONE = -1  # ``assigned[m]``: no point (missing); ``owner[j]``: no marker (unlabeled point)
+
+
+class Tracks(NamedTuple):
+    """Per-marker state, ``M`` rows in the labeler's marker order.
+
+    - ``x (M, 6)``: Kalman state ``[x, y, z, vx, vy, vz]`` mm, mm/s (Eq. 3-4); a NaN row is a
+      marker never seen (its first observation starts the track, :func:`.kalman._start_or_update`).
+    - ``P (M, 3)``: the covariance, as the 2x2 block ``(p_pp, p_pv, p_vv)`` of ``P2 (x) I3``
+      (exact for isotropic ``Q``, ``R``; :mod:`.kalman`).
+    - ``q (M,)``: white-acceleration variance per axis (``Q`` of Eq. 3), learned per marker from
+      the training window (1e6 for a marker without one).
+    - ``active (M,)`` bool: the marker belongs to a body; an inactive marker is never predicted,
+      gated or labeled.
+    - ``age (M,)`` int64: frames observed in a row (a recovery snapshot needs ``snapshot_age``).
+    - ``n_reject (M,)`` int64: 3D-check refusals in a row (at most ``reject_limit``).
+    - ``state (M,)`` uint8: :class:`~labeler_service.labeling.frame.MarkerState` of the last
+      frame: the output, and the next frame's "was this marker tracked".
+    - ``pos (M, 3)`` float32: the position reported for the last frame (observed or recovered,
+      NaN when missing); the output.
+    - ``subj_ptr (S + 1,)``, ``subj_idx (M,)``: the markers of each subject (CSR), for the
+      per-subject common-mode shift.
+
+    Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
+    last exchanged, the marker it was exchanged with), a per-marker confidence.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    q: np.ndarray
+    active: np.ndarray
+    age: np.ndarray
+    n_reject: np.ndarray
+    state: np.ndarray
+    pos: np.ndarray
+    subj_ptr: np.ndarray
+    subj_idx: np.ndarray
+
+
+def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
+    """Tracks of ``len(q)`` markers, none started; ``groups`` = marker indices per subject."""
+    m = q.shape[0]
+    return Tracks(
+        x=np.full((m, 6), np.nan),
+        P=np.zeros((m, 3)),
+        q=np.ascontiguousarray(q, dtype=np.float64),
+        active=np.ascontiguousarray(active, dtype=np.bool_),
+        age=np.zeros(m, dtype=np.int64),
+        n_reject=np.zeros(m, dtype=np.int64),
+        state=np.zeros(m, dtype=np.uint8),
+        pos=np.full((m, 3), np.nan, dtype=np.float32),
+        subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
+        subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
+    )
+
+
+class Bodies(NamedTuple):
+    """The structure model (Sec. 3.2): ``B`` rigid bodies of at most ``MAX_BODY`` markers.
+
+    - ``members (B, 8)`` int32: the body's marker indices, ``-1`` after ``size[b]``; body
+      position ``k`` indexes the rows and columns of ``D[b]``, ``A[b]``.
+    - ``size (B,)`` int32.
+    - ``D (B, 8, 8)``, ``A (B, 8, 8)``: mean and deviation of each marker-pair distance, mm,
+      symmetric (Eq. 1-2 over the sliding window, the trained values until a link has
+      ``min_window_samples`` samples); read by the score Eq. 5. NaN = unknown link.
+    - ``D0``, ``A0``: the trained (template) values.
+    - ``mb_ptr (M + 1,)``, ``mb_idx``: marker -> bodies containing it (CSR), for Algorithm 1's
+      "which bodies must search again".
+    - ``ring (B, 8, 8, T)`` float32: the window's last ``T`` distances per link (NaN = not
+      both observed); ``s1``, ``s2 (B, 8, 8)``: running sums of the distances and their
+      squares; ``cnt (B, 8, 8)`` int64: samples in the window (:mod:`.window`).
+
+    Per-body state of later work goes here: the body's reference shape ``(B, 8, 3)`` for 3D
+    template checks and boot from templates, its pose (``R``, ``t``) and linear/angular
+    velocity for rigid-body pose prediction.
+    """
+
+    members: np.ndarray
+    size: np.ndarray
+    D: np.ndarray
+    A: np.ndarray
+    D0: np.ndarray
+    A0: np.ndarray
+    mb_ptr: np.ndarray
+    mb_idx: np.ndarray
+    ring: np.ndarray
+    s1: np.ndarray
+    s2: np.ndarray
+    cnt: np.ndarray
+
+
+def new_bodies(
+    n_markers: int,
+    bodies: Sequence[Sequence[int]],
+    D0: Sequence[np.ndarray],
+    A0: Sequence[np.ndarray],
+    T: int,
+) -> Bodies:
+    """Bodies from their marker lists and trained ``(k, k)`` ``D0``, ``A0``; an empty window
+    of ``T`` frames (``D``, ``A`` start at the trained values)."""
+    nb = len(bodies)
+    members = np.full((nb, MAX_BODY), -1, dtype=np.int32)
+    size = np.zeros(nb, dtype=np.int32)
+    d0 = np.full((nb, MAX_BODY, MAX_BODY), np.nan)
+    a0 = np.full((nb, MAX_BODY, MAX_BODY), np.nan)
+    for b, body in enumerate(bodies):
+        k = len(body)
+        members[b, :k] = body
+        size[b] = k
+        d0[b, :k, :k] = D0[b]
+        a0[b, :k, :k] = A0[b]
+    # marker -> bodies (CSR)
+    counts = np.zeros(n_markers + 1, dtype=np.int64)
+    for body in bodies:
+        for i in body:
+            counts[i + 1] += 1
+    mb_ptr = np.cumsum(counts).astype(np.int64)
+    mb_idx = np.zeros(max(1, int(mb_ptr[-1])), dtype=np.int32)
+    fill = mb_ptr[:-1].copy()
+    for b, body in enumerate(bodies):
+        for i in body:
+            mb_idx[fill[i]] = b
+            fill[i] += 1
+    return Bodies(
+        members=members,
+        size=size,
+        D=d0.copy(),
+        A=a0.copy(),
+        D0=d0,
+        A0=a0,
+        mb_ptr=mb_ptr,
+        mb_idx=mb_idx,
+        ring=np.full((nb, MAX_BODY, MAX_BODY, T), np.nan, dtype=np.float32),
+        s1=np.zeros((nb, MAX_BODY, MAX_BODY)),
+        s2=np.zeros((nb, MAX_BODY, MAX_BODY)),
+        cnt=np.zeros((nb, MAX_BODY, MAX_BODY), dtype=np.int64),
+    )
+
+
+class Recovery(NamedTuple):
+    """Recovery sets (Sec. 3.3), ``M`` rows: each body marker and its most rigidly linked
+    neighbours (lowest ``A + w D``, :mod:`.rigid`).
+
+    - ``members (M, 8)`` int64: ``members[m, 0] == m``, then up to 7 neighbours, ``-1`` after
+      ``size[m]``; ``size (M,)`` int64 (0 for a marker without a body).
+    - ``ref (M, 8, 3)``: the members' positions the last time all of them had been observed
+      for ``snapshot_age`` frames in a row (the reference a hidden marker is estimated from).
+    - ``ok (M,)`` bool: ``ref[m]`` holds a snapshot.
+    """
+
+    members: np.ndarray
+    size: np.ndarray
+    ref: np.ndarray
+    ok: np.ndarray
+
+
+def new_recovery(n_markers: int) -> Recovery:
+    """Empty recovery sets (the Labeler fills ``members``, ``size``); no snapshot yet."""
+    return Recovery(
+        members=np.full((n_markers, MAX_BODY), -1, dtype=np.int64),
+        size=np.zeros(n_markers, dtype=np.int64),
+        ref=np.zeros((n_markers, MAX_BODY, 3)),
+        ok=np.zeros(n_markers, dtype=np.bool_),
+    )
+
+
+class FitScratch(NamedTuple):
+    """Work space of Algorithm 1 (:func:`.fitting._fit_bodies`).
+
+    Per body: ``score (B,)`` Eq. 5 score of its best assignment (-1 = not searched),
+    ``satisfied (B,)``, ``need (B,)`` (queued for a search), ``best (B, 8)`` the point of each
+    body position in its best assignment. ``pm_idx (M K,)``: point -> markers CSR entries. Per
+    search (:func:`.fitting._search_body`; ``K + 1`` options per marker): ``perm``, ``opts``,
+    ``nopts``, ``mot``, ``choice``, ``partial (18,)``, ``best_choice``.
+    """
+
+    score: np.ndarray
+    pm_idx: np.ndarray
+    satisfied: np.ndarray
+    need: np.ndarray
+    best: np.ndarray
+    perm: np.ndarray
+    opts: np.ndarray
+    nopts: np.ndarray
+    mot: np.ndarray
+    choice: np.ndarray
+    partial: np.ndarray
+    best_choice: np.ndarray
+
+
+def new_fit_scratch(n_markers: int, n_bodies: int, K: int) -> FitScratch:
+    """:class:`FitScratch` for ``n_bodies`` bodies and ``K`` candidates per marker."""
+    return FitScratch(
+        score=np.zeros(n_bodies),
+        pm_idx=np.zeros(max(1, n_markers * K), dtype=np.int32),
+        satisfied=np.zeros(n_bodies, dtype=np.bool_),
+        need=np.zeros(n_bodies, dtype=np.bool_),
+        best=np.zeros((n_bodies, MAX_BODY), dtype=np.int32),
+        perm=np.zeros(MAX_BODY, dtype=np.int64),
+        opts=np.zeros((MAX_BODY, K + 1), dtype=np.int64),
+        nopts=np.zeros(MAX_BODY, dtype=np.int64),
+        mot=np.zeros((MAX_BODY, K + 1)),
+        choice=np.zeros(MAX_BODY, dtype=np.int64),
+        partial=np.zeros(2 * MAX_BODY + 2),
+        best_choice=np.zeros(MAX_BODY, dtype=np.int64),
+    )
+
+
+class KabschScratch(NamedTuple):
+    """Buffers of one Kabsch fit over a recovery set: ``src (8, 3)`` reference positions,
+    ``dst (8, 3)`` observed ones, ``R (3, 3)``, ``t (3,)`` the fit (:func:`.rigid._kabsch`)."""
+
+    src: np.ndarray
+    dst: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+
+def new_kabsch_scratch() -> KabschScratch:
+    return KabschScratch(
+        src=np.zeros((MAX_BODY, 3)), dst=np.zeros((MAX_BODY, 3)), R=np.zeros((3, 3)), t=np.zeros(3)
+    )
+
+
+class Scratch(NamedTuple):
+    """Buffers rewritten every frame (their content means nothing between frames, except
+    ``owner``, the last frame's answer).
+
+    - ``s (M,)``: innovation variance ``S = p_pp + r`` of the gate (Sec. 3.1), floored at
+      ``s_min``; in the wide re-acquisition pass, each lost marker's search radius (mm).
+    - ``cand (M, K)`` int32, ``cand_d2 (M, K)``, ``ncand (M,)`` int32: each marker's gated
+      candidate points, best first, and their squared Mahalanobis distances.
+    - ``assigned (M,)`` int32: marker -> point, or ``NONE`` (missing), ``UNDECIDED``.
+    - ``owner (N,)`` int32: point -> marker or ``NONE``; the first ``N`` entries (this frame's
+      points) are the answer ``point_labels``. Grown when a frame has more points.
+    - ``obs (M, 3)``: observed positions of this frame (NaN rows otherwise);
+      ``rec (M, 3)``: recovered positions (or re-acquisition centres);
+      ``has_rec (M,)`` int64: neighbours a recovery used (0 = none);
+      ``missing (M,)`` bool: to recover (also the scratch flag of the re-acquisition pass and
+      of the 3D check).
+    - ``cm_buf (3, M)``, ``cm_shift (S, 3)``: the common-mode shift's offsets and result.
+    - ``fit``: :class:`FitScratch`; ``kab``: :class:`KabschScratch`.
+    """
+
+    s: np.ndarray
+    cand: np.ndarray
+    cand_d2: np.ndarray
+    ncand: np.ndarray
+    assigned: np.ndarray
+    owner: np.ndarray
+    obs: np.ndarray
+    rec: np.ndarray
+    has_rec: np.ndarray
+    missing: np.ndarray
+    cm_buf: np.ndarray
+    cm_shift: np.ndarray
+    fit: FitScratch
+    kab: KabschScratch
+
+
+def new_scratch(n_markers: int, n_bodies: int, n_subjects: int, K: int, n_points: int) -> Scratch:
+    """:class:`Scratch` for frames of up to ``n_points`` points (see :func:`grow_scratch`)."""
+    m = n_markers
+    return Scratch(
+        s=np.zeros(m),
+        cand=np.zeros((m, K), dtype=np.int32),
+        cand_d2=np.zeros((m, K)),
+        ncand=np.zeros(m, dtype=np.int32),
+        assigned=np.zeros(m, dtype=np.int32),
+        owner=np.zeros(n_points, dtype=np.int32),
+        obs=np.full((m, 3), np.nan),
+        rec=np.full((m, 3), np.nan),
+        has_rec=np.zeros(m, dtype=np.int64),
+        missing=np.zeros(m, dtype=np.bool_),
+        cm_buf=np.zeros((3, m)),
+        cm_shift=np.zeros((n_subjects, 3)),
+        fit=new_fit_scratch(m, n_bodies, K),
+        kab=new_kabsch_scratch(),
+    )
+
+
+def fields(structure: tuple) -> tuple:
+    """``structure`` as a plain tuple of its fields, nested structures too (the same arrays):
+    how the Labeler passes the state to :func:`.step._process_frame_fields`, which names them
+    again at compile time."""
+    return tuple(fields(v) if isinstance(v, tuple) else v for v in structure)
+
+
+def grow_scratch(scratch: Scratch, n_points: int) -> Scratch:
+    """``scratch`` with room for frames of ``n_points`` points."""
+    return scratch._replace(owner=np.zeros(n_points, dtype=np.int32))
