@@ -32,9 +32,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "gating-no-chi-square-gate",
         "labeler_service/labeling/kernels/gating.py",
-        "1.0 / s[i], np.sqrt(gate * s[i]), points, index, anyone,\n"
-        "                        False, gate, K,",
-        "1.0 / s[i], np.inf, points, index, anyone,\n                        False, np.inf, K,",
+        "i, pred[i], sc, radius, points, index, anyone, False, gate, K, cand, cand_d2, ncand",
+        "i, pred[i], sc, np.inf, points, index, anyone, False, np.inf, K, cand, cand_d2, ncand",
         (T + "labeling/test_gating.py",),
         "every point is a candidate of every marker (the gate removed)",
         kernel=True,
