@@ -1,0 +1,728 @@
+"""Boot: which anonymous points belong to which subject, and which marker each is.
+
+A live capture has no labels. :func:`boot` takes a model (one
+:class:`~labeler_service.labeling.templates.SubjectTemplate` per subject) and a short window of
+anonymous frames, tracked point by point (:class:`PointTracker`), and labels the points of the
+window's last frame. The structure model of seed 003 (Sec. 3.1: rigid bodies, marker-pair
+distance means ``D`` and deviations ``A``) is all it uses; no pose is assumed.
+
+Order:
+
+1. **Tracks** (:class:`PointTracker`): nearest neighbour with constant-velocity prediction,
+   mutual and gated (a few mm at 120 Hz), so every point of the last frame carries its own
+   trajectory over the window. Points tracked for less than ``min_track_fraction`` of the
+   window are not considered (short-lived ghosts, points just born).
+2. **Body candidates by distance signature**: every rigid body of every template has one or two
+   *anchor triangles* (three of its markers with long, rigid, distinct pair distances). All
+   point pairs closer than the longest anchor edge are listed once (KD-tree) and sorted by
+   distance; an anchor edge ``(i, j)`` selects the pairs within ``D_ij +- tol_ij`` by binary
+   search (``tol = tol_mm + tol_sigma A + tol_relative D``: noise, soft tissue and a body-size
+   difference), and a join on the shared vertex gives the candidate triangles. No combinatorial
+   search over point subsets happens.
+3. **3D verification**: each candidate triangle is registered to the body's reference shape
+   (Kabsch, proper rotation: a mirror image does not fit), the body's other markers are
+   predicted and matched to the nearest points within ``fit_mm``; a body candidate needs all but
+   one of its markers (all three for a 3-marker body).
+4. **Subjects**: per template, hypotheses grow from the best body candidates: a candidate joins
+   when its shared markers agree, its points are new, and every pair distance to the markers
+   already in the hypothesis lies within ``D +- (tol_mm + pair_sigma A + tol_relative D)``
+   (``A`` over the training motion bounds the articulated pairs too). Bodies with three or more
+   markers placed then predict their missing members (Kabsch) and take free points near them.
+5. **Evidence over the window**: every in-body pair of a hypothesis must keep its template
+   distance along the tracks in most frames (distance constancy); markers that do not are
+   dropped. A hypothesis with fewer than ``min_fraction`` of its template's markers is not a
+   subject: it stays unlabeled until there is more evidence.
+6. **Joint resolution**: hypotheses of all templates are taken greedily by score (markers
+   explained, less their normalised distance errors); a template is used once and a point goes
+   to one subject only (a later hypothesis loses the points already taken and must still reach
+   ``min_fraction``). Two performers with one template appear as two hypotheses of each of the
+   two identical templates; the greedy pass gives one to each, in an arbitrary but then fixed
+   (continuity) order.
+
+:class:`~labeler_service.labeling.booting.BootingLabeler` runs this on the stream and hands the
+result to the online :class:`~labeler_service.labeling.labeler.Labeler`.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from labeler_service.errors import LabelerError
+from labeler_service.labeling.templates import LabelerModel, SubjectTemplate
+
+
+class BootConfig(BaseModel):
+    """Parameters of the boot (defaults measured on the simulated and composed scenes)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    window_s: float = Field(0.1, gt=0, description="window of tracked frames used by a boot")
+    min_window_frames: int = Field(4, ge=2, description="at least this many frames per window")
+    max_window_frames: int = Field(24, ge=2, description="at most this many frames per window")
+    track_gate_mm: float = Field(6.0, gt=0, description="tracker gate around the prediction")
+    track_accel_mm_s2: float = Field(
+        40000.0, ge=0, description="acceleration the tracker gate allows (adds a dt^2 to it)"
+    )
+    track_speed_mm_s: float = Field(
+        3000.0, ge=0, description="speed the gate allows for a point without velocity yet"
+    )
+    min_track_fraction: float = Field(
+        0.75, gt=0, le=1, description="a point must be tracked over this fraction of the window"
+    )
+    tol_mm: float = Field(6.0, gt=0, description="absolute pair-distance tolerance")
+    tol_sigma: float = Field(3.0, ge=0, description="pair-distance tolerance in units of A")
+    tol_relative: float = Field(
+        0.01,
+        ge=0,
+        description="relative pair-distance tolerance (raise to 0.05 for another person's model)",
+    )
+    pair_sigma: float = Field(
+        4.0, ge=0, description="tolerance (units of A) for pairs across bodies in a hypothesis"
+    )
+    body_hidden: int = Field(
+        2, ge=0, description="a body candidate may miss this many markers (keeping 3 or more)"
+    )
+    reach_relative: float = Field(
+        0.5,
+        ge=0,
+        description="pairs across bodies may be this fraction of D longer (poses not trained)",
+    )
+    fit_mm: float = Field(12.0, gt=0, description="predicted marker to point, Kabsch check")
+    anchors_per_body: int = Field(4, ge=1, le=4, description="anchor triangles per body")
+    max_candidates: int = Field(
+        4000, ge=1, description="candidate triangles kept per anchor (closest distances first)"
+    )
+    constancy: float = Field(
+        0.8, gt=0, le=1, description="fraction of window frames an in-body pair must hold in"
+    )
+    min_fraction: float = Field(
+        0.5, gt=0, le=1, description="a subject boots with this fraction of its markers"
+    )
+    max_hypotheses: int = Field(3, ge=1, description="hypotheses kept per template")
+    max_seeds: int = Field(12, ge=1, description="seed bodies tried per template")
+    max_symmetries: int = Field(
+        4, ge=1, description="readings of one seed body's points tried (body symmetries)"
+    )
+
+
+# ---------------------------------------------------------------------------- tracking
+class PointTracker:
+    """Frame-to-frame identity of anonymous points (nearest neighbour with velocity).
+
+    ``update(points, t)`` returns one track id per point: the id of the previous frame's point
+    it continues, or a new id. A match must be mutual (each is the other's nearest) and within
+    ``track_gate_mm + a dt^2`` of the constant-velocity prediction (``+ v dt`` for a track with
+    no velocity yet). Ambiguous points simply start new tracks: the boot wants few, clean tracks.
+    """
+
+    def __init__(self, rate: float, config: BootConfig | None = None) -> None:
+        if not (np.isfinite(rate) and rate > 0):
+            raise LabelerError(f"invalid frame rate {rate}")
+        self.rate = float(rate)
+        self.config = config or BootConfig()
+        self._next = 0
+        self._pts = np.zeros((0, 3))
+        self._vel = np.zeros((0, 3))
+        self._has_vel = np.zeros(0, dtype=bool)
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._t = np.nan
+
+    def update(self, points: np.ndarray, t: float) -> np.ndarray:
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        n = pts.shape[0]
+        dt = t - self._t
+        if not (np.isfinite(dt) and dt > 0):
+            dt = 1.0 / self.rate
+        c = self.config
+        ids = np.full(n, -1, dtype=np.int64)
+        vel = np.zeros((n, 3))
+        has_vel = np.zeros(n, dtype=bool)
+        if n and self._pts.shape[0]:
+            pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
+            gate = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+            gate = np.where(self._has_vel, gate, gate + c.track_speed_mm_s * dt)
+            d_pt, j_pt = cKDTree(pred).query(pts)  # point -> nearest prediction
+            _, i_tr = cKDTree(pts).query(pred)  # prediction -> nearest point
+            idx = np.arange(n)
+            ok = (i_tr[j_pt] == idx) & (d_pt <= gate[j_pt])
+            k = j_pt[ok]
+            ids[ok] = self._ids[k]
+            vel[ok] = (pts[ok] - self._pts[k]) / dt
+            has_vel[ok] = True
+        new = ids < 0
+        ids[new] = np.arange(self._next, self._next + int(new.sum()))
+        self._next += int(new.sum())
+        self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t
+        return ids
+
+
+def track_history(frames: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -> np.ndarray:
+    """``(N, W, 3)`` positions of the tracks ``ids`` in the window ``frames`` (list of
+    ``(points, ids)``, oldest first), NaN where a track has no point in a frame."""
+    out = np.full((ids.shape[0], len(frames), 3), np.nan)
+    for w, (pts, fids) in enumerate(frames):
+        order = np.argsort(fids, kind="stable")
+        sids = fids[order]
+        if sids.shape[0] == 0:
+            continue
+        pos = np.minimum(np.searchsorted(sids, ids), sids.shape[0] - 1)
+        hit = sids[pos] == ids
+        out[hit, w] = pts[order[pos[hit]]]
+    return out
+
+
+# ---------------------------------------------------------------------------- templates
+@dataclass
+class _Body:
+    markers: np.ndarray  # (k,) template marker indices
+    shape: np.ndarray  # (k, 3) reference shape
+    anchors: list[tuple[int, int, int]]  # positions into ``markers``
+
+
+@dataclass
+class _Template:
+    index: int  # subject index in the model
+    name: str
+    offset: int  # first global marker index
+    n: int
+    D: np.ndarray
+    A: np.ndarray
+    tol: np.ndarray  # (m, m) in-body tolerance (inf where unknown)
+    bound: np.ndarray  # (m, m) cross-body tolerance (inf where unknown)
+    in_body: np.ndarray  # (m, m) pairs sharing a body
+    bodies: list[_Body] = field(default_factory=list)
+    body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
+
+
+def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
+    """Anchor triangles of a body: long, rigid, distinct edges (well-conditioned fits)."""
+    k = len(body)
+    scored = []
+    for tri in itertools.combinations(range(k), 3):
+        e = [(tri[0], tri[1]), (tri[0], tri[2]), (tri[1], tri[2])]
+        d = np.array([Dm[body[a], body[b]] for a, b in e])
+        a = np.array([Am[body[a], body[b]] for a, b in e])
+        if not (np.isfinite(d).all() and np.isfinite(a).all()):
+            continue
+        ds = np.sort(d)
+        distinct = min(ds[1] - ds[0], ds[2] - ds[1])
+        scored.append((float(ds[0] + 0.5 * distinct - 3.0 * a.max()), tri))
+    scored.sort(key=lambda s: -s[0])
+    out: list[tuple] = []
+    for _, tri in scored:
+        if all(len(set(tri) & set(o)) < 3 for o in out):
+            out.append(tri)
+        if len(out) >= count:
+            break
+    return out
+
+
+def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
+    out = []
+    offset = 0
+    for s, subj in enumerate(model.subjects):
+        Dm, Am = subj.D_array(), subj.A_array()
+        m = len(subj.markers)
+        tol = config.tol_mm + config.tol_sigma * Am + config.tol_relative * Dm
+        bound = config.tol_mm + config.pair_sigma * Am + config.reach_relative * Dm
+        tol = np.where(np.isfinite(tol), tol, np.inf)
+        bound = np.where(np.isfinite(bound), bound, np.inf)
+        in_body = np.zeros((m, m), dtype=bool)
+        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, in_body)
+        tpl.body_of = [[] for _ in range(m)]
+        for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
+            if len(body) < 3:
+                continue
+            anchors = _anchors(Dm, Am, body, config.anchors_per_body)
+            if not anchors:
+                continue
+            bi = len(tpl.bodies)
+            tpl.bodies.append(_Body(np.asarray(body), np.asarray(shape, dtype=float), anchors))
+            in_body[np.ix_(body, body)] = True
+            for i in body:
+                tpl.body_of[i].append(bi)
+            del b
+        np.fill_diagonal(in_body, False)
+        out.append(tpl)
+        offset += m
+    return out
+
+
+# ---------------------------------------------------------------------------- geometry
+def _kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Proper rotations ``R (C,3,3)`` and centroids mapping ``src (k,3)`` onto ``dst (C,k,3)``:
+    ``dst ~ (src - cs) R^T + cd``."""
+    cs = src.mean(axis=0)
+    cd = dst.mean(axis=1)
+    H = np.einsum("ki,ckj->cij", src - cs, dst - cd[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.transpose(Vt, (0, 2, 1))
+    d = np.sign(np.linalg.det(V @ np.transpose(U, (0, 2, 1))))
+    d = np.where(d == 0, 1.0, d)
+    V[:, :, 2] *= d[:, None]
+    R = V @ np.transpose(U, (0, 2, 1))
+    return R, cs, cd
+
+
+class _Pairs:
+    """Oriented point pairs sorted by distance (both orientations), for range queries."""
+
+    def __init__(self, pts: np.ndarray, r_max: float) -> None:
+        self.n = pts.shape[0]
+        tree = cKDTree(pts)
+        pr = tree.query_pairs(r_max, output_type="ndarray")
+        if pr.size == 0:
+            pr = np.zeros((0, 2), dtype=np.int64)
+        d = np.linalg.norm(pts[pr[:, 0]] - pts[pr[:, 1]], axis=1)
+        a = np.concatenate([pr[:, 0], pr[:, 1]])
+        b = np.concatenate([pr[:, 1], pr[:, 0]])
+        dd = np.concatenate([d, d])
+        order = np.argsort(dd, kind="stable")
+        self.a, self.b, self.d = a[order], b[order], dd[order]
+        self.tree = tree
+
+    def within(self, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        i0, i1 = np.searchsorted(self.d, [lo, hi])
+        return self.a[i0:i1], self.b[i0:i1], self.d[i0:i1]
+
+
+def _triangles(pairs: _Pairs, d: np.ndarray, t: np.ndarray, limit: int) -> np.ndarray:
+    """Candidate point triples ``(C, 3)`` whose edges (01, 02, 12) match ``d +- t``."""
+    a1, b1, d1 = pairs.within(d[0] - t[0], d[0] + t[0])
+    if a1.size > limit:  # keep the closest distances
+        keep = np.argsort(np.abs(d1 - d[0]), kind="stable")[:limit]
+        a1, b1 = a1[keep], b1[keep]
+    a2, b2, _ = pairs.within(d[1] - t[1], d[1] + t[1])
+    a3, b3, _ = pairs.within(d[2] - t[2], d[2] + t[2])
+    if a1.size == 0 or a2.size == 0 or a3.size == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    # join edge 01 with edge 02 on vertex 0
+    o2 = np.argsort(a2, kind="stable")
+    a2s, b2s = a2[o2], b2[o2]
+    lo = np.searchsorted(a2s, a1, side="left")
+    hi = np.searchsorted(a2s, a1, side="right")
+    cnt = hi - lo
+    if cnt.sum() == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    rep = np.repeat(np.arange(a1.size), cnt)
+    start = np.repeat(lo, cnt)
+    within = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    p, q, r = a1[rep], b1[rep], b2s[start + within]
+    # edge 12 must exist
+    n = np.int64(pairs.n)
+    keys3 = np.sort(a3.astype(np.int64) * n + b3)
+    key = q.astype(np.int64) * n + r
+    pos = np.minimum(np.searchsorted(keys3, key), keys3.size - 1)
+    ok = (keys3[pos] == key) & (q != r)
+    return np.stack([p[ok], q[ok], r[ok]], axis=1)
+
+
+# ---------------------------------------------------------------------------- hypotheses
+@dataclass
+class _Candidate:
+    markers: np.ndarray  # template marker indices
+    points: np.ndarray  # point indices (same length)
+    err: float  # RMS of predicted-to-point distance (mm)
+
+
+def _body_candidates(
+    tpl: _Template, body: _Body, pts: np.ndarray, pairs: _Pairs, config: BootConfig
+) -> list[_Candidate]:
+    k = body.markers.shape[0]
+    need = min(k, max(3, k - config.body_hidden))
+    found: dict[tuple, _Candidate] = {}
+    for tri in body.anchors:
+        mk = body.markers[list(tri)]
+        e = [(0, 1), (0, 2), (1, 2)]
+        d = np.array([tpl.D[mk[a], mk[b]] for a, b in e])
+        t = np.array([tpl.tol[mk[a], mk[b]] for a, b in e])
+        trip = _triangles(pairs, d, t, config.max_candidates)
+        if trip.shape[0] == 0:
+            continue
+        R, cs, cd = _kabsch_batch(body.shape[list(tri)], pts[trip])
+        pred = np.einsum("kj,cij->cki", body.shape - cs, R) + cd[:, None, :]
+        dist, near = pairs.tree.query(pred.reshape(-1, 3))
+        dist = dist.reshape(trip.shape[0], k)
+        near = near.reshape(trip.shape[0], k)
+        hit = dist <= config.fit_mm
+        hit[:, list(tri)] = True
+        near[:, list(tri)] = trip
+        nh = hit.sum(axis=1)
+        for c in np.flatnonzero(nh >= need):
+            sel = np.flatnonzero(hit[c])
+            pp = near[c, sel]
+            if np.unique(pp).size != pp.size:
+                continue
+            key = tuple(zip(body.markers[sel].tolist(), pp.tolist(), strict=True))
+            err = float(np.sqrt(np.mean(dist[c, sel] ** 2)))
+            if key not in found or found[key].err > err:
+                found[key] = _Candidate(body.markers[sel], pp, err)
+    return list(found.values())
+
+
+def _compatible(
+    tpl: _Template, assign: np.ndarray, taken: np.ndarray, pts: np.ndarray, cand: _Candidate
+) -> bool:
+    """``cand`` agrees with the hypothesis ``assign``: same points for shared markers, new
+    points free, in-body pairs within ``tol`` and every other pair not longer than
+    ``D + bound`` (articulated pairs: only the reach is bounded, a pose may bring markers
+    closer than anything seen in training)."""
+    cur = assign[cand.markers]
+    known = cur >= 0
+    if np.any(cur[known] != cand.points[known]):
+        return False
+    new_m, new_p = cand.markers[~known], cand.points[~known]
+    if new_m.size == 0:
+        return True
+    if np.any(taken[new_p]):
+        return False
+    have = np.flatnonzero(assign >= 0)
+    if have.size == 0:
+        return True
+    d = np.linalg.norm(pts[new_p][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+    Dm = tpl.D[new_m][:, have]
+    dev = d - Dm
+    rigid = tpl.in_body[new_m][:, have]
+    bad = np.where(rigid, np.abs(dev) > tpl.tol[new_m][:, have], dev > tpl.bound[new_m][:, have])
+    return not bool(np.any(bad & np.isfinite(Dm)))
+
+
+def _grow(
+    tpl: _Template,
+    assign: np.ndarray,
+    taken: np.ndarray,
+    pts: np.ndarray,
+    tree: cKDTree,
+    config: BootConfig,
+) -> None:
+    """Bodies with 3+ placed markers predict their missing members; free points near join."""
+    for _ in range(4):
+        changed = False
+        for body in tpl.bodies:
+            a = assign[body.markers]
+            have = a >= 0
+            if have.sum() < 3 or have.all():
+                continue
+            R, cs, cd = _kabsch_batch(body.shape[have], pts[a[have]][None])
+            pred = (body.shape[~have] - cs) @ R[0].T + cd[0]
+            dist, near = tree.query(pred)
+            for m, dd, p in zip(body.markers[~have], dist, near, strict=True):
+                if dd > config.fit_mm or taken[p] or assign[m] >= 0:
+                    continue
+                c = _Candidate(np.array([m]), np.array([p]), float(dd))
+                if _compatible(tpl, assign, taken, pts, c):
+                    assign[m] = p
+                    taken[p] = True
+                    changed = True
+        if not changed:
+            return
+
+
+def _constancy(
+    tpl: _Template, assign: np.ndarray, hist: np.ndarray, config: BootConfig
+) -> np.ndarray:
+    """Drops markers whose in-body pair distances do not hold along the tracks."""
+    for _ in range(3):
+        have = np.flatnonzero(assign >= 0)
+        if have.size < 2:
+            return assign
+        h = hist[assign[have]]  # (n, W, 3)
+        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
+        D = tpl.D[np.ix_(have, have)][..., None]
+        tol = tpl.tol[np.ix_(have, have)][..., None]
+        pair = tpl.in_body[np.ix_(have, have)][..., None] & np.isfinite(d)
+        bad = pair & (np.abs(d - D) > tol)
+        n_pair = pair.sum(axis=(1, 2))
+        frac_bad = bad.sum(axis=(1, 2)) / np.maximum(n_pair, 1)
+        worst = int(np.argmax(frac_bad))
+        if frac_bad[worst] <= 1.0 - config.constancy:
+            return assign
+        drop = frac_bad > max(1.0 - config.constancy, 0.5 * frac_bad[worst])
+        assign[have[drop]] = -1
+    return assign
+
+
+def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
+    have = np.flatnonzero(assign >= 0)
+    if have.size == 0:
+        return 0.0
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    pair = tpl.in_body[np.ix_(have, have)]
+    e = np.abs(d - tpl.D[np.ix_(have, have)]) / tpl.tol[np.ix_(have, have)]
+    e = np.where(pair & np.isfinite(e), e, 0.0)
+    per = (e**2).sum(axis=1) / np.maximum(pair.sum(axis=1), 1)
+    return float(have.size - per.sum())
+
+
+@dataclass
+class _Hypothesis:
+    template: int
+    assign: np.ndarray  # (m,) point index per template marker, -1
+    score: float
+
+
+def _steady(
+    tpl: _Template, body: _Body, cands: list[_Candidate], hist: np.ndarray, config: BootConfig
+) -> list[_Candidate]:
+    """Body candidates whose pair distances hold along the tracks (distance constancy)."""
+    out = []
+    for c in cands:
+        h = hist[c.points]  # (k, W, 3)
+        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)
+        Dm = tpl.D[c.markers][:, c.markers][..., None]
+        t = tpl.tol[c.markers][:, c.markers][..., None]
+        seen = np.isfinite(d)
+        np.einsum("iiw->iw", seen)[:] = False
+        bad = seen & (np.abs(d - Dm) > t)
+        if bad.sum() <= (1.0 - config.constancy) * max(1, seen.sum()):
+            out.append(c)
+    del body
+    return out
+
+
+def _hypotheses(
+    tpl: _Template,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
+) -> list[_Hypothesis]:
+    cands: list[_Candidate] = []
+    for body in tpl.bodies:
+        cands += _steady(tpl, body, _body_candidates(tpl, body, pts, pairs, config), hist, config)
+    if not cands:
+        return []
+    cands.sort(key=lambda c: (-c.markers.size, c.err))
+    by_pair: dict[tuple[int, int], list[int]] = {}
+    for ci, c in enumerate(cands):
+        for m, p in zip(c.markers.tolist(), c.points.tolist(), strict=True):
+            by_pair.setdefault((m, p), []).append(ci)
+    centre = np.array([pts[c.points].mean(axis=0) for c in cands])
+    extent = float(np.nanmax(tpl.D)) if np.isfinite(tpl.D).any() else 2000.0
+    n = pts.shape[0]
+    need = max(3, int(np.ceil(config.min_fraction * tpl.n)))
+    # seeds: a body's point set; its candidates differ only by a symmetry of the body (a
+    # pelvis rectangle read left-right flipped): each is grown and the best hypothesis kept
+    groups: dict[frozenset, list[int]] = {}
+    for ci, c in enumerate(cands):
+        groups.setdefault(frozenset(c.points.tolist()), []).append(ci)
+    out: list[_Hypothesis] = []
+    claimed = np.zeros(n, dtype=bool)  # points of this template's accepted hypotheses
+    tried = 0
+    seen_groups: set[frozenset] = set()
+    for seed in cands:
+        if len(out) >= config.max_hypotheses or tried >= config.max_seeds:
+            break
+        key = frozenset(seed.points.tolist())
+        if key in seen_groups or np.any(claimed[seed.points]):
+            continue
+        seen_groups.add(key)
+        tried += 1
+        best: _Hypothesis | None = None
+        for s in groups[key][: config.max_symmetries]:
+            assign = _assemble(tpl, cands, by_pair, centre, extent, s, claimed, pts, pairs, config)
+            assign = _constancy(tpl, assign, hist, config)
+            if int((assign >= 0).sum()) < need:
+                continue
+            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
+            if best is None or h.score > best.score:
+                best = h
+        if best is not None:
+            claimed[best.assign[best.assign >= 0]] = True
+            out.append(best)
+    return out
+
+
+def _assemble(
+    tpl: _Template,
+    cands: list[_Candidate],
+    by_pair: dict[tuple[int, int], list[int]],
+    centre: np.ndarray,
+    extent: float,
+    s: int,
+    claimed: np.ndarray,
+    pts: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
+) -> np.ndarray:
+    """One subject hypothesis grown from the body candidate ``s``."""
+    assign = np.full(tpl.n, -1, dtype=np.int64)
+    taken = claimed.copy()
+    done = np.zeros(len(cands), dtype=bool)
+    near = np.linalg.norm(centre - centre[s], axis=1) <= extent
+
+    def merge(ci: int) -> list[tuple[int, int]]:
+        c = cands[ci]
+        done[ci] = True
+        fresh = assign[c.markers] < 0
+        assign[c.markers] = c.points
+        taken[c.points] = True
+        return list(zip(c.markers[fresh].tolist(), c.points[fresh].tolist(), strict=True))
+
+    def spread(queue: list[tuple[int, int]]) -> None:
+        # bodies sharing a (marker, point) with the hypothesis join first
+        while queue:
+            for ci in by_pair.get(queue.pop(), ()):
+                if not done[ci] and near[ci]:
+                    done[ci] = True
+                    if _compatible(tpl, assign, taken, pts, cands[ci]):
+                        queue += merge(ci)
+
+    spread(merge(s))
+    for _ in range(3):
+        before = int((assign >= 0).sum())
+        _grow(tpl, assign, taken, pts, pairs.tree, config)
+        # then bodies not linked by a shared marker (another segment)
+        for ci in np.flatnonzero(near & ~done):
+            c = cands[ci]
+            if np.any(assign[c.markers] >= 0) and not np.any(assign[c.markers] == c.points):
+                continue  # conflicts with a placed marker
+            done[ci] = True
+            if _compatible(tpl, assign, taken, pts, c):
+                spread(merge(ci))
+        if int((assign >= 0).sum()) == before:
+            break
+    return assign
+
+
+# ---------------------------------------------------------------------------- public API
+@dataclass
+class BootResult:
+    """``labels[i]``: global marker index (into ``model.marker_names``) of input point ``i``,
+    -1 unlabeled; ``subjects``: names of the subjects booted; ``scores``: their scores."""
+
+    labels: np.ndarray
+    subjects: list[str]
+    scores: dict[str, float]
+
+
+class Booter:
+    """The boot of a model, prepared once (anchor triangles per body), run on windows."""
+
+    def __init__(self, model: LabelerModel, config: BootConfig | None = None) -> None:
+        self.model = model
+        self.config = config or BootConfig()
+        self._templates = _prepare(model, self.config)
+        r = 0.0
+        for tpl in self._templates:
+            for body in tpl.bodies:
+                for tri in body.anchors:
+                    mk = body.markers[list(tri)]
+                    for a, b in ((0, 1), (0, 2), (1, 2)):
+                        r = max(r, float(tpl.D[mk[a], mk[b]] + tpl.tol[mk[a], mk[b]]))
+        self._r_max = r
+
+    @property
+    def templates(self) -> tuple[SubjectTemplate, ...]:
+        return tuple(self.model.subjects)
+
+    def run(
+        self,
+        points: np.ndarray,
+        history: np.ndarray | None = None,
+        *,
+        free: np.ndarray | None = None,
+        subjects: list[int] | None = None,
+    ) -> BootResult:
+        """Labels ``points (N, 3)`` (the window's last frame).
+
+        ``history (N, W, 3)``: each point's track over the window (NaN where untracked; its
+        last column is ``points``); without it the boot relies on one frame. ``free``: points
+        that may be labeled (default all); ``subjects``: model subject indices to look for
+        (default all).
+        """
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        n = pts.shape[0]
+        hist = pts[:, None, :] if history is None else np.asarray(history, dtype=np.float64)
+        if hist.shape[0] != n or hist.ndim != 3 or hist.shape[2] != 3:
+            raise LabelerError(f"history must be ({n}, W, 3), got {hist.shape}")
+        ok = np.ones(n, dtype=bool) if free is None else np.asarray(free, dtype=bool).copy()
+        w = hist.shape[1]
+        tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)
+        ok &= tracked >= max(1, int(np.ceil(self.config.min_track_fraction * w)))
+        labels = np.full(n, -1, dtype=np.int64)
+        idx = np.flatnonzero(ok)
+        if idx.size < 3:
+            return BootResult(labels, [], {})
+        sub_pts, sub_hist = pts[idx], hist[idx]
+        pairs = _Pairs(sub_pts, self._r_max)
+        wanted = range(len(self._templates)) if subjects is None else subjects
+        hyps: list[_Hypothesis] = []
+        for s in wanted:
+            hyps += _hypotheses(self._templates[s], sub_pts, sub_hist, pairs, self.config)
+        hyps.sort(key=lambda h: -h.score)
+        taken = np.zeros(idx.size, dtype=bool)
+        used: set[int] = set()
+        booted: list[str] = []
+        scores: dict[str, float] = {}
+        for h in hyps:
+            if h.template in used:
+                continue
+            tpl = self._templates[h.template]
+            assign = h.assign.copy()
+            have = assign >= 0
+            clash = np.zeros_like(have)
+            clash[have] = taken[assign[have]]
+            assign[clash] = -1
+            if int((assign >= 0).sum()) < max(3, int(np.ceil(self.config.min_fraction * tpl.n))):
+                continue
+            used.add(h.template)
+            m = np.flatnonzero(assign >= 0)
+            taken[assign[m]] = True
+            labels[idx[assign[m]]] = tpl.offset + m
+            booted.append(tpl.name)
+            scores[tpl.name] = _score(tpl, assign, sub_pts)
+        return BootResult(labels, booted, scores)
+
+
+def boot(
+    model: LabelerModel,
+    frames: list[np.ndarray],
+    rate: float,
+    config: BootConfig | None = None,
+) -> list[np.ndarray]:
+    """Labels a short window of anonymous frames from a model, with no labeled frame.
+
+    ``frames``: ``(N_k, 3)`` point arrays (mm, finite, any order). Returns per frame a label per
+    point: the global marker index into ``model.marker_names`` or -1. The boot runs on the last
+    frame with the whole window as evidence; earlier frames get the labels of their tracks
+    (points of tracks that do not reach the last frame stay unlabeled).
+    """
+    if not frames:
+        raise LabelerError("boot needs at least one frame")
+    cfg = config or BootConfig()
+    tracker = PointTracker(rate, cfg)
+    window = []
+    for k, f in enumerate(frames):
+        pts = np.asarray(f, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(pts).all():
+            raise LabelerError(f"frame {k}: points must be finite")
+        window.append((pts, tracker.update(pts, k / rate)))
+    last_pts, last_ids = window[-1]
+    res = Booter(model, cfg).run(last_pts, track_history(window, last_ids))
+    return labels_along_tracks(window, last_ids, res.labels)
+
+
+def labels_along_tracks(
+    window: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray, labels: np.ndarray
+) -> list[np.ndarray]:
+    """Spreads the labels of tracks ``ids`` over every frame of ``window``."""
+    lab = labels >= 0
+    tid, tl = ids[lab], labels[lab]
+    order = np.argsort(tid)
+    tid, tl = tid[order], tl[order]
+    out = []
+    for _, fids in window:
+        res = np.full(fids.shape[0], -1, dtype=np.int64)
+        if tid.size:
+            pos = np.minimum(np.searchsorted(tid, fids), tid.size - 1)
+            hit = tid[pos] == fids
+            res[hit] = tl[pos[hit]]
+        out.append(res)
+    return out
