@@ -92,6 +92,18 @@ class BootConfig(BaseModel):
         ge=0,
         description="pairs across bodies may be this fraction of D longer (poses not trained)",
     )
+    rigid_a_mm: float = Field(
+        8.0, gt=0, description="pairs whose deviation A is at most this are rigid (one segment)"
+    )
+    min_support: int = Field(
+        2, ge=1, description="rigid links that must agree before a marker joins a hypothesis"
+    )
+    link_sigma: float = Field(
+        3.0, ge=0, description="an articulated pair links two segments within D +- this A"
+    )
+    min_links: int = Field(
+        6, ge=1, description="articulated pairs in range needed to join another segment"
+    )
     fit_mm: float = Field(12.0, gt=0, description="predicted marker to point, Kabsch check")
     anchors_per_body: int = Field(4, ge=1, le=4, description="anchor triangles per body")
     max_candidates: int = Field(
@@ -195,6 +207,8 @@ class _Template:
     tol: np.ndarray  # (m, m) in-body tolerance (inf where unknown)
     bound: np.ndarray  # (m, m) cross-body tolerance (inf where unknown)
     in_body: np.ndarray  # (m, m) pairs sharing a body
+    rigid: np.ndarray  # (m, m) pairs with A <= rigid_a_mm
+    link: np.ndarray  # (m, m) articulated-pair tolerance (inf where unknown)
     bodies: list[_Body] = field(default_factory=list)
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
 
@@ -233,7 +247,11 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tol = np.where(np.isfinite(tol), tol, np.inf)
         bound = np.where(np.isfinite(bound), bound, np.inf)
         in_body = np.zeros((m, m), dtype=bool)
-        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, in_body)
+        rigid = np.isfinite(Am) & (Am <= config.rigid_a_mm) & np.isfinite(tol)
+        np.fill_diagonal(rigid, False)
+        link = config.tol_mm + config.link_sigma * Am + config.tol_relative * Dm
+        link = np.where(np.isfinite(link), link, -1.0)
+        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, in_body, rigid, link)
         tpl.body_of = [[] for _ in range(m)]
         for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
             if len(body) < 3:
@@ -365,31 +383,90 @@ def _body_candidates(
     return list(found.values())
 
 
-def _compatible(
-    tpl: _Template, assign: np.ndarray, taken: np.ndarray, pts: np.ndarray, cand: _Candidate
-) -> bool:
-    """``cand`` agrees with the hypothesis ``assign``: same points for shared markers, new
-    points free, in-body pairs within ``tol`` and every other pair not longer than
-    ``D + bound`` (articulated pairs: only the reach is bounded, a pose may bring markers
-    closer than anything seen in training)."""
-    cur = assign[cand.markers]
-    known = cur >= 0
-    if np.any(cur[known] != cand.points[known]):
-        return False
-    new_m, new_p = cand.markers[~known], cand.points[~known]
-    if new_m.size == 0:
-        return True
-    if np.any(taken[new_p]):
-        return False
-    have = np.flatnonzero(assign >= 0)
-    if have.size == 0:
-        return True
-    d = np.linalg.norm(pts[new_p][:, None, :] - pts[assign[have]][None, :, :], axis=2)
-    Dm = tpl.D[new_m][:, have]
-    dev = d - Dm
-    rigid = tpl.in_body[new_m][:, have]
-    bad = np.where(rigid, np.abs(dev) > tpl.tol[new_m][:, have], dev > tpl.bound[new_m][:, have])
-    return not bool(np.any(bad & np.isfinite(Dm)))
+def _steady(tpl: _Template, cands: list[_Candidate], hist: np.ndarray, config: BootConfig) -> list:
+    """Body candidates whose pair distances hold along the tracks (distance constancy)."""
+    out = []
+    for c in cands:
+        h = hist[c.points]  # (k, W, 3)
+        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)
+        Dm = tpl.D[c.markers][:, c.markers][..., None]
+        t = tpl.tol[c.markers][:, c.markers][..., None]
+        seen = np.isfinite(d)
+        np.einsum("iiw->iw", seen)[:] = False
+        bad = seen & (np.abs(d - Dm) > t)
+        if bad.sum() <= (1.0 - config.constancy) * max(1, seen.sum()):
+            out.append(c)
+    return out
+
+
+@dataclass
+class _Graph:
+    """Marker-to-point assignments (nodes) of one template and their pairwise relations:
+    ``agree[a, b]``: a rigid pair (``A <= rigid_a_mm``) whose point distance matches ``D``;
+    ``clash[a, b]``: one marker on two points, one point for two markers, a rigid pair whose
+    distance does not match, or any pair farther apart than its reach."""
+
+    M: np.ndarray
+    P: np.ndarray
+    agree: np.ndarray
+    clash: np.ndarray
+    link: np.ndarray
+
+
+def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
+    Dn = tpl.D[M][:, M]
+    tol = tpl.tol[M][:, M]
+    rigid = tpl.rigid[M][:, M]
+    p = pts[P]
+    d = np.sqrt(((p[:, None, :] - p[None, :, :]) ** 2).sum(axis=2))
+    dev = d - Dn
+    known = np.isfinite(Dn)
+    same_m = M[:, None] == M[None, :]
+    same_p = P[:, None] == P[None, :]
+    agree = rigid & (np.abs(dev) <= tol) & ~same_m & ~same_p
+    clash = (same_m ^ same_p) | (rigid & known & (np.abs(dev) > tol))
+    clash |= ~rigid & known & (dev > tpl.bound[M][:, M])
+    link = ~rigid & known & ~same_m & ~same_p & (np.abs(dev) <= tpl.link[M][:, M])
+    return _Graph(M, P, agree, clash, link)
+
+
+def _select(
+    g: _Graph, seed: np.ndarray, allowed: np.ndarray, bodies: list[np.ndarray], config: BootConfig
+) -> np.ndarray:
+    """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
+    links that agree with the set (at least ``min_support``) and no clash; when none is left,
+    add the whole body candidate (another segment) best linked to the set through articulated
+    pairs within their trained range (at least ``min_links``), and go on."""
+    chosen = np.zeros(g.M.size, dtype=bool)
+    chosen[seed] = True
+    support = g.agree[seed].sum(axis=0).astype(np.int64)
+    links = g.link[seed].sum(axis=0).astype(np.int64)
+    blocked = g.clash[seed].any(axis=0) | chosen | ~allowed
+    while True:
+        score = np.where(blocked, -1, support)
+        c = int(np.argmax(score))
+        if score[c] >= config.min_support:
+            chosen[c] = True
+            support += g.agree[c]
+            links += g.link[c]
+            blocked |= g.clash[c]
+            blocked[c] = True
+            continue
+        best, best_links = -1, config.min_links - 1
+        for k, b in enumerate(bodies):
+            if np.any(blocked[b]) or np.any(g.clash[np.ix_(b, b)]):
+                continue
+            total = int(links[b].sum())
+            if total > best_links:
+                best, best_links = k, total
+        if best < 0:
+            return np.flatnonzero(chosen)
+        b = bodies[best]
+        chosen[b] = True
+        support += g.agree[b].sum(axis=0)
+        links += g.link[b].sum(axis=0)
+        blocked |= g.clash[b].any(axis=0)
+        blocked[b] = True
 
 
 def _grow(
@@ -400,25 +477,35 @@ def _grow(
     tree: cKDTree,
     config: BootConfig,
 ) -> None:
-    """Bodies with 3+ placed markers predict their missing members; free points near join."""
-    for _ in range(4):
+    """Markers with no node yet: a free point that keeps the rigid distances (3 or more) to the
+    markers placed, and clashes with none of them, joins (trilateration)."""
+    for _ in range(3):
         changed = False
-        for body in tpl.bodies:
-            a = assign[body.markers]
-            have = a >= 0
-            if have.sum() < 3 or have.all():
+        have = np.flatnonzero(assign >= 0)
+        for m in np.flatnonzero(assign < 0):
+            part = have[tpl.rigid[m, have]]
+            if part.size < 3:
                 continue
-            R, cs, cd = _kabsch_batch(body.shape[have], pts[a[have]][None])
-            pred = (body.shape[~have] - cs) @ R[0].T + cd[0]
-            dist, near = tree.query(pred)
-            for m, dd, p in zip(body.markers[~have], dist, near, strict=True):
-                if dd > config.fit_mm or taken[p] or assign[m] >= 0:
+            j = part[np.argmin(tpl.D[m, part])]
+            near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
+            best, best_err = -1, np.inf
+            for p in near:
+                if taken[p]:
                     continue
-                c = _Candidate(np.array([m]), np.array([p]), float(dd))
-                if _compatible(tpl, assign, taken, pts, c):
-                    assign[m] = p
-                    taken[p] = True
-                    changed = True
+                d = np.linalg.norm(pts[assign[have]] - pts[p], axis=1)
+                dev = d - tpl.D[m, have]
+                rig = tpl.rigid[m, have]
+                tol = tpl.tol[m, have]
+                if np.any(rig & (np.abs(dev) > tol)) or np.any(~rig & (dev > tpl.bound[m, have])):
+                    continue
+                err = float(np.mean((dev[rig] / tol[rig]) ** 2))
+                if err < best_err:
+                    best, best_err = p, err
+            if best >= 0:
+                assign[m] = best
+                taken[best] = True
+                have = np.flatnonzero(assign >= 0)
+                changed = True
         if not changed:
             return
 
@@ -426,7 +513,7 @@ def _grow(
 def _constancy(
     tpl: _Template, assign: np.ndarray, hist: np.ndarray, config: BootConfig
 ) -> np.ndarray:
-    """Drops markers whose in-body pair distances do not hold along the tracks."""
+    """Drops markers whose rigid pair distances do not hold along the tracks."""
     for _ in range(3):
         have = np.flatnonzero(assign >= 0)
         if have.size < 2:
@@ -435,7 +522,7 @@ def _constancy(
         d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
         D = tpl.D[np.ix_(have, have)][..., None]
         tol = tpl.tol[np.ix_(have, have)][..., None]
-        pair = tpl.in_body[np.ix_(have, have)][..., None] & np.isfinite(d)
+        pair = tpl.rigid[np.ix_(have, have)][..., None] & np.isfinite(d)
         bad = pair & (np.abs(d - D) > tol)
         n_pair = pair.sum(axis=(1, 2))
         frac_bad = bad.sum(axis=(1, 2)) / np.maximum(n_pair, 1)
@@ -448,12 +535,13 @@ def _constancy(
 
 
 def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
+    """Markers explained, less their mean squared rigid-distance error (in tolerances)."""
     have = np.flatnonzero(assign >= 0)
     if have.size == 0:
         return 0.0
     p = pts[assign[have]]
     d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
-    pair = tpl.in_body[np.ix_(have, have)]
+    pair = tpl.rigid[np.ix_(have, have)]
     e = np.abs(d - tpl.D[np.ix_(have, have)]) / tpl.tol[np.ix_(have, have)]
     e = np.where(pair & np.isfinite(e), e, 0.0)
     per = (e**2).sum(axis=1) / np.maximum(pair.sum(axis=1), 1)
@@ -467,25 +555,6 @@ class _Hypothesis:
     score: float
 
 
-def _steady(
-    tpl: _Template, body: _Body, cands: list[_Candidate], hist: np.ndarray, config: BootConfig
-) -> list[_Candidate]:
-    """Body candidates whose pair distances hold along the tracks (distance constancy)."""
-    out = []
-    for c in cands:
-        h = hist[c.points]  # (k, W, 3)
-        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)
-        Dm = tpl.D[c.markers][:, c.markers][..., None]
-        t = tpl.tol[c.markers][:, c.markers][..., None]
-        seen = np.isfinite(d)
-        np.einsum("iiw->iw", seen)[:] = False
-        bad = seen & (np.abs(d - Dm) > t)
-        if bad.sum() <= (1.0 - config.constancy) * max(1, seen.sum()):
-            out.append(c)
-    del body
-    return out
-
-
 def _hypotheses(
     tpl: _Template,
     pts: np.ndarray,
@@ -493,102 +562,52 @@ def _hypotheses(
     pairs: _Pairs,
     config: BootConfig,
 ) -> list[_Hypothesis]:
+    """Up to ``max_hypotheses`` disjoint subject hypotheses of one template."""
     cands: list[_Candidate] = []
     for body in tpl.bodies:
-        cands += _steady(tpl, body, _body_candidates(tpl, body, pts, pairs, config), hist, config)
+        cands += _steady(tpl, _body_candidates(tpl, body, pts, pairs, config), hist, config)
     if not cands:
         return []
-    cands.sort(key=lambda c: (-c.markers.size, c.err))
-    by_pair: dict[tuple[int, int], list[int]] = {}
-    for ci, c in enumerate(cands):
-        for m, p in zip(c.markers.tolist(), c.points.tolist(), strict=True):
-            by_pair.setdefault((m, p), []).append(ci)
-    centre = np.array([pts[c.points].mean(axis=0) for c in cands])
-    extent = float(np.nanmax(tpl.D)) if np.isfinite(tpl.D).any() else 2000.0
     n = pts.shape[0]
+    key = np.concatenate([c.markers * n + c.points for c in cands])
+    uniq, inv = np.unique(key, return_inverse=True)
+    g = _graph(tpl, uniq // n, uniq % n, pts)
+    bounds = np.cumsum([0] + [c.markers.size for c in cands])
+    seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(cands))]
+    # seeds by support: rigid links of the rest of the graph that agree with the seed body
+    support = np.array([g.agree[s].sum() for s in seeds])
+    order = np.argsort(-support, kind="stable")
+    extent = float(np.nanmax(tpl.D)) if np.isfinite(tpl.D).any() else 2000.0
     need = max(3, int(np.ceil(config.min_fraction * tpl.n)))
-    # seeds: a body's point set; its candidates differ only by a symmetry of the body (a
-    # pelvis rectangle read left-right flipped): each is grown and the best hypothesis kept
-    groups: dict[frozenset, list[int]] = {}
-    for ci, c in enumerate(cands):
-        groups.setdefault(frozenset(c.points.tolist()), []).append(ci)
     out: list[_Hypothesis] = []
     claimed = np.zeros(n, dtype=bool)  # points of this template's accepted hypotheses
+    used = np.zeros(len(cands), dtype=bool)
+    node_pos = pts[g.P]
     tried = 0
-    seen_groups: set[frozenset] = set()
-    for seed in cands:
+    for ci in order:
         if len(out) >= config.max_hypotheses or tried >= config.max_seeds:
             break
-        key = frozenset(seed.points.tolist())
-        if key in seen_groups or np.any(claimed[seed.points]):
+        if used[ci] or np.any(claimed[cands[ci].points]):
             continue
-        seen_groups.add(key)
         tried += 1
-        best: _Hypothesis | None = None
-        for s in groups[key][: config.max_symmetries]:
-            assign = _assemble(tpl, cands, by_pair, centre, extent, s, claimed, pts, pairs, config)
-            assign = _constancy(tpl, assign, hist, config)
-            if int((assign >= 0).sum()) < need:
-                continue
-            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
-            if best is None or h.score > best.score:
-                best = h
-        if best is not None:
-            claimed[best.assign[best.assign >= 0]] = True
-            out.append(best)
-    return out
-
-
-def _assemble(
-    tpl: _Template,
-    cands: list[_Candidate],
-    by_pair: dict[tuple[int, int], list[int]],
-    centre: np.ndarray,
-    extent: float,
-    s: int,
-    claimed: np.ndarray,
-    pts: np.ndarray,
-    pairs: _Pairs,
-    config: BootConfig,
-) -> np.ndarray:
-    """One subject hypothesis grown from the body candidate ``s``."""
-    assign = np.full(tpl.n, -1, dtype=np.int64)
-    taken = claimed.copy()
-    done = np.zeros(len(cands), dtype=bool)
-    near = np.linalg.norm(centre - centre[s], axis=1) <= extent
-
-    def merge(ci: int) -> list[tuple[int, int]]:
-        c = cands[ci]
-        done[ci] = True
-        fresh = assign[c.markers] < 0
-        assign[c.markers] = c.points
-        taken[c.points] = True
-        return list(zip(c.markers[fresh].tolist(), c.points[fresh].tolist(), strict=True))
-
-    def spread(queue: list[tuple[int, int]]) -> None:
-        # bodies sharing a (marker, point) with the hypothesis join first
-        while queue:
-            for ci in by_pair.get(queue.pop(), ()):
-                if not done[ci] and near[ci]:
-                    done[ci] = True
-                    if _compatible(tpl, assign, taken, pts, cands[ci]):
-                        queue += merge(ci)
-
-    spread(merge(s))
-    for _ in range(3):
-        before = int((assign >= 0).sum())
+        used[ci] = True
+        centre = pts[cands[ci].points].mean(axis=0)
+        allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
+        nodes = _select(g, seeds[ci], allowed, seeds, config)
+        assign = np.full(tpl.n, -1, dtype=np.int64)
+        assign[g.M[nodes]] = g.P[nodes]
+        taken = claimed.copy()
+        taken[g.P[nodes]] = True
         _grow(tpl, assign, taken, pts, pairs.tree, config)
-        # then bodies not linked by a shared marker (another segment)
-        for ci in np.flatnonzero(near & ~done):
-            c = cands[ci]
-            if np.any(assign[c.markers] >= 0) and not np.any(assign[c.markers] == c.points):
-                continue  # conflicts with a placed marker
-            done[ci] = True
-            if _compatible(tpl, assign, taken, pts, c):
-                spread(merge(ci))
-        if int((assign >= 0).sum()) == before:
-            break
-    return assign
+        assign = _constancy(tpl, assign, hist, config)
+        # seeds inside this hypothesis need not be tried again
+        for cj in range(len(cands)):
+            if not used[cj] and np.all(assign[cands[cj].markers] == cands[cj].points):
+                used[cj] = True
+        if int((assign >= 0).sum()) >= need:
+            claimed[assign[assign >= 0]] = True
+            out.append(_Hypothesis(tpl.index, assign, _score(tpl, assign, pts)))
+    return out
 
 
 # ---------------------------------------------------------------------------- public API
