@@ -349,11 +349,18 @@ class _Candidate:
 
 
 def _body_candidates(
-    tpl: _Template, body: _Body, pts: np.ndarray, pairs: _Pairs, config: BootConfig
+    tpl: _Template,
+    body: _Body,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
 ) -> list[_Candidate]:
+    """Placements of one body: anchor triangles, Kabsch to the reference shape, nearest points
+    to the predicted members, distance constancy along the tracks."""
     k = body.markers.shape[0]
     need = min(k, max(3, k - config.body_hidden))
-    found: dict[tuple, _Candidate] = {}
+    rows, errs = [], []
     for tri in body.anchors:
         mk = body.markers[list(tri)]
         e = [(0, 1), (0, 2), (1, 2)]
@@ -370,32 +377,35 @@ def _body_candidates(
         hit = dist <= config.fit_mm
         hit[:, list(tri)] = True
         near[:, list(tri)] = trip
-        nh = hit.sum(axis=1)
-        for c in np.flatnonzero(nh >= need):
-            sel = np.flatnonzero(hit[c])
-            pp = near[c, sel]
-            if np.unique(pp).size != pp.size:
-                continue
-            key = tuple(zip(body.markers[sel].tolist(), pp.tolist(), strict=True))
-            err = float(np.sqrt(np.mean(dist[c, sel] ** 2)))
-            if key not in found or found[key].err > err:
-                found[key] = _Candidate(body.markers[sel], pp, err)
-    return list(found.values())
-
-
-def _steady(tpl: _Template, cands: list[_Candidate], hist: np.ndarray, config: BootConfig) -> list:
-    """Body candidates whose pair distances hold along the tracks (distance constancy)."""
+        keep = hit.sum(axis=1) >= need
+        pp = np.where(hit, near, -1)[keep]
+        dd = np.where(hit, dist, 0.0)[keep]
+        srt = np.sort(pp, axis=1)
+        dup = np.any((srt[:, 1:] == srt[:, :-1]) & (srt[:, 1:] >= 0), axis=1)
+        rows.append(pp[~dup])
+        errs.append(np.sqrt((dd[~dup] ** 2).sum(axis=1) / np.maximum((pp[~dup] >= 0).sum(1), 1)))
+    if not rows:
+        return []
+    pp = np.concatenate(rows)
+    err = np.concatenate(errs)
+    order = np.argsort(err, kind="stable")
+    _, first = np.unique(pp[order], axis=0, return_index=True)
+    sel = order[first]
+    pp, err = pp[sel], err[sel]
+    # distance constancy of the body's pairs along the tracks
+    ok = pp >= 0
+    h = hist[np.where(ok, pp, 0)]  # (C, k, W, 3)
+    d = np.linalg.norm(h[:, :, None] - h[:, None, :], axis=4)  # (C, k, k, W)
+    Dm = tpl.D[np.ix_(body.markers, body.markers)][None, :, :, None]
+    tol = tpl.tol[np.ix_(body.markers, body.markers)][None, :, :, None]
+    seen = np.isfinite(d) & (ok[:, :, None] & ok[:, None, :])[..., None]
+    seen &= ~np.eye(k, dtype=bool)[None, :, :, None]
+    bad = (seen & (np.abs(d - Dm) > tol)).sum(axis=(1, 2, 3))
+    steady = bad <= (1.0 - config.constancy) * np.maximum(seen.sum(axis=(1, 2, 3)), 1)
     out = []
-    for c in cands:
-        h = hist[c.points]  # (k, W, 3)
-        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)
-        Dm = tpl.D[c.markers][:, c.markers][..., None]
-        t = tpl.tol[c.markers][:, c.markers][..., None]
-        seen = np.isfinite(d)
-        np.einsum("iiw->iw", seen)[:] = False
-        bad = seen & (np.abs(d - Dm) > t)
-        if bad.sum() <= (1.0 - config.constancy) * max(1, seen.sum()):
-            out.append(c)
+    for c in np.flatnonzero(steady):
+        v = ok[c]
+        out.append(_Candidate(body.markers[v], pp[c, v], float(err[c])))
     return out
 
 
@@ -411,6 +421,7 @@ class _Graph:
     agree: np.ndarray
     clash: np.ndarray
     link: np.ndarray
+    link_err: np.ndarray  # |d - D| / tolerance on links, 0 elsewhere
 
 
 def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
@@ -426,12 +437,14 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
     agree = rigid & (np.abs(dev) <= tol) & ~same_m & ~same_p
     clash = (same_m ^ same_p) | (rigid & known & (np.abs(dev) > tol))
     clash |= ~rigid & known & (dev > tpl.bound[M][:, M])
-    link = ~rigid & known & ~same_m & ~same_p & (np.abs(dev) <= tpl.link[M][:, M])
-    return _Graph(M, P, agree, clash, link)
+    lt = tpl.link[M][:, M]
+    link = ~rigid & known & ~same_m & ~same_p & (np.abs(dev) <= lt)
+    link_err = np.where(link, np.abs(dev) / np.where(link, lt, 1.0), 0.0)
+    return _Graph(M, P, agree, clash, link, link_err)
 
 
 def _select(
-    g: _Graph, seed: np.ndarray, allowed: np.ndarray, bodies: list[np.ndarray], config: BootConfig
+    g: _Graph, seed: np.ndarray, allowed: np.ndarray, bodies: np.ndarray, config: BootConfig
 ) -> np.ndarray:
     """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
     links that agree with the set (at least ``min_support``) and no clash; when none is left,
@@ -441,30 +454,37 @@ def _select(
     chosen[seed] = True
     support = g.agree[seed].sum(axis=0).astype(np.int64)
     links = g.link[seed].sum(axis=0).astype(np.int64)
+    lerr = g.link_err[seed].sum(axis=0)
     blocked = g.clash[seed].any(axis=0) | chosen | ~allowed
     while True:
-        score = np.where(blocked, -1, support)
+        # rigid agreement first; among equals, the node more articulated pairs agree with
+        # (breaks the near-symmetries of small segments: a wrist bar read either way)
+        score = np.where(
+            blocked, -1.0, support + (links - lerr / np.maximum(links, 1)) / (1.0 + chosen.sum())
+        )
         c = int(np.argmax(score))
-        if score[c] >= config.min_support:
+        if support[c] >= config.min_support and not blocked[c]:
             chosen[c] = True
             support += g.agree[c]
             links += g.link[c]
+            lerr += g.link_err[c]
             blocked |= g.clash[c]
             blocked[c] = True
             continue
-        best, best_links = -1, config.min_links - 1
-        for k, b in enumerate(bodies):
-            if np.any(blocked[b]) or np.any(g.clash[np.ix_(b, b)]):
-                continue
-            total = int(links[b].sum())
-            if total > best_links:
-                best, best_links = k, total
-        if best < 0:
+        bb = bodies >= 0
+        free = ~np.any(blocked[bodies] & bb, axis=1)
+        count = (links[bodies] * bb).sum(axis=1)
+        mean_err = (lerr[bodies] * bb).sum(axis=1) / np.maximum(count, 1)
+        # most links; among equals (a symmetric segment read either way) the closer ones
+        total = np.where(free, count + 1.0 - np.minimum(mean_err, 1.0), -1.0)
+        best = int(np.argmax(total))
+        if count[best] < config.min_links or not free[best]:
             return np.flatnonzero(chosen)
-        b = bodies[best]
+        b = bodies[best][bb[best]]
         chosen[b] = True
         support += g.agree[b].sum(axis=0)
         links += g.link[b].sum(axis=0)
+        lerr += g.link_err[b].sum(axis=0)
         blocked |= g.clash[b].any(axis=0)
         blocked[b] = True
 
@@ -488,19 +508,21 @@ def _grow(
                 continue
             j = part[np.argmin(tpl.D[m, part])]
             near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
-            best, best_err = -1, np.inf
-            for p in near:
-                if taken[p]:
-                    continue
-                d = np.linalg.norm(pts[assign[have]] - pts[p], axis=1)
-                dev = d - tpl.D[m, have]
-                rig = tpl.rigid[m, have]
-                tol = tpl.tol[m, have]
-                if np.any(rig & (np.abs(dev) > tol)) or np.any(~rig & (dev > tpl.bound[m, have])):
-                    continue
-                err = float(np.mean((dev[rig] / tol[rig]) ** 2))
-                if err < best_err:
-                    best, best_err = p, err
+            near = np.asarray(near, dtype=np.int64)
+            near = near[~taken[near]]
+            if near.size == 0:
+                continue
+            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+            dev = d - tpl.D[m, have]
+            rig = tpl.rigid[m, have]
+            tol = tpl.tol[m, have]
+            bad = (rig & (np.abs(dev) > tol)) | (~rig & (dev > tpl.bound[m, have]))
+            ok = ~bad.any(axis=1)
+            best = -1
+            if ok.any():
+                err = ((dev[:, rig] / tol[rig]) ** 2).mean(axis=1)
+                err = np.where(ok, err, np.inf)
+                best = int(near[int(np.argmin(err))])
             if best >= 0:
                 assign[m] = best
                 taken[best] = True
@@ -565,7 +587,7 @@ def _hypotheses(
     """Up to ``max_hypotheses`` disjoint subject hypotheses of one template."""
     cands: list[_Candidate] = []
     for body in tpl.bodies:
-        cands += _steady(tpl, _body_candidates(tpl, body, pts, pairs, config), hist, config)
+        cands += _body_candidates(tpl, body, pts, hist, pairs, config)
     if not cands:
         return []
     n = pts.shape[0]
@@ -574,6 +596,13 @@ def _hypotheses(
     g = _graph(tpl, uniq // n, uniq % n, pts)
     bounds = np.cumsum([0] + [c.markers.size for c in cands])
     seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(cands))]
+    padded = np.full((len(seeds), 8), -1, dtype=np.int64)  # body candidates as node rows
+    cm = np.zeros((len(seeds), 8), dtype=np.int64)  # ... as markers and points
+    cp = np.full((len(seeds), 8), -1, dtype=np.int64)
+    for i, sd in enumerate(seeds):
+        padded[i, : sd.size] = sd
+        cm[i, : sd.size] = cands[i].markers
+        cp[i, : sd.size] = cands[i].points
     # seeds by support: rigid links of the rest of the graph that agree with the seed body
     support = np.array([g.agree[s].sum() for s in seeds])
     order = np.argsort(-support, kind="stable")
@@ -593,7 +622,7 @@ def _hypotheses(
         used[ci] = True
         centre = pts[cands[ci].points].mean(axis=0)
         allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
-        nodes = _select(g, seeds[ci], allowed, seeds, config)
+        nodes = _select(g, seeds[ci], allowed, padded, config)
         assign = np.full(tpl.n, -1, dtype=np.int64)
         assign[g.M[nodes]] = g.P[nodes]
         taken = claimed.copy()
@@ -601,9 +630,7 @@ def _hypotheses(
         _grow(tpl, assign, taken, pts, pairs.tree, config)
         assign = _constancy(tpl, assign, hist, config)
         # seeds inside this hypothesis need not be tried again
-        for cj in range(len(cands)):
-            if not used[cj] and np.all(assign[cands[cj].markers] == cands[cj].points):
-                used[cj] = True
+        used |= np.all((assign[cm] == cp) | (cp < 0), axis=1)
         if int((assign >= 0).sum()) >= need:
             claimed[assign[assign >= 0]] = True
             out.append(_Hypothesis(tpl.index, assign, _score(tpl, assign, pts)))
