@@ -115,6 +115,15 @@ class BootConfig(BaseModel):
     min_fraction: float = Field(
         0.5, gt=0, le=1, description="a subject boots with this fraction of its markers"
     )
+    boot_every_s: float = Field(
+        0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
+    )
+    drop_after_s: float = Field(
+        0.1,
+        gt=0,
+        description="BootingLabeler: a subject with no observed marker this long is dropped "
+        "(its labels are given to nobody) and booted again when it comes back",
+    )
     max_hypotheses: int = Field(3, ge=1, description="hypotheses kept per template")
     max_seeds: int = Field(12, ge=1, description="seed bodies tried per template")
     max_symmetries: int = Field(
