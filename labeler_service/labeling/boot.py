@@ -469,7 +469,7 @@ def _select(
         # rigid agreement first; among equals, the node more articulated pairs agree with
         # (breaks the near-symmetries of small segments: a wrist bar read either way)
         score = np.where(
-            blocked, -1.0, support + (links - lerr / np.maximum(links, 1)) / (1.0 + chosen.sum())
+            blocked, -1.0, support + (links - lerr) / (1.0 + chosen.sum())
         )
         c = int(np.argmax(score))
         if support[c] >= config.min_support and not blocked[c]:
@@ -483,9 +483,9 @@ def _select(
         bb = bodies >= 0
         free = ~np.any(blocked[bodies] & bb, axis=1)
         count = (links[bodies] * bb).sum(axis=1)
-        mean_err = (lerr[bodies] * bb).sum(axis=1) / np.maximum(count, 1)
-        # most links; among equals (a symmetric segment read either way) the closer ones
-        total = np.where(free, count + 1.0 - np.minimum(mean_err, 1.0), -1.0)
+        # links counted softly (1 - |d - D| / tolerance each): a symmetric segment read either
+        # way, or the left foot read as the right one, has as many links but farther from D
+        total = np.where(free, count - (lerr[bodies] * bb).sum(axis=1), -1.0)
         best = int(np.argmax(total))
         if count[best] < config.min_links or not free[best]:
             return np.flatnonzero(chosen)
