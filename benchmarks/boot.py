@@ -176,8 +176,9 @@ def leave_case(hide: float, seed: int) -> dict:
     return run_case(stream, model, hide=hide, seed=seed, leave=("P2", 120, 180, 1000.0))
 
 
-def composite_case(takes: list[tuple[str, int, int]], rate: float, frames: int, seed: int,
-                   hide: float) -> dict | None:
+def composite_case(
+    takes: list[tuple[str, int, int]], rate: float, frames: int, seed: int, hide: float
+) -> dict | None:
     """Model from a composite of the takes at their ``train`` start, stream from one at their
     ``test`` start (same takes, same names)."""
     paths = [real_file(name) for name, _, _ in takes]

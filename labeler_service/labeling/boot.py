@@ -115,6 +115,9 @@ class BootConfig(BaseModel):
     min_fraction: float = Field(
         0.5, gt=0, le=1, description="a subject boots with this fraction of its markers"
     )
+    extend_every_s: float = Field(
+        0.1, gt=0, description="BootingLabeler: free points joined to booted subjects this often"
+    )
     boot_every_s: float = Field(
         0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
     )
@@ -218,6 +221,8 @@ class _Template:
     in_body: np.ndarray  # (m, m) pairs sharing a body
     rigid: np.ndarray  # (m, m) pairs with A <= rigid_a_mm
     link: np.ndarray  # (m, m) articulated-pair tolerance (inf where unknown)
+    extent: float = 2000.0  # longest pair distance D (mm)
+    r_max: float = 0.0  # longest anchor edge + tolerance (mm)
     bodies: list[_Body] = field(default_factory=list)
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
 
@@ -275,6 +280,12 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
                 tpl.body_of[i].append(bi)
             del b
         np.fill_diagonal(in_body, False)
+        tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
+        for body in tpl.bodies:
+            for tri in body.anchors:
+                mk = body.markers[list(tri)]
+                for a, b in ((0, 1), (0, 2), (1, 2)):
+                    tpl.r_max = max(tpl.r_max, float(Dm[mk[a], mk[b]] + tol[mk[a], mk[b]]))
         out.append(tpl)
         offset += m
     return out
@@ -468,9 +479,7 @@ def _select(
     while True:
         # rigid agreement first; among equals, the node more articulated pairs agree with
         # (breaks the near-symmetries of small segments: a wrist bar read either way)
-        score = np.where(
-            blocked, -1.0, support + (links - lerr) / (1.0 + chosen.sum())
-        )
+        score = np.where(blocked, -1.0, support + (links - lerr) / (1.0 + chosen.sum()))
         c = int(np.argmax(score))
         if support[c] >= config.min_support and not blocked[c]:
             chosen[c] = True
@@ -586,6 +595,53 @@ class _Hypothesis:
     score: float
 
 
+@dataclass
+class _Candidates:
+    """Body candidates of one template as graph nodes (``rows``: node indices per candidate,
+    -1 padded; ``cm``/``cp``: the same as markers and points)."""
+
+    cands: list[_Candidate]
+    g: _Graph
+    seeds: list[np.ndarray]
+    rows: np.ndarray
+    cm: np.ndarray
+    cp: np.ndarray
+
+
+def _candidates(
+    tpl: _Template,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
+    fixed: np.ndarray | None = None,
+) -> _Candidates | None:
+    """Every body candidate of ``tpl`` and their graph; ``fixed`` (a template assignment) adds
+    its (marker, point) nodes (as a last candidate row of its own, not a body)."""
+    cands: list[_Candidate] = []
+    for body in tpl.bodies:
+        cands += _body_candidates(tpl, body, pts, hist, pairs, config)
+    n = pts.shape[0]
+    keys = [c.markers * n + c.points for c in cands]
+    if fixed is not None:
+        m = np.flatnonzero(fixed >= 0)
+        keys.append(m * n + fixed[m])
+    if not keys or not np.concatenate(keys).size:
+        return None
+    uniq, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    g = _graph(tpl, uniq // n, uniq % n, pts)
+    bounds = np.cumsum([0] + [k.size for k in keys])
+    seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(keys))]
+    rows = np.full((len(cands), 8), -1, dtype=np.int64)
+    cm = np.zeros((len(cands), 8), dtype=np.int64)
+    cp = np.full((len(cands), 8), -1, dtype=np.int64)
+    for i, c in enumerate(cands):
+        rows[i, : c.markers.size] = seeds[i]
+        cm[i, : c.markers.size] = c.markers
+        cp[i, : c.markers.size] = c.points
+    return _Candidates(cands, g, seeds, rows, cm, cp)
+
+
 def _hypotheses(
     tpl: _Template,
     pts: np.ndarray,
@@ -594,24 +650,11 @@ def _hypotheses(
     config: BootConfig,
 ) -> list[_Hypothesis]:
     """Up to ``max_hypotheses`` disjoint subject hypotheses of one template."""
-    cands: list[_Candidate] = []
-    for body in tpl.bodies:
-        cands += _body_candidates(tpl, body, pts, hist, pairs, config)
-    if not cands:
+    cg = _candidates(tpl, pts, hist, pairs, config)
+    if cg is None or not cg.cands:
         return []
     n = pts.shape[0]
-    key = np.concatenate([c.markers * n + c.points for c in cands])
-    uniq, inv = np.unique(key, return_inverse=True)
-    g = _graph(tpl, uniq // n, uniq % n, pts)
-    bounds = np.cumsum([0] + [c.markers.size for c in cands])
-    seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(cands))]
-    padded = np.full((len(seeds), 8), -1, dtype=np.int64)  # body candidates as node rows
-    cm = np.zeros((len(seeds), 8), dtype=np.int64)  # ... as markers and points
-    cp = np.full((len(seeds), 8), -1, dtype=np.int64)
-    for i, sd in enumerate(seeds):
-        padded[i, : sd.size] = sd
-        cm[i, : sd.size] = cands[i].markers
-        cp[i, : sd.size] = cands[i].points
+    cands, g, seeds, padded, cm, cp = cg.cands, cg.g, cg.seeds, cg.rows, cg.cm, cg.cp
     # seeds by support: rigid links of the rest of the graph that agree with the seed body
     support = np.array([g.agree[s].sum() for s in seeds])
     order = np.argsort(-support, kind="stable")
@@ -643,6 +686,52 @@ def _hypotheses(
         if int((assign >= 0).sum()) >= need:
             claimed[assign[assign >= 0]] = True
             out.append(_Hypothesis(tpl.index, assign, _score(tpl, assign, pts)))
+    return out
+
+
+def _complete(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    taken: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray:
+    """Adds markers to a placed subject ``assign`` from free points near it: body candidates
+    (other segments, linked through articulated pairs) and trilateration. Markers already
+    placed stay; new ones must pass the distance constancy along the tracks."""
+    have = np.flatnonzero(assign >= 0)
+    if have.size == 0:
+        return assign
+    centre = pts[assign[have]].mean(axis=0)
+    own = np.zeros(pts.shape[0], dtype=bool)
+    own[assign[have]] = True
+    local = np.flatnonzero((np.linalg.norm(pts - centre, axis=1) <= tpl.extent) & (~taken | own))
+    if local.size < 3:
+        return assign
+    back = np.full(pts.shape[0], -1, dtype=np.int64)
+    back[local] = np.arange(local.size)
+    lp, lh = pts[local], hist[local]
+    fixed = np.where(assign >= 0, back[np.maximum(assign, 0)], -1)
+    cg = _candidates(tpl, lp, lh, _Pairs(lp, tpl.r_max), config, fixed)
+    out = assign.copy()
+    if cg is not None:
+        nodes = _select(cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config)
+        la = np.full(tpl.n, -1, dtype=np.int64)
+        la[cg.g.M[nodes]] = cg.g.P[nodes]
+    else:
+        la = fixed.copy()
+    ltaken = np.zeros(local.size, dtype=bool)
+    ltaken[la[la >= 0]] = True
+    _grow(tpl, la, ltaken, lp, cKDTree(lp), config)
+    la[fixed >= 0] = fixed[fixed >= 0]
+    checked = _constancy(tpl, la.copy(), lh, config)
+    fresh = (fixed < 0) & (la >= 0) & (checked == la)
+    out[fresh] = local[la[fresh]]
+    # one point per marker and one marker per point
+    pts_used = out[out >= 0]
+    if np.unique(pts_used).size != pts_used.size:
+        return assign
     return out
 
 
@@ -734,6 +823,38 @@ class Booter:
             booted.append(tpl.name)
             scores[tpl.name] = _score(tpl, assign, sub_pts)
         return BootResult(labels, booted, scores)
+
+    def extend(
+        self,
+        points: np.ndarray,
+        history: np.ndarray,
+        labels: np.ndarray,
+        subjects: list[int],
+    ) -> np.ndarray:
+        """Labels free points of subjects already labeled: ``labels (N,)`` global marker
+        indices (-1 free) of ``points``; a tracked free point joins subject ``s`` as marker
+        ``m`` when it keeps the rigid distances from ``m`` to three or more of the subject's
+        labeled markers (trilateration) in this frame and along the tracks. Returns the new
+        labels (a copy)."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        hist = np.asarray(history, dtype=np.float64)
+        out = np.asarray(labels, dtype=np.int64).copy()
+        w = hist.shape[1]
+        tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)
+        usable = tracked >= max(1, int(np.ceil(self.config.min_track_fraction * w)))
+        taken = (out >= 0) | ~usable
+        if np.all(taken):
+            return out
+        for s in subjects:
+            tpl = self._templates[s]
+            assign = np.full(tpl.n, -1, dtype=np.int64)
+            mine = (out >= tpl.offset) & (out < tpl.offset + tpl.n)
+            assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
+            grown = _complete(tpl, assign, pts, hist, taken, self.config)
+            fresh = (grown >= 0) & (assign < 0)
+            out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
+            taken[grown[fresh]] = True
+        return out
 
 
 def boot(

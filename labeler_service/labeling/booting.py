@@ -93,6 +93,8 @@ class BootingLabeler:
         self._drop_frames = max(1, round(c.drop_after_s * self.rate))
         self._boot_every = max(1, round(c.boot_every_s * self.rate))
         self._since_attempt = self._boot_every
+        self._extend_every = max(1, round(c.extend_every_s * self.rate))
+        self._since_extend = 0
         self._inner: Labeler | None = None
         self._inner_map = np.zeros(0, dtype=np.int64)
         self.events: list[tuple[float, str, str]] = []  # (t, "boot" | "drop", subject)
@@ -134,6 +136,19 @@ class BootingLabeler:
             self._drop_vanished(state, pos, t)
         self._window.append(_Frame(t, pts, ids, glab))
         self._since_attempt += 1
+        self._since_extend += 1
+        if (
+            self._active
+            and len(self._window) == self._window.maxlen
+            and self._since_extend >= self._extend_every
+            and np.any(glab < 0)
+        ):
+            self._since_extend = 0
+            if self._extend():
+                glab = self._window[-1].labels
+                obs = glab >= 0
+                pos[glab[obs]] = pts[obs]
+                state[glab[obs]] = MarkerState.OBSERVED
         if (
             len(self._window) == self._window.maxlen
             and len(self._active) < len(self.model.subjects)
@@ -182,6 +197,32 @@ class BootingLabeler:
             fr.labels[bad] = -1
         self._rebuild()
 
+    def _extend(self) -> bool:
+        """Free points joined to active subjects (markers hidden at boot that appear)."""
+        last = self._window[-1]
+        frames = [(f.points, f.ids) for f in self._window]
+        hist = track_history(frames, last.ids)
+        new = self._booter.extend(last.points, hist, last.labels, sorted(self._active))
+        added = (last.labels < 0) & (new >= 0)
+        if not added.any():
+            return False
+        extra = np.where(added, new, -1)
+        self._spread(frames, last.ids, extra)
+        self._rebuild()
+        return True
+
+    def _spread(self, frames: list, ids: np.ndarray, labels: np.ndarray) -> None:
+        """Gives the labels of the last frame's tracks to the window's free points."""
+        spread = labels_along_tracks(frames, ids, labels)
+        for fr, lab in zip(self._window, spread, strict=True):
+            new = (fr.labels < 0) & (lab >= 0)
+            # a label can be given only once per frame (a track split may repeat it)
+            taken = set(fr.labels[fr.labels >= 0].tolist())
+            for j in np.flatnonzero(new):
+                if int(lab[j]) not in taken:
+                    fr.labels[j] = lab[j]
+                    taken.add(int(lab[j]))
+
     def _attempt(self, t: float) -> np.ndarray:
         """One boot on the window; returns the model indices of the subjects booted."""
         tb = time.perf_counter()
@@ -193,15 +234,7 @@ class BootingLabeler:
         self.boot_ms.append((time.perf_counter() - tb) * 1e3)
         if not res.subjects:
             return np.zeros(0, dtype=np.int64)
-        spread = labels_along_tracks(frames, last.ids, res.labels)
-        for fr, lab in zip(self._window, spread, strict=True):
-            new = (fr.labels < 0) & (lab >= 0)
-            # a label can be given only once per frame (a track split may repeat it)
-            taken = set(fr.labels[fr.labels >= 0].tolist())
-            for j in np.flatnonzero(new):
-                if int(lab[j]) not in taken:
-                    fr.labels[j] = lab[j]
-                    taken.add(int(lab[j]))
+        self._spread(frames, last.ids, res.labels)
         names = {s.name: i for i, s in enumerate(self.model.subjects)}
         booted = np.array([names[n] for n in res.subjects], dtype=np.int64)
         self._active.update(int(s) for s in booted)
