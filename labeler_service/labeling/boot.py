@@ -104,6 +104,9 @@ class BootConfig(BaseModel):
     min_links: int = Field(
         6, ge=1, description="articulated pairs in range needed to join another segment"
     )
+    link_fraction: float = Field(
+        0.6, ge=0, le=1, description="share of a segment's articulated pairs that must be in range"
+    )
     fit_mm: float = Field(12.0, gt=0, description="predicted marker to point, Kabsch check")
     anchors_per_body: int = Field(4, ge=1, le=4, description="anchor triangles per body")
     max_candidates: int = Field(
@@ -442,6 +445,7 @@ class _Graph:
     clash: np.ndarray
     link: np.ndarray
     link_err: np.ndarray  # |d - D| / tolerance on links, 0 elsewhere
+    art: np.ndarray  # articulated pairs with a trained range (where links may be)
 
 
 def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
@@ -460,7 +464,8 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
     lt = tpl.link[M][:, M]
     link = ~rigid & known & ~same_m & ~same_p & (np.abs(dev) <= lt)
     link_err = np.where(link, np.abs(dev) / np.where(link, lt, 1.0), 0.0)
-    return _Graph(M, P, agree, clash, link, link_err)
+    art = ~rigid & known & (lt > 0) & ~same_m & ~same_p
+    return _Graph(M, P, agree, clash, link, link_err, art)
 
 
 def _select(
@@ -475,6 +480,7 @@ def _select(
     support = g.agree[seed].sum(axis=0).astype(np.int64)
     links = g.link[seed].sum(axis=0).astype(np.int64)
     lerr = g.link_err[seed].sum(axis=0)
+    possible = g.art[seed].sum(axis=0).astype(np.int64)
     blocked = g.clash[seed].any(axis=0) | chosen | ~allowed
     while True:
         # rigid agreement first; among equals, the node more articulated pairs agree with
@@ -486,6 +492,7 @@ def _select(
             support += g.agree[c]
             links += g.link[c]
             lerr += g.link_err[c]
+            possible += g.art[c]
             blocked |= g.clash[c]
             blocked[c] = True
             continue
@@ -494,15 +501,20 @@ def _select(
         count = (links[bodies] * bb).sum(axis=1)
         # links counted softly (1 - |d - D| / tolerance each): a symmetric segment read either
         # way, or the left foot read as the right one, has as many links but farther from D
-        total = np.where(free, count - (lerr[bodies] * bb).sum(axis=1), -1.0)
+        soft = count - (lerr[bodies] * bb).sum(axis=1)
+        frac = count / np.maximum((possible[bodies] * bb).sum(axis=1), 1)
+        # a segment joins when most of its articulated pairs to the set are in range (another
+        # performer's hand within reach of this one's shoulder is not, of its hips neither)
+        total = np.where(free & (frac >= config.link_fraction), soft, -1.0)
         best = int(np.argmax(total))
-        if count[best] < config.min_links or not free[best]:
+        if count[best] < config.min_links or total[best] < 0:
             return np.flatnonzero(chosen)
         b = bodies[best][bb[best]]
         chosen[b] = True
         support += g.agree[b].sum(axis=0)
         links += g.link[b].sum(axis=0)
         lerr += g.link_err[b].sum(axis=0)
+        possible += g.art[b].sum(axis=0)
         blocked |= g.clash[b].any(axis=0)
         blocked[b] = True
 
@@ -575,17 +587,26 @@ def _constancy(
 
 
 def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
-    """Markers explained, less their mean squared rigid-distance error (in tolerances)."""
+    """Markers explained, less per marker the mean squared distance error of its rigid pairs
+    (in tolerances) and of its articulated pairs (in link tolerances, capped at 1): a leg read
+    as the other leg keeps its rigid distances but not its distances to the pelvis."""
     have = np.flatnonzero(assign >= 0)
     if have.size == 0:
         return 0.0
     p = pts[assign[have]]
     d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
-    pair = tpl.rigid[np.ix_(have, have)]
-    e = np.abs(d - tpl.D[np.ix_(have, have)]) / tpl.tol[np.ix_(have, have)]
-    e = np.where(pair & np.isfinite(e), e, 0.0)
-    per = (e**2).sum(axis=1) / np.maximum(pair.sum(axis=1), 1)
-    return float(have.size - per.sum())
+    Dm = tpl.D[np.ix_(have, have)]
+    rigid = tpl.rigid[np.ix_(have, have)]
+    e = np.abs(d - Dm) / tpl.tol[np.ix_(have, have)]
+    e = np.where(rigid & np.isfinite(e), e, 0.0)
+    per = (e**2).sum(axis=1) / np.maximum(rigid.sum(axis=1), 1)
+    lt = tpl.link[np.ix_(have, have)]
+    art = ~rigid & (lt > 0) & np.isfinite(Dm)
+    np.fill_diagonal(art, False)
+    le = np.minimum(np.abs(d - Dm) / np.where(art, lt, 1.0), 1.0)
+    le = np.where(art, le, 0.0)
+    per_l = (le**2).sum(axis=1) / np.maximum(art.sum(axis=1), 1)
+    return float(have.size - per.sum() - per_l.sum())
 
 
 @dataclass
@@ -665,27 +686,39 @@ def _hypotheses(
     used = np.zeros(len(cands), dtype=bool)
     node_pos = pts[g.P]
     tried = 0
+    # candidates with the same point set: one body read through its symmetries (a plate of
+    # four markers, a leg read as the other leg); each is grown and the best hypothesis kept
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for i, c in enumerate(cands):
+        groups.setdefault(tuple(sorted(c.points.tolist())), []).append(i)
     for ci in order:
         if len(out) >= config.max_hypotheses or tried >= config.max_seeds:
             break
         if used[ci] or np.any(claimed[cands[ci].points]):
             continue
         tried += 1
-        used[ci] = True
-        centre = pts[cands[ci].points].mean(axis=0)
-        allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
-        nodes = _select(g, seeds[ci], allowed, padded, config)
-        assign = np.full(tpl.n, -1, dtype=np.int64)
-        assign[g.M[nodes]] = g.P[nodes]
-        taken = claimed.copy()
-        taken[g.P[nodes]] = True
-        _grow(tpl, assign, taken, pts, pairs.tree, config)
-        assign = _constancy(tpl, assign, hist, config)
-        # seeds inside this hypothesis need not be tried again
-        used |= np.all((assign[cm] == cp) | (cp < 0), axis=1)
-        if int((assign >= 0).sum()) >= need:
-            claimed[assign[assign >= 0]] = True
-            out.append(_Hypothesis(tpl.index, assign, _score(tpl, assign, pts)))
+        best: _Hypothesis | None = None
+        for cj in groups[tuple(sorted(cands[ci].points.tolist()))][: config.max_symmetries]:
+            used[cj] = True
+            centre = pts[cands[cj].points].mean(axis=0)
+            allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
+            nodes = _select(g, seeds[cj], allowed, padded, config)
+            assign = np.full(tpl.n, -1, dtype=np.int64)
+            assign[g.M[nodes]] = g.P[nodes]
+            taken = claimed.copy()
+            taken[g.P[nodes]] = True
+            _grow(tpl, assign, taken, pts, pairs.tree, config)
+            assign = _constancy(tpl, assign, hist, config)
+            if int((assign >= 0).sum()) < need:
+                continue
+            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
+            if best is None or h.score > best.score:
+                best = h
+        if best is not None:
+            # seeds inside this hypothesis need not be tried again
+            used |= np.all((best.assign[cm] == cp) | (cp < 0), axis=1)
+            claimed[best.assign[best.assign >= 0]] = True
+            out.append(best)
     return out
 
 
