@@ -528,14 +528,17 @@ def _grow(
     config: BootConfig,
 ) -> None:
     """Markers with no node yet: a free point that keeps the rigid distances (3 or more) to the
-    markers placed, and clashes with none of them, joins (trilateration)."""
+    markers placed, and clashes with none of them, joins (trilateration). With two rigid
+    partners only, the point must be the only one that also keeps every articulated pair in
+    its trained range."""
     for _ in range(3):
         changed = False
         have = np.flatnonzero(assign >= 0)
         for m in np.flatnonzero(assign < 0):
             part = have[tpl.rigid[m, have]]
-            if part.size < 3:
+            if part.size < 2:
                 continue
+            two = part.size == 2  # a ring of solutions: the point must be unique and linked
             j = part[np.argmin(tpl.D[m, part])]
             near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
             near = np.asarray(near, dtype=np.int64)
@@ -547,8 +550,13 @@ def _grow(
             rig = tpl.rigid[m, have]
             tol = tpl.tol[m, have]
             bad = (rig & (np.abs(dev) > tol)) | (~rig & (dev > tpl.bound[m, have]))
+            if two:
+                lt = tpl.link[m, have]
+                bad |= ~rig & (lt > 0) & (np.abs(dev) > lt)
             ok = ~bad.any(axis=1)
             best = -1
+            if two and ok.sum() != 1:
+                continue
             if ok.any():
                 err = ((dev[:, rig] / tol[rig]) ** 2).mean(axis=1)
                 err = np.where(ok, err, np.inf)
