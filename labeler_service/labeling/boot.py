@@ -93,8 +93,11 @@ class BootConfig(BaseModel):
         description="pairs across bodies may be this fraction of D longer (poses not trained)",
     )
     rigid_a_mm: float = Field(
-        8.0, gt=0, description="pairs whose deviation A is at most this are rigid (one segment)"
+        20.0,
+        gt=0,
+        description="pairs with A + rigid_weight D at most this are rigid (one segment)",
     )
+    rigid_weight: float = Field(0.03, ge=0, description="preference for close rigid pairs")
     min_support: int = Field(
         2, ge=1, description="rigid links that must agree before a marker joins a hypothesis"
     )
@@ -129,6 +132,13 @@ class BootConfig(BaseModel):
         gt=0,
         description="BootingLabeler: a subject with no observed marker this long is dropped "
         "(its labels are given to nobody) and booted again when it comes back",
+    )
+    vanish_fraction: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="BootingLabeler: a subject with fewer of its markers observed is vanishing "
+        "(labels withheld)",
     )
     max_hypotheses: int = Field(3, ge=1, description="hypotheses kept per template")
     max_seeds: int = Field(12, ge=1, description="seed bodies tried per template")
@@ -264,7 +274,10 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tol = np.where(np.isfinite(tol), tol, np.inf)
         bound = np.where(np.isfinite(bound), bound, np.inf)
         in_body = np.zeros((m, m), dtype=bool)
-        rigid = np.isfinite(Am) & (Am <= config.rigid_a_mm) & np.isfinite(tol)
+        # rigid: low deviation and close (far pairs can look rigid by accident in training,
+        # head to knee while walking; the trainer's body rule prefers close pairs too)
+        rigid = np.isfinite(Am) & (Am + config.rigid_weight * Dm <= config.rigid_a_mm)
+        rigid &= np.isfinite(tol)
         np.fill_diagonal(rigid, False)
         link = config.tol_mm + config.link_sigma * Am + config.tol_relative * Dm
         link = np.where(np.isfinite(link), link, -1.0)
@@ -496,6 +509,8 @@ def _select(
             blocked |= g.clash[c]
             blocked[c] = True
             continue
+        if bodies.shape[0] == 0:
+            return np.flatnonzero(chosen)
         bb = bodies >= 0
         free = ~np.any(blocked[bodies] & bb, axis=1)
         count = (links[bodies] * bb).sum(axis=1)
@@ -719,6 +734,7 @@ def _hypotheses(
             assign = _constancy(tpl, assign, hist, config)
             if int((assign >= 0).sum()) < need:
                 continue
+            _symmetries(tpl, assign, pts, cands, groups)
             h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
             if best is None or h.score > best.score:
                 best = h
@@ -728,6 +744,56 @@ def _hypotheses(
             claimed[best.assign[best.assign >= 0]] = True
             out.append(best)
     return out
+
+
+def _pair_error(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> float:
+    """Distance error of ``markers`` placed on ``points`` against the rest of ``assign``:
+    rigid pairs in tolerances, articulated pairs in link tolerances (capped at 1), squared."""
+    rest = np.flatnonzero(assign >= 0)
+    rest = rest[~np.isin(rest, markers)]
+    if rest.size == 0:
+        return 0.0
+    d = np.linalg.norm(pts[points][:, None, :] - pts[assign[rest]][None, :, :], axis=2)
+    Dm = tpl.D[markers][:, rest]
+    dev = np.abs(d - Dm)
+    rig = tpl.rigid[markers][:, rest]
+    lt = tpl.link[markers][:, rest]
+    e_r = np.where(rig, dev / tpl.tol[markers][:, rest], 0.0)
+    art = ~rig & (lt > 0) & np.isfinite(Dm)
+    e_l = np.where(art, np.minimum(dev / np.where(art, lt, 1.0), 1.0), 0.0)
+    return float(np.nansum(e_r**2) + np.nansum(e_l**2))
+
+
+def _symmetries(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    cands: list[_Candidate],
+    groups: dict[tuple[int, ...], list[int]],
+) -> None:
+    """Bodies read through a symmetry (a head's four markers, a wrist bar): among the body
+    candidates on the same points (whose markers are free or theirs), keeps the reading whose
+    distances to the rest of the subject fit best (its own distances cannot tell them apart)."""
+    marker_of = {int(p): int(m) for m, p in enumerate(assign) if p >= 0}
+    for key, idx in groups.items():
+        if len(idx) < 2 or any(p not in marker_of for p in key):
+            continue
+        current = np.array([marker_of[p] for p in key])
+        free = assign < 0
+        free[current] = True
+        readings = [cands[i] for i in idx if np.all(free[cands[i].markers])]
+        if len(readings) < 2:
+            continue
+        base = assign.copy()
+        base[current] = -1
+        errs = [_pair_error(tpl, c.markers, c.points, base, pts) for c in readings]
+        best = readings[int(np.argmin(errs))]
+        assign[current] = -1
+        assign[best.markers] = best.points
+        for m, p in zip(best.markers.tolist(), best.points.tolist(), strict=True):
+            marker_of[p] = m
 
 
 def _complete(

@@ -8,9 +8,11 @@
    :class:`~labeler_service.labeling.labeler.Labeler` built with its public API only
    (``Labeler.from_model`` on a model of the *active* subjects, then the recent frames with
    their labels as its labeled first frames);
-3. a subject of the active set with no observed marker for ``drop_after_s`` is dropped: the
-   inner labeler is rebuilt without it, so none of its labels can go to other points or ghosts
-   while it is away; when it comes back it is booted again (re-identification, anywhere);
+3. a subject of the active set with fewer than ``vanish_fraction`` of its markers observed has
+   its labels withheld (when a performer leaves, the inner labeler gives its last labels to
+   points near where it was); after ``drop_after_s`` it is dropped: the inner labeler is
+   rebuilt without it, so none of its labels can go to other points or ghosts while it is
+   away; when it comes back it is booted again (re-identification, anywhere);
 4. every ``boot_every_s``, while some model subject is not active, the boot
    (:class:`~labeler_service.labeling.boot.Booter`) runs on the window's last frame, restricted
    to the points the inner labeler left unlabeled and to the inactive subjects. Subjects it
@@ -133,7 +135,7 @@ class BootingLabeler:
             glab = np.where(lab >= 0, self._inner_map[np.maximum(lab, 0)], -1)
             pos[self._inner_map] = out.positions
             state[self._inner_map] = out.state
-            self._drop_vanished(state, pos, t)
+            self._drop_vanished(glab, state, pos, t)
         self._window.append(_Frame(t, pts, ids, glab))
         self._since_attempt += 1
         self._since_extend += 1
@@ -170,22 +172,30 @@ class BootingLabeler:
         )
 
     # ------------------------------------------------------------------ steps
-    def _drop_vanished(self, state: np.ndarray, pos: np.ndarray, t: float) -> None:
+    def _drop_vanished(
+        self, glab: np.ndarray, state: np.ndarray, pos: np.ndarray, t: float
+    ) -> None:
+        """Withholds the labels of subjects with fewer than ``vanish_fraction`` of their markers
+        observed (a performer leaving: the inner labeler would give its last labels to points
+        near where it was) and drops those gone for ``drop_after_s``."""
         dropped = []
+        c = self.boot_config
         for s in sorted(self._active):
             sl = slice(self._offset[s], self._offset[s + 1])
-            if np.any(state[sl] == MarkerState.OBSERVED):
+            n_obs = int(np.count_nonzero(state[sl] == MarkerState.OBSERVED))
+            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)):
                 self._gone[s] = 0
                 continue
             self._gone[s] += 1
+            mine = (glab >= sl.start) & (glab < sl.stop)
+            glab[mine] = -1
+            pos[sl] = np.nan
+            state[sl] = MarkerState.MISSING
             if self._gone[s] >= self._drop_frames:
                 dropped.append(s)
         if not dropped:
             return
         for s in dropped:
-            sl = slice(self._offset[s], self._offset[s + 1])
-            pos[sl] = np.nan
-            state[sl] = MarkerState.MISSING
             self._active.discard(s)
             self._gone[s] = 0
             self.events.append((t, "drop", self.model.subjects[s].name))
