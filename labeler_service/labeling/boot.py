@@ -93,11 +93,11 @@ class BootConfig(BaseModel):
         description="pairs across bodies may be this fraction of D longer (poses not trained)",
     )
     rigid_a_mm: float = Field(
-        20.0,
+        8.0,
         gt=0,
         description="pairs with A + rigid_weight D at most this are rigid (one segment)",
     )
-    rigid_weight: float = Field(0.03, ge=0, description="preference for close rigid pairs")
+    rigid_weight: float = Field(0.0, ge=0, description="preference for close rigid pairs")
     min_support: int = Field(
         2, ge=1, description="rigid links that must agree before a marker joins a hypothesis"
     )
@@ -139,6 +139,12 @@ class BootConfig(BaseModel):
         le=1,
         description="BootingLabeler: a subject with fewer of its markers observed is vanishing "
         "(labels withheld)",
+    )
+    rms_ratio: float = Field(
+        1.25,
+        gt=1,
+        description="a template whose rigid-distance RMS on a performer is this much worse "
+        "than another's yields that performer",
     )
     max_hypotheses: int = Field(3, ge=1, description="hypotheses kept per template")
     max_seeds: int = Field(12, ge=1, description="seed bodies tried per template")
@@ -637,6 +643,19 @@ class _Hypothesis:
     template: int
     assign: np.ndarray  # (m,) point index per template marker, -1
     score: float
+    rms: float = 0.0  # RMS of |d - D| over its rigid pairs (mm)
+
+
+def _rms(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
+    """RMS distance error (mm) of a hypothesis over its rigid pairs: how well the template's
+    body size and proportions fit (two performers of similar height differ here)."""
+    have = np.flatnonzero(assign >= 0)
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    rig = tpl.rigid[np.ix_(have, have)]
+    if not rig.any():
+        return np.inf
+    return float(np.sqrt(np.mean((d - tpl.D[np.ix_(have, have)])[rig] ** 2)))
 
 
 @dataclass
@@ -735,7 +754,7 @@ def _hypotheses(
             if int((assign >= 0).sum()) < need:
                 continue
             _symmetries(tpl, assign, pts, cands, groups)
-            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
+            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
             if best is None or h.score > best.score:
                 best = h
         if best is not None:
@@ -784,11 +803,14 @@ def _symmetries(
         free = assign < 0
         free[current] = True
         readings = [cands[i] for i in idx if np.all(free[cands[i].markers])]
-        if len(readings) < 2:
+        if not readings:
             continue
         base = assign.copy()
         base[current] = -1
+        now = _pair_error(tpl, current, assign[current], base, pts)
         errs = [_pair_error(tpl, c.markers, c.points, base, pts) for c in readings]
+        if min(errs) >= now:
+            continue
         best = readings[int(np.argmin(errs))]
         assign[current] = -1
         assign[best.markers] = best.points
@@ -907,6 +929,18 @@ class Booter:
         hyps: list[_Hypothesis] = []
         for s in wanted:
             hyps += _hypotheses(self._templates[s], sub_pts, sub_hist, pairs, self.config)
+        # one performer explained by several templates (similar bodies): the template whose
+        # rigid distances fit clearly better goes first, whatever the marker counts
+        sets = [set(h.assign[h.assign >= 0].tolist()) for h in hyps]
+        for i, hi in enumerate(hyps):
+            for j, hj in enumerate(hyps):
+                if hi.template == hj.template or i == j:
+                    continue
+                common = len(sets[i] & sets[j])
+                if common > 0.5 * min(len(sets[i]), len(sets[j])) and (
+                    hi.rms > self.config.rms_ratio * hj.rms
+                ):
+                    hi.score = min(hi.score, hj.score - 1.0)
         hyps.sort(key=lambda h: -h.score)
         taken = np.zeros(idx.size, dtype=bool)
         used: set[int] = set()
