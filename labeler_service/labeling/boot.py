@@ -52,6 +52,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from labeler_service._numba import njit
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.templates import LabelerModel, SubjectTemplate
 
@@ -468,23 +469,49 @@ class _Graph:
 
 
 def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
-    Dn = tpl.D[M][:, M]
-    tol = tpl.tol[M][:, M]
-    rigid = tpl.rigid[M][:, M]
-    p = pts[P]
-    d = np.sqrt(((p[:, None, :] - p[None, :, :]) ** 2).sum(axis=2))
-    dev = d - Dn
-    known = np.isfinite(Dn)
-    same_m = M[:, None] == M[None, :]
-    same_p = P[:, None] == P[None, :]
-    agree = rigid & (np.abs(dev) <= tol) & ~same_m & ~same_p
-    clash = (same_m ^ same_p) | (rigid & known & (np.abs(dev) > tol))
-    clash |= ~rigid & known & (dev > tpl.bound[M][:, M])
-    lt = tpl.link[M][:, M]
-    link = ~rigid & known & ~same_m & ~same_p & (np.abs(dev) <= lt)
-    link_err = np.where(link, np.abs(dev) / np.where(link, lt, 1.0), 0.0)
-    art = ~rigid & known & (lt > 0) & ~same_m & ~same_p
+    n = M.shape[0]
+    agree = np.empty((n, n), dtype=np.bool_)
+    clash = np.empty((n, n), dtype=np.bool_)
+    link = np.empty((n, n), dtype=np.bool_)
+    link_err = np.empty((n, n))
+    art = np.empty((n, n), dtype=np.bool_)
+    _graph_kernel(
+        M.astype(np.int64), P.astype(np.int64), np.ascontiguousarray(pts, dtype=np.float64),
+        tpl.D, tpl.tol, tpl.rigid, tpl.bound, tpl.link, agree, clash, link, link_err, art,
+    )  # fmt: skip
     return _Graph(M, P, agree, clash, link, link_err, art)
+
+
+@njit
+def _graph_kernel(M, P, pts, D, tol, rigid, bound, lt, agree, clash, link, link_err, art):
+    """The relations of :class:`_Graph` for every pair of nodes (see its docstring)."""
+    n = M.shape[0]
+    for a in range(n):
+        ma, pa = M[a], P[a]
+        for b in range(n):
+            mb, pb = M[b], P[b]
+            same_m = ma == mb
+            same_p = pa == pb
+            dx = pts[pa, 0] - pts[pb, 0]
+            dy = pts[pa, 1] - pts[pb, 1]
+            dz = pts[pa, 2] - pts[pb, 2]
+            dev = np.sqrt(dx * dx + dy * dy + dz * dz) - D[ma, mb]
+            known = np.isfinite(D[ma, mb])
+            rig = rigid[ma, mb]
+            other = not same_m and not same_p
+            agree[a, b] = rig and other and abs(dev) <= tol[ma, mb]
+            c = same_m != same_p
+            if known and rig and abs(dev) > tol[ma, mb]:
+                c = True
+            if known and not rig and dev > bound[ma, mb]:
+                c = True
+            clash[a, b] = c
+            t = lt[ma, mb]
+            ar = known and not rig and t > 0.0 and other
+            art[a, b] = ar
+            lk = ar and abs(dev) <= t
+            link[a, b] = lk
+            link_err[a, b] = abs(dev) / t if lk else 0.0
 
 
 def _select(
@@ -747,16 +774,20 @@ def _hypotheses(
             nodes = _select(g, seeds[cj], allowed, padded, config)
             assign = np.full(tpl.n, -1, dtype=np.int64)
             assign[g.M[nodes]] = g.P[nodes]
+            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
+            if best is None or h.score > best.score:
+                best = h
+        if best is not None:
+            # the best reading is completed (trilateration) and checked along the tracks
+            assign = best.assign
             taken = claimed.copy()
-            taken[g.P[nodes]] = True
+            taken[assign[assign >= 0]] = True
             _grow(tpl, assign, taken, pts, pairs.tree, config)
             assign = _constancy(tpl, assign, hist, config)
             if int((assign >= 0).sum()) < need:
                 continue
             _symmetries(tpl, assign, pts, cands, groups)
-            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
-            if best is None or h.score > best.score:
-                best = h
+            best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
             used |= np.all((best.assign[cm] == cp) | (cp < 0), axis=1)
