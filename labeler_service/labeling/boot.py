@@ -75,8 +75,8 @@ class BootConfig(BaseModel):
     min_track_fraction: float = Field(
         0.75, gt=0, le=1, description="a point must be tracked over this fraction of the window"
     )
-    tol_mm: float = Field(6.0, gt=0, description="absolute pair-distance tolerance")
-    tol_sigma: float = Field(3.0, ge=0, description="pair-distance tolerance in units of A")
+    tol_mm: float = Field(4.0, gt=0, description="absolute pair-distance tolerance")
+    tol_sigma: float = Field(4.0, ge=0, description="pair-distance tolerance in units of A")
     tol_relative: float = Field(
         0.01,
         ge=0,
