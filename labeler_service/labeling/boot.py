@@ -895,6 +895,17 @@ def _complete(
     return out
 
 
+def warmup_kernels() -> None:
+    """Compiles (or loads from cache) the boot's numba kernel on a tiny input."""
+    n = np.zeros(2, dtype=np.int64)
+    m = np.zeros((1, 1))
+    out_b = np.zeros((2, 2), dtype=np.bool_)
+    _graph_kernel(
+        n, n, np.zeros((1, 3)), m, m, np.zeros((1, 1), dtype=np.bool_), m, m, out_b, out_b.copy(),
+        out_b.copy(), np.zeros((2, 2)), out_b.copy(),
+    )  # fmt: skip
+
+
 # ---------------------------------------------------------------------------- public API
 @dataclass
 class BootResult:

@@ -50,6 +50,7 @@ from labeler_service.labeling.boot import (
     PointTracker,
     labels_along_tracks,
     track_history,
+    warmup_kernels,
 )
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState
@@ -279,5 +280,7 @@ class BootingLabeler:
 
     # ------------------------------------------------------------------ warm-up
     def warmup(self) -> None:
-        """Compiles the inner labeler's kernels (see :meth:`Labeler.warmup`)."""
+        """Compiles the boot's and the inner labeler's kernels (see :meth:`Labeler.warmup`)
+        without touching this labeler's state."""
+        warmup_kernels()
         Labeler(["w:a", "w:b", "w:c"], self.rate, self.config).warmup()

@@ -141,6 +141,7 @@ def test_booting_labeler_boots_all_present_subjects(walk):
     model, stream_cap = walk
     s = Stream(stream_cap, model, seed=3)
     lab = BootingLabeler(model, RATE)
+    lab.warmup()
     outs, truths = _run(lab, s, range(stream_cap.n_frames))
     window = round(BootConfig().window_s * RATE)
     for o in outs[: window - 1]:  # while booting: every point unlabeled
