@@ -243,6 +243,7 @@ class _Template:
     link: np.ndarray  # (m, m) articulated-pair tolerance (inf where unknown)
     extent: float = 2000.0  # longest pair distance D (mm)
     r_max: float = 0.0  # longest anchor edge + tolerance (mm)
+    segments: list[np.ndarray] = field(default_factory=list)  # see _segments
     bodies: list[_Body] = field(default_factory=list)
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
 
@@ -304,6 +305,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             del b
         np.fill_diagonal(in_body, False)
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
+        tpl.segments = _segments(tpl)
         for body in tpl.bodies:
             for tri in body.anchors:
                 mk = body.markers[list(tri)]
@@ -787,6 +789,7 @@ def _hypotheses(
             if int((assign >= 0).sum()) < need:
                 continue
             _symmetries(tpl, assign, pts, cands, groups)
+            _readings(tpl, assign, pts)
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
@@ -847,6 +850,57 @@ def _symmetries(
         assign[best.markers] = best.points
         for m, p in zip(best.markers.tolist(), best.points.tolist(), strict=True):
             marker_of[p] = m
+
+
+def _segments(tpl: _Template) -> list[np.ndarray]:
+    """Marker groups whose readings are checked by :func:`_readings`: each body with the
+    bodies sharing two or more markers with it (a head split into 3-marker bodies is one
+    group), at most ``6`` markers."""
+    out: list[np.ndarray] = []
+    seen: set[tuple[int, ...]] = set()
+    for body in tpl.bodies:
+        group = set(body.markers.tolist())
+        for other in tpl.bodies:
+            if len(group & set(other.markers.tolist())) >= 2:
+                group |= set(other.markers.tolist())
+        key = tuple(sorted(group))
+        if len(key) <= 6 and key not in seen:
+            seen.add(key)
+            out.append(np.array(key, dtype=np.int64))
+    return out
+
+
+def _readings(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
+    """Every segment's points are read again: among the injective maps of its placed points to
+    the segment's markers (free or its own) that keep the rigid distances, the map whose
+    distances to the rest of the subject fit best is kept. A symmetric segment (a head's four
+    markers with one hidden, a wrist bar) may have been placed mirrored by a body candidate
+    that saw only part of it; its own distances cannot tell, the rest of the body can."""
+    for seg in tpl.segments:
+        placed = seg[assign[seg] >= 0]
+        if placed.size < 2 or placed.size > 4:
+            continue
+        points = assign[placed]
+        free = seg[(assign[seg] < 0)]
+        options = np.concatenate([placed, free])
+        d = np.linalg.norm(pts[points][:, None] - pts[points][None, :], axis=2)
+        base = assign.copy()
+        base[placed] = -1
+        best, best_err = None, _pair_error(tpl, placed, points, base, pts)
+        for perm in itertools.permutations(options.tolist(), placed.size):
+            mk = np.array(perm, dtype=np.int64)
+            if np.array_equal(mk, placed):
+                continue
+            dev = np.abs(d - tpl.D[np.ix_(mk, mk)])
+            rig = tpl.rigid[np.ix_(mk, mk)]
+            if np.any(rig & ~(dev <= tpl.tol[np.ix_(mk, mk)])):
+                continue
+            err = _pair_error(tpl, mk, points, base, pts)
+            if err < best_err:
+                best, best_err = mk, err
+        if best is not None:
+            assign[placed] = -1
+            assign[best] = points
 
 
 def _complete(
