@@ -1068,11 +1068,12 @@ class Booter:
         labels: np.ndarray,
         subjects: list[int],
     ) -> np.ndarray:
-        """Labels free points of subjects already labeled: ``labels (N,)`` global marker
-        indices (-1 free) of ``points``; a tracked free point joins subject ``s`` as marker
-        ``m`` when it keeps the rigid distances from ``m`` to three or more of the subject's
-        labeled markers (trilateration) in this frame and along the tracks. Returns the new
-        labels (a copy)."""
+        """Labels free points of subjects already labeled (:func:`_complete`): ``labels (N,)``
+        global marker indices (-1 free) of ``points``, ``history (N, W, 3)`` their tracks; the
+        subject's labeled points seed the node graph of its body candidates on the free tracked
+        points near it (other segments join through their articulated links), then
+        trilateration; new markers must keep their rigid distances along the tracks. Labels
+        already given are never changed. Returns the new labels (a copy)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         hist = np.asarray(history, dtype=np.float64)
         out = np.asarray(labels, dtype=np.int64).copy()
