@@ -12,31 +12,37 @@ Order:
    mutual and gated (a few mm at 120 Hz), so every point of the last frame carries its own
    trajectory over the window. Points tracked for less than ``min_track_fraction`` of the
    window are not considered (short-lived ghosts, points just born).
-2. **Body candidates by distance signature**: every rigid body of every template has one or two
-   *anchor triangles* (three of its markers with long, rigid, distinct pair distances). All
-   point pairs closer than the longest anchor edge are listed once (KD-tree) and sorted by
-   distance; an anchor edge ``(i, j)`` selects the pairs within ``D_ij +- tol_ij`` by binary
-   search (``tol = tol_mm + tol_sigma A + tol_relative D``: noise, soft tissue and a body-size
-   difference), and a join on the shared vertex gives the candidate triangles. No combinatorial
-   search over point subsets happens.
-3. **3D verification**: each candidate triangle is registered to the body's reference shape
-   (Kabsch, proper rotation: a mirror image does not fit), the body's other markers are
-   predicted and matched to the nearest points within ``fit_mm``; a body candidate needs all but
-   one of its markers (all three for a 3-marker body).
-4. **Subjects**: per template, hypotheses grow from the best body candidates: a candidate joins
-   when its shared markers agree, its points are new, and every pair distance to the markers
-   already in the hypothesis lies within ``D +- (tol_mm + pair_sigma A + tol_relative D)``
-   (``A`` over the training motion bounds the articulated pairs too). Bodies with three or more
-   markers placed then predict their missing members (Kabsch) and take free points near them.
-5. **Evidence over the window**: every in-body pair of a hypothesis must keep its template
-   distance along the tracks in most frames (distance constancy); markers that do not are
-   dropped. A hypothesis with fewer than ``min_fraction`` of its template's markers is not a
-   subject: it stays unlabeled until there is more evidence.
-6. **Joint resolution**: hypotheses of all templates are taken greedily by score (markers
-   explained, less their normalised distance errors); a template is used once and a point goes
-   to one subject only (a later hypothesis loses the points already taken and must still reach
-   ``min_fraction``). Two performers with one template appear as two hypotheses of each of the
-   two identical templates; the greedy pass gives one to each, in an arbitrary but then fixed
+2. **Body candidates by distance signature**: every rigid body of every template has up to
+   ``anchors_per_body`` *anchor triangles* (three of its markers with long, rigid, distinct
+   pair distances). All point pairs closer than the longest anchor edge are listed once
+   (KD-tree) and sorted by distance; an anchor edge ``(i, j)`` selects the pairs within
+   ``D_ij +- tol_ij`` by binary search (``tol = tol_mm + tol_sigma A + tol_relative D``: noise,
+   soft tissue, a small body-size difference), and a join on the shared vertices gives the
+   candidate triangles. No combinatorial search over point subsets happens.
+3. **3D verification**: each triangle is registered to the body's reference shape (Kabsch,
+   proper rotation), the body's other markers are predicted and matched to the nearest points
+   within ``fit_mm`` (up to ``body_hidden`` may be missing, three must remain), and the
+   candidate's pair distances must hold along the tracks (distance constancy).
+4. **Node graph** (:func:`_graph`, numba): candidates become (marker, point) nodes; pairs of
+   nodes *agree* (a rigid pair, ``A + rigid_weight D <= rigid_a_mm``, at its distance),
+   *clash* (one marker on two points, one point for two markers, a rigid pair off its
+   distance, an articulated pair beyond its reach) or *link* (an articulated pair within its
+   trained range ``D +- (tol_mm + link_sigma A)``).
+5. **Hypotheses** (:func:`_hypotheses`): from each seed body (most rigid agreement first; every
+   symmetric reading of the seed's points tried), the node with most agreements (at least
+   ``min_support``) and no clash joins; when none is left, the body candidate of another
+   segment with most links (soft count, ``link_fraction`` of its articulated pairs in range);
+   then trilateration (:func:`_grow`), distance constancy along the tracks
+   (:func:`_constancy`), and the readings of symmetric bodies and segments are decided by their
+   distances to the rest of the subject (:func:`_symmetries`, :func:`_readings`). A hypothesis
+   needs ``min_fraction`` of its template's markers: a subject not seen enough is not guessed.
+6. **Joint resolution** (:meth:`Booter.run`): hypotheses of all templates are taken greedily
+   by score (markers explained, less their squared rigid and articulated distance errors);
+   where two templates explain one performer the one with clearly lower rigid-distance RMS
+   (``rms_ratio``) goes first (similar performers); a template is used once and a point goes to
+   one subject only (a later hypothesis loses the points already taken and must still reach
+   ``min_fraction``). Two performers with one template appear as hypotheses of each of the two
+   identical templates; the greedy pass gives one to each, in an arbitrary but then fixed
    (continuity) order.
 
 :class:`~labeler_service.labeling.booting.BootingLabeler` runs this on the stream and hands the
