@@ -244,7 +244,6 @@ class _Template:
     A: np.ndarray
     tol: np.ndarray  # (m, m) in-body tolerance (inf where unknown)
     bound: np.ndarray  # (m, m) cross-body tolerance (inf where unknown)
-    in_body: np.ndarray  # (m, m) pairs sharing a body
     rigid: np.ndarray  # (m, m) pairs with A <= rigid_a_mm
     link: np.ndarray  # (m, m) articulated-pair tolerance (inf where unknown)
     extent: float = 2000.0  # longest pair distance D (mm)
@@ -287,7 +286,6 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         bound = config.tol_mm + config.pair_sigma * Am + config.reach_relative * Dm
         tol = np.where(np.isfinite(tol), tol, np.inf)
         bound = np.where(np.isfinite(bound), bound, np.inf)
-        in_body = np.zeros((m, m), dtype=bool)
         # rigid: low deviation and close (far pairs can look rigid by accident in training,
         # head to knee while walking; the trainer's body rule prefers close pairs too)
         rigid = np.isfinite(Am) & (Am + config.rigid_weight * Dm <= config.rigid_a_mm)
@@ -295,7 +293,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         np.fill_diagonal(rigid, False)
         link = config.tol_mm + config.link_sigma * Am + config.tol_relative * Dm
         link = np.where(np.isfinite(link), link, -1.0)
-        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, in_body, rigid, link)
+        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link)
         tpl.body_of = [[] for _ in range(m)]
         for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
             if len(body) < 3:
@@ -305,11 +303,9 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
                 continue
             bi = len(tpl.bodies)
             tpl.bodies.append(_Body(np.asarray(body), np.asarray(shape, dtype=float), anchors))
-            in_body[np.ix_(body, body)] = True
             for i in body:
                 tpl.body_of[i].append(bi)
             del b
-        np.fill_diagonal(in_body, False)
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
         for body in tpl.bodies:
