@@ -134,6 +134,9 @@ class BootConfig(BaseModel):
     boot_every_s: float = Field(
         0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
     )
+    boot_backoff_s: float = Field(
+        0.2, gt=0, description="BootingLabeler: longest wait between fruitless boot attempts"
+    )
     drop_after_s: float = Field(
         0.1,
         gt=0,

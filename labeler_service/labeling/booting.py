@@ -13,7 +13,9 @@
    points near where it was); after ``drop_after_s`` it is dropped: the inner labeler is
    rebuilt without it, so none of its labels can go to other points or ghosts while it is
    away; when it comes back it is booted again (re-identification, anywhere);
-4. every ``boot_every_s``, while some model subject is not active, the boot
+4. every ``boot_every_s`` (doubling after each fruitless attempt up to ``boot_backoff_s``: a
+   model's absent subjects would otherwise cost a boot every 0.05 s), while some model subject
+   is not active, the boot
    (:class:`~labeler_service.labeling.boot.Booter`) runs on the window's last frame, restricted
    to the points the inner labeler left unlabeled and to the inactive subjects. Subjects it
    finds become active: their labels are spread along the tracks over the window, and the inner
@@ -95,6 +97,8 @@ class BootingLabeler:
         self._gone = np.zeros(len(sizes), dtype=np.int64)
         self._drop_frames = max(1, round(c.drop_after_s * self.rate))
         self._boot_every = max(1, round(c.boot_every_s * self.rate))
+        self._boot_every_max = max(self._boot_every, round(c.boot_backoff_s * self.rate))
+        self._boot_wait = self._boot_every  # doubles after a fruitless attempt (absent subjects)
         self._since_attempt = self._boot_every
         self._extend_every = max(1, round(c.extend_every_s * self.rate))
         self._since_extend = 0
@@ -155,10 +159,13 @@ class BootingLabeler:
         if (
             len(self._window) == self._window.maxlen
             and len(self._active) < len(self.model.subjects)
-            and self._since_attempt >= self._boot_every
+            and self._since_attempt >= self._boot_wait
         ):
             self._since_attempt = 0
             booted = self._attempt(t)
+            self._boot_wait = (
+                self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
+            )
             if booted.size:
                 glab = self._window[-1].labels
                 obs = glab >= 0
