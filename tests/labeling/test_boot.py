@@ -1,0 +1,290 @@
+"""Boot from a model with no labeled frame (labeling/boot.py, labeling/booting.py).
+
+Models are trained on other frames than the ones booted (``StructureTrainer``, as
+``train structure``); streams are shuffled, carry the simulator's ghosts and hide a seeded 15 %
+of every subject's markers for the whole stream.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import Capture, read_capture
+from labeler_service.errors import LabelerError
+from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, boot
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.labeling.templates import LabelerModel
+from labeler_service.scenes.simulate import simulate_scene
+
+RATE = 120.0
+HIDE = 0.15
+
+
+def _train(capture: Capture) -> LabelerModel:
+    from offline.structure import StructureTrainer
+
+    return StructureTrainer().fit([capture]).model_
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """Five simulated walkers; the model knows all five (first half), the stream carries the
+    first three (second half): P4 and P5 are absent subjects of the model."""
+    cap = simulate_scene(5, 6.0, "walk", seed=7, rate=RATE, ghosts=2.0)
+    half = cap.n_frames // 2
+    model = _train(cap.frames(0, half))
+    keep = [i for i, lab in enumerate(cap.labels) if not lab.startswith(("P4:", "P5:"))]
+    return model, cap.select(keep).frames(half, cap.n_frames)
+
+
+class Stream:
+    """Frames of a capture as a live source sends them: shuffled, missing points dropped,
+    ``hide`` of the model's markers hidden throughout; ``truth[k]`` = model marker index per
+    point (-1 ghost)."""
+
+    def __init__(self, capture: Capture, model: LabelerModel, seed: int, hide: float = HIDE):
+        self.rng = np.random.default_rng(seed)
+        self.names = model.marker_names
+        col = {lab: i for i, lab in enumerate(capture.labels)}
+        self.gidx = np.array([col.get(n, -1) for n in self.names])
+        self.hidden = self.rng.random(len(self.names)) < hide
+        self.ghosts = np.flatnonzero(capture.ghost_mask)
+        self.pos = capture.positions
+        self.rate = capture.rate
+
+    def frame(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        mk = np.where((self.gidx >= 0)[:, None], self.pos[f, np.maximum(self.gidx, 0)], np.nan)
+        vis = np.isfinite(mk[:, 0]) & ~self.hidden
+        g = self.pos[f, self.ghosts]
+        g = g[np.isfinite(g[:, 0])]
+        pts = np.concatenate([mk[vis], g]).astype(np.float32)
+        truth = np.concatenate([np.flatnonzero(vis), np.full(len(g), -1)])
+        order = self.rng.permutation(len(pts))
+        return pts[order], truth[order]
+
+
+def _subject(names: tuple[str, ...], labels: np.ndarray) -> np.ndarray:
+    subj = np.array([n.split(":")[0] for n in names])
+    return np.where(labels >= 0, subj[np.maximum(labels, 0)], "")
+
+
+# ---------------------------------------------------------------------------- tracker
+def test_tracker_keeps_ids_of_moving_shuffled_points(rng):
+    base = rng.uniform(-500, 500, (30, 3))
+    vel = rng.normal(0, 600, (30, 3))  # mm/s
+    tracker = PointTracker(RATE)
+    first = None
+    for k in range(10):
+        order = rng.permutation(30)
+        ids = tracker.update(base[order] + vel[order] * k / RATE, k / RATE)
+        back = np.empty(30, dtype=np.int64)
+        back[order] = ids
+        if first is None:
+            first = back
+        np.testing.assert_array_equal(back, first)
+    # a point far from every track starts a new one
+    ids = tracker.update(np.array([[5000.0, 0, 0]]), 10 / RATE)
+    assert ids[0] not in set(first.tolist())
+
+
+# ---------------------------------------------------------------------------- one window
+def test_boot_labels_a_window_of_anonymous_frames(walk):
+    model, stream_cap = walk
+    s = Stream(stream_cap, model, seed=1)
+    frames, truths = zip(*(s.frame(f) for f in range(100, 112)), strict=True)
+    labels = boot(model, list(frames), RATE)
+    lab, tr = labels[-1], truths[-1]
+    markers = tr >= 0
+    given = markers & (lab >= 0)
+    assert given.sum() >= 0.8 * markers.sum()  # most visible markers found in one window
+    # the misses are symmetric segments read mirrored (wrist bar, finger pair, head front)
+    assert np.mean(lab[given] == tr[given]) >= 0.93
+    assert np.count_nonzero(lab[~markers] >= 0) <= 1  # ghosts
+    subj = set(_subject(model.marker_names, lab).tolist()) - {""}
+    assert subj == {"P1", "P2", "P3"}  # the absent P4, P5 are never given
+    # earlier frames carry the labels of the same tracks
+    assert np.mean(labels[0][tr[0] >= 0] >= 0) >= 0.7
+
+
+def test_boot_input_errors(walk):
+    model, _ = walk
+    with pytest.raises(LabelerError, match="at least one frame"):
+        boot(model, [], RATE)
+    with pytest.raises(LabelerError, match="finite"):
+        boot(model, [np.full((4, 3), np.nan)], RATE)
+    with pytest.raises(LabelerError, match="history"):
+        Booter(model).run(np.zeros((5, 3)), np.zeros((4, 3, 3)))
+    with pytest.raises(LabelerError, match="rate"):
+        BootingLabeler(model, 0.0)
+
+
+def test_too_little_evidence_boots_nothing(walk):
+    model, stream_cap = walk
+    s = Stream(stream_cap, model, seed=2, hide=0.7)  # 70 % hidden: below min_fraction
+    frames = [s.frame(f)[0] for f in range(12)]
+    labels = boot(model, frames, RATE)
+    assert all(np.all(lab < 0) for lab in labels)
+
+
+# ---------------------------------------------------------------------------- stream
+def _run(lab, s: Stream, frames: range):
+    outs, truths = [], []
+    for f in frames:
+        pts, tr = s.frame(f)
+        outs.append(lab.process(pts, f / s.rate))
+        truths.append(tr)
+    return outs, truths
+
+
+def test_booting_labeler_boots_all_present_subjects(walk):
+    model, stream_cap = walk
+    s = Stream(stream_cap, model, seed=3)
+    lab = BootingLabeler(model, RATE)
+    lab.warmup()
+    outs, truths = _run(lab, s, range(stream_cap.n_frames))
+    window = round(BootConfig().window_s * RATE)
+    for o in outs[: window - 1]:  # while booting: every point unlabeled
+        assert np.all(o.point_labels < 0)
+        assert np.all(o.state == 0)
+    assert set(lab.active_subjects) == {"P1", "P2", "P3"}
+    # booted within half a second: >= 90 % of the visible markers right from then on
+    start = round(0.5 * RATE)
+    ok = vis = absent = ghosts = ghost_total = 0
+    for o, tr in zip(outs[start:], truths[start:], strict=True):
+        m = tr >= 0
+        ok += int(np.count_nonzero(o.point_labels[m] == tr[m]))
+        vis += int(m.sum())
+        ghosts += int(np.count_nonzero(o.point_labels[~m] >= 0))
+        ghost_total += int((~m).sum())
+    for o in outs:
+        subj = _subject(model.marker_names, o.point_labels.astype(np.int64))
+        absent += int(np.isin(subj, ["P4", "P5"]).sum())
+    assert ok / vis >= 0.9  # measured 0.92: mirrored heads of two walkers (docs/algorithm.md)
+    assert absent == 0
+    assert ghosts <= 0.02 * ghost_total
+    assert outs[-1].positions.shape == (len(model.marker_names), 3)
+
+
+def test_subject_entering_later_is_booted_when_seen(walk):
+    model, stream_cap = walk
+    pos = stream_cap.positions.copy()
+    late = [i for i, n in enumerate(stream_cap.labels) if n.startswith("P3:")]
+    enter = 90
+    pos[:enter, late] = np.nan
+    s = Stream(stream_cap.with_positions(pos), model, seed=4)
+    lab = BootingLabeler(model, RATE)
+    outs, truths = _run(lab, s, range(stream_cap.n_frames))
+    p3 = np.array([n.startswith("P3:") for n in model.marker_names])
+    for o in outs[:enter]:
+        assert not np.any(p3[np.maximum(o.point_labels, 0)] & (o.point_labels >= 0))
+    booted = [t for t, e, n in lab.events if e == "boot" and n == "P3"]
+    assert booted and enter / RATE < booted[0] <= enter / RATE + 0.5
+    tail = slice(enter + round(0.5 * RATE), None)
+    ok = sum(int(np.count_nonzero(o.point_labels[p3[np.maximum(t, 0)] & (t >= 0)]
+                                  == t[p3[np.maximum(t, 0)] & (t >= 0)]))
+             for o, t in zip(outs[tail], truths[tail], strict=True))  # fmt: skip
+    vis = sum(int(np.count_nonzero(p3[np.maximum(t, 0)] & (t >= 0))) for t in truths[tail])
+    assert ok / vis >= 0.9
+
+
+def test_subject_leaving_and_returning_is_dropped_then_booted_again(walk):
+    model, stream_cap = walk
+    pos = stream_cap.positions.copy()
+    cols = [i for i, n in enumerate(stream_cap.labels) if n.startswith("P2:")]
+    gone, back = 120, 168  # 0.4 s away, back 1 m further along x
+    pos[gone:back, cols] = np.nan
+    pos[back:, cols, 0] += 1000.0
+    s = Stream(stream_cap.with_positions(pos), model, seed=5)
+    lab = BootingLabeler(model, RATE)
+    outs, truths = _run(lab, s, range(stream_cap.n_frames))
+    names = model.marker_names
+    p2 = np.array([n.startswith("P2:") for n in names])
+    drops = [t for t, e, n in lab.events if e == "drop" and n == "P2"]
+    boots = [t for t, e, n in lab.events if e == "boot" and n == "P2"]
+    assert drops and gone / RATE < drops[0] < back / RATE
+    assert len(boots) == 2 and back / RATE < boots[1] <= back / RATE + 0.5
+    # while away, none of P2's labels is given to anyone's point or a ghost
+    for o in outs[gone:back]:
+        assert not np.any((o.point_labels >= 0) & p2[np.maximum(o.point_labels, 0)])
+
+    # the others lose nothing: their accuracy while P2 is away and after is that before
+    def others(frames: slice) -> float:
+        ok = vis = 0
+        for o, t in zip(outs[frames], truths[frames], strict=True):
+            m = (t >= 0) & ~p2[np.maximum(t, 0)]
+            ok += int(np.count_nonzero(o.point_labels[m] == t[m]))
+            vis += int(m.sum())
+        return ok / vis
+
+    before = others(slice(round(0.5 * RATE), gone))
+    assert others(slice(gone, None)) >= before - 0.02
+
+
+def test_two_performers_with_one_template_are_labeled_consistently():
+    """Two copies of one performer (as ``two_players_shifted_copy``): the model has two
+    identical templates; which copy gets which name is arbitrary, but each copy keeps one."""
+    cap = simulate_scene(1, 5.0, "walk", seed=11, rate=RATE, ghosts=0.0)
+    half = cap.n_frames // 2
+    one = _train(cap.frames(0, half))
+    tpl = one.subjects[0]
+    model = LabelerModel(rate=RATE, subjects=[tpl, tpl.model_copy(update={"name": "Q"})])
+    second = cap.frames(half, cap.n_frames)
+    shifted = second.positions.copy()
+    shifted[..., 1] += 1500.0
+    labels = second.labels + tuple(n.replace("P1:", "Q:") for n in second.labels)
+    both = Capture(np.concatenate([second.positions, shifted], axis=1), labels, RATE)
+    s = Stream(both, model, seed=6)
+    lab = BootingLabeler(model, RATE)
+    outs, truths = _run(lab, s, range(both.n_frames))
+    names = model.marker_names
+    marker = np.array([n.split(":")[1] for n in names])
+    subj = np.array([n.split(":")[0] for n in names])
+    start = round(0.5 * RATE)
+    for performer in ("P1", "Q"):
+        got: dict[str, int] = {}
+        right = vis = 0
+        for o, t in zip(outs[start:], truths[start:], strict=True):
+            m = (t >= 0) & (subj[np.maximum(t, 0)] == performer)
+            pl = o.point_labels[m].astype(np.int64)
+            tt = t[m]
+            vis += int(m.sum())
+            given = pl >= 0
+            right += int(np.count_nonzero(marker[pl[given]] == marker[tt[given]]))
+            for name in subj[pl[given]]:
+                got[name] = got.get(name, 0) + 1
+        assert right / vis >= 0.55  # measured 0.60 (right marker, either identity): the limit
+        assert max(got.values()) >= 0.99 * sum(got.values())  # one identity per performer
+
+
+# ---------------------------------------------------------------------------- real data
+@pytest.mark.realdata
+@pytest.mark.parametrize(
+    ("take", "train", "test"),
+    [
+        pytest.param(
+            "kneel_to_prone_62markers_240hz.c3d",
+            (840, 1560),
+            (0, 720),
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="known limit: the model of the move to prone boots the kneeling start "
+                "with the legs swapped (planar cluster plates read mirrored; 0.40 correct)",
+            ),
+        ),
+        ("cmu_01_01_playground.c3d", (0, 1200), (1200, 1560)),
+    ],
+)
+def test_real_take_boots_from_a_model_of_another_segment(real_path, take, train, test):
+    cap = read_capture(real_path(take))
+    model = _train(cap.frames(*train))
+    seg = cap.frames(*test)
+    s = Stream(seg, model, seed=8)
+    lab = BootingLabeler(model, cap.rate)
+    outs, truths = _run(lab, s, range(seg.n_frames))
+    assert lab.active_subjects == (model.subjects[0].name,)
+    start = round(0.5 * cap.rate)
+    ok = sum(int(np.count_nonzero(o.point_labels[t >= 0] == t[t >= 0]))
+             for o, t in zip(outs[start:], truths[start:], strict=True))  # fmt: skip
+    vis = sum(int(np.count_nonzero(t >= 0)) for t in truths[start:])
+    assert ok / vis >= 0.9
