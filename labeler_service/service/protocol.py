@@ -37,7 +37,7 @@ from labeler_service.errors import ProtocolError
 
 VERSION = 1
 #: Stream names become MQTT topic levels: letters, digits, ``_ . -``; 1-64 characters.
-STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}\Z")
 _F32 = np.dtype("<f4")
 _U8 = np.dtype("u1")
 _U64_MAX = 2**64 - 1
@@ -109,7 +109,7 @@ class StatusMsg:
 
 
 Message = FrameMsg | SubscribeMsg | ModelMsg | LabeledMsg | StatusMsg
-_STATUS_STATES = ("starting", "online", "offline")
+_STATUS_STATES = ("starting", "online", "offline", "degraded", "lost", "training_failed")
 
 
 # ----------------------------------------------------------------------------- encoding
