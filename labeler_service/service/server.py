@@ -183,6 +183,11 @@ class Server:
                 await self._stack.enter_async_context(t)  # type: ignore[arg-type]
             for s in self.settings.streams:
                 await self._status(s.name, "starting")
+            for s in self.settings.streams:
+                if s.model is not None:  # a broken model file fails before the warm-up
+                    from labeler_service.labeling.templates import load_model
+
+                    await asyncio.to_thread(load_model, s.model)
             if self.settings.warmup:
                 self.warmup_s = await asyncio.to_thread(
                     warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
