@@ -36,6 +36,11 @@ SERVICE_DROP_REASONS = (
     "send_error",  # a transport failed to send (e.g. broker down; UDP: per refused datagram)
     "rx_overflow",  # a transport's receive queue was full: the oldest raw message was discarded
     "internal",  # an unexpected error while handling one message (logged with traceback)
+    "kernel_rx_overflow",  # UDP: datagrams the kernel dropped, receive buffer full (Linux)
+    "subscribe_short",  # UDP subscribe smaller than the challenge: not answered
+    "subscribe_token",  # UDP subscribe echoed a wrong or stale challenge token
+    "subscribe_host_limit",  # more than max_subscribers_per_host from one IP
+    "subscribe_full",  # max_subscribers confirmed subscribers already
 )
 
 _MS_BUCKETS = (
@@ -129,11 +134,6 @@ class ServiceMetrics:
         self.streams_active = Gauge("mocap_streams", "Streams with a slot", registry=r)
         self.streams_expired = Counter(
             "mocap_streams_expired", "Unconfigured streams removed after stream_idle_s idle",
-            registry=r,
-        )  # fmt: skip
-        self.kernel_drops = Counter(
-            "mocap_kernel_rx_dropped",
-            "Datagrams the kernel dropped (receive buffer full), from SO_RXQ_OVFL",
             registry=r,
         )  # fmt: skip
         self._recent_label: dict[str, _Recent] = {}

@@ -352,7 +352,7 @@ class Server:
             sub = getattr(transport, "subscribe", None)
             if sub is None or inc.reply_to is None:
                 raise ProtocolError(f"{transport.name}: subscribe is UDP only", "type")
-            sub(inc.reply_to, msg.stream)
+            sub(inc.reply_to, msg.stream, msg.token, len(inc.payload))
         else:
             raise ProtocolError(f"{type(msg).__name__} is not accepted by the service", "type")
 

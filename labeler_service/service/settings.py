@@ -71,6 +71,8 @@ class UdpSettings(_Section):
     #: A registered subscriber that has not renewed within this many seconds is dropped.
     subscriber_ttl_s: float = Field(5.0, gt=0)
     max_subscribers: int = Field(64, ge=1)
+    #: Confirmed subscribers per source host (IP) at most (``subscribe_host_limit``).
+    max_subscribers_per_host: int = Field(4, ge=1)
     #: Kernel receive/send buffer sizes requested (capped by net.core.rmem_max/wmem_max).
     socket_buffer_bytes: int = Field(4 * 1024 * 1024, ge=65536)
 
