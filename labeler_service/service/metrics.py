@@ -41,6 +41,7 @@ SERVICE_DROP_REASONS = (
     "subscribe_token",  # UDP subscribe echoed a wrong or stale challenge token
     "subscribe_host_limit",  # more than max_subscribers_per_host from one IP
     "subscribe_full",  # max_subscribers confirmed subscribers already
+    "retained_spoofed",  # MQTT: another client replaced our retained model/status (re-asserted)
 )
 
 _MS_BUCKETS = (
