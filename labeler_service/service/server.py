@@ -240,6 +240,8 @@ class Server:
 
     def _spawn(self, coro, name: str) -> asyncio.Task:
         task = asyncio.create_task(coro, name=name)
+        if len(self._tasks) >= 256:  # streams come and go: forget finished tasks
+            self._tasks = [t for t in self._tasks if not t.done()]
         self._tasks.append(task)
         return task
 

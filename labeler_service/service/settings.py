@@ -171,7 +171,7 @@ class ServiceSettings(BaseSettings):
     #: Init frames buffered at most while waiting for the first unlabeled frame.
     max_init_frames: int = Field(2000, ge=1)
     #: Bytes of init frames (points + labels) buffered at most per stream (``init_overflow``).
-    max_init_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    max_init_bytes: int = Field(8 * 1024 * 1024, ge=1024)
     #: Distinct marker labels a stream may define in its init frames (``marker_cap``).
     max_markers: int = Field(1000, ge=1)
     #: Seconds in-stream training may take (off the event loop); over it the stream reports

@@ -31,6 +31,7 @@ a recovery that needs more than the labeler's own re-acquisition (boot from a su
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import time
@@ -112,6 +113,17 @@ def subject_slices(names: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
 
 
 @dataclass(slots=True)
+class InitWindow:
+    """Buffered init frames handed to training: ``frames`` (labels stripped), ``idx`` (per
+    frame, int32 indices into ``names``, -1 = unlabeled point) and ``names`` (first seen
+    first)."""
+
+    frames: list[FrameMsg]
+    idx: list[np.ndarray]
+    names: list[str]
+
+
+@dataclass(slots=True)
 class Output:
     """What processing one frame produced: the encoded labeled message and its counts."""
 
@@ -151,9 +163,11 @@ class StreamState:
             max_time_step_s=settings.max_time_step_s,
             confirm=settings.run_confirm_frames,
         )
+        #: buffered init frames (their ``labels`` moved into ``_init_idx``, compactly)
         self.init_frames: list[FrameMsg] = []
+        self._init_idx: list[np.ndarray] = []  # per frame: int32 index into _init_labels
         self._init_bytes = 0
-        self._init_labels: dict[str, None] = {}
+        self._init_labels: dict[str, int] = {}  # label -> buffer index, first seen first
         self._t_offset = 0.0  # added to t before the labeler sees it (re-based runs)
         self._t_last: float | None = None  # last (re-based) t given to the labeler
         self._rebase = False  # re-base time at the next frame (the run's t jumped)
@@ -255,40 +269,33 @@ class StreamState:
         self._t_last = t_last
         self._rebase = True
 
-    def _init_names(self, frames: list[FrameMsg]) -> tuple[str, ...]:
-        seen: dict[str, None] = {}
-        for f in frames:
-            for lab in f.labels or ():
-                if lab is not None:
-                    seen.setdefault(lab, None)
-        names = group_by_subject(list(seen))
-        if not names:
-            raise LabelerError(f"stream {self.name}: the init frames carry no labels")
-        return names
-
     def train(
-        self, init: list[FrameMsg], first: FrameMsg, cancel=None
+        self, init: InitWindow, first: FrameMsg, cancel=None
     ) -> tuple[FrameLabeler, float, LabeledFrame, int]:
         """The training job (runs off the event loop): a labeler built from the init frames
         ``init`` and fed them, then the first unlabeled frame ``first`` (which trains it).
         Returns ``(labeler, rate, labeled first frame, labeling ns)``; touches no state, so an
         abandoned job leaves the stream as it was. ``cancel`` (an Event) stops it between
         frames."""
-        names = self._init_names(init)
-        rate = self._estimate_rate(init)
+        names = group_by_subject(init.names)
+        if not names:
+            raise LabelerError(f"stream {self.name}: the init frames carry no labels")
+        rate = self._estimate_rate(init.frames)
         labeler = self._factory(self.settings.labeler, names, rate, self.settings.labeler_config)
         index = {n: i for i, n in enumerate(names)}
-        for f in init:
+        remap = np.array([index[n] for n in init.names] + [-1], dtype=np.int32)
+        for f, idx in zip(init.frames, init.idx, strict=True):
             if cancel is not None and cancel.is_set():
                 raise LabelerError(f"stream {self.name}: training cancelled")
-            labeler.process(f.points, f.t, _indices(index, f.labels))
+            labeler.process(f.points, f.t, remap[idx])  # -1 stays -1 (remap's last entry)
         t0 = time.perf_counter_ns()
         out = labeler.process(first.points, first.t, None)
         return labeler, rate, out, time.perf_counter_ns() - t0
 
-    def take_init(self) -> list[FrameMsg]:
+    def take_init(self) -> InitWindow:
         """Hands the buffered init frames to a training job and empties the buffer."""
-        init, self.init_frames = self.init_frames, []
+        init = InitWindow(self.init_frames, self._init_idx, list(self._init_labels))
+        self.init_frames, self._init_idx = [], []
         self._init_bytes = 0
         self._init_labels = {}
         return init
@@ -310,45 +317,55 @@ class StreamState:
         labeled data; publishing starts with the first unlabeled frame.
         """
         init = self.take_init()
-        names = self._init_names(init)
-        rate = self._estimate_rate(init)
+        names = group_by_subject(init.names)
+        if not names:
+            raise LabelerError(f"stream {self.name}: the init frames carry no labels")
+        rate = self._estimate_rate(init.frames)
         self._install(
             self._factory(self.settings.labeler, names, rate, self.settings.labeler_config),
             rate,
         )
         assert self.labeler is not None
-        for f in init:
-            self.labeler.process(f.points, f.t, self._label_indices(f))
+        remap = np.array([self._index[n] for n in init.names] + [-1], dtype=np.int32)
+        for f, idx in zip(init.frames, init.idx, strict=True):
+            self.labeler.process(f.points, f.t, remap[idx])
         self._t_offset = 0.0
-        self._t_last = init[-1].t if init else None
+        self._t_last = init.frames[-1].t if init.frames else None
 
     def _label_indices(self, f: FrameMsg) -> np.ndarray | None:
         return _indices(self._index, f.labels)
 
     def buffer_init(self, f: FrameMsg) -> None:
-        """Buffers one labeled init frame; raises ``OverflowError`` (frames or bytes cap) or
+        """Buffers one labeled init frame (points as they are, labels as int32 indices into
+        the stream's label list); raises ``OverflowError`` (frames or bytes cap) or
         :class:`LimitExceeded` (``marker_cap``) without buffering it."""
         s = self.settings
-        labels = f.labels or []
-        nbytes = f.points.nbytes + sum(len(x) + 8 for x in labels if x is not None)
+        labels = f.labels or ()
         if len(self.init_frames) >= s.max_init_frames:
             raise OverflowError(
                 f"stream {self.name}: init buffer full ({s.max_init_frames} frames)"
             )
+        known = self._init_labels
+        new = {x: None for x in labels if x is not None and x not in known}
+        nbytes = f.points.nbytes + 4 * len(labels) + sum(len(x) + 64 for x in new)
         if self._init_bytes + nbytes > s.max_init_bytes:
             raise OverflowError(
                 f"stream {self.name}: init buffer full ({s.max_init_bytes} bytes, max_init_bytes)"
             )
-        new = {x: None for x in labels if x is not None and x not in self._init_labels}
-        if len(self._init_labels) + len(new) > s.max_markers:
+        if len(known) + len(new) > s.max_markers:
             raise LimitExceeded(
                 f"stream {self.name}: init frames name more than max_markers = {s.max_markers} "
                 "distinct markers; frame dropped",
                 "marker_cap",
             )
-        self._init_labels.update(new)
+        for x in new:
+            known[x] = len(known)
+        # -1 (unknown point) indexes the remap table's last entry, which is -1 too
+        idx = np.fromiter((known[x] if x is not None else -1 for x in labels), np.int32,
+                          count=len(labels))  # fmt: skip
         self._init_bytes += nbytes
-        self.init_frames.append(f)
+        self.init_frames.append(dataclasses.replace(f, labels=None))
+        self._init_idx.append(idx)
 
     def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
         """Applies a new run (see the module docstring) before ``f`` is processed."""

@@ -93,11 +93,13 @@ def test_idle_unconfigured_streams_expire_and_resume_from_the_cached_labeler():
             for p in first:
                 mem.inject(p)
                 await asyncio.sleep(0.0005)
-            await collect(srv, mem, "dyn")
-            assert "dyn" in srv.streams and srv.streams["dyn"].started
+            async with asyncio.timeout(20):  # trained (the worker drains its queue)
+                while not (srv.streams["dyn"].started and not len(srv._queues["dyn"])):
+                    await asyncio.sleep(0.01)
             series_with = srv.metrics.series()
-            await asyncio.sleep(1.6)  # idle > stream_idle_s: the expire task removes it
-            assert "dyn" not in srv.streams
+            async with asyncio.timeout(10):  # idle > stream_idle_s: the expire task removes it
+                while "dyn" in srv.streams:
+                    await asyncio.sleep(0.05)
             assert "kept" in srv.streams  # configured streams never expire
             assert "dyn" in srv.cache
             assert srv.metrics.series() < series_with
@@ -176,3 +178,22 @@ def test_training_over_budget_is_abandoned_reported_and_does_not_hold_shutdown()
 
     stuck = run(go(), timeout=30)
     assert stuck and all(t.daemon and t.is_alive() for t in stuck)
+
+
+def test_streams_that_come_and_go_leave_no_tasks_or_series_behind():
+    async def go():
+        mem = MemoryTransport()
+        cfg = settings(labeler="baseline", max_streams=3, streams=[{"name": "main"}])
+        async with Server(cfg, [mem]) as srv:
+            for k in range(600):  # each labeled junk name takes a slot, evicting the oldest
+                mem.inject(encode_frame(f"j{k}", 0, 0.0, _pts(), ["j:a"] * 12))
+                if k % 50 == 0:
+                    await asyncio.sleep(0)
+            await _drain(srv)
+            assert len(srv.streams) <= 1 + 3
+            assert len(srv._tasks) < 300
+            assert len(srv._queues) == len(srv.streams) == len(srv._workers)
+            names = {k[1][0] for k in srv.metrics._children if k[1]}
+            assert names <= set(srv.streams) | {""}
+
+    run(go())
