@@ -19,8 +19,8 @@ pass over a ``--segment-s``/2 s scene). Per segment (one JSON object, last line 
 Attacks (sizes from the issue): single spoofed frames into the healthy stream (t +1 h, -1e9,
 0, frozen; seq +999, 2^64-1); the same take replayed twice to a victim stream; 30 frames of
 2,000 random points; 20,000 unknown stream names and 15 labeled junk names; 8 streams whose
-init frames name 2,000 then 1,000 distinct markers; 4 streams filling their init buffers with
-2,000-point frames; 64 subscribers from one host plus forged unpadded ``subscribe "*"``; a flood
+init frames name 2,000 then 1,000 distinct markers; 4 streams sending 2,000 labeled frames of
+2,000 points each at 250 Hz (init buffers); 64 subscribers from one host plus forged unpadded ``subscribe "*"``; a flood
 of 20,000 datagrams. MQTT attacks are in tests/hostile/test_mqtt_hostile.py (a real broker).
 """
 
@@ -213,7 +213,8 @@ async def attack_init_buffer(ctx) -> dict:
     p = _pts(rng, 2000)
     labels = ["b:m0"] * 2000
     out = [encode_frame(f"buf{s}", k, k / 100, p, labels) for k in range(2000) for s in range(4)]
-    await _burst(sock, addr, out, batch=20, pause=0.005)
+    # paced like 4 senders at 250 Hz (a burst this size is a flood: see udp_flood)
+    await _burst(sock, addr, out, batch=4, pause=1 / 250)
     return {}
 
 
@@ -289,7 +290,7 @@ async def run(args) -> dict:
     seg = 2 * (frames.n_frames - 1)
     with tempfile.TemporaryDirectory(prefix="mocap-hostile-") as d:
         settings = service_settings("udp", {"name": "healthy"}, 60.0, queue_size=64)
-        async with ServiceProcess(settings, Path(d)) as svc:
+        async with ServiceProcess(settings, Path(args.workdir or d)) as svc:
             addr = svc.udp
             assert addr is not None
             sock = _sock()
@@ -353,6 +354,7 @@ def main() -> int:
     p.add_argument("--attacks", nargs="*", default=list(ATTACKS), choices=list(ATTACKS))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json-out", default=None)
+    p.add_argument("--workdir", default=None, help="keep the service's settings and log here")
     args = p.parse_args()
     emit(asyncio.run(run(args)), args.json_out)
     return 0

@@ -14,15 +14,27 @@ Each job runs in its own **daemon** thread, so an abandoned job never delays the
 (a ThreadPoolExecutor's workers are joined at exit). Python cannot kill a thread: a job that
 wants to stop early takes a ``cancel`` keyword (a :class:`threading.Event`, set when its budget
 runs out or at :meth:`Background.close`) and checks it between steps. A job over budget is
-abandoned: its result, if it ever comes, is discarded. ``max_jobs`` bounds the threads alive at
-once (abandoned ones included); a job beyond it is refused with :class:`BudgetExceeded`.
+abandoned: its result, if it ever comes, is discarded.
+
+At most ``concurrency`` jobs run at once (default 1: CPU jobs share the GIL with the event
+loop, so two at once slow the live streams without finishing sooner); the others wait for a
+slot, and the wait counts against their budget. A slot is freed when a thread really ends, not
+when its job is abandoned, so abandoned work never piles up: with every slot held by abandoned
+threads, new jobs wait and then fail their budget.
+
+After each job the C heap is trimmed (:func:`release_memory`): glibc keeps what a thread's
+arena freed, so without it four abandoned 1,000-marker trainings left the service 180 MB larger
+for good (measured: 370 MB -> 201 MB after ``malloc_trim``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
+import ctypes.util
 import inspect
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -35,8 +47,9 @@ T = TypeVar("T")
 class Background:
     """Runs blocking callables in daemon threads with a per-job budget (see module doc)."""
 
-    def __init__(self, max_jobs: int = 4) -> None:
-        self.max_jobs = max_jobs
+    def __init__(self, concurrency: int = 1) -> None:
+        self.concurrency = concurrency
+        self._slots = threading.BoundedSemaphore(concurrency)
         self._running: dict[threading.Thread, threading.Event] = {}
         self._closed = False
 
@@ -54,9 +67,15 @@ class Background:
         """
         if self._closed:
             raise BudgetExceeded(f"{name}: the background runner is closed")
-        if self.running >= self.max_jobs:
-            raise BudgetExceeded(f"{name}: {self.max_jobs} background jobs still running")
         loop = asyncio.get_running_loop()
+        deadline = loop.time() + budget_s
+        while not self._slots.acquire(blocking=False):  # wait for a slot, within the budget
+            if loop.time() >= deadline:
+                raise BudgetExceeded(
+                    f"{name}: no free slot within its budget of {budget_s:g} s "
+                    f"({self.concurrency} job(s) still running)"
+                )
+            await asyncio.sleep(0.05)
         fut: asyncio.Future[T] = loop.create_future()
         cancel = threading.Event()
         kwargs = {"cancel": cancel} if _takes_cancel(fn) else {}
@@ -76,6 +95,9 @@ class Background:
                 ok, value = False, exc
             else:
                 ok = True
+            finally:
+                release_memory()
+                self._slots.release()
             if not loop.is_closed():
                 with contextlib.suppress(RuntimeError):  # loop closed meanwhile
                     loop.call_soon_threadsafe(deliver, ok, value)
@@ -84,7 +106,7 @@ class Background:
         self._running[thread] = cancel
         thread.start()
         try:
-            async with asyncio.timeout(budget_s):
+            async with asyncio.timeout(max(0.0, deadline - loop.time())):
                 return await asyncio.shield(fut)
         except TimeoutError:
             cancel.set()
@@ -105,3 +127,22 @@ def _takes_cancel(fn: Callable[..., Any]) -> bool:
         return "cancel" in inspect.signature(fn).parameters
     except (TypeError, ValueError):
         return False
+
+
+def _libc_trim():
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return libc.malloc_trim
+    except (OSError, AttributeError):  # not glibc (musl has no malloc_trim)
+        return None
+
+
+_TRIM = _libc_trim()
+
+
+def release_memory() -> None:
+    """Returns freed C-heap memory to the OS (glibc ``malloc_trim``; elsewhere a no-op)."""
+    if _TRIM is not None:
+        _TRIM(0)

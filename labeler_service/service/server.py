@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import time
 from collections import OrderedDict
@@ -48,7 +49,7 @@ from labeler_service.errors import (
     ProtocolError,
 )
 from labeler_service.labeling.frame import FrameLabeler
-from labeler_service.service.background import Background
+from labeler_service.service.background import Background, release_memory
 from labeler_service.service.continuity import Verdict
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
@@ -149,6 +150,7 @@ class Server:
         #: trained labelers of expired unconfigured streams: name -> (labeler, rate, last t), LRU
         self.cache: OrderedDict[str, tuple[FrameLabeler, float, float | None]] = OrderedDict()
         self.background = Background()
+        self._trim_soon = False
         self._published_model: dict[str, int] = {}
         self._transport_drops: dict[tuple[str, str, str], int] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
@@ -325,9 +327,13 @@ class Server:
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            for st in self._dynamic():
-                if now - st.last_activity > self.settings.stream_idle_s:
-                    self._remove_stream(st.name)
+            idle = [
+                st for st in self._dynamic() if now - st.last_activity > self.settings.stream_idle_s
+            ]
+            for st in idle:
+                self._remove_stream(st.name)
+            if idle:
+                release_memory()  # what the removed streams held goes back to the OS
 
     # ------------------------------------------------------------------ ingest
     async def _ingest(self, transport: Transport) -> None:
@@ -408,6 +414,7 @@ class Server:
             except BudgetExceeded as exc:
                 self.metrics.drop("training_failed", state.name)
                 log.warning("stream %s: training failed: %s", state.name, exc)
+                self._trim_soon = True  # the failed job's arrays are freed after this block
                 state.status = "training_failed"
                 await self._status(state.name, "training_failed")
                 continue
@@ -530,6 +537,10 @@ class Server:
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
+            if self._trim_soon:  # a failed training left cycles (exception <-> frames) behind
+                self._trim_soon = False
+                gc.collect()
+                release_memory()
 
     async def _log_loop(self) -> None:
         while True:

@@ -86,7 +86,7 @@ def test_an_unconfirmed_subscriber_gets_nothing_larger_than_its_request():
     assert isinstance(decode(got_b[0]), ChallengeMsg)
 
 
-def test_a_wrong_token_is_refused_and_our_subscriber_confirms_and_receives():
+def test_a_wrong_token_is_challenged_again_and_our_subscriber_confirms_and_receives():
     frames = _stream_frames(n=120)
 
     async def go():
@@ -109,7 +109,8 @@ def test_a_wrong_token_is_refused_and_our_subscriber_confirms_and_receives():
 
     metrics, got, got_liar = run(go())
     assert metrics.drops("subscribe_token") == 1
-    assert got_liar == []
+    # a wrong token gets a fresh challenge (no larger than the request), never a frame
+    assert len(got_liar) == 1 and isinstance(decode(got_liar[0]), ChallengeMsg)
     assert len(got) == 110  # every labeled frame after the init window
 
 
@@ -175,3 +176,32 @@ def test_kernel_receive_buffer_drops_are_counted():
     sent, got, dropped = run(go())
     assert dropped > 0
     assert got + dropped == sent
+
+
+def test_a_subscriber_that_expired_during_a_stall_confirms_again():
+    frames = _stream_frames(n=60)
+
+    async def go():
+        cfg = _settings(udp={"port": 0, "subscriber_ttl_s": 1.0})
+        async with Server(cfg) as srv:
+            t = srv.transports[0]
+            addr = t.address
+            async with Subscriber(f"udp://{addr[0]}:{addr[1]}") as sub:
+                sub.renew_s = 0.2
+                await asyncio.sleep(0.3)
+                assert len(t.subscribers) == 1
+                t.subscribers.clear()  # as if expired during a stall; its token is stale now
+                t._secret = b"another secret!!"
+                await asyncio.sleep(0.6)
+                feeder = _raw_client()
+                for p in frames:
+                    feeder.sendto(p, addr)
+                    await asyncio.sleep(0.001)
+                await asyncio.sleep(0.3)
+                got = sub.drain()
+                feeder.close()
+            return got, srv.metrics.drops("subscribe_token")
+
+    got, stale = run(go())
+    assert stale >= 1
+    assert len(got) == 50

@@ -11,7 +11,8 @@ is sent nothing larger than what it sent until it proves it receives at that add
 ``subscribe`` from an unknown address is answered with a ``challenge`` (a stateless 8-byte token,
 an HMAC of address, stream and a time window under a per-process secret) only when the request
 is at least as large as the challenge (our client pads it); the subscriber echoes the token in
-its next ``subscribe`` and is then registered. Refusals raise
+its next ``subscribe`` and is then registered (a wrong or stale token gets a fresh challenge,
+so a subscriber that expired during a stall re-confirms by itself). Refusals raise
 :class:`~labeler_service.errors.ProtocolError` with their own reasons: ``subscribe_short``,
 ``subscribe_token`` (wrong or stale token), ``subscribe_host_limit`` (more than
 ``max_subscribers_per_host`` confirmed per source IP), ``subscribe_full`` (``max_subscribers``).
@@ -239,13 +240,14 @@ class UdpTransport:
                     f"smaller than the challenge ({len(challenge)}): not answered",
                     "subscribe_short",
                 )
+            self._sendto(stream, challenge, addr)  # a fresh one (a stale token: expired)
+            self.challenges_sent += 1
             if token is not None:
                 raise ProtocolError(
-                    f"udp: subscribe from {addr[0]}:{addr[1]} echoed a wrong or stale token",
+                    f"udp: subscribe from {addr[0]}:{addr[1]} echoed a wrong or stale token; "
+                    "challenged again",
                     "subscribe_token",
                 )
-            self._sendto(stream, challenge, addr)
-            self.challenges_sent += 1
             return
         self._expire()
         host = addr[0]
