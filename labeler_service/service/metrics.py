@@ -133,6 +133,10 @@ class ServiceMetrics:
             ["stream"], registry=r,
         )  # fmt: skip
         self.streams_active = Gauge("mocap_streams", "Streams with a slot", registry=r)
+        self.training = Gauge(
+            "mocap_training_jobs", "In-stream trainings running or waiting (off the loop)",
+            registry=r,
+        )  # fmt: skip
         self.streams_expired = Counter(
             "mocap_streams_expired", "Unconfigured streams removed after stream_idle_s idle",
             registry=r,

@@ -458,6 +458,7 @@ class Server:
         """Trains the stream's labeler off the loop (budget ``train_budget_s``); a failure
         (over budget, or the training raised) is reported as ``training_failed``."""
         init = state.take_init()
+        self.metrics.training.inc()
         try:
             labeler, rate, out, label_ns = await self.background.run(
                 state.train, init, msg, budget_s=self.settings.train_budget_s,
@@ -467,6 +468,8 @@ class Server:
             raise
         except Exception as exc:
             raise BudgetExceeded(f"{type(exc).__name__}: {exc}") from exc
+        finally:
+            self.metrics.training.dec()
         output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns)
         if state.status != "online":
             state.status = "online"
