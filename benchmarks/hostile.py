@@ -4,8 +4,10 @@ One ``mocap-labeler serve`` subprocess on loopback UDP. A healthy stream (``--su
 simulated performers at ``--rate`` Hz, trained from its first 50 labeled frames, then played
 forward and backward without a break) runs through every segment; our subscriber scores it.
 Segment ``baseline`` has no attack; each other segment runs one attack at full size while the
-healthy stream keeps streaming; every segment plays the same frames (one forward-and-backward
-pass over a ``--segment-s``/2 s scene). Per segment (one JSON object, last line of stdout):
+healthy stream keeps streaming; every segment starts a new run of the healthy stream (seq and
+t jump, 50 labeled frames: retrained) and then plays whole forward-and-backward passes over a
+``--segment-s``/2 s scene, so every segment scores the same frames. Per segment (one JSON
+object, last line of stdout):
 
 - ``accuracy``: healthy stream, observed markers at their true position / visible markers of
   every frame *sent* in the segment (a lost frame counts as wrong); a segment lasts whole passes
@@ -67,6 +69,16 @@ class Healthy:
     frames: object
     order: np.ndarray
     k: int = 0  # next position in ``order`` = next seq
+    init_until: int = 0  # frames before this k carry labels (the run's training window)
+
+    def restart(self, seg: int, init: int = 50) -> None:
+        """A new run (seq and t jump by whole passes, then ``init`` labeled frames): each
+        segment starts from a freshly trained labeler, so one attack's aftermath does not
+        carry into the next segment's score (what a stream that lost its markers needs to
+        recover on its own, boot from a model, is not part of this service yet)."""
+        lead = 3 + init  # 2 frames confirm the new run (dropped), then the training window
+        self.k = (self.k // seg + 2 + 10_000 // seg) * seg - lead  # scoring starts at phase 0
+        self.init_until = self.k + lead
 
     @property
     def last_t(self) -> float:
@@ -100,7 +112,7 @@ async def send_healthy(h: Healthy, sock, addr, n: int, init: int = 0) -> list[in
     start, period, seqs = loop.time(), 1.0 / fr.rate, []
     for j in range(n):
         f = int(h.order[h.k % len(h.order)])
-        labels = init_labels(fr, f) if h.k < init else None
+        labels = init_labels(fr, f) if h.k < max(init, h.init_until) else None
         p = encode_frame("healthy", h.k, h.k / fr.rate, fr.points[f], labels)
         with contextlib.suppress(OSError):
             sock.sendto(p, addr)
@@ -321,6 +333,9 @@ async def run(args) -> dict:
                 steady_rss = None
                 names = ["baseline", *[a for a in ATTACKS if a in args.attacks]]
                 for name in names:
+                    h.restart(seg)
+                    await send_healthy(h, sock, addr, h.init_until - h.k)  # trains, not scored
+                    await asyncio.sleep(1.0)
                     before = service_drops(svc.scrape())
                     ctx = {"healthy": h, "sock": sock, "addr": addr}
                     done = asyncio.Event()

@@ -148,3 +148,25 @@ def test_a_collapsed_stream_reports_lost_and_recovers_to_online():
     assert srv.metrics.value("mocap_labeled_fraction", stream="default") > 0.9
     tail = [m for m in msgs if m.seq >= 150]
     assert accuracy(tail, model_names(mem), cap, lambda s: s) > 0.9
+
+
+def test_the_on_lost_hook_is_called_when_a_stream_is_lost():
+    cap = _scene(frames=120)
+    good = payloads(cap, np.random.default_rng(0), INIT, frames=range(0, 60))
+    rng = np.random.default_rng(3)
+    junk = [
+        encode_frame("default", 60 + k, (60 + k) / cap.rate,
+                     rng.uniform(-1e5, 1e5, size=(40, 3)).astype(np.float32))
+        for k in range(30)
+    ]  # fmt: skip
+    calls = []
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(health_window_s=0.05), [mem]) as srv:
+            srv.streams["default"].on_lost = lambda st: calls.append((st.name, st.status))
+            await _feed(mem, good + junk)
+            await collect(srv, mem)
+
+    run(go())
+    assert calls == [("default", "lost")]
