@@ -291,7 +291,7 @@ class Server:
         active one that never started (no labeler). False when every slot is in real use."""
         dyn = self._dynamic()
         now = time.monotonic()
-        idle = [st for st in dyn if now - st.last_activity > self.settings.stream_idle_s]
+        idle = [st for st in dyn if self._idle(st, now)]
         unstarted = sorted((st for st in dyn if not st.started), key=lambda st: st.last_activity)
         victim = idle[0] if idle else unstarted[0] if unstarted else None
         if victim is None:
@@ -321,15 +321,21 @@ class Server:
         log.info("stream %s: removed (idle or evicted); %d cached labelers", name,
                  len(self.cache))  # fmt: skip
 
+    def _idle(self, st: StreamState, now: float) -> bool:
+        """No frame for ``stream_idle_s`` and nothing left to do (queue empty, not training)."""
+        return (
+            now - st.last_activity > self.settings.stream_idle_s
+            and not st.training
+            and not len(self._queues.get(st.name, ()))
+        )
+
     async def _expire_loop(self) -> None:
         """Removes unconfigured streams idle for ``stream_idle_s`` (configured ones stay)."""
         period = min(5.0, self.settings.stream_idle_s / 4)
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            idle = [
-                st for st in self._dynamic() if now - st.last_activity > self.settings.stream_idle_s
-            ]
+            idle = [st for st in self._dynamic() if self._idle(st, now)]
             for st in idle:
                 self._remove_stream(st.name)
             if idle:
@@ -459,6 +465,7 @@ class Server:
         (over budget, or the training raised) is reported as ``training_failed``."""
         init = state.take_init()
         self.metrics.training.inc()
+        state.training = True
         try:
             labeler, rate, out, label_ns = await self.background.run(
                 state.train, init, msg, budget_s=self.settings.train_budget_s,
@@ -470,6 +477,8 @@ class Server:
             raise BudgetExceeded(f"{type(exc).__name__}: {exc}") from exc
         finally:
             self.metrics.training.dec()
+            state.training = False
+            state.last_activity = time.monotonic()
         output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns)
         if state.status != "online":
             state.status = "online"

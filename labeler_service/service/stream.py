@@ -173,6 +173,7 @@ class StreamState:
         self._rebase = False  # re-base time at the next frame (the run's t jumped)
         self.runs = 1
         self.last_activity = time.monotonic()
+        self.training = False  # a training job for this stream is running (server)
         # health
         self.status = "online"
         self.labeled_fraction = float("nan")
