@@ -64,3 +64,15 @@ class TransportError(MocapError):
 
 class ConfigError(MocapError):
     """Service settings are invalid."""
+
+
+class BudgetExceeded(MocapError):
+    """A background job (in-stream training, boot) ran over its time budget or was refused."""
+
+
+class LimitExceeded(MocapError):
+    """A per-stream limit of the service was hit (``reason``: the drop-metric tag)."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason

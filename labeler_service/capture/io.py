@@ -10,6 +10,8 @@ the file stem. Problems raise :class:`CaptureError` naming the file, never a bar
 from __future__ import annotations
 
 import math
+import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -144,6 +146,12 @@ def _c3d_labels(point: dict, n: int) -> list[str]:
         k += 1
     if len(labels) < n:
         labels += [f"*{i}" for i in range(len(labels), n)]
+    for i, lab in enumerate(labels[:n]):
+        try:
+            lab.encode("utf-8")
+        except UnicodeEncodeError:  # ezc3d hands undecodable bytes over as surrogates
+            raw = lab.encode("utf-8", "surrogateescape")
+            raise ValueError(f"POINT:LABELS entry {i + 1} ({raw!r}) is not valid UTF-8") from None
     return labels[:n]
 
 
@@ -244,7 +252,73 @@ def _write_trc(capture: Capture, path: Path) -> None:
 
 
 # --------------------------------------------------------------------------------- NPZ
+#: Largest declared (uncompressed) NPZ content read: above a 10-minute 10-person take at 240 Hz
+#: (144,000 frames x 600 markers x 3 x 4 bytes = 1.04 GB). ``MOCAP_MAX_NPZ_BYTES`` overrides it.
+MAX_NPZ_BYTES = 1_300_000_000
+#: Largest compression ratio of an NPZ member larger than :data:`NPZ_RATIO_MIN_BYTES`
+#: (real marker data compresses 1-3x; a decompression bomb 1000x).
+MAX_NPZ_RATIO = 100.0
+NPZ_RATIO_MIN_BYTES = 1 << 20
+
+
+def _max_npz_bytes() -> int:
+    raw = os.environ.get("MOCAP_MAX_NPZ_BYTES")
+    if raw is None:
+        return MAX_NPZ_BYTES
+    try:
+        return int(raw)
+    except ValueError:
+        raise CaptureError(f"MOCAP_MAX_NPZ_BYTES={raw!r} is not an integer") from None
+
+
+def check_npz(path: Path, max_bytes: int | None = None) -> None:
+    """Refuses, before decompressing anything, an NPZ whose declared size exceeds
+    ``max_bytes`` (default :data:`MAX_NPZ_BYTES`), whose members compress more than
+    :data:`MAX_NPZ_RATIO`, or whose array headers declare more data than the member holds."""
+    cap = _max_npz_bytes() if max_bytes is None else max_bytes
+    try:
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise CaptureFormatError(f"{path}: not an NPZ (zip) archive: {exc}") from exc
+    with zf:
+        infos = zf.infolist()
+        total = sum(i.file_size for i in infos)
+        if total > cap:
+            raise CaptureFormatError(
+                f"{path}: NPZ declares {total} bytes uncompressed, more than the cap {cap} "
+                "(MOCAP_MAX_NPZ_BYTES)"
+            )
+        for info in infos:
+            if info.file_size > NPZ_RATIO_MIN_BYTES:
+                ratio = info.file_size / max(info.compress_size, 1)
+                if ratio > MAX_NPZ_RATIO:
+                    raise CaptureFormatError(
+                        f"{path}: NPZ member {info.filename} compresses {ratio:.0f}x "
+                        f"(more than {MAX_NPZ_RATIO:g}x): refused as a decompression bomb"
+                    )
+            if not info.filename.endswith(".npy"):
+                continue
+            with zf.open(info) as f:
+                try:
+                    version = np.lib.format.read_magic(f)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+                    else:
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+                except (ValueError, OSError) as exc:
+                    raise CaptureFormatError(
+                        f"{path}: NPZ member {info.filename} has no valid array header: {exc}"
+                    ) from exc
+            nbytes = math.prod(shape) * dtype.itemsize
+            if nbytes > info.file_size:
+                raise CaptureFormatError(
+                    f"{path}: NPZ member {info.filename} declares shape {shape} "
+                    f"({nbytes} bytes) but holds {info.file_size}"
+                )
+
+
 def _read_npz(path: Path) -> Capture:
+    check_npz(path)
     with np.load(path, allow_pickle=False) as z:
         try:
             positions = z["positions"]

@@ -32,6 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 async def _main(args: argparse.Namespace) -> int:
     from labeler_service.scenes.corrupt import CorruptionSpec
+    from labeler_service.service.transports.url import redact_url
     from labeler_service.tools.replay import open_sender, prepare, replay
 
     spec = CorruptionSpec(
@@ -43,7 +44,7 @@ async def _main(args: argparse.Namespace) -> int:
     print(
         f"replay {args.file.name}: {frames.n_frames} frames x {args.loops}, "
         f"{len(frames.marker_names)} markers, {frames.rate:g} Hz at speed {args.speed:g} "
-        f"-> {args.to}",
+        f"-> {redact_url(args.to)}",
         file=sys.stderr,
     )
     async with open_sender(args.to, stream=args.stream) as (send, stream):

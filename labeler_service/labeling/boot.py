@@ -197,8 +197,8 @@ class PointTracker:
         has_vel = np.zeros(n, dtype=bool)
         if n and self._pts.shape[0]:
             pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
-            gate = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
-            gate = np.where(self._has_vel, gate, gate + c.track_speed_mm_s * dt)
+            g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+            gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
             d_pt, j_pt = cKDTree(pred).query(pts)  # point -> nearest prediction
             _, i_tr = cKDTree(pts).query(pred)  # prediction -> nearest point
             idx = np.arange(n)
@@ -311,9 +311,9 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
-        for body in tpl.bodies:
-            for tri in body.anchors:
-                mk = body.markers[list(tri)]
+        for bd in tpl.bodies:
+            for tri in bd.anchors:
+                mk = bd.markers[list(tri)]
                 for a, b in ((0, 1), (0, 2), (1, 2)):
                     tpl.r_max = max(tpl.r_max, float(Dm[mk[a], mk[b]] + tol[mk[a], mk[b]]))
         out.append(tpl)

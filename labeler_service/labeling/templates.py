@@ -30,6 +30,15 @@ from labeler_service.errors import ModelError
 
 SCHEMA_VERSION: Literal[1] = 1
 
+#: Ranges a human body allows (issue 12): a marker-pair distance ``D`` (off the diagonal) in mm,
+#: and the motion noise ``q`` in (mm/s^2)^2 within 6 orders of magnitude of a typical trained
+#: value (real takes at 60-250 Hz train 5e4 to 1.4e11).
+PAIR_DISTANCE_MM = (1.0, 3000.0)
+MOTION_NOISE_TYPICAL = 1.0e7
+MOTION_NOISE_RANGE = (MOTION_NOISE_TYPICAL * 1e-6, MOTION_NOISE_TYPICAL * 1e6)
+#: Largest model file read (a model of 20 subjects x 60 markers is about 3 MB).
+MAX_MODEL_BYTES = 64 * 1024 * 1024
+
 
 class SubjectTemplate(BaseModel):
     """Structure and motion model of one subject (seed 003 Sec. 3.1)."""
@@ -40,7 +49,7 @@ class SubjectTemplate(BaseModel):
     markers: list[str] = Field(min_length=1)
     D: list[list[float | None]]
     A: list[list[float | None]]
-    bodies: list[list[int]]
+    bodies: list[list[int]] = Field(min_length=1)
     shapes: list[list[list[float]]]
     motion_noise: list[float]
 
@@ -56,10 +65,32 @@ class SubjectTemplate(BaseModel):
                 raise ValueError(f"{where}: {key} must be {m}x{m}")
             if any(v is not None and not (math.isfinite(v) and v >= 0) for row in mat for v in row):
                 raise ValueError(f"{where}: {key} has a negative or non-finite entry")
+        lo, hi = PAIR_DISTANCE_MM
+        for i in range(m):
+            for j in range(m):
+                d, a = self.D[i][j], self.A[i][j]
+                if i == j or d is None:
+                    continue
+                if not lo <= d <= hi:
+                    raise ValueError(
+                        f"{where}: D[{i}][{j}] = {d:g} mm ({self.markers[i]}-{self.markers[j]}) "
+                        f"is outside {lo:g}-{hi:g} mm"
+                    )
+                if a is not None and not a < d:
+                    raise ValueError(
+                        f"{where}: A[{i}][{j}] = {a:g} mm is not below the distance D = {d:g} mm"
+                    )
         if len(self.motion_noise) != m:
             raise ValueError(f"{where}: motion_noise needs {m} values")
         if any(not (math.isfinite(q) and q > 0) for q in self.motion_noise):
             raise ValueError(f"{where}: motion_noise must be positive and finite")
+        qlo, qhi = MOTION_NOISE_RANGE
+        for i, q in enumerate(self.motion_noise):
+            if not qlo <= q <= qhi:
+                raise ValueError(
+                    f"{where}: motion_noise[{i}] = {q:g} (mm/s^2)^2 ({self.markers[i]}) is outside "
+                    f"{qlo:g}-{qhi:g}"
+                )
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
         for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):
@@ -87,7 +118,7 @@ class LabelerModel(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     version: Literal[1] = SCHEMA_VERSION
-    rate: float = Field(gt=0, description="frame rate (Hz) of the training data")
+    rate: float = Field(gt=0, le=100_000, description="frame rate (Hz) of the training data")
     subjects: list[SubjectTemplate] = Field(min_length=1)
     source: str = ""
 
@@ -152,11 +183,18 @@ def load_model(path: str | Path) -> LabelerModel:
     """Reads and validates a JSON model; raises :class:`ModelError` naming the problem."""
     p = Path(path)
     try:
-        raw = json.loads(p.read_text())
+        size = p.stat().st_size
+        if size > MAX_MODEL_BYTES:
+            raise ModelError(f"{p}: {size} bytes, larger than a model can be ({MAX_MODEL_BYTES})")
+        raw = json.loads(p.read_bytes().decode("utf-8"))
     except OSError as exc:
         raise ModelError(f"{p}: cannot read model: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ModelError(f"{p}: not UTF-8 text (byte {exc.start})") from exc
     except json.JSONDecodeError as exc:
         raise ModelError(f"{p}: not JSON: {exc}") from exc
+    except RecursionError as exc:
+        raise ModelError(f"{p}: not a model: JSON nested too deeply") from exc
     if not isinstance(raw, dict):
         raise ModelError(f"{p}: a model is a JSON object")
     if raw.get("version") != SCHEMA_VERSION:
@@ -167,3 +205,5 @@ def load_model(path: str | Path) -> LabelerModel:
         return LabelerModel.model_validate(raw)
     except ValidationError as exc:
         raise ModelError(f"{p}: invalid model: {_first_error(exc)}") from exc
+    except RecursionError as exc:
+        raise ModelError(f"{p}: not a model: nested too deeply") from exc

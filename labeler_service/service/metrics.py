@@ -8,6 +8,7 @@ periodic log line. Every drop has a ``reason``: the protocol's reject reasons
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -20,9 +21,14 @@ log = logging.getLogger(__name__)
 SERVICE_DROP_REASONS = (
     "queue_full",  # processing fell behind: the oldest queued frame was discarded
     "duplicate",  # seq equal to the last one seen on the stream
-    "late",  # seq lower than the last one seen
+    "late",  # seq lower than the last one seen, by at most max_seq_step
+    "seq_jump",  # seq jumped (forward or back beyond max_seq_step): suspect, not yet a new run
+    "time_jump",  # t did not advance, or jumped beyond max_time_step_s: suspect
+    "marker_cap",  # init frames would define more than max_markers distinct markers
+    "training_failed",  # in-stream training failed or ran over train_budget_s
     "no_model",  # unlabeled frame on a stream with neither model nor labeled init frames
-    "unknown_stream",  # stream not configured and allow_new_streams is off (or too many)
+    "unknown_stream",  # stream not configured and allow_new_streams is off, no free slot, or
+    # an unlabeled frame for a stream that never started (counted under stream "" only)
     "stream_mismatch",  # MQTT topic and payload disagree on the stream
     "init_overflow",  # more init frames than max_init_frames
     "labeler_error",  # the labeler raised on this frame (logged; state kept)
@@ -30,6 +36,12 @@ SERVICE_DROP_REASONS = (
     "send_error",  # a transport failed to send (e.g. broker down; UDP: per refused datagram)
     "rx_overflow",  # a transport's receive queue was full: the oldest raw message was discarded
     "internal",  # an unexpected error while handling one message (logged with traceback)
+    "kernel_rx_overflow",  # UDP: datagrams the kernel dropped, receive buffer full (Linux)
+    "subscribe_short",  # UDP subscribe smaller than the challenge: not answered
+    "subscribe_token",  # UDP subscribe echoed a wrong or stale challenge token
+    "subscribe_host_limit",  # more than max_subscribers_per_host from one IP
+    "subscribe_full",  # max_subscribers confirmed subscribers already
+    "retained_spoofed",  # MQTT: another client replaced our retained model/status (re-asserted)
 )
 
 _MS_BUCKETS = (
@@ -110,6 +122,25 @@ class ServiceMetrics:
         )
         self.queue_depth = Gauge("mocap_queue_depth", "Queued frames", ["stream"], registry=r)
         self.ready = Gauge("mocap_ready", "1 once kernels are warm and serving", registry=r)
+        self.labeled_fraction = Gauge(
+            "mocap_labeled_fraction",
+            "Observed (labeled) markers / model markers, averaged over health_window_s",
+            ["stream"], registry=r,
+        )  # fmt: skip
+        self.recovered_fraction = Gauge(
+            "mocap_recovered_fraction",
+            "Recovered (predicted) markers / model markers, averaged over health_window_s",
+            ["stream"], registry=r,
+        )  # fmt: skip
+        self.streams_active = Gauge("mocap_streams", "Streams with a slot", registry=r)
+        self.training = Gauge(
+            "mocap_training_jobs", "In-stream trainings running or waiting (off the loop)",
+            registry=r,
+        )  # fmt: skip
+        self.streams_expired = Counter(
+            "mocap_streams_expired", "Unconfigured streams removed after stream_idle_s idle",
+            registry=r,
+        )  # fmt: skip
         self._recent_label: dict[str, _Recent] = {}
         self._recent_latency: dict[str, _Recent] = {}
         self._out: dict[str, _StreamOut] = {}
@@ -128,6 +159,38 @@ class ServiceMetrics:
     def drop(self, reason: str, stream: str = "", n: int = 1) -> None:
         self._child(self.dropped, stream, reason).inc(n)
         self._drops[(stream, reason)] = self._drops.get((stream, reason), 0) + n
+
+    def health(self, stream: str, labeled: float, recovered: float) -> None:
+        self._child(self.labeled_fraction, stream).set(labeled)
+        self._child(self.recovered_fraction, stream).set(recovered)
+
+    def forget(self, stream: str) -> None:
+        """Removes every series of ``stream`` (an expired unconfigured stream): the label
+        cardinality stays bounded by the stream slots. Its drops are folded into stream ""."""
+        for key in [k for k in self._children if k[1] and k[1][0] == stream]:
+            del self._children[key]
+        for metric in (
+            self.frames_in, self.frames_out, self.seq_gap, self.labeling, self.latency,
+            self.unlabeled, self.queue_depth, self.labeled_fraction, self.recovered_fraction,
+        ):  # fmt: skip
+            with contextlib.suppress(KeyError):
+                metric.remove(stream)
+        for state in ("observed", "recovered", "missing"):
+            with contextlib.suppress(KeyError):
+                self.markers.remove(stream, state)
+        for (s, reason), n in list(self._drops.items()):
+            if s == stream:
+                del self._drops[(s, reason)]
+                with contextlib.suppress(KeyError):
+                    self.dropped.remove(stream, reason)
+                self.drop(reason, "", n)
+        self._out.pop(stream, None)
+        self._recent_label.pop(stream, None)
+        self._recent_latency.pop(stream, None)
+
+    def series(self) -> int:
+        """Number of exported samples (tests: label cardinality stays bounded)."""
+        return sum(len(m.samples) for m in self.registry.collect())
 
     def frame_in(self, stream: str) -> None:
         self._child(self.frames_in, stream).inc()

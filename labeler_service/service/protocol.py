@@ -8,7 +8,10 @@ type           direction  keys (besides ``v``, ``type``)
 =============  =========  ==================================================================
 ``frame``      in         ``stream``, ``seq`` (uint), ``t`` (s), ``points`` (N*3 float32),
                           optional ``labels`` (N x str|nil), optional ``sent`` (ns, sender)
-``subscribe``  in (UDP)   ``stream`` (name or ``*``) — registers/renews a UDP subscriber
+``subscribe``  in (UDP)   ``stream`` (name or ``*``) — registers/renews a UDP subscriber;
+                          optional ``token`` (bin, echoed challenge), ``pad`` (bin, ignored)
+``challenge``  out (UDP)  ``stream``, ``token`` (bin 8) — sent to an unconfirmed subscriber,
+                          never larger than its request; it echoes ``token`` to confirm
 ``model``      out        ``stream``, ``model`` (id), ``names`` (M), ``subjects``
                           ([name, start, count]...), ``rate``
 ``labeled``    out        ``stream``, ``model``, ``seq``, ``t``, ``positions`` (M*3 float32),
@@ -37,7 +40,7 @@ from labeler_service.errors import ProtocolError
 
 VERSION = 1
 #: Stream names become MQTT topic levels: letters, digits, ``_ . -``; 1-64 characters.
-STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}\Z")
 _F32 = np.dtype("<f4")
 _U8 = np.dtype("u1")
 _U64_MAX = 2**64 - 1
@@ -75,6 +78,13 @@ class FrameMsg:
 @dataclass(slots=True)
 class SubscribeMsg:
     stream: str  # a name or "*"
+    token: bytes | None = None  # the echoed challenge token (confirms the address)
+
+
+@dataclass(slots=True)
+class ChallengeMsg:
+    stream: str  # a name or "*"
+    token: bytes
 
 
 @dataclass(slots=True)
@@ -108,8 +118,8 @@ class StatusMsg:
     time: float
 
 
-Message = FrameMsg | SubscribeMsg | ModelMsg | LabeledMsg | StatusMsg
-_STATUS_STATES = ("starting", "online", "offline")
+Message = FrameMsg | SubscribeMsg | ChallengeMsg | ModelMsg | LabeledMsg | StatusMsg
+_STATUS_STATES = ("starting", "online", "offline", "degraded", "lost", "training_failed")
 
 
 # ----------------------------------------------------------------------------- encoding
@@ -140,8 +150,27 @@ def encode_frame(
     return _pack(msg)
 
 
-def encode_subscribe(stream: str = "*") -> bytes:
-    return _pack({"v": VERSION, "type": "subscribe", "stream": stream})
+#: Bytes of a challenge token.
+TOKEN_BYTES = 8
+
+
+def encode_subscribe(stream: str = "*", token: bytes | None = None) -> bytes:
+    """A subscribe request, padded to at least the size of the service's challenge (the
+    service never answers an unconfirmed address with more bytes than it received)."""
+    msg: dict = {"v": VERSION, "type": "subscribe", "stream": stream}
+    if token is not None:
+        msg["token"] = bytes(token)
+    need = len(encode_challenge(stream, bytes(TOKEN_BYTES)))
+    base = len(_pack(msg))
+    if base < need:
+        msg["pad"] = bytes(max(0, need - base - 6))  # "pad" key + bin header: 6 bytes
+        while len(_pack(msg)) < need:
+            msg["pad"] += b"\0"
+    return _pack(msg)
+
+
+def encode_challenge(stream: str, token: bytes) -> bytes:
+    return _pack({"v": VERSION, "type": "challenge", "stream": stream, "token": bytes(token)})
 
 
 def encode_model(
@@ -375,5 +404,13 @@ def decode(payload: bytes, max_points: int = 2000, max_bytes: int = 65_507) -> M
     if kind == "status":
         return _decode_status(m)
     if kind == "subscribe":
-        return SubscribeMsg(_get_stream(m, wildcard=True))
+        token = m.get("token")
+        if token is not None and not (isinstance(token, bytes) and len(token) == TOKEN_BYTES):
+            raise _reject("field", f"subscribe token must be {TOKEN_BYTES} raw bytes")
+        return SubscribeMsg(_get_stream(m, wildcard=True), token)
+    if kind == "challenge":
+        token = m.get("token")
+        if not (isinstance(token, bytes) and len(token) == TOKEN_BYTES):
+            raise _reject("field", f"challenge token must be {TOKEN_BYTES} raw bytes")
+        return ChallengeMsg(_get_stream(m, wildcard=True), token)
     raise _reject("type", f"unknown message type {kind!r}")

@@ -13,28 +13,49 @@ then awaits them. What the transports drop themselves (receive-queue overflow, d
 kernel refused) is added to the drop metric once a second. Kernels
 are compiled on a synthetic scene before the status turns ``online`` and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
-per stream (the first unlabeled frame, which trains the labeler), which runs in a worker thread
-so other streams keep flowing. ``labeling_thread = true`` labels every frame in one thread per
-stream instead (the numba kernels release the GIL).
+per stream (the first unlabeled frame, which trains the labeler), which runs off the loop through
+:class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
+it: status ``training_failed``) so other streams keep flowing. ``labeling_thread = true``
+labels every frame in one thread per stream instead (the numba kernels release the GIL).
+
+Bounded state: streams not in the settings take one of ``max_streams`` slots only with a
+labeled frame (or when their trained labeler is in the cache), and are removed after
+``stream_idle_s`` without frames (task ``expire``), their labeler kept in a small LRU cache
+(``stream_cache_size``) and their metric series removed; frames for streams without a slot are
+counted under one series (stream ``""``). Health (labeled fraction) changes publish a status
+(``degraded``, ``lost``, back to ``online``) and log a warning.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AsyncExitStack
 
 import numpy as np
 
-from labeler_service.errors import InitBufferFullError, LabelerError, MocapError, ProtocolError
+from labeler_service.errors import (
+    BudgetExceeded,
+    ConfigError,
+    InitBufferFullError,
+    LabelerError,
+    LimitExceeded,
+    MocapError,
+    ProtocolError,
+)
+from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
+from labeler_service.service.background import Background, release_memory
+from labeler_service.service.continuity import Verdict
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
-from labeler_service.service.settings import ServiceSettings, StreamSettings
+from labeler_service.service.settings import ServiceSettings, StreamSettings, exposure_warnings
 from labeler_service.service.stream import StreamState
 from labeler_service.service.transports.base import (
     DropOldestQueue,
@@ -124,7 +145,12 @@ class Server:
         self.factory = factory
         self.metrics = ServiceMetrics()
         self.streams: dict[str, StreamState] = {}
-        self._queues: dict[str, DropOldestQueue[tuple[FrameMsg, int]]] = {}
+        self._queues: dict[str, DropOldestQueue[tuple[FrameMsg, int, Verdict]]] = {}
+        self._workers: dict[str, asyncio.Task] = {}
+        #: trained labelers of expired unconfigured streams: name -> (labeler, rate, last t), LRU
+        self.cache: OrderedDict[str, tuple[FrameLabeler, float, float | None]] = OrderedDict()
+        self.background = Background()
+        self._trim_soon = False
         self._published_model: dict[str, int] = {}
         self._transport_drops: dict[tuple[str, str, str], int] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
@@ -142,10 +168,28 @@ class Server:
             self.transports = build_transports(self.settings)
         self._stack = AsyncExitStack()
         try:
+            for line in exposure_warnings(self.settings):
+                log.warning("%s", line)
+            if self.settings.metrics_port is not None:
+                # before the warm-up: a port in use fails at once, not after it
+                try:
+                    self.metrics_port = self.metrics.serve_http(
+                        self.settings.metrics_host, self.settings.metrics_port
+                    )
+                except OSError as exc:
+                    raise ConfigError(
+                        f"metrics_port: cannot listen on {self.settings.metrics_host}:"
+                        f"{self.settings.metrics_port}: {exc.strerror or exc}"
+                    ) from exc
             for t in self.transports:
                 await self._stack.enter_async_context(t)  # type: ignore[arg-type]
             for s in self.settings.streams:
                 await self._status(s.name, "starting")
+            for s in self.settings.streams:
+                if s.model is not None:  # a broken model file fails before the warm-up
+                    from labeler_service.labeling.templates import load_model
+
+                    await asyncio.to_thread(load_model, s.model)
             if self.settings.warmup:
                 self.warmup_s = await asyncio.to_thread(
                     warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
@@ -161,10 +205,8 @@ class Server:
             self._spawn(self._model_repeat(), "model-repeat")
             self._spawn(self._transport_drops_loop(), "transport-drops")
             self._spawn(self._log_loop(), "metrics-log")
-            if self.settings.metrics_port is not None:
-                self.metrics_port = self.metrics.serve_http(
-                    self.settings.metrics_host, self.settings.metrics_port
-                )
+            self._spawn(self._expire_loop(), "expire")
+            if self.metrics_port is not None:
                 log.info("metrics on http://%s:%d/metrics", self.settings.metrics_host,
                          self.metrics_port)  # fmt: skip
             for name in self.streams:
@@ -185,6 +227,7 @@ class Server:
         for name in list(self.streams):
             with contextlib.suppress(Exception):
                 await self._status(name, "offline")
+        self.background.close()
         tasks, self._tasks = self._tasks, []
         await cancel_and_wait(tasks)
         self._count_transport_drops()
@@ -199,6 +242,8 @@ class Server:
 
     def _spawn(self, coro, name: str) -> asyncio.Task:
         task = asyncio.create_task(coro, name=name)
+        if len(self._tasks) >= 256:  # streams come and go: forget finished tasks
+            self._tasks = [t for t in self._tasks if not t.done()]
         self._tasks.append(task)
         return task
 
@@ -209,19 +254,92 @@ class Server:
         self._queues[name] = DropOldestQueue(self.settings.queue_size)
         if self.settings.labeling_thread:
             self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"label-{name}")
-        self._spawn(self._worker(state), f"stream-{name}")
+        self._workers[name] = self._spawn(self._worker(state), f"stream-{name}")
+        self.metrics.streams_active.set(len(self.streams))
         return state
 
-    def _stream_for(self, name: str) -> StreamState | None:
+    def _dynamic(self) -> list[StreamState]:
+        return [st for st in self.streams.values() if not st.configured]
+
+    def _stream_for(self, msg: FrameMsg) -> StreamState | None:
+        """The stream's state; a stream not in the settings gets a slot only with a labeled
+        frame (or a cached labeler), evicting an idle or never-started one when all are taken."""
+        name = msg.stream
         state = self.streams.get(name)
         if state is not None:
             return state
-        if not self.settings.allow_new_streams or len(self.streams) >= self.settings.max_streams:
+        if not self.settings.allow_new_streams:
             return None
-        log.info("stream %s: new (starts from labeled init frames)", name)
+        cached = self.cache.get(name)
+        if msg.labels is None and cached is None:
+            return None  # an unlabeled frame cannot start a stream: no slot for it
+        if len(self._dynamic()) >= self.settings.max_streams and not self._free_slot():
+            return None
+        if cached is not None:
+            del self.cache[name]
+            log.info("stream %s: back (resumes from its cached labeler)", name)
+        else:
+            log.info("stream %s: new (starts from labeled init frames)", name)
         state = self._new_stream(name, None)
+        if cached is not None:
+            state.resume(*cached)
         self._spawn(self._status(name, "online"), f"status-{name}")
         return state
+
+    def _free_slot(self) -> bool:
+        """Frees one slot of an unconfigured stream: an idle one first, else the least recently
+        active one that never started (no labeler). False when every slot is in real use."""
+        dyn = self._dynamic()
+        now = time.monotonic()
+        idle = [st for st in dyn if self._idle(st, now)]
+        unstarted = sorted((st for st in dyn if not st.started), key=lambda st: st.last_activity)
+        victim = idle[0] if idle else unstarted[0] if unstarted else None
+        if victim is None:
+            return False
+        self._remove_stream(victim.name)
+        return True
+
+    def _remove_stream(self, name: str) -> None:
+        state = self.streams.pop(name)
+        task = self._workers.pop(name, None)
+        if task is not None:
+            task.cancel()
+        self._queues.pop(name, None)
+        ex = self._executors.pop(name, None)
+        if ex is not None:
+            ex.shutdown(wait=False, cancel_futures=True)
+        self._published_model.pop(name, None)
+        if state.labeler is not None and state.rate and self.settings.stream_cache_size > 0:
+            self.cache[name] = (state.labeler, state.rate, state.t_last)
+            self.cache.move_to_end(name)
+            while len(self.cache) > self.settings.stream_cache_size:
+                self.cache.popitem(last=False)
+        self.metrics.forget(name)
+        self.metrics.streams_expired.inc()
+        self.metrics.streams_active.set(len(self.streams))
+        self._spawn(self._status(name, "offline"), f"status-{name}-offline")
+        log.info("stream %s: removed (idle or evicted); %d cached labelers", name,
+                 len(self.cache))  # fmt: skip
+
+    def _idle(self, st: StreamState, now: float) -> bool:
+        """No frame for ``stream_idle_s`` and nothing left to do (queue empty, not training)."""
+        return (
+            now - st.last_activity > self.settings.stream_idle_s
+            and not st.training
+            and not len(self._queues.get(st.name, ()))
+        )
+
+    async def _expire_loop(self) -> None:
+        """Removes unconfigured streams idle for ``stream_idle_s`` (configured ones stay)."""
+        period = min(5.0, self.settings.stream_idle_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            now = time.monotonic()
+            idle = [st for st in self._dynamic() if self._idle(st, now)]
+            for st in idle:
+                self._remove_stream(st.name)
+            if idle:
+                release_memory()  # what the removed streams held goes back to the OS
 
     # ------------------------------------------------------------------ ingest
     async def _ingest(self, transport: Transport) -> None:
@@ -245,7 +363,9 @@ class Server:
         if isinstance(msg, FrameMsg):
             self._on_frame(msg, inc)
         elif isinstance(msg, SubscribeMsg):
-            transport.subscribe(inc.reply_to, msg.stream)
+            if inc.reply_to is None:
+                raise ProtocolError(f"{transport.name}: subscribe is UDP only", "type")
+            transport.subscribe(inc.reply_to, msg.stream, msg.token, len(inc.payload))
         else:
             raise ProtocolError(f"{type(msg).__name__} is not accepted by the service", "type")
 
@@ -255,19 +375,23 @@ class Server:
             self._rlog.warning("mismatch", "topic stream %s carried stream %s", inc.stream,
                                msg.stream)  # fmt: skip
             return
-        state = self._stream_for(msg.stream)
+        state = self._stream_for(msg)
         if state is None:
-            self.metrics.drop("unknown_stream", msg.stream)
-            self._rlog.warning("unknown", "frame for unknown stream %s dropped", msg.stream)
+            self.metrics.drop("unknown_stream")  # one series: stream names are not labels
+            self._rlog.warning("unknown", "frame for unknown stream %r dropped", msg.stream)
             return
-        reason, gap = state.check_seq(msg.seq)
-        if reason is not None:
-            self.metrics.drop(reason, msg.stream)
+        verdict = state.check_frame(msg)
+        if verdict.reason is not None:
+            self.metrics.drop(verdict.reason, msg.stream)
+            if verdict.reason in ("seq_jump", "time_jump"):
+                self._rlog.warning(f"jump-{msg.stream}", "stream %s: %s at seq %d t %.6g "
+                                   "(last seq %s): suspect frame dropped", msg.stream,
+                                   verdict.reason, msg.seq, msg.t, state.last_seq)  # fmt: skip
             return
-        if gap:
-            self.metrics.gap(msg.stream, gap)
+        if verdict.gap:
+            self.metrics.gap(msg.stream, verdict.gap)
         self.metrics.frame_in(msg.stream)
-        if self._queues[msg.stream].put((msg, inc.recv_ns)) is not None:
+        if self._queues[msg.stream].put((msg, inc.recv_ns, verdict)) is not None:
             self.metrics.drop("queue_full", msg.stream)
             self._rlog.warning(f"queue-{msg.stream}", "stream %s: falling behind, dropping the "
                                "oldest frame", msg.stream)  # fmt: skip
@@ -281,15 +405,28 @@ class Server:
             # yield once per frame: readers drain the sockets into the drop-oldest queues
             # first, so a backlog is dropped (counted) rather than aged in kernel buffers
             await asyncio.sleep(0)
-            msg, recv_ns = await queue.get()
+            msg, recv_ns, verdict = await queue.get()
             self.metrics.queue(state.name, len(queue))
             try:
-                if executor is not None:
+                if verdict.new_run:
+                    state.new_run(msg, verdict)
+                if state.needs_training(msg):
+                    out = await self._train(state, msg, recv_ns)
+                elif executor is not None:
                     out = await loop.run_in_executor(executor, state.process, msg, recv_ns)
-                elif state.heavy(msg):
-                    out = await asyncio.to_thread(state.process, msg, recv_ns)
                 else:
                     out = state.process(msg, recv_ns)
+            except BudgetExceeded as exc:
+                self.metrics.drop("training_failed", state.name)
+                log.warning("stream %s: training failed: %s", state.name, exc)
+                self._trim_soon = True  # the failed job's arrays are freed after this block
+                state.status = "training_failed"
+                await self._status(state.name, "training_failed")
+                continue
+            except LimitExceeded as exc:
+                self.metrics.drop(exc.reason, state.name)
+                self._rlog.warning(f"{exc.reason}-{state.name}", "%s", exc)
+                continue
             except LabelerError as exc:
                 reason = "labeler_error" if state.started else "no_model"
                 self.metrics.drop(reason, state.name)
@@ -315,6 +452,52 @@ class Server:
                     state.name, out.label_s, out.latency_s, out.observed, out.recovered,
                     out.missing, out.unlabeled,
                 )  # fmt: skip
+            try:
+                await self._health(state, out)
+            except Exception:  # a status that cannot be sent must not end the worker
+                if self._rlog.warning(f"health-{state.name}", "stream %s: health update failed",
+                                      state.name):  # fmt: skip
+                    log.exception("health error")
+
+    async def _train(self, state: StreamState, msg: FrameMsg, recv_ns: int):
+        """Trains the stream's labeler off the loop (budget ``train_budget_s``); a failure
+        (over budget, or the training raised) is reported as ``training_failed``."""
+        init = state.take_init()
+        self.metrics.training.inc()
+        state.training = True
+        try:
+            labeler, rate, out, label_ns = await self.background.run(
+                state.train, init, msg, budget_s=self.settings.train_budget_s,
+                name=f"train-{state.name}",
+            )  # fmt: skip
+        except BudgetExceeded:
+            raise
+        except Exception as exc:
+            raise BudgetExceeded(f"{type(exc).__name__}: {exc}") from exc
+        finally:
+            self.metrics.training.dec()
+            state.training = False
+            state.last_activity = time.monotonic()
+        output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns)
+        if state.status != "online":
+            state.status = "online"
+            await self._status(state.name, "online")
+        return output
+
+    async def _health(self, state: StreamState, out) -> None:
+        changed = state.update_health(out)
+        self.metrics.health(state.name, state.labeled_fraction, state.recovered_fraction)
+        if changed is None:
+            return
+        level = logging.INFO if changed == "online" else logging.WARNING
+        log.log(level, "stream %s: status %s (labeled fraction %.2f, recovered %.2f)",
+                state.name, changed, state.labeled_fraction, state.recovered_fraction)  # fmt: skip
+        await self._status(state.name, changed)
+        if changed == "lost" and state.on_lost is not None:
+            try:
+                state.on_lost(state)
+            except Exception:
+                log.exception("stream %s: on_lost hook failed", state.name)
 
     async def _send_all(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> bool:
         ok = False
@@ -362,6 +545,10 @@ class Server:
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
+            if self._trim_soon:  # a failed training left cycles (exception <-> frames) behind
+                self._trim_soon = False
+                gc.collect()
+                release_memory()
 
     async def _log_loop(self) -> None:
         while True:

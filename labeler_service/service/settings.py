@@ -22,6 +22,7 @@ Example (``docker/service.toml`` is a complete one)::
 from __future__ import annotations
 
 import json
+import os
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -37,9 +38,17 @@ from labeler_service.service.protocol import STREAM_NAME
 UDP_MAX_PAYLOAD = 65_507
 
 
+#: ``MOCAP_`` environment variables that are not service settings (read elsewhere); any other
+#: ``MOCAP_`` name must be a settings field, else it is a typo and an error.
+NON_SETTING_ENV = frozenset({"MOCAP_DATA_DIR", "MOCAP_MAX_NPZ_BYTES"})
+
+#: Hosts that listen on every interface (a warning at start-up: UDP has no authentication).
+WILDCARD_HOSTS = frozenset({"0.0.0.0", "::", "", "*"})
+
+
 def check_stream_name(name: str) -> str:
     """Stream names become MQTT topic levels: letters, digits, ``_ . -``; 1-64 characters."""
-    if not STREAM_NAME.match(name):
+    if not isinstance(name, str) or not STREAM_NAME.fullmatch(name):
         raise ValueError(
             f"stream name {name!r} must be 1-64 characters of letters, digits, '_', '.', '-'"
         )
@@ -62,6 +71,8 @@ class UdpSettings(_Section):
     #: A registered subscriber that has not renewed within this many seconds is dropped.
     subscriber_ttl_s: float = Field(5.0, gt=0)
     max_subscribers: int = Field(64, ge=1)
+    #: Confirmed subscribers per source host (IP) at most (``subscribe_host_limit``).
+    max_subscribers_per_host: int = Field(4, ge=1)
     #: Kernel receive/send buffer sizes requested (capped by net.core.rmem_max/wmem_max).
     socket_buffer_bytes: int = Field(4 * 1024 * 1024, ge=65536)
 
@@ -91,9 +102,24 @@ class MqttSettings(_Section):
     keepalive_s: int = Field(10, ge=2, le=3600)
     client_id_prefix: str = "mocap-labeler"
     topic_prefix: str = "mocap"
+    #: Re-publish our retained model/status when the broker holds a different one (another
+    #: client published it): the service subscribes to its own retained topics.
+    reassert_retained: bool = True
     #: Reconnect backoff: starts at ``reconnect_min_s``, doubles, capped at ``reconnect_max_s``.
     reconnect_min_s: float = Field(0.2, gt=0)
     reconnect_max_s: float = Field(2.0, gt=0)
+
+    @field_validator("topic_prefix")
+    @classmethod
+    def _check_prefix(cls, v: str) -> str:
+        if not v or any(c in v for c in "+#\0") or v.startswith("/") or v.endswith("/"):
+            raise ValueError(
+                f"topic prefix {v!r} must be a non-empty topic without MQTT wildcards (+ #), "
+                "NUL or a leading/trailing '/'"
+            )
+        if any(not level for level in v.split("/")):
+            raise ValueError(f"topic prefix {v!r} has an empty level ('//')")
+        return v
 
     @field_validator("ca_file", "cert_file", "key_file")
     @classmethod
@@ -144,6 +170,29 @@ class ServiceSettings(BaseSettings):
     labeler_config: LabelerConfig = Field(default_factory=LabelerConfig)
     #: Init frames buffered at most while waiting for the first unlabeled frame.
     max_init_frames: int = Field(2000, ge=1)
+    #: Bytes of init frames (points + labels) buffered at most per stream (``init_overflow``).
+    max_init_bytes: int = Field(8 * 1024 * 1024, ge=1024)
+    #: Distinct marker labels a stream may define in its init frames (``marker_cap``).
+    max_markers: int = Field(1000, ge=1)
+    #: Seconds in-stream training may take (off the event loop); over it the stream reports
+    #: ``training_failed`` and waits for new labeled init frames.
+    train_budget_s: float = Field(60.0, gt=0)
+    #: Restart rule (docs/service.md): a seq step beyond this, forward or back, is a jump.
+    max_seq_step: int = Field(100, ge=1)
+    #: A t step of 0, negative or beyond this many seconds is a jump.
+    max_time_step_s: float = Field(1.0, gt=0)
+    #: Consecutive frames that must continue a jump before it is adopted as a new run.
+    run_confirm_frames: int = Field(3, ge=1, le=100)
+    #: A stream not listed in ``streams`` that received nothing for this long is removed
+    #: (its trained labeler is kept in a small cache so it resumes without labels).
+    stream_idle_s: float = Field(60.0, gt=0)
+    #: Trained labelers of removed streams kept (least recently used evicted first).
+    stream_cache_size: int = Field(4, ge=0, le=64)
+    #: Stream health: labeled fraction (observed markers / model markers, averaged over
+    #: ``health_window_s``) below which the status is ``degraded`` / ``lost``.
+    degraded_below: float = Field(0.5, ge=0, le=1)
+    lost_below: float = Field(0.1, ge=0, le=1)
+    health_window_s: float = Field(1.0, gt=0)
     #: Input validation caps (checked once, at decode).
     max_points: int = Field(2000, ge=1)
     max_message_bytes: int = Field(UDP_MAX_PAYLOAD, ge=64)
@@ -171,6 +220,14 @@ class ServiceSettings(BaseSettings):
             raise ValueError(f"stream names must be unique, repeated: {', '.join(dupes)}")
         return v
 
+    @field_validator("lost_below")
+    @classmethod
+    def _health_order(cls, v: float, info) -> float:
+        degraded = info.data.get("degraded_below")
+        if degraded is not None and v > degraded:
+            raise ValueError(f"lost_below ({v}) must not exceed degraded_below ({degraded})")
+        return v
+
     @classmethod
     def settings_customise_sources(
         cls,
@@ -192,6 +249,40 @@ def _format_errors(exc: ValidationError) -> str:
     return "\n".join(lines)
 
 
+def check_env(environ: dict[str, str] | None = None) -> None:
+    """Rejects ``MOCAP_`` environment variables that name no setting (a typo would otherwise be
+    ignored silently); :data:`NON_SETTING_ENV` are allowed."""
+    env = os.environ if environ is None else environ
+    fields = {f.upper() for f in ServiceSettings.model_fields}
+    bad = []
+    for key in env:
+        k = key.upper()
+        if not k.startswith("MOCAP_") or k in NON_SETTING_ENV:
+            continue
+        top = k[len("MOCAP_") :].split("__", 1)[0]
+        if top not in fields:
+            bad.append(key)
+    if bad:
+        allowed = ", ".join(sorted(NON_SETTING_ENV))
+        raise ConfigError(
+            "unknown MOCAP_ environment variable(s) (not a setting; other allowed names: "
+            f"{allowed}):\n" + "\n".join(f"  {b}" for b in sorted(bad))
+        )
+
+
+def exposure_warnings(settings: ServiceSettings) -> list[str]:
+    """Lines to log at start-up for listeners bound to every interface."""
+    out = []
+    if settings.udp.enabled and settings.udp.host in WILDCARD_HOSTS:
+        out.append(
+            f"udp.host = {settings.udp.host!r} listens on every interface: UDP frames and "
+            "subscriptions are not authenticated; bind to loopback or a trusted network"
+        )
+    if settings.metrics_port is not None and settings.metrics_host in WILDCARD_HOSTS:
+        out.append(f"metrics_host = {settings.metrics_host!r} exposes /metrics on every interface")
+    return out
+
+
 def read_settings_file(path: str | Path) -> dict[str, Any]:
     """Reads a ``.toml`` or ``.json`` settings file into a dict (no validation yet)."""
     p = Path(path)
@@ -207,6 +298,8 @@ def read_settings_file(path: str | Path) -> dict[str, Any]:
             raise ConfigError(f"settings file {p}: use .toml or .json, not {p.suffix or 'none'}")
     except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"settings file {p} cannot be parsed: {exc}") from exc
+    except (RecursionError, OSError) as exc:
+        raise ConfigError(f"settings file {p} cannot be read: {type(exc).__name__}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"settings file {p} must hold a table/object at the top level")
     return data
@@ -221,7 +314,11 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> ServiceSe
     data = read_settings_file(path) if path is not None else {}
     data.update(overrides)
     where = f" in {path}" if path is not None else ""
+    check_env()
     try:
         return ServiceSettings(**data)
     except ValidationError as exc:
         raise ConfigError(f"invalid service settings{where}:\n{_format_errors(exc)}") from exc
+    except (ValueError, RecursionError) as exc:
+        # pydantic-settings parses complex env values (MOCAP_STREAMS) as JSON before validation
+        raise ConfigError(f"invalid service settings{where} (environment): {exc}") from exc

@@ -11,32 +11,44 @@ A stream (one capture volume) starts in one of two ways:
    the rate comes from the settings or the init frames' times, the labeler is built and fed the init
    frames with their labels, then labels the new frame.
 
-``seq`` handling: a duplicate or lower ``seq`` is dropped (``duplicate``/``late``); a jump back
-of more than :data:`SEQ_RESTART` is taken as a restarted sender (tracking restarts, the labeler
-and its state are kept); a forward gap is counted and the labeler simply predicts across it
-(its motion model uses ``t``).
+``seq`` and ``t`` handling (:mod:`labeler_service.service.continuity`): duplicates and slightly
+late frames are dropped; a jump of ``seq`` or ``t`` (forward or back) is suspect and dropped
+until ``run_confirm_frames`` consecutive frames continue it; then it is a **new run**. A new
+run that starts with labeled init frames retrains from them (a model stream rebuilds from its
+model); an unlabeled one continues with the current labeler, time re-based so the labeler sees
+one frame period across the jump (its tracks re-acquire the markers).
+
+Limits (counted by the server when hit): ``max_init_frames`` and ``max_init_bytes`` of buffered
+init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``). Training runs
+off the event loop through :class:`~labeler_service.service.background.Background`
+(:meth:`StreamState.train` is the job).
+
+Health: the labeled fraction (observed markers / model markers) and the recovered fraction are
+averaged over ``health_window_s``; below ``degraded_below`` / ``lost_below`` the stream's status
+becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook for
+a recovery that needs more than the labeler's own re-acquisition (boot from a subject model).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from labeler_service.capture import split_label, subject_groups
-from labeler_service.errors import InitBufferFullError, LabelerError, ModelError
+from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
+from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
 
 log = logging.getLogger(__name__)
-
-#: A ``seq`` this far below the last one means the sender restarted (not a late frame).
-SEQ_RESTART = 1000
 
 
 def _natural(s: str) -> tuple:
@@ -70,6 +82,17 @@ def subject_slices(names: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
 
 
 @dataclass(slots=True)
+class InitWindow:
+    """Buffered init frames handed to training: ``frames`` (labels stripped), ``idx`` (per
+    frame, int32 indices into ``names``, -1 = unlabeled point) and ``names`` (first seen
+    first)."""
+
+    frames: list[FrameMsg]
+    idx: list[np.ndarray]
+    names: list[str]
+
+
+@dataclass(slots=True)
 class Output:
     """What processing one frame produced: the encoded labeled message and its counts."""
 
@@ -83,7 +106,8 @@ class Output:
 
 
 class StreamState:
-    """Everything one stream owns. Not thread-safe: one worker task per stream."""
+    """Everything one stream owns. Not thread-safe: one worker task per stream (the training
+    job, :meth:`train`, reads only what it is given)."""
 
     def __init__(
         self,
@@ -94,6 +118,7 @@ class StreamState:
     ) -> None:
         self.name = name
         self.settings = settings
+        self.configured = stream_settings is not None
         self.stream_settings = stream_settings or StreamSettings(name=name)
         self._factory = factory
         self.labeler: FrameLabeler | None = None
@@ -102,14 +127,47 @@ class StreamState:
         self.rate: float | None = self.stream_settings.rate
         self.model_id = 0
         self.model_payload: bytes | None = None
-        self.last_seq: int | None = None
+        self.continuity = Continuity(
+            max_seq_step=settings.max_seq_step,
+            max_time_step_s=settings.max_time_step_s,
+            confirm=settings.run_confirm_frames,
+        )
+        #: buffered init frames (their ``labels`` moved into ``_init_idx``, compactly)
         self.init_frames: list[FrameMsg] = []
-        self._seen_unlabeled = False
+        self._init_idx: list[np.ndarray] = []  # per frame: int32 index into _init_labels
+        self._init_bytes = 0
+        self._init_labels: dict[str, int] = {}  # label -> buffer index, first seen first
+        self._t_offset = 0.0  # added to t before the labeler sees it (re-based runs)
+        self._t_last: float | None = None  # last (re-based) t given to the labeler
+        self._rebase = False  # re-base time at the next frame (the run's t jumped)
+        self.runs = 1
+        self.last_activity = time.monotonic()
+        self.training = False  # a training job for this stream is running (server)
+        # health
+        self.status = "online"
+        self.labeled_fraction = float("nan")
+        self.recovered_fraction = float("nan")
+        #: Called (by the server) when the status turns ``lost``: the hook for boot from a
+        #: subject model. ``None``: the labeler's own re-acquisition is the only recovery.
+        self.on_lost: Callable[[StreamState], None] | None = None
+
+    @property
+    def last_seq(self) -> int | None:
+        return self.continuity.last_seq
+
+    def check_frame(self, f: FrameMsg) -> Verdict:
+        """The restart rule's verdict for an arriving frame (updates the run tracking)."""
+        self.last_activity = time.monotonic()
+        return self.continuity.check(f.seq, f.t)
+
+    def needs_training(self, f: FrameMsg) -> bool:
+        """True when labeling ``f`` trains the labeler (first unlabeled frame after the init
+        frames): the server runs :meth:`train` off the event loop."""
+        return self.labeler is None and f.labels is None and bool(self.init_frames)
 
     def heavy(self, f: FrameMsg) -> bool:
-        """True when labeling ``f`` trains the labeler (first unlabeled frame): the server then
-        runs it in a worker thread so other streams keep flowing."""
-        return f.labels is None and not self._seen_unlabeled
+        """Alias of :meth:`needs_training` (older name)."""
+        return self.needs_training(f)
 
     # --------------------------------------------------------------------- start-up
     @property
@@ -135,6 +193,7 @@ class StreamState:
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
+        self.labeled_fraction = self.recovered_fraction = float("nan")
         self.names = tuple(labeler.marker_names)
         self._index = {n: i for i, n in enumerate(self.names)}
         self.rate = float(rate)
@@ -149,10 +208,10 @@ class StreamState:
             self.rate,
         )
 
-    def _estimate_rate(self) -> float:
-        if self.rate is not None:
-            return self.rate
-        t = np.array([f.t for f in self.init_frames], dtype=np.float64)
+    def _estimate_rate(self, init: list[FrameMsg]) -> float:
+        if self.stream_settings.rate is not None:
+            return self.stream_settings.rate
+        t = np.array([f.t for f in init], dtype=np.float64)
         dt = np.diff(np.sort(t))
         forward = dt > 0
         if not forward.any():
@@ -161,94 +220,191 @@ class StreamState:
                 "streams[].rate"
             )
         # seq steps tell how many frames each dt spans (init frames may have gaps)
-        seqs = np.array(sorted(f.seq for f in self.init_frames), dtype=np.float64)
+        seqs = np.array(sorted(f.seq for f in init), dtype=np.float64)
         steps = np.diff(seqs)
         ok = (steps > 0) & forward
         if ok.any():
             return float(1.0 / np.median(dt[ok] / steps[ok]))
         return float(1.0 / np.median(dt[forward]))
 
-    def start_from_init_frames(self) -> None:
-        """Builds the labeler from the buffered init frames (mode 2) and feeds them to it.
+    @property
+    def t_last(self) -> float | None:
+        """The last (re-based) time given to the labeler (kept with a cached labeler)."""
+        return self._t_last
 
-        Their labeled outputs are not published: the training window is the client's own
-        labeled data; publishing starts with the first unlabeled frame.
-        """
-        seen: dict[str, None] = {}
-        for f in self.init_frames:
-            for lab in f.labels or ():
-                if lab is not None:
-                    seen.setdefault(lab, None)
-        names = group_by_subject(list(seen))
+    def resume(self, labeler: FrameLabeler, rate: float, t_last: float | None) -> None:
+        """Continues with a cached labeler of this stream (it expired and came back): the
+        first frame's time is re-based onto the labeler's last one."""
+        self._install(labeler, rate)
+        self._t_last = t_last
+        self._rebase = True
+
+    def _labeler_for(self, init: InitWindow) -> tuple[FrameLabeler, float, np.ndarray]:
+        """A new labeler for the init window's markers (subject-grouped), its rate, and the
+        remap from the window's label indices to the labeler's markers (``-1`` stays ``-1``)."""
+        names = group_by_subject(init.names)
         if not names:
             raise LabelerError(f"stream {self.name}: the init frames carry no labels")
-        rate = self._estimate_rate()
-        self._install(
-            self._factory(
-                self.settings.labeler,
-                marker_names=names,
-                rate=rate,
-                config=self.settings.labeler_config,
-            ),
-            rate,
+        rate = self._estimate_rate(init.frames)
+        labeler = self._factory(
+            self.settings.labeler,
+            marker_names=names,
+            rate=rate,
+            config=self.settings.labeler_config,
         )
-        assert self.labeler is not None
-        for f in self.init_frames:
-            self.labeler.process(f.points, f.t, self._label_indices(f))
-        self.init_frames = []
+        index = {n: i for i, n in enumerate(names)}
+        remap = np.array([index[n] for n in init.names] + [-1], dtype=np.int32)
+        return labeler, rate, remap
+
+    def train(
+        self, init: InitWindow, first: FrameMsg, cancel=None
+    ) -> tuple[FrameLabeler, float, LabeledFrame, int]:
+        """The training job (runs off the event loop): a labeler built from the init frames
+        ``init`` and fed them, then the first unlabeled frame ``first`` (which trains it).
+        Returns ``(labeler, rate, labeled first frame, labeling ns)``; touches no state, so an
+        abandoned job leaves the stream as it was. ``cancel`` (an Event) stops it between
+        frames."""
+        labeler, rate, remap = self._labeler_for(init)
+        for f, idx in zip(init.frames, init.idx, strict=True):
+            if cancel is not None and cancel.is_set():
+                raise LabelerError(f"stream {self.name}: training cancelled")
+            labeler.process(f.points, f.t, remap[idx])  # -1 stays -1 (remap's last entry)
+        t0 = time.perf_counter_ns()
+        out = labeler.process(first.points, first.t, None)
+        return labeler, rate, out, time.perf_counter_ns() - t0
+
+    def take_init(self) -> InitWindow:
+        """Hands the buffered init frames to a training job and empties the buffer."""
+        init = InitWindow(self.init_frames, self._init_idx, list(self._init_labels))
+        self.init_frames, self._init_idx = [], []
+        self._init_bytes = 0
+        self._init_labels = {}
+        return init
+
+    def install_trained(
+        self, labeler: FrameLabeler, rate: float, first: FrameMsg, out: LabeledFrame,
+        recv_ns: int, label_ns: int,
+    ) -> Output:  # fmt: skip
+        """Installs a labeler from :meth:`train` and encodes its first labeled frame."""
+        self._install(labeler, rate)
+        self._t_offset = 0.0
+        self._t_last = first.t
+        return self.encode(first, out, recv_ns, label_ns)
 
     def _label_indices(self, f: FrameMsg) -> np.ndarray | None:
-        if f.labels is None:
-            return None
-        idx = self._index
-        return np.fromiter(
-            (idx.get(lab, -1) if lab is not None else -1 for lab in f.labels),
-            dtype=np.int32,
-            count=len(f.labels),
-        )
+        return _indices(self._index, f.labels)
+
+    def buffer_init(self, f: FrameMsg) -> None:
+        """Buffers one labeled init frame (points as they are, labels as int32 indices into
+        the stream's label list); raises :class:`InitBufferFullError` (frames or bytes cap) or
+        :class:`LimitExceeded` (``marker_cap``) without buffering it."""
+        s = self.settings
+        labels = f.labels or ()
+        if len(self.init_frames) >= s.max_init_frames:
+            raise InitBufferFullError(
+                f"stream {self.name}: init buffer full ({s.max_init_frames} frames)"
+            )
+        known = self._init_labels
+        new = {x: None for x in labels if x is not None and x not in known}
+        nbytes = f.points.nbytes + 4 * len(labels) + sum(len(x) + 64 for x in new)
+        if self._init_bytes + nbytes > s.max_init_bytes:
+            raise InitBufferFullError(
+                f"stream {self.name}: init buffer full ({s.max_init_bytes} bytes, max_init_bytes)"
+            )
+        if len(known) + len(new) > s.max_markers:
+            raise LimitExceeded(
+                f"stream {self.name}: init frames name more than max_markers = {s.max_markers} "
+                "distinct markers; frame dropped",
+                "marker_cap",
+            )
+        for x in new:
+            known[x] = len(known)
+        # -1 (unknown point) indexes the remap table's last entry, which is -1 too
+        idx = np.fromiter((known[x] if x is not None else -1 for x in labels), np.int32,
+                          count=len(labels))  # fmt: skip
+        self._init_bytes += nbytes
+        self.init_frames.append(dataclasses.replace(f, labels=None))
+        self._init_idx.append(idx)
+
+    def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
+        """Applies a new run (see the module docstring) before ``f`` is processed."""
+        self.runs += 1
+        if f.labels is not None:
+            log.info("stream %s: new run %d with labeled init frames: retraining", self.name,
+                     self.runs)  # fmt: skip
+            self.take_init()
+            self._t_offset = 0.0
+            self._t_last = None
+            if self.stream_settings.model is not None:
+                self.start_from_model()
+            else:
+                self.labeler = None
+            return
+        if verdict.time_jumped:
+            self._rebase = True
+        log.info("stream %s: new run %d without labels: continuing from the current model",
+                 self.name, self.runs)  # fmt: skip
 
     # --------------------------------------------------------------------- per frame
-    def check_seq(self, seq: int) -> tuple[str | None, int]:
-        """``(drop reason or None, frames skipped)`` for an arriving ``seq``; updates tracking."""
-        last = self.last_seq
-        if last is None or seq == last + 1:
-            self.last_seq = seq
-            return None, 0
-        if seq == last:
-            return "duplicate", 0
-        if seq < last:
-            if last - seq > SEQ_RESTART:
-                log.info("stream %s: seq restarted (%d after %d)", self.name, seq, last)
-                self.last_seq = seq
-                return None, 0
-            return "late", 0
-        self.last_seq = seq
-        return None, seq - last - 1
-
-    def process(self, f: FrameMsg, recv_ns: int) -> Output | None:
+    def process(self, f: FrameMsg, recv_ns: int, verdict: Verdict = ACCEPT) -> Output | None:
         """Labels one frame. Returns ``None`` while the training window is being buffered.
 
         Raises :class:`LabelerError` when an unlabeled frame arrives before any model or init
-        frame (``no_model``) and :class:`InitBufferFullError` when the init buffer is full.
+        frame (``no_model``), :class:`InitBufferFullError`/:class:`LimitExceeded` when an
+        init-buffer cap is hit. Trains inline when needed (the server trains off the loop
+        instead, through :meth:`train`).
         """
+        if verdict.new_run:
+            self.new_run(f, verdict)
         if self.labeler is None:
             if f.labels is not None:
-                if len(self.init_frames) >= self.settings.max_init_frames:
-                    raise InitBufferFullError(f"stream {self.name}: init buffer full")
-                self.init_frames.append(f)
+                self.buffer_init(f)
                 return None
             if not self.init_frames:
                 raise LabelerError(
                     f"stream {self.name}: unlabeled frame before any model or labeled init frame"
                 )
-            self.start_from_init_frames()
-        assert self.labeler is not None
+            labeler, rate, out, label_ns = self.train(self.take_init(), f)
+            return self.install_trained(labeler, rate, f, out, recv_ns, label_ns)
+        if self._rebase:
+            self._rebase = False
+            if self._t_last is not None and self.rate:
+                self._t_offset = self._t_last + 1.0 / self.rate - f.t
+        t = f.t + self._t_offset
         t0 = time.perf_counter_ns()
-        out = self.labeler.process(f.points, f.t, self._label_indices(f))
+        out = self.labeler.process(f.points, t, self._label_indices(f))
         label_ns = time.perf_counter_ns() - t0
-        if f.labels is None:
-            self._seen_unlabeled = True
+        self._t_last = t
         return self.encode(f, out, recv_ns, label_ns)
+
+    def update_health(self, out: Output) -> str | None:
+        """Folds one output into the labeled/recovered fractions; returns the new status when
+        it changed (``online``, ``degraded``, ``lost``), else None."""
+        m = out.observed + out.recovered + out.missing
+        if m <= 0:
+            return None
+        s = self.settings
+        alpha = min(1.0, 1.0 / max(1.0, (self.rate or 100.0) * s.health_window_s))
+        lab, rec = out.observed / m, out.recovered / m
+        if np.isnan(self.labeled_fraction):
+            self.labeled_fraction, self.recovered_fraction = lab, rec
+        else:
+            self.labeled_fraction += alpha * (lab - self.labeled_fraction)
+            self.recovered_fraction += alpha * (rec - self.recovered_fraction)
+        x = self.labeled_fraction
+        hyst = 0.05  # back to a better status only clearly above the threshold
+        if x < s.lost_below:
+            status = "lost"
+        elif x < s.degraded_below:
+            status = "lost" if self.status == "lost" and x < s.lost_below + hyst else "degraded"
+        elif self.status != "online" and x < s.degraded_below + hyst:
+            status = "degraded"
+        else:
+            status = "online"
+        if status == self.status:
+            return None
+        self.status = status
+        return status
 
     def encode(self, f: FrameMsg, out: LabeledFrame, recv_ns: int, label_ns: int) -> Output:
         unl = out.point_labels < 0
@@ -278,3 +434,13 @@ class StreamState:
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
         )
+
+
+def _indices(index: dict[str, int], labels: Sequence[str | None] | None) -> np.ndarray | None:
+    if labels is None:
+        return None
+    return np.fromiter(
+        (index.get(lab, -1) if lab is not None else -1 for lab in labels),
+        dtype=np.int32,
+        count=len(labels),
+    )

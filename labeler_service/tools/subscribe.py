@@ -1,8 +1,10 @@
 """The subscriber client: receives labeled frames, decodes them with the model message.
 
-Over UDP it registers with the service (a ``subscribe`` datagram, renewed every second) and
-gets the retained model and status at once; over MQTT it subscribes to
-``mocap/<stream>/{labeled,model,status}`` (model and status are retained). A labeled frame whose
+Over UDP it registers with the service (a padded ``subscribe`` datagram, renewed every second),
+answers the service's ``challenge`` by echoing its token (the service confirms our address
+before it sends anything larger than our request) and then gets the retained model and status;
+over MQTT it subscribes to ``mocap/<stream>/{labeled,model,status}`` (model and status are
+retained). A labeled frame whose
 model has not arrived yet is counted as ``undecodable`` (at most a second, the model repeat).
 
 End-to-end latency of a frame = subscriber receipt (``time.time_ns()`` when the message was
@@ -23,6 +25,7 @@ import numpy as np
 from labeler_service.errors import ProtocolError
 from labeler_service.labeling.frame import MarkerState
 from labeler_service.service.protocol import (
+    ChallengeMsg,
     LabeledMsg,
     ModelMsg,
     StatusMsg,
@@ -137,6 +140,8 @@ class Subscriber:
         self._tasks: list[asyncio.Task] = []
         self._stack = contextlib.AsyncExitStack()
         self._transport: UdpClient | MqttEndpoint | None = None
+        self._udp: UdpClient | None = None  # the same transport, when it is UDP
+        self._token: bytes | None = None  # UDP challenge token to echo
 
     @property
     def dropped(self) -> int:
@@ -149,8 +154,8 @@ class Subscriber:
             from labeler_service.service.transports.udp import UdpClient
 
             udp = await self._stack.enter_async_context(UdpClient(ep.host, ep.port))
-            self._transport = udp
-            self._tasks.append(asyncio.create_task(self._renew(udp), name="subscribe-renew"))
+            self._transport = self._udp = udp
+            self._tasks.append(asyncio.create_task(self._renew(), name="subscribe-renew"))
         else:
             from labeler_service.service.transports.mqtt import MqttEndpoint, topic
             from labeler_service.tools.replay import mqtt_settings_for
@@ -169,12 +174,16 @@ class Subscriber:
         await cancel_and_wait(tasks)
         await self._stack.aclose()
 
-    async def _renew(self, udp: UdpClient) -> None:
-        payload = encode_subscribe(self.stream or "*")
+    async def _renew(self) -> None:
         while True:
-            with contextlib.suppress(OSError):
-                udp.send(payload)
+            self._send_subscribe()
             await asyncio.sleep(self.renew_s)
+
+    def _send_subscribe(self) -> None:
+        """A (padded) subscribe datagram, echoing the service's challenge token once known."""
+        assert self._udp is not None
+        with contextlib.suppress(OSError):
+            self._udp.send(encode_subscribe(self.stream or "*", self._token))
 
     async def _pump(self) -> None:
         assert self._transport is not None
@@ -200,6 +209,11 @@ class Subscriber:
         elif isinstance(msg, StatusMsg):
             self.status[msg.stream] = msg.state
             self._status_changed.set()
+        elif isinstance(msg, ChallengeMsg):
+            # UDP: the service confirms our address before it sends us frames
+            self._token = msg.token
+            if self._transport is not None and self.endpoint.scheme == "udp":
+                self._send_subscribe()
 
     async def wait_status(self, stream: str, state: str, timeout: float) -> bool:
         """True once ``stream`` reports ``state`` (e.g. ``online``) within ``timeout`` s."""

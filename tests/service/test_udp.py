@@ -126,7 +126,7 @@ def test_udp_transport_refuses_oversize_output_and_expires_silent_subscribers():
         async with t:
             with pytest.raises(ProtocolError) as info:
                 await t.send("s", "labeled", b"\x00" * (UDP_MAX_PAYLOAD + 1))
-            t.subscribe(("127.0.0.1", 9), "*")
+            t.subscribe(("127.0.0.1", 9), "*", t.token_for(("127.0.0.1", 9), "*"))
             assert len(t.subscribers) == 1
             await asyncio.sleep(0.3)
             await t.send("s", "model", b"x", retain=True)  # model sends expire old entries

@@ -48,7 +48,9 @@ class MemoryTransport:
     def address(self) -> tuple[str, int]:
         return ("memory", 0)
 
-    def subscribe(self, reply_to: object, stream: str) -> None:
+    def subscribe(
+        self, reply_to: object, stream: str, token: bytes | None = None, request_bytes: int = 0
+    ) -> None:
         """Records a subscriber (the address a test passed to :meth:`inject`)."""
         if reply_to is None:
             raise ProtocolError("memory: subscribe needs a reply address", "type")

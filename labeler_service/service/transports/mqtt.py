@@ -14,15 +14,23 @@ frames for MQTT are counted as ``send_error`` and UDP keeps flowing.
 aiomqtt is used through its public API; the three latency needs it has no public spelling for
 (batch reads, fire-and-forget QoS-0 publish, the QoS-0 outgoing bound) live in
 :mod:`._aiomqtt_adapter`, with a guard test.
+
+Retained spoofing: with ``reassert_retained`` (default) each stream's connection also subscribes
+to its own ``model`` and ``status`` topics; a retained payload there that is not the service's
+own (another client published it, or cleared it) is counted (``retained_spoofed``) and the
+service's payload re-published (at most twice a second per topic). The broker ACL
+(docker/mosquitto.acl) keeps other clients from publishing there in the first place.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import os
 import socket
 import ssl
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
@@ -187,13 +195,19 @@ class MqttTransport:
         self.retained: dict[tuple[str, str], bytes] = {}
         self.clients: dict[str, ReconnectingClient] = {}
         self._tasks: list[asyncio.Task] = []
+        # retained spoofing (module docstring): what we published lately, per (stream, kind)
+        self._recent: dict[tuple[str, str], collections.deque[bytes]] = {}
+        self._reasserting: set[tuple[str, str]] = set()
+        self._last_reassert: dict[tuple[str, str], float] = {}
+        self.spoofed: dict[str, int] = {}
         pid = os.getpid()
         prefix = settings.topic_prefix
+        watch = ("model", "status") if settings.reassert_retained else ()
         for s in self.streams:
             self.clients[s] = ReconnectingClient(
                 settings,
                 identifier=f"{settings.client_id_prefix}-{s}-{pid}",
-                topics=[topic(prefix, s, "unlabeled")],
+                topics=[topic(prefix, s, "unlabeled")] + [topic(prefix, s, k) for k in watch],
                 on_message=self._receiver(s),
                 on_connect=self._republisher(s),
                 will=aiomqtt.Will(
@@ -206,9 +220,44 @@ class MqttTransport:
             payload = message.payload
             if not isinstance(payload, bytes | bytearray):
                 payload = str(payload if payload is not None else "").encode()
+            kind = str(message.topic).rpartition("/")[2]
+            if kind in ("model", "status"):
+                self._check_retained(stream, kind, bytes(payload))
+                return
             self._queue.put(Incoming(bytes(payload), recv_ns, self.name, None, stream))
 
         return receive
+
+    def _check_retained(self, stream: str, kind: str, payload: bytes) -> None:
+        key = (stream, kind)
+        ours = self.retained.get(key)
+        if ours is None or payload == ours or payload in self._recent.get(key, ()):
+            return  # nothing of ours yet, or our own message coming back
+        self.spoofed[stream] = self.spoofed.get(stream, 0) + 1
+        if key not in self._reasserting:
+            self._reasserting.add(key)
+            self._tasks.append(
+                asyncio.create_task(self._reassert(stream, kind), name=f"mqtt-reassert-{stream}")
+            )
+
+    async def _reassert(self, stream: str, kind: str) -> None:
+        key = (stream, kind)
+        try:
+            wait = self._last_reassert.get(key, 0.0) + 0.5 - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            self._last_reassert[key] = time.monotonic()
+            payload = self.retained.get(key)
+            if payload is None:
+                return
+            log.warning("mqtt: the retained %s of stream %s was replaced by another client; "
+                        "re-publishing ours", kind, stream)  # fmt: skip
+            await self.clients[stream].publish(
+                topic(self.settings.topic_prefix, stream, kind), payload, qos=1, retain=True
+            )
+        finally:
+            self._reasserting.discard(key)
+            self._tasks = [t for t in self._tasks if not t.done()]
 
     def _republisher(self, stream: str) -> Callable[[aiomqtt.Client], Awaitable[None]]:
         async def republish(client: aiomqtt.Client) -> None:
@@ -225,14 +274,18 @@ class MqttTransport:
         receive queue was full, the oldest message went). A failed labeled publish raises
         (the server counts ``send_error``); model and status are retained here and re-published
         after a reconnect, so a failed publish of those loses nothing."""
-        return {("", "rx_overflow"): self._queue.dropped}
+        out = {("", "rx_overflow"): self._queue.dropped}
+        out.update({(s, "retained_spoofed"): n for s, n in self.spoofed.items()})
+        return out
 
     @property
     def address(self) -> tuple[str, int]:
         """The broker's ``(host, port)``."""
         return (self.settings.host, self.settings.port)
 
-    def subscribe(self, reply_to: Any, stream: str) -> None:
+    def subscribe(
+        self, reply_to: Any, stream: str, token: bytes | None = None, request_bytes: int = 0
+    ) -> None:
         """Always refuses: MQTT clients subscribe at the broker (``subscribe`` is UDP only)."""
         raise ProtocolError("mqtt: subscribe is UDP only (use the broker's topics)", "type")
 
@@ -273,6 +326,7 @@ class MqttTransport:
             if self.retained.get((stream, kind)) == payload and kind == "model":
                 return  # unchanged and retained by the broker already
             self.retained[(stream, kind)] = payload
+            self._recent.setdefault((stream, kind), collections.deque(maxlen=4)).append(payload)
         ok = await client.publish(
             topic(self.settings.topic_prefix, stream, kind),
             payload,

@@ -6,6 +6,22 @@ messages go to the fixed ``publish_to`` destinations and to subscribers that reg
 status) are sent to a subscriber when it registers, so a late subscriber decodes at once; the
 server repeats the model message every second anyway.
 
+**Subscriber confirmation** (anti-reflection): UDP source addresses can be forged, so an address
+is sent nothing larger than what it sent until it proves it receives at that address. A
+``subscribe`` from an unknown address is answered with a ``challenge`` (a stateless 8-byte token,
+an HMAC of address, stream and a time window under a per-process secret) only when the request
+is at least as large as the challenge (our client pads it); the subscriber echoes the token in
+its next ``subscribe`` and is then registered (a wrong or stale token gets a fresh challenge,
+so a subscriber that expired during a stall re-confirms by itself). Refusals raise
+:class:`~labeler_service.errors.ProtocolError` with their own reasons: ``subscribe_short``,
+``subscribe_token`` (wrong or stale token), ``subscribe_host_limit`` (more than
+``max_subscribers_per_host`` confirmed per source IP), ``subscribe_full`` (``max_subscribers``).
+
+**Kernel drops**: on Linux the socket asks for ``SO_RXQ_OVFL``; every datagram then carries the
+count of datagrams the kernel dropped on this socket because its receive buffer was full, which
+:meth:`UdpTransport.drop_counts` reports as ``kernel_rx_overflow``. Elsewhere that loss is not
+visible to the service (docs/service.md, "Security and limits").
+
 A datagram is at most 65 507 bytes (:data:`~labeler_service.service.settings.UDP_MAX_PAYLOAD`);
 larger
 outgoing payloads raise :class:`~labeler_service.errors.ProtocolError` (``oversize``) and are
@@ -17,17 +33,26 @@ queue's overflow to the server's metrics.
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import hmac
 import logging
+import os
 import socket
+import struct
 import time
 from collections.abc import AsyncIterator
 
 from labeler_service.errors import ConfigError, ProtocolError
+from labeler_service.service.protocol import TOKEN_BYTES, encode_challenge
 from labeler_service.service.settings import UDP_MAX_PAYLOAD, UdpSettings
 from labeler_service.service.transports.base import DropOldestQueue, Incoming, iterate_queue
 
 log = logging.getLogger(__name__)
 Addr = tuple[str, int]
+
+#: Linux ``SO_RXQ_OVFL`` (socket(7)); Python's socket module does not export it.
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+_OVFL_SPACE = socket.CMSG_SPACE(4) if hasattr(socket, "CMSG_SPACE") else 0
 
 
 def parse_hostport(dest: str) -> Addr:
@@ -51,12 +76,25 @@ class _Socket:
         self.sock.setblocking(False)
         _tune(self.sock, buffer)
         self._loop: asyncio.AbstractEventLoop | None = None
+        #: datagrams the kernel dropped on this socket (SO_RXQ_OVFL); None: not available
+        self.kernel_dropped: int | None = None
+        self._ovfl = False
+        if _OVFL_SPACE and hasattr(self.sock, "recvmsg"):
+            try:
+                self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+                self._ovfl = True
+                self.kernel_dropped = 0
+            except OSError:  # not Linux: the gap is documented
+                pass
 
     def start(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._loop.add_reader(self.sock.fileno(), self._readable)
 
     def _readable(self) -> None:
+        if self._ovfl:
+            self._readable_msg()
+            return
         recv = self.sock.recvfrom
         put = self.queue.put
         for _ in range(100_000):
@@ -69,6 +107,26 @@ class _Socket:
                 # an error report, not a lost datagram; not fatal
                 return
             put(Incoming(data, time.time_ns(), self.name, addr))
+
+    def _readable_msg(self) -> None:
+        """As :meth:`_readable`, with ``recvmsg`` to read the SO_RXQ_OVFL drop counter."""
+        recv = self.sock.recvmsg
+        put = self.queue.put
+        dropped = self.kernel_dropped
+        try:
+            for _ in range(100_000):
+                try:
+                    data, anc, _, addr = recv(65536, _OVFL_SPACE)
+                except (BlockingIOError, InterruptedError):
+                    return
+                except OSError:  # an ICMP error report (see _readable)
+                    return
+                for level, kind, cdata in anc:
+                    if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(cdata) >= 4:
+                        dropped = struct.unpack("=I", cdata[:4])[0]
+                put(Incoming(data, time.time_ns(), self.name, addr))
+        finally:
+            self.kernel_dropped = dropped
 
     def sendto(self, payload: bytes, addr: Addr | None) -> bool:
         try:
@@ -109,6 +167,8 @@ class UdpTransport:
         self.subscribers: dict[Addr, tuple[str, float]] = {}
         self.retained: dict[tuple[str, str], bytes] = {}
         self._send_failed: dict[str, int] = {}  # stream -> datagrams the kernel refused
+        self._secret = os.urandom(16)  # challenge tokens: valid for this process only
+        self.challenges_sent = 0
 
     @property
     def address(self) -> Addr:
@@ -123,6 +183,8 @@ class UdpTransport:
         kernel refused, per destination)."""
         out = {("", "rx_overflow"): self._queue.dropped}
         out.update({(s, "send_error"): n for s, n in self._send_failed.items()})
+        if self._sock is not None and self._sock.kernel_dropped is not None:
+            out[("", "kernel_rx_overflow")] = self._sock.kernel_dropped
         return out
 
     async def __aenter__(self) -> UdpTransport:
@@ -147,13 +209,57 @@ class UdpTransport:
     def messages(self) -> AsyncIterator[Incoming]:
         return iterate_queue(self._queue)
 
-    def subscribe(self, addr: Addr, stream: str) -> None:
-        """Registers or renews a subscriber; new ones receive the retained payloads at once."""
-        is_new = addr not in self.subscribers
+    def _token(self, addr: Addr, stream: str, window: int) -> bytes:
+        msg = f"{addr[0]}|{addr[1]}|{stream}|{window}".encode()
+        return hmac.new(self._secret, msg, hashlib.sha256).digest()[:TOKEN_BYTES]
+
+    def _window(self) -> int:
+        return int(time.monotonic() // max(self.settings.subscriber_ttl_s, 1.0))
+
+    def token_for(self, addr: Addr, stream: str) -> bytes:
+        """The challenge token ``addr`` must echo now (tests; in-process trusted callers)."""
+        return self._token(addr, stream, self._window())
+
+    def subscribe(
+        self, addr: Addr, stream: str, token: bytes | None = None, request_bytes: int = 0
+    ) -> None:
+        """Registers or renews a subscriber (see the module docstring for the confirmation);
+        new ones receive the retained payloads at once."""
+        known = self.subscribers.get(addr)
+        if known is not None and known[0] == stream:
+            self.subscribers[addr] = (stream, time.monotonic())  # renewal
+            return
+        w = self._window()
+        if token is None or not any(
+            hmac.compare_digest(token, self._token(addr, stream, x)) for x in (w, w - 1)
+        ):
+            challenge = encode_challenge(stream, self._token(addr, stream, w))
+            if request_bytes < len(challenge):
+                raise ProtocolError(
+                    f"udp: subscribe from {addr[0]}:{addr[1]} of {request_bytes} bytes is "
+                    f"smaller than the challenge ({len(challenge)}): not answered",
+                    "subscribe_short",
+                )
+            self._sendto(stream, challenge, addr)  # a fresh one (a stale token: expired)
+            self.challenges_sent += 1
+            if token is not None:
+                raise ProtocolError(
+                    f"udp: subscribe from {addr[0]}:{addr[1]} echoed a wrong or stale token; "
+                    "challenged again",
+                    "subscribe_token",
+                )
+            return
+        self._expire()
+        host = addr[0]
+        per_host = sum(1 for a in self.subscribers if a[0] == host and a != addr)
+        if per_host >= self.settings.max_subscribers_per_host:
+            raise ProtocolError(
+                f"udp: {per_host} subscribers from {host} already, {addr[1]} refused",
+                "subscribe_host_limit",
+            )
+        is_new = known is None
         if is_new and len(self.subscribers) >= self.settings.max_subscribers:
-            self._expire()
-            if len(self.subscribers) >= self.settings.max_subscribers:
-                raise ProtocolError(f"udp: subscriber limit reached, {addr} refused", "field")
+            raise ProtocolError(f"udp: subscriber limit reached, {addr} refused", "subscribe_full")
         self.subscribers[addr] = (stream, time.monotonic())
         if is_new:
             log.info("udp: subscriber %s:%d for stream %s", addr[0], addr[1], stream)

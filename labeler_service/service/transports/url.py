@@ -24,23 +24,35 @@ class Endpoint:
 _DEFAULT_PORTS = {"udp": 9870, "mqtt": 1883, "mqtts": 8883}
 
 
+def redact_url(url: str) -> str:
+    """``url`` with the password of its ``user:pass@`` part replaced by ``***`` (for printing)."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    user = parts.username or ""
+    host = parts.netloc.rpartition("@")[2]
+    return parts._replace(netloc=f"{user}:***@{host}").geturl()
+
+
 def parse_endpoint(url: str) -> Endpoint:
-    """Parses a tool URL; raises :class:`ConfigError` saying what is wrong."""
+    """Parses a tool URL; raises :class:`ConfigError` saying what is wrong (never showing
+    the password)."""
+    shown = redact_url(url)
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
     if scheme not in _DEFAULT_PORTS:
         raise ConfigError(
-            f"URL {url!r}: scheme must be udp://, mqtt:// or mqtts://, got {scheme or 'none'}"
+            f"URL {shown!r}: scheme must be udp://, mqtt:// or mqtts://, got {scheme or 'none'}"
         )
     if not parts.hostname:
-        raise ConfigError(f"URL {url!r} has no host")
+        raise ConfigError(f"URL {shown!r} has no host")
     try:
         port = parts.port or _DEFAULT_PORTS[scheme]
-    except ValueError as exc:
-        raise ConfigError(f"URL {url!r}: bad port") from exc
+    except ValueError:
+        raise ConfigError(f"URL {shown!r}: bad port") from None
     stream = parts.path.strip("/") or None
     if stream is not None and not STREAM_NAME.match(stream):
-        raise ConfigError(f"URL {url!r}: bad stream name {stream!r} (letters, digits, _ . -)")
+        raise ConfigError(f"URL {shown!r}: bad stream name {stream!r} (letters, digits, _ . -)")
     return Endpoint(
         scheme="mqtt" if scheme == "mqtts" else scheme,
         host=parts.hostname,

@@ -1,0 +1,117 @@
+"""Class 8 of issue 12: files and models that are accepted but useless.
+
+An NPZ that declares more than the cap, compresses like a bomb, or whose array header claims
+more data than its member holds is refused before anything is decompressed. A model outside
+what a human body allows (pair distances, deviations, motion noise, no rigid body) is refused
+with the file and field named.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import read_capture, write_capture
+from labeler_service.capture.io import check_npz
+from labeler_service.cli.main import main
+from labeler_service.errors import CaptureFormatError, ModelError
+from labeler_service.labeling.templates import load_model
+
+
+def _npz(path, members: dict[str, tuple[tuple[int, ...], bytes]], declared_only=False):
+    """An NPZ whose members have the given header shape (float32) and raw body bytes."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, (shape, body) in members.items():
+            with z.open(name, "w", force_zip64=True) as f:
+                header = {"descr": "<f4", "fortran_order": False, "shape": shape}
+                np.lib.format.write_array_header_1_0(f, header)
+                f.write(body)
+    return path
+
+
+def test_a_real_npz_still_reads(tmp_path, small_cap):
+    p = write_capture(small_cap, tmp_path / "ok.npz")
+    assert read_capture(p).n_frames == small_cap.n_frames
+
+
+def test_an_npz_bomb_is_refused_before_decompressing(tmp_path, capsys):
+    p = _npz(tmp_path / "bomb.npz", {"positions.npy": ((8_000_000,), bytes(32_000_000))})
+    assert p.stat().st_size < 100_000
+    with pytest.raises(CaptureFormatError, match="decompression bomb"):
+        read_capture(p)
+    assert main(["info", str(p)]) == 2
+    assert "bomb.npz" in capsys.readouterr().err
+
+
+def test_an_npz_declaring_more_than_the_cap_is_refused(tmp_path, monkeypatch):
+    rng = np.random.default_rng(0)
+    body = rng.normal(size=300_000).astype(np.float32).tobytes()  # incompressible, 1.2 MB
+    p = _npz(tmp_path / "big.npz", {"positions.npy": ((300_000,), body)})
+    with pytest.raises(CaptureFormatError, match="cap 1000000"):
+        check_npz(p, max_bytes=1_000_000)
+    monkeypatch.setenv("MOCAP_MAX_NPZ_BYTES", "1000000")
+    with pytest.raises(CaptureFormatError, match="MOCAP_MAX_NPZ_BYTES"):
+        read_capture(p)
+
+
+def test_an_npz_header_claiming_more_than_its_member_is_refused(tmp_path):
+    p = _npz(tmp_path / "liar.npz", {"positions.npy": ((10**10, 3), b"\0" * 64)})
+    with pytest.raises(CaptureFormatError, match="declares shape"):
+        read_capture(p)
+
+
+def _write(tmp_path, d, name="m.json"):
+    p = tmp_path / name
+    p.write_text(json.dumps(d))
+    return p
+
+
+def _first_offdiag(D):
+    for i, row in enumerate(D):
+        for j, v in enumerate(row):
+            if i != j and v is not None:
+                return i, j
+    raise AssertionError("no pair distance")
+
+
+@pytest.mark.parametrize(
+    ("mutate", "field"),
+    [
+        (lambda s: s["motion_noise"].__setitem__(0, 1e300), "motion_noise[0]"),
+        (lambda s: s["motion_noise"].__setitem__(1, 1e-3), "motion_noise[1]"),
+        (lambda s: s.update(bodies=[], shapes=[]), "bodies"),
+        ("D", "D["),
+        ("D0", "D["),
+        ("A", "A["),
+    ],
+    ids=["noise-huge", "noise-tiny", "no-bodies", "distance-huge", "distance-tiny", "dev-gt-dist"],
+)
+def test_models_outside_human_ranges_are_refused_naming_file_and_field(
+    tmp_path, model_dict, mutate, field
+):
+    d = copy.deepcopy(model_dict)
+    s = d["subjects"][0]
+    if isinstance(mutate, str):
+        i, j = _first_offdiag(s["D"])
+        if mutate == "D":
+            s["D"][i][j] = s["D"][j][i] = 5000.0
+        elif mutate == "D0":
+            s["D"][i][j] = s["D"][j][i] = 0.2
+            s["A"][i][j] = s["A"][j][i] = 0.1
+        else:
+            s["A"][i][j] = s["A"][j][i] = s["D"][i][j] + 1.0
+    else:
+        mutate(s)
+    p = _write(tmp_path, d, "odd_model.json")
+    with pytest.raises(ModelError) as info:
+        load_model(p)
+    msg = str(info.value)
+    assert "odd_model.json" in msg and field in msg and "subjects.0" in msg
+
+
+def test_the_trained_model_passes_validation(model_file):
+    assert load_model(model_file).subjects
