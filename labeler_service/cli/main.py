@@ -24,6 +24,7 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
     "serve": ("labeler_service.cli.serve", "the streaming labeling service (UDP/MQTT)"),
     "replay": ("labeler_service.cli.replay_capture", "stream a capture unlabeled to the service"),
     "subscribe": ("labeler_service.cli.subscribe_stream", "receive labeled frames, summarise"),
+    "view": ("labeler_service.cli.view", "live 3D view of the labeled stream in a browser"),
     "label": ("labeler_service.cli.label", "batch-label a capture with the online labeler"),
     "info": ("labeler_service.cli.info", "summary of a capture file"),
     "compose": ("labeler_service.cli.compose_scene", "multi-person scene from single takes"),

@@ -101,6 +101,21 @@ def subject_slices(names: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
     return tuple(out)
 
 
+def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[int, ...], ...]:
+    """The online labeler's rigid bodies as marker indices into ``names`` (the model message's
+    optional ``bodies``); ``()`` for the baseline or before the labeler has its templates."""
+    from labeler_service.labeling.labeler import Labeler
+
+    if not isinstance(labeler, Labeler) or labeler.model is None:
+        return ()
+    index = {n: i for i, n in enumerate(names)}
+    return tuple(
+        tuple(index[f"{subj.name}:{subj.markers[i]}"] for i in body)
+        for subj in labeler.model.subjects
+        for body in subj.bodies
+    )
+
+
 @dataclass(slots=True)
 class Output:
     """What processing one frame produced: the encoded labeled message and its counts."""
@@ -137,6 +152,7 @@ class StreamState:
         self.last_seq: int | None = None
         self.init_frames: list[FrameMsg] = []
         self._seen_unlabeled = False
+        self.bodies: tuple[tuple[int, ...], ...] = ()
 
     def heavy(self, f: FrameMsg) -> bool:
         """True when labeling ``f`` trains the labeler (first unlabeled frame): the server then
@@ -172,7 +188,8 @@ class StreamState:
         self.rate = float(rate)
         self.model_id += 1
         subjects = subject_slices(self.names)
-        self.model_payload = encode_model(self.name, self.model_id, self.names, subjects, self.rate)
+        self.bodies = rigid_bodies(labeler, self.names)
+        self.model_payload = self._encode_model()
         log.info(
             "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz)",
             self.name,
@@ -180,6 +197,11 @@ class StreamState:
             len(subjects),
             self.rate,
         )
+
+    def _encode_model(self) -> bytes:
+        assert self.rate is not None
+        return encode_model(self.name, self.model_id, self.names, subject_slices(self.names),
+                            self.rate, bodies=self.bodies or None)  # fmt: skip
 
     def _estimate_rate(self) -> float:
         if self.rate is not None:
@@ -273,8 +295,14 @@ class StreamState:
         t0 = time.perf_counter_ns()
         out = self.labeler.process(f.points, f.t, self._label_indices(f))
         label_ns = time.perf_counter_ns() - t0
-        if f.labels is None:
+        if f.labels is None and not self._seen_unlabeled:
             self._seen_unlabeled = True
+            # a labeler trained from init frames has its bodies only now: the model message
+            # gains them (same id, same markers); the next model repeat carries it
+            bodies = rigid_bodies(self.labeler, self.names)
+            if bodies != self.bodies:
+                self.bodies = bodies
+                self.model_payload = self._encode_model()
         return self.encode(f, out, recv_ns, label_ns)
 
     def encode(self, f: FrameMsg, out: LabeledFrame, recv_ns: int, label_ns: int) -> Output:
