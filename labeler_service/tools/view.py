@@ -58,6 +58,10 @@ STATIC_DIR = Path(str(resources.files("labeler_service.tools") / "static"))
 
 
 # ----------------------------------------------------------------------------- policy
+#: A slot is due this much early: rounding must not push a frame to the next arrival.
+_SLACK_S = 1e-6
+
+
 class Decimator(Generic[T]):
     """Forwards at most one item per ``1 / fps`` seconds, always the newest one offered.
 
@@ -89,7 +93,7 @@ class Decimator(Generic[T]):
         return max(0.0, self._next - now)
 
     def take(self, now: float) -> T | None:
-        if self._pending is None or now < self._next:
+        if self._pending is None or now < self._next - _SLACK_S:
             return None
         item, self._pending = self._pending, None
         # slots keep a steady grid while frames flow; after an idle spell it restarts from now
@@ -339,10 +343,10 @@ class Viewer:
             app.router.add_get("/api/state", self._state)
             app.router.add_get("/favicon.ico", self._no_content)
             app.router.add_static("/static/", STATIC_DIR, follow_symlinks=False)
-            runner = web.AppRunner(app, handle_signals=False, access_log=None)
+            runner = web.AppRunner(app, handle_signals=False, access_log=None, shutdown_timeout=1.0)
             await runner.setup()
             self._stack.push_async_callback(runner.cleanup)
-            site = web.TCPSite(runner, self.host, self.port, shutdown_timeout=1.0)
+            site = web.TCPSite(runner, self.host, self.port)
             try:
                 await site.start()
             except OSError as exc:
