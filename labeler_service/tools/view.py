@@ -237,12 +237,14 @@ def encode_view_frame(r: Received) -> bytes:
 
 def frame_counts(r: Received, subjects: tuple[tuple[str, int, int], ...]) -> dict:
     """What the page should draw for a frame: markers per subject (observed + recovered),
-    recovered markers, unlabeled points (the browser test compares ``viewerState`` to this)."""
+    observed and recovered markers, unlabeled points (the browser test compares
+    ``viewerState`` to this)."""
     st = r.msg.state
     return {
         "drawn": {
             s: int(np.count_nonzero(st[a : a + n] != MarkerState.MISSING)) for s, a, n in subjects
         },  # fmt: skip
+        "observed": int(np.count_nonzero(st == MarkerState.OBSERVED)),
         "recovered": int(np.count_nonzero(st == MarkerState.RECOVERED)),
         "unlabeled": len(r.msg.unlabeled),
     }

@@ -149,7 +149,7 @@ def test_view_frame_layout_matches_the_documented_one(rng):
 def test_frame_counts_are_per_subject_drawn_recovered_unlabeled(rng):
     r = _received(rng)
     c = frame_counts(r, (("A", 0, 4), ("B", 4, 3)))
-    assert c == {"drawn": {"A": 3, "B": 2}, "recovered": 2, "unlabeled": 3}
+    assert c == {"drawn": {"A": 3, "B": 2}, "observed": 3, "recovered": 2, "unlabeled": 3}
 
 
 # ----------------------------------------------------------------------------- bodies

@@ -63,8 +63,9 @@ scene.add(new THREE.AxesHelper(600));         // x red, y green, z blue
 
 const sphere = new THREE.SphereGeometry(1, 12, 8);
 const observedMat = new THREE.MeshLambertMaterial();
-const recoveredMat = new THREE.MeshBasicMaterial({ wireframe: true, transparent: true,
-  opacity: 0.85 });
+// recovered: a translucent, larger halo in the subject's colour (hidden now, position estimated)
+const recoveredMat = new THREE.MeshBasicMaterial({ transparent: true, opacity: 0.38,
+  depthWrite: false });
 const unlabeledMat = new THREE.MeshBasicMaterial({ color: 0x8d949c });
 const stickMat = new THREE.LineBasicMaterial({ vertexColors: true, transparent: true,
   opacity: 0.75 });
@@ -85,7 +86,7 @@ let unlabeled = instanced(unlabeledMat, 256);
 let sticks = null;
 const tmp = new THREE.Matrix4();
 const scaleObs = new THREE.Vector3(MARKER_R, MARKER_R, MARKER_R);
-const scaleRec = new THREE.Vector3(1.2 * MARKER_R, 1.2 * MARKER_R, 1.2 * MARKER_R);
+const scaleRec = new THREE.Vector3(1.8 * MARKER_R, 1.8 * MARKER_R, 1.8 * MARKER_R);
 const scaleUnl = new THREE.Vector3(UNLABELED_R, UNLABELED_R, UNLABELED_R);
 const quat = new THREE.Quaternion();
 const vec = new THREE.Vector3();

@@ -1,0 +1,141 @@
+"""The live view in a real browser: simulated stream -> service -> viewer -> headless Chromium.
+
+Chromium is Debian's package (``make test`` installs it with scripts/ensure-chromium.sh),
+driven by Playwright through ``executable_path`` (no browser download), WebGL in software
+(SwiftShader). The test subscribes to the service itself and checks, for the frames the page
+says it drew, that the spheres it placed per subject and its recovered / unlabeled counts are
+the labeled frame's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from labeler_service.tools.view import frame_counts
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+#: Headless Chromium with WebGL in software (no GPU on the machines that run the tests).
+CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--enable-webgl",
+                 "--ignore-gpu-blocklist"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def chromium() -> str:
+    pytest.importorskip("playwright.async_api", reason="pip install -e '.[test]' brings playwright")
+    if not os.access(CHROMIUM, os.X_OK):
+        pytest.skip("chromium not found (make test installs it: scripts/ensure-chromium.sh)")
+    return CHROMIUM
+
+
+def _scene():
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(performers=3, seconds=8.0, scenario="hug", seed=5, rate=120.0)
+    # gaps give recovered markers, ghosts unlabeled points: every kind of thing the page draws
+    spec = CorruptionSpec(gaps=2, gap_frames=40, ghosts=2.0, protect_frames=50, seed=5)
+    return corrupt(cap, spec)
+
+
+async def _run(chromium: str, out_png) -> tuple[list[dict], dict, list[tuple[int, dict]]]:
+    from playwright.async_api import async_playwright
+
+    from labeler_service.service.server import Server
+    from labeler_service.service.settings import load_settings
+    from labeler_service.service.transports.base import cancel_and_wait
+    from labeler_service.tools.replay import open_sender, replay
+    from labeler_service.tools.subscribe import Subscriber
+    from labeler_service.tools.view import Viewer
+
+    frames = _scene()
+    settings = load_settings(metrics_port=None, udp={"port": 0}, queue_size=256,
+                             streams=[{"name": "view", "rate": frames.rate}])  # fmt: skip
+    labeled: dict[int, object] = {}
+    async with Server(settings) as srv:
+        host, port = srv.transports[0].address
+        url = f"udp://{host}:{port}/view"
+        async with Subscriber(url) as sub, Viewer(url, port=0) as viewer:
+
+            async def record() -> None:
+                async for r in sub.frames():
+                    labeled[r.msg.seq] = r
+
+            async def stream() -> None:
+                async with open_sender(url) as (send, _):
+                    await replay(frames, send, stream="view", init_frames=50, loops=40)
+
+            tasks = [asyncio.create_task(record(), name="test-record"),
+                     asyncio.create_task(stream(), name="test-replay")]  # fmt: skip
+            try:
+                async with async_playwright() as pw:
+                    browser = await pw.chromium.launch(executable_path=chromium,
+                                                       args=CHROMIUM_ARGS)  # fmt: skip
+                    page = await browser.new_page(viewport={"width": 960, "height": 600})
+                    errors: list[str] = []
+                    page.on("pageerror", lambda e: errors.append(str(e)))
+                    await page.goto(viewer.url)
+                    await page.wait_for_function(
+                        "window.viewerState && (window.viewerState.error !== null"
+                        " || window.viewerState.frames >= 100)",
+                        timeout=120_000,
+                    )
+                    snapshots = []
+                    # 3 s of snapshots 0.3 s apart: each subject has a 40-frame (0.33 s) gap
+                    # every 160 frames, so recovered markers are on screen in some of them
+                    for _ in range(10):
+                        snapshots.append(await page.evaluate("window.viewerState"))
+                        await asyncio.sleep(0.3)
+                    await page.screenshot(path=str(out_png))
+                    await browser.close()
+            finally:
+                await cancel_and_wait(tasks)
+            assert not errors, errors
+            model = sub.models["view"]
+            expected = [(s["seq"], frame_counts(labeled[s["seq"]], model.subjects))
+                        for s in snapshots if s["seq"] in labeled]  # fmt: skip
+            return snapshots, viewer.stats(), expected
+
+
+def test_the_page_draws_what_the_service_labeled(chromium, tmp_path):
+    png = tmp_path / "view.png"
+
+    async def bounded():
+        async with asyncio.timeout(240):
+            return await _run(chromium, png)
+
+    snapshots, stats, expected = asyncio.run(bounded())
+    first = snapshots[0]
+    assert first["error"] is None, first["error"]
+    assert first["frames"] >= 100 and first["connected"]
+    assert len(expected) == len(snapshots), "the test's own subscriber missed a drawn frame"
+    for snap, (seq, want) in zip(snapshots, expected, strict=True):
+        assert snap["seq"] == seq
+        assert snap["drawn"] == want["drawn"], seq
+        got = (snap["observed"], snap["recovered"], snap["unlabeled"])
+        assert got == (want["observed"], want["recovered"], want["unlabeled"]), seq
+    assert len(first["drawn"]) == 3 and all(n > 0 for n in first["drawn"].values())
+    # the comparisons above covered recovered markers and unlabeled points, not only zeros
+    assert any(s["recovered"] > 0 for s in snapshots)
+    assert any(s["unlabeled"] > 0 for s in snapshots)
+    assert stats["frames_in"] > 0 and first["fps"] > 0
+    assert snapshots[-1]["seq"] > first["seq"]  # live: the page kept drawing new frames
+    assert isinstance(first["drops"], int) and first["drops"] >= 0
+
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(png)[..., :3]
+    assert img.shape[:2] == (600, 960)
+    assert float(img.std()) > 0.02, "the screenshot is blank"
+    # the canvas shows saturated subject colours, not only the dark background and grey grid
+    rgb = img.reshape(-1, 3)
+    saturated = rgb[(rgb.max(axis=1) - rgb.min(axis=1)) > 0.35]
+    assert len(saturated) > 50
+    hues = {tuple(np.round(p * 4)) for p in saturated}
+    assert len(hues) >= 3
