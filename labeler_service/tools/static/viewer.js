@@ -34,13 +34,14 @@ const overlay = $('overlay');
 // ------------------------------------------------------------------------------ scene
 let renderer;
 try {
-  renderer = new THREE.WebGLRenderer({ canvas: $('scene'), antialias: true });
+  // no MSAA: with software WebGL it multiplies the fill cost, and sprites and lines stay crisp
+  renderer = new THREE.WebGLRenderer({ canvas: $('scene'), antialias: false });
 } catch (err) {
   state.error = `WebGL is not available: ${err.message}`;
   overlay.innerHTML = `<span class="bad">${state.error}</span>`;
   throw err;
 }
-renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 1.5));
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x14171c);
 const camera = new THREE.PerspectiveCamera(45, 1, 10, 200000);
@@ -52,43 +53,88 @@ controls.update();
 let needsRender = true;
 controls.addEventListener('change', () => { needsRender = true; });
 
-scene.add(new THREE.HemisphereLight(0xffffff, 0x303848, 2.2));
-const sun = new THREE.DirectionalLight(0xffffff, 1.6);
-sun.position.set(2000, -3000, 6000);
-scene.add(sun);
 const grid = new THREE.GridHelper(10000, 20, 0x59687a, 0x2a323c); // 500 mm cells
 grid.rotation.x = Math.PI / 2;                // XZ plane -> floor (XY)
 scene.add(grid);
 scene.add(new THREE.AxesHelper(600));         // x red, y green, z blue
 
-const sphere = new THREE.SphereGeometry(1, 12, 8);
-const observedMat = new THREE.MeshLambertMaterial();
-// recovered: a translucent, larger halo in the subject's colour (hidden now, position estimated)
-const recoveredMat = new THREE.MeshBasicMaterial({ transparent: true, opacity: 0.38,
-  depthWrite: false });
-const unlabeledMat = new THREE.MeshBasicMaterial({ color: 0x8d949c });
+// Markers are point sprites (one vertex each, a shaded-ball or ring texture, size in mm): a
+// 500-marker scene costs the (often software) rasterizer a few thousand pixels, not 100 000
+// sphere triangles.
+function spriteTexture(draw) {
+  const c = document.createElement('canvas');
+  c.width = c.height = 64;
+  draw(c.getContext('2d'));
+  const t = new THREE.CanvasTexture(c);
+  t.colorSpace = THREE.SRGBColorSpace;
+  return t;
+}
+const ballTexture = spriteTexture((g) => {
+  const grad = g.createRadialGradient(24, 22, 2, 32, 32, 31);
+  grad.addColorStop(0, '#ffffff');
+  grad.addColorStop(0.35, '#e6e6e6');
+  grad.addColorStop(1, '#7a7a7a');
+  g.fillStyle = grad;
+  g.beginPath(); g.arc(32, 32, 30, 0, 2 * Math.PI); g.fill();
+});
+const ringTexture = spriteTexture((g) => {  // recovered: hollow (hidden, position estimated)
+  g.strokeStyle = '#ffffff';
+  g.lineWidth = 9;
+  g.beginPath(); g.arc(32, 32, 26, 0, 2 * Math.PI); g.stroke();
+});
+// size in mm (perspective), but never below minPx pixels: a marker stays visible from afar
+function spriteMat(map, size, minPx, extra = {}) {
+  const m = new THREE.PointsMaterial({ map, size, sizeAttenuation: true, alphaTest: 0.5,
+    vertexColors: true, ...extra });
+  m.onBeforeCompile = (shader) => {
+    shader.uniforms.minPx = { value: minPx * renderer.getPixelRatio() };
+    shader.vertexShader = `uniform float minPx;\n${shader.vertexShader}`.replace(
+      '#include <fog_vertex>', 'gl_PointSize = max(gl_PointSize, minPx);\n#include <fog_vertex>');
+  };
+  return m;
+}
+const observedMat = spriteMat(ballTexture, 2 * MARKER_R, 7);
+const recoveredMat = spriteMat(ringTexture, 2.8 * MARKER_R, 10);
+const unlabeledMat = spriteMat(ballTexture, 2 * UNLABELED_R, 4, { vertexColors: false,
+  color: 0x9aa1a9 });
 const stickMat = new THREE.LineBasicMaterial({ vertexColors: true, transparent: true,
   opacity: 0.75 });
 
-function instanced(material, capacity) {
-  const mesh = new THREE.InstancedMesh(sphere, material, Math.max(1, capacity));
-  mesh.instanceMatrix.setUsage(THREE.DynamicDrawUsage);
-  mesh.setColorAt(0, new THREE.Color());      // allocates the per-instance colours
-  mesh.count = 0;
-  mesh.frustumCulled = false;
-  scene.add(mesh);
-  return mesh;
+function points(material, capacity) {
+  const geom = new THREE.BufferGeometry();
+  const n = Math.max(1, capacity);
+  geom.setAttribute('position', new THREE.BufferAttribute(new Float32Array(3 * n), 3)
+    .setUsage(THREE.DynamicDrawUsage));
+  geom.setAttribute('color', new THREE.BufferAttribute(new Float32Array(3 * n), 3)
+    .setUsage(THREE.DynamicDrawUsage));
+  geom.setDrawRange(0, 0);
+  const p = new THREE.Points(geom, material);
+  p.frustumCulled = false;
+  p.userData.index = new Int32Array(n); // draw slot -> marker index (hover names)
+  p.userData.capacity = n;
+  scene.add(p);
+  return p;
+}
+
+function place(p, slot, x, y, z, color) {
+  const P = p.geometry.attributes.position.array;
+  P[3 * slot] = x; P[3 * slot + 1] = y; P[3 * slot + 2] = z;
+  if (color) {
+    const C = p.geometry.attributes.color.array;
+    C[3 * slot] = color.r; C[3 * slot + 1] = color.g; C[3 * slot + 2] = color.b;
+  }
+}
+
+function commit(p, n) {
+  p.geometry.setDrawRange(0, n);
+  p.geometry.attributes.position.needsUpdate = true;
+  p.geometry.attributes.color.needsUpdate = true;
 }
 
 let model = null;      // {names, subjects, bodies, ...} + colours, meshes
 let observed = null, recovered = null;
-let unlabeled = instanced(unlabeledMat, 256);
+let unlabeled = points(unlabeledMat, 256);
 let sticks = null;
-const tmp = new THREE.Matrix4();
-const scaleObs = new THREE.Vector3(MARKER_R, MARKER_R, MARKER_R);
-const scaleRec = new THREE.Vector3(1.8 * MARKER_R, 1.8 * MARKER_R, 1.8 * MARKER_R);
-const scaleUnl = new THREE.Vector3(UNLABELED_R, UNLABELED_R, UNLABELED_R);
-const quat = new THREE.Quaternion();
 const vec = new THREE.Vector3();
 
 function subjectColor(i) {
@@ -106,10 +152,8 @@ function setModel(m) {
   for (const [name, start, count] of model.subjects) {
     for (let i = start; i < start + count; i++) model.subjectOf[i] = name;
   }
-  observed = instanced(observedMat, M);
-  recovered = instanced(recoveredMat, M);
-  observed.userData.index = new Int32Array(M);
-  recovered.userData.index = new Int32Array(M);
+  observed = points(observedMat, M);
+  recovered = points(recoveredMat, M);
   // rigid bodies: a spanning tree per body, found on the first frame it is complete
   model.trees = (m.bodies || []).map(() => null);
   const segs = (m.bodies || []).reduce((n, b) => n + Math.max(0, b.length - 1), 0);
@@ -182,15 +226,12 @@ function draw(f) {
     for (let i = start; i < start + count; i++) {
       const s = st[i];
       if (s === 0 || !finite3(pos, i)) continue;
-      vec.set(pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]);
       if (s === 1) {
-        observed.setMatrixAt(no, tmp.compose(vec, quat, scaleObs));
-        observed.setColorAt(no, color);
+        place(observed, no, pos[3 * i], pos[3 * i + 1], pos[3 * i + 2], color);
         observed.userData.index[no++] = i;
         nObs++;
       } else {
-        recovered.setMatrixAt(nr, tmp.compose(vec, quat, scaleRec));
-        recovered.setColorAt(nr, color);
+        place(recovered, nr, pos[3 * i], pos[3 * i + 1], pos[3 * i + 2], color);
         recovered.userData.index[nr++] = i;
         nRec++;
       }
@@ -198,23 +239,16 @@ function draw(f) {
     drawn[name] = nObs + nRec;
     legendCounts[name] = [nObs, nRec, count - nObs - nRec];
   }
-  for (const [mesh, n] of [[observed, no], [recovered, nr]]) {
-    mesh.count = n;
-    mesh.instanceMatrix.needsUpdate = true;
-    mesh.instanceColor.needsUpdate = true;
-  }
+  commit(observed, no);
+  commit(recovered, nr);
   const K = unl.length / 3;
-  if (K > unlabeled.instanceMatrix.count) {
+  if (K > unlabeled.userData.capacity) {
     scene.remove(unlabeled);
-    unlabeled.dispose();
-    unlabeled = instanced(unlabeledMat, 2 * K);
+    unlabeled.geometry.dispose();
+    unlabeled = points(unlabeledMat, 2 * K);
   }
-  for (let k = 0; k < K; k++) {
-    vec.set(unl[3 * k], unl[3 * k + 1], unl[3 * k + 2]);
-    unlabeled.setMatrixAt(k, tmp.compose(vec, quat, scaleUnl));
-  }
-  unlabeled.count = K;
-  unlabeled.instanceMatrix.needsUpdate = true;
+  for (let k = 0; k < K; k++) place(unlabeled, k, unl[3 * k], unl[3 * k + 1], unl[3 * k + 2]);
+  commit(unlabeled, K);
   drawSticks(pos, st);
 
   state.seq = f.seq;
@@ -261,10 +295,10 @@ function drawnBox(name) {
   const box = new THREE.Box3();
   for (const mesh of [observed, recovered]) {
     if (!mesh) continue;
-    for (let n = 0; n < mesh.count; n++) {
+    const P = mesh.geometry.attributes.position.array;
+    for (let n = 0; n < mesh.geometry.drawRange.count; n++) {
       if (name && model.subjectOf[mesh.userData.index[n]] !== name) continue;
-      mesh.getMatrixAt(n, tmp);
-      box.expandByPoint(vec.setFromMatrixPosition(tmp));
+      box.expandByPoint(vec.fromArray(P, 3 * n));
     }
   }
   return box;
@@ -277,7 +311,7 @@ function fitView() {
   const size = Math.max(box.getSize(new THREE.Vector3()).length(), 1500);
   const dir = camera.position.clone().sub(controls.target).normalize();
   controls.target.copy(centre);
-  camera.position.copy(centre).addScaledVector(dir, 0.6 * size / Math.tan((camera.fov * Math.PI) / 360));
+  camera.position.copy(centre).addScaledVector(dir, 0.5 * size / Math.tan((camera.fov * Math.PI) / 360));
   controls.update();
   needsRender = true;
 }
@@ -461,6 +495,7 @@ window.addEventListener('keydown', (e) => {
 
 // marker name on hover
 const raycaster = new THREE.Raycaster();
+raycaster.params.Points.threshold = MARKER_R; // mm
 const mouse = new THREE.Vector2();
 const tooltip = $('tooltip');
 let hover = null;
@@ -481,11 +516,10 @@ function pick() {
   let text;
   if (hit.object === unlabeled) text = 'unlabeled point';
   else {
-    const i = hit.object.userData.index[hit.instanceId];
+    const i = hit.object.userData.index[hit.index];
     text = `${model.names[i]} (${hit.object === observed ? 'observed' : 'recovered'})`;
   }
-  hit.object.getMatrixAt(hit.instanceId, tmp);
-  vec.setFromMatrixPosition(tmp);
+  vec.fromArray(hit.object.geometry.attributes.position.array, 3 * hit.index);
   tooltip.textContent = `${text}  ${vec.x.toFixed(0)}, ${vec.y.toFixed(0)}, ${vec.z.toFixed(0)} mm`;
   tooltip.style.left = `${x + 12}px`;
   tooltip.style.top = `${y + 12}px`;
