@@ -4,14 +4,15 @@ with and without a viewer (and its browser) attached.
 A simulated ``--subjects``-performer scene at ``--rate`` Hz streams for ``--seconds`` through
 ``mocap-labeler serve`` (a subprocess, started from a trained model) over loopback UDP; this
 process subscribes and records each labeled frame's labeling time (``proc_us``, measured inside
-the service) and end-to-end latency. Runs alternate *without* and *with* the viewer
-(``--repeats`` pairs): *with* adds ``mocap-labeler view`` (a subprocess) and headless Chromium
-(Debian's package, through Playwright, WebGL in SwiftShader) showing its page; ``viewerState``
-is sampled every second. Prints one JSON object (last line):
+the service) and end-to-end latency. Runs alternate
+(``--repeats`` rounds of ``--modes``): *without* a viewer; *viewer*: ``mocap-labeler view`` (a
+subprocess) with no page open; *browser*: the viewer and headless Chromium (Debian's package,
+through Playwright, WebGL in SwiftShader, ``--browser-nice``) showing its page, whose
+``viewerState`` is sampled every second. Prints one JSON object (last line):
 
-- ``without``/``with``: medians over the runs of ``labeling_ms_p50``/``p99`` (frames after the
-  first second), ``latency_ms_p50``/``p99``, frames received and service drops;
-- ``page_fps_median``/``page_fps_min`` (samples after the first 2 s of each *with* run),
+- per mode: medians over its runs of ``labeling_ms_p50``/``p99`` (frames after the first
+  second) and ``latency_ms_p50``/``p99``;
+- ``page_fps_median``/``page_fps_min`` (samples after the first 2 s of each *browser* run),
   ``viewer_drops`` (``queue``: frames the viewer replaced before a slow page took them,
   ``subscriber``: frames its subscriber lost, ``page``: frames the page skipped), frames
   forwarded and decimated;
@@ -58,6 +59,18 @@ CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--en
 STREAM = "bench"
 
 
+def _chromium(work: Path, nice: int) -> str:
+    """The Chromium binary, or a wrapper that starts it ``nice``-d (the browser is a display:
+    on the service's machine it should yield the CPU, as ``mocap-labeler view`` does)."""
+    if nice <= 0:
+        return CHROMIUM
+    work.mkdir(parents=True, exist_ok=True)
+    wrapper = work / "chromium-nice"
+    wrapper.write_text(f'#!/bin/sh\nexec nice -n {nice} {CHROMIUM} "$@"\n')
+    wrapper.chmod(0o755)
+    return str(wrapper)
+
+
 async def _start_view(url: str, log_path: Path) -> tuple[asyncio.subprocess.Process, str]:
     log = log_path.open("w")
     proc = await asyncio.create_subprocess_exec(
@@ -88,10 +101,12 @@ def _get_json(url: str) -> dict:
         return json.loads(r.read())
 
 
-async def one_run(frames, model_path: Path, work: Path, args, with_view: bool) -> dict:
+async def one_run(frames, model_path: Path, work: Path, args, mode: str) -> dict:
+    """One stream; ``mode``: ``without`` a viewer, ``viewer`` alone (no page open) or
+    ``browser`` (the viewer and Chromium showing its page)."""
     n_total = int(args.seconds * frames.rate)
     stream = {"name": STREAM, "model": str(model_path), "rate": frames.rate}
-    out: dict = {"with_view": with_view}
+    out: dict = {"mode": mode}
     async with ServiceProcess(service_settings("udp", stream, 30.0), work) as svc:
         assert svc.udp is not None
         url = f"udp://{svc.udp[0]}:{svc.udp[1]}/{STREAM}"
@@ -116,13 +131,15 @@ async def one_run(frames, model_path: Path, work: Path, args, with_view: bool) -
             view = browser = pw = page = None
             samples: list[dict] = []
             try:
-                if with_view:
+                if mode != "without":
+                    view, view_url = await _start_view(url, work / "view.log")
+                if mode == "browser":
                     from playwright.async_api import async_playwright
 
-                    view, view_url = await _start_view(url, work / "view.log")
                     pw = await async_playwright().start()
-                    browser = await pw.chromium.launch(executable_path=CHROMIUM,
-                                                       args=CHROMIUM_ARGS)  # fmt: skip
+                    browser = await pw.chromium.launch(
+                        executable_path=_chromium(work, args.browser_nice), args=CHROMIUM_ARGS
+                    )
                     page = await browser.new_page(
                         viewport={"width": args.width, "height": args.height}
                     )
@@ -145,10 +162,16 @@ async def one_run(frames, model_path: Path, work: Path, args, with_view: bool) -
                 await asyncio.sleep(1.0)
                 sampler.cancel()
                 await asyncio.gather(sampler, return_exceptions=True)
-                if with_view:
-                    assert page is not None
-                    final = await page.evaluate("window.viewerState")
+                if mode != "without":
                     state = _get_json(view_url + "api/state")
+                    out.update(
+                        viewer_frames_in=state["frames_in"],
+                        viewer_subscriber_dropped=state["subscriber_dropped"],
+                        viewer_frames_forwarded=state["frames_out"],
+                        viewer_decimated=state["decimated"],
+                    )
+                if page is not None:
+                    final = await page.evaluate("window.viewerState")
                     fps = np.array([s["fps"] for s in samples if s["at_s"] > 2.0])
                     out.update(
                         page_fps_median=float(np.median(fps)) if fps.size else None,
@@ -156,10 +179,7 @@ async def one_run(frames, model_path: Path, work: Path, args, with_view: bool) -
                         page_frames_drawn=final["frames"],
                         viewer_drops=final["dropsDetail"],
                         viewer_drops_total=final["drops"],
-                        viewer_frames_in=state["frames_in"],
-                        viewer_frames_forwarded=state["frames_out"],
-                        viewer_decimated=state["decimated"],
-                        viewer_error=final["error"],
+                        page_error=final["error"],
                     )
             finally:
                 rec.cancel()
@@ -196,20 +216,21 @@ async def bench(args) -> dict:
         work = Path(d)
         model = train_model_file(frames, 50, work / "model.json")
         for i in range(args.repeats):
-            for with_view in (False, True):
-                r = await one_run(frames, model, work / f"run{i}-{int(with_view)}", args,
-                                  with_view)  # fmt: skip
+            for mode in args.modes.split(","):
+                r = await one_run(frames, model, work / f"run{i}-{mode}", args, mode)
                 print(json.dumps(r), file=sys.stderr, flush=True)
                 runs.append(r)
     keys = ("labeling_ms_p50", "labeling_ms_p99", "latency_ms_p50", "latency_ms_p99")
-    summary = {m: {k: _median([r for r in runs if r["with_view"] == (m == "with")], k)
-                   for k in keys} for m in ("without", "with")}  # fmt: skip
-    with_runs = [r for r in runs if r["with_view"]]
+    modes = args.modes.split(",")
+    summary = {m: {k: _median([r for r in runs if r["mode"] == m], k) for k in keys}
+               for m in modes}  # fmt: skip
+    with_runs = [r for r in runs if r["mode"] == "browser"]
     return {
         "subjects": args.subjects,
         "rate": frames.rate,
         "seconds": args.seconds,
         "viewport": [args.width, args.height],
+        "browser_nice": args.browser_nice,
         **summary,
         "page_fps_median": _median(with_runs, "page_fps_median"),
         "page_fps_min": min(
@@ -258,10 +279,15 @@ def main() -> int:
     p.add_argument("--rate", type=float, default=360.0)
     p.add_argument("--seconds", type=float, default=20.0, help="streaming time per run")
     p.add_argument("--sim-seconds", type=float, default=5.0, help="simulated scene (looped)")
-    p.add_argument("--repeats", type=int, default=2, help="without/with pairs")
+    p.add_argument("--repeats", type=int, default=2, help="rounds of --modes")
+    p.add_argument("--modes", default="without,viewer,browser",
+                   help="runs of a round, in order: without (no viewer), viewer (no page), "
+                        "browser (viewer + headless Chromium on its page)")  # fmt: skip
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=720)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--browser-nice", type=int, default=10,
+                   help="run Chromium at this lower CPU priority (0: as is)")  # fmt: skip
     p.add_argument("--out", default=None, help="also write the JSON line here")
     p.add_argument("--demo-screenshot", type=Path, default=None, metavar="PNG",
                    help="screenshot the page on `demo --view` instead of benchmarking")  # fmt: skip

@@ -3,7 +3,8 @@
 Subscribes to the labeled stream like ``subscribe`` and serves a page (three.js, vendored) on
 ``http://HOST:PORT/`` that draws the markers live; see ``docs/viewer.md``. Loopback only by
 default: ``--host`` exposes it to the network (read-only, no authentication: a warning says so).
-Runs until Ctrl-C / SIGTERM.
+Runs until Ctrl-C / SIGTERM, at a lower CPU priority (``--nice``, default 10) so that a
+viewer sharing the service's machine never takes the CPU from it.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import signal
 import sys
 
@@ -24,6 +26,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "read-only view without authentication)")  # fmt: skip
     p.add_argument("--fps", type=float, default=60.0, help="frames pushed to a page per second")
     p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--nice", type=int, default=10,
+                   help="lower the viewer's CPU priority by this much (default 10: on a "
+                        "machine shared with the service, the service comes first)")  # fmt: skip
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
 
 
@@ -60,6 +65,8 @@ async def _main(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.nice > 0:
+        os.nice(args.nice)
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")  # fmt: skip
     return asyncio.run(_main(args))
