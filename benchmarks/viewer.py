@@ -261,7 +261,9 @@ async def demo_screenshot(path: Path, width: int, height: int, frames: int) -> d
                 browser = await pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
                 page = await browser.new_page(viewport={"width": width, "height": height})
                 await page.goto(url)
-                await page.wait_for_function(f"window.viewerState.frames >= {frames}",
+                # a moment with a recovered marker on screen (the demo hides some for a while)
+                await page.wait_for_function(f"window.viewerState.frames >= {frames} && "
+                                             "window.viewerState.recovered > 0",
                                              timeout=300_000)  # fmt: skip
                 state = await page.evaluate("window.viewerState")
                 path.parent.mkdir(parents=True, exist_ok=True)
@@ -291,7 +293,7 @@ def main() -> int:
     p.add_argument("--out", default=None, help="also write the JSON line here")
     p.add_argument("--demo-screenshot", type=Path, default=None, metavar="PNG",
                    help="screenshot the page on `demo --view` instead of benchmarking")  # fmt: skip
-    p.add_argument("--demo-frames", type=int, default=300, help="frames drawn before the shot")
+    p.add_argument("--demo-frames", type=int, default=150, help="frames drawn before the shot")
     args = p.parse_args()
     if args.demo_screenshot is not None:
         result = asyncio.run(demo_screenshot(args.demo_screenshot, args.width, args.height,

@@ -311,7 +311,7 @@ function fitView() {
   const size = Math.max(box.getSize(new THREE.Vector3()).length(), 1500);
   const dir = camera.position.clone().sub(controls.target).normalize();
   controls.target.copy(centre);
-  camera.position.copy(centre).addScaledVector(dir, 0.5 * size / Math.tan((camera.fov * Math.PI) / 360));
+  camera.position.copy(centre).addScaledVector(dir, 0.62 * size / Math.tan((camera.fov * Math.PI) / 360));
   controls.update();
   needsRender = true;
 }
