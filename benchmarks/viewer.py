@@ -262,9 +262,11 @@ async def demo_screenshot(path: Path, width: int, height: int, frames: int) -> d
                 page = await browser.new_page(viewport={"width": width, "height": height})
                 await page.goto(url)
                 # a moment with a recovered marker on screen (the demo hides some for a while)
-                await page.wait_for_function(f"window.viewerState.frames >= {frames} && "
-                                             "window.viewerState.recovered > 0",
-                                             timeout=300_000)  # fmt: skip
+                # whose panels are up to date; it stays on screen (not drawing, no pause label)
+                hold = (f"s.frames >= {frames} && s.recovered > 0 && s.panelSeq === s.seq"
+                        " && (s.paused = true)")  # fmt: skip
+                await page.wait_for_function(f"(s => {hold})(window.viewerState)",
+                                             timeout=300_000, polling="raf")  # fmt: skip
                 state = await page.evaluate("window.viewerState")
                 path.parent.mkdir(parents=True, exist_ok=True)
                 await page.screenshot(path=str(path))

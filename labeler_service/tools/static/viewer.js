@@ -342,8 +342,15 @@ function buildLegend() {
 const fmt = (v, d = 1) => (v === null || v === undefined || Number.isNaN(v) ? '-' : Number(v).toFixed(d));
 let stats = {};
 
+// The panels describe the frame on screen: refreshed in the same display refresh as a draw (at
+// most every PANEL_MS), by a timer while no frame comes, and at once on pause and step.
+const PANEL_MS = 250;
+let lastPanel = 0;
+
 function updatePanels() {
   const now = performance.now();
+  lastPanel = now;
+  state.panelSeq = state.seq;
   while (drawTimes.length && drawTimes[0] < now - FPS_WINDOW_MS) drawTimes.shift();
   state.fps = drawTimes.length / (FPS_WINDOW_MS / 1000);
   state.inputRate = stats.rate_in ?? 0;
@@ -372,7 +379,7 @@ function updatePanels() {
     });
   }
 }
-setInterval(updatePanels, 250);
+setInterval(() => { if (performance.now() - lastPanel > 4 * PANEL_MS) updatePanels(); }, PANEL_MS);
 
 // ------------------------------------------------------------------------------ connection
 let ws = null;
@@ -440,6 +447,7 @@ function loop() {
   if (!state.paused && latest && latest !== shown) {
     draw(latest);
     if (!latest.hist) ack(latest.seq);
+    if (performance.now() - lastPanel >= PANEL_MS) updatePanels();
   }
   if (hover) pick();
   if (needsRender) {
@@ -469,6 +477,7 @@ function updateStepButtons() {
 function setPaused(p) {
   state.paused = p;
   $('pause').textContent = p ? 'resume' : 'pause';
+  updatePanels();
   updateStepButtons();
 }
 
@@ -478,6 +487,7 @@ function stepBy(d) {
   const j = i < 0 ? buffer.length - 1 : i + d;
   if (j >= 0 && j < buffer.length && buffer[j].model === model.model) draw(buffer[j]);
   updateStepButtons();
+  updatePanels();
 }
 
 $('pause').onclick = () => setPaused(!state.paused);
