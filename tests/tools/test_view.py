@@ -340,3 +340,50 @@ def test_view_command_serves_and_warns_when_exposed():
                              text=True, timeout=60)  # fmt: skip
     assert exposed.returncode == 0, exposed.stderr
     assert "warning: the viewer listens on 0.0.0.0" in exposed.stderr
+
+
+@pytest.mark.broker
+def test_the_viewer_follows_an_mqtt_stream(tmp_path, rng):
+    import aiohttp
+
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.service.server import Server
+    from labeler_service.testing.broker import LocalBroker, mosquitto_binary
+    from labeler_service.tools.replay import open_sender, replay
+
+    if mosquitto_binary() is None:
+        pytest.skip("mosquitto binary not found (make test installs it; apt install mosquitto)")
+    cap = moving_clusters(rng, subjects=2, markers=4, frames=240, rate=120.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=20, seed=3))
+
+    async def go(broker):
+        settings = load_settings(labeler="baseline", metrics_port=None, queue_size=256,
+                                 udp={"enabled": False}, streams=[{"name": "vol"}],
+                                 mqtt={"enabled": True, "host": broker.host,
+                                       "port": broker.port})  # fmt: skip
+        url = f"{broker.url}/vol"
+        async with Server(settings), Viewer(url, port=0) as v, aiohttp.ClientSession() as http:
+            assert await v.subscriber.wait_status("vol", "online", 10.0)
+            ws = await http.ws_connect(f"http://127.0.0.1:{v.port}/ws")
+            async with open_sender(url) as (send, stream):
+                sender = asyncio.create_task(
+                    replay(frames, send, stream=stream, init_frames=20, speed=1.0)
+                )
+                seqs, model = [], None
+                while len(seqs) < 10:
+                    msg = await ws.receive(timeout=10)
+                    if msg.type == aiohttp.WSMsgType.TEXT:
+                        m = json.loads(msg.data)
+                        model = m if m["type"] == "model" else model
+                        continue
+                    (h,) = struct.unpack_from("<I", msg.data)
+                    seqs.append(json.loads(msg.data[4 : 4 + h])["seq"])
+                    await ws.send_str(json.dumps({"ack": seqs[-1]}))
+                await sender
+            await ws.close()
+            return v.stream, model, seqs
+
+    with LocalBroker(tmp_path) as broker:
+        stream, model, seqs = run(go(broker))
+    assert stream == "vol" and model["stream"] == "vol" and len(model["names"]) == 8
+    assert seqs == sorted(seqs) and seqs[0] >= 20
