@@ -54,8 +54,11 @@ from labeler_service.tools.replay import loops_to_cover, open_sender, replay
 from labeler_service.tools.subscribe import Subscriber, percentiles
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+#: WebGL in software (SwiftShader); the page composited on the CPU rather than through
+#: SwiftShader GL, which halves the GPU process's CPU time per frame (0.35 instead of 0.69 cores
+#: at ~36 fps, 1280x720, docs/viewer.md).
 CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--enable-webgl",
-                 "--ignore-gpu-blocklist"]  # fmt: skip
+                 "--ignore-gpu-blocklist", "--disable-gpu-compositing"]  # fmt: skip
 STREAM = "bench"
 
 
