@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
+import os
 import shutil
 import signal
 import sys
@@ -62,23 +64,13 @@ CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--en
 STREAM = "bench"
 
 
-def _chromium(work: Path, nice: int) -> str:
-    """The Chromium binary, or a wrapper that starts it ``nice``-d (the browser is a display:
-    on the service's machine it should yield the CPU, as ``mocap-labeler view`` does)."""
-    if nice <= 0:
-        return CHROMIUM
-    work.mkdir(parents=True, exist_ok=True)
-    wrapper = work / "chromium-nice"
-    wrapper.write_text(f'#!/bin/sh\nexec nice -n {nice} {CHROMIUM} "$@"\n')
-    wrapper.chmod(0o755)
-    return str(wrapper)
-
-
-async def _start_view(url: str, log_path: Path) -> tuple[asyncio.subprocess.Process, str]:
+async def _start_view(
+    url: str, log_path: Path, fps: float = 60.0
+) -> tuple[asyncio.subprocess.Process, str]:
     log = log_path.open("w")
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "labeler_service.cli.main", "view", "--from", url, "--port", "0",
-        stdout=asyncio.subprocess.PIPE, stderr=log,
+        "--fps", str(fps), stdout=asyncio.subprocess.PIPE, stderr=log,
     )  # fmt: skip
     assert proc.stdout is not None
     async with asyncio.timeout(60):
@@ -102,6 +94,69 @@ async def _stop(proc: asyncio.subprocess.Process) -> None:
 def _get_json(url: str) -> dict:
     with urllib.request.urlopen(url, timeout=5) as r:  # noqa: S310 - loopback only
         return json.loads(r.read())
+
+
+async def _start_page(view_url: str, args) -> asyncio.subprocess.Process:
+    """Chromium on the page, driven from a child process (``--sample-page``): Playwright's
+    traffic stays out of this measuring process, and the child and its browser run ``nice``-d."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--sample-page", view_url, "--width", str(args.width),
+        "--height", str(args.height), "--browser-nice", str(args.browser_nice),
+        stdout=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    async with asyncio.timeout(90):
+        line = (await proc.stdout.readline()).decode()
+    if not line.startswith("ready"):
+        raise MocapError(f"the page did not open: {line!r}")
+    return proc
+
+
+async def _page_result(proc: asyncio.subprocess.Process) -> dict:
+    """Asks the page process to stop (SIGINT) and reads its summary (one JSON line)."""
+    assert proc.stdin is None and proc.stdout is not None
+    proc.send_signal(signal.SIGINT)
+    async with asyncio.timeout(60):
+        line = (await proc.stdout.readline()).decode()
+    return json.loads(line)
+
+
+async def sample_page(url: str, width: int, height: int, nice: int) -> None:
+    """The child of ``_start_page``: opens the page, prints ``ready``, samples ``viewerState``
+    every second until SIGINT, then prints the summary as one JSON line."""
+    from playwright.async_api import async_playwright
+
+    if nice > 0:
+        os.nice(nice)  # Chromium and Playwright's driver inherit it
+    stop = asyncio.Event()
+    asyncio.get_running_loop().add_signal_handler(signal.SIGINT, stop.set)
+    async with async_playwright() as pw:
+        browser = await pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = await browser.new_page(viewport={"width": width, "height": height})
+        await page.goto(url)
+        await page.wait_for_function("window.viewerState.connected", timeout=30_000)
+        print("ready", flush=True)
+        samples: list[dict] = []
+        t0 = time.monotonic()
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(1.0):
+                    await stop.wait()
+            s = await page.evaluate("window.viewerState")
+            s["at_s"] = time.monotonic() - t0
+            samples.append(s)
+        await browser.close()
+    final = samples[-1]
+    # the page's rate while frames flowed: after its first 2 s, and not the idle tail
+    fps = np.array([s["fps"] for s in samples[2:-2]])
+    print(json.dumps({
+        "page_fps_median": float(np.median(fps)) if fps.size else None,
+        "page_fps_min": float(fps.min()) if fps.size else None,
+        "page_frames_drawn": final["frames"],
+        "viewer_drops": final["dropsDetail"],
+        "viewer_drops_total": final["drops"],
+        "page_error": final["error"],
+    }), flush=True)  # fmt: skip
 
 
 async def one_run(frames, model_path: Path, work: Path, args, mode: str) -> dict:
@@ -131,40 +186,17 @@ async def one_run(frames, model_path: Path, work: Path, args, mode: str) -> dict
                             lat_ms.append(r.latency_ms)
 
             rec = asyncio.create_task(record(), name="bench-record")
-            view = browser = pw = page = None
-            samples: list[dict] = []
+            view = page = None
             try:
                 if mode != "without":
-                    view, view_url = await _start_view(url, work / "view.log")
+                    view, view_url = await _start_view(url, work / "view.log", args.view_fps)
                 if mode == "browser":
-                    from playwright.async_api import async_playwright
-
-                    pw = await async_playwright().start()
-                    browser = await pw.chromium.launch(
-                        executable_path=_chromium(work, args.browser_nice), args=CHROMIUM_ARGS
-                    )
-                    page = await browser.new_page(
-                        viewport={"width": args.width, "height": args.height}
-                    )
-                    await page.goto(view_url)
-                    await page.wait_for_function("window.viewerState.connected", timeout=30_000)
-
-                async def sample() -> None:
-                    t0 = time.monotonic()
-                    while page is not None:
-                        await asyncio.sleep(1.0)
-                        s = await page.evaluate("window.viewerState")
-                        s["at_s"] = time.monotonic() - t0
-                        samples.append(s)
-
-                sampler = asyncio.create_task(sample(), name="bench-sample")
+                    page = await _start_page(view_url, args)
                 async with open_sender(url) as (send, _):
                     st = await replay(frames, send, stream=STREAM, init_frames=5, speed=1.0,
                                       loops=loops_to_cover(frames.n_frames, n_total),
                                       max_frames=n_total)  # fmt: skip
                 await asyncio.sleep(1.0)
-                sampler.cancel()
-                await asyncio.gather(sampler, return_exceptions=True)
                 if mode != "without":
                     state = _get_json(view_url + "api/state")
                     out.update(
@@ -174,23 +206,12 @@ async def one_run(frames, model_path: Path, work: Path, args, mode: str) -> dict
                         viewer_decimated=state["decimated"],
                     )
                 if page is not None:
-                    final = await page.evaluate("window.viewerState")
-                    fps = np.array([s["fps"] for s in samples if s["at_s"] > 2.0])
-                    out.update(
-                        page_fps_median=float(np.median(fps)) if fps.size else None,
-                        page_fps_min=float(fps.min()) if fps.size else None,
-                        page_frames_drawn=final["frames"],
-                        viewer_drops=final["dropsDetail"],
-                        viewer_drops_total=final["drops"],
-                        page_error=final["error"],
-                    )
+                    out.update(await _page_result(page))
             finally:
                 rec.cancel()
                 await asyncio.gather(rec, return_exceptions=True)
-                if browser is not None:
-                    await browser.close()
-                if pw is not None:
-                    await pw.stop()
+                if page is not None:
+                    await _stop(page)
                 if view is not None:
                     await _stop(view)
         drops = service_drops(svc.scrape())
@@ -234,6 +255,7 @@ async def bench(args) -> dict:
         "seconds": args.seconds,
         "viewport": [args.width, args.height],
         "browser_nice": args.browser_nice,
+        "view_fps": args.view_fps,
         **summary,
         "page_fps_median": _median(with_runs, "page_fps_median"),
         "page_fps_min": min(
@@ -290,16 +312,21 @@ def main() -> int:
     p.add_argument("--modes", default="without,viewer,browser",
                    help="runs of a round, in order: without (no viewer), viewer (no page), "
                         "browser (viewer + headless Chromium on its page)")  # fmt: skip
+    p.add_argument("--view-fps", type=float, default=60.0, help="the viewer's --fps")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=720)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--browser-nice", type=int, default=10,
-                   help="run Chromium at this lower CPU priority (0: as is)")  # fmt: skip
+                   help="lower CPU priority of Chromium and its driver (0: as is)")  # fmt: skip
     p.add_argument("--out", default=None, help="also write the JSON line here")
     p.add_argument("--demo-screenshot", type=Path, default=None, metavar="PNG",
                    help="screenshot the page on `demo --view` instead of benchmarking")  # fmt: skip
     p.add_argument("--demo-frames", type=int, default=150, help="frames drawn before the shot")
+    p.add_argument("--sample-page", default=None, metavar="URL", help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.sample_page is not None:
+        asyncio.run(sample_page(args.sample_page, args.width, args.height, args.browser_nice))
+        return 0
     if args.demo_screenshot is not None:
         result = asyncio.run(demo_screenshot(args.demo_screenshot, args.width, args.height,
                                              args.demo_frames))  # fmt: skip

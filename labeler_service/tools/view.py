@@ -12,7 +12,8 @@
 
 The viewer is a client of the service like ``subscribe``: it never sends the service anything
 but the subscribe handshake, so however slow a browser is the service does not wait. Work is
-bounded twice. The :class:`Decimator` forwards at most ``fps`` frames a second (the newest one
+bounded twice (policy and formats: :mod:`labeler_service.tools.view_frames`). The
+:class:`Decimator` forwards at most ``fps`` frames a second (the newest one
 at each slot; the rest are *decimated*, by design). Each browser connection has an
 :class:`Outbox`: at most ``window`` frames in flight (sent, not yet acknowledged as drawn) and
 at most ``depth`` waiting (both 1 by default: the page gets the next frame when it has drawn
@@ -34,220 +35,30 @@ import contextlib
 import ipaddress
 import json
 import logging
-import struct
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Generic, TypeVar
 
 import numpy as np
 
 from labeler_service.errors import ConfigError
-from labeler_service.labeling.frame import MarkerState
 from labeler_service.service.metrics import RateLimitedLog
 from labeler_service.service.protocol import ModelMsg
-from labeler_service.tools.subscribe import Received, Subscriber, percentiles
+from labeler_service.tools.subscribe import Received, Subscriber
+from labeler_service.tools.view_frames import (
+    Decimator,
+    Outbox,
+    Window,
+    encode_view_frame,
+    model_message,
+)
 
 log = logging.getLogger(__name__)
-T = TypeVar("T")
 
 STATIC_DIR = Path(str(resources.files("labeler_service.tools") / "static"))
-
-
-# ----------------------------------------------------------------------------- policy
-#: A slot is due this much early: rounding must not push a frame to the next arrival.
-_SLACK_S = 1e-6
-
-
-class Decimator(Generic[T]):
-    """Forwards at most one item per ``1 / fps`` seconds, always the newest one offered.
-
-    ``offer`` replaces a pending item (the replaced one is counted in ``decimated``); ``take``
-    returns the pending item once its slot has come (leading edge: an idle decimator forwards
-    at once; trailing edge: the last item of a burst is forwarded one period later, never
-    lost). The clock is passed in, so the policy is tested without sleeping.
-    """
-
-    def __init__(self, fps: float) -> None:
-        if not fps > 0:
-            raise ConfigError(f"viewer fps must be > 0, got {fps}")
-        self.period = 1.0 / fps
-        self.decimated = 0
-        self._pending: T | None = None
-        self._next = float("-inf")
-
-    @property
-    def pending(self) -> bool:
-        return self._pending is not None
-
-    def offer(self, item: T) -> None:
-        if self._pending is not None:
-            self.decimated += 1
-        self._pending = item
-
-    def wait_s(self, now: float) -> float:
-        """Seconds until ``take`` may return the pending item (0: now)."""
-        return max(0.0, self._next - now)
-
-    def take(self, now: float) -> T | None:
-        if self._pending is None or now < self._next - _SLACK_S:
-            return None
-        item, self._pending = self._pending, None
-        # slots keep a steady grid while frames flow; after an idle spell it restarts from now
-        nxt = self._next + self.period
-        self._next = nxt if now < nxt else now + self.period
-        return item
-
-
-@dataclass
-class Outbox:
-    """What one browser connection still has to receive: a drop-oldest queue of ``depth``
-    encoded frames and a window of at most ``window`` frames in flight (sent, not acked).
-
-    The page acknowledges the ``seq`` it drew; an ack clears every in-flight frame up to it
-    (with a window above 1 the page may draw only the newest of two that arrived in one
-    display refresh; it counts the other as skipped).
-    """
-
-    depth: int = 1
-    window: int = 1
-    dropped: int = 0
-    sent: int = 0
-    _queue: deque[tuple[int, bytes]] = field(default_factory=deque)
-    _in_flight: deque[int] = field(default_factory=deque)
-
-    def __post_init__(self) -> None:
-        if self.depth < 1 or self.window < 1:
-            raise ConfigError(f"outbox depth and window must be >= 1, got {self.depth}, "
-                              f"{self.window}")  # fmt: skip
-
-    def push(self, seq: int, data: bytes) -> int | None:
-        """Queues a frame; returns the ``seq`` of the frame it pushed out (dropped), if any."""
-        old = None
-        if len(self._queue) >= self.depth:
-            old = self._queue.popleft()[0]
-            self.dropped += 1
-        self._queue.append((seq, data))
-        return old
-
-    def pop(self) -> tuple[int, bytes] | None:
-        """The next frame to send, or ``None`` (nothing queued, or the window is full)."""
-        if not self._queue or len(self._in_flight) >= self.window:
-            return None
-        seq, data = self._queue.popleft()
-        self._in_flight.append(seq)
-        self.sent += 1
-        return seq, data
-
-    def ack(self, seq: int) -> None:
-        while self._in_flight and self._in_flight[0] <= seq:
-            self._in_flight.popleft()
-
-    @property
-    def queued(self) -> int:
-        return len(self._queue)
-
-    @property
-    def in_flight(self) -> int:
-        return len(self._in_flight)
-
-
-class Window:
-    """Samples of the last ``seconds`` (input rate, latency percentiles); clock passed in."""
-
-    def __init__(self, seconds: float = 5.0) -> None:
-        self.seconds = seconds
-        self._t: deque[float] = deque()
-        self._v: deque[float] = deque()
-
-    def add(self, now: float, value: float = 0.0) -> None:
-        self._t.append(now)
-        self._v.append(value)
-        self._trim(now)
-
-    def _trim(self, now: float) -> None:
-        while self._t and self._t[0] < now - self.seconds:
-            self._t.popleft()
-            self._v.popleft()
-
-    def rate(self, now: float) -> float:
-        """Samples per second over the window (over the span seen, while it is shorter)."""
-        self._trim(now)
-        if len(self._t) < 2:
-            return 0.0
-        span = min(self.seconds, now - self._t[0])
-        return len(self._t) / span if span > 0 else 0.0
-
-    def percentiles(self, now: float, qs=(50.0, 99.0)) -> dict[str, float]:
-        self._trim(now)
-        return percentiles(self._v, qs)
-
-
-# ----------------------------------------------------------------------------- encoding
-def model_message(model: ModelMsg) -> str:
-    """The page's model message (JSON text): names, subject slices, rigid bodies, rate."""
-    return json.dumps(
-        {
-            "type": "model",
-            "stream": model.stream,
-            "model": model.model,
-            "names": list(model.names),
-            "subjects": [list(s) for s in model.subjects],
-            "bodies": [list(b) for b in model.bodies],
-            "rate": model.rate,
-        }
-    )
-
-
-def encode_view_frame(r: Received) -> bytes:
-    """One frame for the page (binary WebSocket message, little-endian)::
-
-        u32 H | H bytes JSON header, space-padded to a multiple of 4 |
-        f32 positions (M x 3, NaN = missing) | f32 unlabeled (K x 3) | u8 state (M)
-
-    The header holds ``seq``, ``t``, ``model``, ``m``, ``k`` and the frame's end-to-end
-    latency ``lat_ms`` (sender stamp -> viewer receipt; null when the sender sent no stamp).
-    """
-    m = r.msg
-    lat = r.latency_ms
-    header = json.dumps(
-        {
-            "seq": m.seq,
-            "t": m.t,
-            "model": m.model,
-            "m": len(m.state),
-            "k": len(m.unlabeled),
-            "lat_ms": None if lat is None else round(lat, 3),
-        }  # fmt: skip
-    ).encode()
-    header += b" " * (-(4 + len(header)) % 4)
-    return b"".join(
-        (
-            struct.pack("<I", len(header)),
-            header,
-            np.ascontiguousarray(m.positions, dtype="<f4").tobytes(),
-            np.ascontiguousarray(m.unlabeled, dtype="<f4").tobytes(),
-            np.ascontiguousarray(m.state, dtype="u1").tobytes(),
-        )
-    )
-
-
-def frame_counts(r: Received, subjects: tuple[tuple[str, int, int], ...]) -> dict:
-    """What the page should draw for a frame: markers per subject (observed + recovered),
-    observed and recovered markers, unlabeled points (the browser test compares
-    ``viewerState`` to this)."""
-    st = r.msg.state
-    return {
-        "drawn": {
-            s: int(np.count_nonzero(st[a : a + n] != MarkerState.MISSING)) for s, a, n in subjects
-        },  # fmt: skip
-        "observed": int(np.count_nonzero(st == MarkerState.OBSERVED)),
-        "recovered": int(np.count_nonzero(st == MarkerState.RECOVERED)),
-        "unlabeled": len(r.msg.unlabeled),
-    }
 
 
 # ----------------------------------------------------------------------------- server

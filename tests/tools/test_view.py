@@ -20,14 +20,13 @@ from labeler_service.service.protocol import LabeledMsg, ModelMsg, decode, encod
 from labeler_service.service.settings import load_settings
 from labeler_service.service.stream import StreamState
 from labeler_service.tools.subscribe import Received
-from labeler_service.tools.view import (
+from labeler_service.tools.view import Viewer, is_loopback
+from labeler_service.tools.view_frames import (
     Decimator,
     Outbox,
-    Viewer,
     Window,
     encode_view_frame,
     frame_counts,
-    is_loopback,
     model_message,
 )
 

@@ -16,7 +16,7 @@ import shutil
 import numpy as np
 import pytest
 
-from labeler_service.tools.view import frame_counts
+from labeler_service.tools.view_frames import frame_counts
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
