@@ -7,8 +7,10 @@ process subscribes and records each labeled frame's labeling time (``proc_us``, 
 the service) and end-to-end latency. Runs alternate
 (``--repeats`` rounds of ``--modes``): *without* a viewer; *viewer*: ``mocap-labeler view`` (a
 subprocess) with no page open; *browser*: the viewer and headless Chromium (Debian's package,
-through Playwright, WebGL in SwiftShader, ``--browser-nice``) showing its page, whose
-``viewerState`` is sampled every second. Prints one JSON object (last line):
+through Playwright, WebGL in SwiftShader) showing its page, driven from a child process run at
+``--browser-nice`` (default 10, as ``view`` itself), which samples ``viewerState`` every
+second. ``--view-fps`` is the viewer's ``--fps`` (default 60). Prints one JSON object (last
+line):
 
 - per mode: medians over its runs of ``labeling_ms_p50``/``p99`` (frames after the first
   second) and ``latency_ms_p50``/``p99``;
