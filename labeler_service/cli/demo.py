@@ -275,18 +275,22 @@ def _start_view(args: argparse.Namespace, out: Path):
     """``--view``: ``mocap-labeler view`` in a subprocess on the demo's stream (its own process,
     like a user's viewer). The service's UDP port is chosen here so the viewer knows it first."""
     import atexit
+    import signal
     import socket
     import subprocess
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         args.udp_port = s.getsockname()[1]
-    log = (out / "view.log").open("w")
     cmd = [sys.executable, "-m", "labeler_service.cli.main", "view", "--from",
            f"udp://127.0.0.1:{args.udp_port}/demo", "--port", str(args.view_port)]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
+    with (out / "view.log").open("w") as log:  # the child keeps its own descriptor
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
     atexit.register(lambda: proc.poll() is None and proc.terminate())
-    line = proc.stdout.readline() if proc.stdout else ""
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so that atexit runs
+    assert proc.stdout is not None
+    with proc.stdout:  # the viewer prints one line: its address
+        line = proc.stdout.readline()
     if not line.startswith("view "):
         proc.wait(timeout=10)
         raise MocapError(f"the live view did not start: {(out / 'view.log').read_text()[-800:]}")
@@ -296,7 +300,10 @@ def _start_view(args: argparse.Namespace, out: Path):
 
 
 def _keep_viewing(proc, url: str) -> None:
-    """Keeps the viewer serving the demo's last frames until Ctrl-C."""
+    """Keeps the viewer serving the demo's last frames until Ctrl-C (or SIGTERM)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # even if started with it ignored
     print(f"the live view keeps showing the last frames at {url}: Ctrl-C to stop", flush=True)
     try:
         proc.wait()

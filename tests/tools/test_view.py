@@ -386,3 +386,36 @@ def test_the_viewer_follows_an_mqtt_stream(tmp_path, rng):
         stream, model, seqs = run(go(broker))
     assert stream == "vol" and model["stream"] == "vol" and len(model["names"]) == 8
     assert seqs == sorted(seqs) and seqs[0] >= 20
+
+
+@pytest.mark.slow
+def test_demo_view_keeps_serving_the_last_frames_until_ctrl_c(tmp_path):
+    import signal
+    import urllib.request
+
+    cli = [sys.executable, "-m", "labeler_service.cli.main", "demo", "--view", "--view-port", "0",
+           "--frames", "150", "--out", str(tmp_path)]  # fmt: skip
+    with subprocess.Popen(
+        cli, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    ) as demo:
+        try:
+            lines = []
+            for line in demo.stdout:
+                lines.append(line)
+                if "Ctrl-C to stop" in line:
+                    break
+            url = next(x.split()[2] for x in lines if x.startswith("live view"))
+            assert url.startswith("http://127.0.0.1:")
+            with urllib.request.urlopen(url + "api/state", timeout=10) as r:
+                state = json.loads(r.read())
+            assert state["stream"] == "demo" and state["last_seq"] == 149  # the demo's last frame
+            assert state["frames_out"] > 0 and state["status"] == "offline"
+            with urllib.request.urlopen(url, timeout=10) as r:
+                assert b"viewer.js" in r.read()
+            demo.send_signal(signal.SIGINT)
+            assert demo.wait(timeout=30) == 0
+        except BaseException:
+            demo.terminate()  # never leave it (and its viewer) serving
+            raise
+    with pytest.raises(OSError):  # the viewer is gone with the demo
+        urllib.request.urlopen(url + "api/state", timeout=5)
