@@ -46,7 +46,7 @@ def _scene():
     return corrupt(cap, spec)
 
 
-async def _run(chromium: str, out_png) -> tuple[list[dict], dict, list[tuple[int, dict]]]:
+async def _run(chromium: str, out_png) -> tuple[list[dict], list[dict], dict, list]:
     from playwright.async_api import async_playwright
 
     from labeler_service.service.server import Server
@@ -95,14 +95,20 @@ async def _run(chromium: str, out_png) -> tuple[list[dict], dict, list[tuple[int
                         snapshots.append(await page.evaluate("window.viewerState"))
                         await asyncio.sleep(0.3)
                     await page.screenshot(path=str(out_png))
+                    # pause, then single-step back and forth through the page's buffer
+                    steps = []
+                    for key in (" ", "ArrowLeft", "ArrowLeft", "ArrowRight"):
+                        await page.keyboard.press(key)
+                        await asyncio.sleep(0.3)
+                        steps.append(await page.evaluate("window.viewerState"))
                     await browser.close()
             finally:
                 await cancel_and_wait(tasks)
             assert not errors, errors
             model = sub.models["view"]
             expected = [(s["seq"], frame_counts(labeled[s["seq"]], model.subjects))
-                        for s in snapshots if s["seq"] in labeled]  # fmt: skip
-            return snapshots, viewer.stats(), expected
+                        for s in snapshots + steps if s["seq"] in labeled]  # fmt: skip
+            return snapshots, steps, viewer.stats(), expected
 
 
 def test_the_page_draws_what_the_service_labeled(chromium, tmp_path):
@@ -112,12 +118,13 @@ def test_the_page_draws_what_the_service_labeled(chromium, tmp_path):
         async with asyncio.timeout(240):
             return await _run(chromium, png)
 
-    snapshots, stats, expected = asyncio.run(bounded())
+    snapshots, steps, stats, expected = asyncio.run(bounded())
     first = snapshots[0]
     assert first["error"] is None, first["error"]
     assert first["frames"] >= 100 and first["connected"]
-    assert len(expected) == len(snapshots), "the test's own subscriber missed a drawn frame"
-    for snap, (seq, want) in zip(snapshots, expected, strict=True):
+    drawn = snapshots + steps
+    assert len(expected) == len(drawn), "the test's own subscriber missed a drawn frame"
+    for snap, (seq, want) in zip(drawn, expected, strict=True):
         assert snap["seq"] == seq
         assert snap["drawn"] == want["drawn"], seq
         got = (snap["observed"], snap["recovered"], snap["unlabeled"])
@@ -129,6 +136,10 @@ def test_the_page_draws_what_the_service_labeled(chromium, tmp_path):
     assert stats["frames_in"] > 0 and first["fps"] > 0
     assert snapshots[-1]["seq"] > first["seq"]  # live: the page kept drawing new frames
     assert isinstance(first["drops"], int) and first["drops"] >= 0
+    paused, back1, back2, fwd = steps
+    assert paused["paused"] and all(s["paused"] for s in steps)
+    assert back2["seq"] < back1["seq"] < paused["seq"]  # the frames drawn before
+    assert fwd["seq"] == back1["seq"]
 
     import matplotlib.image as mpimg
 
