@@ -46,7 +46,28 @@ def _scene():
     return corrupt(cap, spec)
 
 
-async def _run(chromium: str, out_png) -> tuple[list[dict], list[dict], dict, list]:
+def _ball_pixel(png: bytes) -> tuple[int, int]:
+    """The centre of a 5x5 block of saturated (subject-coloured) pixels in a screenshot: a
+    marker ball, not a one-pixel stick; of those, the nearest to the middle of the page."""
+    import io
+
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(io.BytesIO(png))[..., :3]
+    sat = (img.max(axis=2) - img.min(axis=2)) > 0.35
+    h, w = sat.shape
+    block = np.ones((h - 4, w - 4), dtype=bool)
+    for dy in range(5):
+        for dx in range(5):
+            block &= sat[dy : dy + h - 4, dx : dx + w - 4]
+    ys, xs = np.nonzero(block)
+    assert ys.size, "no marker ball on screen"
+    # the one nearest the centre: the legend's colour swatches sit at the edge
+    i = int(np.argmin((ys + 2 - h / 2) ** 2 + (xs + 2 - w / 2) ** 2))
+    return int(xs[i]) + 2, int(ys[i]) + 2
+
+
+async def _run(chromium: str, out_png) -> tuple:
     from playwright.async_api import async_playwright
 
     from labeler_service.service.server import Server
@@ -101,6 +122,11 @@ async def _run(chromium: str, out_png) -> tuple[list[dict], list[dict], dict, li
                         await page.keyboard.press(key)
                         await asyncio.sleep(0.3)
                         steps.append(await page.evaluate("window.viewerState"))
+                    # hover over a drawn ball (paused, so it stays put): its name shows
+                    x, y = _ball_pixel(await page.screenshot())
+                    await page.mouse.move(x, y)
+                    await page.wait_for_selector("#tooltip", state="visible", timeout=5000)
+                    tooltip = await page.inner_text("#tooltip")
                     await browser.close()
             finally:
                 await cancel_and_wait(tasks)
@@ -108,7 +134,7 @@ async def _run(chromium: str, out_png) -> tuple[list[dict], list[dict], dict, li
             model = sub.models["view"]
             expected = [(s["seq"], frame_counts(labeled[s["seq"]], model.subjects))
                         for s in snapshots + steps if s["seq"] in labeled]  # fmt: skip
-            return snapshots, steps, viewer.stats(), expected
+            return snapshots, steps, viewer.stats(), expected, (tooltip, model.names)
 
 
 def test_the_page_draws_what_the_service_labeled(chromium, tmp_path):
@@ -118,7 +144,9 @@ def test_the_page_draws_what_the_service_labeled(chromium, tmp_path):
         async with asyncio.timeout(240):
             return await _run(chromium, png)
 
-    snapshots, steps, stats, expected = asyncio.run(bounded())
+    snapshots, steps, stats, expected, (tooltip, names) = asyncio.run(bounded())
+    name = tooltip.split()[0]
+    assert name in names and "mm" in tooltip, tooltip  # e.g. "P1:LASI (observed)  12, 3, 950 mm"
     first = snapshots[0]
     assert first["error"] is None, first["error"]
     assert first["frames"] >= 100 and first["connected"]

@@ -520,6 +520,10 @@ function pick() {
   hover = null;
   if (!model) return;
   raycaster.setFromCamera(mouse, camera);
+  // pick within the drawn ball (at least 7 px across): 4 px at the orbit target's distance
+  const mmPerPx = 2 * camera.position.distanceTo(controls.target)
+    * Math.tan((camera.fov * Math.PI) / 360) / Math.max(renderer.domElement.clientHeight, 1);
+  raycaster.params.Points.threshold = Math.max(MARKER_R, 4 * mmPerPx);
   const hits = raycaster.intersectObjects([observed, recovered, unlabeled], false);
   if (!hits.length) { tooltip.style.display = 'none'; return; }
   const hit = hits[0];
