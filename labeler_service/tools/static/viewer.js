@@ -129,6 +129,7 @@ function commit(p, n) {
   p.geometry.setDrawRange(0, n);
   p.geometry.attributes.position.needsUpdate = true;
   p.geometry.attributes.color.needsUpdate = true;
+  p.geometry.boundingSphere = null; // the raycaster's early-out sphere: recomputed when picking
 }
 
 let model = null;      // {names, subjects, bodies, ...} + colours, meshes
