@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from labeler_service.errors import MocapError
 from labeler_service.testing.realdata import real_file
 
 
@@ -46,6 +47,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ghosts", type=float, default=1.0, help="mean ghost points per frame")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed x capture rate")
     p.add_argument("--labeler", choices=["online", "baseline"], default="online")
+    p.add_argument("--view", action="store_true",
+                   help="live 3D view of the stream in a browser (prints the URL; keeps serving "
+                        "the last frames after the demo until Ctrl-C)")  # fmt: skip
+    p.add_argument("--view-port", type=int, default=8765, help="HTTP port of the live view")
 
 
 def _scene(seed: int, frames: int):
@@ -144,7 +149,8 @@ async def _run_pipeline(args, frames, workdir: Path):
 
     settings = {
         "labeler": args.labeler, "metrics_port": 0, "log_interval_s": 5.0,
-        "udp": {"port": 0}, "streams": [{"name": "demo", "rate": frames.rate}],
+        "udp": {"port": getattr(args, "udp_port", 0)},  # --view chooses it
+        "streams": [{"name": "demo", "rate": frames.rate}],
         # absorbs the one-time training stall at the first unlabeled frame (docs/service.md)
         "queue_size": 256,
     }  # fmt: skip
@@ -187,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"streaming over loopback UDP at {args.speed:g}x ({frames.n_frames / frames.rate / max(args.speed, 1e-9):.0f} s), "  # noqa: E501
           f"first {args.init_frames} frames labeled, {args.gaps} gap(s)/subject, "
           f"{args.ghosts:g} ghosts/frame")  # fmt: skip
+    view = _start_view(args, out) if args.view else None  # (process, url)
     res = asyncio.run(_run_pipeline(args, frames, out))
     scored = score(frames, res.received, args.init_frames)
     s = scored.summary()
@@ -249,4 +256,55 @@ def run(args: argparse.Namespace) -> int:
           f"drops {res.drops_service or 'none'}")  # fmt: skip
     print(f"report          {out / 'report.json'}, {p1.name}, {p2.name}, labeled.c3d "
           f"({report['seconds']:.0f} s)")  # fmt: skip
+    if view is not None:
+        _keep_viewing(*view)
     return 0
+
+
+def _start_view(args: argparse.Namespace, out: Path):
+    """``--view``: ``mocap-labeler view`` in a subprocess on the demo's stream (its own process,
+    like a user's viewer). The service's UDP port is chosen here so the viewer knows it first."""
+    import atexit
+    import signal
+    import socket
+    import subprocess
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        args.udp_port = s.getsockname()[1]
+    cmd = [sys.executable, "-m", "labeler_service.cli.main", "view", "--from",
+           f"udp://127.0.0.1:{args.udp_port}/demo", "--port", str(args.view_port)]  # fmt: skip
+    with (out / "view.log").open("w") as log:  # the child keeps its own descriptor
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
+
+    def stop_viewer() -> None:
+        if proc.poll() is None:
+            proc.terminate()
+
+    atexit.register(stop_viewer)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so that atexit runs
+    assert proc.stdout is not None
+    with proc.stdout:  # the viewer prints one line: its address
+        line = proc.stdout.readline()
+    if not line.startswith("view "):
+        proc.wait(timeout=10)
+        raise MocapError(f"the live view did not start: {(out / 'view.log').read_text()[-800:]}")
+    url = line.split()[1]
+    print(f"live view       {url}  (open it in a browser; log {out / 'view.log'})", flush=True)
+    return proc, url
+
+
+def _keep_viewing(proc, url: str) -> None:
+    """Keeps the viewer serving the demo's last frames until Ctrl-C (or SIGTERM)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # even if started with it ignored
+    print(f"the live view keeps showing the last frames at {url}: Ctrl-C to stop", flush=True)
+    try:
+        proc.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(timeout=10)

@@ -25,6 +25,7 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
     "serve": ("labeler_service.cli.serve", "the streaming labeling service (UDP/MQTT)"),
     "replay": ("labeler_service.cli.replay_capture", "stream a capture unlabeled to the service"),
     "subscribe": ("labeler_service.cli.subscribe_stream", "receive labeled frames, summarise"),
+    "view": ("labeler_service.cli.view", "live 3D view of the labeled stream in a browser"),
     "label": (
         "labeler_service.cli.label",
         "batch-label a capture with the online labeler (Yu, Li and Deng 2007)",

@@ -13,7 +13,8 @@ type           direction  keys (besides ``v``, ``type``)
 ``challenge``  out (UDP)  ``stream``, ``token`` (bin 8) — sent to an unconfirmed subscriber,
                           never larger than its request; it echoes ``token`` to confirm
 ``model``      out        ``stream``, ``model`` (id), ``names`` (M), ``subjects``
-                          ([name, start, count]...), ``rate``
+                          ([name, start, count]...), ``rate``, optional ``bodies``
+                          (rigid bodies: lists of marker indices into ``names``)
 ``labeled``    out        ``stream``, ``model``, ``seq``, ``t``, ``positions`` (M*3 float32),
                           ``state`` (M uint8), ``unlabeled`` (K*3 float32), ``src`` (input
                           ``sent`` or nil), ``recv``, ``sent`` (ns), ``proc_us``
@@ -94,6 +95,7 @@ class ModelMsg:
     names: tuple[str, ...]
     subjects: tuple[tuple[str, int, int], ...]
     rate: float
+    bodies: tuple[tuple[int, ...], ...] = ()  # optional key: marker indices per rigid body
 
 
 @dataclass(slots=True)
@@ -179,18 +181,23 @@ def encode_model(
     names: tuple[str, ...],
     subjects: tuple[tuple[str, int, int], ...],
     rate: float,
+    *,
+    bodies: tuple[tuple[int, ...], ...] | list[list[int]] | None = None,
 ) -> bytes:
-    return _pack(
-        {
-            "v": VERSION,
-            "type": "model",
-            "stream": stream,
-            "model": int(model),
-            "names": list(names),
-            "subjects": [list(s) for s in subjects],
-            "rate": float(rate),
-        }
-    )
+    """The model message; ``bodies`` (optional key, omitted when ``None``) lists each rigid
+    body's marker indices into ``names`` (the live view draws them as sticks)."""
+    msg: dict = {
+        "v": VERSION,
+        "type": "model",
+        "stream": stream,
+        "model": int(model),
+        "names": list(names),
+        "subjects": [list(s) for s in subjects],
+        "rate": float(rate),
+    }
+    if bodies is not None:
+        msg["bodies"] = [[int(i) for i in b] for b in bodies]
+    return _pack(msg)
 
 
 def encode_labeled(
@@ -333,7 +340,26 @@ def _decode_model(m: dict) -> ModelMsg:
         tuple(names),
         tuple(subj),
         _get_float(m, "rate", "field"),
+        _get_bodies(m, len(names)),
     )
+
+
+def _get_bodies(m: dict, n_markers: int) -> tuple[tuple[int, ...], ...]:
+    """The optional ``bodies`` key of a model message: ``()`` when absent."""
+    bodies = m.get("bodies")
+    if bodies is None:
+        return ()
+    if not isinstance(bodies, list):
+        raise _reject("field", "model bodies must be a list of marker-index lists")
+    out: list[tuple[int, ...]] = []
+    for b in bodies:
+        ok = isinstance(b, list) and len(b) > 0
+        if not ok or not all(isinstance(i, int) and not isinstance(i, bool) for i in b):
+            raise _reject("field", f"model body {b!r} must be a non-empty list of marker indices")
+        if not all(0 <= i < n_markers for i in b):
+            raise _reject("field", f"model body {b!r} indexes past the {n_markers} markers")
+        out.append(tuple(b))
+    return tuple(out)
 
 
 def _decode_labeled(m: dict, max_points: int) -> LabeledMsg:

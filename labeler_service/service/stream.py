@@ -92,6 +92,21 @@ class InitWindow:
     names: list[str]
 
 
+def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[int, ...], ...]:
+    """The online labeler's rigid bodies as marker indices into ``names`` (the model message's
+    optional ``bodies``); ``()`` for the baseline or before the labeler has its templates."""
+    from labeler_service.labeling.labeler import Labeler
+
+    if not isinstance(labeler, Labeler) or labeler.model is None:
+        return ()
+    index = {n: i for i, n in enumerate(names)}
+    return tuple(
+        tuple(index[f"{subj.name}:{subj.markers[i]}"] for i in body)
+        for subj in labeler.model.subjects
+        for body in subj.bodies
+    )
+
+
 @dataclass(slots=True)
 class Output:
     """What processing one frame produced: the encoded labeled message and its counts."""
@@ -164,6 +179,7 @@ class StreamState:
         """True when labeling ``f`` trains the labeler (first unlabeled frame after the init
         frames): the server runs :meth:`train` off the event loop."""
         return self.labeler is None and f.labels is None and bool(self.init_frames)
+        self.bodies: tuple[tuple[int, ...], ...] = ()  # model message (live view)
 
     def heavy(self, f: FrameMsg) -> bool:
         """Alias of :meth:`needs_training` (older name)."""
@@ -199,7 +215,8 @@ class StreamState:
         self.rate = float(rate)
         self.model_id += 1
         subjects = subject_slices(self.names)
-        self.model_payload = encode_model(self.name, self.model_id, self.names, subjects, self.rate)
+        self.bodies = rigid_bodies(labeler, self.names)
+        self.model_payload = self._encode_model()
         log.info(
             "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz)",
             self.name,
@@ -207,6 +224,11 @@ class StreamState:
             len(subjects),
             self.rate,
         )
+
+    def _encode_model(self) -> bytes:
+        assert self.rate is not None
+        return encode_model(self.name, self.model_id, self.names, subject_slices(self.names),
+                            self.rate, bodies=self.bodies or None)  # fmt: skip
 
     def _estimate_rate(self, init: list[FrameMsg]) -> float:
         if self.stream_settings.rate is not None:
