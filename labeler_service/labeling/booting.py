@@ -35,6 +35,22 @@ never-seen markers in ``Labeler`` would remove both limits; the wrapper keeps bo
 ``_rebuild`` so that a later change is local.
 
 ``labels`` passed to :meth:`BootingLabeler.process` are ignored: this labeler never needs them.
+
+**Boot off the frame path.** Step 4 is the only heavy one (0.1-0.3 s per attempt for 3-5
+performers, up to ~1 s for 10 on a busy machine). ``BootingLabeler(..., inline_boot=False)``
+never runs it inside :meth:`~BootingLabeler.process`; its owner runs it instead, in three calls:
+
+1. after a frame, in the frame thread: ``if lab.needs_boot(): snap = lab.boot_snapshot()``
+   (copies the window's last frame and track history; restarts the wait to the next attempt);
+2. anywhere, e.g. a worker thread with a time budget: ``res = lab.boot_step(snap)`` (reads only
+   the snapshot and the immutable templates);
+3. back in the frame thread, between two frames: ``lab.install_boot(snap, res)`` (labels follow
+   the snapshot's tracks to the current frame; the inner labeler is rebuilt from the window).
+
+Frames keep flowing unlabeled for the booting subjects meanwhile. Only one attempt should be in
+flight: skip step 1 while one runs. The service's background mechanism for heavy work (the
+same one that trains in-stream) is meant to drive exactly these calls; with ``inline_boot=True``
+(the default) :meth:`~BootingLabeler.process` does all three in the frame that is due.
 """
 
 from __future__ import annotations
@@ -49,6 +65,7 @@ from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot import (
     BootConfig,
     Booter,
+    BootResult,
     PointTracker,
     labels_along_tracks,
     track_history,
@@ -68,6 +85,19 @@ class _Frame:
     labels: np.ndarray  # (N,) global marker index or -1
 
 
+@dataclass
+class BootSnapshot:
+    """The input of one boot attempt (:meth:`BootingLabeler.boot_snapshot`): the window's last
+    frame, its tracks over the window, which of its points are free, the subjects looked for."""
+
+    t: float
+    points: np.ndarray  # (N, 3)
+    ids: np.ndarray  # (N,) track ids
+    history: np.ndarray  # (N, W, 3) NaN where untracked
+    free: np.ndarray  # (N,) bool
+    subjects: list[int]
+
+
 class BootingLabeler:
     """Labels a stream from a subject model alone (see the module docstring)."""
 
@@ -77,6 +107,7 @@ class BootingLabeler:
         rate: float,
         config: LabelerConfig | None = None,
         boot: BootConfig | None = None,
+        inline_boot: bool = True,
     ) -> None:
         if not (np.isfinite(rate) and rate > 0):
             raise LabelerError(f"invalid frame rate {rate}")
@@ -84,6 +115,8 @@ class BootingLabeler:
         self.rate = float(rate)
         self.config = config or LabelerConfig()
         self.boot_config = boot or BootConfig()
+        #: False: :meth:`process` never boots; the owner runs the attempts (see the module doc)
+        self.inline_boot = bool(inline_boot)
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)
@@ -104,6 +137,7 @@ class BootingLabeler:
         self._since_extend = 0
         self._inner: Labeler | None = None
         self._inner_map = np.zeros(0, dtype=np.int64)
+        self._extent: np.ndarray | None = None
         self.events: list[tuple[float, str, str]] = []  # (t, "boot" | "drop", subject)
         self.boot_ms: list[float] = []  # wall time of every boot attempt
 
@@ -111,6 +145,13 @@ class BootingLabeler:
     @property
     def marker_names(self) -> tuple[str, ...]:
         return self._names
+
+    def body_extent(self) -> np.ndarray:
+        """Per model marker, the longest pair distance within its rigid body (mm), from the
+        model's templates (as :meth:`Labeler.body_extent` reports them)."""
+        if self._extent is None:
+            self._extent = Labeler.from_model(self.model, self.rate, self.config).body_extent()
+        return self._extent
 
     @property
     def active_subjects(self) -> tuple[str, ...]:
@@ -156,16 +197,8 @@ class BootingLabeler:
                 obs = glab >= 0
                 pos[glab[obs]] = pts[obs]
                 state[glab[obs]] = MarkerState.OBSERVED
-        if (
-            len(self._window) == self._window.maxlen
-            and len(self._active) < len(self.model.subjects)
-            and self._since_attempt >= self._boot_wait
-        ):
-            self._since_attempt = 0
+        if self.inline_boot and self.needs_boot():
             booted = self._attempt(t)
-            self._boot_wait = (
-                self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
-            )
             if booted.size:
                 glab = self._window[-1].labels
                 obs = glab >= 0
@@ -242,22 +275,86 @@ class BootingLabeler:
                     taken.add(int(lab[j]))
 
     def _attempt(self, t: float) -> np.ndarray:
-        """One boot on the window; returns the model indices of the subjects booted."""
-        tb = time.perf_counter()
+        """One boot on the window, in this frame; returns the model indices booted."""
+        snap = self.boot_snapshot()
+        return self.install_boot(snap, self.boot_step(snap))
+
+    # ------------------------------------------------------------------ boot off the frame
+    def needs_boot(self) -> bool:
+        """True when a boot attempt is due: the window is full, some model subject is not
+        active and the (backed-off) wait since the last attempt has passed. With
+        ``inline_boot=False`` the owner checks this after each frame and runs the attempt
+        itself (:meth:`boot_snapshot`, :meth:`boot_step`, :meth:`install_boot`)."""
+        return (
+            len(self._window) == self._window.maxlen
+            and len(self._active) < len(self.model.subjects)
+            and self._since_attempt >= self._boot_wait
+        )
+
+    def boot_snapshot(self) -> BootSnapshot:
+        """What a boot attempt needs, copied from the window (cheap: a few ms at most); call it
+        in the thread that calls :meth:`process`. Restarts the wait to the next attempt."""
+        self._since_attempt = 0
         last = self._window[-1]
         frames = [(f.points, f.ids) for f in self._window]
-        hist = track_history(frames, last.ids)
-        inactive = [s for s in range(len(self.model.subjects)) if s not in self._active]
-        res = self._booter.run(last.points, hist, free=last.labels < 0, subjects=inactive)
+        return BootSnapshot(
+            t=last.t,
+            points=last.points.copy(),
+            ids=last.ids.copy(),
+            history=track_history(frames, last.ids),
+            free=last.labels < 0,
+            subjects=[s for s in range(len(self.model.subjects)) if s not in self._active],
+        )
+
+    def boot_step(self, snapshot: BootSnapshot) -> BootResult:
+        """The heavy part of an attempt (0.1-1 s with several performers): reads only the
+        snapshot and the prepared templates, changes no state of this labeler, so it may run in
+        another thread while :meth:`process` goes on."""
+        tb = time.perf_counter()
+        res = self._booter.run(
+            snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
+        )
         self.boot_ms.append((time.perf_counter() - tb) * 1e3)
-        if not res.subjects:
-            return np.zeros(0, dtype=np.int64)
-        self._spread(frames, last.ids, res.labels)
+        return res
+
+    def install_boot(self, snapshot: BootSnapshot, result: BootResult) -> np.ndarray:
+        """Installs ``result`` (of :meth:`boot_step` on ``snapshot``) between two frames, in
+        the thread that calls :meth:`process`; returns the model indices of the subjects booted.
+
+        The labels follow the snapshot's tracks to the current window (frames may have passed
+        since the snapshot): a track that ended meanwhile loses its label, a point the inner
+        labeler has labeled since keeps its label, and a subject that is active by now or keeps
+        fewer than three points is not installed."""
+        last = self._window[-1]
+        lab = result.labels
+        have = lab >= 0
+        order = np.argsort(snapshot.ids[have])
+        tid, tl = snapshot.ids[have][order], lab[have][order]
+        now = np.full(last.ids.shape[0], -1, dtype=np.int64)
+        if tid.size:
+            pos = np.minimum(np.searchsorted(tid, last.ids), tid.size - 1)
+            hit = (tid[pos] == last.ids) & (last.labels < 0)
+            now[hit] = tl[pos[hit]]
         names = {s.name: i for i, s in enumerate(self.model.subjects)}
-        booted = np.array([names[n] for n in res.subjects], dtype=np.int64)
-        self._active.update(int(s) for s in booted)
-        for n in res.subjects:
-            self.events.append((t, "boot", n))
+        keep: list[int] = []
+        for n in result.subjects:
+            s = names[n]
+            mine = (now >= self._offset[s]) & (now < self._offset[s + 1])
+            if s in self._active or np.count_nonzero(mine) < 3:
+                now[mine] = -1
+                continue
+            keep.append(s)
+        booted = np.array(keep, dtype=np.int64)
+        self._boot_wait = (
+            self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
+        )
+        if not booted.size:
+            return booted
+        frames = [(f.points, f.ids) for f in self._window]
+        self._spread(frames, last.ids, now)
+        self._active.update(keep)
+        for s in keep:
+            self.events.append((last.t, "boot", self.model.subjects[s].name))
         self._rebuild()
         return booted
 
