@@ -147,10 +147,20 @@ class BootingLabeler:
         return self._names
 
     def body_extent(self) -> np.ndarray:
-        """Per model marker, the longest pair distance within its rigid body (mm), from the
-        model's templates (as :meth:`Labeler.body_extent` reports them)."""
+        """``(M,)`` mm: per model marker the longest pair distance ``D`` of the smallest rigid
+        body of its template containing it (as :meth:`Labeler.body_extent`); NaN without one."""
         if self._extent is None:
-            self._extent = Labeler.from_model(self.model, self.rate, self.config).body_extent()
+            out = np.full(len(self._names), np.nan)
+            for s, tpl in enumerate(self.model.subjects):
+                d = np.array(tpl.D, dtype=np.float64)  # None -> nan
+                for body in tpl.bodies:
+                    b = np.asarray(body, dtype=np.int64)
+                    if b.size < 2:
+                        continue
+                    ext = float(np.nanmax(d[np.ix_(b, b)]))
+                    g = self._offset[s] + b
+                    out[g] = np.where(np.isfinite(out[g]), np.fmin(out[g], ext), ext)
+            self._extent = out
         return self._extent
 
     @property

@@ -1,0 +1,120 @@
+"""Booting through the one factory, and the boot step run off the frame path
+(``BootingLabeler(inline_boot=False)``: ``needs_boot`` / ``boot_snapshot`` / ``boot_step`` /
+``install_boot``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.test_boot import RATE, Stream, _run
+
+from labeler_service.errors import LabelerError
+from labeler_service.labeling.boot import BootConfig
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.labeling.labeler import Labeler
+from labeler_service.labeling.registry import make_labeler
+
+
+@pytest.fixture(scope="module")
+def walk():
+    from labeling.test_boot import _train
+
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(3, 4.0, "walk", seed=11, rate=RATE, ghosts=1.0)
+    half = cap.n_frames // 2
+    return _train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+
+
+def _accuracy(outs, truths, start: int) -> float:
+    ok = vis = 0
+    for o, t in zip(outs[start:], truths[start:], strict=True):
+        m = t >= 0
+        ok += int(np.count_nonzero(o.point_labels[m] == t[m]))
+        vis += int(m.sum())
+    return ok / vis
+
+
+def test_factory_builds_a_booting_labeler_only_with_a_model(walk):
+    model, _ = walk
+    lab = make_labeler("online", rate=RATE, model=model, boot=True)
+    assert isinstance(lab, BootingLabeler) and lab.marker_names == model.marker_names
+    cfg = BootConfig(window_s=0.2)
+    assert make_labeler("online", rate=RATE, model=model, boot=cfg).boot_config is cfg
+    assert isinstance(make_labeler("online", rate=RATE, model=model), Labeler)
+    with pytest.raises(LabelerError, match="needs a model"):
+        make_labeler("online", marker_names=("a:b",), rate=RATE, boot=True)
+    with pytest.raises(LabelerError, match="only the online labeler"):
+        make_labeler("baseline", rate=RATE, model=model, boot=True)
+    ext = lab.body_extent()
+    assert ext.shape == (len(model.marker_names),) and np.isfinite(ext).any()
+
+
+def test_process_never_boots_with_inline_boot_off(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    outs, _ = _run(lab, Stream(cap, model, seed=1), range(60))
+    assert lab.events == [] and lab.boot_ms == []
+    assert all(np.all(o.point_labels < 0) for o in outs)
+    assert lab.needs_boot()
+
+
+def test_boot_off_the_frame_path_matches_inline_boot(walk):
+    """The three calls run right after a frame give the inline labeler's result exactly."""
+    model, cap = walk
+    inline = BootingLabeler(model, RATE)
+    outside = BootingLabeler(model, RATE, inline_boot=False)
+    s1, s2 = Stream(cap, model, seed=2), Stream(cap, model, seed=2)
+    for f in range(cap.n_frames):
+        p1, _ = s1.frame(f)
+        p2, _ = s2.frame(f)
+        a = inline.process(p1, f / RATE)
+        b = outside.process(p2, f / RATE)
+        if outside.needs_boot():
+            snap = outside.boot_snapshot()
+            outside.install_boot(snap, outside.boot_step(snap))
+        if f + 1 < cap.n_frames:
+            continue
+        np.testing.assert_array_equal(a.point_labels, b.point_labels)
+    assert [e[1:] for e in inline.events] == [e[1:] for e in outside.events]
+    assert set(outside.active_subjects) == {"P1", "P2", "P3"}
+
+
+def test_boot_result_installed_frames_later_follows_the_tracks(walk):
+    """A boot that takes 12 frames (as in a worker thread): its labels are carried along the
+    tracks to the frame where it is installed, and the stream is labeled as well as inline."""
+    model, cap = walk
+    delay = 12
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=3)
+    pending: list[tuple[int, object, object]] = []
+    outs, truths = [], []
+    for f in range(cap.n_frames):
+        pts, tr = s.frame(f)
+        outs.append(lab.process(pts, f / RATE))
+        truths.append(tr)
+        if pending and f >= pending[0][0]:
+            _, snap, res = pending.pop()
+            lab.install_boot(snap, res)
+        elif not pending and lab.needs_boot():
+            snap = lab.boot_snapshot()
+            pending.append((f + delay, snap, lab.boot_step(snap)))
+    assert set(lab.active_subjects) == {"P1", "P2", "P3"}
+    boots = [t for t, e, _ in lab.events if e == "boot"]
+    assert boots and min(boots) >= (round(BootConfig().window_s * RATE) - 1 + delay) / RATE
+    assert _accuracy(outs, truths, round(0.6 * RATE)) >= 0.9
+
+
+def test_install_skips_a_subject_booted_meanwhile(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=4)
+    _run(lab, s, range(20))
+    snap = lab.boot_snapshot()
+    res = lab.boot_step(snap)
+    assert res.subjects
+    first = lab.install_boot(snap, res)
+    assert first.size == len(res.subjects)
+    events = list(lab.events)
+    again = lab.install_boot(snap, res)  # the same result twice: every subject active already
+    assert again.size == 0 and lab.events == events
