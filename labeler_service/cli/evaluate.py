@@ -155,11 +155,13 @@ def _print_table(report: dict) -> None:
     def sec(x: float | None) -> str:
         return "never" if x is None else f"{x:.3f} s"
 
+    n_ret = len(report["reid_s"])
+    reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {n_ret} returns"
     console.print(
         f"boot: {sec(report['boot_s_max'])} (slowest subject), accuracy after boot "
-        f"{report['accuracy_after_boot']}; re-identification p95 {sec(report['reid_s_p95'])} "
-        f"over {len(report['reid_s'])} returns; {report['absent_labeled']} points given labels "
-        f"of absent subjects; {report['identity_swaps']} identity swaps"
+        f"{report['accuracy_after_boot']}; {reid if n_ret else 'no returns'}; "
+        f"{report['absent_labeled']} points given labels of absent subjects; "
+        f"{report['identity_swaps']} identity swaps"
     )
     worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
     if worst:

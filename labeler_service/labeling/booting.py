@@ -48,7 +48,9 @@ never runs it inside :meth:`~BootingLabeler.process`; its owner runs it instead,
    the snapshot's tracks to the current frame; the inner labeler is rebuilt from the window).
 
 Frames keep flowing unlabeled for the booting subjects meanwhile. Only one attempt should be in
-flight: skip step 1 while one runs. The service's background mechanism for heavy work (the
+flight: skip step 1 while one runs. An attempt abandoned over its budget is reported with
+``lab.install_boot(snap, None)`` (the wait to the next attempt doubles, as after a fruitless
+one). The service's background mechanism for heavy work (the
 same one that trains in-stream) is meant to drive exactly these calls; with ``inline_boot=True``
 (the default) :meth:`~BootingLabeler.process` does all three in the frame that is due.
 """
@@ -327,14 +329,18 @@ class BootingLabeler:
         self.boot_ms.append((time.perf_counter() - tb) * 1e3)
         return res
 
-    def install_boot(self, snapshot: BootSnapshot, result: BootResult) -> np.ndarray:
+    def install_boot(self, snapshot: BootSnapshot, result: BootResult | None) -> np.ndarray:
         """Installs ``result`` (of :meth:`boot_step` on ``snapshot``) between two frames, in
         the thread that calls :meth:`process`; returns the model indices of the subjects booted.
 
         The labels follow the snapshot's tracks to the current window (frames may have passed
         since the snapshot): a track that ended meanwhile loses its label, a point the inner
         labeler has labeled since keeps its label, and a subject that is active by now or keeps
-        fewer than three points is not installed."""
+        fewer than three points is not installed. ``result=None`` (the attempt was abandoned,
+        e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles."""
+        if result is None:
+            self._boot_wait = min(2 * self._boot_wait, self._boot_every_max)
+            return np.zeros(0, dtype=np.int64)
         last = self._window[-1]
         lab = result.labels
         have = lab >= 0

@@ -118,3 +118,26 @@ def test_install_skips_a_subject_booted_meanwhile(walk):
     events = list(lab.events)
     again = lab.install_boot(snap, res)  # the same result twice: every subject active already
     assert again.size == 0 and lab.events == events
+
+
+def test_an_abandoned_attempt_backs_off(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=6)
+    frames = iter(range(cap.n_frames))
+    for f in frames:
+        pts, _ = s.frame(f)
+        lab.process(pts, f / RATE)
+        if lab.needs_boot():
+            break
+    snap = lab.boot_snapshot()
+    assert lab.install_boot(snap, None).size == 0 and lab.events == []
+    waited = 0
+    for f in frames:
+        pts, _ = s.frame(f)
+        lab.process(pts, f / RATE)
+        waited += 1
+        if lab.needs_boot():
+            break
+    every = round(BootConfig().boot_every_s * RATE)
+    assert waited == 2 * every
