@@ -92,6 +92,17 @@ class BootConfig(BaseModel):
         description="BootingLabeler: a subject with fewer of its markers observed is vanishing "
         "(labels withheld)",
     )
+    vanish_relative: float = Field(
+        0.35,
+        ge=0,
+        le=1,
+        description="BootingLabeler: a subject whose observed markers fall below this fraction "
+        "of its recent count (a moving average over vanish_memory_s) is vanishing too: a "
+        "performer who leaves while some of its labels sit on other performers' points",
+    )
+    vanish_memory_s: float = Field(
+        0.5, gt=0, description="BootingLabeler: time constant of that recent count"
+    )
     rms_ratio: float = Field(
         1.25,
         gt=1,

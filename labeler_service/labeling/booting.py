@@ -8,11 +8,12 @@
    :class:`~labeler_service.labeling.labeler.Labeler` built with its public API only
    (``Labeler.from_model`` on a model of the *active* subjects, then the recent frames with
    their labels as its labeled first frames);
-3. a subject of the active set with fewer than ``vanish_fraction`` of its markers observed has
-   its labels withheld (when a performer leaves, the inner labeler gives its last labels to
-   points near where it was); after ``drop_after_s`` it is dropped: the inner labeler is
-   rebuilt without it, so none of its labels can go to other points or ghosts while it is
-   away; when it comes back it is booted again (re-identification, anywhere);
+3. a subject of the active set with fewer than ``vanish_fraction`` of its markers observed, or
+   fewer than ``vanish_relative`` of its recent count (moving average over
+   ``vanish_memory_s``), has its labels withheld (when a performer leaves, the inner labeler
+   gives its last labels to points near where it was); after ``drop_after_s`` it is dropped:
+   the inner labeler is rebuilt without it, so none of its labels can go to other points or
+   ghosts while it is away; when it comes back it is booted again (re-identification, anywhere);
 4. every ``boot_every_s`` (doubling after each fruitless attempt up to ``boot_backoff_s``: a
    model's absent subjects would otherwise cost a boot every 0.05 s), while some model subject
    is not active, the boot
@@ -130,6 +131,8 @@ class BootingLabeler:
         self._subject_of = np.repeat(np.arange(len(sizes)), sizes)
         self._active: set[int] = set()
         self._gone = np.zeros(len(sizes), dtype=np.int64)
+        self._recent = np.zeros(len(sizes))  # moving average of observed markers (0: unset)
+        self._recent_alpha = min(1.0, 1.0 / max(1.0, c.vanish_memory_s * self.rate))
         self._drop_frames = max(1, round(c.drop_after_s * self.rate))
         self._boot_every = max(1, round(c.boot_every_s * self.rate))
         self._boot_every_max = max(self._boot_every, round(c.boot_backoff_s * self.rate))
@@ -229,15 +232,21 @@ class BootingLabeler:
         self, glab: np.ndarray, state: np.ndarray, pos: np.ndarray, t: float
     ) -> None:
         """Withholds the labels of subjects with fewer than ``vanish_fraction`` of their markers
-        observed (a performer leaving: the inner labeler would give its last labels to points
-        near where it was) and drops those gone for ``drop_after_s``."""
+        observed, or fewer than ``vanish_relative`` of their recent count (a performer leaving:
+        the inner labeler would give its last labels to points near where it was, and labels
+        the boot put on other performers' points would stay there) and drops those gone for
+        ``drop_after_s``."""
         dropped = []
         c = self.boot_config
         for s in sorted(self._active):
             sl = slice(self._offset[s], self._offset[s + 1])
             n_obs = int(np.count_nonzero(state[sl] == MarkerState.OBSERVED))
-            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)):
+            ref = self._recent[s]
+            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)) and (
+                ref <= 0 or n_obs >= c.vanish_relative * ref
+            ):
                 self._gone[s] = 0
+                self._recent[s] = n_obs if ref <= 0 else ref + self._recent_alpha * (n_obs - ref)
                 continue
             self._gone[s] += 1
             mine = (glab >= sl.start) & (glab < sl.stop)
@@ -251,6 +260,7 @@ class BootingLabeler:
         for s in dropped:
             self._active.discard(s)
             self._gone[s] = 0
+            self._recent[s] = 0.0
             self.events.append((t, "drop", self.model.subjects[s].name))
         # the window's labels of dropped subjects are forgotten (a rebuild must not see them)
         gone = np.isin(self._subject_of, dropped)
