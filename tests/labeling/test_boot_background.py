@@ -141,3 +141,23 @@ def test_an_abandoned_attempt_backs_off(walk):
             break
     every = round(BootConfig().boot_every_s * RATE)
     assert waited == 2 * every
+
+
+@pytest.mark.parametrize("relative, dropped", [(0.35, True), (0.0, False)])
+def test_subject_losing_most_of_its_markers_at_once_is_dropped(walk, relative, dropped):
+    """P2 loses 75 % of its markers at once but keeps more than ``vanish_fraction`` (as when
+    a performer leaves while the boot had put some of its labels on another's points): the
+    relative rule drops it, the absolute one alone keeps it."""
+    model, cap = walk
+    pos = cap.positions.copy()
+    cols = [i for i, n in enumerate(cap.labels) if n.startswith("P2:")]
+    keep = cols[: max(1, round(0.25 * len(cols)))]
+    gone = 150
+    pos[gone:, [c for c in cols if c not in keep]] = np.nan
+    cfg = BootConfig(vanish_relative=relative)
+    lab = BootingLabeler(model, RATE, boot=cfg)
+    _run(lab, Stream(cap.with_positions(pos), model, seed=7, hide=0.0), range(gone + 30))
+    drops = [t for t, e, n in lab.events if e == "drop" and n == "P2"]
+    assert bool(drops) is dropped
+    if dropped:
+        assert gone / RATE < drops[0] <= (gone + 1) / RATE + cfg.drop_after_s
