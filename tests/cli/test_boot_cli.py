@@ -111,3 +111,22 @@ def test_evaluate_boot_errors(scene, capsys):
     args = ["evaluate", str(test), "--model", str(model), "--init-frames", "0"]
     assert main([*args, "--method", "closest-point", "--no-progress"]) == 2
     assert "closest-point cannot start" in capsys.readouterr().err
+
+
+def test_replay_with_no_init_frames_sends_no_labels(scene):
+    import asyncio
+
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.service.protocol import decode
+    from labeler_service.tools.replay import replay
+
+    _, _, _, _, test = scene
+    frames = corrupt(read_capture(test).frames(0, 20), CorruptionSpec(seed=1))
+    sent = []
+
+    async def send(payload: bytes) -> bool:
+        sent.append(decode(payload))
+        return True
+
+    stats = asyncio.run(replay(frames, send, init_frames=0, speed=0))
+    assert stats.sent == 20 and all(m.labels is None for m in sent)
