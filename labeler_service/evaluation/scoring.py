@@ -12,6 +12,9 @@ window only:
   longest marker-pair distance of the marker's rigid body (seed 003 Fig. 8), as reported by the
   labeler's ``body_extent()``; ``recovery_rate`` is the fraction of removed samples recovered;
 - ``ms_per_frame_p50/p99``: wall time of ``process`` per frame in this process, after warm-up.
+- boot and re-identification (``boot_s_max``, ``accuracy_after_boot``, ``reid_s_p95``,
+  ``absent_labeled``, ``identity_swaps``): see :class:`Scorer`. With a model and
+  ``init_frames=0`` nothing is labeled: the labeler boots (``make_labeler(..., boot=True)``).
 
 A method that does not exist is never scored: ``available_methods`` says why.
 """
