@@ -35,7 +35,10 @@ An ``add_subjects(labels)`` / ``drop_subject(name)`` and a template-seeded acqui
 never-seen markers in ``Labeler`` would remove both limits; the wrapper keeps both steps in
 ``_rebuild`` so that a later change is local.
 
-``labels`` passed to :meth:`BootingLabeler.process` are ignored: this labeler never needs them.
+This labeler never needs labels; a frame that carries them (``process(points, t, labels)``)
+is taken as labeled: its subjects become active without a boot and the inner labeler starts
+from those labels (as ``Labeler.from_model`` with labeled first frames), so a stream configured
+with a model can use this one labeler whether its client sends labels or not.
 
 **Boot off the frame path.** Step 4 is the only heavy one (0.1-0.3 s per attempt for 3-5
 performers, up to ~1 s for 10 on a busy machine). ``BootingLabeler(..., inline_boot=False)``
@@ -141,9 +144,10 @@ class BootingLabeler:
         self._extend_every = max(1, round(c.extend_every_s * self.rate))
         self._since_extend = 0
         self._inner: Labeler | None = None
+        self._labeled_run = False  # labeled frames seen since the last rebuild
         self._inner_map = np.zeros(0, dtype=np.int64)
         self._extent: np.ndarray | None = None
-        self.events: list[tuple[float, str, str]] = []  # (t, "boot" | "drop", subject)
+        self.events: list[tuple[float, str, str]] = []  # (t, "boot"|"labeled"|"drop", subject)
         self.boot_ms: list[float] = []  # wall time of every boot attempt
 
     # ------------------------------------------------------------------ protocol
@@ -176,7 +180,11 @@ class BootingLabeler:
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None
     ) -> LabeledFrame:
-        """Labels one frame of anonymous points ``(N, 3)`` mm; ``labels`` are ignored."""
+        """Labels one frame of anonymous points ``(N, 3)`` mm. ``labels`` (optional, model marker
+        index per point, -1 = unknown) are taken as that frame's answer: a subject with three
+        or more labeled points becomes active without a boot, and the first unlabeled frame
+        after labeled ones rebuilds the inner labeler from the window with those labels (the
+        labeled start of ``Labeler.from_model``, so one labeler serves both starts)."""
         t0 = time.perf_counter_ns()
         pts = np.asarray(points, dtype=np.float32)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -187,6 +195,11 @@ class BootingLabeler:
         t = float(t)
         m = len(self._names)
         ids = self._tracker.update(pts, t)
+        if labels is not None:
+            return self._labeled(pts, t, ids, labels, t0)
+        if self._labeled_run:
+            self._labeled_run = False
+            self._rebuild()
         glab = np.full(pts.shape[0], -1, dtype=np.int64)
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         state = np.zeros(m, dtype=np.uint8)
@@ -222,6 +235,43 @@ class BootingLabeler:
         return LabeledFrame(
             t=t,
             point_labels=glab.astype(np.int32),
+            positions=pos,
+            state=state,
+            process_us=(time.perf_counter_ns() - t0) / 1e3,
+        )
+
+    def _labeled(
+        self, pts: np.ndarray, t: float, ids: np.ndarray, labels: np.ndarray, t0: int
+    ) -> LabeledFrame:
+        """A frame that carries its labels (see :meth:`process`)."""
+        m = len(self._names)
+        lab = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
+        if lab.shape[0] != pts.shape[0]:
+            raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
+        lab = np.where((lab >= 0) & (lab < m), lab, -1)
+        have = np.flatnonzero(lab >= 0)
+        _, first = np.unique(lab[have], return_index=True)
+        dup = np.setdiff1d(np.arange(have.size), first)
+        lab[have[dup]] = -1  # a label given twice: the first point keeps it
+        self._window.append(_Frame(t, pts, ids, lab.copy()))
+        self._since_attempt += 1
+        self._since_extend += 1
+        counts = np.bincount(self._subject_of[lab[lab >= 0]], minlength=len(self.model.subjects))
+        for s in np.flatnonzero(counts >= 3):
+            if int(s) not in self._active:
+                self._active.add(int(s))
+                self._recent[s] = 0.0
+                self._gone[s] = 0
+                self.events.append((t, "labeled", self.model.subjects[int(s)].name))
+        self._labeled_run = True
+        pos = np.full((m, 3), np.nan, dtype=np.float32)
+        state = np.zeros(m, dtype=np.uint8)
+        ok = lab >= 0
+        pos[lab[ok]] = pts[ok]
+        state[lab[ok]] = MarkerState.OBSERVED
+        return LabeledFrame(
+            t=t,
+            point_labels=lab.astype(np.int32),
             positions=pos,
             state=state,
             process_us=(time.perf_counter_ns() - t0) / 1e3,

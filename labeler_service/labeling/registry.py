@@ -21,8 +21,11 @@ Starting from a model, there are two ways (``boot``):
 - ``boot=True`` (or a :class:`~labeler_service.labeling.boot.BootConfig`): a
   :class:`~labeler_service.labeling.booting.BootingLabeler`, which needs no labeled frame at all:
   it boots the subjects from anonymous points, drops a subject that leaves and boots it again
-  when it returns. This is what ``--init-frames 0`` means in ``evaluate``, ``label`` and the
-  service. Only the ``online`` kind boots; ``boot`` without a model is an error.
+  when it returns. Frames that do carry labels are used as ``from_model`` would use them, so
+  this one labeler serves a stream whether or not its client sends labels. This is what
+  ``--init-frames 0`` means in ``evaluate`` and ``label``. Only the ``online`` kind boots;
+  ``boot`` without a model is an error.
+
 The labeler modules are imported only when built, so importing this module stays cheap.
 """
 

@@ -161,3 +161,39 @@ def test_subject_losing_most_of_its_markers_at_once_is_dropped(walk, relative, d
     assert bool(drops) is dropped
     if dropped:
         assert gone / RATE < drops[0] <= (gone + 1) / RATE + cfg.drop_after_s
+
+
+def test_labeled_first_frames_start_the_booting_labeler_like_from_model(walk):
+    """A client that does send labels: the same labeler starts from them, with no boot."""
+    model, cap = walk
+    n_lab = 5
+    results = {}
+    for name, lab in (
+        ("booting", BootingLabeler(model, RATE)),
+        ("from_model", Labeler.from_model(model, RATE)),
+    ):
+        s = Stream(cap, model, seed=8)
+        outs, truths = [], []
+        for f in range(cap.n_frames):
+            pts, tr = s.frame(f)
+            outs.append(lab.process(pts, f / RATE, tr if f < n_lab else None))
+            truths.append(tr)
+        results[name] = _accuracy(outs, truths, n_lab)
+        if name == "booting":
+            kinds = {e for _, e, _ in lab.events}
+            assert kinds == {"labeled"} and set(lab.active_subjects) == {"P1", "P2", "P3"}
+            np.testing.assert_array_equal(outs[0].point_labels, truths[0])
+    assert results["booting"] >= results["from_model"] - 0.01
+    assert results["booting"] >= 0.95
+
+
+def test_labeled_frame_errors(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE)
+    pts, tr = Stream(cap, model, seed=9).frame(0)
+    with pytest.raises(LabelerError, match="labels for"):
+        lab.process(pts, 0.0, tr[:-1])
+    twice = tr.copy()
+    twice[1] = twice[0] = 0
+    out = lab.process(pts, 0.0, twice)
+    assert np.count_nonzero(out.point_labels == 0) == 1
