@@ -98,9 +98,9 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
-        for body in tpl.bodies:
-            for tri in body.anchors:
-                mk = body.markers[list(tri)]
+        for bd in tpl.bodies:
+            for tri in bd.anchors:
+                mk = bd.markers[list(tri)]
                 for a, b in ((0, 1), (0, 2), (1, 2)):
                     tpl.r_max = max(tpl.r_max, float(Dm[mk[a], mk[b]] + tol[mk[a], mk[b]]))
         out.append(tpl)

@@ -45,8 +45,8 @@ class PointTracker:
         has_vel = np.zeros(n, dtype=bool)
         if n and self._pts.shape[0]:
             pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
-            gate = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
-            gate = np.where(self._has_vel, gate, gate + c.track_speed_mm_s * dt)
+            g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+            gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
             d_pt, j_pt = cKDTree(pred).query(pts)  # point -> nearest prediction
             _, i_tr = cKDTree(pts).query(pred)  # prediction -> nearest point
             idx = np.arange(n)
