@@ -1,4 +1,13 @@
-"""``mocap-labeler train structure IN... --out MODEL``: subject templates from labeled captures."""
+"""``mocap-labeler train structure IN... --out MODEL``: subject templates from labeled captures.
+
+Each ``IN`` is ``TAKE[:start[:stop]]``: a labeled capture and, optionally, the frame range to
+train on (``start`` inclusive, ``stop`` exclusive, in the take's own frames), so that a model
+can be trained on other segments of the takes a scene is made of. Subjects are named as
+``compose`` names them: a take's own subject prefix, else its file stem (an unprefixed
+single-person take ``walk.c3d`` trains subject ``walk``); ``--rename OLD=NEW`` renames a
+subject of the model (repeatable). A model whose subject names match the scene's is what
+``evaluate --model`` and ``label --model`` score and label against.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +16,19 @@ import json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("inputs", nargs="+", metavar="IN", help="labeled captures (.c3d/.trc/.npz)")
+    p.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="IN",
+        help="labeled captures (.c3d/.trc/.npz), each TAKE[:start[:stop]] (frames)",
+    )
+    p.add_argument(
+        "--rename",
+        action="append",
+        default=[],
+        metavar="OLD=NEW",
+        help="rename subject OLD of the model to NEW (repeatable)",
+    )
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (JSON)")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the files")
     p.add_argument("--tolerance-mm", type=float, default=6.0, help="largest A + w D in a body")
@@ -27,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         min_size=args.min_size,
         max_size=args.max_size,
         up=args.up,
-    ).fit(args.inputs)
+    ).fit([_read_take(t, args.up, _renames(args.rename)) for t in args.inputs])
     model = trainer.model_
     save_model(model, args.out)
     summary = {
@@ -49,3 +70,62 @@ def run(args: argparse.Namespace) -> int:
             print(f"{name}: {s['markers']} markers in {s['bodies']} rigid bodies")
         print(f"wrote {args.out}")
     return 0
+
+
+def parse_take(text: str) -> tuple[str, int, int | None]:
+    """``TAKE[:start[:stop]]`` -> ``(path, start, stop)``; a ``TAKE`` that exists as a file is
+    taken whole even if its name holds colons."""
+    from pathlib import Path
+
+    from labeler_service.errors import ModelError
+
+    if Path(text).exists():
+        return text, 0, None
+    parts = text.rsplit(":", 2)
+    path, nums = parts[0], parts[1:]
+    try:
+        vals = [int(x) if x != "" else None for x in nums]
+    except ValueError:
+        raise ModelError(f"bad take {text!r}: expected TAKE[:start[:stop]] (frames)") from None
+    start = vals[0] if vals and vals[0] is not None else 0
+    stop = vals[1] if len(vals) > 1 else None
+    if start < 0 or (stop is not None and stop <= start):
+        raise ModelError(f"bad take {text!r}: need 0 <= start < stop")
+    return path, start, stop
+
+
+def _renames(items: list[str]) -> dict[str, str]:
+    from labeler_service.errors import ModelError
+
+    out = {}
+    for it in items:
+        old, sep, new = it.partition("=")
+        if not sep or not old or not new or ":" in new:
+            raise ModelError(f"bad --rename {it!r}: expected OLD=NEW (no ':' in NEW)")
+        out[old] = new
+    return out
+
+
+def _read_take(text: str, up: str, rename: dict[str, str]):
+    """The capture of ``TAKE[:start[:stop]]``, its subjects named as ``compose`` names them."""
+    from pathlib import Path
+
+    from labeler_service.capture import Capture, read_capture, split_label
+    from labeler_service.errors import ModelError
+
+    path, start, stop = parse_take(text)
+    if not Path(path).exists():
+        raise ModelError(f"{path}: no such capture")
+    cap = read_capture(path, up=up)
+    if start >= cap.n_frames:
+        raise ModelError(f"{text}: start {start} is past the take's {cap.n_frames} frames")
+    cap = cap.frames(start, stop)
+    if not [s for s in cap.subjects if s]:
+        cap = cap.with_subject(Path(path).stem.replace(":", "_") or "subject")
+    if rename:
+        labels = []
+        for lab in cap.labels:
+            subj, marker = split_label(lab)
+            labels.append(f"{rename[subj]}:{marker}" if subj in rename else lab)
+        cap = Capture(cap.positions, tuple(labels), cap.rate, source=cap.source)
+    return cap

@@ -311,8 +311,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "recovery-error-against-the-previous-frame",
         "labeler_service/evaluation/scoring.py",
-        "positions=stream.positions[f], dt_ns=dt",
-        "positions=stream.positions[max(f - 1, 0)], dt_ns=dt",
+        "removed, positions = stream.removed[f], stream.positions[f]",
+        "removed, positions = stream.removed[f], stream.positions[max(f - 1, 0)]",
         (T + "evaluation/test_evaluate.py",),
         "recovery errors are measured against the wrong frame's truth",
     ),

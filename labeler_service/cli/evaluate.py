@@ -29,7 +29,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "default: every available one)",
     )
     p.add_argument("--downsample", type=int, default=1, help="keep every N-th frame")
-    p.add_argument("--init-frames", type=int, default=50, help="labeled training frames")
+    p.add_argument(
+        "--init-frames",
+        type=int,
+        default=50,
+        help="labeled training frames; 0 with --model: boot from the model, no labels at all",
+    )
+    p.add_argument(
+        "--model",
+        default=None,
+        metavar="MODEL",
+        help="subject model (train structure, subjects named as in TRUTH) to start from",
+    )
+    p.add_argument(
+        "--leave", type=int, default=0, help="subjects that vanish once and return displaced"
+    )
+    p.add_argument(
+        "--leave-seconds", type=float, default=1.0, help="how long each --leave subject is gone"
+    )
     p.add_argument("--gaps", type=int, default=0, help="markers removed per subject per event")
     p.add_argument("--gap-frames", type=int, default=20, help="length of each gap (frames)")
     p.add_argument(
@@ -64,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
         occlude_frames=args.occlude_frames,
         seed=args.seed,
         show_progress=show,
+        model=args.model,
+        leave=args.leave,
+        leave_seconds=args.leave_seconds,
     )
     report, scores = evaluate(cap, downsample=args.downsample, **common)
     for note in report["notes"]:
@@ -131,6 +151,18 @@ def _print_table(report: dict) -> None:
             f"longest swap: {report['max_swap_frames']} frames ({swap['marker']}, frames "
             f"{swap['first_frame']}-{swap['last_frame']})"
         )
+
+    def sec(x: float | None) -> str:
+        return "never" if x is None else f"{x:.3f} s"
+
+    n_ret = len(report["reid_s"])
+    reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {n_ret} returns"
+    console.print(
+        f"boot: {sec(report['boot_s_max'])} (slowest subject), accuracy after boot "
+        f"{report['accuracy_after_boot']}; {reid if n_ret else 'no returns'}; "
+        f"{report['absent_labeled']} points given labels of absent subjects; "
+        f"{report['identity_swaps']} identity swaps"
+    )
     worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
     if worst:
         console.print(f"worst markers: {worst}")

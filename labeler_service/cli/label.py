@@ -7,8 +7,12 @@ alike) are given anonymously, in a shuffled order.
 
 - Without ``--model`` the first ``--init-frames`` frames carry the capture's own labels and are
   the training window (Yu, Li and Deng 2007); the marker set is the capture's labeled columns.
-- With ``--model`` the marker set is the model's; the capture's columns with those names label
-  the first ``--init-frames`` frames (default 1), which give the initial assignment.
+- With ``--model`` the marker set is the model's and, by default (``--init-frames 0``), IN needs
+  no labels at all: the labeler boots the model's subjects from the anonymous points
+  (:class:`~labeler_service.labeling.booting.BootingLabeler`, ``make_labeler(..., boot=True)``),
+  drops a subject that leaves and boots it again when it returns. ``--init-frames N`` >= 1
+  instead labels the first N frames from IN's columns with the model's names (the initial
+  assignment of :meth:`Labeler.from_model`).
 
 OUT holds one column per marker (observed and, unless ``--drop-recovered``, recovered
 positions) plus the points that stayed unlabeled as ``*N`` columns. If the input carries labels
@@ -30,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--init-frames",
         type=int,
         default=None,
-        help="labeled frames at the start (default 50, or 1 with --model)",
+        help="labeled frames at the start (default 50; with --model default 0: boot, no labels)",
     )
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of IN")
     p.add_argument("--seed", type=int, default=0, help="seed of the per-frame shuffle")
@@ -50,9 +54,9 @@ def run(args: argparse.Namespace) -> int:
 
     cap = read_capture(args.input, up=args.up)
     model = load_model(args.model) if args.model else None
-    init = args.init_frames if args.init_frames is not None else (1 if model else 50)
-    if init < 1:
-        raise LabelerError(f"--init-frames must be >= 1, got {init}")
+    init = args.init_frames if args.init_frames is not None else (0 if model else 50)
+    if init < 0 or (init == 0 and model is None):
+        raise LabelerError(f"--init-frames must be >= 1, or 0 with --model (boot), got {init}")
     if cap.n_frames <= init:
         raise LabelerError(f"{args.input}: {cap.n_frames} frames, not more than {init} init frames")
     names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
@@ -60,10 +64,16 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
-    lab = make_labeler("online", marker_names=names, rate=cap.rate, model=model)
+    lab = make_labeler(
+        "online",
+        marker_names=names,
+        rate=cap.rate,
+        model=model,
+        boot=model is not None and init == 0,
+    )
     index = {n: i for i, n in enumerate(lab.marker_names)}
     col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)
-    if not (col_label >= 0).any():
+    if init > 0 and not (col_label >= 0).any():
         raise LabelerError(f"{args.input}: none of its labels is a marker of the model")
     lab.warmup()
 

@@ -17,7 +17,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=1.0,
                    help="playback speed x capture rate (0 = as fast as possible)")  # fmt: skip
     p.add_argument("--init-frames", type=int, default=50,
-                   help="first frames sent with their labels (training window)")  # fmt: skip
+                   help="first frames sent with their labels (training window); 0 sends "
+                   "none: the stream must be configured with a model")  # fmt: skip
     p.add_argument("--downsample", type=int, default=1, help="keep every N-th frame")
     p.add_argument("--gaps", type=int, default=0, help="markers removed per subject per gap")
     p.add_argument("--gap-frames", type=int, default=20, help="length of each gap (frames)")

@@ -12,15 +12,20 @@ window only:
   longest marker-pair distance of the marker's rigid body (seed 003 Fig. 8), as reported by the
   labeler's ``body_extent()``; ``recovery_rate`` is the fraction of removed samples recovered;
 - ``ms_per_frame_p50/p99``: wall time of ``process`` per frame in this process, after warm-up.
+- boot and re-identification (``boot_s_max``, ``accuracy_after_boot``, ``reid_s_p95``,
+  ``absent_labeled``, ``identity_swaps``): see :class:`Scorer`. With a model and
+  ``init_frames=0`` nothing is labeled: the labeler boots (``make_labeler(..., boot=True)``).
 
 A method that does not exist is never scored: ``available_methods`` says why.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,6 +34,7 @@ from labeler_service.capture import Capture, split_label
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.registry import make_labeler
+from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
 WARMUP_FRAMES = 10  # frames after the init window whose time is not counted
@@ -57,6 +63,10 @@ def available_methods() -> dict[str, str | None]:
 NOT_VISIBLE, CORRECT, SAME_SUBJECT, CROSS_SUBJECT, UNLABELED = 0, 1, 2, 3, 4
 ERROR_KINDS = ("same_subject", "cross_subject", "unlabeled")
 WORST_MARKERS = 10
+#: Boot metrics (:class:`Scorer`): a subject is present with this fraction of its template
+#: markers visible; booted at the first of ``BOOT_RUN`` frames in a row with ``BOOT_GOOD`` of
+#: its visible markers correctly labeled.
+PRESENT, BOOT_GOOD, BOOT_RUN = 0.6, 0.95, 10
 
 
 @dataclass
@@ -87,6 +97,14 @@ class MethodScore:
     max_swap: dict[str, Any] | None = None
     worst_markers: list[dict[str, Any]] = field(default_factory=list)
     marker_names: tuple[str, ...] = field(default=(), repr=False)
+    #: Boot and re-identification (see :class:`Scorer`); ``None`` when not measurable.
+    boot_s_max: float | None = None
+    boot_s: dict[str, float | None] = field(default_factory=dict)
+    accuracy_after_boot: float | None = None
+    reid_s_p95: float | None = None
+    reid_s: list[float | None] = field(default_factory=list)
+    absent_labeled: int = 0
+    identity_swaps: int = 0
     #: ``(F, M)`` int8 codes per frame and marker (``NOT_VISIBLE`` .. ``UNLABELED``).
     raster: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int8), repr=False)
 
@@ -110,6 +128,13 @@ class MethodScore:
             "max_swap_frames": self.max_swap_frames,
             "max_swap": self.max_swap,
             "worst_markers": self.worst_markers,
+            "boot_s_max": r(self.boot_s_max, 4),
+            "boot_s": {k: r(v, 4) for k, v in self.boot_s.items()},
+            "accuracy_after_boot": r(self.accuracy_after_boot),
+            "reid_s_p95": r(self.reid_s_p95, 4),
+            "reid_s": [r(v, 4) for v in self.reid_s],
+            "absent_labeled": self.absent_labeled,
+            "identity_swaps": self.identity_swaps,
         }
 
 
@@ -132,10 +157,34 @@ class Scorer:
 
     Storage is allocated (and touched) up front for ``n_frames`` frames, so a long run adds no
     objects and no memory per frame (``benchmarks/bench_labeler.py`` measures leaks with it).
+
+    Boot and re-identification (scored frames only; seconds need ``rate``). A subject is
+    *present* in a frame when at least ``PRESENT`` (60 %) of its template markers are visible
+    (``template_sizes``, default: its markers in ``marker_names``). Its first *episode* starts at
+    its first present frame; after any frame in which none of its markers is visible (it left
+    the volume or is hidden entirely), the next present frame starts a *return* episode. An
+    episode is booted at the first frame that starts ``BOOT_RUN`` (10) frames in a row in which
+    at least ``BOOT_GOOD`` (95 %) of its visible markers are correctly labeled, found before the
+    subject vanishes again; the delay is ``boot_s`` (first episode) or ``reid_s`` (returns).
+    ``boot_s_max`` is the largest ``boot_s`` over subjects and ``reid_s_p95`` the 95th
+    percentile (``higher`` method) of ``reid_s``; both are ``None`` when an episode that
+    decides them never booted. ``accuracy_after_boot``: correct / visible samples of each subject
+    from its first boot on (subjects never booted left out). ``absent_labeled``: points (true or
+    ghost) given a label of a subject none of whose markers is visible in that frame (a model
+    subject not in the volume, or one that left). ``identity_swaps``: onsets of a whole-person
+    swap, counted per subject: a frame in which more than half of subject A's visible markers
+    carry the same-named marker of one other subject B with the same marker set (same
+    template), when A's previous frame with visible markers did not show that swap.
     """
 
     def __init__(
-        self, marker_names: Sequence[str], init_frames: int, n_frames: int, method: str = ""
+        self,
+        marker_names: Sequence[str],
+        init_frames: int,
+        n_frames: int,
+        method: str = "",
+        rate: float | None = None,
+        template_sizes: dict[str, int] | None = None,
     ) -> None:
         self.names = tuple(marker_names)
         self.method = method
@@ -153,6 +202,23 @@ class Scorer:
         self._rec_err: list[float] = []
         self._rec_marker: list[int] = []
         self.removed = 0
+        self.rate = rate
+        self._subjects = list(index)
+        ns = len(self._subjects)
+        self._onehot = np.zeros((m, ns), dtype=np.int64)
+        self._onehot[np.arange(m), self._subject] = 1
+        sizes = template_sizes or {}
+        counts = self._onehot.sum(axis=0)
+        self._n_tpl = np.array(
+            [sizes.get(sname, int(counts[k])) for k, sname in enumerate(self._subjects)]
+        )
+        self._local = np.array([split_label(n)[1] for n in self.names], dtype=object)
+        sig = [frozenset(self._local[self._subject == k].tolist()) for k in range(ns)]
+        self._same_tpl = np.array(
+            [[a != b and sig[a] == sig[b] for b in range(ns)] for a in range(ns)], dtype=bool
+        )
+        self._ident = np.full((self.n_frames, ns), -1, dtype=np.int16)
+        self.absent_labeled = 0
 
     def add(
         self,
@@ -189,6 +255,7 @@ class Scorer:
             code[wrong & ~same] = CROSS_SUBJECT
             row[tm] = code
             self.ghosts_taken += int(np.count_nonzero(lab[~real] >= 0))
+            self._boot_counts(f, tm, got, lab, code)
             if removed is not None:
                 gone = np.flatnonzero(removed)
                 if gone.size:
@@ -206,6 +273,105 @@ class Scorer:
         nv = tm.size
         ok = int(np.count_nonzero(row == CORRECT))
         self._per_frame[f] = ok / nv if nv else np.nan
+
+    def _boot_counts(
+        self, f: int, tm: np.ndarray, got: np.ndarray, lab: np.ndarray, code: np.ndarray
+    ) -> None:
+        """``absent_labeled`` and whole-person swaps of frame ``f`` (see the class doc)."""
+        ns = len(self._subjects)
+        here = np.zeros(ns, dtype=bool)
+        here[self._subject[tm]] = True
+        given = lab[lab >= 0]
+        self.absent_labeled += int(np.count_nonzero(~here[self._subject[given]]))
+        cross = code == CROSS_SUBJECT
+        if not cross.any() or not self._same_tpl.any():
+            return
+        a, b = self._subject[tm[cross]], self._subject[got[cross]]
+        ok = (self._local[tm[cross]] == self._local[got[cross]]) & self._same_tpl[a, b]
+        if not ok.any():
+            return
+        mat = np.zeros((ns, ns), dtype=np.int64)
+        np.add.at(mat, (a[ok], b[ok]), 1)
+        vis = np.bincount(self._subject[tm], minlength=ns)
+        best = mat.argmax(axis=1)
+        swapped = mat[np.arange(ns), best] * 2 > vis
+        self._ident[f, swapped] = best[swapped]
+
+    def _boot_scores(self, raster: np.ndarray) -> dict[str, Any]:
+        """Boot, re-identification and identity-swap scores (see the class doc)."""
+        out: dict[str, Any] = {
+            "boot_s_max": None,
+            "boot_s": {},
+            "accuracy_after_boot": None,
+            "reid_s_p95": None,
+            "reid_s": [],
+            "absent_labeled": int(self.absent_labeled),
+            "identity_swaps": 0,
+        }
+        f0 = min(self.init_frames, self.n_frames)
+        vis = (raster[f0:] != NOT_VISIBLE).astype(np.int64) @ self._onehot
+        ok = (raster[f0:] == CORRECT).astype(np.int64) @ self._onehot
+        ident = self._ident[f0:]
+        swaps = 0
+        for k in range(len(self._subjects)):
+            last = -1
+            for f in np.flatnonzero(vis[:, k] > 0):
+                cur = int(ident[f, k])
+                if cur >= 0 and cur != last:
+                    swaps += 1
+                last = cur
+        out["identity_swaps"] = swaps
+        if self.rate is None or vis.shape[0] == 0:
+            return out
+        present = vis >= PRESENT * self._n_tpl
+        good = (vis > 0) & (ok >= BOOT_GOOD * vis)
+        n = vis.shape[0]
+        runs = np.zeros((n, good.shape[1]), dtype=bool)  # good[f : f + BOOT_RUN].all()
+        if n >= BOOT_RUN:
+            c = np.concatenate([np.zeros((1, good.shape[1]), np.int64), np.cumsum(good, 0)])
+            runs[: n - BOOT_RUN + 1] = (c[BOOT_RUN:] - c[: n - BOOT_RUN + 1]) == BOOT_RUN
+        boot_s: dict[str, float | None] = {}
+        reid: list[float] = []
+        acc_ok = acc_vis = 0
+        for k, name in enumerate(self._subjects):
+            gone = np.flatnonzero(vis[:, k] == 0)
+            starts = []
+            p = np.flatnonzero(present[:, k])
+            if p.size == 0:
+                continue
+            starts.append(int(p[0]))
+            while True:
+                after = gone[gone > starts[-1]]
+                if after.size == 0:
+                    break
+                back = p[p > after[0]]
+                if back.size == 0:
+                    break
+                starts.append(int(back[0]))
+            first_boot = None
+            for e, st in enumerate(starts):
+                after = gone[gone > st]
+                end = int(after[0]) if after.size else n
+                hit = np.flatnonzero(runs[st:end, k])
+                delay = hit[0] / self.rate if hit.size else np.inf
+                if e == 0:
+                    boot_s[name] = None if not np.isfinite(delay) else float(delay)
+                else:
+                    reid.append(float(delay))
+                if hit.size and first_boot is None:
+                    first_boot = st + int(hit[0])
+            if first_boot is not None:
+                acc_ok += int(ok[first_boot:, k].sum())
+                acc_vis += int(vis[first_boot:, k].sum())
+        out["boot_s"] = boot_s
+        if boot_s and all(v is not None for v in boot_s.values()):
+            out["boot_s_max"] = max(v for v in boot_s.values() if v is not None)
+        out["accuracy_after_boot"] = acc_ok / acc_vis if acc_vis else None
+        out["reid_s"] = [v if np.isfinite(v) else None for v in reid]
+        if reid:
+            p95 = float(np.percentile(reid, 95, method="higher"))
+            out["reid_s_p95"] = p95 if np.isfinite(p95) else None
+        return out
 
     def result(
         self,
@@ -275,6 +441,7 @@ class Scorer:
             worst_markers=worst,
             marker_names=self.names,
             raster=raster,
+            **self._boot_scores(raster),
         )
 
 
@@ -307,27 +474,80 @@ def score_labeler(
     init_frames: int,
     method: str = "",
     progress: Callable[[int], None] | None = None,
+    model: LabelerModel | None = None,
 ) -> MethodScore:
-    """Feeds ``stream`` to ``labeler`` (labels on the first ``init_frames``) and scores it."""
+    """Feeds ``stream`` to ``labeler`` (labels on the first ``init_frames``) and scores it.
+
+    With ``model`` the labeler's markers are the model's (``labeler.marker_names``): they are
+    matched to the stream's by name; the model's markers the stream lacks (subjects not in the
+    scene) are scored as extra columns, so labels given to them count in ``absent_labeled``."""
     n = stream.n_frames
     if n <= init_frames:
         raise SceneError(f"{n} frames is not more than the {init_frames}-frame init window")
+    names = tuple(stream.marker_names)
+    to_score = to_labeler = None
+    sizes = None
+    if model is not None:
+        lab_names = tuple(labeler.marker_names)
+        col = {nm: i for i, nm in enumerate(names)}
+        extra = [nm for nm in lab_names if nm not in col]
+        names = names + tuple(extra)
+        col.update({nm: len(stream.marker_names) + i for i, nm in enumerate(extra)})
+        to_score = np.array([col[nm] for nm in lab_names], dtype=np.int64)
+        li = {nm: i for i, nm in enumerate(lab_names)}
+        to_labeler = np.array([li.get(nm, -1) for nm in stream.marker_names], dtype=np.int64)
+        sizes = {s.name: len(s.markers) for s in model.subjects}
+        if not np.any(to_labeler >= 0):
+            raise SceneError(
+                "none of the model's markers is a marker of the scene: name the model's subjects "
+                "as the scene does (train structure TAKE:start:stop on the scene's takes, or "
+                "--rename OLD=NEW)"
+            )
     labeler.warmup()
-    scorer = Scorer(stream.marker_names, init_frames, n, method)
+    scorer = Scorer(names, init_frames, n, method, rate=stream.rate, template_sizes=sizes)
+    m_all = len(names)
     for f in range(n):
         pts, truth = stream.points[f], stream.truth[f]
         labels = truth if f < init_frames else None
+        if labels is not None and to_labeler is not None:
+            labels = np.where(truth >= 0, to_labeler[np.maximum(truth, 0)], -1).astype(np.int32)
         t0 = time.perf_counter_ns()
         out = labeler.process(pts, float(stream.times[f]), labels)
         dt = time.perf_counter_ns() - t0
         if progress is not None:
             progress(f)
-        scorer.add(
-            f, truth, out, removed=stream.removed[f], positions=stream.positions[f], dt_ns=dt
-        )
+        if to_score is not None:
+            out = _to_columns(out, to_score, m_all)
+        removed, positions = stream.removed[f], stream.positions[f]
+        if m_all > removed.shape[0]:
+            pad = m_all - removed.shape[0]
+            removed = np.concatenate([removed, np.zeros(pad, dtype=bool)])
+            positions = np.concatenate([positions, np.full((pad, 3), np.nan, positions.dtype)])
+        scorer.add(f, truth, out, removed=removed, positions=positions, dt_ns=dt)
     # Body extents are known once the labeler has trained: ask after the run.
-    body_extent = np.asarray(labeler.body_extent(), dtype=np.float64)
-    return scorer.result(body_extent, recovery=method != "closest-point")
+    extent = np.asarray(labeler.body_extent(), dtype=np.float64)
+    if to_score is not None:
+        full = np.full(m_all, np.nan)
+        if extent.size == to_score.size:
+            full[to_score] = extent
+        extent = full
+    return scorer.result(extent, recovery=method != "closest-point")
+
+
+def _to_columns(out: LabeledFrame, to_score: np.ndarray, m_all: int) -> LabeledFrame:
+    """``out`` (in the labeler's marker order) in the scorer's columns."""
+    lab = np.asarray(out.point_labels)
+    pos = np.full((m_all, 3), np.nan, dtype=np.float32)
+    state = np.zeros(m_all, dtype=np.uint8)
+    pos[to_score] = out.positions
+    state[to_score] = out.state
+    return LabeledFrame(
+        t=out.t,
+        point_labels=np.where(lab >= 0, to_score[np.maximum(lab, 0)], -1).astype(np.int32),
+        positions=pos,
+        state=state,
+        process_us=out.process_us,
+    )
 
 
 def resolve_methods(requested: Sequence[str] | None) -> tuple[list[str], list[str]]:
@@ -361,15 +581,29 @@ def evaluate(
     show_progress: bool = False,
     occlude: int = 0,
     occlude_frames: int = 15,
+    model: LabelerModel | str | os.PathLike[str] | None = None,
+    leave: int = 0,
+    leave_seconds: float = 1.0,
 ) -> tuple[dict[str, Any], dict[str, MethodScore]]:
     """Scores the chosen methods on one corrupted version of ``capture``.
 
     Returns the JSON report (DESIGN.md keys for the first method, ``baseline_accuracy`` for the
     closest-point baseline, and every method under ``methods``) and the full scores.
+
+    With ``model`` (``train structure`` output, subjects named as the scene names them) the
+    labelers start from the model: with ``init_frames >= 1`` from its templates and the first
+    frames' labels, with ``init_frames == 0`` by booting from anonymous points alone
+    (``make_labeler(..., boot=True)``; the closest-point baseline cannot boot and is skipped).
+    ``leave``/``leave_seconds``: subjects that vanish and return displaced (``CorruptionSpec``).
     """
+    if init_frames < 0 or (init_frames == 0 and model is None):
+        raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
+    loaded = _load_model(model)
+    if init_frames == 0 and not methods:
+        methods = ["online"]
     names, notes = resolve_methods(methods)
-    if init_frames < 1:
-        raise SceneError(f"init-frames must be >= 1, got {init_frames}")
+    if init_frames == 0 and "closest-point" in names:
+        raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
     spec = CorruptionSpec(
         downsample=downsample,
         gaps=gaps,
@@ -378,6 +612,8 @@ def evaluate(
         occlude=occlude,
         occlude_frames=occlude_frames,
         protect_frames=init_frames,
+        leave=leave,
+        leave_seconds=leave_seconds,
         seed=seed,
     )
     stream = corrupt(capture, spec)
@@ -385,9 +621,17 @@ def evaluate(
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
     for name in names:
-        labeler = make_labeler(METHODS[name], marker_names=stream.marker_names, rate=stream.rate)
+        labeler = make_labeler(
+            METHODS[name],
+            marker_names=stream.marker_names,
+            rate=stream.rate,
+            model=loaded,
+            boot=loaded is not None and init_frames == 0,
+        )
         scores[name] = _with_progress(
-            lambda cb, lab=labeler, nm=name: score_labeler(lab, stream, init_frames, nm, cb),  # type: ignore[misc]
+            lambda cb, lab=labeler, nm=name: score_labeler(  # type: ignore[misc]
+                lab, stream, init_frames, nm, cb, model=loaded
+            ),
             total=stream.n_frames,
             label=name,
             enabled=show_progress,
@@ -412,11 +656,25 @@ def evaluate(
             "occlude": occlude,
             "occlude_frames": occlude_frames,
             "seed": seed,
+            "model": None if model is None else str(getattr(loaded, "source", "") or model),
+            "leave": leave,
+            "leave_seconds": leave_seconds,
         },
+        departures=[
+            {"subject": s_, "first_frame": a, "back_frame": b} for s_, a, b in stream.departures
+        ],
         methods={k: v.summary() for k, v in scores.items()},
         notes=notes,
     )
     return report, scores
+
+
+def _load_model(model: LabelerModel | str | os.PathLike[str] | None) -> LabelerModel | None:
+    if model is None or isinstance(model, LabelerModel):
+        return model
+    from labeler_service.labeling.templates import load_model
+
+    return load_model(Path(model))
 
 
 def _with_progress(

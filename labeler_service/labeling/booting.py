@@ -8,11 +8,12 @@
    :class:`~labeler_service.labeling.labeler.Labeler` built with its public API only
    (``Labeler.from_model`` on a model of the *active* subjects, then the recent frames with
    their labels as its labeled first frames);
-3. a subject of the active set with fewer than ``vanish_fraction`` of its markers observed has
-   its labels withheld (when a performer leaves, the inner labeler gives its last labels to
-   points near where it was); after ``drop_after_s`` it is dropped: the inner labeler is
-   rebuilt without it, so none of its labels can go to other points or ghosts while it is
-   away; when it comes back it is booted again (re-identification, anywhere);
+3. a subject of the active set with fewer than ``vanish_fraction`` of its markers observed, or
+   fewer than ``vanish_relative`` of its recent count (moving average over
+   ``vanish_memory_s``), has its labels withheld (when a performer leaves, the inner labeler
+   gives its last labels to points near where it was); after ``drop_after_s`` it is dropped:
+   the inner labeler is rebuilt without it, so none of its labels can go to other points or
+   ghosts while it is away; when it comes back it is booted again (re-identification, anywhere);
 4. every ``boot_every_s`` (doubling after each fruitless attempt up to ``boot_backoff_s``: a
    model's absent subjects would otherwise cost a boot every 0.05 s), while some model subject
    is not active, the boot
@@ -34,7 +35,28 @@ An ``add_subjects(labels)`` / ``drop_subject(name)`` and a template-seeded acqui
 never-seen markers in ``Labeler`` would remove both limits; the wrapper keeps both steps in
 ``_rebuild`` so that a later change is local.
 
-``labels`` passed to :meth:`BootingLabeler.process` are ignored: this labeler never needs them.
+This labeler never needs labels; a frame that carries them (``process(points, t, labels)``)
+is taken as labeled: its subjects become active without a boot and the inner labeler starts
+from those labels (as ``Labeler.from_model`` with labeled first frames), so a stream configured
+with a model can use this one labeler whether its client sends labels or not.
+
+**Boot off the frame path.** Step 4 is the only heavy one (0.1-0.3 s per attempt for 3-5
+performers, up to ~1 s for 10 on a busy machine). ``BootingLabeler(..., inline_boot=False)``
+never runs it inside :meth:`~BootingLabeler.process`; its owner runs it instead, in three calls:
+
+1. after a frame, in the frame thread: ``if lab.needs_boot(): snap = lab.boot_snapshot()``
+   (copies the window's last frame and track history; restarts the wait to the next attempt);
+2. anywhere, e.g. a worker thread with a time budget: ``res = lab.boot_step(snap)`` (reads only
+   the snapshot and the immutable templates);
+3. back in the frame thread, between two frames: ``lab.install_boot(snap, res)`` (labels follow
+   the snapshot's tracks to the current frame; the inner labeler is rebuilt from the window).
+
+Frames keep flowing unlabeled for the booting subjects meanwhile. Only one attempt should be in
+flight: skip step 1 while one runs. An attempt abandoned over its budget is reported with
+``lab.install_boot(snap, None)`` (the wait to the next attempt doubles, as after a fruitless
+one). The service's background mechanism for heavy work (the
+same one that trains in-stream) is meant to drive exactly these calls; with ``inline_boot=True``
+(the default) :meth:`~BootingLabeler.process` does all three in the frame that is due.
 """
 
 from __future__ import annotations
@@ -49,6 +71,7 @@ from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot import (
     BootConfig,
     Booter,
+    BootResult,
     PointTracker,
     labels_along_tracks,
     track_history,
@@ -68,6 +91,19 @@ class _Frame:
     labels: np.ndarray  # (N,) global marker index or -1
 
 
+@dataclass
+class BootSnapshot:
+    """The input of one boot attempt (:meth:`BootingLabeler.boot_snapshot`): the window's last
+    frame, its tracks over the window, which of its points are free, the subjects looked for."""
+
+    t: float
+    points: np.ndarray  # (N, 3)
+    ids: np.ndarray  # (N,) track ids
+    history: np.ndarray  # (N, W, 3) NaN where untracked
+    free: np.ndarray  # (N,) bool
+    subjects: list[int]
+
+
 class BootingLabeler:
     """Labels a stream from a subject model alone (see the module docstring)."""
 
@@ -77,6 +113,7 @@ class BootingLabeler:
         rate: float,
         config: LabelerConfig | None = None,
         boot: BootConfig | None = None,
+        inline_boot: bool = True,
     ) -> None:
         if not (np.isfinite(rate) and rate > 0):
             raise LabelerError(f"invalid frame rate {rate}")
@@ -84,6 +121,8 @@ class BootingLabeler:
         self.rate = float(rate)
         self.config = config or LabelerConfig()
         self.boot_config = boot or BootConfig()
+        #: False: :meth:`process` never boots; the owner runs the attempts (see the module doc)
+        self.inline_boot = bool(inline_boot)
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)
@@ -95,6 +134,8 @@ class BootingLabeler:
         self._subject_of = np.repeat(np.arange(len(sizes)), sizes)
         self._active: set[int] = set()
         self._gone = np.zeros(len(sizes), dtype=np.int64)
+        self._recent = np.zeros(len(sizes))  # moving average of observed markers (0: unset)
+        self._recent_alpha = min(1.0, 1.0 / max(1.0, c.vanish_memory_s * self.rate))
         self._drop_frames = max(1, round(c.drop_after_s * self.rate))
         self._boot_every = max(1, round(c.boot_every_s * self.rate))
         self._boot_every_max = max(self._boot_every, round(c.boot_backoff_s * self.rate))
@@ -103,14 +144,33 @@ class BootingLabeler:
         self._extend_every = max(1, round(c.extend_every_s * self.rate))
         self._since_extend = 0
         self._inner: Labeler | None = None
+        self._labeled_run = False  # labeled frames seen since the last rebuild
         self._inner_map = np.zeros(0, dtype=np.int64)
-        self.events: list[tuple[float, str, str]] = []  # (t, "boot" | "drop", subject)
+        self._extent: np.ndarray | None = None
+        self.events: list[tuple[float, str, str]] = []  # (t, "boot"|"labeled"|"drop", subject)
         self.boot_ms: list[float] = []  # wall time of every boot attempt
 
     # ------------------------------------------------------------------ protocol
     @property
     def marker_names(self) -> tuple[str, ...]:
         return self._names
+
+    def body_extent(self) -> np.ndarray:
+        """``(M,)`` mm: per model marker the longest pair distance ``D`` of the smallest rigid
+        body of its template containing it (as :meth:`Labeler.body_extent`); NaN without one."""
+        if self._extent is None:
+            out = np.full(len(self._names), np.nan)
+            for s, tpl in enumerate(self.model.subjects):
+                d = np.array(tpl.D, dtype=np.float64)  # None -> nan
+                for body in tpl.bodies:
+                    b = np.asarray(body, dtype=np.int64)
+                    if b.size < 2:
+                        continue
+                    ext = float(np.nanmax(d[np.ix_(b, b)]))
+                    g = self._offset[s] + b
+                    out[g] = np.where(np.isfinite(out[g]), np.fmin(out[g], ext), ext)
+            self._extent = out
+        return self._extent
 
     @property
     def active_subjects(self) -> tuple[str, ...]:
@@ -120,7 +180,11 @@ class BootingLabeler:
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None
     ) -> LabeledFrame:
-        """Labels one frame of anonymous points ``(N, 3)`` mm; ``labels`` are ignored."""
+        """Labels one frame of anonymous points ``(N, 3)`` mm. ``labels`` (optional, model marker
+        index per point, -1 = unknown) are taken as that frame's answer: a subject with three
+        or more labeled points becomes active without a boot, and the first unlabeled frame
+        after labeled ones rebuilds the inner labeler from the window with those labels (the
+        labeled start of ``Labeler.from_model``, so one labeler serves both starts)."""
         t0 = time.perf_counter_ns()
         pts = np.asarray(points, dtype=np.float32)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -131,6 +195,11 @@ class BootingLabeler:
         t = float(t)
         m = len(self._names)
         ids = self._tracker.update(pts, t)
+        if labels is not None:
+            return self._labeled(pts, t, ids, labels, t0)
+        if self._labeled_run:
+            self._labeled_run = False
+            self._rebuild()
         glab = np.full(pts.shape[0], -1, dtype=np.int64)
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         state = np.zeros(m, dtype=np.uint8)
@@ -156,16 +225,8 @@ class BootingLabeler:
                 obs = glab >= 0
                 pos[glab[obs]] = pts[obs]
                 state[glab[obs]] = MarkerState.OBSERVED
-        if (
-            len(self._window) == self._window.maxlen
-            and len(self._active) < len(self.model.subjects)
-            and self._since_attempt >= self._boot_wait
-        ):
-            self._since_attempt = 0
+        if self.inline_boot and self.needs_boot():
             booted = self._attempt(t)
-            self._boot_wait = (
-                self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
-            )
             if booted.size:
                 glab = self._window[-1].labels
                 obs = glab >= 0
@@ -179,20 +240,63 @@ class BootingLabeler:
             process_us=(time.perf_counter_ns() - t0) / 1e3,
         )
 
+    def _labeled(
+        self, pts: np.ndarray, t: float, ids: np.ndarray, labels: np.ndarray, t0: int
+    ) -> LabeledFrame:
+        """A frame that carries its labels (see :meth:`process`)."""
+        m = len(self._names)
+        lab = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
+        if lab.shape[0] != pts.shape[0]:
+            raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
+        lab = np.where((lab >= 0) & (lab < m), lab, -1)
+        have = np.flatnonzero(lab >= 0)
+        _, first = np.unique(lab[have], return_index=True)
+        dup = np.setdiff1d(np.arange(have.size), first)
+        lab[have[dup]] = -1  # a label given twice: the first point keeps it
+        self._window.append(_Frame(t, pts, ids, lab.copy()))
+        self._since_attempt += 1
+        self._since_extend += 1
+        counts = np.bincount(self._subject_of[lab[lab >= 0]], minlength=len(self.model.subjects))
+        for s in np.flatnonzero(counts >= 3):
+            if int(s) not in self._active:
+                self._active.add(int(s))
+                self._recent[s] = 0.0
+                self._gone[s] = 0
+                self.events.append((t, "labeled", self.model.subjects[int(s)].name))
+        self._labeled_run = True
+        pos = np.full((m, 3), np.nan, dtype=np.float32)
+        state = np.zeros(m, dtype=np.uint8)
+        ok = lab >= 0
+        pos[lab[ok]] = pts[ok]
+        state[lab[ok]] = MarkerState.OBSERVED
+        return LabeledFrame(
+            t=t,
+            point_labels=lab.astype(np.int32),
+            positions=pos,
+            state=state,
+            process_us=(time.perf_counter_ns() - t0) / 1e3,
+        )
+
     # ------------------------------------------------------------------ steps
     def _drop_vanished(
         self, glab: np.ndarray, state: np.ndarray, pos: np.ndarray, t: float
     ) -> None:
         """Withholds the labels of subjects with fewer than ``vanish_fraction`` of their markers
-        observed (a performer leaving: the inner labeler would give its last labels to points
-        near where it was) and drops those gone for ``drop_after_s``."""
+        observed, or fewer than ``vanish_relative`` of their recent count (a performer leaving:
+        the inner labeler would give its last labels to points near where it was, and labels
+        the boot put on other performers' points would stay there) and drops those gone for
+        ``drop_after_s``."""
         dropped = []
         c = self.boot_config
         for s in sorted(self._active):
             sl = slice(self._offset[s], self._offset[s + 1])
             n_obs = int(np.count_nonzero(state[sl] == MarkerState.OBSERVED))
-            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)):
+            ref = self._recent[s]
+            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)) and (
+                ref <= 0 or n_obs >= c.vanish_relative * ref
+            ):
                 self._gone[s] = 0
+                self._recent[s] = n_obs if ref <= 0 else ref + self._recent_alpha * (n_obs - ref)
                 continue
             self._gone[s] += 1
             mine = (glab >= sl.start) & (glab < sl.stop)
@@ -206,6 +310,7 @@ class BootingLabeler:
         for s in dropped:
             self._active.discard(s)
             self._gone[s] = 0
+            self._recent[s] = 0.0
             self.events.append((t, "drop", self.model.subjects[s].name))
         # the window's labels of dropped subjects are forgotten (a rebuild must not see them)
         gone = np.isin(self._subject_of, dropped)
@@ -242,22 +347,90 @@ class BootingLabeler:
                     taken.add(int(lab[j]))
 
     def _attempt(self, t: float) -> np.ndarray:
-        """One boot on the window; returns the model indices of the subjects booted."""
-        tb = time.perf_counter()
+        """One boot on the window, in this frame; returns the model indices booted."""
+        snap = self.boot_snapshot()
+        return self.install_boot(snap, self.boot_step(snap))
+
+    # ------------------------------------------------------------------ boot off the frame
+    def needs_boot(self) -> bool:
+        """True when a boot attempt is due: the window is full, some model subject is not
+        active and the (backed-off) wait since the last attempt has passed. With
+        ``inline_boot=False`` the owner checks this after each frame and runs the attempt
+        itself (:meth:`boot_snapshot`, :meth:`boot_step`, :meth:`install_boot`)."""
+        return (
+            len(self._window) == self._window.maxlen
+            and len(self._active) < len(self.model.subjects)
+            and self._since_attempt >= self._boot_wait
+        )
+
+    def boot_snapshot(self) -> BootSnapshot:
+        """What a boot attempt needs, copied from the window (cheap: a few ms at most); call it
+        in the thread that calls :meth:`process`. Restarts the wait to the next attempt."""
+        self._since_attempt = 0
         last = self._window[-1]
         frames = [(f.points, f.ids) for f in self._window]
-        hist = track_history(frames, last.ids)
-        inactive = [s for s in range(len(self.model.subjects)) if s not in self._active]
-        res = self._booter.run(last.points, hist, free=last.labels < 0, subjects=inactive)
+        return BootSnapshot(
+            t=last.t,
+            points=last.points.copy(),
+            ids=last.ids.copy(),
+            history=track_history(frames, last.ids),
+            free=last.labels < 0,
+            subjects=[s for s in range(len(self.model.subjects)) if s not in self._active],
+        )
+
+    def boot_step(self, snapshot: BootSnapshot) -> BootResult:
+        """The heavy part of an attempt (0.1-1 s with several performers): reads only the
+        snapshot and the prepared templates, changes no state of this labeler, so it may run in
+        another thread while :meth:`process` goes on."""
+        tb = time.perf_counter()
+        res = self._booter.run(
+            snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
+        )
         self.boot_ms.append((time.perf_counter() - tb) * 1e3)
-        if not res.subjects:
+        return res
+
+    def install_boot(self, snapshot: BootSnapshot, result: BootResult | None) -> np.ndarray:
+        """Installs ``result`` (of :meth:`boot_step` on ``snapshot``) between two frames, in
+        the thread that calls :meth:`process`; returns the model indices of the subjects booted.
+
+        The labels follow the snapshot's tracks to the current window (frames may have passed
+        since the snapshot): a track that ended meanwhile loses its label, a point the inner
+        labeler has labeled since keeps its label, and a subject that is active by now or keeps
+        fewer than three points is not installed. ``result=None`` (the attempt was abandoned,
+        e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles."""
+        if result is None:
+            self._boot_wait = min(2 * self._boot_wait, self._boot_every_max)
             return np.zeros(0, dtype=np.int64)
-        self._spread(frames, last.ids, res.labels)
+        last = self._window[-1]
+        lab = result.labels
+        have = lab >= 0
+        order = np.argsort(snapshot.ids[have])
+        tid, tl = snapshot.ids[have][order], lab[have][order]
+        now = np.full(last.ids.shape[0], -1, dtype=np.int64)
+        if tid.size:
+            pos = np.minimum(np.searchsorted(tid, last.ids), tid.size - 1)
+            hit = (tid[pos] == last.ids) & (last.labels < 0)
+            now[hit] = tl[pos[hit]]
         names = {s.name: i for i, s in enumerate(self.model.subjects)}
-        booted = np.array([names[n] for n in res.subjects], dtype=np.int64)
-        self._active.update(int(s) for s in booted)
-        for n in res.subjects:
-            self.events.append((t, "boot", n))
+        keep: list[int] = []
+        for n in result.subjects:
+            s = names[n]
+            mine = (now >= self._offset[s]) & (now < self._offset[s + 1])
+            if s in self._active or np.count_nonzero(mine) < 3:
+                now[mine] = -1
+                continue
+            keep.append(s)
+        booted = np.array(keep, dtype=np.int64)
+        self._boot_wait = (
+            self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
+        )
+        if not booted.size:
+            return booted
+        frames = [(f.points, f.ids) for f in self._window]
+        self._spread(frames, last.ids, now)
+        self._active.update(keep)
+        for s in keep:
+            self.events.append((last.t, "boot", self.model.subjects[s].name))
         self._rebuild()
         return booted
 

@@ -13,6 +13,19 @@ kind                    labeler
 A labeler starts either from ``marker_names`` (the labeled init frames the caller then feeds
 train it) or from ``model``, a subject template written by ``train structure`` (a
 :class:`~labeler_service.labeling.templates.LabelerModel` or the path of its JSON file).
+
+Starting from a model, there are two ways (``boot``):
+
+- ``boot=False`` (default): :meth:`Labeler.from_model`; the first frame(s) fed must carry labels
+  (they give the initial assignment of points to markers).
+- ``boot=True`` (or a :class:`~labeler_service.labeling.boot.BootConfig`): a
+  :class:`~labeler_service.labeling.booting.BootingLabeler`, which needs no labeled frame at all:
+  it boots the subjects from anonymous points, drops a subject that leaves and boots it again
+  when it returns. Frames that do carry labels are used as ``from_model`` would use them, so
+  this one labeler serves a stream whether or not its client sends labels. This is what
+  ``--init-frames 0`` means in ``evaluate`` and ``label``. Only the ``online`` kind boots;
+  ``boot`` without a model is an error.
+
 The labeler modules are imported only when built, so importing this module stays cheap.
 """
 
@@ -26,6 +39,7 @@ from typing import TYPE_CHECKING, Literal, Protocol, overload
 from labeler_service.errors import LabelerError
 
 if TYPE_CHECKING:
+    from labeler_service.labeling.boot import BootConfig
     from labeler_service.labeling.config import LabelerConfig
     from labeler_service.labeling.frame import FrameLabeler
     from labeler_service.labeling.labeler import Labeler
@@ -48,6 +62,7 @@ class LabelerFactory(Protocol):
         rate: float,
         config: LabelerConfig | None = None,
         model: LabelerModel | str | os.PathLike[str] | None = None,
+        boot: bool | BootConfig = False,
     ) -> FrameLabeler: ...
 
 
@@ -59,6 +74,7 @@ def make_labeler(
     rate: float,
     config: LabelerConfig | None = None,
     model: LabelerModel | str | os.PathLike[str] | None = None,
+    boot: Literal[False] = False,
 ) -> Labeler: ...
 
 
@@ -70,6 +86,7 @@ def make_labeler(
     rate: float,
     config: LabelerConfig | None = None,
     model: LabelerModel | str | os.PathLike[str] | None = None,
+    boot: bool | BootConfig = False,
 ) -> FrameLabeler: ...
 
 
@@ -80,19 +97,33 @@ def make_labeler(
     rate: float,
     config: LabelerConfig | None = None,
     model: LabelerModel | str | os.PathLike[str] | None = None,
+    boot: bool | BootConfig = False,
 ) -> FrameLabeler:
     """A labeler of ``kind`` (table above) for ``marker_names`` at ``rate`` Hz.
 
     With ``model`` the marker set is the model's (``marker_names`` is then ignored) and the
     online labeler starts from its templates (``Labeler.from_model``); ``config`` tunes the
-    online labeler only. Raises :class:`~labeler_service.errors.LabelerError` for an unknown kind
-    or an empty marker set, :class:`~labeler_service.errors.ModelError` for a bad model file.
+    online labeler only. ``boot`` (a model is then required) builds a
+    :class:`~labeler_service.labeling.booting.BootingLabeler` that needs no labeled frame
+    (``True`` for the default :class:`~labeler_service.labeling.boot.BootConfig`). Raises
+    :class:`~labeler_service.errors.LabelerError` for an unknown kind, an empty marker set or
+    ``boot`` without a model, :class:`~labeler_service.errors.ModelError` for a bad model file.
     """
     name = ALIASES.get(kind, kind)
     if name not in KINDS:
         choices = ", ".join((*KINDS, *ALIASES))
         raise LabelerError(f"unknown labeler kind {kind!r} (choose from {choices})")
     loaded = _load(model)
+    if boot is not False:
+        if loaded is None:
+            raise LabelerError("booting needs a model (train structure output); none was given")
+        if name != "online":
+            raise LabelerError(f"only the online labeler can boot from a model, not {kind!r}")
+        from labeler_service.labeling.boot import BootConfig
+        from labeler_service.labeling.booting import BootingLabeler
+
+        cfg = boot if isinstance(boot, BootConfig) else None
+        return BootingLabeler(loaded, rate, config, cfg)
     if name == "baseline":
         from labeler_service.labeling.baseline import ClosestPointLabeler
 

@@ -41,8 +41,15 @@ class CorruptionSpec:
       from a random visible marker.
     - ``jitter_mm``: Gaussian noise (standard deviation, per axis) on every point.
     - ``shuffle``: permute the points of every frame.
-    - ``protect_frames``: the first frames (after down-sampling) get no gaps, drop-outs or
-      ghosts (the labeler's supervised training window).
+    - ``leave``, ``leave_seconds``: ``leave`` randomly chosen subjects each vanish entirely once
+      (every marker gone) for ``leave_seconds`` and come back displaced: from the return on,
+      the subject's trajectory is turned about the vertical (Z) axis through its centroid by a
+      random angle (uniform, +-180 degrees) and shifted horizontally by a random vector of
+      length up to ``leave_shift_mm`` (1 m). The absence starts at a random frame after
+      ``protect_frames``, and the return leaves at least ``leave_seconds`` (at least one
+      frame) before the take ends. Applied before every other corruption.
+    - ``protect_frames``: the first frames (after down-sampling) get no gaps, drop-outs,
+      departures or ghosts (the labeler's supervised training window).
     """
 
     downsample: int = 1
@@ -60,6 +67,9 @@ class CorruptionSpec:
     jitter_mm: float = 0.0
     shuffle: bool = True
     protect_frames: int = 0
+    leave: int = 0
+    leave_seconds: float = 1.0
+    leave_shift_mm: float = 1000.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -78,6 +88,9 @@ class CorruptionSpec:
             "ghost_life_frames": self.ghost_life_frames >= 1.0,
             "jitter_mm": self.jitter_mm >= 0.0 and np.isfinite(self.jitter_mm),
             "protect_frames": self.protect_frames >= 0,
+            "leave": self.leave >= 0,
+            "leave_seconds": self.leave_seconds > 0 and np.isfinite(self.leave_seconds),
+            "leave_shift_mm": self.leave_shift_mm >= 0 and np.isfinite(self.leave_shift_mm),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -107,6 +120,8 @@ class StreamFrames:
     removed: np.ndarray = field(repr=False)  # (F, M) visible samples removed by gaps/drop-outs
     #: ``--occlude`` events: (first hidden frame, hidden marker indices in reappearance order)
     occlusions: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)
+    #: ``--leave`` events: (subject, first frame gone, first frame back)
+    departures: list[tuple[str, int, int]] = field(default_factory=list)
 
     @property
     def n_frames(self) -> int:
@@ -125,6 +140,7 @@ class StreamPlan:
     rate: float
     marker_names: tuple[str, ...]
     occlusions: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)
+    departures: list[tuple[str, int, int]] = field(default_factory=list)
 
 
 def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> StreamPlan:
@@ -135,11 +151,12 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
     marker_cols = np.flatnonzero(~ghost)
     ghost_cols = np.flatnonzero(ghost)
     positions = cap.positions[:, marker_cols]
-    visible = ~np.isnan(positions).any(axis=2)
-    n_frames, n_markers = visible.shape
-    removed = np.zeros_like(visible)
+    n_frames, n_markers = positions.shape[:2]
     start = min(spec.protect_frames, n_frames)
     names = tuple(cap.labels[i] for i in marker_cols)
+    departures = _departures(spec, rng, positions, names, cap.rate, start)
+    visible = ~np.isnan(positions).any(axis=2)
+    removed = np.zeros_like(visible)
 
     if spec.gaps > 0:
         period = spec.gap_period or 4 * spec.gap_frames
@@ -172,7 +189,57 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
         rate=cap.rate,
         marker_names=names,
         occlusions=occlusions,
+        departures=departures,
     )
+
+
+def _departures(
+    spec: CorruptionSpec,
+    rng: np.random.Generator,
+    positions: np.ndarray,
+    names: tuple[str, ...],
+    rate: float,
+    start: int,
+) -> list[tuple[str, int, int]]:
+    """Applies ``--leave`` to ``positions`` (in place) and returns the departures."""
+    if spec.leave <= 0:
+        return []
+    n_frames = positions.shape[0]
+    sub = Capture(positions[:1], names, rate)
+    subjects = [s for s in sub.subjects if s]
+    if spec.leave > len(subjects):
+        raise SceneError(f"--leave {spec.leave}: the scene has only {len(subjects)} subjects")
+    away = max(1, int(round(spec.leave_seconds * rate)))
+    last = n_frames - 2 * away  # latest first frame gone: back >= leave_seconds before the end
+    if last < start:
+        raise SceneError(
+            f"--leave-seconds {spec.leave_seconds:g} does not fit: a departure and as long after "
+            f"the return need {2 * away} frames after the init window, there are "
+            f"{n_frames - start}"
+        )
+    out = []
+    for k in sorted(rng.choice(len(subjects), size=spec.leave, replace=False)):
+        name = subjects[int(k)]
+        cols = sub.subject_columns(name)
+        f0 = int(rng.integers(start, last + 1))
+        back = f0 + away
+        angle = rng.uniform(-np.pi, np.pi)
+        r = spec.leave_shift_mm * np.sqrt(rng.random())
+        phi = rng.uniform(-np.pi, np.pi)
+        shift = np.array([r * np.cos(phi), r * np.sin(phi), 0.0])
+        block = positions[back:, cols].astype(np.float64)
+        seen = block[0][np.isfinite(block[0, :, 0])]
+        if seen.size == 0:
+            seen = block[np.isfinite(block[..., 0])]
+        centre = seen.mean(axis=0) if seen.size else np.zeros(3)
+        centre[2] = 0.0
+        c, s_ = np.cos(angle), np.sin(angle)
+        rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        block = (block - centre) @ rot.T + centre + shift
+        positions[back:, cols] = block.astype(positions.dtype)
+        positions[f0:back, cols] = np.nan
+        out.append((name, f0, back))
+    return out
 
 
 def _occlusions(
@@ -312,4 +379,5 @@ def corrupt(capture: Capture, spec: CorruptionSpec | None = None) -> StreamFrame
         positions=plan.positions,
         removed=plan.removed,
         occlusions=plan.occlusions,
+        departures=plan.departures,
     )

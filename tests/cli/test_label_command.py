@@ -43,7 +43,8 @@ def test_label_with_model(take, tmp_path, capsys):
     model = tmp_path / "m.json"
     assert main(["train", "structure", str(src), "--out", str(model)]) == 0
     out = tmp_path / "out.npz"
-    assert main(["label", str(src), str(out), "--model", str(model), "--json"]) == 0
+    args = ["label", str(src), str(out), "--model", str(model), "--init-frames", "1", "--json"]
+    assert main(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["agreement_with_input_labels"] >= 0.999
     assert summary["markers"] == len(names)

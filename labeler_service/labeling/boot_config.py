@@ -1,0 +1,116 @@
+"""``BootConfig``: the parameters of the boot (labeling/boot.py); one frozen pydantic model."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class BootConfig(BaseModel):
+    """Parameters of the boot (defaults measured on the simulated and composed scenes)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    window_s: float = Field(0.1, gt=0, description="window of tracked frames used by a boot")
+    min_window_frames: int = Field(4, ge=2, description="at least this many frames per window")
+    max_window_frames: int = Field(24, ge=2, description="at most this many frames per window")
+    track_gate_mm: float = Field(6.0, gt=0, description="tracker gate around the prediction")
+    track_accel_mm_s2: float = Field(
+        40000.0, ge=0, description="acceleration the tracker gate allows (adds a dt^2 to it)"
+    )
+    track_speed_mm_s: float = Field(
+        3000.0, ge=0, description="speed the gate allows for a point without velocity yet"
+    )
+    min_track_fraction: float = Field(
+        0.75, gt=0, le=1, description="a point must be tracked over this fraction of the window"
+    )
+    tol_mm: float = Field(4.0, gt=0, description="absolute pair-distance tolerance")
+    tol_sigma: float = Field(4.0, ge=0, description="pair-distance tolerance in units of A")
+    tol_relative: float = Field(
+        0.01,
+        ge=0,
+        description="relative pair-distance tolerance (raise to 0.05 for another person's model)",
+    )
+    pair_sigma: float = Field(
+        4.0, ge=0, description="tolerance (units of A) for pairs across bodies in a hypothesis"
+    )
+    body_hidden: int = Field(
+        2, ge=0, description="a body candidate may miss this many markers (keeping 3 or more)"
+    )
+    reach_relative: float = Field(
+        0.5,
+        ge=0,
+        description="pairs across bodies may be this fraction of D longer (poses not trained)",
+    )
+    rigid_a_mm: float = Field(
+        8.0,
+        gt=0,
+        description="pairs with A + rigid_weight D at most this are rigid (one segment)",
+    )
+    rigid_weight: float = Field(0.0, ge=0, description="preference for close rigid pairs")
+    min_support: int = Field(
+        2, ge=1, description="rigid links that must agree before a marker joins a hypothesis"
+    )
+    link_sigma: float = Field(
+        3.0, ge=0, description="an articulated pair links two segments within D +- this A"
+    )
+    min_links: int = Field(
+        6, ge=1, description="articulated pairs in range needed to join another segment"
+    )
+    link_fraction: float = Field(
+        0.6, ge=0, le=1, description="share of a segment's articulated pairs that must be in range"
+    )
+    fit_mm: float = Field(12.0, gt=0, description="predicted marker to point, Kabsch check")
+    anchors_per_body: int = Field(4, ge=1, le=4, description="anchor triangles per body")
+    max_candidates: int = Field(
+        4000, ge=1, description="candidate triangles kept per anchor (closest distances first)"
+    )
+    constancy: float = Field(
+        0.8, gt=0, le=1, description="fraction of window frames an in-body pair must hold in"
+    )
+    min_fraction: float = Field(
+        0.5, gt=0, le=1, description="a subject boots with this fraction of its markers"
+    )
+    extend_every_s: float = Field(
+        0.1, gt=0, description="BootingLabeler: free points joined to booted subjects this often"
+    )
+    boot_every_s: float = Field(
+        0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
+    )
+    boot_backoff_s: float = Field(
+        0.2, gt=0, description="BootingLabeler: longest wait between fruitless boot attempts"
+    )
+    drop_after_s: float = Field(
+        0.1,
+        gt=0,
+        description="BootingLabeler: a subject with no observed marker this long is dropped "
+        "(its labels are given to nobody) and booted again when it comes back",
+    )
+    vanish_fraction: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="BootingLabeler: a subject with fewer of its markers observed is vanishing "
+        "(labels withheld)",
+    )
+    vanish_relative: float = Field(
+        0.35,
+        ge=0,
+        le=1,
+        description="BootingLabeler: a subject whose observed markers fall below this fraction "
+        "of its recent count (a moving average over vanish_memory_s) is vanishing too: a "
+        "performer who leaves while some of its labels sit on other performers' points",
+    )
+    vanish_memory_s: float = Field(
+        0.5, gt=0, description="BootingLabeler: time constant of that recent count"
+    )
+    rms_ratio: float = Field(
+        1.25,
+        gt=1,
+        description="a template whose rigid-distance RMS on a performer is this much worse "
+        "than another's yields that performer",
+    )
+    max_hypotheses: int = Field(3, ge=1, description="hypotheses kept per template")
+    max_seeds: int = Field(12, ge=1, description="seed bodies tried per template")
+    max_symmetries: int = Field(
+        4, ge=1, description="readings of one seed body's points tried (body symmetries)"
+    )

@@ -1,0 +1,752 @@
+"""Matching anonymous points to subject templates (steps 2-5 of labeling/boot.py): anchor
+triangles per rigid body, body candidates by distance signature, 3D verification, the node
+graph (numba), hypotheses grown per template, symmetric readings, completion of a subject from
+free points. Everything here is private to :class:`~labeler_service.labeling.boot.Booter`."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from labeler_service._numba import njit
+from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.templates import LabelerModel
+
+
+# ---------------------------------------------------------------------------- templates
+@dataclass
+class _Body:
+    markers: np.ndarray  # (k,) template marker indices
+    shape: np.ndarray  # (k, 3) reference shape
+    anchors: list[tuple[int, int, int]]  # positions into ``markers``
+
+
+@dataclass
+class _Template:
+    index: int  # subject index in the model
+    name: str
+    offset: int  # first global marker index
+    n: int
+    D: np.ndarray
+    A: np.ndarray
+    tol: np.ndarray  # (m, m) in-body tolerance (inf where unknown)
+    bound: np.ndarray  # (m, m) cross-body tolerance (inf where unknown)
+    rigid: np.ndarray  # (m, m) pairs with A <= rigid_a_mm
+    link: np.ndarray  # (m, m) articulated-pair tolerance (inf where unknown)
+    extent: float = 2000.0  # longest pair distance D (mm)
+    r_max: float = 0.0  # longest anchor edge + tolerance (mm)
+    segments: list[np.ndarray] = field(default_factory=list)  # see _segments
+    bodies: list[_Body] = field(default_factory=list)
+    body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
+
+
+def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
+    """Anchor triangles of a body: long, rigid, distinct edges (well-conditioned fits)."""
+    k = len(body)
+    scored = []
+    for tri in itertools.combinations(range(k), 3):
+        e = [(tri[0], tri[1]), (tri[0], tri[2]), (tri[1], tri[2])]
+        d = np.array([Dm[body[a], body[b]] for a, b in e])
+        a = np.array([Am[body[a], body[b]] for a, b in e])
+        if not (np.isfinite(d).all() and np.isfinite(a).all()):
+            continue
+        ds = np.sort(d)
+        distinct = min(ds[1] - ds[0], ds[2] - ds[1])
+        scored.append((float(ds[0] + 0.5 * distinct - 3.0 * a.max()), tri))
+    scored.sort(key=lambda s: -s[0])
+    out: list[tuple] = []
+    for _, tri in scored:
+        if all(len(set(tri) & set(o)) < 3 for o in out):
+            out.append(tri)
+        if len(out) >= count:
+            break
+    return out
+
+
+def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
+    out = []
+    offset = 0
+    for s, subj in enumerate(model.subjects):
+        Dm, Am = subj.D_array(), subj.A_array()
+        m = len(subj.markers)
+        tol = config.tol_mm + config.tol_sigma * Am + config.tol_relative * Dm
+        bound = config.tol_mm + config.pair_sigma * Am + config.reach_relative * Dm
+        tol = np.where(np.isfinite(tol), tol, np.inf)
+        bound = np.where(np.isfinite(bound), bound, np.inf)
+        # rigid: low deviation and close (far pairs can look rigid by accident in training,
+        # head to knee while walking; the trainer's body rule prefers close pairs too)
+        rigid = np.isfinite(Am) & (Am + config.rigid_weight * Dm <= config.rigid_a_mm)
+        rigid &= np.isfinite(tol)
+        np.fill_diagonal(rigid, False)
+        link = config.tol_mm + config.link_sigma * Am + config.tol_relative * Dm
+        link = np.where(np.isfinite(link), link, -1.0)
+        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link)
+        tpl.body_of = [[] for _ in range(m)]
+        for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
+            if len(body) < 3:
+                continue
+            anchors = _anchors(Dm, Am, body, config.anchors_per_body)
+            if not anchors:
+                continue
+            bi = len(tpl.bodies)
+            tpl.bodies.append(_Body(np.asarray(body), np.asarray(shape, dtype=float), anchors))
+            for i in body:
+                tpl.body_of[i].append(bi)
+            del b
+        tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
+        tpl.segments = _segments(tpl)
+        for bd in tpl.bodies:
+            for tri in bd.anchors:
+                mk = bd.markers[list(tri)]
+                for a, b in ((0, 1), (0, 2), (1, 2)):
+                    tpl.r_max = max(tpl.r_max, float(Dm[mk[a], mk[b]] + tol[mk[a], mk[b]]))
+        out.append(tpl)
+        offset += m
+    return out
+
+
+# ---------------------------------------------------------------------------- geometry
+def _kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Proper rotations ``R (C,3,3)`` and centroids mapping ``src (k,3)`` onto ``dst (C,k,3)``:
+    ``dst ~ (src - cs) R^T + cd``."""
+    cs = src.mean(axis=0)
+    cd = dst.mean(axis=1)
+    H = np.einsum("ki,ckj->cij", src - cs, dst - cd[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.transpose(Vt, (0, 2, 1))
+    d = np.sign(np.linalg.det(V @ np.transpose(U, (0, 2, 1))))
+    d = np.where(d == 0, 1.0, d)
+    V[:, :, 2] *= d[:, None]
+    R = V @ np.transpose(U, (0, 2, 1))
+    return R, cs, cd
+
+
+class _Pairs:
+    """Oriented point pairs sorted by distance (both orientations), for range queries."""
+
+    def __init__(self, pts: np.ndarray, r_max: float) -> None:
+        self.n = pts.shape[0]
+        tree = cKDTree(pts)
+        pr = tree.query_pairs(r_max, output_type="ndarray")
+        if pr.size == 0:
+            pr = np.zeros((0, 2), dtype=np.int64)
+        d = np.linalg.norm(pts[pr[:, 0]] - pts[pr[:, 1]], axis=1)
+        a = np.concatenate([pr[:, 0], pr[:, 1]])
+        b = np.concatenate([pr[:, 1], pr[:, 0]])
+        dd = np.concatenate([d, d])
+        order = np.argsort(dd, kind="stable")
+        self.a, self.b, self.d = a[order], b[order], dd[order]
+        self.tree = tree
+
+    def within(self, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        i0, i1 = np.searchsorted(self.d, [lo, hi])
+        return self.a[i0:i1], self.b[i0:i1], self.d[i0:i1]
+
+
+def _triangles(pairs: _Pairs, d: np.ndarray, t: np.ndarray, limit: int) -> np.ndarray:
+    """Candidate point triples ``(C, 3)`` whose edges (01, 02, 12) match ``d +- t``."""
+    a1, b1, d1 = pairs.within(d[0] - t[0], d[0] + t[0])
+    if a1.size > limit:  # keep the closest distances
+        keep = np.argsort(np.abs(d1 - d[0]), kind="stable")[:limit]
+        a1, b1 = a1[keep], b1[keep]
+    a2, b2, _ = pairs.within(d[1] - t[1], d[1] + t[1])
+    a3, b3, _ = pairs.within(d[2] - t[2], d[2] + t[2])
+    if a1.size == 0 or a2.size == 0 or a3.size == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    # join edge 01 with edge 02 on vertex 0
+    o2 = np.argsort(a2, kind="stable")
+    a2s, b2s = a2[o2], b2[o2]
+    lo = np.searchsorted(a2s, a1, side="left")
+    hi = np.searchsorted(a2s, a1, side="right")
+    cnt = hi - lo
+    if cnt.sum() == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    rep = np.repeat(np.arange(a1.size), cnt)
+    start = np.repeat(lo, cnt)
+    within = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    p, q, r = a1[rep], b1[rep], b2s[start + within]
+    # edge 12 must exist
+    n = np.int64(pairs.n)
+    keys3 = np.sort(a3.astype(np.int64) * n + b3)
+    key = q.astype(np.int64) * n + r
+    pos = np.minimum(np.searchsorted(keys3, key), keys3.size - 1)
+    ok = (keys3[pos] == key) & (q != r)
+    return np.stack([p[ok], q[ok], r[ok]], axis=1)
+
+
+# ---------------------------------------------------------------------------- hypotheses
+@dataclass
+class _Candidate:
+    markers: np.ndarray  # template marker indices
+    points: np.ndarray  # point indices (same length)
+    err: float  # RMS of predicted-to-point distance (mm)
+
+
+def _body_candidates(
+    tpl: _Template,
+    body: _Body,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
+) -> list[_Candidate]:
+    """Placements of one body: anchor triangles, Kabsch to the reference shape, nearest points
+    to the predicted members, distance constancy along the tracks."""
+    k = body.markers.shape[0]
+    need = min(k, max(3, k - config.body_hidden))
+    rows, errs = [], []
+    for tri in body.anchors:
+        mk = body.markers[list(tri)]
+        e = [(0, 1), (0, 2), (1, 2)]
+        d = np.array([tpl.D[mk[a], mk[b]] for a, b in e])
+        t = np.array([tpl.tol[mk[a], mk[b]] for a, b in e])
+        trip = _triangles(pairs, d, t, config.max_candidates)
+        if trip.shape[0] == 0:
+            continue
+        R, cs, cd = _kabsch_batch(body.shape[list(tri)], pts[trip])
+        pred = np.einsum("kj,cij->cki", body.shape - cs, R) + cd[:, None, :]
+        dist, near = pairs.tree.query(pred.reshape(-1, 3))
+        dist = dist.reshape(trip.shape[0], k)
+        near = near.reshape(trip.shape[0], k)
+        hit = dist <= config.fit_mm
+        hit[:, list(tri)] = True
+        near[:, list(tri)] = trip
+        keep = hit.sum(axis=1) >= need
+        pp = np.where(hit, near, -1)[keep]
+        dd = np.where(hit, dist, 0.0)[keep]
+        srt = np.sort(pp, axis=1)
+        dup = np.any((srt[:, 1:] == srt[:, :-1]) & (srt[:, 1:] >= 0), axis=1)
+        rows.append(pp[~dup])
+        errs.append(np.sqrt((dd[~dup] ** 2).sum(axis=1) / np.maximum((pp[~dup] >= 0).sum(1), 1)))
+    if not rows:
+        return []
+    pp = np.concatenate(rows)
+    err = np.concatenate(errs)
+    order = np.argsort(err, kind="stable")
+    _, first = np.unique(pp[order], axis=0, return_index=True)
+    sel = order[first]
+    pp, err = pp[sel], err[sel]
+    # distance constancy of the body's pairs along the tracks
+    ok = pp >= 0
+    h = hist[np.where(ok, pp, 0)]  # (C, k, W, 3)
+    d = np.linalg.norm(h[:, :, None] - h[:, None, :], axis=4)  # (C, k, k, W)
+    Dm = tpl.D[np.ix_(body.markers, body.markers)][None, :, :, None]
+    tol = tpl.tol[np.ix_(body.markers, body.markers)][None, :, :, None]
+    seen = np.isfinite(d) & (ok[:, :, None] & ok[:, None, :])[..., None]
+    seen &= ~np.eye(k, dtype=bool)[None, :, :, None]
+    bad = (seen & (np.abs(d - Dm) > tol)).sum(axis=(1, 2, 3))
+    steady = bad <= (1.0 - config.constancy) * np.maximum(seen.sum(axis=(1, 2, 3)), 1)
+    out = []
+    for c in np.flatnonzero(steady):
+        v = ok[c]
+        out.append(_Candidate(body.markers[v], pp[c, v], float(err[c])))
+    return out
+
+
+@dataclass
+class _Graph:
+    """Marker-to-point assignments (nodes) of one template and their pairwise relations:
+    ``agree[a, b]``: a rigid pair (``A <= rigid_a_mm``) whose point distance matches ``D``;
+    ``clash[a, b]``: one marker on two points, one point for two markers, a rigid pair whose
+    distance does not match, or any pair farther apart than its reach."""
+
+    M: np.ndarray
+    P: np.ndarray
+    agree: np.ndarray
+    clash: np.ndarray
+    link: np.ndarray
+    link_err: np.ndarray  # |d - D| / tolerance on links, 0 elsewhere
+    art: np.ndarray  # articulated pairs with a trained range (where links may be)
+
+
+def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
+    n = M.shape[0]
+    agree = np.empty((n, n), dtype=np.bool_)
+    clash = np.empty((n, n), dtype=np.bool_)
+    link = np.empty((n, n), dtype=np.bool_)
+    link_err = np.empty((n, n))
+    art = np.empty((n, n), dtype=np.bool_)
+    _graph_kernel(
+        M.astype(np.int64), P.astype(np.int64), np.ascontiguousarray(pts, dtype=np.float64),
+        tpl.D, tpl.tol, tpl.rigid, tpl.bound, tpl.link, agree, clash, link, link_err, art,
+    )  # fmt: skip
+    return _Graph(M, P, agree, clash, link, link_err, art)
+
+
+@njit
+def _graph_kernel(M, P, pts, D, tol, rigid, bound, lt, agree, clash, link, link_err, art):
+    """The relations of :class:`_Graph` for every pair of nodes (see its docstring)."""
+    n = M.shape[0]
+    for a in range(n):
+        ma, pa = M[a], P[a]
+        for b in range(n):
+            mb, pb = M[b], P[b]
+            same_m = ma == mb
+            same_p = pa == pb
+            dx = pts[pa, 0] - pts[pb, 0]
+            dy = pts[pa, 1] - pts[pb, 1]
+            dz = pts[pa, 2] - pts[pb, 2]
+            dev = np.sqrt(dx * dx + dy * dy + dz * dz) - D[ma, mb]
+            known = np.isfinite(D[ma, mb])
+            rig = rigid[ma, mb]
+            other = not same_m and not same_p
+            agree[a, b] = rig and other and abs(dev) <= tol[ma, mb]
+            c = same_m != same_p
+            if known and rig and abs(dev) > tol[ma, mb]:
+                c = True
+            if known and not rig and dev > bound[ma, mb]:
+                c = True
+            clash[a, b] = c
+            t = lt[ma, mb]
+            ar = known and not rig and t > 0.0 and other
+            art[a, b] = ar
+            lk = ar and abs(dev) <= t
+            link[a, b] = lk
+            link_err[a, b] = abs(dev) / t if lk else 0.0
+
+
+def _select(
+    g: _Graph, seed: np.ndarray, allowed: np.ndarray, bodies: np.ndarray, config: BootConfig
+) -> np.ndarray:
+    """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
+    links that agree with the set (at least ``min_support``) and no clash; when none is left,
+    add the whole body candidate (another segment) best linked to the set through articulated
+    pairs within their trained range (at least ``min_links``), and go on."""
+    chosen = np.zeros(g.M.size, dtype=bool)
+    chosen[seed] = True
+    support = g.agree[seed].sum(axis=0).astype(np.int64)
+    links = g.link[seed].sum(axis=0).astype(np.int64)
+    lerr = g.link_err[seed].sum(axis=0)
+    possible = g.art[seed].sum(axis=0).astype(np.int64)
+    blocked = g.clash[seed].any(axis=0) | chosen | ~allowed
+    while True:
+        # rigid agreement first; among equals, the node more articulated pairs agree with
+        # (breaks the near-symmetries of small segments: a wrist bar read either way)
+        score = np.where(blocked, -1.0, support + (links - lerr) / (1.0 + chosen.sum()))
+        c = int(np.argmax(score))
+        if support[c] >= config.min_support and not blocked[c]:
+            chosen[c] = True
+            support += g.agree[c]
+            links += g.link[c]
+            lerr += g.link_err[c]
+            possible += g.art[c]
+            blocked |= g.clash[c]
+            blocked[c] = True
+            continue
+        if bodies.shape[0] == 0:
+            return np.flatnonzero(chosen)
+        bb = bodies >= 0
+        free = ~np.any(blocked[bodies] & bb, axis=1)
+        count = (links[bodies] * bb).sum(axis=1)
+        # links counted softly (1 - |d - D| / tolerance each): a symmetric segment read either
+        # way, or the left foot read as the right one, has as many links but farther from D
+        soft = count - (lerr[bodies] * bb).sum(axis=1)
+        frac = count / np.maximum((possible[bodies] * bb).sum(axis=1), 1)
+        # a segment joins when most of its articulated pairs to the set are in range (another
+        # performer's hand within reach of this one's shoulder is not, of its hips neither)
+        total = np.where(free & (frac >= config.link_fraction), soft, -1.0)
+        best = int(np.argmax(total))
+        if count[best] < config.min_links or total[best] < 0:
+            return np.flatnonzero(chosen)
+        b = bodies[best][bb[best]]
+        chosen[b] = True
+        support += g.agree[b].sum(axis=0)
+        links += g.link[b].sum(axis=0)
+        lerr += g.link_err[b].sum(axis=0)
+        possible += g.art[b].sum(axis=0)
+        blocked |= g.clash[b].any(axis=0)
+        blocked[b] = True
+
+
+def _grow(
+    tpl: _Template,
+    assign: np.ndarray,
+    taken: np.ndarray,
+    pts: np.ndarray,
+    tree: cKDTree,
+    config: BootConfig,
+) -> None:
+    """Markers with no node yet: a free point that keeps the rigid distances (3 or more) to the
+    markers placed, and clashes with none of them, joins (trilateration). With two rigid
+    partners only, the point must be the only one that also keeps every articulated pair in
+    its trained range."""
+    for _ in range(3):
+        changed = False
+        have = np.flatnonzero(assign >= 0)
+        for m in np.flatnonzero(assign < 0):
+            part = have[tpl.rigid[m, have]]
+            if part.size < 2:
+                continue
+            two = part.size == 2  # a ring of solutions: the point must be unique and linked
+            j = part[np.argmin(tpl.D[m, part])]
+            near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
+            near = np.asarray(near, dtype=np.int64)
+            near = near[~taken[near]]
+            if near.size == 0:
+                continue
+            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+            dev = d - tpl.D[m, have]
+            rig = tpl.rigid[m, have]
+            tol = tpl.tol[m, have]
+            bad = (rig & (np.abs(dev) > tol)) | (~rig & (dev > tpl.bound[m, have]))
+            if two:
+                lt = tpl.link[m, have]
+                bad |= ~rig & (lt > 0) & (np.abs(dev) > lt)
+            ok = ~bad.any(axis=1)
+            best = -1
+            if two and ok.sum() != 1:
+                continue
+            if ok.any():
+                err = ((dev[:, rig] / tol[rig]) ** 2).mean(axis=1)
+                err = np.where(ok, err, np.inf)
+                best = int(near[int(np.argmin(err))])
+            if best >= 0:
+                assign[m] = best
+                taken[best] = True
+                have = np.flatnonzero(assign >= 0)
+                changed = True
+        if not changed:
+            return
+
+
+def _constancy(
+    tpl: _Template, assign: np.ndarray, hist: np.ndarray, config: BootConfig
+) -> np.ndarray:
+    """Drops markers whose rigid pair distances do not hold along the tracks."""
+    for _ in range(3):
+        have = np.flatnonzero(assign >= 0)
+        if have.size < 2:
+            return assign
+        h = hist[assign[have]]  # (n, W, 3)
+        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
+        D = tpl.D[np.ix_(have, have)][..., None]
+        tol = tpl.tol[np.ix_(have, have)][..., None]
+        pair = tpl.rigid[np.ix_(have, have)][..., None] & np.isfinite(d)
+        bad = pair & (np.abs(d - D) > tol)
+        n_pair = pair.sum(axis=(1, 2))
+        frac_bad = bad.sum(axis=(1, 2)) / np.maximum(n_pair, 1)
+        worst = int(np.argmax(frac_bad))
+        if frac_bad[worst] <= 1.0 - config.constancy:
+            return assign
+        drop = frac_bad > max(1.0 - config.constancy, 0.5 * frac_bad[worst])
+        assign[have[drop]] = -1
+    return assign
+
+
+def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
+    """Markers explained, less per marker the mean squared distance error of its rigid pairs
+    (in tolerances) and of its articulated pairs (in link tolerances, capped at 1): a leg read
+    as the other leg keeps its rigid distances but not its distances to the pelvis."""
+    have = np.flatnonzero(assign >= 0)
+    if have.size == 0:
+        return 0.0
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    Dm = tpl.D[np.ix_(have, have)]
+    rigid = tpl.rigid[np.ix_(have, have)]
+    e = np.abs(d - Dm) / tpl.tol[np.ix_(have, have)]
+    e = np.where(rigid & np.isfinite(e), e, 0.0)
+    per = (e**2).sum(axis=1) / np.maximum(rigid.sum(axis=1), 1)
+    lt = tpl.link[np.ix_(have, have)]
+    art = ~rigid & (lt > 0) & np.isfinite(Dm)
+    np.fill_diagonal(art, False)
+    le = np.minimum(np.abs(d - Dm) / np.where(art, lt, 1.0), 1.0)
+    le = np.where(art, le, 0.0)
+    per_l = (le**2).sum(axis=1) / np.maximum(art.sum(axis=1), 1)
+    return float(have.size - per.sum() - per_l.sum())
+
+
+@dataclass
+class _Hypothesis:
+    template: int
+    assign: np.ndarray  # (m,) point index per template marker, -1
+    score: float
+    rms: float = 0.0  # RMS of |d - D| over its rigid pairs (mm)
+
+
+def _rms(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
+    """RMS distance error (mm) of a hypothesis over its rigid pairs: how well the template's
+    body size and proportions fit (two performers of similar height differ here)."""
+    have = np.flatnonzero(assign >= 0)
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    rig = tpl.rigid[np.ix_(have, have)]
+    if not rig.any():
+        return np.inf
+    return float(np.sqrt(np.mean((d - tpl.D[np.ix_(have, have)])[rig] ** 2)))
+
+
+@dataclass
+class _Candidates:
+    """Body candidates of one template as graph nodes (``rows``: node indices per candidate,
+    -1 padded; ``cm``/``cp``: the same as markers and points)."""
+
+    cands: list[_Candidate]
+    g: _Graph
+    seeds: list[np.ndarray]
+    rows: np.ndarray
+    cm: np.ndarray
+    cp: np.ndarray
+
+
+def _candidates(
+    tpl: _Template,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
+    fixed: np.ndarray | None = None,
+) -> _Candidates | None:
+    """Every body candidate of ``tpl`` and their graph; ``fixed`` (a template assignment) adds
+    its (marker, point) nodes (as a last candidate row of its own, not a body)."""
+    cands: list[_Candidate] = []
+    for body in tpl.bodies:
+        cands += _body_candidates(tpl, body, pts, hist, pairs, config)
+    n = pts.shape[0]
+    keys = [c.markers * n + c.points for c in cands]
+    if fixed is not None:
+        m = np.flatnonzero(fixed >= 0)
+        keys.append(m * n + fixed[m])
+    if not keys or not np.concatenate(keys).size:
+        return None
+    uniq, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    g = _graph(tpl, uniq // n, uniq % n, pts)
+    bounds = np.cumsum([0] + [k.size for k in keys])
+    seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(keys))]
+    rows = np.full((len(cands), 8), -1, dtype=np.int64)
+    cm = np.zeros((len(cands), 8), dtype=np.int64)
+    cp = np.full((len(cands), 8), -1, dtype=np.int64)
+    for i, c in enumerate(cands):
+        rows[i, : c.markers.size] = seeds[i]
+        cm[i, : c.markers.size] = c.markers
+        cp[i, : c.markers.size] = c.points
+    return _Candidates(cands, g, seeds, rows, cm, cp)
+
+
+def _hypotheses(
+    tpl: _Template,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    pairs: _Pairs,
+    config: BootConfig,
+) -> list[_Hypothesis]:
+    """Up to ``max_hypotheses`` disjoint subject hypotheses of one template."""
+    cg = _candidates(tpl, pts, hist, pairs, config)
+    if cg is None or not cg.cands:
+        return []
+    n = pts.shape[0]
+    cands, g, seeds, padded, cm, cp = cg.cands, cg.g, cg.seeds, cg.rows, cg.cm, cg.cp
+    # seeds by support: rigid links of the rest of the graph that agree with the seed body
+    support = np.array([g.agree[s].sum() for s in seeds])
+    order = np.argsort(-support, kind="stable")
+    extent = float(np.nanmax(tpl.D)) if np.isfinite(tpl.D).any() else 2000.0
+    need = max(3, int(np.ceil(config.min_fraction * tpl.n)))
+    out: list[_Hypothesis] = []
+    claimed = np.zeros(n, dtype=bool)  # points of this template's accepted hypotheses
+    used = np.zeros(len(cands), dtype=bool)
+    node_pos = pts[g.P]
+    tried = 0
+    # candidates with the same point set: one body read through its symmetries (a plate of
+    # four markers, a leg read as the other leg); each is grown and the best hypothesis kept
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for i, c in enumerate(cands):
+        groups.setdefault(tuple(sorted(c.points.tolist())), []).append(i)
+    for ci in order:
+        if len(out) >= config.max_hypotheses or tried >= config.max_seeds:
+            break
+        if used[ci] or np.any(claimed[cands[ci].points]):
+            continue
+        tried += 1
+        best: _Hypothesis | None = None
+        for cj in groups[tuple(sorted(cands[ci].points.tolist()))][: config.max_symmetries]:
+            used[cj] = True
+            centre = pts[cands[cj].points].mean(axis=0)
+            allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
+            nodes = _select(g, seeds[cj], allowed, padded, config)
+            assign = np.full(tpl.n, -1, dtype=np.int64)
+            assign[g.M[nodes]] = g.P[nodes]
+            h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
+            if best is None or h.score > best.score:
+                best = h
+        if best is not None:
+            # the best reading is completed (trilateration) and checked along the tracks
+            assign = best.assign
+            taken = claimed.copy()
+            taken[assign[assign >= 0]] = True
+            _grow(tpl, assign, taken, pts, pairs.tree, config)
+            assign = _constancy(tpl, assign, hist, config)
+            if int((assign >= 0).sum()) < need:
+                continue
+            _symmetries(tpl, assign, pts, cands, groups)
+            _readings(tpl, assign, pts)
+            best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
+        if best is not None:
+            # seeds inside this hypothesis need not be tried again
+            used |= np.all((best.assign[cm] == cp) | (cp < 0), axis=1)
+            claimed[best.assign[best.assign >= 0]] = True
+            out.append(best)
+    return out
+
+
+def _pair_error(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> float:
+    """Distance error of ``markers`` placed on ``points`` against the rest of ``assign``:
+    rigid pairs in tolerances, articulated pairs in link tolerances (capped at 1), squared."""
+    rest = np.flatnonzero(assign >= 0)
+    rest = rest[~np.isin(rest, markers)]
+    if rest.size == 0:
+        return 0.0
+    d = np.linalg.norm(pts[points][:, None, :] - pts[assign[rest]][None, :, :], axis=2)
+    Dm = tpl.D[markers][:, rest]
+    dev = np.abs(d - Dm)
+    rig = tpl.rigid[markers][:, rest]
+    lt = tpl.link[markers][:, rest]
+    e_r = np.where(rig, dev / tpl.tol[markers][:, rest], 0.0)
+    art = ~rig & (lt > 0) & np.isfinite(Dm)
+    e_l = np.where(art, np.minimum(dev / np.where(art, lt, 1.0), 1.0), 0.0)
+    return float(np.nansum(e_r**2) + np.nansum(e_l**2))
+
+
+def _symmetries(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    cands: list[_Candidate],
+    groups: dict[tuple[int, ...], list[int]],
+) -> None:
+    """Bodies read through a symmetry (a head's four markers, a wrist bar): among the body
+    candidates on the same points (whose markers are free or theirs), keeps the reading whose
+    distances to the rest of the subject fit best (its own distances cannot tell them apart)."""
+    marker_of = {int(p): int(m) for m, p in enumerate(assign) if p >= 0}
+    for key, idx in groups.items():
+        if len(idx) < 2 or any(p not in marker_of for p in key):
+            continue
+        current = np.array([marker_of[p] for p in key])
+        free = assign < 0
+        free[current] = True
+        readings = [cands[i] for i in idx if np.all(free[cands[i].markers])]
+        if not readings:
+            continue
+        base = assign.copy()
+        base[current] = -1
+        now = _pair_error(tpl, current, assign[current], base, pts)
+        errs = [_pair_error(tpl, c.markers, c.points, base, pts) for c in readings]
+        if min(errs) >= now:
+            continue
+        best = readings[int(np.argmin(errs))]
+        assign[current] = -1
+        assign[best.markers] = best.points
+        for m, p in zip(best.markers.tolist(), best.points.tolist(), strict=True):
+            marker_of[p] = m
+
+
+def _segments(tpl: _Template) -> list[np.ndarray]:
+    """Marker groups whose readings are checked by :func:`_readings`: each body with the
+    bodies sharing two or more markers with it (a head split into 3-marker bodies is one
+    group), at most ``6`` markers."""
+    out: list[np.ndarray] = []
+    seen: set[tuple[int, ...]] = set()
+    for body in tpl.bodies:
+        group = set(body.markers.tolist())
+        for other in tpl.bodies:
+            if len(group & set(other.markers.tolist())) >= 2:
+                group |= set(other.markers.tolist())
+        key = tuple(sorted(group))
+        if len(key) <= 6 and key not in seen:
+            seen.add(key)
+            out.append(np.array(key, dtype=np.int64))
+    return out
+
+
+def _readings(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
+    """Every segment's points are read again: among the injective maps of its placed points to
+    the segment's markers (free or its own) that keep the rigid distances, the map whose
+    distances to the rest of the subject fit best is kept. A symmetric segment (a head's four
+    markers with one hidden, a wrist bar) may have been placed mirrored by a body candidate
+    that saw only part of it; its own distances cannot tell, the rest of the body can."""
+    for seg in tpl.segments:
+        placed = seg[assign[seg] >= 0]
+        if placed.size < 2 or placed.size > 4:
+            continue
+        points = assign[placed]
+        free = seg[(assign[seg] < 0)]
+        options = np.concatenate([placed, free])
+        d = np.linalg.norm(pts[points][:, None] - pts[points][None, :], axis=2)
+        base = assign.copy()
+        base[placed] = -1
+        best, best_err = None, _pair_error(tpl, placed, points, base, pts)
+        for perm in itertools.permutations(options.tolist(), placed.size):
+            mk = np.array(perm, dtype=np.int64)
+            if np.array_equal(mk, placed):
+                continue
+            dev = np.abs(d - tpl.D[np.ix_(mk, mk)])
+            rig = tpl.rigid[np.ix_(mk, mk)]
+            if np.any(rig & ~(dev <= tpl.tol[np.ix_(mk, mk)])):
+                continue
+            err = _pair_error(tpl, mk, points, base, pts)
+            if err < best_err:
+                best, best_err = mk, err
+        if best is not None:
+            assign[placed] = -1
+            assign[best] = points
+
+
+def _complete(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    taken: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray:
+    """Adds markers to a placed subject ``assign`` from free points near it: body candidates
+    (other segments, linked through articulated pairs) and trilateration. Markers already
+    placed stay; new ones must pass the distance constancy along the tracks."""
+    have = np.flatnonzero(assign >= 0)
+    if have.size == 0:
+        return assign
+    centre = pts[assign[have]].mean(axis=0)
+    own = np.zeros(pts.shape[0], dtype=bool)
+    own[assign[have]] = True
+    local = np.flatnonzero((np.linalg.norm(pts - centre, axis=1) <= tpl.extent) & (~taken | own))
+    if local.size < 3:
+        return assign
+    back = np.full(pts.shape[0], -1, dtype=np.int64)
+    back[local] = np.arange(local.size)
+    lp, lh = pts[local], hist[local]
+    fixed = np.where(assign >= 0, back[np.maximum(assign, 0)], -1)
+    cg = _candidates(tpl, lp, lh, _Pairs(lp, tpl.r_max), config, fixed)
+    out = assign.copy()
+    if cg is not None:
+        nodes = _select(cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config)
+        la = np.full(tpl.n, -1, dtype=np.int64)
+        la[cg.g.M[nodes]] = cg.g.P[nodes]
+    else:
+        la = fixed.copy()
+    ltaken = np.zeros(local.size, dtype=bool)
+    ltaken[la[la >= 0]] = True
+    _grow(tpl, la, ltaken, lp, cKDTree(lp), config)
+    la[fixed >= 0] = fixed[fixed >= 0]
+    checked = _constancy(tpl, la.copy(), lh, config)
+    fresh = (fixed < 0) & (la >= 0) & (checked == la)
+    out[fresh] = local[la[fresh]]
+    # one point per marker and one marker per point
+    pts_used = out[out >= 0]
+    if np.unique(pts_used).size != pts_used.size:
+        return assign
+    return out
+
+
+def warmup_kernels() -> None:
+    """Compiles (or loads from cache) the boot's numba kernel on a tiny input."""
+    n = np.zeros(2, dtype=np.int64)
+    m = np.zeros((1, 1))
+    out_b = np.zeros((2, 2), dtype=np.bool_)
+    _graph_kernel(
+        n, n, np.zeros((1, 3)), m, m, np.zeros((1, 1), dtype=np.bool_), m, m, out_b, out_b.copy(),
+        out_b.copy(), np.zeros((2, 2)), out_b.copy(),
+    )  # fmt: skip

@@ -1,0 +1,96 @@
+"""Frame-to-frame tracks of anonymous points for the boot (step 1 of labeling/boot.py):
+``PointTracker`` gives each point a track id, ``track_history`` the tracks' positions over a
+window, ``labels_along_tracks`` spreads the last frame's labels over the window."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from labeler_service.errors import LabelerError
+from labeler_service.labeling.boot_config import BootConfig
+
+
+# ---------------------------------------------------------------------------- tracking
+class PointTracker:
+    """Frame-to-frame identity of anonymous points (nearest neighbour with velocity).
+
+    ``update(points, t)`` returns one track id per point: the id of the previous frame's point
+    it continues, or a new id. A match must be mutual (each is the other's nearest) and within
+    ``track_gate_mm + a dt^2`` of the constant-velocity prediction (``+ v dt`` for a track with
+    no velocity yet). Ambiguous points simply start new tracks: the boot wants few, clean tracks.
+    """
+
+    def __init__(self, rate: float, config: BootConfig | None = None) -> None:
+        if not (np.isfinite(rate) and rate > 0):
+            raise LabelerError(f"invalid frame rate {rate}")
+        self.rate = float(rate)
+        self.config = config or BootConfig()
+        self._next = 0
+        self._pts = np.zeros((0, 3))
+        self._vel = np.zeros((0, 3))
+        self._has_vel = np.zeros(0, dtype=bool)
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._t = np.nan
+
+    def update(self, points: np.ndarray, t: float) -> np.ndarray:
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        n = pts.shape[0]
+        dt = t - self._t
+        if not (np.isfinite(dt) and dt > 0):
+            dt = 1.0 / self.rate
+        c = self.config
+        ids = np.full(n, -1, dtype=np.int64)
+        vel = np.zeros((n, 3))
+        has_vel = np.zeros(n, dtype=bool)
+        if n and self._pts.shape[0]:
+            pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
+            g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+            gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
+            d_pt, j_pt = cKDTree(pred).query(pts)  # point -> nearest prediction
+            _, i_tr = cKDTree(pts).query(pred)  # prediction -> nearest point
+            idx = np.arange(n)
+            ok = (i_tr[j_pt] == idx) & (d_pt <= gate[j_pt])
+            k = j_pt[ok]
+            ids[ok] = self._ids[k]
+            vel[ok] = (pts[ok] - self._pts[k]) / dt
+            has_vel[ok] = True
+        new = ids < 0
+        ids[new] = np.arange(self._next, self._next + int(new.sum()))
+        self._next += int(new.sum())
+        self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t
+        return ids
+
+
+def track_history(frames: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -> np.ndarray:
+    """``(N, W, 3)`` positions of the tracks ``ids`` in the window ``frames`` (list of
+    ``(points, ids)``, oldest first), NaN where a track has no point in a frame."""
+    out = np.full((ids.shape[0], len(frames), 3), np.nan)
+    for w, (pts, fids) in enumerate(frames):
+        order = np.argsort(fids, kind="stable")
+        sids = fids[order]
+        if sids.shape[0] == 0:
+            continue
+        pos = np.minimum(np.searchsorted(sids, ids), sids.shape[0] - 1)
+        hit = sids[pos] == ids
+        out[hit, w] = pts[order[pos[hit]]]
+    return out
+
+
+def labels_along_tracks(
+    window: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray, labels: np.ndarray
+) -> list[np.ndarray]:
+    """Spreads the labels of tracks ``ids`` over every frame of ``window``."""
+    lab = labels >= 0
+    tid, tl = ids[lab], labels[lab]
+    order = np.argsort(tid)
+    tid, tl = tid[order], tl[order]
+    out = []
+    for _, fids in window:
+        res = np.full(fids.shape[0], -1, dtype=np.int64)
+        if tid.size:
+            pos = np.minimum(np.searchsorted(tid, fids), tid.size - 1)
+            hit = tid[pos] == fids
+            res[hit] = tl[pos[hit]]
+        out.append(res)
+    return out

@@ -1,0 +1,132 @@
+"""Starting from a model with no labels: ``train structure TAKE:start:stop``, ``label --model``
+on an unlabeled take, ``evaluate --model --init-frames 0 [--leave]``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import Capture, read_capture, split_label, write_capture
+from labeler_service.cli.main import main
+from labeler_service.labeling.templates import load_model
+from labeler_service.scenes.simulate import simulate_scene
+
+RATE = 120.0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """Three walkers, 8 s: the model is trained on the second half, scored on the first."""
+    d = tmp_path_factory.mktemp("boot")
+    cap = simulate_scene(3, 8.0, "walk", seed=4, rate=RATE, ghosts=1.0)
+    path = d / "walk.npz"
+    write_capture(cap, path)
+    model = d / "m.json"
+    half = cap.n_frames // 2
+    assert main(["train", "structure", f"{path}:{half}:{cap.n_frames}", "--out", str(model)]) == 0
+    test = d / "test.npz"
+    write_capture(cap.frames(0, half), test)
+    return d, cap, path, model, test
+
+
+def _last_json(capsys) -> dict:
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_train_structure_on_a_frame_range_names_subjects_like_compose(scene, tmp_path, capsys):
+    d, cap, path, model, _ = scene
+    m = load_model(model)
+    assert [s.name for s in m.subjects] == ["P1", "P2", "P3"]
+    # an unprefixed single-person take trains the subject named by its file stem
+    cols = cap.subject_columns("P2")
+    bare = Capture(
+        cap.positions[:, cols], tuple(split_label(cap.labels[i])[1] for i in cols), cap.rate
+    )
+    solo = tmp_path / "solo_take.npz"
+    write_capture(bare, solo)
+    out = tmp_path / "solo.json"
+    assert main(["train", "structure", f"{solo}:0:400", "--out", str(out), "--json"]) == 0
+    summary = _last_json(capsys)
+    assert list(summary["subjects"]) == ["solo_take"] and summary["frames"] == 400
+    args = ["train", "structure", str(solo), "--rename", "solo_take=P2", "--out", str(out)]
+    assert main(args) == 0
+    assert [s.name for s in load_model(out).subjects] == ["P2"]
+    for bad, why in ((f"{solo}:5:2", "start < stop"), (f"{solo}:x", "TAKE[:start[:stop]]"),
+                     (f"{solo}:99999", "past the take")):  # fmt: skip
+        assert main(["train", "structure", bad, "--out", str(out)]) == 2
+        assert why in capsys.readouterr().err
+    assert main(["train", "structure", str(solo), "--rename", "nope", "--out", str(out)]) == 2
+    assert "OLD=NEW" in capsys.readouterr().err
+
+
+def test_label_an_unlabeled_take_from_a_model(scene, tmp_path, capsys):
+    d, cap, _, model, test = scene
+    truth = read_capture(test)
+    raw = tmp_path / "raw.npz"
+    write_capture(
+        Capture(truth.positions, tuple(f"*{i}" for i in range(len(truth.labels))), RATE), raw
+    )
+    out = tmp_path / "out.npz"
+    assert main(["label", str(raw), str(out), "--model", str(model), "--json"]) == 0
+    summary = _last_json(capsys)
+    assert summary["agreement_with_input_labels"] is None  # nothing to compare: no labels
+    res = read_capture(out)
+    names = load_model(model).marker_names
+    assert res.labels[: len(names)] == names
+    # after half a second, the labeled columns hold the true trajectories
+    col = {n: i for i, n in enumerate(truth.labels)}
+    start = round(0.5 * RATE)
+    ok = tot = 0
+    for k, n in enumerate(names):
+        t = truth.positions[start:, col[n]]
+        r = res.positions[start:, k]
+        seen = np.isfinite(t[:, 0]) & np.isfinite(r[:, 0])
+        tot += int(np.isfinite(t[:, 0]).sum())
+        ok += int((np.linalg.norm(t[seen] - r[seen], axis=1) < 1.0).sum())
+    assert ok / tot >= 0.9
+
+
+def test_evaluate_from_a_model_without_labels(scene, capsys):
+    _, _, _, model, test = scene
+    args = ["evaluate", str(test), "--model", str(model), "--init-frames", "0", "--json"]
+    assert main([*args, "--no-progress"]) == 0
+    r = _last_json(capsys)
+    assert r["method"] == "online" and r["settings"]["init_frames"] == 0
+    assert set(r["boot_s"]) == {"P1", "P2", "P3"}
+    assert r["boot_s_max"] is not None and r["boot_s_max"] <= 1.0
+    assert r["accuracy_after_boot"] >= 0.9
+    assert r["absent_labeled"] == 0 and r["identity_swaps"] == 0
+    assert main([*args, "--no-progress", "--leave", "1", "--leave-seconds", "0.5"]) == 0
+    r = _last_json(capsys)
+    assert len(r["departures"]) == 1 and len(r["reid_s"]) >= 1
+    assert r["absent_labeled"] == 0
+
+
+def test_evaluate_boot_errors(scene, capsys):
+    _, _, _, model, test = scene
+    assert main(["evaluate", str(test), "--init-frames", "0", "--no-progress"]) == 2
+    assert "0 with a model" in capsys.readouterr().err
+    args = ["evaluate", str(test), "--model", str(model), "--init-frames", "0"]
+    assert main([*args, "--method", "closest-point", "--no-progress"]) == 2
+    assert "closest-point cannot start" in capsys.readouterr().err
+
+
+def test_replay_with_no_init_frames_sends_no_labels(scene):
+    import asyncio
+
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.service.protocol import decode
+    from labeler_service.tools.replay import replay
+
+    _, _, _, _, test = scene
+    frames = corrupt(read_capture(test).frames(0, 20), CorruptionSpec(seed=1))
+    sent = []
+
+    async def send(payload: bytes) -> bool:
+        sent.append(decode(payload))
+        return True
+
+    stats = asyncio.run(replay(frames, send, init_frames=0, speed=0))
+    assert stats.sent == 20 and all(m.labels is None for m in sent)

@@ -1,0 +1,199 @@
+"""Booting through the one factory, and the boot step run off the frame path
+(``BootingLabeler(inline_boot=False)``: ``needs_boot`` / ``boot_snapshot`` / ``boot_step`` /
+``install_boot``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.test_boot import RATE, Stream, _run
+
+from labeler_service.errors import LabelerError
+from labeler_service.labeling.boot import BootConfig
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.labeling.labeler import Labeler
+from labeler_service.labeling.registry import make_labeler
+
+
+@pytest.fixture(scope="module")
+def walk():
+    from labeling.test_boot import _train
+
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(3, 4.0, "walk", seed=11, rate=RATE, ghosts=1.0)
+    half = cap.n_frames // 2
+    return _train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+
+
+def _accuracy(outs, truths, start: int) -> float:
+    ok = vis = 0
+    for o, t in zip(outs[start:], truths[start:], strict=True):
+        m = t >= 0
+        ok += int(np.count_nonzero(o.point_labels[m] == t[m]))
+        vis += int(m.sum())
+    return ok / vis
+
+
+def test_factory_builds_a_booting_labeler_only_with_a_model(walk):
+    model, _ = walk
+    lab = make_labeler("online", rate=RATE, model=model, boot=True)
+    assert isinstance(lab, BootingLabeler) and lab.marker_names == model.marker_names
+    cfg = BootConfig(window_s=0.2)
+    assert make_labeler("online", rate=RATE, model=model, boot=cfg).boot_config is cfg
+    assert isinstance(make_labeler("online", rate=RATE, model=model), Labeler)
+    with pytest.raises(LabelerError, match="needs a model"):
+        make_labeler("online", marker_names=("a:b",), rate=RATE, boot=True)
+    with pytest.raises(LabelerError, match="only the online labeler"):
+        make_labeler("baseline", rate=RATE, model=model, boot=True)
+    ext = lab.body_extent()
+    assert ext.shape == (len(model.marker_names),) and np.isfinite(ext).any()
+
+
+def test_process_never_boots_with_inline_boot_off(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    outs, _ = _run(lab, Stream(cap, model, seed=1), range(60))
+    assert lab.events == [] and lab.boot_ms == []
+    assert all(np.all(o.point_labels < 0) for o in outs)
+    assert lab.needs_boot()
+
+
+def test_boot_off_the_frame_path_matches_inline_boot(walk):
+    """The three calls run right after a frame give the inline labeler's result exactly."""
+    model, cap = walk
+    inline = BootingLabeler(model, RATE)
+    outside = BootingLabeler(model, RATE, inline_boot=False)
+    s1, s2 = Stream(cap, model, seed=2), Stream(cap, model, seed=2)
+    for f in range(cap.n_frames):
+        p1, _ = s1.frame(f)
+        p2, _ = s2.frame(f)
+        a = inline.process(p1, f / RATE)
+        b = outside.process(p2, f / RATE)
+        if outside.needs_boot():
+            snap = outside.boot_snapshot()
+            outside.install_boot(snap, outside.boot_step(snap))
+        if f + 1 < cap.n_frames:
+            continue
+        np.testing.assert_array_equal(a.point_labels, b.point_labels)
+    assert [e[1:] for e in inline.events] == [e[1:] for e in outside.events]
+    assert set(outside.active_subjects) == {"P1", "P2", "P3"}
+
+
+def test_boot_result_installed_frames_later_follows_the_tracks(walk):
+    """A boot that takes 12 frames (as in a worker thread): its labels are carried along the
+    tracks to the frame where it is installed, and the stream is labeled as well as inline."""
+    model, cap = walk
+    delay = 12
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=3)
+    pending: list[tuple[int, object, object]] = []
+    outs, truths = [], []
+    for f in range(cap.n_frames):
+        pts, tr = s.frame(f)
+        outs.append(lab.process(pts, f / RATE))
+        truths.append(tr)
+        if pending and f >= pending[0][0]:
+            _, snap, res = pending.pop()
+            lab.install_boot(snap, res)
+        elif not pending and lab.needs_boot():
+            snap = lab.boot_snapshot()
+            pending.append((f + delay, snap, lab.boot_step(snap)))
+    assert set(lab.active_subjects) == {"P1", "P2", "P3"}
+    boots = [t for t, e, _ in lab.events if e == "boot"]
+    assert boots and min(boots) >= (round(BootConfig().window_s * RATE) - 1 + delay) / RATE
+    assert _accuracy(outs, truths, round(0.6 * RATE)) >= 0.9
+
+
+def test_install_skips_a_subject_booted_meanwhile(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=4)
+    _run(lab, s, range(20))
+    snap = lab.boot_snapshot()
+    res = lab.boot_step(snap)
+    assert res.subjects
+    first = lab.install_boot(snap, res)
+    assert first.size == len(res.subjects)
+    events = list(lab.events)
+    again = lab.install_boot(snap, res)  # the same result twice: every subject active already
+    assert again.size == 0 and lab.events == events
+
+
+def test_an_abandoned_attempt_backs_off(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=6)
+    frames = iter(range(cap.n_frames))
+    for f in frames:
+        pts, _ = s.frame(f)
+        lab.process(pts, f / RATE)
+        if lab.needs_boot():
+            break
+    snap = lab.boot_snapshot()
+    assert lab.install_boot(snap, None).size == 0 and lab.events == []
+    waited = 0
+    for f in frames:
+        pts, _ = s.frame(f)
+        lab.process(pts, f / RATE)
+        waited += 1
+        if lab.needs_boot():
+            break
+    every = round(BootConfig().boot_every_s * RATE)
+    assert waited == 2 * every
+
+
+@pytest.mark.parametrize("relative, dropped", [(0.35, True), (0.0, False)])
+def test_subject_losing_most_of_its_markers_at_once_is_dropped(walk, relative, dropped):
+    """P2 loses 75 % of its markers at once but keeps more than ``vanish_fraction`` (as when
+    a performer leaves while the boot had put some of its labels on another's points): the
+    relative rule drops it, the absolute one alone keeps it."""
+    model, cap = walk
+    pos = cap.positions.copy()
+    cols = [i for i, n in enumerate(cap.labels) if n.startswith("P2:")]
+    keep = cols[: max(1, round(0.25 * len(cols)))]
+    gone = 150
+    pos[gone:, [c for c in cols if c not in keep]] = np.nan
+    cfg = BootConfig(vanish_relative=relative)
+    lab = BootingLabeler(model, RATE, boot=cfg)
+    _run(lab, Stream(cap.with_positions(pos), model, seed=7, hide=0.0), range(gone + 30))
+    drops = [t for t, e, n in lab.events if e == "drop" and n == "P2"]
+    assert bool(drops) is dropped
+    if dropped:
+        assert gone / RATE < drops[0] <= (gone + 1) / RATE + cfg.drop_after_s
+
+
+def test_labeled_first_frames_start_the_booting_labeler_like_from_model(walk):
+    """A client that does send labels: the same labeler starts from them, with no boot."""
+    model, cap = walk
+    n_lab = 5
+    results = {}
+    for name, lab in (
+        ("booting", BootingLabeler(model, RATE)),
+        ("from_model", Labeler.from_model(model, RATE)),
+    ):
+        s = Stream(cap, model, seed=8)
+        outs, truths = [], []
+        for f in range(cap.n_frames):
+            pts, tr = s.frame(f)
+            outs.append(lab.process(pts, f / RATE, tr if f < n_lab else None))
+            truths.append(tr)
+        results[name] = _accuracy(outs, truths, n_lab)
+        if name == "booting":
+            kinds = {e for _, e, _ in lab.events}
+            assert kinds == {"labeled"} and set(lab.active_subjects) == {"P1", "P2", "P3"}
+            np.testing.assert_array_equal(outs[0].point_labels, truths[0])
+    assert results["booting"] >= results["from_model"] - 0.01
+    assert results["booting"] >= 0.95
+
+
+def test_labeled_frame_errors(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE)
+    pts, tr = Stream(cap, model, seed=9).frame(0)
+    with pytest.raises(LabelerError, match="labels for"):
+        lab.process(pts, 0.0, tr[:-1])
+    twice = tr.copy()
+    twice[1] = twice[0] = 0
+    out = lab.process(pts, 0.0, twice)
+    assert np.count_nonzero(out.point_labels == 0) == 1
