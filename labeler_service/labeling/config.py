@@ -168,3 +168,16 @@ class LabelerConfig(BaseModel):
     init_frames: int = Field(
         50, ge=3, description="labeled frames expected before training (informational)"
     )
+    # rigid-body prediction (kernels/motion.py)
+    body_prediction: bool = Field(
+        True,
+        description="gate a marker around its rigid body's predicted motion (constant "
+        "inter-frame rigid motion) when that body has predicted its markers better than their "
+        "Kalman filters; the gate variance is the measured error",
+    )
+    body_error_frames: float = Field(
+        10.0,
+        ge=1,
+        description="memory (frames) of the running prediction errors that choose between the "
+        "rigid-body and the Kalman prediction and size the rigid-body gate",
+    )

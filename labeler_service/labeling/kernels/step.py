@@ -23,6 +23,7 @@ from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
+from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
 from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.rigid import (
     _contest,
@@ -84,8 +85,12 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
+    gate_x = x
+    if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
+        _body_predict(tracks, bodies, scratch.cm_shift, dt, r, params.s_min, s)
+        gate_x = tracks.gate_x
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
-    _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
+    _gate(gate_x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
     for i in range(m_total):
         assigned[i] = UNDECIDED
@@ -137,6 +142,10 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         else:
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
+    if params.body_prediction:
+        kab = scratch.kab
+        memory = params.body_error_frames
+        _body_motion(bodies, obs, tracks.kx, dt, memory, kab.src, kab.dst, kab.R, kab.t)
     # Eq. 1-2: sliding window
     _window_update(bodies, obs, ptr, params.min_window_samples)
     # reference snapshots of the recovery sets
