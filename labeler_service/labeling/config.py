@@ -181,3 +181,10 @@ class LabelerConfig(BaseModel):
         description="memory (frames) of the running prediction errors that choose between the "
         "rigid-body and the Kalman prediction and size the rigid-body gate",
     )
+    body_gate_scale: float = Field(
+        0.0,
+        ge=0,
+        description="a rigid-body-predicted marker's gate variance is at least this times its "
+        "body's measured error (0 = the Kalman gate; 1 widened the tennis gate at 50 Hz but "
+        "let a quarter rate search too wide, docs/algorithm.md)",
+    )

@@ -38,8 +38,8 @@ from labeler_service.labeling.kernels.rigid import _kabsch
 
 
 @njit
-def _body_predict(tracks, bodies, shift, dt, r, s_min, s, gate_scale=0.0, steer=True):
-    """Gate centres ``tracks.gate_x (M, 3)`` and variances ``s (M,)`` of this frame, in place.
+def _body_predict(tracks, bodies, shift, dt, r, s, gate_scale):
+    """The rigid-body predictions of this frame, in the Kalman states ``tracks.x``, in place.
 
     In: the Kalman predictions ``tracks.x`` (after the common-mode shift), ``s`` the Kalman
     gate variances, ``shift (S, 3)`` the common-mode shift of each subject this frame, ``dt``
@@ -48,7 +48,7 @@ def _body_predict(tracks, bodies, shift, dt, r, s_min, s, gate_scale=0.0, steer=
     position); the Kalman predictions are kept in ``tracks.kx``. A marker takes the prediction
     of the body with the lowest ``err`` below its ``kerr`` (module docstring).
     """
-    x, pos, gate_x, kx, subj = tracks.x, tracks.pos, tracks.gate_x, tracks.kx, tracks.subj
+    x, pos, kx, subj = tracks.x, tracks.pos, tracks.kx, tracks.subj
     members, size = bodies.members, bodies.size
     R, t, pred, err, kerr = bodies.R, bodies.t, bodies.pred, bodies.err, bodies.kerr
     moving, motion_dt = bodies.moving, bodies.motion_dt
@@ -56,7 +56,6 @@ def _body_predict(tracks, bodies, shift, dt, r, s_min, s, gate_scale=0.0, steer=
     for i in range(m_total):
         for a in range(3):
             kx[i, a] = x[i, a]
-            gate_x[i, a] = x[i, a]
     for b in range(members.shape[0]):
         ok = moving[b] and abs(dt - motion_dt[b]) <= 0.25 * motion_dt[b]
         for k in range(size[b]):
@@ -93,10 +92,10 @@ def _body_predict(tracks, bodies, shift, dt, r, s_min, s, gate_scale=0.0, steer=
             if v > s[m]:
                 s[m] = v
         for a in range(3):
-            gate_x[m, a] = pred[best_b, best_k, a]
-            if steer:  # the Kalman state follows: the later checks read x
-                x[m, a] = pred[best_b, best_k, a]
-                x[m, 3 + a] = (pred[best_b, best_k, a] - shift[subj[m], a] - pos[m, a]) / dt
+            # the Kalman state takes the rigid prediction (the gate and the later checks read
+            # x): the predicted position, and the velocity of the predicted displacement
+            x[m, a] = pred[best_b, best_k, a]
+            x[m, 3 + a] = (pred[best_b, best_k, a] - shift[subj[m], a] - pos[m, a]) / dt
 
 
 @njit

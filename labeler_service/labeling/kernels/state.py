@@ -66,9 +66,9 @@ class Tracks(NamedTuple):
       NaN when missing); the output.
     - ``subj_ptr (S + 1,)``, ``subj_idx (M,)``: the markers of each subject (CSR), for the
       per-subject common-mode shift.
-    - ``gate_x (M, 3)``: this frame's gate centre (the rigid-body or the Kalman prediction,
-      :mod:`.motion`); ``kx (M, 3)``: this frame's Kalman prediction; ``subj (M,)`` int64: the
-      subject of each marker.
+    - ``kx (M, 3)``: this frame's constant-velocity (Kalman) prediction, before the rigid-body
+      prediction replaces it (:mod:`.motion`); ``subj (M,)`` int64: the subject of each
+      marker.
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -84,7 +84,6 @@ class Tracks(NamedTuple):
     pos: np.ndarray
     subj_ptr: np.ndarray
     subj_idx: np.ndarray
-    gate_x: np.ndarray
     kx: np.ndarray
     subj: np.ndarray
 
@@ -103,7 +102,6 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         pos=np.full((m, 3), np.nan, dtype=np.float32),
         subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
         subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
-        gate_x=np.full((m, 3), np.nan),
         kx=np.full((m, 3), np.nan),
         subj=_subject_of(m, groups),
     )

@@ -85,12 +85,10 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
-    gate_x = x
     if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
-        _body_predict(tracks, bodies, scratch.cm_shift, dt, r, params.s_min, s)
-        gate_x = tracks.gate_x
+        _body_predict(tracks, bodies, scratch.cm_shift, dt, r, s, params.body_gate_scale)
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
-    _gate(gate_x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
+    _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
     for i in range(m_total):
         assigned[i] = UNDECIDED
