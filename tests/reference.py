@@ -337,9 +337,10 @@ def remember(old, new, alpha):
     return max(new, (1.0 - alpha) * old + alpha * new)
 
 
-def body_motion(members, mpos, obs, pred, kx, err, kerr, memory):
+def body_motion(members, mpos, obs, pred, kx, err, kerr, memory, tau):
     """Per body: ``(R, t, moving, err, kerr, mpos)`` after one frame, with the SVD Kabsch of
-    the members observed in both frames (``members``: list of marker lists)."""
+    the members observed in both frames (``members``: list of marker lists); with ``tau`` > 0
+    a fit that leaves a member farther than ``tau`` is no motion."""
     alpha = 1.0 / memory if memory > 1.0 else 1.0
     out = []
     for b, mk in enumerate(members):
@@ -352,19 +353,23 @@ def body_motion(members, mpos, obs, pred, kx, err, kerr, memory):
             k for k, m in enumerate(mk) if np.isfinite(obs[m, 0]) and np.isfinite(mpos[b, k, 0])
         ]
         R = t = None
-        if len(both) >= 3:
-            R, t = kabsch(mpos[b, both], obs[[mk[k] for k in both]])
-        else:
+        moving = len(both) >= 3
+        if moving:
+            src, dst = mpos[b, both], obs[[mk[k] for k in both]]
+            R, t = kabsch(src, dst)
+            if tau > 0 and np.linalg.norm(src @ R.T + t - dst, axis=1).max() > tau:
+                moving = False
+        if not moving:
             e_b[:] = np.nan
             e_k[:] = np.nan
-        out.append((R, t, len(both) >= 3, e_b, e_k, obs[mk].copy()))
+        out.append((R, t, moving, e_b, e_k, obs[mk].copy()))
     return out
 
 
-def body_predict(members, R, t, moving, motion_dt, err, kerr, x, pos, subj, shift, dt):
+def body_predict(members, R, t, moving, motion_dt, err, kerr, x, pos, dt):
     """Per marker: the Kalman state after the rigid-body prediction (``kernels/motion.py``):
-    every body with a motion over a matching interval predicts ``R pos + t + shift``; a marker
-    takes the prediction of its body with the lowest running error below its Kalman error."""
+    every body with a motion over a matching interval predicts ``R pos + t``; a marker takes
+    the prediction of its body with the lowest running error below its Kalman error."""
     x = x.copy()
     best = {}
     for b, mk in enumerate(members):
@@ -374,8 +379,8 @@ def body_predict(members, R, t, moving, motion_dt, err, kerr, x, pos, subj, shif
             if np.isnan(pos[m, 0]) or not err[b, k] < kerr[b, k]:
                 continue
             if m not in best or err[b, k] < best[m][0]:
-                best[m] = (err[b, k], R[b] @ pos[m] + t[b] + shift[subj[m]])
+                best[m] = (err[b, k], R[b] @ pos[m] + t[b])
     for m, (_, p) in best.items():
-        x[m, 3:] = (p - shift[subj[m]] - pos[m]) / dt
+        x[m, 3:] = (p - pos[m]) / dt
         x[m, :3] = p
     return x

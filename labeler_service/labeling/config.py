@@ -171,20 +171,19 @@ class LabelerConfig(BaseModel):
     # rigid-body prediction (kernels/motion.py)
     body_prediction: bool = Field(
         True,
-        description="gate a marker around its rigid body's predicted motion (constant "
-        "inter-frame rigid motion) when that body has predicted its markers better than their "
-        "Kalman filters; the gate variance is the measured error",
+        description="predict a marker by its rigid body's motion (the last inter-frame rigid "
+        "motion applied again) when that body has recently predicted it better than its Kalman "
+        "filter did",
     )
     body_error_frames: float = Field(
         10.0,
         ge=1,
         description="memory (frames) of the running prediction errors that choose between the "
-        "rigid-body and the Kalman prediction and size the rigid-body gate",
+        "rigid-body and the Kalman prediction of each marker",
     )
-    body_gate_scale: float = Field(
-        0.0,
+    body_rigid_mm: float = Field(
+        20.0,
         ge=0,
-        description="a rigid-body-predicted marker's gate variance is at least this times its "
-        "body's measured error (0 = the Kalman gate; 1 widened the tennis gate at 50 Hz but "
-        "let a quarter rate search too wide, docs/algorithm.md)",
+        description="a body predicts only while one rigid motion moves its members between two "
+        "frames within this many mm (a body spanning a joint that bends does not; 0 = always)",
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import reference as ref
 
 from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
@@ -34,17 +35,19 @@ def _work():
     return np.zeros((MAX_BODY, 3)), np.zeros((MAX_BODY, 3)), np.zeros((3, 3)), np.zeros(3)
 
 
-def test_body_motion_matches_twin(rng):
+@pytest.mark.parametrize("tau", [0.0, 60.0])
+def test_body_motion_matches_twin(rng, tau):
     _, bodies = _state()
-    for _frame in range(4):
-        obs = rng.normal(0, 100, (10, 3))
+    base = rng.normal(0, 100, (10, 3))
+    for _frame in range(5):
+        obs = base + rng.normal(0, 30, (10, 3))  # tau 60: some bodies move as one, some not
         obs[rng.random(10) < 0.25] = np.nan  # hidden markers
         kx = obs + rng.normal(0, 5, (10, 3))
         bodies.pred[:] = np.where(rng.random((4, MAX_BODY, 1)) < 0.2, np.nan, 1.0)
         bodies.pred[:, :, :] += rng.normal(0, 10, bodies.pred.shape)
         before = (bodies.mpos.copy(), bodies.pred.copy(), bodies.err.copy(), bodies.kerr.copy())
-        want = ref.body_motion(BODIES, before[0], obs, before[1], kx, *before[2:], memory=5.0)
-        _body_motion(bodies, obs, kx, 0.02, 5.0, *_work())
+        want = ref.body_motion(BODIES, before[0], obs, before[1], kx, *before[2:], 5.0, tau)
+        _body_motion(bodies, obs, kx, 0.02, 5.0, tau, *_work())
         for b, (R, t, moving, e_b, e_k, mpos) in enumerate(want):
             k = len(BODIES[b])
             assert bodies.moving[b] == moving
@@ -71,7 +74,6 @@ def test_body_predict_matches_twin(rng):
     tracks.x[:] = rng.normal(0, 100, (10, 6))
     tracks.pos[:] = rng.normal(0, 100, (10, 3)).astype(np.float32)
     tracks.pos[6] = np.nan  # neither observed nor recovered: no rigid prediction
-    shift = rng.normal(0, 3, (2, 3))
     want = ref.body_predict(
         BODIES,
         bodies.R,
@@ -82,17 +84,14 @@ def test_body_predict_matches_twin(rng):
         bodies.kerr,
         tracks.x,
         tracks.pos.astype(np.float64),
-        tracks.subj,
-        shift,
         0.02,
     )
     kalman = tracks.x[:, :3].copy()
-    s = np.full(10, 55.0)
-    _body_predict(tracks, bodies, shift, 0.02, 1.0, s, 0.0)
+    _body_predict(tracks, bodies, 0.02)
     np.testing.assert_allclose(tracks.x, want, rtol=1e-9, atol=1e-6)
     np.testing.assert_array_equal(tracks.kx, kalman)  # the Kalman prediction is kept
-    np.testing.assert_array_equal(s, 55.0)  # body_gate_scale 0: the Kalman gate
     assert not np.allclose(want[:, :3], kalman)  # some markers did take a rigid prediction
+    assert np.allclose(want[6], tracks.x[6])
 
 
 def test_body_predict_follows_a_turning_body_exactly(rng):
@@ -101,23 +100,22 @@ def test_body_predict_follows_a_turning_body_exactly(rng):
     tracks, bodies = _state()
     Rstep = _rotation(rng)
     axis_point = np.array([300.0, -200.0, 900.0])
-    pts = rng.normal(0, 60, (10, 3)) + 1000.0
+    prev = rng.normal(0, 60, (10, 3)) + 1000.0
 
     def move(p):
         return (p - axis_point) @ Rstep.T + axis_point
 
-    prev = pts
-    for _ in range(2):
-        now = move(prev)
-        bodies.pred[:] = np.nan
-        _body_motion(bodies, prev, prev, 0.02, 5.0, *_work())
-        _body_motion(bodies, now, now, 0.02, 5.0, *_work())
-        prev = now
-    nxt = move(prev)
-    tracks.pos[:] = prev.astype(np.float32)
-    # one frame of errors so that each body's record says it beats the Kalman filter
+    bodies.pred[:] = np.nan
+    _body_motion(bodies, prev, prev, 0.02, 5.0, 1.0, *_work())
+    now = move(prev)
+    _body_motion(bodies, now, now, 0.02, 5.0, 1.0, *_work())  # rigid: within 1 mm
+    assert bodies.moving.all()
+    tracks.pos[:] = now.astype(np.float32)
+    # a record that says each body beats the Kalman filter
     bodies.err[:] = 1.0
     bodies.kerr[:] = 2.0
-    tracks.x[:, :3] = 2 * prev - move(prev)  # any Kalman guess
-    _body_predict(tracks, bodies, np.zeros((2, 3)), 0.02, 1.0, np.full(10, 55.0), 0.0)
+    tracks.x[:, :3] = 2 * now - prev  # constant velocity
+    _body_predict(tracks, bodies, 0.02)
+    nxt = move(now)
     np.testing.assert_allclose(tracks.x[:, :3], nxt, atol=1e-3)  # float32 positions
+    assert np.abs(2 * now - prev - nxt).max() > 10.0  # the sagitta the rigid motion saves

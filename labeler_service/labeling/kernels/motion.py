@@ -2,31 +2,32 @@
 
 The paper predicts every marker on its own with a constant-velocity Kalman filter (Eq. 3). A
 forearm at 30-50 Hz turns by tens of degrees between frames; each of its markers then moves on
-an arc, not a line, and the per-marker gate (Sec. 3.1) is searched where the proximal neighbour
-now is. Here every rigid body also predicts its markers as one rigid motion:
+an arc, not a line, and the per-marker prediction lands where the proximal neighbour now is.
+Here every rigid body also predicts its markers as one rigid motion:
 
 1. **Pose motion.** After each frame, the body's inter-frame rigid motion ``(R, t)`` is the
    Kabsch fit (:func:`.rigid._kabsch`) of its members observed in the previous frame
-   (``bodies.mpos``) onto the same members observed now (at least 3). That is the pose's
-   linear and angular velocity over one frame (a constant twist: rotation about any axis, so a
-   forearm turning about the elbow is followed on its arc).
+   (``bodies.mpos``) onto the same members observed now (at least 3): the pose's linear and
+   angular velocity over one frame (a constant twist: a rotation about any axis, so a forearm
+   turning about the elbow is followed on its arc). With ``body_rigid_mm`` > 0 a body whose
+   members that fit leaves more than that far apart predicts nothing (it is not moving as one).
 2. **Prediction.** At the next frame the same motion is applied again to the members' reported
-   positions (observed or recovered): ``pred = R pos + t``, plus the subject's common-mode shift
-   of this frame. Only when the frame interval matches the one the motion was measured over
-   (within 25 %); otherwise the body predicts nothing.
-3. **Which prediction gates a marker.** Every body keeps the running mean squared error per
-   axis of its own predictions (``bodies.err``) and of the Kalman predictions of the same
-   members (``bodies.kerr``), over the members observed each frame (exponential memory of
-   ``body_error_frames`` frames, rising at once when an error jumps). A marker is gated around
-   the prediction of its body with the lowest ``err``, if that is below the same body's
-   ``kerr``: the data of each body decides whether the rigid motion or the per-marker filter
-   predicts it better. The gate variance is then that measured error, ``S = err + r`` (floored
-   at ``s_min`` like every gate), so a body whose motion is hard to foresee is searched wider,
-   one that is foreseen well stays tight. Markers without such a body keep the Kalman gate.
+   positions (observed or recovered): ``pred = R pos + t``, when the frame interval matches
+   the one the motion was measured over (within 25 %).
+3. **Which prediction a marker takes.** Every body keeps, per member, the running mean squared
+   error per axis of its own predictions (``bodies.err``) and of the member's Kalman prediction
+   (``bodies.kerr``), over the frames the member was observed (exponential memory of
+   ``body_error_frames`` frames that rises at once when an error jumps). A marker takes the
+   prediction of the body that predicted it best, if that beat its Kalman filter: the data of
+   each marker decides whether a rigid motion or the per-marker filter foresees it better.
+   The Kalman state then holds that prediction (position, and the velocity of the predicted
+   displacement), so the common-mode shift, the gate, the motion term of Eq. 5, track
+   continuity and the 3D check all read one prediction; the filter's update (Eq. 4) follows
+   from there, and a marker whose bodies predict nothing keeps its constant-velocity state.
 
-The Kalman filter is still updated for every marker (it is the fallback and feeds the track
-continuity and 3D checks); the rigid prediction only moves the gate's centre and radius (and
-with it the motion term of Eq. 5, which reads the gate's Mahalanobis distance).
+The gate variance stays the Kalman filter's (``p_pp + r``, floored): sizing it from the
+measured error instead widened the tennis serve's gate usefully at 50 Hz but let the 12.5 Hz
+cells search far too wide (docs/algorithm.md).
 """
 
 from __future__ import annotations
@@ -34,21 +35,20 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.rigid import _kabsch
+from labeler_service.labeling.kernels.rigid import _kabsch, _max_residual
 
 
 @njit
-def _body_predict(tracks, bodies, shift, dt, r, s, gate_scale):
+def _body_predict(tracks, bodies, dt):
     """The rigid-body predictions of this frame, in the Kalman states ``tracks.x``, in place.
 
-    In: the Kalman predictions ``tracks.x`` (after the common-mode shift), ``s`` the Kalman
-    gate variances, ``shift (S, 3)`` the common-mode shift of each subject this frame, ``dt``
-    this frame's interval. Every body with a measured motion (``bodies.moving``) over a
-    matching interval writes ``bodies.pred (B, 8, 3)`` (NaN rows for members with no reported
-    position); the Kalman predictions are kept in ``tracks.kx``. A marker takes the prediction
-    of the body with the lowest ``err`` below its ``kerr`` (module docstring).
+    In: ``tracks.x`` after the constant-velocity prediction (Eq. 3), ``dt`` this frame's
+    interval. Every body with a measured motion (``bodies.moving``) over a matching interval
+    writes ``bodies.pred (B, 8, 3)`` (NaN rows for members with no reported position); the
+    Kalman predictions are kept in ``tracks.kx``. A marker takes the prediction of its body with
+    the lowest ``err`` below its ``kerr`` (module docstring, step 3).
     """
-    x, pos, kx, subj = tracks.x, tracks.pos, tracks.kx, tracks.subj
+    x, pos, kx = tracks.x, tracks.pos, tracks.kx
     members, size = bodies.members, bodies.size
     R, t, pred, err, kerr = bodies.R, bodies.t, bodies.pred, bodies.err, bodies.kerr
     moving, motion_dt = bodies.moving, bodies.motion_dt
@@ -65,10 +65,8 @@ def _body_predict(tracks, bodies, shift, dt, r, s, gate_scale):
                     pred[b, k, a] = np.nan
                 continue
             p0, p1, p2 = np.float64(pos[m, 0]), np.float64(pos[m, 1]), np.float64(pos[m, 2])
-            sh = subj[m]
             for a in range(3):
                 pred[b, k, a] = R[b, a, 0] * p0 + R[b, a, 1] * p1 + R[b, a, 2] * p2 + t[b, a]
-                pred[b, k, a] += shift[sh, a]
     mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
     for m in range(m_total):
         best_b = -1
@@ -87,24 +85,21 @@ def _body_predict(tracks, bodies, shift, dt, r, s, gate_scale):
                 best_k = k
         if best_b < 0:
             continue
-        if gate_scale > 0.0:
-            v = gate_scale * err[best_b, best_k] + r
-            if v > s[m]:
-                s[m] = v
         for a in range(3):
             # the Kalman state takes the rigid prediction (the gate and the later checks read
             # x): the predicted position, and the velocity of the predicted displacement
             x[m, a] = pred[best_b, best_k, a]
-            x[m, 3 + a] = (pred[best_b, best_k, a] - shift[subj[m], a] - pos[m, a]) / dt
+            x[m, 3 + a] = (pred[best_b, best_k, a] - pos[m, a]) / dt
 
 
 @njit
-def _body_motion(bodies, obs, kx, dt, memory, src, dst, Rk, tk):
+def _body_motion(bodies, obs, kx, dt, memory, tau, src, dst, Rk, tk):
     """After the frame: the prediction errors and the next inter-frame motion of every body.
 
     ``obs (M, 3)``: this frame's observed positions (NaN otherwise); ``kx (M, 3)``: the Kalman
-    predictions of this frame; ``memory``: frames of the error's exponential memory;
-    ``src``, ``dst (8, 3)``, ``Rk (3, 3)``, ``tk (3,)``: Kabsch work space. Updates
+    predictions of this frame; ``memory``: frames of the error's exponential memory; ``tau``:
+    ``body_rigid_mm`` (0 = no rigidity test); ``src``, ``dst (8, 3)``, ``Rk (3, 3)``,
+    ``tk (3,)``: Kabsch work space. Updates
     ``bodies.err``, ``kerr`` (module docstring, step 3), ``R``, ``t``, ``moving``,
     ``motion_dt`` (step 1) and ``mpos`` (this frame's observed member positions).
     """
@@ -137,9 +132,12 @@ def _body_motion(bodies, obs, kx, dt, memory, src, dst, Rk, tk):
                     src[c, a] = mpos[b, k, a]
                     dst[c, a] = obs[m, a]
                 c += 1
-        moving[b] = c >= 3
         if c >= 3:
             _kabsch(src, dst, c, Rk, tk)
+            if tau > 0.0 and _max_residual(src, dst, c, Rk, tk) > tau:
+                c = 0  # no rigid motion explains the members: predict nothing
+        moving[b] = c >= 3
+        if c >= 3:
             for a in range(3):
                 t[b, a] = tk[a]
                 for e in range(3):

@@ -67,8 +67,7 @@ class Tracks(NamedTuple):
     - ``subj_ptr (S + 1,)``, ``subj_idx (M,)``: the markers of each subject (CSR), for the
       per-subject common-mode shift.
     - ``kx (M, 3)``: this frame's constant-velocity (Kalman) prediction, before the rigid-body
-      prediction replaces it (:mod:`.motion`); ``subj (M,)`` int64: the subject of each
-      marker.
+      prediction replaces it (:mod:`.motion`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -85,7 +84,6 @@ class Tracks(NamedTuple):
     subj_ptr: np.ndarray
     subj_idx: np.ndarray
     kx: np.ndarray
-    subj: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -103,15 +101,7 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
         subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
         kx=np.full((m, 3), np.nan),
-        subj=_subject_of(m, groups),
     )
-
-
-def _subject_of(m: int, groups: Sequence[Sequence[int]]) -> np.ndarray:
-    out = np.zeros(m, dtype=np.int64)
-    for s, g in enumerate(groups):
-        out[list(g)] = s
-    return out
 
 
 class Bodies(NamedTuple):

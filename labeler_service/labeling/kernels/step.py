@@ -76,6 +76,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     index = _index(points)
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, tracks.q, active, dt, params.p_cap)
+    if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
+        _body_predict(tracks, bodies, dt)
     if params.common_mode_iters > 0:
         subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
         radius, iters = params.common_mode_radius_mm, params.common_mode_iters
@@ -85,8 +87,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
-    if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
-        _body_predict(tracks, bodies, scratch.cm_shift, dt, r, s, params.body_gate_scale)
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
@@ -141,9 +141,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
     if params.body_prediction:
-        kab = scratch.kab
-        memory = params.body_error_frames
-        _body_motion(bodies, obs, tracks.kx, dt, memory, kab.src, kab.dst, kab.R, kab.t)
+        kab, memory, tau = scratch.kab, params.body_error_frames, params.body_rigid_mm
+        _body_motion(bodies, obs, tracks.kx, dt, memory, tau, kab.src, kab.dst, kab.R, kab.t)
     # Eq. 1-2: sliding window
     _window_update(bodies, obs, ptr, params.min_window_samples)
     # reference snapshots of the recovery sets
