@@ -1,13 +1,15 @@
 """The whole per-frame loop of the online labeler in one numba entry point.
 
-Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3) -> Mahalanobis gating with at
+Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3), replaced by a rigid body's
+prediction where that body has predicted the marker better (ours, :mod:`.motion`) -> common-mode
+shift (ours) -> Mahalanobis gating with at
 most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> track
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition and 3D
 check (ours, see docs/algorithm.md) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
-stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
-observed bodies.
+stale state) -> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
+-> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully observed bodies.
 
 The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
 ``Scratch``) and the settings ``Params`` of :mod:`.params`; every step reads them by field
