@@ -325,3 +325,62 @@ def contest(assigned, owner, active, prev_state, x, s, gate, points, obs, member
 def max_residual(src, dst, R, t):
     """Largest ``|R src_i + t - dst_i|``."""
     return float(np.max(np.linalg.norm(np.asarray(src) @ R.T + t - np.asarray(dst), axis=1)))
+
+
+# --------------------------------------------------------------------------- rigid-body prediction
+
+
+def remember(old, new, alpha):
+    """Running error that rises at once (``kernels/motion.py``)."""
+    if np.isnan(old):
+        return new
+    return max(new, (1.0 - alpha) * old + alpha * new)
+
+
+def body_motion(members, mpos, obs, pred, kx, err, kerr, memory, tau):
+    """Per body: ``(R, t, moving, err, kerr, mpos)`` after one frame, with the SVD Kabsch of
+    the members observed in both frames (``members``: list of marker lists); with ``tau`` > 0
+    a fit that leaves a member farther than ``tau`` is no motion."""
+    alpha = 1.0 / memory if memory > 1.0 else 1.0
+    out = []
+    for b, mk in enumerate(members):
+        e_b, e_k = err[b, : len(mk)].copy(), kerr[b, : len(mk)].copy()
+        for k, m in enumerate(mk):
+            if np.isfinite(obs[m, 0]) and np.isfinite(pred[b, k, 0]):
+                e_b[k] = remember(e_b[k], np.sum((obs[m] - pred[b, k]) ** 2) / 3.0, alpha)
+                e_k[k] = remember(e_k[k], np.sum((obs[m] - kx[m]) ** 2) / 3.0, alpha)
+        both = [
+            k for k, m in enumerate(mk) if np.isfinite(obs[m, 0]) and np.isfinite(mpos[b, k, 0])
+        ]
+        R = t = None
+        moving = len(both) >= 3
+        if moving:
+            src, dst = mpos[b, both], obs[[mk[k] for k in both]]
+            R, t = kabsch(src, dst)
+            if tau > 0 and np.linalg.norm(src @ R.T + t - dst, axis=1).max() > tau:
+                moving = False
+        if not moving:
+            e_b[:] = np.nan
+            e_k[:] = np.nan
+        out.append((R, t, moving, e_b, e_k, obs[mk].copy()))
+    return out
+
+
+def body_predict(members, R, t, moving, motion_dt, err, kerr, x, pos, dt):
+    """Per marker: the Kalman state after the rigid-body prediction (``kernels/motion.py``):
+    every body with a motion over a matching interval predicts ``R pos + t``; a marker takes
+    the prediction of its body with the lowest running error below its Kalman error."""
+    x = x.copy()
+    best = {}
+    for b, mk in enumerate(members):
+        if not (moving[b] and abs(dt - motion_dt[b]) <= 0.25 * motion_dt[b]):
+            continue
+        for k, m in enumerate(mk):
+            if np.isnan(pos[m, 0]) or not err[b, k] < kerr[b, k]:
+                continue
+            if m not in best or err[b, k] < best[m][0]:
+                best[m] = (err[b, k], R[b] @ pos[m] + t[b])
+    for m, (_, p) in best.items():
+        x[m, 3:] = (p - pos[m]) / dt
+        x[m, :3] = p
+    return x

@@ -168,3 +168,22 @@ class LabelerConfig(BaseModel):
     init_frames: int = Field(
         50, ge=3, description="labeled frames expected before training (informational)"
     )
+    # rigid-body prediction (kernels/motion.py)
+    body_prediction: bool = Field(
+        True,
+        description="predict a marker by its rigid body's motion (the last inter-frame rigid "
+        "motion applied again) when that body has recently predicted it better than its Kalman "
+        "filter did",
+    )
+    body_error_frames: float = Field(
+        10.0,
+        ge=1,
+        description="memory (frames) of the running prediction errors that choose between the "
+        "rigid-body and the Kalman prediction of each marker",
+    )
+    body_rigid_mm: float = Field(
+        20.0,
+        ge=0,
+        description="a body predicts only while one rigid motion moves its members between two "
+        "frames within this many mm (a body spanning a joint that bends does not; 0 = always)",
+    )

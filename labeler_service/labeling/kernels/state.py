@@ -66,6 +66,8 @@ class Tracks(NamedTuple):
       NaN when missing); the output.
     - ``subj_ptr (S + 1,)``, ``subj_idx (M,)``: the markers of each subject (CSR), for the
       per-subject common-mode shift.
+    - ``kx (M, 3)``: this frame's constant-velocity (Kalman) prediction, before the rigid-body
+      prediction replaces it (:mod:`.motion`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -81,6 +83,7 @@ class Tracks(NamedTuple):
     pos: np.ndarray
     subj_ptr: np.ndarray
     subj_idx: np.ndarray
+    kx: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -97,6 +100,7 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         pos=np.full((m, 3), np.nan, dtype=np.float32),
         subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
         subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
+        kx=np.full((m, 3), np.nan),
     )
 
 
@@ -115,6 +119,12 @@ class Bodies(NamedTuple):
     - ``ring (B, 8, 8, T)`` float32: the window's last ``T`` distances per link (NaN = not
       both observed); ``s1``, ``s2 (B, 8, 8)``: running sums of the distances and their
       squares; ``cnt (B, 8, 8)`` int64: samples in the window (:mod:`.window`).
+    - Rigid-body prediction (:mod:`.motion`): ``mpos (B, 8, 3)`` the members observed in the
+      last frame (NaN otherwise); ``R (B, 3, 3)``, ``t (B, 3)`` the last inter-frame rigid
+      motion, ``moving (B,)`` bool: it was measured (3+ members in both frames),
+      ``motion_dt (B,)`` over which interval (s); ``pred (B, 8, 3)`` this frame's prediction of
+      each member; ``err (B, 8)``, ``kerr (B, 8)`` running mean squared error per axis (mm^2)
+      of the body's and of the Kalman prediction of each member (NaN = no record).
 
     Per-body state of later work goes here: the body's reference shape ``(B, 8, 3)`` for 3D
     template checks and boot from templates, its pose (``R``, ``t``) and linear/angular
@@ -133,6 +143,14 @@ class Bodies(NamedTuple):
     s1: np.ndarray
     s2: np.ndarray
     cnt: np.ndarray
+    mpos: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    moving: np.ndarray
+    motion_dt: np.ndarray
+    pred: np.ndarray
+    err: np.ndarray
+    kerr: np.ndarray
 
 
 def new_bodies(
@@ -180,6 +198,14 @@ def new_bodies(
         s1=np.zeros((nb, MAX_BODY, MAX_BODY)),
         s2=np.zeros((nb, MAX_BODY, MAX_BODY)),
         cnt=np.zeros((nb, MAX_BODY, MAX_BODY), dtype=np.int64),
+        mpos=np.full((nb, MAX_BODY, 3), np.nan),
+        R=np.zeros((nb, 3, 3)),
+        t=np.zeros((nb, 3)),
+        moving=np.zeros(nb, dtype=np.bool_),
+        motion_dt=np.zeros(nb),
+        pred=np.full((nb, MAX_BODY, 3), np.nan),
+        err=np.full((nb, MAX_BODY), np.nan),
+        kerr=np.full((nb, MAX_BODY), np.nan),
     )
 
 

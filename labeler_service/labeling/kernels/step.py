@@ -1,13 +1,15 @@
 """The whole per-frame loop of the online labeler in one numba entry point.
 
-Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3) -> Mahalanobis gating with at
+Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3), replaced by a rigid body's
+prediction where that body has predicted the marker better (ours, :mod:`.motion`) -> common-mode
+shift (ours) -> Mahalanobis gating with at
 most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> track
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition and 3D
 check (ours, see docs/algorithm.md) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
-stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
-observed bodies.
+stale state) -> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
+-> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully observed bodies.
 
 The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
 ``Scratch``) and the settings ``Params`` of :mod:`.params`; every step reads them by field
@@ -23,6 +25,7 @@ from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
+from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
 from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.rigid import (
     _contest,
@@ -75,6 +78,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     index = _index(points)
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, tracks.q, active, dt, params.p_cap)
+    if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
+        _body_predict(tracks, bodies, dt)
     if params.common_mode_iters > 0:
         subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
         radius, iters = params.common_mode_radius_mm, params.common_mode_iters
@@ -137,6 +142,9 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         else:
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
+    if params.body_prediction:
+        kab, memory, tau = scratch.kab, params.body_error_frames, params.body_rigid_mm
+        _body_motion(bodies, obs, tracks.kx, dt, memory, tau, kab.src, kab.dst, kab.R, kab.t)
     # Eq. 1-2: sliding window
     _window_update(bodies, obs, ptr, params.min_window_samples)
     # reference snapshots of the recovery sets
