@@ -45,6 +45,7 @@ import numpy as np
 MAX_BODY = 8  # markers per rigid body and per recovery set (the marker itself and 7 neighbours)
 UNDECIDED = -2  # ``assigned[m]``: not decided yet by Algorithm 1 (searched again)
 NONE = -1  # ``assigned[m]``: no point (missing); ``owner[j]``: no marker (unlabeled point)
+MAX_CAND = 12  # candidate points of one template fit (:mod:`.repair`)
 
 
 class Tracks(NamedTuple):
@@ -116,8 +117,13 @@ class Bodies(NamedTuple):
       both observed); ``s1``, ``s2 (B, 8, 8)``: running sums of the distances and their
       squares; ``cnt (B, 8, 8)`` int64: samples in the window (:mod:`.window`).
 
-    Per-body state of later work goes here: the body's reference shape ``(B, 8, 3)`` for 3D
-    template checks and boot from templates, its pose (``R``, ``t``) and linear/angular
+    - ``ref (B, 8, 3)``: the body's reference shape (its members' positions when last fully
+      observed and consistent), ``ref_ok (B,)`` bool: it has one; ``ok (B,)`` bool: the
+      current assignment passed the 3D template check (the guard of Eq. 1-2);
+      ``pending (B,)`` int64: consecutive checks a better permutation was found
+      (:mod:`.repair`); ``work_*``: the template fit's work space (rewritten every frame).
+
+    Per-body state of later work goes here: boot from templates, its pose (``R``, ``t``) and linear/angular
     velocity for rigid-body pose prediction.
     """
 
@@ -133,6 +139,19 @@ class Bodies(NamedTuple):
     s1: np.ndarray
     s2: np.ndarray
     cnt: np.ndarray
+    ref: np.ndarray
+    ref_ok: np.ndarray
+    ok: np.ndarray
+    pending: np.ndarray
+    work_cur: np.ndarray
+    work_pts: np.ndarray
+    work_cand: np.ndarray
+    work_best: np.ndarray
+    work_pos: np.ndarray
+    work_choice: np.ndarray
+    work_used: np.ndarray
+    work_tol: np.ndarray
+    work_centre: np.ndarray
 
 
 def new_bodies(
@@ -180,6 +199,19 @@ def new_bodies(
         s1=np.zeros((nb, MAX_BODY, MAX_BODY)),
         s2=np.zeros((nb, MAX_BODY, MAX_BODY)),
         cnt=np.zeros((nb, MAX_BODY, MAX_BODY), dtype=np.int64),
+        ref=np.zeros((nb, MAX_BODY, 3)),
+        ref_ok=np.zeros(nb, dtype=np.bool_),
+        ok=np.ones(nb, dtype=np.bool_),
+        pending=np.zeros(nb, dtype=np.int64),
+        work_cur=np.zeros(MAX_BODY, dtype=np.int64),
+        work_pts=np.zeros((MAX_CAND, 3)),
+        work_cand=np.zeros(MAX_CAND, dtype=np.int64),
+        work_best=np.zeros(MAX_BODY, dtype=np.int64),
+        work_pos=np.zeros(MAX_BODY, dtype=np.int64),
+        work_choice=np.zeros(MAX_BODY, dtype=np.int64),
+        work_used=np.zeros(MAX_CAND, dtype=np.bool_),
+        work_tol=np.zeros((MAX_BODY, MAX_BODY)),
+        work_centre=np.zeros(3),
     )
 
 

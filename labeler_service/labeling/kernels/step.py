@@ -3,7 +3,8 @@
 Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3) -> Mahalanobis gating with at
 most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> track
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition and 3D
-check (ours, see docs/algorithm.md) -> Kalman update of the observed markers (Eq. 4) -> recovery
+check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap repair and joint
+re-acquisition (ours, :mod:`.repair`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
 stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
@@ -24,6 +25,7 @@ from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
 from labeler_service.labeling.kernels.params import Params
+from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
     _contest,
     _max_residual,
@@ -102,6 +104,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     _observed(assigned, points, obs)
     if params.verify_mm > 0.0:
         _verify(points, index, frame_no, tracks, recovery, scratch, params)
+    if params.repair:
+        _repair(points, index, frame_no, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]
@@ -138,7 +142,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
     # Eq. 1-2: sliding window
-    _window_update(bodies, obs, ptr, params.min_window_samples)
+    guard = params.repair and params.window_guard
+    _window_update(bodies, obs, ptr, params.min_window_samples, guard, params.window_drift_mm)
     # reference snapshots of the recovery sets
     _snapshot(age, params.snapshot_age, obs, recovery)
 
