@@ -289,8 +289,13 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
         c_b, rms_b = _fit_template(
             n, ref, tol, pts, nc, check_mm, params.repair_max_nodes, pos, used, choice, best, kab
         )
-        if c_b < 3:
+        if c_b < 3 or c_b < c_cur:
+            # no map of the body's shape holds as many points: the body deformed (or is not
+            # rigid); its current assignment is the best explanation, and becomes the reference
             pending[b] = 0
+            ok[b] = True
+            if c_cur == n and not young:
+                _snapshot_body(b, bodies, points, cur, n)
             continue
         same = True  # the best map keeps every point the body holds now
         moved = False  # the best map relabels a point the body holds now
@@ -302,11 +307,15 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                     moved = True
         if same:
             pending[b] = 0
+            ok[b] = True
+            if c_cur == n and not young:
+                _snapshot_body(b, bodies, points, cur, n)
             continue
         if c_cur >= 3 and moved:
             better = c_b > c_cur or rms_b < 0.5 * rms_cur
             if not better:
                 pending[b] = 0
+                ok[b] = True
                 continue
             pending[b] += 1
             if pending[b] < rep_frames:
