@@ -18,11 +18,19 @@ for fewer than ``repair_age`` frames, a repair pending, or its turn in a round r
    its current points and the free points near it (or "missing"), pruned by the reference pair
    distances (``repair_tol_mm`` + 3 trained deviations), for the one with the most members whose
    RMS is within ``repair_check_mm``, then the smallest RMS (an interpretation tree);
-3. a map that only adds free points to the current assignment, or one for a body that had
-   fewer than three points (joint re-acquisition: all returning points are assigned together by
-   the body's shape), is taken at once; a map that relabels points already held is taken when
-   it fits clearly better (RMS below half the current, or more members) for
-   ``repair_frames`` consecutive checks (swap repair).
+3. held points are relabeled only in a body with a member observed for fewer than
+   ``repair_age`` frames: a body whose markers were all tracked for long keeps its points
+   (swaps start when markers are re-acquired, and a deforming body must not be "repaired"
+   against a stale reference). A map that only adds free
+   points to the current assignment, or one for a body that had fewer than three points (joint
+   re-acquisition: all returning points are assigned together by the body's shape), is taken
+   at once; a map that relabels points already held is taken when it fits clearly better (RMS
+   below half the current, or more members) for ``repair_frames`` consecutive checks (swap
+   repair).
+
+A body whose current assignment no map beats (it deformed, or is not rigid) keeps it, and
+when fully observed by markers tracked for ``repair_age`` frames its points become the new
+reference (the reference follows slow soft-tissue drift).
 
 ``bodies.ok[b]`` records whether the body's assignment passed the check (the guard of the
 sliding-window update, :mod:`.window`).
@@ -215,7 +223,7 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
         ok[b] = not bad
         if not bad and not lost:
             pending[b] = 0
-            if c_cur == n and not young and rms_cur <= 0.5 * check_mm:
+            if c_cur == n and not young:
                 _snapshot_body(b, bodies, points, cur, n)  # follow slow soft-tissue drift
             continue
         # candidates: the body's own points, then free points near it
@@ -305,6 +313,9 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                 same = False
                 if cur[k] >= 0:
                     moved = True
+                    if not young:
+                        same = True  # a body tracked for long keeps its points
+                        break
         if same:
             pending[b] = 0
             ok[b] = True
