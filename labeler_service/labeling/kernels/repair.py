@@ -21,7 +21,9 @@ for fewer than ``repair_age`` frames, a repair pending, or its turn in a round r
 3. held points are relabeled only in a body with a member observed for fewer than
    ``repair_age`` frames: a body whose markers were all tracked for long keeps its points
    (swaps start when markers are re-acquired, and a deforming body must not be "repaired"
-   against a stale reference). A map that only adds free
+   against a stale reference). Every change needs a map of 4+ points: a triangle has no
+   chirality, and a near-isosceles one fits its own permutations (Eq. 5 already sees what
+   three points show). A map that only adds free
    points to the current assignment, or one for a body that had fewer than three points (joint
    re-acquisition: all returning points are assigned together by the body's shape), is taken
    at once; a map that relabels points already held is taken when it fits clearly better (RMS
@@ -321,6 +323,9 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
             ok[b] = True
             if c_cur == n and not young:
                 _snapshot_body(b, bodies, points, cur, n)
+            continue
+        if c_b < 4:
+            pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
             continue
         if c_cur >= 3 and moved:
             better = c_b > c_cur or rms_b < 0.5 * rms_cur
