@@ -120,6 +120,13 @@ def test_mirrored_assignment_is_repaired_after_repair_frames(rng):
     swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
     tracks, bodies, scratch = _one_body_state(config, pts, swapped, MIRROR)
     index = _index(pts)
+    # tracked for long, the body keeps its points (a deforming body against a stale reference
+    # must not be "repaired"), and the mirrored shape does not become its reference
+    for frame in range(config.repair_frames + 1):
+        assert _repair(pts, index, frame * config.verify_every, tracks, bodies, scratch, params) == 0
+    assert list(scratch.assigned[:5]) == list(swapped)
+    assert np.allclose(bodies.ref[0, :5], MIRROR)
+    tracks.age[1:3] = 3  # B and C were re-acquired 3 frames ago
     for frame in range(config.repair_frames - 1):
         assert _repair(pts, index, frame, tracks, bodies, scratch, params) == 0
         assert list(scratch.assigned[:5]) == list(swapped)  # one check is not enough

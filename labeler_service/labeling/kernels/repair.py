@@ -23,12 +23,13 @@ for fewer than ``repair_age`` frames, a repair pending, or its turn in a round r
    (swaps start when markers are re-acquired, and a deforming body must not be "repaired"
    against a stale reference). Every change needs a map of 4+ points: a triangle has no
    chirality, and a near-isosceles one fits its own permutations (Eq. 5 already sees what
-   three points show). A map that only adds free
-   points to the current assignment, or one for a body that had fewer than three points (joint
-   re-acquisition: all returning points are assigned together by the body's shape), is taken
-   at once; a map that relabels points already held is taken when it fits clearly better (RMS
-   below half the current, or more members) for ``repair_frames`` consecutive checks (swap
-   repair).
+   three points show). A map for a body that had
+   fewer than three points (joint re-acquisition: all returning points are assigned together
+   by the body's shape) is taken at once; one that only adds free points to a body seen with
+   three or more is left to the per-marker 3D check (:func:`.rigid._verify`, which refuses
+   ghosts off the rigid estimate); a map that relabels points already held is taken when it
+   fits clearly better (RMS below half the current, or more members) for ``repair_frames``
+   consecutive checks (swap repair).
 
 A body whose current assignment no map beats (it deformed, or is not rigid) keeps it, and
 when fully observed by markers tracked for ``repair_age`` frames its points become the new
@@ -315,17 +316,23 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                 same = False
                 if cur[k] >= 0:
                     moved = True
-                    if not young:
-                        same = True  # a body tracked for long keeps its points
-                        break
         if same:
             pending[b] = 0
             ok[b] = True
             if c_cur == n and not young:
                 _snapshot_body(b, bodies, points, cur, n)
             continue
+        if moved and not young:
+            # a body tracked for long keeps its points (and its reference: a better permutation
+            # exists, so the current shape does not replace it)
+            pending[b] = 0
+            ok[b] = True
+            continue
         if c_b < 4:
             pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
+            continue
+        if c_cur >= 3 and not moved:
+            pending[b] = 0  # single re-acquisitions of a seen body: the per-marker 3D check's
             continue
         if c_cur >= 3 and moved:
             better = c_b > c_cur or rms_b < 0.5 * rms_cur
