@@ -367,3 +367,12 @@ def fit_template(ref, tol, pts, accept_mm):
         if c > best[0] or (c == best[0] and rms < best[1] - 1e-9):
             best = (c, rms, list(choice))
     return best
+
+
+def gone(lost, active, groups, absent_frames):
+    """Per marker: every active marker of its subject (``groups``: marker lists) has been
+    missing for ``absent_frames`` frames."""
+    out = np.zeros(len(lost), dtype=bool)
+    for g in groups:
+        out[g] = all(lost[i] >= absent_frames for i in g if active[i])
+    return out

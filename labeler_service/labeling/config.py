@@ -215,3 +215,9 @@ class LabelerConfig(BaseModel):
         ge=0,
         description="the window's D stays within this of the trained D (0 = unbounded)",
     )
+    absent_frames: int = Field(
+        60,
+        ge=0,
+        description="a subject whose markers have all been missing this many frames has left: "
+        "its markers are not re-acquired by the wide pass (0 = off)",
+    )

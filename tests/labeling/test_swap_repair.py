@@ -221,3 +221,33 @@ def test_occluded_cluster_returning_one_marker_at_a_time_is_labeled_correctly(rn
         if f >= last_back + 4:
             wrong_after += int(np.count_nonzero(out.point_labels != truth))
     assert wrong_after == 0
+
+
+def test_gone_matches_twin(rng):
+    from labeler_service.labeling.kernels.step import _gone
+
+    groups = [[0, 1, 2], [3, 4], [5, 6, 7, 8]]
+    active = rng.random(9) > 0.2
+    tracks = new_tracks(np.full(9, 1e6), active, groups)
+    for _ in range(5):
+        tracks.lost[:] = rng.integers(0, 120, 9)
+        tracks.lost[5:] = rng.integers(55, 70, 4)
+        _gone(tracks, 60)
+        assert list(tracks.gone) == list(ref_twin.gone(tracks.lost, active, groups, 60))
+
+
+def test_a_subject_who_left_keeps_no_label_on_the_others(rng):
+    from labeling.scene import articulated
+
+    pos, names = articulated(rng, subjects=3, frames=500)
+    left = [i for i, n in enumerate(names) if n.startswith("P0:")]
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    hidden[150:, left] = True  # P0 walks out at frame 150
+    lab = Labeler(names, 120.0)
+    taken = 0
+    for f in range(pos.shape[0]):
+        pts, truth = frame_points(rng, pos[f], hidden[f])
+        out = lab.process(pts, f / 120.0, truth if f < 40 else None)
+        if f >= 150 + LabelerConfig().absent_frames:
+            taken += int(np.isin(out.point_labels, left).sum())
+    assert taken == 0

@@ -67,6 +67,9 @@ class Tracks(NamedTuple):
       NaN when missing); the output.
     - ``subj_ptr (S + 1,)``, ``subj_idx (M,)``: the markers of each subject (CSR), for the
       per-subject common-mode shift.
+    - ``lost (M,)`` int64: frames missing in a row; ``gone (M,)`` bool: every marker of the
+      marker's subject has been missing for ``absent_frames`` frames (the subject left: no wide
+      re-acquisition from stale predictions).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -82,6 +85,8 @@ class Tracks(NamedTuple):
     pos: np.ndarray
     subj_ptr: np.ndarray
     subj_idx: np.ndarray
+    lost: np.ndarray
+    gone: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -98,6 +103,8 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         pos=np.full((m, 3), np.nan, dtype=np.float32),
         subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
         subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
+        lost=np.zeros(m, dtype=np.int64),
+        gone=np.zeros(m, dtype=np.bool_),
     )
 
 

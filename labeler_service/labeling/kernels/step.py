@@ -72,6 +72,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     rec, has_rec, missing = scratch.rec, scratch.has_rec, scratch.missing
     age, n_reject = tracks.age, tracks.n_reject
     r, v0 = params.r, params.v0
+    if params.absent_frames > 0:
+        _gone(tracks, params.absent_frames)
     m_total = x.shape[0]
     n = points.shape[0]
     index = _index(points)
@@ -86,6 +88,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
+        if tracks.gone[i] and params.absent_frames > 0:
+            s[i] = params.s_min  # the subject left: only the narrowest gate at its last place
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
@@ -111,6 +115,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         a = assigned[i]
         if a >= 0:
             missing[i] = False  # the 3D check used it as scratch
+            tracks.lost[i] = 0
             n_reject[i] = 0
             age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
@@ -119,6 +124,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
                 pos[i, c] = obs[i, c]
         else:
             age[i] = 0
+            tracks.lost[i] += 1
             for c in range(3):
                 obs[i, c] = np.nan
             missing[i] = active[i]
@@ -174,6 +180,22 @@ def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, s
 
 
 @njit
+def _gone(tracks, absent_frames):
+    """``tracks.gone[m]``: every marker of ``m``'s subject has been missing for
+    ``absent_frames`` frames (``tracks.lost``, the previous frame's count) - the subject left
+    the volume (class D of docs/diagnosis_issue10.md)."""
+    subj_ptr, subj_idx, lost = tracks.subj_ptr, tracks.subj_idx, tracks.lost
+    for s in range(subj_ptr.shape[0] - 1):
+        left = True
+        for k in range(subj_ptr[s], subj_ptr[s + 1]):
+            if tracks.active[subj_idx[k]] and lost[subj_idx[k]] < absent_frames:
+                left = False
+                break
+        for k in range(subj_ptr[s], subj_ptr[s + 1]):
+            tracks.gone[subj_idx[k]] = left
+
+
+@njit
 def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     """The wide re-acquisition pass (ours, docs/algorithm.md) after Algorithm 1.
 
@@ -213,6 +235,8 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     for i in range(m_total):
         if params.reacquire_all and active[i] and assigned[i] == NONE:
             missing[i] = True
+        if tracks.gone[i] and params.absent_frames > 0:
+            missing[i] = False  # the subject left: no wide search from stale predictions
         if params.reacquire_keep_observed and assigned[i] >= 0 and state[i] == OBSERVED:
             missing[i] = False  # tracked through the previous frame: keep
         if missing[i] and active[i]:
