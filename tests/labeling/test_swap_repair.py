@@ -14,7 +14,6 @@ from labeler_service.labeling.kernels.repair import _fit_template, _repair, _sha
 from labeler_service.labeling.kernels.spatial import _index
 from labeler_service.labeling.kernels.state import (
     MAX_BODY,
-    MAX_CAND,
     NONE,
     new_bodies,
     new_kabsch_scratch,
@@ -123,7 +122,9 @@ def test_mirrored_assignment_is_repaired_after_repair_frames(rng):
     # tracked for long, the body keeps its points (a deforming body against a stale reference
     # must not be "repaired"), and the mirrored shape does not become its reference
     for frame in range(config.repair_frames + 1):
-        assert _repair(pts, index, frame * config.verify_every, tracks, bodies, scratch, params) == 0
+        assert (
+            _repair(pts, index, frame * config.verify_every, tracks, bodies, scratch, params) == 0
+        )
     assert list(scratch.assigned[:5]) == list(swapped)
     assert np.allclose(bodies.ref[0, :5], MIRROR)
     tracks.age[1:3] = 3  # B and C were re-acquired 3 frames ago

@@ -364,4 +364,3 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
         ok[b] = True
         changes += 1
     return changes
-

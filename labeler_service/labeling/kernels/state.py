@@ -130,8 +130,8 @@ class Bodies(NamedTuple):
       ``pending (B,)`` int64: consecutive checks a better permutation was found
       (:mod:`.repair`); ``work_*``: the template fit's work space (rewritten every frame).
 
-    Per-body state of later work goes here: boot from templates, its pose (``R``, ``t``) and linear/angular
-    velocity for rigid-body pose prediction.
+    Per-body state of later work goes here: boot from templates, its pose (``R``, ``t``) and
+    linear/angular velocity for rigid-body pose prediction.
     """
 
     members: np.ndarray
