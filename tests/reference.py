@@ -384,3 +384,54 @@ def body_predict(members, R, t, moving, motion_dt, err, kerr, x, pos, dt):
         x[m, 3:] = (p - pos[m]) / dt
         x[m, :3] = p
     return x
+
+
+# --------------------------------------------------------------------------- template fit (repair)
+
+
+def shape_rms(ref, pts, choice):
+    """``(count, rms)`` of the members with a point (``choice[k]`` a row of ``pts`` or -1):
+    RMS of ``ref`` after the best proper rigid motion onto their points (inf with < 3)."""
+    idx = [k for k in range(len(choice)) if choice[k] >= 0]
+    if len(idx) < 3:
+        return len(idx), np.inf
+    src = np.asarray(ref, dtype=float)[idx]
+    dst = np.asarray(pts, dtype=float)[[choice[k] for k in idx]]
+    R, t = kabsch(src, dst)
+    return len(idx), float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
+
+
+def fit_template(ref, tol, pts, accept_mm):
+    """Every injective map of the members onto the points or "missing" (itertools.product):
+    pair distances within ``tol`` of the reference's, RMS at most ``accept_mm``; the most points,
+    then the smallest RMS. Returns ``(count, rms, choice)`` (``(0, inf, all -1)`` if none)."""
+    n, nc = len(ref), len(pts)
+    best = (0, np.inf, [-1] * n)
+    for choice in itertools.product(*[list(range(nc)) + [-1]] * n):
+        used = [p for p in choice if p >= 0]
+        if len(set(used)) < len(used) or len(used) < 3:
+            continue
+        ok = all(
+            abs(np.linalg.norm(pts[choice[i]] - pts[choice[j]]) - np.linalg.norm(ref[i] - ref[j]))
+            <= tol[i, j]
+            for i in range(n)
+            for j in range(i)
+            if choice[i] >= 0 and choice[j] >= 0
+        )
+        if not ok:
+            continue
+        c, rms = shape_rms(ref, pts, choice)
+        if rms > accept_mm:
+            continue
+        if c > best[0] or (c == best[0] and rms < best[1] - 1e-9):
+            best = (c, rms, list(choice))
+    return best
+
+
+def gone(lost, active, groups, absent_frames):
+    """Per marker: every active marker of its subject (``groups``: marker lists) has been
+    missing for ``absent_frames`` frames."""
+    out = np.zeros(len(lost), dtype=bool)
+    for g in groups:
+        out[g] = all(lost[i] >= absent_frames for i in g if active[i])
+    return out

@@ -45,6 +45,7 @@ import numpy as np
 MAX_BODY = 8  # markers per rigid body and per recovery set (the marker itself and 7 neighbours)
 UNDECIDED = -2  # ``assigned[m]``: not decided yet by Algorithm 1 (searched again)
 NONE = -1  # ``assigned[m]``: no point (missing); ``owner[j]``: no marker (unlabeled point)
+MAX_CAND = 12  # candidate points of one template fit (:mod:`.repair`)
 
 
 class Tracks(NamedTuple):
@@ -68,6 +69,9 @@ class Tracks(NamedTuple):
       per-subject common-mode shift.
     - ``kx (M, 3)``: this frame's constant-velocity (Kalman) prediction, before the rigid-body
       prediction replaces it (:mod:`.motion`).
+    - ``lost (M,)`` int64: frames missing in a row; ``gone (M,)`` bool: every marker of the
+      marker's subject has been missing for ``absent_frames`` frames (the subject left: no wide
+      re-acquisition from stale predictions).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -84,6 +88,8 @@ class Tracks(NamedTuple):
     subj_ptr: np.ndarray
     subj_idx: np.ndarray
     kx: np.ndarray
+    lost: np.ndarray
+    gone: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -101,6 +107,8 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
         subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
         kx=np.full((m, 3), np.nan),
+        lost=np.zeros(m, dtype=np.int64),
+        gone=np.zeros(m, dtype=np.bool_),
     )
 
 
@@ -126,9 +134,14 @@ class Bodies(NamedTuple):
       each member; ``err (B, 8)``, ``kerr (B, 8)`` running mean squared error per axis (mm^2)
       of the body's and of the Kalman prediction of each member (NaN = no record).
 
-    Per-body state of later work goes here: the body's reference shape ``(B, 8, 3)`` for 3D
-    template checks and boot from templates, its pose (``R``, ``t``) and linear/angular
-    velocity for rigid-body pose prediction.
+    - ``ref (B, 8, 3)``: the body's reference shape (its members' positions when last fully
+      observed and consistent), ``ref_ok (B,)`` bool: it has one; ``ok (B,)`` bool: the
+      current assignment passed the 3D template check (the guard of Eq. 1-2);
+      ``pending (B,)`` int64: consecutive checks a better permutation was found
+      (:mod:`.repair`); ``work_*``: the template fit's work space (rewritten every frame).
+
+    Per-body state of later work goes here: boot from templates, its pose (``R``, ``t``) and
+    linear/angular velocity for rigid-body pose prediction.
     """
 
     members: np.ndarray
@@ -151,6 +164,19 @@ class Bodies(NamedTuple):
     pred: np.ndarray
     err: np.ndarray
     kerr: np.ndarray
+    ref: np.ndarray
+    ref_ok: np.ndarray
+    ok: np.ndarray
+    pending: np.ndarray
+    work_cur: np.ndarray
+    work_pts: np.ndarray
+    work_cand: np.ndarray
+    work_best: np.ndarray
+    work_pos: np.ndarray
+    work_choice: np.ndarray
+    work_used: np.ndarray
+    work_tol: np.ndarray
+    work_centre: np.ndarray
 
 
 def new_bodies(
@@ -206,6 +232,19 @@ def new_bodies(
         pred=np.full((nb, MAX_BODY, 3), np.nan),
         err=np.full((nb, MAX_BODY), np.nan),
         kerr=np.full((nb, MAX_BODY), np.nan),
+        ref=np.zeros((nb, MAX_BODY, 3)),
+        ref_ok=np.zeros(nb, dtype=np.bool_),
+        ok=np.ones(nb, dtype=np.bool_),
+        pending=np.zeros(nb, dtype=np.int64),
+        work_cur=np.zeros(MAX_BODY, dtype=np.int64),
+        work_pts=np.zeros((MAX_CAND, 3)),
+        work_cand=np.zeros(MAX_CAND, dtype=np.int64),
+        work_best=np.zeros(MAX_BODY, dtype=np.int64),
+        work_pos=np.zeros(MAX_BODY, dtype=np.int64),
+        work_choice=np.zeros(MAX_BODY, dtype=np.int64),
+        work_used=np.zeros(MAX_CAND, dtype=np.bool_),
+        work_tol=np.zeros((MAX_BODY, MAX_BODY)),
+        work_centre=np.zeros(3),
     )
 
 
