@@ -78,7 +78,7 @@ from labeler_service.labeling.boot import (
     warmup_kernels,
 )
 from labeler_service.labeling.config import LabelerConfig
-from labeler_service.labeling.frame import LabeledFrame, MarkerState
+from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
 
@@ -186,12 +186,7 @@ class BootingLabeler:
         after labeled ones rebuilds the inner labeler from the window with those labels (the
         labeled start of ``Labeler.from_model``, so one labeler serves both starts)."""
         t0 = time.perf_counter_ns()
-        pts = np.asarray(points, dtype=np.float32)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise LabelerError(f"points must be (N, 3), got shape {pts.shape}")
-        if not np.isfinite(pts).all():
-            raise LabelerError("points must be finite (drop missing points instead of NaN)")
-        pts = np.ascontiguousarray(pts)
+        pts = frame_points(points)
         t = float(t)
         m = len(self._names)
         ids = self._tracker.update(pts, t)

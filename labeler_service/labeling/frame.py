@@ -15,6 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
+from labeler_service.errors import LabelerError
+
 
 class MarkerState(IntEnum):
     """Per-marker state in a labeled frame (wire values too).
@@ -86,3 +88,14 @@ class FrameLabeler(Protocol):
     def warmup(self) -> None: ...
 
     def body_extent(self) -> np.ndarray: ...
+
+
+def frame_points(points: np.ndarray) -> np.ndarray:
+    """A frame's anonymous points as the labelers take them: ``(N, 3)`` float32, C-contiguous,
+    all finite (a missing point is left out, never NaN). Raises :class:`LabelerError`."""
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise LabelerError(f"points must be (N, 3), got shape {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise LabelerError("points must be finite (drop missing points instead of NaN)")
+    return np.ascontiguousarray(pts)

@@ -24,7 +24,7 @@ import numpy as np
 from labeler_service.capture import split_label
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
-from labeler_service.labeling.frame import LabeledFrame, MarkerState
+from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
 from labeler_service.labeling.kernels.params import kernel_params
 from labeler_service.labeling.kernels.state import (
     MAX_BODY,
@@ -135,12 +135,7 @@ class Labeler:
     ) -> LabeledFrame:
         """Labels one frame of anonymous points ``(N, 3)`` mm (see the module docstring)."""
         t0 = time.perf_counter_ns()
-        pts = np.asarray(points, dtype=np.float32)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise LabelerError(f"points must be (N, 3), got shape {pts.shape}")
-        if not np.isfinite(pts).all():
-            raise LabelerError("points must be finite (drop missing points instead of NaN)")
-        pts = np.ascontiguousarray(pts)
+        pts = frame_points(points)
         if not self._ready:
             if labels is not None:
                 return self._collect(pts, float(t), labels, t0)
