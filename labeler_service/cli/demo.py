@@ -67,11 +67,12 @@ def _scene(seed: int, frames: int):
     return cap, "simulated 4-performer hug (no real captures found)"
 
 
-def score(frames, received, init_frames: int):
+def score(frames, received, init_frames: int, rate: float | None = None):
     """Scores received labeled frames against the stream's truth (see the module docstring)
     with the scorer ``evaluate`` uses (:class:`~labeler_service.evaluation.scoring.Scorer`):
     each message becomes the :class:`LabeledFrame` the service computed, in the truth's
-    marker order. A frame lost on the way is scored as all-unlabeled."""
+    marker order. A frame lost on the way is scored as all-unlabeled. ``rate`` (Hz) enables
+    the boot scores (``boot_s``, ``accuracy_after_boot``)."""
     from labeler_service.evaluation.scoring import Scorer
     from labeler_service.labeling.frame import LabeledFrame
 
@@ -79,7 +80,7 @@ def score(frames, received, init_frames: int):
     index = {n: i for i, n in enumerate(names)}
     by_seq = {r.msg.seq: r for r in received}
     col_of: dict[tuple[str, ...], np.ndarray] = {}
-    scorer = Scorer(names, init_frames, frames.n_frames)
+    scorer = Scorer(names, init_frames, frames.n_frames, rate=rate)
     m = len(names)
     for f in range(frames.n_frames):
         truth = frames.truth[f]

@@ -498,8 +498,10 @@ class Server:
             self._spawn(self._boot(state, req), f"boot-{state.name}")
 
     async def _boot(self, state: StreamState, req) -> None:
-        """One boot attempt through :class:`Background` (budget ``boot_budget_s``)."""
-        self.metrics.boot_attempt(state.name)
+        """One boot attempt (or extension of the booted subjects to markers not seen yet)
+        through :class:`Background` (budget ``boot_budget_s``)."""
+        if req.snapshot.subjects:  # an extension alone is not a boot attempt
+            self.metrics.boot_attempt(state.name)
         try:
             outcome = await self.background.run(
                 state.boot_job, req, budget_s=self.settings.boot_budget_s,
@@ -521,7 +523,8 @@ class Server:
                 log.exception("boot error")
             state.boot_done(req, None)
             return
-        self.metrics.boot_seconds(state.name, outcome.seconds)
+        if req.snapshot.subjects:
+            self.metrics.boot_seconds(state.name, outcome.seconds)
         state.boot_done(req, outcome)
 
     @staticmethod

@@ -44,6 +44,7 @@ a recovery that needs more than the labeler's own re-acquisition (boot from a su
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import logging
 import re
 import threading
@@ -150,6 +151,7 @@ class BootRecord:
     subjects (empty: nothing found), ``failed`` (abandoned over budget or raised), the job's
     thread and wall time."""
 
+    boot: bool  # an attempt to boot subjects (False: an extension of booted ones only)
     t: float  # the snapshot's (labeler) time
     installed_t: float  # the (labeler) time of the frame that installed it
     booted: tuple[str, ...]
@@ -258,12 +260,17 @@ class StreamState:
 
             rate = load_model(path).rate
         boot = self.settings.boot and self.settings.labeler == "online"
+        extra = {}
+        if _accepts_boot(self._factory):  # a test's factory may predate ``boot``
+            extra["boot"] = self.settings.boot_config if boot else False
         labeler = self._factory(
             self.settings.labeler, rate=rate, config=self.settings.labeler_config, model=path,
-            boot=self.settings.boot_config if boot else False,
+            **extra,
         )  # fmt: skip
         if boot and hasattr(labeler, "inline_boot"):
-            labeler.inline_boot = False  # the server runs the boot off the event loop
+            # the server runs the boot and the extension to new markers off the event loop
+            labeler.inline_boot = False
+            labeler.inline_extend = False
         self.boot_inflight = False
         self._boot_result = None
         self._install(labeler, rate)
@@ -524,6 +531,7 @@ class StreamState:
         self.just_booted = names
         self.boots.append(
             BootRecord(
+                boot=bool(request.snapshot.subjects),
                 t=request.snapshot.t,
                 installed_t=t,
                 booted=names,
@@ -600,3 +608,11 @@ def _indices(index: dict[str, int], labels: Sequence[str | None] | None) -> np.n
         dtype=np.int32,
         count=len(labels),
     )
+
+
+def _accepts_boot(factory: Callable[..., object]) -> bool:
+    try:
+        params = inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        return True
+    return "boot" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
