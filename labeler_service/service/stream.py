@@ -260,17 +260,16 @@ class StreamState:
 
             rate = load_model(path).rate
         boot = self.settings.boot and self.settings.labeler == "online"
-        extra = {}
-        if _accepts_boot(self._factory):  # a test's factory may predate ``boot``
-            extra["boot"] = self.settings.boot_config if boot else False
-        labeler = self._factory(
-            self.settings.labeler, rate=rate, config=self.settings.labeler_config, model=path,
-            **extra,
-        )  # fmt: skip
+        cfg = self.settings.labeler_config
+        if _accepts_boot(self._factory):
+            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path,
+                                    boot=self.settings.boot_config if boot else False)  # fmt: skip
+        else:  # a test's factory may predate ``boot``
+            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path)
         if boot and hasattr(labeler, "inline_boot"):
             # the server runs the boot and the extension to new markers off the event loop
-            labeler.inline_boot = False
-            labeler.inline_extend = False
+            labeler.inline_boot = False  # type: ignore[attr-defined]
+            labeler.inline_extend = False  # type: ignore[attr-defined]
         self.boot_inflight = False
         self._boot_result = None
         self._install(labeler, rate)
