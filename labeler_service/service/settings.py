@@ -184,8 +184,9 @@ class ServiceSettings(BaseSettings):
     boot: bool = True
     #: Seconds one boot attempt may take off the event loop (the background mechanism that
     #: trains in-stream); over it the attempt is abandoned (``boot_failed``), the next one
-    #: waits longer (the boot's back-off).
-    boot_budget_s: float = Field(2.0, gt=0)
+    #: waits longer (the boot's back-off). 10 performers at 360 Hz take ~1.4 s alone and
+    #: over 2 s beside the live stream (the boot shares the GIL with it), hence 10 s.
+    boot_budget_s: float = Field(10.0, gt=0)
     #: The boot's tunables (``labeler_service.labeling.boot_config.BootConfig``).
     boot_config: BootConfig = Field(default_factory=BootConfig)
     #: Restart rule (docs/service.md): a seq step beyond this, forward or back, is a jump.
