@@ -217,3 +217,56 @@ def test_boot_off_keeps_the_labeled_start(model_path):
             assert not st.boot_due()
 
     run(go(), timeout=120.0)
+
+
+def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(model_path, frames):
+    """All performers vanish for 1.5 s (only stray points), then come back: the labeler drops
+    them (none of their labels go to the stray points), the status turns ``lost``, the
+    performers are booted again off the loop and the status returns to ``online``."""
+    gone0, gone1 = 120, 300  # frames [gone0, gone1) carry only stray points
+    rng = np.random.default_rng(0)
+    stray = [rng.uniform(-3000, 3000, (3, 3)).astype(np.float32) for _ in range(gone1 - gone0)]
+
+    async def go():
+        mem = MemoryTransport()
+        settings = _settings(model_path, False, health_window_s=0.3)
+        async with Server(settings, [mem]) as srv:
+            st = srv.streams["vol"]
+            names = st.names
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            for f in range(frames.n_frames):
+                delay = t0 + f / frames.rate - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                pts = stray[f - gone0] if gone0 <= f < gone1 else frames.points[f]
+                mem.inject(encode_frame("vol", f, float(frames.times[f]), pts))
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
+            states = [decode(p).state for s, kind, p, _ in mem.sent if kind == "status"]
+            return st, outs, states
+
+    st, outs, states = run(go(), timeout=300.0)
+    assert len(outs) == frames.n_frames
+    # lost before the first boot (nothing labeled yet), online, lost while away, online again
+    # after the re-boot
+    changes = [s for s in states if s in ("lost", "online")]
+    changes = [s for k, s in enumerate(changes) if k == 0 or s != changes[k - 1]]
+    assert changes[-4:] == ["lost", "online", "lost", "online"], states
+    # nothing labeled while nobody is there (after the labeler's drop delay)
+    for msg, _ in outs:
+        if gone0 + 24 <= msg.seq < gone1:
+            assert not np.any(msg.state == 1), msg.seq
+    lab = st.labeler
+    assert isinstance(lab, BootingLabeler)
+    dropped = {n for t, kind, n in lab.events if kind == "drop"}
+    assert dropped == {f"P{i + 1}" for i in range(PERFORMERS)}
+    back = frames.times[gone1]
+    rebooted = [b for b in st.boots if b.booted and b.t >= back - 1e-9]
+    assert {n for b in rebooted for n in b.booted} == set(dropped)
+    last = max(b.installed_t for b in rebooted)
+    acc, ghosts, scored = _score(frames, outs, int(np.searchsorted(frames.times, last - 1e-9)))
+    assert scored > 0 and acc >= 0.95, acc
