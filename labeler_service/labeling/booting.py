@@ -90,6 +90,9 @@ from labeler_service.labeling.frame import LabeledFrame, MarkerState
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
 
+#: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
+EXTEND_BACKOFF = 4
+
 
 @dataclass
 class _Frame:
@@ -160,6 +163,10 @@ class BootingLabeler:
         self._since_attempt = self._boot_every
         self._extend_every = max(1, round(c.extend_every_s * self.rate))
         self._since_extend = 0
+        #: off the frame path (``inline_extend=False``): the wait to the next extension doubles
+        #: after one that found nothing, up to ``EXTEND_BACKOFF`` periods (a background job
+        #: every ``extend_every_s`` costs the live stream GIL time even when it finds nothing)
+        self._extend_wait = self._extend_every
         self._inner: Labeler | None = None
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._inner_map = np.zeros(0, dtype=np.int64)
@@ -390,7 +397,7 @@ class BootingLabeler:
             not self.inline_extend
             and bool(self._active)
             and len(self._window) == self._window.maxlen
-            and self._since_extend >= self._extend_every
+            and self._since_extend >= self._extend_wait
             and bool(np.any(self._window[-1].labels < 0))
         )
 
@@ -482,6 +489,12 @@ class BootingLabeler:
                 self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
             )
         extended = False
+        if snapshot.labels is not None:  # an extension: back off while it finds nothing
+            self._extend_wait = (
+                self._extend_every
+                if ext is not None
+                else min(2 * self._extend_wait, EXTEND_BACKOFF * self._extend_every)
+            )
         if ext is not None:  # extension labels that still follow a track to this frame
             ok = np.isin(self._subject_of[np.maximum(now, 0)], list(self._active) + keep)
             now[~ok] = -1  # a subject dropped since the snapshot
