@@ -1,4 +1,8 @@
-"""Shared fixtures: seeded RNG, real-data paths (skip with a reason when absent)."""
+"""Shared fixtures: seeded RNG, real-data paths (skip with a reason when absent), a real
+Mosquitto broker on a free loopback port.
+
+Broker tests are marked ``broker``; without the ``mosquitto`` binary they skip with a reason
+(``make test`` installs it via scripts/ensure-mosquitto.sh)."""
 
 from __future__ import annotations
 
@@ -34,3 +38,18 @@ def real_path(real_dir: Path):
         return p
 
     return get
+
+
+@pytest.fixture
+def broker(tmp_path):
+    """A real Mosquitto on a free loopback port, started and stopped by the test."""
+    from labeler_service.testing.broker import LocalBroker, mosquitto_binary
+
+    if mosquitto_binary() is None:
+        pytest.skip("mosquitto binary not found (make test installs it; apt install mosquitto)")
+    b = LocalBroker(tmp_path)
+    b.start()
+    try:
+        yield b
+    finally:
+        b.close()

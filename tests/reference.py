@@ -325,3 +325,113 @@ def contest(assigned, owner, active, prev_state, x, s, gate, points, obs, member
 def max_residual(src, dst, R, t):
     """Largest ``|R src_i + t - dst_i|``."""
     return float(np.max(np.linalg.norm(np.asarray(src) @ R.T + t - np.asarray(dst), axis=1)))
+
+
+# --------------------------------------------------------------------------- rigid-body prediction
+
+
+def remember(old, new, alpha):
+    """Running error that rises at once (``kernels/motion.py``)."""
+    if np.isnan(old):
+        return new
+    return max(new, (1.0 - alpha) * old + alpha * new)
+
+
+def body_motion(members, mpos, obs, pred, kx, err, kerr, memory, tau):
+    """Per body: ``(R, t, moving, err, kerr, mpos)`` after one frame, with the SVD Kabsch of
+    the members observed in both frames (``members``: list of marker lists); with ``tau`` > 0
+    a fit that leaves a member farther than ``tau`` is no motion."""
+    alpha = 1.0 / memory if memory > 1.0 else 1.0
+    out = []
+    for b, mk in enumerate(members):
+        e_b, e_k = err[b, : len(mk)].copy(), kerr[b, : len(mk)].copy()
+        for k, m in enumerate(mk):
+            if np.isfinite(obs[m, 0]) and np.isfinite(pred[b, k, 0]):
+                e_b[k] = remember(e_b[k], np.sum((obs[m] - pred[b, k]) ** 2) / 3.0, alpha)
+                e_k[k] = remember(e_k[k], np.sum((obs[m] - kx[m]) ** 2) / 3.0, alpha)
+        both = [
+            k for k, m in enumerate(mk) if np.isfinite(obs[m, 0]) and np.isfinite(mpos[b, k, 0])
+        ]
+        R = t = None
+        moving = len(both) >= 3
+        if moving:
+            src, dst = mpos[b, both], obs[[mk[k] for k in both]]
+            R, t = kabsch(src, dst)
+            if tau > 0 and np.linalg.norm(src @ R.T + t - dst, axis=1).max() > tau:
+                moving = False
+        if not moving:
+            e_b[:] = np.nan
+            e_k[:] = np.nan
+        out.append((R, t, moving, e_b, e_k, obs[mk].copy()))
+    return out
+
+
+def body_predict(members, R, t, moving, motion_dt, err, kerr, x, pos, dt):
+    """Per marker: the Kalman state after the rigid-body prediction (``kernels/motion.py``):
+    every body with a motion over a matching interval predicts ``R pos + t``; a marker takes
+    the prediction of its body with the lowest running error below its Kalman error."""
+    x = x.copy()
+    best = {}
+    for b, mk in enumerate(members):
+        if not (moving[b] and abs(dt - motion_dt[b]) <= 0.25 * motion_dt[b]):
+            continue
+        for k, m in enumerate(mk):
+            if np.isnan(pos[m, 0]) or not err[b, k] < kerr[b, k]:
+                continue
+            if m not in best or err[b, k] < best[m][0]:
+                best[m] = (err[b, k], R[b] @ pos[m] + t[b])
+    for m, (_, p) in best.items():
+        x[m, 3:] = (p - pos[m]) / dt
+        x[m, :3] = p
+    return x
+
+
+# --------------------------------------------------------------------------- template fit (repair)
+
+
+def shape_rms(ref, pts, choice):
+    """``(count, rms)`` of the members with a point (``choice[k]`` a row of ``pts`` or -1):
+    RMS of ``ref`` after the best proper rigid motion onto their points (inf with < 3)."""
+    idx = [k for k in range(len(choice)) if choice[k] >= 0]
+    if len(idx) < 3:
+        return len(idx), np.inf
+    src = np.asarray(ref, dtype=float)[idx]
+    dst = np.asarray(pts, dtype=float)[[choice[k] for k in idx]]
+    R, t = kabsch(src, dst)
+    return len(idx), float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
+
+
+def fit_template(ref, tol, pts, accept_mm):
+    """Every injective map of the members onto the points or "missing" (itertools.product):
+    pair distances within ``tol`` of the reference's, RMS at most ``accept_mm``; the most points,
+    then the smallest RMS. Returns ``(count, rms, choice)`` (``(0, inf, all -1)`` if none)."""
+    n, nc = len(ref), len(pts)
+    best = (0, np.inf, [-1] * n)
+    for choice in itertools.product(*[list(range(nc)) + [-1]] * n):
+        used = [p for p in choice if p >= 0]
+        if len(set(used)) < len(used) or len(used) < 3:
+            continue
+        ok = all(
+            abs(np.linalg.norm(pts[choice[i]] - pts[choice[j]]) - np.linalg.norm(ref[i] - ref[j]))
+            <= tol[i, j]
+            for i in range(n)
+            for j in range(i)
+            if choice[i] >= 0 and choice[j] >= 0
+        )
+        if not ok:
+            continue
+        c, rms = shape_rms(ref, pts, choice)
+        if rms > accept_mm:
+            continue
+        if c > best[0] or (c == best[0] and rms < best[1] - 1e-9):
+            best = (c, rms, list(choice))
+    return best
+
+
+def gone(lost, active, groups, absent_frames):
+    """Per marker: every active marker of its subject (``groups``: marker lists) has been
+    missing for ``absent_frames`` frames."""
+    out = np.zeros(len(lost), dtype=bool)
+    for g in groups:
+        out[g] = all(lost[i] >= absent_frames for i in g if active[i])
+    return out

@@ -54,7 +54,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gap-frames", type=int, default=20, help="frames per gap")
     p.add_argument("--ghosts", type=float, default=1.0, help="mean ghost points per frame")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed x capture rate")
-    p.add_argument("--labeler", choices=["online", "baseline"], default="online")
+    p.add_argument(
+        "--labeler",
+        choices=["online", "baseline", "closest-point"],
+        default="online",
+        help="the online labeler, or the closest-point baseline (baseline = closest-point, the "
+        "name evaluate --method uses)",
+    )
     p.add_argument("--start", choices=["window", "boot"], default="window",
                    help="window: the first --init-frames frames carry labels; boot: models "
                         "trained on other segments, no labels sent")  # fmt: skip
@@ -221,6 +227,8 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
     from labeler_service.tools.subscribe import Recorder, percentiles
 
+    if args.labeler == "closest-point":
+        args.labeler = "baseline"  # the service's name for it
     t_start = time.perf_counter()
     cap, what = _scene(args.seed, args.frames)
     out: Path = args.out

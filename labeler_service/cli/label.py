@@ -147,4 +147,11 @@ def run(args: argparse.Namespace) -> int:
         )
         if compared:
             print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
+    if observed == 0 and frames > 0:
+        # the output is written (nothing lost), but a run that labeled nothing is no success
+        raise LabelerError(
+            f"{args.input}: no point was labeled in {frames} frames; does the model's marker "
+            "set match the capture's (names, subjects), and are the performers in view? "
+            f"(output written to {args.output})"
+        )
     return 0

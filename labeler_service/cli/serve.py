@@ -12,9 +12,10 @@ import argparse
 import asyncio
 import gc
 import logging
-import signal
 import sys
 from pathlib import Path
+
+from labeler_service.cli.stopping import release_signals, stop_event
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,10 +30,7 @@ async def serve(settings, stop: asyncio.Event | None = None) -> None:
     """Runs the server until ``stop`` is set or SIGINT/SIGTERM arrives."""
     from labeler_service.service.server import Server
 
-    stop = stop or asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
+    stop = stop_event(stop=stop)
     try:
         async with Server(settings) as srv:
             parts = []
@@ -48,8 +46,7 @@ async def serve(settings, stop: asyncio.Event | None = None) -> None:
             print(f"ready {' '.join(parts)}", flush=True)
             await stop.wait()
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        release_signals()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import signal
 import sys
 import time
 from pathlib import Path
+
+from labeler_service.cli.stopping import stop_event
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,12 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 async def _main(args: argparse.Namespace) -> int:
     from labeler_service.tools.subscribe import Recorder, Subscriber
 
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    if args.seconds is not None:
-        loop.call_later(args.seconds, stop.set)
+    stop = stop_event(args.seconds)
     recorder = Recorder() if args.out is not None else None
     tty = sys.stderr.isatty()
     async with Subscriber(args.url) as sub:

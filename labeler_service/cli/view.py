@@ -13,8 +13,9 @@ import argparse
 import asyncio
 import logging
 import os
-import signal
 import sys
+
+from labeler_service.cli.stopping import stop_event
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,12 +55,7 @@ async def serve_view(url: str, host: str, port: int, fps: float, stop: asyncio.E
 
 
 async def _main(args: argparse.Namespace) -> int:
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    if args.seconds is not None:
-        loop.call_later(args.seconds, stop.set)
+    stop = stop_event(args.seconds)
     await serve_view(args.url, args.host, args.port, args.fps, stop)
     return 0
 

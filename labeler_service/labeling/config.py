@@ -168,3 +168,75 @@ class LabelerConfig(BaseModel):
     init_frames: int = Field(
         50, ge=3, description="labeled frames expected before training (informational)"
     )
+    # rigid-body prediction (kernels/motion.py)
+    body_prediction: bool = Field(
+        True,
+        description="predict a marker by its rigid body's motion (the last inter-frame rigid "
+        "motion applied again) when that body has recently predicted it better than its Kalman "
+        "filter did",
+    )
+    body_error_frames: float = Field(
+        10.0,
+        ge=1,
+        description="memory (frames) of the running prediction errors that choose between the "
+        "rigid-body and the Kalman prediction of each marker",
+    )
+    body_rigid_mm: float = Field(
+        20.0,
+        ge=0,
+        description="a body predicts only while one rigid motion moves its members between two "
+        "frames within this many mm (a body spanning a joint that bends does not; 0 = always)",
+    )
+    # 3D template check, swap repair, joint re-acquisition, guarded Eq. 1-2 (kernels/repair.py)
+    repair: bool = Field(
+        True,
+        description="3D template check of suspect rigid bodies against their reference shape, "
+        "swap repair and joint re-acquisition (False = off)",
+    )
+    repair_check_mm: float = Field(
+        6.0,
+        gt=0,
+        description="a body's assignment fails the 3D template check when its shape RMS after "
+        "the best proper rotation exceeds this; a permutation is accepted only within it",
+    )
+    repair_tol_mm: float = Field(
+        10.0,
+        gt=0,
+        description="template fit: a pair of points may differ from its reference distance by "
+        "this plus 3 trained deviations",
+    )
+    repair_age: int = Field(
+        30,
+        ge=0,
+        description="a body with a member observed for fewer frames than this in a row is "
+        "checked every frame",
+    )
+    repair_frames: int = Field(
+        2,
+        ge=1,
+        description="a permutation that relabels held points must fit clearly better in this "
+        "many consecutive checks",
+    )
+    repair_radius_mm: float = Field(
+        60.0,
+        ge=0,
+        description="free points this far beyond twice the body's extent join its template fit",
+    )
+    repair_max_nodes: int = Field(
+        5000, ge=1, description="node budget of one template fit (interpretation tree)"
+    )
+    window_guard: bool = Field(
+        True,
+        description="Eq. 1-2 learns only from bodies that pass the 3D template check",
+    )
+    window_drift_mm: float = Field(
+        0.0,
+        ge=0,
+        description="the window's D stays within this of the trained D (0 = unbounded)",
+    )
+    absent_frames: int = Field(
+        60,
+        ge=0,
+        description="a subject whose markers have all been missing this many frames has left: "
+        "its markers are not re-acquired by the wide pass (0 = off)",
+    )

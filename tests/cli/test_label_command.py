@@ -62,3 +62,25 @@ def test_label_errors_are_clean(take, tmp_path, capsys):
     bad.write_text("{}")
     assert main(["label", str(src), str(tmp_path / "o.npz"), "--model", str(bad)]) == 2
     assert "model version" in capsys.readouterr().err
+
+
+def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, capsys):
+    """A model that matches nothing in the capture (here: only two random points per frame)
+    must not look like success: one line naming the input, exit 2, the output still written."""
+    from labeler_service.scenes.simulate import simulate_scene
+
+    scene = simulate_scene(2, 2.0, "walk", 1, rate=120.0)
+    src = tmp_path / "scene.c3d"
+    write_capture(scene, src)
+    model = tmp_path / "m.json"
+    assert main(["train", "structure", str(src), "--out", str(model)]) == 0
+    rng = np.random.default_rng(0)
+    noise = Capture(rng.normal(0, 2000, (120, 2, 3)).astype(np.float32), ("*0", "*1"), 120.0)
+    raw = tmp_path / "noise.c3d"
+    write_capture(noise, raw)
+    out = tmp_path / "out.c3d"
+    capsys.readouterr()
+    assert main(["label", str(raw), str(out), "--model", str(model)]) == 2
+    err = capsys.readouterr().err
+    assert "no point was labeled" in err and str(raw) in err
+    assert out.exists()

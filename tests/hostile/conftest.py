@@ -49,18 +49,3 @@ def model_file(tmp_path, model_dict):
     p = tmp_path / "model.json"
     save_model(LabelerModel.model_validate(model_dict), p)
     return p
-
-
-@pytest.fixture
-def broker(tmp_path):
-    """A real Mosquitto on a free loopback port (skips without the binary)."""
-    from labeler_service.testing.broker import LocalBroker, mosquitto_binary
-
-    if mosquitto_binary() is None:
-        pytest.skip("mosquitto binary not found (make test installs it; apt install mosquitto)")
-    b = LocalBroker(tmp_path)
-    b.start()
-    try:
-        yield b
-    finally:
-        b.close()

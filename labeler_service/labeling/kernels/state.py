@@ -45,6 +45,7 @@ import numpy as np
 MAX_BODY = 8  # markers per rigid body and per recovery set (the marker itself and 7 neighbours)
 UNDECIDED = -2  # ``assigned[m]``: not decided yet by Algorithm 1 (searched again)
 NONE = -1  # ``assigned[m]``: no point (missing); ``owner[j]``: no marker (unlabeled point)
+MAX_CAND = 12  # candidate points of one template fit (:mod:`.repair`)
 
 
 class Tracks(NamedTuple):
@@ -66,6 +67,11 @@ class Tracks(NamedTuple):
       NaN when missing); the output.
     - ``subj_ptr (S + 1,)``, ``subj_idx (M,)``: the markers of each subject (CSR), for the
       per-subject common-mode shift.
+    - ``kx (M, 3)``: this frame's constant-velocity (Kalman) prediction, before the rigid-body
+      prediction replaces it (:mod:`.motion`).
+    - ``lost (M,)`` int64: frames missing in a row; ``gone (M,)`` bool: every marker of the
+      marker's subject has been missing for ``absent_frames`` frames (the subject left: no wide
+      re-acquisition from stale predictions).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -81,6 +87,9 @@ class Tracks(NamedTuple):
     pos: np.ndarray
     subj_ptr: np.ndarray
     subj_idx: np.ndarray
+    kx: np.ndarray
+    lost: np.ndarray
+    gone: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -97,6 +106,9 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         pos=np.full((m, 3), np.nan, dtype=np.float32),
         subj_ptr=np.cumsum([0] + [len(g) for g in groups]).astype(np.int64),
         subj_idx=np.array([i for g in groups for i in g], dtype=np.int64),
+        kx=np.full((m, 3), np.nan),
+        lost=np.zeros(m, dtype=np.int64),
+        gone=np.zeros(m, dtype=np.bool_),
     )
 
 
@@ -115,10 +127,21 @@ class Bodies(NamedTuple):
     - ``ring (B, 8, 8, T)`` float32: the window's last ``T`` distances per link (NaN = not
       both observed); ``s1``, ``s2 (B, 8, 8)``: running sums of the distances and their
       squares; ``cnt (B, 8, 8)`` int64: samples in the window (:mod:`.window`).
+    - Rigid-body prediction (:mod:`.motion`): ``mpos (B, 8, 3)`` the members observed in the
+      last frame (NaN otherwise); ``R (B, 3, 3)``, ``t (B, 3)`` the last inter-frame rigid
+      motion, ``moving (B,)`` bool: it was measured (3+ members in both frames),
+      ``motion_dt (B,)`` over which interval (s); ``pred (B, 8, 3)`` this frame's prediction of
+      each member; ``err (B, 8)``, ``kerr (B, 8)`` running mean squared error per axis (mm^2)
+      of the body's and of the Kalman prediction of each member (NaN = no record).
 
-    Per-body state of later work goes here: the body's reference shape ``(B, 8, 3)`` for 3D
-    template checks and boot from templates, its pose (``R``, ``t``) and linear/angular
-    velocity for rigid-body pose prediction.
+    - ``ref (B, 8, 3)``: the body's reference shape (its members' positions when last fully
+      observed and consistent), ``ref_ok (B,)`` bool: it has one; ``ok (B,)`` bool: the
+      current assignment passed the 3D template check (the guard of Eq. 1-2);
+      ``pending (B,)`` int64: consecutive checks a better permutation was found
+      (:mod:`.repair`); ``work_*``: the template fit's work space (rewritten every frame).
+
+    Per-body state of later work goes here: boot from templates, its pose (``R``, ``t``) and
+    linear/angular velocity for rigid-body pose prediction.
     """
 
     members: np.ndarray
@@ -133,6 +156,27 @@ class Bodies(NamedTuple):
     s1: np.ndarray
     s2: np.ndarray
     cnt: np.ndarray
+    mpos: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    moving: np.ndarray
+    motion_dt: np.ndarray
+    pred: np.ndarray
+    err: np.ndarray
+    kerr: np.ndarray
+    ref: np.ndarray
+    ref_ok: np.ndarray
+    ok: np.ndarray
+    pending: np.ndarray
+    work_cur: np.ndarray
+    work_pts: np.ndarray
+    work_cand: np.ndarray
+    work_best: np.ndarray
+    work_pos: np.ndarray
+    work_choice: np.ndarray
+    work_used: np.ndarray
+    work_tol: np.ndarray
+    work_centre: np.ndarray
 
 
 def new_bodies(
@@ -180,6 +224,27 @@ def new_bodies(
         s1=np.zeros((nb, MAX_BODY, MAX_BODY)),
         s2=np.zeros((nb, MAX_BODY, MAX_BODY)),
         cnt=np.zeros((nb, MAX_BODY, MAX_BODY), dtype=np.int64),
+        mpos=np.full((nb, MAX_BODY, 3), np.nan),
+        R=np.zeros((nb, 3, 3)),
+        t=np.zeros((nb, 3)),
+        moving=np.zeros(nb, dtype=np.bool_),
+        motion_dt=np.zeros(nb),
+        pred=np.full((nb, MAX_BODY, 3), np.nan),
+        err=np.full((nb, MAX_BODY), np.nan),
+        kerr=np.full((nb, MAX_BODY), np.nan),
+        ref=np.zeros((nb, MAX_BODY, 3)),
+        ref_ok=np.zeros(nb, dtype=np.bool_),
+        ok=np.ones(nb, dtype=np.bool_),
+        pending=np.zeros(nb, dtype=np.int64),
+        work_cur=np.zeros(MAX_BODY, dtype=np.int64),
+        work_pts=np.zeros((MAX_CAND, 3)),
+        work_cand=np.zeros(MAX_CAND, dtype=np.int64),
+        work_best=np.zeros(MAX_BODY, dtype=np.int64),
+        work_pos=np.zeros(MAX_BODY, dtype=np.int64),
+        work_choice=np.zeros(MAX_BODY, dtype=np.int64),
+        work_used=np.zeros(MAX_CAND, dtype=np.bool_),
+        work_tol=np.zeros((MAX_BODY, MAX_BODY)),
+        work_centre=np.zeros(3),
     )
 
 

@@ -1,13 +1,16 @@
 """The whole per-frame loop of the online labeler in one numba entry point.
 
-Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3) -> Mahalanobis gating with at
+Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3), replaced by a rigid body's
+prediction where that body has predicted the marker better (ours, :mod:`.motion`) -> common-mode
+shift (ours) -> Mahalanobis gating with at
 most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> track
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition and 3D
-check (ours, see docs/algorithm.md) -> Kalman update of the observed markers (Eq. 4) -> recovery
+check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap repair and joint
+re-acquisition (ours, :mod:`.repair`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
-stale state) -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully
-observed bodies.
+stale state) -> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
+-> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully observed bodies.
 
 The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
 ``Scratch``) and the settings ``Params`` of :mod:`.params`; every step reads them by field
@@ -23,7 +26,9 @@ from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
+from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
 from labeler_service.labeling.kernels.params import Params
+from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
     _contest,
     _max_residual,
@@ -70,11 +75,15 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     rec, has_rec, missing = scratch.rec, scratch.has_rec, scratch.missing
     age, n_reject = tracks.age, tracks.n_reject
     r, v0 = params.r, params.v0
+    if params.absent_frames > 0:
+        _gone(tracks, params.absent_frames)
     m_total = x.shape[0]
     n = points.shape[0]
     index = _index(points)
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, tracks.q, active, dt, params.p_cap)
+    if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
+        _body_predict(tracks, bodies, dt)
     if params.common_mode_iters > 0:
         subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
         radius, iters = params.common_mode_radius_mm, params.common_mode_iters
@@ -84,6 +93,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
+        if tracks.gone[i] and params.absent_frames > 0:
+            s[i] = params.s_min  # the subject left: only the narrowest gate at its last place
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
     # Algorithm 1
@@ -102,11 +113,14 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     _observed(assigned, points, obs)
     if params.verify_mm > 0.0:
         _verify(points, index, frame_no, tracks, recovery, scratch, params)
+    if params.repair:
+        _repair(points, index, frame_no, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]
         if a >= 0:
             missing[i] = False  # the 3D check used it as scratch
+            tracks.lost[i] = 0
             n_reject[i] = 0
             age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
@@ -115,6 +129,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
                 pos[i, c] = obs[i, c]
         else:
             age[i] = 0
+            tracks.lost[i] += 1
             for c in range(3):
                 obs[i, c] = np.nan
             missing[i] = active[i]
@@ -137,8 +152,12 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         else:
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
+    if params.body_prediction:
+        kab, memory, tau = scratch.kab, params.body_error_frames, params.body_rigid_mm
+        _body_motion(bodies, obs, tracks.kx, dt, memory, tau, kab.src, kab.dst, kab.R, kab.t)
     # Eq. 1-2: sliding window
-    _window_update(bodies, obs, ptr, params.min_window_samples)
+    guard = params.repair and params.window_guard
+    _window_update(bodies, obs, ptr, params.min_window_samples, guard, params.window_drift_mm)
     # reference snapshots of the recovery sets
     _snapshot(age, params.snapshot_age, obs, recovery)
 
@@ -166,6 +185,22 @@ def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, s
         Scratch(*named),
         Params(*params),
     )
+
+
+@njit
+def _gone(tracks, absent_frames):
+    """``tracks.gone[m]``: every marker of ``m``'s subject has been missing for
+    ``absent_frames`` frames (``tracks.lost``, the previous frame's count) - the subject left
+    the volume (class D of docs/diagnosis_issue10.md)."""
+    subj_ptr, subj_idx, lost = tracks.subj_ptr, tracks.subj_idx, tracks.lost
+    for s in range(subj_ptr.shape[0] - 1):
+        left = True
+        for k in range(subj_ptr[s], subj_ptr[s + 1]):
+            if tracks.active[subj_idx[k]] and lost[subj_idx[k]] < absent_frames:
+                left = False
+                break
+        for k in range(subj_ptr[s], subj_ptr[s + 1]):
+            tracks.gone[subj_idx[k]] = left
 
 
 @njit
@@ -208,6 +243,8 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     for i in range(m_total):
         if params.reacquire_all and active[i] and assigned[i] == NONE:
             missing[i] = True
+        if tracks.gone[i] and params.absent_frames > 0:
+            missing[i] = False  # the subject left: no wide search from stale predictions
         if params.reacquire_keep_observed and assigned[i] >= 0 and state[i] == OBSERVED:
             missing[i] = False  # tracked through the previous frame: keep
         if missing[i] and active[i]:

@@ -1,0 +1,369 @@
+"""3D template check, swap repair and joint re-acquisition of rigid bodies (ours, issue 10).
+
+Eq. 5 scores only pair distances, so a permutation of a body's labels whose distances are about
+right (a cluster plate, a dense shoulder set) or its mirror image (same distances, opposite
+chirality) fits as well as the truth, and a body whose markers were all hidden is re-acquired
+one marker at a time from stale per-marker predictions. Here every rigid body keeps a reference
+*shape*: ``bodies.ref (B, 8, 3)``, its members' positions the last time all were observed for
+``snapshot_age`` frames and the body fitted its previous shape (a wrong assignment never
+becomes the reference). A body is checked when it is suspect - a member missing or observed
+for fewer than ``repair_age`` frames, a repair pending, or its turn in a round robin over
+``verify_every`` frames:
+
+1. the current assignment's shape residual: RMS after the best *proper* rotation and
+   translation (Kabsch, no reflection) of the reference onto the current points - this sees
+   chirality, which distances cannot;
+2. if that residual exceeds ``repair_check_mm``, or a member is missing while free points lie
+   near the body, :func:`_fit_template` searches every injective map of the body's members onto
+   its current points and the free points near it (or "missing"), pruned by the reference pair
+   distances (``repair_tol_mm`` + 3 trained deviations), for the one with the most members whose
+   RMS is within ``repair_check_mm``, then the smallest RMS (an interpretation tree);
+3. held points are relabeled only in a body with a member observed for fewer than
+   ``repair_age`` frames: a body whose markers were all tracked for long keeps its points
+   (swaps start when markers are re-acquired, and a deforming body must not be "repaired"
+   against a stale reference). Every change needs a map of 4+ points: a triangle has no
+   chirality, and a near-isosceles one fits its own permutations (Eq. 5 already sees what
+   three points show). A map for a body that had
+   fewer than three points (joint re-acquisition: all returning points are assigned together
+   by the body's shape) is taken at once; one that only adds free points to a body seen with
+   three or more is left to the per-marker 3D check (:func:`.rigid._verify`, which refuses
+   ghosts off the rigid estimate); a map that relabels points already held is taken when it
+   fits clearly better (RMS below a third of the current, or more members) for ``repair_frames``
+   consecutive checks (swap repair). "Clearly better" is an RMS below a third of the current
+   one: real repairs on the matrix went from 8-45 mm to 0.5-3.3 mm (ratio <= 0.25, or more
+   points); the one false repair seen, a wrist/hand body flexed against a stale reference in
+   the simulated 10-person hug, from 10.1 to 4.4 mm (0.44).
+
+A body whose current assignment no map beats (it deformed, or is not rigid) keeps it, and
+when fully observed by markers tracked for ``repair_age`` frames its points become the new
+reference (the reference follows slow soft-tissue drift).
+
+``bodies.ok[b]`` records whether the body's assignment passed the check (the guard of the
+sliding-window update, :mod:`.window`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+from labeler_service.labeling.kernels.rigid import _kabsch
+from labeler_service.labeling.kernels.spatial import _span
+from labeler_service.labeling.kernels.state import MAX_CAND, NONE
+
+
+@njit
+def _shape_rms(ref, pts, choice, n, src, dst, R, t):
+    """``(count, rms)``: how many of the ``n`` members have a point (``choice[k]`` a row of
+    ``pts`` or -1) and the RMS (mm) of their reference positions ``ref (n, 3)`` after the best
+    proper rigid motion onto those points; ``rms = inf`` with fewer than 3."""
+    c = 0
+    for k in range(n):
+        p = choice[k]
+        if p < 0:
+            continue
+        for a in range(3):
+            src[c, a] = ref[k, a]
+            dst[c, a] = pts[p, a]
+        c += 1
+    if c < 3:
+        return c, np.inf
+    _kabsch(src, dst, c, R, t)
+    e2 = 0.0
+    for i in range(c):
+        for a in range(3):
+            d = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a] - dst[i, a]
+            e2 += d * d
+    return c, np.sqrt(e2 / c)
+
+
+@njit
+def _fit_template(n, ref, tol, pts, nc, accept_mm, max_nodes, pos, used, choice, best, kab):
+    """Best map of ``n`` body members (reference positions ``ref (n, 3)``) onto the candidate
+    points ``pts[:nc]`` (rows of a ``(nc, 3)`` array) or "missing": every member pair that both
+    have a point keeps its reference distance within ``tol[i, j]``; among maps whose shape RMS
+    (:func:`_shape_rms`) is at most ``accept_mm``, the one with the most points, then the
+    smallest RMS. Depth-first with a count bound, at most ``max_nodes`` nodes. ``best[k]`` gets
+    the candidate row of member ``k`` (-1 = missing); returns ``(count, rms)`` (``(0, inf)``
+    when no map of 3+ points qualifies). ``pos``, ``choice (8,)``, ``used (nc,)``: work space;
+    ``kab``: :class:`.state.KabschScratch`."""
+    best_cnt = 0
+    best_rms = np.inf
+    for k in range(n):
+        best[k] = -1
+    if n == 0:
+        return 0, np.inf
+    for p in range(nc):
+        used[p] = False
+    nodes = 0
+    k = 0
+    cnt = 0
+    pos[0] = -1
+    while k >= 0:
+        if 0 <= pos[k] < nc:
+            used[pos[k]] = False
+            cnt -= 1
+        pos[k] += 1
+        while pos[k] < nc:
+            p = pos[k]
+            ok = not used[p]
+            j = 0
+            while ok and j < k:
+                q = pos[j]
+                if q < nc:
+                    d2 = 0.0
+                    r2 = 0.0
+                    for a in range(3):
+                        d = pts[p, a] - pts[q, a]
+                        d2 += d * d
+                        d = ref[k, a] - ref[j, a]
+                        r2 += d * d
+                    ok = abs(np.sqrt(d2) - np.sqrt(r2)) <= tol[k, j]
+                j += 1
+            if ok:
+                break
+            pos[k] += 1
+        if pos[k] > nc:  # every option of member k tried
+            k -= 1
+            continue
+        if pos[k] < nc:
+            used[pos[k]] = True
+            cnt += 1
+        if cnt + (n - 1 - k) < best_cnt:
+            continue  # cannot reach the best count any more
+        nodes += 1
+        if nodes > max_nodes:
+            if 0 <= pos[k] < nc:
+                used[pos[k]] = False
+            break
+        if k < n - 1:
+            k += 1
+            pos[k] = -1
+            continue
+        # a complete map
+        if cnt < 3 or cnt < best_cnt:
+            continue
+        for i in range(n):
+            choice[i] = pos[i] if pos[i] < nc else -1
+        c, rms = _shape_rms(ref, pts, choice, n, kab.src, kab.dst, kab.R, kab.t)
+        if rms > accept_mm:
+            continue
+        if c > best_cnt or rms < best_rms:
+            best_cnt = c
+            best_rms = rms
+            for i in range(n):
+                best[i] = choice[i]
+    return best_cnt, best_rms
+
+
+@njit
+def _snapshot_body(b, bodies, points, cur, n):
+    """``bodies.ref[b]`` = the body's current points (``cur[k]`` the point of member ``k``)."""
+    for k in range(n):
+        for a in range(3):
+            bodies.ref[b, k, a] = points[cur[k], a]
+    bodies.ref_ok[b] = True
+
+
+@njit
+def _repair(points, index, frame_no, tracks, bodies, scratch, params):
+    """The 3D template check, swap repair and joint re-acquisition of the module docstring,
+    after Algorithm 1 and the per-marker 3D check. Changes ``scratch.assigned``, ``owner`` and
+    keeps ``scratch.obs`` in sync; updates ``bodies.ref``, ``ref_ok``, ``ok``, ``pending``.
+    ``tracks.age`` is the previous frame's. Returns the number of bodies relabeled."""
+    assigned, owner, obs, kab = scratch.assigned, scratch.owner, scratch.obs, scratch.kab
+    active, age, x = tracks.active, tracks.age, tracks.x
+    members, size, A0 = bodies.members, bodies.size, bodies.A0
+    ref_all, ref_ok, ok, pending = bodies.ref, bodies.ref_ok, bodies.ok, bodies.pending
+    check_mm, tol_mm = params.repair_check_mm, params.repair_tol_mm
+    rep_age, rep_frames, every = params.repair_age, params.repair_frames, params.verify_every
+    margin = params.repair_radius_mm
+    nb = members.shape[0]
+    cur = bodies.work_cur
+    pts = bodies.work_pts
+    cand = bodies.work_cand
+    best = bodies.work_best
+    pos = bodies.work_pos
+    choice = bodies.work_choice
+    used = bodies.work_used
+    tol = bodies.work_tol
+    centre = bodies.work_centre
+    changes = 0
+    for b in range(nb):
+        n = size[b]
+        if n < 3:
+            continue
+        n_obs = 0
+        young = False
+        lost = False
+        for k in range(n):
+            m = members[b, k]
+            cur[k] = assigned[m]
+            if assigned[m] >= 0:
+                n_obs += 1
+                if age[m] < rep_age:
+                    young = True
+            elif active[m]:
+                lost = True
+        if not ref_ok[b]:
+            # first reference: every member observed long enough
+            if n_obs == n:
+                full = True
+                for k in range(n):
+                    if age[members[b, k]] < params.snapshot_age:
+                        full = False
+                if full:
+                    _snapshot_body(b, bodies, points, cur, n)
+            continue
+        turn = every > 0 and (b + frame_no) % every == 0
+        if not (young or lost or turn or pending[b] > 0):
+            continue
+        ref = ref_all[b]
+        for k in range(n):
+            choice[k] = k if cur[k] >= 0 else -1
+            if cur[k] >= 0:
+                for a in range(3):
+                    pts[k, a] = points[cur[k], a]
+        c_cur, rms_cur = _shape_rms(ref, pts, choice, n, kab.src, kab.dst, kab.R, kab.t)
+        bad = c_cur >= 3 and rms_cur > check_mm
+        ok[b] = not bad
+        if not bad and not lost:
+            pending[b] = 0
+            if c_cur == n and not young:
+                _snapshot_body(b, bodies, points, cur, n)  # follow slow soft-tissue drift
+            continue
+        # candidates: the body's own points, then free points near it
+        nc = 0
+        for k in range(n):
+            if cur[k] >= 0:
+                cand[nc] = cur[k]
+                nc += 1
+        cx = 0.0
+        cy = 0.0
+        cz = 0.0
+        nx = 0
+        for k in range(n):
+            m = members[b, k]
+            if cur[k] >= 0:
+                cx += points[cur[k], 0]
+                cy += points[cur[k], 1]
+                cz += points[cur[k], 2]
+                nx += 1
+        if nx == 0:
+            for k in range(n):
+                m = members[b, k]
+                if x[m, 0] == x[m, 0]:
+                    cx += x[m, 0]
+                    cy += x[m, 1]
+                    cz += x[m, 2]
+                    nx += 1
+        if nx == 0:
+            continue
+        centre[0] = cx / nx
+        centre[1] = cy / nx
+        centre[2] = cz / nx
+        # the body's extent around its reference centroid
+        rx = 0.0
+        ry = 0.0
+        rz = 0.0
+        for k in range(n):
+            rx += ref[k, 0]
+            ry += ref[k, 1]
+            rz += ref[k, 2]
+        ext2 = 0.0
+        for k in range(n):
+            d2 = (ref[k, 0] - rx / n) ** 2 + (ref[k, 1] - ry / n) ** 2 + (ref[k, 2] - rz / n) ** 2
+            if d2 > ext2:
+                ext2 = d2
+        radius = 2.0 * np.sqrt(ext2) + margin
+        lo, hi = _span(index, centre, radius)
+        n_free = 0
+        for i in range(lo, hi):
+            j = index.order[i]
+            if owner[j] >= 0 or nc >= MAX_CAND:
+                continue
+            d2 = 0.0
+            for a in range(3):
+                d = points[j, a] - centre[a]
+                d2 += d * d
+            if d2 <= radius * radius:
+                cand[nc] = j
+                nc += 1
+                n_free += 1
+        if not bad and n_free == 0:
+            pending[b] = 0
+            continue
+        for i in range(nc):
+            for a in range(3):
+                pts[i, a] = points[cand[i], a]
+        for i in range(n):
+            for j in range(n):
+                a0 = A0[b, i, j]
+                tol[i, j] = tol_mm + (3.0 * a0 if a0 == a0 else 0.0)
+        c_b, rms_b = _fit_template(
+            n, ref, tol, pts, nc, check_mm, params.repair_max_nodes, pos, used, choice, best, kab
+        )
+        if c_b < 3 or c_b < c_cur:
+            # no map of the body's shape holds as many points: the body deformed (or is not
+            # rigid); its current assignment is the best explanation, and becomes the reference
+            pending[b] = 0
+            ok[b] = True
+            if c_cur == n and not young:
+                _snapshot_body(b, bodies, points, cur, n)
+            continue
+        same = True  # the best map keeps every point the body holds now
+        moved = False  # the best map relabels a point the body holds now
+        for k in range(n):
+            p = cand[best[k]] if best[k] >= 0 else -1
+            if p != cur[k]:
+                same = False
+                if cur[k] >= 0:
+                    moved = True
+        if same:
+            pending[b] = 0
+            ok[b] = True
+            if c_cur == n and not young:
+                _snapshot_body(b, bodies, points, cur, n)
+            continue
+        if moved and not young:
+            # a body tracked for long keeps its points (and its reference: a better permutation
+            # exists, so the current shape does not replace it)
+            pending[b] = 0
+            ok[b] = True
+            continue
+        if c_b < 4:
+            pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
+            continue
+        if c_cur >= 3 and not moved:
+            pending[b] = 0  # single re-acquisitions of a seen body: the per-marker 3D check's
+            continue
+        if c_cur >= 3 and moved:
+            better = c_b > c_cur or rms_b < rms_cur / 3.0
+            if not better:
+                pending[b] = 0
+                ok[b] = True
+                continue
+            pending[b] += 1
+            if pending[b] < rep_frames:
+                continue
+        pending[b] = 0
+        # relabel: release the body's points, then assign the best map
+        for k in range(n):
+            m = members[b, k]
+            if cur[k] >= 0 and owner[cur[k]] == m:
+                owner[cur[k]] = NONE
+            assigned[m] = NONE
+            for a in range(3):
+                obs[m, a] = np.nan
+        for k in range(n):
+            if best[k] < 0:
+                continue
+            m = members[b, k]
+            p = cand[best[k]]
+            owner[p] = m
+            assigned[m] = p
+            for a in range(3):
+                obs[m, a] = points[p, a]
+        ok[b] = True
+        changes += 1
+    return changes

@@ -1,0 +1,254 @@
+"""3D template check, swap repair, joint re-acquisition and the guarded Eq. 1-2 window
+(``kernels/repair.py``, issue 10 class C)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import reference as ref_twin
+from labeling.scene import _rot_y, _rot_z, frame_points
+
+from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.kernels.params import kernel_params
+from labeler_service.labeling.kernels.repair import _fit_template, _repair, _shape_rms
+from labeler_service.labeling.kernels.spatial import _index
+from labeler_service.labeling.kernels.state import (
+    MAX_BODY,
+    NONE,
+    new_bodies,
+    new_kabsch_scratch,
+    new_scratch,
+    new_tracks,
+)
+from labeler_service.labeling.kernels.window import _window_update
+from labeler_service.labeling.labeler import Labeler
+
+# a chiral shape: B and C are mirror images across the plane of A, D, E; exchanging the labels
+# of B and C keeps every pair distance and mirrors the body
+MIRROR = np.array(
+    [[0.0, 0.0, 0.0], [40.0, 30.0, 10.0], [40.0, -30.0, 10.0], [80.0, 0.0, 35.0], [20.0, 0.0, 60.0]]
+)
+
+
+def _rotation(rng):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _work(nc):
+    return (
+        np.zeros(MAX_BODY, dtype=np.int64),
+        np.zeros(max(nc, 1), dtype=np.bool_),
+        np.zeros(MAX_BODY, dtype=np.int64),
+        np.zeros(MAX_BODY, dtype=np.int64),
+        new_kabsch_scratch(),
+    )
+
+
+@pytest.mark.parametrize("trial", range(6))
+def test_fit_template_equals_itertools_product(rng, trial):
+    n = int(rng.integers(3, 6))
+    shape = rng.uniform(-60, 60, (n, 3))
+    pose = _rotation(rng)
+    # the body's points (some missing, noisy), plus free points (some a mirrored copy)
+    seen = rng.random(n) > 0.25
+    pts = [shape[k] @ pose.T + 500 + rng.normal(0, 1.0, 3) for k in range(n) if seen[k]]
+    pts += [rng.uniform(-60, 60, 3) + 500 for _ in range(int(rng.integers(0, 3)))]
+    pts = np.array(rng.permutation(np.array(pts)))
+    tol = np.full((n, n), 8.0)
+    pos, used, choice, best, kab = _work(len(pts))
+    c, rms = _fit_template(n, shape, tol, pts, len(pts), 6.0, 100000, pos, used, choice, best, kab)
+    c2, rms2, choice2 = ref_twin.fit_template(shape, tol, pts, 6.0)
+    assert c == c2
+    if c2 >= 3:
+        assert rms == pytest.approx(rms2, abs=1e-6)
+        assert ref_twin.shape_rms(shape, pts, best[:n]) == (c, pytest.approx(rms, abs=1e-6))
+
+
+def test_shape_rms_sees_chirality_distances_do_not(rng):
+    pose = _rotation(rng)
+    pts = MIRROR @ pose.T + [100.0, 200.0, 900.0]
+    kab = new_kabsch_scratch()
+    right = np.arange(5)
+    mirrored = np.array([0, 2, 1, 3, 4])
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    assert np.allclose(d, d[np.ix_(mirrored, mirrored)])  # same distances
+    c, rms = _shape_rms(MIRROR, pts, right, 5, kab.src, kab.dst, kab.R, kab.t)
+    assert (c, rms) == (5, pytest.approx(0.0, abs=1e-6))
+    c, rms = _shape_rms(MIRROR, pts, mirrored, 5, kab.src, kab.dst, kab.R, kab.t)
+    assert c == 5 and rms > 10.0
+    assert ref_twin.shape_rms(MIRROR, pts, mirrored) == (5, pytest.approx(rms, abs=1e-6))
+
+
+def _one_body_state(config, points, assigned, ref_shape, age=100):
+    """Kernel state of one 5-marker body with reference ``ref_shape``; marker ``m`` holds point
+    ``assigned[m]``."""
+    m = len(ref_shape)
+    d0 = np.linalg.norm(ref_shape[:, None] - ref_shape[None], axis=2)
+    tracks = new_tracks(np.full(m, 1e6), np.ones(m, dtype=bool), [list(range(m))])
+    tracks.x[:, :3] = ref_shape + [100.0, 200.0, 900.0]
+    tracks.x[:, 3:] = 0.0
+    tracks.age[:] = age
+    bodies = new_bodies(m, [list(range(m))], [d0], [np.full((m, m), 1.0)], 20)
+    bodies.ref[0, :m] = ref_shape
+    bodies.ref_ok[0] = True
+    scratch = new_scratch(m, 1, 1, config.K, max(64, len(points)))
+    scratch.assigned[:] = assigned
+    scratch.owner[:] = NONE
+    for k, a in enumerate(assigned):
+        if a >= 0:
+            scratch.owner[a] = k
+            scratch.obs[k] = points[a]
+        else:
+            scratch.obs[k] = np.nan
+    return tracks, bodies, scratch
+
+
+def test_mirrored_assignment_is_repaired_after_repair_frames(rng):
+    config = LabelerConfig()
+    params = kernel_params(config)
+    pts = MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
+    tracks, bodies, scratch = _one_body_state(config, pts, swapped, MIRROR)
+    index = _index(pts)
+    # tracked for long, the body keeps its points (a deforming body against a stale reference
+    # must not be "repaired"), and the mirrored shape does not become its reference
+    for frame in range(config.repair_frames + 1):
+        assert (
+            _repair(pts, index, frame * config.verify_every, tracks, bodies, scratch, params) == 0
+        )
+    assert list(scratch.assigned[:5]) == list(swapped)
+    assert np.allclose(bodies.ref[0, :5], MIRROR)
+    tracks.age[1:3] = 3  # B and C were re-acquired 3 frames ago
+    for frame in range(config.repair_frames - 1):
+        assert _repair(pts, index, frame, tracks, bodies, scratch, params) == 0
+        assert list(scratch.assigned[:5]) == list(swapped)  # one check is not enough
+        assert not bodies.ok[0]  # the window does not learn it meanwhile
+    assert _repair(pts, index, 9, tracks, bodies, scratch, params) == 1
+    assert list(scratch.assigned[:5]) == [0, 1, 2, 3, 4]
+    assert list(scratch.owner[:5]) == [0, 1, 2, 3, 4]
+    assert np.allclose(scratch.obs[:5], pts)
+    assert bodies.ok[0]
+
+
+def test_body_that_only_deformed_keeps_its_points_and_follows_them():
+    config = LabelerConfig()
+    params = kernel_params(config)
+    pts = MIRROR.copy()
+    pts[3] += [0.0, 0.0, 25.0]  # one marker slid 25 mm: no permutation fits better
+    tracks, bodies, scratch = _one_body_state(config, pts, np.arange(5, dtype=np.int32), MIRROR)
+    tracks.x[:, :3] = pts
+    assert _repair(pts, _index(pts), 0, tracks, bodies, scratch, params) == 0
+    assert list(scratch.assigned[:5]) == [0, 1, 2, 3, 4]
+    assert bodies.ok[0]
+    assert np.allclose(bodies.ref[0, :5], pts)  # the new shape is the reference now
+
+
+def test_joint_reacquisition_assigns_returning_points_together(rng):
+    config = LabelerConfig()
+    params = kernel_params(config)
+    pose = _rotation(rng)
+    body = MIRROR @ pose.T + [100.0, 200.0, 900.0]
+    # four of the five markers are back, shuffled, with a distractor 70 mm from the fifth's
+    # place; the stale predictions sit 40 mm off (a triangle has no chirality: with three
+    # points of a mirror-symmetric body the map is ambiguous, with four it is not)
+    pts = np.array([body[3], body[1], body[4], body[2] + [0.0, 0.0, 70.0], body[0]])
+    tracks, bodies, scratch = _one_body_state(config, pts, np.full(5, NONE, np.int32), MIRROR)
+    tracks.x[:, :3] = body + [40.0, 0.0, 0.0]
+    assert _repair(pts, _index(pts), 0, tracks, bodies, scratch, params) == 1
+    assert list(scratch.assigned[:5]) == [4, 1, NONE, 0, 2]
+    assert scratch.owner[3] == NONE
+
+
+def test_guarded_window_does_not_learn_a_failed_body_and_drift_is_bounded():
+    m = 3
+    shape = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, 80.0, 0.0]])
+    d0 = np.linalg.norm(shape[:, None] - shape[None], axis=2)
+    bodies = new_bodies(m, [[0, 1, 2]], [d0], [np.full((3, 3), 1.0)], 4)
+    wrong = shape[[1, 0, 2]]  # a swapped assignment: link 0-2 is 94 mm instead of 80
+    bodies.ok[0] = False
+    for ptr in range(4):
+        _window_update(bodies, wrong, ptr, 1, True, 0.0)
+    assert np.all(bodies.cnt[0, :3, :3] == 0)
+    assert bodies.D[0, 0, 2] == pytest.approx(80.0)  # the trained value
+    bodies.ok[0] = True
+    for ptr in range(4):
+        _window_update(bodies, wrong, ptr, 1, True, 5.0)
+    assert bodies.D[0, 0, 2] == pytest.approx(85.0)  # learned, within 5 mm of the template
+    for ptr in range(4):
+        _window_update(bodies, wrong, ptr, 1, False, 0.0)
+    assert bodies.D[0, 0, 2] == pytest.approx(np.hypot(50.0, 80.0), rel=1e-6)  # unguarded
+
+
+def _cluster_scene(rng, frames, rate):
+    """One subject: a trunk of four markers and a forearm-like plate of five markers 25-60 mm
+    apart (near-symmetric), the plate swinging about an elbow."""
+    t = np.arange(frames) / rate
+    trunk = rng.uniform(-80, 80, (4, 3)) + [0, 0, 100]
+    plate = MIRROR * 0.8 + [0.0, 0.0, 250.0] + rng.normal(0, 2.0, (5, 3))
+    centre = np.stack([80 * np.sin(0.5 * t), 60 * np.cos(0.4 * t), 1000 + 0 * t], axis=1)
+    r_a = _rot_z(0.5 * np.sin(2 * np.pi * 0.2 * t))
+    r_b = r_a @ _rot_y(0.6 + 0.5 * np.sin(2 * np.pi * 0.35 * t))
+    pa = centre[:, None] + np.einsum("fij,mj->fmi", r_a, trunk)
+    pb = centre[:, None] + np.einsum("fij,mj->fmi", r_b, plate)
+    pos = np.concatenate([pa, pb], axis=1).astype(np.float32)
+    pos += rng.normal(0, 0.3, pos.shape).astype(np.float32)
+    names = tuple([f"S:t{i}" for i in range(4)] + [f"S:p{i}" for i in range(5)])
+    return pos, names
+
+
+def test_occluded_cluster_returning_one_marker_at_a_time_is_labeled_correctly(rng):
+    rate, frames, init = 100.0, 400, 40
+    pos, names = _cluster_scene(rng, frames, rate)
+    plate = list(range(4, 9))
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    hidden[100:130][:, plate] = True
+    for k, m in enumerate(plate):  # back one at a time, two frames apart
+        hidden[130 : 130 + 2 * k, m] = True
+    lab = Labeler(names, rate)
+    last_back = 130 + 2 * (len(plate) - 1)
+    wrong_after = 0
+    for f in range(frames):
+        pts, truth = frame_points(rng, pos[f], hidden[f])
+        out = lab.process(pts, f / rate, truth if f < init else None)
+        if f >= last_back + 4:
+            wrong_after += int(np.count_nonzero(out.point_labels != truth))
+    assert wrong_after == 0
+
+
+def test_gone_matches_twin(rng):
+    from labeler_service.labeling.kernels.step import _gone
+
+    groups = [[0, 1, 2], [3, 4], [5, 6, 7, 8]]
+    active = rng.random(9) > 0.2
+    tracks = new_tracks(np.full(9, 1e6), active, groups)
+    for _ in range(5):
+        tracks.lost[:] = rng.integers(0, 120, 9)
+        tracks.lost[5:] = rng.integers(55, 70, 4)
+        _gone(tracks, 60)
+        assert list(tracks.gone) == list(ref_twin.gone(tracks.lost, active, groups, 60))
+
+
+def test_a_subject_who_left_keeps_no_label_on_the_others(rng):
+    from labeling.scene import articulated
+
+    pos, names = articulated(rng, subjects=3, frames=500)
+    left = [i for i, n in enumerate(names) if n.startswith("P0:")]
+    hidden = np.zeros(pos.shape[:2], dtype=bool)
+    hidden[150:, left] = True  # P0 walks out at frame 150
+    lab = Labeler(names, 120.0)
+    taken = 0
+    for f in range(pos.shape[0]):
+        pts, truth = frame_points(rng, pos[f], hidden[f])
+        out = lab.process(pts, f / 120.0, truth if f < 40 else None)
+        if f >= 150 + LabelerConfig().absent_frames:
+            taken += int(np.isin(out.point_labels, left).sum())
+    assert taken == 0
