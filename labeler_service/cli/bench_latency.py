@@ -10,7 +10,16 @@ one JSON object on the last line with ``--json``.
 ``--start model`` (default) starts the stream from a subject model trained offline on the
 scene's labeled init window (the production set-up: no training stall); ``--start init`` trains
 in the service from the labeled init frames in the stream (one-time stall, reported separately
-as ``training_stall_frames``).
+as ``training_stall_frames``); ``--start boot`` simulates ``--train-seconds`` more of the scene,
+trains the subject model on them (``StructureTrainer``, as ``train structure``: other frames
+than the ones streamed), and streams with **no labels at all**: the service boots every
+subject off the event loop. Boot adds to the JSON: ``boot_s`` per subject and ``boot_s_max``
+(the ``evaluate`` definition: from the subject's first frame with >= 60 % of its markers
+visible until its visible markers are >= 95 % correct for 10 frames in a row),
+``accuracy_after_boot``, ``boot_done_s`` (the last subject's boot), ``labeling_ms_p99_9_boot``
+and ``labeling_ms_max_boot`` (labeling time of the frames up to ``boot_done_s``, boot installs
+included), ``boot_attempts``/``boot_failed`` and the mean attempt time from the service's
+metrics.
 """
 
 from __future__ import annotations
@@ -22,6 +31,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from labeler_service.errors import MocapError
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subjects", type=int, default=10, help="performers (1-10)")
@@ -32,8 +43,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "local mosquitto is started)")  # fmt: skip
     p.add_argument("--scenario", default="hug", help="simulated scenario (walk, hug, pile)")
     p.add_argument("--sim-seconds", type=float, default=5.0, help="simulated scene length (s)")
-    p.add_argument("--start", choices=["model", "init"], default="model",
-                   help="stream start-up: offline model or in-stream training window")  # fmt: skip
+    p.add_argument("--start", choices=["model", "init", "boot"], default="model",
+                   help="stream start-up: offline model (+ a few labeled frames), in-stream "
+                        "training window, or boot from a model with no labels")  # fmt: skip
+    p.add_argument(
+        "--train-seconds",
+        type=float,
+        default=3.0,
+        help="--start boot: simulated seconds the model is trained on (not streamed)",
+    )
     p.add_argument("--init-frames", type=int, default=None,
                    help="labeled frames first (default: 5 with model, 50 with init)")  # fmt: skip
     p.add_argument("--labeler", choices=["online", "baseline"], default="online")
@@ -54,15 +72,24 @@ async def bench(args, workdir: Path) -> dict:
     from labeler_service.tools.replay import loops_to_cover
     from labeler_service.tools.subscribe import percentiles
 
-    init = args.init_frames if args.init_frames is not None else (
-        5 if args.start == "model" else 50)  # fmt: skip
-    frames = simulated_frames(args.subjects, min(args.sim_seconds, args.seconds), args.rate,
-                              args.seed, args.scenario)  # fmt: skip
-    n_total = int(round(args.seconds * frames.rate))
+    default_init = {"model": 5, "init": 50, "boot": 0}[args.start]
+    init = args.init_frames if args.init_frames is not None else default_init
     stream = "bench"
+    if args.start == "boot":
+        if args.labeler != "online":
+            raise MocapError("--start boot needs --labeler online (only it boots from a model)")
+        if init:
+            raise MocapError("--start boot sends no labels: leave --init-frames at 0")
+        frames, model_path = boot_scene(args, workdir / "model.json")
+    else:
+        frames = simulated_frames(args.subjects, min(args.sim_seconds, args.seconds), args.rate,
+                                  args.seed, args.scenario)  # fmt: skip
+    n_total = int(round(args.seconds * frames.rate))
     stream_cfg: dict = {"name": stream, "rate": frames.rate}
     if args.start == "model":
         stream_cfg["model"] = str(train_model_file(frames, 50, workdir / "model.json"))
+    elif args.start == "boot":
+        stream_cfg["model"] = str(model_path)
     settings = service_settings(args.transport, stream_cfg, 5.0, labeler=args.labeler)
     res = await run_pipeline(frames, settings, workdir, transport=args.transport, stream=stream,
                              init_frames=init, speed=1.0,
@@ -90,7 +117,7 @@ async def bench(args, workdir: Path) -> dict:
     leg_q = {k: percentiles(v[steady]) for k, v in legs.items()}
     proc_q = percentiles(proc_ms)
     stall = int(np.count_nonzero(lat[seqs >= first_unlabeled] > 1000.0 / frames.rate))
-    return {
+    out = {
         "transport": args.transport,
         "labeler": args.labeler,
         "start": args.start,
@@ -118,6 +145,103 @@ async def bench(args, workdir: Path) -> dict:
         **{f"{k}_ms_p99": q["p99"] for k, q in leg_q.items()},
         "service_exit_code": res.service_returncode,
     }
+    if args.start == "boot":
+        out.update(boot_report(frames, received, loops_to_cover(frames.n_frames, n_total),
+                               n_total, res.service))  # fmt: skip
+    return out
+
+
+def boot_scene(args, path: Path):
+    """``--start boot``: the streamed frames (no labels; shuffled) and a model trained on
+    ``--train-seconds`` simulated before them (same performers, other frames)."""
+    from labeler_service.labeling.templates import save_model
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.scenes.simulate import simulate_scene
+    from offline.structure import StructureTrainer
+
+    streamed = min(args.sim_seconds, args.seconds)
+    cap = simulate_scene(performers=args.subjects, seconds=args.train_seconds + streamed,
+                         scenario=args.scenario, seed=args.seed, rate=args.rate)  # fmt: skip
+    split = int(round(args.train_seconds * cap.rate))
+    model = StructureTrainer().fit([cap.frames(0, split)]).model_
+    save_model(model, path)
+    frames = corrupt(cap.frames(split, cap.n_frames), CorruptionSpec(protect_frames=0,
+                                                                      seed=args.seed))  # fmt: skip
+    return frames, path
+
+
+def looped(frames, order):
+    """``frames`` in replay order (``seq`` k is frame ``order[k]``), times continuing."""
+    import dataclasses
+
+    import numpy as np
+
+    idx = np.asarray(order, dtype=np.int64)
+    return dataclasses.replace(
+        frames,
+        times=np.arange(idx.size, dtype=np.float64) / frames.rate,
+        points=[frames.points[i] for i in idx],
+        truth=[frames.truth[i] for i in idx],
+        positions=frames.positions[idx],
+        removed=frames.removed[idx],
+        occlusions=[],
+        departures=[],
+    )
+
+
+def boot_report(frames, received, loops: int, n_total: int, service: dict) -> dict:
+    """The boot fields of the JSON (module docstring), from the received frames (scored as
+    ``evaluate`` scores) and the service's metrics."""
+    import numpy as np
+
+    from labeler_service.cli.demo import score
+    from labeler_service.tools.replay import frame_order
+    from labeler_service.tools.subscribe import percentiles
+
+    seq_frames = looped(frames, frame_order(frames.n_frames, loops)[:n_total])
+    s = score(seq_frames, received, 0, rate=frames.rate).summary()
+    boot_s = s["boot_s"]
+    done = s["boot_s_max"]
+    if done is None:  # a subject never booted: the whole run counts as "during boot"
+        done_seq = n_total
+    else:  # the last subject's boot: its first present frame + its boot delay
+        done_seq = int(np.ceil(max(_first_present(seq_frames, name) + v * frames.rate
+                                   for name, v in boot_s.items())))  # fmt: skip
+    proc = np.array([r.msg.proc_us / 1e3 for r in received if r.msg.seq <= done_seq])
+    q = percentiles(proc)
+    attempts = sum(v for k, v in service.items() if k.startswith("mocap_boot_attempts_total"))
+    failed = sum(v for k, v in service.items() if k.startswith("mocap_boot_failed_total"))
+    b_sum = sum(v for k, v in service.items() if k.startswith("mocap_boot_seconds_sum"))
+    b_n = sum(v for k, v in service.items() if k.startswith("mocap_boot_seconds_count"))
+    return {
+        "boot_s": boot_s,
+        "boot_s_max": done,
+        "boot_done_s": done_seq / frames.rate,
+        "subjects_booted": sum(v is not None for v in boot_s.values()),
+        "accuracy_after_boot": s["accuracy_after_boot"],
+        "accuracy": s["accuracy"],
+        "ghost_labeled_rate": s["ghost_labeled_rate"],
+        "labeling_ms_p99_9_boot": q["p99.9"],
+        "labeling_ms_max_boot": float(proc.max()) if proc.size else float("nan"),
+        "frame_period_ms": 1000.0 / frames.rate,
+        "boot_attempts": int(attempts),
+        "boot_failed": int(failed),
+        "boot_attempt_s_mean": b_sum / b_n if b_n else None,
+    }
+
+
+def _first_present(frames, subject: str) -> int:
+    """First frame with >= 60 % of ``subject``'s markers visible (the scorer's *present*)."""
+    import numpy as np
+
+    from labeler_service.evaluation.scoring import PRESENT
+
+    cols = np.array([i for i, n in enumerate(frames.marker_names)
+                     if n.split(":", 1)[0] == subject])  # fmt: skip
+    for f, truth in enumerate(frames.truth):
+        if np.isin(truth, cols).sum() >= PRESENT * cols.size:
+            return f
+    return len(frames.truth)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -57,13 +57,21 @@ flight: skip step 1 while one runs. An attempt abandoned over its budget is repo
 one). The service's background mechanism for heavy work (the
 same one that trains in-stream) is meant to drive exactly these calls; with ``inline_boot=True``
 (the default) :meth:`~BootingLabeler.process` does all three in the frame that is due.
+
+Step 3's extension (free points joined to active subjects, every ``extend_every_s``; ~20 ms
+for 3 performers, more for 10, even when it finds nothing, e.g. with ghosts present) is the
+other heavy step on the frame path. With ``inline_extend=False`` it moves into the same three
+calls: :meth:`~BootingLabeler.needs_boot` is also true when an extension is due, the snapshot
+then carries the active subjects' labels, :meth:`~BootingLabeler.boot_step` runs the extension
+(its result stored in the snapshot's ``extended``) besides or instead of the boot, and
+:meth:`~BootingLabeler.install_boot` installs both. The service uses both flags off.
 """
 
 from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -81,6 +89,9 @@ from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
+
+#: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
+EXTEND_BACKOFF = 4
 
 
 @dataclass
@@ -102,6 +113,12 @@ class BootSnapshot:
     history: np.ndarray  # (N, W, 3) NaN where untracked
     free: np.ndarray  # (N,) bool
     subjects: list[int]
+    #: ``inline_extend=False``: the active subjects' labels of the last frame (global marker
+    #: index or -1) when an extension is due, else None; :meth:`BootingLabeler.boot_step` puts
+    #: the extended labels in ``extended``
+    labels: np.ndarray | None = None
+    active: list[int] = field(default_factory=list)
+    extended: np.ndarray | None = None
 
 
 class BootingLabeler:
@@ -114,6 +131,7 @@ class BootingLabeler:
         config: LabelerConfig | None = None,
         boot: BootConfig | None = None,
         inline_boot: bool = True,
+        inline_extend: bool = True,
     ) -> None:
         if not (np.isfinite(rate) and rate > 0):
             raise LabelerError(f"invalid frame rate {rate}")
@@ -123,6 +141,8 @@ class BootingLabeler:
         self.boot_config = boot or BootConfig()
         #: False: :meth:`process` never boots; the owner runs the attempts (see the module doc)
         self.inline_boot = bool(inline_boot)
+        #: False: :meth:`process` never extends; the extension rides on the boot calls
+        self.inline_extend = bool(inline_extend)
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)
@@ -143,6 +163,10 @@ class BootingLabeler:
         self._since_attempt = self._boot_every
         self._extend_every = max(1, round(c.extend_every_s * self.rate))
         self._since_extend = 0
+        #: off the frame path (``inline_extend=False``): the wait to the next extension doubles
+        #: after one that found nothing, up to ``EXTEND_BACKOFF`` periods (a background job
+        #: every ``extend_every_s`` costs the live stream GIL time even when it finds nothing)
+        self._extend_wait = self._extend_every
         self._inner: Labeler | None = None
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._inner_map = np.zeros(0, dtype=np.int64)
@@ -209,7 +233,8 @@ class BootingLabeler:
         self._since_attempt += 1
         self._since_extend += 1
         if (
-            self._active
+            self.inline_extend
+            and self._active
             and len(self._window) == self._window.maxlen
             and self._since_extend >= self._extend_every
             and np.any(glab < 0)
@@ -351,32 +376,61 @@ class BootingLabeler:
         """True when a boot attempt is due: the window is full, some model subject is not
         active and the (backed-off) wait since the last attempt has passed. With
         ``inline_boot=False`` the owner checks this after each frame and runs the attempt
-        itself (:meth:`boot_snapshot`, :meth:`boot_step`, :meth:`install_boot`)."""
+        itself (:meth:`boot_snapshot`, :meth:`boot_step`, :meth:`install_boot`). With
+        ``inline_extend=False`` also True when an extension of the active subjects is due."""
+        return self._boot_due() or self._extend_due()
+
+    def _boot_due(self) -> bool:
         return (
             len(self._window) == self._window.maxlen
             and len(self._active) < len(self.model.subjects)
             and self._since_attempt >= self._boot_wait
         )
 
+    def _extend_due(self) -> bool:
+        return (
+            not self.inline_extend
+            and bool(self._active)
+            and len(self._window) == self._window.maxlen
+            and self._since_extend >= self._extend_wait
+            and bool(np.any(self._window[-1].labels < 0))
+        )
+
     def boot_snapshot(self) -> BootSnapshot:
         """What a boot attempt needs, copied from the window (cheap: a few ms at most); call it
-        in the thread that calls :meth:`process`. Restarts the wait to the next attempt."""
-        self._since_attempt = 0
+        in the thread that calls :meth:`process`. Restarts the wait to the next attempt (and,
+        with ``inline_extend=False``, to the next extension when one is due)."""
+        extend = self._extend_due()
+        boot = self._boot_due() or not extend
         last = self._window[-1]
         frames = [(f.points, f.ids) for f in self._window]
-        return BootSnapshot(
+        snap = BootSnapshot(
             t=last.t,
             points=last.points.copy(),
             ids=last.ids.copy(),
             history=track_history(frames, last.ids),
             free=last.labels < 0,
-            subjects=[s for s in range(len(self.model.subjects)) if s not in self._active],
+            subjects=[],
         )
+        if boot:
+            self._since_attempt = 0
+            snap.subjects = [s for s in range(len(self.model.subjects)) if s not in self._active]
+        if extend:
+            self._since_extend = 0
+            snap.labels = last.labels.copy()
+            snap.active = sorted(self._active)
+        return snap
 
     def boot_step(self, snapshot: BootSnapshot) -> BootResult:
         """The heavy part of an attempt (0.1-1 s with several performers): reads only the
         snapshot and the prepared templates, changes no state of this labeler, so it may run in
         another thread while :meth:`process` goes on."""
+        if snapshot.labels is not None:
+            snapshot.extended = self._booter.extend(
+                snapshot.points, snapshot.history, snapshot.labels, snapshot.active
+            )
+        if not snapshot.subjects:  # an extension only
+            return BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})
         tb = time.perf_counter()
         res = self._booter.run(
             snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
@@ -394,10 +448,19 @@ class BootingLabeler:
         fewer than three points is not installed. ``result=None`` (the attempt was abandoned,
         e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles."""
         if result is None:
-            self._boot_wait = min(2 * self._boot_wait, self._boot_every_max)
+            if snapshot.subjects:
+                self._boot_wait = min(2 * self._boot_wait, self._boot_every_max)
             return np.zeros(0, dtype=np.int64)
         last = self._window[-1]
         lab = result.labels
+        ext = None
+        if snapshot.labels is not None and snapshot.extended is not None:
+            # markers of active subjects the extension found (disjoint from the boot's)
+            add = (snapshot.labels < 0) & (snapshot.extended >= 0)
+            add &= np.isin(self._subject_of[np.maximum(snapshot.extended, 0)], list(self._active))
+            if add.any():
+                ext = np.where(add, snapshot.extended, -1)
+                lab = np.where(lab >= 0, lab, ext)
         have = lab >= 0
         order = np.argsort(snapshot.ids[have])
         tid, tl = snapshot.ids[have][order], lab[have][order]
@@ -416,10 +479,26 @@ class BootingLabeler:
                 continue
             keep.append(s)
         booted = np.array(keep, dtype=np.int64)
-        self._boot_wait = (
-            self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
-        )
-        if not booted.size:
+        if snapshot.subjects:
+            self._boot_wait = (
+                self._boot_every if booted.size else min(2 * self._boot_wait, self._boot_every_max)
+            )
+        extended = False
+        if snapshot.labels is not None:  # an extension: back off while it finds nothing
+            self._extend_wait = (
+                self._extend_every
+                if ext is not None
+                else min(2 * self._extend_wait, EXTEND_BACKOFF * self._extend_every)
+            )
+        if ext is not None:  # extension labels that still follow a track to this frame
+            ok = np.isin(self._subject_of[np.maximum(now, 0)], list(self._active) + keep)
+            now[~ok] = -1  # a subject dropped since the snapshot
+            extended = bool(np.any(now >= 0)) and bool(
+                np.any(
+                    np.isin(self._subject_of[np.maximum(now, 0)], list(self._active)) & (now >= 0)
+                )
+            )
+        if not booted.size and not extended:
             return booted
         frames = [(f.points, f.ids) for f in self._window]
         self._spread(frames, last.ids, now)

@@ -141,6 +141,22 @@ class ServiceMetrics:
             "mocap_streams_expired", "Unconfigured streams removed after stream_idle_s idle",
             registry=r,
         )  # fmt: skip
+        self.boot_attempts = Counter(
+            "mocap_boot_attempts", "Boot attempts started (off the event loop)", ["stream"],
+            registry=r,
+        )  # fmt: skip
+        self.boot_failures = Counter(
+            "mocap_boot_failed", "Boot attempts abandoned over boot_budget_s or failed",
+            ["stream"], registry=r,
+        )  # fmt: skip
+        self.boot_duration = Histogram(
+            "mocap_boot_seconds", "Wall time of finished boot attempts", ["stream"],
+            buckets=(0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0), registry=r,
+        )  # fmt: skip
+        self.subjects_booted = Gauge(
+            "mocap_subjects_booted", "Subjects of the model labeled now (booted)", ["stream"],
+            registry=r,
+        )  # fmt: skip
         self._recent_label: dict[str, _Recent] = {}
         self._recent_latency: dict[str, _Recent] = {}
         self._out: dict[str, _StreamOut] = {}
@@ -164,6 +180,18 @@ class ServiceMetrics:
         self._child(self.labeled_fraction, stream).set(labeled)
         self._child(self.recovered_fraction, stream).set(recovered)
 
+    def boot_attempt(self, stream: str) -> None:
+        self._child(self.boot_attempts, stream).inc()
+
+    def boot_failed(self, stream: str) -> None:
+        self._child(self.boot_failures, stream).inc()
+
+    def boot_seconds(self, stream: str, seconds: float) -> None:
+        self._child(self.boot_duration, stream).observe(seconds)
+
+    def subjects(self, stream: str, n: int) -> None:
+        self._child(self.subjects_booted, stream).set(n)
+
     def forget(self, stream: str) -> None:
         """Removes every series of ``stream`` (an expired unconfigured stream): the label
         cardinality stays bounded by the stream slots. Its drops are folded into stream ""."""
@@ -172,6 +200,7 @@ class ServiceMetrics:
         for metric in (
             self.frames_in, self.frames_out, self.seq_gap, self.labeling, self.latency,
             self.unlabeled, self.queue_depth, self.labeled_fraction, self.recovered_fraction,
+            self.boot_attempts, self.boot_failures, self.boot_duration, self.subjects_booted,
         ):  # fmt: skip
             with contextlib.suppress(KeyError):
                 metric.remove(stream)
@@ -277,6 +306,9 @@ class ServiceMetrics:
                 "labeling_ms_p99": lab[1] * 1e3,
                 "latency_ms_p50": lat[0] * 1e3,
                 "latency_ms_p99": lat[1] * 1e3,
+                "boot_attempts": self.value("mocap_boot_attempts_total", stream=s),
+                "boot_failed": self.value("mocap_boot_failed_total", stream=s),
+                "subjects_booted": self.value("mocap_subjects_booted", stream=s),
             }
         return out
 

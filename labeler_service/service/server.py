@@ -18,6 +18,14 @@ per stream (the first unlabeled frame, which trains the labeler), which runs off
 it: status ``training_failed``) so other streams keep flowing. ``labeling_thread = true``
 labels every frame in one thread per stream instead (the numba kernels release the GIL).
 
+Boot (a configured stream with a ``model``; ``boot = true``): after each frame, when the
+stream's booting labeler wants an attempt and none is in flight, its snapshot is taken in the
+frame thread and the attempt runs through the same ``Background`` (budget ``boot_budget_s``;
+over it: ``mocap_boot_failed_total``, the labeler backs off); the result is installed before
+the next frame is labeled. Frames keep flowing meanwhile, their points unlabeled until a
+subject boots (``mocap_boot_attempts_total``, ``mocap_boot_seconds``,
+``mocap_subjects_booted``).
+
 Bounded state: streams not in the settings take one of ``max_streams`` slots only with a
 labeled frame (or when their trained labeler is in the cache), and are removed after
 ``stream_idle_s`` without frames (task ``expire``), their labeler kept in a small LRU cache
@@ -199,6 +207,8 @@ class Server:
                 state = self._new_stream(s.name, s)
                 if s.model is not None:
                     await asyncio.to_thread(state.start_from_model)
+                    if self.settings.warmup and state.booting is not None:
+                        await asyncio.to_thread(state.booting.warmup)  # the boot's kernels too
                     await self._publish_model(state)
             for t in self.transports:
                 self._spawn(self._ingest(t), f"ingest-{t.name}")
@@ -254,6 +264,8 @@ class Server:
         self._queues[name] = DropOldestQueue(self.settings.queue_size)
         if self.settings.labeling_thread:
             self._executors[name] = ThreadPoolExecutor(1, thread_name_prefix=f"label-{name}")
+        if s is not None and s.model is not None and self.settings.boot:
+            state.on_lost = self._lost_reboots
         self._workers[name] = self._spawn(self._worker(state), f"stream-{name}")
         self.metrics.streams_active.set(len(self.streams))
         return state
@@ -444,6 +456,10 @@ class Server:
                 continue
             if out is None:
                 continue
+            if state.just_booted:
+                self._booted(state)
+            elif state.booting is not None:
+                self.metrics.subjects(state.name, len(state.subjects_booted))
             if self._published_model.get(state.name) != state.model_id:
                 await self._publish_model(state)
             sent_ok = await self._send_all(state.name, "labeled", out.payload)
@@ -458,6 +474,75 @@ class Server:
                 if self._rlog.warning(f"health-{state.name}", "stream %s: health update failed",
                                       state.name):  # fmt: skip
                     log.exception("health error")
+            if state.boot_due():
+                await self._start_boot(state, executor)
+
+    # ------------------------------------------------------------------ boot
+    async def _start_boot(self, state: StreamState, executor: ThreadPoolExecutor | None) -> None:
+        """Takes a due attempt's snapshot in the frame thread and runs the attempt off the loop
+        (task ``boot-<stream>``); the next frame installs its result."""
+        try:
+            if executor is not None:
+                loop = asyncio.get_running_loop()
+                req = await loop.run_in_executor(executor, state.boot_request)
+            else:
+                req = state.boot_request()
+        except Exception:
+            state.boot_inflight = False
+            self.metrics.boot_failed(state.name)
+            if self._rlog.warning(f"boot-{state.name}", "stream %s: boot snapshot failed",
+                                  state.name):  # fmt: skip
+                log.exception("boot snapshot error")
+            return
+        if req is not None:
+            self._spawn(self._boot(state, req), f"boot-{state.name}")
+
+    async def _boot(self, state: StreamState, req) -> None:
+        """One boot attempt (or extension of the booted subjects to markers not seen yet)
+        through :class:`Background` (budget ``boot_budget_s``)."""
+        if req.snapshot.subjects:  # an extension alone is not a boot attempt
+            self.metrics.boot_attempt(state.name)
+        try:
+            outcome = await self.background.run(
+                state.boot_job, req, budget_s=self.settings.boot_budget_s,
+                name=f"boot-{state.name}",
+            )  # fmt: skip
+        except BudgetExceeded as exc:
+            self.metrics.boot_failed(state.name)
+            self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt abandoned: %s",
+                               state.name, exc)  # fmt: skip
+            state.boot_done(req, None)
+            return
+        except asyncio.CancelledError:
+            state.boot_done(req, None)
+            raise
+        except Exception:
+            self.metrics.boot_failed(state.name)
+            if self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt failed",
+                                  state.name):  # fmt: skip
+                log.exception("boot error")
+            state.boot_done(req, None)
+            return
+        if req.snapshot.subjects:
+            self.metrics.boot_seconds(state.name, outcome.seconds)
+        state.boot_done(req, outcome)
+
+    @staticmethod
+    def _lost_reboots(state: StreamState) -> None:
+        """``on_lost`` of a booting model stream: its labeler has dropped the subjects that
+        vanished (their labels go to nobody) and boots each again as soon as it is seen."""
+        log.warning("stream %s: lost; re-booting from the model (still labeled: %s)",
+                    state.name, ", ".join(state.subjects_booted) or "none")  # fmt: skip
+
+    def _booted(self, state: StreamState) -> None:
+        """Logs and counts subjects the last frame installed from a boot."""
+        active = state.subjects_booted
+        self.metrics.subjects(state.name, len(active))
+        rec = state.boots[-1] if state.boots else None
+        log.info("stream %s: booted %s (attempt %.3f s in thread %s); labeling %d of %d "
+                 "subjects", state.name, ", ".join(state.just_booted),
+                 rec.seconds if rec else float("nan"), rec.thread if rec else "?", len(active),
+                 len(state.booting.model.subjects) if state.booting else 0)  # fmt: skip
 
     async def _train(self, state: StreamState, msg: FrameMsg, recv_ns: int):
         """Trains the stream's labeler off the loop (budget ``train_budget_s``); a failure

@@ -31,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, f
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from labeler_service.errors import ConfigError
+from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.service.protocol import STREAM_NAME
 
@@ -177,6 +178,17 @@ class ServiceSettings(BaseSettings):
     #: Seconds in-stream training may take (off the event loop); over it the stream reports
     #: ``training_failed`` and waits for new labeled init frames.
     train_budget_s: float = Field(60.0, gt=0)
+    #: A stream with a ``model`` boots its subjects from anonymous points (no labeled frame
+    #: needed; docs/service.md "Starting from a model"). False: its first frame must carry
+    #: labels (the initial assignment), as before.
+    boot: bool = True
+    #: Seconds one boot attempt may take off the event loop (the background mechanism that
+    #: trains in-stream); over it the attempt is abandoned (``boot_failed``), the next one
+    #: waits longer (the boot's back-off). 10 performers at 360 Hz take ~1.4 s alone and
+    #: over 2 s beside the live stream (the boot shares the GIL with it), hence 10 s.
+    boot_budget_s: float = Field(10.0, gt=0)
+    #: The boot's tunables (``labeler_service.labeling.boot_config.BootConfig``).
+    boot_config: BootConfig = Field(default_factory=BootConfig)
     #: Restart rule (docs/service.md): a seq step beyond this, forward or back, is a jump.
     max_seq_step: int = Field(100, ge=1)
     #: A t step of 0, negative or beyond this many seconds is a jump.

@@ -23,6 +23,18 @@ init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``
 off the event loop through :class:`~labeler_service.service.background.Background`
 (:meth:`StreamState.train` is the job).
 
+**Boot** (a stream with a ``model`` and ``boot = true``, the default): the labeler is a
+:class:`~labeler_service.labeling.booting.BootingLabeler` built with ``inline_boot=False``, so
+labeling a frame never boots. After a frame, :meth:`StreamState.boot_request` (frame thread)
+takes a snapshot when an attempt is due and none is in flight; the server runs
+:meth:`StreamState.boot_job` through the same ``Background`` as training (budget
+``boot_budget_s``) and hands the result back with :meth:`StreamState.boot_done`; the next
+:meth:`StreamState.process` installs it before labeling (its cost counts in that frame's
+labeling time). Until a subject boots its points go out unlabeled; frames keep flowing. A frame
+that carries labels is used as the answer for its subjects (no boot needed for them), so a
+client that sends labeled init frames still starts as before. A performer who leaves is dropped
+by the labeler and booted again when back (the ``lost`` status needs nothing more).
+
 Health: the labeled fraction (observed markers / model markers) and the recovered fraction are
 averaged over ``health_window_s``; below ``degraded_below`` / ``lost_below`` the stream's status
 becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook for
@@ -32,11 +44,15 @@ a recovery that needs more than the labeler's own re-acquisition (boot from a su
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import logging
 import re
+import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -47,6 +63,10 @@ from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
+
+if TYPE_CHECKING:
+    from labeler_service.labeling.boot import BootResult
+    from labeler_service.labeling.booting import BootingLabeler, BootSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -95,9 +115,10 @@ class InitWindow:
 def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[int, ...], ...]:
     """The online labeler's rigid bodies as marker indices into ``names`` (the model message's
     optional ``bodies``); ``()`` for the baseline or before the labeler has its templates."""
+    from labeler_service.labeling.booting import BootingLabeler
     from labeler_service.labeling.labeler import Labeler
 
-    if not isinstance(labeler, Labeler) or labeler.model is None:
+    if not isinstance(labeler, Labeler | BootingLabeler) or labeler.model is None:
         return ()
     index = {n: i for i, n in enumerate(names)}
     return tuple(
@@ -105,6 +126,38 @@ def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[i
         for subj in labeler.model.subjects
         for body in subj.bodies
     )
+
+
+@dataclass(slots=True)
+class BootRequest:
+    """One boot attempt in flight: the labeler it belongs to and its snapshot."""
+
+    labeler: BootingLabeler
+    snapshot: BootSnapshot
+
+
+@dataclass(slots=True)
+class BootOutcome:
+    """What a boot job returns: the boot's result, its wall time and the thread it ran in."""
+
+    result: BootResult
+    seconds: float
+    thread: str
+
+
+@dataclass(slots=True)
+class BootRecord:
+    """One finished attempt (:attr:`StreamState.boots`), recorded when installed: ``booted``
+    subjects (empty: nothing found), ``failed`` (abandoned over budget or raised), the job's
+    thread and wall time."""
+
+    boot: bool  # an attempt to boot subjects (False: an extension of booted ones only)
+    t: float  # the snapshot's (labeler) time
+    installed_t: float  # the (labeler) time of the frame that installed it
+    booted: tuple[str, ...]
+    failed: bool
+    thread: str
+    seconds: float
 
 
 @dataclass(slots=True)
@@ -165,6 +218,12 @@ class StreamState:
         #: Called (by the server) when the status turns ``lost``: the hook for boot from a
         #: subject model. ``None``: the labeler's own re-acquisition is the only recovery.
         self.on_lost: Callable[[StreamState], None] | None = None
+        # boot (model streams, see the module docstring)
+        self.boot_inflight = False  # a boot job runs or waits to be installed
+        self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
+        #: finished attempts, newest last (bounded)
+        self.boots: deque[BootRecord] = deque(maxlen=256)
+        self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
 
     @property
     def last_seq(self) -> int | None:
@@ -200,12 +259,20 @@ class StreamState:
             from labeler_service.labeling.templates import load_model
 
             rate = load_model(path).rate
-        self._install(
-            self._factory(
-                self.settings.labeler, rate=rate, config=self.settings.labeler_config, model=path
-            ),
-            rate,
-        )
+        boot = self.settings.boot and self.settings.labeler == "online"
+        cfg = self.settings.labeler_config
+        if _accepts_boot(self._factory):
+            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path,
+                                    boot=self.settings.boot_config if boot else False)  # fmt: skip
+        else:  # a test's factory may predate ``boot``
+            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path)
+        if boot and hasattr(labeler, "inline_boot"):
+            # the server runs the boot and the extension to new markers off the event loop
+            labeler.inline_boot = False  # type: ignore[attr-defined]
+            labeler.inline_extend = False  # type: ignore[attr-defined]
+        self.boot_inflight = False
+        self._boot_result = None
+        self._install(labeler, rate)
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
@@ -394,10 +461,84 @@ class StreamState:
                 self._t_offset = self._t_last + 1.0 / self.rate - f.t
         t = f.t + self._t_offset
         t0 = time.perf_counter_ns()
+        self.just_booted = ()
+        if self._boot_result is not None:
+            self._install_boot(t)
         out = self.labeler.process(f.points, t, self._label_indices(f))
         label_ns = time.perf_counter_ns() - t0
         self._t_last = t
         return self.encode(f, out, recv_ns, label_ns)
+
+    # --------------------------------------------------------------------- boot
+    @property
+    def booting(self) -> BootingLabeler | None:
+        """The labeler when it boots off the frame path (model stream, ``boot = true``)."""
+        lab = self.labeler
+        if getattr(lab, "inline_boot", True) is False:
+            return lab  # type: ignore[return-value]
+        return None
+
+    @property
+    def subjects_booted(self) -> tuple[str, ...]:
+        """Subjects the booting labeler labels now (booted or given by labeled frames)."""
+        lab = self.booting
+        return lab.active_subjects if lab is not None else ()
+
+    def boot_due(self) -> bool:
+        """Cheap: True when :meth:`boot_request` would start an attempt."""
+        lab = self.booting
+        return (
+            lab is not None
+            and not self.boot_inflight
+            and self._boot_result is None
+            and lab.needs_boot()
+        )
+
+    def boot_request(self) -> BootRequest | None:
+        """After a frame, in the thread that labels: the snapshot of a due boot attempt (marks
+        it in flight), else None."""
+        lab = self.booting
+        if lab is None or not self.boot_due():
+            return None
+        self.boot_inflight = True
+        return BootRequest(lab, lab.boot_snapshot())
+
+    @staticmethod
+    def boot_job(request: BootRequest) -> BootOutcome:
+        """The heavy part of an attempt (runs off the event loop; touches no stream state)."""
+        t0 = time.perf_counter()
+        result = request.labeler.boot_step(request.snapshot)
+        return BootOutcome(result, time.perf_counter() - t0, threading.current_thread().name)
+
+    def boot_done(self, request: BootRequest, outcome: BootOutcome | None) -> None:
+        """Hands a finished attempt to the next :meth:`process` (``None``: abandoned or
+        failed). A result for a labeler replaced meanwhile (a new run) is discarded."""
+        if request.labeler is not self.labeler:
+            return
+        self._boot_result = (request, outcome)
+
+    def _install_boot(self, t: float) -> None:
+        assert self._boot_result is not None
+        request, outcome = self._boot_result
+        self._boot_result = None
+        self.boot_inflight = False
+        lab = request.labeler
+        if lab is not self.labeler:
+            return
+        booted = lab.install_boot(request.snapshot, None if outcome is None else outcome.result)
+        names = tuple(lab.model.subjects[int(i)].name for i in booted)
+        self.just_booted = names
+        self.boots.append(
+            BootRecord(
+                boot=bool(request.snapshot.subjects),
+                t=request.snapshot.t,
+                installed_t=t,
+                booted=names,
+                failed=outcome is None,
+                thread="" if outcome is None else outcome.thread,
+                seconds=float("nan") if outcome is None else outcome.seconds,
+            )
+        )
 
     def update_health(self, out: Output) -> str | None:
         """Folds one output into the labeled/recovered fractions; returns the new status when
@@ -466,3 +607,11 @@ def _indices(index: dict[str, int], labels: Sequence[str | None] | None) -> np.n
         dtype=np.int32,
         count=len(labels),
     )
+
+
+def _accepts_boot(factory: Callable[..., object]) -> bool:
+    try:
+        params = inspect.signature(factory).parameters
+    except (TypeError, ValueError):
+        return True
+    return "boot" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())

@@ -1,0 +1,272 @@
+"""A configured stream with a subject model and a client that never sends labels: the service
+boots the performers off the event loop (``Background``), frames keep flowing meanwhile.
+
+The model is trained (``StructureTrainer``, as ``train structure``) on the first half of a
+simulated walking scene; the second half is streamed with no labels at all, shuffled, with the
+simulator's ghosts. Scored: published frames after the last boot was installed (an observed
+marker's position is exactly one input point). Checked by events, not clocks: every input
+frame gave an output, each boot ran in a ``boot-<stream>`` thread (not the event loop's) and
+frames were labeled between an attempt's snapshot and its install.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+from service.helpers import run, until
+
+from labeler_service.capture import Capture
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.labeling.templates import save_model
+from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
+from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.service.protocol import LabeledMsg, decode, encode_frame
+from labeler_service.service.server import Server
+from labeler_service.service.settings import load_settings
+from labeler_service.service.transports.memory import MemoryTransport
+from labeler_service.tools.replay import open_sender, replay
+from labeler_service.tools.subscribe import Subscriber
+from offline.structure import StructureTrainer
+
+RATE = 120.0
+PERFORMERS = 4
+SECONDS = 8.0
+
+
+@pytest.fixture(scope="module")
+def scene() -> Capture:
+    return simulate_scene(PERFORMERS, SECONDS, "walk", seed=5, rate=RATE, ghosts=1.0)
+
+
+@pytest.fixture(scope="module")
+def model_path(scene, tmp_path_factory):
+    half = scene.n_frames // 2
+    model = StructureTrainer().fit([scene.frames(0, half)]).model_
+    path = tmp_path_factory.mktemp("boot") / "model.json"
+    save_model(model, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def frames(scene) -> StreamFrames:
+    """The other half, as a live source sends it: shuffled, ghosts, no labels."""
+    half = scene.n_frames // 2
+    return corrupt(scene.frames(half, scene.n_frames), CorruptionSpec(protect_frames=0, seed=3))
+
+
+def _settings(model, thread: bool, **extra):
+    return load_settings(
+        labeler="online", metrics_port=None, queue_size=4096, labeling_thread=thread,
+        streams=[{"name": "vol", "model": str(model)}], udp={"port": 0}, **extra,
+    )  # fmt: skip
+
+
+def _score(frames: StreamFrames, outs: list[tuple[LabeledMsg, tuple[str, ...]]], first_seq: int):
+    """Accuracy over visible true markers of the frames with ``seq >= first_seq``; ghosts
+    labeled; frames scored."""
+    correct = total = ghosts = n = 0
+    for msg, names in outs:
+        if msg.seq < first_seq:
+            continue
+        n += 1
+        pts, truth = frames.points[msg.seq], frames.truth[msg.seq]
+        index = {nm: j for j, nm in enumerate(names)}
+        observed = msg.state == 1
+        for i, m in enumerate(truth.tolist()):
+            hit = observed & (msg.positions == pts[i]).all(axis=1)
+            if m < 0:
+                ghosts += int(hit.any())
+                continue
+            total += 1
+            correct += int(hit[index[frames.marker_names[m]]])
+    return correct / max(total, 1), ghosts, n
+
+
+def _check_boot(srv: Server, frames: StreamFrames, outs, n_in: int) -> None:
+    """The assertions shared by both transports (see the module docstring)."""
+    st = srv.streams["vol"]
+    assert isinstance(st.labeler, BootingLabeler) and not st.labeler.inline_boot
+    # every input frame produced exactly one output; nothing dropped
+    assert srv.metrics.drops() == 0, srv.metrics.snapshot()["drops"]
+    assert srv.metrics.value("mocap_frames_out_total", stream="vol") == n_in
+    assert len(outs) == n_in
+    # every subject booted, through attempts that ran in the background mechanism's thread
+    assert set(st.subjects_booted) == {f"P{i + 1}" for i in range(PERFORMERS)}
+    done = [b for b in st.boots if b.booted]
+    assert done, list(st.boots)
+    loop_thread = threading.main_thread().name
+    for b in st.boots:
+        if not b.failed:
+            assert b.thread == "boot-vol" and b.thread != loop_thread
+    # frames were labeled (and published) while each successful attempt ran
+    assert all(b.installed_t > b.t for b in done)
+    attempts = [b for b in st.boots if b.boot]
+    assert srv.metrics.value("mocap_boot_attempts_total", stream="vol") >= len(attempts)
+    assert srv.metrics.value("mocap_subjects_booted", stream="vol") == PERFORMERS
+    # before the first boot was installed every point went out unlabeled
+    first_install = min(b.installed_t for b in done)
+    for msg, _ in outs:
+        if msg.t < first_install - 1e-9:
+            assert not np.any(msg.state == 1), msg.seq
+    # after the last boot: accurate, ghosts left alone
+    last = max(b.installed_t for b in done)
+    first_seq = int(np.searchsorted(frames.times, last - 1e-9))
+    acc, ghosts, scored = _score(frames, outs, first_seq)
+    assert scored >= 0.5 * frames.n_frames, (scored, first_seq)
+    assert acc >= 0.95, acc
+    assert ghosts <= 0.02 * scored
+
+
+async def _paced(mem: MemoryTransport, frames: StreamFrames, labeled: int = 0) -> None:
+    """Injects the frames at the capture rate, as a live source sends them (a burst of all
+    frames at once would be labeled before any boot attempt could end); the first ``labeled``
+    carry their labels."""
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    for f in range(frames.n_frames):
+        delay = t0 + f / frames.rate - loop.time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        labels = None
+        if f < labeled:
+            labels = [frames.marker_names[m] if m >= 0 else None
+                      for m in frames.truth[f].tolist()]  # fmt: skip
+        mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f], labels))
+
+
+@pytest.mark.parametrize("thread", [False, True], ids=["inline", "labeling-thread"])
+def test_boot_in_memory_no_labels(model_path, frames, thread):
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, thread), [mem]) as srv:
+            names = srv.streams["vol"].names
+            await _paced(mem, frames)
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            outs = [
+                (decode(p), names) for s, kind, p, _ in mem.sent if kind == "labeled"
+            ]  # fmt: skip
+            _check_boot(srv, frames, outs, frames.n_frames)
+
+    run(go(), timeout=300.0)
+
+
+@pytest.mark.parametrize("thread", [False, True], ids=["inline", "labeling-thread"])
+def test_boot_over_udp_no_labels(model_path, frames, thread):
+    async def go():
+        async with Server(_settings(model_path, thread)) as srv:
+            host, port = srv.transports[0].address
+            url = f"udp://{host}:{port}/vol"
+            async with Subscriber(url) as sub:
+                await until(lambda: srv.transports[0].subscribers, "the registration")
+                async with open_sender(url) as (send, stream):
+                    stats = await replay(frames, send, stream=stream, init_frames=0, speed=1.0)
+                assert stats.failed == 0
+
+                def done() -> bool:
+                    m = srv.metrics
+                    out = m.value("mocap_frames_out_total", stream="vol")
+                    return out + m.drops() >= frames.n_frames and sub.stats.frames >= out
+
+                await until(done, "every frame labeled and received", timeout=120.0)
+                got = sub.drain()
+                outs = [(r.msg, r.names) for r in got]
+                _check_boot(srv, frames, outs, frames.n_frames)
+
+    run(go(), timeout=300.0)
+
+
+def test_model_stream_with_labeled_frames_needs_no_boot(model_path, frames):
+    """A client that does send labeled init frames: its subjects start from them at once (no
+    attempt), as ``Labeler.from_model`` did before boot existed."""
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, False), [mem]) as srv:
+            names = srv.streams["vol"].names
+            await _paced(mem, frames, labeled=3)
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            st = srv.streams["vol"]
+            assert srv.metrics.value("mocap_boot_attempts_total", stream="vol") == 0
+            assert not any(b.boot for b in st.boots)
+            assert len(st.subjects_booted) == PERFORMERS
+            outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
+            acc, _, _ = _score(frames, outs, 3)
+            assert acc >= 0.95, acc
+
+    run(go(), timeout=300.0)
+
+
+def test_boot_off_keeps_the_labeled_start(model_path):
+    """``boot = false``: a model stream builds the plain ``Labeler.from_model`` (its first frame
+    must carry labels)."""
+    from labeler_service.labeling.labeler import Labeler
+
+    async def go():
+        async with Server(_settings(model_path, False, boot=False), [MemoryTransport()]) as srv:
+            st = srv.streams["vol"]
+            assert isinstance(st.labeler, Labeler) and st.booting is None
+            assert not st.boot_due()
+
+    run(go(), timeout=120.0)
+
+
+def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(model_path, frames):
+    """All performers vanish for 1.5 s (only stray points), then come back: the labeler drops
+    them (none of their labels go to the stray points), the status turns ``lost``, the
+    performers are booted again off the loop and the status returns to ``online``."""
+    gone0, gone1 = 120, 300  # frames [gone0, gone1) carry only stray points
+    rng = np.random.default_rng(0)
+    stray = [rng.uniform(-3000, 3000, (3, 3)).astype(np.float32) for _ in range(gone1 - gone0)]
+
+    async def go():
+        mem = MemoryTransport()
+        settings = _settings(model_path, False, health_window_s=0.3)
+        async with Server(settings, [mem]) as srv:
+            st = srv.streams["vol"]
+            names = st.names
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            for f in range(frames.n_frames):
+                delay = t0 + f / frames.rate - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                pts = stray[f - gone0] if gone0 <= f < gone1 else frames.points[f]
+                mem.inject(encode_frame("vol", f, float(frames.times[f]), pts))
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
+            states = [decode(p).state for s, kind, p, _ in mem.sent if kind == "status"]
+            return st, outs, states
+
+    st, outs, states = run(go(), timeout=300.0)
+    assert len(outs) == frames.n_frames
+    # lost before the first boot (nothing labeled yet), online, lost while away, online again
+    # after the re-boot
+    changes = [s for s in states if s in ("lost", "online")]
+    changes = [s for k, s in enumerate(changes) if k == 0 or s != changes[k - 1]]
+    assert changes[-4:] == ["lost", "online", "lost", "online"], states
+    # nothing labeled while nobody is there (after the labeler's drop delay)
+    for msg, _ in outs:
+        if gone0 + 24 <= msg.seq < gone1:
+            assert not np.any(msg.state == 1), msg.seq
+    lab = st.labeler
+    assert isinstance(lab, BootingLabeler)
+    dropped = {n for t, kind, n in lab.events if kind == "drop"}
+    assert dropped == {f"P{i + 1}" for i in range(PERFORMERS)}
+    back = frames.times[gone1]
+    rebooted = [b for b in st.boots if b.booted and b.t >= back - 1e-9]
+    assert {n for b in rebooted for n in b.booted} == set(dropped)
+    last = max(b.installed_t for b in rebooted)
+    acc, ghosts, scored = _score(frames, outs, int(np.searchsorted(frames.times, last - 1e-9)))
+    assert scored > 0 and acc >= 0.95, acc
