@@ -90,7 +90,9 @@ async def bench(args, workdir: Path) -> dict:
         stream_cfg["model"] = str(train_model_file(frames, 50, workdir / "model.json"))
     elif args.start == "boot":
         stream_cfg["model"] = str(model_path)
-    settings = service_settings(args.transport, stream_cfg, 5.0, labeler=args.labeler)
+    settings = service_settings(
+        args.transport, stream_cfg, 5.0, labeler=args.labeler, boot=args.start == "boot"
+    )
     res = await run_pipeline(frames, settings, workdir, transport=args.transport, stream=stream,
                              init_frames=init, speed=1.0,
                              loops=loops_to_cover(frames.n_frames, n_total), max_frames=n_total,

@@ -200,6 +200,7 @@ async def _run_pipeline(args, frames, workdir: Path):
                      **({"model": str(args.model)} if args.start == "boot" else {})}],
         # absorbs the one-time training stall at the first unlabeled frame (docs/service.md)
         "queue_size": 256,
+        "boot": args.start == "boot",
     }  # fmt: skip
     progress = None
     bar = None

@@ -178,10 +178,12 @@ class ServiceSettings(BaseSettings):
     #: Seconds in-stream training may take (off the event loop); over it the stream reports
     #: ``training_failed`` and waits for new labeled init frames.
     train_budget_s: float = Field(60.0, gt=0)
-    #: A stream with a ``model`` boots its subjects from anonymous points (no labeled frame
-    #: needed; docs/service.md "Starting from a model"). False: its first frame must carry
-    #: labels (the initial assignment), as before.
-    boot: bool = True
+    #: True: a stream with a ``model`` boots its subjects from anonymous points (no labeled
+    #: frame needed; docs/service.md "Starting from a model"). False (default): its first
+    #: frame must carry labels (the initial assignment). Off by default because the booting
+    #: labeler's tracking and extension attempts cost a labeled stream too (10 x 360 Hz: UDP
+    #: p99 1.2 -> 17 ms) and boot is not yet reliable in close contact (BENCHMARKS.md).
+    boot: bool = False
     #: Seconds one boot attempt may take off the event loop (the background mechanism that
     #: trains in-stream); over it the attempt is abandoned (``boot_failed``), the next one
     #: waits longer (the boot's back-off). 10 performers at 360 Hz take ~1.4 s alone and

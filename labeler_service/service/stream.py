@@ -44,7 +44,6 @@ a recovery that needs more than the labeler's own re-acquisition (boot from a su
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import logging
 import re
 import threading
@@ -58,6 +57,7 @@ import numpy as np
 
 from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
+from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
@@ -66,7 +66,7 @@ from labeler_service.service.settings import ServiceSettings, StreamSettings
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
-    from labeler_service.labeling.booting import BootingLabeler, BootSnapshot
+    from labeler_service.labeling.booting import BootSnapshot
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,6 @@ class InitWindow:
 def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[int, ...], ...]:
     """The online labeler's rigid bodies as marker indices into ``names`` (the model message's
     optional ``bodies``); ``()`` for the baseline or before the labeler has its templates."""
-    from labeler_service.labeling.booting import BootingLabeler
     from labeler_service.labeling.labeler import Labeler
 
     if not isinstance(labeler, Labeler | BootingLabeler) or labeler.model is None:
@@ -261,15 +260,12 @@ class StreamState:
             rate = load_model(path).rate
         boot = self.settings.boot and self.settings.labeler == "online"
         cfg = self.settings.labeler_config
-        if _accepts_boot(self._factory):
-            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path,
-                                    boot=self.settings.boot_config if boot else False)  # fmt: skip
-        else:  # a test's factory may predate ``boot``
-            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path)
-        if boot and hasattr(labeler, "inline_boot"):
+        labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path,
+                                boot=self.settings.boot_config if boot else False)  # fmt: skip
+        if isinstance(labeler, BootingLabeler):
             # the server runs the boot and the extension to new markers off the event loop
-            labeler.inline_boot = False  # type: ignore[attr-defined]
-            labeler.inline_extend = False  # type: ignore[attr-defined]
+            labeler.inline_boot = False
+            labeler.inline_extend = False
         self.boot_inflight = False
         self._boot_result = None
         self._install(labeler, rate)
@@ -474,8 +470,8 @@ class StreamState:
     def booting(self) -> BootingLabeler | None:
         """The labeler when it boots off the frame path (model stream, ``boot = true``)."""
         lab = self.labeler
-        if getattr(lab, "inline_boot", True) is False:
-            return lab  # type: ignore[return-value]
+        if isinstance(lab, BootingLabeler) and not lab.inline_boot:
+            return lab
         return None
 
     @property
@@ -607,11 +603,3 @@ def _indices(index: dict[str, int], labels: Sequence[str | None] | None) -> np.n
         dtype=np.int32,
         count=len(labels),
     )
-
-
-def _accepts_boot(factory: Callable[..., object]) -> bool:
-    try:
-        params = inspect.signature(factory).parameters
-    except (TypeError, ValueError):
-        return True
-    return "boot" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())

@@ -29,7 +29,7 @@ def test_replay_without_labels_into_serve_with_a_model(tmp_path):
     test = tmp_path / "test.npz"
     truth = cap.frames(0, half)
     write_capture(truth, test)
-    settings = {"metrics_port": None, "udp": {"port": 0}, "queue_size": 1024,
+    settings = {"boot": True, "metrics_port": None, "udp": {"port": 0}, "queue_size": 1024,
                 "streams": [{"name": "vol", "model": str(model)}]}  # fmt: skip
 
     async def go():

@@ -155,7 +155,7 @@ class _StuckTraining(SlowLabeler):
 
 
 def test_training_over_budget_is_abandoned_reported_and_does_not_hold_shutdown():
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return _StuckTraining(marker_names, rate)
 
     async def go():

@@ -58,6 +58,7 @@ def frames(scene) -> StreamFrames:
 
 
 def _settings(model, thread: bool, **extra):
+    extra.setdefault("boot", True)
     return load_settings(
         labeler="online", metrics_port=None, queue_size=4096, labeling_thread=thread,
         streams=[{"name": "vol", "model": str(model)}], udp={"port": 0}, **extra,

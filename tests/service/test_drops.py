@@ -99,7 +99,7 @@ def test_a_labeled_frame_too_large_for_a_datagram_is_counted_as_output_oversize(
     """6000 markers make a labeled frame of ~78 kB: UDP refuses it, the server counts it."""
     names = tuple(f"S:m{i}" for i in range(6000))
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return SlowLabeler(names, rate)
 
     cap = moving_clusters(rng, frames=20)

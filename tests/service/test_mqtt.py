@@ -281,7 +281,7 @@ def test_a_backlog_over_mqtt_lands_in_the_drop_oldest_queue(broker, rng):
     gate = threading.Event()
     made: list[_GatedLabeler] = []
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         made.append(_GatedLabeler(marker_names, rate, gate))
         return made[-1]
 

@@ -89,7 +89,7 @@ def test_stream_starts_from_a_model_file(tmp_path, rng):
     save_model(LabelerModel(rate=cap.rate, subjects=subjects), path)
     calls = []
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         calls.append((marker_names, rate, model))
         return make_labeler("baseline", marker_names=marker_names, rate=rate, model=model)
 
@@ -177,7 +177,7 @@ def test_falling_behind_keeps_the_newest_frames_and_counts_drops(rng):
     cap = moving_clusters(rng, frames=200)
     p = stream_payloads(cap, rng, init=5)
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return SlowLabeler(marker_names, rate, delay_s=0.004)
 
     async def go():
@@ -204,7 +204,7 @@ def test_unknown_streams_no_model_and_labeler_failures_are_counted(rng):
     p = stream_payloads(cap, rng, init=10)
     fails = {12, 13}
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return SlowLabeler(marker_names, rate, fail_on=fails)
 
     async def go():
@@ -247,7 +247,7 @@ def test_status_is_retained_online_then_offline_and_tasks_end(rng):
 def test_warmup_runs_before_ready_and_send_failures_are_counted(rng):
     calls = []
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         calls.append(marker_names)
         return make_labeler("baseline", marker_names=marker_names, rate=rate)
 
@@ -386,7 +386,7 @@ def test_labeling_thread_setting_moves_labeling_off_the_event_loop(rng, thread):
             seen.append(threading.current_thread().name)
             return super().process(points, t, labels)
 
-    def factory(kind, *, marker_names=(), rate, config=None, model=None):
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return _Where(marker_names, rate)
 
     cap = moving_clusters(rng, frames=30)
