@@ -270,9 +270,20 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
     link_err = np.empty((n, n))
     art = np.empty((n, n), dtype=np.bool_)
     _graph_kernel(
-        M.astype(np.int64), P.astype(np.int64), np.ascontiguousarray(pts, dtype=np.float64),
-        tpl.D, tpl.tol, tpl.rigid, tpl.bound, tpl.link, agree, clash, link, link_err, art,
-    )  # fmt: skip
+        M.astype(np.int64),
+        P.astype(np.int64),
+        np.ascontiguousarray(pts, dtype=np.float64),
+        tpl.D,
+        tpl.tol,
+        tpl.rigid,
+        tpl.bound,
+        tpl.link,
+        agree,
+        clash,
+        link,
+        link_err,
+        art,
+    )
     return _Graph(M, P, agree, clash, link, link_err, art)
 
 
@@ -747,6 +758,17 @@ def warmup_kernels() -> None:
     m = np.zeros((1, 1))
     out_b = np.zeros((2, 2), dtype=np.bool_)
     _graph_kernel(
-        n, n, np.zeros((1, 3)), m, m, np.zeros((1, 1), dtype=np.bool_), m, m, out_b, out_b.copy(),
-        out_b.copy(), np.zeros((2, 2)), out_b.copy(),
-    )  # fmt: skip
+        n,
+        n,
+        np.zeros((1, 3)),
+        m,
+        m,
+        np.zeros((1, 1), dtype=np.bool_),
+        m,
+        m,
+        out_b,
+        out_b.copy(),
+        out_b.copy(),
+        np.zeros((2, 2)),
+        out_b.copy(),
+    )

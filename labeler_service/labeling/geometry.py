@@ -91,9 +91,15 @@ def _horn_batch(ref: np.ndarray, cur: np.ndarray, out: np.ndarray) -> None:
                 continue
             cov = COV0
             for j in range(k):
-                cov = _cov_add(cov, ref[i, j, 0], ref[i, j, 1], ref[i, j, 2],
-                               cur[f, i, j, 0] - cx, cur[f, i, j, 1] - cy,
-                               cur[f, i, j, 2] - cz)  # fmt: skip
+                cov = _cov_add(
+                    cov,
+                    ref[i, j, 0],
+                    ref[i, j, 1],
+                    ref[i, j, 2],
+                    cur[f, i, j, 0] - cx,
+                    cur[f, i, j, 1] - cy,
+                    cur[f, i, j, 2] - cz,
+                )
             q0, q1, q2, q3 = _horn_quaternion(cov)
             sign = 1.0 if q0 >= 0.0 else -1.0
             out[f, i, 0] = sign * q0
