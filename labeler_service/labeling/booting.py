@@ -242,16 +242,12 @@ class BootingLabeler:
             self._since_extend = 0
             if self._extend():
                 glab = self._window[-1].labels
-                obs = glab >= 0
-                pos[glab[obs]] = pts[obs]
-                state[glab[obs]] = MarkerState.OBSERVED
+                _mark_observed(glab, pts, pos, state)
         if self.inline_boot and self.needs_boot():
             booted = self._attempt(t)
             if booted.size:
                 glab = self._window[-1].labels
-                obs = glab >= 0
-                pos[glab[obs]] = pts[obs]
-                state[glab[obs]] = MarkerState.OBSERVED
+                _mark_observed(glab, pts, pos, state)
         return LabeledFrame(
             t=t,
             point_labels=glab.astype(np.int32),
@@ -286,9 +282,7 @@ class BootingLabeler:
         self._labeled_run = True
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         state = np.zeros(m, dtype=np.uint8)
-        ok = lab >= 0
-        pos[lab[ok]] = pts[ok]
-        state[lab[ok]] = MarkerState.OBSERVED
+        _mark_observed(lab, pts, pos, state)
         return LabeledFrame(
             t=t,
             point_labels=lab.astype(np.int32),
@@ -538,3 +532,10 @@ class BootingLabeler:
         without touching this labeler's state."""
         warmup_kernels()
         Labeler(["w:a", "w:b", "w:c"], self.rate, self.config).warmup()
+
+
+def _mark_observed(labels: np.ndarray, pts: np.ndarray, pos: np.ndarray, state: np.ndarray) -> None:
+    """Every labeled point becomes its marker's observed position (in place)."""
+    ok = labels >= 0
+    pos[labels[ok]] = pts[ok]
+    state[labels[ok]] = MarkerState.OBSERVED
