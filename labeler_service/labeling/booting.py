@@ -201,6 +201,11 @@ class BootingLabeler:
         """Subjects booted and currently labeled (model order)."""
         return tuple(self.model.subjects[i].name for i in sorted(self._active))
 
+    @property
+    def n_active(self) -> int:
+        """How many subjects are booted and labeled now (no tuple built: per-frame gauges)."""
+        return len(self._active)
+
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None
     ) -> LabeledFrame:

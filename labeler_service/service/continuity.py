@@ -83,7 +83,7 @@ class Continuity:
         if seq_ok and t_ok:
             self.last_seq, self.last_t = seq, t
             self._cand = None
-            return Verdict(None, ds - 1)
+            return ACCEPT if ds == 1 else Verdict(None, ds - 1)
         c = self._cand
         if c is not None and self._plausible_seq(seq - c.seq) and self._plausible_t(t - c.t):
             c.seq, c.t, c.count = seq, t, c.count + 1

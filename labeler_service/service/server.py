@@ -459,7 +459,7 @@ class Server:
             if state.just_booted:
                 self._booted(state)
             elif state.booting is not None:
-                self.metrics.subjects(state.name, len(state.subjects_booted))
+                self.metrics.subjects(state.name, state.booting.n_active)
             if self._published_model.get(state.name) != state.model_id:
                 await self._publish_model(state)
             sent_ok = await self._send_all(state.name, "labeled", out.payload)

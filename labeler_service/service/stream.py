@@ -23,7 +23,7 @@ init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``
 off the event loop through :class:`~labeler_service.service.background.Background`
 (:meth:`StreamState.train` is the job).
 
-**Boot** (a stream with a ``model`` and ``boot = true``, the default): the labeler is a
+**Boot** (a stream with a ``model`` and ``boot = true``; off by default): the labeler is a
 :class:`~labeler_service.labeling.booting.BootingLabeler` built with ``inline_boot=False``, so
 labeling a frame never boots. After a frame, :meth:`StreamState.boot_request` (frame thread)
 takes a snapshot when an attempt is due and none is in flight; the server runs
@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import re
 import threading
 import time
@@ -194,6 +195,8 @@ class StreamState:
         self.rate: float | None = self.stream_settings.rate
         self.model_id = 0
         self.model_payload: bytes | None = None
+        self.bodies: tuple[tuple[int, ...], ...] = ()  # model message (live view)
+        self._health_alpha = 1.0  # per-frame weight of the health averages (set by _install)
         self.continuity = Continuity(
             max_seq_step=settings.max_seq_step,
             max_time_step_s=settings.max_time_step_s,
@@ -237,11 +240,6 @@ class StreamState:
         """True when labeling ``f`` trains the labeler (first unlabeled frame after the init
         frames): the server runs :meth:`train` off the event loop."""
         return self.labeler is None and f.labels is None and bool(self.init_frames)
-        self.bodies: tuple[tuple[int, ...], ...] = ()  # model message (live view)
-
-    def heavy(self, f: FrameMsg) -> bool:
-        """Alias of :meth:`needs_training` (older name)."""
-        return self.needs_training(f)
 
     # --------------------------------------------------------------------- start-up
     @property
@@ -276,6 +274,7 @@ class StreamState:
         self.names = tuple(labeler.marker_names)
         self._index = {n: i for i, n in enumerate(self.names)}
         self.rate = float(rate)
+        self._health_alpha = min(1.0, 1.0 / max(1.0, self.rate * self.settings.health_window_s))
         self.model_id += 1
         subjects = subject_slices(self.names)
         self.bodies = rigid_bodies(labeler, self.names)
@@ -543,9 +542,9 @@ class StreamState:
         if m <= 0:
             return None
         s = self.settings
-        alpha = min(1.0, 1.0 / max(1.0, (self.rate or 100.0) * s.health_window_s))
+        alpha = self._health_alpha
         lab, rec = out.observed / m, out.recovered / m
-        if np.isnan(self.labeled_fraction):
+        if math.isnan(self.labeled_fraction):
             self.labeled_fraction, self.recovered_fraction = lab, rec
         else:
             self.labeled_fraction += alpha * (lab - self.labeled_fraction)
