@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from labeler_service.capture import split_label
+from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
@@ -39,19 +39,11 @@ from labeler_service.labeling.kernels.state import (
     new_scratch,
     new_tracks,
 )
+from labeler_service.labeling.kernels.step import _process_frame_fields
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.labeling.training import train_subject
 
 MIN_TRAIN_FRAMES = 3
-
-
-def subjects_of(marker_names: Sequence[str]) -> dict[str, list[int]]:
-    """Subject name -> global marker indices, in order of first appearance."""
-    out: dict[str, list[int]] = {}
-    for i, name in enumerate(marker_names):
-        subject, _ = split_label(name)
-        out.setdefault(subject or "", []).append(i)
-    return out
 
 
 class Labeler:
@@ -183,8 +175,6 @@ class Labeler:
         )
 
     def _run(self, pts: np.ndarray, dt: float, ptr: int) -> None:
-        from labeler_service.labeling.kernels.step import _process_frame_fields
-
         _process_frame_fields(pts, dt, ptr, self._frame_no, *self._fields)
 
     def _pack(self) -> None:
@@ -209,7 +199,7 @@ class Labeler:
         rate = float(1.0 / np.median(steps)) if steps.size else self.rate
         c = self.config
         subjects = []
-        for name, cols in subjects_of(self._names).items():
+        for name, cols in subject_groups(self._names).items():
             markers = [split_label(self._names[i])[1] for i in cols]
             subjects.append(
                 train_subject(
@@ -266,7 +256,7 @@ class Labeler:
         active = np.zeros(m, dtype=np.bool_)
         for body in bodies:
             active[body] = True
-        groups = list(subjects_of(self._names).values())
+        groups = list(subject_groups(self._names).values())
         self._tracks = new_tracks(np.where(np.isfinite(q), q, 1.0e6), active, groups)
         self._bodies = new_bodies(m, bodies, d0, a0, c.window_T)
         self._recovery = recovery
