@@ -243,7 +243,6 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
         cz = 0.0
         nx = 0
         for k in range(n):
-            m = members[b, k]
             if cur[k] >= 0:
                 cx += points[cur[k], 0]
                 cy += points[cur[k], 1]

@@ -32,8 +32,9 @@ def _kabsch(src, dst, n, R, t):
     The minimiser over proper rotations (the Kabsch problem with reflections excluded), solved
     in Horn's closed form: the unit quaternion is the eigenvector of the largest eigenvalue of a
     symmetric 4x4 matrix built from the cross-covariance, found by cyclic Jacobi rotations.
-    No LAPACK call and no allocation: a tenth of the time of an SVD, and this runs for every
-    recovered or checked marker of every frame.
+    No LAPACK call: a tenth of the time of an SVD, and this runs for every recovered or checked
+    marker of every frame. :func:`_horn_quaternion` still allocates two 4x4 work arrays per call
+    (a known cost: they belong in ``KabschScratch``).
     """
     cs0 = cs1 = cs2 = 0.0
     cd0 = cd1 = cd2 = 0.0
