@@ -8,9 +8,9 @@ the service) and end-to-end latency. Runs alternate
 (``--repeats`` rounds of ``--modes``): *without* a viewer; *viewer*: ``mocap-labeler view`` (a
 subprocess) with no page open; *browser*: the viewer and headless Chromium (Debian's package,
 through Playwright, WebGL in SwiftShader) showing its page, driven from a child process run at
-``--browser-nice`` (default 10, as ``view`` itself), which samples ``viewerState`` every
-second. ``--view-fps`` is the viewer's ``--fps`` (default 60). Prints one JSON object (last
-line):
+``--browser-priority`` (default ``idle``, SCHED_IDLE, as ``view`` itself), which samples
+``viewerState`` every second. ``--view-fps`` is the viewer's ``--fps`` (default 60). Prints
+one JSON object (last line):
 
 - per mode: medians over its runs of ``labeling_ms_p50``/``p99`` (frames after the first
   second) and ``latency_ms_p50``/``p99``;
@@ -34,7 +34,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
 import shutil
 import signal
 import sys
@@ -54,6 +53,7 @@ from labeler_service.testing.harness import (
     simulated_frames,
     train_model_file,
 )
+from labeler_service.tools.priority import PRIORITIES, lower_priority
 from labeler_service.tools.replay import loops_to_cover, open_sender, replay
 from labeler_service.tools.subscribe import Subscriber, percentiles
 
@@ -100,10 +100,11 @@ def _get_json(url: str) -> dict:
 
 async def _start_page(view_url: str, args) -> asyncio.subprocess.Process:
     """Chromium on the page, driven from a child process (``--sample-page``): Playwright's
-    traffic stays out of this measuring process, and the child and its browser run ``nice``-d."""
+    traffic stays out of this measuring process, and the child and its browser run at
+    ``--browser-priority``."""
     proc = await asyncio.create_subprocess_exec(
         sys.executable, __file__, "--sample-page", view_url, "--width", str(args.width),
-        "--height", str(args.height), "--browser-nice", str(args.browser_nice),
+        "--height", str(args.height), "--browser-priority", args.browser_priority,
         stdout=asyncio.subprocess.PIPE,
     )  # fmt: skip
     assert proc.stdout is not None
@@ -123,13 +124,12 @@ async def _page_result(proc: asyncio.subprocess.Process) -> dict:
     return json.loads(line)
 
 
-async def sample_page(url: str, width: int, height: int, nice: int) -> None:
+async def sample_page(url: str, width: int, height: int, priority: str) -> None:
     """The child of ``_start_page``: opens the page, prints ``ready``, samples ``viewerState``
     every second until SIGINT, then prints the summary as one JSON line."""
     from playwright.async_api import async_playwright
 
-    if nice > 0:
-        os.nice(nice)  # Chromium and Playwright's driver inherit it
+    lower_priority(priority)  # Chromium and Playwright's driver inherit it
     stop = asyncio.Event()
     asyncio.get_running_loop().add_signal_handler(signal.SIGINT, stop.set)
     async with async_playwright() as pw:
@@ -256,7 +256,7 @@ async def bench(args) -> dict:
         "rate": frames.rate,
         "seconds": args.seconds,
         "viewport": [args.width, args.height],
-        "browser_nice": args.browser_nice,
+        "browser_priority": args.browser_priority,
         "view_fps": args.view_fps,
         **summary,
         "page_fps_median": _median(with_runs, "page_fps_median"),
@@ -318,8 +318,9 @@ def main() -> int:
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=720)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--browser-nice", type=int, default=10,
-                   help="lower CPU priority of Chromium and its driver (0: as is)")  # fmt: skip
+    p.add_argument("--browser-priority", choices=PRIORITIES, default="idle",
+                   help="CPU priority of Chromium and its driver (idle: SCHED_IDLE; low: "
+                        "nice 10; normal: as is)")  # fmt: skip
     p.add_argument("--out", default=None, help="also write the JSON line here")
     p.add_argument("--demo-screenshot", type=Path, default=None, metavar="PNG",
                    help="screenshot the page on `demo --view` instead of benchmarking")  # fmt: skip
@@ -327,7 +328,7 @@ def main() -> int:
     p.add_argument("--sample-page", default=None, metavar="URL", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.sample_page is not None:
-        asyncio.run(sample_page(args.sample_page, args.width, args.height, args.browser_nice))
+        asyncio.run(sample_page(args.sample_page, args.width, args.height, args.browser_priority))
         return 0
     if args.demo_screenshot is not None:
         result = asyncio.run(demo_screenshot(args.demo_screenshot, args.width, args.height,

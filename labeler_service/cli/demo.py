@@ -191,17 +191,16 @@ def _plots(out: Path, latency_ms: np.ndarray, per_frame: np.ndarray, rate: float
 
 
 async def _run_pipeline(args, frames, workdir: Path):
-    from labeler_service.testing.harness import run_pipeline
+    from labeler_service.testing.harness import run_pipeline, service_settings
 
-    settings = {
-        "labeler": args.labeler, "metrics_port": 0, "log_interval_s": 5.0,
-        "udp": {"port": getattr(args, "udp_port", 0)},  # --view chooses it
-        "streams": [{"name": "demo", "rate": frames.rate,
-                     **({"model": str(args.model)} if args.start == "boot" else {})}],
+    stream = {"name": "demo", "rate": frames.rate,
+              **({"model": str(args.model)} if args.start == "boot" else {})}  # fmt: skip
+    settings = service_settings(
+        "udp", stream, 5.0, labeler=args.labeler, boot=args.start == "boot",
+        udp={"enabled": True, "port": getattr(args, "udp_port", 0)},  # --view chooses it
         # absorbs the one-time training stall at the first unlabeled frame (docs/service.md)
-        "queue_size": 256,
-        "boot": args.start == "boot",
-    }  # fmt: skip
+        queue_size=256,
+    )  # fmt: skip
     progress = None
     bar = None
     if sys.stderr.isatty():

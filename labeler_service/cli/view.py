@@ -3,8 +3,9 @@
 Subscribes to the labeled stream like ``subscribe`` and serves a page (three.js, vendored) on
 ``http://HOST:PORT/`` that draws the markers live; see ``docs/viewer.md``. Loopback only by
 default: ``--host`` exposes it to the network (read-only, no authentication: a warning says so).
-Runs until Ctrl-C / SIGTERM, at a lower CPU priority (``--nice``, default 10) so that a
-viewer sharing the service's machine never takes the CPU from it.
+Runs until Ctrl-C / SIGTERM, at the idle CPU priority (``--priority``, default ``idle``:
+Linux ``SCHED_IDLE``) so that a viewer sharing the service's machine never takes the CPU from
+it.
 """
 
 from __future__ import annotations
@@ -12,10 +13,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import os
 import sys
 
 from labeler_service.cli.stopping import stop_event
+from labeler_service.tools.priority import PRIORITIES, lower_priority
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,9 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "read-only view without authentication)")  # fmt: skip
     p.add_argument("--fps", type=float, default=60.0, help="frames pushed to a page per second")
     p.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    p.add_argument("--nice", type=int, default=10,
-                   help="lower the viewer's CPU priority by this much (default 10: on a "
-                        "machine shared with the service, the service comes first)")  # fmt: skip
+    p.add_argument("--priority", choices=PRIORITIES, default="idle",
+                   help="the viewer's CPU priority (default idle: SCHED_IDLE, it only uses CPU "
+                        "time the service leaves; low: nice 10; normal: unchanged)")  # fmt: skip
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
 
 
@@ -61,8 +62,7 @@ async def _main(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.nice > 0:
-        os.nice(args.nice)
+    lower_priority(args.priority)
     logging.basicConfig(level=args.log_level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")  # fmt: skip
     return asyncio.run(_main(args))

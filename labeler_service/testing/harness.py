@@ -20,6 +20,7 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
+from urllib.parse import urlsplit
 
 from labeler_service.errors import MocapError
 from labeler_service.scenes.corrupt import StreamFrames
@@ -105,11 +106,11 @@ class ServiceProcess:
             raise MocapError(f"the service failed to start (log: {self.log_path}): "
                              f"{self.log_path.read_text()[-2000:]}")  # fmt: skip
         for word in line.split():
-            if word.startswith("udp://"):
-                host, _, port = word[len("udp://") :].rpartition(":")
-                self.udp = (host, int(port))
-            if word.startswith("http://"):
-                self.metrics_port = int(word.split(":")[2].split("/")[0])
+            url = urlsplit(word)
+            if url.scheme == "udp" and url.hostname and url.port:
+                self.udp = (url.hostname, url.port)
+            if url.scheme == "http" and url.port:
+                self.metrics_port = url.port
         return self
 
     async def _stop(self) -> None:
