@@ -143,9 +143,19 @@ def search_body(n, perm, opts, nopts, mot, Db, Ab, a_floor, a_rel, miss_term, w,
     return best, arg
 
 
+def rigidity(D, A, k, tol, w):
+    """Mean over the ``k`` members' links of ``min(1, tol / (A + w D))`` (NaN link: 1)."""
+    vals = []
+    for i, j in itertools.combinations(range(k), 2):
+        c = A[i, j] + w * D[i, j]
+        vals.append(1.0 if not np.isfinite(c) or c <= tol else tol / c)
+    return float(np.mean(vals)) if vals else 1.0
+
+
 def fit_bodies(body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, a_floor, a_rel,
-               miss_term, w, gate_chi2):  # fmt: skip
-    """Algorithm 1 literally: every step re-searches every unsatisfied body, satisfies the best.
+               miss_term, w, gate_chi2, weight=None):  # fmt: skip
+    """Algorithm 1 literally: every step re-searches every unsatisfied body, satisfies the best
+    (the highest score, times ``weight[b]`` when given: the distrust order).
 
     Returns ``assigned (M,)`` (point or -1) and ``owner (N,)``.
     """
@@ -195,7 +205,7 @@ def fit_bodies(body_markers, body_size, Db, Ab, cand, cand_d2, ncand, points, a_
             s, arg = search_body(len(members), perm, opts, nopts, mot, Db[b], Ab[b], a_floor,
                                  a_rel, miss_term, w, points)  # fmt: skip
             chosen = {members[k]: int(opts[pos, arg[pos]]) for pos, k in enumerate(perm)}
-            results.append((s, b, chosen))
+            results.append((s * (1.0 if weight is None else weight[b]), b, chosen))
         best = max(r[0] for r in results)
         s, r, chosen = next(x for x in results if x[0] == best)
         satisfied[r] = True

@@ -234,6 +234,12 @@ class LabelerConfig(BaseModel):
         ge=0,
         description="the window's D stays within this of the trained D (0 = unbounded)",
     )
+    distrust: bool = Field(
+        True,
+        description="the wide re-acquisition pass satisfies bodies in the order of their Eq. 5 "
+        "score times their rigidity (body_tolerance_mm over the sliding-window A + w D of each "
+        "link): a body the data shows bending pulls points after the bodies it shows rigid",
+    )
     absent_frames: int = Field(
         60,
         ge=0,

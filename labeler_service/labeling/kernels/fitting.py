@@ -19,6 +19,17 @@ plus "missing"; two markers never share a point) depth first, best candidates fi
 prunes a branch when its partial sum plus an upper bound of what is left (1 per remaining link,
 the best motion term per remaining marker) cannot beat the best complete assignment: branch and
 bound returns exactly the ``itertools.product`` optimum (ties: the first in product order).
+
+Line 12 of Algorithm 1 satisfies the best-scoring body first. In the wide re-acquisition pass
+(``distrust``, ours, issue 10 class A) the order is the score times the body's *rigidity*
+(:func:`_rigidity`): each link counts ``min(1, tolerance / (A + w D))`` with the sliding-window
+``D``, ``A`` of Eq. 1-2 and the body-formation rule of
+:mod:`labeler_service.labeling.training` (``body_tolerance_mm``, ``body_distance_weight``). A
+body trained on a quiet window that the data later shows bending (a hand glued to the pelvis, an
+upper arm and forearm trained straight) has window deviations far beyond that tolerance: its
+links still score its own assignment, but it no longer pulls points before the bodies that the
+data shows rigid. The first pass keeps the paper's order (measured: distrusting there too
+lowers the matrix's worst scene again, docs/algorithm.md).
 """
 
 from __future__ import annotations
@@ -277,7 +288,29 @@ def _still_feasible(b, body_markers, body_size, assigned, owner, best):
 
 
 @njit
-def _fit_bodies(bodies, points, miss_term, scratch, params):
+def _rigidity(b, body_size, D, A, tol, w):
+    """How rigid body ``b`` has proven in the sliding window, in ``[0, 1]``: the mean over its
+    links of ``min(1, tol / (A + w D))`` (1 for a link as rigid as body formation requires,
+    :func:`labeler_service.labeling.training.select_bodies`). A link the window does not know
+    (NaN) counts 1: no evidence against it."""
+    n = body_size[b]
+    acc = 0.0
+    links = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            links += 1
+            d = D[b, i, j]
+            a = A[b, i, j]
+            c = a + w * d
+            if c != c or c <= tol:
+                acc += 1.0
+            else:
+                acc += tol / c
+    return acc / links if links > 0 else 1.0
+
+
+@njit
+def _fit_bodies(bodies, points, miss_term, scratch, params, distrust=False):
     """Algorithm 1: satisfy the best-scoring body, fix its markers and points, recompute only
     the bodies whose candidate sets changed, until every body is satisfied.
 
@@ -305,8 +338,15 @@ def _fit_bodies(bodies, points, miss_term, scratch, params):
     miss_mot = np.exp(-0.5 * gate)
     pm_ptr = np.empty(n_points + 1, np.int64)
     _point_markers(cand, ncand, n_points, pm_ptr, pm_idx)
+    # line 12's key per body: the score, times the rigidity with ``distrust``
+    prio = np.empty(nb)
+    weight = np.ones(nb)
+    if distrust:
+        tol, wd = params.body_tolerance_mm, params.body_distance_weight
+        for b in range(nb):
+            weight[b] = _rigidity(b, body_size, Db, Ab, tol, wd)
     # bodies to (re)search, each once (``need``), and an indexed max-heap of the unsatisfied
-    # searched bodies by (score, lower index): line 12 without a scan of every body per step
+    # searched bodies by (``prio``, lower index): line 12 without a scan of every body per step
     queue = np.empty(nb, np.int64)
     nq = 0
     heap = np.empty(nb, np.int64)
@@ -322,6 +362,7 @@ def _fit_bodies(bodies, points, miss_term, scratch, params):
         satisfied[b] = not und
         need[b] = False
         body_score[b] = -1.0
+        prio[b] = -1.0
         nq = _flag(b, need, satisfied, queue, nq)
     while True:
         # lines 5-11: (re)search the bodies that need it
@@ -371,11 +412,12 @@ def _fit_bodies(bodies, points, miss_term, scratch, params):
             for k in range(n):
                 best[b, perm[k]] = opts[k, best_choice[k]]
             body_score[b] = s
+            prio[b] = s * weight[b]
             if pos[b] < 0:
                 heap[size] = b
                 pos[b] = size
                 size += 1
-            _heap_fix(heap, pos, size, body_score, pos[b])
+            _heap_fix(heap, pos, size, prio, pos[b])
         nq = 0
         # line 12: the best unsatisfied body
         if size == 0:
@@ -386,7 +428,7 @@ def _fit_bodies(bodies, points, miss_term, scratch, params):
         if size > 0:
             heap[0] = heap[size]
             pos[heap[0]] = 0
-            _heap_fix(heap, pos, size, body_score, 0)
+            _heap_fix(heap, pos, size, prio, 0)
         satisfied[r] = True
         # lines 13-19: fix its markers and points; flag bodies whose candidates changed
         for k in range(body_size[r]):

@@ -279,7 +279,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
     _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
-    _fit_bodies(bodies, points, params.miss_reacq, scratch, params)
+    _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
             assigned[i] = NONE
