@@ -240,6 +240,21 @@ class LabelerConfig(BaseModel):
         "score times their rigidity (body_tolerance_mm over the sliding-window A + w D of each "
         "link): a body the data shows bending pulls points after the bodies it shows rigid",
     )
+    presence_min_markers: int = Field(
+        3,
+        ge=0,
+        le=8,
+        description="a subject with fewer markers than this observed in the previous frame "
+        "(absent) keeps its labels only if one of its rigid bodies has this many labeled members "
+        "whose distances agree with the body's D (a subject that left cannot hold isolated ghost "
+        "points; 0 = off)",
+    )
+    presence_tol_mm: float = Field(
+        15.0,
+        gt=0,
+        description="the presence check accepts a pair of members whose distance is within this "
+        "plus 3 A of D",
+    )
     absent_frames: int = Field(
         60,
         ge=0,

@@ -70,8 +70,9 @@ class Tracks(NamedTuple):
     - ``kx (M, 3)``: this frame's constant-velocity (Kalman) prediction, before the rigid-body
       prediction replaces it (:mod:`.motion`).
     - ``lost (M,)`` int64: frames missing in a row; ``gone (M,)`` bool: every marker of the
-      marker's subject has been missing for ``absent_frames`` frames (the subject left: no wide
-      re-acquisition from stale predictions).
+      marker's subject has been missing for ``absent_frames`` frames, or fewer than
+      ``presence_min_markers`` of them were observed in the previous frame (the subject left: no
+      wide re-acquisition from stale predictions; :func:`.step._absent`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
