@@ -190,7 +190,12 @@ class Server:
                         f"{self.settings.metrics_port}: {exc.strerror or exc}"
                     ) from exc
             for t in self.transports:
+                if hasattr(t, "admission"):
+                    t.admission = self._admit  # type: ignore[attr-defined]
                 await self._stack.enter_async_context(t)  # type: ignore[arg-type]
+                rcvbuf = getattr(t, "receive_buffer_bytes", None)
+                if rcvbuf is not None:
+                    self.metrics.receive_buffer.set(rcvbuf)
             for s in self.settings.streams:
                 await self._status(s.name, "starting")
             for s in self.settings.streams:
@@ -297,6 +302,19 @@ class Server:
             state.resume(*cached)
         self._spawn(self._status(name, "online"), f"status-{name}")
         return state
+
+    def _admit(self, name: str, payload: bytes) -> str | None:
+        """The UDP receiver's pre-filter (before decoding): a frame for a stream with a slot
+        is queued under its name (the receive queue is fair between keys); one that may start
+        or resume a stream (labeled, or a cached labeler) under ``""``, with everything else
+        it cannot attribute; one that cannot get a slot (unlabeled, unknown, not cached) is
+        dropped unread as ``unknown_stream``. ``b"labels" in payload`` is a conservative
+        test: a false positive only costs a full decode."""
+        if name in self.streams:
+            return name
+        if self.settings.allow_new_streams and (name in self.cache or b"labels" in payload):
+            return ""
+        return None
 
     def _free_slot(self) -> bool:
         """Frees one slot of an unconfigured stream: an idle one first, else the least recently
@@ -421,7 +439,10 @@ class Server:
             self.metrics.queue(state.name, len(queue))
             try:
                 if verdict.new_run:
+                    n = state.recoveries
                     state.new_run(msg, verdict)
+                    if state.recoveries != n:
+                        self.metrics.recovery(state.name)
                 if state.needs_training(msg):
                     out = await self._train(state, msg, recv_ns)
                 elif executor is not None:
@@ -578,11 +599,14 @@ class Server:
         log.log(level, "stream %s: status %s (labeled fraction %.2f, recovered %.2f)",
                 state.name, changed, state.labeled_fraction, state.recovered_fraction)  # fmt: skip
         await self._status(state.name, changed)
-        if changed == "lost" and state.on_lost is not None:
+        if changed == "lost":
             try:
-                state.on_lost(state)
+                if state.on_lost is not None:
+                    state.on_lost(state)
+                elif state.start_recovery("lost"):
+                    self.metrics.recovery(state.name)
             except Exception:
-                log.exception("stream %s: on_lost hook failed", state.name)
+                log.exception("stream %s: recovery after lost failed", state.name)
 
     async def _send_all(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> bool:
         ok = False

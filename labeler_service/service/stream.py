@@ -61,6 +61,7 @@ from labeler_service.errors import InitBufferFullError, LabelerError, LimitExcee
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
+from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
@@ -70,6 +71,10 @@ if TYPE_CHECKING:
     from labeler_service.labeling.booting import BootSnapshot
 
 log = logging.getLogger(__name__)
+
+#: Frames every subject must have been labeled by a recovery labeler before the stream is
+#: handed back to a plain labeler (they are its labeled first frames).
+HANDBACK_FRAMES = 4
 
 
 def _natural(s: str) -> tuple:
@@ -226,6 +231,14 @@ class StreamState:
         #: finished attempts, newest last (bounded)
         self.boots: deque[BootRecord] = deque(maxlen=256)
         self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
+        # recovery by boot (see "Recovery" in the module docstring)
+        #: the labeler is a recovery BootingLabeler, handed back to a plain one once every
+        #: subject of the model is labeled again
+        self.recovering = False
+        self.recoveries = 0  # recoveries started (lost, or a new run after a long gap)
+        self.handbacks = 0  # recoveries that ended with every subject labeled again
+        #: the recovery labeler's last frames (points, t, labels) while it labels every subject
+        self._handback: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
 
     @property
     def last_seq(self) -> int | None:
@@ -270,6 +283,8 @@ class StreamState:
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
+        self.recovering = False
+        self._handback.clear()
         self.labeled_fraction = self.recovered_fraction = float("nan")
         self.names = tuple(labeler.marker_names)
         self._index = {n: i for i, n in enumerate(self.names)}
@@ -426,8 +441,79 @@ class StreamState:
             return
         if verdict.time_jumped:
             self._rebase = True
+            # a gap of unknown length: the performers may be anywhere, the tracks cannot be
+            # trusted; boot them from the stream's model (its own trained templates)
+            if self.start_recovery("new run after a time jump"):
+                return
         log.info("stream %s: new run %d without labels: continuing from the current model",
                  self.name, self.runs)  # fmt: skip
+
+    # --------------------------------------------------------------------- recovery
+    def recovery_model(self) -> LabelerModel | None:
+        """The subject model a recovery boots from: the online labeler's templates (trained
+        from the init frames, or the model file of a stream that does not boot); None for
+        the baseline, a labeler without templates yet, or one that boots already."""
+        lab = self.labeler
+        if self.settings.labeler != "online" or self.booting is not None:
+            return None
+        model = getattr(lab, "model", None)
+        return model if isinstance(model, LabelerModel) else None
+
+    def start_recovery(self, why: str) -> bool:
+        """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
+        frame path, driven by the server like a model stream's boot); False when there is no
+        model to boot from (the labeler's own re-acquisition is then the only recovery)."""
+        model = self.recovery_model()
+        if model is None or self.rate is None:
+            return False
+        lab = self._factory(self.settings.labeler, rate=self.rate, model=model,
+                            config=self.settings.labeler_config,
+                            boot=self.settings.boot_config)  # fmt: skip
+        if not isinstance(lab, BootingLabeler):
+            return False
+        lab.inline_boot = False
+        lab.inline_extend = False
+        self._swap(lab)
+        self.recovering = True
+        self.recoveries += 1
+        log.warning("stream %s: %s: booting its %d subjects from the stream's model (recovery "
+                    "%d)", self.name, why, len(model.subjects), self.recoveries)  # fmt: skip
+        return True
+
+    def _swap(self, labeler: FrameLabeler) -> None:
+        """Installs another labeler of the same marker set (recovery, hand-back): the model
+        message and the health averages stay as they are."""
+        self.boot_inflight = False
+        self._boot_result = None
+        self._handback.clear()
+        if tuple(labeler.marker_names) != self.names:
+            assert self.rate is not None
+            self._install(labeler, self.rate)
+        else:
+            self.labeler = labeler
+            self.recovering = False
+
+    def _after_recovery_frame(self, f: FrameMsg, t: float, out: LabeledFrame) -> None:
+        """While recovering: once every subject of the model has been labeled for
+        ``HANDBACK_FRAMES`` frames (and no boot is in flight), hands the stream back to a plain
+        labeler of the model started from those frames' labels (as the boot's own rebuild
+        does); the next frame is its first unlabeled one."""
+        lab = self.labeler
+        assert isinstance(lab, BootingLabeler)
+        if lab.n_active < len(lab.model.subjects) or self.boot_inflight:
+            self._handback.clear()
+            return
+        self._handback.append((f.points, t, out.point_labels))
+        if len(self._handback) < HANDBACK_FRAMES:
+            return
+        plain = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
+                              config=self.settings.labeler_config)  # fmt: skip
+        for pts, tt, labels in self._handback:
+            plain.process(pts, tt, labels)
+        self._swap(plain)
+        self.handbacks += 1
+        log.info("stream %s: recovered: every subject labeled again; back to the plain "
+                 "labeler", self.name)  # fmt: skip
 
     # --------------------------------------------------------------------- per frame
     def process(self, f: FrameMsg, recv_ns: int, verdict: Verdict = ACCEPT) -> Output | None:
@@ -460,6 +546,8 @@ class StreamState:
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, self._label_indices(f))
+        if self.recovering:
+            self._after_recovery_frame(f, t, out)
         label_ns = time.perf_counter_ns() - t0
         self._t_last = t
         return self.encode(f, out, recv_ns, label_ns)
