@@ -74,8 +74,8 @@ class Healthy:
     def restart(self, seg: int, init: int = 50) -> None:
         """A new run (seq and t jump by whole passes, then ``init`` labeled frames): each
         segment starts from a freshly trained labeler, so one attack's aftermath does not
-        carry into the next segment's score (what a stream that lost its markers needs to
-        recover on its own, boot from a model, is not part of this service yet)."""
+        carry into the next segment's score (a stream's recovery on its own, by boot from its
+        trained model, is tested in tests/hostile/test_recovery.py)."""
         lead = 3 + init  # 2 frames confirm the new run (dropped), then the training window
         self.k = (self.k // seg + 2 + 10_000 // seg) * seg - lead  # scoring starts at phase 0
         self.init_until = self.k + lead
@@ -312,7 +312,8 @@ async def run(args) -> dict:
     h = Healthy(frames, frame_order(frames.n_frames, 1000))
     seg = 2 * (frames.n_frames - 1)
     with tempfile.TemporaryDirectory(prefix="mocap-hostile-") as d:
-        settings = service_settings("udp", {"name": "healthy"}, 60.0, queue_size=64)
+        settings = service_settings("udp", {"name": "healthy"}, 60.0, queue_size=64,
+                                    stream_idle_s=args.stream_idle_s)  # fmt: skip
         async with ServiceProcess(settings, Path(args.workdir or d)) as svc:
             addr = svc.udp
             assert addr is not None
@@ -342,12 +343,25 @@ async def run(args) -> dict:
                     task = asyncio.create_task(healthy_passes(h, sock, addr, seg, done))
                     extra = {} if name == "baseline" else await ATTACKS[name](ctx)
                     # the attack's aftermath (trainings off the loop) belongs to its segment
+                    t_end = asyncio.get_running_loop().time()
                     async with asyncio.timeout(args.settle_max_s):
                         while svc.scrape().get("mocap_training_jobs{}", 0) > 0:
                             await asyncio.sleep(0.5)
                     done.set()
                     seqs = await task
                     await asyncio.sleep(1.5)  # in flight; transport drops (1/s) counted
+                    # RSS once the attack's bounded state is released as documented: abandoned
+                    # background threads ended, unconfigured streams expired after
+                    # stream_idle_s (their memory returned by the expire task's trim)
+                    async with asyncio.timeout(args.settle_max_s):
+                        while True:
+                            sc = svc.scrape()
+                            if (sc.get("mocap_background_threads{}", 0) == 0
+                                    and sc.get("mocap_streams{}", 0) <= 1):  # fmt: skip
+                                break
+                            await asyncio.sleep(0.5)
+                    await asyncio.sleep(1.0 + min(5.0, args.stream_idle_s / 4))  # trim
+                    settle_s = asyncio.get_running_loop().time() - t_end
                     scrape = svc.scrape()
                     after = service_drops(scrape)
                     rss = rss_bytes(svc.pid) / 2**20
@@ -363,6 +377,7 @@ async def run(args) -> dict:
                         },  # fmt: skip
                         "rss_mb": round(rss, 1),
                         "rss_vs_steady_pct": round(100 * (rss / steady_rss - 1), 2),
+                        "rss_after_s": round(settle_s, 1),
                         "streams": int(scrape.get("mocap_streams{}", 0)),
                         "series": sum(1 for k in scrape if k.startswith("mocap_")),
                         **extra,
@@ -387,6 +402,9 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--settle-max-s", type=float, default=180.0,
                    help="longest wait for an attack's trainings to end")  # fmt: skip
+    p.add_argument("--stream-idle-s", type=float, default=5.0,
+                   help="the service's stream_idle_s: unconfigured streams (the attacks') "
+                   "expire after this long idle; RSS is read after they have")  # fmt: skip
     p.add_argument("--json-out", default=None)
     p.add_argument("--workdir", default=None, help="keep the service's settings and log here")
     args = p.parse_args()

@@ -142,6 +142,11 @@ class ServiceMetrics:
             "mocap_training_jobs", "In-stream trainings running or waiting (off the loop)",
             registry=r,
         )  # fmt: skip
+        self.background_threads = Gauge(
+            "mocap_background_threads",
+            "Background job threads alive (trainings, boots), abandoned ones included",
+            registry=r,
+        )  # fmt: skip
         self.streams_expired = Counter(
             "mocap_streams_expired", "Unconfigured streams removed after stream_idle_s idle",
             registry=r,

@@ -654,6 +654,7 @@ class Server:
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
+            self.metrics.background_threads.set(self.background.running)
             if self._trim_soon:  # a failed training left cycles (exception <-> frames) behind
                 self._trim_soon = False
                 gc.collect()

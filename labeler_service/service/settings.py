@@ -74,8 +74,11 @@ class UdpSettings(_Section):
     max_subscribers: int = Field(64, ge=1)
     #: Confirmed subscribers per source host (IP) at most (``subscribe_host_limit``).
     max_subscribers_per_host: int = Field(4, ge=1)
-    #: Kernel receive/send buffer sizes requested (capped by net.core.rmem_max/wmem_max).
-    socket_buffer_bytes: int = Field(4 * 1024 * 1024, ge=65536)
+    #: Kernel receive/send buffer sizes requested. Linux caps them at net.core.rmem_max /
+    #: wmem_max unless the process has CAP_NET_ADMIN (then SO_RCVBUFFORCE is used); a clamped
+    #: buffer is logged at start-up and the granted size is the gauge
+    #: ``mocap_udp_receive_buffer_bytes``. 16 MiB holds a burst of ~2,000 datagrams of 5 kB.
+    socket_buffer_bytes: int = Field(16 * 1024 * 1024, ge=65536)
 
     @field_validator("publish_to")
     @classmethod
