@@ -10,8 +10,11 @@
 Tasks are named (``ingest-udp``, ``stream-<name>``, ``model-repeat``, ``transport-drops``,
 ``metrics-log``); leaving the ``async with`` publishes ``offline`` status, cancels every task,
 then awaits them. What the transports drop themselves (receive-queue overflow, datagrams the
-kernel refused) is added to the drop metric once a second. Kernels
-are compiled on a synthetic scene before the status turns ``online`` and ``ready`` is set.
+kernel refused) is added to the drop metric once a second, when freed C-heap memory is also
+returned to the OS (``malloc_trim`` in a thread, :mod:`~labeler_service.service.background`;
+after a removed stream or an ended job also a full ``gc.collect``, cheap because the objects of
+the start-up are frozen). Kernels are compiled on a synthetic scene before the status turns
+``online`` and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
 per stream (the first unlabeled frame, which trains the labeler), which runs off the loop through
 :class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
@@ -59,7 +62,7 @@ from labeler_service.errors import (
 )
 from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
-from labeler_service.service.background import Background, release_memory
+from labeler_service.service.background import Background, configure_allocator, release_memory
 from labeler_service.service.continuity import Verdict
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
@@ -162,7 +165,9 @@ class Server:
         self._published_model: dict[str, int] = {}
         self._transport_drops: dict[tuple[str, str, str], int] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
-        self._tasks: list[asyncio.Task] = []
+        #: running tasks; a task leaves the set when it ends (a finished task keeps its result
+        #: or exception, whose traceback holds the frame's locals: an expired stream's state)
+        self._tasks: set[asyncio.Task] = set()
         self._stack: AsyncExitStack | None = None
         self._rlog = RateLimitedLog(log)
         self.ready: asyncio.Event | None = None
@@ -171,6 +176,7 @@ class Server:
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> Server:
+        configure_allocator()
         self.ready = asyncio.Event()
         if self.transports is None:
             self.transports = build_transports(self.settings)
@@ -215,6 +221,10 @@ class Server:
                     if self.settings.warmup and state.booting is not None:
                         await asyncio.to_thread(state.booting.warmup)  # the boot's kernels too
                     await self._publish_model(state)
+            # everything alive now (modules, compiled kernels, models) lives as long as the
+            # process: the collector skips it from now on (full collections stay cheap)
+            gc.collect()
+            gc.freeze()
             for t in self.transports:
                 self._spawn(self._ingest(t), f"ingest-{t.name}")
             self._spawn(self._model_repeat(), "model-repeat")
@@ -243,7 +253,7 @@ class Server:
             with contextlib.suppress(Exception):
                 await self._status(name, "offline")
         self.background.close()
-        tasks, self._tasks = self._tasks, []
+        tasks, self._tasks = self._tasks, set()
         await cancel_and_wait(tasks)
         self._count_transport_drops()
         for ex in self._executors.values():
@@ -257,9 +267,8 @@ class Server:
 
     def _spawn(self, coro, name: str) -> asyncio.Task:
         task = asyncio.create_task(coro, name=name)
-        if len(self._tasks) >= 256:  # streams come and go: forget finished tasks
-            self._tasks = [t for t in self._tasks if not t.done()]
-        self._tasks.append(task)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
         return task
 
     # ------------------------------------------------------------------ streams
@@ -344,7 +353,11 @@ class Server:
             self.cache.move_to_end(name)
             while len(self.cache) > self.settings.stream_cache_size:
                 self.cache.popitem(last=False)
+        # what the stream buffered goes now, whoever still refers to the state (its cancelled
+        # worker's frame until the task ends; an abandoned training job until it returns)
+        state.release()
         self.metrics.forget(name)
+        self._trim_soon = True  # its buffers: full gc (freelists) and trim, off this call
         self.metrics.streams_expired.inc()
         self.metrics.streams_active.set(len(self.streams))
         self._spawn(self._status(name, "offline"), f"status-{name}-offline")
@@ -368,8 +381,7 @@ class Server:
             idle = [st for st in self._dynamic() if self._idle(st, now)]
             for st in idle:
                 self._remove_stream(st.name)
-            if idle:
-                release_memory()  # what the removed streams held goes back to the OS
+            # what the removed streams held is returned by the next transport-drops tick
 
     # ------------------------------------------------------------------ ingest
     async def _ingest(self, transport: Transport) -> None:
@@ -651,14 +663,27 @@ class Server:
                     self.metrics.drop(reason, stream, delta)
 
     async def _transport_drops_loop(self) -> None:
+        threads = 0
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
-            self.metrics.background_threads.set(self.background.running)
-            if self._trim_soon:  # a failed training left cycles (exception <-> frames) behind
+            running = self.background.running
+            if running < threads:  # a job ended (an abandoned one frees its state only now)
+                self._trim_soon = True
+            threads = running
+            self.metrics.background_threads.set(running)
+            if self._trim_soon:
+                # after a failed training (cycles: exception <-> frames) or a removed stream: a
+                # full collection also empties the interpreter's free lists, whose few objects
+                # otherwise pin whole 1 MiB object arenas that a flood of labeled frames (2,000
+                # label strings each) spread over (measured: 500 -> 250 MB after init_buffer);
+                # ~60 ms with the start-up objects frozen, only after such events
                 self._trim_soon = False
                 gc.collect()
-                release_memory()
+            # what was freed since (a drained receive backlog, removed streams, finished jobs)
+            # goes back to the OS: ~10 us when there is nothing to return, tens of ms after a
+            # large free, hence in a thread (ctypes releases the GIL)
+            await asyncio.to_thread(release_memory)
 
     async def _log_loop(self) -> None:
         while True:

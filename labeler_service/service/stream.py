@@ -425,6 +425,16 @@ class StreamState:
         self.init_frames.append(dataclasses.replace(f, labels=None))
         self._init_idx.append(idx)
 
+    def release(self) -> None:
+        """Drops what the stream holds (init buffer, labeler, boot state) when it is removed:
+        references to the state that outlive it (a cancelled worker's frame, an abandoned job)
+        then hold nothing large."""
+        self.take_init()
+        self.labeler = None
+        self._boot_result = None
+        self._handback.clear()
+        self.boots.clear()
+
     def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
         """Applies a new run (see the module docstring) before ``f`` is processed."""
         self.runs += 1
