@@ -197,3 +197,29 @@ def test_streams_that_come_and_go_leave_no_tasks_or_series_behind():
             assert names <= set(srv.streams) | {""}
 
     run(go())
+
+
+def test_a_removed_stream_releases_its_init_buffer_at_once():
+    """Frames buffered by a stream that never trains are dropped when it expires, whoever
+    still refers to its state; no finished task is kept (its traceback would hold it)."""
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(stream_idle_s=0.4), [mem]) as srv:
+            for k in range(30):
+                labels = [f"b:m{i}" for i in range(20)]
+                mem.inject(encode_frame("buf", k, k / 100, _pts(20, k), labels))
+            await _drain(srv)
+            state = srv.streams["buf"]
+            assert len(state.init_frames) == 30
+            async with asyncio.timeout(10):
+                while "buf" in srv.streams:
+                    await asyncio.sleep(0.05)
+            # released by the removal itself, before the cancelled worker has even ended
+            assert state.init_frames == [] and state._init_bytes == 0
+            assert state.labeler is None
+            for _ in range(5):  # the ended tasks' done callbacks run
+                await asyncio.sleep(0)
+            assert all(not t.done() for t in srv._tasks)
+
+    run(go())
