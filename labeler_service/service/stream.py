@@ -75,6 +75,9 @@ log = logging.getLogger(__name__)
 #: Frames every subject must have been labeled by a recovery labeler before the stream is
 #: handed back to a plain labeler (they are its labeled first frames).
 HANDBACK_FRAMES = 4
+#: Bytes an init frame costs besides its arrays' data (the message object, two array headers),
+#: counted against ``max_init_bytes``.
+INIT_FRAME_OVERHEAD = 320
 
 
 def _natural(s: str) -> tuple:
@@ -110,8 +113,8 @@ def subject_slices(names: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
 @dataclass(slots=True)
 class InitWindow:
     """Buffered init frames handed to training: ``frames`` (labels stripped), ``idx`` (per
-    frame, int32 indices into ``names``, -1 = unlabeled point) and ``names`` (first seen
-    first)."""
+    frame, int16 (int32 when ``max_markers`` needs it) indices into ``names``, -1 = unlabeled
+    point) and ``names`` (first seen first)."""
 
     frames: list[FrameMsg]
     idx: list[np.ndarray]
@@ -209,7 +212,7 @@ class StreamState:
         )
         #: buffered init frames (their ``labels`` moved into ``_init_idx``, compactly)
         self.init_frames: list[FrameMsg] = []
-        self._init_idx: list[np.ndarray] = []  # per frame: int32 index into _init_labels
+        self._init_idx: list[np.ndarray] = []  # per frame: int16/int32 index into _init_labels
         self._init_bytes = 0
         self._init_labels: dict[str, int] = {}  # label -> buffer index, first seen first
         self._t_offset = 0.0  # added to t before the labeler sees it (re-based runs)
@@ -394,7 +397,7 @@ class StreamState:
         return _indices(self._index, f.labels)
 
     def buffer_init(self, f: FrameMsg) -> None:
-        """Buffers one labeled init frame (points as they are, labels as int32 indices into
+        """Buffers one labeled init frame (points as they are, labels as int16 indices into
         the stream's label list); raises :class:`InitBufferFullError` (frames or bytes cap) or
         :class:`LimitExceeded` (``marker_cap``) without buffering it."""
         s = self.settings
@@ -405,7 +408,15 @@ class StreamState:
             )
         known = self._init_labels
         new = {x: None for x in labels if x is not None and x not in known}
-        nbytes = f.points.nbytes + 4 * len(labels) + sum(len(x) + 64 for x in new)
+        # int16 label indices while max_markers allows (half of int32); the frame's Python
+        # objects (message, two array headers) count too, so tiny frames are not undercounted
+        itype = np.int16 if s.max_markers < 2**15 else np.int32
+        nbytes = (
+            f.points.nbytes
+            + np.dtype(itype).itemsize * len(labels)
+            + INIT_FRAME_OVERHEAD
+            + sum(len(x) + 64 for x in new)
+        )
         if self._init_bytes + nbytes > s.max_init_bytes:
             raise InitBufferFullError(
                 f"stream {self.name}: init buffer full ({s.max_init_bytes} bytes, max_init_bytes)"
@@ -419,7 +430,7 @@ class StreamState:
         for x in new:
             known[x] = len(known)
         # -1 (unknown point) indexes the remap table's last entry, which is -1 too
-        idx = np.fromiter((known[x] if x is not None else -1 for x in labels), np.int32,
+        idx = np.fromiter((known[x] if x is not None else -1 for x in labels), itype,
                           count=len(labels))  # fmt: skip
         self._init_bytes += nbytes
         self.init_frames.append(dataclasses.replace(f, labels=None))
