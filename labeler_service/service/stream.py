@@ -215,6 +215,7 @@ class StreamState:
         self._init_idx: list[np.ndarray] = []  # per frame: int16/int32 index into _init_labels
         self._init_bytes = 0
         self._init_labels: dict[str, int] = {}  # label -> buffer index, first seen first
+        self._init_subjects: dict[str, int] = {}  # subject -> distinct markers in the buffer
         self._t_offset = 0.0  # added to t before the labeler sees it (re-based runs)
         self._t_last: float | None = None  # last (re-based) t given to the labeler
         self._rebase = False  # re-base time at the next frame (the run's t jumped)
@@ -381,6 +382,7 @@ class StreamState:
         self.init_frames, self._init_idx = [], []
         self._init_bytes = 0
         self._init_labels = {}
+        self._init_subjects = {}
         return init
 
     def install_trained(
@@ -427,6 +429,20 @@ class StreamState:
                 "distinct markers; frame dropped",
                 "marker_cap",
             )
+        per = self._init_subjects
+        grow: dict[str, int] = {}
+        for x in new:
+            subj = split_label(x)[0] or ""
+            grow[subj] = grow.get(subj, 0) + 1
+        for subj, n in grow.items():
+            if per.get(subj, 0) + n > s.max_markers_per_subject:
+                raise LimitExceeded(
+                    f"stream {self.name}: init frames name more than max_markers_per_subject = "
+                    f"{s.max_markers_per_subject} markers of subject {subj!r}; frame dropped",
+                    "marker_cap",
+                )
+        for subj, n in grow.items():
+            per[subj] = per.get(subj, 0) + n
         for x in new:
             known[x] = len(known)
         # -1 (unknown point) indexes the remap table's last entry, which is -1 too

@@ -154,6 +154,26 @@ class _StuckTraining(SlowLabeler):
         return super().process(points, t, labels)
 
 
+def test_markers_per_subject_are_capped():
+    async def go():
+        mem = MemoryTransport()
+        cfg = settings(labeler="baseline", max_markers=100, max_markers_per_subject=30)
+        async with Server(cfg, [mem]) as srv:
+            # one subject of 40 markers: over the per-subject cap (the stream cap allows it)
+            mem.inject(encode_frame("default", 0, 0.0, _pts(40, 0), [f"a:m{i}" for i in range(40)]))
+            # 2 subjects of 20, then 15 more of the first: 35 > 30
+            mem.inject(encode_frame("default", 1, 0.01, _pts(40, 1),
+                                    [f"s{i % 2}:m{i}" for i in range(40)]))  # fmt: skip
+            mem.inject(encode_frame("default", 2, 0.02, _pts(15, 2),
+                                    [f"s0:x{i}" for i in range(15)]))  # fmt: skip
+            await _drain(srv)
+            st = srv.streams["default"]
+            assert srv.metrics.drops("marker_cap") == 2
+            assert len(st._init_labels) == 40 and st._init_subjects == {"s0": 20, "s1": 20}
+
+    run(go())
+
+
 def test_training_over_budget_is_abandoned_reported_and_does_not_hold_shutdown():
     def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return _StuckTraining(marker_names, rate)
