@@ -16,7 +16,8 @@ late frames are dropped; a jump of ``seq`` or ``t`` (forward or back) is suspect
 until ``run_confirm_frames`` consecutive frames continue it; then it is a **new run**. A new
 run that starts with labeled init frames retrains from them (a model stream rebuilds from its
 model); an unlabeled one continues with the current labeler, time re-based so the labeler sees
-one frame period across the jump (its tracks re-acquire the markers).
+one frame period across the jump, unless ``t`` jumped: then (a gap of unknown length) the
+stream recovers by boot (below) when its labeler has a model.
 
 Limits (counted by the server when hit): ``max_init_frames`` and ``max_init_bytes`` of buffered
 init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``). Training runs
@@ -37,8 +38,18 @@ by the labeler and booted again when back (the ``lost`` status needs nothing mor
 
 Health: the labeled fraction (observed markers / model markers) and the recovered fraction are
 averaged over ``health_window_s``; below ``degraded_below`` / ``lost_below`` the stream's status
-becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook for
-a recovery that needs more than the labeler's own re-acquisition (boot from a subject model).
+becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook the
+server calls then (a booting model stream's only logs: its labeler re-boots by itself); without
+one the server starts a recovery.
+
+**Recovery** (:meth:`StreamState.start_recovery`): an online labeler that has subject templates
+(trained from the init frames, or a model file with ``boot = false``) is replaced by a
+:class:`~labeler_service.labeling.booting.BootingLabeler` of that model, booted off the frame
+path exactly like a model stream's (``boot_due`` / ``boot_request`` / ``boot_job`` /
+``boot_done``); points go out unlabeled until their performer is booted. Once every subject of
+the model has been labeled for ``HANDBACK_FRAMES`` frames, a plain labeler of the model is
+started from those frames' labels and takes over (no booting cost afterwards). A subject that
+never comes back keeps the stream on the booting labeler, which boots it when it does.
 """
 
 from __future__ import annotations
@@ -469,6 +480,7 @@ class StreamState:
             log.info("stream %s: new run %d with labeled init frames: retraining", self.name,
                      self.runs)  # fmt: skip
             self.take_init()
+            self.recovering = False
             self._t_offset = 0.0
             self._t_last = None
             if self.stream_settings.model is not None:
