@@ -402,7 +402,7 @@ def main() -> int:
     p.add_argument("--subjects", type=int, default=3)
     p.add_argument("--rate", type=float, default=120.0)
     p.add_argument("--segment-s", type=float, default=8.0)
-    p.add_argument("--attacks", nargs="*", default=list(ATTACKS), choices=list(ATTACKS))
+    p.add_argument("--attacks", "--only", nargs="*", default=list(ATTACKS), choices=list(ATTACKS))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--settle-max-s", type=float, default=180.0,
                    help="longest wait for an attack's trainings to end")  # fmt: skip
