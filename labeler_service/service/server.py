@@ -161,6 +161,8 @@ class Server:
         #: trained labelers of expired unconfigured streams: name -> (labeler, rate, last t), LRU
         self.cache: OrderedDict[str, tuple[FrameLabeler, float, float | None]] = OrderedDict()
         self.background = Background()
+        #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
+        self._starting: OrderedDict[str, None] = OrderedDict()
         self._trim_soon = False
         self._published_model: dict[str, int] = {}
         self._transport_drops: dict[tuple[str, str, str], int] = {}
@@ -313,16 +315,26 @@ class Server:
         return state
 
     def _admit(self, name: str, payload: bytes) -> str | None:
-        """The UDP receiver's pre-filter (before decoding): a frame for a stream with a slot
-        is queued under its name (the receive queue is fair between keys); one that may start
-        or resume a stream (labeled, or a cached labeler) under ``""``, with everything else
-        it cannot attribute; one that cannot get a slot (unlabeled, unknown, not cached) is
-        dropped unread as ``unknown_stream``. ``b"labels" in payload`` is a conservative
-        test: a false positive only costs a full decode."""
+        """The UDP receiver's pre-filter (before decoding): the receive-queue key of a frame
+        for stream ``name``, or None to drop it unread as ``unknown_stream``. Admitted, under
+        their stream's name (the queue is fair between keys, FIFO within one): frames of a
+        stream with a slot or a cached labeler, labeled frames (they may start a stream; their
+        names are remembered, at most 64), and the frames following those before the slot
+        exists (it is made when the first one is decoded). ``b"labels" in payload`` is a
+        conservative test: a false positive only costs a full decode."""
         if name in self.streams:
             return name
-        if self.settings.allow_new_streams and (name in self.cache or b"labels" in payload):
-            return ""
+        if not self.settings.allow_new_streams:
+            return None
+        starting = self._starting
+        if b"labels" in payload:
+            starting[name] = None
+            starting.move_to_end(name)
+            if len(starting) > 64:
+                starting.popitem(last=False)
+            return name
+        if name in starting or name in self.cache:
+            return name
         return None
 
     def _free_slot(self) -> bool:

@@ -144,3 +144,25 @@ def test_frames_for_streams_without_a_slot_are_dropped_before_decoding(allow_new
     else:
         assert streams == ["vol"]
         assert unknown == prefiltered == 480 + len(dyn) - 20 + 20  # dyn's labeled frames too
+
+
+def test_a_new_streams_frames_read_before_its_slot_exists_are_kept_in_order():
+    """Labeled init frames and the first unlabeled ones in one read: the slot is made when the
+    first frame is decoded, after the whole batch was classified."""
+    dyn = _frames("dyn", n=60, init=20)
+    cfg = service_settings(labeler="baseline", udp={"port": 0})
+
+    async def go():
+        async with Server(cfg) as srv:
+            udp = srv.transports[0]
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            for p in dyn:  # no await: all of it waits in the kernel for one read
+                s.sendto(p, udp.address)
+            s.close()
+            async with asyncio.timeout(20):
+                while srv.metrics.snapshot()["streams"].get("dyn", {}).get("frames_out", 0) < 40:
+                    await asyncio.sleep(0.02)
+            srv._count_transport_drops()
+            return srv.metrics.drops()
+
+    assert run(go()) == 0  # no unknown_stream, no late frame

@@ -17,6 +17,18 @@ so a subscriber that expired during a stall re-confirms by itself). Refusals rai
 ``subscribe_token`` (wrong or stale token), ``subscribe_host_limit`` (more than
 ``max_subscribers_per_host`` confirmed per source IP), ``subscribe_full`` (``max_subscribers``).
 
+**Receive queue and pre-filter**: each datagram is classified before decoding. With the
+server's ``admission`` set, a frame's stream is read from its header
+(:func:`~labeler_service.service.protocol.peek_frame_stream`) and the server answers with the
+receive-queue key (the stream's name) or None: the datagram is then dropped unread and counted
+as ``unknown_stream`` (a flood for unknown streams costs a few microseconds per datagram).
+Everything else (not a frame, not peekable) is queued under ``""`` and decoded in full. The
+queue (:class:`~labeler_service.service.transports.base.FairQueue`) serves the keys
+round-robin and, when full, drops the oldest datagram of the largest key (``rx_overflow``).
+The kernel buffer asked for is ``socket_buffer_bytes``; where Linux clamps it to
+``net.core.rmem_max`` the socket retries with ``SO_RCVBUFFORCE`` (CAP_NET_ADMIN) and a buffer
+still below the request is logged at start-up (:attr:`UdpTransport.receive_buffer_bytes`).
+
 **Kernel drops**: on Linux the socket asks for ``SO_RXQ_OVFL``; every datagram then carries the
 count of datagrams the kernel dropped on this socket because its receive buffer was full, which
 :meth:`UdpTransport.drop_counts` reports as ``kernel_rx_overflow``. Elsewhere that loss is not
@@ -207,8 +219,8 @@ class UdpTransport:
         self._queue: FairQueue[Incoming] = FairQueue(queue_size)
         self._sock: _Socket | None = None
         #: the server's admission of a frame for ``stream`` (its raw bytes too): the receive
-        #: queue's key (the stream, or ``""`` for one shared key), or None to drop it unread as
-        #: ``unknown_stream`` (see the module docstring); unset: one key for everything
+        #: queue's key, or None to drop it unread as ``unknown_stream`` (see the module
+        #: docstring); unset: one key for everything
         self.admission: Callable[[str, bytes], str | None] | None = None
         self._static = [parse_hostport(d) for d in settings.publish_to]
         # subscriber address -> (stream or "*", last renewal, monotonic s)
