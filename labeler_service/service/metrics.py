@@ -133,8 +133,18 @@ class ServiceMetrics:
             ["stream"], registry=r,
         )  # fmt: skip
         self.streams_active = Gauge("mocap_streams", "Streams with a slot", registry=r)
+        self.receive_buffer = Gauge(
+            "mocap_udp_receive_buffer_bytes",
+            "Kernel receive buffer of the UDP socket as the OS granted it (getsockopt)",
+            registry=r,
+        )  # fmt: skip
         self.training = Gauge(
             "mocap_training_jobs", "In-stream trainings running or waiting (off the loop)",
+            registry=r,
+        )  # fmt: skip
+        self.background_threads = Gauge(
+            "mocap_background_threads",
+            "Background job threads alive (trainings, boots), abandoned ones included",
             registry=r,
         )  # fmt: skip
         self.streams_expired = Counter(
@@ -156,6 +166,11 @@ class ServiceMetrics:
         self.subjects_booted = Gauge(
             "mocap_subjects_booted", "Subjects of the model labeled now (booted)", ["stream"],
             registry=r,
+        )  # fmt: skip
+        self.recoveries = Counter(
+            "mocap_recoveries",
+            "Recoveries by boot from the stream's own model (lost, or a new run after a time "
+            "jump)", ["stream"], registry=r,
         )  # fmt: skip
         self._recent_label: dict[str, _Recent] = {}
         self._recent_latency: dict[str, _Recent] = {}
@@ -189,6 +204,9 @@ class ServiceMetrics:
     def boot_seconds(self, stream: str, seconds: float) -> None:
         self._child(self.boot_duration, stream).observe(seconds)
 
+    def recovery(self, stream: str) -> None:
+        self._child(self.recoveries, stream).inc()
+
     def subjects(self, stream: str, n: int) -> None:
         self._child(self.subjects_booted, stream).set(n)
 
@@ -201,6 +219,7 @@ class ServiceMetrics:
             self.frames_in, self.frames_out, self.seq_gap, self.labeling, self.latency,
             self.unlabeled, self.queue_depth, self.labeled_fraction, self.recovered_fraction,
             self.boot_attempts, self.boot_failures, self.boot_duration, self.subjects_booted,
+            self.recoveries,
         ):  # fmt: skip
             with contextlib.suppress(KeyError):
                 metric.remove(stream)

@@ -392,6 +392,90 @@ def _decode_status(m: dict) -> StatusMsg:
     return StatusMsg(_get_stream(m), state, _get_float(m, "time", "time"))
 
 
+def _skip(b: bytes, i: int) -> int:
+    """The offset after the msgpack scalar, string or bin at ``b[i]``; -1 for anything else
+    (an array, a map, an extension) or a truncated value: :func:`peek_frame_stream` then
+    gives up."""
+    c = b[i]
+    if c <= 0x7F or c >= 0xE0 or c in (0xC0, 0xC2, 0xC3):  # fixint, nil, bool
+        return i + 1
+    if 0xA0 <= c <= 0xBF:  # fixstr
+        return i + 1 + (c & 0x1F)
+    fixed = _FIXED.get(c)
+    if fixed is not None:
+        return i + 1 + fixed
+    var = _VAR.get(c)
+    if var is not None:
+        n = int.from_bytes(b[i + 1 : i + 1 + var], "big")
+        return i + 1 + var + n
+    return -1
+
+
+# type byte -> payload bytes (ints, floats) / length-field bytes (str8-32, bin8-32)
+_FIXED = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8, 0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8, 0xCA: 4, 0xCB: 8}
+_FRAME_HEAD = b"\xa1v\x01\xa4type\xa5frame\xa6stream"
+_VAR = {0xD9: 1, 0xDA: 2, 0xDB: 4, 0xC4: 1, 0xC5: 2, 0xC6: 4}
+
+
+def peek_frame_stream(payload: bytes) -> str | None:
+    """The ``stream`` of a frame message read from its header without decoding it (the UDP
+    receiver's pre-filter: a flood for unknown streams is dropped at a few microseconds per
+    datagram instead of a full :func:`decode`). Walks the map's leading entries (string keys,
+    scalar/string/bin values) up to ``stream``; returns ``None`` when the message is not
+    recognisably a frame (another ``type``, not a map, a key order or value it does not walk,
+    a name that breaks :data:`STREAM_NAME`): the caller then decodes it in full. Never raises.
+    A name returned is only a hint: :func:`decode` still validates the whole message.
+    """
+    b = payload
+    try:
+        c = b[0]
+        # fast path: the header :func:`encode_frame` writes (v, type, stream, in this order)
+        if 0x80 <= c <= 0x8F and b.startswith(_FRAME_HEAD, 1):
+            j = 1 + len(_FRAME_HEAD)
+            c = b[j]
+            if 0xA0 <= c <= 0xBF:
+                value = b[j + 1 : j + 1 + (c & 0x1F)].decode("utf-8")
+                return value if STREAM_NAME.match(value) else None
+            c = b[0]
+        if 0x80 <= c <= 0x8F:
+            n, i = c & 0x0F, 1
+        elif c == 0xDE:
+            n, i = int.from_bytes(b[1:3], "big"), 3
+        else:
+            return None
+        for _ in range(min(n, 16)):
+            c = b[i]
+            if not 0xA0 <= c <= 0xBF:  # keys of the protocol are short fixstr
+                return None
+            j = i + 1 + (c & 0x1F)
+            key = b[i + 1 : j]
+            if key == b"stream" or key == b"type":
+                c = b[j]
+                if 0xA0 <= c <= 0xBF:
+                    k = j + 1 + (c & 0x1F)
+                elif c == 0xD9:
+                    k = j + 2 + b[j + 1]
+                    j += 1
+                else:
+                    return None
+                if k > len(b):
+                    return None
+                value = b[j + 1 : k].decode("utf-8")
+                if key == b"type":
+                    if value != "frame":
+                        return None
+                else:
+                    return value if STREAM_NAME.match(value) else None
+                i = k
+                continue
+            i = _skip(b, j)
+            if i < 0 or i > len(b):
+                return None
+        return None
+    except (IndexError, UnicodeDecodeError):
+        return None
+
+
 def decode(payload: bytes, max_points: int = 2000, max_bytes: int = 65_507) -> Message:
     """Decodes and validates one message; raises :class:`ProtocolError` with a ``reason``.
 

@@ -10,8 +10,11 @@
 Tasks are named (``ingest-udp``, ``stream-<name>``, ``model-repeat``, ``transport-drops``,
 ``metrics-log``); leaving the ``async with`` publishes ``offline`` status, cancels every task,
 then awaits them. What the transports drop themselves (receive-queue overflow, datagrams the
-kernel refused) is added to the drop metric once a second. Kernels
-are compiled on a synthetic scene before the status turns ``online`` and ``ready`` is set.
+kernel refused) is added to the drop metric once a second, when freed C-heap memory is also
+returned to the OS (``malloc_trim`` in a thread, :mod:`~labeler_service.service.background`;
+after a removed stream or an ended job also a full ``gc.collect``, cheap because the objects of
+the start-up are frozen). Kernels are compiled on a synthetic scene before the status turns
+``online`` and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
 per stream (the first unlabeled frame, which trains the labeler), which runs off the loop through
 :class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
@@ -59,7 +62,7 @@ from labeler_service.errors import (
 )
 from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
-from labeler_service.service.background import Background, release_memory
+from labeler_service.service.background import Background, configure_allocator, release_memory
 from labeler_service.service.continuity import Verdict
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
@@ -158,11 +161,15 @@ class Server:
         #: trained labelers of expired unconfigured streams: name -> (labeler, rate, last t), LRU
         self.cache: OrderedDict[str, tuple[FrameLabeler, float, float | None]] = OrderedDict()
         self.background = Background()
+        #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
+        self._starting: OrderedDict[str, None] = OrderedDict()
         self._trim_soon = False
         self._published_model: dict[str, int] = {}
         self._transport_drops: dict[tuple[str, str, str], int] = {}
         self._executors: dict[str, ThreadPoolExecutor] = {}
-        self._tasks: list[asyncio.Task] = []
+        #: running tasks; a task leaves the set when it ends (a finished task keeps its result
+        #: or exception, whose traceback holds the frame's locals: an expired stream's state)
+        self._tasks: set[asyncio.Task] = set()
         self._stack: AsyncExitStack | None = None
         self._rlog = RateLimitedLog(log)
         self.ready: asyncio.Event | None = None
@@ -171,6 +178,7 @@ class Server:
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> Server:
+        configure_allocator()
         self.ready = asyncio.Event()
         if self.transports is None:
             self.transports = build_transports(self.settings)
@@ -190,7 +198,12 @@ class Server:
                         f"{self.settings.metrics_port}: {exc.strerror or exc}"
                     ) from exc
             for t in self.transports:
+                if hasattr(t, "admission"):
+                    t.admission = self._admit  # type: ignore[attr-defined]
                 await self._stack.enter_async_context(t)  # type: ignore[arg-type]
+                rcvbuf = getattr(t, "receive_buffer_bytes", None)
+                if rcvbuf is not None:
+                    self.metrics.receive_buffer.set(rcvbuf)
             for s in self.settings.streams:
                 await self._status(s.name, "starting")
             for s in self.settings.streams:
@@ -210,6 +223,10 @@ class Server:
                     if self.settings.warmup and state.booting is not None:
                         await asyncio.to_thread(state.booting.warmup)  # the boot's kernels too
                     await self._publish_model(state)
+            # everything alive now (modules, compiled kernels, models) lives as long as the
+            # process: the collector skips it from now on (full collections stay cheap)
+            gc.collect()
+            gc.freeze()
             for t in self.transports:
                 self._spawn(self._ingest(t), f"ingest-{t.name}")
             self._spawn(self._model_repeat(), "model-repeat")
@@ -238,7 +255,7 @@ class Server:
             with contextlib.suppress(Exception):
                 await self._status(name, "offline")
         self.background.close()
-        tasks, self._tasks = self._tasks, []
+        tasks, self._tasks = self._tasks, set()
         await cancel_and_wait(tasks)
         self._count_transport_drops()
         for ex in self._executors.values():
@@ -252,9 +269,8 @@ class Server:
 
     def _spawn(self, coro, name: str) -> asyncio.Task:
         task = asyncio.create_task(coro, name=name)
-        if len(self._tasks) >= 256:  # streams come and go: forget finished tasks
-            self._tasks = [t for t in self._tasks if not t.done()]
-        self._tasks.append(task)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
         return task
 
     # ------------------------------------------------------------------ streams
@@ -298,6 +314,29 @@ class Server:
         self._spawn(self._status(name, "online"), f"status-{name}")
         return state
 
+    def _admit(self, name: str, payload: bytes) -> str | None:
+        """The UDP receiver's pre-filter (before decoding): the receive-queue key of a frame
+        for stream ``name``, or None to drop it unread as ``unknown_stream``. Admitted, under
+        their stream's name (the queue is fair between keys, FIFO within one): frames of a
+        stream with a slot or a cached labeler, labeled frames (they may start a stream; their
+        names are remembered, at most 64), and the frames following those before the slot
+        exists (it is made when the first one is decoded). ``b"labels" in payload`` is a
+        conservative test: a false positive only costs a full decode."""
+        if name in self.streams:
+            return name
+        if not self.settings.allow_new_streams:
+            return None
+        starting = self._starting
+        if b"labels" in payload:
+            starting[name] = None
+            starting.move_to_end(name)
+            if len(starting) > 64:
+                starting.popitem(last=False)
+            return name
+        if name in starting or name in self.cache:
+            return name
+        return None
+
     def _free_slot(self) -> bool:
         """Frees one slot of an unconfigured stream: an idle one first, else the least recently
         active one that never started (no labeler). False when every slot is in real use."""
@@ -326,7 +365,11 @@ class Server:
             self.cache.move_to_end(name)
             while len(self.cache) > self.settings.stream_cache_size:
                 self.cache.popitem(last=False)
+        # what the stream buffered goes now, whoever still refers to the state (its cancelled
+        # worker's frame until the task ends; an abandoned training job until it returns)
+        state.release()
         self.metrics.forget(name)
+        self._trim_soon = True  # its buffers: full gc (freelists) and trim, off this call
         self.metrics.streams_expired.inc()
         self.metrics.streams_active.set(len(self.streams))
         self._spawn(self._status(name, "offline"), f"status-{name}-offline")
@@ -350,8 +393,7 @@ class Server:
             idle = [st for st in self._dynamic() if self._idle(st, now)]
             for st in idle:
                 self._remove_stream(st.name)
-            if idle:
-                release_memory()  # what the removed streams held goes back to the OS
+            # what the removed streams held is returned by the next transport-drops tick
 
     # ------------------------------------------------------------------ ingest
     async def _ingest(self, transport: Transport) -> None:
@@ -421,7 +463,10 @@ class Server:
             self.metrics.queue(state.name, len(queue))
             try:
                 if verdict.new_run:
+                    n = state.recoveries
                     state.new_run(msg, verdict)
+                    if state.recoveries != n:
+                        self.metrics.recovery(state.name)
                 if state.needs_training(msg):
                     out = await self._train(state, msg, recv_ns)
                 elif executor is not None:
@@ -578,11 +623,14 @@ class Server:
         log.log(level, "stream %s: status %s (labeled fraction %.2f, recovered %.2f)",
                 state.name, changed, state.labeled_fraction, state.recovered_fraction)  # fmt: skip
         await self._status(state.name, changed)
-        if changed == "lost" and state.on_lost is not None:
+        if changed == "lost":
             try:
-                state.on_lost(state)
+                if state.on_lost is not None:
+                    state.on_lost(state)
+                elif state.start_recovery("lost"):
+                    self.metrics.recovery(state.name)
             except Exception:
-                log.exception("stream %s: on_lost hook failed", state.name)
+                log.exception("stream %s: recovery after lost failed", state.name)
 
     async def _send_all(self, stream: str, kind: str, payload: bytes, retain: bool = False) -> bool:
         ok = False
@@ -627,13 +675,27 @@ class Server:
                     self.metrics.drop(reason, stream, delta)
 
     async def _transport_drops_loop(self) -> None:
+        threads = 0
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
-            if self._trim_soon:  # a failed training left cycles (exception <-> frames) behind
+            running = self.background.running
+            if running < threads:  # a job ended (an abandoned one frees its state only now)
+                self._trim_soon = True
+            threads = running
+            self.metrics.background_threads.set(running)
+            if self._trim_soon:
+                # after a failed training (cycles: exception <-> frames) or a removed stream: a
+                # full collection also empties the interpreter's free lists, whose few objects
+                # otherwise pin whole 1 MiB object arenas that a flood of labeled frames (2,000
+                # label strings each) spread over (measured: 500 -> 250 MB after init_buffer);
+                # ~60 ms with the start-up objects frozen, only after such events
                 self._trim_soon = False
                 gc.collect()
-                release_memory()
+            # what was freed since (a drained receive backlog, removed streams, finished jobs)
+            # goes back to the OS: ~10 us when there is nothing to return, tens of ms after a
+            # large free, hence in a thread (ctypes releases the GIL)
+            await asyncio.to_thread(release_memory)
 
     async def _log_loop(self) -> None:
         while True:

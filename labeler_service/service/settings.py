@@ -74,8 +74,11 @@ class UdpSettings(_Section):
     max_subscribers: int = Field(64, ge=1)
     #: Confirmed subscribers per source host (IP) at most (``subscribe_host_limit``).
     max_subscribers_per_host: int = Field(4, ge=1)
-    #: Kernel receive/send buffer sizes requested (capped by net.core.rmem_max/wmem_max).
-    socket_buffer_bytes: int = Field(4 * 1024 * 1024, ge=65536)
+    #: Kernel receive/send buffer sizes requested. Linux caps them at net.core.rmem_max /
+    #: wmem_max unless the process has CAP_NET_ADMIN (then SO_RCVBUFFORCE is used); a clamped
+    #: buffer is logged at start-up and the granted size is the gauge
+    #: ``mocap_udp_receive_buffer_bytes``. 16 MiB holds a burst of ~2,000 datagrams of 5 kB.
+    socket_buffer_bytes: int = Field(16 * 1024 * 1024, ge=65536)
 
     @field_validator("publish_to")
     @classmethod
@@ -175,6 +178,11 @@ class ServiceSettings(BaseSettings):
     max_init_bytes: int = Field(8 * 1024 * 1024, ge=1024)
     #: Distinct marker labels a stream may define in its init frames (``marker_cap``).
     max_markers: int = Field(1000, ge=1)
+    #: Distinct markers one subject (the label's part before ``:``) may have (``marker_cap``).
+    #: Training keeps pair matrices per subject, so its time and memory grow with the square
+    #: of a subject's markers: this bounds them by ``max_markers x max_markers_per_subject``
+    #: (a 1,000-marker subject took 10-60 s and ~300 MB; a body suit has 40-150 markers).
+    max_markers_per_subject: int = Field(256, ge=3)
     #: Seconds in-stream training may take (off the event loop); over it the stream reports
     #: ``training_failed`` and waits for new labeled init frames.
     train_budget_s: float = Field(60.0, gt=0)

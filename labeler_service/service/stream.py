@@ -16,7 +16,8 @@ late frames are dropped; a jump of ``seq`` or ``t`` (forward or back) is suspect
 until ``run_confirm_frames`` consecutive frames continue it; then it is a **new run**. A new
 run that starts with labeled init frames retrains from them (a model stream rebuilds from its
 model); an unlabeled one continues with the current labeler, time re-based so the labeler sees
-one frame period across the jump (its tracks re-acquire the markers).
+one frame period across the jump, unless ``t`` jumped: then (a gap of unknown length) the
+stream recovers by boot (below) when its labeler has a model.
 
 Limits (counted by the server when hit): ``max_init_frames`` and ``max_init_bytes`` of buffered
 init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``). Training runs
@@ -37,8 +38,18 @@ by the labeler and booted again when back (the ``lost`` status needs nothing mor
 
 Health: the labeled fraction (observed markers / model markers) and the recovered fraction are
 averaged over ``health_window_s``; below ``degraded_below`` / ``lost_below`` the stream's status
-becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook for
-a recovery that needs more than the labeler's own re-acquisition (boot from a subject model).
+becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook the
+server calls then (a booting model stream's only logs: its labeler re-boots by itself); without
+one the server starts a recovery.
+
+**Recovery** (:meth:`StreamState.start_recovery`): an online labeler that has subject templates
+(trained from the init frames, or a model file with ``boot = false``) is replaced by a
+:class:`~labeler_service.labeling.booting.BootingLabeler` of that model, booted off the frame
+path exactly like a model stream's (``boot_due`` / ``boot_request`` / ``boot_job`` /
+``boot_done``); points go out unlabeled until their performer is booted. Once every subject of
+the model has been labeled for ``HANDBACK_FRAMES`` frames, a plain labeler of the model is
+started from those frames' labels and takes over (no booting cost afterwards). A subject that
+never comes back keeps the stream on the booting labeler, which boots it when it does.
 """
 
 from __future__ import annotations
@@ -61,6 +72,7 @@ from labeler_service.errors import InitBufferFullError, LabelerError, LimitExcee
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
+from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
@@ -70,6 +82,13 @@ if TYPE_CHECKING:
     from labeler_service.labeling.booting import BootSnapshot
 
 log = logging.getLogger(__name__)
+
+#: Frames every subject must have been labeled by a recovery labeler before the stream is
+#: handed back to a plain labeler (they are its labeled first frames).
+HANDBACK_FRAMES = 4
+#: Bytes an init frame costs besides its arrays' data (the message object, two array headers),
+#: counted against ``max_init_bytes``.
+INIT_FRAME_OVERHEAD = 320
 
 
 def _natural(s: str) -> tuple:
@@ -105,8 +124,8 @@ def subject_slices(names: tuple[str, ...]) -> tuple[tuple[str, int, int], ...]:
 @dataclass(slots=True)
 class InitWindow:
     """Buffered init frames handed to training: ``frames`` (labels stripped), ``idx`` (per
-    frame, int32 indices into ``names``, -1 = unlabeled point) and ``names`` (first seen
-    first)."""
+    frame, int16 (int32 when ``max_markers`` needs it) indices into ``names``, -1 = unlabeled
+    point) and ``names`` (first seen first)."""
 
     frames: list[FrameMsg]
     idx: list[np.ndarray]
@@ -204,9 +223,10 @@ class StreamState:
         )
         #: buffered init frames (their ``labels`` moved into ``_init_idx``, compactly)
         self.init_frames: list[FrameMsg] = []
-        self._init_idx: list[np.ndarray] = []  # per frame: int32 index into _init_labels
+        self._init_idx: list[np.ndarray] = []  # per frame: int16/int32 index into _init_labels
         self._init_bytes = 0
         self._init_labels: dict[str, int] = {}  # label -> buffer index, first seen first
+        self._init_subjects: dict[str, int] = {}  # subject -> distinct markers in the buffer
         self._t_offset = 0.0  # added to t before the labeler sees it (re-based runs)
         self._t_last: float | None = None  # last (re-based) t given to the labeler
         self._rebase = False  # re-base time at the next frame (the run's t jumped)
@@ -226,6 +246,14 @@ class StreamState:
         #: finished attempts, newest last (bounded)
         self.boots: deque[BootRecord] = deque(maxlen=256)
         self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
+        # recovery by boot (see "Recovery" in the module docstring)
+        #: the labeler is a recovery BootingLabeler, handed back to a plain one once every
+        #: subject of the model is labeled again
+        self.recovering = False
+        self.recoveries = 0  # recoveries started (lost, or a new run after a long gap)
+        self.handbacks = 0  # recoveries that ended with every subject labeled again
+        #: the recovery labeler's last frames (points, t, labels) while it labels every subject
+        self._handback: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
 
     @property
     def last_seq(self) -> int | None:
@@ -270,6 +298,8 @@ class StreamState:
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
+        self.recovering = False
+        self._handback.clear()
         self.labeled_fraction = self.recovered_fraction = float("nan")
         self.names = tuple(labeler.marker_names)
         self._index = {n: i for i, n in enumerate(self.names)}
@@ -363,6 +393,7 @@ class StreamState:
         self.init_frames, self._init_idx = [], []
         self._init_bytes = 0
         self._init_labels = {}
+        self._init_subjects = {}
         return init
 
     def install_trained(
@@ -379,7 +410,7 @@ class StreamState:
         return _indices(self._index, f.labels)
 
     def buffer_init(self, f: FrameMsg) -> None:
-        """Buffers one labeled init frame (points as they are, labels as int32 indices into
+        """Buffers one labeled init frame (points as they are, labels as int16 indices into
         the stream's label list); raises :class:`InitBufferFullError` (frames or bytes cap) or
         :class:`LimitExceeded` (``marker_cap``) without buffering it."""
         s = self.settings
@@ -390,7 +421,15 @@ class StreamState:
             )
         known = self._init_labels
         new = {x: None for x in labels if x is not None and x not in known}
-        nbytes = f.points.nbytes + 4 * len(labels) + sum(len(x) + 64 for x in new)
+        # int16 label indices while max_markers allows (half of int32); the frame's Python
+        # objects (message, two array headers) count too, so tiny frames are not undercounted
+        itype = np.int16 if s.max_markers < 2**15 else np.int32
+        nbytes = (
+            f.points.nbytes
+            + np.dtype(itype).itemsize * len(labels)
+            + INIT_FRAME_OVERHEAD
+            + sum(len(x) + 64 for x in new)
+        )
         if self._init_bytes + nbytes > s.max_init_bytes:
             raise InitBufferFullError(
                 f"stream {self.name}: init buffer full ({s.max_init_bytes} bytes, max_init_bytes)"
@@ -401,14 +440,38 @@ class StreamState:
                 "distinct markers; frame dropped",
                 "marker_cap",
             )
+        per = self._init_subjects
+        grow: dict[str, int] = {}
+        for x in new:
+            subj = split_label(x)[0] or ""
+            grow[subj] = grow.get(subj, 0) + 1
+        for subj, n in grow.items():
+            if per.get(subj, 0) + n > s.max_markers_per_subject:
+                raise LimitExceeded(
+                    f"stream {self.name}: init frames name more than max_markers_per_subject = "
+                    f"{s.max_markers_per_subject} markers of subject {subj!r}; frame dropped",
+                    "marker_cap",
+                )
+        for subj, n in grow.items():
+            per[subj] = per.get(subj, 0) + n
         for x in new:
             known[x] = len(known)
         # -1 (unknown point) indexes the remap table's last entry, which is -1 too
-        idx = np.fromiter((known[x] if x is not None else -1 for x in labels), np.int32,
+        idx = np.fromiter((known[x] if x is not None else -1 for x in labels), itype,
                           count=len(labels))  # fmt: skip
         self._init_bytes += nbytes
         self.init_frames.append(dataclasses.replace(f, labels=None))
         self._init_idx.append(idx)
+
+    def release(self) -> None:
+        """Drops what the stream holds (init buffer, labeler, boot state) when it is removed:
+        references to the state that outlive it (a cancelled worker's frame, an abandoned job)
+        then hold nothing large."""
+        self.take_init()
+        self.labeler = None
+        self._boot_result = None
+        self._handback.clear()
+        self.boots.clear()
 
     def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
         """Applies a new run (see the module docstring) before ``f`` is processed."""
@@ -417,6 +480,7 @@ class StreamState:
             log.info("stream %s: new run %d with labeled init frames: retraining", self.name,
                      self.runs)  # fmt: skip
             self.take_init()
+            self.recovering = False
             self._t_offset = 0.0
             self._t_last = None
             if self.stream_settings.model is not None:
@@ -426,8 +490,79 @@ class StreamState:
             return
         if verdict.time_jumped:
             self._rebase = True
+            # a gap of unknown length: the performers may be anywhere, the tracks cannot be
+            # trusted; boot them from the stream's model (its own trained templates)
+            if self.start_recovery("new run after a time jump"):
+                return
         log.info("stream %s: new run %d without labels: continuing from the current model",
                  self.name, self.runs)  # fmt: skip
+
+    # --------------------------------------------------------------------- recovery
+    def recovery_model(self) -> LabelerModel | None:
+        """The subject model a recovery boots from: the online labeler's templates (trained
+        from the init frames, or the model file of a stream that does not boot); None for
+        the baseline, a labeler without templates yet, or one that boots already."""
+        lab = self.labeler
+        if self.settings.labeler != "online" or self.booting is not None:
+            return None
+        model = getattr(lab, "model", None)
+        return model if isinstance(model, LabelerModel) else None
+
+    def start_recovery(self, why: str) -> bool:
+        """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
+        frame path, driven by the server like a model stream's boot); False when there is no
+        model to boot from (the labeler's own re-acquisition is then the only recovery)."""
+        model = self.recovery_model()
+        if model is None or self.rate is None:
+            return False
+        lab = self._factory(self.settings.labeler, rate=self.rate, model=model,
+                            config=self.settings.labeler_config,
+                            boot=self.settings.boot_config)  # fmt: skip
+        if not isinstance(lab, BootingLabeler):
+            return False
+        lab.inline_boot = False
+        lab.inline_extend = False
+        self._swap(lab)
+        self.recovering = True
+        self.recoveries += 1
+        log.warning("stream %s: %s: booting its %d subjects from the stream's model (recovery "
+                    "%d)", self.name, why, len(model.subjects), self.recoveries)  # fmt: skip
+        return True
+
+    def _swap(self, labeler: FrameLabeler) -> None:
+        """Installs another labeler of the same marker set (recovery, hand-back): the model
+        message and the health averages stay as they are."""
+        self.boot_inflight = False
+        self._boot_result = None
+        self._handback.clear()
+        if tuple(labeler.marker_names) != self.names:
+            assert self.rate is not None
+            self._install(labeler, self.rate)
+        else:
+            self.labeler = labeler
+            self.recovering = False
+
+    def _after_recovery_frame(self, f: FrameMsg, t: float, out: LabeledFrame) -> None:
+        """While recovering: once every subject of the model has been labeled for
+        ``HANDBACK_FRAMES`` frames (and no boot is in flight), hands the stream back to a plain
+        labeler of the model started from those frames' labels (as the boot's own rebuild
+        does); the next frame is its first unlabeled one."""
+        lab = self.labeler
+        assert isinstance(lab, BootingLabeler)
+        if lab.n_active < len(lab.model.subjects) or self.boot_inflight:
+            self._handback.clear()
+            return
+        self._handback.append((f.points, t, out.point_labels))
+        if len(self._handback) < HANDBACK_FRAMES:
+            return
+        plain = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
+                              config=self.settings.labeler_config)  # fmt: skip
+        for pts, tt, labels in self._handback:
+            plain.process(pts, tt, labels)
+        self._swap(plain)
+        self.handbacks += 1
+        log.info("stream %s: recovered: every subject labeled again; back to the plain "
+                 "labeler", self.name)  # fmt: skip
 
     # --------------------------------------------------------------------- per frame
     def process(self, f: FrameMsg, recv_ns: int, verdict: Verdict = ACCEPT) -> Output | None:
@@ -460,6 +595,8 @@ class StreamState:
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, self._label_indices(f))
+        if self.recovering:
+            self._after_recovery_frame(f, t, out)
         label_ns = time.perf_counter_ns() - t0
         self._t_last = t
         return self.encode(f, out, recv_ns, label_ns)

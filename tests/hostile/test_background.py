@@ -80,3 +80,37 @@ def test_a_slot_held_by_an_abandoned_job_makes_the_next_wait_then_fail():
             await bg.run(lambda: 3, budget_s=1)
 
     run(go())
+
+
+class _Big:
+    """Stands for a training's state (a labeler with its matrices)."""
+
+
+def test_an_abandoned_jobs_outcome_is_dropped_in_its_thread_without_the_gc():
+    import gc
+    import weakref
+
+    refs = []
+
+    def job(fail, cancel):
+        big = _Big()
+        refs.append(weakref.ref(big))
+        cancel.wait(10)  # abandoned meanwhile
+        if fail:  # the traceback holds this frame (and ``big``) ...
+            raise ValueError("over budget anyway")
+        return big  # ... or the result is the big object itself
+
+    async def go():
+        bg = Background()
+        for fail in (True, False):
+            with pytest.raises(BudgetExceeded):
+                await bg.run(job, fail, budget_s=0.05)
+            while bg.running:
+                await asyncio.sleep(0.01)
+
+    gc.disable()  # freed by reference counting when the thread ends, not by a collection
+    try:
+        run(go())
+        assert [r() for r in refs] == [None, None]
+    finally:
+        gc.enable()

@@ -154,6 +154,26 @@ class _StuckTraining(SlowLabeler):
         return super().process(points, t, labels)
 
 
+def test_markers_per_subject_are_capped():
+    async def go():
+        mem = MemoryTransport()
+        cfg = settings(labeler="baseline", max_markers=100, max_markers_per_subject=30)
+        async with Server(cfg, [mem]) as srv:
+            # one subject of 40 markers: over the per-subject cap (the stream cap allows it)
+            mem.inject(encode_frame("default", 0, 0.0, _pts(40, 0), [f"a:m{i}" for i in range(40)]))
+            # 2 subjects of 20, then 15 more of the first: 35 > 30
+            mem.inject(encode_frame("default", 1, 0.01, _pts(40, 1),
+                                    [f"s{i % 2}:m{i}" for i in range(40)]))  # fmt: skip
+            mem.inject(encode_frame("default", 2, 0.02, _pts(15, 2),
+                                    [f"s0:x{i}" for i in range(15)]))  # fmt: skip
+            await _drain(srv)
+            st = srv.streams["default"]
+            assert srv.metrics.drops("marker_cap") == 2
+            assert len(st._init_labels) == 40 and st._init_subjects == {"s0": 20, "s1": 20}
+
+    run(go())
+
+
 def test_training_over_budget_is_abandoned_reported_and_does_not_hold_shutdown():
     def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
         return _StuckTraining(marker_names, rate)
@@ -195,5 +215,31 @@ def test_streams_that_come_and_go_leave_no_tasks_or_series_behind():
             assert len(srv._queues) == len(srv.streams) == len(srv._workers)
             names = {k[1][0] for k in srv.metrics._children if k[1]}
             assert names <= set(srv.streams) | {""}
+
+    run(go())
+
+
+def test_a_removed_stream_releases_its_init_buffer_at_once():
+    """Frames buffered by a stream that never trains are dropped when it expires, whoever
+    still refers to its state; no finished task is kept (its traceback would hold it)."""
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(stream_idle_s=0.4), [mem]) as srv:
+            for k in range(30):
+                labels = [f"b:m{i}" for i in range(20)]
+                mem.inject(encode_frame("buf", k, k / 100, _pts(20, k), labels))
+            await _drain(srv)
+            state = srv.streams["buf"]
+            assert len(state.init_frames) == 30
+            async with asyncio.timeout(10):
+                while "buf" in srv.streams:
+                    await asyncio.sleep(0.05)
+            # released by the removal itself, before the cancelled worker has even ended
+            assert state.init_frames == [] and state._init_bytes == 0
+            assert state.labeler is None
+            for _ in range(5):  # the ended tasks' done callbacks run
+                await asyncio.sleep(0)
+            assert all(not t.done() for t in srv._tasks)
 
     run(go())

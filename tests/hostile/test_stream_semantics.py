@@ -115,18 +115,35 @@ def test_replaying_the_same_take_twice_is_a_new_run_that_retrains():
     assert srv.streams["default"].runs == 2
 
 
+def _run_paced(fast, live, rate, **over):
+    """``fast`` as fast as the server takes them, then ``live`` at the scene's rate (a boot
+    off the loop is installed at the frame after it finishes, as in a live stream)."""
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(**over), [mem]) as srv:
+            await _feed(mem, fast)
+            await _feed(mem, live, 1.0 / rate)
+            msgs = await collect(srv, mem)
+            return srv, mem, msgs
+
+    return run(go())
+
+
 def test_a_long_sender_pause_is_a_new_run_that_keeps_labeling():
     cap = _scene(frames=240)
     items = payloads(cap, np.random.default_rng(0), INIT, frames=range(0, 120))
-    # the sender pauses 5 s (t jumps, seq continues) and resumes where the scene is
+    # the sender pauses 5 s (t jumps, seq continues) and resumes where the scene is: the
+    # stream boots its performers from its trained model (tests/hostile/test_recovery.py)
     rest = payloads(cap, np.random.default_rng(2), 0, seq0=120, t0=120 / cap.rate + 5.0,
                     frames=range(120, 240))  # fmt: skip
-    srv, mem, msgs = _run_stream(items + rest)
+    srv, mem, msgs = _run_paced(items, rest, cap.rate)
     assert srv.metrics.drops("time_jump") == 2
-    after = [m for m in msgs if m.seq >= 130]
+    after = [m for m in msgs if m.seq >= 180]
     acc = accuracy(after, model_names(mem), cap, lambda s: s)
     assert acc > 0.9
     assert srv.streams["default"].status == "online"
+    assert srv.streams["default"].recoveries == 1
 
 
 def test_a_collapsed_stream_reports_lost_and_recovers_to_online():
@@ -140,12 +157,13 @@ def test_a_collapsed_stream_reports_lost_and_recovers_to_online():
     ]  # fmt: skip
     back = payloads(cap, np.random.default_rng(4), 0, seq0=110, t0=110 / cap.rate,
                     frames=range(110, 200))  # fmt: skip
-    srv, mem, msgs = _run_stream(good + junk + back, health_window_s=0.05)
+    srv, mem, msgs = _run_paced(good + junk, back, cap.rate, health_window_s=0.05)
     states = [decode(p).state for s, kind, p, _ in mem.sent if kind == "status"][:-1]  # offline
     assert "lost" in states
     i_lost = states.index("lost")
     assert states[-1] == "online" and i_lost < len(states) - 1  # recovered by itself
     assert srv.metrics.value("mocap_labeled_fraction", stream="default") > 0.9
+    assert srv.streams["default"].recoveries == 1  # booted from its trained model
     tail = [m for m in msgs if m.seq >= 150]
     assert accuracy(tail, model_names(mem), cap, lambda s: s) > 0.9
 

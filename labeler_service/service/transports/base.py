@@ -107,6 +107,78 @@ class DropOldestQueue(Generic[T]):
         return self._items.popleft() if self._items else None
 
 
+class FairQueue(Generic[T]):
+    """A bounded queue shared by several sources, fair between them (the UDP receive queue).
+
+    Items are put with a ``key`` (the stream a datagram is for, ``""`` for everything the
+    receiver could not or would not attribute: unknown streams, subscribe requests). ``get``
+    serves the keys round-robin, one item each, oldest first within a key, so a backlog of one
+    key (a flood) delays another key's items by at most one item per other key. When the queue
+    holds ``maxsize`` items, ``put`` drops the oldest item of the **largest** key: a flood of
+    junk or of one stream evicts its own items, never the few of a quiet stream. ``put``
+    returns ``(key, item)`` of the dropped item (or ``None``); ``dropped`` counts them all.
+    Same interface as :class:`DropOldestQueue` otherwise.
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"maxsize must be >= 1, got {maxsize}")
+        self.maxsize = maxsize
+        self.dropped = 0
+        self._buckets: dict[str, deque[T]] = {}
+        self._order: deque[str] = deque()  # keys with items, in round-robin order
+        self._n = 0
+        self._event = asyncio.Event()
+
+    def __len__(self) -> int:
+        return self._n
+
+    def depth(self, key: str) -> int:
+        """Items queued under ``key``."""
+        b = self._buckets.get(key)
+        return len(b) if b is not None else 0
+
+    def put(self, item: T, key: str = "") -> tuple[str, T] | None:
+        b = self._buckets.get(key)
+        if b is None:
+            b = self._buckets[key] = deque()
+            self._order.append(key)
+        b.append(item)
+        self._n += 1
+        old = None
+        if self._n > self.maxsize:
+            big = max(self._order, key=lambda k: len(self._buckets[k]))
+            victim = self._buckets[big]
+            old = (big, victim.popleft())
+            self._n -= 1
+            self.dropped += 1
+            if not victim:
+                del self._buckets[big]
+                self._order.remove(big)
+        self._event.set()
+        return old
+
+    def _pop(self) -> T:
+        key = self._order.popleft()
+        b = self._buckets[key]
+        item = b.popleft()
+        self._n -= 1
+        if b:
+            self._order.append(key)
+        else:
+            del self._buckets[key]
+        return item
+
+    async def get(self) -> T:
+        while not self._n:
+            self._event.clear()
+            await self._event.wait()
+        return self._pop()
+
+    def get_nowait(self) -> T | None:
+        return self._pop() if self._n else None
+
+
 async def cancel_and_wait(tasks: Iterable[asyncio.Task]) -> None:
     """Cancels every task, then waits until all have ended (their exceptions are dropped)."""
     tasks = list(tasks)
@@ -115,6 +187,6 @@ async def cancel_and_wait(tasks: Iterable[asyncio.Task]) -> None:
     await asyncio.gather(*tasks, return_exceptions=True)
 
 
-async def iterate_queue(queue: DropOldestQueue[T]) -> AsyncIterator[T]:
+async def iterate_queue(queue: DropOldestQueue[T] | FairQueue[T]) -> AsyncIterator[T]:
     while True:
         yield await queue.get()

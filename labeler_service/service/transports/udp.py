@@ -17,6 +17,18 @@ so a subscriber that expired during a stall re-confirms by itself). Refusals rai
 ``subscribe_token`` (wrong or stale token), ``subscribe_host_limit`` (more than
 ``max_subscribers_per_host`` confirmed per source IP), ``subscribe_full`` (``max_subscribers``).
 
+**Receive queue and pre-filter**: each datagram is classified before decoding. With the
+server's ``admission`` set, a frame's stream is read from its header
+(:func:`~labeler_service.service.protocol.peek_frame_stream`) and the server answers with the
+receive-queue key (the stream's name) or None: the datagram is then dropped unread and counted
+as ``unknown_stream`` (a flood for unknown streams costs a few microseconds per datagram).
+Everything else (not a frame, not peekable) is queued under ``""`` and decoded in full. The
+queue (:class:`~labeler_service.service.transports.base.FairQueue`) serves the keys
+round-robin and, when full, drops the oldest datagram of the largest key (``rx_overflow``).
+The kernel buffer asked for is ``socket_buffer_bytes``; where Linux clamps it to
+``net.core.rmem_max`` the socket retries with ``SO_RCVBUFFORCE`` (CAP_NET_ADMIN) and a buffer
+still below the request is logged at start-up (:attr:`UdpTransport.receive_buffer_bytes`).
+
 **Kernel drops**: on Linux the socket asks for ``SO_RXQ_OVFL``; every datagram then carries the
 count of datagrams the kernel dropped on this socket because its receive buffer was full, which
 :meth:`UdpTransport.drop_counts` reports as ``kernel_rx_overflow``. Elsewhere that loss is not
@@ -33,19 +45,26 @@ queue's overflow to the server's metrics.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import hmac
 import logging
 import os
 import socket
 import struct
+import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 
 from labeler_service.errors import ConfigError, ProtocolError
-from labeler_service.service.protocol import TOKEN_BYTES, encode_challenge
+from labeler_service.service.protocol import TOKEN_BYTES, encode_challenge, peek_frame_stream
 from labeler_service.service.settings import UDP_MAX_PAYLOAD, UdpSettings
-from labeler_service.service.transports.base import DropOldestQueue, Incoming, iterate_queue
+from labeler_service.service.transports.base import (
+    DropOldestQueue,
+    FairQueue,
+    Incoming,
+    iterate_queue,
+)
 
 log = logging.getLogger(__name__)
 Addr = tuple[str, int]
@@ -53,6 +72,11 @@ Addr = tuple[str, int]
 #: Linux ``SO_RXQ_OVFL`` (socket(7)); Python's socket module does not export it.
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
 _OVFL_SPACE = socket.CMSG_SPACE(4) if hasattr(socket, "CMSG_SPACE") else 0
+#: Linux ``SO_RCVBUFFORCE``/``SO_SNDBUFFORCE`` (socket(7)): exceed ``net.core.rmem_max`` /
+#: ``wmem_max`` with CAP_NET_ADMIN (root); Python does not export them.
+_FORCE = {socket.SO_RCVBUF: 33, socket.SO_SNDBUF: 32} if sys.platform.startswith("linux") else {}
+#: A received datagram's queue key, or None to drop it unread (see :class:`_Socket`).
+Classify = Callable[[bytes], "str | None"]
 
 
 def parse_hostport(dest: str) -> Addr:
@@ -69,12 +93,23 @@ class _Socket:
     loop iteration).
     """
 
-    def __init__(self, queue: DropOldestQueue[Incoming], name: str, buffer: int) -> None:
+    def __init__(
+        self,
+        queue: DropOldestQueue[Incoming] | FairQueue[Incoming],
+        name: str,
+        buffer: int,
+        classify: Classify | None = None,
+    ) -> None:
         self.queue = queue
         self.name = name
+        #: with a :class:`FairQueue`: each datagram's key; ``None`` drops it before decoding
+        #: (counted in ``prefiltered``)
+        self.classify = classify
+        self.prefiltered = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
-        _tune(self.sock, buffer)
+        #: what the kernel granted (``getsockopt``; Linux reports twice the usable bytes)
+        self.receive_buffer, self.buffer_clamped = _tune(self.sock, buffer)
         self._loop: asyncio.AbstractEventLoop | None = None
         #: datagrams the kernel dropped on this socket (SO_RXQ_OVFL); None: not available
         self.kernel_dropped: int | None = None
@@ -96,7 +131,6 @@ class _Socket:
             self._readable_msg()
             return
         recv = self.sock.recvfrom
-        put = self.queue.put
         for _ in range(100_000):
             try:
                 data, addr = recv(65536)
@@ -106,12 +140,23 @@ class _Socket:
                 # ICMP port unreachable after a send to a vanished peer (connected sockets):
                 # an error report, not a lost datagram; not fatal
                 return
-            put(Incoming(data, time.time_ns(), self.name, addr))
+            self._put(data, addr)
+
+    def _put(self, data: bytes, addr: Addr) -> None:
+        classify = self.classify
+        if classify is None:
+            self.queue.put(Incoming(data, time.time_ns(), self.name, addr))
+            return
+        key = classify(data)
+        if key is None:
+            self.prefiltered += 1
+            return
+        self.queue.put(Incoming(data, time.time_ns(), self.name, addr), key)  # type: ignore[call-arg]
 
     def _readable_msg(self) -> None:
         """As :meth:`_readable`, with ``recvmsg`` to read the SO_RXQ_OVFL drop counter."""
         recv = self.sock.recvmsg
-        put = self.queue.put
+        put = self._put
         dropped = self.kernel_dropped
         try:
             for _ in range(100_000):
@@ -124,7 +169,7 @@ class _Socket:
                 for level, kind, cdata in anc:
                     if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(cdata) >= 4:
                         dropped = struct.unpack("=I", cdata[:4])[0]
-                put(Incoming(data, time.time_ns(), self.name, addr))
+                put(data, addr)
         finally:
             self.kernel_dropped = dropped
 
@@ -145,12 +190,23 @@ class _Socket:
         self.sock.close()
 
 
-def _tune(sock: socket.socket, size: int) -> None:
+def _tune(sock: socket.socket, size: int) -> tuple[int, bool]:
+    """Asks for ``size``-byte kernel buffers; where the OS clamps them (``net.core.rmem_max``)
+    retries with ``SO_RCVBUFFORCE`` (Linux, CAP_NET_ADMIN). Returns the receive buffer the
+    kernel reports and whether it is below ``size`` (clamped)."""
+    got = {}
     for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
-        try:
+        with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, opt, size)
-        except OSError:  # pragma: no cover - platform limits
-            log.debug("could not set socket buffer %s to %d", opt, size)
+        have = sock.getsockopt(socket.SOL_SOCKET, opt)
+        force = _FORCE.get(opt)
+        if have < size and force is not None:
+            with contextlib.suppress(OSError):  # EPERM without CAP_NET_ADMIN
+                sock.setsockopt(socket.SOL_SOCKET, force, size)
+            have = sock.getsockopt(socket.SOL_SOCKET, opt)
+        got[opt] = have
+    rcv = got[socket.SO_RCVBUF]
+    return rcv, rcv < size
 
 
 class UdpTransport:
@@ -160,8 +216,12 @@ class UdpTransport:
 
     def __init__(self, settings: UdpSettings, queue_size: int = 1024) -> None:
         self.settings = settings
-        self._queue: DropOldestQueue[Incoming] = DropOldestQueue(queue_size)
+        self._queue: FairQueue[Incoming] = FairQueue(queue_size)
         self._sock: _Socket | None = None
+        #: the server's admission of a frame for ``stream`` (its raw bytes too): the receive
+        #: queue's key, or None to drop it unread as ``unknown_stream`` (see the module
+        #: docstring); unset: one key for everything
+        self.admission: Callable[[str, bytes], str | None] | None = None
         self._static = [parse_hostport(d) for d in settings.publish_to]
         # subscriber address -> (stream or "*", last renewal, monotonic s)
         self.subscribers: dict[Addr, tuple[str, float]] = {}
@@ -181,14 +241,32 @@ class UdpTransport:
         """Cumulative drops inside the transport by ``(stream, reason)``: ``rx_overflow`` (the
         receive queue was full, the oldest datagram went) and ``send_error`` (datagrams the
         kernel refused, per destination)."""
+        # one series: per-stream keys would outlive the streams (slots come and go)
         out = {("", "rx_overflow"): self._queue.dropped}
         out.update({(s, "send_error"): n for s, n in self._send_failed.items()})
-        if self._sock is not None and self._sock.kernel_dropped is not None:
-            out[("", "kernel_rx_overflow")] = self._sock.kernel_dropped
+        if self._sock is not None:
+            out[("", "unknown_stream")] = self._sock.prefiltered
+            if self._sock.kernel_dropped is not None:
+                out[("", "kernel_rx_overflow")] = self._sock.kernel_dropped
         return out
 
+    @property
+    def receive_buffer_bytes(self) -> int:
+        """The kernel receive buffer the socket got (as ``getsockopt`` reports it)."""
+        return self._sock.receive_buffer if self._sock is not None else 0
+
+    def _classify(self, data: bytes) -> str | None:
+        admission = self.admission
+        if admission is None:
+            return ""
+        name = peek_frame_stream(data)
+        if name is None:  # not a frame, or not one the peek reads: decoded in full
+            return ""
+        return admission(name, data)
+
     async def __aenter__(self) -> UdpTransport:
-        sock = _Socket(self._queue, self.name, self.settings.socket_buffer_bytes)
+        want = self.settings.socket_buffer_bytes
+        sock = _Socket(self._queue, self.name, want, self._classify)
         try:
             sock.sock.bind((self.settings.host, self.settings.port))
         except OSError as exc:
@@ -196,6 +274,13 @@ class UdpTransport:
             raise ConfigError(
                 f"udp: cannot bind {self.settings.host}:{self.settings.port}: {exc}"
             ) from exc
+        if sock.buffer_clamped:
+            log.warning(
+                "udp: receive buffer of %d bytes requested (udp.socket_buffer_bytes), the OS "
+                "gave %d: raise net.core.rmem_max or run with CAP_NET_ADMIN; bursts larger "
+                "than the buffer are dropped by the kernel (kernel_rx_overflow)",
+                want, sock.receive_buffer,
+            )  # fmt: skip
         sock.start()
         self._sock = sock
         log.info("udp: listening on %s:%d", *self.address)
