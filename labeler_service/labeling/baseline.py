@@ -20,16 +20,24 @@ label's last position. There is no motion model, no structure model and no recov
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from labeler_service.labeling.frame import LabeledFrame, MarkerState
 
+if TYPE_CHECKING:
+    from labeler_service.labeling.templates import LabelerModel
+
 
 class ClosestPointLabeler:
     """Closest-point tracker with the :class:`~labeler_service.labeling.frame.FrameLabeler`
     interface."""
+
+    model: LabelerModel | None = (
+        None  # no structure, no motion model: nothing to boot or recover from
+    )
 
     def __init__(
         self,

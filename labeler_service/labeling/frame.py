@@ -11,11 +11,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from labeler_service.errors import LabelerError
+
+if TYPE_CHECKING:
+    from labeler_service.labeling.templates import LabelerModel
 
 
 class MarkerState(IntEnum):
@@ -75,8 +78,13 @@ class FrameLabeler(Protocol):
     ``warmup()`` compiles (or loads) whatever the labeler runs per frame without touching its
     state, so the first real frame pays no compile time. ``body_extent()`` is ``(M,)`` mm per
     marker, the longest marker-pair distance of its smallest rigid body (NaN for a marker
-    without one, or before training); scorers divide recovery errors by it.
+    without one, or before training); scorers divide recovery errors by it. ``model`` is the
+    subject model it labels from (trained, loaded or booted from); None for a labeler without
+    one (the baseline, or before training).
     """
+
+    @property
+    def model(self) -> LabelerModel | None: ...
 
     @property
     def marker_names(self) -> tuple[str, ...]: ...

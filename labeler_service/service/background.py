@@ -84,6 +84,8 @@ class Background:
         self._slots = threading.BoundedSemaphore(concurrency)
         self._running: dict[threading.Thread, threading.Event] = {}
         self._closed = False
+        #: abandoned jobs that have ended since the start (their frames are freed only then)
+        self.abandoned_ended = 0
 
     @property
     def running(self) -> int:
@@ -133,6 +135,7 @@ class Background:
                 _switch_exit()
             try:
                 if cancel.is_set():
+                    self.abandoned_ended += 1
                     # abandoned (over budget, or closed): nobody awaits the outcome; drop it
                     # here, before the trim (an exception's traceback holds the job's frames,
                     # and this frame holds the exception: a cycle only the gc would break)

@@ -12,8 +12,8 @@ Tasks are named (``ingest-udp``, ``stream-<name>``, ``model-repeat``, ``transpor
 then awaits them. What the transports drop themselves (receive-queue overflow, datagrams the
 kernel refused) is added to the drop metric once a second, when freed C-heap memory is also
 returned to the OS (``malloc_trim`` in a thread, :mod:`~labeler_service.service.background`;
-after a removed stream or an ended job also a full ``gc.collect``, cheap because the objects of
-the start-up are frozen). Kernels are compiled on a synthetic scene before the status turns
+after a removed stream or the end of an abandoned job also a full ``gc.collect``, cheap because
+the objects of the start-up are frozen). Kernels are compiled on a synthetic scene before the status turns
 ``online`` and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
 per stream (the first unlabeled frame, which trains the labeler), which runs off the loop through
@@ -198,10 +198,9 @@ class Server:
                         f"{self.settings.metrics_port}: {exc.strerror or exc}"
                     ) from exc
             for t in self.transports:
-                if hasattr(t, "admission"):
-                    t.admission = self._admit  # type: ignore[attr-defined]
+                t.admission = self._admit
                 await self._stack.enter_async_context(t)  # type: ignore[arg-type]
-                rcvbuf = getattr(t, "receive_buffer_bytes", None)
+                rcvbuf = t.receive_buffer_bytes
                 if rcvbuf is not None:
                     self.metrics.receive_buffer.set(rcvbuf)
             for s in self.settings.streams:
@@ -675,15 +674,16 @@ class Server:
                     self.metrics.drop(reason, stream, delta)
 
     async def _transport_drops_loop(self) -> None:
-        threads = 0
+        abandoned = 0
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
-            running = self.background.running
-            if running < threads:  # a job ended (an abandoned one frees its state only now)
+            self.metrics.background_threads.set(self.background.running)
+            if self.background.abandoned_ended > abandoned:
+                # an abandoned job ended (its state is freed only now); a job that ended in time
+                # frees its state by reference counting and needs no collection
+                abandoned = self.background.abandoned_ended
                 self._trim_soon = True
-            threads = running
-            self.metrics.background_threads.set(running)
             if self._trim_soon:
                 # after a failed training (cycles: exception <-> frames) or a removed stream: a
                 # full collection also empties the interpreter's free lists, whose few objects

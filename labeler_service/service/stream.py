@@ -503,10 +503,9 @@ class StreamState:
         from the init frames, or the model file of a stream that does not boot); None for
         the baseline, a labeler without templates yet, or one that boots already."""
         lab = self.labeler
-        if self.settings.labeler != "online" or self.booting is not None:
+        if lab is None or self.settings.labeler != "online" or self.booting is not None:
             return None
-        model = getattr(lab, "model", None)
-        return model if isinstance(model, LabelerModel) else None
+        return lab.model
 
     def start_recovery(self, why: str) -> bool:
         """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the

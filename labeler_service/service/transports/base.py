@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
-from collections.abc import AsyncIterator, Iterable
+from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -47,10 +47,18 @@ class Incoming:
     stream: str | None = None  # MQTT: the topic's stream (must match the payload's)
 
 
+#: The server's pre-filter of raw incoming frames: ``(stream, payload) -> queue key`` (None:
+#: drop the frame unread as ``unknown_stream``). Transports that can peek a frame's header
+#: before decoding it (UDP) use it; the others ignore it.
+Admission = Callable[[str, bytes], "str | None"]
+
+
 class Transport(Protocol):
     """Everything the server uses of a transport (see the module docstring)."""
 
     name: str
+    #: set by the server before ``__aenter__``; None admits everything
+    admission: Admission | None
 
     async def __aenter__(self) -> Transport: ...
 
@@ -68,6 +76,12 @@ class Transport(Protocol):
 
     @property
     def address(self) -> tuple[str, int]: ...
+
+    @property
+    def receive_buffer_bytes(self) -> int | None:
+        """The kernel receive buffer the transport's socket got; None when it has none of its
+        own (the broker's client)."""
+        ...
 
 
 class DropOldestQueue(Generic[T]):

@@ -7,7 +7,12 @@ import time
 from collections.abc import AsyncIterator
 
 from labeler_service.errors import ProtocolError, TransportError
-from labeler_service.service.transports.base import DropOldestQueue, Incoming, iterate_queue
+from labeler_service.service.transports.base import (
+    Admission,
+    DropOldestQueue,
+    Incoming,
+    iterate_queue,
+)
 
 
 class MemoryTransport:
@@ -20,6 +25,8 @@ class MemoryTransport:
     """
 
     name = "memory"
+    admission: Admission | None = None  # no raw datagrams to peek at
+    receive_buffer_bytes: int | None = None
 
     def __init__(self, maxsize: int = 10_000) -> None:
         self._in: DropOldestQueue[Incoming] = DropOldestQueue(maxsize)

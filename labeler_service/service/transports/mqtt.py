@@ -41,6 +41,7 @@ from labeler_service.service.protocol import encode_status
 from labeler_service.service.settings import MqttSettings
 from labeler_service.service.transports import _aiomqtt_adapter as adapter
 from labeler_service.service.transports.base import (
+    Admission,
     DropOldestQueue,
     Incoming,
     cancel_and_wait,
@@ -187,6 +188,9 @@ class MqttTransport:
     """The service's MQTT transport: one :class:`ReconnectingClient` per configured stream."""
 
     name = "mqtt"
+    #: the broker delivers whole messages per topic: nothing to pre-filter
+    admission: Admission | None = None
+    receive_buffer_bytes: int | None = None
 
     def __init__(self, settings: MqttSettings, streams: list[str], queue_size: int = 1024):
         self.settings = settings

@@ -60,6 +60,7 @@ from labeler_service.errors import ConfigError, ProtocolError
 from labeler_service.service.protocol import TOKEN_BYTES, encode_challenge, peek_frame_stream
 from labeler_service.service.settings import UDP_MAX_PAYLOAD, UdpSettings
 from labeler_service.service.transports.base import (
+    Admission,
     DropOldestQueue,
     FairQueue,
     Incoming,
@@ -221,7 +222,7 @@ class UdpTransport:
         #: the server's admission of a frame for ``stream`` (its raw bytes too): the receive
         #: queue's key, or None to drop it unread as ``unknown_stream`` (see the module
         #: docstring); unset: one key for everything
-        self.admission: Callable[[str, bytes], str | None] | None = None
+        self.admission: Admission | None = None
         self._static = [parse_hostport(d) for d in settings.publish_to]
         # subscriber address -> (stream or "*", last renewal, monotonic s)
         self.subscribers: dict[Addr, tuple[str, float]] = {}
