@@ -36,6 +36,10 @@ class _Template:
     bound: np.ndarray  # (m, m) cross-body tolerance (inf where unknown)
     rigid: np.ndarray  # (m, m) pairs with A <= rigid_a_mm
     link: np.ndarray  # (m, m) articulated-pair tolerance (inf where unknown)
+    #: (m, m) rigid pairs inside one trained body: only these must hold their distance; a
+    #: pair rigid by ``A`` alone (an arm held still against the chest in the training frames)
+    #: may change with the pose, so its mismatch is no evidence against a placement
+    strict: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     extent: float = 2000.0  # longest pair distance D (mm)
     r_max: float = 0.0  # longest anchor edge + tolerance (mm)
     segments: list[np.ndarray] = field(default_factory=list)  # see _segments
@@ -83,7 +87,12 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         np.fill_diagonal(rigid, False)
         link = config.tol_mm + config.link_sigma * Am + config.tol_relative * Dm
         link = np.where(np.isfinite(link), link, -1.0)
-        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link)
+        same = np.zeros((m, m), dtype=bool)
+        for body in subj.bodies:
+            b = np.asarray(body, dtype=np.int64)
+            same[np.ix_(b, b)] = True
+        np.fill_diagonal(same, False)
+        tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link, same & rigid)
         tpl.body_of = [[] for _ in range(m)]
         for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
             if len(body) < 3:
@@ -276,6 +285,7 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
         tpl.D,
         tpl.tol,
         tpl.rigid,
+        tpl.strict,
         tpl.bound,
         tpl.link,
         agree,
@@ -288,7 +298,7 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
 
 
 @njit
-def _graph_kernel(M, P, pts, D, tol, rigid, bound, lt, agree, clash, link, link_err, art):
+def _graph_kernel(M, P, pts, D, tol, rigid, strict, bound, lt, agree, clash, link, link_err, art):
     """The relations of :class:`_Graph` for every pair of nodes (see its docstring)."""
     n = M.shape[0]
     for a in range(n):
@@ -306,9 +316,9 @@ def _graph_kernel(M, P, pts, D, tol, rigid, bound, lt, agree, clash, link, link_
             other = not same_m and not same_p
             agree[a, b] = rig and other and abs(dev) <= tol[ma, mb]
             c = same_m != same_p
-            if known and rig and abs(dev) > tol[ma, mb]:
+            if known and strict[ma, mb] and abs(dev) > tol[ma, mb]:
                 c = True
-            if known and not rig and dev > bound[ma, mb]:
+            if known and not strict[ma, mb] and dev > bound[ma, mb]:
                 c = True
             clash[a, b] = c
             t = lt[ma, mb]
@@ -391,7 +401,6 @@ def _grow(
             part = have[tpl.rigid[m, have]]
             if part.size < 2:
                 continue
-            two = part.size == 2  # a ring of solutions: the point must be unique and linked
             j = part[np.argmin(tpl.D[m, part])]
             near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
             near = np.asarray(near, dtype=np.int64)
@@ -401,17 +410,25 @@ def _grow(
             d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
             dev = d - tpl.D[m, have]
             rig = tpl.rigid[m, have]
+            st = tpl.strict[m, have]
             tol = tpl.tol[m, have]
-            bad = (rig & (np.abs(dev) > tol)) | (~rig & (dev > tpl.bound[m, have]))
-            if two:
+            # pairs of one trained body must hold; a pair rigid by A alone counts when it fits
+            fit = rig & (np.abs(dev) <= tol)
+            bad = (st & (np.abs(dev) > tol)) | (~st & (dev > tpl.bound[m, have]))
+            n_fit = fit.sum(axis=1)
+            ok = ~bad.any(axis=1) & (n_fit >= 2) & (2 * n_fit >= part.size)
+            if not np.any(ok & (n_fit >= 3)):
+                # two rigid partners only: a ring of solutions, the point must be unique and
+                # keep its articulated pairs in their trained range
                 lt = tpl.link[m, have]
-                bad |= ~rig & (lt > 0) & (np.abs(dev) > lt)
-            ok = ~bad.any(axis=1)
+                ok &= ~np.any(~rig & (lt > 0) & (np.abs(dev) > lt), axis=1)
+                if ok.sum() != 1:
+                    continue
+            else:
+                ok &= n_fit >= 3
             best = -1
-            if two and ok.sum() != 1:
-                continue
             if ok.any():
-                err = ((dev[:, rig] / tol[rig]) ** 2).mean(axis=1)
+                err = (np.where(fit, dev / tol, 0.0) ** 2).sum(axis=1) / np.maximum(n_fit, 1)
                 err = np.where(ok, err, np.inf)
                 best = int(near[int(np.argmin(err))])
             if best >= 0:
@@ -435,7 +452,7 @@ def _constancy(
         d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
         D = tpl.D[np.ix_(have, have)][..., None]
         tol = tpl.tol[np.ix_(have, have)][..., None]
-        pair = tpl.rigid[np.ix_(have, have)][..., None] & np.isfinite(d)
+        pair = tpl.strict[np.ix_(have, have)][..., None] & np.isfinite(d)
         bad = pair & (np.abs(d - D) > tol)
         n_pair = pair.sum(axis=(1, 2))
         frac_bad = bad.sum(axis=(1, 2)) / np.maximum(n_pair, 1)
@@ -458,7 +475,10 @@ def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
     d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
     Dm = tpl.D[np.ix_(have, have)]
     rigid = tpl.rigid[np.ix_(have, have)]
+    strict = tpl.strict[np.ix_(have, have)]
     e = np.abs(d - Dm) / tpl.tol[np.ix_(have, have)]
+    # pairs of one trained body uncapped; pairs rigid by A alone capped at 1 (pose-dependent)
+    e = np.where(strict, e, np.minimum(e, 1.0))
     e = np.where(rigid & np.isfinite(e), e, 0.0)
     per = (e**2).sum(axis=1) / np.maximum(rigid.sum(axis=1), 1)
     lt = tpl.link[np.ix_(have, have)]
@@ -484,7 +504,7 @@ def _rms(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
     have = np.flatnonzero(assign >= 0)
     p = pts[assign[have]]
     d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
-    rig = tpl.rigid[np.ix_(have, have)]
+    rig = tpl.strict[np.ix_(have, have)]
     if not rig.any():
         return np.inf
     return float(np.sqrt(np.mean((d - tpl.D[np.ix_(have, have)])[rig] ** 2)))
@@ -616,7 +636,9 @@ def _pair_error(
     dev = np.abs(d - Dm)
     rig = tpl.rigid[markers][:, rest]
     lt = tpl.link[markers][:, rest]
-    e_r = np.where(rig, dev / tpl.tol[markers][:, rest], 0.0)
+    e_r = dev / tpl.tol[markers][:, rest]
+    e_r = np.where(tpl.strict[markers][:, rest], e_r, np.minimum(e_r, 1.0))
+    e_r = np.where(rig, e_r, 0.0)
     art = ~rig & (lt > 0) & np.isfinite(Dm)
     e_l = np.where(art, np.minimum(dev / np.where(art, lt, 1.0), 1.0), 0.0)
     return float(np.nansum(e_r**2) + np.nansum(e_l**2))
@@ -695,7 +717,7 @@ def _readings(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
             if np.array_equal(mk, placed):
                 continue
             dev = np.abs(d - tpl.D[np.ix_(mk, mk)])
-            rig = tpl.rigid[np.ix_(mk, mk)]
+            rig = tpl.strict[np.ix_(mk, mk)]
             if np.any(rig & ~(dev <= tpl.tol[np.ix_(mk, mk)])):
                 continue
             err = _pair_error(tpl, mk, points, base, pts)
@@ -763,6 +785,7 @@ def warmup_kernels() -> None:
         np.zeros((1, 3)),
         m,
         m,
+        np.zeros((1, 1), dtype=np.bool_),
         np.zeros((1, 1), dtype=np.bool_),
         m,
         m,
