@@ -626,7 +626,11 @@ def _pair_error(
     tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
 ) -> float:
     """Distance error of ``markers`` placed on ``points`` against the rest of ``assign``:
-    rigid pairs in tolerances, articulated pairs in link tolerances (capped at 1), squared."""
+    pairs of one trained body squared in tolerances; every other pair (rigid by ``A`` alone,
+    articulated) robustly, ``log(1 + e^2)`` with ``e`` in its tolerance (link tolerance for
+    articulated pairs): a pose the model never saw moves them by a few tolerances, a mirrored
+    reading (a head plate turned round, a wrist bar read the wrong way) by many; a cap would
+    make both look the same."""
     rest = np.flatnonzero(assign >= 0)
     rest = rest[~np.isin(rest, markers)]
     if rest.size == 0:
@@ -635,13 +639,13 @@ def _pair_error(
     Dm = tpl.D[markers][:, rest]
     dev = np.abs(d - Dm)
     rig = tpl.rigid[markers][:, rest]
+    st = tpl.strict[markers][:, rest]
     lt = tpl.link[markers][:, rest]
-    e_r = dev / tpl.tol[markers][:, rest]
-    e_r = np.where(tpl.strict[markers][:, rest], e_r, np.minimum(e_r, 1.0))
-    e_r = np.where(rig, e_r, 0.0)
     art = ~rig & (lt > 0) & np.isfinite(Dm)
-    e_l = np.where(art, np.minimum(dev / np.where(art, lt, 1.0), 1.0), 0.0)
-    return float(np.nansum(e_r**2) + np.nansum(e_l**2))
+    scale = np.where(rig, tpl.tol[markers][:, rest], np.where(art, lt, 1.0))
+    e = dev / scale
+    cost = np.where(st, e**2, np.log1p(e**2))
+    return float(np.nansum(np.where(rig | art, cost, 0.0)))
 
 
 def _symmetries(
@@ -695,37 +699,86 @@ def _segments(tpl: _Template) -> list[np.ndarray]:
     return out
 
 
-def _readings(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
+def _segment_readings(
+    tpl: _Template, seg: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The placed markers of a segment and its other readings: injective maps of their points
+    to the segment's markers (free or its own) that keep the distances of one trained body."""
+    placed = seg[assign[seg] >= 0]
+    if placed.size < 2 or placed.size > 4:
+        return placed, []
+    points = assign[placed]
+    options = np.concatenate([placed, seg[assign[seg] < 0]])
+    d = np.linalg.norm(pts[points][:, None] - pts[points][None, :], axis=2)
+    out = []
+    for perm in itertools.permutations(options.tolist(), placed.size):
+        mk = np.array(perm, dtype=np.int64)
+        if np.array_equal(mk, placed):
+            continue
+        dev = np.abs(d - tpl.D[np.ix_(mk, mk)])
+        if np.any(tpl.strict[np.ix_(mk, mk)] & ~(dev <= tpl.tol[np.ix_(mk, mk)])):
+            continue
+        out.append(mk)
+    return placed, out
+
+
+def _readings(
+    tpl: _Template, assign: np.ndarray, pts: np.ndarray, movable: np.ndarray | None = None
+) -> None:
     """Every segment's points are read again: among the injective maps of its placed points to
     the segment's markers (free or its own) that keep the rigid distances, the map whose
     distances to the rest of the subject fit best is kept. A symmetric segment (a head's four
     markers with one hidden, a wrist bar) may have been placed mirrored by a body candidate
-    that saw only part of it; its own distances cannot tell, the rest of the body can."""
-    for seg in tpl.segments:
-        placed = seg[assign[seg] >= 0]
-        if placed.size < 2 or placed.size > 4:
+    that saw only part of it; its own distances cannot tell, the rest of the body can. Two
+    adjacent segments (closer to each other than their own size: a wrist bar and the hand)
+    are then read again together: a whole forearm and hand placed mirrored fit worse flipped
+    one segment at a time than as they are. ``movable``: markers that may be read again (a
+    segment with another placed marker is left as it is); default all."""
+    ok = np.ones(tpl.n, dtype=bool) if movable is None else movable
+    segs = [seg for seg in tpl.segments if np.all(ok[seg[assign[seg] >= 0]])]
+    for seg in segs:
+        placed, options = _segment_readings(tpl, seg, assign, pts)
+        if not options:
             continue
         points = assign[placed]
-        free = seg[(assign[seg] < 0)]
-        options = np.concatenate([placed, free])
-        d = np.linalg.norm(pts[points][:, None] - pts[points][None, :], axis=2)
         base = assign.copy()
         base[placed] = -1
         best, best_err = None, _pair_error(tpl, placed, points, base, pts)
-        for perm in itertools.permutations(options.tolist(), placed.size):
-            mk = np.array(perm, dtype=np.int64)
-            if np.array_equal(mk, placed):
-                continue
-            dev = np.abs(d - tpl.D[np.ix_(mk, mk)])
-            rig = tpl.strict[np.ix_(mk, mk)]
-            if np.any(rig & ~(dev <= tpl.tol[np.ix_(mk, mk)])):
-                continue
+        for mk in options:
             err = _pair_error(tpl, mk, points, base, pts)
             if err < best_err:
                 best, best_err = mk, err
         if best is not None:
             assign[placed] = -1
             assign[best] = points
+    reads = [(seg, *_segment_readings(tpl, seg, assign, pts)) for seg in segs]
+    reads = [r for r in reads if r[2]]
+    for i in range(len(reads)):
+        for j in range(i + 1, len(reads)):
+            (s1, p1, o1), (s2, p2, o2) = reads[i], reads[j]
+            if np.intersect1d(s1, s2).size:
+                continue
+            size = max(np.nanmax(tpl.D[np.ix_(s1, s1)]), np.nanmax(tpl.D[np.ix_(s2, s2)]))
+            if not np.nanmin(tpl.D[np.ix_(s1, s2)]) <= size:
+                continue
+            placed = np.concatenate([p1, p2])
+            if np.any(assign[placed] < 0):
+                continue  # changed by an earlier joint reading
+            points = assign[placed]
+            base = assign.copy()
+            base[placed] = -1
+            best, best_err = None, _pair_error(tpl, placed, points, base, pts)
+            for m1 in o1:
+                for m2 in o2:
+                    mk = np.concatenate([m1, m2])
+                    if np.unique(mk).size != mk.size:
+                        continue
+                    err = _pair_error(tpl, mk, points, base, pts)
+                    if err < best_err:
+                        best, best_err = mk, err
+            if best is not None:
+                assign[placed] = -1
+                assign[best] = points
 
 
 def _complete(
@@ -766,6 +819,10 @@ def _complete(
     la[fixed >= 0] = fixed[fixed >= 0]
     checked = _constancy(tpl, la.copy(), lh, config)
     fresh = (fixed < 0) & (la >= 0) & (checked == la)
+    # the new markers' segments read again (a hidden forearm and hand that appear mirrored)
+    la = np.where(fresh | (fixed >= 0), la, -1)
+    _readings(tpl, la, lp, movable=fresh)
+    fresh = (fixed < 0) & (la >= 0)
     out[fresh] = local[la[fresh]]
     # one point per marker and one marker per point
     pts_used = out[out >= 0]
