@@ -370,7 +370,14 @@ def _select(
         # performer's hand within reach of this one's shoulder is not, of its hips neither)
         total = np.where(free & (frac >= config.link_fraction), soft, -1.0)
         best = int(np.argmax(total))
-        if count[best] < config.min_links or total[best] < 0:
+        # a segment whose markers keep their rigid distances to the set (an elbow's to the
+        # forearm's) joins first, however far its articulated pairs are from the trained
+        # poses: at least ``min_support + 1`` agreements spread over two or more of its markers
+        sup = support[bodies] * bb
+        rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1), 0)
+        if rsum.max() > config.min_support:
+            best = int(np.argmax(rsum))
+        elif count[best] < config.min_links or total[best] < 0:
             return np.flatnonzero(chosen)
         b = bodies[best][bb[best]]
         chosen[b] = True
