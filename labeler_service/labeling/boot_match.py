@@ -43,6 +43,9 @@ class _Template:
     extent: float = 2000.0  # longest pair distance D (mm)
     r_max: float = 0.0  # longest anchor edge + tolerance (mm)
     segments: list[np.ndarray] = field(default_factory=list)  # see _segments
+    #: (bodies, m) per body the markers of the bodies next to it in the chain (sharing a
+    #: marker, or closer to it than the larger of the two bodies' sizes): see _adjacent
+    near: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     bodies: list[_Body] = field(default_factory=list)
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
 
@@ -107,6 +110,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
+        tpl.near = _adjacent(tpl)
         for bd in tpl.bodies:
             for tri in bd.anchors:
                 mk = bd.markers[list(tri)]
@@ -192,6 +196,7 @@ class _Candidate:
     markers: np.ndarray  # template marker indices
     points: np.ndarray  # point indices (same length)
     err: float  # RMS of predicted-to-point distance (mm)
+    body: int = -1  # index into the template's bodies
 
 
 def _body_candidates(
@@ -330,7 +335,12 @@ def _graph_kernel(M, P, pts, D, tol, rigid, strict, bound, lt, agree, clash, lin
 
 
 def _select(
-    g: _Graph, seed: np.ndarray, allowed: np.ndarray, bodies: np.ndarray, config: BootConfig
+    g: _Graph,
+    seed: np.ndarray,
+    allowed: np.ndarray,
+    bodies: np.ndarray,
+    config: BootConfig,
+    near: np.ndarray,
 ) -> np.ndarray:
     """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
     links that agree with the set (at least ``min_support``) and no clash; when none is left,
@@ -368,7 +378,11 @@ def _select(
         frac = count / np.maximum((possible[bodies] * bb).sum(axis=1), 1)
         # a segment joins when most of its articulated pairs to the set are in range (another
         # performer's hand within reach of this one's shoulder is not, of its hips neither)
-        total = np.where(free & (frac >= config.link_fraction), soft, -1.0)
+        # ... and only next to a neighbour in the chain already placed (two of its markers)
+        placed = np.zeros(near.shape[1], dtype=bool)
+        placed[g.M[chosen]] = True
+        beside = (near & placed).sum(axis=1) >= 2
+        total = np.where(free & beside & (frac >= config.link_fraction), soft, -1.0)
         best = int(np.argmax(total))
         # a segment whose markers keep their rigid distances to the set (an elbow's to the
         # forearm's) joins first, however far its articulated pairs are from the trained
@@ -528,6 +542,7 @@ class _Candidates:
     rows: np.ndarray
     cm: np.ndarray
     cp: np.ndarray
+    near: np.ndarray  # (C, m) markers next to each candidate's body (_adjacent)
 
 
 def _candidates(
@@ -541,8 +556,10 @@ def _candidates(
     """Every body candidate of ``tpl`` and their graph; ``fixed`` (a template assignment) adds
     its (marker, point) nodes (as a last candidate row of its own, not a body)."""
     cands: list[_Candidate] = []
-    for body in tpl.bodies:
-        cands += _body_candidates(tpl, body, pts, hist, pairs, config)
+    for bi, body in enumerate(tpl.bodies):
+        for c in _body_candidates(tpl, body, pts, hist, pairs, config):
+            c.body = bi
+            cands.append(c)
     n = pts.shape[0]
     keys = [c.markers * n + c.points for c in cands]
     if fixed is not None:
@@ -561,7 +578,8 @@ def _candidates(
         rows[i, : c.markers.size] = seeds[i]
         cm[i, : c.markers.size] = c.markers
         cp[i, : c.markers.size] = c.points
-    return _Candidates(cands, g, seeds, rows, cm, cp)
+    near = tpl.near[[c.body for c in cands]] if cands else np.zeros((0, tpl.n), dtype=bool)
+    return _Candidates(cands, g, seeds, rows, cm, cp, near)
 
 
 def _hypotheses(
@@ -603,7 +621,7 @@ def _hypotheses(
             used[cj] = True
             centre = pts[cands[cj].points].mean(axis=0)
             allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
-            nodes = _select(g, seeds[cj], allowed, padded, config)
+            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near)
             assign = np.full(tpl.n, -1, dtype=np.int64)
             assign[g.M[nodes]] = g.P[nodes]
             h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
@@ -686,6 +704,28 @@ def _symmetries(
         assign[best.markers] = best.points
         for m, p in zip(best.markers.tolist(), best.points.tolist(), strict=True):
             marker_of[p] = m
+
+
+def _adjacent(tpl: _Template) -> np.ndarray:
+    """``(bodies, m)``: per body the markers of its neighbours in the chain: bodies that share a
+    marker with it, or whose closest pair of markers (trained ``D``) is shorter than the larger
+    of the two bodies' sizes (a shin and its foot, a forearm and its hand; not a pelvis and a
+    foot). A segment joins a hypothesis through articulated pairs only next to a neighbour
+    already placed (:func:`_select`): another performer's foot near this one's hips is not."""
+    nb = len(tpl.bodies)
+    out = np.zeros((nb, tpl.n), dtype=bool)
+    size = [float(np.nanmax(tpl.D[np.ix_(b.markers, b.markers)])) for b in tpl.bodies]
+    for i, bi in enumerate(tpl.bodies):
+        for j, bj in enumerate(tpl.bodies):
+            if i == j:
+                continue
+            cross = tpl.D[np.ix_(bi.markers, bj.markers)]
+            share = np.intersect1d(bi.markers, bj.markers).size > 0
+            close = np.isfinite(cross).any() and np.nanmin(cross) <= max(size[i], size[j])
+            if share or close:
+                out[i, bj.markers] = True
+        out[i, bi.markers] = False
+    return out
 
 
 def _segments(tpl: _Template) -> list[np.ndarray]:
@@ -815,7 +855,9 @@ def _complete(
     cg = _candidates(tpl, lp, lh, _Pairs(lp, tpl.r_max), config, fixed)
     out = assign.copy()
     if cg is not None:
-        nodes = _select(cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config)
+        nodes = _select(
+            cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config, cg.near
+        )
         la = np.full(tpl.n, -1, dtype=np.int64)
         la[cg.g.M[nodes]] = cg.g.P[nodes]
     else:
