@@ -271,6 +271,7 @@ class _Graph:
     P: np.ndarray
     agree: np.ndarray
     clash: np.ndarray
+    differ: np.ndarray  # a pair rigid by A alone off its distance (no clash: counted against)
     link: np.ndarray
     link_err: np.ndarray  # |d - D| / tolerance on links, 0 elsewhere
     art: np.ndarray  # articulated pairs with a trained range (where links may be)
@@ -280,6 +281,7 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
     n = M.shape[0]
     agree = np.empty((n, n), dtype=np.bool_)
     clash = np.empty((n, n), dtype=np.bool_)
+    differ = np.empty((n, n), dtype=np.bool_)
     link = np.empty((n, n), dtype=np.bool_)
     link_err = np.empty((n, n))
     art = np.empty((n, n), dtype=np.bool_)
@@ -295,15 +297,18 @@ def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Gr
         tpl.link,
         agree,
         clash,
+        differ,
         link,
         link_err,
         art,
     )
-    return _Graph(M, P, agree, clash, link, link_err, art)
+    return _Graph(M, P, agree, clash, differ, link, link_err, art)
 
 
 @njit
-def _graph_kernel(M, P, pts, D, tol, rigid, strict, bound, lt, agree, clash, link, link_err, art):
+def _graph_kernel(
+    M, P, pts, D, tol, rigid, strict, bound, lt, agree, clash, differ, link, link_err, art
+):
     """The relations of :class:`_Graph` for every pair of nodes (see its docstring)."""
     n = M.shape[0]
     for a in range(n):
@@ -320,6 +325,7 @@ def _graph_kernel(M, P, pts, D, tol, rigid, strict, bound, lt, agree, clash, lin
             rig = rigid[ma, mb]
             other = not same_m and not same_p
             agree[a, b] = rig and other and abs(dev) <= tol[ma, mb]
+            differ[a, b] = rig and other and not strict[ma, mb] and abs(dev) > tol[ma, mb]
             c = same_m != same_p
             if known and strict[ma, mb] and abs(dev) > tol[ma, mb]:
                 c = True
@@ -349,6 +355,7 @@ def _select(
     chosen = np.zeros(g.M.size, dtype=bool)
     chosen[seed] = True
     support = g.agree[seed].sum(axis=0).astype(np.int64)
+    against = g.differ[seed].sum(axis=0).astype(np.int64)
     links = g.link[seed].sum(axis=0).astype(np.int64)
     lerr = g.link_err[seed].sum(axis=0)
     possible = g.art[seed].sum(axis=0).astype(np.int64)
@@ -361,6 +368,7 @@ def _select(
         if support[c] >= config.min_support and not blocked[c]:
             chosen[c] = True
             support += g.agree[c]
+            against += g.differ[c]
             links += g.link[c]
             lerr += g.link_err[c]
             possible += g.art[c]
@@ -382,12 +390,16 @@ def _select(
         placed = np.zeros(near.shape[1], dtype=bool)
         placed[g.M[chosen]] = True
         beside = (near & placed).sum(axis=1) >= 2
-        total = np.where(free & beside & (frac >= config.link_fraction), soft, -1.0)
+        sup = support[bodies] * bb
+        differ = (against[bodies] * bb).sum(axis=1)
+        # ... and not against most of its pairs rigid by A alone (a forearm read on a
+        # shoulder and the head: in range of the hips, but off the trained arm-to-chest pairs)
+        ok = free & beside & (differ <= sup.sum(axis=1))
+        total = np.where(ok & (frac >= config.link_fraction), soft, -1.0)
         best = int(np.argmax(total))
         # a segment whose markers keep their rigid distances to the set (an elbow's to the
         # forearm's) joins first, however far its articulated pairs are from the trained
         # poses: at least ``min_support + 1`` agreements spread over two or more of its markers
-        sup = support[bodies] * bb
         rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1), 0)
         if rsum.max() > config.min_support:
             best = int(np.argmax(rsum))
@@ -396,6 +408,7 @@ def _select(
         b = bodies[best][bb[best]]
         chosen[b] = True
         support += g.agree[b].sum(axis=0)
+        against += g.differ[b].sum(axis=0)
         links += g.link[b].sum(axis=0)
         lerr += g.link_err[b].sum(axis=0)
         possible += g.art[b].sum(axis=0)
@@ -651,11 +664,11 @@ def _pair_error(
     tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
 ) -> float:
     """Distance error of ``markers`` placed on ``points`` against the rest of ``assign``:
-    pairs of one trained body squared in tolerances; every other pair (rigid by ``A`` alone,
-    articulated) robustly, ``log(1 + e^2)`` with ``e`` in its tolerance (link tolerance for
-    articulated pairs): a pose the model never saw moves them by a few tolerances, a mirrored
-    reading (a head plate turned round, a wrist bar read the wrong way) by many; a cap would
-    make both look the same."""
+    pairs of one trained body ``e^2 / 2`` with ``e`` in tolerances; every other pair (rigid by
+    ``A`` alone, articulated) robustly, ``log(1 + e^2)`` with ``e`` in its tolerance (link
+    tolerance for articulated pairs): a pose the model never saw moves them by a few
+    tolerances, a mirrored reading (a head plate turned round, a wrist bar read the wrong way)
+    by many; a cap would make both look the same. Each pair adds ``log`` of its tolerance."""
     rest = np.flatnonzero(assign >= 0)
     rest = rest[~np.isin(rest, markers)]
     if rest.size == 0:
@@ -669,7 +682,10 @@ def _pair_error(
     art = ~rig & (lt > 0) & np.isfinite(Dm)
     scale = np.where(rig, tpl.tol[markers][:, rest], np.where(art, lt, 1.0))
     e = dev / scale
-    cost = np.where(st, e**2, np.log1p(e**2))
+    # negative log-likelihoods (Gaussian for one body, Cauchy otherwise): the log(scale) term
+    # makes readings with different markers comparable (a loose articulated pair is weak
+    # evidence, a tight rigid one strong)
+    cost = np.where(st, 0.5 * e**2, np.log1p(e**2)) + np.log(scale)
     return float(np.nansum(np.where(rig | art, cost, 0.0)))
 
 
@@ -896,6 +912,7 @@ def warmup_kernels() -> None:
         m,
         m,
         out_b,
+        out_b.copy(),
         out_b.copy(),
         out_b.copy(),
         np.zeros((2, 2)),
