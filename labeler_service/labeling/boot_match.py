@@ -9,11 +9,16 @@ import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.templates import LabelerModel
+
+#: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
+#: steadiest pair deviation to any other body.
+NEIGHBOUR = 1.5
 
 
 # ---------------------------------------------------------------------------- templates
@@ -723,23 +728,41 @@ def _symmetries(
 
 
 def _adjacent(tpl: _Template) -> np.ndarray:
-    """``(bodies, m)``: per body the markers of its neighbours in the chain: bodies that share a
-    marker with it, or whose closest pair of markers (trained ``D``) is shorter than the larger
-    of the two bodies' sizes (a shin and its foot, a forearm and its hand; not a pelvis and a
-    foot). A segment joins a hypothesis through articulated pairs only next to a neighbour
-    already placed (:func:`_select`): another performer's foot near this one's hips is not."""
+    """``(bodies, m)``: per body the markers of its neighbours in the chain. Two bodies are
+    neighbours when they share a marker, or when their steadiest pair of markers (least trained
+    deviation ``A``: two markers beside one joint) is within ``NEIGHBOUR`` times the body's
+    steadiest pair to any body it shares no marker with (a shin and its foot, a forearm and
+    its hand, a thigh plate and a shank plate; not a pelvis and a foot, nor a hand and the chest
+    it rested on in the training frames); then a minimum spanning tree over those deviations
+    joins what is still apart, so the chain reaches every body. A segment joins a hypothesis
+    through articulated pairs only next to a neighbour already placed (:func:`_select`):
+    another performer's foot near this one's hips does not."""
     nb = len(tpl.bodies)
     out = np.zeros((nb, tpl.n), dtype=bool)
-    size = [float(np.nanmax(tpl.D[np.ix_(b.markers, b.markers)])) for b in tpl.bodies]
+    steady = np.full((nb, nb), np.inf)
+    share = np.zeros((nb, nb), dtype=bool)
     for i, bi in enumerate(tpl.bodies):
         for j, bj in enumerate(tpl.bodies):
-            if i == j:
-                continue
-            cross = tpl.D[np.ix_(bi.markers, bj.markers)]
-            share = np.intersect1d(bi.markers, bj.markers).size > 0
-            close = np.isfinite(cross).any() and np.nanmin(cross) <= max(size[i], size[j])
-            if share or close:
-                out[i, bj.markers] = True
+            share[i, j] = i == j or np.intersect1d(bi.markers, bj.markers).size > 0
+            cross = tpl.A[np.ix_(bi.markers, bj.markers)]
+            if not share[i, j] and np.isfinite(cross).any():
+                steady[i, j] = float(np.nanmin(cross))
+    adj = share.copy()
+    for i in range(nb):
+        best = steady[i][np.isfinite(steady[i])]
+        if best.size:
+            adj[i] |= steady[i] <= NEIGHBOUR * float(best.min())
+    adj |= adj.T
+    if nb:
+        # edges already there cost ~0, so the tree only adds the cheapest links between parts
+        w = np.where(adj, 1e-9, np.where(np.isfinite(steady), steady + 1.0, 0.0))
+        np.fill_diagonal(w, 0.0)  # 0: no edge for scipy
+        tree = minimum_spanning_tree(w).toarray() > 0
+        adj |= tree | tree.T
+    np.fill_diagonal(adj, False)
+    for i, bi in enumerate(tpl.bodies):
+        for j in np.flatnonzero(adj[i]):
+            out[i, tpl.bodies[j].markers] = True
         out[i, bi.markers] = False
     return out
 
