@@ -352,6 +352,7 @@ def _select(
     bodies: np.ndarray,
     config: BootConfig,
     near: np.ndarray,
+    complete: bool = False,
 ) -> np.ndarray:
     """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
     links that agree with the set (at least ``min_support``) and no clash; when none is left,
@@ -391,10 +392,11 @@ def _select(
         frac = count / np.maximum((possible[bodies] * bb).sum(axis=1), 1)
         # a segment joins when most of its articulated pairs to the set are in range (another
         # performer's hand within reach of this one's shoulder is not, of its hips neither)
-        # ... and only next to a neighbour in the chain already placed (two of its markers)
+        # ... and only next to a neighbour in the chain already placed (two of its markers; one
+        # when completing a booted subject: the neighbour's others may be hidden)
         placed = np.zeros(near.shape[1], dtype=bool)
         placed[g.M[chosen]] = True
-        beside = (near & placed).sum(axis=1) >= 2
+        beside = (near & placed).sum(axis=1) >= (1 if complete else 2)
         sup = support[bodies] * bb
         differ = (against[bodies] * bb).sum(axis=1)
         # ... and not against most of its pairs rigid by A alone (a forearm read on a
@@ -895,7 +897,7 @@ def _complete(
     out = assign.copy()
     if cg is not None:
         nodes = _select(
-            cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config, cg.near
+            cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config, cg.near, True
         )
         la = np.full(tpl.n, -1, dtype=np.int64)
         la[cg.g.M[nodes]] = cg.g.P[nodes]
