@@ -257,14 +257,15 @@ class Booter:
         fitted to them (Kabsch) puts ``m`` within ``fit_mm`` of the point (three agreeing pairs
         are needed otherwise). ``labels (N,)`` global marker indices, -1 free; returns a copy
         with the new labels. Cheap enough for every frame: only the free points are looked at,
-        against their nearest labeled points."""
+        against their nearest labeled points. A label of -2 marks a point neither labeled nor
+        to be looked at (it stays as it is)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         out = np.asarray(labels, dtype=np.int64).copy()
         if not subjects or self._a_reach <= 0:
             return out
         active = np.isin(self._a_subject, subjects)
         have = np.flatnonzero((out >= 0) & active[np.maximum(out, 0)])
-        free = np.flatnonzero(out < 0)
+        free = np.flatnonzero(out == -1)
         if have.size < 2 or free.size == 0:
             return out
         unlabeled = active.copy()

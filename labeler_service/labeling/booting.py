@@ -92,6 +92,8 @@ from labeler_service.labeling.templates import LabelerModel
 
 #: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
 EXTEND_BACKOFF = 4
+#: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
+ACQUIRE_TRIES = 3
 
 
 @dataclass
@@ -174,6 +176,8 @@ class BootingLabeler:
         self._acquired_new = False
         self._since_acquire = 0
         self.acquired = 0  # points labeled by acquisition (diagnostics)
+        self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
+        self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._inner_map = np.zeros(0, dtype=np.int64)
         self._extent: np.ndarray | None = None
@@ -240,7 +244,7 @@ class BootingLabeler:
             pos[self._inner_map] = out.positions
             state[self._inner_map] = out.state
             self._drop_vanished(glab, state, pos, t)
-            self._acquire(pts, glab, pos, state)
+            self._acquire(pts, ids, glab, pos, state)
         self._window.append(_Frame(t, pts, ids, glab))
         self._since_attempt += 1
         self._since_extend += 1
@@ -357,14 +361,37 @@ class BootingLabeler:
         self._rebuild()
 
     def _acquire(
-        self, pts: np.ndarray, glab: np.ndarray, pos: np.ndarray, state: np.ndarray
+        self,
+        pts: np.ndarray,
+        ids: np.ndarray,
+        glab: np.ndarray,
+        pos: np.ndarray,
+        state: np.ndarray,
     ) -> None:
         """Free points of this frame labeled from the template as markers of active subjects
         that have no point in it (:meth:`Booter.acquire`): a marker hidden at boot is labeled in
-        the frame it appears; the inner labeler takes it over at its next rebuild."""
-        if not self._active or not np.any(glab < 0):
+        the frame it appears; the inner labeler takes it over at its next rebuild. A free track
+        is looked at in its first ``ACQUIRE_TRIES`` frames only (a ghost, or a point no template
+        explains, costs nothing after that: crowds leave many free points while booting)."""
+        free = glab < 0
+        if not self._active or not free.any():
+            self._acq_ids = np.zeros(0, dtype=np.int64)
+            self._acq_tries = np.zeros(0, dtype=np.int64)
             return
-        new = self._booter.acquire(pts, glab, sorted(self._active))
+        fid = ids[free]
+        tries = np.zeros(fid.size, dtype=np.int64)
+        if self._acq_ids.size:
+            at = np.minimum(np.searchsorted(self._acq_ids, fid), self._acq_ids.size - 1)
+            hit = self._acq_ids[at] == fid
+            tries[hit] = self._acq_tries[at[hit]]
+        order = np.argsort(fid)
+        self._acq_ids, self._acq_tries = fid[order], tries[order] + 1
+        look = free.copy()
+        look[free] = tries < ACQUIRE_TRIES
+        if not look.any():
+            return
+        new = self._booter.acquire(pts, np.where(look | ~free, glab, -2), sorted(self._active))
+        new[~look & free] = -1
         added = (glab < 0) & (new >= 0)
         if not added.any():
             return
