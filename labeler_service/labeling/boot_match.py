@@ -791,22 +791,38 @@ def _segment_readings(
     tpl: _Template, seg: np.ndarray, assign: np.ndarray, pts: np.ndarray
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """The placed markers of a segment and its other readings: injective maps of their points
-    to the segment's markers (free or its own) that keep the distances of one trained body."""
+    to the segment's markers (free or its own) that keep the distances of one trained body
+    (depth-first, each point's marker checked against those already given: a six-marker hand
+    with its wrist bar has a handful of readings among 720 orders)."""
     placed = seg[assign[seg] >= 0]
-    if placed.size < 2 or placed.size > 4:
+    if placed.size < 2 or placed.size > 6:
         return placed, []
     points = assign[placed]
-    options = np.concatenate([placed, seg[assign[seg] < 0]])
+    options = np.concatenate([placed, seg[assign[seg] < 0]]).tolist()
     d = np.linalg.norm(pts[points][:, None] - pts[points][None, :], axis=2)
-    out = []
-    for perm in itertools.permutations(options.tolist(), placed.size):
-        mk = np.array(perm, dtype=np.int64)
-        if np.array_equal(mk, placed):
-            continue
-        dev = np.abs(d - tpl.D[np.ix_(mk, mk)])
-        if np.any(tpl.strict[np.ix_(mk, mk)] & ~(dev <= tpl.tol[np.ix_(mk, mk)])):
-            continue
-        out.append(mk)
+    D, tol, strict = tpl.D, tpl.tol, tpl.strict
+    out: list[np.ndarray] = []
+    chosen: list[int] = []
+
+    def place(k: int) -> None:
+        if k == placed.size:
+            mk = np.array(chosen, dtype=np.int64)
+            if not np.array_equal(mk, placed):
+                out.append(mk)
+            return
+        for m in options:
+            if m in chosen:
+                continue
+            if any(
+                strict[m, c] and not abs(d[k, j] - D[m, c]) <= tol[m, c]
+                for j, c in enumerate(chosen)
+            ):
+                continue
+            chosen.append(m)
+            place(k + 1)
+            chosen.pop()
+
+    place(0)
     return placed, out
 
 
@@ -844,22 +860,29 @@ def _readings(
     for i in range(len(reads)):
         for j in range(i + 1, len(reads)):
             (s1, p1, o1), (s2, p2, o2) = reads[i], reads[j]
-            if np.intersect1d(s1, s2).size:
-                continue
             size = max(np.nanmax(tpl.D[np.ix_(s1, s1)]), np.nanmax(tpl.D[np.ix_(s2, s2)]))
             if not np.nanmin(tpl.D[np.ix_(s1, s2)]) <= size:
                 continue
-            placed = np.concatenate([p1, p2])
+            placed = np.union1d(p1, p2)  # segments may share a marker (a wrist bar, a hand)
             if np.any(assign[placed] < 0):
                 continue  # changed by an earlier joint reading
+            at = {int(m): k for k, m in enumerate(placed)}
             points = assign[placed]
             base = assign.copy()
             base[placed] = -1
             best, best_err = None, _pair_error(tpl, placed, points, base, pts)
-            for m1 in o1:
-                for m2 in o2:
-                    mk = np.concatenate([m1, m2])
-                    if np.unique(mk).size != mk.size:
+            for m1 in [p1, *o1]:
+                for m2 in [p2, *o2]:
+                    if m1 is p1 and m2 is p2:
+                        continue
+                    mk = np.full(placed.size, -1, dtype=np.int64)
+                    ok = True
+                    for pk, mm in ((p1, m1), (p2, m2)):
+                        for a_, b_ in zip(pk.tolist(), mm.tolist(), strict=True):
+                            k = at[a_]
+                            ok &= mk[k] < 0 or mk[k] == b_
+                            mk[k] = b_
+                    if not ok or np.unique(mk).size != mk.size:
                         continue
                     err = _pair_error(tpl, mk, points, base, pts)
                     if err < best_err:
