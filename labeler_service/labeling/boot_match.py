@@ -411,7 +411,9 @@ def _select(
         if rsum.max() > config.min_support:
             best = int(np.argmax(rsum))
         elif count[best] < config.min_links or total[best] < 0:
-            return np.flatnonzero(chosen)
+            best = _beside_joint(g, chosen, bodies, free & beside, near) if complete else -1
+            if best < 0:
+                return np.flatnonzero(chosen)
         b = bodies[best][bb[best]]
         chosen[b] = True
         support += g.agree[b].sum(axis=0)
@@ -421,6 +423,31 @@ def _select(
         possible += g.art[b].sum(axis=0)
         blocked |= g.clash[b].any(axis=0)
         blocked[b] = True
+
+
+def _beside_joint(
+    g: _Graph, chosen: np.ndarray, bodies: np.ndarray, rows: np.ndarray, near: np.ndarray
+) -> int:
+    """Completing a booted subject: the body candidate (among ``rows``) whose articulated pairs
+    to the placed markers of its chain neighbours are all in range (four or more), best soft
+    count first; -1 if none. An arm in a pose the model never saw is far from its trained
+    distances to the rest of the body, not from the segment it hangs on."""
+    ch = np.flatnonzero(chosen)
+    best, best_val = -1, 0.0
+    for r in np.flatnonzero(rows):
+        nodes = bodies[r][bodies[r] >= 0]
+        cn = ch[near[r][g.M[ch]]]
+        if cn.size == 0:
+            continue
+        art = g.art[np.ix_(nodes, cn)]
+        n_art = int(art.sum())
+        n_link = int(g.link[np.ix_(nodes, cn)].sum())
+        if n_art < 4 or n_link < n_art:
+            continue
+        val = n_link - float(g.link_err[np.ix_(nodes, cn)].sum())
+        if val > best_val:
+            best, best_val = int(r), val
+    return best
 
 
 def _grow(
