@@ -97,8 +97,8 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         link = np.where(np.isfinite(link), link, -1.0)
         same = np.zeros((m, m), dtype=bool)
         for body in subj.bodies:
-            b = np.asarray(body, dtype=np.int64)
-            same[np.ix_(b, b)] = True
+            members = np.asarray(body, dtype=np.int64)
+            same[np.ix_(members, members)] = True
         np.fill_diagonal(same, False)
         tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link, same & rigid)
         tpl.body_of = [[] for _ in range(m)]
@@ -790,8 +790,8 @@ def _adjacent(tpl: _Template) -> np.ndarray:
         adj |= tree | tree.T
     np.fill_diagonal(adj, False)
     for i, bi in enumerate(tpl.bodies):
-        for j in np.flatnonzero(adj[i]):
-            out[i, tpl.bodies[j].markers] = True
+        for k in np.flatnonzero(adj[i]):
+            out[i, tpl.bodies[k].markers] = True
         out[i, bi.markers] = False
     return out
 
@@ -893,26 +893,19 @@ def _readings(
                 continue
             if np.intersect1d(s1, s2).size:
                 continue  # segments sharing a marker read together: hug 5 0.48 -> 0.34 correct
-            placed = np.union1d(p1, p2)
+            placed = np.concatenate([p1, p2])
             if np.any(assign[placed] < 0):
                 continue  # changed by an earlier joint reading
-            at = {int(m): k for k, m in enumerate(placed)}
             points = assign[placed]
             base = assign.copy()
             base[placed] = -1
             best, best_err = None, _pair_error(tpl, placed, points, base, pts)
-            for m1 in [p1, *o1]:
+            for m1 in [p1, *o1]:  # one of the two may keep its reading
                 for m2 in [p2, *o2]:
                     if m1 is p1 and m2 is p2:
                         continue
-                    mk = np.full(placed.size, -1, dtype=np.int64)
-                    ok = True
-                    for pk, mm in ((p1, m1), (p2, m2)):
-                        for a_, b_ in zip(pk.tolist(), mm.tolist(), strict=True):
-                            k = at[a_]
-                            ok &= mk[k] < 0 or mk[k] == b_
-                            mk[k] = b_
-                    if not ok or np.unique(mk).size != mk.size:
+                    mk = np.concatenate([m1, m2])
+                    if np.unique(mk).size != mk.size:
                         continue
                     err = _pair_error(tpl, mk, points, base, pts)
                     if err < best_err:
