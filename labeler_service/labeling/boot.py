@@ -60,6 +60,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot_config import BootConfig
@@ -67,6 +68,7 @@ from labeler_service.labeling.boot_match import (
     _complete,
     _hypotheses,
     _Hypothesis,
+    _kabsch_batch,
     _Pairs,
     _prepare,
     _score,
@@ -113,6 +115,31 @@ class Booter:
                     for a, b in ((0, 1), (0, 2), (1, 2)):
                         r = max(r, float(tpl.D[mk[a], mk[b]] + tpl.tol[mk[a], mk[b]]))
         self._r_max = r
+        self._prepare_acquire()
+
+    def _prepare_acquire(self) -> None:
+        """Model-wide arrays for :meth:`acquire`: pairs of one trained body (``strict``), their
+        ``D`` and tolerances, and per marker its bodies (global markers, reference shape)."""
+        m = len(self.model.marker_names)
+        strict = np.zeros((m, m), dtype=bool)
+        d = np.full((m, m), np.nan)
+        tol = np.full((m, m), np.inf)
+        bodies: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(m)]
+        for tpl in self._templates:
+            sl = slice(tpl.offset, tpl.offset + tpl.n)
+            strict[sl, sl] = tpl.strict
+            d[sl, sl] = tpl.D
+            tol[sl, sl] = tpl.tol
+            for body in tpl.bodies:
+                g = tpl.offset + body.markers
+                for k in g:
+                    bodies[k].append((g, body.shape))
+        reach = np.where(strict, d + tol, 0.0)
+        self._a_strict, self._a_D, self._a_tol, self._a_bodies = strict, d, tol, bodies
+        self._a_reach = float(np.nanmax(reach)) if strict.any() else 0.0
+        self._a_subject = np.repeat(
+            np.arange(len(self._templates)), [t.n for t in self._templates]
+        ).astype(np.int64)
 
     @property
     def templates(self) -> tuple[SubjectTemplate, ...]:
@@ -219,6 +246,71 @@ class Booter:
             fresh = (grown >= 0) & (assign < 0)
             out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
             taken[grown[fresh]] = True
+        return out
+
+    def acquire(self, points: np.ndarray, labels: np.ndarray, subjects: list[int]) -> np.ndarray:
+        """Labels free points of one frame as markers of ``subjects`` that have no point in it
+        (hidden at boot, or just back), from the template alone: a free point takes marker
+        ``m`` when its distances to two or more labeled points keep ``m``'s pairs of one trained
+        body (``D +- tol``), none of those pairs is off, ``m`` is the only such marker, and,
+        where a body of ``m`` has three or more labeled markers, the body's reference shape
+        fitted to them (Kabsch) puts ``m`` within ``fit_mm`` of the point (three agreeing pairs
+        are needed otherwise). ``labels (N,)`` global marker indices, -1 free; returns a copy
+        with the new labels. Cheap enough for every frame: only the free points are looked at,
+        against their nearest labeled points. A label of -2 marks a point neither labeled nor
+        to be looked at (it stays as it is)."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        out = np.asarray(labels, dtype=np.int64).copy()
+        if not subjects or self._a_reach <= 0:
+            return out
+        active = np.isin(self._a_subject, subjects)
+        have = np.flatnonzero((out >= 0) & active[np.maximum(out, 0)])
+        free = np.flatnonzero(out == -1)
+        if have.size < 2 or free.size == 0:
+            return out
+        unlabeled = active.copy()
+        unlabeled[out[out >= 0]] = False
+        if not unlabeled.any():
+            return out
+        k = min(8, have.size)
+        dist, near = cKDTree(pts[have]).query(pts[free], k=k, distance_upper_bound=self._a_reach)
+        dist, near = dist.reshape(free.size, k), near.reshape(free.size, k)
+        cand = np.flatnonzero(unlabeled)
+        fit_mm = self.config.fit_mm
+        for i in range(free.size):
+            ok_n = np.isfinite(dist[i])
+            if ok_n.sum() < 2:
+                continue
+            g = out[have[near[i, ok_n]]]
+            st = self._a_strict[np.ix_(cand, g)]
+            dev = np.abs(dist[i, ok_n][None, :] - self._a_D[np.ix_(cand, g)])
+            fit = st & (dev <= self._a_tol[np.ix_(cand, g)])
+            n_fit = fit.sum(axis=1)
+            good = (n_fit >= 2) & ~np.any(st & ~fit, axis=1) & unlabeled[cand]
+            if good.sum() != 1:
+                continue  # none, or a symmetric pair of markers: not guessed
+            m = int(cand[np.flatnonzero(good)[0]])
+            q = pts[free[i]]
+            checked = False
+            placed_ok = True
+            for gm, shape in self._a_bodies[m]:
+                pos = np.full(gm.size, -1, dtype=np.int64)
+                lab_here = np.flatnonzero(np.isin(out, gm))
+                for j in lab_here:
+                    pos[np.flatnonzero(gm == out[j])[0]] = j
+                seen = pos >= 0
+                if seen.sum() < 3:
+                    continue
+                R, cs, cd = _kabsch_batch(shape[seen], pts[pos[seen]][None])
+                pred = (shape[gm == m][0] - cs) @ R[0].T + cd[0]
+                checked = True
+                if np.linalg.norm(pred - q) > fit_mm:
+                    placed_ok = False
+                    break
+            if not placed_ok or (not checked and int(n_fit[np.flatnonzero(good)[0]]) < 3):
+                continue
+            out[free[i]] = m
+            unlabeled[m] = False
         return out
 
 

@@ -92,6 +92,8 @@ from labeler_service.labeling.templates import LabelerModel
 
 #: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
 EXTEND_BACKOFF = 4
+#: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
+ACQUIRE_TRIES = 3
 
 
 @dataclass
@@ -168,6 +170,14 @@ class BootingLabeler:
         #: every ``extend_every_s`` costs the live stream GIL time even when it finds nothing)
         self._extend_wait = self._extend_every
         self._inner: Labeler | None = None
+        #: markers the inner labeler was started with (labeled in its window at the rebuild)
+        self._inner_known = np.zeros(len(self._names), dtype=bool)
+        #: markers labeled from the template (:meth:`Booter.acquire`) the inner labeler lacks
+        self._acquired_new = False
+        self._since_acquire = 0
+        self.acquired = 0  # points labeled by acquisition (diagnostics)
+        self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
+        self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._inner_map = np.zeros(0, dtype=np.int64)
         self._extent: np.ndarray | None = None
@@ -234,9 +244,20 @@ class BootingLabeler:
             pos[self._inner_map] = out.positions
             state[self._inner_map] = out.state
             self._drop_vanished(glab, state, pos, t)
+            self._acquire(pts, ids, glab, pos, state)
         self._window.append(_Frame(t, pts, ids, glab))
         self._since_attempt += 1
         self._since_extend += 1
+        self._since_acquire += 1
+        if (
+            self.inline_extend
+            and self._acquired_new
+            and self._since_acquire >= self._extend_every
+            and len(self._window) == self._window.maxlen
+        ):
+            # markers the inner labeler never had, labeled from the template: it takes them
+            # over from the window (at most every extend_every_s)
+            self._rebuild()
         if (
             self.inline_extend
             and self._active
@@ -339,6 +360,47 @@ class BootingLabeler:
             fr.labels[bad] = -1
         self._rebuild()
 
+    def _acquire(
+        self,
+        pts: np.ndarray,
+        ids: np.ndarray,
+        glab: np.ndarray,
+        pos: np.ndarray,
+        state: np.ndarray,
+    ) -> None:
+        """Free points of this frame labeled from the template as markers of active subjects
+        that have no point in it (:meth:`Booter.acquire`): a marker hidden at boot is labeled in
+        the frame it appears; the inner labeler takes it over at its next rebuild. A free track
+        is looked at in its first ``ACQUIRE_TRIES`` frames only (a ghost, or a point no template
+        explains, costs nothing after that: crowds leave many free points while booting)."""
+        free = glab < 0
+        if not self._active or not free.any():
+            self._acq_ids = np.zeros(0, dtype=np.int64)
+            self._acq_tries = np.zeros(0, dtype=np.int64)
+            return
+        fid = ids[free]
+        tries = np.zeros(fid.size, dtype=np.int64)
+        if self._acq_ids.size:
+            at = np.minimum(np.searchsorted(self._acq_ids, fid), self._acq_ids.size - 1)
+            hit = self._acq_ids[at] == fid
+            tries[hit] = self._acq_tries[at[hit]]
+        order = np.argsort(fid)
+        self._acq_ids, self._acq_tries = fid[order], tries[order] + 1
+        look = free.copy()
+        look[free] = tries < ACQUIRE_TRIES
+        if not look.any():
+            return
+        new = self._booter.acquire(pts, np.where(look | ~free, glab, -2), sorted(self._active))
+        new[~look & free] = -1
+        added = (glab < 0) & (new >= 0)
+        if not added.any():
+            return
+        glab[added] = new[added]
+        self.acquired += int(added.sum())
+        _mark_observed(np.where(added, glab, -1), pts, pos, state)
+        if not np.all(self._inner_known[glab[added]]):
+            self._acquired_new = True
+
     def _extend(self) -> bool:
         """Free points joined to active subjects (markers hidden at boot that appear)."""
         last = self._window[-1]
@@ -391,8 +453,11 @@ class BootingLabeler:
             not self.inline_extend
             and bool(self._active)
             and len(self._window) == self._window.maxlen
-            and self._since_extend >= self._extend_wait
-            and bool(np.any(self._window[-1].labels < 0))
+            and (
+                self._since_extend >= self._extend_wait
+                or (self._acquired_new and self._since_acquire >= self._extend_every)
+            )
+            and bool(np.any(self._window[-1].labels < 0) or self._acquired_new)
         )
 
     def boot_snapshot(self) -> BootSnapshot:
@@ -497,7 +562,7 @@ class BootingLabeler:
                     np.isin(self._subject_of[np.maximum(now, 0)], list(self._active)) & (now >= 0)
                 )
             )
-        if not booted.size and not extended:
+        if not booted.size and not extended and not self._acquired_new:
             return booted
         frames = [(f.points, f.ids) for f in self._window]
         self._spread(frames, last.ids, now)
@@ -530,6 +595,11 @@ class BootingLabeler:
             inner.process(fr.points, fr.t, lab)
         self._inner = inner
         self._inner_map = gmap
+        self._inner_known[:] = False
+        for fr in self._window:
+            self._inner_known[fr.labels[fr.labels >= 0]] = True
+        self._acquired_new = False
+        self._since_acquire = 0
 
     # ------------------------------------------------------------------ warm-up
     def warmup(self) -> None:
