@@ -872,17 +872,7 @@ def _readings(
         placed, options = _segment_readings(tpl, seg, assign, pts)
         if not options:
             continue
-        points = assign[placed]
-        base = assign.copy()
-        base[placed] = -1
-        best, best_err = None, _pair_error(tpl, placed, points, base, pts)
-        for mk in options:
-            err = _pair_error(tpl, mk, points, base, pts)
-            if err < best_err:
-                best, best_err = mk, err
-        if best is not None:
-            assign[placed] = -1
-            assign[best] = points
+        _reread(tpl, placed, options, assign, pts)
     reads = [(seg, *_segment_readings(tpl, seg, assign, pts)) for seg in segs]
     reads = [r for r in reads if r[2]]
     for i in range(len(reads)):
@@ -896,23 +886,33 @@ def _readings(
             placed = np.concatenate([p1, p2])
             if np.any(assign[placed] < 0):
                 continue  # changed by an earlier joint reading
-            points = assign[placed]
-            base = assign.copy()
-            base[placed] = -1
-            best, best_err = None, _pair_error(tpl, placed, points, base, pts)
-            for m1 in [p1, *o1]:  # one of the two may keep its reading
-                for m2 in [p2, *o2]:
-                    if m1 is p1 and m2 is p2:
-                        continue
-                    mk = np.concatenate([m1, m2])
-                    if np.unique(mk).size != mk.size:
-                        continue
-                    err = _pair_error(tpl, mk, points, base, pts)
-                    if err < best_err:
-                        best, best_err = mk, err
-            if best is not None:
-                assign[placed] = -1
-                assign[best] = points
+            joint = [  # one of the two may keep its reading
+                mk
+                for m1 in [p1, *o1]
+                for m2 in [p2, *o2]
+                if not (m1 is p1 and m2 is p2)
+                and np.unique(mk := np.concatenate([m1, m2])).size == mk.size
+            ]
+            _reread(tpl, placed, joint, assign, pts)
+
+
+def _reread(
+    tpl: _Template, placed: np.ndarray, options: list, assign: np.ndarray, pts: np.ndarray
+) -> None:
+    """Moves the points of markers ``placed`` to the reading among ``options`` (marker arrays
+    of the same length) whose distances to the rest of ``assign`` fit best, if one fits better
+    than the current reading (:func:`_pair_error`)."""
+    points = assign[placed]
+    base = assign.copy()
+    base[placed] = -1
+    best, best_err = None, _pair_error(tpl, placed, points, base, pts)
+    for mk in options:
+        err = _pair_error(tpl, mk, points, base, pts)
+        if err < best_err:
+            best, best_err = mk, err
+    if best is not None:
+        assign[placed] = -1
+        assign[best] = points
 
 
 def _complete(
