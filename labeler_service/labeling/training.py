@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service.errors import LabelerError
-from labeler_service.labeling.templates import SubjectTemplate, make_subject
+from labeler_service.labeling.templates import PAIR_DISTANCE_MM, SubjectTemplate, make_subject
 
 
 def pair_statistics(pos: np.ndarray, min_pair_frames: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -64,6 +64,26 @@ def pair_statistics(pos: np.ndarray, min_pair_frames: int = 3) -> tuple[np.ndarr
     A[bad] = np.nan
     np.fill_diagonal(D, 0.0)
     np.fill_diagonal(A, 0.0)
+    return D, A
+
+
+def model_pair_statistics(
+    pos: np.ndarray, min_pair_frames: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pair_statistics` as a subject template stores them, within the ranges every model
+    must keep (``templates.PAIR_DISTANCE_MM``, ``A < D``): a pair whose mean distance is outside
+    them (one point recorded under two names; a glitch) is unknown (NaN), and a pair whose
+    distance varied as much as its mean (a few samples of a fast limb: a 5-frame window at
+    12.5 Hz) keeps a deviation just below its distance - either way it is not rigid. Without
+    this a trained model could fail its own validation."""
+    D, A = pair_statistics(pos, min_pair_frames)
+    lo, hi = PAIR_DISTANCE_MM
+    off = np.isfinite(D) & (np.clip(D, lo, hi) != D)
+    np.fill_diagonal(off, False)
+    D[off] = np.nan
+    A[off] = np.nan
+    wide = np.isfinite(A) & (A >= D) & (D > 0)
+    A[wide] = 0.999 * D[wide]
     return D, A
 
 
@@ -207,7 +227,7 @@ def train_subject(
         raise LabelerError(
             f"subject {name!r}: positions must be (frames, {len(markers)}, 3), got {pos.shape}"
         )
-    D, A = pair_statistics(pos, min_pair_frames)
+    D, A = model_pair_statistics(pos, min_pair_frames)
     usable = np.isfinite(pos).all(axis=2).sum(axis=0) >= min_pair_frames
     bodies = select_bodies(
         D,

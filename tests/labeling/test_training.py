@@ -47,3 +47,40 @@ def test_a_rigid_pair_has_its_true_distance_and_no_deviation(rng):
     true = np.linalg.norm(shape[:, None] - shape[None], axis=2)
     np.testing.assert_allclose(D, true, atol=1e-9)
     np.testing.assert_allclose(A, 0.0, atol=1e-5)
+
+
+def _markers_with_a_swinging_hand(rng, frames: int = 5) -> np.ndarray:
+    """Three rigid torso markers and a hand that stays near them but once swings 800 mm away
+    (a 5-frame window of a tennis serve at 12.5 Hz): its distances vary as much as their mean."""
+    torso = np.array([[0.0, 0.0, 1000.0], [150.0, 0.0, 1000.0], [0.0, 120.0, 1100.0]])
+    pos = np.repeat(torso[None], frames, axis=0) + rng.normal(scale=0.5, size=(frames, 3, 3))
+    hand = torso[0] + np.array([40.0, 30.0, 0.0])
+    hands = np.repeat(hand[None], frames, axis=0)
+    hands[-1] += np.array([800.0, 0.0, 0.0])
+    return np.concatenate([pos, hands[:, None, :]], axis=1)
+
+
+def test_a_trained_template_stays_within_the_ranges_every_model_keeps(rng):
+    from labeler_service.labeling.templates import LabelerModel
+    from labeler_service.labeling.training import model_pair_statistics, train_subject
+
+    pos = _markers_with_a_swinging_hand(rng)
+    _, A_raw = pair_statistics(pos)
+    D, A = model_pair_statistics(pos)
+    assert A_raw[0, 3] >= D[0, 3]  # the raw deviation is not below the distance ...
+    assert A[0, 3] < D[0, 3] and A[0, 3] > 0.99 * D[0, 3]  # ... the template's is, just
+    np.testing.assert_array_equal(A[:3, :3], A_raw[:3, :3])  # rigid pairs untouched
+    tpl = train_subject("P", ["a", "b", "c", "hand"], pos, 12.5)
+    LabelerModel(rate=12.5, subjects=[tpl])  # validates (it raised before)
+
+
+def test_one_point_under_two_names_is_an_unknown_pair(rng):
+    from labeler_service.labeling.templates import LabelerModel
+    from labeler_service.labeling.training import model_pair_statistics, train_subject
+
+    pos = _markers_with_a_swinging_hand(rng, frames=12)[:, :3]
+    pos = np.concatenate([pos, pos[:, :1]], axis=1)  # marker 3 is marker 0 again (RBAC/RBAC-1)
+    D, A = model_pair_statistics(pos)
+    assert np.isnan(D[0, 3]) and np.isnan(A[0, 3]) and np.isnan(D[3, 0])
+    assert D[0, 0] == 0.0 and np.isfinite(D[1, 3])
+    LabelerModel(rate=120.0, subjects=[train_subject("P", ["a", "b", "c", "a2"], pos, 120.0)])
