@@ -21,11 +21,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from labeler_service._numba import njit
 from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
+from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import kernel_params
+from labeler_service.labeling.kernels.rigid import _snapshot
 from labeler_service.labeling.kernels.state import (
     MAX_BODY,
     Bodies,
@@ -40,6 +43,7 @@ from labeler_service.labeling.kernels.state import (
     new_tracks,
 )
 from labeler_service.labeling.kernels.step import _process_frame_fields
+from labeler_service.labeling.kernels.window import _window_update
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.labeling.training import train_subject
 
@@ -253,11 +257,8 @@ class Labeler:
         bodies: np.ndarray,
         frames: Sequence[tuple[float, np.ndarray, np.ndarray]],
     ) -> None:
-        """:meth:`_warm_start` for ``markers`` and the windows of ``bodies`` only."""
-        from labeler_service.labeling.kernels.kalman import _predict, _update
-        from labeler_service.labeling.kernels.rigid import _snapshot
-        from labeler_service.labeling.kernels.window import _window_update
-
+        """:meth:`_warm_start` for ``markers`` and the windows of ``bodies`` only (one kernel
+        call: :func:`_seed_frames`)."""
         p, tr, m = self._params, self._tracks, len(self._names)
         mask = np.zeros(m, dtype=np.bool_)
         mask[markers] = True
@@ -267,9 +268,9 @@ class Labeler:
             *(a[bodies] if k in read else a for k, a in zip(Bodies._fields, bd, strict=True))
         )
         T = bd.ring.shape[3]
-        age = np.zeros(m, dtype=np.int64)
-        lost = np.zeros(m, dtype=np.int64)
-        obs = np.full((m, 3), np.nan)
+        nf = len(frames)
+        obs = np.full((nf, m, 3), np.nan)
+        dts = np.empty(nf)
         t_prev = np.nan
         for k, (t, pts, lab) in enumerate(frames):
             pts = frame_points(pts)
@@ -278,21 +279,18 @@ class Labeler:
                 raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
             ok = (lab >= 0) & (lab < m)
             ok[ok] = mask[lab[ok]]
-            obs[:] = np.nan
-            obs[lab[ok]] = pts[ok]
+            obs[k, lab[ok]] = pts[ok]
             dt = float(t) - t_prev
-            if not (np.isfinite(dt) and dt > 0):
-                dt = 1.0 / self.rate
+            dts[k] = dt if np.isfinite(dt) and dt > 0 else 1.0 / self.rate
             t_prev = float(t)
-            _predict(tr.x, tr.P, tr.q, mask, dt, p.p_cap)
-            _update(tr.x, tr.P, obs, mask, p.r, p.v0)
-            if bodies.size:
-                slot = (self._frame_no - len(frames) + k) % T
-                _window_update(sub, obs, slot, p.min_window_samples)
-            seen = np.isfinite(obs[:, 0])
-            age = np.where(seen, age + 1, 0)
-            lost = np.where(seen, 0, lost + 1)
-            _snapshot(age, 1, obs, self._recovery)
+        slots = (self._frame_no - nf + np.arange(nf)) % T
+        age = np.zeros(m, dtype=np.int64)
+        lost = np.zeros(m, dtype=np.int64)
+        _seed_frames(
+            obs, dts, slots, mask, tr.x, tr.P, tr.q, sub, self._recovery, age, lost,
+            p.p_cap, p.r, p.v0, p.min_window_samples,
+        )  # fmt: skip
+        obs = obs[-1]
         for k in _PER_BODY:
             if bodies.size:
                 getattr(bd, k)[bodies] = getattr(sub, k)
@@ -301,7 +299,8 @@ class Labeler:
         seen = mask & np.isfinite(obs[:, 0])
         tr.state[seen] = MarkerState.OBSERVED
         tr.pos[seen] = obs[seen]
-        if not self._ready:
+        if not self._ready or not self._t_prev >= t_prev:
+            # (a labeler that labeled no frame since the frames' last one moves on to it)
             self._t_prev = t_prev
             self._ready = True
         elif self._t_prev > t_prev:  # frames passed since the last labeled one: catch up
@@ -524,3 +523,25 @@ class Labeler:
         for k in range(3):
             pts = base[1:] + np.float32(5 + k)
             lab.process(pts, (5 + k) / self.rate)
+
+
+@njit
+def _seed_frames(obs, dts, slots, mask, x, P, q, bodies, recovery, age, lost, p_cap, r, v0, n_min):
+    """The warm start of :meth:`Labeler._seed` in one call: for each labeled frame
+    ``obs[k] (M, 3)`` (NaN rows = not labeled), the Kalman prediction over ``dts[k]`` and update
+    of the markers in ``mask``, the window update of ``bodies`` (a subset, :class:`Bodies`) at
+    ring slot ``slots[k]``, ``age``/``lost`` (frames observed / missing in a row) and the
+    recovery snapshots (as :meth:`Labeler._warm_start`, snapshot age 1)."""
+    for k in range(obs.shape[0]):
+        _predict(x, P, q, mask, dts[k], p_cap)
+        _update(x, P, obs[k], mask, r, v0)
+        if bodies.members.shape[0] > 0:
+            _window_update(bodies, obs[k], slots[k], n_min)
+        for i in range(obs.shape[1]):
+            if obs[k, i, 0] == obs[k, i, 0]:  # noqa: PLR0124 (NaN test)
+                age[i] += 1
+                lost[i] = 0
+            else:
+                age[i] = 0
+                lost[i] += 1
+        _snapshot(age, 1, obs[k], recovery)
