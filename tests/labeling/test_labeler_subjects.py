@@ -155,3 +155,61 @@ def test_subject_call_errors(rng, scene):
         lab.add_subjects(["P1"], window)
     with pytest.raises(LabelerError, match="only to a labeler from a model"):
         Labeler(model.marker_names, RATE).add_subjects(["P0"], window)
+
+
+@pytest.fixture(scope="module")
+def walkers():
+    """Three walkers streamed, a model of five (as ``test_boot.walk``)."""
+    from labeling.test_boot import _train
+
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(5, 6.0, "walk", seed=7, rate=RATE, ghosts=2.0)
+    half = cap.n_frames // 2
+    keep = [i for i, lab in enumerate(cap.labels) if not lab.startswith(("P4:", "P5:"))]
+    return _train(cap.frames(0, half)), cap.select(keep).frames(half, cap.n_frames)
+
+
+def test_booting_labeler_installs_a_later_subject_without_a_rebuild(walkers):
+    """P3 enters later: its boot adds it to the inner labeler (the same object throughout) and
+    leaves P1's and P2's Kalman states, windows and recovery snapshots as they were."""
+    from labeling.test_boot import Stream, _run
+
+    from labeler_service.labeling.booting import BootingLabeler
+
+    model, cap = walkers
+    pos = cap.positions.copy()
+    pos[:90, [i for i, n in enumerate(cap.labels) if n.startswith("P3:")]] = np.nan
+    lab = BootingLabeler(model, RATE)
+    inner = lab._inner
+    subj = np.array([n.split(":")[0] for n in model.marker_names])
+    seen = []
+
+    def spy(names, frames):
+        others = ~np.isin(subj, list(names))
+        bodies = np.setdiff1d(
+            np.arange(inner._bodies.s1.shape[0]),
+            np.concatenate([inner._subject_bodies[n] for n in names]),
+        )
+        state = lambda: [  # noqa: E731
+            *(a[others].copy() for a in (inner._tracks.x, inner._tracks.P, inner._recovery.ref)),
+            *(a[bodies].copy() for a in (inner._bodies.s1, inner._bodies.cnt, inner._bodies.D)),
+        ]
+        before = state()
+        type(inner).add_subjects(inner, names, frames)
+        for a, b in zip(before, state(), strict=True):
+            np.testing.assert_array_equal(a, b)
+        seen.append(tuple(names))
+
+    inner.add_subjects = spy
+    outs, truths = _run(lab, Stream(cap.with_positions(pos), model, seed=4), range(cap.n_frames))
+    assert lab._inner is inner
+    assert ("P3",) in seen and sorted(n for names in seen for n in names) == ["P1", "P2", "P3"]
+    p3 = subj == "P3"
+    tail = slice(90 + round(0.5 * RATE), None)
+    ok = vis = 0
+    for o, t in zip(outs[tail], truths[tail], strict=True):
+        m = (t >= 0) & p3[np.maximum(t, 0)]
+        ok += int(np.count_nonzero(o.point_labels[m] == t[m]))
+        vis += int(m.sum())
+    assert ok / vis >= 0.9
