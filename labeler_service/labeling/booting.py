@@ -5,15 +5,17 @@
 
 1. the anonymous points are tracked (:class:`~labeler_service.labeling.boot.PointTracker`);
 2. the subjects booted so far are labeled by an inner
-   :class:`~labeler_service.labeling.labeler.Labeler` built with its public API only
-   (``Labeler.from_model`` on a model of the *active* subjects, then the recent frames with
-   their labels as its labeled first frames);
+   :class:`~labeler_service.labeling.labeler.Labeler` built once with every model subject
+   inactive (``Labeler.from_model(model, ..., subjects=())``): a booted subject is added to it
+   (``Labeler.add_subjects`` from the recent frames with its labels), a dropped one removed
+   (``Labeler.drop_subject``); the other subjects' state is never touched;
 3. a subject of the active set with fewer than ``vanish_fraction`` of its markers observed, or
    fewer than ``vanish_relative`` of its recent count (moving average over
    ``vanish_memory_s``), has its labels withheld (when a performer leaves, the inner labeler
    gives its last labels to points near where it was); after ``drop_after_s`` it is dropped:
-   the inner labeler stops labeling it (``Labeler.drop_subject``), so none of its labels can go to other points or
-   ghosts while it is away; when it comes back it is booted again (re-identification, anywhere);
+   the inner labeler stops labeling it (``Labeler.drop_subject``), so none of its labels can go
+   to other points or ghosts while it is away; when it comes back it is booted again
+   (re-identification, anywhere);
 4. every ``boot_every_s`` (doubling after each fruitless attempt up to ``boot_backoff_s``: a
    model's absent subjects would otherwise cost a boot every 0.05 s), while some model subject
    is not active, the boot
@@ -353,6 +355,7 @@ class BootingLabeler:
             self._gone[s] = 0
             self._recent[s] = 0.0
             self.events.append((t, "drop", self.model.subjects[s].name))
+            self._inner_known[self._offset[s] : self._offset[s + 1]] = False
             if not self._labeled_run:  # (else the rebuild due at the next frame drops it)
                 self._inner.drop_subject(self.model.subjects[s].name)
         # the window's labels of dropped subjects are forgotten (a rebuild must not see them)
@@ -597,6 +600,7 @@ class BootingLabeler:
         )
         if seed.any():
             self._inner.seed_markers(np.flatnonzero(seed), win)
+        self._inner_known[np.isin(self._subject_of, added)] = False  # (a subject booted again)
         self._inner_known |= seen
         self._acquired_new = False
         self._since_acquire = 0
