@@ -12,6 +12,12 @@ needed, but the stream must still start with at least one labeled frame, which g
 initial assignment (the Kalman states) - we chose this over registering each body's reference
 shape to the anonymous points of the first frame because with several people close together
 that registration is ambiguous, while every capture system labels a calibration (T-pose) frame.
+
+``Labeler.from_model(model, rate, subjects=())`` builds the kernel state of every model subject
+with none active; :meth:`Labeler.add_subjects` starts subjects between two frames from recent
+labeled frames (the boot's, :mod:`~labeler_service.labeling.booting`), :meth:`Labeler.drop_subject`
+stops one, :meth:`Labeler.seed_markers` starts the tracks of markers an active subject lacks;
+none of them touches the other subjects' state (no rebuild).
 """
 
 from __future__ import annotations
