@@ -12,6 +12,12 @@ needed, but the stream must still start with at least one labeled frame, which g
 initial assignment (the Kalman states) - we chose this over registering each body's reference
 shape to the anonymous points of the first frame because with several people close together
 that registration is ambiguous, while every capture system labels a calibration (T-pose) frame.
+
+``Labeler.from_model(model, rate, subjects=())`` builds the kernel state of every model subject
+with none active; :meth:`Labeler.add_subjects` starts subjects between two frames from recent
+labeled frames (the boot's, :mod:`~labeler_service.labeling.booting`), :meth:`Labeler.drop_subject`
+stops one, :meth:`Labeler.seed_markers` starts the tracks of markers an active subject lacks;
+none of them touches the other subjects' state (no rebuild).
 """
 
 from __future__ import annotations
@@ -21,11 +27,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from labeler_service._numba import njit
 from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
+from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import kernel_params
+from labeler_service.labeling.kernels.rigid import _snapshot
 from labeler_service.labeling.kernels.state import (
     MAX_BODY,
     Bodies,
@@ -40,10 +49,13 @@ from labeler_service.labeling.kernels.state import (
     new_tracks,
 )
 from labeler_service.labeling.kernels.step import _process_frame_fields
+from labeler_service.labeling.kernels.window import _window_update
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.labeling.training import train_subject
 
 MIN_TRAIN_FRAMES = 3
+#: the window fields of :class:`Bodies` (per body) :meth:`Labeler.add_subjects` seeds
+_PER_BODY = ("ring", "s1", "s2", "cnt", "D", "A")
 
 
 class Labeler:
@@ -80,16 +92,33 @@ class Labeler:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_model(
-        cls, model: LabelerModel, rate: float, config: LabelerConfig | None = None
+        cls,
+        model: LabelerModel,
+        rate: float,
+        config: LabelerConfig | None = None,
+        subjects: Sequence[str] | None = None,
     ) -> Labeler:
         """A labeler from a subject template; the first frame(s) must still carry labels.
 
         The state is built here, not on the first unlabeled frame: a live stream started from a
-        model pays no set-up stall (26 ms at 10 performers) inside a frame period."""
+        model pays no set-up stall (26 ms at 10 performers) inside a frame period.
+
+        ``subjects``: the model subjects labeled from the start (default: all). The others are
+        built but inactive (never predicted, gated or labeled; their labels are never given)
+        until :meth:`add_subjects` starts them; with ``subjects=()`` no labeled frame is needed
+        at all: :meth:`add_subjects` starts the labeler."""
         lab = cls(model.marker_names, rate, config)
         lab.model = model
         lab._build(model)
         lab._built = True
+        if subjects is not None:
+            known = {s.name for s in model.subjects}
+            unknown = sorted(set(subjects) - known)
+            if unknown:
+                raise LabelerError(f"subjects {unknown} are not in the model")
+            for s in model.subjects:
+                if s.name not in subjects:
+                    lab._tracks.active[lab._subject_markers[s.name]] = False
         return lab
 
     @property
@@ -120,6 +149,168 @@ class Labeler:
                 if not np.isfinite(out[i]) or ext < out[i]:
                     out[i] = ext
         return out
+
+    # ------------------------------------------------------------------ subjects
+    @property
+    def active_subjects(self) -> tuple[str, ...]:
+        """The model subjects labeled now (model order); empty before a model is built."""
+        if not self._built or self.model is None:
+            return ()
+        act = self._tracks.active
+        return tuple(
+            s.name
+            for s in self.model.subjects
+            if self._subject_markers[s.name].size and act[self._subject_markers[s.name]].all()
+        )
+
+    def add_subjects(
+        self, names: Sequence[str], frames: Sequence[tuple[float, np.ndarray, np.ndarray]]
+    ) -> None:
+        """Starts labeling the inactive model subjects ``names`` (see :meth:`from_model`),
+        between two frames, without touching any other subject's state.
+
+        ``frames``: recent labeled frames ``(t, points (N, 3), labels (N,))`` (labels: this
+        labeler's marker index per point, -1 unknown), oldest first, the last one being the
+        frame this labeler processed last (or, on a labeler not started yet, the current one).
+        Only the labels of the added subjects are read: their Kalman states, sliding windows
+        (Eq. 1-2) and recovery snapshots restart from these frames, as a rebuild with them as
+        labeled first frames would start them, at the cost of the added subjects alone. A
+        labeler from a model with no subject active is started by this call (no labeled frame
+        passes through :meth:`process`)."""
+        self._check_subjects_call(frames)
+        tr = self._tracks
+        markers, bodies = [], []
+        for name in names:
+            if name not in self._subject_markers:
+                raise LabelerError(f"subject {name!r} is not in the model")
+            mk = self._subject_markers[name]
+            if mk.size and tr.active[mk].any():
+                raise LabelerError(f"subject {name!r} is labeled already")
+            markers.append(mk)
+            bodies.append(self._subject_bodies[name])
+        if not markers:
+            return
+        mk = np.concatenate(markers)
+        bidx = np.concatenate(bodies)
+        self._reset(mk, bidx)
+        tr.active[mk] = True
+        self._seed(mk, bidx, frames)
+
+    def seed_markers(
+        self, markers: Sequence[int], frames: Sequence[tuple[float, np.ndarray, np.ndarray]]
+    ) -> None:
+        """Restarts the tracks of ``markers`` (of active subjects; e.g. markers hidden when
+        their subject was added, labeled since from the template) from the labels of
+        ``frames`` (as :meth:`add_subjects`); every other marker and every body window stays
+        as it is. Markers in no rigid body (never labeled by this labeler) are skipped."""
+        self._check_subjects_call(frames)
+        mk = np.unique(np.asarray(markers, dtype=np.int64))
+        if mk.size and (mk[0] < 0 or mk[-1] >= len(self._names)):
+            raise LabelerError(f"marker index out of range 0..{len(self._names) - 1}")
+        mk = mk[self._body_marker[mk]]
+        if mk.size == 0:
+            return
+        if not self._tracks.active[mk].all():
+            raise LabelerError("seed_markers takes markers of active subjects only")
+        self._reset(mk, np.zeros(0, dtype=np.int64))
+        self._seed(mk, np.zeros(0, dtype=np.int64), frames)
+
+    def drop_subject(self, name: str) -> None:
+        """Stops labeling subject ``name`` (it left): its markers become inactive, so from the
+        next frame on none of its labels is given to any point; its state is cleared, every
+        other subject's state stays as it is. :meth:`add_subjects` starts it again."""
+        if not self._built or name not in self._subject_markers:
+            raise LabelerError(f"subject {name!r} is not in the model")
+        mk = self._subject_markers[name]
+        self._reset(mk, self._subject_bodies[name])
+        self._tracks.active[mk] = False
+
+    def _check_subjects_call(self, frames: Sequence) -> None:
+        if not self._built:
+            raise LabelerError("subjects can be added only to a labeler from a model")
+        if not self._ready and self._pending:
+            raise LabelerError("labeled first frames are pending: add subjects after them")
+        if not frames:
+            raise LabelerError("adding markers needs at least one labeled frame")
+
+    def _reset(self, markers: np.ndarray, bodies: np.ndarray) -> None:
+        """The state of ``markers`` and ``bodies`` as a fresh build has it (in place)."""
+        tr, bd = self._tracks, self._bodies
+        tr.x[markers] = np.nan
+        tr.P[markers] = 0.0
+        tr.kx[markers] = np.nan
+        for a in (tr.age, tr.n_reject, tr.lost):
+            a[markers] = 0
+        tr.gone[markers] = False
+        tr.state[markers] = MarkerState.MISSING
+        tr.pos[markers] = np.nan
+        self._recovery.ok[markers] = False
+        if bodies.size == 0:
+            return
+        bd.D[bodies] = bd.D0[bodies]
+        bd.A[bodies] = bd.A0[bodies]
+        for name in ("ring", "mpos", "pred", "err", "kerr"):
+            getattr(bd, name)[bodies] = np.nan
+        for name in ("s1", "s2", "cnt", "R", "t", "motion_dt", "ref", "pending"):
+            getattr(bd, name)[bodies] = 0
+        bd.moving[bodies] = False
+        bd.ref_ok[bodies] = False
+        bd.ok[bodies] = True
+
+    def _seed(
+        self,
+        markers: np.ndarray,
+        bodies: np.ndarray,
+        frames: Sequence[tuple[float, np.ndarray, np.ndarray]],
+    ) -> None:
+        """:meth:`_warm_start` for ``markers`` and the windows of ``bodies`` only (one kernel
+        call: :func:`_seed_frames`)."""
+        p, tr, m = self._params, self._tracks, len(self._names)
+        mask = np.zeros(m, dtype=np.bool_)
+        mask[markers] = True
+        bd = self._bodies
+        read = (*_PER_BODY, "members", "size", "D0", "A0", "ok")
+        sub = Bodies(
+            *(a[bodies] if k in read else a for k, a in zip(Bodies._fields, bd, strict=True))
+        )
+        T = bd.ring.shape[3]
+        nf = len(frames)
+        obs = np.full((nf, m, 3), np.nan)
+        dts = np.empty(nf)
+        t_prev = np.nan
+        for k, (t, pts, lab) in enumerate(frames):
+            pts = frame_points(pts)
+            lab = np.asarray(lab).astype(np.int64, copy=False).reshape(-1)
+            if lab.shape[0] != pts.shape[0]:
+                raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
+            ok = (lab >= 0) & (lab < m)
+            ok[ok] = mask[lab[ok]]
+            obs[k, lab[ok]] = pts[ok]
+            dt = float(t) - t_prev
+            dts[k] = dt if np.isfinite(dt) and dt > 0 else 1.0 / self.rate
+            t_prev = float(t)
+        slots = (self._frame_no - nf + np.arange(nf)) % T
+        age = np.zeros(m, dtype=np.int64)
+        lost = np.zeros(m, dtype=np.int64)
+        _seed_frames(
+            obs, dts, slots, mask, tr.x, tr.P, tr.q, sub, self._recovery, age, lost,
+            p.p_cap, p.r, p.v0, p.min_window_samples,
+        )  # fmt: skip
+        obs = obs[-1]
+        for k in _PER_BODY:
+            if bodies.size:
+                getattr(bd, k)[bodies] = getattr(sub, k)
+        tr.age[mask] = age[mask]
+        tr.lost[mask] = lost[mask]
+        seen = mask & np.isfinite(obs[:, 0])
+        tr.state[seen] = MarkerState.OBSERVED
+        tr.pos[seen] = obs[seen]
+        if not self._ready or not self._t_prev >= t_prev:
+            # (a labeler that labeled no frame since the frames' last one moves on to it)
+            self._t_prev = t_prev
+            self._ready = True
+        elif self._t_prev > t_prev:  # frames passed since the last labeled one: catch up
+            _predict(tr.x, tr.P, tr.q, mask, self._t_prev - t_prev, p.p_cap)
 
     # ------------------------------------------------------------------ per frame
     def process(
@@ -257,6 +448,16 @@ class Labeler:
         for body in bodies:
             active[body] = True
         groups = list(subject_groups(self._names).values())
+        # per subject: its body markers (the ones add/drop switch) and its bodies
+        self._subject_markers: dict[str, np.ndarray] = {}
+        self._subject_bodies: dict[str, np.ndarray] = {}
+        nb = 0
+        for subj in model.subjects:
+            gidx = np.array([self._index[f"{subj.name}:{mk}"] for mk in subj.markers])
+            self._subject_markers[subj.name] = gidx[active[gidx]]
+            self._subject_bodies[subj.name] = np.arange(nb, nb + len(subj.bodies))
+            nb += len(subj.bodies)
+        self._body_marker = active.copy()
         self._tracks = new_tracks(np.where(np.isfinite(q), q, 1.0e6), active, groups)
         self._bodies = new_bodies(m, bodies, d0, a0, c.window_T)
         self._recovery = recovery
@@ -328,3 +529,25 @@ class Labeler:
         for k in range(3):
             pts = base[1:] + np.float32(5 + k)
             lab.process(pts, (5 + k) / self.rate)
+
+
+@njit
+def _seed_frames(obs, dts, slots, mask, x, P, q, bodies, recovery, age, lost, p_cap, r, v0, n_min):
+    """The warm start of :meth:`Labeler._seed` in one call: for each labeled frame
+    ``obs[k] (M, 3)`` (NaN rows = not labeled), the Kalman prediction over ``dts[k]`` and update
+    of the markers in ``mask``, the window update of ``bodies`` (a subset, :class:`Bodies`) at
+    ring slot ``slots[k]``, ``age``/``lost`` (frames observed / missing in a row) and the
+    recovery snapshots (as :meth:`Labeler._warm_start`, snapshot age 1)."""
+    for k in range(obs.shape[0]):
+        _predict(x, P, q, mask, dts[k], p_cap)
+        _update(x, P, obs[k], mask, r, v0)
+        if bodies.members.shape[0] > 0:
+            _window_update(bodies, obs[k], slots[k], n_min)
+        for i in range(obs.shape[1]):
+            if obs[k, i, 0] == obs[k, i, 0]:  # noqa: PLR0124 (NaN test)
+                age[i] += 1
+                lost[i] = 0
+            else:
+                age[i] = 0
+                lost[i] += 1
+        _snapshot(age, 1, obs[k], recovery)
