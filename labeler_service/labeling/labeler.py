@@ -197,7 +197,9 @@ class Labeler:
         self._seed(mk, bidx, frames)
 
     def seed_markers(
-        self, markers: Sequence[int], frames: Sequence[tuple[float, np.ndarray, np.ndarray]]
+        self,
+        markers: Sequence[int] | np.ndarray,
+        frames: Sequence[tuple[float, np.ndarray, np.ndarray]],
     ) -> None:
         """Restarts the tracks of ``markers`` (of active subjects; e.g. markers hidden when
         their subject was added, labeled since from the template) from the labels of
@@ -297,9 +299,9 @@ class Labeler:
             p.p_cap, p.r, p.v0, p.min_window_samples,
         )  # fmt: skip
         obs = obs[-1]
-        for k in _PER_BODY:
+        for name in _PER_BODY:
             if bodies.size:
-                getattr(bd, k)[bodies] = getattr(sub, k)
+                getattr(bd, name)[bodies] = getattr(sub, name)
         tr.age[mask] = age[mask]
         tr.lost[mask] = lost[mask]
         seen = mask & np.isfinite(obs[:, 0])
@@ -453,8 +455,8 @@ class Labeler:
         self._subject_bodies: dict[str, np.ndarray] = {}
         nb = 0
         for subj in model.subjects:
-            gidx = np.array([self._index[f"{subj.name}:{mk}"] for mk in subj.markers])
-            self._subject_markers[subj.name] = gidx[active[gidx]]
+            cols = np.array([self._index[f"{subj.name}:{mk}"] for mk in subj.markers])
+            self._subject_markers[subj.name] = cols[active[cols]]
             self._subject_bodies[subj.name] = np.arange(nb, nb + len(subj.bodies))
             nb += len(subj.bodies)
         self._body_marker = active.copy()
