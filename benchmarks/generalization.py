@@ -61,7 +61,9 @@ next to its labeled-window fields,
 ``boot_minus_window`` (``accuracy_after_boot`` minus the labeled-window ``accuracy`` of the same
 cell, in fractions: the issue's bar is >= -0.002), the ``train``/``evaluate_boot`` commands, and
 the summary per group and cell gains ``boot``: worst and median ``boot_s_max`` (a subject never
-booted counts as infinite), worst ``boot_minus_window``, max ghost rate. The default mode's
+booted counts as infinite), worst ``boot_minus_window``, max ghost rate. In boot mode the
+labeled-window fields and issue 10's ``bars`` are those of the (possibly cut) scored scenes:
+compare them with a default run only where ``scene_cut_from_frames`` is null. The default mode's
 output is unchanged.
 
     .venv/bin/python benchmarks/generalization.py --out generalization.json      # full
