@@ -41,9 +41,35 @@ before the scene does (their performer leaves; the labeler keeps their labels).
 ``accuracy_seen`` counts every visible sample except those of markers the init window never
 showed (``unseen_at_init``); the issue's bars are on it.
 
+Boot (``--start boot``, issue 11): every cell is also scored with no labeled frame at all
+(``evaluate --model M --init-frames 0``), M trained (``train structure``) on a *training* scene
+composed from other segments of the same takes in the same order (so subjects and marker names
+match), same radius, seed + 1. Per take, the scored segment is the take frames the scene reads
+(``scored_span``: its start to the last sample interpolated, inclusive); the training segment is
+taken from the larger of the parts of the take before and after it (first full frame on), 1 s
+away from it when there is room; its frames never overlap the scored ones. A training window
+before the scored one ends before it (the training scene is cut short to guarantee that); one
+after it may run to the take's end (that performer leaves the training scene). When a take
+leaves less than 0.5 s for training (a short take the scene reads whole), the scored scene is
+cut to 90 %, 80 %, ... 10 % of its frames (not below 0.75 s; ``scene_cut_from_frames``; the
+labeled-window fields of that cell are then scored on the cut scene too, so the comparison stays
+on one scene; a cell whose corruption does not fit in the cut scene is left out, with a
+note on stderr); a scene that still has no room is reported with ``boot: null`` and
+``boot_skipped``. Each cell then gains ``boot`` (``boot_s_max``, ``boot_s``,
+``accuracy_after_boot``, ``absent_labeled``, ``identity_swaps``, ghost fields, ``accuracy``)
+next to its labeled-window fields,
+``boot_minus_window`` (``accuracy_after_boot`` minus the labeled-window ``accuracy`` of the same
+cell, in fractions: the issue's bar is >= -0.002), the ``train``/``evaluate_boot`` commands, and
+the summary per group and cell gains ``boot``: worst and median ``boot_s_max`` (a subject never
+booted counts as infinite), worst ``boot_minus_window``, max ghost rate. In boot mode the
+labeled-window fields and issue 10's ``bars`` are those of the (possibly cut) scored scenes:
+compare them with a default run only where ``scene_cut_from_frames`` is null. The default mode's
+output is unchanged.
+
     .venv/bin/python benchmarks/generalization.py --out generalization.json      # full
     .venv/bin/python benchmarks/generalization.py --quick                         # a subset
     .venv/bin/python benchmarks/generalization.py --split holdout --jobs 2
+    .venv/bin/python benchmarks/generalization.py --start boot --cells rate --jobs 2
 """
 
 from __future__ import annotations
@@ -71,6 +97,9 @@ OCCLUDE_S = 0.3
 RADII = (220.0, 280.0, 350.0)
 SECOND_START_S = 2.0
 MIN_SCENE_S = 3.0
+BOOT_GAP_S = 1.0  # between a training segment and the scored one, when the take has room
+BOOT_MIN_TRAIN_S = 0.5  # shortest training segment per take
+BOOT_MIN_SCENE_S = 0.75  # shortest scored scene when cut for room
 
 
 @dataclass(frozen=True)
@@ -182,6 +211,101 @@ def _start(t: Take, uses: dict[str, int]) -> int:
     return first + int(round(k * SECOND_START_S * cap.rate)) % span
 
 
+def scored_span(start: int, frames: int, step: float) -> tuple[int, int]:
+    """Take frames ``[first, stop)`` that ``frames`` scene frames from take frame ``start`` read,
+    ``step`` take frames per scene frame (``resample``: a sample between two take frames reads
+    both)."""
+    return start, start + math.ceil((frames - 1) * step - 1e-9) + 1
+
+
+@dataclass(frozen=True)
+class TrainPlan:
+    """The training scene of ``--start boot``: the scene's takes, in order, at ``starts``;
+    ``frames`` scene frames; ``spans`` the take frames each reads (never the scored ones)."""
+
+    takes: tuple[tuple[Take, int], ...]
+    frames: int
+    spans: tuple[tuple[int, int], ...]
+    scored: tuple[tuple[int, int], ...]
+
+    def take_args(self) -> list[str]:
+        return Scene("train", "", self.takes, 0.0, 0).take_args()
+
+
+def training_plan(scene: Scene, frames: int) -> TrainPlan | None:
+    """Training segments of every take of ``scene`` (see the module docstring), or ``None``
+    when a take leaves less than ``BOOT_MIN_TRAIN_S`` outside its scored segment."""
+    rate = scene.rate()
+    starts: list[int] = []
+    before_stops: dict[int, int] = {}
+    scored = []
+    limit = frames
+    for k, (t, s) in enumerate(scene.takes):
+        cap, first = load(t)
+        step = cap.rate / rate
+        lo, hi = scored_span(s, frames, step)
+        hi = min(hi, cap.n_frames)
+        scored.append((lo, hi))
+        need = hi - lo
+        gap = int(round(BOOT_GAP_S * cap.rate))
+        before, after = lo - first, cap.n_frames - hi
+        if after >= before:
+            a = hi + max(0, min(gap, after - need))
+            if cap.n_frames - a < BOOT_MIN_TRAIN_S * cap.rate:
+                return None
+        else:
+            stop = lo - max(0, min(gap, before - need))
+            a = max(first, stop - need)
+            if stop - a < BOOT_MIN_TRAIN_S * cap.rate:
+                return None
+            # n scene frames read take frames up to a + ceil((n - 1) * step) < stop
+            limit = min(limit, int(math.floor((stop - 1 - a) / step + 1e-9)) + 1)
+            before_stops[k] = stop
+        starts.append(a)
+    spans = []
+    for k, ((t, _), a) in enumerate(zip(scene.takes, starts, strict=True)):
+        cap = load(t)[0]
+        lo, hi = scored_span(a, limit, cap.rate / rate)
+        spans.append((lo, min(hi, cap.n_frames)))
+        if k in before_stops and spans[-1][1] > before_stops[k]:
+            raise MocapError(f"{scene.name}: training segment of {t.key} overlaps the scored one")
+    return TrainPlan(
+        tuple((t, a) for (t, _), a in zip(scene.takes, starts, strict=True)),
+        limit,
+        tuple(spans),
+        tuple(scored),
+    )
+
+
+def boot_frames(scene: Scene, frames: int) -> tuple[int, TrainPlan | None]:
+    """The scored scene's length and training plan of ``--start boot``: the matrix scene, or,
+    when one of its takes has no room for a training segment (a short take that the scene
+    reads whole), the scene cut to 90 %, 80 %, ... 10 % of its frames (not below 0.75 s), the first
+    length that leaves room; ``(frames, None)`` when none does."""
+    for k in range(10):
+        n = int(frames * (1.0 - 0.1 * k)) if k else frames
+        if n < BOOT_MIN_SCENE_S * scene.rate():
+            break
+        plan = training_plan(scene, n)
+        if plan is not None:
+            return n, plan
+    return frames, None
+
+
+def _train(scene: Scene, plan: TrainPlan):
+    """The model of ``train structure TRAIN.c3d`` on the composed training scene."""
+    from offline.structure import StructureTrainer
+
+    cap = compose_scene(
+        [scene.spec(t, a) for t, a in plan.takes],
+        radius=scene.radius,
+        frames=plan.frames,
+        seed=scene.seed + 1,
+        rate=scene.rate(),
+    )
+    return StructureTrainer().fit([cap]).model_
+
+
 def matrix(split: str, quick: bool, seeds: int = 2) -> list[Scene]:
     """The scenes of the matrix (see the module docstring), pairs and then takes alone."""
     scenes: list[Scene] = []
@@ -214,10 +338,17 @@ def matrix(split: str, quick: bool, seeds: int = 2) -> list[Scene]:
     return scenes
 
 
-def run_scene(scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: int) -> list[dict]:
-    """Every cell of one scene (a take alone gets only its ``alone`` cell)."""
+def run_scene(
+    scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: int, boot: bool = False
+) -> list[dict]:
+    """Every cell of one scene (a take alone gets only its ``alone`` cell); with ``boot`` also
+    scored from a model trained on other segments, with no labeled frame (``--start boot``)."""
     rate = scene.rate()
     frames = scene.frames(seconds, max_frames)
+    full_frames = frames
+    plan = None
+    if boot:
+        frames, plan = boot_frames(scene, frames)
     cap = compose_scene(
         [scene.spec(t, s) for t, s in scene.takes],
         radius=scene.radius,
@@ -238,11 +369,19 @@ def run_scene(scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: 
         f"mocap-labeler compose SCENE.c3d {' '.join(scene.take_args())} --radius "
         f"{scene.radius:g} --frames {frames} --seed {scene.seed} --rate {rate:g}"
     )
+    model = _train(scene, plan) if plan is not None else None
     for cell, opts in chosen.items():
         step = opts.get("downsample", 1)
         init = max(1, round(INIT_S * rate / step))
         t0 = time.perf_counter()
-        report, _ = evaluate(cap, methods=["online"], init_frames=init, seed=scene.seed, **opts)
+        try:
+            report, _ = evaluate(cap, methods=["online"], init_frames=init, seed=scene.seed, **opts)
+        except MocapError as exc:
+            if not boot or frames == full_frames:
+                raise
+            # a scene cut for room may be too short for a cell's corruption
+            print(f"{scene.name:>10} {cell:<8} skipped on the cut scene: {exc}", file=sys.stderr)
+            continue
         flags = " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in opts.items())
         out.append(
             {
@@ -276,14 +415,60 @@ def run_scene(scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: 
                 f"{init} --seed {scene.seed} {flags} --json".replace("  ", " "),
             }
         )
+        if boot:
+            out[-1].update(_boot_fields(scene, plan, model, cap, opts, flags, out[-1]))
+            out[-1]["scene_cut_from_frames"] = full_frames if frames < full_frames else None
     return out
+
+
+def _boot_fields(
+    scene: Scene,
+    plan: TrainPlan | None,
+    model: Any,
+    cap: Capture,
+    opts: dict[str, Any],
+    flags: str,
+    window: dict,
+) -> dict[str, Any]:
+    """The ``--start boot`` fields of one cell (see the module docstring)."""
+    if plan is None or model is None:
+        why = f"a take leaves < {BOOT_MIN_TRAIN_S:g} s outside its scored segment"
+        return {"boot": None, "boot_skipped": why}
+    t0 = time.perf_counter()
+    report, _ = evaluate(
+        cap, methods=["online"], init_frames=0, seed=scene.seed, model=model, **opts
+    )
+    fields = (
+        "boot_s_max", "boot_s", "accuracy_after_boot", "absent_labeled", "identity_swaps",
+        "ghost_labeled_rate", "accuracy", "accuracy_seen", "errors", "max_swap_frames",
+    )  # fmt: skip
+    after = report["accuracy_after_boot"]
+    return {
+        "boot": {k: report[k] for k in fields} | {"seconds": round(time.perf_counter() - t0, 2)},
+        "boot_minus_window": None if after is None else round(after - window["accuracy"], 6),
+        # scene markers the model lacks (compose drops markers rarely visible in a window)
+        "model_missing_markers": sorted(
+            set(lab for lab in cap.labels if not lab.startswith("*")) - set(model.marker_names)
+        ),
+        "train_frames": plan.frames,
+        "train_spans": [list(x) for x in plan.spans],
+        "scored_spans": [list(x) for x in plan.scored],
+        "train_compose": (
+            f"mocap-labeler compose TRAIN.c3d {' '.join(plan.take_args())} --radius "
+            f"{scene.radius:g} --frames {plan.frames} --seed {scene.seed + 1} "
+            f"--rate {scene.rate():g}"
+        ),
+        "train": "mocap-labeler train structure TRAIN.c3d --out M.json",
+        "evaluate_boot": f"mocap-labeler evaluate SCENE.c3d --method online --model M.json "
+        f"--init-frames 0 --seed {scene.seed} {flags} --json".replace("  ", " "),
+    }
 
 
 def _pct(x: float | None) -> str:
     return "   -   " if x is None else f"{100 * x:7.3f}"
 
 
-def _run(job: tuple[Scene, tuple[str, ...], float, int]) -> list[dict]:
+def _run(job: tuple[Scene, tuple[str, ...], float, int, bool]) -> list[dict]:
     return run_scene(*job)
 
 
@@ -329,7 +514,53 @@ def summarize(results: list[dict]) -> dict[str, Any]:
                 "scenes_with_a_leaver": sum(1 for r in rows if r["leaves"]),
                 "worst_markers": [{"marker": m, "errors": e} for m, e in top],
             }
+            if any("boot" in r for r in rows):
+                out[group][cell]["boot"] = boot_summary(rows)
     return out
+
+
+def boot_summary(rows: list[dict]) -> dict[str, Any]:
+    """``--start boot`` per group and cell: worst and median ``boot_s_max`` (never booted =
+    infinite, shown as null), worst ``boot_minus_window`` over the scenes that booted, max ghost
+    rate, and the issue-11 bars ``[value, passed]`` (the accuracy bar passes only when every
+    scene booted)."""
+    done = [r for r in rows if r.get("boot") is not None]
+    skipped = [r["scene"] for r in rows if r.get("boot") is None]
+    if not done:
+        return {"scenes": 0, "skipped": skipped}
+    boot_s = [
+        math.inf if r["boot"]["boot_s_max"] is None else r["boot"]["boot_s_max"] for r in done
+    ]
+    diffs = [(r["boot_minus_window"], r) for r in done if r["boot_minus_window"] is not None]
+    ghosts = [
+        r["boot"]["ghost_labeled_rate"] for r in done if r["boot"]["ghost_labeled_rate"] is not None
+    ]
+    slow = max(done, key=lambda r: math.inf if r["boot"]["boot_s_max"] is None
+               else r["boot"]["boot_s_max"])  # fmt: skip
+    worst_s = max(boot_s)
+    median_s = float(np.median(boot_s))
+    worst_diff = min(diffs, key=lambda d: d[0]) if diffs else None
+    never = [r["scene"] for r in done if r["boot"]["boot_s_max"] is None]
+    return {
+        "scenes": len(done),
+        "skipped": skipped,
+        "never_booted": never,
+        "boot_s_max_worst": None if math.isinf(worst_s) else round(worst_s, 4),
+        "boot_s_max_worst_scene": f"{slow['scene']} ({' + '.join(slow['takes'])})",
+        "boot_s_max_median": None if math.isinf(median_s) else round(median_s, 4),
+        "boot_minus_window_worst": None if worst_diff is None else worst_diff[0],
+        "boot_minus_window_worst_scene": None if worst_diff is None else worst_diff[1]["scene"],
+        "ghost_labeled_rate_max": max(ghosts) if ghosts else None,
+        "absent_labeled": sum(r["boot"]["absent_labeled"] for r in done),
+        "identity_swaps": sum(r["boot"]["identity_swaps"] for r in done),
+        "bars": {
+            "boot_s_max<=0.5": [None if math.isinf(worst_s) else round(worst_s, 4),
+                                worst_s <= 0.5],
+            "after_boot_minus_window>=-0.002": None if worst_diff is None
+            else [worst_diff[0], worst_diff[0] >= -0.002 and len(diffs) == len(done)],
+            "ghost_rate<=0.01": [max(ghosts), max(ghosts) <= 0.01] if ghosts else None,
+        },
+    }  # fmt: skip
 
 
 def bars(results: list[dict]) -> dict[str, Any]:
@@ -390,6 +621,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-frames", type=int, default=1200, help="longest scene (frames)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes")
     p.add_argument("--out", default=None, help="also write the JSON here")
+    p.add_argument(
+        "--start",
+        choices=("window", "boot"),
+        default="window",
+        help="boot: also score every cell from a model trained on other segments, no labels",
+    )
     args = p.parse_args(argv)
     if real_data_dir() is None:
         print("error: no real captures (set MOCAP_DATA_DIR or ../shared/data/real)",
@@ -400,7 +637,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         scenes = [s for s in scenes if s.name in args.only]
     cells = tuple(args.cells or (QUICK_CELLS if args.quick else _cells(1.0)))
-    jobs = [(s, cells, args.seconds, args.max_frames) for s in scenes]
+    boot = args.start == "boot"
+    jobs = [(s, cells, args.seconds, args.max_frames, boot) for s in scenes]
     results: list[dict] = []
 
     def show(rows: list[dict]) -> None:
@@ -415,6 +653,21 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
                 flush=True,
             )
+            if boot:
+                b = r["boot"]
+                print(
+                    f"{'':>10} boot     "
+                    + (
+                        r["boot_skipped"]
+                        if b is None
+                        else f"boot_s_max {b['boot_s_max']} after boot "
+                        f"{_pct(b['accuracy_after_boot'])} % (window {_pct(r['accuracy'])} %) "
+                        f"ghosts {_pct(b['ghost_labeled_rate'])} % "
+                        f"swaps {b['identity_swaps']}"
+                    ),
+                    file=sys.stderr,
+                    flush=True,
+                )
 
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:
@@ -432,6 +685,19 @@ def main(argv: list[str] | None = None) -> int:
                 f"longest swap {s['max_swap_frames']} ({s['max_swap_scene']})",
                 file=sys.stderr,
             )
+    for group, by_cell in summary.items():
+        for cell, s in by_cell.items():
+            b = s.get("boot")
+            if b and b["scenes"]:
+                print(
+                    f"{group:>8} {cell:<8} boot: {b['scenes']} scenes ({len(b['skipped'])} without "
+                    f"room), {len(b['never_booted'])} with a subject never booted; boot_s_max "
+                    f"worst {b['boot_s_max_worst']} median {b['boot_s_max_median']}; after boot "
+                    f"minus window worst {b['boot_minus_window_worst']} "
+                    f"({b['boot_minus_window_worst_scene']}); ghosts max "
+                    f"{b['ghost_labeled_rate_max']}",
+                    file=sys.stderr,
+                )
     checks = bars(results)
     for group, by_bar in checks.items():
         shown = ", ".join(
@@ -442,6 +708,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{group:>8} bars: {shown}", file=sys.stderr)
     emit(
         {
+            **({"start": "boot"} if boot else {}),
             "split": args.split,
             "quick": args.quick,
             "init_s": INIT_S,

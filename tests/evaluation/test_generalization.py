@@ -7,6 +7,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 
@@ -62,3 +63,42 @@ def test_matrix_scenes(real_path):
     tennis = next(s for s in pairs if "tennis" in s.takes[0][0].key)
     assert tennis.rate() == 50.0
     assert gen.matrix("holdout", quick=True, seeds=2)[0].group == "holdout"
+
+
+def test_scored_span_counts_the_interpolated_neighbour():
+    assert gen.scored_span(10, 5, 1.0) == (10, 15)  # same rate: frames 10..14
+    assert gen.scored_span(10, 5, 2.0) == (10, 19)  # decimation: 10, 12, .., 18
+    assert gen.scored_span(0, 3, 2.4) == (0, 6)  # 0, 2.4, 4.8: 4.8 reads frames 4 and 5
+
+
+def _frames_read(start: int, frames: int, step: float, n_frames: int) -> set[int]:
+    """The take frames ``compose`` reads for ``frames`` scene frames from ``start`` (worked out
+    here independently of ``scored_span``): each sample's floor, and the next frame when the
+    sample falls between two."""
+    at = start + np.arange(frames) * step
+    low = np.floor(at + 1e-9).astype(int)
+    between = (at - low) > 1e-9
+    read = set(low.tolist()) | set((low[between] + 1).tolist())
+    return {f for f in read if f < n_frames}
+
+
+@pytest.mark.realdata
+def test_boot_training_segments_never_overlap_the_scored_ones(real_path):
+    real_path("tennis_serve_pig_39markers_50hz.c3d")  # skips without the real data
+    planned = skipped = 0
+    for scene in gen.matrix("all", quick=False, seeds=2):
+        frames, plan = gen.boot_frames(scene, scene.frames(8.0, 1200))
+        assert frames <= scene.frames(8.0, 1200)
+        if plan is None:
+            skipped += 1
+            continue
+        planned += 1
+        rate = scene.rate()
+        assert [t.key for t, _ in plan.takes] == [t.key for t, _ in scene.takes]  # same names
+        for (take, start), (_, a) in zip(scene.takes, plan.takes, strict=True):
+            cap = gen.load(take)[0]
+            scored = _frames_read(start, frames, cap.rate / rate, cap.n_frames)
+            train = _frames_read(a, plan.frames, cap.rate / rate, cap.n_frames)
+            assert not scored & train, (scene.name, take.key)
+            assert (max(train) - min(train) + 1) / cap.rate >= gen.BOOT_MIN_TRAIN_S - 2.0 / rate
+    assert planned > 3 * skipped  # most scenes have room for a training segment
