@@ -191,6 +191,16 @@ class Scene:
         cap = load(take)[0]
         return TakeSpec(capture=cap, start=start, up=take.up, subject=take.subject)
 
+    def compose(self, frames: int):
+        """The scene itself: its takes composed at its rate over ``frames`` frames."""
+        return compose_scene(
+            [self.spec(t, s) for t, s in self.takes],
+            radius=self.radius,
+            frames=frames,
+            seed=self.seed,
+            rate=self.rate(),
+        )
+
     def take_args(self) -> list[str]:
         return [
             f"{t.file}:{s}:{'' if t.up == 'auto' else t.up}:{t.subject or ''}".rstrip(":")
@@ -349,13 +359,7 @@ def run_scene(
     plan = None
     if boot:
         frames, plan = boot_frames(scene, frames)
-    cap = compose_scene(
-        [scene.spec(t, s) for t, s in scene.takes],
-        radius=scene.radius,
-        frames=frames,
-        seed=scene.seed,
-        rate=rate,
-    )
+    cap = scene.compose(frames)
     alone = len(scene.takes) == 1
     # a take shorter than the scene leaves the volume when it ends (its labels stay in the model)
     leaves = [

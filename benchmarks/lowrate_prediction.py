@@ -32,7 +32,6 @@ from labeler_service.capture import split_label, subject_groups
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.geometry import kabsch
 from labeler_service.labeling.training import train_subject
-from labeler_service.scenes.compose import compose_scene
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -44,13 +43,7 @@ def _rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 def _scene_errors(scene: Any, step: int, out: dict[str, list[np.ndarray]]) -> None:
     rate = scene.rate()
     frames = scene.frames(8.0, 1200)
-    cap = compose_scene(
-        [scene.spec(t, s) for t, s in scene.takes],
-        radius=scene.radius,
-        frames=frames,
-        seed=scene.seed,
-        rate=rate,
-    )
+    cap = scene.compose(frames)
     keep = ~cap.ghost_mask
     names = [n for n, k in zip(cap.labels, keep, strict=True) if k]
     P = cap.positions[::step][:, keep].astype(np.float64)
