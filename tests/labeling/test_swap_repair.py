@@ -149,7 +149,23 @@ def test_body_that_only_deformed_keeps_its_points_and_follows_them():
     assert _repair(pts, _index(pts), 0, tracks, bodies, scratch, params) == 0
     assert list(scratch.assigned[:5]) == [0, 1, 2, 3, 4]
     assert bodies.ok[0]
-    assert np.allclose(bodies.ref[0, :5], pts)  # the new shape is the reference now
+    # a 25 mm jump off the trained distances (tolerance 10 mm + 3 deviations) is no drift: the
+    # reference keeps the trained shape (a swap must not become the reference, issue 10)
+    assert np.allclose(bodies.ref[0, :5], MIRROR)
+
+
+def test_reference_follows_slow_drift_of_a_body_that_deformed():
+    config = LabelerConfig()
+    params = kernel_params(config)
+    pts = MIRROR.copy()
+    tracks, bodies, scratch = _one_body_state(config, pts, np.arange(5, dtype=np.int32), MIRROR)
+    for step in range(5):  # 25 mm in 5 mm steps: each within the tolerance of the last reference
+        pts = pts.copy()
+        pts[3] += [0.0, 0.0, 5.0]
+        tracks.x[:, :3] = pts
+        assert _repair(pts, _index(pts), 0, tracks, bodies, scratch, params) == 0
+        assert list(scratch.assigned[:5]) == [0, 1, 2, 3, 4]
+        assert np.allclose(bodies.ref[0, :5], pts), step  # the new shape is the reference now
 
 
 def test_joint_reacquisition_assigns_returning_points_together(rng):
