@@ -275,20 +275,18 @@ def _presence(points, tracks, bodies, scratch, params):
     observed in the previous frame) is not checked: a performer seen badly (half his markers
     hidden, his bodies bending at 12.5 Hz) keeps every label Algorithm 1 gave him.
     """
-    assigned, owner, age = scratch.assigned, scratch.owner, tracks.age
+    assigned, owner = scratch.assigned, scratch.owner
     subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
     mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
     need, tol = params.presence_min_markers, params.presence_tol_mm
     for s in range(subj_ptr.shape[0] - 1):
-        seen = 0
         labeled = False
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
-            m = subj_idx[e]
-            if age[m] > 0:  # observed in the previous frame (labeled ones included)
-                seen += 1
-            if assigned[m] >= 0:
+            if assigned[subj_idx[e]] >= 0:
                 labeled = True
-        if seen >= need or not labeled:
+                break
+        # absent: :func:`_absent` counted this frame's subject (ages change only after this)
+        if not labeled or not tracks.gone[subj_idx[subj_ptr[s]]]:
             continue
         present = False
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
