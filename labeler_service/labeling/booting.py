@@ -181,7 +181,6 @@ class BootingLabeler:
         self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
         self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
-        self._inner_map = np.arange(len(self._names))
         self._extent: np.ndarray | None = None
         self.events: list[tuple[float, str, str]] = []  # (t, "boot"|"labeled"|"drop", subject)
         self.boot_ms: list[float] = []  # wall time of every boot attempt
@@ -242,10 +241,9 @@ class BootingLabeler:
         if self._active:  # (the inner labeler costs nothing while no subject is booted)
             out = self._inner.process(pts, t)
             self._inner_state = out.state
-            lab = out.point_labels.astype(np.int64)
-            glab = np.where(lab >= 0, self._inner_map[np.maximum(lab, 0)], -1)
-            pos[self._inner_map] = out.positions
-            state[self._inner_map] = out.state
+            glab = out.point_labels.astype(np.int64)  # the inner labeler has the model's markers
+            pos[:] = out.positions
+            state[:] = out.state
             self._drop_vanished(glab, state, pos, t)
             self._acquire(pts, ids, glab, pos, state)
         self._window.append(_Frame(t, pts, ids, glab))
