@@ -13,6 +13,18 @@ track had ended (the raw data restarted the same physical marker under a new num
 marker was re-acquired after an occlusion: the expected case).
 
     .venv/bin/python benchmarks/raw_unlabeled.py --out raw.json
+
+With ``--boot`` no label is given at all: a model (``--model FILE``, or trained here on
+``--train TAKE``, default the labeled 62-marker ``kneel_to_prone_62markers_240hz.c3d``: the same
+marker set, another take) boots the subject from the anonymous points, as ``mocap-labeler label
+RAW OUT --model M`` does. Reported on the raw tracks (a track is a run of consecutive frames of
+one file column): the fraction of points in tracks longer than ``--long-s`` (0.5 s) that get a
+label, and the label changes along a track per 1,000 track-frames: a track whose label goes
+from A to B (unlabeled frames in between included) is an error unless A is on another point of
+that frame (the raw data had joined two markers' trajectories). ``--plot FILE.png`` draws the
+label of every long track over time.
+
+    .venv/bin/python benchmarks/raw_unlabeled.py --boot --plot raw_boot.png --out raw_boot.json
 """
 
 from __future__ import annotations
@@ -24,14 +36,17 @@ import time
 import numpy as np
 from _common import emit
 
-from labeler_service.capture import read_capture
-from labeler_service.errors import MocapError
+from labeler_service.capture import Capture, read_capture
+from labeler_service.errors import LabelerError, MocapError
 from labeler_service.evaluation.scoring import WARMUP_FRAMES
 from labeler_service.labeling.frame import MarkerState
 from labeler_service.labeling.labeler import Labeler
+from labeler_service.labeling.registry import make_labeler
+from labeler_service.labeling.templates import LabelerModel, load_model
 from labeler_service.testing.realdata import real_file
 
 DEFAULT = "raw_unlabeled_kneel_to_run_240hz.c3d"
+TRAIN = "kneel_to_prone_62markers_240hz.c3d"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,6 +55,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--init-frames", type=int, default=50)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="also write the JSON here")
+    p.add_argument("--boot", action="store_true", help="no labels: boot from a subject model")
+    p.add_argument("--model", help="with --boot: the model (train structure output)")
+    p.add_argument("--train", help=f"with --boot and no --model: labeled take (default {TRAIN})")
+    p.add_argument("--long-s", type=float, default=0.5, help="tracks at least this long count")
+    p.add_argument("--plot", help="with --boot: PNG of every long track's label over time")
     args = p.parse_args(argv)
     path = args.capture or real_file(DEFAULT)
     if path is None:
@@ -47,6 +67,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         cap = read_capture(path)
+        if args.boot:
+            result = _boot(cap, str(path), args)
+            emit(result, args.out)
+            return 0
     except MocapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -105,6 +129,129 @@ def main(argv: list[str] | None = None) -> int:
     }
     emit(result, args.out)
     return 0
+
+
+def _model(args: argparse.Namespace) -> LabelerModel:
+    if args.model:
+        return load_model(args.model)
+    from offline.structure import StructureTrainer
+
+    train = args.train or real_file(TRAIN)
+    if train is None:
+        raise LabelerError(f"{TRAIN} not found (set MOCAP_DATA_DIR, or give --model/--train)")
+    return StructureTrainer().fit([read_capture(train)]).model_
+
+
+def _runs(visible: np.ndarray) -> np.ndarray:
+    """Track id of every (frame, column) sample, -1 where the column is empty: a track is a run
+    of consecutive visible frames of one column."""
+    starts = visible & ~np.vstack([np.zeros((1, visible.shape[1]), bool), visible[:-1]])
+    ids = np.cumsum(starts.T.ravel()).reshape(visible.shape[1], -1).T - 1
+    return np.where(visible, ids, -1)
+
+
+def track_scores(
+    label: np.ndarray, visible: np.ndarray, long_frames: float
+) -> tuple[dict[str, object], np.ndarray, np.ndarray]:
+    """Scores of the labels (``label[f, column]``, -1 unlabeled) on the raw tracks: the labeled
+    fraction overall and in tracks of at least ``long_frames``, and the label changes along a
+    track, an error unless the old label is on another point of that frame. Also returns the
+    track ids (:func:`_runs`) and the long-track mask."""
+    track = _runs(visible)
+    n_tracks = int(track.max()) + 1
+    length = np.bincount(track[visible], minlength=n_tracks)
+    long = visible & (length[np.maximum(track, 0)] >= long_frames)
+    changes = errors = 0
+    for c in range(visible.shape[1]):
+        last, last_track = -1, -1
+        for f in np.flatnonzero(visible[:, c]):
+            t, lb = track[f, c], label[f, c]
+            if t != last_track:
+                last, last_track = -1, t
+            if lb < 0:
+                continue
+            if last >= 0 and lb != last:
+                changes += 1
+                errors += int(not np.any(label[f][visible[f]] == last))
+            last = lb
+    points = int(visible.sum())
+    scores: dict[str, object] = {
+        "tracks": n_tracks,
+        "points": points,
+        "points_in_long_tracks": int(long.sum()),
+        "labeled_fraction": round(float((label[visible] >= 0).mean()), 4),
+        "labeled_fraction_long_tracks": round(float((label[long] >= 0).mean()), 4),
+        "label_changes": changes,
+        "label_change_errors": errors,
+        "label_change_errors_per_1000_track_frames": round(1000 * errors / max(1, points), 3),
+        "distinct_labels_used": int(np.unique(label[visible & (label >= 0)]).size),
+    }
+    return scores, track, long
+
+
+def _boot(cap: Capture, path: str, args: argparse.Namespace) -> dict[str, object]:
+    """The raw take booted from a model with no label at all; scored on the raw tracks."""
+    model = _model(args)
+    lab = make_labeler("online", rate=cap.rate, model=model, boot=True)
+    lab.warmup()
+    vis = cap.visible
+    label = np.full(vis.shape, -1, dtype=np.int32)  # label index per (frame, column)
+    rng = np.random.default_rng(args.seed)
+    times = []
+    for f in range(cap.n_frames):
+        cols = np.flatnonzero(vis[f])
+        cols = cols[rng.permutation(cols.size)]
+        t0 = time.perf_counter_ns()
+        out = lab.process(cap.positions[f, cols], f / cap.rate, None)
+        times.append((time.perf_counter_ns() - t0) / 1e6)
+        label[f, cols] = out.point_labels
+    scores, track, long = track_scores(label, vis, args.long_s * cap.rate)
+    first = np.flatnonzero((label >= 0).any(axis=1))
+    t = np.asarray(times[WARMUP_FRAMES:])
+    if args.plot:
+        _plot(args.plot, label, track, long, cap.rate, lab.marker_names)
+    return {
+        "capture": path,
+        "mode": "boot",
+        "model_subjects": [s.name for s in model.subjects],
+        "model_markers": len(lab.marker_names),
+        "frames": cap.n_frames,
+        "rate_hz": cap.rate,
+        "long_s": args.long_s,
+        **scores,
+        "first_label_s": round(float(first[0]) / cap.rate, 3) if first.size else None,
+        "ms_per_frame_p50": round(float(np.median(t)), 4),
+        "ms_per_frame_p99": round(float(np.percentile(t, 99)), 4),
+    }
+
+
+def _plot(
+    out: str, label: np.ndarray, track: np.ndarray, long: np.ndarray, rate: float,
+    names: tuple[str, ...],
+) -> None:  # fmt: skip
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ids = np.unique(track[long])
+    row = np.full(int(track.max()) + 1, -1)
+    row[ids] = np.arange(ids.size)
+    img = np.full((ids.size, label.shape[0]), np.nan)
+    f, c = np.nonzero(long)
+    img[row[track[f, c]], f] = np.where(label[f, c] >= 0, label[f, c], -1)
+    fig, ax = plt.subplots(figsize=(12, 7))
+    cmap = plt.get_cmap("nipy_spectral").with_extremes(under="black", bad="white")
+    ax.imshow(
+        img, aspect="auto", interpolation="nearest", cmap=cmap, vmin=0, vmax=max(1, len(names)),
+        extent=(0, label.shape[0] / rate, ids.size, 0),
+    )  # fmt: skip
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("raw track (long tracks only)")
+    ax.set_title("label per raw track: colour = model marker, black = unlabeled, white = no point")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
