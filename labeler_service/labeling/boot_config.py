@@ -59,6 +59,18 @@ class BootConfig(BaseModel):
     link_fraction: float = Field(
         0.6, ge=0, le=1, description="share of a segment's articulated pairs that must be in range"
     )
+    art_a_mm: float = Field(
+        15.0,
+        ge=0,
+        description="a marker with no rigid evidence joins from partners with A at most this "
+        "(same or next segment; 0 turns that off)",
+    )
+    art_anchors: int = Field(
+        6, ge=1, description="steadiest placed partners such a marker is checked against"
+    )
+    art_min_anchors: int = Field(
+        3, ge=2, description="... and at least this many of them (all within their range)"
+    )
     fit_mm: float = Field(12.0, gt=0, description="predicted marker to point, Kabsch check")
     anchors_per_body: int = Field(4, ge=1, le=4, description="anchor triangles per body")
     max_candidates: int = Field(

@@ -508,6 +508,73 @@ def _grow(
             return
 
 
+def _articulate(
+    tpl: _Template,
+    assign: np.ndarray,
+    taken: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    tree: cKDTree,
+    config: BootConfig,
+) -> None:
+    """Markers with no rigid evidence (fewer than two rigid partners placed: a Plug-in-Gait
+    upper-arm or thigh wand, a heel whose only rigid partner is the ankle, a dance set's hip
+    and knee markers): a free point joins when it keeps its distances to the marker's
+    ``art_anchors`` steadiest placed partners (least trained ``A``, each at most ``art_a_mm``:
+    markers of the same or the next segment) within their trained range (``tol`` for a rigid
+    pair, ``D +- (tol_mm + link_sigma A + tol_relative D)`` otherwise), three or more of them,
+    in ``constancy`` of the window's samples, no pair beyond its reach, and it is the *only*
+    free point that does and no other marker claims it: evidence that is not unique is not
+    taken (a ghost beside the elbow, another performer's knee within reach). Repeated while
+    markers join (a thigh wand, then the knee's heel)."""
+    w = hist.shape[1]
+    for _ in range(3):
+        have = np.flatnonzero(assign >= 0)
+        if have.size < config.art_min_anchors:
+            return
+        fits: dict[int, list[int]] = {}
+        for m in np.flatnonzero(assign < 0):
+            a = tpl.A[m, have]
+            ok_a = np.isfinite(a) & np.isfinite(tpl.D[m, have]) & (a <= config.art_a_mm)
+            if ok_a.sum() < config.art_min_anchors:
+                continue
+            anc = have[ok_a][np.argsort(a[ok_a], kind="stable")][: config.art_anchors]
+            tol = np.where(tpl.rigid[m, anc], tpl.tol[m, anc], tpl.link[m, anc])
+            j = anc[0]
+            near = np.asarray(
+                tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tol[0]), dtype=np.int64
+            )
+            near = near[~taken[near]]
+            if near.size == 0:
+                continue
+            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[anc]][None, :, :], axis=2)
+            ok = np.all(np.abs(d - tpl.D[m, anc]) <= tol, axis=1)
+            # no pair to the rest of the subject beyond its reach
+            dall = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+            ok &= ~np.any(dall - tpl.D[m, have] > tpl.bound[m, have], axis=1)
+            for p in near[ok].tolist():
+                # the distances hold along the tracks
+                dh = np.linalg.norm(hist[p][None] - hist[assign[anc]], axis=2)  # (k, W)
+                seen = np.isfinite(dh)
+                held = seen & (np.abs(dh - tpl.D[m, anc][:, None]) <= tol[:, None])
+                if seen.sum() >= w and held.sum() >= config.constancy * seen.sum():
+                    fits.setdefault(int(m), []).append(int(p))
+        # a marker with one fitting point that fits no other marker (the elbow's point fits the
+        # forearm marker's loose ranges too, and the elbow's own: neither is taken)
+        count: dict[int, int] = {}
+        for ps in fits.values():
+            for p in ps:
+                count[p] = count.get(p, 0) + 1
+        changed = False
+        for m, ps in fits.items():
+            if len(ps) == 1 and count[ps[0]] == 1:
+                assign[m] = ps[0]
+                taken[ps[0]] = True
+                changed = True
+        if not changed:
+            return
+
+
 def _constancy(
     tpl: _Template, assign: np.ndarray, hist: np.ndarray, config: BootConfig
 ) -> np.ndarray:
@@ -683,6 +750,10 @@ def _hypotheses(
             assign = _constancy(tpl, assign, hist, config)
             if int((assign >= 0).sum()) < need:
                 continue
+            # markers without rigid evidence, once the subject stands on its own rigid evidence
+            taken = claimed.copy()
+            taken[assign[assign >= 0]] = True
+            _articulate(tpl, assign, taken, pts, hist, pairs.tree, config)
             _symmetries(tpl, assign, pts, cands, groups)
             _readings(tpl, assign, pts)
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
@@ -951,8 +1022,11 @@ def _complete(
         la = fixed.copy()
     ltaken = np.zeros(local.size, dtype=bool)
     ltaken[la[la >= 0]] = True
-    _grow(tpl, la, ltaken, lp, cKDTree(lp), config)
+    ltree = cKDTree(lp)
+    _grow(tpl, la, ltaken, lp, ltree, config)
     la[fixed >= 0] = fixed[fixed >= 0]
+    ltaken[la[la >= 0]] = True
+    _articulate(tpl, la, ltaken, lp, lh, ltree, config)
     checked = _constancy(tpl, la.copy(), lh, config)
     fresh = (fixed < 0) & (la >= 0) & (checked == la)
     # the new markers' segments read again (a hidden forearm and hand that appear mirrored)
