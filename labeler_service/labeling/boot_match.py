@@ -16,6 +16,15 @@ from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.templates import LabelerModel
 
+#: A tolerance (``tol_mm + tol_sigma A + tol_relative D``) spans about this many standard
+#: deviations of a pair of one trained body: the likelihood of a reading (:func:`_pair_nll`)
+#: weighs its errors in standard deviations, not in tolerances (in tolerances, an arm read one
+#: marker along its chain cost 1.6 more than the right reading among 600 on the still start
+#: of the tennis take, and won on the loose pairs).
+STRICT_SIGMAS = 4.0
+#: A reading exchange (:func:`_exchange`, :func:`_swap_mirrors`) must lower the negative
+#: log-likelihood by more than this (nats): ties and noise keep the reading the candidates gave.
+EXCHANGE_MARGIN = 1.0
 #: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
 #: steadiest pair deviation to any other body.
 NEIGHBOUR = 1.5
@@ -53,6 +62,8 @@ class _Template:
     near: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     bodies: list[_Body] = field(default_factory=list)
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
+    #: mirror segments (left and right feet...): see _mirror_pairs
+    mirrors: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -115,6 +126,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
+        tpl.mirrors = _mirror_pairs(tpl)
         tpl.near = _adjacent(tpl)
         for bd in tpl.bodies:
             for tri in bd.anchors:
@@ -756,6 +768,8 @@ def _hypotheses(
             _articulate(tpl, assign, taken, pts, hist, pairs.tree, config)
             _symmetries(tpl, assign, pts, cands, groups)
             _readings(tpl, assign, pts)
+            _swap_mirrors(tpl, assign, pts)
+            _exchange(tpl, assign, pts)
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
@@ -765,33 +779,131 @@ def _hypotheses(
     return out
 
 
-def _pair_error(
-    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
-) -> float:
-    """Distance error of ``markers`` placed on ``points`` against the rest of ``assign``:
-    pairs of one trained body ``e^2 / 2`` with ``e`` in tolerances; every other pair (rigid by
-    ``A`` alone, articulated) robustly, ``log(1 + e^2)`` with ``e`` in its tolerance (link
-    tolerance for articulated pairs): a pose the model never saw moves them by a few
-    tolerances, a mirrored reading (a head plate turned round, a wrist bar read the wrong way)
-    by many; a cap would make both look the same. Each pair adds ``log`` of its tolerance."""
-    rest = np.flatnonzero(assign >= 0)
-    rest = rest[~np.isin(rest, markers)]
-    if rest.size == 0:
-        return 0.0
-    d = np.linalg.norm(pts[points][:, None, :] - pts[assign[rest]][None, :, :], axis=2)
-    Dm = tpl.D[markers][:, rest]
+def _pair_nll(
+    tpl: _Template, ma: np.ndarray, pa: np.ndarray, mb: np.ndarray, pb: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
+    """``(len(ma), len(mb))`` negative log-likelihoods of markers ``ma`` on points ``pa`` against
+    ``mb`` on ``pb`` (0 where a pair carries no evidence): see :func:`_pair_error`."""
+    d = np.linalg.norm(pts[pa][:, None, :] - pts[pb][None, :, :], axis=2)
+    Dm = tpl.D[ma][:, mb]
     dev = np.abs(d - Dm)
-    rig = tpl.rigid[markers][:, rest]
-    st = tpl.strict[markers][:, rest]
-    lt = tpl.link[markers][:, rest]
+    rig = tpl.rigid[ma][:, mb]
+    st = tpl.strict[ma][:, mb]
+    lt = tpl.link[ma][:, mb]
     art = ~rig & (lt > 0) & np.isfinite(Dm)
-    scale = np.where(rig, tpl.tol[markers][:, rest], np.where(art, lt, 1.0))
+    scale = np.where(rig, tpl.tol[ma][:, mb], np.where(art, lt, 1.0))
     e = dev / scale
     # negative log-likelihoods (Gaussian for one body, Cauchy otherwise): the log(scale) term
     # makes readings with different markers comparable (a loose articulated pair is weak
     # evidence, a tight rigid one strong)
-    cost = np.where(st, 0.5 * e**2, np.log1p(e**2)) + np.log(scale)
-    return float(np.nansum(np.where(rig | art, cost, 0.0)))
+    cost = np.where(st, 0.5 * (STRICT_SIGMAS * e) ** 2, np.log1p(e**2)) + np.log(scale)
+    return np.where((rig | art) & np.isfinite(cost), cost, 0.0)
+
+
+def _pair_error(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> float:
+    """Distance error of ``markers`` placed on ``points`` against the rest of ``assign`` and
+    among themselves: pairs of one trained body ``e^2 / 2`` with ``e`` in tolerances; every
+    other pair (rigid by ``A`` alone, articulated) robustly, ``log(1 + e^2)`` with ``e`` in its
+    tolerance (link tolerance for articulated pairs): a pose the model never saw moves them by
+    a few tolerances, a mirrored reading (a head plate turned round, a wrist bar read the wrong
+    way) by many; a cap would make both look the same. Each pair adds ``log`` of its tolerance.
+    The pairs among ``markers`` count too: two readings of the same points may be bodies of
+    different tolerances (a wrist bar and its finger marker, or the loose body the trainer made
+    of the forearm, wrist and elbow markers on the same three points: scored against the rest
+    alone, the loose reading won and shifted a whole arm along its chain)."""
+    markers = np.asarray(markers, dtype=np.int64)
+    points = np.asarray(points, dtype=np.int64)
+    rest = np.flatnonzero(assign >= 0)
+    rest = rest[~np.isin(rest, markers)]
+    inner = _pair_nll(tpl, markers, points, markers, points, pts)
+    total = float(np.triu(inner, 1).sum())
+    if rest.size:
+        total += float(_pair_nll(tpl, markers, points, rest, assign[rest], pts).sum())
+    return total
+
+
+def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int = 8) -> None:
+    """Pairs of placed markers exchange their points while that lowers the subject's negative
+    log-likelihood (:func:`_pair_nll` over all its pairs) by more than ``EXCHANGE_MARGIN``: two
+    markers the body candidates placed the wrong way round (a forearm's radius and ulna
+    markers, a forefoot's first and fifth metatarsal heads, the ends of a loose body) where the
+    rest of the subject tells them apart. The marker set and the point set stay the same; a
+    swap changes only the pairs of the two markers with the others (the pair between them keeps
+    its distance), so every exchange is scored at once from one ``(k, k, k)`` table."""
+    for _ in range(rounds):
+        have = np.flatnonzero(assign >= 0)
+        k = have.size
+        if k < 3:
+            return
+        P = assign[have]
+        E = np.stack([_pair_nll(tpl, np.full(k, m), P, have, P, pts) for m in have])  # i, q, j
+        idx = np.arange(k)
+        total = E.sum(axis=2)
+        # S[i, q]: marker i on point q against every other marker j (j != i, q) on its point
+        S = (
+            total
+            - E[idx[:, None], idx[None, :], idx[:, None]]
+            - E[idx[:, None], idx[None, :], idx[None, :]]
+        )
+        delta = S + S.T - np.diag(S)[:, None] - np.diag(S)[None, :]
+        np.fill_diagonal(delta, 0.0)
+        i, q = np.unravel_index(int(np.argmin(delta)), delta.shape)
+        if not delta[i, q] < -EXCHANGE_MARGIN:
+            return
+        assign[have[i]], assign[have[q]] = P[q], P[i]
+
+
+def _mirror_pairs(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pairs of disjoint segments (:func:`_segments`, or bodies) of the same size whose trained
+    distances
+    match under some marker bijection (left and right feet, forearms, thighs): ``(s1, s2)``
+    with ``s2`` ordered so that ``s1[i]`` corresponds to ``s2[i]``."""
+    out = []
+    segs = list(tpl.segments)
+    keys = {tuple(x.tolist()) for x in segs}
+    for body in tpl.bodies:  # a body inside a larger segment on one side only (a knee's)
+        if tuple(sorted(body.markers.tolist())) not in keys:
+            segs.append(np.sort(body.markers))
+            keys.add(tuple(segs[-1].tolist()))
+    for a in range(len(segs)):
+        for b in range(a + 1, len(segs)):
+            s1, s2 = segs[a], segs[b]
+            if s1.size != s2.size or np.intersect1d(s1, s2).size:
+                continue
+            D1 = tpl.D[np.ix_(s1, s1)]
+            t1 = tpl.tol[np.ix_(s1, s1)]
+            for perm in itertools.permutations(range(s2.size)):
+                s2p = s2[list(perm)]
+                D2 = tpl.D[np.ix_(s2p, s2p)]
+                ok = np.isfinite(D1) & np.isfinite(D2)
+                if ok.sum() > s1.size and np.all(np.abs(D1 - D2)[ok] <= t1[ok]):
+                    out.append((s1, s2p))
+                    break
+    return out
+
+
+def _swap_mirrors(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
+    """Mirror segments (:func:`_mirror_pairs`) read on each other's points (a dancer's left
+    foot placed as the right one and the right as the left: their own distances cannot tell)
+    are exchanged when the exchange fits the rest of the subject better by more than
+    ``EXCHANGE_MARGIN``; a segment placed on one side only moves to the other side's markers
+    when those are free."""
+    for s1, s2 in tpl.mirrors:
+        union = np.concatenate([s1, s2])
+        placed = union[assign[union] >= 0]
+        if placed.size < 3:
+            continue
+        swapped = assign.copy()
+        swapped[s1], swapped[s2] = assign[s2], assign[s1]
+        base = assign.copy()
+        base[union] = -1
+        now = _pair_error(tpl, placed, assign[placed], base, pts)
+        other = union[swapped[union] >= 0]
+        then = _pair_error(tpl, other, swapped[other], base, pts)
+        if then < now - EXCHANGE_MARGIN:
+            assign[union] = swapped[union]
 
 
 def _symmetries(
