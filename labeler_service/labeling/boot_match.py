@@ -779,25 +779,31 @@ def _hypotheses(
     return out
 
 
+def _nll(tpl: _Template, rows: np.ndarray, cols: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Negative log-likelihoods of point distances ``d`` for marker pairs ``(rows, cols)``
+    (index arrays broadcast against ``d``; 0 where a pair carries no evidence): pairs of one
+    trained body Gaussian in standard deviations (``STRICT_SIGMAS`` per tolerance), pairs rigid
+    by ``A`` alone and articulated pairs Cauchy in their tolerance (link tolerance for
+    articulated ones), each plus ``log`` of its tolerance, which makes readings with different
+    markers comparable (a loose articulated pair is weak evidence, a tight rigid one strong)."""
+    Dm = tpl.D[rows, cols]
+    rig = tpl.rigid[rows, cols]
+    st = tpl.strict[rows, cols]
+    lt = tpl.link[rows, cols]
+    art = ~rig & (lt > 0) & np.isfinite(Dm)
+    scale = np.where(rig, tpl.tol[rows, cols], np.where(art, lt, 1.0))
+    e = np.abs(d - Dm) / scale
+    cost = np.where(st, 0.5 * (STRICT_SIGMAS * e) ** 2, np.log1p(e**2)) + np.log(scale)
+    return np.where((rig | art) & np.isfinite(cost), cost, 0.0)
+
+
 def _pair_nll(
     tpl: _Template, ma: np.ndarray, pa: np.ndarray, mb: np.ndarray, pb: np.ndarray, pts: np.ndarray
 ) -> np.ndarray:
-    """``(len(ma), len(mb))`` negative log-likelihoods of markers ``ma`` on points ``pa`` against
-    ``mb`` on ``pb`` (0 where a pair carries no evidence): see :func:`_pair_error`."""
+    """``(len(ma), len(mb))`` :func:`_nll` of markers ``ma`` on points ``pa`` against ``mb`` on
+    ``pb``."""
     d = np.linalg.norm(pts[pa][:, None, :] - pts[pb][None, :, :], axis=2)
-    Dm = tpl.D[ma][:, mb]
-    dev = np.abs(d - Dm)
-    rig = tpl.rigid[ma][:, mb]
-    st = tpl.strict[ma][:, mb]
-    lt = tpl.link[ma][:, mb]
-    art = ~rig & (lt > 0) & np.isfinite(Dm)
-    scale = np.where(rig, tpl.tol[ma][:, mb], np.where(art, lt, 1.0))
-    e = dev / scale
-    # negative log-likelihoods (Gaussian for one body, Cauchy otherwise): the log(scale) term
-    # makes readings with different markers comparable (a loose articulated pair is weak
-    # evidence, a tight rigid one strong)
-    cost = np.where(st, 0.5 * (STRICT_SIGMAS * e) ** 2, np.log1p(e**2)) + np.log(scale)
-    return np.where((rig | art) & np.isfinite(cost), cost, 0.0)
+    return _nll(tpl, np.asarray(ma)[:, None], np.asarray(mb)[None, :], d)
 
 
 def _pair_error(
@@ -838,7 +844,7 @@ def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int =
         if k < 3:
             return
         P = assign[have]
-        E = np.stack([_pair_nll(tpl, np.full(k, m), P, have, P, pts) for m in have])  # i, q, j
+        E = _exchange_table(tpl, have, pts[P])  # i, q, j
         idx = np.arange(k)
         total = E.sum(axis=2)
         # S[i, q]: marker i on point q against every other marker j (j != i, q) on its point
@@ -853,6 +859,13 @@ def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int =
         if not delta[i, q] < -EXCHANGE_MARGIN:
             return
         assign[have[i]], assign[have[q]] = P[q], P[i]
+
+
+def _exchange_table(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """``E[i, q, j]``: :func:`_nll` of marker ``have[i]`` on point ``pos[q]`` against marker
+    ``have[j]`` on ``pos[j]``, for every triple at once."""
+    d = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=2)[None, :, :]  # (1, q, j)
+    return _nll(tpl, have[:, None, None], have[None, None, :], d)
 
 
 def _mirror_pairs(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
