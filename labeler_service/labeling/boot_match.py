@@ -770,6 +770,9 @@ def _hypotheses(
             _readings(tpl, assign, pts)
             _swap_mirrors(tpl, assign, pts)
             _exchange(tpl, assign, pts)
+            free = ~claimed
+            free[assign[assign >= 0]] = False
+            _relocate(tpl, assign, pts, free, pairs.tree)
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
@@ -859,6 +862,58 @@ def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int =
         if not delta[i, q] < -EXCHANGE_MARGIN:
             return
         assign[have[i]], assign[have[q]] = P[q], P[i]
+
+
+def _relocate(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    free: np.ndarray,
+    tree: cKDTree,
+    rounds: int = 8,
+) -> None:
+    """A placed marker moves to a free point (``free``: points of no subject) while that lowers
+    the subject's negative log-likelihood by more than ``EXCHANGE_MARGIN``: a limb read one
+    marker along its chain (the elbow's label on the forearm marker, the forearm's on the wrist
+    marker, the wrist's point left free) is undone one move at a time, each freeing the point
+    the next marker belongs on. A marker is offered the free points within its steadiest placed
+    partner's distance (``D + tol``), so the cost stays linear in the subject's markers."""
+    for _ in range(rounds):
+        have = np.flatnonzero(assign >= 0)
+        if have.size < 3:
+            return
+        P = assign[have]
+        rows, cand = [], []
+        for i, m in enumerate(have):
+            part = have[have != m]
+            a = tpl.A[m, part]
+            if not np.isfinite(a).any():
+                continue
+            j = part[int(np.nanargmin(a))]
+            near = np.asarray(
+                tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j]), dtype=np.int64
+            )
+            near = near[free[near]]
+            rows += [i] * near.size
+            cand += near.tolist()
+        if not rows:
+            return
+        r = np.asarray(rows, dtype=np.int64)
+        c = np.asarray(cand, dtype=np.int64)
+        # each marker against the others on their points, at its candidate and at its own point
+        d_new = np.linalg.norm(pts[c][:, None, :] - pts[P][None, :, :], axis=2)
+        d_old = np.linalg.norm(pts[P[r]][:, None, :] - pts[P][None, :, :], axis=2)
+        mi, mj = have[r][:, None], have[None, :]
+        others = r[:, None] != np.arange(have.size)[None, :]
+        new = np.where(others, _nll(tpl, mi, mj, d_new), 0.0).sum(axis=1)
+        old = np.where(others, _nll(tpl, mi, mj, d_old), 0.0).sum(axis=1)
+        delta = new - old
+        b = int(np.argmin(delta))
+        if not delta[b] < -EXCHANGE_MARGIN:
+            return
+        free[P[r[b]]] = True
+        free[c[b]] = False
+        assign[have[r[b]]] = c[b]
 
 
 def _exchange_table(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ from labeler_service.labeling.boot_match import (
     _articulate,
     _exchange,
     _pair_error,
+    _relocate,
     _swap_mirrors,
 )
 from labeler_service.scenes.simulate import simulate_scene
@@ -125,3 +126,30 @@ def test_tracker_follows_a_sprinter_from_the_second_frame(rng):
         frames.append((pts, tracker.update(pts, k / rate)))
     hist = track_history(frames, frames[-1][1])
     assert np.isfinite(hist[:, :, 0]).all()  # every point tracked through all six frames
+
+
+def test_marker_on_a_wrong_point_moves_to_its_free_point(walker):
+    """A limb read one marker along its chain leaves the right point free: the marker moves
+    there (and a marker on its right point stays)."""
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    rng = np.random.default_rng(4)
+    moved = 0
+    for m in rng.choice(np.flatnonzero(truth >= 0), 8, replace=False):
+        stray = pts[truth[m]] + rng.normal(0, 1, 3) / np.sqrt(3) * 60.0  # 60 mm off
+        pts2 = np.concatenate([pts, stray[None]])
+        assign = truth.copy()
+        assign[m] = len(pts)  # on the stray point, its own point left free
+        free = np.zeros(len(pts2), dtype=bool)
+        free[truth[m]] = True
+        if _total(tpl, assign, pts2) <= _total(tpl, truth, pts2) + 1.0:
+            continue
+        _relocate(tpl, assign, pts2, free, cKDTree(pts2))
+        np.testing.assert_array_equal(assign, truth)
+        moved += 1
+    assert moved >= 4
+    assign = truth.copy()
+    free = np.ones(len(pts), dtype=bool)
+    free[truth[truth >= 0]] = False
+    _relocate(tpl, assign, pts, free, cKDTree(pts))
+    np.testing.assert_array_equal(assign, truth)
