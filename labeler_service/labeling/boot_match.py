@@ -64,6 +64,11 @@ class _Template:
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
     #: mirror segments (left and right feet...): see _mirror_pairs
     mirrors: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: per-pair constants of _nll (see _nll_tables)
+    nll_scale: np.ndarray = field(default_factory=lambda: np.ones((0, 0)))
+    nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    nll_gauss: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    nll_use: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -127,6 +132,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
+        _nll_tables(tpl)
         tpl.near = _adjacent(tpl)
         for bd in tpl.bodies:
             for tri in bd.anchors:
@@ -788,16 +794,25 @@ def _nll(tpl: _Template, rows: np.ndarray, cols: np.ndarray, d: np.ndarray) -> n
     trained body Gaussian in standard deviations (``STRICT_SIGMAS`` per tolerance), pairs rigid
     by ``A`` alone and articulated pairs Cauchy in their tolerance (link tolerance for
     articulated ones), each plus ``log`` of its tolerance, which makes readings with different
-    markers comparable (a loose articulated pair is weak evidence, a tight rigid one strong)."""
-    Dm = tpl.D[rows, cols]
-    rig = tpl.rigid[rows, cols]
-    st = tpl.strict[rows, cols]
-    lt = tpl.link[rows, cols]
-    art = ~rig & (lt > 0) & np.isfinite(Dm)
-    scale = np.where(rig, tpl.tol[rows, cols], np.where(art, lt, 1.0))
-    e = np.abs(d - Dm) / scale
-    cost = np.where(st, 0.5 * (STRICT_SIGMAS * e) ** 2, np.log1p(e**2)) + np.log(scale)
-    return np.where((rig | art) & np.isfinite(cost), cost, 0.0)
+    markers comparable (a loose articulated pair is weak evidence, a tight rigid one strong).
+    The per-pair constants are the template's ``nll_*`` tables (:func:`_nll_tables`)."""
+    e = np.abs(d - tpl.D[rows, cols]) / tpl.nll_scale[rows, cols]
+    cost = np.where(tpl.nll_gauss[rows, cols], 0.5 * (STRICT_SIGMAS * e) ** 2, np.log1p(e**2))
+    cost += tpl.nll_log[rows, cols]
+    return np.where(tpl.nll_use[rows, cols] & np.isfinite(cost), cost, 0.0)
+
+
+def _nll_tables(tpl: _Template) -> None:
+    """The per-pair constants of :func:`_nll`: ``nll_scale`` (the pair's tolerance: ``tol`` if
+    rigid, the link tolerance if articulated), its log, ``nll_gauss`` (pairs of one trained
+    body) and ``nll_use`` (pairs that carry evidence)."""
+    art = ~tpl.rigid & (tpl.link > 0) & np.isfinite(tpl.D)
+    scale = np.where(tpl.rigid, tpl.tol, np.where(art, tpl.link, 1.0))
+    scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+    tpl.nll_scale = scale
+    tpl.nll_log = np.log(scale)
+    tpl.nll_gauss = tpl.strict.copy()
+    tpl.nll_use = (tpl.rigid | art) & np.isfinite(tpl.D)
 
 
 def _pair_nll(
@@ -938,7 +953,7 @@ def _mirror_pairs(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
     for a in range(len(segs)):
         for b in range(a + 1, len(segs)):
             s1, s2 = segs[a], segs[b]
-            if s1.size != s2.size or np.intersect1d(s1, s2).size:
+            if s1.size != s2.size or s1.size > 5 or np.intersect1d(s1, s2).size:
                 continue
             D1 = tpl.D[np.ix_(s1, s1)]
             t1 = tpl.tol[np.ix_(s1, s1)]
