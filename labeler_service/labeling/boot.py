@@ -33,9 +33,13 @@ Order:
    ``min_support``) and no clash joins; when none is left, the body candidate of another
    segment with most links (soft count, ``link_fraction`` of its articulated pairs in range);
    then trilateration (:func:`_grow`), distance constancy along the tracks
-   (:func:`_constancy`), and the readings of symmetric bodies and segments are decided by their
-   distances to the rest of the subject (:func:`_symmetries`, :func:`_readings`). A hypothesis
-   needs ``min_fraction`` of its template's markers: a subject not seen enough is not guessed.
+   (:func:`_constancy`). A hypothesis needs ``min_fraction`` of its template's markers on that
+   rigid evidence: a subject not seen enough is not guessed. Markers with no rigid evidence
+   then join from their steadiest placed partners when exactly one free point fits
+   (:func:`_articulate`); the readings of symmetric bodies and segments, mirror segments, pairs
+   of markers and single markers (moved to free points) are decided by the subject's
+   negative log-likelihood of its pair distances (:func:`_symmetries`, :func:`_readings`,
+   :func:`_swap_mirrors`, :func:`_exchange`, :func:`_relocate`).
 6. **Joint resolution** (:meth:`Booter.run`): hypotheses of all templates are taken greedily
    by score (markers explained, less their squared rigid and articulated distance errors);
    where two templates explain one performer the one with clearly lower rigid-distance RMS

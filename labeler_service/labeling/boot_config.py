@@ -15,10 +15,16 @@ class BootConfig(BaseModel):
     max_window_frames: int = Field(24, ge=2, description="at most this many frames per window")
     track_gate_mm: float = Field(6.0, gt=0, description="tracker gate around the prediction")
     track_accel_mm_s2: float = Field(
-        40000.0, ge=0, description="acceleration the tracker gate allows (adds a dt^2 to it)"
+        100000.0,
+        ge=0,
+        description="acceleration the tracker gate allows (adds a dt^2 to it; a sprinter's "
+        "feet at ground contact exceed 40 m/s^2 by far)",
     )
     track_speed_mm_s: float = Field(
-        3000.0, ge=0, description="speed the gate allows for a point without velocity yet"
+        10000.0,
+        ge=0,
+        description="speed the gate allows for a point without velocity yet (a sprint is 9 m/s: "
+        "at 3 m/s no marker of a sprinter ever got a second frame)",
     )
     min_track_fraction: float = Field(
         0.75, gt=0, le=1, description="a point must be tracked over this fraction of the window"
@@ -58,6 +64,18 @@ class BootConfig(BaseModel):
     )
     link_fraction: float = Field(
         0.6, ge=0, le=1, description="share of a segment's articulated pairs that must be in range"
+    )
+    art_a_mm: float = Field(
+        15.0,
+        ge=0,
+        description="a marker with no rigid evidence joins from partners with A at most this "
+        "(same or next segment; 0 turns that off)",
+    )
+    art_anchors: int = Field(
+        6, ge=1, description="steadiest placed partners such a marker is checked against"
+    )
+    art_min_anchors: int = Field(
+        3, ge=2, description="... and at least this many of them (all within their range)"
     )
     fit_mm: float = Field(12.0, gt=0, description="predicted marker to point, Kabsch check")
     anchors_per_body: int = Field(4, ge=1, le=4, description="anchor triangles per body")

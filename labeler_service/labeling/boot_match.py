@@ -16,6 +16,15 @@ from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.templates import LabelerModel
 
+#: A tolerance (``tol_mm + tol_sigma A + tol_relative D``) spans about this many standard
+#: deviations of a pair of one trained body: the likelihood of a reading (:func:`_pair_nll`)
+#: weighs its errors in standard deviations, not in tolerances (in tolerances, an arm read one
+#: marker along its chain cost 1.6 more than the right reading among 600 on the still start
+#: of the tennis take, and won on the loose pairs).
+STRICT_SIGMAS = 4.0
+#: A reading exchange (:func:`_exchange`, :func:`_swap_mirrors`) must lower the negative
+#: log-likelihood by more than this (nats): ties and noise keep the reading the candidates gave.
+EXCHANGE_MARGIN = 1.0
 #: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
 #: steadiest pair deviation to any other body.
 NEIGHBOUR = 1.5
@@ -53,6 +62,13 @@ class _Template:
     near: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     bodies: list[_Body] = field(default_factory=list)
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
+    #: mirror segments (left and right feet...): see _mirror_pairs
+    mirrors: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: per-pair constants of _nll (see _nll_tables)
+    nll_scale: np.ndarray = field(default_factory=lambda: np.ones((0, 0)))
+    nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    nll_gauss: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    nll_use: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -115,6 +131,8 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.segments = _segments(tpl)
+        tpl.mirrors = _mirror_pairs(tpl)
+        _nll_tables(tpl)
         tpl.near = _adjacent(tpl)
         for bd in tpl.bodies:
             for tri in bd.anchors:
@@ -508,6 +526,73 @@ def _grow(
             return
 
 
+def _articulate(
+    tpl: _Template,
+    assign: np.ndarray,
+    taken: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    tree: cKDTree,
+    config: BootConfig,
+) -> None:
+    """Markers with no rigid evidence (fewer than two rigid partners placed: a Plug-in-Gait
+    upper-arm or thigh wand, a heel whose only rigid partner is the ankle, a dance set's hip
+    and knee markers): a free point joins when it keeps its distances to the marker's
+    ``art_anchors`` steadiest placed partners (least trained ``A``, each at most ``art_a_mm``:
+    markers of the same or the next segment) within their trained range (``tol`` for a rigid
+    pair, ``D +- (tol_mm + link_sigma A + tol_relative D)`` otherwise), three or more of them,
+    in ``constancy`` of the window's samples, no pair beyond its reach, and it is the *only*
+    free point that does and no other marker claims it: evidence that is not unique is not
+    taken (a ghost beside the elbow, another performer's knee within reach). Repeated while
+    markers join (a thigh wand, then the knee's heel)."""
+    w = hist.shape[1]
+    for _ in range(3):
+        have = np.flatnonzero(assign >= 0)
+        if have.size < config.art_min_anchors:
+            return
+        fits: dict[int, list[int]] = {}
+        for m in np.flatnonzero(assign < 0):
+            a = tpl.A[m, have]
+            ok_a = np.isfinite(a) & np.isfinite(tpl.D[m, have]) & (a <= config.art_a_mm)
+            if ok_a.sum() < config.art_min_anchors:
+                continue
+            anc = have[ok_a][np.argsort(a[ok_a], kind="stable")][: config.art_anchors]
+            tol = np.where(tpl.rigid[m, anc], tpl.tol[m, anc], tpl.link[m, anc])
+            j = anc[0]
+            near = np.asarray(
+                tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tol[0]), dtype=np.int64
+            )
+            near = near[~taken[near]]
+            if near.size == 0:
+                continue
+            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[anc]][None, :, :], axis=2)
+            ok = np.all(np.abs(d - tpl.D[m, anc]) <= tol, axis=1)
+            # no pair to the rest of the subject beyond its reach
+            dall = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+            ok &= ~np.any(dall - tpl.D[m, have] > tpl.bound[m, have], axis=1)
+            for p in near[ok].tolist():
+                # the distances hold along the tracks
+                dh = np.linalg.norm(hist[p][None] - hist[assign[anc]], axis=2)  # (k, W)
+                seen = np.isfinite(dh)
+                held = seen & (np.abs(dh - tpl.D[m, anc][:, None]) <= tol[:, None])
+                if seen.sum() >= w and held.sum() >= config.constancy * seen.sum():
+                    fits.setdefault(int(m), []).append(int(p))
+        # a marker with one fitting point that fits no other marker (the elbow's point fits the
+        # forearm marker's loose ranges too, and the elbow's own: neither is taken)
+        count: dict[int, int] = {}
+        for ps in fits.values():
+            for p in ps:
+                count[p] = count.get(p, 0) + 1
+        changed = False
+        for m, ps in fits.items():
+            if len(ps) == 1 and count[ps[0]] == 1:
+                assign[m] = ps[0]
+                taken[ps[0]] = True
+                changed = True
+        if not changed:
+            return
+
+
 def _constancy(
     tpl: _Template, assign: np.ndarray, hist: np.ndarray, config: BootConfig
 ) -> np.ndarray:
@@ -683,8 +768,17 @@ def _hypotheses(
             assign = _constancy(tpl, assign, hist, config)
             if int((assign >= 0).sum()) < need:
                 continue
+            # markers without rigid evidence, once the subject stands on its own rigid evidence
+            taken = claimed.copy()
+            taken[assign[assign >= 0]] = True
+            _articulate(tpl, assign, taken, pts, hist, pairs.tree, config)
             _symmetries(tpl, assign, pts, cands, groups)
             _readings(tpl, assign, pts)
+            _swap_mirrors(tpl, assign, pts)
+            _exchange(tpl, assign, pts)
+            free = ~claimed
+            free[assign[assign >= 0]] = False
+            _relocate(tpl, assign, pts, free, pairs.tree)
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
@@ -694,33 +788,205 @@ def _hypotheses(
     return out
 
 
+def _nll(tpl: _Template, rows: np.ndarray, cols: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Negative log-likelihoods of point distances ``d`` for marker pairs ``(rows, cols)``
+    (index arrays broadcast against ``d``; 0 where a pair carries no evidence): pairs of one
+    trained body Gaussian in standard deviations (``STRICT_SIGMAS`` per tolerance), pairs rigid
+    by ``A`` alone and articulated pairs Cauchy in their tolerance (link tolerance for
+    articulated ones), each plus ``log`` of its tolerance, which makes readings with different
+    markers comparable (a loose articulated pair is weak evidence, a tight rigid one strong).
+    The per-pair constants are the template's ``nll_*`` tables (:func:`_nll_tables`)."""
+    e = np.abs(d - tpl.D[rows, cols]) / tpl.nll_scale[rows, cols]
+    cost = np.where(tpl.nll_gauss[rows, cols], 0.5 * (STRICT_SIGMAS * e) ** 2, np.log1p(e**2))
+    cost += tpl.nll_log[rows, cols]
+    return np.where(tpl.nll_use[rows, cols] & np.isfinite(cost), cost, 0.0)
+
+
+def _nll_tables(tpl: _Template) -> None:
+    """The per-pair constants of :func:`_nll`: ``nll_scale`` (the pair's tolerance: ``tol`` if
+    rigid, the link tolerance if articulated), its log, ``nll_gauss`` (pairs of one trained
+    body) and ``nll_use`` (pairs that carry evidence)."""
+    art = ~tpl.rigid & (tpl.link > 0) & np.isfinite(tpl.D)
+    scale = np.where(tpl.rigid, tpl.tol, np.where(art, tpl.link, 1.0))
+    scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+    tpl.nll_scale = scale
+    tpl.nll_log = np.log(scale)
+    tpl.nll_gauss = tpl.strict.copy()
+    tpl.nll_use = (tpl.rigid | art) & np.isfinite(tpl.D)
+
+
+def _pair_nll(
+    tpl: _Template, ma: np.ndarray, pa: np.ndarray, mb: np.ndarray, pb: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
+    """``(len(ma), len(mb))`` :func:`_nll` of markers ``ma`` on points ``pa`` against ``mb`` on
+    ``pb``."""
+    d = np.linalg.norm(pts[pa][:, None, :] - pts[pb][None, :, :], axis=2)
+    return _nll(tpl, np.asarray(ma)[:, None], np.asarray(mb)[None, :], d)
+
+
 def _pair_error(
     tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
 ) -> float:
-    """Distance error of ``markers`` placed on ``points`` against the rest of ``assign``:
-    pairs of one trained body ``e^2 / 2`` with ``e`` in tolerances; every other pair (rigid by
-    ``A`` alone, articulated) robustly, ``log(1 + e^2)`` with ``e`` in its tolerance (link
-    tolerance for articulated pairs): a pose the model never saw moves them by a few
-    tolerances, a mirrored reading (a head plate turned round, a wrist bar read the wrong way)
-    by many; a cap would make both look the same. Each pair adds ``log`` of its tolerance."""
+    """Distance error of ``markers`` placed on ``points`` against the rest of ``assign`` and
+    among themselves: pairs of one trained body ``e^2 / 2`` with ``e`` in tolerances; every
+    other pair (rigid by ``A`` alone, articulated) robustly, ``log(1 + e^2)`` with ``e`` in its
+    tolerance (link tolerance for articulated pairs): a pose the model never saw moves them by
+    a few tolerances, a mirrored reading (a head plate turned round, a wrist bar read the wrong
+    way) by many; a cap would make both look the same. Each pair adds ``log`` of its tolerance.
+    The pairs among ``markers`` count too: two readings of the same points may be bodies of
+    different tolerances (a wrist bar and its finger marker, or the loose body the trainer made
+    of the forearm, wrist and elbow markers on the same three points: scored against the rest
+    alone, the loose reading won and shifted a whole arm along its chain)."""
+    markers = np.asarray(markers, dtype=np.int64)
+    points = np.asarray(points, dtype=np.int64)
     rest = np.flatnonzero(assign >= 0)
     rest = rest[~np.isin(rest, markers)]
-    if rest.size == 0:
-        return 0.0
-    d = np.linalg.norm(pts[points][:, None, :] - pts[assign[rest]][None, :, :], axis=2)
-    Dm = tpl.D[markers][:, rest]
-    dev = np.abs(d - Dm)
-    rig = tpl.rigid[markers][:, rest]
-    st = tpl.strict[markers][:, rest]
-    lt = tpl.link[markers][:, rest]
-    art = ~rig & (lt > 0) & np.isfinite(Dm)
-    scale = np.where(rig, tpl.tol[markers][:, rest], np.where(art, lt, 1.0))
-    e = dev / scale
-    # negative log-likelihoods (Gaussian for one body, Cauchy otherwise): the log(scale) term
-    # makes readings with different markers comparable (a loose articulated pair is weak
-    # evidence, a tight rigid one strong)
-    cost = np.where(st, 0.5 * e**2, np.log1p(e**2)) + np.log(scale)
-    return float(np.nansum(np.where(rig | art, cost, 0.0)))
+    inner = _pair_nll(tpl, markers, points, markers, points, pts)
+    total = float(np.triu(inner, 1).sum())
+    if rest.size:
+        total += float(_pair_nll(tpl, markers, points, rest, assign[rest], pts).sum())
+    return total
+
+
+def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int = 8) -> None:
+    """Pairs of placed markers exchange their points while that lowers the subject's negative
+    log-likelihood (:func:`_pair_nll` over all its pairs) by more than ``EXCHANGE_MARGIN``: two
+    markers the body candidates placed the wrong way round (a forearm's radius and ulna
+    markers, a forefoot's first and fifth metatarsal heads, the ends of a loose body) where the
+    rest of the subject tells them apart. The marker set and the point set stay the same; a
+    swap changes only the pairs of the two markers with the others (the pair between them keeps
+    its distance), so every exchange is scored at once from one ``(k, k, k)`` table."""
+    for _ in range(rounds):
+        have = np.flatnonzero(assign >= 0)
+        k = have.size
+        if k < 3:
+            return
+        P = assign[have]
+        E = _exchange_table(tpl, have, pts[P])  # i, q, j
+        idx = np.arange(k)
+        total = E.sum(axis=2)
+        # S[i, q]: marker i on point q against every other marker j (j != i, q) on its point
+        S = (
+            total
+            - E[idx[:, None], idx[None, :], idx[:, None]]
+            - E[idx[:, None], idx[None, :], idx[None, :]]
+        )
+        delta = S + S.T - np.diag(S)[:, None] - np.diag(S)[None, :]
+        np.fill_diagonal(delta, 0.0)
+        i, q = np.unravel_index(int(np.argmin(delta)), delta.shape)
+        if not delta[i, q] < -EXCHANGE_MARGIN:
+            return
+        assign[have[i]], assign[have[q]] = P[q], P[i]
+
+
+def _relocate(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    free: np.ndarray,
+    tree: cKDTree,
+    rounds: int = 8,
+) -> None:
+    """A placed marker moves to a free point (``free``: points of no subject) while that lowers
+    the subject's negative log-likelihood by more than ``EXCHANGE_MARGIN``: a limb read one
+    marker along its chain (the elbow's label on the forearm marker, the forearm's on the wrist
+    marker, the wrist's point left free) is undone one move at a time, each freeing the point
+    the next marker belongs on. A marker is offered the free points within its steadiest placed
+    partner's distance (``D + tol``), so the cost stays linear in the subject's markers."""
+    for _ in range(rounds):
+        have = np.flatnonzero(assign >= 0)
+        if have.size < 3:
+            return
+        P = assign[have]
+        rows, cand = [], []
+        for i, m in enumerate(have):
+            part = have[have != m]
+            a = tpl.A[m, part]
+            if not np.isfinite(a).any():
+                continue
+            j = part[int(np.nanargmin(a))]
+            near = np.asarray(
+                tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j]), dtype=np.int64
+            )
+            near = near[free[near]]
+            rows += [i] * near.size
+            cand += near.tolist()
+        if not rows:
+            return
+        r = np.asarray(rows, dtype=np.int64)
+        c = np.asarray(cand, dtype=np.int64)
+        # each marker against the others on their points, at its candidate and at its own point
+        d_new = np.linalg.norm(pts[c][:, None, :] - pts[P][None, :, :], axis=2)
+        d_old = np.linalg.norm(pts[P[r]][:, None, :] - pts[P][None, :, :], axis=2)
+        mi, mj = have[r][:, None], have[None, :]
+        others = r[:, None] != np.arange(have.size)[None, :]
+        new = np.where(others, _nll(tpl, mi, mj, d_new), 0.0).sum(axis=1)
+        old = np.where(others, _nll(tpl, mi, mj, d_old), 0.0).sum(axis=1)
+        delta = new - old
+        b = int(np.argmin(delta))
+        if not delta[b] < -EXCHANGE_MARGIN:
+            return
+        free[P[r[b]]] = True
+        free[c[b]] = False
+        assign[have[r[b]]] = c[b]
+
+
+def _exchange_table(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """``E[i, q, j]``: :func:`_nll` of marker ``have[i]`` on point ``pos[q]`` against marker
+    ``have[j]`` on ``pos[j]``, for every triple at once."""
+    d = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=2)[None, :, :]  # (1, q, j)
+    return _nll(tpl, have[:, None, None], have[None, None, :], d)
+
+
+def _mirror_pairs(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pairs of disjoint segments (:func:`_segments`, or bodies) of the same size whose trained
+    distances
+    match under some marker bijection (left and right feet, forearms, thighs): ``(s1, s2)``
+    with ``s2`` ordered so that ``s1[i]`` corresponds to ``s2[i]``."""
+    out = []
+    segs = list(tpl.segments)
+    keys = {tuple(x.tolist()) for x in segs}
+    for body in tpl.bodies:  # a body inside a larger segment on one side only (a knee's)
+        if tuple(sorted(body.markers.tolist())) not in keys:
+            segs.append(np.sort(body.markers))
+            keys.add(tuple(segs[-1].tolist()))
+    for a in range(len(segs)):
+        for b in range(a + 1, len(segs)):
+            s1, s2 = segs[a], segs[b]
+            if s1.size != s2.size or s1.size > 5 or np.intersect1d(s1, s2).size:
+                continue
+            D1 = tpl.D[np.ix_(s1, s1)]
+            t1 = tpl.tol[np.ix_(s1, s1)]
+            for perm in itertools.permutations(range(s2.size)):
+                s2p = s2[list(perm)]
+                D2 = tpl.D[np.ix_(s2p, s2p)]
+                ok = np.isfinite(D1) & np.isfinite(D2)
+                if ok.sum() > s1.size and np.all(np.abs(D1 - D2)[ok] <= t1[ok]):
+                    out.append((s1, s2p))
+                    break
+    return out
+
+
+def _swap_mirrors(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
+    """Mirror segments (:func:`_mirror_pairs`) read on each other's points (a dancer's left
+    foot placed as the right one and the right as the left: their own distances cannot tell)
+    are exchanged when the exchange fits the rest of the subject better by more than
+    ``EXCHANGE_MARGIN``; a segment placed on one side only moves to the other side's markers
+    when those are free."""
+    for s1, s2 in tpl.mirrors:
+        union = np.concatenate([s1, s2])
+        placed = union[assign[union] >= 0]
+        if placed.size < 3:
+            continue
+        swapped = assign.copy()
+        swapped[s1], swapped[s2] = assign[s2], assign[s1]
+        base = assign.copy()
+        base[union] = -1
+        now = _pair_error(tpl, placed, assign[placed], base, pts)
+        other = union[swapped[union] >= 0]
+        then = _pair_error(tpl, other, swapped[other], base, pts)
+        if then < now - EXCHANGE_MARGIN:
+            assign[union] = swapped[union]
 
 
 def _symmetries(
@@ -951,8 +1217,11 @@ def _complete(
         la = fixed.copy()
     ltaken = np.zeros(local.size, dtype=bool)
     ltaken[la[la >= 0]] = True
-    _grow(tpl, la, ltaken, lp, cKDTree(lp), config)
+    ltree = cKDTree(lp)
+    _grow(tpl, la, ltaken, lp, ltree, config)
     la[fixed >= 0] = fixed[fixed >= 0]
+    ltaken[la[la >= 0]] = True
+    _articulate(tpl, la, ltaken, lp, lh, ltree, config)
     checked = _constancy(tpl, la.copy(), lh, config)
     fresh = (fixed < 0) & (la >= 0) & (checked == la)
     # the new markers' segments read again (a hidden forearm and hand that appear mirrored)

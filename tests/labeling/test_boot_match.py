@@ -1,0 +1,155 @@
+"""Steps of the boot's matching (labeling/boot_match.py) on one simulated subject: markers with
+no rigid evidence, exchanged markers, mirrored segments; and the tracker at sprint speed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, track_history
+from labeler_service.labeling.boot_match import (
+    _articulate,
+    _exchange,
+    _pair_error,
+    _relocate,
+    _swap_mirrors,
+)
+from labeler_service.scenes.simulate import simulate_scene
+
+RATE = 120.0
+
+
+@pytest.fixture(scope="module")
+def walker():
+    """One simulated walker: its template (trained on the first half) and a 12-frame window of
+    the second half with each point's true marker."""
+    from offline.structure import StructureTrainer
+
+    cap = simulate_scene(1, 4.0, "walk", seed=5, rate=RATE, ghosts=0.0)
+    half = cap.n_frames // 2
+    model = StructureTrainer().fit([cap.frames(0, half)]).model_
+    tpl = Booter(model, BootConfig())._templates[0]
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    cols = np.array([col[n] for n in model.marker_names])
+    hist = np.transpose(cap.positions[half : half + 12, cols].astype(np.float64), (1, 0, 2))
+    keep = np.isfinite(hist).all(axis=(1, 2))
+    truth = np.where(keep, np.cumsum(keep) - 1, -1)  # marker -> point index
+    return tpl, hist[keep], truth
+
+
+def _total(tpl, assign, pts):
+    m = np.flatnonzero(assign >= 0)
+    return _pair_error(tpl, m, assign[m], np.full(tpl.n, -1), pts)
+
+
+def test_marker_without_rigid_evidence_joins_only_when_its_point_is_unique(walker):
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    config = BootConfig()
+    # markers with three or more steady partners (A <= art_a_mm) but left out of the placement
+    limit = float(config.art_a_mm)
+    n_steady = np.sum(np.less_equal(tpl.A, limit), axis=1) - 1
+    steady = n_steady >= config.art_min_anchors + 2
+    out = np.flatnonzero(steady & (truth >= 0))[:3]
+    assert out.size == 3
+    assign = truth.copy()
+    assign[out] = -1
+    taken = np.zeros(len(pts), dtype=bool)
+    taken[assign[assign >= 0]] = True
+    _articulate(tpl, assign, taken, pts, hist, cKDTree(pts), config)
+    np.testing.assert_array_equal(assign, truth)  # placed, each on its own point
+    # a second point beside one of them (a ghost 3 mm away): that marker is not guessed
+    ghost = hist[truth[out[0]]] + np.array([3.0, 0.0, 0.0])
+    hist2 = np.concatenate([hist, ghost[None]])
+    pts2 = hist2[:, -1]
+    assign = truth.copy()
+    assign[out] = -1
+    taken = np.zeros(len(pts2), dtype=bool)
+    taken[assign[assign >= 0]] = True
+    _articulate(tpl, assign, taken, pts2, hist2, cKDTree(pts2), config)
+    assert assign[out[0]] == -1
+    np.testing.assert_array_equal(assign[out[1:]], truth[out[1:]])
+
+
+def test_exchanged_markers_are_put_back(walker):
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    rng = np.random.default_rng(2)
+    fixed = 0
+    for _ in range(10):
+        a, b = rng.choice(np.flatnonzero(truth >= 0), 2, replace=False)
+        assign = truth.copy()
+        assign[a], assign[b] = truth[b], truth[a]
+        if _total(tpl, assign, pts) <= _total(tpl, truth, pts) + 1.0:
+            continue  # the distances cannot tell these two apart
+        _exchange(tpl, assign, pts)
+        np.testing.assert_array_equal(assign, truth)
+        fixed += 1
+    assert fixed >= 5
+
+
+def test_mirrored_segments_are_swapped_back(walker):
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    assert tpl.mirrors  # left and right limbs
+    swapped = 0
+    for s1, s2 in tpl.mirrors:
+        assign = truth.copy()
+        assign[s1], assign[s2] = truth[s2], truth[s1]
+        if _total(tpl, assign, pts) <= _total(tpl, truth, pts) + 1.0:
+            continue
+        _swap_mirrors(tpl, assign, pts)
+        if np.array_equal(assign, truth):
+            swapped += 1
+    assert swapped >= 1
+    # the right reading is left alone
+    assign = truth.copy()
+    _swap_mirrors(tpl, assign, pts)
+    np.testing.assert_array_equal(assign, truth)
+
+
+def test_tracker_follows_a_sprinter_from_the_second_frame(rng):
+    """9 m/s at 250 Hz is 36 mm a frame: a point with no velocity yet must still be linked
+    (the gate allowed 3 m/s before, so no track of a sprinter lasted two frames)."""
+    rate = 250.0
+    # 40 markers 70-90 mm apart (a body seen by a capture system: markers are never closer
+    # than about the distance a sprinter covers in two frames)
+    gy, gz = np.meshgrid(np.arange(5) * 80.0, np.arange(8) * 80.0)
+    base = np.stack([np.zeros(40), gy.ravel(), gz.ravel()], axis=1) + rng.uniform(-5, 5, (40, 3))
+    vel = np.array([9000.0, 0.0, 0.0])
+    tracker = PointTracker(rate)
+    frames = []
+    for k in range(6):
+        order = rng.permutation(40)
+        pts = base[order] + vel * k / rate
+        frames.append((pts, tracker.update(pts, k / rate)))
+    hist = track_history(frames, frames[-1][1])
+    assert np.isfinite(hist[:, :, 0]).all()  # every point tracked through all six frames
+
+
+def test_marker_on_a_wrong_point_moves_to_its_free_point(walker):
+    """A limb read one marker along its chain leaves the right point free: the marker moves
+    there (and a marker on its right point stays)."""
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    rng = np.random.default_rng(4)
+    moved = 0
+    for m in rng.choice(np.flatnonzero(truth >= 0), 8, replace=False):
+        stray = pts[truth[m]] + rng.normal(0, 1, 3) / np.sqrt(3) * 60.0  # 60 mm off
+        pts2 = np.concatenate([pts, stray[None]])
+        assign = truth.copy()
+        assign[m] = len(pts)  # on the stray point, its own point left free
+        free = np.zeros(len(pts2), dtype=bool)
+        free[truth[m]] = True
+        if _total(tpl, assign, pts2) <= _total(tpl, truth, pts2) + 1.0:
+            continue
+        _relocate(tpl, assign, pts2, free, cKDTree(pts2))
+        np.testing.assert_array_equal(assign, truth)
+        moved += 1
+    assert moved >= 4
+    assign = truth.copy()
+    free = np.ones(len(pts), dtype=bool)
+    free[truth[truth >= 0]] = False
+    _relocate(tpl, assign, pts, free, cKDTree(pts))
+    np.testing.assert_array_equal(assign, truth)
