@@ -584,9 +584,9 @@ def _articulate(
             for p in ps:
                 count[p] = count.get(p, 0) + 1
         changed = False
-        for m, ps in fits.items():
+        for marker, ps in fits.items():
             if len(ps) == 1 and count[ps[0]] == 1:
-                assign[m] = ps[0]
+                assign[marker] = ps[0]
                 taken[ps[0]] = True
                 changed = True
         if not changed:
