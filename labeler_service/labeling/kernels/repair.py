@@ -210,6 +210,145 @@ def _snapshot_body(b, bodies, points, cur, n):
 
 
 @njit
+def _bends(b, n, D0, A0, A, a_floor, a_rel):
+    """Whether a link of body ``b`` (``n`` members) deviates in the sliding window (``A``,
+    Eq. 2) by more than 3 trained deviations (``A0`` with the floor of Eq. 5)."""
+    for i in range(n):
+        for j in range(i + 1, n):
+            a0 = A0[b, i, j]
+            if a0 != a0:
+                continue
+            if A[b, i, j] > 3.0 * max(a0, a_floor, a_rel * D0[b, i, j]):
+                return True
+    return False
+
+
+@njit
+def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_rel):
+    """``(sum, count)`` over the trained links of marker ``m`` (every body that contains it) to
+    *anchors* - members observed now and for at least ``min_age`` frames before, other than
+    ``m`` and ``skip`` - of how far (mm) point ``p``'s distance to the anchor's point differs
+    from the trained ``D0`` beyond 3 trained deviations ``A0`` (0 within them)."""
+    members, size, D0, A0, A = bodies.members, bodies.size, bodies.D0, bodies.A0, bodies.A
+    mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
+    tot = 0.0
+    cnt = 0
+    for e in range(mb_ptr[m], mb_ptr[m + 1]):
+        b = mb_idx[e]
+        n = size[b]
+        if _bends(b, n, D0, A0, A, a_floor, a_rel):
+            continue  # a body trained across a joint held still: its links are no evidence
+        i = 0
+        while i < n and members[b, i] != m:
+            i += 1
+        for j in range(n):
+            k = members[b, j]
+            if j == i or k == skip or assigned[k] < 0 or age[k] < min_age:
+                continue
+            d0 = D0[b, i, j]
+            a0 = A0[b, i, j]
+            if d0 != d0 or a0 != a0:
+                continue
+            a0 = max(a0, a_floor, a_rel * d0)  # the floor of Eq. 5
+            q = assigned[k]
+            d2 = 0.0
+            for a in range(3):
+                d = points[p, a] - points[q, a]
+                d2 += d * d
+            x = abs(np.sqrt(d2) - d0) - 3.0 * a0
+            if x > 0.0:
+                tot += x
+            cnt += 1
+    return tot, cnt
+
+
+@njit
+def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links):
+    """Mean of :func:`_link_excess` per link; ``nan`` with fewer than ``min_links`` links."""
+    tot, cnt = _link_excess(
+        m,
+        p,
+        skip,
+        points,
+        bodies,
+        assigned,
+        age,
+        params.repair_age,
+        params.a_floor_mm,
+        params.a_relative,
+    )
+    if cnt < min_links:
+        return np.nan
+    return tot / cnt
+
+
+@njit
+def _pair_check(points, frame_no, tracks, bodies, scratch, params):
+    """Relabels a freshly re-acquired marker's point when a body partner fits it by the trained
+    pair distances and the long-tracked anchors (the module docstring, "pair check"): for every
+    marker ``m`` holding point ``a`` and observed for fewer than ``repair_age`` frames, and every
+    partner ``m2`` sharing a body with it, the mean excess of :func:`_link_excess` (per marker,
+    over its links to anchors) before and after giving ``a`` to ``m2`` (``m2`` missing: ``m``
+    loses the point) or exchanging the two points (``m2`` holds one). The change with the
+    largest gain is made when the excess after is at most a third of the excess before and
+    the excess before exceeds ``repair_pair_mm``. Returns the number of changes."""
+    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    active, age = tracks.active, tracks.age
+    members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
+    min_age = params.repair_age
+    floor = params.repair_pair_mm
+    changes = 0
+    for m in range(assigned.shape[0]):
+        a = assigned[m]
+        if a < 0 or not active[m] or age[m] >= min_age:
+            continue
+        now_m = _link_mean(m, a, -1, points, bodies, assigned, age, params, 2)
+        if not now_m > 0.0:
+            continue
+        best_gain = 0.0
+        best_m2 = -1
+        for e in range(mb_ptr[m], mb_ptr[m + 1]):
+            b = mb_idx[e]
+            for j in range(size[b]):
+                m2 = members[b, j]
+                if m2 == m or not active[m2]:
+                    continue
+                p2 = assigned[m2]
+                after = _link_mean(m2, a, m, points, bodies, assigned, age, params, 2)
+                if after != after:
+                    continue
+                before = _link_mean(m, a, m2, points, bodies, assigned, age, params, 2)
+                if before != before:
+                    continue
+                if p2 >= 0:
+                    b2 = _link_mean(m2, p2, m, points, bodies, assigned, age, params, 2)
+                    a2 = _link_mean(m, p2, m2, points, bodies, assigned, age, params, 2)
+                    if b2 != b2 or a2 != a2:
+                        continue
+                    before += b2
+                    after += a2
+                if before > floor and 3.0 * after <= before and before - after > best_gain:
+                    best_gain = before - after
+                    best_m2 = m2
+        if best_m2 < 0:
+            continue
+        m2 = best_m2
+        p2 = assigned[m2]
+        owner[a] = m2
+        assigned[m2] = a
+        if p2 >= 0:
+            owner[p2] = m
+            assigned[m] = p2
+        else:
+            assigned[m] = NONE
+        for c in range(3):
+            obs[m2, c] = points[a, c]
+            obs[m, c] = points[p2, c] if p2 >= 0 else np.nan
+        changes += 1
+    return changes
+
+
+@njit
 def _repair(points, index, frame_no, tracks, bodies, scratch, params):
     """The 3D template check, swap repair and joint re-acquisition of the module docstring,
     after Algorithm 1 and the per-marker 3D check. Changes ``scratch.assigned``, ``owner`` and
@@ -409,4 +548,6 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                 obs[m, a] = points[p, a]
         ok[b] = True
         changes += 1
+    if params.repair_pair_mm > 0.0:
+        changes += _pair_check(points, frame_no, tracks, bodies, scratch, params)
     return changes
