@@ -225,12 +225,11 @@ class LabelerConfig(BaseModel):
     repair_max_nodes: int = Field(
         5000, ge=1, description="node budget of one template fit (interpretation tree)"
     )
-    repair_pair_mm: float = Field(
-        3.0,
-        ge=0,
+    repair_pairs: bool = Field(
+        True,
         description="pair check: a freshly re-acquired marker's point goes to a body partner "
         "when the mean excess of its trained links to long-tracked anchors (beyond 3 trained "
-        "deviations) exceeds this and the change cuts it to a third (0 = off)",
+        "deviations) exceeds repair_check_mm and the change cuts it to a third (False = off)",
     )
     window_guard: bool = Field(
         True,

@@ -277,11 +277,11 @@ def test_a_subject_who_left_keeps_no_label_on_the_others(rng):
 
 
 # a forearm seen from two triangles (the dance take of issue 10): radius R and ulna U 83 mm
-# apart, a finger F 145 / 127 mm from them, the elbow E 272 / 265 mm from them. Each body has
+# apart, a finger F 159 / 108 mm from them, the elbow E 272 / 265 mm from them. Each body has
 # three members, so no body shows chirality and the template repair leaves them alone; the
 # trained distances to the long-tracked F and E tell R from U.
 FOREARM = np.array(
-    [[-260.0, 64.1, 47.7], [0.0, 0.0, 0.0], [0.0, 83.0, 0.0], [120.0, 71.2, 40.0]]
+    [[-260.0, 64.1, 47.7], [0.0, 0.0, 0.0], [0.0, 83.0, 0.0], [95.0, 122.8, 33.5]]
 )  # E, R, U, F
 FOREARM_BODIES = [[1, 2, 3], [0, 1, 2]]
 
@@ -312,7 +312,7 @@ def _forearm_points(rng):
 def test_pair_check_undoes_a_swap_inside_triangles(rng, trial):
     pts = _forearm_points(rng)
     swapped = np.array([0, 2, 1, 3], dtype=np.int32)  # R on U's point, U on R's
-    without = kernel_params(LabelerConfig(repair_pair_mm=0.0))
+    without = kernel_params(LabelerConfig(repair_pairs=False))
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped)
     # the template repair cannot see it: three points have no chirality
     assert _repair(pts, _index(pts), 1, tracks, bodies, scratch, without) == 0

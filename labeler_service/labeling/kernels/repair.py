@@ -291,12 +291,12 @@ def _pair_check(points, frame_no, tracks, bodies, scratch, params):
     over its links to anchors) before and after giving ``a`` to ``m2`` (``m2`` missing: ``m``
     loses the point) or exchanging the two points (``m2`` holds one). The change with the
     largest gain is made when the excess after is at most a third of the excess before and
-    the excess before exceeds ``repair_pair_mm``. Returns the number of changes."""
+    the excess before exceeds ``repair_check_mm``. Returns the number of changes."""
     assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
     active, age = tracks.active, tracks.age
     members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
     min_age = params.repair_age
-    floor = params.repair_pair_mm
+    floor = params.repair_check_mm
     changes = 0
     for m in range(assigned.shape[0]):
         a = assigned[m]
@@ -548,6 +548,6 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                 obs[m, a] = points[p, a]
         ok[b] = True
         changes += 1
-    if params.repair_pair_mm > 0.0:
+    if params.repair_pairs:
         changes += _pair_check(points, frame_no, tracks, bodies, scratch, params)
     return changes
