@@ -43,6 +43,15 @@ the distances at once and drift does not, so a swap that survives ``repair_age``
 longer becomes the reference it is checked against (issue 10: tennis alone 90.0 -> 93.8 %,
 longest swap 350 -> 57 frames).
 
+*Pair check* (:func:`_pair_check`, ``repair_pairs``): the template fit needs a body of four
+points and relabels inside one body; a marker in triangles only (a dancer's radius and ulna)
+or whose wrong point only its other bodies can refute stays swapped. For every marker
+re-acquired less than ``repair_age`` frames ago, the trained pair distances (``D0`` beyond 3
+floored deviations ``A0``) to the long-tracked members of all its bodies that do not bend now
+(window ``A`` within 3 floored ``A0``) decide whether its point belongs to a body partner
+(missing: the point moves; holding a point: the two exchange): when the summed mean excess
+exceeds ``repair_check_mm`` and the change cuts it to a third.
+
 ``bodies.ok[b]`` records whether the body's assignment passed the check (the guard of the
 sliding-window update, :mod:`.window`).
 """
