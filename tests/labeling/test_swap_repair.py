@@ -13,6 +13,7 @@ from labeler_service.labeling.kernels.params import kernel_params
 from labeler_service.labeling.kernels.repair import (
     _fit_template,
     _link_excess,
+    _mirrors,
     _pair_check,
     _repair,
     _shape_rms,
@@ -379,3 +380,16 @@ def test_link_excess_matches_twin(rng, trial):
             )
             assert got[1] == want[1]
             assert got[0] == pytest.approx(want[0], abs=1e-9)
+
+
+def test_pair_check_refuses_an_exchange_that_mirrors_a_body(rng):
+    config = LabelerConfig()
+    pts = MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    right = np.arange(5, dtype=np.int32)
+    tracks, bodies, scratch = _one_body_state(config, pts, right, MIRROR)
+    kab = scratch.kab
+    # B and C exchanging points keeps every distance (what the pair check sees) but mirrors
+    # the body: its 5-point template refuses it; the exchange back from the mirror is allowed
+    assert _mirrors(bodies, pts, scratch.assigned, 1, 2, 2, 1, config.repair_check_mm, kab)
+    swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
+    assert not _mirrors(bodies, pts, swapped, 1, 1, 2, 2, config.repair_check_mm, kab)

@@ -292,6 +292,42 @@ def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links):
 
 
 @njit
+def _rms_with(b, bodies, points, assigned, m, pm, m2, pm2, kab):
+    """``(count, rms)`` of :func:`_shape_rms` for body ``b`` against its reference when marker
+    ``m`` holds point ``pm`` and ``m2`` holds ``pm2`` (-1: none), the others what they hold."""
+    n = bodies.size[b]
+    pts, choice = bodies.work_pts, bodies.work_choice
+    for k in range(n):
+        mk = bodies.members[b, k]
+        p = pm if mk == m else (pm2 if mk == m2 else assigned[mk])
+        choice[k] = k if p >= 0 else -1
+        if p >= 0:
+            for a in range(3):
+                pts[k, a] = points[p, a]
+    return _shape_rms(bodies.ref[b], pts, choice, n, kab.src, kab.dst, kab.R, kab.t)
+
+
+@njit
+def _mirrors(bodies, points, assigned, m, pm, m2, pm2, check_mm, kab):
+    """Whether giving ``m`` point ``pm`` and ``m2`` point ``pm2`` makes a body of either with a
+    reference and 4+ points fail the template check (RMS over ``check_mm``) and fit worse than
+    now: distances cannot tell a mirrored pair, the proper-rotation fit can."""
+    for side in range(2):
+        mk = m if side == 0 else m2
+        for e in range(bodies.mb_ptr[mk], bodies.mb_ptr[mk + 1]):
+            b = bodies.mb_idx[e]
+            if not bodies.ref_ok[b] or bodies.size[b] < 4:
+                continue
+            c1, r1 = _rms_with(b, bodies, points, assigned, m, pm, m2, pm2, kab)
+            if c1 < 4 or r1 <= check_mm:
+                continue
+            c0, r0 = _rms_with(b, bodies, points, assigned, m, assigned[m], m2, assigned[m2], kab)
+            if r1 > r0:
+                return True
+    return False
+
+
+@njit
 def _pair_check(points, frame_no, tracks, bodies, scratch, params):
     """Relabels a freshly re-acquired marker's point when a body partner fits it by the trained
     pair distances and the long-tracked anchors (the module docstring, "pair check"): for every
@@ -337,6 +373,8 @@ def _pair_check(points, frame_no, tracks, bodies, scratch, params):
                     before += b2
                     after += a2
                 if before > floor and 3.0 * after <= before and before - after > best_gain:
+                    if _mirrors(bodies, points, assigned, m, p2, m2, a, floor, scratch.kab):
+                        continue
                     best_gain = before - after
                     best_m2 = m2
         if best_m2 < 0:
