@@ -345,6 +345,9 @@ def test_pair_check_leaves_tracked_markers_and_bending_bodies_alone(rng):
     # R and U tracked for long: not a re-acquisition, the pair check does not look
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped, young=())
     assert _pair_check(pts, 0, tracks, bodies, scratch, params) == 0
+    # only R re-acquired: U, tracked for long, keeps its point (its track says so)
+    tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped, young=(1,))
+    assert _pair_check(pts, 0, tracks, bodies, scratch, params) == 0
     # both bodies bend in the sliding window (a body trained across a joint held still): their
     # trained distances are no evidence
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped)

@@ -359,6 +359,8 @@ def _pair_check(points, frame_no, tracks, bodies, scratch, params):
                 if m2 == m or not active[m2]:
                     continue
                 p2 = assigned[m2]
+                if p2 >= 0 and age[m2] >= min_age:
+                    continue  # a marker tracked for long keeps its point (its track says so)
                 after = _link_mean(m2, a, m, points, bodies, assigned, age, params, 2)
                 if after != after:
                     continue
