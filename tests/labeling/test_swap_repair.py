@@ -324,7 +324,7 @@ def test_pair_check_undoes_a_swap_inside_triangles(rng, trial):
     assert list(scratch.owner[:4]) == [0, 1, 2, 3]
     assert np.allclose(scratch.obs[:4], pts)
     # the right assignment is left alone
-    assert _pair_check(pts, 2, tracks, bodies, scratch, params) == 0
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
 
 
 def test_pair_check_gives_a_point_to_the_missing_partner_it_fits(rng):
@@ -332,7 +332,7 @@ def test_pair_check_gives_a_point_to_the_missing_partner_it_fits(rng):
     taken = np.array([0, NONE, 1, 3], dtype=np.int32)  # U took R's point, R is missing
     params = kernel_params(LabelerConfig())
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, taken)
-    assert _pair_check(pts, 0, tracks, bodies, scratch, params) == 1
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 1
     assert list(scratch.assigned[:4]) == [0, 1, NONE, 3]
     assert scratch.owner[1] == 1 and scratch.owner[2] == NONE
     assert np.isnan(scratch.obs[2]).all()
@@ -344,15 +344,15 @@ def test_pair_check_leaves_tracked_markers_and_bending_bodies_alone(rng):
     params = kernel_params(LabelerConfig())
     # R and U tracked for long: not a re-acquisition, the pair check does not look
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped, young=())
-    assert _pair_check(pts, 0, tracks, bodies, scratch, params) == 0
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
     # only R re-acquired: U, tracked for long, keeps its point (its track says so)
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped, young=(1,))
-    assert _pair_check(pts, 0, tracks, bodies, scratch, params) == 0
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
     # both bodies bend in the sliding window (a body trained across a joint held still): their
     # trained distances are no evidence
     tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped)
     bodies.A[:2, :3, :3] = 40.0
-    assert _pair_check(pts, 0, tracks, bodies, scratch, params) == 0
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
     assert list(scratch.assigned[:4]) == [0, 2, 1, 3]
 
 

@@ -49,8 +49,10 @@ or whose wrong point only its other bodies can refute stays swapped. For every m
 re-acquired less than ``repair_age`` frames ago, the trained pair distances (``D0`` beyond 3
 floored deviations ``A0``) to the long-tracked members of all its bodies that do not bend now
 (window ``A`` within 3 floored ``A0``) decide whether its point belongs to a body partner
-(missing: the point moves; holding a point: the two exchange): when the summed mean excess
-exceeds ``repair_check_mm`` and the change cuts it to a third.
+(missing: the point moves; holding a point and re-acquired recently too: the two exchange)
+when the summed mean excess exceeds ``repair_check_mm`` and the change cuts it to a third,
+unless it makes a 4+-point body with a reference fail its proper-rotation template
+(:func:`_mirrors`: distances cannot see a mirror).
 
 ``bodies.ok[b]`` records whether the body's assignment passed the check (the guard of the
 sliding-window update, :mod:`.window`).
@@ -328,15 +330,17 @@ def _mirrors(bodies, points, assigned, m, pm, m2, pm2, check_mm, kab):
 
 
 @njit
-def _pair_check(points, frame_no, tracks, bodies, scratch, params):
+def _pair_check(points, tracks, bodies, scratch, params):
     """Relabels a freshly re-acquired marker's point when a body partner fits it by the trained
     pair distances and the long-tracked anchors (the module docstring, "pair check"): for every
     marker ``m`` holding point ``a`` and observed for fewer than ``repair_age`` frames, and every
     partner ``m2`` sharing a body with it, the mean excess of :func:`_link_excess` (per marker,
     over its links to anchors) before and after giving ``a`` to ``m2`` (``m2`` missing: ``m``
-    loses the point) or exchanging the two points (``m2`` holds one). The change with the
-    largest gain is made when the excess after is at most a third of the excess before and
-    the excess before exceeds ``repair_check_mm``. Returns the number of changes."""
+    loses the point) or exchanging the two points (``m2`` holds one and was also observed for
+    fewer than ``repair_age`` frames). The change with the largest gain is made when the excess
+    after is at most a third of the excess before, the excess before exceeds
+    ``repair_check_mm``, and :func:`_mirrors` does not refuse it. Returns the number of
+    changes."""
     assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
     active, age = tracks.active, tracks.age
     members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
@@ -598,5 +602,5 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
         ok[b] = True
         changes += 1
     if params.repair_pairs:
-        changes += _pair_check(points, frame_no, tracks, bodies, scratch, params)
+        changes += _pair_check(points, tracks, bodies, scratch, params)
     return changes
