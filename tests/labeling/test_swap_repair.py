@@ -396,3 +396,21 @@ def test_pair_check_refuses_an_exchange_that_mirrors_a_body(rng):
     assert _mirrors(bodies, pts, scratch.assigned, 1, 2, 2, 1, config.repair_check_mm, kab)
     swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
     assert not _mirrors(bodies, pts, swapped, 1, 1, 2, 2, config.repair_check_mm, kab)
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_dance_forearm_swap_after_occlusion_is_undone(real_path):
+    """The cross-take matrix's tune05 ``occlude2`` cell (60 Hz): the dancer's radius and ulna
+    markers, in triangle bodies only, came back exchanged after an occlusion and stayed so for
+    215 frames (issue 10: no swap above 30 frames at 60 Hz and more)."""
+    from labeler_service.evaluation.scoring import evaluate
+    from labeler_service.scenes.compose import TakeSpec, compose_scene
+
+    takes = [
+        TakeSpec(path=real_path("dance_qualisys_28markers_60hz.c3d"), start=120),
+        TakeSpec(path=real_path("clinical_gait_pig_35markers_100hz.c3d")),
+    ]
+    scene = compose_scene(takes, radius=350.0, frames=480, seed=105, rate=60.0)
+    report, _ = evaluate(scene, ["online"], init_frames=24, seed=105, occlude=2, occlude_frames=18)
+    assert report["max_swap_frames"] <= 30
