@@ -225,6 +225,12 @@ class LabelerConfig(BaseModel):
     repair_max_nodes: int = Field(
         5000, ge=1, description="node budget of one template fit (interpretation tree)"
     )
+    repair_pairs: bool = Field(
+        True,
+        description="pair check: a freshly re-acquired marker's point goes to a body partner "
+        "when the mean excess of its trained links to long-tracked anchors (beyond 3 trained "
+        "deviations) exceeds repair_check_mm and the change cuts it to a third (False = off)",
+    )
     window_guard: bool = Field(
         True,
         description="Eq. 1-2 learns only from bodies that pass the 3D template check",

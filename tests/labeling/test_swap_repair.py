@@ -10,7 +10,14 @@ from labeling.scene import _rot_y, _rot_z, frame_points
 
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.kernels.params import kernel_params
-from labeler_service.labeling.kernels.repair import _fit_template, _repair, _shape_rms
+from labeler_service.labeling.kernels.repair import (
+    _fit_template,
+    _link_excess,
+    _mirrors,
+    _pair_check,
+    _repair,
+    _shape_rms,
+)
 from labeler_service.labeling.kernels.spatial import _index
 from labeler_service.labeling.kernels.state import (
     MAX_BODY,
@@ -268,3 +275,142 @@ def test_a_subject_who_left_keeps_no_label_on_the_others(rng):
         if f >= 150 + LabelerConfig().absent_frames:
             taken += int(np.isin(out.point_labels, left).sum())
     assert taken == 0
+
+
+# a forearm seen from two triangles (the dance take of issue 10): radius R and ulna U 83 mm
+# apart, a finger F 159 / 108 mm from them, the elbow E 272 / 265 mm from them. Each body has
+# three members, so no body shows chirality and the template repair leaves them alone; the
+# trained distances to the long-tracked F and E tell R from U.
+FOREARM = np.array(
+    [[-260.0, 64.1, 47.7], [0.0, 0.0, 0.0], [0.0, 83.0, 0.0], [95.0, 122.8, 33.5]]
+)  # E, R, U, F
+FOREARM_BODIES = [[1, 2, 3], [0, 1, 2]]
+
+
+def _forearm_state(config, points, assigned, young=(1, 2)):
+    m = len(FOREARM)
+    d0 = [np.linalg.norm(FOREARM[b][:, None] - FOREARM[b][None], axis=2) for b in FOREARM_BODIES]
+    tracks = new_tracks(np.full(m, 1e6), np.ones(m, dtype=bool), [list(range(m))])
+    tracks.x[:, :3] = FOREARM
+    tracks.age[:] = 100
+    tracks.age[list(young)] = 3  # re-acquired 3 frames ago
+    a0 = [np.full((3, 3), 1.0) for _ in FOREARM_BODIES]
+    bodies = new_bodies(m, FOREARM_BODIES, d0, a0, 20)
+    scratch = new_scratch(m, len(FOREARM_BODIES), 1, config.K, 64)
+    scratch.assigned[:] = assigned
+    scratch.owner[:] = NONE
+    for k, a in enumerate(assigned):
+        scratch.owner[a] = k if a >= 0 else scratch.owner[a]
+        scratch.obs[k] = points[a] if a >= 0 else np.nan
+    return tracks, bodies, scratch
+
+
+def _forearm_points(rng):
+    return FOREARM @ _rotation(rng).T + [300.0, -100.0, 1100.0] + rng.normal(0, 0.5, (4, 3))
+
+
+@pytest.mark.parametrize("trial", range(4))
+def test_pair_check_undoes_a_swap_inside_triangles(rng, trial):
+    pts = _forearm_points(rng)
+    swapped = np.array([0, 2, 1, 3], dtype=np.int32)  # R on U's point, U on R's
+    without = kernel_params(LabelerConfig(repair_pairs=False))
+    tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped)
+    # the template repair cannot see it: three points have no chirality
+    assert _repair(pts, _index(pts), 1, tracks, bodies, scratch, without) == 0
+    assert list(scratch.assigned[:4]) == [0, 2, 1, 3]
+    params = kernel_params(LabelerConfig())
+    assert _repair(pts, _index(pts), 1, tracks, bodies, scratch, params) == 1
+    assert list(scratch.assigned[:4]) == [0, 1, 2, 3]
+    assert list(scratch.owner[:4]) == [0, 1, 2, 3]
+    assert np.allclose(scratch.obs[:4], pts)
+    # the right assignment is left alone
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+
+
+def test_pair_check_gives_a_point_to_the_missing_partner_it_fits(rng):
+    pts = _forearm_points(rng)
+    taken = np.array([0, NONE, 1, 3], dtype=np.int32)  # U took R's point, R is missing
+    params = kernel_params(LabelerConfig())
+    tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, taken)
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 1
+    assert list(scratch.assigned[:4]) == [0, 1, NONE, 3]
+    assert scratch.owner[1] == 1 and scratch.owner[2] == NONE
+    assert np.isnan(scratch.obs[2]).all()
+
+
+def test_pair_check_leaves_tracked_markers_and_bending_bodies_alone(rng):
+    pts = _forearm_points(rng)
+    swapped = np.array([0, 2, 1, 3], dtype=np.int32)
+    params = kernel_params(LabelerConfig())
+    # R and U tracked for long: not a re-acquisition, the pair check does not look
+    tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped, young=())
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    # only R re-acquired: U, tracked for long, keeps its point (its track says so)
+    tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped, young=(1,))
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    # both bodies bend in the sliding window (a body trained across a joint held still): their
+    # trained distances are no evidence
+    tracks, bodies, scratch = _forearm_state(LabelerConfig(), pts, swapped)
+    bodies.A[:2, :3, :3] = 40.0
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    assert list(scratch.assigned[:4]) == [0, 2, 1, 3]
+
+
+@pytest.mark.parametrize("trial", range(6))
+def test_link_excess_matches_twin(rng, trial):
+    m_total = 6
+    body_lists = [[0, 1, 2, 3], [1, 4, 5], [2, 3, 4]]
+    shape = rng.uniform(-100, 100, (m_total, 3))
+    d0 = [np.linalg.norm(shape[b][:, None] - shape[b][None], axis=2) for b in body_lists]
+    a0 = [rng.uniform(0.2, 4.0, (len(b), len(b))) for b in body_lists]
+    a0 = [(a + a.T) / 2 for a in a0]
+    bodies = new_bodies(m_total, body_lists, d0, a0, 20)
+    window_a = [a * rng.choice([1.0, 5.0], size=a.shape, p=[0.8, 0.2]) for a in a0]
+    for b, body in enumerate(body_lists):
+        k = len(body)
+        bodies.A[b, :k, :k] = (window_a[b] + window_a[b].T) / 2
+        window_a[b] = bodies.A[b, :k, :k].copy()
+    pts = shape + rng.normal(0, 6.0, shape.shape)
+    assigned = rng.permutation(m_total).astype(np.int32)
+    assigned[rng.random(m_total) < 0.2] = NONE
+    age = rng.integers(0, 60, m_total)
+    for m in range(m_total):
+        for p in range(m_total):
+            skip = int(rng.integers(-1, m_total))
+            got = _link_excess(m, p, skip, pts, bodies, assigned, age, 30, 2.0, 0.02)
+            want = ref_twin.link_excess(
+                m, p, skip, pts, body_lists, d0, a0, window_a, assigned, age, 30, 2.0, 0.02
+            )
+            assert got[1] == want[1]
+            assert got[0] == pytest.approx(want[0], abs=1e-9)
+
+
+def test_pair_check_refuses_an_exchange_that_mirrors_a_body(rng):
+    config = LabelerConfig()
+    pts = MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    right = np.arange(5, dtype=np.int32)
+    tracks, bodies, scratch = _one_body_state(config, pts, right, MIRROR)
+    kab = scratch.kab
+    # B and C exchanging points keeps every distance (what the pair check sees) but mirrors
+    # the body: its 5-point template refuses it; the exchange back from the mirror is allowed
+    assert _mirrors(bodies, pts, scratch.assigned, 1, 2, 2, 1, config.repair_check_mm, kab)
+    swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
+    assert not _mirrors(bodies, pts, swapped, 1, 1, 2, 2, config.repair_check_mm, kab)
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_dance_forearm_swap_after_occlusion_is_undone(real_path):
+    """The cross-take matrix's tune05 ``occlude2`` cell (60 Hz): the dancer's radius and ulna
+    markers, in triangle bodies only, came back exchanged after an occlusion and stayed so for
+    215 frames (issue 10: no swap above 30 frames at 60 Hz and more)."""
+    from labeler_service.evaluation.scoring import evaluate
+    from labeler_service.scenes.compose import TakeSpec, compose_scene
+
+    takes = [
+        TakeSpec(path=real_path("dance_qualisys_28markers_60hz.c3d"), start=120),
+        TakeSpec(path=real_path("clinical_gait_pig_35markers_100hz.c3d")),
+    ]
+    scene = compose_scene(takes, radius=350.0, frames=480, seed=105, rate=60.0)
+    report, _ = evaluate(scene, ["online"], init_frames=24, seed=105, occlude=2, occlude_frames=18)
+    assert report["max_swap_frames"] <= 30

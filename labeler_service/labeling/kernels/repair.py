@@ -43,6 +43,17 @@ the distances at once and drift does not, so a swap that survives ``repair_age``
 longer becomes the reference it is checked against (issue 10: tennis alone 90.0 -> 93.8 %,
 longest swap 350 -> 57 frames).
 
+*Pair check* (:func:`_pair_check`, ``repair_pairs``): the template fit needs a body of four
+points and relabels inside one body; a marker in triangles only (a dancer's radius and ulna)
+or whose wrong point only its other bodies can refute stays swapped. For every marker
+re-acquired less than ``repair_age`` frames ago, the trained pair distances (``D0`` beyond 3
+floored deviations ``A0``) to the long-tracked members of all its bodies that do not bend now
+(window ``A`` within 3 floored ``A0``) decide whether its point belongs to a body partner
+(missing: the point moves; holding a point and re-acquired recently too: the two exchange)
+when the summed mean excess exceeds ``repair_check_mm`` and the change cuts it to a third,
+unless it makes a 4+-point body with a reference fail its proper-rotation template
+(:func:`_mirrors`: distances cannot see a mirror).
+
 ``bodies.ok[b]`` records whether the body's assignment passed the check (the guard of the
 sliding-window update, :mod:`.window`).
 """
@@ -207,6 +218,187 @@ def _snapshot_body(b, bodies, points, cur, n):
         for a in range(3):
             bodies.ref[b, k, a] = points[cur[k], a]
     bodies.ref_ok[b] = True
+
+
+@njit
+def _bends(b, n, D0, A0, A, a_floor, a_rel):
+    """Whether a link of body ``b`` (``n`` members) deviates in the sliding window (``A``,
+    Eq. 2) by more than 3 trained deviations (``A0`` with the floor of Eq. 5)."""
+    for i in range(n):
+        for j in range(i + 1, n):
+            a0 = A0[b, i, j]
+            if a0 != a0:
+                continue
+            if A[b, i, j] > 3.0 * max(a0, a_floor, a_rel * D0[b, i, j]):
+                return True
+    return False
+
+
+@njit
+def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_rel):
+    """``(sum, count)`` over the trained links of marker ``m`` (every body that contains it) to
+    *anchors* - members observed now and for at least ``min_age`` frames before, other than
+    ``m`` and ``skip`` - of how far (mm) point ``p``'s distance to the anchor's point differs
+    from the trained ``D0`` beyond 3 trained deviations ``A0`` (0 within them)."""
+    members, size, D0, A0, A = bodies.members, bodies.size, bodies.D0, bodies.A0, bodies.A
+    mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
+    tot = 0.0
+    cnt = 0
+    for e in range(mb_ptr[m], mb_ptr[m + 1]):
+        b = mb_idx[e]
+        n = size[b]
+        if _bends(b, n, D0, A0, A, a_floor, a_rel):
+            continue  # a body trained across a joint held still: its links are no evidence
+        i = 0
+        while i < n and members[b, i] != m:
+            i += 1
+        for j in range(n):
+            k = members[b, j]
+            if j == i or k == skip or assigned[k] < 0 or age[k] < min_age:
+                continue
+            d0 = D0[b, i, j]
+            a0 = A0[b, i, j]
+            if d0 != d0 or a0 != a0:
+                continue
+            a0 = max(a0, a_floor, a_rel * d0)  # the floor of Eq. 5
+            q = assigned[k]
+            d2 = 0.0
+            for a in range(3):
+                d = points[p, a] - points[q, a]
+                d2 += d * d
+            x = abs(np.sqrt(d2) - d0) - 3.0 * a0
+            if x > 0.0:
+                tot += x
+            cnt += 1
+    return tot, cnt
+
+
+@njit
+def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links):
+    """Mean of :func:`_link_excess` per link; ``nan`` with fewer than ``min_links`` links."""
+    tot, cnt = _link_excess(
+        m,
+        p,
+        skip,
+        points,
+        bodies,
+        assigned,
+        age,
+        params.repair_age,
+        params.a_floor_mm,
+        params.a_relative,
+    )
+    if cnt < min_links:
+        return np.nan
+    return tot / cnt
+
+
+@njit
+def _rms_with(b, bodies, points, assigned, m, pm, m2, pm2, kab):
+    """``(count, rms)`` of :func:`_shape_rms` for body ``b`` against its reference when marker
+    ``m`` holds point ``pm`` and ``m2`` holds ``pm2`` (-1: none), the others what they hold."""
+    n = bodies.size[b]
+    pts, choice = bodies.work_pts, bodies.work_choice
+    for k in range(n):
+        mk = bodies.members[b, k]
+        p = pm if mk == m else (pm2 if mk == m2 else assigned[mk])
+        choice[k] = k if p >= 0 else -1
+        if p >= 0:
+            for a in range(3):
+                pts[k, a] = points[p, a]
+    return _shape_rms(bodies.ref[b], pts, choice, n, kab.src, kab.dst, kab.R, kab.t)
+
+
+@njit
+def _mirrors(bodies, points, assigned, m, pm, m2, pm2, check_mm, kab):
+    """Whether giving ``m`` point ``pm`` and ``m2`` point ``pm2`` makes a body of either with a
+    reference and 4+ points fail the template check (RMS over ``check_mm``) and fit worse than
+    now: distances cannot tell a mirrored pair, the proper-rotation fit can."""
+    for side in range(2):
+        mk = m if side == 0 else m2
+        for e in range(bodies.mb_ptr[mk], bodies.mb_ptr[mk + 1]):
+            b = bodies.mb_idx[e]
+            if not bodies.ref_ok[b] or bodies.size[b] < 4:
+                continue
+            c1, r1 = _rms_with(b, bodies, points, assigned, m, pm, m2, pm2, kab)
+            if c1 < 4 or r1 <= check_mm:
+                continue
+            c0, r0 = _rms_with(b, bodies, points, assigned, m, assigned[m], m2, assigned[m2], kab)
+            if r1 > r0:
+                return True
+    return False
+
+
+@njit
+def _pair_check(points, tracks, bodies, scratch, params):
+    """Relabels a freshly re-acquired marker's point when a body partner fits it by the trained
+    pair distances and the long-tracked anchors (the module docstring, "pair check"): for every
+    marker ``m`` holding point ``a`` and observed for fewer than ``repair_age`` frames, and every
+    partner ``m2`` sharing a body with it, the mean excess of :func:`_link_excess` (per marker,
+    over its links to anchors) before and after giving ``a`` to ``m2`` (``m2`` missing: ``m``
+    loses the point) or exchanging the two points (``m2`` holds one and was also observed for
+    fewer than ``repair_age`` frames). The change with the largest gain is made when the excess
+    after is at most a third of the excess before, the excess before exceeds
+    ``repair_check_mm``, and :func:`_mirrors` does not refuse it. Returns the number of
+    changes."""
+    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    active, age = tracks.active, tracks.age
+    members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
+    min_age = params.repair_age
+    floor = params.repair_check_mm
+    changes = 0
+    for m in range(assigned.shape[0]):
+        a = assigned[m]
+        if a < 0 or not active[m] or age[m] >= min_age:
+            continue
+        now_m = _link_mean(m, a, -1, points, bodies, assigned, age, params, 2)
+        if not now_m > 0.0:
+            continue
+        best_gain = 0.0
+        best_m2 = -1
+        for e in range(mb_ptr[m], mb_ptr[m + 1]):
+            b = mb_idx[e]
+            for j in range(size[b]):
+                m2 = members[b, j]
+                if m2 == m or not active[m2]:
+                    continue
+                p2 = assigned[m2]
+                if p2 >= 0 and age[m2] >= min_age:
+                    continue  # a marker tracked for long keeps its point (its track says so)
+                after = _link_mean(m2, a, m, points, bodies, assigned, age, params, 2)
+                if after != after:
+                    continue
+                before = _link_mean(m, a, m2, points, bodies, assigned, age, params, 2)
+                if before != before:
+                    continue
+                if p2 >= 0:
+                    b2 = _link_mean(m2, p2, m, points, bodies, assigned, age, params, 2)
+                    a2 = _link_mean(m, p2, m2, points, bodies, assigned, age, params, 2)
+                    if b2 != b2 or a2 != a2:
+                        continue
+                    before += b2
+                    after += a2
+                if before > floor and 3.0 * after <= before and before - after > best_gain:
+                    if _mirrors(bodies, points, assigned, m, p2, m2, a, floor, scratch.kab):
+                        continue
+                    best_gain = before - after
+                    best_m2 = m2
+        if best_m2 < 0:
+            continue
+        m2 = best_m2
+        p2 = assigned[m2]
+        owner[a] = m2
+        assigned[m2] = a
+        if p2 >= 0:
+            owner[p2] = m
+            assigned[m] = p2
+        else:
+            assigned[m] = NONE
+        for c in range(3):
+            obs[m2, c] = points[a, c]
+            obs[m, c] = points[p2, c] if p2 >= 0 else np.nan
+        changes += 1
+    return changes
 
 
 @njit
@@ -409,4 +601,6 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                 obs[m, a] = points[p, a]
         ok[b] = True
         changes += 1
+    if params.repair_pairs:
+        changes += _pair_check(points, tracks, bodies, scratch, params)
     return changes
