@@ -68,6 +68,8 @@ then carries the active subjects' labels, :meth:`~BootingLabeler.boot_step` runs
 
 from __future__ import annotations
 
+import dataclasses
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -93,6 +95,10 @@ from labeler_service.labeling.templates import LabelerModel
 EXTEND_BACKOFF = 4
 #: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
 ACQUIRE_TRIES = 3
+#: Frames kept for the catch-up of one attempt (:meth:`BootingLabeler.catch_up`), in seconds of
+#: stream: an attempt slower than this is installed along the tracks instead (a bound on memory:
+#: 10 performers at 360 Hz keep ~14 kB a frame).
+CATCH_UP_MAX_S = 12.0
 
 
 @dataclass
@@ -120,6 +126,34 @@ class BootSnapshot:
     labels: np.ndarray | None = None
     active: list[int] = field(default_factory=list)
     extended: np.ndarray | None = None
+    #: the subjects labeled at the snapshot (model indices)
+    running: list[int] = field(default_factory=list)
+    #: the window's frames at the snapshot with their labels then (copies: the frames' own
+    #: labels change later); read by :meth:`BootingLabeler.catch_up`
+    window: list[tuple[_Frame, np.ndarray]] = field(default_factory=list)
+    #: the frames labeled since the snapshot, appended by :meth:`BootingLabeler.process`
+    #: while the attempt is in flight (None: not recorded)
+    since: list[_Frame] | None = None
+    #: :meth:`BootingLabeler.catch_up`'s result, installed by :meth:`BootingLabeler.install_boot`
+    caught: _CatchUp | None = None
+
+    def remote(self) -> BootSnapshot:
+        """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
+        return dataclasses.replace(self, window=[], since=None, caught=None)
+
+
+@dataclass
+class _CatchUp:
+    """An inner labeler started at the snapshot with the booted subjects (and those labeled
+    then) and run over the frames since (:meth:`BootingLabeler.catch_up`)."""
+
+    inner: Labeler
+    booted: list[int]  # model indices booted by the attempt
+    started: list[int]  # every subject ``inner`` labels (booted + running at the snapshot)
+    done: int  # frames of ``snapshot.since`` it has labeled
+    #: its labels of the last frames (window frames included), by frame
+    recent: deque[tuple[_Frame, np.ndarray]]
+    state: np.ndarray  # its last frame's marker states
 
 
 class BootingLabeler:
@@ -183,6 +217,10 @@ class BootingLabeler:
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._extent: np.ndarray | None = None
         self.events: list[tuple[float, str, str]] = []  # (t, "boot"|"labeled"|"drop", subject)
+        #: frames labeled since the snapshot of the boot attempt in flight (its catch-up reads
+        #: them; None while no attempt records)
+        self._since: list[_Frame] | None = None
+        self._since_max = max(1, int(CATCH_UP_MAX_S * self.rate))
         self.boot_ms: list[float] = []  # wall time of every boot attempt
 
     # ------------------------------------------------------------------ protocol
@@ -246,7 +284,13 @@ class BootingLabeler:
             state[:] = out.state
             self._drop_vanished(glab, state, pos, t)
             self._acquire(pts, ids, glab, pos, state)
-        self._window.append(_Frame(t, pts, ids, glab))
+        frame = _Frame(t, pts, ids, glab)
+        self._window.append(frame)
+        if self._since is not None:
+            if len(self._since) < self._since_max:
+                self._since.append(frame)
+            else:  # too slow an attempt to catch up with: installed along the tracks
+                self._since = None
         self._since_attempt += 1
         self._since_extend += 1
         self._since_acquire += 1
@@ -297,6 +341,7 @@ class BootingLabeler:
         dup = np.setdiff1d(np.arange(have.size), first)
         lab[have[dup]] = -1  # a label given twice: the first point keeps it
         self._window.append(_Frame(t, pts, ids, lab.copy()))
+        self._since = None  # labeled frames: a result in flight is installed along the tracks
         self._since_attempt += 1
         self._since_extend += 1
         counts = np.bincount(self._subject_of[lab[lab >= 0]], minlength=len(self.model.subjects))
@@ -478,10 +523,15 @@ class BootingLabeler:
             history=track_history(frames, last.ids),
             free=last.labels < 0,
             subjects=[],
+            running=sorted(self._active),
         )
         if boot:
             self._since_attempt = 0
             snap.subjects = [s for s in range(len(self.model.subjects)) if s not in self._active]
+            if snap.subjects and not self._labeled_run:
+                # the frames from now on are recorded for the attempt's catch-up
+                snap.window = [(f, f.labels.copy()) for f in self._window]
+                self._since = snap.since = []
         if extend:
             self._since_extend = 0
             snap.labels = last.labels.copy()
@@ -513,7 +563,18 @@ class BootingLabeler:
         since the snapshot): a track that ended meanwhile loses its label, a point the inner
         labeler has labeled since keeps its label, and a subject that is active by now or keeps
         fewer than three points is not installed. ``result=None`` (the attempt was abandoned,
-        e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles."""
+        e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles.
+
+        After :meth:`catch_up` on the same snapshot and result the booted subjects are instead
+        installed by swapping in the caught-up inner labeler (:meth:`_install_caught`): no
+        label is carried along the tracks and no subject is added on the frame path."""
+        recording = snapshot.since is not None and snapshot.since is self._since
+        if snapshot.since is self._since:
+            self._since = None  # the attempt ends here: stop recording frames for it
+        if result is not None and snapshot.caught is not None and recording:
+            booted = self._install_caught(snapshot)
+            if booted is not None:
+                return booted
         if result is None:
             if snapshot.subjects:
                 self._boot_wait = min(2 * self._boot_wait, self._boot_every_max)
@@ -575,6 +636,133 @@ class BootingLabeler:
         self._install(keep)
         return booted
 
+    def catch_up(
+        self,
+        snapshot: BootSnapshot,
+        result: BootResult,
+        cancel: threading.Event | None = None,
+    ) -> bool:
+        """Brings a boot result up to the current frame off the frame path (call it in the
+        thread that ran :meth:`boot_step`, after it): a new inner labeler is started from the
+        snapshot's window with the booted subjects (labels spread along the window's tracks,
+        as an install would) and the subjects labeled at the snapshot (their labels then, with
+        the extension's when one ran), and labels every frame :meth:`process` has seen since
+        (recorded for this attempt), until it has caught up. It reads the snapshot and the
+        recorded frames only (the frame thread appends to that list; nothing else is shared).
+        :meth:`install_boot` then swaps it in, after labeling the frames that arrived
+        meanwhile (normally none or one). Returns False when there is nothing to catch up
+        (no subject booted, frames not recorded, ``cancel`` set): the install then carries the
+        labels along the tracks as before.
+
+        Why: a result that arrives 600 frames after its snapshot (a 1.7 s attempt at 360 Hz)
+        followed the tracks that long; tracks break (a marker hidden for a frame ends its
+        track), so most labels were lost and the inner labeler had to add 10 subjects at once
+        on the frame path (~20-40 ms)."""
+        since = snapshot.since
+        if since is None or not snapshot.window or not result.subjects:
+            return False
+        names = {s.name: i for i, s in enumerate(self.model.subjects)}
+        lab = result.labels
+        if snapshot.labels is not None and snapshot.extended is not None:
+            add = (snapshot.labels < 0) & (snapshot.extended >= 0)
+            add &= np.isin(self._subject_of[np.maximum(snapshot.extended, 0)], snapshot.running)
+            lab = np.where(lab >= 0, lab, np.where(add, snapshot.extended, -1))
+        frames = [(f.points, f.ids) for f, _ in snapshot.window]
+        spread = labels_along_tracks(frames, snapshot.ids, lab)
+        win = [
+            _merge_labels(old, new) for (_, old), new in zip(snapshot.window, spread, strict=True)
+        ]
+        last = win[-1]
+        booted = []
+        for n in result.subjects:
+            s = names[n]
+            mine = (last >= self._offset[s]) & (last < self._offset[s + 1])
+            if s not in snapshot.running and np.count_nonzero(mine) >= 3:
+                booted.append(s)
+        if not booted:
+            return False
+        started = sorted(set(booted) | set(snapshot.running))
+        keep = np.isin(self._subject_of, started)
+        inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+        seeds = []
+        for (f, _), w in zip(snapshot.window, win, strict=True):
+            w = np.where((w >= 0) & keep[np.maximum(w, 0)], w, -1)
+            seeds.append((f, w))
+        try:
+            inner.add_subjects(
+                [self.model.subjects[s].name for s in started],
+                [(f.t, f.points, w) for f, w in seeds],
+            )
+        except LabelerError:
+            return False
+        recent: deque[tuple[_Frame, np.ndarray]] = deque(seeds, maxlen=self._window.maxlen)
+        state = np.zeros(len(self._names), dtype=np.uint8)
+        done = 0
+        while done < len(since):  # the frame thread appends meanwhile
+            if cancel is not None and cancel.is_set():
+                return False
+            f = since[done]
+            out = inner.process(f.points, f.t)
+            recent.append((f, out.point_labels.astype(np.int64)))
+            state = out.state
+            done += 1
+        snapshot.caught = _CatchUp(inner, booted, started, done, recent, state)
+        return True
+
+    def _install_caught(self, snapshot: BootSnapshot) -> np.ndarray | None:
+        """The install after :meth:`catch_up`: the caught-up inner labeler labels the frames
+        that arrived since it finished, drops the subjects dropped meanwhile and replaces the
+        inner labeler; the window takes its labels. None: not applicable (a subject became
+        labeled meanwhile by other means), the caller installs along the tracks."""
+        cu = snapshot.caught
+        assert cu is not None and snapshot.since is not None
+        if self._labeled_run or not self._active <= set(cu.started):
+            return None
+        booted = [s for s in cu.booted if s not in self._active]
+        if not booted:
+            return None
+        for f in snapshot.since[cu.done :]:  # arrived after the catch-up ended
+            out = cu.inner.process(f.points, f.t)
+            cu.recent.append((f, out.point_labels.astype(np.int64)))
+            cu.state = out.state
+        cu.done = len(snapshot.since)
+        gone = [s for s in cu.started if s not in self._active and s not in booted]
+        for s in gone:  # dropped (left) while the attempt ran
+            cu.inner.drop_subject(self.model.subjects[s].name)
+        bad = np.isin(self._subject_of, gone)
+        state = cu.state.copy()
+        state[bad] = MarkerState.MISSING
+        by_frame = {id(f): lab for f, lab in cu.recent}
+        for f in self._window:
+            lab = by_frame.get(id(f))
+            if lab is not None:
+                f.labels = np.where((lab >= 0) & ~bad[np.maximum(lab, 0)], lab, -1)
+        self._inner = cu.inner
+        self._inner_state = state
+        self._active.update(booted)
+        self._inner_known[:] = False
+        for f in self._window:
+            self._inner_known[f.labels[f.labels >= 0]] = True
+        self._acquired_new = False
+        self._since_acquire = 0
+        self._boot_wait = self._boot_every
+        if snapshot.labels is not None:  # an extension rode on the attempt: as install_boot
+            found = snapshot.extended is not None and bool(
+                np.any((snapshot.labels < 0) & (snapshot.extended >= 0))
+            )
+            self._extend_wait = (
+                self._extend_every
+                if found
+                else min(2 * self._extend_wait, EXTEND_BACKOFF * self._extend_every)
+            )
+        t = self._window[-1].t
+        for s in booted:
+            self._gone[s] = 0
+            self._recent[s] = 0.0
+            self.events.append((t, "boot", self.model.subjects[s].name))
+        snapshot.caught = None  # (the labeler is this one's now)
+        return np.array(booted, dtype=np.int64)
+
     def _install(self, added: list[int]) -> None:
         """The inner labeler takes over the window's labels of the subjects ``added`` (booted
         now: :meth:`Labeler.add_subjects`) and of the active subjects' markers it has not got
@@ -629,6 +817,23 @@ class BootingLabeler:
         without touching this labeler's state."""
         warmup_kernels()
         Labeler(["w:a", "w:b", "w:c"], self.rate, self.config).warmup()
+
+
+def _merge_labels(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """``old`` with the free points given their label in ``new``; a label is given once per
+    frame (a track split may repeat it): as :meth:`BootingLabeler._spread`, vectorised."""
+    out = old.copy()
+    cand = np.flatnonzero((out < 0) & (new >= 0))
+    if cand.size == 0:
+        return out
+    taken = np.zeros(int(max(out.max(initial=-1), new.max(initial=-1))) + 1, dtype=bool)
+    taken[out[out >= 0]] = True
+    lab = new[cand]
+    _, first = np.unique(lab, return_index=True)  # the first point of a repeated label
+    first = np.sort(first)
+    ok = ~taken[lab[first]]
+    out[cand[first[ok]]] = lab[first[ok]]
+    return out
 
 
 def _mark_observed(labels: np.ndarray, pts: np.ndarray, pos: np.ndarray, state: np.ndarray) -> None:
