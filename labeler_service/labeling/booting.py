@@ -68,10 +68,13 @@ then carries the active subjects' labels, :meth:`~BootingLabeler.boot_step` runs
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import threading
 import time
+import uuid
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -99,6 +102,10 @@ ACQUIRE_TRIES = 3
 #: stream: an attempt slower than this is installed along the tracks instead (a bound on memory:
 #: 10 performers at 360 Hz keep ~14 kB a frame).
 CATCH_UP_MAX_S = 12.0
+#: The catch-up labels at least this rate while far behind (every ``rate // CATCH_UP_HZ``-th
+#: frame): 10 performers cost ~1-2 ms a frame, near a 360 Hz period, so at the full rate
+#: a 1.7 s attempt would take seconds more to catch up.
+CATCH_UP_HZ = 60.0
 
 
 @dataclass
@@ -128,32 +135,26 @@ class BootSnapshot:
     extended: np.ndarray | None = None
     #: the subjects labeled at the snapshot (model indices)
     running: list[int] = field(default_factory=list)
-    #: the window's frames at the snapshot with their labels then (copies: the frames' own
-    #: labels change later); read by :meth:`BootingLabeler.catch_up`
-    window: list[tuple[_Frame, np.ndarray]] = field(default_factory=list)
     #: the frames labeled since the snapshot, appended by :meth:`BootingLabeler.process`
     #: while the attempt is in flight (None: not recorded)
     since: list[_Frame] | None = None
+    #: a copy of the labeler at the snapshot (:meth:`BootingLabeler.catch_up` runs it)
+    shadow: BootingLabeler | None = None
     #: :meth:`BootingLabeler.catch_up`'s result, installed by :meth:`BootingLabeler.install_boot`
     caught: _CatchUp | None = None
 
     def remote(self) -> BootSnapshot:
         """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
-        return dataclasses.replace(self, window=[], since=None, caught=None)
+        return dataclasses.replace(self, since=None, shadow=None, caught=None)
 
 
 @dataclass
 class _CatchUp:
-    """An inner labeler started at the snapshot with the booted subjects (and those labeled
-    then) and run over the frames since (:meth:`BootingLabeler.catch_up`)."""
+    """What :meth:`BootingLabeler.catch_up` did: the subjects its shadow booted and how many
+    recorded frames it has labeled since."""
 
-    inner: Labeler
-    booted: list[int]  # model indices booted by the attempt
-    started: list[int]  # every subject ``inner`` labels (booted + running at the snapshot)
-    done: int  # frames of ``snapshot.since`` it has labeled
-    #: its labels of the last frames (window frames included), by frame
-    recent: deque[tuple[_Frame, np.ndarray]]
-    state: np.ndarray  # its last frame's marker states
+    booted: list[int]
+    done: int
 
 
 class BootingLabeler:
@@ -181,6 +182,8 @@ class BootingLabeler:
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)
+        #: names this labeler's model and boot settings in a worker process's booter cache
+        self.key = uuid.uuid4().hex
         self._tracker = PointTracker(self.rate, c)
         w = int(np.clip(round(c.window_s * self.rate), c.min_window_frames, c.max_window_frames))
         self._window: deque[_Frame] = deque(maxlen=w)
@@ -530,7 +533,7 @@ class BootingLabeler:
             snap.subjects = [s for s in range(len(self.model.subjects)) if s not in self._active]
             if snap.subjects and not self._labeled_run:
                 # the frames from now on are recorded for the attempt's catch-up
-                snap.window = [(f, f.labels.copy()) for f in self._window]
+                snap.shadow = self._shadow()
                 self._since = snap.since = []
         if extend:
             self._since_extend = 0
@@ -538,21 +541,21 @@ class BootingLabeler:
             snap.active = sorted(self._active)
         return snap
 
-    def boot_step(self, snapshot: BootSnapshot) -> BootResult:
-        """The heavy part of an attempt (0.1-1 s with several performers): reads only the
+    def boot_step(self, snapshot: BootSnapshot, runner: StepRunner | None = None) -> BootResult:
+        """The heavy part of an attempt (0.1-2 s with several performers): reads only the
         snapshot and the prepared templates, changes no state of this labeler, so it may run in
-        another thread while :meth:`process` goes on."""
+        another thread while :meth:`process` goes on. ``runner`` runs :func:`boot_step_on`
+        elsewhere (the service's worker process, ``service/boot_worker.py``: the attempt's
+        Python then holds another interpreter's GIL, not the frame path's); it gets
+        ``snapshot.remote()`` (no frames) and returns what :func:`boot_step_on` returns."""
+        if runner is None:
+            res, extended, ms = boot_step_on(self._booter, snapshot)
+        else:
+            res, extended, ms = runner(snapshot.remote())
         if snapshot.labels is not None:
-            snapshot.extended = self._booter.extend(
-                snapshot.points, snapshot.history, snapshot.labels, snapshot.active
-            )
-        if not snapshot.subjects:  # an extension only
-            return BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})
-        tb = time.perf_counter()
-        res = self._booter.run(
-            snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
-        )
-        self.boot_ms.append((time.perf_counter() - tb) * 1e3)
+            snapshot.extended = extended
+        if snapshot.subjects:
+            self.boot_ms.append(ms)
         return res
 
     def install_boot(self, snapshot: BootSnapshot, result: BootResult | None) -> np.ndarray:
@@ -572,6 +575,8 @@ class BootingLabeler:
         if snapshot.since is self._since:
             self._since = None  # the attempt ends here: stop recording frames for it
         if result is not None and snapshot.caught is not None and recording:
+            if self._labeled_run:  # labeled frames meanwhile: their start wins
+                return np.zeros(0, dtype=np.int64)
             booted = self._install_caught(snapshot)
             if booted is not None:
                 return booted
@@ -643,125 +648,109 @@ class BootingLabeler:
         cancel: threading.Event | None = None,
     ) -> bool:
         """Brings a boot result up to the current frame off the frame path (call it in the
-        thread that ran :meth:`boot_step`, after it): a new inner labeler is started from the
-        snapshot's window with the booted subjects (labels spread along the window's tracks,
-        as an install would) and the subjects labeled at the snapshot (their labels then, with
-        the extension's when one ran), and labels every frame :meth:`process` has seen since
-        (recorded for this attempt), until it has caught up. It reads the snapshot and the
-        recorded frames only (the frame thread appends to that list; nothing else is shared).
-        :meth:`install_boot` then swaps it in, after labeling the frames that arrived
-        meanwhile (normally none or one). Returns False when there is nothing to catch up
-        (no subject booted, frames not recorded, ``cancel`` set): the install then carries the
-        labels along the tracks as before.
+        thread that ran :meth:`boot_step`, after it). The snapshot holds a copy of this
+        labeler as it was then (its *shadow*: window, subjects, counters, the point tracker);
+        the shadow installs the result at once, as an instant attempt would have (its inner
+        labeler adds the booted subjects and those labeled at the snapshot from the window's
+        labels, the extension's included), then labels every frame :meth:`process` has seen
+        since (recorded for this attempt) with the same frame path (inner labeler, vanishing
+        subjects, acquisition from the template), until it has caught up. It reads the
+        snapshot and the recorded frames only (the frame thread appends to that list).
+        :meth:`install_boot` then labels the frames that arrived meanwhile (normally none or
+        one) and takes the shadow's state over. Returns False when there is nothing to catch
+        up (no subject booted, frames not recorded, ``cancel`` set): the install then carries
+        the labels along the tracks as before.
 
         Why: a result that arrives 600 frames after its snapshot (a 1.7 s attempt at 360 Hz)
-        followed the tracks that long; tracks break (a marker hidden for a frame ends its
-        track), so most labels were lost and the inner labeler had to add 10 subjects at once
-        on the frame path (~20-40 ms)."""
-        since = snapshot.since
-        if since is None or not snapshot.window or not result.subjects:
+        followed the anonymous tracks that long; a marker hidden for one frame ends its
+        track, so most labels were lost (10 hugging performers: 0 of 10 reached 95 % correct),
+        and the inner labeler added 10 subjects at once on the frame path (~20-40 ms)."""
+        since, shadow = snapshot.since, snapshot.shadow
+        if since is None or shadow is None or not result.subjects:
             return False
-        names = {s.name: i for i, s in enumerate(self.model.subjects)}
-        lab = result.labels
-        if snapshot.labels is not None and snapshot.extended is not None:
-            add = (snapshot.labels < 0) & (snapshot.extended >= 0)
-            add &= np.isin(self._subject_of[np.maximum(snapshot.extended, 0)], snapshot.running)
-            lab = np.where(lab >= 0, lab, np.where(add, snapshot.extended, -1))
-        frames = [(f.points, f.ids) for f, _ in snapshot.window]
-        spread = labels_along_tracks(frames, snapshot.ids, lab)
-        win = [
-            _merge_labels(old, new) for (_, old), new in zip(snapshot.window, spread, strict=True)
-        ]
-        last = win[-1]
-        booted = []
-        for n in result.subjects:
-            s = names[n]
-            mine = (last >= self._offset[s]) & (last < self._offset[s + 1])
-            if s not in snapshot.running and np.count_nonzero(mine) >= 3:
-                booted.append(s)
-        if not booted:
-            return False
-        started = sorted(set(booted) | set(snapshot.running))
-        keep = np.isin(self._subject_of, started)
-        inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
-        seeds = []
-        for (f, _), w in zip(snapshot.window, win, strict=True):
-            w = np.where((w >= 0) & keep[np.maximum(w, 0)], w, -1)
-            seeds.append((f, w))
+        shadow._inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+        shadow._inner_known[:] = False
+        running = [self.model.subjects[s].name for s in sorted(shadow._active)]
         try:
-            inner.add_subjects(
-                [self.model.subjects[s].name for s in started],
-                [(f.t, f.points, w) for f, w in seeds],
-            )
+            if running:  # the subjects labeled at the snapshot restart from its window
+                win = [(f.t, f.points, f.labels) for f in shadow._window]
+                shadow._inner.add_subjects(running, win)
+                for f in shadow._window:
+                    shadow._inner_known[f.labels[f.labels >= 0]] = True
+            plain = dataclasses.replace(snapshot, since=None, shadow=None)
+            booted = shadow.install_boot(plain, result)
         except LabelerError:
             return False
-        recent: deque[tuple[_Frame, np.ndarray]] = deque(seeds, maxlen=self._window.maxlen)
-        state = np.zeros(len(self._names), dtype=np.uint8)
+        if not booted.size:
+            return False
+        # far behind, every stride-th frame (>= CATCH_UP_HZ: the labeler's Kalman takes the
+        # longer steps); the last window's worth at the full rate, so that the window handed
+        # over holds the stream's last frames
+        stride = max(1, int(self.rate // CATCH_UP_HZ))
+        w = self._window.maxlen or 1
         done = 0
         while done < len(since):  # the frame thread appends meanwhile
             if cancel is not None and cancel.is_set():
                 return False
-            f = since[done]
-            out = inner.process(f.points, f.t)
-            recent.append((f, out.point_labels.astype(np.int64)))
-            state = out.state
-            done += 1
-        snapshot.caught = _CatchUp(inner, booted, started, done, recent, state)
+            far = len(since) - done > w + stride
+            # the extension (tens to hundreds of ms with many performers) only once close:
+            # at every extend_every_s it kept a 4-walker catch-up behind the stream for 2 s
+            shadow.inline_extend = not far
+            shadow.process(since[done].points, since[done].t)
+            done += stride if far else 1
+        shadow.inline_extend = False  # (the frames left are labeled on the frame path)
+        snapshot.caught = _CatchUp(booted.tolist(), done)
         return True
 
     def _install_caught(self, snapshot: BootSnapshot) -> np.ndarray | None:
-        """The install after :meth:`catch_up`: the caught-up inner labeler labels the frames
-        that arrived since it finished, drops the subjects dropped meanwhile and replaces the
-        inner labeler; the window takes its labels. None: not applicable (a subject became
-        labeled meanwhile by other means), the caller installs along the tracks."""
-        cu = snapshot.caught
-        assert cu is not None and snapshot.since is not None
-        if self._labeled_run or not self._active <= set(cu.started):
-            return None
-        booted = [s for s in cu.booted if s not in self._active]
-        if not booted:
-            return None
+        """The install after :meth:`catch_up`: the shadow labels the frames that arrived since
+        it finished, then this labeler takes its state over (the point tracker stays: the
+        shadow's, started from a copy and fed the same frames, gave the same track ids). None:
+        not applicable (the shadow's tracks differ), the caller installs along the tracks."""
+        cu, shadow = snapshot.caught, snapshot.shadow
+        assert cu is not None and shadow is not None and snapshot.since is not None
         for f in snapshot.since[cu.done :]:  # arrived after the catch-up ended
-            out = cu.inner.process(f.points, f.t)
-            cu.recent.append((f, out.point_labels.astype(np.int64)))
-            cu.state = out.state
+            shadow.process(f.points, f.t)
         cu.done = len(snapshot.since)
-        gone = [s for s in cu.started if s not in self._active and s not in booted]
-        for s in gone:  # dropped (left) while the attempt ran
-            cu.inner.drop_subject(self.model.subjects[s].name)
-        bad = np.isin(self._subject_of, gone)
-        state = cu.state.copy()
-        state[bad] = MarkerState.MISSING
-        by_frame = {id(f): lab for f, lab in cu.recent}
-        for f in self._window:
-            lab = by_frame.get(id(f))
-            if lab is not None:
-                f.labels = np.where((lab >= 0) & ~bad[np.maximum(lab, 0)], lab, -1)
-        self._inner = cu.inner
-        self._inner_state = state
-        self._active.update(booted)
-        self._inner_known[:] = False
-        for f in self._window:
-            self._inner_known[f.labels[f.labels >= 0]] = True
-        self._acquired_new = False
-        self._since_acquire = 0
-        self._boot_wait = self._boot_every
-        if snapshot.labels is not None:  # an extension rode on the attempt: as install_boot
-            found = snapshot.extended is not None and bool(
-                np.any((snapshot.labels < 0) & (snapshot.extended >= 0))
-            )
-            self._extend_wait = (
-                self._extend_every
-                if found
-                else min(2 * self._extend_wait, EXTEND_BACKOFF * self._extend_every)
-            )
-        t = self._window[-1].t
-        for s in booted:
-            self._gone[s] = 0
-            self._recent[s] = 0.0
-            self.events.append((t, "boot", self.model.subjects[s].name))
-        snapshot.caught = None  # (the labeler is this one's now)
-        return np.array(booted, dtype=np.int64)
+        pairs = list(zip(self._window, shadow._window, strict=True))
+        if not all(a.points is b.points for a, b in pairs):
+            return None  # (cannot happen: both windows end with the stream's last frames)
+        for name in _SHADOWED:
+            setattr(self, name, getattr(shadow, name))
+        for live, sh in pairs:  # the shadow's labels on this labeler's frames (its track ids)
+            live.labels = sh.labels
+        # the free tracks count as looked at by the acquisition (the shadow looked at them; a
+        # first look at every free point in one frame would cost that frame ms in a crowd)
+        last = self._window[-1]
+        self._acq_ids = np.sort(last.ids[last.labels < 0])
+        self._acq_tries = np.full(self._acq_ids.size, ACQUIRE_TRIES, dtype=np.int64)
+        self.acquired += shadow.acquired
+        t = self._window[-1].t  # its boots are labeled from the next frame on
+        self.events += [(t, e, n) if e == "boot" else (te, e, n) for te, e, n in shadow.events]
+        snapshot.caught = snapshot.shadow = None  # (its state is this labeler's now)
+        return np.array([s for s in cu.booted if s in self._active], dtype=np.int64)
+
+    def _shadow(self) -> BootingLabeler:
+        """A copy of this labeler's per-frame state for :meth:`catch_up` (frame thread; cheap:
+        the window's frames with their labels copied, the small arrays, the point tracker,
+        whose arrays are replaced and never changed in place by ``update``). The inner
+        labeler is not copied: the catch-up starts a new one."""
+        sh = copy.copy(self)
+        sh._window = deque(
+            (_Frame(f.t, f.points, f.ids, f.labels.copy()) for f in self._window),
+            maxlen=self._window.maxlen,
+        )
+        sh._active = set(self._active)
+        for name in ("_gone", "_recent", "_inner_state", "_inner_known", "_acq_ids", "_acq_tries"):
+            setattr(sh, name, getattr(self, name).copy())
+        sh._tracker = copy.copy(self._tracker)
+        sh._inner = None  # type: ignore[assignment]  (catch_up builds it)
+        sh._since = None
+        sh.inline_boot = False  # the shadow never starts attempts
+        sh.events = []
+        sh.boot_ms = []
+        sh.acquired = 0
+        return sh
 
     def _install(self, added: list[int]) -> None:
         """The inner labeler takes over the window's labels of the subjects ``added`` (booted
@@ -817,23 +806,52 @@ class BootingLabeler:
         without touching this labeler's state."""
         warmup_kernels()
         Labeler(["w:a", "w:b", "w:c"], self.rate, self.config).warmup()
+        # the install's kernels (Labeler.add_subjects' warm start): on a tiny model of its own
+        rng = np.random.default_rng(0)
+        base = rng.normal(0, 100, (6, 3)).astype(np.float32)
+        names = [f"w:m{i}" for i in range(6)]
+        train = Labeler(names, self.rate, self.config)
+        frames = []
+        for k in range(12):
+            pts = base + rng.normal(0, 0.5, (6, 3)).astype(np.float32) + np.float32(k)
+            frames.append((k / self.rate, pts, np.arange(6)))
+            train.process(pts, k / self.rate, np.arange(6))
+        inner = Labeler.from_model(train.train_model(), self.rate, self.config, subjects=())
+        inner.add_subjects(["w"], frames[-4:])
+        inner.process(base + np.float32(12), 12 / self.rate)
 
 
-def _merge_labels(old: np.ndarray, new: np.ndarray) -> np.ndarray:
-    """``old`` with the free points given their label in ``new``; a label is given once per
-    frame (a track split may repeat it): as :meth:`BootingLabeler._spread`, vectorised."""
-    out = old.copy()
-    cand = np.flatnonzero((out < 0) & (new >= 0))
-    if cand.size == 0:
-        return out
-    taken = np.zeros(int(max(out.max(initial=-1), new.max(initial=-1))) + 1, dtype=bool)
-    taken[out[out >= 0]] = True
-    lab = new[cand]
-    _, first = np.unique(lab, return_index=True)  # the first point of a repeated label
-    first = np.sort(first)
-    ok = ~taken[lab[first]]
-    out[cand[first[ok]]] = lab[first[ok]]
-    return out
+#: Runs :func:`boot_step_on` somewhere (see :meth:`BootingLabeler.boot_step`).
+StepRunner = Callable[[BootSnapshot], tuple[BootResult, np.ndarray | None, float]]
+
+
+def boot_step_on(
+    booter: Booter, snapshot: BootSnapshot
+) -> tuple[BootResult, np.ndarray | None, float]:
+    """One attempt's step on ``snapshot`` (its :meth:`~BootSnapshot.remote` part suffices):
+    the extension of the subjects labeled (when the snapshot carries their labels: the new
+    labels, else None), then the boot of the others; returns ``(result, extended, boot ms)``.
+    A plain function of the booter and the snapshot, so a worker process can run it."""
+    extended = None
+    if snapshot.labels is not None:
+        extended = booter.extend(
+            snapshot.points, snapshot.history, snapshot.labels, snapshot.active
+        )
+    if not snapshot.subjects:  # an extension only
+        empty = BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})
+        return empty, extended, 0.0
+    tb = time.perf_counter()
+    res = booter.run(
+        snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
+    )
+    return res, extended, (time.perf_counter() - tb) * 1e3
+
+
+#: The per-frame state a caught-up shadow hands over (:meth:`BootingLabeler._install_caught`).
+_SHADOWED = (
+    "_active", "_gone", "_recent", "_boot_wait", "_since_attempt", "_since_extend",
+    "_extend_wait", "_inner", "_inner_state", "_inner_known", "_acquired_new", "_since_acquire",
+)  # fmt: skip
 
 
 def _mark_observed(labels: np.ndarray, pts: np.ndarray, pos: np.ndarray, state: np.ndarray) -> None:
