@@ -41,11 +41,55 @@ if TYPE_CHECKING:
     from labeler_service.labeling.booting import BootingLabeler, BootSnapshot, StepRunner
 
 #: ``os.nice`` increment of the worker (lower priority than the frame path).
-NICE = 10
+NICE = 0
 #: Booters (one per labeler) a worker keeps, least recently used dropped first.
 MAX_BOOTERS = 8
 #: How often a waiting request looks at its cancel event and the worker's health (s).
 POLL_S = 0.02
+
+
+class _Session:
+    """One catch-up in the worker (see :meth:`BootWorker.catch_up`)."""
+
+    def __init__(
+        self, worker: BootWorker, labeler: BootingLabeler, cancel: threading.Event | None
+    ) -> None:
+        self.worker, self.labeler, self.cancel = worker, labeler, cancel
+        self._held = False
+
+    def begin(self, shadow: BootingLabeler, snapshot: BootSnapshot, result: Any):
+        w, lab = self.worker, self.labeler
+        w._lock.acquire()
+        self._held = True
+        try:
+            spec = None if lab.key in w._known else (lab.model, lab.boot_config)
+            msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
+            booted = w._request(msg, self.cancel, "catch-up")
+            w._known.add(lab.key)
+        except BaseException:
+            self._release()
+            raise
+        if booted is None:
+            self._release()
+        return booted
+
+    def frames(self, batch: list) -> None:
+        try:
+            self.worker._request(("frames", batch), self.cancel, "catch-up")
+        except BaseException:
+            self._release()
+            raise
+
+    def finish(self) -> BootingLabeler:
+        try:
+            return self.worker._request(("finish",), self.cancel, "catch-up")
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        if self._held:
+            self._held = False
+            self.worker._lock.release()
 
 
 def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in the child
@@ -59,26 +103,48 @@ def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in t
 
     warmup_kernels()
     booters: OrderedDict[str, Booter] = OrderedDict()
+    shadow = None  # the catch-up in progress
+
+    def booter_of(key: str, spec) -> Booter:
+        booter = booters.get(key)
+        if booter is None:
+            if spec is None:
+                raise LabelerError(f"boot worker: no model for labeler {key}")
+            booter = booters[key] = Booter(*spec)
+            while len(booters) > MAX_BOOTERS:
+                booters.popitem(last=False)
+        booters.move_to_end(key)
+        return booter
+
     while True:
         try:
             msg = conn.recv()
         except (EOFError, OSError):
             return
         try:
-            if msg[0] == "ping":
+            kind = msg[0]
+            if kind == "ping":
                 conn.send((True, None))
-                continue
-            _, key, spec, snapshot = msg
-            booter = booters.get(key)
-            if booter is None:
-                if spec is None:
-                    raise LabelerError(f"boot worker: no model for labeler {key}")
-                booter = booters[key] = Booter(*spec)
-                while len(booters) > MAX_BOOTERS:
-                    booters.popitem(last=False)
-            booters.move_to_end(key)
-            conn.send((True, boot_step_on(booter, snapshot)))
+            elif kind == "step":
+                _, key, spec, snapshot = msg
+                conn.send((True, boot_step_on(booter_of(key, spec), snapshot)))
+            elif kind == "catch":
+                _, key, spec, shadow, snapshot, result = msg
+                booter = booter_of(key, spec)
+                shadow._booter, shadow.model = booter, booter.model
+                conn.send((True, shadow._begin_catch_up(snapshot, result)))
+            elif kind == "frames":
+                shadow._catch_up_frames(msg[1])
+                conn.send((True, None))
+            elif kind == "finish":
+                shadow._catch_up_extend()
+                out, shadow = shadow.for_transfer(), None
+                out.inline_extend = False
+                conn.send((True, out))
+            else:
+                raise LabelerError(f"boot worker: unknown request {kind!r}")
         except Exception:
+            shadow = None
             conn.send((False, traceback.format_exc()))
 
 
@@ -118,6 +184,12 @@ class BootWorker:
 
         return run
 
+    def catch_up(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> _Session:
+        """A ``remote`` for ``labeler.catch_up`` (:class:`CatchUpRemote`): the shadow's frames
+        run in the worker; the worker is held (no other request) until ``finish``, an error or
+        ``cancel``."""
+        return _Session(self, labeler, cancel)
+
     def step(
         self,
         key: str,
@@ -139,6 +211,12 @@ class BootWorker:
         self._kill()
 
     # ------------------------------------------------------------------ internals
+    def _request(self, msg: tuple, cancel: threading.Event | None, what: str) -> Any:
+        """One request-reply (the caller holds the lock)."""
+        conn = self._ensure()
+        conn.send(msg)
+        return self._reply(conn, cancel, what)
+
     def _ensure(self) -> Connection:
         if self._closed:
             raise LabelerError("boot worker: closed")

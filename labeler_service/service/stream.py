@@ -648,15 +648,16 @@ class StreamState:
     @staticmethod
     def boot_job(request: BootRequest, cancel: threading.Event | None = None) -> BootOutcome:
         """The heavy part of an attempt (runs off the event loop; touches no stream state):
-        the boot step (in the boot worker process when the request has one), then the
-        catch-up of what it booted over the frames labeled since the snapshot
-        (:meth:`BootingLabeler.catch_up`: the install is then a swap)."""
+        the boot step, then the catch-up of what it booted over the frames labeled since the
+        snapshot (:meth:`BootingLabeler.catch_up`: the install then takes the caught-up state
+        over), both in the boot worker process when the request has one."""
         lab = request.labeler
         t0 = time.perf_counter()
         runner = None if request.worker is None else request.worker.runner(lab, cancel)
         result = lab.boot_step(request.snapshot, runner)
         t1 = time.perf_counter()
-        caught = lab.catch_up(request.snapshot, result, cancel)
+        remote = None if request.worker is None else request.worker.catch_up(lab, cancel)
+        caught = lab.catch_up(request.snapshot, result, cancel, remote)
         thread = threading.current_thread().name
         frames = request.snapshot.caught.done if caught and request.snapshot.caught else 0
         return BootOutcome(

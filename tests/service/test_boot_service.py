@@ -98,7 +98,7 @@ def _check_boot(srv: Server, frames: StreamFrames, outs, n_in: int) -> None:
     assert srv.metrics.value("mocap_frames_out_total", stream="vol") == n_in
     assert len(outs) == n_in
     # every subject booted, through attempts that ran in the background mechanism's thread
-    assert set(st.subjects_booted) == {f"P{i + 1}" for i in range(PERFORMERS)}, (list(st.boots), st.labeler.events)
+    assert set(st.subjects_booted) == {f"P{i + 1}" for i in range(PERFORMERS)}
     done = [b for b in st.boots if b.booted]
     assert done, list(st.boots)
     loop_thread = threading.main_thread().name
@@ -123,7 +123,7 @@ def _check_boot(srv: Server, frames: StreamFrames, outs, n_in: int) -> None:
     last = max(b.installed_t for b in done)
     first_seq = int(np.searchsorted(frames.times, last - 1e-9))
     acc, ghosts, scored = _score(frames, outs, first_seq)
-    assert scored >= 0.5 * frames.n_frames, (scored, first_seq, [(b.t, b.installed_t, b.seconds, b.caught_frames, b.booted) for b in st.boots])
+    assert scored >= 0.5 * frames.n_frames, (scored, first_seq)
     assert acc >= 0.95, acc
     assert ghosts <= 0.02 * scored
 
