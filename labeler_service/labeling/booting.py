@@ -107,6 +107,10 @@ CATCH_UP_MAX_S = 12.0
 #: frame): 10 performers cost ~1-2 ms a frame, near a 360 Hz period, so at the full rate
 #: a 1.7 s attempt would take seconds more to catch up.
 CATCH_UP_HZ = 60.0
+#: A result fewer seconds of stream late than this is installed along the tracks (they hold
+#: that long; the catch-up's fixed cost, a labeler started twice and one extension, delayed
+#: the demo's boot from 0.2 to 0.5-0.7 s).
+CATCH_UP_AFTER_S = 0.25
 
 
 @dataclass
@@ -675,6 +679,8 @@ class BootingLabeler:
         and the inner labeler added 10 subjects at once on the frame path (~20-40 ms)."""
         since, shadow = snapshot.since, snapshot.shadow
         if since is None or shadow is None or not result.subjects:
+            return False
+        if len(since) < CATCH_UP_AFTER_S * self.rate:
             return False
         plain = dataclasses.replace(snapshot, since=None, shadow=None)
         stride = max(1, int(self.rate // CATCH_UP_HZ))

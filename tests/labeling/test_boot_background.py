@@ -252,3 +252,20 @@ def test_catch_up_gives_nothing_to_install_without_a_booted_subject(walk):
     res.subjects.clear()  # as an attempt that found no one
     assert not lab.catch_up(snap, res)
     assert lab.install_boot(snap, res).size == 0 and lab.active_subjects == ()
+
+
+def test_a_result_a_few_frames_late_is_installed_along_the_tracks(walk):
+    """Below ``CATCH_UP_AFTER_S`` of stream the tracks hold: no catch-up (its fixed cost would
+    only delay the boot), the install carries the labels along them."""
+    from labeler_service.labeling.booting import CATCH_UP_AFTER_S
+
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=4)
+    _run(lab, s, range(20))
+    snap = lab.boot_snapshot()
+    res = lab.boot_step(snap)
+    late = int(CATCH_UP_AFTER_S * RATE) - 1
+    _run(lab, s, range(20, 20 + late))
+    assert not lab.catch_up(snap, res) and snap.caught is None
+    assert set(lab.install_boot(snap, res).tolist()) == {0, 1, 2}
