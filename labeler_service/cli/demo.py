@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=7, help="scene and corruption seed")
     p.add_argument("--frames", type=int, default=1200, help="scene length (frames)")
     p.add_argument("--init-frames", type=int, default=None,
-                   help="labeled training window (default 50; 0: no labels, --start boot)")  # fmt: skip
+                   help="labeled window (default 50; 0: no labels, --start boot)")  # fmt: skip
     p.add_argument("--gaps", type=int, default=1, help="markers hidden per subject per gap")
     p.add_argument("--gap-frames", type=int, default=20, help="frames per gap")
     p.add_argument("--ghosts", type=float, default=1.0, help="mean ghost points per frame")
