@@ -108,9 +108,10 @@ CATCH_UP_MAX_S = 12.0
 #: a 1.7 s attempt would take seconds more to catch up.
 CATCH_UP_HZ = 60.0
 #: A result fewer seconds of stream late than this is installed along the tracks (they hold
-#: that long; the catch-up's fixed cost, a labeler started twice and one extension, delayed
-#: the demo's boot from 0.2 to 0.5-0.7 s).
-CATCH_UP_AFTER_S = 0.25
+#: that long: 4 walkers, 0.5 s late, 0.945 correct after boot along them, 0.954 caught up; 2.5
+#: s late 0.79 against 0.955), which saves the catch-up's fixed cost (two labeler starts, two
+#: extensions, the round trips: 0.2-1 s, which delayed the demo's boot from 0.2 to 0.6 s).
+CATCH_UP_AFTER_S = 0.5
 #: Catch-up rounds that end with a full-rate window before it strides to the newest frame
 #: (see ``_catch_up_plan``).
 CATCH_UP_TAIL_ROUNDS = 4
@@ -752,22 +753,16 @@ class BootingLabeler:
         return booted.tolist() if booted.size else None
 
     def _catch_up_frames(self, batch: list[tuple[float, np.ndarray, bool]]) -> None:
-        """On a shadow: labels ``(t, points, full)`` frames; in the ``full``-rate window the
-        extension runs inline every ``extend_every_s`` frames, as the live labeler extends
-        (a booted marker's prediction takes the point of a marker missed at boot before an
-        extension labels it). 10 hugging performers, result 1.7 s late, correct over the last
-        second: 0.85 installed at once; caught up with the extension every period 0.84 (but
-        5.4 s of catch-up on a loaded machine), at the live labeler's longest wait (4
-        periods) 0.76, only in this window 0.76, in this window and once right after the
-        install (:meth:`_begin_catch_up`) 0.80 in 1.5 s: kept. Not in the strided part: tens
-        to hundreds of ms each with many performers (a 4-walker catch-up fell 2 s behind the
-        stream on a loaded machine)."""
-        try:
-            for t, points, full in batch:
-                self.inline_extend = full
-                self.process(points, t)
-        finally:
-            self.inline_extend = False
+        """On a shadow: labels ``(t, points, full)`` frames, without the extension: the
+        catch-up extends once right after the install (:meth:`_begin_catch_up`) and once at
+        its end. 10 hugging performers, result 1.7 s late, correct over the last second: 0.85
+        installed at once; caught up with the extension every period 0.84 (5.4 s of catch-up
+        on a loaded machine), never 0.76, after the install and at the end 0.80 (1.5 s). An
+        extension costs tens to hundreds of ms (a 4-walker catch-up with one per full-rate
+        round fell 2 s behind the stream on a loaded machine: 0.4 s a round)."""
+        self.inline_extend = False
+        for t, points, _ in batch:
+            self.process(points, t)
 
     def _catch_last(self, since: list[_Frame], done: int, cancel: threading.Event | None) -> int:
         """On a shadow, last: labels the frames that arrived meanwhile (full rate, no

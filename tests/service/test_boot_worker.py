@@ -59,11 +59,11 @@ def test_a_catch_up_in_the_worker_installs_as_the_local_one(walk, worker):
         _run(lab, s, range(20))
         snap = lab.boot_snapshot()
         res = lab.boot_step(snap)
-        _run(lab, s, range(20, 80))  # the attempt "took" 60 frames
+        _run(lab, s, range(20, 110))  # the attempt "took" 90 frames (0.75 s)
         assert lab.catch_up(snap, res, None, worker.catch_up(lab) if remote else None)
-        assert snap.caught is not None and snap.caught.done == 60
+        assert snap.caught is not None and snap.caught.done == 90
         assert set(lab.install_boot(snap, res).tolist()) == {0, 1, 2}
-        o, _ = _run(lab, s, range(80, 100))
+        o, _ = _run(lab, s, range(110, 130))
         outs.append(np.concatenate([x.point_labels for x in o]))
     assert np.mean(outs[0] == outs[1]) >= 0.95
 
