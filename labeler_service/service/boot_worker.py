@@ -14,7 +14,8 @@ process instead::
     worker.close()
 
 The worker is a ``spawn`` child (the service has threads; ``fork`` would copy their locks)
-with a lower CPU priority (``os.nice(NICE)``: on a busy machine the frame path wins the core).
+with a lower CPU priority (``os.nice(NICE)``, 5: on a busy machine the frame path wins the core;
+at 10 the boot itself starved on a machine shared with other jobs).
 It keeps a :class:`~labeler_service.labeling.boot.Booter` per labeler (``labeler.key``; the
 model is sent once, ~0.5 MB for 10 subjects, and the booter is prepared once, ~0.2 s); a
 snapshot is ~0.3 MB (500 points, a 24-frame history). One request at a time (a lock): the
@@ -41,7 +42,7 @@ if TYPE_CHECKING:
     from labeler_service.labeling.booting import BootingLabeler, BootSnapshot, StepRunner
 
 #: ``os.nice`` increment of the worker (lower priority than the frame path).
-NICE = 0
+NICE = 5
 #: Booters (one per labeler) a worker keeps, least recently used dropped first.
 MAX_BOOTERS = 8
 #: How often a waiting request looks at its cancel event and the worker's health (s).
