@@ -162,8 +162,8 @@ class Server:
         #: trained labelers of expired unconfigured streams: name -> (labeler, rate, last t), LRU
         self.cache: OrderedDict[str, tuple[FrameLabeler, float, float | None]] = OrderedDict()
         self.background = Background()
-        #: boot steps run in this worker process (``boot_worker = "process"``); started at
-        #: start-up when a configured stream boots, else by the first attempt (a recovery)
+        #: boot steps run in this worker process (``boot_worker = "process"``), started at
+        #: start-up when a configured stream boots (else recoveries boot in the job's thread)
         self.boot_worker = BootWorker() if settings.boot_worker == "process" else None
         #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
         self._starting: OrderedDict[str, None] = OrderedDict()

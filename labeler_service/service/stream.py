@@ -643,7 +643,11 @@ class StreamState:
         if lab is None or not self.boot_due():
             return None
         self.boot_inflight = True
-        return BootRequest(lab, lab.boot_snapshot(), self.boot_worker)
+        # the worker process only once started (by the server, for streams that boot): a
+        # recovery on a service without one boots in the job's thread rather than wait for a
+        # worker's start-up (seconds: imports and kernels)
+        w = self.boot_worker
+        return BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.pid else None)
 
     @staticmethod
     def boot_job(request: BootRequest, cancel: threading.Event | None = None) -> BootOutcome:
