@@ -68,9 +68,15 @@ then carries the active subjects' labels, :meth:`~BootingLabeler.boot_step` runs
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import threading
 import time
+import uuid
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -93,6 +99,22 @@ from labeler_service.labeling.templates import LabelerModel
 EXTEND_BACKOFF = 4
 #: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
 ACQUIRE_TRIES = 3
+#: Frames kept for the catch-up of one attempt (:meth:`BootingLabeler.catch_up`), in seconds of
+#: stream: an attempt slower than this is installed along the tracks instead (a bound on memory:
+#: 10 performers at 360 Hz keep ~14 kB a frame).
+CATCH_UP_MAX_S = 12.0
+#: The catch-up labels at least this rate while far behind (every ``rate // CATCH_UP_HZ``-th
+#: frame): 10 performers cost ~1-2 ms a frame, near a 360 Hz period, so at the full rate
+#: a 1.7 s attempt would take seconds more to catch up.
+CATCH_UP_HZ = 60.0
+#: A result fewer seconds of stream late than this is installed along the tracks (they hold
+#: that long: 4 walkers, 0.5 s late, 0.945 correct after boot along them, 0.954 caught up; 2.5
+#: s late 0.79 against 0.955), which saves the catch-up's fixed cost (two labeler starts, two
+#: extensions, the round trips: 0.2-1 s, which delayed the demo's boot from 0.2 to 0.6 s).
+CATCH_UP_AFTER_S = 0.5
+#: Catch-up rounds that end with a full-rate window before it strides to the newest frame
+#: (see ``_catch_up_plan``).
+CATCH_UP_TAIL_ROUNDS = 4
 
 
 @dataclass
@@ -120,6 +142,28 @@ class BootSnapshot:
     labels: np.ndarray | None = None
     active: list[int] = field(default_factory=list)
     extended: np.ndarray | None = None
+    #: the subjects labeled at the snapshot (model indices)
+    running: list[int] = field(default_factory=list)
+    #: the frames labeled since the snapshot, appended by :meth:`BootingLabeler.process`
+    #: while the attempt is in flight (None: not recorded)
+    since: list[_Frame] | None = None
+    #: a copy of the labeler at the snapshot (:meth:`BootingLabeler.catch_up` runs it)
+    shadow: BootingLabeler | None = None
+    #: :meth:`BootingLabeler.catch_up`'s result, installed by :meth:`BootingLabeler.install_boot`
+    caught: _CatchUp | None = None
+
+    def remote(self) -> BootSnapshot:
+        """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
+        return dataclasses.replace(self, since=None, shadow=None, caught=None)
+
+
+@dataclass
+class _CatchUp:
+    """What :meth:`BootingLabeler.catch_up` did: the subjects its shadow booted and how many
+    recorded frames it has labeled since."""
+
+    booted: list[int]
+    done: int
 
 
 class BootingLabeler:
@@ -147,6 +191,8 @@ class BootingLabeler:
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)
+        #: names this labeler's model and boot settings in a worker process's booter cache
+        self.key = uuid.uuid4().hex
         self._tracker = PointTracker(self.rate, c)
         w = int(np.clip(round(c.window_s * self.rate), c.min_window_frames, c.max_window_frames))
         self._window: deque[_Frame] = deque(maxlen=w)
@@ -183,6 +229,10 @@ class BootingLabeler:
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._extent: np.ndarray | None = None
         self.events: list[tuple[float, str, str]] = []  # (t, "boot"|"labeled"|"drop", subject)
+        #: frames labeled since the snapshot of the boot attempt in flight (its catch-up reads
+        #: them; None while no attempt records)
+        self._since: list[_Frame] | None = None
+        self._since_max = max(1, int(CATCH_UP_MAX_S * self.rate))
         self.boot_ms: list[float] = []  # wall time of every boot attempt
 
     # ------------------------------------------------------------------ protocol
@@ -246,7 +296,13 @@ class BootingLabeler:
             state[:] = out.state
             self._drop_vanished(glab, state, pos, t)
             self._acquire(pts, ids, glab, pos, state)
-        self._window.append(_Frame(t, pts, ids, glab))
+        frame = _Frame(t, pts, ids, glab)
+        self._window.append(frame)
+        if self._since is not None:
+            if len(self._since) < self._since_max:
+                self._since.append(frame)
+            else:  # too slow an attempt to catch up with: installed along the tracks
+                self._since = None
         self._since_attempt += 1
         self._since_extend += 1
         self._since_acquire += 1
@@ -297,6 +353,7 @@ class BootingLabeler:
         dup = np.setdiff1d(np.arange(have.size), first)
         lab[have[dup]] = -1  # a label given twice: the first point keeps it
         self._window.append(_Frame(t, pts, ids, lab.copy()))
+        self._since = None  # labeled frames: a result in flight is installed along the tracks
         self._since_attempt += 1
         self._since_extend += 1
         counts = np.bincount(self._subject_of[lab[lab >= 0]], minlength=len(self.model.subjects))
@@ -421,14 +478,20 @@ class BootingLabeler:
     def _spread(self, frames: list, ids: np.ndarray, labels: np.ndarray) -> None:
         """Gives the labels of the last frame's tracks to the window's free points."""
         spread = labels_along_tracks(frames, ids, labels)
+        taken = np.zeros(len(self._names), dtype=bool)
         for fr, lab in zip(self._window, spread, strict=True):
-            new = (fr.labels < 0) & (lab >= 0)
-            # a label can be given only once per frame (a track split may repeat it)
-            taken = set(fr.labels[fr.labels >= 0].tolist())
-            for j in np.flatnonzero(new):
-                if int(lab[j]) not in taken:
-                    fr.labels[j] = lab[j]
-                    taken.add(int(lab[j]))
+            cand = np.flatnonzero((fr.labels < 0) & (lab >= 0))
+            if cand.size == 0:
+                continue
+            # a label can be given only once per frame (a track split may repeat it): the
+            # first free point with it takes it, unless the frame has it already (vectorised:
+            # the loop over points cost ~1 ms of the install on the frame path)
+            taken[:] = False
+            taken[fr.labels[fr.labels >= 0]] = True
+            new = lab[cand]
+            _, first = np.unique(new, return_index=True)
+            ok = first[~taken[new[first]]]
+            fr.labels[cand[ok]] = new[ok]
 
     def _attempt(self, t: float) -> np.ndarray:
         """One boot on the window, in this frame; returns the model indices booted."""
@@ -478,31 +541,36 @@ class BootingLabeler:
             history=track_history(frames, last.ids),
             free=last.labels < 0,
             subjects=[],
+            running=sorted(self._active),
         )
         if boot:
             self._since_attempt = 0
             snap.subjects = [s for s in range(len(self.model.subjects)) if s not in self._active]
+            if snap.subjects and not self._labeled_run:
+                # the frames from now on are recorded for the attempt's catch-up
+                snap.shadow = self._shadow()
+                self._since = snap.since = []
         if extend:
             self._since_extend = 0
             snap.labels = last.labels.copy()
             snap.active = sorted(self._active)
         return snap
 
-    def boot_step(self, snapshot: BootSnapshot) -> BootResult:
-        """The heavy part of an attempt (0.1-1 s with several performers): reads only the
+    def boot_step(self, snapshot: BootSnapshot, runner: StepRunner | None = None) -> BootResult:
+        """The heavy part of an attempt (0.1-2 s with several performers): reads only the
         snapshot and the prepared templates, changes no state of this labeler, so it may run in
-        another thread while :meth:`process` goes on."""
+        another thread while :meth:`process` goes on. ``runner`` runs :func:`boot_step_on`
+        elsewhere (the service's worker process, ``service/boot_worker.py``: the attempt's
+        Python then holds another interpreter's GIL, not the frame path's); it gets
+        ``snapshot.remote()`` (no frames) and returns what :func:`boot_step_on` returns."""
+        if runner is None:
+            res, extended, ms = boot_step_on(self._booter, snapshot)
+        else:
+            res, extended, ms = runner(snapshot.remote())
         if snapshot.labels is not None:
-            snapshot.extended = self._booter.extend(
-                snapshot.points, snapshot.history, snapshot.labels, snapshot.active
-            )
-        if not snapshot.subjects:  # an extension only
-            return BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})
-        tb = time.perf_counter()
-        res = self._booter.run(
-            snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
-        )
-        self.boot_ms.append((time.perf_counter() - tb) * 1e3)
+            snapshot.extended = extended
+        if snapshot.subjects:
+            self.boot_ms.append(ms)
         return res
 
     def install_boot(self, snapshot: BootSnapshot, result: BootResult | None) -> np.ndarray:
@@ -513,7 +581,20 @@ class BootingLabeler:
         since the snapshot): a track that ended meanwhile loses its label, a point the inner
         labeler has labeled since keeps its label, and a subject that is active by now or keeps
         fewer than three points is not installed. ``result=None`` (the attempt was abandoned,
-        e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles."""
+        e.g. over its time budget) counts as a fruitless attempt: the wait to the next doubles.
+
+        After :meth:`catch_up` on the same snapshot and result the booted subjects are instead
+        installed by swapping in the caught-up inner labeler (:meth:`_install_caught`): no
+        label is carried along the tracks and no subject is added on the frame path."""
+        recording = snapshot.since is not None and snapshot.since is self._since
+        if snapshot.since is self._since:
+            self._since = None  # the attempt ends here: stop recording frames for it
+        if result is not None and snapshot.caught is not None and recording:
+            if self._labeled_run:  # labeled frames meanwhile: their start wins
+                return np.zeros(0, dtype=np.int64)
+            booted = self._install_caught(snapshot)
+            if booted is not None:
+                return booted
         if result is None:
             if snapshot.subjects:
                 self._boot_wait = min(2 * self._boot_wait, self._boot_every_max)
@@ -575,6 +656,221 @@ class BootingLabeler:
         self._install(keep)
         return booted
 
+    def catch_up(
+        self,
+        snapshot: BootSnapshot,
+        result: BootResult,
+        cancel: threading.Event | None = None,
+        remote: CatchUpRemote | None = None,
+    ) -> bool:
+        """Brings a boot result up to the current frame off the frame path (call it in the
+        thread that ran :meth:`boot_step`, after it). The snapshot holds a copy of this
+        labeler as it was then (its *shadow*: window, subjects, counters, the point tracker);
+        the shadow installs the result at once, as an instant attempt would have (its inner
+        labeler adds the booted subjects and those labeled at the snapshot from the window's
+        labels, the extension's included), then labels every frame :meth:`process` has seen
+        since (recorded for this attempt) with the same frame path (inner labeler, vanishing
+        subjects, acquisition from the template), until it has caught up. It reads the
+        snapshot and the recorded frames only (the frame thread appends to that list).
+        :meth:`install_boot` then labels the frames that arrived meanwhile (normally none or
+        one) and takes the shadow's state over. Returns False when there is nothing to catch
+        up (no subject booted, frames not recorded, ``cancel`` set): the install then carries
+        the labels along the tracks as before.
+
+        Why: a result that arrives 600 frames after its snapshot (a 1.7 s attempt at 360 Hz)
+        followed the anonymous tracks that long; a marker hidden for one frame ends its
+        track, so most labels were lost (10 hugging performers: 0 of 10 reached 95 % correct),
+        and the inner labeler added 10 subjects at once on the frame path (~20-40 ms)."""
+        since, shadow = snapshot.since, snapshot.shadow
+        if since is None or shadow is None or not result.subjects:
+            return False
+        if len(since) < CATCH_UP_AFTER_S * self.rate:
+            return False
+        plain = dataclasses.replace(snapshot, since=None, shadow=None)
+        stride = max(1, int(self.rate // CATCH_UP_HZ))
+        w = self._window.maxlen or 1
+        done = rounds = 0
+        if remote is None:
+            booted = shadow._begin_catch_up(plain, result)
+            if booted is None:
+                return False
+            while done < len(since):  # the frame thread appends meanwhile
+                if cancel is not None and cancel.is_set():
+                    return False
+                tail = rounds < CATCH_UP_TAIL_ROUNDS
+                batch, done = _catch_up_plan(since, done, stride, w, tail)
+                shadow._catch_up_frames(batch)
+                rounds += 1
+            shadow._catch_up_extend()
+            done = shadow._catch_last(since, done, cancel)
+            if done < 0:
+                return False
+        else:
+            # the shadow's frames run in the worker process (its Python holds the worker's
+            # GIL, not the frame path's); it comes back without its inner labeler, which is
+            # started here from its window's labels (as an install would: ~10 ms)
+            booted = remote.begin(shadow, plain, result)
+            if booted is None:
+                return False
+            while done < len(since):
+                if cancel is not None and cancel.is_set():
+                    return False
+                tail = rounds < CATCH_UP_TAIL_ROUNDS
+                batch, done = _catch_up_plan(since, done, stride, w, tail)
+                remote.frames(batch)
+                rounds += 1
+            shadow = remote.finish()
+            shadow._booter, shadow.model = self._booter, self.model
+            shadow._inner_from_window()
+            done = shadow._catch_last(since, done, cancel)
+            if done < 0:
+                return False
+            snapshot.shadow = shadow
+        shadow.inline_extend = False  # (the frames left are labeled on the frame path)
+        snapshot.caught = _CatchUp(list(booted), done)
+        return True
+
+    def _begin_catch_up(self, snapshot: BootSnapshot, result: BootResult) -> list[int] | None:
+        """On a shadow (:meth:`catch_up`): a new inner labeler with the subjects labeled at the
+        snapshot (from its window), then the result installed as an instant attempt would;
+        returns the subjects booted (None: none)."""
+        self._inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+        self._inner_known[:] = False
+        running = [self.model.subjects[s].name for s in sorted(self._active)]
+        try:
+            if running:  # the subjects labeled at the snapshot restart from its window
+                win = [(f.t, f.points, f.labels) for f in self._window]
+                self._inner.add_subjects(running, win)
+                for f in self._window:
+                    self._inner_known[f.labels[f.labels >= 0]] = True
+            booted = self.install_boot(snapshot, result)
+            if booted.size:
+                # markers the boot missed, before the booted markers' predictions can take
+                # their points (as the live labeler's first extension after a boot)
+                self._catch_up_extend()
+        except LabelerError:
+            return None
+        return booted.tolist() if booted.size else None
+
+    def _catch_up_frames(self, batch: list[tuple[float, np.ndarray, bool]]) -> None:
+        """On a shadow: labels ``(t, points, full)`` frames, without the extension: the
+        catch-up extends once right after the install (:meth:`_begin_catch_up`) and once at
+        its end. 10 hugging performers, result 1.7 s late, correct over the last second: 0.85
+        installed at once; caught up with the extension every period 0.84 (5.4 s of catch-up
+        on a loaded machine), never 0.76, after the install and at the end 0.80 (1.5 s). An
+        extension costs tens to hundreds of ms (a 4-walker catch-up with one per full-rate
+        round fell 2 s behind the stream on a loaded machine: 0.4 s a round)."""
+        self.inline_extend = False
+        for t, points, _ in batch:
+            self.process(points, t)
+
+    def _catch_last(self, since: list[_Frame], done: int, cancel: threading.Event | None) -> int:
+        """On a shadow, last: labels the frames that arrived meanwhile (full rate, no
+        extension), then waits (two frame periods at most) for the next one and labels it too,
+        so the result is delivered just after a frame and the install rarely finds a frame
+        left (each costs the frame path a frame's labeling). Returns the frames done, -1 when
+        cancelled."""
+        deadline = time.perf_counter() + 2.0 / self.rate
+        waited = False
+        while True:
+            while done < len(since):
+                if cancel is not None and cancel.is_set():
+                    return -1
+                f = since[done]
+                self.inline_extend = False
+                self.process(f.points, f.t)
+                done += 1
+            if waited:
+                return done
+            while len(since) == done and time.perf_counter() < deadline:
+                time.sleep(0.0002)
+            waited = True
+
+    def _catch_up_extend(self) -> None:
+        """On a shadow, once at the end of the catch-up: one extension of its subjects (markers
+        hidden at boot that appeared meanwhile; without it a booted marker's prediction took
+        such a point in a 4-walker scene: 0.953 -> 0.943 correct after boot)."""
+        full = len(self._window) == self._window.maxlen
+        if self._active and full and np.any(self._window[-1].labels < 0):
+            self._extend()
+
+    def _inner_from_window(self) -> None:
+        """On a shadow back from the worker process: its inner labeler, started from its
+        window's labels (every subject it labels)."""
+        self._inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+        names = [self.model.subjects[s].name for s in sorted(self._active)]
+        if names:
+            self._inner.add_subjects(names, [(f.t, f.points, f.labels) for f in self._window])
+        self._inner_known[:] = False
+        for f in self._window:
+            self._inner_known[f.labels[f.labels >= 0]] = True
+        last = self._window[-1].labels
+        self._inner_state = np.zeros(len(self._names), dtype=np.uint8)
+        self._inner_state[last[last >= 0]] = MarkerState.OBSERVED
+
+    def for_transfer(self) -> BootingLabeler:
+        """This (shadow) labeler without what a worker process has or rebuilds (the booter,
+        the model, the inner labeler): what crosses the pipe (~0.5 MB, not ~16 MB)."""
+        out = copy.copy(self)
+        out._booter = None  # type: ignore[assignment]
+        out.model = None  # type: ignore[assignment]
+        out._inner = None  # type: ignore[assignment]
+        return out
+
+    def _install_caught(self, snapshot: BootSnapshot) -> np.ndarray | None:
+        """The install after :meth:`catch_up`: the shadow labels the frames that arrived since
+        it finished, then this labeler takes its state over (the point tracker stays: the
+        shadow's, started from a copy and fed the same frames, gave the same track ids). None:
+        not applicable (the shadow's tracks differ), the caller installs along the tracks."""
+        cu, shadow = snapshot.caught, snapshot.shadow
+        assert cu is not None and shadow is not None and snapshot.since is not None
+        for f in snapshot.since[cu.done :]:  # arrived after the catch-up ended
+            shadow.process(f.points, f.t)
+        cu.done = len(snapshot.since)
+        if shadow._window[-1].t != self._window[-1].t:
+            return None  # (cannot happen: both end with the stream's last frame)
+        for name in _SHADOWED:
+            setattr(self, name, getattr(shadow, name))
+        # the shadow's labels on this labeler's frames (their points, its track ids); frames
+        # the shadow skipped (the catch-up's stride) keep none
+        by_t = {f.t: f.labels for f in shadow._window}
+        for f in self._window:
+            lab = by_t.get(f.t)
+            ok = lab is not None and lab.shape == f.labels.shape
+            f.labels = lab if ok else np.full(f.labels.shape, -1, dtype=np.int64)
+        # the free tracks count as looked at by the acquisition (the shadow looked at them; a
+        # first look at every free point in one frame would cost that frame ms in a crowd)
+        last = self._window[-1]
+        self._acq_ids = np.sort(last.ids[last.labels < 0])
+        self._acq_tries = np.full(self._acq_ids.size, ACQUIRE_TRIES, dtype=np.int64)
+        self.acquired += shadow.acquired
+        t = self._window[-1].t  # its boots are labeled from the next frame on
+        self.events += [(t, e, n) if e == "boot" else (te, e, n) for te, e, n in shadow.events]
+        snapshot.caught = snapshot.shadow = None  # (its state is this labeler's now)
+        return np.array([s for s in cu.booted if s in self._active], dtype=np.int64)
+
+    def _shadow(self) -> BootingLabeler:
+        """A copy of this labeler's per-frame state for :meth:`catch_up` (frame thread; cheap:
+        the window's frames with their labels copied, the small arrays, the point tracker,
+        whose arrays are replaced and never changed in place by ``update``). The inner
+        labeler is not copied: the catch-up starts a new one."""
+        sh = copy.copy(self)
+        sh._window = deque(
+            (_Frame(f.t, f.points, f.ids, f.labels.copy()) for f in self._window),
+            maxlen=self._window.maxlen,
+        )
+        sh._active = set(self._active)
+        for name in ("_gone", "_recent", "_inner_state", "_inner_known", "_acq_ids", "_acq_tries"):
+            setattr(sh, name, getattr(self, name).copy())
+        sh._tracker = copy.copy(self._tracker)
+        sh._inner = None  # type: ignore[assignment]  (catch_up builds it)
+        sh._since = None
+        sh.inline_boot = False  # the shadow never starts attempts
+        sh.events = []
+        sh.boot_ms = []
+        sh.acquired = 0
+        return sh
+
     def _install(self, added: list[int]) -> None:
         """The inner labeler takes over the window's labels of the subjects ``added`` (booted
         now: :meth:`Labeler.add_subjects`) and of the active subjects' markers it has not got
@@ -629,6 +925,93 @@ class BootingLabeler:
         without touching this labeler's state."""
         warmup_kernels()
         Labeler(["w:a", "w:b", "w:c"], self.rate, self.config).warmup()
+        # the install's kernels (Labeler.add_subjects' warm start): on a tiny model of its own
+        rng = np.random.default_rng(0)
+        base = rng.normal(0, 100, (6, 3)).astype(np.float32)
+        names = [f"w:m{i}" for i in range(6)]
+        train = Labeler(names, self.rate, self.config)
+        frames = []
+        for k in range(12):
+            pts = base + rng.normal(0, 0.5, (6, 3)).astype(np.float32) + np.float32(k)
+            frames.append((k / self.rate, pts, np.arange(6)))
+            train.process(pts, k / self.rate, np.arange(6))
+        inner = Labeler.from_model(train.train_model(), self.rate, self.config, subjects=())
+        inner.add_subjects(["w"], frames[-4:])
+        inner.process(base + np.float32(12), 12 / self.rate)
+
+
+#: Runs :func:`boot_step_on` somewhere (see :meth:`BootingLabeler.boot_step`).
+StepRunner = Callable[[BootSnapshot], tuple[BootResult, np.ndarray | None, float]]
+
+
+def boot_step_on(
+    booter: Booter, snapshot: BootSnapshot
+) -> tuple[BootResult, np.ndarray | None, float]:
+    """One attempt's step on ``snapshot`` (its :meth:`~BootSnapshot.remote` part suffices):
+    the extension of the subjects labeled (when the snapshot carries their labels: the new
+    labels, else None), then the boot of the others; returns ``(result, extended, boot ms)``.
+    A plain function of the booter and the snapshot, so a worker process can run it."""
+    extended = None
+    if snapshot.labels is not None:
+        extended = booter.extend(
+            snapshot.points, snapshot.history, snapshot.labels, snapshot.active
+        )
+    if not snapshot.subjects:  # an extension only
+        empty = BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})
+        return empty, extended, 0.0
+    tb = time.perf_counter()
+    res = booter.run(
+        snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
+    )
+    return res, extended, (time.perf_counter() - tb) * 1e3
+
+
+class CatchUpRemote(Protocol):
+    """Runs a catch-up's shadow elsewhere (``service/boot_worker.py``): ``begin`` sends the
+    shadow (:meth:`BootingLabeler.for_transfer`) with the snapshot and result and returns what
+    :meth:`BootingLabeler._begin_catch_up` returned there; ``frames`` labels a batch there
+    (:meth:`BootingLabeler._catch_up_frames`); ``finish`` returns the shadow (without its
+    inner labeler, booter and model)."""
+
+    def begin(
+        self, shadow: BootingLabeler, snapshot: BootSnapshot, result: BootResult
+    ) -> list[int] | None: ...
+
+    def frames(self, batch: list[tuple[float, np.ndarray, bool]]) -> None: ...
+
+    def finish(self) -> BootingLabeler: ...
+
+
+def _catch_up_plan(
+    since: list[_Frame], done: int, stride: int, w: int, tail: bool
+) -> tuple[list[tuple[float, np.ndarray]], int]:
+    """The next round of a catch-up, from ``since[done]`` to the newest frame: every
+    ``stride``-th frame (at least ``CATCH_UP_HZ``: the labeler's Kalman takes the longer steps)
+    while more than a window (``w``) behind, then (``tail``) every frame, so that the window
+    handed over holds the stream's last frames at their rate (the extension's track histories
+    and the inner labeler's restart read it: strided, 10 hugging performers lost 0.84 -> 0.76
+    correct). A round costs a ``stride``-th of the frames that arrived meanwhile plus a window;
+    when frames cost more than a period (a loaded machine) the full-rate window never catches
+    up, so after ``CATCH_UP_TAIL_ROUNDS`` rounds the caller asks for no tail (strided to the
+    newest frame). Returns ``[(t, points, full)]`` (``full``: a frame of the full-rate
+    window, where the extension may run) and the next ``done``."""
+    n = len(since)
+    out = []
+    while done < n:
+        full = tail and n - done <= w + stride
+        out.append((since[done].t, since[done].points, full))
+        if full:
+            done += 1
+        else:
+            done = min(done + stride, n - 1) if done < n - 1 else n
+    return out, done
+
+
+#: The per-frame state a caught-up shadow hands over (:meth:`BootingLabeler._install_caught`).
+_SHADOWED = (
+    "_active", "_gone", "_recent", "_boot_wait", "_since_attempt", "_since_extend",
+    "_extend_wait", "_inner", "_inner_state", "_inner_known", "_acquired_new", "_since_acquire",
+)  # fmt: skip
 
 
 def _mark_observed(labels: np.ndarray, pts: np.ndarray, pos: np.ndarray, state: np.ndarray) -> None:

@@ -63,6 +63,7 @@ from labeler_service.errors import (
 from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.background import Background, configure_allocator, release_memory
+from labeler_service.service.boot_worker import BootWorker
 from labeler_service.service.continuity import Verdict
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
@@ -161,6 +162,9 @@ class Server:
         #: trained labelers of expired unconfigured streams: name -> (labeler, rate, last t), LRU
         self.cache: OrderedDict[str, tuple[FrameLabeler, float, float | None]] = OrderedDict()
         self.background = Background()
+        #: boot steps run in this worker process (``boot_worker = "process"``), started at
+        #: start-up when a configured stream boots (else recoveries boot in the job's thread)
+        self.boot_worker = BootWorker() if settings.boot_worker == "process" else None
         #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
         self._starting: OrderedDict[str, None] = OrderedDict()
         self._trim_soon = False
@@ -221,6 +225,8 @@ class Server:
                     await asyncio.to_thread(state.start_from_model)
                     if self.settings.warmup and state.booting is not None:
                         await asyncio.to_thread(state.booting.warmup)  # the boot's kernels too
+                    if state.booting is not None and self.boot_worker is not None:
+                        await asyncio.to_thread(self.boot_worker.start)  # (once: no-op after)
                     await self._publish_model(state)
             # everything alive now (modules, compiled kernels, models) lives as long as the
             # process: the collector skips it from now on (full collections stay cheap)
@@ -254,6 +260,8 @@ class Server:
             with contextlib.suppress(Exception):
                 await self._status(name, "offline")
         self.background.close()
+        if self.boot_worker is not None:
+            self.boot_worker.close()
         tasks, self._tasks = self._tasks, set()
         await cancel_and_wait(tasks)
         self._count_transport_drops()
@@ -275,6 +283,7 @@ class Server:
     # ------------------------------------------------------------------ streams
     def _new_stream(self, name: str, s: StreamSettings | None) -> StreamState:
         state = StreamState(name, self.settings, s, self.factory)
+        state.boot_worker = self.boot_worker
         self.streams[name] = state
         self._queues[name] = DropOldestQueue(self.settings.queue_size)
         if self.settings.labeling_thread:
@@ -583,9 +592,10 @@ class Server:
         active = state.subjects_booted
         self.metrics.subjects(state.name, len(active))
         rec = state.boots[-1] if state.boots else None
-        log.info("stream %s: booted %s (attempt %.3f s in thread %s); labeling %d of %d "
-                 "subjects", state.name, ", ".join(state.just_booted),
-                 rec.seconds if rec else float("nan"), rec.thread if rec else "?", len(active),
+        log.info("stream %s: booted %s (attempt %.3f s in thread %s, caught up over %d "
+                 "frames); labeling %d of %d subjects", state.name, ", ".join(state.just_booted),
+                 rec.seconds if rec else float("nan"), rec.thread if rec else "?",
+                 rec.caught_frames if rec else 0, len(active),
                  len(state.booting.model.subjects) if state.booting else 0)  # fmt: skip
 
     async def _train(self, state: StreamState, msg: FrameMsg, recv_ns: int):

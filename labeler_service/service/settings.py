@@ -197,6 +197,10 @@ class ServiceSettings(BaseSettings):
     #: waits longer (the boot's back-off). 10 performers at 360 Hz take ~1.4 s alone and
     #: over 2 s beside the live stream (the boot shares the GIL with it), hence 10 s.
     boot_budget_s: float = Field(10.0, gt=0)
+    #: Where a boot attempt's step runs: ``process`` (default: one worker process,
+    #: ``service/boot_worker.py``; the attempt's Python no longer holds the frame path's GIL)
+    #: or ``thread`` (a background thread of the service, as before; no extra process).
+    boot_worker: Literal["process", "thread"] = "process"
     #: The boot's tunables (``labeler_service.labeling.boot_config.BootConfig``).
     boot_config: BootConfig = Field(default_factory=BootConfig)
     #: Restart rule (docs/service.md): a seq step beyond this, forward or back, is a jump.

@@ -80,6 +80,7 @@ from labeler_service.service.settings import ServiceSettings, StreamSettings
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
     from labeler_service.labeling.booting import BootSnapshot
+    from labeler_service.service.boot_worker import BootWorker
 
 log = logging.getLogger(__name__)
 
@@ -153,15 +154,21 @@ class BootRequest:
 
     labeler: BootingLabeler
     snapshot: BootSnapshot
+    #: runs the boot step in a worker process (None: in the job's thread)
+    worker: BootWorker | None = None
 
 
 @dataclass(slots=True)
 class BootOutcome:
-    """What a boot job returns: the boot's result, its wall time and the thread it ran in."""
+    """What a boot job returns: the boot's result, its wall time and the thread it ran in
+    (``worker``: its step ran in the boot worker process), and the catch-up's frames and time."""
 
     result: BootResult
     seconds: float
     thread: str
+    worker: bool = False
+    caught_frames: int = 0
+    catch_up_s: float = 0.0
 
 
 @dataclass(slots=True)
@@ -177,6 +184,8 @@ class BootRecord:
     failed: bool
     thread: str
     seconds: float
+    worker: bool = False  # its step ran in the boot worker process
+    caught_frames: int = 0  # frames the catch-up labeled (0: installed along the tracks)
 
 
 @dataclass(slots=True)
@@ -242,6 +251,8 @@ class StreamState:
         self.on_lost: Callable[[StreamState], None] | None = None
         # boot (model streams, see the module docstring)
         self.boot_inflight = False  # a boot job runs or waits to be installed
+        #: the server's boot worker process (None: the step runs in the job's thread)
+        self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
         #: finished attempts, newest last (bounded)
         self.boots: deque[BootRecord] = deque(maxlen=256)
@@ -632,14 +643,30 @@ class StreamState:
         if lab is None or not self.boot_due():
             return None
         self.boot_inflight = True
-        return BootRequest(lab, lab.boot_snapshot())
+        # the worker process only once started (by the server, for streams that boot): a
+        # recovery on a service without one boots in the job's thread rather than wait for a
+        # worker's start-up (seconds: imports and kernels)
+        w = self.boot_worker
+        return BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.pid else None)
 
     @staticmethod
-    def boot_job(request: BootRequest) -> BootOutcome:
-        """The heavy part of an attempt (runs off the event loop; touches no stream state)."""
+    def boot_job(request: BootRequest, cancel: threading.Event | None = None) -> BootOutcome:
+        """The heavy part of an attempt (runs off the event loop; touches no stream state):
+        the boot step, then the catch-up of what it booted over the frames labeled since the
+        snapshot (:meth:`BootingLabeler.catch_up`: the install then takes the caught-up state
+        over), both in the boot worker process when the request has one."""
+        lab = request.labeler
         t0 = time.perf_counter()
-        result = request.labeler.boot_step(request.snapshot)
-        return BootOutcome(result, time.perf_counter() - t0, threading.current_thread().name)
+        runner = None if request.worker is None else request.worker.runner(lab, cancel)
+        result = lab.boot_step(request.snapshot, runner)
+        t1 = time.perf_counter()
+        remote = None if request.worker is None else request.worker.catch_up(lab, cancel)
+        caught = lab.catch_up(request.snapshot, result, cancel, remote)
+        thread = threading.current_thread().name
+        frames = request.snapshot.caught.done if caught and request.snapshot.caught else 0
+        return BootOutcome(
+            result, t1 - t0, thread, runner is not None, frames, time.perf_counter() - t1
+        )
 
     def boot_done(self, request: BootRequest, outcome: BootOutcome | None) -> None:
         """Hands a finished attempt to the next :meth:`process` (``None``: abandoned or
@@ -668,6 +695,8 @@ class StreamState:
                 failed=outcome is None,
                 thread="" if outcome is None else outcome.thread,
                 seconds=float("nan") if outcome is None else outcome.seconds,
+                worker=outcome is not None and outcome.worker,
+                caught_frames=0 if outcome is None else outcome.caught_frames,
             )
         )
 

@@ -36,3 +36,22 @@ def test_short_demo_prints_accuracy_and_writes_its_report(
     labeled = read_capture(out / "labeled.c3d")
     assert labeled.n_frames == report["frames_received"]
     assert labeled.rate == pytest.approx(report["rate"])
+
+
+def test_start_options_resolve_to_one_start():
+    """``--start labeled`` is the window; without ``--start``, ``--init-frames`` decides (0: the
+    boot, no labels; N: the window); contradictions are our error, not a silent choice."""
+    from labeler_service.cli.demo import DEFAULT_INIT_FRAMES, DEFAULT_START, resolve_start
+    from labeler_service.errors import MocapError
+
+    default = 0 if DEFAULT_START == "boot" else DEFAULT_INIT_FRAMES
+    assert resolve_start(None, None) == (DEFAULT_START, default)
+    assert resolve_start("labeled", None) == ("window", 50)
+    assert resolve_start("window", 12) == ("window", 12)
+    assert resolve_start(None, 50) == ("window", 50)
+    assert resolve_start(None, 0) == ("boot", 0)
+    assert resolve_start("boot", None) == ("boot", 0)
+    with pytest.raises(MocapError, match="sends no labels"):
+        resolve_start("boot", 50)
+    with pytest.raises(MocapError, match="needs labeled frames"):
+        resolve_start("labeled", 0)

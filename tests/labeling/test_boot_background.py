@@ -197,3 +197,75 @@ def test_labeled_frame_errors(walk):
     twice[1] = twice[0] = 0
     out = lab.process(pts, 0.0, twice)
     assert np.count_nonzero(out.point_labels == 0) == 1
+
+
+def _late_install(model, cap, *, catch_up: bool, delay: int, blink: float):
+    """One boot attempt installed ``delay`` frames after its snapshot; meanwhile a ``blink``
+    share of the points is missing in each frame (markers hidden for a frame end their
+    anonymous tracks). Returns the labeler, the install frame and per-frame accuracy."""
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=3)
+    rng = np.random.default_rng(5)
+    pending = None
+    installed = None
+    acc = []
+    for f in range(cap.n_frames):
+        if pending is not None and f >= pending[0]:
+            _, snap, res = pending
+            if catch_up:
+                assert lab.catch_up(snap, res)
+            lab.install_boot(snap, res)
+            installed, pending = f, None
+        pts, tr = s.frame(f)
+        keep = rng.random(len(pts)) >= (blink if pending is not None else 0.0)
+        pts, tr = pts[keep], tr[keep]
+        out = lab.process(pts, f / RATE)
+        m = tr >= 0
+        acc.append(float(np.mean(out.point_labels[m] == tr[m])))
+        if pending is None and installed is None and lab.needs_boot():
+            snap = lab.boot_snapshot()
+            pending = (f + 1 + delay, snap, lab.boot_step(snap))
+    return lab, installed, np.array(acc)
+
+
+def test_a_late_result_is_caught_up_instead_of_following_broken_tracks(walk):
+    """An attempt that takes a second (as 10 performers at 360 Hz do): with 5 % of the points
+    blinking meanwhile, the labels carried along the anonymous tracks are lost (no subject
+    keeps three points); the catch-up (an inner labeler started at the snapshot and run over
+    the frames since, off the frame path) installs every subject, labeled at once."""
+    model, cap = walk
+    lab, at, acc = _late_install(model, cap, catch_up=False, delay=120, blink=0.05)
+    assert lab.active_subjects == ()
+    lab, at, acc = _late_install(model, cap, catch_up=True, delay=120, blink=0.05)
+    assert set(lab.active_subjects) == {"P1", "P2", "P3"}
+    assert [e[0] for e in lab.events if e[1] == "boot"] == [(at - 1) / RATE] * 3
+    assert acc[at : at + 10].mean() >= 0.85
+
+
+def test_catch_up_gives_nothing_to_install_without_a_booted_subject(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=4)
+    _run(lab, s, range(20))
+    snap = lab.boot_snapshot()
+    res = lab.boot_step(snap)
+    res.subjects.clear()  # as an attempt that found no one
+    assert not lab.catch_up(snap, res)
+    assert lab.install_boot(snap, res).size == 0 and lab.active_subjects == ()
+
+
+def test_a_result_a_few_frames_late_is_installed_along_the_tracks(walk):
+    """Below ``CATCH_UP_AFTER_S`` of stream the tracks hold: no catch-up (its fixed cost would
+    only delay the boot), the install carries the labels along them."""
+    from labeler_service.labeling.booting import CATCH_UP_AFTER_S
+
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=4)
+    _run(lab, s, range(20))
+    snap = lab.boot_snapshot()
+    res = lab.boot_step(snap)
+    late = int(CATCH_UP_AFTER_S * RATE) - 1
+    _run(lab, s, range(20, 20 + late))
+    assert not lab.catch_up(snap, res) and snap.caught is None
+    assert set(lab.install_boot(snap, res).tolist()) == {0, 1, 2}

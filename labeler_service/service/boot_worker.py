@@ -1,0 +1,270 @@
+"""Boot attempts in a worker process: the frame path keeps its interpreter's GIL.
+
+A boot attempt (:meth:`~labeler_service.labeling.booting.BootingLabeler.boot_step`) is about
+two thirds Python and numpy between its numba kernels (profile, 10 hugging performers at
+360 Hz: of a 1.7-5.7 s attempt, 36 % in the node-graph kernel, which releases the GIL, the
+rest candidate search, hypotheses and readings in Python). Run in a thread of the service it
+holds the GIL most of the time, and the event loop's frames wait for it at every hand-back:
+labeling p50 0.5 -> 2.3 ms per frame while an attempt ran. Here the step runs in one worker
+process instead::
+
+    worker = BootWorker()
+    worker.start()                       # spawn + kernel warm-up (a few s; at service start)
+    result = labeler.boot_step(snap, worker.runner(labeler, cancel))   # in a Background job
+    worker.close()
+
+The worker is a ``spawn`` child (the service has threads; ``fork`` would copy their locks)
+with a lower CPU priority (``os.nice(NICE)``, 5: on a busy machine the frame path wins the core;
+at 10 the boot itself starved on a machine shared with other jobs).
+It keeps a :class:`~labeler_service.labeling.boot.Booter` per labeler (``labeler.key``; the
+model is sent once, ~0.5 MB for 10 subjects, and the booter is prepared once, ~0.2 s); a
+snapshot is ~0.3 MB (500 points, a 24-frame history). One request at a time (a lock): the
+service runs one background job at a time anyway. A request whose job is abandoned
+(``cancel`` set: over ``boot_budget_s``, or shutdown) kills the worker, so no stale attempt
+keeps the CPU; the next request starts a new one. A worker that dies raises
+:class:`~labeler_service.errors.LabelerError` for that request and is restarted on the next.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import threading
+import traceback
+from collections import OrderedDict
+from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING, Any
+
+from labeler_service.errors import BudgetExceeded, LabelerError
+
+if TYPE_CHECKING:
+    from labeler_service.labeling.booting import BootingLabeler, BootSnapshot, StepRunner
+
+#: ``os.nice`` increment of the worker (lower priority than the frame path).
+NICE = 5
+#: Booters (one per labeler) a worker keeps, least recently used dropped first.
+MAX_BOOTERS = 8
+#: How often a waiting request looks at its cancel event and the worker's health (s).
+POLL_S = 0.02
+
+
+class _Session:
+    """One catch-up in the worker (see :meth:`BootWorker.catch_up`)."""
+
+    def __init__(
+        self, worker: BootWorker, labeler: BootingLabeler, cancel: threading.Event | None
+    ) -> None:
+        self.worker, self.labeler, self.cancel = worker, labeler, cancel
+        self._held = False
+
+    def begin(self, shadow: BootingLabeler, snapshot: BootSnapshot, result: Any):
+        w, lab = self.worker, self.labeler
+        w._lock.acquire()
+        self._held = True
+        try:
+            spec = None if lab.key in w._known else (lab.model, lab.boot_config)
+            msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
+            booted = w._request(msg, self.cancel, "catch-up")
+            w._known.add(lab.key)
+        except BaseException:
+            self._release()
+            raise
+        if booted is None:
+            self._release()
+        return booted
+
+    def frames(self, batch: list) -> None:
+        try:
+            self.worker._request(("frames", batch), self.cancel, "catch-up")
+        except BaseException:
+            self._release()
+            raise
+
+    def finish(self) -> BootingLabeler:
+        try:
+            return self.worker._request(("finish",), self.cancel, "catch-up")
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        if self._held:
+            self._held = False
+            self.worker._lock.release()
+
+
+def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in the child
+    """The worker's loop: ``("ping",)`` -> ``(True, None)`` once the kernels are warm;
+    ``("step", key, model_and_config_or_None, snapshot)`` -> ``(True, (result, extended,
+    ms))`` or ``(False, traceback text)``."""
+    with contextlib.suppress(OSError):
+        os.nice(nice)
+    from labeler_service.labeling.boot import Booter, warmup_kernels
+    from labeler_service.labeling.booting import boot_step_on
+
+    warmup_kernels()
+    booters: OrderedDict[str, Booter] = OrderedDict()
+    shadow = None  # the catch-up in progress
+
+    def booter_of(key: str, spec) -> Booter:
+        booter = booters.get(key)
+        if booter is None:
+            if spec is None:
+                raise LabelerError(f"boot worker: no model for labeler {key}")
+            booter = booters[key] = Booter(*spec)
+            while len(booters) > MAX_BOOTERS:
+                booters.popitem(last=False)
+        booters.move_to_end(key)
+        return booter
+
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            kind = msg[0]
+            if kind == "ping":
+                conn.send((True, None))
+            elif kind == "step":
+                _, key, spec, snapshot = msg
+                conn.send((True, boot_step_on(booter_of(key, spec), snapshot)))
+            elif kind == "catch":
+                _, key, spec, shadow, snapshot, result = msg
+                booter = booter_of(key, spec)
+                shadow._booter, shadow.model = booter, booter.model
+                conn.send((True, shadow._begin_catch_up(snapshot, result)))
+            elif kind == "frames":
+                shadow._catch_up_frames(msg[1])
+                conn.send((True, None))
+            elif kind == "finish":
+                shadow._catch_up_extend()
+                out, shadow = shadow.for_transfer(), None
+                out.inline_extend = False
+                conn.send((True, out))
+            else:
+                raise LabelerError(f"boot worker: unknown request {kind!r}")
+        except Exception:
+            shadow = None
+            conn.send((False, traceback.format_exc()))
+
+
+class BootWorker:
+    """One boot worker process (see the module docstring). Thread-safe."""
+
+    def __init__(self, nice: int = NICE) -> None:
+        self.nice = nice
+        self._lock = threading.Lock()
+        self._proc: Any = None
+        self._conn: Connection | None = None
+        self._known: set[str] = set()  # labeler keys whose booter the worker has
+        self._closed = False
+        #: worker processes started so far (restarts after a kill or a crash included)
+        self.started = 0
+
+    @property
+    def pid(self) -> int | None:
+        """The worker's process id (None when none runs)."""
+        proc = self._proc
+        return proc.pid if proc is not None and proc.is_alive() else None
+
+    def start(self) -> None:
+        """Starts the worker and waits until its kernels are warm (blocking: call it off the
+        event loop, e.g. with ``asyncio.to_thread``)."""
+        with self._lock:
+            conn = self._ensure()
+            conn.send(("ping",))
+            self._reply(conn, None, "warm-up")
+
+    def runner(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> StepRunner:
+        """The ``runner`` for ``labeler.boot_step`` (see the module docstring)."""
+        spec = (labeler.model, labeler.boot_config)
+
+        def run(snapshot: BootSnapshot):
+            return self.step(labeler.key, spec, snapshot, cancel)
+
+        return run
+
+    def catch_up(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> _Session:
+        """A ``remote`` for ``labeler.catch_up`` (:class:`CatchUpRemote`): the shadow's frames
+        run in the worker; the worker is held (no other request) until ``finish``, an error or
+        ``cancel``."""
+        return _Session(self, labeler, cancel)
+
+    def step(
+        self,
+        key: str,
+        spec: tuple[Any, Any],
+        snapshot: BootSnapshot,
+        cancel: threading.Event | None = None,
+    ) -> Any:
+        """:func:`~labeler_service.labeling.booting.boot_step_on` in the worker with the booter
+        of ``key`` (built from ``spec`` = ``(model, BootConfig)`` the first time)."""
+        with self._lock:
+            conn = self._ensure()
+            conn.send(("step", key, None if key in self._known else spec, snapshot))
+            self._known.add(key)
+            return self._reply(conn, cancel, "boot step")
+
+    def close(self) -> None:
+        """Stops the worker (a running attempt is killed); later requests are refused."""
+        self._closed = True
+        self._kill()
+
+    # ------------------------------------------------------------------ internals
+    def _request(self, msg: tuple, cancel: threading.Event | None, what: str) -> Any:
+        """One request-reply (the caller holds the lock)."""
+        conn = self._ensure()
+        conn.send(msg)
+        return self._reply(conn, cancel, what)
+
+    def _ensure(self) -> Connection:
+        if self._closed:
+            raise LabelerError("boot worker: closed")
+        if self._proc is None or not self._proc.is_alive() or self._conn is None:
+            self._kill()
+            ctx = multiprocessing.get_context("spawn")
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_serve, args=(child, self.nice), name="boot-worker",
+                               daemon=True)  # fmt: skip
+            proc.start()
+            child.close()
+            self._proc, self._conn, self._known = proc, parent, set()
+            self.started += 1
+        return self._conn
+
+    def _reply(self, conn: Connection, cancel: threading.Event | None, what: str) -> Any:
+        while True:
+            try:
+                ready = conn.poll(POLL_S)
+            except (EOFError, OSError) as exc:
+                self._kill()
+                raise LabelerError(f"boot worker: lost during the {what}") from exc
+            if ready:
+                break
+            if cancel is not None and cancel.is_set():
+                self._kill()  # an abandoned attempt must not keep the CPU
+                raise BudgetExceeded(f"boot worker: {what} abandoned")
+            if self._proc is None or not self._proc.is_alive():
+                self._kill()
+                raise LabelerError(f"boot worker: died during the {what}")
+        try:
+            ok, value = conn.recv()
+        except (EOFError, OSError) as exc:
+            self._kill()
+            raise LabelerError(f"boot worker: lost during the {what}") from exc
+        if not ok:
+            raise LabelerError(f"boot worker: the {what} failed:\n{value}")
+        return value
+
+    def _kill(self) -> None:
+        proc, conn = self._proc, self._conn
+        self._proc, self._conn, self._known = None, None, set()
+        if conn is not None:
+            with contextlib.suppress(OSError):
+                conn.close()
+        if proc is not None:
+            with contextlib.suppress(OSError, ValueError):
+                if proc.is_alive():
+                    proc.kill()
+                proc.join(timeout=5.0)

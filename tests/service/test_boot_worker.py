@@ -1,0 +1,92 @@
+"""The boot worker process (``service/boot_worker.py``): a boot step and a catch-up run there
+give what they give in this process; an abandoned request kills the worker, the next request
+starts a new one; a failure in the worker is our error, not a hang."""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+import pytest
+from labeling.test_boot import RATE, Stream, _run
+
+from labeler_service.errors import BudgetExceeded, LabelerError
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.service.boot_worker import BootWorker
+
+
+@pytest.fixture(scope="module")
+def walk():
+    from labeling.test_boot import _train
+
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(3, 4.0, "walk", seed=11, rate=RATE, ghosts=1.0)
+    half = cap.n_frames // 2
+    return _train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+
+
+@pytest.fixture(scope="module")
+def worker():
+    w = BootWorker()
+    w.start()
+    yield w
+    w.close()
+
+
+def test_a_step_in_the_worker_gives_the_local_result(walk, worker):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    _run(lab, Stream(cap, model, seed=4), range(20))
+    snap = lab.boot_snapshot()
+    there = lab.boot_step(snap, worker.runner(lab))
+    here = lab.boot_step(snap)
+    assert there.subjects == here.subjects and len(here.subjects) == 3
+    np.testing.assert_array_equal(there.labels, here.labels)
+    assert worker.pid is not None and worker.pid != os.getpid()
+
+
+def test_a_catch_up_in_the_worker_installs_as_the_local_one(walk, worker):
+    """The same late result caught up here and in the worker: the same subjects, and the
+    frames after the install labeled alike (the worker's shadow comes back without its inner
+    labeler, which restarts from the shadow's window: labels may differ in a few points)."""
+    model, cap = walk
+    outs = []
+    for remote in (False, True):
+        lab = BootingLabeler(model, RATE, inline_boot=False)
+        s = Stream(cap, model, seed=5)
+        _run(lab, s, range(20))
+        snap = lab.boot_snapshot()
+        res = lab.boot_step(snap)
+        _run(lab, s, range(20, 110))  # the attempt "took" 90 frames (0.75 s)
+        assert lab.catch_up(snap, res, None, worker.catch_up(lab) if remote else None)
+        assert snap.caught is not None and snap.caught.done == 90
+        assert set(lab.install_boot(snap, res).tolist()) == {0, 1, 2}
+        o, _ = _run(lab, s, range(110, 130))
+        outs.append(np.concatenate([x.point_labels for x in o]))
+    assert np.mean(outs[0] == outs[1]) >= 0.95
+
+
+def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    _run(lab, Stream(cap, model, seed=6), range(20))
+    snap = lab.boot_snapshot()
+    w = BootWorker()
+    try:
+        cancel = threading.Event()
+        cancel.set()  # over budget before the reply
+        with pytest.raises(BudgetExceeded):
+            lab.boot_step(snap, w.runner(lab, cancel))
+        assert w.pid is None and w.started == 1
+        res = lab.boot_step(snap, w.runner(lab))
+        assert len(res.subjects) == 3 and w.started == 2
+        # a failure inside the worker comes back as our error (the worker keeps serving)
+        with pytest.raises(LabelerError, match="failed"):
+            w.step("another-labeler", (None, None), snap.remote())
+        assert w.pid is not None and w.started == 2
+    finally:
+        w.close()
+    with pytest.raises(LabelerError, match="closed"):
+        w.step(lab.key, (model, lab.boot_config), snap.remote())
