@@ -836,8 +836,10 @@ class BootingLabeler:
         by_t = {f.t: f.labels for f in shadow._window}
         for f in self._window:
             lab = by_t.get(f.t)
-            ok = lab is not None and lab.shape == f.labels.shape
-            f.labels = lab if ok else np.full(f.labels.shape, -1, dtype=np.int64)
+            if lab is not None and lab.shape == f.labels.shape:
+                f.labels = lab
+            else:
+                f.labels = np.full(f.labels.shape, -1, dtype=np.int64)
         # the free tracks count as looked at by the acquisition (the shadow looked at them; a
         # first look at every free point in one frame would cost that frame ms in a crowd)
         last = self._window[-1]
@@ -863,7 +865,8 @@ class BootingLabeler:
         for name in ("_gone", "_recent", "_inner_state", "_inner_known", "_acq_ids", "_acq_tries"):
             setattr(sh, name, getattr(self, name).copy())
         sh._tracker = copy.copy(self._tracker)
-        sh._inner = None  # type: ignore[assignment]  (catch_up builds it)
+        # catch_up builds the shadow's inner labeler
+        sh._inner = None  # type: ignore[assignment]
         sh._since = None
         sh.inline_boot = False  # the shadow never starts attempts
         sh.events = []
@@ -984,7 +987,7 @@ class CatchUpRemote(Protocol):
 
 def _catch_up_plan(
     since: list[_Frame], done: int, stride: int, w: int, tail: bool
-) -> tuple[list[tuple[float, np.ndarray]], int]:
+) -> tuple[list[tuple[float, np.ndarray, bool]], int]:
     """The next round of a catch-up, from ``since[done]`` to the newest frame: every
     ``stride``-th frame (at least ``CATCH_UP_HZ``: the labeler's Kalman takes the longer steps)
     while more than a window (``w``) behind, then (``tail``) every frame, so that the window
@@ -996,7 +999,7 @@ def _catch_up_plan(
     newest frame). Returns ``[(t, points, full)]`` (``full``: a frame of the full-rate
     window, where the extension may run) and the next ``done``."""
     n = len(since)
-    out = []
+    out: list[tuple[float, np.ndarray, bool]] = []
     while done < n:
         full = tail and n - done <= w + stride
         out.append((since[done].t, since[done].points, full))

@@ -104,7 +104,7 @@ def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in t
 
     warmup_kernels()
     booters: OrderedDict[str, Booter] = OrderedDict()
-    shadow = None  # the catch-up in progress
+    shadow: Any = None  # the catch-up in progress
 
     def booter_of(key: str, spec) -> Booter:
         booter = booters.get(key)
