@@ -257,8 +257,15 @@ class LabelerConfig(BaseModel):
         "link's distance (presence_tol_mm + 3 A), or a tentative track (support_frames); "
         "ghosts have none",
     )
+    support_fraction: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="the support check applies to a subject with fewer than this fraction of its "
+        "markers tracked for repair_age frames (a performer leaving the volume)",
+    )
     support_frames: int = Field(
-        3,
+        1000000,
         ge=0,
         description="a point without rigid support (support_check) becomes the marker's after the "
         "marker has followed it this many frames in a row (within reacquire_estimate_mm per frame): a "

@@ -370,8 +370,24 @@ def _support(points, tracks, bodies, recovery, scratch, params):
             _continues(m, a, points, prev_state, x, jump2)
             or _continues(m, a, points, prev_state, tracks.cx, jump2)
         )
+    subj_ptr, subj_idx, age = tracks.subj_ptr, tracks.subj_idx, tracks.age
+    for s in range(subj_ptr.shape[0] - 1):
+        n_act = 0
+        long = 0
+        for k in range(subj_ptr[s], subj_ptr[s + 1]):
+            mk = subj_idx[k]
+            if tracks.active[mk]:
+                n_act += 1
+                if age[mk] >= params.repair_age:
+                    long += 1
+        if long >= params.support_fraction * n_act:
+            for k in range(subj_ptr[s], subj_ptr[s + 1]):
+                hold[subj_idx[k]] = -1  # marks "well seen" for this frame
     for m in range(assigned.shape[0]):
         a = assigned[m]
+        if hold[m] < 0:
+            hold[m] = 0
+            continue
         if a < 0 or gone[m]:
             hold[m] = 0  # an absent subject: the presence check decides
             continue
