@@ -249,29 +249,6 @@ class LabelerConfig(BaseModel):
         "whose distances agree with the body's D (a subject that left cannot hold isolated ghost "
         "points; 0 = off)",
     )
-    support_check: bool = Field(
-        True,
-        description="a label that does not continue its marker's track (observed in the previous "
-        "frame, within jump_mm of the prediction) is kept only with rigid support: an estimate "
-        "from 3+ recovery neighbours, or another labeled member of one of its bodies at the "
-        "link's distance (presence_tol_mm + 3 A), or a tentative track (support_frames); "
-        "ghosts have none",
-    )
-    support_fraction: float = Field(
-        0.5,
-        ge=0,
-        le=1,
-        description="the support check applies to a subject with fewer than this fraction of its "
-        "markers tracked for repair_age frames (a performer leaving the volume)",
-    )
-    support_frames: int = Field(
-        1000000,
-        ge=0,
-        description="a point without rigid support (support_check) becomes the marker's after the "
-        "marker has followed it this many frames in a row (within reacquire_estimate_mm per frame): a "
-        "marker returning alone is delayed, not locked out; a ghost living fewer frames is "
-        "never labeled",
-    )
     presence_tol_mm: float = Field(
         15.0,
         gt=0,

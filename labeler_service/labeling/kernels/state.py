@@ -73,11 +73,6 @@ class Tracks(NamedTuple):
       marker's subject has been missing for ``absent_frames`` frames, or fewer than
       ``presence_min_markers`` of them were observed in the previous frame (the subject left: no
       wide re-acquisition from stale predictions; :func:`.step._absent`).
-    - ``hold (M,)`` int64: frames in a row the marker has followed a point without rigid
-      support, ``held (M, 3)`` that point in the last of them (the support check,
-      :func:`.step._support`); ``cx (M, 3)``: this frame's prediction before the per-subject
-      common-mode shift (a subject losing most of his markers gets a shift from the points
-      near his vanished ones; the support check accepts either prediction).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -96,9 +91,6 @@ class Tracks(NamedTuple):
     kx: np.ndarray
     lost: np.ndarray
     gone: np.ndarray
-    hold: np.ndarray
-    held: np.ndarray
-    cx: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -118,9 +110,6 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         kx=np.full((m, 3), np.nan),
         lost=np.zeros(m, dtype=np.int64),
         gone=np.zeros(m, dtype=np.bool_),
-        hold=np.zeros(m, dtype=np.int64),
-        held=np.zeros((m, 3)),
-        cx=np.full((m, 3), np.nan),
     )
 
 

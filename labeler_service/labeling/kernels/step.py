@@ -86,10 +86,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     _predict(x, P, tracks.q, active, dt, params.p_cap)
     if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
         _body_predict(tracks, bodies, dt)
-    if params.support_check:
-        for i in range(m_total):
-            for c in range(3):
-                tracks.cx[i, c] = x[i, c]
     if params.common_mode_iters > 0:
         subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
         radius, iters = params.common_mode_radius_mm, params.common_mode_iters
@@ -121,8 +117,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _verify(points, index, frame_no, tracks, recovery, scratch, params)
     if params.repair:
         _repair(points, index, frame_no, tracks, bodies, scratch, params)
-    if params.support_check:
-        _support(points, tracks, bodies, recovery, scratch, params)
     if params.presence_min_markers > 0:
         _presence(points, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
@@ -312,126 +306,6 @@ def _presence(points, tracks, bodies, scratch, params):
             if assigned[m] >= 0:
                 owner[assigned[m]] = NONE
                 assigned[m] = NONE
-
-
-@njit
-def _linked(m, a, points, assigned, bodies, tol):
-    """Some body of marker ``m`` has another labeled member whose distance to point ``a``
-    agrees with the body's ``D`` (within ``tol`` + 3 A)."""
-    members, size, D, A = bodies.members, bodies.size, bodies.D, bodies.A
-    for q in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
-        b = bodies.mb_idx[q]
-        k = 0
-        while members[b, k] != m:
-            k += 1
-        for e in range(size[b]):
-            je = assigned[members[b, e]]
-            if e == k or je < 0 or D[b, k, e] != D[b, k, e]:  # noqa: PLR0124 (NaN link)
-                continue
-            d2 = 0.0
-            for c in range(3):
-                d = np.float64(points[a, c]) - np.float64(points[je, c])
-                d2 += d * d
-            if abs(np.sqrt(d2) - D[b, k, e]) <= tol + 3.0 * A[b, k, e]:
-                return True
-    return False
-
-
-@njit
-def _support(points, tracks, bodies, recovery, scratch, params):
-    """The support check (ours, docs/algorithm.md "Ghosts and presence").
-
-    A label needs evidence beyond "a point lies in the gate". A marker keeps its point when
-    it continues its own track (observed in the previous frame and the point within
-    ``jump_mm`` of the prediction), when its rigid neighbourhood gives an estimate (3+
-    recovery-set neighbours observed: the 3D check, :func:`.rigid._verify`, has then judged
-    the point against it), or when a body of the marker has another labeled member at the
-    link's distance (:func:`_linked`). Any other label - a marker that was hidden, or whose
-    tracked point vanished, taking a point that nothing rigid vouches for - is dropped.
-
-    Why: when a performer walks out of the volume his markers vanish one by one; each one
-    that vanishes, and each one already hidden, searched the gate and the wide pass around
-    a stale prediction and took the ghosts born near his last visible markers, hopping from
-    ghost to ghost as they died (holdout10: 140 ghost labels, all of the performer leaving,
-    in his last 60 frames). A ghost is uncorrelated with every body, so it has no rigid
-    support; a marker that returns from an occlusion has neighbours that vouch for it.
-    """
-    assigned, owner, obs, kab = scratch.assigned, scratch.owner, scratch.obs, scratch.kab
-    x, prev_state, gone = tracks.x, tracks.state, tracks.gone
-    jump2 = params.jump_mm * params.jump_mm
-    tol, tau = params.presence_tol_mm, params.robust_fit_mm
-    hold, held = tracks.hold, tracks.held
-    near2 = params.reacquire_estimate_mm * params.reacquire_estimate_mm
-    est = np.empty(3)
-    settled = scratch.missing  # scratch here (the Eq. 4 loop rewrites it)
-    for m in range(assigned.shape[0]):
-        a = assigned[m]
-        settled[m] = a >= 0 and (
-            _continues(m, a, points, prev_state, x, jump2)
-            or _continues(m, a, points, prev_state, tracks.cx, jump2)
-        )
-    subj_ptr, subj_idx, age = tracks.subj_ptr, tracks.subj_idx, tracks.age
-    for s in range(subj_ptr.shape[0] - 1):
-        n_act = 0
-        long = 0
-        for k in range(subj_ptr[s], subj_ptr[s + 1]):
-            mk = subj_idx[k]
-            if tracks.active[mk]:
-                n_act += 1
-                if age[mk] >= params.repair_age:
-                    long += 1
-        if long >= params.support_fraction * n_act:
-            for k in range(subj_ptr[s], subj_ptr[s + 1]):
-                hold[subj_idx[k]] = -1  # marks "well seen" for this frame
-    for m in range(assigned.shape[0]):
-        a = assigned[m]
-        if hold[m] < 0:
-            hold[m] = 0
-            continue
-        if a < 0 or gone[m]:
-            hold[m] = 0  # an absent subject: the presence check decides
-            continue
-        if settled[m] or _supported(m, a, points, recovery, obs, kab, est, tau, assigned, bodies,
-                                     tol):
-            hold[m] = 0
-            continue
-        # a point nothing vouches for: a tentative track, the marker's only after it has
-        # followed it for ``support_frames`` frames (``reacquire_estimate_mm`` from frame to frame)
-        d2 = 0.0
-        for c in range(3):
-            d = points[a, c] - held[m, c]
-            d2 += d * d
-        hold[m] = hold[m] + 1 if hold[m] > 0 and d2 <= near2 else 1
-        for c in range(3):
-            held[m, c] = points[a, c]
-        if hold[m] > params.support_frames:
-            continue
-        owner[a] = NONE
-        assigned[m] = NONE
-        for c in range(3):
-            obs[m, c] = np.nan
-
-
-@njit
-def _continues(m, a, points, prev_state, x, jump2):
-    """Marker ``m`` was observed in the previous frame and point ``a`` lies within ``jump_mm``
-    of its prediction: it continues its own track."""
-    if prev_state[m] != OBSERVED:
-        return False
-    d2 = 0.0
-    for c in range(3):
-        d = points[a, c] - x[m, c]
-        d2 += d * d
-    return d2 <= jump2
-
-
-@njit
-def _supported(m, a, points, recovery, obs, kab, est, tau, assigned, bodies, tol):
-    """Rigid support of marker ``m`` on point ``a`` (:func:`_support`): an estimate from 3+
-    recovery neighbours, or a settled body member at its distance (:func:`_linked`)."""
-    if recovery.ok[m] and _set_estimate(m, recovery, obs, kab, est, tau) >= 3:
-        return True
-    return _linked(m, a, points, assigned, bodies, tol)
 
 
 @njit
