@@ -122,6 +122,18 @@ class LabelerConfig(BaseModel):
     velocity_decay: float = Field(
         0.8, ge=0, le=1, description="velocity factor per frame while a marker is unrecoverable"
     )
+    anchor_lost: bool = Field(
+        True,
+        description="a lost marker without a rigid estimate coasts anchored on its two most "
+        "rigidly linked observed co-members (offset at its last observation, rotated with "
+        "them), taking their velocity, instead of on its own velocity (docs/algorithm.md)",
+    )
+    anchor_slack_mm: float = Field(
+        45.0,
+        gt=0,
+        description="anchored coasting replaces a lost marker's prediction only when that breaks "
+        "the distance to an observed anchor by more than this (mm)",
+    )
     # structure model (Eq. 1-2) and fitting (Eq. 5, Algorithm 1)
     window_T: int = Field(240, ge=2, le=4096, description="sliding window of Eq. 1-2 (frames)")
     min_window_samples: int = Field(

@@ -23,6 +23,12 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
+from labeler_service.labeling.kernels.anchor import (
+    _anchor_broken,
+    _anchor_estimate,
+    _anchor_lost,
+    _anchor_snapshot,
+)
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
@@ -156,6 +162,9 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         else:
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
+    if params.anchor_lost:  # anchored coasting (ours, kernels/anchor.py)
+        _anchor_lost(obs, missing, has_rec, tracks, params.anchor_slack_mm)
+        _anchor_snapshot(obs, tracks, bodies, params.body_distance_weight)
     if params.body_prediction:
         kab, memory, tau = scratch.kab, params.body_error_frames, params.body_rigid_mm
         _body_motion(bodies, obs, tracks.kx, dt, memory, tau, kab.src, kab.dst, kab.R, kab.t)
@@ -378,8 +387,14 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
         else:
-            for c in range(3):
-                rec[i, c] = x[i, c]
+            # anchored on the marker's observed anchors (kernels/anchor.py), else the prediction
+            k = -1
+            anc, anc_ref = tracks.anc, tracks.anc_ref
+            if params.anchor_lost and _anchor_broken(i, obs, anc, anc_ref, x, params.anchor_slack_mm):
+                k = _anchor_estimate(i, obs, anc, anc_ref, rec)
+            if k < 0:
+                for c in range(3):
+                    rec[i, c] = x[i, c]
             s[i] = params.reacquire_mm
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
