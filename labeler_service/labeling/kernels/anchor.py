@@ -169,3 +169,34 @@ def _anchor_lost(obs, missing, has_rec, tracks, slack):
         if k >= 0:
             for a in range(3):
                 x[m, 3 + a] = x[k, 3 + a]
+
+
+@njit
+def _anchor_filter(m, points, obs, anc, ref, slack, cand, cand_d2, ncand):
+    """Keeps, of marker ``m``'s candidates ``cand[m, :ncand[m]]`` (in order), only the points
+    whose distance to each observed anchor differs from the snapshot distance by at most
+    ``slack`` mm: a re-acquired point must keep the marker's rigid links. Ghosts and the points
+    of the limb's other markers, near the anchored estimate but off those distances, drop."""
+    kept = 0
+    for c in range(ncand[m]):
+        j = cand[m, c]
+        ok = True
+        for r in range(2):
+            k = anc[m, r]
+            if k < 0 or obs[k, 0] != obs[k, 0]:  # noqa: PLR0124
+                continue
+            d2 = 0.0
+            e2 = 0.0
+            for a in range(3):
+                d = np.float64(points[j, a]) - obs[k, a]
+                e = ref[m, 0, a] - ref[m, 1 + r, a]
+                d2 += d * d
+                e2 += e * e
+            if abs(np.sqrt(d2) - np.sqrt(e2)) > slack:
+                ok = False
+                break
+        if ok:
+            cand[m, kept] = j
+            cand_d2[m, kept] = cand_d2[m, c]
+            kept += 1
+    ncand[m] = kept

@@ -26,6 +26,7 @@ from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
 from labeler_service.labeling.kernels.anchor import (
     _anchor_broken,
     _anchor_estimate,
+    _anchor_filter,
     _anchor_lost,
     _anchor_snapshot,
 )
@@ -399,6 +400,12 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
     _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
+    if params.anchor_lost:
+        # an anchored search keeps only points that keep the marker's anchor links
+        anc, anc_ref, slack = tracks.anc, tracks.anc_ref, params.anchor_slack_mm
+        for i in range(m_total):
+            if missing[i] and s[i] == params.reacquire_mm and _anchor_broken(i, obs, anc, anc_ref, x, slack):
+                _anchor_filter(i, points, obs, anc, anc_ref, slack, cand, cand_d2, ncand)
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
