@@ -57,7 +57,7 @@ def _anchor_snapshot(obs, tracks, bodies, w):
                 i += 1
             for j in range(size[b]):
                 k = members[b, j]
-                if k == m or k == k0 or k == k1:
+                if k == m or k == k0 or k == k1:  # noqa: SIM109 (numba: plain compares)
                     continue
                 if obs[k, 0] != obs[k, 0] or D[b, i, j] != D[b, i, j]:  # noqa: PLR0124
                     continue

@@ -9,7 +9,8 @@ check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap
 re-acquisition (ours, :mod:`.repair`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
-stale state) -> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
+stale state) -> anchored coasting of lost markers without a rigid estimate (ours, :mod:`.anchor`)
+-> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
 -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully observed bodies.
 
 The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
@@ -391,7 +392,9 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             # anchored on the marker's observed anchors (kernels/anchor.py), else the prediction
             k = -1
             anc, anc_ref = tracks.anc, tracks.anc_ref
-            if params.anchor_lost and _anchor_broken(i, obs, anc, anc_ref, x, params.anchor_slack_mm):
+            if params.anchor_lost and _anchor_broken(
+                i, obs, anc, anc_ref, x, params.anchor_slack_mm
+            ):
                 k = _anchor_estimate(i, obs, anc, anc_ref, rec)
             if k < 0:
                 for c in range(3):
@@ -404,7 +407,11 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
         # an anchored search keeps only points that keep the marker's anchor links
         anc, anc_ref, slack = tracks.anc, tracks.anc_ref, params.anchor_slack_mm
         for i in range(m_total):
-            if missing[i] and s[i] == params.reacquire_mm and _anchor_broken(i, obs, anc, anc_ref, x, slack):
+            if (
+                missing[i]
+                and s[i] == params.reacquire_mm
+                and _anchor_broken(i, obs, anc, anc_ref, x, slack)
+            ):
                 _anchor_filter(i, points, obs, anc, anc_ref, slack, cand, cand_d2, ncand)
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
