@@ -128,8 +128,13 @@ class LabelerConfig(BaseModel):
         "rigidly linked observed co-members (offset at its last observation, rotated with "
         "them), taking their velocity, instead of on its own velocity (docs/algorithm.md)",
     )
+    anchor_state: bool = Field(
+        False,
+        description="with anchor_lost: also re-anchor the lost marker's Kalman state (off: only "
+        "the wide re-acquisition pass searches around the anchored estimate)",
+    )
     anchor_slack_mm: float = Field(
-        45.0,
+        15.0,
         gt=0,
         description="anchored coasting replaces a lost marker's prediction only when that breaks "
         "the distance to an observed anchor by more than this (mm)",

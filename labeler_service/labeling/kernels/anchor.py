@@ -69,6 +69,8 @@ def _anchor_snapshot(obs, tracks, bodies, w):
                     k1, c1 = k, c
         anc[m, 0] = k0
         anc[m, 1] = k1
+        tracks.anc_cost[m, 0] = c0
+        tracks.anc_cost[m, 1] = c1
         for a in range(3):
             ref[m, 0, a] = obs[m, a]
             ref[m, 1, a] = obs[k0, a] if k0 >= 0 else np.nan
@@ -132,7 +134,7 @@ def _anchor_estimate(m, obs, anc, ref, x):
 
 
 @njit
-def _anchor_broken(m, obs, anc, ref, x, slack):
+def _anchor_broken(m, obs, anc, ref, x, slack, cost):
     """Marker ``m``'s position ``x[m, :3]`` breaks a link to one of its observed anchors: its
     distance to the anchor differs from the snapshot distance by more than ``slack`` mm. Such
     a prediction cannot be right (the anchors were chosen as the most rigid links); a
@@ -148,7 +150,7 @@ def _anchor_broken(m, obs, anc, ref, x, slack):
             e = ref[m, 0, a] - ref[m, 1 + r, a]
             d2 += d * d
             e2 += e * e
-        if abs(np.sqrt(d2) - np.sqrt(e2)) > slack:
+        if abs(np.sqrt(d2) - np.sqrt(e2)) > slack + 3.0 * cost[m, r]:
             return True
     return False
 
@@ -163,7 +165,7 @@ def _anchor_lost(obs, missing, has_rec, tracks, slack):
     for m in range(obs.shape[0]):
         if not missing[m] or has_rec[m] >= 3 or x[m, 0] != x[m, 0]:  # noqa: PLR0124
             continue
-        if not _anchor_broken(m, obs, anc, ref, x, slack):
+        if not _anchor_broken(m, obs, anc, ref, x, slack, tracks.anc_cost):
             continue
         k = _anchor_estimate(m, obs, anc, ref, x)
         if k >= 0:
@@ -172,7 +174,7 @@ def _anchor_lost(obs, missing, has_rec, tracks, slack):
 
 
 @njit
-def _anchor_filter(m, points, obs, anc, ref, slack, cand, cand_d2, ncand):
+def _anchor_filter(m, points, obs, anc, ref, slack, cost, cand, cand_d2, ncand):
     """Keeps, of marker ``m``'s candidates ``cand[m, :ncand[m]]`` (in order), only the points
     whose distance to each observed anchor differs from the snapshot distance by at most
     ``slack`` mm: a re-acquired point must keep the marker's rigid links. Ghosts and the points
@@ -192,7 +194,7 @@ def _anchor_filter(m, points, obs, anc, ref, slack, cand, cand_d2, ncand):
                 e = ref[m, 0, a] - ref[m, 1 + r, a]
                 d2 += d * d
                 e2 += e * e
-            if abs(np.sqrt(d2) - np.sqrt(e2)) > slack:
+            if abs(np.sqrt(d2) - np.sqrt(e2)) > slack + 3.0 * cost[m, r]:
                 ok = False
                 break
         if ok:

@@ -75,7 +75,8 @@ class Tracks(NamedTuple):
       wide re-acquisition from stale predictions; :func:`.step._absent`).
     - ``anc (M, 2)`` int64: the two anchors of each marker (observed co-members with the most
       rigid window links) at its last observation, -1 none; ``anc_ref (M, 3, 3)``: the positions
-      of the marker and its two anchors then (anchored coasting, :mod:`.anchor`).
+      of the marker and its two anchors then; ``anc_cost (M, 2)``: their links' window
+      ``A + w D`` (anchored coasting, :mod:`.anchor`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -96,6 +97,7 @@ class Tracks(NamedTuple):
     gone: np.ndarray
     anc: np.ndarray
     anc_ref: np.ndarray
+    anc_cost: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -117,6 +119,7 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         gone=np.zeros(m, dtype=np.bool_),
         anc=np.full((m, 2), -1, dtype=np.int64),
         anc_ref=np.full((m, 3, 3), np.nan),
+        anc_cost=np.zeros((m, 2)),
     )
 
 

@@ -165,7 +165,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
     if params.anchor_lost:  # anchored coasting (ours, kernels/anchor.py)
-        _anchor_lost(obs, missing, has_rec, tracks, params.anchor_slack_mm)
+        if params.anchor_state:
+            _anchor_lost(obs, missing, has_rec, tracks, params.anchor_slack_mm)
         _anchor_snapshot(obs, tracks, bodies, params.body_distance_weight)
     if params.body_prediction:
         kab, memory, tau = scratch.kab, params.body_error_frames, params.body_rigid_mm
@@ -393,7 +394,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             k = -1
             anc, anc_ref = tracks.anc, tracks.anc_ref
             if params.anchor_lost and _anchor_broken(
-                i, obs, anc, anc_ref, x, params.anchor_slack_mm
+                i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost
             ):
                 k = _anchor_estimate(i, obs, anc, anc_ref, rec)
             if k < 0:
@@ -410,9 +411,9 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             if (
                 missing[i]
                 and s[i] == params.reacquire_mm
-                and _anchor_broken(i, obs, anc, anc_ref, x, slack)
+                and _anchor_broken(i, obs, anc, anc_ref, x, slack, tracks.anc_cost)
             ):
-                _anchor_filter(i, points, obs, anc, anc_ref, slack, cand, cand_d2, ncand)
+                _anchor_filter(i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand)
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
