@@ -98,6 +98,7 @@ def test_snapshot_takes_the_two_most_rigid_observed_co_members():
     # costs of marker 0: 1 -> 31, 2 -> 2.2, 4 -> 8.1 (3 unobserved)
     assert tuple(tr.anc[0]) == (2, 4)
     np.testing.assert_allclose(tr.anc_ref[0], pos[[0, 2, 4]])
+    np.testing.assert_allclose(tr.anc_cost[0], (1.0 + 0.02 * 60.0, 0.1 + 0.02 * 400.0))
     assert tuple(tr.anc[3]) == (-1, -1)
 
 
@@ -114,12 +115,12 @@ def test_lost_marker_is_re_anchored_only_when_its_state_breaks_an_anchor_link():
     has_rec = np.zeros(3, dtype=np.int64)
     # a state that keeps the links (within the slack) is left alone
     tr.x[0] = (*(ref[0] + 500.0 + 20.0), 1.0, 1.0, 1.0)
-    assert not _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0)
+    assert not _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0, tr.anc_cost)
     _anchor_lost(obs, missing, has_rec, tr, 45.0)
     np.testing.assert_allclose(tr.x[0], (620.0, 520.0, 520.0, 1.0, 1.0, 1.0))
     # one that coasted away is put back on its anchors, with their velocity
     tr.x[0] = (2000.0, 0.0, 0.0, 3000.0, 0.0, 0.0)
-    assert _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0)
+    assert _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0, tr.anc_cost)
     _anchor_lost(obs, missing, has_rec, tr, 45.0)
     np.testing.assert_allclose(tr.x[0], (600.0, 500.0, 500.0, 10.0, 20.0, 30.0))
     # a marker with a rigid estimate (3+ neighbours) keeps the recovery's state
@@ -127,6 +128,20 @@ def test_lost_marker_is_re_anchored_only_when_its_state_breaks_an_anchor_link():
     has_rec[0] = 3
     _anchor_lost(obs, missing, has_rec, tr, 45.0)
     assert tr.x[0, 0] == 2000.0
+
+
+def test_slack_grows_with_the_anchor_links_deviation():
+    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
+    tr = _tracks(3)
+    tr.anc[0] = (1, 2)
+    tr.anc_ref[0] = ref
+    obs = np.full((3, 3), np.nan)
+    obs[1:] = ref[1:]
+    tr.x[0, :3] = (160.0, 0.0, 0.0)  # 60 mm off the link to anchor 1
+    assert _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0, tr.anc_cost)
+    tr.anc_cost[0, 0] = 6.0  # a link that slides: 45 + 3 * 6 = 63 mm
+    tr.anc_cost[0, 1] = 30.0
+    assert not _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0, tr.anc_cost)
 
 
 def test_filter_keeps_only_points_that_keep_the_anchor_links():
@@ -145,7 +160,7 @@ def test_filter_keeps_only_points_that_keep_the_anchor_links():
     cand[0] = (3, 1, 2, 0)
     cand_d2[0] = (4.0, 3.0, 2.0, 1.0)
     ncand[0] = 4
-    _anchor_filter(0, pts, obs, tr.anc, tr.anc_ref, 45.0, cand, cand_d2, ncand)
+    _anchor_filter(0, pts, obs, tr.anc, tr.anc_ref, 45.0, tr.anc_cost, cand, cand_d2, ncand)
     assert ncand[0] == 2
     assert list(cand[0, :2]) == [2, 0]
     assert list(cand_d2[0, :2]) == [2.0, 1.0]
@@ -184,6 +199,7 @@ def test_lost_hand_marker_is_re_acquired_within_a_few_frames():
     # are off: on the tennis take the bodies, trained on the quiet window, glue the hand to the
     # pelvis, so neither can place it (this arm's bodies are sound, and either would)
     glued = {"repair": False, "body_prediction": False}
-    assert _frames_to_reacquire(LabelerConfig(**glued)) <= 3
+    # with the state re-anchored (anchor_state) the main gate takes the point again at once
+    assert _frames_to_reacquire(LabelerConfig(anchor_state=True, **glued)) <= 3
     # without anchored coasting it coasts away and stays unlabeled while visible
     assert _frames_to_reacquire(LabelerConfig(anchor_lost=False, **glued)) >= 20

@@ -413,7 +413,9 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 and s[i] == params.reacquire_mm
                 and _anchor_broken(i, obs, anc, anc_ref, x, slack, tracks.anc_cost)
             ):
-                _anchor_filter(i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand)
+                _anchor_filter(
+                    i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand
+                )
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
