@@ -124,9 +124,10 @@ class LabelerConfig(BaseModel):
     )
     anchor_lost: bool = Field(
         True,
-        description="a lost marker without a rigid estimate coasts anchored on its two most "
-        "rigidly linked observed co-members (offset at its last observation, rotated with "
-        "them), taking their velocity, instead of on its own velocity (docs/algorithm.md)",
+        description="a lost marker without a rigid estimate whose prediction broke the distance "
+        "to its two most rigidly linked observed co-members (anchors) is searched for in the wide "
+        "pass around its offset from them at its last observation, rotated with them, among "
+        "points that keep those distances (docs/algorithm.md)",
     )
     anchor_state: bool = Field(
         False,
@@ -136,8 +137,8 @@ class LabelerConfig(BaseModel):
     anchor_slack_mm: float = Field(
         15.0,
         gt=0,
-        description="anchored coasting replaces a lost marker's prediction only when that breaks "
-        "the distance to an observed anchor by more than this (mm)",
+        description="slack of an anchor link (mm), plus 3 times the link's window A + w D: a "
+        "prediction off by more is broken, a point off by more is not the marker",
     )
     # structure model (Eq. 1-2) and fitting (Eq. 5, Algorithm 1)
     window_T: int = Field(240, ge=2, le=4096, description="sliding window of Eq. 1-2 (frames)")

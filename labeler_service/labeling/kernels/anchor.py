@@ -12,19 +12,23 @@ resting there), whose snapshot is from that window.
 
 Here every observed marker keeps, per frame, two *anchors*: its body co-members observed in
 the same frame with the most rigid links over the sliding window (lowest ``A + w D``, the
-body-formation cost, with the window's ``D``, ``A`` of Eq. 1-2), and the positions of the
-marker and the anchors in that frame. While the marker is lost and has no rigid estimate, its
-Kalman state is re-anchored on whichever anchors are observed now:
+body-formation cost, with the window's ``D``, ``A`` of Eq. 1-2; the cost is kept as
+``tracks.anc_cost``), and the positions of the marker and the anchors in that frame. A lost
+marker's state is *broken* when its distance to an observed anchor differs from the recorded
+one by more than ``anchor_slack_mm + 3 cost`` of that link (:func:`_anchor_broken`). For a lost
+marker without a rigid estimate whose state is broken:
 
-- two anchors: the snapshot offset rotated by the smallest rotation that takes the snapshot
-  anchor-to-anchor direction onto the current one (a forearm turning about the elbow carries
-  the wrist with it; the twist about that axis is not seen), translated onto the first anchor;
-- one anchor: the snapshot offset translated onto it;
+- the wide re-acquisition pass (:func:`.step._reacquire`) searches around the *anchored
+  estimate* instead of the prediction, and keeps only the free points that keep the anchor
+  links within the same slack (:func:`_anchor_filter`);
+- with ``anchor_state`` (off by default) the Kalman state itself is also re-anchored
+  (:func:`_anchor_lost`): position = the anchored estimate, velocity = the anchor's.
 
-and its velocity becomes the anchor's. The next prediction (Eq. 3), the gate and the wide
-re-acquisition pass then search around the limb, not where the marker's old velocity would
-have carried it. With no anchor observed the old behaviour stays (the weak estimate, or the
-velocity decaying by ``velocity_decay`` per frame).
+The anchored estimate (:func:`_anchor_estimate`): with two anchors seen, the recorded offset
+from the first anchor turned by the smallest rotation that takes the recorded anchor-to-anchor
+direction onto the current one (a forearm turning about the elbow carries the wrist with it;
+the twist about that axis is not seen); with one, the offset translated onto it. With no
+anchor observed the old behaviour stays.
 """
 
 from __future__ import annotations
