@@ -122,6 +122,24 @@ class LabelerConfig(BaseModel):
     velocity_decay: float = Field(
         0.8, ge=0, le=1, description="velocity factor per frame while a marker is unrecoverable"
     )
+    anchor_lost: bool = Field(
+        True,
+        description="a lost marker without a rigid estimate whose prediction broke the distance "
+        "to its two most rigidly linked observed co-members (anchors) is searched for in the wide "
+        "pass around its offset from them at its last observation, rotated with them, among "
+        "points that keep those distances (docs/algorithm.md)",
+    )
+    anchor_state: bool = Field(
+        False,
+        description="with anchor_lost: also re-anchor the lost marker's Kalman state (off: only "
+        "the wide re-acquisition pass searches around the anchored estimate)",
+    )
+    anchor_slack_mm: float = Field(
+        15.0,
+        gt=0,
+        description="slack of an anchor link (mm), plus 3 times the link's window A + w D: a "
+        "prediction off by more is broken, a point off by more is not the marker",
+    )
     # structure model (Eq. 1-2) and fitting (Eq. 5, Algorithm 1)
     window_T: int = Field(240, ge=2, le=4096, description="sliding window of Eq. 1-2 (frames)")
     min_window_samples: int = Field(

@@ -73,6 +73,10 @@ class Tracks(NamedTuple):
       marker's subject has been missing for ``absent_frames`` frames, or fewer than
       ``presence_min_markers`` of them were observed in the previous frame (the subject left: no
       wide re-acquisition from stale predictions; :func:`.step._absent`).
+    - ``anc (M, 2)`` int64: the two anchors of each marker (observed co-members with the most
+      rigid window links) at its last observation, -1 none; ``anc_ref (M, 3, 3)``: the positions
+      of the marker and its two anchors then; ``anc_cost (M, 2)``: their links' window
+      ``A + w D`` (anchored coasting, :mod:`.anchor`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -91,6 +95,9 @@ class Tracks(NamedTuple):
     kx: np.ndarray
     lost: np.ndarray
     gone: np.ndarray
+    anc: np.ndarray
+    anc_ref: np.ndarray
+    anc_cost: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -110,6 +117,9 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         kx=np.full((m, 3), np.nan),
         lost=np.zeros(m, dtype=np.int64),
         gone=np.zeros(m, dtype=np.bool_),
+        anc=np.full((m, 2), -1, dtype=np.int64),
+        anc_ref=np.full((m, 3, 3), np.nan),
+        anc_cost=np.zeros((m, 2)),
     )
 
 

@@ -9,7 +9,8 @@ check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap
 re-acquisition (ours, :mod:`.repair`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
-stale state) -> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
+stale state) -> anchored coasting of lost markers without a rigid estimate (ours, :mod:`.anchor`)
+-> each body's inter-frame rigid motion and prediction errors (:mod:`.motion`)
 -> sliding-window structure update (Eq. 1-2) -> reference snapshots of fully observed bodies.
 
 The state is the named structures of :mod:`.state` (``Tracks``, ``Bodies``, ``Recovery``,
@@ -23,6 +24,13 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.frame import MISSING, OBSERVED, RECOVERED
+from labeler_service.labeling.kernels.anchor import (
+    _anchor_broken,
+    _anchor_estimate,
+    _anchor_filter,
+    _anchor_lost,
+    _anchor_snapshot,
+)
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
@@ -156,6 +164,10 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         else:
             for c in range(3, 6):
                 x[i, c] *= params.velocity_decay
+    if params.anchor_lost:  # anchored coasting (ours, kernels/anchor.py)
+        if params.anchor_state:
+            _anchor_lost(obs, missing, has_rec, tracks, params.anchor_slack_mm)
+        _anchor_snapshot(obs, tracks, bodies, params.body_distance_weight)
     if params.body_prediction:
         kab, memory, tau = scratch.kab, params.body_error_frames, params.body_rigid_mm
         _body_motion(bodies, obs, tracks.kx, dt, memory, tau, kab.src, kab.dst, kab.R, kab.t)
@@ -378,12 +390,32 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
         else:
-            for c in range(3):
-                rec[i, c] = x[i, c]
+            # anchored on the marker's observed anchors (kernels/anchor.py), else the prediction
+            k = -1
+            anc, anc_ref = tracks.anc, tracks.anc_ref
+            if params.anchor_lost and _anchor_broken(
+                i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost
+            ):
+                k = _anchor_estimate(i, obs, anc, anc_ref, rec)
+            if k < 0:
+                for c in range(3):
+                    rec[i, c] = x[i, c]
             s[i] = params.reacquire_mm
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
     _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
+    if params.anchor_lost:
+        # an anchored search keeps only points that keep the marker's anchor links
+        anc, anc_ref, slack = tracks.anc, tracks.anc_ref, params.anchor_slack_mm
+        for i in range(m_total):
+            if (
+                missing[i]
+                and s[i] == params.reacquire_mm
+                and _anchor_broken(i, obs, anc, anc_ref, x, slack, tracks.anc_cost)
+            ):
+                _anchor_filter(
+                    i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand
+                )
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
