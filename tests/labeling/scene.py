@@ -67,3 +67,30 @@ def frame_points(
     idx = np.flatnonzero(vis)
     order = rng.permutation(idx.size)
     return np.ascontiguousarray(pos[idx[order]]), idx[order].astype(np.int32)
+
+
+class GhostScore:
+    """Labels frames with ghost points and scores them: ghosts given a label of a marker
+    ``>= first`` (the leaver's), and accuracy over the real points, from frame ``start`` on."""
+
+    def __init__(self, first: int, start: int) -> None:
+        self.first, self.start = first, start
+        self.taken = self.ghosts = self.correct = self.total = 0
+
+    def feed(self, lab, rng, f: int, rate: float, pts, truth, init: int) -> None:
+        """Shuffles the frame's points (``truth`` -1 for a ghost), labels them (with labels in
+        the first ``init`` frames) and, from ``start`` on, counts."""
+        order = rng.permutation(pts.shape[0])
+        pts, truth = np.ascontiguousarray(pts[order], dtype=np.float32), truth[order]
+        out = lab.process(pts, f / rate, truth if f < init else None)
+        if f < self.start:
+            return
+        g = truth < 0
+        self.ghosts += int(g.sum())
+        self.taken += int(np.count_nonzero(out.point_labels[g] >= self.first))
+        real = truth >= 0
+        self.correct += int(np.count_nonzero(out.point_labels[real] == truth[real]))
+        self.total += int(real.sum())
+
+    def result(self) -> tuple[int, int, float]:
+        return self.taken, self.ghosts, self.correct / self.total

@@ -11,7 +11,7 @@ departed subject's labels, and the performer who stays keeps his.
 from __future__ import annotations
 
 import numpy as np
-from labeling.scene import articulated
+from labeling.scene import GhostScore, articulated
 
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.kernels.state import Bodies, new_bodies
@@ -32,7 +32,7 @@ def _run(config: LabelerConfig) -> tuple[int, int, float]:
     last = pos[LEAVE - 1, 8:].copy()
     ghost = np.full(3, np.nan)
     life = 0
-    taken = ghosts = correct = total = 0
+    score = GhostScore(first=8, start=max(INIT, LEAVE))
     for f in range(FRAMES):
         frame = pos[f].copy()
         if f >= LEAVE:
@@ -48,18 +48,8 @@ def _run(config: LabelerConfig) -> tuple[int, int, float]:
             life -= 1
             pts = np.vstack([pts, ghost[None].astype(np.float32)])
             truth = np.append(truth, -1).astype(np.int32)
-        order = rng.permutation(pts.shape[0])
-        pts, truth = np.ascontiguousarray(pts[order], dtype=np.float32), truth[order]
-        out = lab.process(pts, f / RATE, truth if f < INIT else None)
-        if f < max(INIT, LEAVE):
-            continue
-        g = truth < 0
-        ghosts += int(g.sum())
-        taken += int(np.count_nonzero(out.point_labels[g] >= 8))
-        stay = truth >= 0
-        correct += int(np.count_nonzero(out.point_labels[stay] == truth[stay]))
-        total += int(stay.sum())
-    return taken, ghosts, correct / total
+        score.feed(lab, rng, f, RATE, pts, truth, INIT)
+    return score.result()
 
 
 def test_departed_subject_takes_no_ghost():

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from labeling.scene import articulated
+from labeling.scene import GhostScore, articulated
 
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.labeler import Labeler
@@ -36,7 +36,7 @@ def _run(config: LabelerConfig, seed: int = 5) -> tuple[int, int, float]:
     lab = Labeler(names, RATE, config)
     gone_at = {m: LEAVE + k * STEP for k, m in enumerate(VANISH)}
     ghosts_alive: list[list] = []  # [position, velocity, frames left]
-    taken = ghosts = correct = total = 0
+    score = GhostScore(first=8, start=max(INIT, LEAVE))
     for f in range(FRAMES):
         frame = pos[f].copy()
         for m, g in gone_at.items():
@@ -64,18 +64,8 @@ def _run(config: LabelerConfig, seed: int = 5) -> tuple[int, int, float]:
                 g = np.array([p for p, _, _ in ghosts_alive], dtype=np.float32)
                 pts = np.vstack([pts, g])
                 truth = np.append(truth, np.full(len(g), -1)).astype(np.int32)
-        order = rng.permutation(pts.shape[0])
-        pts, truth = np.ascontiguousarray(pts[order], dtype=np.float32), truth[order]
-        out = lab.process(pts, f / RATE, truth if f < INIT else None)
-        if f < max(INIT, LEAVE):
-            continue
-        g = truth < 0
-        ghosts += int(g.sum())
-        taken += int(np.count_nonzero(out.point_labels[g] >= 8))
-        real = truth >= 0
-        correct += int(np.count_nonzero(out.point_labels[real] == truth[real]))
-        total += int(real.sum())
-    return taken, ghosts, correct / total
+        score.feed(lab, rng, f, RATE, pts, truth, INIT)
+    return score.result()
 
 
 @pytest.mark.xfail(

@@ -138,23 +138,29 @@ def _anchor_estimate(m, obs, anc, ref, x):
 
 
 @njit
+def _breaks(p0, p1, p2, m, r, obs, anc, ref, slack, cost):
+    """The position ``(p0, p1, p2)`` for marker ``m`` breaks its link to anchor ``r`` (0 or 1):
+    the anchor is observed and the distance to it differs from the snapshot distance by more
+    than ``slack + 3 cost`` mm (the link's window ``A + w D``: a link that slides gets more)."""
+    k = anc[m, r]
+    if k < 0 or obs[k, 0] != obs[k, 0]:  # noqa: PLR0124
+        return False
+    d0, d1, d2 = p0 - obs[k, 0], p1 - obs[k, 1], p2 - obs[k, 2]
+    e0 = ref[m, 0, 0] - ref[m, 1 + r, 0]
+    e1 = ref[m, 0, 1] - ref[m, 1 + r, 1]
+    e2 = ref[m, 0, 2] - ref[m, 1 + r, 2]
+    now = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    then = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return abs(now - then) > slack + 3.0 * cost[m, r]
+
+
+@njit
 def _anchor_broken(m, obs, anc, ref, x, slack, cost):
-    """Marker ``m``'s position ``x[m, :3]`` breaks a link to one of its observed anchors: its
-    distance to the anchor differs from the snapshot distance by more than ``slack`` mm. Such
-    a prediction cannot be right (the anchors were chosen as the most rigid links); a
-    prediction that keeps the links is left alone."""
+    """Marker ``m``'s position ``x[m, :3]`` breaks a link to one of its observed anchors
+    (:func:`_breaks`). Such a prediction cannot be right (the anchors were chosen as the most
+    rigid links); a prediction that keeps the links is left alone."""
     for r in range(2):
-        k = anc[m, r]
-        if k < 0 or obs[k, 0] != obs[k, 0]:  # noqa: PLR0124
-            continue
-        d2 = 0.0
-        e2 = 0.0
-        for a in range(3):
-            d = x[m, a] - obs[k, a]
-            e = ref[m, 0, a] - ref[m, 1 + r, a]
-            d2 += d * d
-            e2 += e * e
-        if abs(np.sqrt(d2) - np.sqrt(e2)) > slack + 3.0 * cost[m, r]:
+        if _breaks(x[m, 0], x[m, 1], x[m, 2], m, r, obs, anc, ref, slack, cost):
             return True
     return False
 
@@ -186,19 +192,10 @@ def _anchor_filter(m, points, obs, anc, ref, slack, cost, cand, cand_d2, ncand):
     kept = 0
     for c in range(ncand[m]):
         j = cand[m, c]
+        p0, p1, p2 = np.float64(points[j, 0]), np.float64(points[j, 1]), np.float64(points[j, 2])
         ok = True
         for r in range(2):
-            k = anc[m, r]
-            if k < 0 or obs[k, 0] != obs[k, 0]:  # noqa: PLR0124
-                continue
-            d2 = 0.0
-            e2 = 0.0
-            for a in range(3):
-                d = np.float64(points[j, a]) - obs[k, a]
-                e = ref[m, 0, a] - ref[m, 1 + r, a]
-                d2 += d * d
-                e2 += e * e
-            if abs(np.sqrt(d2) - np.sqrt(e2)) > slack + 3.0 * cost[m, r]:
+            if _breaks(p0, p1, p2, m, r, obs, anc, ref, slack, cost):
                 ok = False
                 break
         if ok:
