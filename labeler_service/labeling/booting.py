@@ -692,40 +692,35 @@ class BootingLabeler:
         done = rounds = 0
         if remote is None:
             booted = shadow._begin_catch_up(plain, result)
-            if booted is None:
-                return False
-            while done < len(since):  # the frame thread appends meanwhile
-                if cancel is not None and cancel.is_set():
-                    return False
-                tail = rounds < CATCH_UP_TAIL_ROUNDS
-                batch, done = _catch_up_plan(since, done, stride, w, tail)
-                shadow._catch_up_frames(batch)
-                rounds += 1
-            shadow._catch_up_extend()
-            done = shadow._catch_last(since, done, cancel)
-            if done < 0:
-                return False
+            feed = shadow._catch_up_frames
         else:
             # the shadow's frames run in the worker process (its Python holds the worker's
-            # GIL, not the frame path's); it comes back without its inner labeler, which is
-            # started here from its window's labels (as an install would: ~10 ms)
+            # GIL, not the frame path's)
             booted = remote.begin(shadow, plain, result)
-            if booted is None:
+            feed = remote.frames
+        if booted is None:
+            return False
+        while done < len(since):  # the frame thread appends meanwhile
+            if cancel is not None and cancel.is_set():
+                if remote is not None:
+                    remote.abort()  # the worker holds a shadow that will not finish
                 return False
-            while done < len(since):
-                if cancel is not None and cancel.is_set():
-                    return False
-                tail = rounds < CATCH_UP_TAIL_ROUNDS
-                batch, done = _catch_up_plan(since, done, stride, w, tail)
-                remote.frames(batch)
-                rounds += 1
+            tail = rounds < CATCH_UP_TAIL_ROUNDS
+            batch, done = _catch_up_plan(since, done, stride, w, tail)
+            feed(batch)
+            rounds += 1
+        if remote is None:
+            shadow._catch_up_extend()
+        else:
+            # it comes back without its inner labeler, which is started here from its
+            # window's labels (as an install would: ~10 ms)
             shadow = remote.finish()
             shadow._booter, shadow.model = self._booter, self.model
             shadow._inner_from_window()
-            done = shadow._catch_last(since, done, cancel)
-            if done < 0:
-                return False
-            snapshot.shadow = shadow
+        done = shadow._catch_last(since, done, cancel)
+        if done < 0:
+            return False
+        snapshot.shadow = shadow  # (the one that caught up: in process, the same object)
         shadow.inline_extend = False  # (the frames left are labeled on the frame path)
         snapshot.caught = _CatchUp(list(booted), done)
         return True
@@ -974,7 +969,7 @@ class CatchUpRemote(Protocol):
     shadow (:meth:`BootingLabeler.for_transfer`) with the snapshot and result and returns what
     :meth:`BootingLabeler._begin_catch_up` returned there; ``frames`` labels a batch there
     (:meth:`BootingLabeler._catch_up_frames`); ``finish`` returns the shadow (without its
-    inner labeler, booter and model)."""
+    inner labeler, booter and model); ``abort`` ends it without a result."""
 
     def begin(
         self, shadow: BootingLabeler, snapshot: BootSnapshot, result: BootResult
@@ -983,6 +978,9 @@ class CatchUpRemote(Protocol):
     def frames(self, batch: list[tuple[float, np.ndarray, bool]]) -> None: ...
 
     def finish(self) -> BootingLabeler: ...
+
+    def abort(self) -> None:
+        """Ends a catch-up that will not be finished (its job was abandoned)."""
 
 
 def _catch_up_plan(

@@ -87,6 +87,13 @@ class _Session:
         finally:
             self._release()
 
+    def abort(self) -> None:
+        """The catch-up will not finish (its job was abandoned): the worker, holding its
+        shadow, is stopped, and the next request starts a new one."""
+        if self._held:
+            self.worker._kill()
+            self._release()
+
     def _release(self) -> None:
         if self._held:
             self._held = False

@@ -90,3 +90,40 @@ def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
         w.close()
     with pytest.raises(LabelerError, match="closed"):
         w.step(lab.key, (model, lab.boot_config), snap.remote())
+
+
+def test_an_abandoned_catch_up_frees_the_worker_for_the_next_request(walk):
+    """A catch-up whose job is abandoned between two batches (over budget) stops the worker
+    that holds its shadow: the next boot request gets a new worker instead of waiting forever
+    for the held one."""
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=7)
+    _run(lab, s, range(20))
+    snap = lab.boot_snapshot()
+    res = lab.boot_step(snap)
+    _run(lab, s, range(20, 110))
+    w = BootWorker()
+    cancel = threading.Event()
+    session = w.catch_up(lab, cancel)
+
+    class AbandonedAfterBegin:
+        def begin(self, shadow, snapshot, result):
+            out = session.begin(shadow, snapshot, result)
+            cancel.set()  # the budget runs out while the first batch is prepared
+            return out
+
+        frames, finish, abort = session.frames, session.finish, session.abort
+
+    try:
+        assert not lab.catch_up(snap, res, cancel, AbandonedAfterBegin())
+        assert w.started == 1 and w.pid is None  # the held worker was stopped
+        done: list = []
+        t = threading.Thread(
+            target=lambda: done.append(lab.boot_step(snap, w.runner(lab))), daemon=True
+        )
+        t.start()
+        t.join(timeout=120.0)
+        assert done and len(done[0].subjects) == 3 and w.started == 2
+    finally:
+        w.close()
