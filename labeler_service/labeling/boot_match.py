@@ -402,7 +402,16 @@ def _select(
         if bodies.shape[0] == 0:
             return np.flatnonzero(chosen)
         bb = bodies >= 0
-        free = ~np.any(blocked[bodies] & bb, axis=1)
+        if complete:
+            # completing a booted subject, a candidate may share placed markers (the same
+            # nodes: a foot body on the placed ankle, whose heel, toe and metatarsal have no
+            # other rigid partner placed): its new nodes are what it adds and is scored on,
+            # the shared ones count as agreements with the set
+            shared = (chosen[bodies] & bb).sum(axis=1)
+            bb = bb & ~chosen[np.maximum(bodies, 0)]
+        else:
+            shared = np.zeros(bodies.shape[0], dtype=np.int64)
+        free = ~np.any(blocked[bodies] & bb, axis=1) & bb.any(axis=1)
         count = (links[bodies] * bb).sum(axis=1)
         # links counted softly (1 - |d - D| / tolerance each): a symmetric segment read either
         # way, or the left foot read as the right one, has as many links but farther from D
@@ -425,11 +434,12 @@ def _select(
         # a segment whose markers keep their rigid distances to the set (an elbow's to the
         # forearm's) joins first, however far its articulated pairs are from the trained
         # poses: at least ``min_support + 1`` agreements spread over two or more of its markers
-        rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1), 0)
+        rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1) + shared, 0)
         if rsum.max() > config.min_support:
             best = int(np.argmax(rsum))
         elif count[best] < config.min_links or total[best] < 0:
-            best = _beside_joint(g, chosen, bodies, free & beside, near) if complete else -1
+            rows = np.where(bb, bodies, -1)
+            best = _beside_joint(g, chosen, rows, free & beside, near) if complete else -1
             if best < 0:
                 return np.flatnonzero(chosen)
         b = bodies[best][bb[best]]

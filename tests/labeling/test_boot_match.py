@@ -153,3 +153,33 @@ def test_marker_on_a_wrong_point_moves_to_its_free_point(walker):
     free[truth[truth >= 0]] = False
     _relocate(tpl, assign, pts, free, cKDTree(pts))
     np.testing.assert_array_equal(assign, truth)
+
+
+@pytest.mark.realdata
+def test_a_body_on_one_placed_marker_completes_a_booted_subject(real_path):
+    """The CMU right foot: its bodies (ankle, toe, fifth metatarsal; ankle, heel, fifth
+    metatarsal) share only the ankle with the rest of the subject, and heel, toe and metatarsal
+    have no other rigid partner placed, so no marker of them alone has the two agreements a node
+    needs. The extension takes the body candidate on the placed ankle (it was refused because its
+    ankle node was the placed one: the booted demo performer kept its foot unlabeled for 10 s)."""
+    from labeler_service.capture import read_capture
+    from offline.structure import StructureTrainer
+
+    cap = read_capture(real_path("cmu_01_01_playground.c3d"))
+    model = StructureTrainer().fit([cap.frames(1800, 2400)]).model_  # the demo's bodies
+    names = list(model.marker_names)
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    cols = np.array([col[n] for n in names])
+    hist = np.transpose(cap.positions[600:612, cols].astype(np.float64), (1, 0, 2))
+    keep = np.isfinite(hist).all(axis=(1, 2))
+    truth = np.where(keep, np.cumsum(keep) - 1, -1)  # marker -> point index
+    hist = hist[keep]
+    foot = [names.index(f"{model.subjects[0].name}:{m}") for m in ("RHEE", "RTOE", "RMT5")]
+    assert (truth[foot] >= 0).all()
+    labels = np.full(hist.shape[0], -1, dtype=np.int64)
+    placed = np.flatnonzero(truth >= 0)
+    placed = placed[~np.isin(placed, foot)]
+    labels[truth[placed]] = placed
+    out = Booter(model, BootConfig()).extend(hist[:, -1], hist, labels, [0])
+    assert out[truth[foot]].tolist() == foot
+    assert np.array_equal(out[truth[placed]], placed)  # labels given are kept
