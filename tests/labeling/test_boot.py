@@ -137,6 +137,18 @@ def _run(lab, s: Stream, frames: range):
     return outs, truths
 
 
+def _attempt(model, cap, seed: int, frames: int = 20):
+    """A booting labeler (attempts off the frame path) fed ``frames`` frames of a stream of
+    ``cap``, then one attempt: ``(labeler, stream, snapshot, result)``."""
+    from labeler_service.labeling.booting import BootingLabeler
+
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    s = Stream(cap, model, seed=seed)
+    _run(lab, s, range(frames))
+    snap = lab.boot_snapshot()
+    return lab, s, snap, lab.boot_step(snap)
+
+
 def test_booting_labeler_boots_all_present_subjects(walk):
     model, stream_cap = walk
     s = Stream(stream_cap, model, seed=3)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from labeling.test_boot import RATE, Stream, _run
+from labeling.test_boot import RATE, Stream, _attempt, _run
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot import BootConfig
@@ -107,11 +107,7 @@ def test_boot_result_installed_frames_later_follows_the_tracks(walk):
 
 def test_install_skips_a_subject_booted_meanwhile(walk):
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    s = Stream(cap, model, seed=4)
-    _run(lab, s, range(20))
-    snap = lab.boot_snapshot()
-    res = lab.boot_step(snap)
+    lab, s, snap, res = _attempt(model, cap, seed=4)
     assert res.subjects
     first = lab.install_boot(snap, res)
     assert first.size == len(res.subjects)
@@ -244,11 +240,7 @@ def test_a_late_result_is_caught_up_instead_of_following_broken_tracks(walk):
 
 def test_catch_up_gives_nothing_to_install_without_a_booted_subject(walk):
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    s = Stream(cap, model, seed=4)
-    _run(lab, s, range(20))
-    snap = lab.boot_snapshot()
-    res = lab.boot_step(snap)
+    lab, s, snap, res = _attempt(model, cap, seed=4)
     res.subjects.clear()  # as an attempt that found no one
     assert not lab.catch_up(snap, res)
     assert lab.install_boot(snap, res).size == 0 and lab.active_subjects == ()
@@ -260,11 +252,7 @@ def test_a_result_a_few_frames_late_is_installed_along_the_tracks(walk):
     from labeler_service.labeling.booting import CATCH_UP_AFTER_S
 
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    s = Stream(cap, model, seed=4)
-    _run(lab, s, range(20))
-    snap = lab.boot_snapshot()
-    res = lab.boot_step(snap)
+    lab, s, snap, res = _attempt(model, cap, seed=4)
     late = int(CATCH_UP_AFTER_S * RATE) - 1
     _run(lab, s, range(20, 20 + late))
     assert not lab.catch_up(snap, res) and snap.caught is None

@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 import pytest
-from labeling.test_boot import RATE, Stream, _run
+from labeling.test_boot import RATE, Stream, _attempt, _run
 
 from labeler_service.errors import BudgetExceeded, LabelerError
 from labeler_service.labeling.booting import BootingLabeler
@@ -54,11 +54,7 @@ def test_a_catch_up_in_the_worker_installs_as_the_local_one(walk, worker):
     model, cap = walk
     outs = []
     for remote in (False, True):
-        lab = BootingLabeler(model, RATE, inline_boot=False)
-        s = Stream(cap, model, seed=5)
-        _run(lab, s, range(20))
-        snap = lab.boot_snapshot()
-        res = lab.boot_step(snap)
+        lab, s, snap, res = _attempt(model, cap, seed=5)
         _run(lab, s, range(20, 110))  # the attempt "took" 90 frames (0.75 s)
         assert lab.catch_up(snap, res, None, worker.catch_up(lab) if remote else None)
         assert snap.caught is not None and snap.caught.done == 90
@@ -97,11 +93,7 @@ def test_an_abandoned_catch_up_frees_the_worker_for_the_next_request(walk):
     that holds its shadow: the next boot request gets a new worker instead of waiting forever
     for the held one."""
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    s = Stream(cap, model, seed=7)
-    _run(lab, s, range(20))
-    snap = lab.boot_snapshot()
-    res = lab.boot_step(snap)
+    lab, s, snap, res = _attempt(model, cap, seed=7)
     _run(lab, s, range(20, 110))
     w = BootWorker()
     cancel = threading.Event()
