@@ -30,6 +30,18 @@ def _tracks(m: int):
     return new_tracks(np.full(m, 1e6), np.ones(m, dtype=bool), [list(range(m))])
 
 
+def _anchored():
+    """Marker 0 snapshot at (100, 0, 0) with anchors 1 at the origin and 2 at (0, 100, 0),
+    both observed there now: ``(tracks, snapshot, obs)``."""
+    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
+    tr = _tracks(3)
+    tr.anc[0] = (1, 2)
+    tr.anc_ref[0] = ref
+    obs = np.full((3, 3), np.nan)
+    obs[1:] = ref[1:]
+    return tr, ref, obs
+
+
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     a = axis / np.linalg.norm(axis)
     k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
@@ -103,12 +115,8 @@ def test_snapshot_takes_the_two_most_rigid_observed_co_members():
 
 
 def test_lost_marker_is_re_anchored_only_when_its_state_breaks_an_anchor_link():
-    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
-    tr = _tracks(3)
-    tr.anc[0] = (1, 2)
-    tr.anc_ref[0] = ref
-    obs = np.full((3, 3), np.nan)
-    obs[1:] = ref[1:] + 500.0
+    tr, ref, obs = _anchored()
+    obs[1:] += 500.0
     tr.x[1:] = 0.0
     tr.x[1:, 3:] = (10.0, 20.0, 30.0)  # the anchors' velocity
     missing = np.array([True, False, False])
@@ -131,12 +139,7 @@ def test_lost_marker_is_re_anchored_only_when_its_state_breaks_an_anchor_link():
 
 
 def test_slack_grows_with_the_anchor_links_deviation():
-    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
-    tr = _tracks(3)
-    tr.anc[0] = (1, 2)
-    tr.anc_ref[0] = ref
-    obs = np.full((3, 3), np.nan)
-    obs[1:] = ref[1:]
+    tr, ref, obs = _anchored()
     tr.x[0, :3] = (160.0, 0.0, 0.0)  # 60 mm off the link to anchor 1
     assert _anchor_broken(0, obs, tr.anc, tr.anc_ref, tr.x, 45.0, tr.anc_cost)
     tr.anc_cost[0, 0] = 6.0  # a link that slides: 45 + 3 * 6 = 63 mm
@@ -145,12 +148,7 @@ def test_slack_grows_with_the_anchor_links_deviation():
 
 
 def test_filter_keeps_only_points_that_keep_the_anchor_links():
-    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
-    tr = _tracks(3)
-    tr.anc[0] = (1, 2)
-    tr.anc_ref[0] = ref
-    obs = np.full((3, 3), np.nan)
-    obs[1:] = ref[1:]
+    tr, ref, obs = _anchored()
     # point 0: the marker (both links kept); 1: right distance to anchor 1, wrong to anchor 2;
     # 2: 30 mm off both (within the slack); 3: a ghost far off
     pts = np.array([[100, 0, 0], [0, -100, 0], [130, 0, 0], [300, 300, 0]], dtype=np.float32)
