@@ -700,15 +700,20 @@ class BootingLabeler:
             feed = remote.frames
         if booted is None:
             return False
-        while done < len(since):  # the frame thread appends meanwhile
-            if cancel is not None and cancel.is_set():
-                if remote is not None:
-                    remote.abort()  # the worker holds a shadow that will not finish
-                return False
-            tail = rounds < CATCH_UP_TAIL_ROUNDS
-            batch, done = _catch_up_plan(since, done, stride, w, tail)
-            feed(batch)
-            rounds += 1
+        try:
+            while done < len(since):  # the frame thread appends meanwhile
+                if cancel is not None and cancel.is_set():
+                    if remote is not None:
+                        remote.abort()  # the worker holds a shadow that will not finish
+                    return False
+                tail = rounds < CATCH_UP_TAIL_ROUNDS
+                batch, done = _catch_up_plan(since, done, stride, w, tail)
+                feed(batch)
+                rounds += 1
+        except BaseException:
+            if remote is not None:
+                remote.abort()  # (a no-op when the failed request released it already)
+            raise
         if remote is None:
             shadow._catch_up_extend()
         else:

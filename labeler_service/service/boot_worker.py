@@ -66,7 +66,7 @@ class _Session:
             spec = None if lab.key in w._known else (lab.model, lab.boot_config)
             msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
             booted = w._request(msg, self.cancel, "catch-up")
-            w._known.add(lab.key)
+            w._note(lab.key)
         except BaseException:
             self._release()
             raise
@@ -164,7 +164,8 @@ class BootWorker:
         self._lock = threading.Lock()
         self._proc: Any = None
         self._conn: Connection | None = None
-        self._known: set[str] = set()  # labeler keys whose booter the worker has
+        #: labeler keys whose booter the worker has, in the worker's LRU order
+        self._known: OrderedDict[str, None] = OrderedDict()
         self._closed = False
         #: worker processes started so far (restarts after a kill or a crash included)
         self.started = 0
@@ -210,15 +211,31 @@ class BootWorker:
         with self._lock:
             conn = self._ensure()
             conn.send(("step", key, None if key in self._known else spec, snapshot))
-            self._known.add(key)
-            return self._reply(conn, cancel, "boot step")
+            out = self._reply(conn, cancel, "boot step")
+            self._note(key)
+            return out
 
     def close(self) -> None:
         """Stops the worker (a running attempt is killed); later requests are refused."""
         self._closed = True
         self._kill()
 
+    @property
+    def enabled(self) -> bool:
+        """Started once and not closed: requests go to the worker (a killed or crashed one is
+        started again by the next request)."""
+        return self.started > 0 and not self._closed
+
     # ------------------------------------------------------------------ internals
+    def _note(self, key: str) -> None:
+        """``key``'s booter is in the worker now, most recently used; the worker drops the
+        least recently used beyond ``MAX_BOOTERS`` and so does this mirror (a dropped key is
+        sent its model again)."""
+        self._known[key] = None
+        self._known.move_to_end(key)
+        while len(self._known) > MAX_BOOTERS:
+            self._known.popitem(last=False)
+
     def _request(self, msg: tuple, cancel: threading.Event | None, what: str) -> Any:
         """One request-reply (the caller holds the lock)."""
         conn = self._ensure()
@@ -236,7 +253,7 @@ class BootWorker:
                                daemon=True)  # fmt: skip
             proc.start()
             child.close()
-            self._proc, self._conn, self._known = proc, parent, set()
+            self._proc, self._conn, self._known = proc, parent, OrderedDict()
             self.started += 1
         return self._conn
 
@@ -266,7 +283,7 @@ class BootWorker:
 
     def _kill(self) -> None:
         proc, conn = self._proc, self._conn
-        self._proc, self._conn, self._known = None, None, set()
+        self._proc, self._conn, self._known = None, None, OrderedDict()
         if conn is not None:
             with contextlib.suppress(OSError):
                 conn.close()

@@ -645,9 +645,10 @@ class StreamState:
         self.boot_inflight = True
         # the worker process only once started (by the server, for streams that boot): a
         # recovery on a service without one boots in the job's thread rather than wait for a
-        # worker's start-up (seconds: imports and kernels)
+        # worker's start-up (seconds: imports and kernels); a worker killed since (an
+        # abandoned attempt) is started again by the request
         w = self.boot_worker
-        return BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.pid else None)
+        return BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.enabled else None)
 
     @staticmethod
     def boot_job(request: BootRequest, cancel: threading.Event | None = None) -> BootOutcome:
@@ -661,7 +662,11 @@ class StreamState:
         result = lab.boot_step(request.snapshot, runner)
         t1 = time.perf_counter()
         remote = None if request.worker is None else request.worker.catch_up(lab, cancel)
-        caught = lab.catch_up(request.snapshot, result, cancel, remote)
+        try:
+            caught = lab.catch_up(request.snapshot, result, cancel, remote)
+        except LabelerError as exc:  # (the worker lost or failed): the result still counts
+            log.warning("boot catch-up failed, the result follows the tracks instead: %s", exc)
+            caught = False
         thread = threading.current_thread().name
         frames = request.snapshot.caught.done if caught and request.snapshot.caught else 0
         return BootOutcome(

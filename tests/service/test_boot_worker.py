@@ -76,6 +76,7 @@ def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
         with pytest.raises(BudgetExceeded):
             lab.boot_step(snap, w.runner(lab, cancel))
         assert w.pid is None and w.started == 1
+        assert w.enabled  # streams keep sending their attempts: the next one restarts it
         res = lab.boot_step(snap, w.runner(lab))
         assert len(res.subjects) == 3 and w.started == 2
         # a failure inside the worker comes back as our error (the worker keeps serving)
@@ -84,8 +85,29 @@ def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
         assert w.pid is not None and w.started == 2
     finally:
         w.close()
+    assert not w.enabled
     with pytest.raises(LabelerError, match="closed"):
         w.step(lab.key, (model, lab.boot_config), snap.remote())
+
+
+def test_the_worker_forgets_booters_as_it_drops_them(walk):
+    """The worker keeps ``MAX_BOOTERS`` booters, least recently used dropped; the service's
+    side mirrors it, so a labeler whose booter was dropped sends its model again (it used to
+    be refused for good with "no model for labeler")."""
+    from labeler_service.service import boot_worker
+
+    model, cap = walk
+    lab, _, snap, _ = _attempt(model, cap, seed=4)
+    w = BootWorker()
+    try:
+        spec = (model, lab.boot_config)
+        for k in range(boot_worker.MAX_BOOTERS + 1):
+            w.step(f"labeler-{k}", spec, snap.remote())
+        assert "labeler-0" not in w._known and len(w._known) == boot_worker.MAX_BOOTERS
+        result = w.step("labeler-0", spec, snap.remote())[0]  # (result, extended, ms)
+        assert len(result.subjects) == 3
+    finally:
+        w.close()
 
 
 def test_an_abandoned_catch_up_frees_the_worker_for_the_next_request(walk):
