@@ -101,9 +101,12 @@ class _Session:
 
 
 def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in the child
-    """The worker's loop: ``("ping",)`` -> ``(True, None)`` once the kernels are warm;
-    ``("step", key, model_and_config_or_None, snapshot)`` -> ``(True, (result, extended,
-    ms))`` or ``(False, traceback text)``."""
+    """The worker's loop, one request at a time, each answered ``(True, value)`` or
+    ``(False, traceback text)``: ``("ping",)`` -> None once the kernels are warm; ``("step",
+    key, model_and_config_or_None, snapshot)`` -> ``(result, extended, ms)``; a catch-up:
+    ``("catch", key, model_and_config_or_None, shadow, snapshot, result)`` -> the subjects
+    booted (the shadow stays here), ``("frames", batch)`` labels a batch on it, ``("finish",)``
+    -> the shadow (for transfer)."""
     with contextlib.suppress(OSError):
         os.nice(nice)
     from labeler_service.labeling.boot import Booter, warmup_kernels

@@ -168,8 +168,8 @@ def _anchor_broken(m, obs, anc, ref, x, slack, cost):
 @njit
 def _anchor_lost(obs, missing, has_rec, tracks, slack):
     """Re-anchors the Kalman state of every marker missing this frame (``missing``) that has
-    no rigid estimate (``has_rec < 3``) and whose state breaks a link to an observed anchor by
-    more than ``slack`` mm (:func:`_anchor_broken`): position = the anchored estimate,
+    no rigid estimate (``has_rec < 3``) and whose state breaks a link to an observed anchor
+    (:func:`_anchor_broken`, ``slack + 3 cost`` mm): position = the anchored estimate,
     velocity = the anchor's (its Kalman state after this frame's update)."""
     x, anc, ref = tracks.x, tracks.anc, tracks.anc_ref
     for m in range(obs.shape[0]):
@@ -186,8 +186,8 @@ def _anchor_lost(obs, missing, has_rec, tracks, slack):
 @njit
 def _anchor_filter(m, points, obs, anc, ref, slack, cost, cand, cand_d2, ncand):
     """Keeps, of marker ``m``'s candidates ``cand[m, :ncand[m]]`` (in order), only the points
-    whose distance to each observed anchor differs from the snapshot distance by at most
-    ``slack`` mm: a re-acquired point must keep the marker's rigid links. Ghosts and the points
+    that break no link to an observed anchor (:func:`_breaks`, ``slack + 3 cost`` mm): a
+    re-acquired point must keep the marker's rigid links. Ghosts and the points
     of the limb's other markers, near the anchored estimate but off those distances, drop."""
     kept = 0
     for c in range(ncand[m]):
