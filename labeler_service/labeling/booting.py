@@ -142,8 +142,6 @@ class BootSnapshot:
     labels: np.ndarray | None = None
     active: list[int] = field(default_factory=list)
     extended: np.ndarray | None = None
-    #: the subjects labeled at the snapshot (model indices)
-    running: list[int] = field(default_factory=list)
     #: the frames labeled since the snapshot, appended by :meth:`BootingLabeler.process`
     #: while the attempt is in flight (None: not recorded)
     since: list[_Frame] | None = None
@@ -541,7 +539,6 @@ class BootingLabeler:
             history=track_history(frames, last.ids),
             free=last.labels < 0,
             subjects=[],
-            running=sorted(self._active),
         )
         if boot:
             self._since_attempt = 0
@@ -590,8 +587,7 @@ class BootingLabeler:
         if snapshot.since is self._since:
             self._since = None  # the attempt ends here: stop recording frames for it
         if result is not None and snapshot.caught is not None and recording:
-            if self._labeled_run:  # labeled frames meanwhile: their start wins
-                return np.zeros(0, dtype=np.int64)
+            # (labeled frames meanwhile stopped the recording: their start wins)
             booted = self._install_caught(snapshot)
             if booted is not None:
                 return booted
@@ -686,7 +682,7 @@ class BootingLabeler:
             return False
         if len(since) < CATCH_UP_AFTER_S * self.rate:
             return False
-        plain = dataclasses.replace(snapshot, since=None, shadow=None)
+        plain = snapshot.remote()
         stride = max(1, int(self.rate // CATCH_UP_HZ))
         w = self._window.maxlen or 1
         done = rounds = 0
@@ -726,7 +722,6 @@ class BootingLabeler:
         if done < 0:
             return False
         snapshot.shadow = shadow  # (the one that caught up: in process, the same object)
-        shadow.inline_extend = False  # (the frames left are labeled on the frame path)
         snapshot.caught = _CatchUp(list(booted), done)
         return True
 
@@ -734,15 +729,8 @@ class BootingLabeler:
         """On a shadow (:meth:`catch_up`): a new inner labeler with the subjects labeled at the
         snapshot (from its window), then the result installed as an instant attempt would;
         returns the subjects booted (None: none)."""
-        self._inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
-        self._inner_known[:] = False
-        running = [self.model.subjects[s].name for s in sorted(self._active)]
         try:
-            if running:  # the subjects labeled at the snapshot restart from its window
-                win = [(f.t, f.points, f.labels) for f in self._window]
-                self._inner.add_subjects(running, win)
-                for f in self._window:
-                    self._inner_known[f.labels[f.labels >= 0]] = True
+            self._restart_inner()  # the subjects labeled at the snapshot, from its window
             booted = self.install_boot(snapshot, result)
             if booted.size:
                 # markers the boot missed, before the booted markers' predictions can take
@@ -752,16 +740,15 @@ class BootingLabeler:
             return None
         return booted.tolist() if booted.size else None
 
-    def _catch_up_frames(self, batch: list[tuple[float, np.ndarray, bool]]) -> None:
-        """On a shadow: labels ``(t, points, full)`` frames, without the extension: the
+    def _catch_up_frames(self, batch: list[tuple[float, np.ndarray]]) -> None:
+        """On a shadow: labels ``(t, points)`` frames, without the extension: the
         catch-up extends once right after the install (:meth:`_begin_catch_up`) and once at
         its end. 10 hugging performers, result 1.7 s late, correct over the last second: 0.85
         installed at once; caught up with the extension every period 0.84 (5.4 s of catch-up
         on a loaded machine), never 0.76, after the install and at the end 0.80 (1.5 s). An
         extension costs tens to hundreds of ms (a 4-walker catch-up with one per full-rate
         round fell 2 s behind the stream on a loaded machine: 0.4 s a round)."""
-        self.inline_extend = False
-        for t, points, _ in batch:
+        for t, points in batch:
             self.process(points, t)
 
     def _catch_last(self, since: list[_Frame], done: int, cancel: threading.Event | None) -> int:
@@ -776,9 +763,7 @@ class BootingLabeler:
             while done < len(since):
                 if cancel is not None and cancel.is_set():
                     return -1
-                f = since[done]
-                self.inline_extend = False
-                self.process(f.points, f.t)
+                self._catch_up_frames([(since[done].t, since[done].points)])
                 done += 1
             if waited:
                 return done
@@ -794,16 +779,21 @@ class BootingLabeler:
         if self._active and full and np.any(self._window[-1].labels < 0):
             self._extend()
 
-    def _inner_from_window(self) -> None:
-        """On a shadow back from the worker process: its inner labeler, started from its
-        window's labels (every subject it labels)."""
+    def _restart_inner(self) -> None:
+        """On a shadow: a new inner labeler, started from the window's labels of the active
+        subjects."""
         self._inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+        self._inner_known[:] = False
         names = [self.model.subjects[s].name for s in sorted(self._active)]
         if names:
             self._inner.add_subjects(names, [(f.t, f.points, f.labels) for f in self._window])
-        self._inner_known[:] = False
-        for f in self._window:
-            self._inner_known[f.labels[f.labels >= 0]] = True
+            for f in self._window:
+                self._inner_known[f.labels[f.labels >= 0]] = True
+
+    def _inner_from_window(self) -> None:
+        """On a shadow back from the worker process: its inner labeler, started from its
+        window's labels (every subject it labels), and its marker states from the last frame."""
+        self._restart_inner()
         last = self._window[-1].labels
         self._inner_state = np.zeros(len(self._names), dtype=np.uint8)
         self._inner_state[last[last >= 0]] = MarkerState.OBSERVED
@@ -819,8 +809,9 @@ class BootingLabeler:
 
     def _install_caught(self, snapshot: BootSnapshot) -> np.ndarray | None:
         """The install after :meth:`catch_up`: the shadow labels the frames that arrived since
-        it finished, then this labeler takes its state over (the point tracker stays: the
-        shadow's, started from a copy and fed the same frames, gave the same track ids). None:
+        it finished, then this labeler takes its state over (the point tracker stays: this
+        labeler's, which saw every frame; the shadow saw every stride-th frame while behind, so
+        its window's labels come over by frame time). None:
         not applicable (the shadow's tracks differ), the caller installs along the tracks."""
         cu, shadow = snapshot.caught, snapshot.shadow
         assert cu is not None and shadow is not None and snapshot.since is not None
@@ -869,6 +860,7 @@ class BootingLabeler:
         sh._inner = None  # type: ignore[assignment]
         sh._since = None
         sh.inline_boot = False  # the shadow never starts attempts
+        sh.inline_extend = False  # nor extensions: the catch-up places them (_catch_up_extend)
         sh.events = []
         sh.boot_ms = []
         sh.acquired = 0
@@ -980,7 +972,7 @@ class CatchUpRemote(Protocol):
         self, shadow: BootingLabeler, snapshot: BootSnapshot, result: BootResult
     ) -> list[int] | None: ...
 
-    def frames(self, batch: list[tuple[float, np.ndarray, bool]]) -> None: ...
+    def frames(self, batch: list[tuple[float, np.ndarray]]) -> None: ...
 
     def finish(self) -> BootingLabeler: ...
 
@@ -990,7 +982,7 @@ class CatchUpRemote(Protocol):
 
 def _catch_up_plan(
     since: list[_Frame], done: int, stride: int, w: int, tail: bool
-) -> tuple[list[tuple[float, np.ndarray, bool]], int]:
+) -> tuple[list[tuple[float, np.ndarray]], int]:
     """The next round of a catch-up, from ``since[done]`` to the newest frame: every
     ``stride``-th frame (at least ``CATCH_UP_HZ``: the labeler's Kalman takes the longer steps)
     while more than a window (``w``) behind, then (``tail``) every frame, so that the window
@@ -999,13 +991,12 @@ def _catch_up_plan(
     correct). A round costs a ``stride``-th of the frames that arrived meanwhile plus a window;
     when frames cost more than a period (a loaded machine) the full-rate window never catches
     up, so after ``CATCH_UP_TAIL_ROUNDS`` rounds the caller asks for no tail (strided to the
-    newest frame). Returns ``[(t, points, full)]`` (``full``: a frame of the full-rate
-    window, where the extension may run) and the next ``done``."""
+    newest frame). Returns ``[(t, points)]`` and the next ``done``."""
     n = len(since)
-    out: list[tuple[float, np.ndarray, bool]] = []
+    out: list[tuple[float, np.ndarray]] = []
     while done < n:
         full = tail and n - done <= w + stride
-        out.append((since[done].t, since[done].points, full))
+        out.append((since[done].t, since[done].points))
         if full:
             done += 1
         else:

@@ -150,7 +150,6 @@ def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in t
             elif kind == "finish":
                 shadow._catch_up_extend()
                 out, shadow = shadow.for_transfer(), None
-                out.inline_extend = False
                 conn.send((True, out))
             else:
                 raise LabelerError(f"boot worker: unknown request {kind!r}")
@@ -183,9 +182,7 @@ class BootWorker:
         """Starts the worker and waits until its kernels are warm (blocking: call it off the
         event loop, e.g. with ``asyncio.to_thread``)."""
         with self._lock:
-            conn = self._ensure()
-            conn.send(("ping",))
-            self._reply(conn, None, "warm-up")
+            self._request(("ping",), None, "warm-up")
 
     def runner(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> StepRunner:
         """The ``runner`` for ``labeler.boot_step`` (see the module docstring)."""
@@ -212,9 +209,8 @@ class BootWorker:
         """:func:`~labeler_service.labeling.booting.boot_step_on` in the worker with the booter
         of ``key`` (built from ``spec`` = ``(model, BootConfig)`` the first time)."""
         with self._lock:
-            conn = self._ensure()
-            conn.send(("step", key, None if key in self._known else spec, snapshot))
-            out = self._reply(conn, cancel, "boot step")
+            msg = ("step", key, None if key in self._known else spec, snapshot)
+            out = self._request(msg, cancel, "boot step")
             self._note(key)
             return out
 
@@ -258,6 +254,9 @@ class BootWorker:
             child.close()
             self._proc, self._conn, self._known = proc, parent, OrderedDict()
             self.started += 1
+            if self._closed:  # closed while it started (close takes no lock)
+                self._kill()
+                raise LabelerError("boot worker: closed")
         return self._conn
 
     def _reply(self, conn: Connection, cancel: threading.Event | None, what: str) -> Any:

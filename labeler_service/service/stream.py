@@ -161,14 +161,14 @@ class BootRequest:
 @dataclass(slots=True)
 class BootOutcome:
     """What a boot job returns: the boot's result, its wall time and the thread it ran in
-    (``worker``: its step ran in the boot worker process), and the catch-up's frames and time."""
+    (``worker``: its step ran in the boot worker process), and the frames the catch-up
+    labeled."""
 
     result: BootResult
     seconds: float
     thread: str
     worker: bool = False
     caught_frames: int = 0
-    catch_up_s: float = 0.0
 
 
 @dataclass(slots=True)
@@ -669,9 +669,7 @@ class StreamState:
             caught = False
         thread = threading.current_thread().name
         frames = request.snapshot.caught.done if caught and request.snapshot.caught else 0
-        return BootOutcome(
-            result, t1 - t0, thread, runner is not None, frames, time.perf_counter() - t1
-        )
+        return BootOutcome(result, t1 - t0, thread, runner is not None, frames)
 
     def boot_done(self, request: BootRequest, outcome: BootOutcome | None) -> None:
         """Hands a finished attempt to the next :meth:`process` (``None``: abandoned or
