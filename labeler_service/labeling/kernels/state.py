@@ -359,7 +359,8 @@ class Scratch(NamedTuple):
       ``rec (M, 3)``: recovered positions (or re-acquisition centres);
       ``has_rec (M,)`` int64: neighbours a recovery used (0 = none);
       ``missing (M,)`` bool: to recover (also the scratch flag of the re-acquisition pass and
-      of the 3D check).
+      of the 3D check); ``anchored (M,)`` bool: searched around its anchored estimate in the
+      re-acquisition pass (kernels/anchor.py).
     - ``cm_buf (3, M)``, ``cm_shift (S, 3)``: the common-mode shift's offsets and result.
     - ``fit``: :class:`FitScratch`; ``kab``: :class:`KabschScratch`.
     """
@@ -374,6 +375,7 @@ class Scratch(NamedTuple):
     rec: np.ndarray
     has_rec: np.ndarray
     missing: np.ndarray
+    anchored: np.ndarray
     cm_buf: np.ndarray
     cm_shift: np.ndarray
     fit: FitScratch
@@ -394,6 +396,7 @@ def new_scratch(n_markers: int, n_bodies: int, n_subjects: int, K: int, n_points
         rec=np.full((m, 3), np.nan),
         has_rec=np.zeros(m, dtype=np.int64),
         missing=np.zeros(m, dtype=np.bool_),
+        anchored=np.zeros(m, dtype=np.bool_),
         cm_buf=np.zeros((3, m)),
         cm_shift=np.zeros((n_subjects, 3)),
         fit=new_fit_scratch(m, n_bodies, K),

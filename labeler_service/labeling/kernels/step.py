@@ -375,7 +375,9 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
         return
     # centre: the rigid estimate from the neighbours seen so far, else the prediction
     _observed(assigned, points, obs)
+    anchored = scratch.anchored
     for i in range(m_total):
+        anchored[i] = False
         if not missing[i]:
             continue
         kept = 0
@@ -396,6 +398,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             if params.anchor_lost and _anchor_broken(
                 i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost
             ):
+                anchored[i] = True
                 k = _anchor_estimate(i, obs, anc, anc_ref, rec)
             if k < 0:
                 for c in range(3):
@@ -408,11 +411,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
         # an anchored search keeps only points that keep the marker's anchor links
         anc, anc_ref, slack = tracks.anc, tracks.anc_ref, params.anchor_slack_mm
         for i in range(m_total):
-            if (
-                missing[i]
-                and s[i] == params.reacquire_mm
-                and _anchor_broken(i, obs, anc, anc_ref, x, slack, tracks.anc_cost)
-            ):
+            if anchored[i]:
                 _anchor_filter(
                     i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand
                 )
