@@ -838,7 +838,8 @@ def _pair_error(
     tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
 ) -> float:
     """Distance error of ``markers`` placed on ``points`` against the rest of ``assign`` and
-    among themselves: pairs of one trained body ``e^2 / 2`` with ``e`` in tolerances; every
+    among themselves (:func:`_nll`): pairs of one trained body ``e^2 / 2`` with ``e`` in
+    standard deviations (``STRICT_SIGMAS`` per tolerance); every
     other pair (rigid by ``A`` alone, articulated) robustly, ``log(1 + e^2)`` with ``e`` in its
     tolerance (link tolerance for articulated pairs): a pose the model never saw moves them by
     a few tolerances, a mirrored reading (a head plate turned round, a wrist bar read the wrong

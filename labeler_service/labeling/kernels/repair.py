@@ -323,7 +323,7 @@ def _mirrors(bodies, points, assigned, m, pm, m2, pm2, check_mm, kab):
             c1, r1 = _rms_with(b, bodies, points, assigned, m, pm, m2, pm2, kab)
             if c1 < 4 or r1 <= check_mm:
                 continue
-            c0, r0 = _rms_with(b, bodies, points, assigned, m, assigned[m], m2, assigned[m2], kab)
+            _, r0 = _rms_with(b, bodies, points, assigned, m, assigned[m], m2, assigned[m2], kab)
             if r1 > r0:
                 return True
     return False
