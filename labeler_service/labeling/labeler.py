@@ -246,6 +246,7 @@ class Labeler:
         tr.gone[markers] = False
         tr.state[markers] = MarkerState.MISSING
         tr.pos[markers] = np.nan
+        tr.tent[markers] = 0
         self._recovery.ok[markers] = False
         if bodies.size == 0:
             return
