@@ -285,27 +285,3 @@ class LabelerConfig(BaseModel):
         description="a subject whose markers have all been missing this many frames has left: "
         "its markers are not re-acquired by the wide pass (0 = off)",
     )
-    vouch: bool = Field(
-        True,
-        description="vouch check (kernels/vouch.py): a new label (an acquisition, or a marker "
-        "whose point moved off its prediction) is kept only when vouch_need members of one of "
-        "its rigid bodies, on continuing tracks, keep their D to it, or after vouch_wait frames "
-        "on the same point (a tentative track; never in a subject that is walking out)",
-    )
-    vouch_track_mm: float = Field(
-        30.0,
-        gt=0,
-        description="a label continues its marker's track when its point lies this close to the "
-        "marker's prediction (Kalman, or rigid-body / common-mode); a tentative track follows "
-        "its point within this",
-    )
-    vouch_need: int = Field(
-        2, ge=1, le=7, description="continuing body members that vouch for a new label"
-    )
-    vouch_wait: int = Field(
-        10,
-        ge=1,
-        description="frames a tentative track follows its point before its label is given "
-        "(ghosts live a few frames); a subject with fewer than half its markers continuing for "
-        "this long is walking out and takes vouched labels only",
-    )

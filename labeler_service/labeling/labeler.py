@@ -246,7 +246,6 @@ class Labeler:
         tr.gone[markers] = False
         tr.state[markers] = MarkerState.MISSING
         tr.pos[markers] = np.nan
-        tr.tent[markers] = 0
         self._recovery.ok[markers] = False
         if bodies.size == 0:
             return

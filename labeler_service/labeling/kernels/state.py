@@ -77,8 +77,6 @@ class Tracks(NamedTuple):
       rigid window links) at its last observation, -1 none; ``anc_ref (M, 3, 3)``: the positions
       of the marker and its two anchors then; ``anc_cost (M, 2)``: their links' window
       ``A + w D`` (anchored coasting, :mod:`.anchor`).
-    - ``tent (M,)`` int64: frames in a row a new label nobody vouched for has been given the
-      same point (a tentative track), ``tent_pos (M, 3)`` float32: that point (:mod:`.vouch`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -100,8 +98,6 @@ class Tracks(NamedTuple):
     anc: np.ndarray
     anc_ref: np.ndarray
     anc_cost: np.ndarray
-    tent: np.ndarray
-    tent_pos: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -124,8 +120,6 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         anc=np.full((m, 2), -1, dtype=np.int64),
         anc_ref=np.full((m, 3, 3), np.nan),
         anc_cost=np.zeros((m, 2)),
-        tent=np.zeros(m, dtype=np.int64),
-        tent_pos=np.full((m, 3), np.nan, dtype=np.float32),
     )
 
 

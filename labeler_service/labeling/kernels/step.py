@@ -56,7 +56,6 @@ from labeler_service.labeling.kernels.state import (
     Scratch,
     Tracks,
 )
-from labeler_service.labeling.kernels.vouch import _vouch
 from labeler_service.labeling.kernels.window import _window_update
 
 
@@ -126,8 +125,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _verify(points, index, frame_no, tracks, recovery, scratch, params)
     if params.repair:
         _repair(points, index, frame_no, tracks, bodies, scratch, params)
-    if params.vouch:  # new labels need continuing body members (ours, kernels/vouch.py)
-        _vouch(points, frame_no, tracks, bodies, scratch, params)
     if params.presence_min_markers > 0:
         _presence(points, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
@@ -318,8 +315,6 @@ def _presence(points, tracks, bodies, scratch, params):
             continue
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
             m = subj_idx[e]
-            if params.vouch and scratch.missing[m]:
-                continue  # a continuing label of a thin subject (kernels/vouch.py): kept
             if assigned[m] >= 0:
                 owner[assigned[m]] = NONE
                 assigned[m] = NONE
