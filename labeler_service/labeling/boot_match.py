@@ -214,6 +214,42 @@ def _triangles(pairs: _Pairs, d: np.ndarray, t: np.ndarray, limit: int) -> np.nd
 
 
 # ---------------------------------------------------------------------------- hypotheses
+@njit
+def _track_constancy(pp, hist, D, tol):
+    """Per candidate row of ``pp (C, k)`` (point per body marker, -1 missing): how many of its
+    pair distances along the tracks ``hist (N, W, 3)`` are off ``D +- tol`` (``bad``) out of
+    how many were seen (both points tracked in that frame); each ordered pair counted."""
+    C, k = pp.shape
+    W = hist.shape[1]
+    bad = np.zeros(C, dtype=np.int64)
+    seen = np.zeros(C, dtype=np.int64)
+    for c in range(C):
+        nb = 0
+        ns = 0
+        for i in range(k):
+            pi = pp[c, i]
+            if pi < 0:
+                continue
+            for j in range(i + 1, k):
+                pj = pp[c, j]
+                if pj < 0:
+                    continue
+                dm = D[i, j]
+                tl = tol[i, j]
+                for w in range(W):
+                    dx = hist[pi, w, 0] - hist[pj, w, 0]
+                    dy = hist[pi, w, 1] - hist[pj, w, 1]
+                    dz = hist[pi, w, 2] - hist[pj, w, 2]
+                    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    if np.isfinite(d):
+                        ns += 1
+                        if abs(d - dm) > tl:
+                            nb += 1
+        bad[c] = 2 * nb
+        seen[c] = 2 * ns
+    return bad, seen
+
+
 @dataclass
 class _Candidate:
     markers: np.ndarray  # template marker indices
@@ -268,14 +304,10 @@ def _body_candidates(
     pp, err = pp[sel], err[sel]
     # distance constancy of the body's pairs along the tracks
     ok = pp >= 0
-    h = hist[np.where(ok, pp, 0)]  # (C, k, W, 3)
-    d = np.linalg.norm(h[:, :, None] - h[:, None, :], axis=4)  # (C, k, k, W)
-    Dm = tpl.D[np.ix_(body.markers, body.markers)][None, :, :, None]
-    tol = tpl.tol[np.ix_(body.markers, body.markers)][None, :, :, None]
-    seen = np.isfinite(d) & (ok[:, :, None] & ok[:, None, :])[..., None]
-    seen &= ~np.eye(k, dtype=bool)[None, :, :, None]
-    bad = (seen & (np.abs(d - Dm) > tol)).sum(axis=(1, 2, 3))
-    steady = bad <= (1.0 - config.constancy) * np.maximum(seen.sum(axis=(1, 2, 3)), 1)
+    Dm = np.ascontiguousarray(tpl.D[np.ix_(body.markers, body.markers)])
+    tol = np.ascontiguousarray(tpl.tol[np.ix_(body.markers, body.markers)])
+    bad, seen = _track_constancy(pp, hist, Dm, tol)
+    steady = bad <= (1.0 - config.constancy) * np.maximum(seen, 1)
     out = []
     for c in np.flatnonzero(steady):
         v = ok[c]
@@ -1299,6 +1331,9 @@ def warmup_kernels() -> None:
     rigid = np.zeros((1, 1), dtype=np.bool_)
     dist = np.zeros((1, 1))
     _agree_count(M, M, dist, m, m, rigid, np.zeros(2, dtype=np.int64))
+    _track_constancy(
+        np.zeros((1, 2), dtype=np.int64), np.zeros((1, 2, 3)), np.zeros((2, 2)), np.ones((2, 2))
+    )
     out_b = np.zeros((2, 2), dtype=np.bool_)
     _graph_rows(
         M, np.zeros(2, dtype=np.bool_), M, M, dist, m, m, rigid, rigid.copy(), m, m,
