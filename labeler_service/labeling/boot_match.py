@@ -28,6 +28,8 @@ EXCHANGE_MARGIN = 1.0
 #: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
 #: steadiest pair deviation to any other body.
 NEIGHBOUR = 1.5
+#: Steadiest articulated pairs a segment joining through links must keep in range (_steady_links).
+STEADY_LINKS = 3
 
 
 # ---------------------------------------------------------------------------- templates
@@ -335,6 +337,7 @@ class _Graph:
         self.M = M.astype(np.int64)
         self.P = P.astype(np.int64)
         self._tables = (tpl.D, tpl.tol, tpl.rigid, tpl.strict, tpl.bound, tpl.link)
+        self.A = tpl.A  # trained deviations (the steadiest links: _steady_links)
         p = np.ascontiguousarray(pts, dtype=np.float64)
         self._dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
         self.agree = np.empty((n, n), dtype=np.bool_)
@@ -437,6 +440,7 @@ def _select(
     config: BootConfig,
     near: np.ndarray,
     complete: bool = False,
+    kind: np.ndarray | None = None,
 ) -> np.ndarray:
     """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
     links that agree with the set (at least ``min_support``) and no clash; when none is left,
@@ -451,6 +455,7 @@ def _select(
     lerr = g.link_err[seed].sum(axis=0)
     possible = g.art[seed].sum(axis=0).astype(np.int64)
     blocked = g.clash[seed].any(axis=0) | chosen | ~allowed
+    refused = np.zeros(bodies.shape[0], dtype=bool)  # candidates whose steadiest links fail
     while True:
         # rigid agreement first; among equals, the node more articulated pairs agree with
         # (breaks the near-symmetries of small segments: a wrist bar read either way)
@@ -496,7 +501,7 @@ def _select(
         differ = (against[bodies] * bb).sum(axis=1)
         # ... and not against most of its pairs rigid by A alone (a forearm read on a
         # shoulder and the head: in range of the hips, but off the trained arm-to-chest pairs)
-        ok = free & beside & (differ <= sup.sum(axis=1))
+        ok = free & beside & (differ <= sup.sum(axis=1)) & ~refused
         total = np.where(ok & (frac >= config.link_fraction), soft, -1.0)
         best = int(np.argmax(total))
         # a segment whose markers keep their rigid distances to the set (an elbow's to the
@@ -510,6 +515,9 @@ def _select(
             best = _beside_joint(g, chosen, rows, free & beside, near) if complete else -1
             if best < 0:
                 return np.flatnonzero(chosen)
+        elif not _steady_links(g, bodies[best][bb[best]], np.flatnonzero(chosen & near[best][g.M])):
+            refused[best] = True
+            continue
         b = bodies[best][bb[best]]
         chosen[b] = True
         g.rows(b)
@@ -520,6 +528,33 @@ def _select(
         possible += g.art[b].sum(axis=0)
         blocked |= g.clash[b].any(axis=0)
         blocked[b] = True
+
+
+def _steady_links(g: _Graph, nodes: np.ndarray, chosen: np.ndarray) -> bool:
+    """A segment joining through articulated links where another placement of the same body
+    could join too (a crowd): its ``STEADY_LINKS`` articulated pairs to the placed markers of
+    its chain neighbours (``chosen``: :func:`_adjacent`) with the least trained deviation
+    ``A`` must all be in range. Most pairs in range is not enough there: a hugging partner's
+    forearm where this performer's hidden upper arm should be is in range of most of the
+    shoulder's and hips' pairs, not of the steadiest ones."""
+    g.rows(nodes)
+    art = g.art[np.ix_(nodes, chosen)]
+    if not art.any():
+        return True
+    a = np.where(art, g.A[g.M[nodes][:, None], g.M[chosen][None, :]], np.inf).ravel()
+    a = np.where(np.isfinite(a), a, np.inf)
+    steady = np.argsort(a, kind="stable")[:STEADY_LINKS]
+    steady = steady[np.isfinite(a[steady])]
+    return bool(np.all(g.link[np.ix_(nodes, chosen)].ravel()[steady]))
+
+
+def _rivals(g: _Graph, bodies: np.ndarray, bb: np.ndarray, viable: np.ndarray, best: int,
+            kind: np.ndarray) -> bool:  # fmt: skip
+    """Whether a viable candidate of the same body as ``best`` lies on other points (not one of
+    its symmetric readings): the segment could be another performer's."""
+    same = np.flatnonzero(viable & (kind == kind[best]))
+    mine = set(g.P[bodies[best][bb[best]]].tolist())
+    return any(not set(g.P[bodies[r][bb[r]]].tolist()) <= mine for r in same if r != best)
 
 
 def _beside_joint(
@@ -755,6 +790,7 @@ class _Candidates:
     cm: np.ndarray
     cp: np.ndarray
     near: np.ndarray  # (C, m) markers next to each candidate's body (_adjacent)
+    kind: np.ndarray  # (C,) each candidate's body (index into the template's bodies)
 
 
 def _candidates(
@@ -791,7 +827,8 @@ def _candidates(
         cm[i, : c.markers.size] = c.markers
         cp[i, : c.markers.size] = c.points
     near = tpl.near[[c.body for c in cands]] if cands else np.zeros((0, tpl.n), dtype=bool)
-    return _Candidates(cands, g, seeds, rows, cm, cp, near)
+    kind = np.array([c.body for c in cands], dtype=np.int64)
+    return _Candidates(cands, g, seeds, rows, cm, cp, near, kind)
 
 
 def _hypotheses(
@@ -833,7 +870,7 @@ def _hypotheses(
             used[cj] = True
             centre = pts[cands[cj].points].mean(axis=0)
             allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
-            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near)
+            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near, kind=cg.kind)
             assign = np.full(tpl.n, -1, dtype=np.int64)
             assign[g.M[nodes]] = g.P[nodes]
             h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
