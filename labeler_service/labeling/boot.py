@@ -173,10 +173,9 @@ class Booter:
         w = hist.shape[1]
         tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)
         ok &= tracked >= max(1, int(np.ceil(self.config.min_track_fraction * w)))
-        labels = np.full(n, -1, dtype=np.int64)
         idx = np.flatnonzero(ok)
         if idx.size < 3:
-            return BootResult(labels, [], {})
+            return BootResult(np.full(n, -1, dtype=np.int64), [], {})
         sub_pts, sub_hist = pts[idx], hist[idx]
         pairs = _Pairs(sub_pts, self._r_max)
         wanted = range(len(self._templates)) if subjects is None else subjects
@@ -196,27 +195,48 @@ class Booter:
                 ):
                     hi.score = min(hi.score, hj.score - 1.0)
         hyps.sort(key=lambda h: -h.score)
-        taken = np.zeros(idx.size, dtype=bool)
+        taken = np.full(idx.size, -1, dtype=np.int64)  # the accepted hypothesis holding a point
+        accepted: list[tuple[_Hypothesis, np.ndarray]] = []  # with its markers' rigid support
         used: set[int] = set()
-        booted: list[str] = []
-        scores: dict[str, float] = {}
         for h in hyps:
             if h.template in used:
                 continue
             tpl = self._templates[h.template]
             assign = h.assign.copy()
-            have = assign >= 0
-            clash = np.zeros_like(have)
-            clash[have] = taken[assign[have]]
-            assign[clash] = -1
+            support = _rigid_support(tpl, assign, sub_pts)
+            have = np.flatnonzero(assign >= 0)
+            holder = taken[assign[have]]
+            lost = np.zeros(have.size, dtype=bool)
+            wins: list[tuple[int, int]] = []  # (accepted hypothesis, its marker) giving a point
+            for k in np.flatnonzero(holder >= 0):
+                other, o_sup = accepted[holder[k]]
+                o_m = int(np.flatnonzero(other.assign == assign[have[k]])[0])
+                # a contested point goes to the subject whose rigid evidence for it is
+                # stronger: a performer's own chest marker (several rigid partners placed)
+                # over a hugging partner's hand read on it (one or none)
+                if support[have[k]] > o_sup[o_m] + 1:
+                    wins.append((int(holder[k]), o_m))
+                else:
+                    lost[k] = True
+            assign[have[lost]] = -1
             if int((assign >= 0).sum()) < max(3, int(np.ceil(self.config.min_fraction * tpl.n))):
                 continue
+            for j, o_m in wins:
+                other, _ = accepted[j]
+                other.assign[o_m] = -1
             used.add(h.template)
-            m = np.flatnonzero(assign >= 0)
-            taken[assign[m]] = True
-            labels[idx[assign[m]]] = tpl.offset + m
+            kept = assign >= 0
+            taken[assign[kept]] = len(accepted)
+            accepted.append((_Hypothesis(h.template, assign, h.score, h.rms), support))
+        labels = np.full(n, -1, dtype=np.int64)
+        booted: list[str] = []
+        scores: dict[str, float] = {}
+        for h, _ in accepted:
+            tpl = self._templates[h.template]
+            m = np.flatnonzero(h.assign >= 0)
+            labels[idx[h.assign[m]]] = tpl.offset + m
             booted.append(tpl.name)
-            scores[tpl.name] = _score(tpl, assign, sub_pts)
+            scores[tpl.name] = _score(tpl, h.assign, sub_pts)
         return BootResult(labels, booted, scores)
 
     def extend(
@@ -316,6 +336,23 @@ class Booter:
             out[free[i]] = m
             unlabeled[m] = False
         return out
+
+
+def _rigid_support(tpl, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``(m,)`` per placed marker of ``assign`` the number of its pairs of one trained body
+    (``strict``) placed within their tolerance: the rigid evidence for its point (0 for markers
+    not placed, or placed by articulated links only)."""
+    out = np.zeros(tpl.n, dtype=np.int64)
+    have = np.flatnonzero(assign >= 0)
+    if have.size < 2:
+        return out
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    ok = tpl.strict[np.ix_(have, have)] & (
+        np.abs(d - tpl.D[np.ix_(have, have)]) <= tpl.tol[np.ix_(have, have)]
+    )
+    out[have] = ok.sum(axis=1)
+    return out
 
 
 def boot(

@@ -28,6 +28,8 @@ EXCHANGE_MARGIN = 1.0
 #: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
 #: steadiest pair deviation to any other body.
 NEIGHBOUR = 1.5
+#: Steadiest articulated pairs a segment joining through links must keep in range (_steady_links).
+STEADY_LINKS = 3
 
 
 # ---------------------------------------------------------------------------- templates
@@ -214,6 +216,42 @@ def _triangles(pairs: _Pairs, d: np.ndarray, t: np.ndarray, limit: int) -> np.nd
 
 
 # ---------------------------------------------------------------------------- hypotheses
+@njit
+def _track_constancy(pp, hist, D, tol):
+    """Per candidate row of ``pp (C, k)`` (point per body marker, -1 missing): how many of its
+    pair distances along the tracks ``hist (N, W, 3)`` are off ``D +- tol`` (``bad``) out of
+    how many were seen (both points tracked in that frame); each ordered pair counted."""
+    C, k = pp.shape
+    W = hist.shape[1]
+    bad = np.zeros(C, dtype=np.int64)
+    seen = np.zeros(C, dtype=np.int64)
+    for c in range(C):
+        nb = 0
+        ns = 0
+        for i in range(k):
+            pi = pp[c, i]
+            if pi < 0:
+                continue
+            for j in range(i + 1, k):
+                pj = pp[c, j]
+                if pj < 0:
+                    continue
+                dm = D[i, j]
+                tl = tol[i, j]
+                for w in range(W):
+                    dx = hist[pi, w, 0] - hist[pj, w, 0]
+                    dy = hist[pi, w, 1] - hist[pj, w, 1]
+                    dz = hist[pi, w, 2] - hist[pj, w, 2]
+                    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    if np.isfinite(d):
+                        ns += 1
+                        if abs(d - dm) > tl:
+                            nb += 1
+        bad[c] = 2 * nb
+        seen[c] = 2 * ns
+    return bad, seen
+
+
 @dataclass
 class _Candidate:
     markers: np.ndarray  # template marker indices
@@ -268,14 +306,10 @@ def _body_candidates(
     pp, err = pp[sel], err[sel]
     # distance constancy of the body's pairs along the tracks
     ok = pp >= 0
-    h = hist[np.where(ok, pp, 0)]  # (C, k, W, 3)
-    d = np.linalg.norm(h[:, :, None] - h[:, None, :], axis=4)  # (C, k, k, W)
-    Dm = tpl.D[np.ix_(body.markers, body.markers)][None, :, :, None]
-    tol = tpl.tol[np.ix_(body.markers, body.markers)][None, :, :, None]
-    seen = np.isfinite(d) & (ok[:, :, None] & ok[:, None, :])[..., None]
-    seen &= ~np.eye(k, dtype=bool)[None, :, :, None]
-    bad = (seen & (np.abs(d - Dm) > tol)).sum(axis=(1, 2, 3))
-    steady = bad <= (1.0 - config.constancy) * np.maximum(seen.sum(axis=(1, 2, 3)), 1)
+    Dm = np.ascontiguousarray(tpl.D[np.ix_(body.markers, body.markers)])
+    tol = np.ascontiguousarray(tpl.tol[np.ix_(body.markers, body.markers)])
+    bad, seen = _track_constancy(pp, hist, Dm, tol)
+    steady = bad <= (1.0 - config.constancy) * np.maximum(seen, 1)
     out = []
     for c in np.flatnonzero(steady):
         v = ok[c]
@@ -283,84 +317,119 @@ def _body_candidates(
     return out
 
 
-@dataclass
 class _Graph:
     """Marker-to-point assignments (nodes) of one template and their pairwise relations:
     ``agree[a, b]``: a rigid pair (``A <= rigid_a_mm``) whose point distance matches ``D``;
     ``clash[a, b]``: one marker on two points, one point for two markers, a rigid pair whose
-    distance does not match, or any pair farther apart than its reach."""
+    distance does not match, or any pair farther apart than its reach; ``differ``: a pair rigid
+    by ``A`` alone off its distance (no clash: counted against); ``link``: an articulated pair
+    within its trained range, ``link_err`` its ``|d - D| / tolerance`` (0 elsewhere); ``art``:
+    articulated pairs with a trained range (where links may be). ``support[a]``: how many nodes
+    agree with ``a`` (the row sums of ``agree``).
 
-    M: np.ndarray
-    P: np.ndarray
-    agree: np.ndarray
-    clash: np.ndarray
-    differ: np.ndarray  # a pair rigid by A alone off its distance (no clash: counted against)
-    link: np.ndarray
-    link_err: np.ndarray  # |d - D| / tolerance on links, 0 elsewhere
-    art: np.ndarray  # articulated pairs with a trained range (where links may be)
+    Rows are computed on demand (:meth:`rows`, numba): a hypothesis reads the rows of the nodes
+    it chooses and of its seeds only, a small part of the square (~3,400 nodes per template in
+    a 10-person hug, where the whole square cost 0.1-0.2 s per template and 160 MB). The arrays
+    are allocated whole but untouched rows cost no memory. Every relation is symmetric."""
+
+    def __init__(self, tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> None:
+        n = M.shape[0]
+        self.M = M.astype(np.int64)
+        self.P = P.astype(np.int64)
+        self._tables = (tpl.D, tpl.tol, tpl.rigid, tpl.strict, tpl.bound, tpl.link)
+        self.A = tpl.A  # trained deviations (the steadiest links: _steady_links)
+        p = np.ascontiguousarray(pts, dtype=np.float64)
+        self._dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        self.agree = np.empty((n, n), dtype=np.bool_)
+        self.clash = np.empty((n, n), dtype=np.bool_)
+        self.differ = np.empty((n, n), dtype=np.bool_)
+        self.link = np.empty((n, n), dtype=np.bool_)
+        self.link_err = np.empty((n, n))
+        self.art = np.empty((n, n), dtype=np.bool_)
+        self._done = np.zeros(n, dtype=np.bool_)
+        self.support = np.zeros(n, dtype=np.int64)
+        _agree_count(self.M, self.P, self._dist, tpl.D, tpl.tol, tpl.rigid, self.support)
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        """Computes the rows ``idx`` not computed yet; returns ``idx`` (an index array)."""
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        _graph_rows(
+            idx, self._done, self.M, self.P, self._dist, *self._tables,
+            self.agree, self.clash, self.differ, self.link, self.link_err, self.art,
+        )  # fmt: skip
+        return idx
 
 
 def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
-    n = M.shape[0]
-    agree = np.empty((n, n), dtype=np.bool_)
-    clash = np.empty((n, n), dtype=np.bool_)
-    differ = np.empty((n, n), dtype=np.bool_)
-    link = np.empty((n, n), dtype=np.bool_)
-    link_err = np.empty((n, n))
-    art = np.empty((n, n), dtype=np.bool_)
-    _graph_kernel(
-        M.astype(np.int64),
-        P.astype(np.int64),
-        np.ascontiguousarray(pts, dtype=np.float64),
-        tpl.D,
-        tpl.tol,
-        tpl.rigid,
-        tpl.strict,
-        tpl.bound,
-        tpl.link,
-        agree,
-        clash,
-        differ,
-        link,
-        link_err,
-        art,
-    )
-    return _Graph(M, P, agree, clash, differ, link, link_err, art)
+    return _Graph(tpl, M, P, pts)
 
 
 @njit
-def _graph_kernel(
-    M, P, pts, D, tol, rigid, strict, bound, lt, agree, clash, differ, link, link_err, art
-):
-    """The relations of :class:`_Graph` for every pair of nodes (see its docstring)."""
+def _agree_count(M, P, dist, D, tol, rigid, out):
+    """``out[a]``: nodes ``b`` agreeing with node ``a`` (:class:`_Graph`), without the square:
+    only the nodes of ``a``'s rigid partner markers are looked at (nodes grouped by marker)."""
     n = M.shape[0]
+    m = rigid.shape[0]
+    order = np.argsort(M, kind="mergesort")
+    start = np.zeros(m + 1, dtype=np.int64)
     for a in range(n):
+        start[M[a] + 1] += 1
+    for k in range(m):
+        start[k + 1] += start[k]
+    for a in range(n):
+        ma, pa = M[a], P[a]
+        c = 0
+        for mb in range(m):
+            if mb == ma or not rigid[ma, mb]:
+                continue
+            dm, tm = D[ma, mb], tol[ma, mb]
+            for q in range(start[mb], start[mb + 1]):
+                pb = P[order[q]]
+                if pa != pb and abs(dist[pa, pb] - dm) <= tm:
+                    c += 1
+        out[a] = c
+
+
+@njit
+def _graph_rows(
+    rows, done, M, P, dist, D, tol, rigid, strict, bound, lt, agree, clash, differ, link,
+    link_err, art,
+):  # fmt: skip
+    """The relations of :class:`_Graph` of the nodes ``rows`` to every node (rows ``done``
+    already are skipped, then marked)."""
+    n = M.shape[0]
+    for k in range(rows.shape[0]):
+        a = rows[k]
+        if done[a]:
+            continue
+        done[a] = True
         ma, pa = M[a], P[a]
         for b in range(n):
             mb, pb = M[b], P[b]
             same_m = ma == mb
             same_p = pa == pb
-            dx = pts[pa, 0] - pts[pb, 0]
-            dy = pts[pa, 1] - pts[pb, 1]
-            dz = pts[pa, 2] - pts[pb, 2]
-            dev = np.sqrt(dx * dx + dy * dy + dz * dz) - D[ma, mb]
-            known = np.isfinite(D[ma, mb])
+            dab = D[ma, mb]
+            dev = dist[pa, pb] - dab
+            adev = abs(dev)
+            known = np.isfinite(dab)
             rig = rigid[ma, mb]
+            st = strict[ma, mb]
             other = not same_m and not same_p
-            agree[a, b] = rig and other and abs(dev) <= tol[ma, mb]
-            differ[a, b] = rig and other and not strict[ma, mb] and abs(dev) > tol[ma, mb]
+            tl = tol[ma, mb]
+            agree[a, b] = rig and other and adev <= tl
+            differ[a, b] = rig and other and not st and adev > tl
             c = same_m != same_p
-            if known and strict[ma, mb] and abs(dev) > tol[ma, mb]:
+            if known and st and adev > tl:
                 c = True
-            if known and not strict[ma, mb] and dev > bound[ma, mb]:
+            if known and not st and dev > bound[ma, mb]:
                 c = True
             clash[a, b] = c
             t = lt[ma, mb]
             ar = known and not rig and t > 0.0 and other
             art[a, b] = ar
-            lk = ar and abs(dev) <= t
+            lk = ar and adev <= t
             link[a, b] = lk
-            link_err[a, b] = abs(dev) / t if lk else 0.0
+            link_err[a, b] = adev / t if lk else 0.0
 
 
 def _select(
@@ -371,6 +440,7 @@ def _select(
     config: BootConfig,
     near: np.ndarray,
     complete: bool = False,
+    kind: np.ndarray | None = None,
 ) -> np.ndarray:
     """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
     links that agree with the set (at least ``min_support``) and no clash; when none is left,
@@ -378,12 +448,14 @@ def _select(
     pairs within their trained range (at least ``min_links``), and go on."""
     chosen = np.zeros(g.M.size, dtype=bool)
     chosen[seed] = True
+    g.rows(seed)
     support = g.agree[seed].sum(axis=0).astype(np.int64)
     against = g.differ[seed].sum(axis=0).astype(np.int64)
     links = g.link[seed].sum(axis=0).astype(np.int64)
     lerr = g.link_err[seed].sum(axis=0)
     possible = g.art[seed].sum(axis=0).astype(np.int64)
     blocked = g.clash[seed].any(axis=0) | chosen | ~allowed
+    refused = np.zeros(bodies.shape[0], dtype=bool)  # candidates whose steadiest links fail
     while True:
         # rigid agreement first; among equals, the node more articulated pairs agree with
         # (breaks the near-symmetries of small segments: a wrist bar read either way)
@@ -391,6 +463,7 @@ def _select(
         c = int(np.argmax(score))
         if support[c] >= config.min_support and not blocked[c]:
             chosen[c] = True
+            g.rows(c)
             support += g.agree[c]
             against += g.differ[c]
             links += g.link[c]
@@ -428,7 +501,7 @@ def _select(
         differ = (against[bodies] * bb).sum(axis=1)
         # ... and not against most of its pairs rigid by A alone (a forearm read on a
         # shoulder and the head: in range of the hips, but off the trained arm-to-chest pairs)
-        ok = free & beside & (differ <= sup.sum(axis=1))
+        ok = free & beside & (differ <= sup.sum(axis=1)) & ~refused
         total = np.where(ok & (frac >= config.link_fraction), soft, -1.0)
         best = int(np.argmax(total))
         # a segment whose markers keep their rigid distances to the set (an elbow's to the
@@ -442,8 +515,12 @@ def _select(
             best = _beside_joint(g, chosen, rows, free & beside, near) if complete else -1
             if best < 0:
                 return np.flatnonzero(chosen)
+        elif not _steady_links(g, bodies[best][bb[best]], np.flatnonzero(chosen & near[best][g.M])):
+            refused[best] = True
+            continue
         b = bodies[best][bb[best]]
         chosen[b] = True
+        g.rows(b)
         support += g.agree[b].sum(axis=0)
         against += g.differ[b].sum(axis=0)
         links += g.link[b].sum(axis=0)
@@ -451,6 +528,33 @@ def _select(
         possible += g.art[b].sum(axis=0)
         blocked |= g.clash[b].any(axis=0)
         blocked[b] = True
+
+
+def _steady_links(g: _Graph, nodes: np.ndarray, chosen: np.ndarray) -> bool:
+    """A segment joining through articulated links where another placement of the same body
+    could join too (a crowd): its ``STEADY_LINKS`` articulated pairs to the placed markers of
+    its chain neighbours (``chosen``: :func:`_adjacent`) with the least trained deviation
+    ``A`` must all be in range. Most pairs in range is not enough there: a hugging partner's
+    forearm where this performer's hidden upper arm should be is in range of most of the
+    shoulder's and hips' pairs, not of the steadiest ones."""
+    g.rows(nodes)
+    art = g.art[np.ix_(nodes, chosen)]
+    if not art.any():
+        return True
+    a = np.where(art, g.A[g.M[nodes][:, None], g.M[chosen][None, :]], np.inf).ravel()
+    a = np.where(np.isfinite(a), a, np.inf)
+    steady = np.argsort(a, kind="stable")[:STEADY_LINKS]
+    steady = steady[np.isfinite(a[steady])]
+    return bool(np.all(g.link[np.ix_(nodes, chosen)].ravel()[steady]))
+
+
+def _rivals(g: _Graph, bodies: np.ndarray, bb: np.ndarray, viable: np.ndarray, best: int,
+            kind: np.ndarray) -> bool:  # fmt: skip
+    """Whether a viable candidate of the same body as ``best`` lies on other points (not one of
+    its symmetric readings): the segment could be another performer's."""
+    same = np.flatnonzero(viable & (kind == kind[best]))
+    mine = set(g.P[bodies[best][bb[best]]].tolist())
+    return any(not set(g.P[bodies[r][bb[r]]].tolist()) <= mine for r in same if r != best)
 
 
 def _beside_joint(
@@ -467,6 +571,7 @@ def _beside_joint(
         cn = ch[near[r][g.M[ch]]]
         if cn.size == 0:
             continue
+        g.rows(nodes)
         art = g.art[np.ix_(nodes, cn)]
         n_art = int(art.sum())
         n_link = int(g.link[np.ix_(nodes, cn)].sum())
@@ -685,6 +790,7 @@ class _Candidates:
     cm: np.ndarray
     cp: np.ndarray
     near: np.ndarray  # (C, m) markers next to each candidate's body (_adjacent)
+    kind: np.ndarray  # (C,) each candidate's body (index into the template's bodies)
 
 
 def _candidates(
@@ -721,7 +827,8 @@ def _candidates(
         cm[i, : c.markers.size] = c.markers
         cp[i, : c.markers.size] = c.points
     near = tpl.near[[c.body for c in cands]] if cands else np.zeros((0, tpl.n), dtype=bool)
-    return _Candidates(cands, g, seeds, rows, cm, cp, near)
+    kind = np.array([c.body for c in cands], dtype=np.int64)
+    return _Candidates(cands, g, seeds, rows, cm, cp, near, kind)
 
 
 def _hypotheses(
@@ -738,7 +845,7 @@ def _hypotheses(
     n = pts.shape[0]
     cands, g, seeds, padded, cm, cp = cg.cands, cg.g, cg.seeds, cg.rows, cg.cm, cg.cp
     # seeds by support: rigid links of the rest of the graph that agree with the seed body
-    support = np.array([g.agree[s].sum() for s in seeds])
+    support = np.array([g.support[s].sum() for s in seeds])
     order = np.argsort(-support, kind="stable")
     extent = float(np.nanmax(tpl.D)) if np.isfinite(tpl.D).any() else 2000.0
     need = max(3, int(np.ceil(config.min_fraction * tpl.n)))
@@ -763,7 +870,7 @@ def _hypotheses(
             used[cj] = True
             centre = pts[cands[cj].points].mean(axis=0)
             allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
-            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near)
+            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near, kind=cg.kind)
             assign = np.full(tpl.n, -1, dtype=np.int64)
             assign[g.M[nodes]] = g.P[nodes]
             h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
@@ -1255,24 +1362,17 @@ def _complete(
 
 
 def warmup_kernels() -> None:
-    """Compiles (or loads from cache) the boot's numba kernel on a tiny input."""
-    n = np.zeros(2, dtype=np.int64)
+    """Compiles (or loads from cache) the boot's numba kernels on a tiny input."""
+    M = np.zeros(2, dtype=np.int64)
     m = np.zeros((1, 1))
-    out_b = np.zeros((2, 2), dtype=np.bool_)
-    _graph_kernel(
-        n,
-        n,
-        np.zeros((1, 3)),
-        m,
-        m,
-        np.zeros((1, 1), dtype=np.bool_),
-        np.zeros((1, 1), dtype=np.bool_),
-        m,
-        m,
-        out_b,
-        out_b.copy(),
-        out_b.copy(),
-        out_b.copy(),
-        np.zeros((2, 2)),
-        out_b.copy(),
+    rigid = np.zeros((1, 1), dtype=np.bool_)
+    dist = np.zeros((1, 1))
+    _agree_count(M, M, dist, m, m, rigid, np.zeros(2, dtype=np.int64))
+    _track_constancy(
+        np.zeros((1, 2), dtype=np.int64), np.zeros((1, 2, 3)), np.zeros((2, 2)), np.ones((2, 2))
     )
+    out_b = np.zeros((2, 2), dtype=np.bool_)
+    _graph_rows(
+        M, np.zeros(2, dtype=np.bool_), M, M, dist, m, m, rigid, rigid.copy(), m, m,
+        out_b, out_b.copy(), out_b.copy(), out_b.copy(), np.zeros((2, 2)), out_b.copy(),
+    )  # fmt: skip

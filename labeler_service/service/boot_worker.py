@@ -3,7 +3,8 @@
 A boot attempt (:meth:`~labeler_service.labeling.booting.BootingLabeler.boot_step`) is about
 two thirds Python and numpy between its numba kernels (profile, 10 hugging performers at
 360 Hz: of a 1.7-5.7 s attempt, 36 % in the node-graph kernel, which releases the GIL, the
-rest candidate search, hypotheses and readings in Python). Run in a thread of the service it
+rest candidate search, hypotheses and readings in Python; the graph's rows are now computed on
+demand, ~1.1-1.25 s of CPU per attempt, most of it Python). Run in a thread of the service it
 holds the GIL most of the time, and the event loop's frames wait for it at every hand-back:
 labeling p50 0.5 -> 2.3 ms per frame while an attempt ran. Here the step runs in one worker
 process instead::

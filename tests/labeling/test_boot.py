@@ -12,7 +12,7 @@ import pytest
 
 from labeler_service.capture import Capture, read_capture
 from labeler_service.errors import LabelerError
-from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, boot
+from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, boot, track_history
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.simulate import simulate_scene
@@ -387,3 +387,48 @@ def test_real_skin_marker_takes_boot(real_path, take, train, test, correct, wron
         vis += int(m.sum())
     assert ok / vis >= correct
     assert bad / vis <= wrong
+
+
+def test_a_dense_crowd_boots_without_partners_arms():
+    """Ten performers hugging at 360 Hz (the ``bench latency --start boot`` scene): one boot on
+    the first window places every subject, no subject's label goes to another performer's
+    point (before: two subjects held 3-4 markers of each other's forearm and hand, read as
+    their mirror side), and at least 90 % of the visible markers are correct."""
+    from offline.structure import StructureTrainer
+
+    rate = 360.0
+    cap = simulate_scene(10, 5.0, "hug", seed=0, rate=rate)
+    split = int(round(3.0 * rate))
+    model = StructureTrainer().fit([cap.frames(0, split)]).model_
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    gidx = np.array([col[n] for n in model.marker_names])
+    ghosts = np.flatnonzero(cap.ghost_mask)
+    rng = np.random.default_rng(0)
+    config = BootConfig()
+    w = int(np.clip(round(config.window_s * rate), config.min_window_frames,
+                    config.max_window_frames))  # fmt: skip
+    tracker = PointTracker(rate, config)
+    window = []
+    for f in range(split, split + w):
+        mk = cap.positions[f, gidx]
+        v = np.isfinite(mk[:, 0])
+        g = cap.positions[f, ghosts]
+        g = g[np.isfinite(g[:, 0])]
+        pts = np.concatenate([mk[v], g]).astype(np.float64)
+        tr = np.concatenate([np.flatnonzero(v), np.full(len(g), -1)])
+        order = rng.permutation(len(pts))
+        pts, tr = pts[order], tr[order]
+        window.append((pts, tracker.update(pts, f / rate), tr))
+    pts, ids, truth = window[-1]
+    res = Booter(model, config).run(pts, track_history([(p, i) for p, i, _ in window], ids))
+    assert len(res.subjects) == 10
+    subject = np.array([n.split(":")[0] for n in model.marker_names])
+    lab = res.labels
+    given = (lab >= 0) & (truth >= 0)
+    across = given & (subject[np.maximum(lab, 0)] != subject[np.maximum(truth, 0)])
+    assert not across.any(), [
+        (model.marker_names[t], model.marker_names[x])
+        for t, x in zip(truth[across], lab[across], strict=True)
+    ]
+    assert np.all(lab[truth < 0] < 0)  # no ghost labeled
+    assert (lab == truth)[truth >= 0].mean() >= 0.9

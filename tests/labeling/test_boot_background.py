@@ -102,7 +102,10 @@ def test_boot_result_installed_frames_later_follows_the_tracks(walk):
     assert set(lab.active_subjects) == {"P1", "P2", "P3"}
     boots = [t for t, e, _ in lab.events if e == "boot"]
     assert boots and min(boots) >= (round(BootConfig().window_s * RATE) - 1 + delay) / RATE
-    assert _accuracy(outs, truths, round(0.6 * RATE)) >= 0.9
+    # 0.917 before the boot refused, where a rival placement of the same body exists, segments
+    # whose steadiest links to their chain neighbours are off (boot_match._steady_links): one
+    # is such a segment here, joined at a later extension (0.880)
+    assert _accuracy(outs, truths, round(0.6 * RATE)) >= 0.86
 
 
 def test_install_skips_a_subject_booted_meanwhile(walk):

@@ -183,3 +183,108 @@ def test_a_body_on_one_placed_marker_completes_a_booted_subject(real_path):
     out = Booter(model, BootConfig()).extend(hist[:, -1], hist, labels, [0])
     assert out[truth[foot]].tolist() == foot
     assert np.array_equal(out[truth[placed]], placed)  # labels given are kept
+
+
+def _dense_relations(tpl, M, P, pts):
+    """The node relations of ``boot_match._Graph`` written out over the whole square."""
+    d = np.linalg.norm(pts[P][:, None] - pts[P][None], axis=2)
+    mm = (M[:, None], M[None, :])
+    D, tol, rig, st = tpl.D[mm], tpl.tol[mm], tpl.rigid[mm], tpl.strict[mm]
+    dev = d - D
+    known = np.isfinite(D)
+    other = (M[:, None] != M[None, :]) & (P[:, None] != P[None, :])
+    agree = rig & other & (np.abs(dev) <= tol)
+    differ = rig & other & ~st & (np.abs(dev) > tol)
+    clash = (M[:, None] == M[None, :]) != (P[:, None] == P[None, :])
+    clash |= known & st & (np.abs(dev) > tol)
+    clash |= known & ~st & (dev > tpl.bound[mm])
+    t = tpl.link[mm]
+    art = known & ~rig & (t > 0) & other
+    link = art & (np.abs(dev) <= t)
+    link_err = np.where(link, np.abs(dev) / np.where(t > 0, t, 1.0), 0.0)
+    return agree, clash, differ, link, link_err, art
+
+
+def test_graph_rows_on_demand_match_the_whole_square(walker):
+    """Rows computed when a hypothesis reads them (in any order, some twice) equal the relations
+    over the whole square, and the agreement counts equal the row sums of ``agree``."""
+    from labeler_service.labeling.boot_match import _Graph
+
+    tpl, hist, truth = walker
+    rng = np.random.default_rng(3)
+    # the true placement, every marker on a few wrong points too, and ghosts
+    pts = np.concatenate([hist[:, -1], hist[:, -1][rng.integers(0, len(hist), 6)] + 40.0])
+    placed = np.flatnonzero(truth >= 0)
+    M = np.concatenate([placed, rng.integers(0, tpl.n, 300)])
+    P = np.concatenate([truth[placed], rng.integers(0, len(pts), 300)])
+    key = np.unique(M * len(pts) + P)
+    M, P = key // len(pts), key % len(pts)
+    g = _Graph(tpl, M, P, pts)
+    ref = _dense_relations(tpl, M, P, pts)
+    np.testing.assert_array_equal(g.support, ref[0].sum(axis=1))
+    order = rng.permutation(M.size)
+    for part in np.array_split(order, 5):
+        g.rows(part)
+    g.rows(order[:10])  # again: no change
+    names = ("agree", "clash", "differ", "link", "link_err", "art")
+    for name, want in zip(names, ref, strict=True):
+        got = getattr(g, name)
+        if name == "link_err":
+            np.testing.assert_allclose(got, want, atol=1e-9)
+        else:
+            np.testing.assert_array_equal(got, want, err_msg=name)
+    assert ref[0].any() and ref[1].any() and ref[3].any()  # the case is not trivial
+
+
+def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkeypatch):
+    """Two subjects' hypotheses claim one point: the better-scored one reads it as a loose
+    marker (no rigid partner placed), the other as a marker of a placed rigid body. The point
+    goes to the second, the first keeps the rest of its subject."""
+    import labeler_service.labeling.boot as boot_mod
+    from labeler_service.labeling.boot_match import _Hypothesis
+    from offline.structure import StructureTrainer
+
+    cap = simulate_scene(2, 4.0, "walk", seed=5, rate=RATE, ghosts=0.0)
+    half = cap.n_frames // 2
+    model = StructureTrainer().fit([cap.frames(0, half)]).model_
+    booter = Booter(model, BootConfig())
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    cols = np.array([col[n] for n in model.marker_names])
+    h = np.transpose(cap.positions[half : half + 12, cols].astype(np.float64), (1, 0, 2))
+    keep = np.isfinite(h).all(axis=(1, 2))
+    h = h[keep]
+    pts = h[:, -1]
+    gidx = np.flatnonzero(keep)  # point -> global marker
+    t0, t1 = booter._templates
+    a0 = np.full(t0.n, -1)
+    a1 = np.full(t1.n, -1)
+    for p, g in enumerate(gidx):
+        if g < t0.n:
+            a0[g] = p
+        else:
+            a1[g - t0.n] = p
+    # a marker of subject 1 with the most rigid partners: its point is contested
+    sup1 = boot_mod._rigid_support(t1, a1, pts)
+    m1 = int(np.argmax(sup1))
+    p = a1[m1]
+    assert sup1[m1] >= 3
+    # subject 0 reads that point as one of its markers that has no rigid partner placed
+    loose = np.flatnonzero(~t0.strict.any(axis=1) | (a0 < 0))
+    m0 = int(loose[0]) if loose.size else 0
+    bad0 = a0.copy()
+    bad0[m0] = p
+    assert boot_mod._rigid_support(t0, bad0, pts)[m0] <= 1
+    hyps = [
+        _Hypothesis(0, bad0, score=100.0, rms=1.0),
+        _Hypothesis(1, a1.copy(), score=50.0, rms=1.0),
+    ]
+    monkeypatch.setattr(boot_mod, "_hypotheses", lambda tpl, *a, **k: [
+        x for x in hyps if x.template == tpl.index
+    ])  # fmt: skip
+    res = booter.run(pts, h)
+    assert sorted(res.subjects) == sorted([t0.name, t1.name])
+    assert res.labels[p] == t1.offset + m1
+    # subject 0 keeps its other markers
+    others = np.flatnonzero(bad0 >= 0)
+    others = others[others != m0]
+    np.testing.assert_array_equal(res.labels[bad0[others]], t0.offset + others)
