@@ -350,7 +350,7 @@ class _Graph:
         self.support = np.zeros(n, dtype=np.int64)
         _agree_count(self.M, self.P, self._dist, tpl.D, tpl.tol, tpl.rigid, self.support)
 
-    def rows(self, idx: np.ndarray) -> np.ndarray:
+    def rows(self, idx: np.ndarray | int) -> np.ndarray:
         """Computes the rows ``idx`` not computed yet; returns ``idx`` (an index array)."""
         idx = np.asarray(idx, dtype=np.int64).reshape(-1)
         _graph_rows(
