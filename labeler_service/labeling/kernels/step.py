@@ -30,6 +30,8 @@ from labeler_service.labeling.kernels.anchor import (
     _anchor_filter,
     _anchor_lost,
     _anchor_snapshot,
+    _chain_reach,
+    _dist3,
 )
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
@@ -376,6 +378,11 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     # centre: the rigid estimate from the neighbours seen so far, else the prediction
     _observed(assigned, points, obs)
     anchored = scratch.anchored
+    chain_cost = np.full(m_total, np.inf)
+    chain_len = np.empty(m_total)
+    w_body = params.body_distance_weight
+    a_fl, a_rel = params.a_floor_mm, params.a_relative
+    chain_work = np.empty(m_total, dtype=np.int64)
     for i in range(m_total):
         anchored[i] = False
         if not missing[i]:
@@ -400,10 +407,21 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             ):
                 anchored[i] = True
                 k = _anchor_estimate(i, obs, anc, anc_ref, rec)
+            s[i] = params.reacquire_mm
             if k < 0:
                 for c in range(3):
                     rec[i, c] = x[i, c]
-            s[i] = params.reacquire_mm
+                if params.anchor_lost:
+                    # no anchor seen: a state beyond the chain's reach from the nearest observed
+                    # marker is searched for around that marker (kernels/anchor.py)
+                    kc, reach = _chain_reach(
+                        i, obs, bodies, w_body, a_fl, a_rel, chain_cost, chain_len, chain_work
+                    )
+                    reach += params.anchor_slack_mm
+                    if kc >= 0 and _dist3(x, i, obs, kc) > reach:
+                        for c in range(3):
+                            rec[i, c] = obs[kc, c]
+                        s[i] = reach
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
     _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
