@@ -421,7 +421,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                     if kc >= 0 and _dist3(x, i, obs, kc) > reach:
                         for c in range(3):
                             rec[i, c] = obs[kc, c]
-                        s[i] = reach
+                        s[i] = min(reach, params.reacquire_mm)
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
     _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
