@@ -37,6 +37,8 @@ import numpy as np
 
 from labeler_service._numba import njit
 
+PAIR = False
+
 
 @njit
 def _anchor_snapshot(obs, tracks, bodies, w):
@@ -82,7 +84,7 @@ def _anchor_snapshot(obs, tracks, bodies, w):
 
 
 @njit
-def _anchor_estimate(m, obs, anc, ref, x):
+def _anchor_estimate(m, obs, anc, ref, x, slack, cost):
     """The anchored estimate of marker ``m`` from its anchors observed now (module docstring),
     written into ``x[m, :3]``; returns the anchor whose velocity it takes, or -1 (no anchor
     observed: ``x`` untouched)."""
@@ -91,6 +93,17 @@ def _anchor_estimate(m, obs, anc, ref, x):
     h1 = k1 >= 0 and obs[k1, 0] == obs[k1, 0]  # noqa: PLR0124
     if not h0 and not h1:
         return -1
+    if PAIR and h0 and h1:
+        # the anchors no longer keep their snapshot distance (within the first link's slack):
+        # they do not move as one segment, so their direction says nothing of the marker's
+        e0 = ref[m, 2, 0] - ref[m, 1, 0]
+        e1 = ref[m, 2, 1] - ref[m, 1, 1]
+        e2 = ref[m, 2, 2] - ref[m, 1, 2]
+        f0, f1, f2 = obs[k1, 0] - obs[k0, 0], obs[k1, 1] - obs[k0, 1], obs[k1, 2] - obs[k0, 2]
+        then = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        now = np.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+        if abs(now - then) > slack + 3.0 * cost[m, 0]:
+            h1 = False
     if not (h0 and h1):
         k = k0 if h0 else k1
         r = 1 if h0 else 2
@@ -177,7 +190,7 @@ def _anchor_lost(obs, missing, has_rec, tracks, slack):
             continue
         if not _anchor_broken(m, obs, anc, ref, x, slack, tracks.anc_cost):
             continue
-        k = _anchor_estimate(m, obs, anc, ref, x)
+        k = _anchor_estimate(m, obs, anc, ref, x, slack, tracks.anc_cost)
         if k >= 0:
             for a in range(3):
                 x[m, 3 + a] = x[k, 3 + a]

@@ -322,6 +322,10 @@ def _presence(points, tracks, bodies, scratch, params):
                 assigned[m] = NONE
 
 
+ANCHOR_LOOSE = True
+CHAIN = False
+
+
 @njit
 def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     """The wide re-acquisition pass (ours, docs/algorithm.md) after Algorithm 1.
@@ -388,6 +392,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
         if not missing[i]:
             continue
         kept = 0
+        loose_broken = False
         if rec_ok[i]:
             kept = _set_estimate(i, recovery, obs, kab, est4, robust_mm)
         if kept >= 3:
@@ -398,20 +403,27 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 # the neighbours kept still disagree (a joint moved while the marker was
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
-        else:
+                if ANCHOR_LOOSE and params.anchor_lost and _anchor_broken(
+                    i, obs, tracks.anc, tracks.anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
+                ):
+                    kept = 0  # a loose estimate that breaks an anchor link: anchored search
+                    loose_broken = True
+        if kept < 3:
             # anchored on the marker's observed anchors (kernels/anchor.py), else the prediction
             k = -1
             anc, anc_ref = tracks.anc, tracks.anc_ref
-            if params.anchor_lost and _anchor_broken(
+            if params.anchor_lost and (loose_broken or _anchor_broken(
                 i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost
-            ):
+            )):
                 anchored[i] = True
-                k = _anchor_estimate(i, obs, anc, anc_ref, rec)
+                k = _anchor_estimate(
+                    i, obs, anc, anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
+                )
             s[i] = params.reacquire_mm
             if k < 0:
                 for c in range(3):
                     rec[i, c] = x[i, c]
-                if params.anchor_lost:
+                if CHAIN and params.anchor_lost:
                     # no anchor seen: a state beyond the chain's reach from the nearest observed
                     # marker is searched for around that marker (kernels/anchor.py)
                     kc, reach = _chain_reach(
