@@ -37,8 +37,6 @@ import numpy as np
 
 from labeler_service._numba import njit
 
-PAIR = False
-
 
 @njit
 def _anchor_snapshot(obs, tracks, bodies, w):
@@ -84,7 +82,7 @@ def _anchor_snapshot(obs, tracks, bodies, w):
 
 
 @njit
-def _anchor_estimate(m, obs, anc, ref, x, slack, cost):
+def _anchor_estimate(m, obs, anc, ref, x):
     """The anchored estimate of marker ``m`` from its anchors observed now (module docstring),
     written into ``x[m, :3]``; returns the anchor whose velocity it takes, or -1 (no anchor
     observed: ``x`` untouched)."""
@@ -93,17 +91,6 @@ def _anchor_estimate(m, obs, anc, ref, x, slack, cost):
     h1 = k1 >= 0 and obs[k1, 0] == obs[k1, 0]  # noqa: PLR0124
     if not h0 and not h1:
         return -1
-    if PAIR and h0 and h1:
-        # the anchors no longer keep their snapshot distance (within the first link's slack):
-        # they do not move as one segment, so their direction says nothing of the marker's
-        e0 = ref[m, 2, 0] - ref[m, 1, 0]
-        e1 = ref[m, 2, 1] - ref[m, 1, 1]
-        e2 = ref[m, 2, 2] - ref[m, 1, 2]
-        f0, f1, f2 = obs[k1, 0] - obs[k0, 0], obs[k1, 1] - obs[k0, 1], obs[k1, 2] - obs[k0, 2]
-        then = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        now = np.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
-        if abs(now - then) > slack + 3.0 * cost[m, 0]:
-            h1 = False
     if not (h0 and h1):
         k = k0 if h0 else k1
         r = 1 if h0 else 2
@@ -190,7 +177,7 @@ def _anchor_lost(obs, missing, has_rec, tracks, slack):
             continue
         if not _anchor_broken(m, obs, anc, ref, x, slack, tracks.anc_cost):
             continue
-        k = _anchor_estimate(m, obs, anc, ref, x, slack, tracks.anc_cost)
+        k = _anchor_estimate(m, obs, anc, ref, x)
         if k >= 0:
             for a in range(3):
                 x[m, 3 + a] = x[k, 3 + a]
@@ -216,74 +203,3 @@ def _anchor_filter(m, points, obs, anc, ref, slack, cost, cand, cand_d2, ncand):
             cand_d2[m, kept] = cand_d2[m, c]
             kept += 1
     ncand[m] = kept
-
-
-@njit
-def _chain_reach(m, obs, bodies, w, a_floor, a_rel, cost, length, touched):
-    """``(k, reach)``: the observed marker ``k`` linked to lost marker ``m`` by the most rigid
-    chain of body links through markers not observed now, and the longest plausible length of
-    that chain (mm); ``(-1, inf)`` when no observed marker is linked to ``m``.
-
-    The chain minimises the summed body-formation cost ``A + w D`` of its links (window values,
-    as the anchors are chosen: a link that bends during the take, a hand glued to the pelvis in
-    a quiet training window, stops being preferred); each link counts at
-    ``max(D0, D) + 3 max(A0, A)``. Along a chain of rigid segments the true point of ``m`` lies
-    within ``reach`` of ``obs[k]`` whatever the joints between them do (the triangle
-    inequality): a state farther than that is broken, and the point is searched for around
-    ``k``. Dijkstra over the markers reached; ``cost (M,)`` must hold ``inf`` on entry and does
-    again on return; ``length``, ``touched (M,)``: work space."""
-    members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
-    D, A, D0, A0 = bodies.D, bodies.A, bodies.D0, bodies.A0
-    cost[m] = 0.0
-    length[m] = 0.0
-    touched[0] = m
-    nt = 1
-    done = 0  # touched[:done]: settled, in the order popped
-    k_best, reach = -1, np.inf
-    while done < nt:
-        # pop the cheapest unsettled marker (swap it to position `done`)
-        best = done
-        for t in range(done + 1, nt):
-            if cost[touched[t]] < cost[touched[best]]:
-                best = t
-        u = touched[best]
-        touched[best] = touched[done]
-        touched[done] = u
-        done += 1
-        if u != m and obs[u, 0] == obs[u, 0]:  # noqa: PLR0124 (observed: the chain ends here)
-            k_best, reach = u, length[u]
-            break
-        for e in range(mb_ptr[u], mb_ptr[u + 1]):
-            b = mb_idx[e]
-            i = 0
-            while members[b, i] != u:
-                i += 1
-            for j in range(size[b]):
-                k = members[b, j]
-                d0 = D0[b, i, j]
-                if k == u or d0 != d0:  # noqa: PLR0124
-                    continue
-                d = D[b, i, j]
-                a = A[b, i, j]
-                a0 = A0[b, i, j]
-                if d != d or a != a:  # noqa: PLR0124 (no window yet: the trained values)
-                    d, a = d0, a0
-                if a > 3.0 * max(a0, a_floor, a_rel * d0):
-                    continue  # the link bends now (a joint held still in training): no bound
-                c = cost[u] + a + w * d
-                if c < cost[k]:
-                    if cost[k] == np.inf:
-                        touched[nt] = k
-                        nt += 1
-                    cost[k] = c
-                    length[k] = length[u] + max(d0, d) + 3.0 * max(a0, a)
-    for t in range(nt):
-        cost[touched[t]] = np.inf
-    return k_best, reach
-
-
-@njit
-def _dist3(x, i, y, k):
-    """Distance (mm) between ``x[i, :3]`` and ``y[k, :3]``."""
-    d0, d1, d2 = x[i, 0] - y[k, 0], x[i, 1] - y[k, 1], x[i, 2] - y[k, 2]
-    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)

@@ -30,8 +30,6 @@ from labeler_service.labeling.kernels.anchor import (
     _anchor_filter,
     _anchor_lost,
     _anchor_snapshot,
-    _chain_reach,
-    _dist3,
 )
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
@@ -322,10 +320,6 @@ def _presence(points, tracks, bodies, scratch, params):
                 assigned[m] = NONE
 
 
-ANCHOR_LOOSE = True
-CHAIN = False
-
-
 @njit
 def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     """The wide re-acquisition pass (ours, docs/algorithm.md) after Algorithm 1.
@@ -382,17 +376,13 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     # centre: the rigid estimate from the neighbours seen so far, else the prediction
     _observed(assigned, points, obs)
     anchored = scratch.anchored
-    chain_cost = np.full(m_total, np.inf)
-    chain_len = np.empty(m_total)
-    w_body = params.body_distance_weight
-    a_fl, a_rel = params.a_floor_mm, params.a_relative
-    chain_work = np.empty(m_total, dtype=np.int64)
     for i in range(m_total):
         anchored[i] = False
         if not missing[i]:
             continue
         kept = 0
         loose_broken = False
+        anc, anc_ref = tracks.anc, tracks.anc_ref
         if rec_ok[i]:
             kept = _set_estimate(i, recovery, obs, kab, est4, robust_mm)
         if kept >= 3:
@@ -403,37 +393,28 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 # the neighbours kept still disagree (a joint moved while the marker was
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
-                if ANCHOR_LOOSE and params.anchor_lost and _anchor_broken(
-                    i, obs, tracks.anc, tracks.anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
-                ):
-                    kept = 0  # a loose estimate that breaks an anchor link: anchored search
-                    loose_broken = True
-        if kept < 3:
+                # a loose estimate that breaks an anchor link is searched for like a broken
+                # prediction, around the anchored estimate (kernels/anchor.py)
+                loose_broken = (
+                    params.anchor_lost
+                    and params.anchor_loose
+                    and _anchor_broken(
+                        i, obs, anc, anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
+                    )
+                )
+        if kept < 3 or loose_broken:
             # anchored on the marker's observed anchors (kernels/anchor.py), else the prediction
             k = -1
-            anc, anc_ref = tracks.anc, tracks.anc_ref
-            if params.anchor_lost and (loose_broken or _anchor_broken(
-                i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost
-            )):
+            if params.anchor_lost and (
+                loose_broken
+                or _anchor_broken(i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost)
+            ):
                 anchored[i] = True
-                k = _anchor_estimate(
-                    i, obs, anc, anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
-                )
-            s[i] = params.reacquire_mm
+                k = _anchor_estimate(i, obs, anc, anc_ref, rec)
             if k < 0:
                 for c in range(3):
                     rec[i, c] = x[i, c]
-                if CHAIN and params.anchor_lost:
-                    # no anchor seen: a state beyond the chain's reach from the nearest observed
-                    # marker is searched for around that marker (kernels/anchor.py)
-                    kc, reach = _chain_reach(
-                        i, obs, bodies, w_body, a_fl, a_rel, chain_cost, chain_len, chain_work
-                    )
-                    reach += params.anchor_slack_mm
-                    if kc >= 0 and _dist3(x, i, obs, kc) > reach:
-                        for c in range(3):
-                            rec[i, c] = obs[kc, c]
-                        s[i] = min(reach, params.reacquire_mm)
+            s[i] = params.reacquire_mm
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     gate, K = params.gate_chi2, params.K
     _regate(rec, missing, points, index, owner, s, gate, K, cand, cand_d2, ncand)
