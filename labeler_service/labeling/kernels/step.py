@@ -389,7 +389,8 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
             for c in range(3):
                 rec[i, c] = est4[c]
             s[i] = params.reacquire_estimate_mm
-            if _max_residual(src, dst, kept, R, t) > robust_mm:
+            residual = _max_residual(src, dst, kept, R, t)
+            if residual > robust_mm:
                 # the neighbours kept still disagree (a joint moved while the marker was
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
@@ -398,6 +399,7 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 loose_broken = (
                     params.anchor_lost
                     and params.anchor_loose
+                    and residual > params.anchor_slack_mm + 3.0 * tracks.anc_cost[i, 0]
                     and _anchor_broken(
                         i, obs, anc, anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
                     )
