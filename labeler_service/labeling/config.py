@@ -129,6 +129,12 @@ class LabelerConfig(BaseModel):
         "pass around its offset from them at its last observation, rotated with them, among "
         "points that keep those distances (docs/algorithm.md)",
     )
+    anchor_loose: bool = Field(
+        True,
+        description="with anchor_lost: a lost marker whose rigid estimate is loose (its recovery "
+        "neighbours disagree) and breaks an anchor link is searched for around the anchored "
+        "estimate too, not around the loose estimate (docs/algorithm.md)",
+    )
     anchor_state: bool = Field(
         False,
         description="with anchor_lost: also re-anchor the lost marker's Kalman state (off: only "

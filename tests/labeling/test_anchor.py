@@ -164,8 +164,12 @@ def test_filter_keeps_only_points_that_keep_the_anchor_links():
     assert list(cand_d2[0, :2]) == [2.0, 1.0]
 
 
-def _frames_to_reacquire(config: LabelerConfig) -> int:
-    """Frames after the loss until the lost hand marker is labeled again (FRAMES: never)."""
+def _frames_to_reacquire(config: LabelerConfig, loose_set: bool = False) -> int:
+    """Frames after the loss until the lost hand marker is labeled again (FRAMES: never).
+
+    ``loose_set``: instead of giving no estimate, the hand's recovery set gives a *loose* one
+    far off (its reference snapshot distorted, as a set trained on a quiet window that holds
+    the wrist with the pelvis does once the arm moves)."""
     rng = np.random.default_rng(3)
     pos, names = _arm(rng)
     lab = Labeler(names, RATE, config)
@@ -185,7 +189,16 @@ def _frames_to_reacquire(config: LabelerConfig) -> int:
             tr.x[h0, :3] += 1500.0 * _rot(2, 0.3)[0]
             tr.x[h0, 3:] = (3000.0, 0.0, 0.0)
             tr.pos[h0] = np.nan
-            lab._recovery.ok[h0] = False
+            rc = lab._recovery
+            if loose_set:
+                # neighbours that disagree by 40 mm and a hand 400 mm off them: the estimate
+                # is loose (beyond robust_fit_mm) and breaks the hand's anchor links
+                assert rc.ok[h0] and rc.size[h0] >= 4
+                jitter = np.random.default_rng(5).normal(0.0, 40.0, (rc.size[h0], 3))
+                rc.ref[h0, 1 : rc.size[h0]] += jitter[1:]
+                rc.ref[h0, 0] += (400.0, 0.0, 0.0)
+            else:
+                rc.ok[h0] = False
         if f > lose:
             j = np.flatnonzero(order == h0)[0]
             if out.point_labels[j] == h0:
@@ -202,3 +215,13 @@ def test_lost_hand_marker_is_re_acquired_within_a_few_frames():
     assert _frames_to_reacquire(LabelerConfig(anchor_state=True, **glued)) <= 3
     # without anchored coasting it coasts away and stays unlabeled while visible
     assert _frames_to_reacquire(LabelerConfig(anchor_lost=False, **glued)) >= 20
+
+
+def test_lost_hand_marker_with_a_loose_far_estimate_is_re_acquired_at_its_anchors():
+    # the hand's recovery set gives an estimate (3+ neighbours observed) but they disagree and
+    # it lies 400 mm off: it breaks the anchor links, so the search is anchored (anchor_loose)
+    glued = {"repair": False}
+    assert _frames_to_reacquire(LabelerConfig(**glued), loose_set=True) <= 3
+    # searched around the loose estimate alone (90 mm), the marker stays unlabeled
+    off = LabelerConfig(anchor_loose=False, **glued)
+    assert _frames_to_reacquire(off, loose_set=True) >= 20

@@ -29,6 +29,14 @@ from the first anchor turned by the smallest rotation that takes the recorded an
 direction onto the current one (a forearm turning about the elbow carries the wrist with it;
 the twist about that axis is not seen); with one, the offset translated onto it. With no
 anchor observed the old behaviour stays.
+
+A marker *with* a rigid estimate is searched for the same way when that estimate is loose (its
+recovery neighbours disagree beyond ``robust_fit_mm``), breaks an anchor link
+(:func:`_anchor_broken` applied to the estimate) and its residual exceeds the first anchor
+link's tolerance (``anchor_slack_mm + 3 cost``): ``anchor_loose``, in
+:func:`.step._reacquire`. A recovery set trained on a quiet window can hold a thigh with the
+hand; once they move apart its estimate lies far off, and the more precise evidence is the
+anchor link (tennis take: the thigh marker unlabeled for 340 frames while visible).
 """
 
 from __future__ import annotations

@@ -381,22 +381,35 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
         if not missing[i]:
             continue
         kept = 0
+        loose_broken = False
+        anc, anc_ref = tracks.anc, tracks.anc_ref
         if rec_ok[i]:
             kept = _set_estimate(i, recovery, obs, kab, est4, robust_mm)
         if kept >= 3:
             for c in range(3):
                 rec[i, c] = est4[c]
             s[i] = params.reacquire_estimate_mm
-            if _max_residual(src, dst, kept, R, t) > robust_mm:
+            residual = _max_residual(src, dst, kept, R, t)
+            if residual > robust_mm:
                 # the neighbours kept still disagree (a joint moved while the marker was
                 # hidden): the estimate is loose, so is the search
                 s[i] = params.reacquire_loose_mm
-        else:
+                # a loose estimate that breaks an anchor link is searched for like a broken
+                # prediction, around the anchored estimate (kernels/anchor.py)
+                loose_broken = (
+                    params.anchor_lost
+                    and params.anchor_loose
+                    and residual > params.anchor_slack_mm + 3.0 * tracks.anc_cost[i, 0]
+                    and _anchor_broken(
+                        i, obs, anc, anc_ref, rec, params.anchor_slack_mm, tracks.anc_cost
+                    )
+                )
+        if kept < 3 or loose_broken:
             # anchored on the marker's observed anchors (kernels/anchor.py), else the prediction
             k = -1
-            anc, anc_ref = tracks.anc, tracks.anc_ref
-            if params.anchor_lost and _anchor_broken(
-                i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost
+            if params.anchor_lost and (
+                loose_broken
+                or _anchor_broken(i, obs, anc, anc_ref, x, params.anchor_slack_mm, tracks.anc_cost)
             ):
                 anchored[i] = True
                 k = _anchor_estimate(i, obs, anc, anc_ref, rec)
