@@ -253,10 +253,12 @@ class Labeler:
         bd.A[bodies] = bd.A0[bodies]
         for name in ("ring", "mpos", "pred", "err", "kerr"):
             getattr(bd, name)[bodies] = np.nan
-        for name in ("s1", "s2", "cnt", "R", "t", "motion_dt", "ref", "pending"):
+        for name in ("s1", "s2", "cnt", "R", "t", "motion_dt", "pending"):
             getattr(bd, name)[bodies] = 0
         bd.moving[bodies] = False
-        bd.ref_ok[bodies] = False
+        bd.ref[bodies] = self._ref0[bodies]
+        bd.ref_ok[bodies] = self._ref0_ok[bodies]
+        bd.ref_model[bodies] = self._ref0_ok[bodies]
         bd.ok[bodies] = True
 
     def _seed(
@@ -415,22 +417,25 @@ class Labeler:
                 "the first frame must carry labels: the labeler learns from (or, with a model, "
                 "acquires its markers from) labeled frames"
             )
-        if self.model is None:
+        trained_here = self.model is None
+        if trained_here:
             self.model = self.train_model()
         if not self._built:
-            self._build(self.model)
+            self._build(self.model, from_file=not trained_here)
             self._built = True
         self._warm_start()
         self._pending.clear()
         self._ready = True
 
-    def _build(self, model: LabelerModel) -> None:
-        """The kernel state (:mod:`~labeler_service.labeling.kernels.state`) from a template."""
+    def _build(self, model: LabelerModel, from_file: bool = True) -> None:
+        """The kernel state (:mod:`~labeler_service.labeling.kernels.state`) from a template;
+        ``from_file``: a model trained elsewhere, whose shapes are the first references."""
         c = self.config
         m = len(self._names)
         bodies: list[list[int]] = []
         d0: list[np.ndarray] = []
         a0: list[np.ndarray] = []
+        shapes: list[np.ndarray] = []
         q = np.full(m, np.nan)
         recovery = new_recovery(m)
         for subj in model.subjects:
@@ -442,10 +447,11 @@ class Labeler:
             Am = subj.A_array()
             q[gidx] = subj.motion_noise
             self._recovery_sets(recovery, gidx, Dm, Am, subj.bodies)
-            for body in subj.bodies:
+            for body, shape in zip(subj.bodies, subj.shapes, strict=True):
                 bodies.append([gidx[i] for i in body])
                 d0.append(Dm[np.ix_(body, body)])
                 a0.append(Am[np.ix_(body, body)])
+                shapes.append(np.asarray(shape, dtype=np.float64))
         active = np.zeros(m, dtype=np.bool_)
         for body in bodies:
             active[body] = True
@@ -462,6 +468,16 @@ class Labeler:
         self._body_marker = active.copy()
         self._tracks = new_tracks(np.where(np.isfinite(q), q, 1.0e6), active, groups)
         self._bodies = new_bodies(m, bodies, d0, a0, c.window_T)
+        if from_file:
+            # a model trained elsewhere: its shapes are the bodies' first references (the 3D
+            # check and the joint re-acquisition need one before a body is first seen whole,
+            # as a booted subject's bodies are not)
+            for b, shape in enumerate(shapes):
+                self._bodies.ref[b, : shape.shape[0]] = shape
+            self._bodies.ref_ok[:] = True
+            self._bodies.ref_model[:] = True
+        self._ref0 = self._bodies.ref.copy()
+        self._ref0_ok = self._bodies.ref_ok.copy()
         self._recovery = recovery
         self._scratch = new_scratch(m, len(bodies), len(groups), c.K, max(64, 2 * m))
         self._pack()

@@ -218,6 +218,37 @@ def _snapshot_body(b, bodies, points, cur, n):
         for a in range(3):
             bodies.ref[b, k, a] = points[cur[k], a]
     bodies.ref_ok[b] = True
+    bodies.ref_model[b] = False
+
+
+@njit
+def _unique3(ref, pts, best, n, rms, check_mm, kab):
+    """Whether a 3-point map ``best`` (member -> row of ``pts``, -1 missing) of a body with
+    reference ``ref`` is the only reading of its three points: every other assignment of the
+    same points to the same members fits worse than ``check_mm`` and than 3 ``rms`` (a scalene
+    triangle names its corners by its side lengths; a near-isosceles one does not)."""
+    ks = np.empty(3, dtype=np.int64)
+    c = 0
+    for k in range(n):
+        if best[k] >= 0:
+            ks[c] = best[k]
+            c += 1
+    if c != 3:
+        return False
+    choice = np.empty(n, dtype=np.int64)
+    perms = ((0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+    for perm in perms:
+        c = 0
+        for k in range(n):
+            if best[k] >= 0:
+                choice[k] = ks[perm[c]]
+                c += 1
+            else:
+                choice[k] = -1
+        _, r = _shape_rms(ref, pts, choice, n, kab.src, kab.dst, kab.R, kab.t)
+        if r <= check_mm or r <= 3.0 * rms:
+            return False
+    return True
 
 
 @njit
@@ -566,7 +597,8 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
             pending[b] = 0
             ok[b] = True
             continue
-        if c_b < 4:
+        named = c_b == 3 and c_cur < 3 and bodies.ref_model[b]
+        if c_b < 4 and not (named and _unique3(ref, pts, best, n, rms_b, check_mm, kab)):
             pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
             continue
         if c_cur >= 3 and not moved:

@@ -146,7 +146,9 @@ class Bodies(NamedTuple):
       of the body's and of the Kalman prediction of each member (NaN = no record).
 
     - ``ref (B, 8, 3)``: the body's reference shape (its members' positions when last fully
-      observed and consistent), ``ref_ok (B,)`` bool: it has one; ``ok (B,)`` bool: the
+      observed and consistent), ``ref_ok (B,)`` bool: it has one; ``ref_model (B,)`` bool: it
+      is still the trained shape of a labeler started from a model (the body was never seen
+      whole in the stream); ``ok (B,)`` bool: the
       current assignment passed the 3D template check (the guard of Eq. 1-2);
       ``pending (B,)`` int64: consecutive checks a better permutation was found
       (:mod:`.repair`); ``work_*``: the template fit's work space (rewritten every frame).
@@ -177,6 +179,7 @@ class Bodies(NamedTuple):
     kerr: np.ndarray
     ref: np.ndarray
     ref_ok: np.ndarray
+    ref_model: np.ndarray
     ok: np.ndarray
     pending: np.ndarray
     work_cur: np.ndarray
@@ -245,6 +248,7 @@ def new_bodies(
         kerr=np.full((nb, MAX_BODY), np.nan),
         ref=np.zeros((nb, MAX_BODY, 3)),
         ref_ok=np.zeros(nb, dtype=np.bool_),
+        ref_model=np.zeros(nb, dtype=np.bool_),
         ok=np.ones(nb, dtype=np.bool_),
         pending=np.zeros(nb, dtype=np.int64),
         work_cur=np.zeros(MAX_BODY, dtype=np.int64),
