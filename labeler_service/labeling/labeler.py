@@ -418,10 +418,10 @@ class Labeler:
                 "acquires its markers from) labeled frames"
             )
         trained_here = self.model is None
-        if trained_here:
-            self.model = self.train_model()
+        model = self.train_model() if self.model is None else self.model
+        self.model = model
         if not self._built:
-            self._build(self.model, from_file=not trained_here)
+            self._build(model, from_file=not trained_here)
             self._built = True
         self._warm_start()
         self._pending.clear()
@@ -472,8 +472,8 @@ class Labeler:
             # a model trained elsewhere: its shapes are the bodies' first references (the 3D
             # check and the joint re-acquisition need one before a body is first seen whole,
             # as a booted subject's bodies are not)
-            for b, shape in enumerate(shapes):
-                self._bodies.ref[b, : shape.shape[0]] = shape
+            for b, ref in enumerate(shapes):
+                self._bodies.ref[b, : ref.shape[0]] = ref
             self._bodies.ref_ok[:] = True
             self._bodies.ref_model[:] = True
         self._ref0 = self._bodies.ref.copy()
