@@ -597,7 +597,7 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
             pending[b] = 0
             ok[b] = True
             continue
-        named = c_b == 3 and c_cur < 3 and bodies.ref_model[b]
+        named = c_b == 3 and c_cur <= 1 and bodies.ref_model[b]
         if c_b < 4 and not (named and _unique3(ref, pts, best, n, rms_b, check_mm, kab)):
             pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
             continue
