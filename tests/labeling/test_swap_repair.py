@@ -414,3 +414,40 @@ def test_dance_forearm_swap_after_occlusion_is_undone(real_path):
     scene = compose_scene(takes, radius=350.0, frames=480, seed=105, rate=60.0)
     report, _ = evaluate(scene, ["online"], init_frames=24, seed=105, occlude=2, occlude_frames=18)
     assert report["max_swap_frames"] <= 30
+
+
+SCALENE = np.array([[0.0, 0.0, 0.0], [140.0, 0.0, 0.0], [100.0, 70.0, 0.0]])  # sides 140, 122, 81
+ISOSCELES = np.array([[0.0, 0.0, 0.0], [120.0, 0.0, 0.0], [60.0, 90.0, 0.0]])  # sides 120, 108, 108
+
+
+def _three_point_case(rng, shape, held, model_ref=True):
+    """A 3-marker body at a random pose, its three points shuffled; marker ``k`` holds point
+    ``held[k]`` (-1 none), every marker re-acquired a frame ago (a booted subject)."""
+    config = LabelerConfig()
+    body = shape @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    order = np.array([2, 0, 1])  # point i is marker order[i]
+    pts = body[order]
+    tracks, bodies, scratch = _one_body_state(config, pts, np.array(held, np.int32), shape, age=1)
+    bodies.ref_model[0] = model_ref
+    tracks.x[:, :3] = body + [40.0, 0.0, 0.0]
+    changes = _repair(pts, _index(pts), 0, tracks, bodies, scratch, kernel_params(config))
+    return changes, list(scratch.assigned[:3])
+
+
+def test_a_body_never_seen_whole_is_read_from_three_points_that_name_themselves(rng):
+    # marker 1 holds marker 0's point (point 1), markers 0 and 2 are missing: the three points
+    # of a scalene triangle name their corners, whatever the held label said
+    assert _three_point_case(rng, SCALENE, [NONE, 1, NONE]) == (1, [1, 2, 0])
+    # a reference from the stream (the body was seen whole) leaves three points to Eq. 5
+    assert _three_point_case(rng, SCALENE, [NONE, 1, NONE], model_ref=False) == (
+        0,
+        [NONE, 1, NONE],
+    )
+
+
+def test_three_points_do_not_read_again_two_held_points_or_an_isosceles_body(rng):
+    # two held points that fit each other are evidence: a third point does not overturn them
+    # (a ghost beside a heel and a toe read the foot turned round, walk-4 booted)
+    assert _three_point_case(rng, SCALENE, [NONE, 1, 0]) == (0, [NONE, 1, 0])
+    # an isosceles triangle fits its own mirror permutation: its points do not name themselves
+    assert _three_point_case(rng, ISOSCELES, [NONE, 1, NONE]) == (0, [NONE, 1, NONE])
