@@ -96,12 +96,13 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
     return p
 
 
-def check_writable(path: str | Path) -> Path:
+def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES) -> Path:
     """Refuses, before any work is done, an output path that :func:`write_capture` could not
-    write: unknown suffix, a directory, a parent folder that cannot be created or written."""
+    write: unknown suffix (unless ``suffixes`` is ``None``: any file), a directory, a parent
+    folder that cannot be created or written."""
     p = Path(path)
     suffix = p.suffix.lower()
-    if suffix not in SUFFIXES:
+    if suffixes is not None and suffix not in suffixes:
         raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
     target = Path(os.path.realpath(p))
     if target.is_dir():
