@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from labeler_service.capture import check_writable, read_capture
-from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.errors import CaptureError
+from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 
 
