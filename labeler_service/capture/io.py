@@ -5,6 +5,11 @@ Every reader returns a :class:`Capture` in millimetres, Z up, NaN for missing sa
 recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is recorded in
 ``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject named after
 the file stem. Problems raise :class:`CaptureError` naming the file, never a bare traceback.
+
+A C3D that ends before the frames its header declares is read up to its last complete frame
+(ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
+warning (stderr from the CLI). Writers write a temporary file beside the target, check it
+(ezc3d reports no I/O error, so a C3D must have its full size) and rename it over the target.
 """
 
 from __future__ import annotations
