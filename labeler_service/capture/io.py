@@ -114,9 +114,9 @@ def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES
         raise CaptureError(f"{p}: cannot write: is a directory")
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        if target.exists() and not target.is_file():
-            with open(target, "ab"):
-                pass
+        if target.exists() and not target.is_file():  # a device or FIFO: opening could block
+            if not os.access(target, os.W_OK):
+                raise PermissionError(13, "Permission denied")
         else:
             probe = _temp_name(target, suffix)
             fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
