@@ -1,11 +1,12 @@
 """Capture values and file I/O (C3D, TRC, NPZ)."""
 
-from labeler_service.capture.io import SUFFIXES, read_capture, write_capture
+from labeler_service.capture.io import SUFFIXES, check_writable, read_capture, write_capture
 from labeler_service.capture.model import Capture, is_ghost, split_label, subject_groups
 
 __all__ = [
     "SUFFIXES",
     "Capture",
+    "check_writable",
     "is_ghost",
     "read_capture",
     "split_label",

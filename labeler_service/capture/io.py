@@ -5,13 +5,22 @@ Every reader returns a :class:`Capture` in millimetres, Z up, NaN for missing sa
 recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is recorded in
 ``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject named after
 the file stem. Problems raise :class:`CaptureError` naming the file, never a bare traceback.
+
+A C3D that ends before the frames its header declares is read up to its last complete frame
+(ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
+warning (stderr from the CLI). Writers write a temporary file beside the target, check it
+(ezc3d reports no I/O error, so a C3D must have its full size) and rename it over the target.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+import struct
+import uuid
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +28,10 @@ import numpy as np
 from labeler_service.capture.model import Capture, is_ghost, split_label
 from labeler_service.errors import CaptureError, CaptureFormatError
 
+log = logging.getLogger(__name__)
+
 SUFFIXES = (".c3d", ".trc", ".npz")
+_Writer = Callable[[Capture, Path], None]
 _UNIT_SCALE = {"mm": 1.0, "millimeters": 1.0, "cm": 10.0, "m": 1000.0, "meters": 1000.0}
 
 
@@ -60,22 +72,94 @@ def read_capture(path: str | Path, up: str = "z", subject: str | None = None) ->
 
 
 def write_capture(capture: Capture, path: str | Path) -> Path:
-    """Writes a capture as C3D, TRC or NPZ (by suffix), creating parent folders."""
+    """Writes a capture as C3D, TRC or NPZ (by suffix), creating parent folders.
+
+    The file is written to a temporary name next to the target, checked (a C3D must hold every
+    frame) and renamed over the target, so a failed write never leaves a half file behind. A
+    symbolic link is followed (the file it points to is replaced); a target that exists but is
+    not a regular file (a device such as ``/dev/full``, a FIFO) is written through directly.
+    Any failure raises :class:`CaptureError` naming the file.
+    """
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in SUFFIXES:
         raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
+    writer: _Writer = {".c3d": _write_c3d, ".trc": _write_trc, ".npz": _write_npz}[suffix]
+    target = Path(os.path.realpath(p))
+    if target.is_dir():
+        raise CaptureError(f"{p}: cannot write: is a directory")
     try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        if suffix == ".c3d":
-            _write_c3d(capture, p)
-        elif suffix == ".trc":
-            _write_trc(capture, p)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if target.exists() and not target.is_file():
+            _write_through(capture, target, writer, suffix)
         else:
-            _write_npz(capture, p)
+            _write_replace(capture, target, writer, suffix)
     except OSError as exc:
+        raise CaptureError(f"{p}: cannot write: {_os_reason(exc)}") from exc
+    except CaptureError as exc:
         raise CaptureError(f"{p}: cannot write: {exc}") from exc
     return p
+
+
+def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES) -> Path:
+    """Refuses, before any work is done, an output path that :func:`write_capture` could not
+    write: unknown suffix (unless ``suffixes`` is ``None``: any file), a directory, a parent
+    folder that cannot be created or written."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffixes is not None and suffix not in suffixes:
+        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
+    target = Path(os.path.realpath(p))
+    if target.is_dir():
+        raise CaptureError(f"{p}: cannot write: is a directory")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if target.exists() and not target.is_file():  # a device or FIFO: opening could block
+            if not os.access(target, os.W_OK):
+                raise PermissionError(13, "Permission denied")
+        else:
+            probe = _temp_name(target, suffix)
+            fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        raise CaptureError(f"{p}: cannot write: {_os_reason(exc)}") from exc
+    return p
+
+
+def _os_reason(exc: OSError) -> str:
+    """``[Errno 28] No space left on device`` without the (temporary) file name."""
+    return f"[Errno {exc.errno}] {exc.strerror}" if exc.errno and exc.strerror else str(exc)
+
+
+def _temp_name(target: Path, suffix: str) -> Path:
+    # ends in the real suffix: ezc3d and numpy append one to a name that lacks it
+    return target.parent / f".{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp{suffix}"
+
+
+def _write_replace(capture: Capture, target: Path, writer: _Writer, suffix: str) -> None:
+    tmp = _temp_name(target, suffix)
+    fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # umask applies
+    os.close(fd)
+    try:
+        writer(capture, tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_through(capture: Capture, target: Path, writer: _Writer, suffix: str) -> None:
+    import shutil
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="mocap-write-") as d:
+        tmp = Path(d) / f"capture{suffix}"
+        writer(capture, tmp)
+        with open(tmp, "rb") as src, open(target, "wb") as dst:
+            shutil.copyfileobj(src, dst)
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -176,7 +260,34 @@ def _read_c3d(path: Path) -> Capture:
         if neg.any():
             pos[neg] = np.nan
             notes.append(f"{int(neg.sum())} samples with negative residual mapped to missing")
+    declared = _c3d_declared_frames(path, point)
+    if declared is not None and pos.shape[0] < declared:
+        msg = f"truncated: {pos.shape[0]} of {declared} frames (the file ends early)"
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
     return _finish(pos, _c3d_labels(point, n_markers), rate, path, notes)
+
+
+def _c3d_declared_frames(path: Path, point: dict) -> int | None:
+    """Frames the raw C3D header declares, when the file is too short to hold them (ezc3d
+    silently reads the complete frames a truncated file holds and rewrites its own header
+    counts); ``None`` when the file is complete or the header cannot tell (16-bit overflow)."""
+    with open(path, "rb") as f:
+        header = f.read(512)
+        if len(header) < 512 or header[0] < 1:
+            return None
+        f.seek((header[0] - 1) * 512 + 3)
+        proc = f.read(1)
+    big = proc == bytes([86])  # processor type 3 (MIPS): big-endian integers
+    words = struct.unpack((">" if big else "<") + "256H", header)
+    n_points, n_analog, first, last, data_block = words[1], words[2], words[3], words[4], words[8]
+    if last == 0xFFFF or last < first or data_block < 1:
+        return None
+    scale = point.get("SCALE", {}).get("value", [-1.0])
+    item = 4 if len(scale) == 0 or float(scale[0]) < 0 else 2
+    declared = last - first + 1
+    need = (data_block - 1) * 512 + declared * (4 * n_points + n_analog) * item
+    return declared if path.stat().st_size < need else None
 
 
 def _write_c3d(capture: Capture, path: Path) -> None:
@@ -197,6 +308,11 @@ def _write_c3d(capture: Capture, path: Path) -> None:
         (7, capture.n_markers, capture.n_frames), dtype=bool
     )
     c.write(str(path))
+    # ezc3d reports no I/O error: check that the file holds the header and every frame
+    need = 512 + 16 * capture.n_markers * capture.n_frames
+    size = path.stat().st_size if path.exists() else 0
+    if size < need:
+        raise CaptureError(f"C3D writer stored {size} bytes, at least {need} expected (disk full?)")
 
 
 # --------------------------------------------------------------------------------- TRC

@@ -33,9 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from labeler_service.capture import write_capture
+    from labeler_service.capture import check_writable, write_capture
     from labeler_service.scenes.compose import TakeSpec, compose_scene
 
+    check_writable(args.out)
     specs = [TakeSpec.parse(t) for t in args.takes]
     scene = compose_scene(specs, args.radius, args.frames, args.seed, rate=args.rate)
     path = write_capture(scene, args.out)

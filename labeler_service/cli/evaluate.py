@@ -13,7 +13,8 @@ import json
 import sys
 from pathlib import Path
 
-from labeler_service.capture import read_capture
+from labeler_service.capture import check_writable, read_capture
+from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 
@@ -68,6 +69,9 @@ def _methods(arg: list[str] | None) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.plot is not None:  # before the run, not after it
+        check_writable(args.plot, suffixes=None)
+        check_writable(errors_path(args.plot), suffixes=None)
     cap = read_capture(args.truth, up=args.up)
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
@@ -98,15 +102,18 @@ def run(args: argparse.Namespace) -> int:
             )
             for name, s in rep["methods"].items():
                 curves.setdefault(name, []).append((factor, s["accuracy"]))
-        plot_accuracy_vs_downsampling(curves, args.plot, title=Path(args.truth).name)
-        report["plot"] = str(args.plot)
-        raster = plot_error_raster(
-            scores[report["method"]],
-            errors_path(args.plot),
-            rate=report["rate_hz"],
-            init_frames=args.init_frames,
-            title=f"{Path(args.truth).name} ({report['method']})",
-        )
+        try:
+            plot_accuracy_vs_downsampling(curves, args.plot, title=Path(args.truth).name)
+            report["plot"] = str(args.plot)
+            raster = plot_error_raster(
+                scores[report["method"]],
+                errors_path(args.plot),
+                rate=report["rate_hz"],
+                init_frames=args.init_frames,
+                title=f"{Path(args.truth).name} ({report['method']})",
+            )
+        except OSError as exc:
+            raise CaptureError(f"{args.plot}: cannot write the plot: {exc}") from exc
         report["errors_plot"] = str(raster)
     if args.json:
         print(json.dumps(report))

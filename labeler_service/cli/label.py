@@ -46,12 +46,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import Capture, read_capture, write_capture
+    from labeler_service.capture import Capture, check_writable, read_capture, write_capture
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.registry import make_labeler
     from labeler_service.labeling.templates import load_model
 
+    check_writable(args.output)  # before minutes of labeling
     cap = read_capture(args.input, up=args.up)
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)

@@ -32,6 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 async def _main(args: argparse.Namespace) -> int:
+    from labeler_service.errors import LabelerError
     from labeler_service.scenes.corrupt import CorruptionSpec
     from labeler_service.service.transports.url import redact_url
     from labeler_service.tools.replay import open_sender, prepare, replay
@@ -42,6 +43,11 @@ async def _main(args: argparse.Namespace) -> int:
         shuffle=not args.no_shuffle, protect_frames=args.init_frames, seed=args.seed,
     )  # fmt: skip
     frames = prepare(args.file, spec, up=args.up)
+    if frames.n_frames <= args.init_frames:
+        raise LabelerError(
+            f"{args.file}: {frames.n_frames} frames (after --downsample), not more than "
+            f"{args.init_frames} init frames: nothing would be left to label"
+        )
     print(
         f"replay {args.file.name}: {frames.n_frames} frames x {args.loops}, "
         f"{len(frames.marker_names)} markers, {frames.rate:g} Hz at speed {args.speed:g} "

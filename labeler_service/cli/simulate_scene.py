@@ -24,9 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from labeler_service.capture import write_capture
+    from labeler_service.capture import check_writable, write_capture
     from labeler_service.scenes.simulate import simulate_scene
 
+    check_writable(args.out)
     scene = simulate_scene(
         args.performers, args.seconds, args.scenario, args.seed, rate=args.rate, ghosts=args.ghosts
     )

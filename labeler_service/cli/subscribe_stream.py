@@ -23,6 +23,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 async def _main(args: argparse.Namespace) -> int:
     from labeler_service.tools.subscribe import Recorder, Subscriber
 
+    if args.out is not None:
+        from labeler_service.capture import check_writable
+
+        check_writable(args.out)  # now, not after a whole session
     stop = stop_event(args.seconds)
     recorder = Recorder() if args.out is not None else None
     tty = sys.stderr.isatty()
@@ -57,7 +61,10 @@ async def _main(args: argparse.Namespace) -> int:
               f"p99 {lat['p99']:.2f} ms p99.9 {lat['p99.9']:.2f} ms")  # fmt: skip
     if recorder is not None:
         n = recorder.write(args.out)
-        print(f"wrote {n} frames to {args.out}")
+        if n:
+            print(f"wrote {n} frames to {args.out}")
+        else:
+            print(f"no frames received: {args.out} not written")
     return 0
 
 

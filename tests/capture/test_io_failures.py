@@ -1,0 +1,108 @@
+"""Capture writing fails loudly (disk full, unwritable folder, silent ezc3d) and a truncated C3D
+is reported, never read as if it were complete."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import Capture, check_writable, read_capture, write_capture
+from labeler_service.errors import CaptureError
+
+DEV_FULL = Path("/dev/full")
+
+
+def _capture(rng: np.random.Generator, frames: int = 40, markers: int = 5) -> Capture:
+    pos = (rng.normal(size=(frames, markers, 3)) * 500).astype(np.float32)
+    return Capture(pos, tuple(f"A:m{i}" for i in range(markers)), 120.0, source="mem")
+
+
+@pytest.mark.skipif(not DEV_FULL.exists(), reason="needs /dev/full")
+@pytest.mark.parametrize("suffix", [".c3d", ".trc", ".npz"])
+def test_disk_full_is_an_error_not_a_success(tmp_path, rng, suffix):
+    link = tmp_path / f"full{suffix}"
+    link.symlink_to(DEV_FULL)
+    with pytest.raises(CaptureError, match=r"cannot write: \[Errno 28\]"):
+        write_capture(_capture(rng), link)
+    assert link.is_symlink() and os.path.realpath(link) == str(DEV_FULL)  # device untouched
+
+
+def test_silent_c3d_writer_is_caught_and_leaves_nothing(tmp_path, rng, monkeypatch):
+    """ezc3d's ``write`` returns normally when it could not write: the size check catches it,
+    the target keeps its old content and no temporary file is left."""
+    import ezc3d
+
+    out = tmp_path / "o.c3d"
+    old = _capture(rng, frames=10)
+    write_capture(old, out)
+    before = out.read_bytes()
+
+    def short_write(self, path, **kw):  # what a full disk looks like through ezc3d
+        Path(path).write_bytes(b"\0" * 600)
+
+    monkeypatch.setattr(ezc3d.c3d, "write", short_write)
+    with pytest.raises(CaptureError, match=r"o\.c3d: cannot write: C3D writer stored 600 bytes"):
+        write_capture(_capture(rng), out)
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.c3d"]
+
+
+def test_unwritable_folder_is_an_error(tmp_path, rng):
+    target = Path("/proc/self/no-such-dir/o.c3d")
+    with pytest.raises(CaptureError, match=r"o\.c3d: cannot write"):
+        write_capture(_capture(rng), target)
+    with pytest.raises(CaptureError, match=r"o\.c3d: cannot write"):
+        check_writable(target)
+    folder = tmp_path / "d.c3d"
+    folder.mkdir()
+    with pytest.raises(CaptureError, match="is a directory"):
+        write_capture(_capture(rng), folder)
+
+
+def test_write_follows_a_symlink_and_replaces_the_file(tmp_path, rng):
+    real = tmp_path / "real.c3d"
+    link = tmp_path / "link.c3d"
+    write_capture(_capture(rng, frames=5), real)
+    link.symlink_to(real)
+    write_capture(_capture(rng, frames=12), link)
+    assert link.is_symlink()
+    assert read_capture(real).n_frames == 12
+
+
+def test_upper_case_suffix_writes_the_named_file(tmp_path, rng):
+    out = tmp_path / "UP.C3D"
+    write_capture(_capture(rng), out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["UP.C3D"]
+    assert read_capture(out).n_frames == 40
+
+
+def test_check_writable_refuses_bad_suffix_and_leaves_no_probe(tmp_path):
+    with pytest.raises(CaptureError, match="unknown capture format"):
+        check_writable(tmp_path / "o.txt")
+    assert check_writable(tmp_path / "sub" / "o.c3d") == tmp_path / "sub" / "o.c3d"
+    assert check_writable(tmp_path / "plot.png", suffixes=None) == tmp_path / "plot.png"
+    assert list((tmp_path / "sub").iterdir()) == [] and not (tmp_path / "plot.png").exists()
+
+
+def test_truncated_c3d_is_noted_and_warned(tmp_path, rng, caplog):
+    full = tmp_path / "full.c3d"
+    write_capture(_capture(rng, frames=600, markers=4), full)
+    data = full.read_bytes()
+    cut = tmp_path / "cut.c3d"
+    data_start = (int.from_bytes(data[16:18], "little") - 1) * 512  # header word 9
+    per_frame = 4 * 4 * 4  # 4 markers x (x, y, z, residual) x float32
+    cut.write_bytes(data[: data_start + 73 * per_frame + 7])
+    with caplog.at_level(logging.WARNING, logger="labeler_service.capture.io"):
+        cap = read_capture(cut)
+    assert cap.n_frames == 73
+    assert "truncated: 73 of 600 frames (the file ends early)" in cap.notes
+    assert any("cut.c3d: truncated: 73 of 600 frames" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="labeler_service.capture.io"):
+        complete = read_capture(full)
+    assert complete.n_frames == 600
+    assert not any("truncated" in n for n in complete.notes) and not caplog.records

@@ -1,0 +1,107 @@
+"""Careless and hostile command lines end with one clear error line and exit 2, before any
+long work: unwritable outputs, impossible --init-frames, a closed stdout pipe."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from labeling.scene import articulated
+
+from labeler_service.capture import Capture, write_capture
+from labeler_service.cli.main import main
+
+UNWRITABLE = "/proc/self/no-such-dir/out"
+
+
+@pytest.fixture
+def take(rng, tmp_path):
+    truth, names = articulated(rng, subjects=1, frames=80)
+    path = tmp_path / "take.c3d"
+    write_capture(Capture(truth, names, 120.0, source="take"), path)
+    return path
+
+
+def _one_error_line(err: str, *needles: str) -> None:
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    for n in needles:
+        assert n in lines[0], (n, err)
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_label_to_a_full_disk_fails(take, tmp_path, capsys):
+    full = tmp_path / "full.c3d"
+    full.symlink_to("/dev/full")
+    assert main(["label", str(take), str(full), "--init-frames", "20", "--no-progress"]) == 2
+    out, err = capsys.readouterr()
+    assert "frames labeled" not in out  # no success line for a file that was not written
+    _one_error_line(err, "full.c3d: cannot write: [Errno 28]")
+
+
+def test_label_checks_the_output_before_reading_the_input(tmp_path, capsys):
+    # the input does not exist either: the output is refused first, before any work
+    assert main(["label", str(tmp_path / "missing.c3d"), UNWRITABLE + ".c3d"]) == 2
+    _one_error_line(capsys.readouterr().err, "out.c3d: cannot write")
+
+
+def test_replay_refuses_more_init_frames_than_the_capture_has(take, capsys):
+    # the port is never contacted: the check comes before the sender is opened
+    code = main(["replay", str(take), "--to", "udp://127.0.0.1:9/x", "--init-frames", "99999"])
+    assert code == 2
+    _one_error_line(capsys.readouterr().err, "80 frames", "99999 init frames")
+
+
+def test_subscribe_checks_out_before_connecting(capsys):
+    t0 = time.monotonic()
+    code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", UNWRITABLE + ".c3d",
+                 "--seconds", "30"])  # fmt: skip
+    assert code == 2
+    assert time.monotonic() - t0 < 20  # refused at start-up, not after the 30 s session
+    _one_error_line(capsys.readouterr().err, "out.c3d: cannot write")
+
+
+def test_subscribe_without_frames_says_so(tmp_path, capsys):
+    out = tmp_path / "rec.c3d"
+    code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", str(out),
+                 "--seconds", "0.2"])  # fmt: skip
+    assert code == 0
+    stdout = capsys.readouterr().out
+    assert "no frames received" in stdout and "wrote 0 frames" not in stdout
+    assert not out.exists()
+
+
+def test_evaluate_checks_the_plot_path_before_the_run(take, capsys):
+    code = main(["evaluate", str(take), "--plot", UNWRITABLE + ".png", "--json", "--no-progress"])
+    assert code == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    _one_error_line(err, "out.png: cannot write")
+
+
+def test_closed_stdout_pipe_ends_quietly(take):
+    """``mocap-labeler info FILE | head -c 1``: the reader leaves; no BrokenPipeError trace."""
+    code = (
+        "import os, sys\n"
+        "r, w = os.pipe(); os.close(r); os.dup2(w, 1)\n"
+        "from labeler_service.cli.main import main\n"
+        f"sys.exit(main(['info', {str(take)!r}]))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr, proc.stderr
+    assert proc.returncode == 1
+
+
+def test_truncated_input_warns_on_stderr(take, tmp_path):
+    data = take.read_bytes()
+    cut = tmp_path / "cut.c3d"
+    cut.write_bytes(data[: len(data) // 2])
+    proc = subprocess.run([sys.executable, "-m", "labeler_service.cli.main", "info", str(cut)],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 0
+    assert "cut.c3d: truncated:" in proc.stderr and "of 80 frames" in proc.stderr
+    assert "note: truncated:" in proc.stdout
