@@ -360,12 +360,14 @@ class Server:
 
         An idle stream goes first. Else only a stream still in its labeled start-up window (no
         labeler; a started one is in real use) can go, and only when it is the weaker claim:
-        it has shown less than :data:`PROVEN_FRAMES` frames of sequential progress
-        (:attr:`StreamState.progress`), or its source holds at least two more such slots than
-        the newcomer's would with it (a flood of names from one sender). The victim: the
-        source holding the most start-up slots first, then the least progress, then the least
-        recently active. So a flooder churns only its own names or is refused, and a stream
-        making progress is never evicted by names that appear with one or two packets."""
+        its source holds at least two more such slots than the newcomer's would with it (a
+        flood of names from one sender), or it has shown less than :data:`PROVEN_FRAMES`
+        frames of sequential progress (:attr:`StreamState.progress`) and comes from the
+        newcomer's source or one holding at least as many slots. The victim: the source
+        holding the most start-up slots first, then the least progress, then the least
+        recently active. So a flooder churns only its own one-packet names or is refused, and
+        a stream making progress is never evicted by names that appear with one or two
+        packets."""
         dyn = self._dynamic()
         now = time.monotonic()
         idle = [st for st in dyn if self._idle(st, now)]
@@ -378,7 +380,10 @@ class Server:
             held[st.source] = held.get(st.source, 0) + 1
         mine = held.get(source, 0) + 1  # the newcomer's source with the newcomer
         candidates = [
-            st for st in unstarted if st.progress < PROVEN_FRAMES or held[st.source] >= mine + 2
+            st
+            for st in unstarted
+            if held[st.source] >= mine + 2
+            or (st.progress < PROVEN_FRAMES and (st.source == source or held[st.source] >= mine))
         ]
         if not candidates:
             return False
