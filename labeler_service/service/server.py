@@ -30,7 +30,8 @@ subject boots (``mocap_boot_attempts_total``, ``mocap_boot_seconds``,
 ``mocap_subjects_booted``).
 
 Bounded state: streams not in the settings take one of ``max_streams`` slots only with a
-labeled frame (or when their trained labeler is in the cache), and are removed after
+labeled frame (or when their trained labeler is in the cache; a full table evicts by evidence,
+:meth:`Server._free_slot`; churn is logged rate-limited), and are removed after
 ``stream_idle_s`` without frames (task ``expire``), their labeler kept in a small LRU cache
 (``stream_cache_size``) and their metric series removed; frames for streams without a slot are
 counted under one series (stream ``""``). Health (labeled fraction) changes publish a status
