@@ -351,8 +351,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"accuracy        {100 * s['accuracy']:.2f} % of visible markers labeled correctly")
     if args.start == "boot":
         after = s["accuracy_after_boot"]
-        print(f"boot            slowest subject {s['boot_s_max']} s; after boot "
-              f"{'-' if after is None else f'{100 * after:.2f} %'} correct")  # fmt: skip
+        boot_s = s["boot_s"] or {}
+        booted = {k: v for k, v in boot_s.items() if v is not None}
+        never = [k for k, v in boot_s.items() if v is None]
+        slowest = f" (slowest {max(booted.values()):.2f} s)" if booted else ""
+        print(
+            f"boot            {len(booted)} of {len(boot_s)} subjects booted{slowest}; "
+            + (f"never: {', '.join(never)}; " if never else "")
+            + f"after boot {'-' if after is None else f'{100 * after:.2f} %'} correct"
+        )
     print(f"ghosts labeled  {100 * (s['ghost_labeled_rate'] or 0.0):.2f} %")
     print(f"recovery        {rec_txt}")
     print(f"latency         p50 {report['latency_ms_p50']:.2f} ms, p99 "

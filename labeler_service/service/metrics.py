@@ -369,6 +369,14 @@ class RateLimitedLog:
         self._suppressed: dict[str, int] = {}
 
     def warning(self, key: str, msg: str, *args: object) -> bool:
+        return self.log(logging.WARNING, key, msg, *args)
+
+    def info(self, key: str, msg: str, *args: object) -> bool:
+        return self.log(logging.INFO, key, msg, *args)
+
+    def log(self, level: int, key: str, msg: str, *args: object) -> bool:
+        """Logs ``msg`` at ``level`` unless ``key`` logged less than ``period`` ago; True when
+        it did. The first line after a quiet period tells how many were suppressed."""
         now = time.monotonic()
         last = self._last.get(key)
         if last is not None and now - last < self.period:
@@ -377,5 +385,5 @@ class RateLimitedLog:
         n = self._suppressed.pop(key, 0)
         self._last[key] = now
         suffix = f" ({n} similar suppressed)" if n else ""
-        self.logger.warning(msg + suffix, *args)
+        self.logger.log(level, msg + suffix, *args)
         return True

@@ -30,7 +30,8 @@ subject boots (``mocap_boot_attempts_total``, ``mocap_boot_seconds``,
 ``mocap_subjects_booted``).
 
 Bounded state: streams not in the settings take one of ``max_streams`` slots only with a
-labeled frame (or when their trained labeler is in the cache), and are removed after
+labeled frame (or when their trained labeler is in the cache; a full table evicts by evidence,
+:meth:`Server._free_slot`; churn is logged rate-limited), and are removed after
 ``stream_idle_s`` without frames (task ``expire``), their labeler kept in a small LRU cache
 (``stream_cache_size``) and their metric series removed; frames for streams without a slot are
 counted under one series (stream ``""``). Health (labeled fraction) changes publish a status
@@ -77,6 +78,10 @@ from labeler_service.service.transports.base import (
 )
 
 log = logging.getLogger(__name__)
+
+#: Frames of sequential progress (:attr:`StreamState.progress`) that protect a stream in its
+#: start-up window from eviction by a newcomer (names that appear with one or two packets).
+PROVEN_FRAMES = 3
 
 
 def build_transports(settings: ServiceSettings) -> list[Transport]:
@@ -297,9 +302,11 @@ class Server:
     def _dynamic(self) -> list[StreamState]:
         return [st for st in self.streams.values() if not st.configured]
 
-    def _stream_for(self, msg: FrameMsg) -> StreamState | None:
+    def _stream_for(self, msg: FrameMsg, source: object = None) -> StreamState | None:
         """The stream's state; a stream not in the settings gets a slot only with a labeled
-        frame (or a cached labeler), evicting an idle or never-started one when all are taken."""
+        frame (or a cached labeler), evicting another unconfigured stream only by the rule of
+        :meth:`_free_slot` when all are taken. ``source``: who sent the frame (UDP: its
+        address)."""
         name = msg.stream
         state = self.streams.get(name)
         if state is not None:
@@ -309,14 +316,17 @@ class Server:
         cached = self.cache.get(name)
         if msg.labels is None and cached is None:
             return None  # an unlabeled frame cannot start a stream: no slot for it
-        if len(self._dynamic()) >= self.settings.max_streams and not self._free_slot():
+        if len(self._dynamic()) >= self.settings.max_streams and not self._free_slot(source):
             return None
         if cached is not None:
             del self.cache[name]
-            log.info("stream %s: back (resumes from its cached labeler)", name)
+            self._rlog.info("churn-new", "stream %s: back (resumes from its cached labeler)",
+                            name)  # fmt: skip
         else:
-            log.info("stream %s: new (starts from labeled init frames)", name)
+            self._rlog.info("churn-new", "stream %s: new (starts from labeled init frames)",
+                            name)  # fmt: skip
         state = self._new_stream(name, None)
+        state.source = source
         if cached is not None:
             state.resume(*cached)
         self._spawn(self._status(name, "online"), f"status-{name}")
@@ -345,16 +355,41 @@ class Server:
             return name
         return None
 
-    def _free_slot(self) -> bool:
-        """Frees one slot of an unconfigured stream: an idle one first, else the least recently
-        active one that never started (no labeler). False when every slot is in real use."""
+    def _free_slot(self, source: object = None) -> bool:
+        """Frees one slot of an unconfigured stream for a newcomer from ``source``, or returns
+        False (the newcomer's frame is dropped as ``unknown_stream``).
+
+        An idle stream goes first. Else only a stream still in its labeled start-up window (no
+        labeler; a started one is in real use) can go, and only when it is the weaker claim:
+        its source holds at least two more such slots than the newcomer's would with it (a
+        flood of names from one sender), or it has shown less than :data:`PROVEN_FRAMES`
+        frames of sequential progress (:attr:`StreamState.progress`) and comes from the
+        newcomer's source or one holding at least as many slots. The victim: the source
+        holding the most start-up slots first, then the least progress, then the least
+        recently active. So a flooder churns only its own one-packet names or is refused, and
+        a stream making progress is never evicted by names that appear with one or two
+        packets."""
         dyn = self._dynamic()
         now = time.monotonic()
         idle = [st for st in dyn if self._idle(st, now)]
-        unstarted = sorted((st for st in dyn if not st.started), key=lambda st: st.last_activity)
-        victim = idle[0] if idle else unstarted[0] if unstarted else None
-        if victim is None:
+        if idle:
+            self._remove_stream(idle[0].name)
+            return True
+        unstarted = [st for st in dyn if not st.started]
+        held: dict[object, int] = {}
+        for st in unstarted:
+            held[st.source] = held.get(st.source, 0) + 1
+        mine = held.get(source, 0) + 1  # the newcomer's source with the newcomer
+        candidates = [
+            st
+            for st in unstarted
+            if held[st.source] >= mine + 2
+            or (st.progress < PROVEN_FRAMES and (st.source == source or held[st.source] >= mine))
+        ]
+        if not candidates:
             return False
+        victim = min(candidates, key=lambda st: (-held[st.source], st.progress,
+                                                 st.last_activity))  # fmt: skip
         self._remove_stream(victim.name)
         return True
 
@@ -381,8 +416,8 @@ class Server:
         self.metrics.streams_expired.inc()
         self.metrics.streams_active.set(len(self.streams))
         self._spawn(self._status(name, "offline"), f"status-{name}-offline")
-        log.info("stream %s: removed (idle or evicted); %d cached labelers", name,
-                 len(self.cache))  # fmt: skip
+        self._rlog.info("churn-removed", "stream %s: removed (idle or evicted); %d cached "
+                        "labelers", name, len(self.cache))  # fmt: skip
 
     def _idle(self, st: StreamState, now: float) -> bool:
         """No frame for ``stream_idle_s`` and nothing left to do (queue empty, not training)."""
@@ -437,7 +472,8 @@ class Server:
             self._rlog.warning("mismatch", "topic stream %s carried stream %s", inc.stream,
                                msg.stream)  # fmt: skip
             return
-        state = self._stream_for(msg)
+        source = inc.reply_to if inc.reply_to is not None else inc.transport
+        state = self._stream_for(msg, source)
         if state is None:
             self.metrics.drop("unknown_stream")  # one series: stream names are not labels
             self._rlog.warning("unknown", "frame for unknown stream %r dropped", msg.stream)

@@ -241,6 +241,11 @@ class StreamState:
         self._rebase = False  # re-base time at the next frame (the run's t jumped)
         self.runs = 1
         self.last_activity = time.monotonic()
+        #: evidence that a real client feeds the stream (slot eviction, server): consecutive
+        #: frames accepted by the restart rule (next seq, plausible t); 0 after a dropped frame
+        self.progress = 0
+        #: who took the stream's slot (UDP: the sender address; else the transport's name)
+        self.source: object = None
         self.training = False  # a training job for this stream is running (server)
         # health
         self.status = "online"
@@ -271,9 +276,17 @@ class StreamState:
         return self.continuity.last_seq
 
     def check_frame(self, f: FrameMsg) -> Verdict:
-        """The restart rule's verdict for an arriving frame (updates the run tracking)."""
+        """The restart rule's verdict for an arriving frame (updates the run tracking and
+        :attr:`progress`)."""
         self.last_activity = time.monotonic()
-        return self.continuity.check(f.seq, f.t)
+        verdict = self.continuity.check(f.seq, f.t)
+        if verdict.reason is not None:
+            self.progress = 0  # a dropped frame (duplicate, late, suspect jump): no evidence
+        elif verdict.new_run or verdict.gap:
+            self.progress = 1  # a new run or a gap starts over
+        else:
+            self.progress += 1
+        return verdict
 
     def needs_training(self, f: FrameMsg) -> bool:
         """True when labeling ``f`` trains the labeler (first unlabeled frame after the init

@@ -14,6 +14,7 @@ never makes the next ones late; ``speed=0`` sends as fast as possible.
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
@@ -30,6 +31,8 @@ from labeler_service.service.settings import MqttSettings
 from labeler_service.service.transports.url import Endpoint, parse_endpoint
 
 SendFn = Callable[[bytes], Awaitable[bool]]
+
+log = logging.getLogger(__name__)
 
 
 def prepare(source: str | Path | Capture, spec: CorruptionSpec, up: str = "z") -> StreamFrames:
@@ -146,9 +149,21 @@ async def open_sender(
         from labeler_service.service.transports.udp import UdpClient
 
         async with UdpClient(ep.host, ep.port) as udp:
+            seen = [0, 0.0]  # refusals counted so far, monotonic time of the last one
 
             async def send_udp(payload: bytes) -> bool:
-                return udp.send(payload)
+                # the kernel reports "connection refused" (ICMP port unreachable: nothing
+                # listens there) on a later receive or send: an earlier datagram went nowhere;
+                # a send after which a new report was read counts as failed
+                ok = udp.send(payload)
+                if udp.refused == seen[0]:
+                    return ok
+                now = time.monotonic()
+                if now - seen[1] > 1.0:
+                    log.warning("replay: nothing listens at udp://%s:%d (connection refused); "
+                                "frames are counted as failed", ep.host, ep.port)  # fmt: skip
+                seen[:] = [udp.refused, now]
+                return False
 
             yield send_udp, stream
         return

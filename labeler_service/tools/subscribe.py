@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -127,6 +128,7 @@ class Subscriber:
         mqtt: MqttSettings | None = None,
         queue_size: int = 8192,
         renew_s: float = 1.0,
+        silence_s: float | None = 1.0,
     ) -> None:
         self.endpoint = parse_endpoint(url) if isinstance(url, str) else url
         self.stream = self.endpoint.stream
@@ -142,6 +144,13 @@ class Subscriber:
         self._transport: UdpClient | MqttEndpoint | None = None
         self._udp: UdpClient | None = None  # the same transport, when it is UDP
         self._token: bytes | None = None  # UDP challenge token to echo
+        #: liveness warnings (see :meth:`_watch`): after this long without a labeled frame
+        #: (None: no watch)
+        self.silence_s = silence_s
+        self._last_frame = time.monotonic()  # last labeled frame (or the start)
+        self._heard = False  # any message from the service so far
+        self.silent = False  # a silence warning is out and no frame came since
+        self.warnings: list[str] = []  # every liveness line, oldest first (bounded)
 
     @property
     def dropped(self) -> int:
@@ -167,7 +176,46 @@ class Subscriber:
                 MqttEndpoint(settings, s, topics)
             )
         self._tasks.append(asyncio.create_task(self._pump(), name="subscribe-pump"))
+        if self.silence_s is not None:
+            self._last_frame = time.monotonic()
+            self._tasks.append(asyncio.create_task(self._watch(), name="subscribe-watch"))
         return self
+
+    def _warn(self, msg: str, *args: object) -> None:
+        line = msg % args
+        if len(self.warnings) >= 1000:
+            del self.warnings[:500]
+        self.warnings.append(line)
+        log.warning("%s", line)
+
+    def _what(self) -> str:
+        ep = self.endpoint
+        return f"{ep.scheme}://{ep.host}:{ep.port}/{self.stream or '*'}"
+
+    async def _watch(self) -> None:
+        """Says when the labeled frames stop for more than ``silence_s`` (the service died,
+        the stream stopped or the network dropped them) and when they resume; says so too
+        when nothing answers at all (UDP: the kernel's "connection refused" reports)."""
+        assert self.silence_s is not None
+        refused = 0
+        while True:
+            await asyncio.sleep(min(0.25, self.silence_s / 4))
+            quiet = time.monotonic() - self._last_frame
+            if self.silent or quiet <= self.silence_s:
+                continue
+            self.silent = True
+            udp = self._udp
+            if udp is not None and udp.refused > refused:
+                refused = udp.refused
+                why = "nothing listens there (connection refused): is the service running?"
+            elif not self._heard:
+                why = "no answer from the service yet: is it running, is the address right?"
+            elif self.stats.frames == 0 and self.stats.undecodable == 0:
+                why = "the service answers; the stream has not sent labeled frames yet"
+            else:
+                why = "the service stopped, the stream paused, or the network drops them"
+            self._warn("subscribe %s: no labeled frames for %.1f s: %s", self._what(), quiet,
+                       why)  # fmt: skip
 
     async def __aexit__(self, *exc: object) -> None:
         tasks, self._tasks = self._tasks, []
@@ -196,7 +244,14 @@ class Subscriber:
         except ProtocolError:
             self.stats.rejected += 1
             return
+        self._heard = True
         if isinstance(msg, LabeledMsg):
+            now = time.monotonic()
+            if self.silent:
+                self.silent = False
+                self._warn("subscribe %s: labeled frames again (stream %s) after %.1f s",
+                           self._what(), msg.stream, now - self._last_frame)  # fmt: skip
+            self._last_frame = now
             model = self.models.get(msg.stream)
             if model is None or model.model != msg.model or len(model.names) != len(msg.state):
                 self.stats.undecodable += 1
@@ -207,6 +262,8 @@ class Subscriber:
         elif isinstance(msg, ModelMsg):
             self.models[msg.stream] = msg
         elif isinstance(msg, StatusMsg):
+            if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
+                self._warn("subscribe %s: stream %s is %s", self._what(), msg.stream, msg.state)
             self.status[msg.stream] = msg.state
             self._status_changed.set()
         elif isinstance(msg, ChallengeMsg):

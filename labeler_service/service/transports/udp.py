@@ -107,6 +107,9 @@ class _Socket:
         #: (counted in ``prefiltered``)
         self.classify = classify
         self.prefiltered = 0
+        #: ICMP "port unreachable" reports (connected sockets: nothing listens at the peer),
+        #: read by a receive or a send; the kernel keeps one pending, so it is a lower bound
+        self.refused = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
         #: what the kernel granted (``getsockopt``; Linux reports twice the usable bytes)
@@ -137,9 +140,12 @@ class _Socket:
                 data, addr = recv(65536)
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError:
+            except ConnectionRefusedError:
                 # ICMP port unreachable after a send to a vanished peer (connected sockets):
                 # an error report, not a lost datagram; not fatal
+                self.refused += 1
+                return
+            except OSError:  # another ICMP error report
                 return
             self._put(data, addr)
 
@@ -165,7 +171,10 @@ class _Socket:
                     data, anc, _, addr = recv(65536, _OVFL_SPACE)
                 except (BlockingIOError, InterruptedError):
                     return
-                except OSError:  # an ICMP error report (see _readable)
+                except ConnectionRefusedError:  # an ICMP error report (see _readable)
+                    self.refused += 1
+                    return
+                except OSError:
                     return
                 for level, kind, cdata in anc:
                     if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(cdata) >= 4:
@@ -180,6 +189,9 @@ class _Socket:
                 self.sock.send(payload)
             else:
                 self.sock.sendto(payload, addr)
+        except ConnectionRefusedError:  # the pending report of an earlier datagram
+            self.refused += 1
+            return False
         except OSError:  # buffer full, unreachable: UDP is best effort (callers count it)
             return False
         return True
@@ -401,6 +413,12 @@ class UdpClient:
     @property
     def received_dropped(self) -> int:
         return self._queue.dropped
+
+    @property
+    def refused(self) -> int:
+        """ICMP "connection refused" reports so far: nothing listens at ``remote`` (each is
+        a datagram that went nowhere; a lower bound, the kernel keeps one pending)."""
+        return self._sock.refused if self._sock is not None else 0
 
     async def __aenter__(self) -> UdpClient:
         sock = _Socket(self._queue, self.name, self._buffer)

@@ -1,0 +1,84 @@
+"""The clients say when the service is gone: ``subscribe`` warns when labeled frames stop (and
+resume) and reports status changes; ``replay`` counts datagrams refused by the kernel (ICMP
+port unreachable: nothing listens) as failed."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+from service.helpers import moving_clusters, run, until
+
+from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+from labeler_service.service.server import Server
+from labeler_service.service.settings import load_settings
+from labeler_service.tools.replay import open_sender, replay
+from labeler_service.tools.subscribe import Subscriber
+
+
+def _settings():
+    return load_settings(labeler="baseline", metrics_port=None, warmup=False, udp={"port": 0})
+
+
+def _dead_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    return port
+
+
+def test_replay_to_a_port_where_nothing_listens_counts_the_frames_as_failed(caplog):
+    cap = moving_clusters(np.random.default_rng(0), frames=30, rate=200.0)
+    frames = corrupt(cap, CorruptionSpec(seed=1))
+
+    async def go():
+        async with open_sender(f"udp://127.0.0.1:{_dead_port()}/x") as (send, stream):
+            return await replay(frames, send, stream=stream, init_frames=5, speed=1.0)
+
+    stats = run(go())
+    assert stats.failed >= 20 and stats.sent + stats.failed == 30
+    warned = [r for r in caplog.records if "connection refused" in r.getMessage()]
+    assert len(warned) == 1  # once per episode, not per frame
+
+
+def test_subscribe_without_a_service_warns_that_nothing_listens():
+    async def go():
+        async with Subscriber(f"udp://127.0.0.1:{_dead_port()}/v", silence_s=0.2) as sub:
+            await until(lambda: sub.silent, "the silence warning", timeout=5)
+            return list(sub.warnings)
+
+    warnings = run(go())
+    assert len(warnings) == 1 and "connection refused" in warnings[0]
+
+
+def test_subscribe_reports_silence_resumption_and_the_services_offline_status(rng):
+    cap = moving_clusters(rng, frames=120, rate=120.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
+
+    async def go():
+        srv = Server(_settings())
+        await srv.__aenter__()
+        host, port = srv.transports[0].address
+        url = f"udp://{host}:{port}/v"
+        async with Subscriber(url, silence_s=0.3) as sub:
+            try:
+                await until(lambda: srv.transports[0].subscribers, "the registration")
+                async with open_sender(url) as (send, stream):
+                    await replay(frames, send, stream=stream, init_frames=10, speed=2.0)
+                    await until(lambda: sub.silent, "the silence warning", timeout=5)
+                    before = sub.stats.frames
+                    await replay(frames, send, stream=stream, init_frames=0, speed=2.0,
+                                 seq0=120, max_frames=20)  # fmt: skip
+                    await until(lambda: not sub.silent, "the frames again", timeout=5)
+                    assert sub.stats.frames > before
+            finally:
+                await srv.__aexit__(None, None, None)  # publishes offline, then closes
+            await until(lambda: sub.silent, "the silence after the service left", timeout=5)
+            return list(sub.warnings)
+
+    warnings = run(go())
+    assert "stream v is online" in warnings[0]
+    assert "no labeled frames" in warnings[1] and "frames again" in warnings[2]
+    assert any("stream v is offline" in w for w in warnings[3:])
+    assert "no labeled frames" in warnings[-1]
