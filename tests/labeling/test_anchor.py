@@ -30,15 +30,22 @@ def _tracks(m: int):
     return new_tracks(np.full(m, 1e6), np.ones(m, dtype=bool), [list(range(m))])
 
 
-def _anchored():
-    """Marker 0 snapshot at (100, 0, 0) with anchors 1 at the origin and 2 at (0, 100, 0),
-    both observed there now: ``(tracks, snapshot, obs)``."""
-    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
+def _anchored_at(ref: np.ndarray, now: np.ndarray):
+    """Marker 0 snapshot at ``ref[0]`` with anchors 1 and 2 at ``ref[1:]``, the anchors observed
+    at ``now[1:]``: ``(tracks, obs)``."""
     tr = _tracks(3)
     tr.anc[0] = (1, 2)
     tr.anc_ref[0] = ref
     obs = np.full((3, 3), np.nan)
-    obs[1:] = ref[1:]
+    obs[1:] = now[1:]
+    return tr, obs
+
+
+def _anchored():
+    """Marker 0 snapshot at (100, 0, 0) with anchors 1 at the origin and 2 at (0, 100, 0),
+    both observed there now: ``(tracks, snapshot, obs)``."""
+    ref = np.array([[100.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 100.0, 0.0]])
+    tr, obs = _anchored_at(ref, ref)
     return tr, ref, obs
 
 
@@ -55,11 +62,7 @@ def test_two_anchor_estimate_follows_a_turn_about_an_axis_normal_to_the_anchors(
     R = _rotation(np.array([0.0, 0.0, 1.0]), 0.9)
     move = np.array([300.0, -120.0, 40.0])
     now = ref @ R.T + move
-    tr = _tracks(3)
-    tr.anc[0] = (1, 2)
-    tr.anc_ref[0] = ref
-    obs = np.full((3, 3), np.nan)
-    obs[1:] = now[1:]
+    tr, obs = _anchored_at(ref, now)
     x = np.full((3, 6), np.nan)
     assert _anchor_estimate(0, obs, tr.anc, tr.anc_ref, x) == 1
     np.testing.assert_allclose(x[0, :3], now[0], atol=1e-9)
@@ -77,11 +80,7 @@ def test_two_anchor_estimate_follows_a_turn_about_an_axis_normal_to_the_anchors(
 def test_half_turn_of_the_anchor_line_is_a_proper_rotation():
     ref = np.array([[30.0, 50.0, 0.0], [0.0, 0.0, 0.0], [100.0, 0.0, 0.0]])
     now = ref @ _rotation(np.array([0.0, 0.0, 1.0]), np.pi).T
-    tr = _tracks(3)
-    tr.anc[0] = (1, 2)
-    tr.anc_ref[0] = ref
-    obs = np.full((3, 3), np.nan)
-    obs[1:] = now[1:]
+    tr, obs = _anchored_at(ref, now)
     x = np.full((3, 6), np.nan)
     _anchor_estimate(0, obs, tr.anc, tr.anc_ref, x)
     # distances to both anchors kept
