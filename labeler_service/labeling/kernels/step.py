@@ -376,13 +376,13 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
     # centre: the rigid estimate from the neighbours seen so far, else the prediction
     _observed(assigned, points, obs)
     anchored = scratch.anchored
+    anc, anc_ref = tracks.anc, tracks.anc_ref
     for i in range(m_total):
         anchored[i] = False
         if not missing[i]:
             continue
         kept = 0
         loose_broken = False
-        anc, anc_ref = tracks.anc, tracks.anc_ref
         if rec_ok[i]:
             kept = _set_estimate(i, recovery, obs, kab, est4, robust_mm)
         if kept >= 3:
