@@ -360,10 +360,6 @@ class _Graph:
         return idx
 
 
-def _graph(tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> _Graph:
-    return _Graph(tpl, M, P, pts)
-
-
 @njit
 def _agree_count(M, P, dist, D, tol, rigid, out):
     """``out[a]``: nodes ``b`` agreeing with node ``a`` (:class:`_Graph`), without the square:
@@ -816,7 +812,7 @@ def _candidates(
     if not keys or not np.concatenate(keys).size:
         return None
     uniq, inv = np.unique(np.concatenate(keys), return_inverse=True)
-    g = _graph(tpl, uniq // n, uniq % n, pts)
+    g = _Graph(tpl, uniq // n, uniq % n, pts)
     bounds = np.cumsum([0] + [k.size for k in keys])
     seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(keys))]
     rows = np.full((len(cands), 8), -1, dtype=np.int64)
