@@ -23,8 +23,8 @@ Order:
    proper rotation), the body's other markers are predicted and matched to the nearest points
    within ``fit_mm`` (up to ``body_hidden`` may be missing, three must remain), and the
    candidate's pair distances must hold along the tracks (distance constancy).
-4. **Node graph** (:class:`_Graph`, rows in numba): candidates become (marker, point) nodes; pairs of
-   nodes *agree* (a rigid pair, ``A + rigid_weight D <= rigid_a_mm``, at its distance),
+4. **Node graph** (:class:`_Graph`, rows in numba): candidates become (marker, point) nodes;
+   pairs of nodes *agree* (a rigid pair, ``A + rigid_weight D <= rigid_a_mm``, at its distance),
    *clash* (one marker on two points, one point for two markers, a rigid pair off its
    distance, an articulated pair beyond its reach) or *link* (an articulated pair within its
    trained range ``D +- (tol_mm + link_sigma A)``).
