@@ -436,7 +436,6 @@ def _select(
     config: BootConfig,
     near: np.ndarray,
     complete: bool = False,
-    kind: np.ndarray | None = None,
 ) -> np.ndarray:
     """Greedy consistent set. From the seed nodes, add the allowed node with the most rigid
     links that agree with the set (at least ``min_support``) and no clash; when none is left,
@@ -527,30 +526,20 @@ def _select(
 
 
 def _steady_links(g: _Graph, nodes: np.ndarray, chosen: np.ndarray) -> bool:
-    """A segment joining through articulated links where another placement of the same body
-    could join too (a crowd): its ``STEADY_LINKS`` articulated pairs to the placed markers of
-    its chain neighbours (``chosen``: :func:`_adjacent`) with the least trained deviation
-    ``A`` must all be in range. Most pairs in range is not enough there: a hugging partner's
-    forearm where this performer's hidden upper arm should be is in range of most of the
-    shoulder's and hips' pairs, not of the steadiest ones."""
+    """A segment joining through articulated links: its ``STEADY_LINKS`` articulated pairs to
+    the placed markers of its chain neighbours (``chosen``: :func:`_adjacent`) with the least
+    trained deviation ``A`` must all be in range. Most pairs in range is not enough: a hugging
+    partner's forearm where this performer's hidden upper arm should be is in range of most of
+    the shoulder's and hips' pairs, not of the steadiest ones."""
     g.rows(nodes)
     art = g.art[np.ix_(nodes, chosen)]
     if not art.any():
         return True
-    a = np.where(art, g.A[g.M[nodes][:, None], g.M[chosen][None, :]], np.inf).ravel()
-    a = np.where(np.isfinite(a), a, np.inf)
+    a = g.A[g.M[nodes][:, None], g.M[chosen][None, :]]
+    a = np.where(art & np.isfinite(a), a, np.inf).ravel()
     steady = np.argsort(a, kind="stable")[:STEADY_LINKS]
     steady = steady[np.isfinite(a[steady])]
     return bool(np.all(g.link[np.ix_(nodes, chosen)].ravel()[steady]))
-
-
-def _rivals(g: _Graph, bodies: np.ndarray, bb: np.ndarray, viable: np.ndarray, best: int,
-            kind: np.ndarray) -> bool:  # fmt: skip
-    """Whether a viable candidate of the same body as ``best`` lies on other points (not one of
-    its symmetric readings): the segment could be another performer's."""
-    same = np.flatnonzero(viable & (kind == kind[best]))
-    mine = set(g.P[bodies[best][bb[best]]].tolist())
-    return any(not set(g.P[bodies[r][bb[r]]].tolist()) <= mine for r in same if r != best)
 
 
 def _beside_joint(
@@ -786,7 +775,6 @@ class _Candidates:
     cm: np.ndarray
     cp: np.ndarray
     near: np.ndarray  # (C, m) markers next to each candidate's body (_adjacent)
-    kind: np.ndarray  # (C,) each candidate's body (index into the template's bodies)
 
 
 def _candidates(
@@ -823,8 +811,7 @@ def _candidates(
         cm[i, : c.markers.size] = c.markers
         cp[i, : c.markers.size] = c.points
     near = tpl.near[[c.body for c in cands]] if cands else np.zeros((0, tpl.n), dtype=bool)
-    kind = np.array([c.body for c in cands], dtype=np.int64)
-    return _Candidates(cands, g, seeds, rows, cm, cp, near, kind)
+    return _Candidates(cands, g, seeds, rows, cm, cp, near)
 
 
 def _hypotheses(
@@ -866,7 +853,7 @@ def _hypotheses(
             used[cj] = True
             centre = pts[cands[cj].points].mean(axis=0)
             allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
-            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near, kind=cg.kind)
+            nodes = _select(g, seeds[cj], allowed, padded, config, cg.near)
             assign = np.full(tpl.n, -1, dtype=np.int64)
             assign[g.M[nodes]] = g.P[nodes]
             h = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts))
