@@ -81,13 +81,8 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
     Any failure raises :class:`CaptureError` naming the file.
     """
     p = Path(path)
-    suffix = p.suffix.lower()
-    if suffix not in SUFFIXES:
-        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
+    target, suffix = _target(p, SUFFIXES)
     writer: _Writer = {".c3d": _write_c3d, ".trc": _write_trc, ".npz": _write_npz}[suffix]
-    target = Path(os.path.realpath(p))
-    if target.is_dir():
-        raise CaptureError(f"{p}: cannot write: is a directory")
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():
@@ -106,12 +101,7 @@ def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES
     write: unknown suffix (unless ``suffixes`` is ``None``: any file), a directory, a parent
     folder that cannot be created or written."""
     p = Path(path)
-    suffix = p.suffix.lower()
-    if suffixes is not None and suffix not in suffixes:
-        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
-    target = Path(os.path.realpath(p))
-    if target.is_dir():
-        raise CaptureError(f"{p}: cannot write: is a directory")
+    target, suffix = _target(p, suffixes)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():  # a device or FIFO: opening could block
@@ -125,6 +115,18 @@ def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES
     except OSError as exc:
         raise CaptureError(f"{p}: cannot write: {_os_reason(exc)}") from exc
     return p
+
+
+def _target(p: Path, suffixes: tuple[str, ...] | None) -> tuple[Path, str]:
+    """``(the file a write of p replaces, p's lower-case suffix)``: the suffix must be one of
+    ``suffixes`` (``None``: any) and the path not a directory; symbolic links resolved."""
+    suffix = p.suffix.lower()
+    if suffixes is not None and suffix not in suffixes:
+        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
+    target = Path(os.path.realpath(p))
+    if target.is_dir():
+        raise CaptureError(f"{p}: cannot write: is a directory")
+    return target, suffix
 
 
 def _os_reason(exc: OSError) -> str:
