@@ -24,7 +24,8 @@ Attacks (sizes from the issue): single spoofed frames into the healthy stream (t
 2,000 random points; 20,000 unknown stream names and 15 labeled junk names; 8 streams whose
 init frames name 2,000 then 1,000 distinct markers (4 subjects of 250); 4 streams sending
 2,000 labeled frames of 2,000 points each at 100 Hz (init buffers); 64 subscribers from one
-host plus forged unpadded ``subscribe "*"``; a flood of 20,000 datagrams. MQTT attacks are in
+host plus forged unpadded ``subscribe "*"``; a flood of 20,000 datagrams; 40 labeled names
+squatting the stream slots (with random datagrams) while a new stream starts. MQTT attacks are in
 tests/hostile/test_mqtt_hostile.py (a real broker). ``--attacks NAME ...`` runs only those
 (after the baseline segment).
 """
@@ -280,6 +281,32 @@ async def attack_subscribers(ctx) -> dict:
     return {"forged_request_bytes": len(bare) * 6, "forged_bytes_received": forged_bytes_in}
 
 
+async def attack_name_squat(ctx) -> dict:
+    """40 labeled stream names (more than ``max_streams``), each sending all the time, and
+    random datagrams, while a new stream ``newcomer`` starts from another socket: 50 labeled
+    frames of the healthy take, then unlabeled ones, 4 s at the take's rate. A squatter must
+    not push the newcomer out of its slot during its labeled start-up window."""
+    sock, addr, fr, svc = ctx["sock"], ctx["addr"], ctx["healthy"].frames, ctx["svc"]
+    rng = np.random.default_rng(8)
+    p = _pts(rng, 8)
+    labels = [f"S:M{i}" for i in range(8)]
+    new = _sock()
+    n = min(fr.n_frames, int(4 * fr.rate))
+    for f in range(n):
+        lab = init_labels(fr, f) if f < 50 else None
+        new.sendto(encode_frame("newcomer", f, f / fr.rate, fr.points[f], lab), addr)
+        for k in range(40):
+            sock.sendto(encode_frame(f"squat{k}", f, f / 100, p, labels), addr)
+        for _ in range(10):
+            sock.sendto(rng.bytes(1400), addr)
+        if f % 4 == 3:
+            await asyncio.sleep(4 / fr.rate)
+    await asyncio.sleep(0.5)  # in flight; before the newcomer expires with its series
+    published = svc.scrape().get("mocap_frames_out_total{stream=newcomer}", 0.0)
+    new.close()
+    return {"newcomer_unlabeled_sent": n - 50, "newcomer_published": int(published)}
+
+
 async def attack_flood(ctx) -> dict:
     sock, addr = ctx["sock"], ctx["addr"]
     rng = np.random.default_rng(7)
@@ -306,6 +333,7 @@ ATTACKS = {
     "init_buffer": attack_init_buffer,
     "subscribers": attack_subscribers,
     "udp_flood": attack_flood,
+    "name_squat": attack_name_squat,
 }
 
 
@@ -342,7 +370,7 @@ async def run(args) -> dict:
                     await send_healthy(h, sock, addr, h.init_until - h.k)  # trains, not scored
                     await asyncio.sleep(1.0)
                     before = service_drops(svc.scrape())
-                    ctx = {"healthy": h, "sock": sock, "addr": addr}
+                    ctx = {"healthy": h, "sock": sock, "addr": addr, "svc": svc}
                     done = asyncio.Event()
                     task = asyncio.create_task(healthy_passes(h, sock, addr, seg, done))
                     extra = {} if name == "baseline" else await ATTACKS[name](ctx)
