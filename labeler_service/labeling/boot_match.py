@@ -30,6 +30,9 @@ EXCHANGE_MARGIN = 1.0
 NEIGHBOUR = 1.5
 #: Steadiest articulated pairs a segment joining through links must keep in range (_steady_links).
 STEADY_LINKS = 3
+#: A chirality quadruple (:func:`_handedness`) votes only when its tetrahedron is at least this
+#: thick (cube root of ``|det|``, mm; trained ones are >= 20 mm): a flat one flips with noise.
+CHIRAL_MIN_MM = 10.0
 
 
 # ---------------------------------------------------------------------------- templates
@@ -71,6 +74,8 @@ class _Template:
     nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     nll_gauss: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     nll_use: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    #: (q, 4) quadruples of positive trained signed volume (``SubjectTemplate.chirality``)
+    chirality: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -132,6 +137,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
                 tpl.body_of[i].append(bi)
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
+        tpl.chirality = np.asarray(subj.chirality, dtype=np.int64).reshape(-1, 4)
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
         _nll_tables(tpl)
@@ -743,6 +749,23 @@ def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
     return float(have.size - per.sum() - per_l.sum())
 
 
+def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[int, int]:
+    """Of the template's chirality quadruples with all four markers placed and a thick
+    tetrahedron (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``), how many keep the trained sign
+    and how many are reversed: a subject read mirrored (left for right) keeps every pair
+    distance but reverses these volumes."""
+    q = tpl.chirality
+    if q.shape[0] == 0:
+        return 0, 0
+    q = q[np.all(assign[q] >= 0, axis=1)]
+    if q.shape[0] == 0:
+        return 0, 0
+    p = pts[assign[q]]  # (q, 4, 3)
+    det = np.linalg.det(p[:, 1:] - p[:, :1])
+    thick = np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM
+    return int(np.sum(thick & (det > 0))), int(np.sum(thick & (det < 0)))
+
+
 @dataclass
 class _Hypothesis:
     template: int
@@ -879,6 +902,11 @@ def _hypotheses(
             free = ~claimed
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
+            kept, reversed_ = _handedness(tpl, assign, pts)
+            if reversed_ > kept:
+                # a mirror image (left read for right): every distance fits, the volumes
+                # do not; its points stay free for the seeds that read it the right way
+                continue
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
