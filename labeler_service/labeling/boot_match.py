@@ -903,7 +903,7 @@ def _hypotheses(
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
             kept, reversed_ = _handedness(tpl, assign, pts)
-            if reversed_ > kept:
+            if reversed_ > 0:
                 # a mirror image (left read for right): every distance fits, the volumes
                 # do not; its points stay free for the seeds that read it the right way
                 continue
