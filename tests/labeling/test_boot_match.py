@@ -11,7 +11,10 @@ from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, trac
 from labeler_service.labeling.boot_match import (
     _articulate,
     _exchange,
+    _handedness,
+    _hypotheses,
     _pair_error,
+    _Pairs,
     _relocate,
     _swap_mirrors,
 )
@@ -107,6 +110,28 @@ def test_mirrored_segments_are_swapped_back(walker):
     assign = truth.copy()
     _swap_mirrors(tpl, assign, pts)
     np.testing.assert_array_equal(assign, truth)
+
+
+def test_chirality_tells_a_subject_from_its_mirror_image(walker):
+    """Pair distances are the same for a body and its mirror image; the trained signed volumes
+    are not: the right reading keeps them all, the same reading of the mirrored points (x -> -x:
+    every distance unchanged) reverses them all, and a boot on the mirrored window does not
+    label it as the original (it would be a reading reversing every quadruple)."""
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    assert tpl.chirality.shape[0] >= 4
+    kept, rev = _handedness(tpl, truth, pts)
+    assert kept >= 4 and rev == 0
+    flip = np.array([-1.0, 1.0, 1.0])
+    assert _handedness(tpl, truth, pts * flip) == (0, kept)
+    # the hypotheses on the mirrored window read it left for right (a consistent body), never
+    # as the original labels (every distance fits them, every volume is reversed)
+    mirrored = hist * flip
+    pairs = _Pairs(mirrored[:, -1], tpl.r_max)
+    hyps = _hypotheses(tpl, mirrored[:, -1], mirrored, pairs, BootConfig())
+    for h in hyps:
+        placed = h.assign >= 0
+        assert np.mean(h.assign[placed] == truth[placed]) < 0.8
 
 
 def test_tracker_follows_a_sprinter_from_the_second_frame(rng):
