@@ -63,7 +63,7 @@ def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
     p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
     q = np.asarray(quads, dtype=np.int64)
     e = p[:, q[:, 1:]] - p[:, q[:, :1]]  # (F, Q, 3, 3)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(all="ignore"):  # NaN or degenerate frames
         det = np.linalg.det(e.astype(np.float64))  # NaN where a marker is unseen
     seen = np.isfinite(det)
     n = seen.sum(axis=0)

@@ -120,10 +120,10 @@ def test_chirality_tells_a_subject_from_its_mirror_image(walker):
     tpl, hist, truth = walker
     pts = hist[:, -1]
     assert tpl.chirality.shape[0] >= 4
-    kept, rev = _handedness(tpl, truth, pts)
-    assert kept >= 4 and rev == 0
+    kept, rev, local = _handedness(tpl, truth, pts)
+    assert kept >= 4 and rev == 0 and local == 0
     flip = np.array([-1.0, 1.0, 1.0])
-    assert _handedness(tpl, truth, pts * flip) == (0, kept)
+    assert _handedness(tpl, truth, pts * flip)[:2] == (0, kept)
     # the hypotheses on the mirrored window read it left for right (a consistent body), never
     # as the original labels (every distance fits them, every volume is reversed)
     mirrored = hist * flip
