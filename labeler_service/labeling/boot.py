@@ -259,6 +259,14 @@ class Booter:
             holder[h.assign[h.assign >= 0]] = j
         for i, h in enumerate(accepted):
             tpl = self._templates[h.template]
+            have = h.assign >= 0
+            if have.all():
+                continue
+            # only another subject's points within this one's reach can be reclaimed
+            centre = pts[h.assign[have]].mean(axis=0)
+            near = np.linalg.norm(pts - centre, axis=1) <= tpl.extent
+            if not np.any(near & (holder >= 0) & (holder != i)):
+                continue
             grown = _complete(tpl, h.assign, pts, hist, np.zeros(n, dtype=bool), self.config)
             fresh = np.flatnonzero((grown >= 0) & (h.assign < 0))
             if fresh.size == 0:
