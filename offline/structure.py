@@ -21,6 +21,76 @@ from labeler_service.errors import ModelError
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.labeling.training import motion_noise, train_subject
 
+#: chirality quadruples (see :func:`chirality_quads`)
+CHIRALITY_A_MM = 20.0  # every pair of a quadruple this steady (a segment, or two beside a joint)
+CHIRALITY_MIN_MM = 20.0  # thick: cube root of |det| above this in 90 % of the frames
+CHIRALITY_AGREE = 0.98  # one sign in this fraction of the frames
+CHIRALITY_PER_MARKER = 3  # a marker is in at most this many quadruples
+CHIRALITY_MAX = 64  # quadruples per subject
+CHIRALITY_FRAMES = 400  # frames looked at (evenly spread)
+CHIRALITY_POOL = 20000  # quadruples enumerated at most
+
+
+def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
+    """Quadruples ``[a, b, c, d]`` of markers whose signed volume ``det(b - a, c - a, d - a)``
+    is positive in the training frames ``pos (F, m, 3)``: every pair of the four steady
+    (``A <= CHIRALITY_A_MM`` = 20 mm), the tetrahedron thick (cube root of ``|det|`` >= 20 mm in
+    90 % of the frames where all four are seen, at least 10 such frames) and one sign in 98 %
+    of them.
+    Pair distances are the same for a subject and its mirror image; these volumes are not, and
+    the boot uses them to refuse a subject read mirrored (left for right). Thickest first, each
+    marker in at most ``CHIRALITY_PER_MARKER`` of them, at most ``CHIRALITY_MAX``."""
+    m = A.shape[0]
+    steady = np.isfinite(A) & (A <= CHIRALITY_A_MM)
+    np.fill_diagonal(steady, False)
+    quads: list[tuple[int, int, int, int]] = []
+    for a in range(m):
+        nb = np.flatnonzero(steady[a, a + 1 :]) + a + 1
+        for bi, b in enumerate(nb):
+            nc = nb[bi + 1 :][steady[b, nb[bi + 1 :]]]
+            for ci, c in enumerate(nc):
+                nd = nc[ci + 1 :][steady[c, nc[ci + 1 :]]]
+                quads.extend((a, int(b), int(c), int(d)) for d in nd)
+                if len(quads) >= CHIRALITY_POOL:
+                    break
+            if len(quads) >= CHIRALITY_POOL:
+                break
+        if len(quads) >= CHIRALITY_POOL:
+            break
+    if not quads:
+        return []
+    f = pos.shape[0]
+    p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
+    q = np.asarray(quads, dtype=np.int64)
+    e = p[:, q[:, 1:]] - p[:, q[:, :1]]  # (F, Q, 3, 3)
+    with np.errstate(all="ignore"):  # NaN or degenerate frames
+        det = np.linalg.det(e.astype(np.float64))  # NaN where a marker is unseen
+    seen = np.isfinite(det)
+    n = seen.sum(axis=0)
+    pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
+    sign = np.where(pos_frac >= 0.5, 1.0, -1.0)
+    agree = np.maximum(pos_frac, 1.0 - pos_frac)
+    # the 10th percentile of the thickness over the frames seen (numpy's linear
+    # interpolation; nanpercentile loops over the columns and cost ~1 s a subject)
+    size = np.sort(np.cbrt(np.abs(np.where(seen, det, np.nan))), axis=0)  # NaN last
+    pos = 0.1 * np.maximum(n - 1, 0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
+    cols = np.arange(size.shape[1])
+    thick = size[lo, cols] + (pos - lo) * (size[hi, cols] - size[lo, cols])
+    ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (np.nan_to_num(thick) >= CHIRALITY_MIN_MM)
+    out: list[list[int]] = []
+    use = np.zeros(m, dtype=np.int64)
+    for k in np.flatnonzero(ok)[np.argsort(-np.nan_to_num(thick[ok]), kind="stable")]:
+        if np.any(use[q[k]] >= CHIRALITY_PER_MARKER):
+            continue
+        a, b, c, d = (int(x) for x in q[k])
+        out.append([a, b, c, d] if sign[k] > 0 else [a, b, d, c])
+        use[q[k]] += 1
+        if len(out) >= CHIRALITY_MAX:
+            break
+    return out
+
 
 class StructureTrainer:
     """Learns subject templates from labeled captures.
@@ -101,7 +171,10 @@ class StructureTrainer:
             # the pooled frames' motion noise is replaced: noise depends on the rate, so it is
             # learned per capture and averaged (positive and finite like each capture's)
             q = np.mean(noises, axis=0)
-            templates.append(t.model_copy(update={"motion_noise": [float(x) for x in q]}))
+            quads = chirality_quads(pos, t.A_array())
+            templates.append(
+                t.model_copy(update={"motion_noise": [float(x) for x in q], "chirality": quads})
+            )
         rates = sorted({c.rate for c in caps})
         self.model_ = LabelerModel(
             rate=rates[0],

@@ -69,10 +69,12 @@ from scipy.spatial import cKDTree
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.boot_match import (
+    EXCHANGE_MARGIN,
     _complete,
     _hypotheses,
     _Hypothesis,
     _kabsch_batch,
+    _pair_error,
     _Pairs,
     _prepare,
     _score,
@@ -228,6 +230,7 @@ class Booter:
             kept = assign >= 0
             taken[assign[kept]] = len(accepted)
             accepted.append((_Hypothesis(h.template, assign, h.score, h.rms), support))
+        self._reclaim([h for h, _ in accepted], sub_pts, sub_hist)
         labels = np.full(n, -1, dtype=np.int64)
         booted: list[str] = []
         scores: dict[str, float] = {}
@@ -238,6 +241,57 @@ class Booter:
             booted.append(tpl.name)
             scores[tpl.name] = _score(tpl, h.assign, sub_pts)
         return BootResult(labels, booted, scores)
+
+    def _reclaim(self, accepted: list[_Hypothesis], pts: np.ndarray, hist: np.ndarray) -> None:
+        """Limbs read on another subject's points: each accepted subject is completed
+        (:func:`_complete`) with the other subjects' points free; markers it then places on
+        points another subject holds move to it when its model explains those points better
+        given the rest of it (:func:`_pair_error`, the readings' negative log-likelihood: lower
+        by more than ``EXCHANGE_MARGIN``) and the loser keeps its 50 %. Two performers side by
+        side: the hypotheses are grown per template, and one took the other's forearm and hand
+        for its own hand through articulated links while the owner's hypothesis had left that
+        arm out (no point was contested, so the resolution above never saw it)."""
+        if len(accepted) < 2:
+            return
+        n = pts.shape[0]
+        holder = np.full(n, -1, dtype=np.int64)
+        for j, h in enumerate(accepted):
+            holder[h.assign[h.assign >= 0]] = j
+        for i, h in enumerate(accepted):
+            tpl = self._templates[h.template]
+            have = h.assign >= 0
+            if have.all():
+                continue
+            # only another subject's points within this one's reach can be reclaimed
+            centre = pts[h.assign[have]].mean(axis=0)
+            near = np.linalg.norm(pts - centre, axis=1) <= tpl.extent
+            if not np.any(near & (holder >= 0) & (holder != i)):
+                continue
+            grown = _complete(tpl, h.assign, pts, hist, np.zeros(n, dtype=bool), self.config)
+            fresh = np.flatnonzero((grown >= 0) & (h.assign < 0))
+            if fresh.size == 0:
+                continue
+            owners = holder[grown[fresh]]
+            for j in np.unique(owners[owners >= 0]):
+                if j == i:
+                    continue
+                mine = fresh[owners == j]
+                other = accepted[j]
+                # the same points as the other subject's markers
+                ot = self._templates[other.template]
+                theirs = np.flatnonzero(np.isin(other.assign, grown[mine]))
+                need = max(3, int(np.ceil(self.config.min_fraction * ot.n)))
+                if int((other.assign >= 0).sum()) - theirs.size < need:
+                    continue
+                # the likelihood of those points under each subject, given the rest of it
+                ob = other.assign.copy()
+                ob[theirs] = -1
+                nll_mine = _pair_error(tpl, mine, grown[mine], h.assign, pts)
+                nll_theirs = _pair_error(ot, theirs, other.assign[theirs], ob, pts)
+                if nll_mine < nll_theirs - EXCHANGE_MARGIN:
+                    other.assign[theirs] = -1
+                    h.assign[mine] = grown[mine]
+                    holder[grown[mine]] = i
 
     def extend(
         self,

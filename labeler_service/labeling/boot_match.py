@@ -30,6 +30,15 @@ EXCHANGE_MARGIN = 1.0
 NEIGHBOUR = 1.5
 #: Steadiest articulated pairs a segment joining through links must keep in range (_steady_links).
 STEADY_LINKS = 3
+#: A chirality quadruple (:func:`_handedness`) votes only when its tetrahedron is at least this
+#: thick (cube root of ``|det|``, mm; trained ones are >= 20 mm): a flat one flips with noise.
+CHIRAL_MIN_MM = 10.0
+#: A hypothesis is refused when one local quadruple (one segment, or two beside a joint: it
+#: cannot turn over without a mirror reading) is reversed, or more than this fraction of all its
+#: voting quadruples: a wide one, steady in a short training segment, may still turn over in a
+#: pose it never saw (a head, upper arm and hand of a hugging performer: 1 of 29 reversed on a
+#: correct reading).
+CHIRAL_REVERSED = 0.1
 
 
 # ---------------------------------------------------------------------------- templates
@@ -71,6 +80,10 @@ class _Template:
     nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     nll_gauss: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     nll_use: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    #: (q, 4) quadruples of positive trained signed volume (``SubjectTemplate.chirality``)
+    chirality: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
+    #: (q,) quadruples inside one body or two bodies sharing a marker (see _handedness)
+    chiral_local: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -132,6 +145,8 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
                 tpl.body_of[i].append(bi)
             del b
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
+        tpl.chirality = np.asarray(subj.chirality, dtype=np.int64).reshape(-1, 4)
+        tpl.chiral_local = _local_quads(tpl.chirality, subj.bodies)
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
         _nll_tables(tpl)
@@ -743,6 +758,35 @@ def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
     return float(have.size - per.sum() - per_l.sum())
 
 
+def _local_quads(quads: np.ndarray, bodies: list[list[int]]) -> np.ndarray:
+    """Per quadruple: are its four markers inside one trained body, or two bodies sharing a
+    marker (a segment, or two beside one joint)?"""
+    sets = [set(b) for b in bodies]
+    unions = sets + [a | b for i, a in enumerate(sets) for b in sets[i + 1 :] if a & b]
+    return np.array([any(set(q.tolist()) <= u for u in unions) for q in quads], dtype=bool)
+
+
+def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[int, int, int]:
+    """Of the template's chirality quadruples with all four markers placed and a thick
+    tetrahedron (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``), how many keep the trained sign,
+    how many are reversed, and how many of those are local (one segment or two beside a
+    joint, :func:`_local_quads`): a subject read mirrored (left for right) keeps every pair
+    distance but reverses these volumes."""
+    q = tpl.chirality
+    if q.shape[0] == 0:
+        return 0, 0, 0
+    placed = np.all(assign[q] >= 0, axis=1)
+    q, local = q[placed], tpl.chiral_local[placed]
+    if q.shape[0] == 0:
+        return 0, 0, 0
+    p = pts[assign[q]]  # (q, 4, 3)
+    with np.errstate(all="ignore"):  # a degenerate quadruple (coincident points)
+        det = np.linalg.det(p[:, 1:] - p[:, :1])
+    thick = np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM
+    rev = thick & (det < 0)
+    return int(np.sum(thick & (det > 0))), int(rev.sum()), int(np.sum(rev & local))
+
+
 @dataclass
 class _Hypothesis:
     template: int
@@ -879,6 +923,11 @@ def _hypotheses(
             free = ~claimed
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
+            kept, reversed_, local = _handedness(tpl, assign, pts)
+            if local > 0 or reversed_ > CHIRAL_REVERSED * (kept + reversed_):
+                # a mirror image (left read for right): every distance fits, the volumes
+                # do not; its points stay free for the seeds that read it the right way
+                continue
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again

@@ -52,6 +52,11 @@ class SubjectTemplate(BaseModel):
     bodies: list[list[int]] = Field(min_length=1)
     shapes: list[list[list[float]]]
     motion_noise: list[float]
+    #: quadruples of markers (indices) whose signed volume det(b - a, c - a, d - a) was
+    #: positive in the training frames (near-rigid and thick): the handedness pair distances
+    #: cannot carry (a subject read mirrored keeps every distance); learned by
+    #: ``train structure``, empty in models without it
+    chirality: list[list[int]] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _check(self) -> SubjectTemplate:
@@ -91,6 +96,9 @@ class SubjectTemplate(BaseModel):
                     f"{where}: motion_noise[{i}] = {q:g} (mm/s^2)^2 ({self.markers[i]}) is outside "
                     f"{qlo:g}-{qhi:g}"
                 )
+        for q in self.chirality:
+            if len(q) != 4 or len(set(q)) != 4 or any(not 0 <= i < m for i in q):
+                raise ValueError(f"{where}: chirality entry {q} must be 4 distinct marker indices")
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
         for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):

@@ -11,7 +11,10 @@ from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, trac
 from labeler_service.labeling.boot_match import (
     _articulate,
     _exchange,
+    _handedness,
+    _hypotheses,
     _pair_error,
+    _Pairs,
     _relocate,
     _swap_mirrors,
 )
@@ -107,6 +110,28 @@ def test_mirrored_segments_are_swapped_back(walker):
     assign = truth.copy()
     _swap_mirrors(tpl, assign, pts)
     np.testing.assert_array_equal(assign, truth)
+
+
+def test_chirality_tells_a_subject_from_its_mirror_image(walker):
+    """Pair distances are the same for a body and its mirror image; the trained signed volumes
+    are not: the right reading keeps them all, the same reading of the mirrored points (x -> -x:
+    every distance unchanged) reverses them all, and a boot on the mirrored window does not
+    label it as the original (it would be a reading reversing every quadruple)."""
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    assert tpl.chirality.shape[0] >= 4
+    kept, rev, local = _handedness(tpl, truth, pts)
+    assert kept >= 4 and rev == 0 and local == 0
+    flip = np.array([-1.0, 1.0, 1.0])
+    assert _handedness(tpl, truth, pts * flip)[:2] == (0, kept)
+    # the hypotheses on the mirrored window read it left for right (a consistent body), never
+    # as the original labels (every distance fits them, every volume is reversed)
+    mirrored = hist * flip
+    pairs = _Pairs(mirrored[:, -1], tpl.r_max)
+    hyps = _hypotheses(tpl, mirrored[:, -1], mirrored, pairs, BootConfig())
+    for h in hyps:
+        placed = h.assign >= 0
+        assert np.mean(h.assign[placed] == truth[placed]) < 0.8
 
 
 def test_tracker_follows_a_sprinter_from_the_second_frame(rng):
@@ -288,3 +313,42 @@ def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkey
     others = np.flatnonzero(bad0 >= 0)
     others = others[others != m0]
     np.testing.assert_array_equal(res.labels[bad0[others]], t0.offset + others)
+
+
+def test_a_limb_read_on_another_subjects_points_goes_back_to_its_owner():
+    """Two walkers: subject 1's hypothesis holds subject 0's limb (under its own names for
+    that limb) and subject 0's hypothesis left the limb out, so no point is contested. The
+    reclaim completes subject 0 with the others' points free and takes the limb back, since
+    subject 0's model explains those points far better given the rest of it."""
+    from labeler_service.labeling.boot_match import _Hypothesis
+    from offline.structure import StructureTrainer
+
+    cap = simulate_scene(2, 4.0, "walk", seed=5, rate=RATE, ghosts=0.0)
+    half = cap.n_frames // 2
+    model = StructureTrainer().fit([cap.frames(0, half)]).model_
+    booter = Booter(model, BootConfig())
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    cols = np.array([col[n] for n in model.marker_names])
+    h = np.transpose(cap.positions[half : half + 12, cols].astype(np.float64), (1, 0, 2))
+    keep = np.isfinite(h).all(axis=(1, 2))
+    h = h[keep]
+    pts = h[:, -1]
+    gidx = np.flatnonzero(keep)
+    t0, t1 = booter._templates
+    a0, a1 = np.full(t0.n, -1), np.full(t1.n, -1)
+    for p, g in enumerate(gidx):
+        if g < t0.n:
+            a0[g] = p
+        else:
+            a1[g - t0.n] = p
+    truth0 = a0.copy()
+    limb = next(s1 for s1, _ in t0.mirrors if np.all(a0[s1] >= 0) and s1.size >= 3)
+    names0 = [model.marker_names[t0.offset + k].split(":")[-1] for k in limb]
+    names1 = [n.split(":")[-1] for n in model.marker_names[t1.offset : t1.offset + t1.n]]
+    limb1 = np.array([names1.index(n) for n in names0])
+    a1[limb1] = a0[limb]  # subject 1 reads subject 0's limb as its own
+    a0[limb] = -1
+    accepted = [_Hypothesis(0, a0, 0.0), _Hypothesis(1, a1, 0.0)]
+    booter._reclaim(accepted, pts, h)
+    np.testing.assert_array_equal(accepted[0].assign[limb], truth0[limb])
+    assert not np.isin(truth0[limb], accepted[1].assign).any()
