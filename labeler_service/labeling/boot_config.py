@@ -193,3 +193,24 @@ class BootConfig(BaseModel):
         True,
         description="re-verification: a broken joint withdraws the segments beyond it",
     )
+    verify_cut_tol: float = Field(
+        3.0,
+        ge=0,
+        description="re-verification: a joint's pair counts towards a cut only when its mean "
+        "distance is this many tolerances off (an untrained pose of the subject's own limb "
+        "stays within one or two)",
+    )
+    verify_tol_scale: float = Field(
+        2.0,
+        gt=0,
+        description="re-verification: the boot's rigid pair tolerances times this plus "
+        "verify_tol_mm "
+        "(a model trained on another or a still segment: skin slides)",
+    )
+    verify_tol_mm: float = Field(5.0, ge=0, description="re-verification: ... plus this")
+    verify_contact_mm: float = Field(
+        250.0,
+        ge=0,
+        description="re-verification: labels are withdrawn only from a marker group with a "
+        "marker this close to another subject's (0: everywhere)",
+    )

@@ -16,6 +16,11 @@
    the inner labeler stops labeling it (``Labeler.drop_subject``), so none of its labels can go
    to other points or ghosts while it is away; when it comes back it is booted again
    (re-identification, anywhere);
+   a booted subject is also re-verified over time (:mod:`~labeler_service.labeling.boot_verify`,
+   ``BootConfig.verify``): labels whose template pairs stop holding are withdrawn (from the
+   frame, the window and the inner labeler: ``Labeler.withdraw_markers``) and their tracks
+   kept from that subject for ``verify_block_s``; a subject that mostly fails is dropped and
+   booted again;
 4. every ``boot_every_s`` (doubling after each fruitless attempt up to ``boot_backoff_s``: a
    model's absent subjects would otherwise cost a boot every 0.05 s), while some model subject
    is not active, the boot

@@ -43,7 +43,8 @@ def _index(model: LabelerModel, names: list[str]) -> np.ndarray:
 
 def _run(model, pos, *, swap=None, config=None, frames=None):
     """Feeds the verifier every frame of ``pos`` (all subjects verified from the start);
-    ``swap = (markers, sources)``: those markers sit on the sources' points (and tracks).
+    ``swap = (markers, sources)``: those markers sit on the sources' points (and tracks), the
+    sources are unlabeled.
     Returns the verifier and ``[(frame, verdict)]``."""
     cfg = config or BootConfig()
     v = BootVerifier(Booter(model, cfg), RATE, cfg)
@@ -58,6 +59,7 @@ def _run(model, pos, *, swap=None, config=None, frames=None):
         if swap is not None:
             p[swap[0]] = pos[f, swap[1]]
             tr[swap[0]] = swap[1]
+            p[swap[1]] = np.nan  # (a point carries one label: the source lost it)
         obs = np.isfinite(p[:, 0])
         tr[~obs] = -1
         verdict = v.update(p, obs, tr)
