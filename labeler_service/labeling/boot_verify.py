@@ -9,7 +9,9 @@ partner, so its distances to this subject's placed segments stop fitting the tem
 The verifier keeps, while a booted subject is active, evidence per *edge* of its template:
 
 - **rigid edges**: every pair of markers of one trained body (``strict`` in the boot's
-  templates) with its tolerance ``tol_mm + tol_sigma A + tol_relative D``;
+  templates) with the boot's tolerance ``tol_mm + tol_sigma A + tol_relative D`` times
+  ``verify_tol_scale`` plus ``verify_tol_mm`` (over a stream a model trained on another or a
+  still segment is off by more than in one window: skin over a scapula slides);
 - **joint edges**: the template's bodies are joined into a *chain*, a minimum spanning tree
   over the cost of joining two bodies (0 when they share a marker, else their cheapest cross
   pair's ``A + JOINT_D D``, only for pairs closer than ``JOINT_REACH`` times the larger body:
@@ -28,7 +30,9 @@ its trained range but steady is a pose the training did not see (an arm raised i
 another performer's limb moves. A marker seen on another track than before starts its
 evidence again (the labeler moved it).
 
-Decisions (only on positive evidence: a hidden marker gives no sample, never a withdrawal):
+Decisions (only on positive evidence: a hidden marker gives no sample, never a withdrawal;
+and only for markers within ``verify_contact_mm`` of another subject's observed marker: a
+performer apart from the others cannot hold their limbs):
 
 - **a marker is off**: two or more of its edges bad and more bad than good (its partners
   agree among themselves, it does not); the worst first, its edges then no longer count, so a
@@ -37,7 +41,11 @@ Decisions (only on positive evidence: a hidden marker gives no sample, never a w
   from a near-side marker its own body confirms (two good rigid edges, no bad one): the body
   farther from the chain's centre (the trunk) is withdrawn with every body that hangs from it
   (its subtree in the breadth-first tree from the centre), except markers shared with a body
-  that stays: a partner's forearm and hand read where this subject's are;
+  that stays: a partner's forearm and hand read where this subject's are. Each such pair must
+  also be off by ``verify_cut_tol`` tolerances on average (the subject's own limb in an
+  untrained pose stays within one or two), and another subject must lack (have unobserved)
+  markers of the segment's names, either side, for half of it (where the partner's segment came
+  from);
 - **a subject mostly fails** when the markers withdrawn from it within about
   ``verify_recent_s`` reach ``verify_drop`` of its observed markers: it is dropped (as a
   performer who left) and booted again.
@@ -296,6 +304,7 @@ class BootVerifier:
         self._decay = float(np.exp(-1.0 / max(1.0, c.verify_recent_s * tick_hz)))
         self._frame = 0
         self.withdrawn = 0  # markers withdrawn so far (diagnostics)
+        self.last_broken = np.zeros(0, dtype=np.int64)  # joints broken at the last tick
         self.dropped = 0  # subjects dropped so far
 
     def copy(self) -> BootVerifier:
