@@ -922,6 +922,10 @@ class BootingLabeler:
             return None  # (cannot happen: both end with the stream's last frame)
         for name in _SHADOWED:
             setattr(self, name, getattr(shadow, name))
+        if self._verifier is not None:  # the shadow's subjects, verified from now on
+            for s in range(len(self.model.subjects)):
+                if (s in self._active) != self._verifier.verifies(s):
+                    (self._verifier.start if s in self._active else self._verifier.stop)(s)
         # the shadow's labels on this labeler's frames (their points, its track ids); frames
         # the shadow skipped (the catch-up's stride) keep none
         by_t = {f.t: f.labels for f in shadow._window}
@@ -956,7 +960,9 @@ class BootingLabeler:
         for name in ("_gone", "_recent", "_inner_state", "_inner_known", "_acq_ids", "_acq_tries"):
             setattr(sh, name, getattr(self, name).copy())
         sh._tracker = copy.copy(self._tracker)
-        sh._verifier = self._verifier.copy() if self._verifier is not None else None
+        # (no re-verification while catching up: the catch-up races the stream within the
+        # attempt's budget; the subjects it books are verified from the install on)
+        sh._verifier = None
         sh._blocked = dict(self._blocked)
         # catch_up builds the shadow's inner labeler
         sh._inner = None  # type: ignore[assignment]
@@ -1115,7 +1121,7 @@ def _catch_up_plan(
 _SHADOWED = (
     "_active", "_gone", "_recent", "_boot_wait", "_since_attempt", "_since_extend",
     "_extend_wait", "_inner", "_inner_state", "_inner_known", "_acquired_new", "_since_acquire",
-    "_verifier", "_blocked",
+    "_blocked",
 )  # fmt: skip
 
 
