@@ -238,6 +238,8 @@ class Labeler:
         by the boot's re-verification): from the next frame on they take no point; their state
         is cleared, and so are the windows of the bodies all of whose markers are withdrawn.
         :meth:`seed_markers` starts them again; every other marker keeps its state."""
+        if not self._built:
+            raise LabelerError("markers can be withdrawn only once the labeler is built")
         mk = np.unique(np.asarray(markers, dtype=np.int64))
         if mk.size and (mk[0] < 0 or mk[-1] >= len(self._names)):
             raise LabelerError(f"marker index out of range 0..{len(self._names) - 1}")

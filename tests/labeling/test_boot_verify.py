@@ -205,3 +205,5 @@ def test_labeler_withdraw_markers_then_seed_them_again(scene):
     assert visible > 0 and hits >= 0.9 * visible
     with pytest.raises(LabelerError):
         lab.withdraw_markers([m + 5])
+    with pytest.raises(LabelerError):  # (nothing built yet)
+        Labeler(["x:a", "x:b", "x:c"], RATE).withdraw_markers([0])
