@@ -132,3 +132,85 @@ class BootConfig(BaseModel):
     max_symmetries: int = Field(
         4, ge=1, description="readings of one seed body's points tried (body symmetries)"
     )
+    verify: bool = Field(
+        True,
+        description="BootingLabeler: re-verify booted subjects over time (boot_verify.py): "
+        "labels whose template pairs stop holding are withdrawn, a subject that mostly fails "
+        "is dropped and booted again",
+    )
+    verify_every_s: float = Field(
+        0.02, gt=0, description="re-verification: a sample of every edge this often"
+    )
+    verify_memory_s: float = Field(
+        0.3, gt=0, description="re-verification: time constant of an edge's off rate"
+    )
+    verify_min_s: float = Field(
+        0.25, ge=0, description="re-verification: samples an edge needs before it counts"
+    )
+    verify_bad: float = Field(
+        0.5, gt=0, lt=1, description="re-verification: an edge off this often is bad"
+    )
+    verify_links: int = Field(
+        3, ge=1, description="re-verification: steadiest cross pairs checked per joint"
+    )
+    verify_link_sigma: float = Field(
+        4.0, ge=0, description="re-verification: a joint's pairs hold within D +- this A"
+    )
+    verify_drop: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="re-verification: a subject losing this fraction of its observed markers "
+        "at once is dropped and booted again",
+    )
+    verify_block_s: float = Field(
+        0.4,
+        ge=0,
+        description="re-verification: a withdrawn point's track is kept from that subject "
+        "this long",
+    )
+    verify_recent_s: float = Field(
+        1.0,
+        gt=0,
+        description="re-verification: markers withdrawn within about this long count together "
+        "towards verify_drop (a subject wrong almost everywhere loses them one by one)",
+    )
+    verify_spread_mm: float = Field(
+        5.0,
+        ge=0,
+        description="re-verification: a joint's pair off its range counts only while its "
+        "distance spreads (over verify_memory_s) more than this plus verify_spread_sigma A",
+    )
+    verify_spread_sigma: float = Field(
+        2.0, ge=0, description="re-verification: ... in units of the pair's trained A"
+    )
+    verify_marker_joints: bool = Field(
+        True,
+        description="re-verification: a marker's joint pairs count with its rigid ones when "
+        "deciding that it alone is off",
+    )
+    verify_cut: bool = Field(
+        True,
+        description="re-verification: a broken joint withdraws the segments beyond it",
+    )
+    verify_cut_tol: float = Field(
+        3.0,
+        ge=0,
+        description="re-verification: a joint's pair counts towards a cut only when its mean "
+        "distance is this many tolerances off (an untrained pose of the subject's own limb "
+        "stays within one or two)",
+    )
+    verify_tol_scale: float = Field(
+        2.0,
+        gt=0,
+        description="re-verification: the boot's rigid pair tolerances times this plus "
+        "verify_tol_mm "
+        "(a model trained on another or a still segment: skin slides)",
+    )
+    verify_tol_mm: float = Field(5.0, ge=0, description="re-verification: ... plus this")
+    verify_contact_mm: float = Field(
+        250.0,
+        ge=0,
+        description="re-verification: labels are withdrawn only from a marker group with a "
+        "marker this close to another subject's (0: everywhere)",
+    )

@@ -16,6 +16,11 @@
    the inner labeler stops labeling it (``Labeler.drop_subject``), so none of its labels can go
    to other points or ghosts while it is away; when it comes back it is booted again
    (re-identification, anywhere);
+   a booted subject is also re-verified over time (:mod:`~labeler_service.labeling.boot_verify`,
+   ``BootConfig.verify``): labels whose template pairs stop holding are withdrawn (from the
+   frame, the window and the inner labeler: ``Labeler.withdraw_markers``) and their tracks
+   kept from that subject for ``verify_block_s``; a subject that mostly fails is dropped and
+   booted again;
 4. every ``boot_every_s`` (doubling after each fruitless attempt up to ``boot_backoff_s``: a
    model's absent subjects would otherwise cost a boot every 0.05 s), while some model subject
    is not active, the boot
@@ -90,6 +95,7 @@ from labeler_service.labeling.boot import (
     track_history,
     warmup_kernels,
 )
+from labeler_service.labeling.boot_verify import BootVerifier, extend_blocked
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
 from labeler_service.labeling.labeler import Labeler
@@ -149,6 +155,9 @@ class BootSnapshot:
     shadow: BootingLabeler | None = None
     #: :meth:`BootingLabeler.catch_up`'s result, installed by :meth:`BootingLabeler.install_boot`
     caught: _CatchUp | None = None
+    #: per active subject the points (bool over ``points``) its extension may not take: tracks
+    #: of labels the re-verification withdrew from it (``boot_verify.py``)
+    blocked: dict[int, np.ndarray] | None = None
 
     def remote(self) -> BootSnapshot:
         """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
@@ -232,6 +241,10 @@ class BootingLabeler:
         self._since: list[_Frame] | None = None
         self._since_max = max(1, int(CATCH_UP_MAX_S * self.rate))
         self.boot_ms: list[float] = []  # wall time of every boot attempt
+        #: re-verification of booted subjects over time (boot_verify.py); None when off
+        self._verifier = BootVerifier(self._booter, self.rate, c) if c.verify else None
+        #: per subject the tracks of its withdrawn labels and until when it may not take them
+        self._blocked: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     # ------------------------------------------------------------------ protocol
     @property
@@ -293,7 +306,9 @@ class BootingLabeler:
             pos[:] = out.positions
             state[:] = out.state
             self._drop_vanished(glab, state, pos, t)
-            self._acquire(pts, ids, glab, pos, state)
+            if self._verifier is not None:
+                self._verify(ids, glab, pos, state, t)
+            self._acquire(pts, ids, glab, pos, state, t)
         frame = _Frame(t, pts, ids, glab)
         self._window.append(frame)
         if self._since is not None:
@@ -356,6 +371,8 @@ class BootingLabeler:
         self._since_extend += 1
         counts = np.bincount(self._subject_of[lab[lab >= 0]], minlength=len(self.model.subjects))
         for s in np.flatnonzero(counts >= 3):
+            if self._verifier is not None:
+                self._verifier.stop(int(s))  # (labels from the stream are not re-verified)
             if int(s) not in self._active:
                 self._active.add(int(s))
                 self._recent[s] = 0.0
@@ -401,14 +418,21 @@ class BootingLabeler:
             state[sl] = MarkerState.MISSING
             if self._gone[s] >= self._drop_frames:
                 dropped.append(s)
-        if not dropped:
-            return
+        if dropped:
+            self._drop(dropped, t)
+
+    def _drop(self, dropped: list[int], t: float, kind: str = "drop") -> None:
+        """Drops the active subjects ``dropped``: the inner labeler stops labeling them and the
+        window forgets their labels; they are booted again when seen."""
         for s in dropped:
             self._active.discard(s)
             self._gone[s] = 0
             self._recent[s] = 0.0
-            self.events.append((t, "drop", self.model.subjects[s].name))
+            self.events.append((t, kind, self.model.subjects[s].name))
             self._inner_known[self._offset[s] : self._offset[s + 1]] = False
+            if self._verifier is not None:
+                self._verifier.stop(s)
+            self._blocked.pop(s, None)
             if not self._labeled_run:  # (else the rebuild due at the next frame drops it)
                 self._inner.drop_subject(self.model.subjects[s].name)
         # the window's labels of dropped subjects are forgotten (a rebuild must not see them)
@@ -418,6 +442,66 @@ class BootingLabeler:
             bad[bad] = gone[fr.labels[bad]]
             fr.labels[bad] = -1
 
+    def _verify(
+        self, ids: np.ndarray, glab: np.ndarray, pos: np.ndarray, state: np.ndarray, t: float
+    ) -> None:
+        """Re-verification (boot_verify.py): the verifier takes this frame's observed labels;
+        markers whose evidence says they are not this subject's lose their labels (this frame,
+        the window, the inner labeler) and their tracks are kept from that subject for
+        ``verify_block_s``; a subject that mostly fails is dropped and booted again."""
+        assert self._verifier is not None
+        tracks = np.full(len(self._names), -1, dtype=np.int64)
+        have = glab >= 0
+        tracks[glab[have]] = ids[have]
+        verdict = self._verifier.update(pos, state == MarkerState.OBSERVED, tracks)
+        if verdict is None:
+            return
+        c = self.boot_config
+        for s, mk in verdict.withdraw.items():
+            if s not in self._active:
+                continue
+            hit = np.isin(glab, mk)
+            self._block(s, ids[hit], t + c.verify_block_s)
+            glab[hit] = -1
+            pos[mk] = np.nan
+            state[mk] = MarkerState.MISSING
+            for fr in self._window:
+                fr.labels[np.isin(fr.labels, mk)] = -1
+            if not self._labeled_run:
+                self._inner.withdraw_markers(mk)
+            self._inner_known[mk] = False
+            self.events.append((t, "withdraw", self.model.subjects[s].name))
+        drop = [s for s in verdict.drop if s in self._active]
+        if not drop:
+            return
+        for s in drop:
+            sl = slice(self._offset[s], self._offset[s + 1])
+            glab[(glab >= sl.start) & (glab < sl.stop)] = -1
+            pos[sl] = np.nan
+            state[sl] = MarkerState.MISSING
+        self._drop(drop, t, "reject")
+
+    def _block(self, s: int, ids: np.ndarray, until: float) -> None:
+        old_ids, old_until = self._blocked.get(s, (np.zeros(0, np.int64), np.zeros(0)))
+        self._blocked[s] = (
+            np.concatenate([old_ids, ids.astype(np.int64)]),
+            np.concatenate([old_until, np.full(ids.size, until)]),
+        )
+
+    def _block_masks(self, ids: np.ndarray, t: float) -> dict[int, np.ndarray]:
+        """Per subject with blocked tracks: which of ``ids`` it may not take (expired blocks
+        are forgotten)."""
+        out = {}
+        for s in list(self._blocked):
+            bid, until = self._blocked[s]
+            live = until > t
+            if not live.any():
+                del self._blocked[s]
+                continue
+            self._blocked[s] = (bid[live], until[live])
+            out[s] = np.isin(ids, bid[live])
+        return out
+
     def _acquire(
         self,
         pts: np.ndarray,
@@ -425,6 +509,7 @@ class BootingLabeler:
         glab: np.ndarray,
         pos: np.ndarray,
         state: np.ndarray,
+        t: float,
     ) -> None:
         """Free points of this frame labeled from the template as markers of active subjects
         that have no point in it (:meth:`Booter.acquire`): a marker hidden at boot is labeled in
@@ -446,6 +531,8 @@ class BootingLabeler:
         self._acq_ids, self._acq_tries = fid[order], tries[order] + 1
         look = free.copy()
         look[free] = tries < ACQUIRE_TRIES
+        for mask in self._block_masks(ids, t).values():
+            look &= ~mask  # (withdrawn from a subject: not looked at for a while)
         if not look.any():
             return
         new = self._booter.acquire(pts, np.where(look | ~free, glab, -2), sorted(self._active))
@@ -464,7 +551,14 @@ class BootingLabeler:
         last = self._window[-1]
         frames = [(f.points, f.ids) for f in self._window]
         hist = track_history(frames, last.ids)
-        new = self._booter.extend(last.points, hist, last.labels, sorted(self._active))
+        new = extend_blocked(
+            self._booter,
+            last.points,
+            hist,
+            last.labels,
+            sorted(self._active),
+            self._block_masks(last.ids, last.t),
+        )
         added = (last.labels < 0) & (new >= 0)
         if not added.any():
             return False
@@ -551,6 +645,7 @@ class BootingLabeler:
             self._since_extend = 0
             snap.labels = last.labels.copy()
             snap.active = sorted(self._active)
+            snap.blocked = self._block_masks(last.ids, last.t)
         return snap
 
     def boot_step(self, snapshot: BootSnapshot, runner: StepRunner | None = None) -> BootResult:
@@ -602,6 +697,9 @@ class BootingLabeler:
             # markers of active subjects the extension found (disjoint from the boot's)
             add = (snapshot.labels < 0) & (snapshot.extended >= 0)
             add &= np.isin(self._subject_of[np.maximum(snapshot.extended, 0)], list(self._active))
+            for s, mask in self._block_masks(snapshot.ids, last.t).items():
+                # withdrawn from that subject since the snapshot
+                add &= ~(mask & (self._subject_of[np.maximum(snapshot.extended, 0)] == s))
             if add.any():
                 ext = np.where(add, snapshot.extended, -1)
                 lab = np.where(lab >= 0, lab, ext)
@@ -649,6 +747,8 @@ class BootingLabeler:
         self._active.update(keep)
         for s in keep:
             self.events.append((last.t, "boot", self.model.subjects[s].name))
+            if self._verifier is not None:
+                self._verifier.start(s)
         self._install(keep)
         return booted
 
@@ -822,6 +922,10 @@ class BootingLabeler:
             return None  # (cannot happen: both end with the stream's last frame)
         for name in _SHADOWED:
             setattr(self, name, getattr(shadow, name))
+        if self._verifier is not None:  # the shadow's subjects, verified from now on
+            for s in range(len(self.model.subjects)):
+                if (s in self._active) != self._verifier.verifies(s):
+                    (self._verifier.start if s in self._active else self._verifier.stop)(s)
         # the shadow's labels on this labeler's frames (their points, its track ids); frames
         # the shadow skipped (the catch-up's stride) keep none
         by_t = {f.t: f.labels for f in shadow._window}
@@ -856,6 +960,10 @@ class BootingLabeler:
         for name in ("_gone", "_recent", "_inner_state", "_inner_known", "_acq_ids", "_acq_tries"):
             setattr(sh, name, getattr(self, name).copy())
         sh._tracker = copy.copy(self._tracker)
+        # (no re-verification while catching up: the catch-up races the stream within the
+        # attempt's budget; the subjects it books are verified from the install on)
+        sh._verifier = None
+        sh._blocked = dict(self._blocked)
         # catch_up builds the shadow's inner labeler
         sh._inner = None  # type: ignore[assignment]
         sh._since = None
@@ -948,8 +1056,13 @@ def boot_step_on(
     A plain function of the booter and the snapshot, so a worker process can run it."""
     extended = None
     if snapshot.labels is not None:
-        extended = booter.extend(
-            snapshot.points, snapshot.history, snapshot.labels, snapshot.active
+        extended = extend_blocked(
+            booter,
+            snapshot.points,
+            snapshot.history,
+            snapshot.labels,
+            snapshot.active,
+            snapshot.blocked,
         )
     if not snapshot.subjects:  # an extension only
         empty = BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})
@@ -1008,6 +1121,7 @@ def _catch_up_plan(
 _SHADOWED = (
     "_active", "_gone", "_recent", "_boot_wait", "_since_attempt", "_since_extend",
     "_extend_wait", "_inner", "_inner_state", "_inner_known", "_acquired_new", "_since_acquire",
+    "_blocked",
 )  # fmt: skip
 
 

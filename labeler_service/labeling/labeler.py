@@ -160,7 +160,8 @@ class Labeler:
         return tuple(
             s.name
             for s in self.model.subjects
-            if self._subject_markers[s.name].size and act[self._subject_markers[s.name]].all()
+            if self._subject_markers[s.name].size
+            and (act | self._withdrawn)[self._subject_markers[s.name]].all()
         )
 
     def add_subjects(
@@ -186,6 +187,7 @@ class Labeler:
             mk = self._subject_markers[name]
             if mk.size and tr.active[mk].any():
                 raise LabelerError(f"subject {name!r} is labeled already")
+            self._withdrawn[mk] = False
             markers.append(mk)
             bodies.append(self._subject_bodies[name])
         if not markers:
@@ -212,6 +214,9 @@ class Labeler:
         mk = mk[self._body_marker[mk]]
         if mk.size == 0:
             return
+        back = mk[self._withdrawn[mk]]  # withdrawn (withdraw_markers): placed again
+        self._tracks.active[back] = True
+        self._withdrawn[back] = False
         if not self._tracks.active[mk].all():
             raise LabelerError("seed_markers takes markers of active subjects only")
         self._reset(mk, np.zeros(0, dtype=np.int64))
@@ -226,6 +231,31 @@ class Labeler:
         mk = self._subject_markers[name]
         self._reset(mk, self._subject_bodies[name])
         self._tracks.active[mk] = False
+        self._withdrawn[mk] = False
+
+    def withdraw_markers(self, markers: Sequence[int] | np.ndarray) -> None:
+        """Stops labeling ``markers`` of active subjects (their labels were found wrong, e.g.
+        by the boot's re-verification): from the next frame on they take no point; their state
+        is cleared, and so are the windows of the bodies all of whose markers are withdrawn.
+        :meth:`seed_markers` starts them again; every other marker keeps its state."""
+        if not self._built:
+            raise LabelerError("markers can be withdrawn only once the labeler is built")
+        mk = np.unique(np.asarray(markers, dtype=np.int64))
+        if mk.size and (mk[0] < 0 or mk[-1] >= len(self._names)):
+            raise LabelerError(f"marker index out of range 0..{len(self._names) - 1}")
+        mk = mk[self._body_marker[mk] & self._tracks.active[mk]]
+        if mk.size == 0:
+            return
+        gone = np.zeros(len(self._names), dtype=bool)
+        gone[mk] = True
+        bd = self._bodies
+        whole = np.array(
+            [b for b in range(bd.members.shape[0]) if gone[bd.members[b, : bd.size[b]]].all()],
+            dtype=np.int64,
+        )
+        self._reset(mk, whole)
+        self._tracks.active[mk] = False
+        self._withdrawn[mk] = True
 
     def _check_subjects_call(self, frames: Sequence) -> None:
         if not self._built:
@@ -466,6 +496,7 @@ class Labeler:
             self._subject_bodies[subj.name] = np.arange(nb, nb + len(subj.bodies))
             nb += len(subj.bodies)
         self._body_marker = active.copy()
+        self._withdrawn = np.zeros(m, dtype=bool)  # markers withdrawn (withdraw_markers)
         self._tracks = new_tracks(np.where(np.isfinite(q), q, 1.0e6), active, groups)
         self._bodies = new_bodies(m, bodies, d0, a0, c.window_T)
         if from_file:
