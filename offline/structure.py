@@ -84,8 +84,8 @@ def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
     for k in np.flatnonzero(ok)[np.argsort(-np.nan_to_num(thick[ok]), kind="stable")]:
         if np.any(use[q[k]] >= CHIRALITY_PER_MARKER):
             continue
-        a, b, c, d = (int(x) for x in q[k])
-        out.append([a, b, c, d] if sign[k] > 0 else [a, b, d, c])
+        i0, i1, i2, i3 = (int(x) for x in q[k])
+        out.append([i0, i1, i2, i3] if sign[k] > 0 else [i0, i1, i3, i2])
         use[q[k]] += 1
         if len(out) >= CHIRALITY_MAX:
             break

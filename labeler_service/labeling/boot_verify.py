@@ -225,8 +225,8 @@ class BootVerifier:
                     pb = np.array(sorted(members[far_b] - members[near_b]), dtype=np.int64)
                     if pa.size == 0 or pb.size == 0:
                         continue
-                    ii, jj = np.meshgrid(pa, pb, indexing="ij")
-                    ii, jj = ii.ravel(), jj.ravel()
+                    gi, gj = np.meshgrid(pa, pb, indexing="ij")
+                    ii, jj = gi.ravel(), gj.ravel()
                     a = tpl.A[ii, jj]
                     d = tpl.D[ii, jj]
                     ok = np.isfinite(a) & np.isfinite(d) & ~tpl.strict[ii, jj]
@@ -271,8 +271,8 @@ class BootVerifier:
             self.ea[ok], self.eb[ok], self.D[ok], self.tol[ok], self.joint[ok]
         )  # fmt: skip
         self.joints = np.array(joints, dtype=np.int64).reshape(-1, 3)
-        sizes = [t.n for t in templates]
-        self._subject_of = np.repeat(np.arange(len(sizes)), sizes)
+        n_of = [t.n for t in templates]
+        self._subject_of = np.repeat(np.arange(len(n_of)), n_of)
         self.rigid = self.joint < 0
         #: per marker the markers of the same name, either side, in other subjects (a partner's
         #: limb can be read as this subject's only where the partner has one: its own side or,
@@ -295,12 +295,12 @@ class BootVerifier:
             self.joint >= 0, c.verify_spread_mm + c.verify_spread_sigma * a_edge[ok], 0.0
         )
         self.n = np.zeros(self.ea.size, dtype=np.int64)
-        self._on = np.zeros(len(sizes), dtype=bool)  # subjects verified
+        self._on = np.zeros(len(n_of), dtype=bool)  # subjects verified
         self._edge_on = np.zeros(self.ea.size, dtype=bool)
         #: per marker the track of the point it had last (a new track restarts its evidence)
         self._track = np.full(self.n_markers, -1, dtype=np.int64)
         #: per subject the markers withdrawn lately (decaying with ``verify_recent_s``)
-        self._recent = np.zeros(len(sizes))
+        self._recent = np.zeros(len(n_of))
         self._decay = float(np.exp(-1.0 / max(1.0, c.verify_recent_s * tick_hz)))
         self._frame = 0
         self.withdrawn = 0  # markers withdrawn so far (diagnostics)
@@ -450,12 +450,12 @@ class BootVerifier:
                 if not self._partner_lacks(self._body_markers[far_b], observed):
                     continue
                 sub = self._subtree[far_b]
-                out = set(np.concatenate([self._body_markers[b] for b in sub]).tolist())
+                beyond = set(np.concatenate([self._body_markers[b] for b in sub]).tolist())
                 keep = set()
-                for mk in out:
+                for mk in beyond:
                     if any(b not in sub for b in self._marker_bodies[mk]):
                         keep.add(mk)
-                withdraw.setdefault(s, set()).update(out - keep)
+                withdraw.setdefault(s, set()).update(beyond - keep)
         # markers off their own body: two or more bad rigid edges, more than good ones; the
         # worst first, its edges then no longer count (a marker whose partners are wrong is not)
         rig = (self.joint[ready] < 0) | self.config.verify_marker_joints

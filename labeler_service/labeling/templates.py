@@ -96,9 +96,11 @@ class SubjectTemplate(BaseModel):
                     f"{where}: motion_noise[{i}] = {q:g} (mm/s^2)^2 ({self.markers[i]}) is outside "
                     f"{qlo:g}-{qhi:g}"
                 )
-        for q in self.chirality:
-            if len(q) != 4 or len(set(q)) != 4 or any(not 0 <= i < m for i in q):
-                raise ValueError(f"{where}: chirality entry {q} must be 4 distinct marker indices")
+        for quad in self.chirality:
+            if len(quad) != 4 or len(set(quad)) != 4 or any(not 0 <= i < m for i in quad):
+                raise ValueError(
+                    f"{where}: chirality entry {quad} must be 4 distinct marker indices"
+                )
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
         for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):
