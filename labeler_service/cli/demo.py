@@ -26,15 +26,15 @@ then the stream carries no labels at all and the service boots every performer; 
 ``boot_s`` per subject, ``boot_s_max`` and ``accuracy_after_boot`` (the ``evaluate``
 definitions); ``accuracy`` counts the frames before each boot as unlabeled. ``--init-frames 0``
 alone means the same. Measured (BENCHMARKS.md, ``demo --start boot``): on the CMU scene both
-performers boot in 0.23 s and are 99.93 % correct after boot (97.9 % over the stream) against
-99.997 % from the window; on the simulated 4-person hug one hugged performer boots only after
-3.5 s (99.98 % after boot, 94.3 % over the stream). The default stays the labeled window
-(``--start window``, alias ``labeled``; ``--init-frames N`` > 0 alone means it too) because
-the boot still depends on which segment the model was trained on: with ``--frames 240`` (the
-model trained on frames 240 on) one CMU performer never reaches the 95 % criterion: with the
-demo's gap and ghost his right shoulder and elbow are read as the left ones (a mirror distances
-cannot see) and his left arm stays unlabeled; without them he boots in 0.31 s (``evaluate`` of
-the same scene and model). :data:`DEFAULT_START` switches the default once it does not.
+performers boot in 0.24-0.32 s and are 99.85-99.87 % correct after boot (97.1-97.7 % over the
+stream) against 99.997 % from the window; on the simulated 4-person hug (no real captures) one
+hugged performer boots only after seconds. The default is the boot (:data:`DEFAULT_START`): a
+live capture has no labels. ``--start window`` (alias ``labeled``; ``--init-frames N`` > 0 alone
+means it too) starts from the labeled window. Known limit: with ``--frames 240`` (the model
+trained on frames 240 on) one CMU performer never reaches the 95 % criterion: with the demo's
+gap and ghost his right shoulder and elbow are read as the left ones (no learned chirality
+quadruple covers them) and his left arm stays unlabeled; without them he boots in 0.31 s
+(``evaluate`` of the same scene and model).
 
 Writes ``report.json``, ``latency_histogram.png`` and ``accuracy_over_time.png`` (plus the
 scene and the labeled output as C3D) into ``--out``.
@@ -83,7 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 #: The demo's start when neither ``--start`` nor ``--init-frames`` says (module docstring).
-DEFAULT_START = "window"
+DEFAULT_START = "boot"
 #: Labeled frames of the window start when ``--init-frames`` is not given.
 DEFAULT_INIT_FRAMES = 50
 

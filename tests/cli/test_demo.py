@@ -12,7 +12,8 @@ from labeler_service.cli.main import main
 
 
 @pytest.mark.parametrize(
-    ("data", "start"), [("found", []), ("none", []), ("found", ["--start", "boot"])]
+    ("data", "start"),
+    [("found", ["--start", "labeled"]), ("none", ["--start", "labeled"]), ("found", [])],
 )
 def test_short_demo_prints_accuracy_and_writes_its_report(
     request, tmp_path, capsys, monkeypatch, data, start
@@ -31,9 +32,9 @@ def test_short_demo_prints_accuracy_and_writes_its_report(
     assert float(m.group(1)) == pytest.approx(100 * report["accuracy"], abs=0.006)
     assert report["labeler"] == "online" and report["frames"] == 240
     assert ("simulated" in report["scene"]) == (data == "none")
-    if start:  # the production path: no labels, performers booted from models
+    if not start:  # the default, the production path: no labels, performers booted from models
         assert report["init_frames"] == 0 and "accuracy_after_boot" in report
-    else:  # the default: the paper's labeled window of 50 frames
+    else:  # the paper's labeled window of 50 frames
         assert report["init_frames"] == 50 and report["accuracy"] >= 0.97
     assert report["frames_received"] >= 0.95 * (report["frames_sent"] - report["init_frames"])
     for name in ("latency_histogram.png", "accuracy_over_time.png"):
