@@ -261,12 +261,10 @@ def test_graph_rows_on_demand_match_the_whole_square(walker):
     assert ref[0].any() and ref[1].any() and ref[3].any()  # the case is not trivial
 
 
-def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkeypatch):
-    """Two subjects' hypotheses claim one point: the better-scored one reads it as a loose
-    marker (no rigid partner placed), the other as a marker of a placed rigid body. The point
-    goes to the second, the first keeps the rest of its subject."""
-    import labeler_service.labeling.boot as boot_mod
-    from labeler_service.labeling.boot_match import _Hypothesis
+def _two_walkers_window():
+    """Two simulated walkers, a model of their first half, and a 12-frame window after it:
+    ``(booter, history (n, 12, 3), last points, template 0, template 1, the true point of each
+    marker of subject 0 and of subject 1 (-1: not seen))``."""
     from offline.structure import StructureTrainer
 
     cap = simulate_scene(2, 4.0, "walk", seed=5, rate=RATE, ghosts=0.0)
@@ -281,13 +279,23 @@ def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkey
     pts = h[:, -1]
     gidx = np.flatnonzero(keep)  # point -> global marker
     t0, t1 = booter._templates
-    a0 = np.full(t0.n, -1)
-    a1 = np.full(t1.n, -1)
+    a0, a1 = np.full(t0.n, -1), np.full(t1.n, -1)
     for p, g in enumerate(gidx):
         if g < t0.n:
             a0[g] = p
         else:
             a1[g - t0.n] = p
+    return booter, h, pts, t0, t1, a0, a1
+
+
+def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkeypatch):
+    """Two subjects' hypotheses claim one point: the better-scored one reads it as a loose
+    marker (no rigid partner placed), the other as a marker of a placed rigid body. The point
+    goes to the second, the first keeps the rest of its subject."""
+    import labeler_service.labeling.boot as boot_mod
+    from labeler_service.labeling.boot_match import _Hypothesis
+
+    booter, h, pts, t0, t1, a0, a1 = _two_walkers_window()
     # a marker of subject 1 with the most rigid partners: its point is contested
     sup1 = boot_mod._rigid_support(t1, a1, pts)
     m1 = int(np.argmax(sup1))
@@ -321,30 +329,12 @@ def test_a_limb_read_on_another_subjects_points_goes_back_to_its_owner():
     reclaim completes subject 0 with the others' points free and takes the limb back, since
     subject 0's model explains those points far better given the rest of it."""
     from labeler_service.labeling.boot_match import _Hypothesis
-    from offline.structure import StructureTrainer
 
-    cap = simulate_scene(2, 4.0, "walk", seed=5, rate=RATE, ghosts=0.0)
-    half = cap.n_frames // 2
-    model = StructureTrainer().fit([cap.frames(0, half)]).model_
-    booter = Booter(model, BootConfig())
-    col = {lab: i for i, lab in enumerate(cap.labels)}
-    cols = np.array([col[n] for n in model.marker_names])
-    h = np.transpose(cap.positions[half : half + 12, cols].astype(np.float64), (1, 0, 2))
-    keep = np.isfinite(h).all(axis=(1, 2))
-    h = h[keep]
-    pts = h[:, -1]
-    gidx = np.flatnonzero(keep)
-    t0, t1 = booter._templates
-    a0, a1 = np.full(t0.n, -1), np.full(t1.n, -1)
-    for p, g in enumerate(gidx):
-        if g < t0.n:
-            a0[g] = p
-        else:
-            a1[g - t0.n] = p
+    booter, h, pts, t0, t1, a0, a1 = _two_walkers_window()
     truth0 = a0.copy()
     limb = next(s1 for s1, _ in t0.mirrors if np.all(a0[s1] >= 0) and s1.size >= 3)
-    names0 = [model.marker_names[t0.offset + k].split(":")[-1] for k in limb]
-    names1 = [n.split(":")[-1] for n in model.marker_names[t1.offset : t1.offset + t1.n]]
+    names0 = [booter.model.marker_names[t0.offset + k].split(":")[-1] for k in limb]
+    names1 = [n.split(":")[-1] for n in booter.model.marker_names[t1.offset : t1.offset + t1.n]]
     limb1 = np.array([names1.index(n) for n in names0])
     a1[limb1] = a0[limb]  # subject 1 reads subject 0's limb as its own
     a0[limb] = -1
