@@ -465,8 +465,10 @@ class BootingLabeler:
             glab[hit] = -1
             pos[mk] = np.nan
             state[mk] = MarkerState.MISSING
+            kill = np.zeros(len(self._names) + 1, dtype=bool)  # (index -1: the last, False)
+            kill[mk] = True
             for fr in self._window:
-                fr.labels[np.isin(fr.labels, mk)] = -1
+                fr.labels[kill[fr.labels]] = -1
             if not self._labeled_run:
                 self._inner.withdraw_markers(mk)
             self._inner_known[mk] = False

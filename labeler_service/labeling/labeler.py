@@ -249,10 +249,9 @@ class Labeler:
         gone = np.zeros(len(self._names), dtype=bool)
         gone[mk] = True
         bd = self._bodies
-        whole = np.array(
-            [b for b in range(bd.members.shape[0]) if gone[bd.members[b, : bd.size[b]]].all()],
-            dtype=np.int64,
-        )
+        member = bd.members >= 0
+        out = gone[np.maximum(bd.members, 0)] | ~member
+        whole = np.flatnonzero(out.all(axis=1) & member.any(axis=1)).astype(np.int64)
         self._reset(mk, whole)
         self._tracks.active[mk] = False
         self._withdrawn[mk] = True
