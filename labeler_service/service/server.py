@@ -644,14 +644,13 @@ class Server:
         parts = [
             f"{what} {', '.join(sorted({n for k, n in state.verify_events if k == kind}))}"
             for kind, what in (
-                ("withdraw", "withdrew markers of"),
-                ("reject", "dropped (re-verification failed)"),
-                ("drop", "dropped (vanished)"),
+                ("withdraw", "re-verification withdrew labels of"),
+                ("reject", "re-verification dropped (boots again)"),
+                ("drop", "dropped as vanished (boots again when seen)"),
             )
             if any(k == kind for k, _ in state.verify_events)
         ]
-        self._rlog.info(f"verify-{state.name}", "stream %s: %s; dropped subjects boot again "
-                        "when seen", state.name, "; ".join(parts))  # fmt: skip
+        self._rlog.info(f"verify-{state.name}", "stream %s: %s", state.name, "; ".join(parts))
         if state.booting is not None:
             self.metrics.subjects(state.name, state.booting.n_active)
 

@@ -270,7 +270,7 @@ def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
         n_drops
         and srv_metrics.value("mocap_boot_verify_total", stream="vol", event="drop") == n_drops
     )
-    assert "dropped (vanished)" in caplog.text
+    assert "dropped as vanished" in caplog.text
     # lost before the first boot (nothing labeled yet), online, lost while away, online again
     # after the re-boot
     changes = [s for s in states if s in ("lost", "online")]
