@@ -210,10 +210,20 @@ def make_subject(
         raise ModelError(f"invalid template for subject {name!r}: {_first_error(exc)}") from exc
 
 
-def _first_error(exc: ValidationError) -> str:
+def _first_error(exc: ValidationError, raw: object = None) -> str:
+    """The first error as ``location: message``; with the ``raw`` model, a location in a
+    subject also names it (``subjects.0 ('P1').chirality.0.3: ...``)."""
     err = exc.errors()[0]
-    loc = ".".join(str(x) for x in err.get("loc", ()))
+    where = [str(x) for x in err.get("loc", ())]
     msg = str(err.get("msg", "invalid"))
+    if len(where) >= 2 and where[0] == "subjects" and isinstance(raw, dict):
+        subjects = raw.get("subjects")
+        k = int(where[1]) if where[1].isdigit() else -1
+        if isinstance(subjects, list) and 0 <= k < len(subjects):
+            name = subjects[k].get("name") if isinstance(subjects[k], dict) else None
+            if isinstance(name, str) and f"subject {name!r}" not in msg:
+                where[1] = f"{where[1]} ({name[:64]!r})"
+    loc = ".".join(where)
     return f"{loc}: {msg}" if loc else msg
 
 
@@ -251,6 +261,6 @@ def load_model(path: str | Path) -> LabelerModel:
     try:
         return LabelerModel.model_validate(raw)
     except ValidationError as exc:
-        raise ModelError(f"{p}: invalid model: {_first_error(exc)}") from exc
+        raise ModelError(f"{p}: invalid model: {_first_error(exc, raw)}") from exc
     except RecursionError as exc:
         raise ModelError(f"{p}: not a model: nested too deeply") from exc

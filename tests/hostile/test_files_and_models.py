@@ -170,3 +170,14 @@ def test_chirality_on_markers_never_trained_together_is_refused(tmp_path, model_
         load_model(_write(tmp_path, d, "odd_model.json"))
     s["chirality"] = []  # the same pair without a quadruple on it is a valid model
     assert load_model(_write(tmp_path, d, "ok.json")).subjects
+
+
+@pytest.mark.parametrize("entry", [[0, 1, 2, 3.5], [[0], 1, 2, 3], "abc"], ids=str)
+def test_a_chirality_entry_of_the_wrong_type_names_the_subject(tmp_path, model_dict, entry):
+    d = copy.deepcopy(model_dict)
+    d["subjects"][0]["chirality"] = [entry]
+    with pytest.raises(ModelError) as info:
+        load_model(_write(tmp_path, d, "odd_model.json"))
+    msg = str(info.value)
+    name = d["subjects"][0]["name"]
+    assert "odd_model.json" in msg and f"subjects.0 ({name!r}).chirality.0" in msg, msg
