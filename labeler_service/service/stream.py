@@ -600,6 +600,7 @@ class StreamState:
         init-buffer cap is hit. Trains inline when needed (the server trains off the loop
         instead, through :meth:`train`).
         """
+        self.verify_events = ()
         if verdict.new_run:
             self.new_run(f, verdict)
         if self.labeler is None:
@@ -624,7 +625,6 @@ class StreamState:
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, self._label_indices(f))
-        self.verify_events = ()
         if isinstance(lab, BootingLabeler) and len(lab.events) > n_events:
             self.verify_events = tuple(
                 (kind, name)
