@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
                 "markers": len(s.markers),
                 "bodies": len(s.bodies),
                 "body_sizes": [len(b) for b in s.bodies],
+                "chirality": len(s.chirality),
             }
             for s in model.subjects
         },
@@ -67,7 +68,12 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         for name, s in summary["subjects"].items():
-            print(f"{name}: {s['markers']} markers in {s['bodies']} rigid bodies")
+            hand = (
+                f"{s['chirality']} chirality quadruples"
+                if s["chirality"]
+                else "no chirality quadruples (a boot cannot refuse a mirrored reading)"
+            )
+            print(f"{name}: {s['markers']} markers in {s['bodies']} rigid bodies, {hand}")
         print(f"wrote {args.out}")
     return 0
 

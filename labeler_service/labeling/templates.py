@@ -36,6 +36,11 @@ SCHEMA_VERSION: Literal[1] = 1
 PAIR_DISTANCE_MM = (1.0, 3000.0)
 MOTION_NOISE_TYPICAL = 1.0e7
 MOTION_NOISE_RANGE = (MOTION_NOISE_TYPICAL * 1e-6, MOTION_NOISE_TYPICAL * 1e6)
+#: Most chirality quadruples per subject (``train structure`` writes at most 64).
+MAX_CHIRALITY = 1024
+#: A chirality quadruple inside one body whose reference shape is at least this thick (cube
+#: root of the signed volume, mm) must be positive there.
+CHIRALITY_SHAPE_MM = 5.0
 #: Largest model file read (a model of 20 subjects x 60 markers is about 3 MB).
 MAX_MODEL_BYTES = 64 * 1024 * 1024
 
@@ -96,11 +101,26 @@ class SubjectTemplate(BaseModel):
                     f"{where}: motion_noise[{i}] = {q:g} (mm/s^2)^2 ({self.markers[i]}) is outside "
                     f"{qlo:g}-{qhi:g}"
                 )
+        if len(self.chirality) > MAX_CHIRALITY:
+            raise ValueError(
+                f"{where}: {len(self.chirality)} chirality entries, more than {MAX_CHIRALITY}"
+            )
+        seen: dict[frozenset[int], list[int]] = {}
         for quad in self.chirality:
             if len(quad) != 4 or len(set(quad)) != 4 or any(not 0 <= i < m for i in quad):
                 raise ValueError(
                     f"{where}: chirality entry {quad} must be 4 distinct marker indices"
                 )
+            first = seen.setdefault(frozenset(quad), quad)
+            if first is not quad:
+                raise ValueError(f"{where}: chirality entries {first} and {quad} repeat markers")
+            for k, i in enumerate(quad):
+                for j in quad[k + 1 :]:
+                    if self.D[i][j] is None or self.A[i][j] is None:
+                        raise ValueError(
+                            f"{where}: chirality entry {quad}: {self.markers[i]}-"
+                            f"{self.markers[j]} has no trained distance"
+                        )
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
         for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):
@@ -112,7 +132,24 @@ class SubjectTemplate(BaseModel):
                 raise ValueError(f"{where}: shape of body {b} must be {len(body)}x3")
             if not np.all(np.isfinite(np.asarray(shape, dtype=float))):
                 raise ValueError(f"{where}: shape of body {b} is not finite")
+            self._check_chirality(b, body, np.asarray(shape, dtype=float))
         return self
+
+    def _check_chirality(self, b: int, body: list[int], shape: np.ndarray) -> None:
+        """A chirality quadruple inside body ``b`` must have the sign of its reference shape
+        (else the model is a mirror image, or edited: every reading would be refused)."""
+        row = {i: k for k, i in enumerate(body)}
+        for quad in self.chirality:
+            if not all(i in row for i in quad):
+                continue
+            p = shape[[row[i] for i in quad]]
+            det = float(np.linalg.det(p[1:] - p[0]))
+            if det < 0 and np.cbrt(-det) >= CHIRALITY_SHAPE_MM:
+                names = ", ".join(self.markers[i] for i in quad)
+                raise ValueError(
+                    f"subject {self.name!r}: chirality entry {quad} ({names}) is reversed "
+                    f"against the reference shape of body {b} (a mirror-image model?)"
+                )
 
     # numpy views (float64, NaN where unknown)
     def D_array(self) -> np.ndarray:
@@ -173,10 +210,20 @@ def make_subject(
         raise ModelError(f"invalid template for subject {name!r}: {_first_error(exc)}") from exc
 
 
-def _first_error(exc: ValidationError) -> str:
+def _first_error(exc: ValidationError, raw: object = None) -> str:
+    """The first error as ``location: message``; with the ``raw`` model, a location in a
+    subject also names it (``subjects.0 ('P1').chirality.0.3: ...``)."""
     err = exc.errors()[0]
-    loc = ".".join(str(x) for x in err.get("loc", ()))
+    where = [str(x) for x in err.get("loc", ())]
     msg = str(err.get("msg", "invalid"))
+    if len(where) >= 2 and where[0] == "subjects" and isinstance(raw, dict):
+        subjects = raw.get("subjects")
+        k = int(where[1]) if where[1].isdigit() else -1
+        if isinstance(subjects, list) and 0 <= k < len(subjects):
+            name = subjects[k].get("name") if isinstance(subjects[k], dict) else None
+            if isinstance(name, str) and f"subject {name!r}" not in msg:
+                where[1] = f"{where[1]} ({name[:64]!r})"
+    loc = ".".join(where)
     return f"{loc}: {msg}" if loc else msg
 
 
@@ -214,6 +261,6 @@ def load_model(path: str | Path) -> LabelerModel:
     try:
         return LabelerModel.model_validate(raw)
     except ValidationError as exc:
-        raise ModelError(f"{p}: invalid model: {_first_error(exc)}") from exc
+        raise ModelError(f"{p}: invalid model: {_first_error(exc, raw)}") from exc
     except RecursionError as exc:
         raise ModelError(f"{p}: not a model: nested too deeply") from exc

@@ -167,6 +167,12 @@ class ServiceMetrics:
             "mocap_subjects_booted", "Subjects of the model labeled now (booted)", ["stream"],
             registry=r,
         )  # fmt: skip
+        self.boot_verify = Counter(
+            "mocap_boot_verify",
+            "Booted subjects' events: markers withdrawn by the re-verification (withdraw), "
+            "subject dropped by it (reject) or because it vanished (drop)",
+            ["stream", "event"], registry=r,
+        )  # fmt: skip
         self.recoveries = Counter(
             "mocap_recoveries",
             "Recoveries by boot from the stream's own model (lost, or a new run after a time "
@@ -204,6 +210,9 @@ class ServiceMetrics:
     def boot_seconds(self, stream: str, seconds: float) -> None:
         self._child(self.boot_duration, stream).observe(seconds)
 
+    def verify_event(self, stream: str, event: str) -> None:
+        self._child(self.boot_verify, stream, event).inc()
+
     def recovery(self, stream: str) -> None:
         self._child(self.recoveries, stream).inc()
 
@@ -226,6 +235,9 @@ class ServiceMetrics:
         for state in ("observed", "recovered", "missing"):
             with contextlib.suppress(KeyError):
                 self.markers.remove(stream, state)
+        for event in ("withdraw", "reject", "drop"):
+            with contextlib.suppress(KeyError):
+                self.boot_verify.remove(stream, event)
         for (s, reason), n in list(self._drops.items()):
             if s == stream:
                 del self._drops[(s, reason)]

@@ -549,6 +549,8 @@ class Server:
                 self._booted(state)
             elif state.booting is not None:
                 self.metrics.subjects(state.name, state.booting.n_active)
+            if state.verify_events:
+                self._verified(state)
             if self._published_model.get(state.name) != state.model_id:
                 await self._publish_model(state)
             sent_ok = await self._send_all(state.name, "labeled", out.payload)
@@ -633,6 +635,24 @@ class Server:
                  rec.seconds if rec else float("nan"), rec.thread if rec else "?",
                  rec.caught_frames if rec else 0, len(active),
                  len(state.booting.model.subjects) if state.booting else 0)  # fmt: skip
+
+    def _verified(self, state: StreamState) -> None:
+        """Counts and logs (rate-limited, per stream) the booted subjects whose labels the
+        last frame withdrew (re-verification) or dropped (rejected, or vanished)."""
+        for kind, _ in state.verify_events:
+            self.metrics.verify_event(state.name, kind)
+        parts = [
+            f"{what} {', '.join(sorted({n for k, n in state.verify_events if k == kind}))}"
+            for kind, what in (
+                ("withdraw", "re-verification withdrew labels of"),
+                ("reject", "re-verification dropped (boots again)"),
+                ("drop", "dropped as vanished (boots again when seen)"),
+            )
+            if any(k == kind for k, _ in state.verify_events)
+        ]
+        self._rlog.info(f"verify-{state.name}", "stream %s: %s", state.name, "; ".join(parts))
+        if state.booting is not None:
+            self.metrics.subjects(state.name, state.booting.n_active)
 
     async def _train(self, state: StreamState, msg: FrameMsg, recv_ns: int):
         """Trains the stream's labeler off the loop (budget ``train_budget_s``); a failure

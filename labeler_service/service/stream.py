@@ -262,6 +262,10 @@ class StreamState:
         #: finished attempts, newest last (bounded)
         self.boots: deque[BootRecord] = deque(maxlen=256)
         self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
+        #: the last process()'s re-verification and drop events of the booting labeler:
+        #: (kind, subject), kind "withdraw" (markers' labels withdrawn), "reject" (dropped by
+        #: the re-verification) or "drop" (vanished); each such subject is booted again
+        self.verify_events: tuple[tuple[str, str], ...] = ()
         # recovery by boot (see "Recovery" in the module docstring)
         #: the labeler is a recovery BootingLabeler, handed back to a plain one once every
         #: subject of the model is labeled again
@@ -596,6 +600,7 @@ class StreamState:
         init-buffer cap is hit. Trains inline when needed (the server trains off the loop
         instead, through :meth:`train`).
         """
+        self.verify_events = ()
         if verdict.new_run:
             self.new_run(f, verdict)
         if self.labeler is None:
@@ -615,9 +620,17 @@ class StreamState:
         t = f.t + self._t_offset
         t0 = time.perf_counter_ns()
         self.just_booted = ()
+        lab = self.labeler
+        n_events = len(lab.events) if isinstance(lab, BootingLabeler) else 0
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, self._label_indices(f))
+        if isinstance(lab, BootingLabeler) and len(lab.events) > n_events:
+            self.verify_events = tuple(
+                (kind, name)
+                for _, kind, name in lab.events[n_events:]
+                if kind in ("withdraw", "reject", "drop")
+            )
         if self.recovering:
             self._after_recovery_frame(f, t, out)
         label_ns = time.perf_counter_ns() - t0

@@ -9,6 +9,7 @@ with the file and field named.
 from __future__ import annotations
 
 import copy
+import itertools
 import json
 import zipfile
 
@@ -115,3 +116,68 @@ def test_models_outside_human_ranges_are_refused_naming_file_and_field(
 
 def test_the_trained_model_passes_validation(model_file):
     assert load_model(model_file).subjects
+
+
+def _thick_quad(s) -> list[int]:
+    """The quadruple of one body with the thickest reference shape, ordered so that its signed
+    volume is positive there (what ``train structure`` would write)."""
+    best, quad = 0.0, None
+    for body, shape in zip(s["bodies"], s["shapes"], strict=True):
+        for q in itertools.combinations(range(len(body)), 4):
+            p = np.asarray(shape, dtype=float)[list(q)]
+            det = float(np.linalg.det(p[1:] - p[0]))
+            if abs(det) > best:
+                a, b, c, d = (body[k] for k in q)
+                best, quad = abs(det), [a, b, c, d] if det > 0 else [a, b, d, c]
+    assert quad is not None and np.cbrt(best) >= 10.0, "the fixture has a thick 4-marker body"
+    return quad
+
+
+@pytest.mark.parametrize(
+    ("mutate", "words"),
+    [
+        (lambda s, q: s.update(chirality=[[q[0], q[1], q[3], q[2]]]), "is reversed against"),
+        (lambda s, q: s.update(chirality=[q, [q[1], q[0], q[2], q[3]]]), "repeat markers"),
+        (lambda s, q: s.update(chirality=[q] * 2000), "more than 1024"),
+        (lambda s, q: s.update(chirality=[q[:3]]), "4 distinct marker indices"),
+        (lambda s, q: s.update(chirality=[[q[0], q[0], q[1], q[2]]]), "4 distinct marker"),
+        (lambda s, q: s.update(chirality=[[q[0], q[1], q[2], 999]]), "4 distinct marker"),
+    ],
+    ids=["reversed", "repeated", "huge", "three", "same-index", "out-of-range"],
+)
+def test_hostile_chirality_is_refused_naming_file_and_subject(tmp_path, model_dict, mutate, words):
+    d = copy.deepcopy(model_dict)
+    s = d["subjects"][0]
+    q = _thick_quad(s)
+    s["chirality"] = [q]
+    assert load_model(_write(tmp_path, d, "right.json")).subjects[0].chirality == [q]
+    mutate(s, q)
+    with pytest.raises(ModelError) as info:
+        load_model(_write(tmp_path, d, "odd_model.json"))
+    msg = str(info.value)
+    assert "odd_model.json" in msg and repr(s["name"]) in msg and words in msg, msg
+
+
+def test_chirality_on_markers_never_trained_together_is_refused(tmp_path, model_dict):
+    d = copy.deepcopy(model_dict)
+    s = d["subjects"][0]
+    q = _thick_quad(s)
+    s["chirality"] = [q]
+    i, j = q[0], q[1]
+    for key in ("D", "A"):
+        s[key][i][j] = s[key][j][i] = None
+    with pytest.raises(ModelError, match="has no trained distance"):
+        load_model(_write(tmp_path, d, "odd_model.json"))
+    s["chirality"] = []  # the same pair without a quadruple on it is a valid model
+    assert load_model(_write(tmp_path, d, "ok.json")).subjects
+
+
+@pytest.mark.parametrize("entry", [[0, 1, 2, 3.5], [[0], 1, 2, 3], "abc"], ids=str)
+def test_a_chirality_entry_of_the_wrong_type_names_the_subject(tmp_path, model_dict, entry):
+    d = copy.deepcopy(model_dict)
+    d["subjects"][0]["chirality"] = [entry]
+    with pytest.raises(ModelError) as info:
+        load_model(_write(tmp_path, d, "odd_model.json"))
+    msg = str(info.value)
+    name = d["subjects"][0]["name"]
+    assert "odd_model.json" in msg and f"subjects.0 ({name!r}).chirality.0" in msg, msg

@@ -84,6 +84,13 @@ def test_cli_writes_a_loadable_model(rng, tmp_path, capsys):
     assert summary["subjects"]["P0"]["markers"] == 8
     model = load_model(out)
     assert model.version == 1 and len(model.subjects) == 2
+    # the summary tells how many chirality quadruples each subject learned
+    for s in model.subjects:
+        assert summary["subjects"][s.name]["chirality"] == len(s.chirality)
+    assert main(["train", "structure", str(src), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    for s in model.subjects:
+        assert f"{s.name}: 8 markers in" in text and "chirality quadruples" in text
 
 
 @pytest.mark.realdata

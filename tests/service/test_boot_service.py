@@ -12,6 +12,7 @@ frames were labeled between an attempt's snapshot and its install.
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 
 import numpy as np
@@ -227,10 +228,14 @@ def test_boot_off_keeps_the_labeled_start(model_path):
     run(go(), timeout=120.0)
 
 
-def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(model_path, frames):
+def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
+    model_path, frames, caplog
+):
     """All performers vanish for 1.5 s (only stray points), then come back: the labeler drops
-    them (none of their labels go to the stray points), the status turns ``lost``, the
-    performers are booted again off the loop and the status returns to ``online``."""
+    them (none of their labels go to the stray points; counted and logged), the status turns
+    ``lost``, the performers are booted again off the loop and the status returns to
+    ``online``."""
+    caplog.set_level(logging.INFO, logger="labeler_service.service.server")
     gone0, gone1 = 120, 300  # frames [gone0, gone1) carry only stray points
     rng = np.random.default_rng(0)
     stray = [rng.uniform(-3000, 3000, (3, 3)).astype(np.float32) for _ in range(gone1 - gone0)]
@@ -255,10 +260,17 @@ def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(model_p
             )  # fmt: skip
             outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
             states = [decode(p).state for s, kind, p, _ in mem.sent if kind == "status"]
-            return st, outs, states
+            return st, outs, states, srv.metrics
 
-    st, outs, states = run(go(), timeout=300.0)
+    st, outs, states, srv_metrics = run(go(), timeout=300.0)
     assert len(outs) == frames.n_frames
+    # each drop is counted and logged
+    n_drops = sum(kind == "drop" for _, kind, _ in st.labeler.events)
+    assert (
+        n_drops
+        and srv_metrics.value("mocap_boot_verify_total", stream="vol", event="drop") == n_drops
+    )
+    assert "dropped as vanished" in caplog.text
     # lost before the first boot (nothing labeled yet), online, lost while away, online again
     # after the re-boot
     changes = [s for s in states if s in ("lost", "online")]
