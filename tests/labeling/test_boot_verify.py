@@ -207,3 +207,25 @@ def test_labeler_withdraw_markers_then_seed_them_again(scene):
         lab.withdraw_markers([m + 5])
     with pytest.raises(LabelerError):  # (nothing built yet)
         Labeler(["x:a", "x:b", "x:c"], RATE).withdraw_markers([0])
+
+
+def test_the_frame_cost_benchmark_times_both_settings_on_one_stream():
+    """``benchmarks/boot_frame_cost.py``: one run per ``--verify`` value on the same frames;
+    with re-verification off nothing is withdrawn, and every run times the same frames."""
+    import contextlib
+    import io
+    import json
+
+    from benchmark_scripts import load_benchmark
+
+    bench = load_benchmark("boot_frame_cost")
+    argv = ["--subjects", "3", "--rate", "120", "--seconds", "1", "--train-seconds", "2"]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert bench.main([*argv, "--verify", "off", "on"]) == 0
+    out = json.loads(buf.getvalue())
+    off, on = out["runs"]
+    assert (off["verify"], on["verify"]) == (False, True)
+    assert off["withdrawals"] == 0
+    assert off["frames_timed"] == on["frames_timed"] == 120 - 60
+    assert 0 < off["process_ms_p50"] <= off["process_ms_p99"] <= off["process_ms_p99_9"]

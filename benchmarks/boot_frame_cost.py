@@ -1,0 +1,87 @@
+"""Per-frame cost of a booting stream in the frame thread, with and without re-verification.
+
+The service drives a :class:`~labeler_service.labeling.booting.BootingLabeler` with
+``inline_boot=False, inline_extend=False``: ``process`` runs per frame in the stream's thread,
+the boot and extension attempts (``boot_step``) run in a worker, and ``boot_snapshot`` /
+``install_boot`` run in the frame thread between frames. This script does the same in one
+process on the ``bench latency --start boot`` scene (simulated hug, a model trained on the
+``--train-seconds`` before the streamed part) and times ``process`` and ``install_boot``
+separately (``boot_step`` is not timed: it is off the frame path), from ``--skip-s`` on. Each
+``--verify`` value is one run, in order, so ``--verify off on off on`` interleaves them.
+
+    .venv/bin/python benchmarks/boot_frame_cost.py --verify off on off on [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from _common import emit
+
+from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+from labeler_service.scenes.simulate import simulate_scene
+from offline.structure import StructureTrainer
+
+
+def run(frames, model, rate: float, verify: bool, skip: int) -> dict:
+    lab = BootingLabeler(
+        model, rate, boot=BootConfig(verify=verify), inline_boot=False, inline_extend=False
+    )
+    lab.warmup()
+    proc, inst = [], []
+    for f in range(frames.n_frames):
+        t0 = time.perf_counter()
+        lab.process(frames.points[f], float(frames.times[f]))
+        t1 = time.perf_counter()
+        if f >= skip:
+            proc.append((t1 - t0) * 1e3)
+        if lab.needs_boot():
+            snap = lab.boot_snapshot()
+            res = lab.boot_step(snap)
+            t2 = time.perf_counter()
+            lab.install_boot(snap, res)
+            if f >= skip:
+                inst.append((time.perf_counter() - t2) * 1e3)
+    p = np.array(proc)
+    q50, q99, q999 = np.percentile(p, [50, 99, 99.9])
+    return {
+        "verify": verify,
+        "frames_timed": int(p.size),
+        "process_ms_p50": round(float(q50), 3),
+        "process_ms_p99": round(float(q99), 3),
+        "process_ms_p99_9": round(float(q999), 3),
+        "install_ms_max": round(max(inst), 3) if inst else None,
+        "installs": len(inst),
+        "active_subjects": len(lab.active_subjects),
+        "withdrawals": sum(1 for e in lab.events if e[1] == "withdraw"),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subjects", type=int, default=10)
+    ap.add_argument("--rate", type=float, default=360.0)
+    ap.add_argument("--seconds", type=float, default=3.0, help="streamed seconds")
+    ap.add_argument("--train-seconds", type=float, default=3.0)
+    ap.add_argument("--skip-s", type=float, default=0.5, help="seconds not timed at the start")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--verify", nargs="+", choices=["on", "off"], default=["off", "on"])
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    cap = simulate_scene(performers=a.subjects, seconds=a.train_seconds + a.seconds,
+                         scenario="hug", seed=a.seed, rate=a.rate)  # fmt: skip
+    split = int(round(a.train_seconds * a.rate))
+    model = StructureTrainer().fit([cap.frames(0, split)]).model_
+    frames = corrupt(cap.frames(split, cap.n_frames), CorruptionSpec(protect_frames=0, seed=a.seed))
+    skip = int(round(a.skip_s * a.rate))
+    runs = [run(frames, model, a.rate, v == "on", skip) for v in a.verify]
+    emit({"subjects": a.subjects, "rate": a.rate, "seconds": a.seconds, "runs": runs}, a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
