@@ -18,7 +18,7 @@ import numpy as np
 
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import ModelError
-from labeler_service.labeling.templates import LabelerModel
+from labeler_service.labeling.templates import CHIRALITY_SHAPE_MM, LabelerModel
 from labeler_service.labeling.training import motion_noise, train_subject
 
 #: chirality quadruples (see :func:`chirality_quads`)
@@ -89,6 +89,32 @@ def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
         use[q[k]] += 1
         if len(out) >= CHIRALITY_MAX:
             break
+    return out
+
+
+def handed_shapes(
+    shapes: list[list[list[float]]], bodies: list[list[int]], quads: list[list[int]]
+) -> list[list[list[float]]]:
+    """``shapes`` with the handedness of the training frames: a body whose reference shape
+    reverses a chirality quadruple inside it is mirrored. A body never seen whole in training
+    gets its shape from its distances alone (multidimensional scaling), whose handedness is
+    arbitrary; the quadruples come from the frames themselves, and a model whose shape and
+    quadruples disagree would be refused at load."""
+    out = []
+    for body, shape in zip(bodies, shapes, strict=True):
+        row = {i: k for k, i in enumerate(body)}
+        p = np.asarray(shape, dtype=float)
+        flip = False
+        for quad in quads:
+            if all(i in row for i in quad):
+                v = p[[row[i] for i in quad]]
+                det = float(np.linalg.det(v[1:] - v[0]))
+                if det < 0 and np.cbrt(-det) >= CHIRALITY_SHAPE_MM:
+                    flip = True
+                    break
+        if flip:
+            p = p * np.array([1.0, 1.0, -1.0])
+        out.append(p.tolist())
     return out
 
 
@@ -172,8 +198,15 @@ class StructureTrainer:
             # learned per capture and averaged (positive and finite like each capture's)
             q = np.mean(noises, axis=0)
             quads = chirality_quads(pos, t.A_array())
+            shapes = handed_shapes(t.shapes, t.bodies, quads)
             templates.append(
-                t.model_copy(update={"motion_noise": [float(x) for x in q], "chirality": quads})
+                t.model_copy(
+                    update={
+                        "motion_noise": [float(x) for x in q],
+                        "chirality": quads,
+                        "shapes": shapes,
+                    }
+                )
             )
         rates = sorted({c.rate for c in caps})
         self.model_ = LabelerModel(

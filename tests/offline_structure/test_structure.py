@@ -111,3 +111,46 @@ def test_technical_clusters_each_land_in_one_body(real_path):
         idx = {s.markers.index(m) for m in members}
         assert any(idx <= set(b) for b in s.bodies), f"{name} cluster split across bodies"
     assert {i for b in s.bodies for i in b} == set(range(len(s.markers)))
+
+
+def test_a_body_never_seen_whole_gets_the_handedness_of_the_frames(tmp_path):
+    """Five markers on one rigid plate, tumbling, but never all five seen in one frame: the
+    body's reference shape then comes from its distances alone (multidimensional scaling),
+    which are the same for the plate and its mirror image, so one of the two gets a shape of
+    the wrong hand. The chirality quadruples come from the frames; the shape is turned to agree
+    with them, so both saved models load (a shape reversing a quadruple inside its body is
+    refused as a mirror image) and neither shape is a mirror of its plate."""
+    from scipy.spatial.transform import Rotation
+
+    from labeler_service.labeling.templates import save_model
+    from offline.structure import handed_shapes
+
+    n = 300
+    t = np.arange(n) / 120.0
+    rot = Rotation.from_rotvec(np.outer(t, [1.5, 0.8, 0.4])).as_matrix()  # a slow tumble
+    for hand in (1.0, -1.0):
+        plate = np.array(
+            [[0, 0, 0], [120, 0, 0], [0, 90, 0], [30, 40, 70], [100, 80, 40]], float
+        ) * np.array([1.0, 1.0, hand])
+        pos = np.einsum("fij,mj->fmi", rot, plate) + np.outer(t, [300, 100, 0])[:, None, :]
+        for f in range(n):  # one marker hidden in every frame, in turn
+            pos[f, f % 5] = np.nan
+        cap = Capture(pos.astype(np.float32), [f"S:m{i}" for i in range(5)], 120.0, source="p")
+        model = StructureTrainer(min_size=3, max_size=5).fit([cap]).model_
+        s = model.subjects[0]
+        assert s.chirality, "the plate is thick: quadruples expected"
+        whole = [b for b in s.bodies if len(b) == 5]
+        assert whole, s.bodies
+        path = tmp_path / f"m{hand:+.0f}.json"
+        save_model(model, path)
+        shape = np.asarray(load_model(path).subjects[0].shapes[s.bodies.index(whole[0])])
+        src = shape - shape.mean(axis=0)
+        dst = plate[whole[0]] - plate[whole[0]].mean(axis=0)
+        u, _, vt = np.linalg.svd(src.T @ dst)
+        assert np.linalg.det(u @ vt) > 0  # a proper rotation maps the shape onto the plate
+    # handed_shapes itself: a shape reversing a quadruple inside its body is mirrored, one
+    # that keeps it is kept
+    quad = [q for q in s.chirality if set(q) <= set(whole[0])][0]
+    mirrored = (dst * np.array([1, 1, -1])).tolist()
+    np.testing.assert_allclose(np.asarray(handed_shapes([mirrored], [whole[0]], [quad])[0]), dst)
+    assert handed_shapes([dst.tolist()], [whole[0]], [quad])[0] == dst.tolist()
