@@ -123,6 +123,42 @@ CATCH_UP_AFTER_S = 0.5
 CATCH_UP_TAIL_ROUNDS = 4
 
 
+#: Entries :attr:`BootingLabeler.events` and :attr:`BootingLabeler.boot_ms` keep (a stream
+#: runs for days: a model's absent subjects cost an attempt every 0.2 s, a crowd a withdrawal
+#: or two a second).
+HISTORY_KEPT = 10_000
+
+
+class History(list):
+    """A list that keeps only its last ``keep`` entries (trimmed once it holds twice as many)
+    and counts every entry ever added in :attr:`total`: a reader that remembers ``total``
+    finds what came since in the last ``total - remembered`` entries."""
+
+    def __init__(self, keep: int = HISTORY_KEPT) -> None:
+        super().__init__()
+        self.keep = int(keep)
+        self.total = 0
+
+    def append(self, item) -> None:  # type: ignore[override]
+        super().append(item)
+        self.total += 1
+        self._trim()
+
+    def extend(self, items) -> None:  # type: ignore[override]
+        items = list(items)
+        super().extend(items)
+        self.total += len(items)
+        self._trim()
+
+    def __iadd__(self, items):  # type: ignore[override, misc]
+        self.extend(items)
+        return self
+
+    def _trim(self) -> None:
+        if len(self) > 2 * self.keep:
+            del self[: len(self) - self.keep]
+
+
 @dataclass
 class _Frame:
     t: float
@@ -235,12 +271,13 @@ class BootingLabeler:
         self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
         self._extent: np.ndarray | None = None
-        self.events: list[tuple[float, str, str]] = []  # (t, "boot"|"labeled"|"drop", subject)
+        #: (t, "boot"|"labeled"|"drop"|"withdraw"|"reject", subject), the last HISTORY_KEPT
+        self.events: History = History()
         #: frames labeled since the snapshot of the boot attempt in flight (its catch-up reads
         #: them; None while no attempt records)
         self._since: list[_Frame] | None = None
         self._since_max = max(1, int(CATCH_UP_MAX_S * self.rate))
-        self.boot_ms: list[float] = []  # wall time of every boot attempt
+        self.boot_ms: History = History()  # wall time of every boot attempt (the last ones)
         #: re-verification of booted subjects over time (boot_verify.py); None when off
         self._verifier = BootVerifier(self._booter, self.rate, c) if c.verify else None
         #: per subject the tracks of its withdrawn labels and until when it may not take them
@@ -944,7 +981,7 @@ class BootingLabeler:
         self._acq_tries = np.full(self._acq_ids.size, ACQUIRE_TRIES, dtype=np.int64)
         self.acquired += shadow.acquired
         t = self._window[-1].t  # its boots are labeled from the next frame on
-        self.events += [(t, e, n) if e == "boot" else (te, e, n) for te, e, n in shadow.events]
+        self.events.extend((t, e, n) if e == "boot" else (te, e, n) for te, e, n in shadow.events)
         snapshot.caught = snapshot.shadow = None  # (its state is this labeler's now)
         return np.array([s for s in cu.booted if s in self._active], dtype=np.int64)
 
@@ -971,8 +1008,8 @@ class BootingLabeler:
         sh._since = None
         sh.inline_boot = False  # the shadow never starts attempts
         sh.inline_extend = False  # nor extensions: the catch-up places them (_catch_up_extend)
-        sh.events = []
-        sh.boot_ms = []
+        sh.events = History()
+        sh.boot_ms = History()
         sh.acquired = 0
         return sh
 

@@ -621,14 +621,14 @@ class StreamState:
         t0 = time.perf_counter_ns()
         self.just_booted = ()
         lab = self.labeler
-        n_events = len(lab.events) if isinstance(lab, BootingLabeler) else 0
+        n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, self._label_indices(f))
-        if isinstance(lab, BootingLabeler) and len(lab.events) > n_events:
+        if isinstance(lab, BootingLabeler) and lab.events.total > n_events:
             self.verify_events = tuple(
                 (kind, name)
-                for _, kind, name in lab.events[n_events:]
+                for _, kind, name in lab.events[n_events - lab.events.total :]
                 if kind in ("withdraw", "reject", "drop")
             )
         if self.recovering:

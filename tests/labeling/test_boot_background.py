@@ -260,3 +260,21 @@ def test_a_result_a_few_frames_late_is_installed_along_the_tracks(walk):
     _run(lab, s, range(20, 20 + late))
     assert not lab.catch_up(snap, res) and snap.caught is None
     assert set(lab.install_boot(snap, res).tolist()) == {0, 1, 2}
+
+
+def test_the_event_and_timing_histories_stay_bounded_and_count_everything():
+    """A stream runs for days: ``events`` and ``boot_ms`` keep their last entries only, and
+    ``total`` counts every entry ever added, so a reader that remembers it (the service, per
+    frame) finds what came since at the end."""
+    from labeler_service.labeling.booting import History
+
+    h = History(keep=5)
+    for i in range(23):
+        h.append(i)
+    assert h.total == 23 and 5 <= len(h) <= 10 and h[-1] == 22
+    assert list(h) == list(range(23 - len(h), 23))  # the newest, in order
+    seen = h.total
+    h += [100, 101]
+    h.extend([102])
+    assert h.total == seen + 3 and h[seen - h.total :] == [100, 101, 102]
+    assert h == list(h) and History() == []  # still compares as the list it is
