@@ -18,7 +18,7 @@ import numpy as np
 
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import ModelError
-from labeler_service.labeling.templates import CHIRALITY_SHAPE_MM, LabelerModel
+from labeler_service.labeling.templates import LabelerModel, reversed_in_shape
 from labeler_service.labeling.training import motion_noise, train_subject
 
 #: chirality quadruples (see :func:`chirality_quads`)
@@ -102,17 +102,8 @@ def handed_shapes(
     quadruples disagree would be refused at load."""
     out = []
     for body, shape in zip(bodies, shapes, strict=True):
-        row = {i: k for k, i in enumerate(body)}
         p = np.asarray(shape, dtype=float)
-        flip = False
-        for quad in quads:
-            if all(i in row for i in quad):
-                v = p[[row[i] for i in quad]]
-                det = float(np.linalg.det(v[1:] - v[0]))
-                if det < 0 and np.cbrt(-det) >= CHIRALITY_SHAPE_MM:
-                    flip = True
-                    break
-        if flip:
+        if any(reversed_in_shape(quad, body, p) for quad in quads):
             p = p * np.array([1.0, 1.0, -1.0])
         out.append(p.tolist())
     return out

@@ -45,6 +45,18 @@ CHIRALITY_SHAPE_MM = 5.0
 MAX_MODEL_BYTES = 64 * 1024 * 1024
 
 
+def reversed_in_shape(quad: list[int], body: list[int], shape: np.ndarray) -> bool:
+    """Whether chirality quadruple ``quad`` (marker indices) lies inside ``body`` and its
+    signed volume in the body's reference ``shape`` (rows in ``body``'s order) is negative, at
+    least ``CHIRALITY_SHAPE_MM`` thick: the shape and the quadruple disagree on handedness."""
+    row = {i: k for k, i in enumerate(body)}
+    if not all(i in row for i in quad):
+        return False
+    p = np.asarray(shape, dtype=float)[[row[i] for i in quad]]
+    det = float(np.linalg.det(p[1:] - p[0]))
+    return det < 0 and float(np.cbrt(-det)) >= CHIRALITY_SHAPE_MM
+
+
 class SubjectTemplate(BaseModel):
     """Structure and motion model of one subject (seed 003 Sec. 3.1)."""
 
@@ -138,13 +150,8 @@ class SubjectTemplate(BaseModel):
     def _check_chirality(self, b: int, body: list[int], shape: np.ndarray) -> None:
         """A chirality quadruple inside body ``b`` must have the sign of its reference shape
         (else the model is a mirror image, or edited: every reading would be refused)."""
-        row = {i: k for k, i in enumerate(body)}
         for quad in self.chirality:
-            if not all(i in row for i in quad):
-                continue
-            p = shape[[row[i] for i in quad]]
-            det = float(np.linalg.det(p[1:] - p[0]))
-            if det < 0 and np.cbrt(-det) >= CHIRALITY_SHAPE_MM:
+            if reversed_in_shape(quad, body, shape):
                 names = ", ".join(self.markers[i] for i in quad)
                 raise ValueError(
                     f"subject {self.name!r}: chirality entry {quad} ({names}) is reversed "
