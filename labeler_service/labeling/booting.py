@@ -158,6 +158,18 @@ class History(list):
         if len(self) > 2 * self.keep:
             del self[: len(self) - self.keep]
 
+    def __reduce__(self):
+        # (a boot worker process gets a copy: pickle's default would append the items before
+        # it sets ``total``)
+        return (_history, (self.keep, self.total, list(self)))
+
+
+def _history(keep: int, total: int, items: list) -> History:
+    h = History(keep)
+    list.extend(h, items)
+    h.total = total
+    return h
+
 
 @dataclass
 class _Frame:

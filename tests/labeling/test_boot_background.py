@@ -278,3 +278,7 @@ def test_the_event_and_timing_histories_stay_bounded_and_count_everything():
     h.extend([102])
     assert h.total == seen + 3 and h[seen - h.total :] == [100, 101, 102]
     assert h == list(h) and History() == []  # still compares as the list it is
+    import pickle  # (a boot worker process gets a copy)
+
+    back = pickle.loads(pickle.dumps(h))
+    assert back == h and (back.total, back.keep) == (h.total, h.keep)
