@@ -60,7 +60,6 @@ for 10 performers: ~0.1 ms a tick, ~0.02 ms a frame at 360 Hz).
 
 from __future__ import annotations
 
-import copy
 import re
 from collections import deque
 from dataclasses import dataclass
@@ -181,8 +180,7 @@ class BootVerifier:
         eg: list[np.ndarray] = []  # joint index, -1 for rigid edges
         #: per joint: (subject, parent-side body, child-side body) as global body ids
         joints: list[tuple[int, int, int]] = []
-        #: per global body: its subject, markers (global) and the bodies of its subtree
-        self._body_subject: list[int] = []
+        #: per global body: its markers (global) and the bodies of its subtree
         self._body_markers: list[np.ndarray] = []
         self._subtree: list[np.ndarray] = []
         self._marker_bodies: list[list[int]] = [[] for _ in range(self.n_markers)]
@@ -211,7 +209,6 @@ class BootVerifier:
                     x = stack.pop()
                     sub.append(x)
                     stack += children[x]
-                self._body_subject.append(tpl.index)
                 self._body_markers.append(off + tpl.bodies[b].markers)
                 self._subtree.append(base + np.array(sorted(sub), dtype=np.int64))
                 for mk in tpl.bodies[b].markers:
@@ -273,7 +270,6 @@ class BootVerifier:
         self.joints = np.array(joints, dtype=np.int64).reshape(-1, 3)
         n_of = [t.n for t in templates]
         self._subject_of = np.repeat(np.arange(len(n_of)), n_of)
-        self.rigid = self.joint < 0
         #: per marker the markers of the same name, either side, in other subjects (a partner's
         #: limb can be read as this subject's only where the partner has one: its own side or,
         #: read mirrored, the other)
@@ -304,15 +300,7 @@ class BootVerifier:
         self._decay = float(np.exp(-1.0 / max(1.0, c.verify_recent_s * tick_hz)))
         self._frame = 0
         self.withdrawn = 0  # markers withdrawn so far (diagnostics)
-        self.last_broken = np.zeros(0, dtype=np.int64)  # joints broken at the last tick
         self.dropped = 0  # subjects dropped so far
-
-    def copy(self) -> BootVerifier:
-        """An independent copy of the evidence (a catch-up's shadow labeler)."""
-        out = copy.copy(self)
-        for name in ("ema", "n", "m1", "m2", "_on", "_edge_on", "_track", "_recent"):
-            setattr(out, name, getattr(self, name).copy())
-        return out
 
     # ------------------------------------------------------------------ subjects
     def start(self, subject: int) -> None:
@@ -332,16 +320,15 @@ class BootVerifier:
 
     def reset_subject(self, subject: int) -> None:
         self._recent[subject] = 0.0
-        e = self._subject_of[self.ea] == subject
-        self.ema[e] = 0.0
-        self.n[e] = 0
-        self.m1[e] = self.m2[e] = 0.0
+        self._forget(self._subject_of[self.ea] == subject)
 
     def reset_markers(self, markers: np.ndarray) -> None:
         """Forgets the evidence of every edge touching ``markers`` (withdrawn or placed anew)."""
         hit = np.zeros(self.n_markers, dtype=bool)
         hit[markers] = True
-        e = hit[self.ea] | hit[self.eb]
+        self._forget(hit[self.ea] | hit[self.eb])
+
+    def _forget(self, e: np.ndarray) -> None:
         self.ema[e] = 0.0
         self.n[e] = 0
         self.m1[e] = self.m2[e] = 0.0
@@ -444,7 +431,6 @@ class BootVerifier:
             n_bad = np.bincount(jr[on_joint], weights=cut[on_joint], minlength=nj)
             n_all = np.bincount(jr[on_joint], minlength=nj)
             broken = np.flatnonzero((n_bad >= 2) & (2 * n_bad > n_all))
-            self.last_broken = broken  # (diagnostics)
             for g in broken:
                 s, near_b, far_b = (int(x) for x in self.joints[g])
                 if not self._partner_lacks(self._body_markers[far_b], observed):
