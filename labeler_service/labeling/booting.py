@@ -461,10 +461,7 @@ class BootingLabeler:
                 self._recent[s] = n_obs if ref <= 0 else ref + self._recent_alpha * (n_obs - ref)
                 continue
             self._gone[s] += 1
-            mine = (glab >= sl.start) & (glab < sl.stop)
-            glab[mine] = -1
-            pos[sl] = np.nan
-            state[sl] = MarkerState.MISSING
+            self._withhold(s, glab, pos, state)
             if self._gone[s] >= self._drop_frames:
                 dropped.append(s)
         if dropped:
@@ -526,11 +523,16 @@ class BootingLabeler:
         if not drop:
             return
         for s in drop:
-            sl = slice(self._offset[s], self._offset[s + 1])
-            glab[(glab >= sl.start) & (glab < sl.stop)] = -1
-            pos[sl] = np.nan
-            state[sl] = MarkerState.MISSING
+            self._withhold(s, glab, pos, state)
         self._drop(drop, t, "reject")
+
+    def _withhold(self, s: int, glab: np.ndarray, pos: np.ndarray, state: np.ndarray) -> None:
+        """Subject ``s`` gives no label in this frame (its points unlabeled, its markers
+        missing)."""
+        lo, hi = self._offset[s], self._offset[s + 1]
+        glab[(glab >= lo) & (glab < hi)] = -1
+        pos[lo:hi] = np.nan
+        state[lo:hi] = MarkerState.MISSING
 
     def _block(self, s: int, ids: np.ndarray, until: float) -> None:
         old_ids, old_until = self._blocked.get(s, (np.zeros(0, np.int64), np.zeros(0)))
