@@ -505,12 +505,10 @@ class Server:
             await asyncio.sleep(0)
             msg, recv_ns, verdict = await queue.get()
             self.metrics.queue(state.name, len(queue))
+            n_recoveries = state.recoveries  # a new run or an unlabeled first frame starts one
             try:
                 if verdict.new_run:
-                    n = state.recoveries
                     state.new_run(msg, verdict)
-                    if state.recoveries != n:
-                        self.metrics.recovery(state.name)
                 if state.needs_training(msg):
                     out = await self._train(state, msg, recv_ns)
                 elif executor is not None:
@@ -543,6 +541,9 @@ class Server:
                                       state.name, msg.seq):  # fmt: skip
                     log.exception("labeler error")
                 continue
+            finally:
+                if state.recoveries != n_recoveries:
+                    self.metrics.recovery(state.name)
             if out is None:
                 continue
             if state.just_booted:

@@ -49,7 +49,9 @@ path exactly like a model stream's (``boot_due`` / ``boot_request`` / ``boot_job
 ``boot_done``); points go out unlabeled until their performer is booted. Once every subject of
 the model has been labeled for ``HANDBACK_FRAMES`` frames, a plain labeler of the model is
 started from those frames' labels and takes over (no booting cost afterwards). A subject that
-never comes back keeps the stream on the booting labeler, which boots it when it does.
+never comes back keeps the stream on the booting labeler, which boots it when it does. A model
+stream with ``boot = false`` whose first frame carries no labels (a live source, ``replay
+--init-frames 0``) starts the same way instead of refusing every frame.
 """
 
 from __future__ import annotations
@@ -71,6 +73,7 @@ from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
+from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
@@ -256,6 +259,7 @@ class StreamState:
         self.on_lost: Callable[[StreamState], None] | None = None
         # boot (model streams, see the module docstring)
         self.boot_inflight = False  # a boot job runs or waits to be installed
+        self._labels_seen = False  # a labeled frame reached the current labeler (_install)
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
@@ -326,6 +330,7 @@ class StreamState:
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
+        self._labels_seen = False  # a labeled frame reached this labeler
         self.recovering = False
         self._handback.clear()
         self.labeled_fraction = self.recovered_fraction = float("nan")
@@ -535,6 +540,17 @@ class StreamState:
             return None
         return lab.model
 
+    def _waits_for_labels(self) -> bool:
+        """The plain online labeler of a model stream that has not had its first labeled
+        frame yet (``boot = false``): an unlabeled frame would be refused."""
+        lab = self.labeler
+        return (
+            isinstance(lab, Labeler)
+            and not lab.trained
+            and not self._labels_seen
+            and self.settings.labeler == "online"
+        )
+
     def start_recovery(self, why: str) -> bool:
         """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
         frame path, driven by the server like a model stream's boot); False when there is no
@@ -587,6 +603,7 @@ class StreamState:
         for pts, tt, labels in self._handback:
             plain.process(pts, tt, labels)
         self._swap(plain)
+        self._labels_seen = True  # it starts from the hand-back frames' labels
         self.handbacks += 1
         log.info("stream %s: recovered: every subject labeled again; back to the plain "
                  "labeler", self.name)  # fmt: skip
@@ -620,6 +637,13 @@ class StreamState:
         t = f.t + self._t_offset
         t0 = time.perf_counter_ns()
         self.just_booted = ()
+        if f.labels is not None:
+            self._labels_seen = True
+        elif self._waits_for_labels():
+            # boot = false and no labeled frame: the plain labeler could only refuse every
+            # frame (labeler_error); boot the performers from the model instead
+            self.start_recovery("frames without labels and boot = false (no labeled frame to "
+                                "start from)")  # fmt: skip
         lab = self.labeler
         n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
         if self._boot_result is not None:

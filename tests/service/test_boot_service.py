@@ -228,6 +228,39 @@ def test_boot_off_keeps_the_labeled_start(model_path):
     run(go(), timeout=120.0)
 
 
+def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_path, frames, caplog):
+    """``boot = false`` (the default) and a client that never sends labels (``replay
+    --init-frames 0``): the stream boots its performers from the model (a recovery) instead of
+    refusing every frame as ``labeler_error`` (which published nothing and said why only in a
+    rate-limited log line)."""
+    caplog.set_level(logging.INFO, logger="labeler_service.service.stream")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
+            names = srv.streams["vol"].names
+            await _paced(mem, frames)
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            st = srv.streams["vol"]
+            outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
+            return st, outs, srv.metrics
+
+    st, outs, metrics = run(go(), timeout=300.0)
+    assert metrics.drops() == 0, metrics.snapshot()["drops"]
+    assert len(outs) == frames.n_frames
+    assert st.recoveries >= 1 and metrics.value("mocap_recoveries_total", stream="vol") >= 1
+    assert "frames without labels and boot = false" in caplog.text
+    booted = [b for b in st.boots if b.booted]
+    assert {n for b in booted for n in b.booted} == {f"P{i + 1}" for i in range(PERFORMERS)}
+    last = max(b.installed_t for b in booted)
+    acc, ghosts, scored = _score(frames, outs, int(np.searchsorted(frames.times, last - 1e-9)))
+    assert scored >= 0.5 * frames.n_frames and acc >= 0.95, (acc, scored)
+    assert ghosts <= 0.02 * scored
+
+
 def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
     model_path, frames, caplog
 ):
