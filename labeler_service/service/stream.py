@@ -260,6 +260,7 @@ class StreamState:
         # boot (model streams, see the module docstring)
         self.boot_inflight = False  # a boot job runs or waits to be installed
         self._labels_seen = False  # a labeled frame reached the current labeler (_install)
+        self._warned_unknown = False
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
@@ -331,6 +332,7 @@ class StreamState:
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
         self._labels_seen = False  # a labeled frame reached this labeler
+        self._warned_unknown = False  # labels naming no marker of the stream were logged
         self.recovering = False
         self._handback.clear()
         self.labeled_fraction = self.recovered_fraction = float("nan")
@@ -440,7 +442,28 @@ class StreamState:
         return self.encode(first, out, recv_ns, label_ns)
 
     def _label_indices(self, f: FrameMsg) -> np.ndarray | None:
-        return _indices(self._index, f.labels)
+        """The frame's labels as indices into the stream's marker names; ``None`` when it
+        carries none or none of them names a marker of the stream (a replay of another
+        take, subjects named otherwise than in the model): such a frame is labeled as an
+        unlabeled one. Labels the stream does not know are logged once per labeler."""
+        idx = _indices(self._index, f.labels)
+        if idx is None or f.labels is None:
+            return idx
+        unknown = [
+            x for x, i in zip(f.labels, idx.tolist(), strict=True) if x is not None and i < 0
+        ]
+        if unknown and not self._warned_unknown:
+            self._warned_unknown = True
+            known = int((idx >= 0).sum())
+            subjects = ", ".join(subject_groups(list(self.names))) or "none"
+            log.warning(
+                "stream %s: %d labels of a frame name no marker of the stream (e.g. %r; its "
+                "subjects: %s): %s",
+                self.name, len(unknown), unknown[0], subjects,
+                f"ignored, {known} labels used" if known
+                else "the frame is labeled as an unlabeled one",
+            )  # fmt: skip
+        return idx if (idx >= 0).any() else None
 
     def buffer_init(self, f: FrameMsg) -> None:
         """Buffers one labeled init frame (points as they are, labels as int16 indices into
@@ -637,7 +660,8 @@ class StreamState:
         t = f.t + self._t_offset
         t0 = time.perf_counter_ns()
         self.just_booted = ()
-        if f.labels is not None:
+        labels = self._label_indices(f)
+        if labels is not None:
             self._labels_seen = True
         elif self._waits_for_labels():
             # boot = false and no labeled frame: the plain labeler could only refuse every
@@ -648,7 +672,7 @@ class StreamState:
         n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
         if self._boot_result is not None:
             self._install_boot(t)
-        out = self.labeler.process(f.points, t, self._label_indices(f))
+        out = self.labeler.process(f.points, t, labels)
         if isinstance(lab, BootingLabeler) and lab.events.total > n_events:
             self.verify_events = tuple(
                 (kind, name)

@@ -261,6 +261,47 @@ def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_pa
     assert ghosts <= 0.02 * scored
 
 
+def test_labels_naming_no_marker_of_the_model_are_logged_and_ignored(model_path, frames, caplog):
+    """A client replays a take whose labels name other subjects than the stream's model (a
+    file of another marker set, subjects not renamed): said once in the log with an example
+    and the model's subjects, and the frames are treated as unlabeled (boot = false: the
+    performers are booted from the model) rather than silently starting from nothing."""
+    caplog.set_level(logging.INFO, logger="labeler_service.service.stream")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            for f in range(frames.n_frames):
+                delay = t0 + f / frames.rate - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                labels = None
+                if f < 5:
+                    labels = [f"Other:{frames.marker_names[m].split(':')[1]}" if m >= 0 else None
+                              for m in frames.truth[f].tolist()]  # fmt: skip
+                mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f], labels))
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            return srv.streams["vol"], srv.metrics
+
+    st, metrics = run(go(), timeout=300.0)
+    warned = [
+        r.getMessage() for r in caplog.records if "name no marker of the stream" in r.getMessage()
+    ]
+    assert len(warned) == 1, warned
+    assert "'Other:" in warned[0] and "P1, P2, P3, P4" in warned[0], warned[0]
+    assert "labeled as an unlabeled one" in warned[0]
+    assert metrics.drops() == 0, metrics.snapshot()["drops"]
+    # the very first frame started the boot (no start from empty labeled frames)
+    assert "frames without labels and boot = false" in caplog.text
+    booted = {n for b in st.boots if b.booted for n in b.booted}
+    assert booted == {f"P{i + 1}" for i in range(PERFORMERS)}
+
+
 def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
     model_path, frames, caplog
 ):
