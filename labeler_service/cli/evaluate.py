@@ -123,13 +123,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_table(report: dict) -> None:
+    """The report for a reader: one row per measure, one column per method (so no header is
+    cut at any terminal width), then the error anatomy, the boot of each subject by name and
+    who left and came back."""
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(
-        title=f"{report['frames']} frames, {report['subjects']} subjects, "
-        f"{report['markers']} markers at {report['rate_hz']:g} Hz"
-    )
+    t = Table()
     cols = [
         "accuracy",
         "ghost_labeled_rate",
@@ -138,19 +138,27 @@ def _print_table(report: dict) -> None:
         "ms_per_frame_p50",
         "ms_per_frame_p99",
     ]
-    t.add_column("method")
+    t.add_column("measure", no_wrap=True)
+    for name in report["methods"]:
+        t.add_column(name, justify="right", no_wrap=True)
     for c in cols:
-        t.add_column(c, justify="right")
-    for name, s in report["methods"].items():
-        t.add_row(name, *["-" if s[c] is None else f"{s[c]:.4g}" for c in cols])
+        vals = [s.get(c) for s in report["methods"].values()]
+        t.add_row(c, *["-" if v is None else f"{v:.4g}" for v in vals])
     console = Console()
+    console.print(
+        f"{report['frames']} frames, {report['subjects']} subjects, "
+        f"{report['markers']} markers at {report['rate_hz']:g} Hz"
+    )
     console.print(t)
     e = report["errors"]
+    init = (report.get("settings") or {}).get("init_frames", 0)
+    unseen = (
+        f"; {report['unseen_at_init']} samples of markers unseen in the init window" if init else ""
+    )
     console.print(
         f"{report['method']}: {report['visible']} visible samples scored; errors: "
         f"{e['same_subject']} same-subject, {e['cross_subject']} cross-subject, "
-        f"{e['unlabeled']} unlabeled; {e['ghost_taken']} ghost points labeled; "
-        f"{report['unseen_at_init']} samples of markers unseen in the init window"
+        f"{e['unlabeled']} unlabeled; {e['ghost_taken']} ghost points labeled{unseen}"
     )
     swap = report["max_swap"]
     if swap:
@@ -162,11 +170,28 @@ def _print_table(report: dict) -> None:
     def sec(x: float | None) -> str:
         return "never" if x is None else f"{x:.3f} s"
 
+    boot_s = report.get("boot_s") or {}
+    if boot_s:
+        each = ", ".join(f"{name} {sec(v)}" for name, v in boot_s.items())
+        never = [name for name, v in boot_s.items() if v is None]
+        console.print(
+            f"boot (seconds until >= 95 % of a subject's visible markers are right for 10 "
+            f"frames): {each}; slowest {sec(report['boot_s_max'])}"
+        )
+        if never:
+            console.print(
+                f"never booted: {', '.join(never)} (its samples count in accuracy, not in "
+                "accuracy after boot)"
+            )
     n_ret = len(report["reid_s"])
     reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {n_ret} returns"
+    left = ", ".join(
+        f"{d['subject']} (frames {d['first_frame']}-{d['back_frame']})"
+        for d in report.get("departures") or []
+    )
     console.print(
-        f"boot: {sec(report['boot_s_max'])} (slowest subject), accuracy after boot "
-        f"{report['accuracy_after_boot']}; {reid if n_ret else 'no returns'}; "
+        f"accuracy after boot {report['accuracy_after_boot']}; "
+        f"{reid if n_ret else 'no returns'}{f' (left: {left})' if left else ''}; "
         f"{report['absent_labeled']} points given labels of absent subjects; "
         f"{report['identity_swaps']} identity swaps"
     )
