@@ -21,6 +21,7 @@ import struct
 import uuid
 import zipfile
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,35 @@ def read_capture(path: str | Path, up: str = "z", subject: str | None = None) ->
     else:
         cap = _default_subject(cap, p.stem)
     return cap
+
+
+def read_segment(spec: str | Path, up: str = "z") -> Capture:
+    """Reads ``FILE[:start[:stop]]`` (frames, as ``train structure`` takes them): the whole
+    capture, or that frame range of it (so a model trained on one segment of a take can be
+    checked on another). A path that exists is read whole even if its name holds colons."""
+    text = str(spec)
+    if Path(text).exists():
+        return read_capture(text, up=up)
+    path, start, stop = text, 0, None
+    parts = text.rsplit(":", 2)
+    for n_nums in (2, 1):
+        head, nums = ":".join(parts[: len(parts) - n_nums]), parts[len(parts) - n_nums :]
+        if len(parts) > n_nums and all(x == "" or x.isdigit() for x in nums):
+            path = head
+            start = int(nums[0]) if nums[0] else 0
+            stop = int(nums[1]) if n_nums == 2 and nums[1] else None
+            break
+    cap = read_capture(path, up=up)
+    if path == text:
+        return cap
+    if stop is not None and stop <= start:
+        raise CaptureError(f"{text}: need start < stop (frames)")
+    if start >= cap.n_frames:
+        raise CaptureError(f"{text}: start {start} is past the capture's {cap.n_frames} frames")
+    if stop is not None and stop > cap.n_frames:
+        raise CaptureError(f"{text}: stop {stop} is past the capture's {cap.n_frames} frames")
+    notes = (*cap.notes, f"frames {start}-{cap.n_frames if stop is None else stop} of {path}")
+    return replace(cap.frames(start, stop), notes=notes)
 
 
 def write_capture(capture: Capture, path: str | Path) -> Path:

@@ -13,14 +13,18 @@ import json
 import sys
 from pathlib import Path
 
-from labeler_service.capture import check_writable, read_capture
+from labeler_service.capture import check_writable, read_segment
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("truth", help="labeled capture (.c3d/.trc/.npz); *N columns are ghosts")
+    p.add_argument(
+        "truth",
+        help="labeled capture (.c3d/.trc/.npz), TRUTH[:start[:stop]] (frames); *N columns "
+        "are ghosts",
+    )
     p.add_argument(
         "--method",
         nargs="+",
@@ -72,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:  # before the run, not after it
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
-    cap = read_capture(args.truth, up=args.up)
+    cap = read_segment(args.truth, up=args.up)
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
     common = dict(

@@ -27,7 +27,9 @@ import sys
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", metavar="IN", help="capture to label (.c3d/.trc/.npz)")
+    p.add_argument(
+        "input", metavar="IN", help="capture to label (.c3d/.trc/.npz), IN[:start[:stop]] (frames)"
+    )
     p.add_argument("output", metavar="OUT", help="labeled capture to write")
     p.add_argument("--model", help="subject template (train structure); else train on IN")
     p.add_argument(
@@ -46,14 +48,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import Capture, check_writable, read_capture, write_capture
+    from labeler_service.capture import Capture, check_writable, read_segment, write_capture
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.registry import make_labeler
     from labeler_service.labeling.templates import load_model
 
     check_writable(args.output)  # before minutes of labeling
-    cap = read_capture(args.input, up=args.up)
+    cap = read_segment(args.input, up=args.up)
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):

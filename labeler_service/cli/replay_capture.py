@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", type=Path, help="labeled capture (.c3d, .trc, .npz)")
+    p.add_argument("file", help="labeled capture (.c3d, .trc, .npz), FILE[:start[:stop]] (frames)")
     p.add_argument("--to", required=True, metavar="URL",
                    help="udp://host:port[/stream] or mqtt://host:port/stream")  # fmt: skip
     p.add_argument("--stream", default=None, help="stream name (default: from the URL, else "
@@ -42,14 +42,16 @@ async def _main(args: argparse.Namespace) -> int:
         dropouts=args.dropouts, ghosts=args.ghosts, jitter_mm=args.jitter,
         shuffle=not args.no_shuffle, protect_frames=args.init_frames, seed=args.seed,
     )  # fmt: skip
-    frames = prepare(args.file, spec, up=args.up)
+    from labeler_service.capture import read_segment
+
+    frames = prepare(read_segment(args.file, up=args.up), spec)
     if frames.n_frames <= args.init_frames:
         raise LabelerError(
             f"{args.file}: {frames.n_frames} frames (after --downsample), not more than "
             f"{args.init_frames} init frames: nothing would be left to label"
         )
     print(
-        f"replay {args.file.name}: {frames.n_frames} frames x {args.loops}, "
+        f"replay {Path(args.file).name}: {frames.n_frames} frames x {args.loops}, "
         f"{len(frames.marker_names)} markers, {frames.rate:g} Hz at speed {args.speed:g} "
         f"-> {redact_url(args.to)}",
         file=sys.stderr,

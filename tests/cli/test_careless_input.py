@@ -55,6 +55,16 @@ def test_replay_refuses_more_init_frames_than_the_capture_has(take, capsys):
     _one_error_line(capsys.readouterr().err, "80 frames", "99999 init frames")
 
 
+def test_replay_of_a_frame_range_counts_the_range(take, capsys):
+    # FILE:start:stop replays that segment only: 30 frames cannot hold 50 init frames
+    code = main(["replay", f"{take}:20:50", "--to", "udp://127.0.0.1:9/x", "--init-frames", "50"])
+    assert code == 2
+    _one_error_line(capsys.readouterr().err, "30 frames", "50 init frames")
+    code = main(["replay", f"{take}:90", "--to", "udp://127.0.0.1:9/x"])
+    assert code == 2
+    _one_error_line(capsys.readouterr().err, "start 90 is past the capture's 80 frames")
+
+
 def test_subscribe_checks_out_before_connecting(capsys):
     t0 = time.monotonic()
     code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", UNWRITABLE + ".c3d",
