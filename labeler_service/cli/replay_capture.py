@@ -45,6 +45,12 @@ async def _main(args: argparse.Namespace) -> int:
     from labeler_service.capture import read_segment
 
     frames = prepare(read_segment(args.file, up=args.up), spec)
+    if args.init_frames > 0 and not frames.marker_names:
+        raise LabelerError(
+            f"{args.file}: no labeled markers (only unlabeled *N tracks): --init-frames "
+            f"{args.init_frames} would send init frames without labels; use --init-frames 0 "
+            "towards a stream configured with a model (serve: [[streams]] model = ...)"
+        )
     if frames.n_frames <= args.init_frames:
         raise LabelerError(
             f"{args.file}: {frames.n_frames} frames (after --downsample), not more than "

@@ -65,6 +65,17 @@ def test_replay_of_a_frame_range_counts_the_range(take, capsys):
     _one_error_line(capsys.readouterr().err, "start 90 is past the capture's 80 frames")
 
 
+def test_replay_of_a_take_without_labels_needs_init_frames_0(take, tmp_path, capsys):
+    # a raw capture (only *N tracks) cannot give the training window: said before sending
+    from labeler_service.capture import read_capture
+
+    cap = read_capture(take)
+    raw = tmp_path / "raw.c3d"
+    write_capture(Capture(cap.positions, tuple(f"*{i}" for i in range(cap.n_markers)), 120.0), raw)
+    assert main(["replay", str(raw), "--to", "udp://127.0.0.1:9/x"]) == 2
+    _one_error_line(capsys.readouterr().err, "no labeled markers", "--init-frames 0")
+
+
 def test_subscribe_checks_out_before_connecting(capsys):
     t0 = time.monotonic()
     code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", UNWRITABLE + ".c3d",
