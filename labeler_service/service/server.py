@@ -277,7 +277,7 @@ class Server:
         if self._stack is not None:
             stack, self._stack = self._stack, None
             await stack.aclose()
-        log.info("stopped: %s", self.metrics.log_line())
+        log.info("stopped: %s", self.metrics.log_line(self._log_streams()))
 
     def _spawn(self, coro, name: str) -> asyncio.Task:
         task = asyncio.create_task(coro, name=name)
@@ -764,7 +764,15 @@ class Server:
             # large free, hence in a thread (ctypes releases the GIL)
             await asyncio.to_thread(release_memory)
 
+    def _log_streams(self) -> dict[str, tuple[str, int]]:
+        """Per stream its status and, when it boots, its model's subject count (log line)."""
+        out = {}
+        for name, st in self.streams.items():
+            lab = st.booting
+            out[name] = (st.status, len(lab.model.subjects) if lab is not None else 0)
+        return out
+
     async def _log_loop(self) -> None:
         while True:
             await asyncio.sleep(self.settings.log_interval_s)
-            log.info("%s", self.metrics.log_line())
+            log.info("%s", self.metrics.log_line(self._log_streams()))

@@ -302,6 +302,38 @@ def test_labels_naming_no_marker_of_the_model_are_logged_and_ignored(model_path,
     assert booted == {f"P{i + 1}" for i in range(PERFORMERS)}
 
 
+def test_the_log_line_says_when_a_booting_stream_labels_nobody(model_path):
+    """Points of no performer of the model (another take, another marker set) on a booting
+    stream: the periodic log line carries the status, the labeled fraction and the boot
+    progress (0 of 4 booted after N attempts), not only frame counts that look healthy."""
+    rng = np.random.default_rng(1)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, False, health_window_s=0.2), [mem]) as srv:
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            base = rng.uniform(-2000, 2000, (30, 3))
+            for f in range(180):
+                delay = t0 + f / RATE - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                pts = (base + rng.normal(0, 3, base.shape)).astype(np.float32)
+                mem.inject(encode_frame("vol", f, f / RATE, pts))
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol") >= 180,
+                "every frame labeled", timeout=60.0,
+            )  # fmt: skip
+            await until(lambda: srv.metrics.value("mocap_boot_attempts_total", stream="vol") >= 1,
+                        "an attempt")  # fmt: skip
+            return srv.metrics.log_line(srv._log_streams())
+
+    line = run(go(), timeout=120.0)
+    assert "[vol] in=180 out=180" in line, line
+    assert "status=lost labeled=0.00" in line, line
+    assert "booted=0/4 (boot attempts " in line, line
+
+
 def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
     model_path, frames, caplog
 ):
