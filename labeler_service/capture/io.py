@@ -77,17 +77,7 @@ def read_segment(spec: str | Path, up: str = "z") -> Capture:
     capture, or that frame range of it (so a model trained on one segment of a take can be
     checked on another). A path that exists is read whole even if its name holds colons."""
     text = str(spec)
-    if Path(text).exists():
-        return read_capture(text, up=up)
-    path, start, stop = text, 0, None
-    parts = text.rsplit(":", 2)
-    for n_nums in (2, 1):
-        head, nums = ":".join(parts[: len(parts) - n_nums]), parts[len(parts) - n_nums :]
-        if len(parts) > n_nums and all(x == "" or x.isdigit() for x in nums):
-            path = head
-            start = int(nums[0]) if nums[0] else 0
-            stop = int(nums[1]) if n_nums == 2 and nums[1] else None
-            break
+    path, start, stop = split_segment(text)
     cap = read_capture(path, up=up)
     if path == text:
         return cap
@@ -99,6 +89,21 @@ def read_segment(spec: str | Path, up: str = "z") -> Capture:
         raise CaptureError(f"{text}: stop {stop} is past the capture's {cap.n_frames} frames")
     notes = (*cap.notes, f"frames {start}-{cap.n_frames if stop is None else stop} of {path}")
     return replace(cap.frames(start, stop), notes=notes)
+
+
+def split_segment(text: str) -> tuple[str, int, int | None]:
+    """``FILE[:start[:stop]]`` -> ``(FILE, start, stop)``; a path that exists, or one whose
+    tail is not ``:digits``, is the whole file ``(text, 0, None)``."""
+    if Path(text).exists():
+        return text, 0, None
+    parts = text.rsplit(":", 2)
+    for n_nums in (2, 1):
+        head, nums = ":".join(parts[: len(parts) - n_nums]), parts[len(parts) - n_nums :]
+        if len(parts) > n_nums and all(x == "" or x.isdigit() for x in nums):
+            start = int(nums[0]) if nums[0] else 0
+            stop = int(nums[1]) if n_nums == 2 and nums[1] else None
+            return head, start, stop
+    return text, 0, None
 
 
 def write_capture(capture: Capture, path: str | Path) -> Path:
@@ -126,12 +131,24 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
     return p
 
 
-def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES) -> Path:
+def check_writable(
+    path: str | Path,
+    suffixes: tuple[str, ...] | None = SUFFIXES,
+    inputs: tuple[str | Path, ...] = (),
+) -> Path:
     """Refuses, before any work is done, an output path that :func:`write_capture` could not
     write: unknown suffix (unless ``suffixes`` is ``None``: any file), a directory, a parent
-    folder that cannot be created or written."""
+    folder that cannot be created or written, or one of the command's ``inputs`` (files,
+    ``FILE:start:stop`` segments): the run would replace the capture it reads."""
     p = Path(path)
     target, suffix = _target(p, suffixes)
+    for spec in inputs:
+        src = Path(os.path.realpath(split_segment(str(spec))[0]))
+        if src == target:
+            raise CaptureError(
+                f"{p}: is the input {spec}: writing it would replace the capture being read; "
+                "choose another output"
+            )
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():  # a device or FIFO: opening could block

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.registry import make_labeler
     from labeler_service.labeling.templates import load_model
 
-    check_writable(args.output)  # before minutes of labeling
+    check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
     cap = read_segment(args.input, up=args.up)
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)

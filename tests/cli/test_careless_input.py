@@ -76,6 +76,20 @@ def test_replay_of_a_take_without_labels_needs_init_frames_0(take, tmp_path, cap
     _one_error_line(capsys.readouterr().err, "no labeled markers", "--init-frames 0")
 
 
+def test_label_and_compose_refuse_to_write_over_their_input(take, tmp_path, capsys):
+    # `label take.c3d take.c3d` replaced the take (its labels: the truth) with the output
+    before = take.read_bytes()
+    link = tmp_path / "link.c3d"
+    link.symlink_to(take)
+    for out in (str(take), str(link)):
+        assert main(["label", f"{take}:10", out, "--init-frames", "5", "--no-progress"]) == 2
+        _one_error_line(capsys.readouterr().err, "is the input", "choose another output")
+    args = ["compose", str(take), f"{take}:0", "--radius", "0", "--frames", "20", "--seed", "1"]
+    assert main(args) == 2
+    _one_error_line(capsys.readouterr().err, "is the input")
+    assert take.read_bytes() == before
+
+
 def test_subscribe_checks_out_before_connecting(capsys):
     t0 = time.monotonic()
     code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", UNWRITABLE + ".c3d",
