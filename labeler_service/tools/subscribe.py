@@ -296,13 +296,26 @@ class Subscriber:
 
 
 class Recorder:
-    """Collects labeled frames for writing a C3D (observed and recovered positions)."""
+    """Collects labeled frames for writing a C3D (observed and recovered positions).
+
+    The file's rate is the stream's, measured from the frames' ``t`` (median step between
+    consecutive ``seq``), not the model's: a stream sent at another rate than the model was
+    trained at (``replay --downsample``) keeps its duration. Frames missing in a ``seq`` gap
+    (lost on the network, dropped by the service) are written as missing samples, up to
+    :attr:`MAX_FILL_S` of them, so later frames stay at their time; a larger jump or a restart
+    (``seq`` back: a second replay) just continues the file.
+    """
+
+    MAX_FILL_S = 10.0
 
     def __init__(self) -> None:
         self.names: tuple[str, ...] | None = None
         self.rate: float | None = None
         self.positions: list[np.ndarray] = []
         self.skipped = 0
+        self.filled = 0  # missing frames written for seq gaps
+        self._last: tuple[int, float] | None = None  # seq, t of the last frame kept
+        self._steps: list[float] = []  # t steps between consecutive seq
 
     def add(self, r: Received, rate: float) -> None:
         if self.names is None:
@@ -310,13 +323,32 @@ class Recorder:
         if r.names != self.names:
             self.skipped += 1  # model changed mid-recording: keep the first model's frames
             return
+        seq, t = r.msg.seq, r.msg.t
+        if self._last is not None:
+            step = seq - self._last[0]
+            dt = t - self._last[1]
+            if step == 1 and dt > 0 and len(self._steps) < 10_000:
+                self._steps.append(dt)
+            elif 1 < step <= 1 + self.MAX_FILL_S * self.file_rate() and dt > 0:
+                gap = np.full_like(r.msg.positions, np.nan)
+                self.positions.extend([gap] * (step - 1))
+                self.filled += step - 1
+        self._last = (seq, t)
         self.positions.append(r.msg.positions)
+
+    def file_rate(self) -> float:
+        """The stream's rate from its ``t`` steps; the rate given to :meth:`add` before two
+        consecutive frames arrived."""
+        if self._steps:
+            return round(1.0 / float(np.median(self._steps)), 3)
+        return self.rate or 1.0
 
     def write(self, path) -> int:
         from labeler_service.capture import Capture, write_capture
 
         if not self.positions or self.names is None:
             return 0
-        cap = Capture(np.stack(self.positions), self.names, self.rate or 1.0, source=str(path))
+        rate = self.file_rate()
+        cap = Capture(np.stack(self.positions), self.names, rate, source=str(path))
         write_capture(cap, path)
         return len(self.positions)
