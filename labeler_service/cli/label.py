@@ -14,7 +14,8 @@ alike) are given anonymously, in a shuffled order.
   instead labels the first N frames from IN's columns with the model's names (the initial
   assignment of :meth:`Labeler.from_model`).
 
-OUT holds one column per marker (observed and, unless ``--drop-recovered``, recovered
+OUT is in IN's axes and millimetres (a take read with ``--up y`` is rotated back) and holds
+one column per marker (observed and, unless ``--drop-recovered``, recovered
 positions) plus the points that stayed unlabeled as ``*N`` columns. If the input carries labels
 after the init window, the summary also says how often the labeler agreed with them.
 """
@@ -123,8 +124,11 @@ def run(args: argparse.Namespace) -> int:
     loose_cols = np.full((cap.n_frames, n_extra, 3), np.nan, dtype=np.float32)
     for f, e in enumerate(extra):
         loose_cols[f, : e.shape[0]] = e
+    positions = np.concatenate([out, loose_cols], axis=1)
+    if args.up == "y":  # back to IN's axes (read rotated to Z up): OUT overlays IN
+        positions = np.stack([positions[..., 0], positions[..., 2], -positions[..., 1]], axis=-1)
     result = Capture(
-        np.concatenate([out, loose_cols], axis=1),
+        positions,
         lab.marker_names + tuple(f"*{i}" for i in range(n_extra)),
         cap.rate,
         source=args.output,

@@ -38,6 +38,23 @@ def test_label_without_model_trains_on_first_frames(take, tmp_path, capsys):
     assert err.mean() < 0.5 * held.mean(), (err, held)
 
 
+def test_label_of_a_y_up_take_writes_in_its_axes(take, tmp_path, capsys):
+    """``--up y`` reads the take rotated to Z up; OUT is written back in IN's axes, so the
+    labeled file overlays the input (it came out rotated by 90 degrees)."""
+    _, pos, names, _ = take
+    yup = np.stack([pos[..., 0], pos[..., 2], -pos[..., 1]], axis=-1)  # Z up -> Y up
+    src = tmp_path / "yup.npz"
+    write_capture(Capture(yup, names, 120.0, source="yup"), src)
+    out = tmp_path / "out.npz"
+    assert main(["label", str(src), str(out), "--init-frames", "40", "--up", "y", "--json"]) == 0
+    assert (
+        json.loads(capsys.readouterr().out.strip().splitlines()[-1])["agreement_with_input_labels"]
+        == 1.0
+    )
+    res = read_capture(out)
+    np.testing.assert_allclose(res.positions[120, : len(names)], yup[120], atol=1e-3)
+
+
 def test_label_with_model(take, tmp_path, capsys):
     src, _, names, _ = take
     model = tmp_path / "m.json"
