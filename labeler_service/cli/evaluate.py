@@ -94,6 +94,10 @@ def run(args: argparse.Namespace) -> int:
         leave_seconds=args.leave_seconds,
     )
     report, scores = evaluate(cap, downsample=args.downsample, **common)
+    # what was scored, as given: the file and its frame range, and the model file (the
+    # report's settings.model is what the model was trained on)
+    report["truth"] = str(args.truth)
+    report["settings"]["model_file"] = None if args.model is None else str(args.model)
     for note in report["notes"]:
         print(f"note: {note}", file=sys.stderr)
     if args.plot is not None:
