@@ -343,6 +343,22 @@ class Recorder:
             return round(1.0 / float(np.median(self._steps)), 3)
         return self.rate or 1.0
 
+    def report(self, path, n: int) -> str:
+        """The line the subscriber prints after :meth:`write` returned ``n``: what was written
+        and what was not (frames of a later model, missing frames written for seq gaps)."""
+        if not n:
+            why = f" ({self.skipped} frames of a later model not recorded)" if self.skipped else ""
+            return f"no frames received: {path} not written{why}"
+        line = f"wrote {n} frames to {path} at {self.file_rate():g} Hz"
+        if self.filled:
+            line += f"; {self.filled} frames lost in seq gaps written as missing"
+        if self.skipped:
+            line += (
+                f"; {self.skipped} frames of a later model (marker set changed mid-session) "
+                "not recorded"
+            )
+        return line
+
     def write(self, path) -> int:
         from labeler_service.capture import Capture, write_capture
 

@@ -152,6 +152,14 @@ def test_recorder_keeps_the_stream_rate_and_the_time_of_frames_after_a_gap(tmp_p
                          np.zeros((0, 3), np.float32), None, 0, 0, 0.0)  # fmt: skip
         rec.add(Received(msg, names, 0), 50.0)
     assert rec.write(tmp_path / "out.c3d") == 9 and rec.filled == 2
+    # a frame of another model (the stream's marker set changed) is not recorded: said
+    other = LabeledMsg("s", 2, 2, 2 / 25, pos[0, :1], np.array([1], np.uint8),
+                       np.zeros((0, 3), np.float32), None, 0, 0, 0.0)  # fmt: skip
+    rec.add(Received(other, ("B:x",), 0), 50.0)
+    line = rec.report(tmp_path / "out.c3d", 9)
+    assert "wrote 9 frames" in line and "at 25 Hz" in line, line
+    assert "2 frames lost in seq gaps written as missing" in line, line
+    assert "1 frames of a later model" in line, line
     cap = read_capture(tmp_path / "out.c3d")
     assert cap.rate == 25.0 and cap.n_frames == 9
     assert np.isnan(cap.positions[3:5]).all()
