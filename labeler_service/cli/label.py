@@ -16,7 +16,8 @@ alike) are given anonymously, in a shuffled order.
 
 OUT is in IN's axes and millimetres (a take read with ``--up y`` is rotated back) and holds
 one column per marker (observed and, unless ``--drop-recovered``, recovered
-positions) plus the points that stayed unlabeled as ``*N`` columns. If the input carries labels
+positions) plus the points that stayed unlabeled as ``*N`` columns: ``*N`` is the point's
+column N of IN, so an unlabeled raw track stays one trajectory. If the input carries labels
 after the init window, the summary also says how often the labeler agreed with them.
 """
 
@@ -83,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
 
     m = len(lab.marker_names)
     out = np.full((cap.n_frames, m, 3), np.nan, dtype=np.float32)
-    extra: list[np.ndarray] = []
+    # points left unlabeled stay in a column of their input column (a raw track stays a track)
+    loose_all = np.full(cap.positions.shape, np.nan, dtype=np.float32)
     rng = np.random.default_rng(args.seed)
     agree = compared = observed = recovered = 0
     vis = cap.visible
@@ -107,8 +109,8 @@ def run(args: argparse.Namespace) -> int:
             if not args.drop_recovered:
                 keep |= res.state == MarkerState.RECOVERED
             out[f, keep] = res.positions[keep]
-            loose = pts[res.point_labels < 0]
-            extra.append(loose)
+            free = res.point_labels < 0
+            loose_all[f, cols[free]] = pts[free]
             if f >= init:
                 observed += res.n_observed
                 recovered += res.n_recovered
@@ -120,16 +122,13 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.stop()
-    n_extra = max((e.shape[0] for e in extra), default=0)
-    loose_cols = np.full((cap.n_frames, n_extra, 3), np.nan, dtype=np.float32)
-    for f, e in enumerate(extra):
-        loose_cols[f, : e.shape[0]] = e
-    positions = np.concatenate([out, loose_cols], axis=1)
+    loose_in = np.flatnonzero(np.isfinite(loose_all[..., 0]).any(axis=0))
+    positions = np.concatenate([out, loose_all[:, loose_in]], axis=1)
     if args.up == "y":  # back to IN's axes (read rotated to Z up): OUT overlays IN
         positions = np.stack([positions[..., 0], positions[..., 2], -positions[..., 1]], axis=-1)
     result = Capture(
         positions,
-        lab.marker_names + tuple(f"*{i}" for i in range(n_extra)),
+        lab.marker_names + tuple(f"*{j}" for j in loose_in.tolist()),
         cap.rate,
         source=args.output,
         notes=(f"labeled by mocap-labeler label from {args.input}",),

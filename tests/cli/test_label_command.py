@@ -55,6 +55,31 @@ def test_label_of_a_y_up_take_writes_in_its_axes(take, tmp_path, capsys):
     np.testing.assert_allclose(res.positions[120, : len(names)], yup[120], atol=1e-3)
 
 
+def test_unlabeled_points_stay_in_their_input_track(take, tmp_path, capsys):
+    """Two ghost tracks far from the performers: each comes out as one ``*N`` column holding
+    its whole trajectory (they were dealt to columns in the shuffled order of each frame, so
+    a column jumped between the two)."""
+    _, pos, names, _ = take
+    n = pos.shape[0]
+    t = np.arange(n, dtype=np.float32)[:, None]
+    g0 = np.hstack([5000 + t, np.full((n, 1), 4000, np.float32), np.full((n, 1), 900, np.float32)])
+    g1 = np.hstack(
+        [-5000 - t, np.full((n, 1), -4000, np.float32), np.full((n, 1), 900, np.float32)]
+    )
+    src = tmp_path / "ghosts.npz"
+    cap = Capture(np.concatenate([pos, g0[:, None], g1[:, None]], axis=1),
+                  (*names, "*0", "*1"), 120.0, source="g")  # fmt: skip
+    write_capture(cap, src)
+    out = tmp_path / "out.npz"
+    assert main(["label", str(src), str(out), "--init-frames", "40", "--no-progress"]) == 0
+    capsys.readouterr()
+    res = read_capture(out)
+    m = len(names)
+    for j, g in ((m, g0), (m + 1, g1)):
+        col = res.labels.index(f"*{j}")
+        np.testing.assert_allclose(res.positions[:, col], g, atol=1e-3)
+
+
 def test_label_with_model(take, tmp_path, capsys):
     src, _, names, _ = take
     model = tmp_path / "m.json"
