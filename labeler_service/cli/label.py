@@ -86,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     out = np.full((cap.n_frames, m, 3), np.nan, dtype=np.float32)
     # points left unlabeled stay in a column of their input column (a raw track stays a track)
     loose_all = np.full(cap.positions.shape, np.nan, dtype=np.float32)
+    seen = np.zeros((cap.n_frames, m), dtype=bool)  # observed (labeled) per frame and marker
     rng = np.random.default_rng(args.seed)
     agree = compared = observed = recovered = 0
     vis = cap.visible
@@ -106,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
             truth = col_label[cols]
             res = lab.process(pts, f / cap.rate, truth if f < init else None)
             keep = res.state == MarkerState.OBSERVED
+            seen[f] = keep
             if not args.drop_recovered:
                 keep |= res.state == MarkerState.RECOVERED
             out[f, keep] = res.positions[keep]
@@ -143,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         "observed_per_frame": round(observed / frames, 3),
         "recovered_per_frame": round(recovered / frames, 3),
         "agreement_with_input_labels": round(agree / compared, 6) if compared else None,
+        "subjects": _subjects(lab.marker_names, seen[init:], cap.rate),
     }
     if args.json:
         print(json.dumps(summary))
@@ -153,6 +156,17 @@ def run(args: argparse.Namespace) -> int:
         )
         if compared:
             print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
+        never = []
+        for name, s in summary["subjects"].items():
+            if s["first_labeled_s"] is None:
+                never.append(name)
+                continue
+            print(
+                f"  {name}: labeled from {s['first_labeled_s']:.2f} s, "
+                f"{s['observed_per_frame']} of {s['markers']} markers observed per frame"
+            )
+        if never:
+            print(f"  never labeled: {', '.join(never)}")
     if observed == 0 and frames > 0:
         # the output is written (nothing lost), but a run that labeled nothing is no success
         raise LabelerError(
@@ -161,3 +175,20 @@ def run(args: argparse.Namespace) -> int:
             f"(output written to {args.output})"
         )
     return 0
+
+
+def _subjects(names: tuple[str, ...], seen, rate: float) -> dict:
+    """Per model subject: when its first marker was labeled (seconds after the init window;
+    None: never, e.g. not in view or not booted) and its observed markers per frame."""
+    from labeler_service.capture import subject_groups
+
+    out = {}
+    for name, cols in subject_groups(list(names)).items():
+        per_frame = seen[:, cols].sum(axis=1)
+        hit = per_frame.nonzero()[0]
+        out[name] = {
+            "markers": len(cols),
+            "first_labeled_s": round(float(hit[0]) / rate, 4) if hit.size else None,
+            "observed_per_frame": round(float(per_frame.mean()), 3) if per_frame.size else 0.0,
+        }
+    return out

@@ -72,6 +72,15 @@ def test_label_an_unlabeled_take_from_a_model(scene, tmp_path, capsys):
     assert main(["label", str(raw), str(out), "--model", str(model), "--json"]) == 0
     summary = _last_json(capsys)
     assert summary["agreement_with_input_labels"] is None  # nothing to compare: no labels
+    # when each subject was first labeled (booted), and how much of it
+    subj = summary["subjects"]
+    assert set(subj) == {"P1", "P2", "P3"}
+    for s in subj.values():
+        assert s["first_labeled_s"] is not None and s["first_labeled_s"] <= 1.0, subj
+        assert 0 < s["observed_per_frame"] <= s["markers"]
+    assert main(["label", str(raw), str(out), "--model", str(model), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "  P1: labeled from " in text and "never labeled" not in text, text
     res = read_capture(out)
     names = load_model(model).marker_names
     assert res.labels[: len(names)] == names
