@@ -184,5 +184,7 @@ def test_label_evaluate_and_replay_take_a_frame_range(tmp_path, capsys) -> None:
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report["frames"] == 120
     assert report["truth"] == f"{path}:120:240" and report["settings"]["model_file"] == str(model)
+    assert main(["info", f"{path}:120:240", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames"] == 120
     assert main(["label", f"{path}:500", str(out), "--model", str(model)]) == 2
     assert "past the capture's 240 frames" in capsys.readouterr().err
