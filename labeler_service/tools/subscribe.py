@@ -136,6 +136,7 @@ class Subscriber:
         self.renew_s = renew_s
         self.models: dict[str, ModelMsg] = {}
         self.status: dict[str, str] = {}
+        self._labeled: dict[str, bool] = {}  # a frame of the stream had a labeled marker
         self.stats = SubscriberStats()
         self._out: DropOldestQueue[Received] = DropOldestQueue(queue_size)
         self._status_changed = asyncio.Event()
@@ -257,13 +258,21 @@ class Subscriber:
                 self.stats.undecodable += 1
                 return
             r = Received(msg, model.names, inc.recv_ns, len(inc.payload))
+            if not self._labeled.get(msg.stream) and (msg.state == MarkerState.OBSERVED).any():
+                self._labeled[msg.stream] = True
             self.stats.add(r)
             self._out.put(r)
         elif isinstance(msg, ModelMsg):
             self.models[msg.stream] = msg
         elif isinstance(msg, StatusMsg):
             if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
-                self._warn("subscribe %s: stream %s is %s", self._what(), msg.stream, msg.state)
+                why = ""
+                if msg.state in ("lost", "degraded") and not self._labeled.get(msg.stream):
+                    # a model stream that has not booted anyone yet reads as lost: say so
+                    why = (" (no marker labeled yet: the service is booting its performers "
+                           "from the model, or the model does not match them)")  # fmt: skip
+                self._warn("subscribe %s: stream %s is %s%s", self._what(), msg.stream,
+                           msg.state, why)  # fmt: skip
             self.status[msg.stream] = msg.state
             self._status_changed.set()
         elif isinstance(msg, ChallengeMsg):
