@@ -24,8 +24,30 @@ after the init window, the summary also says how often the labeler agreed with t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+import threading
+from collections.abc import Iterator
+
+#: seconds of warm-up after which ``label`` says the kernels are being compiled
+NOTICE_AFTER_S = 3.0
+
+
+@contextlib.contextmanager
+def notice_if_slow(message: str, after: float | None = None) -> Iterator[None]:
+    """Prints ``message`` on stderr if the block is still running after ``after`` seconds
+    (default :data:`NOTICE_AFTER_S`): a first run compiles for a minute, silently otherwise."""
+    timer = threading.Timer(
+        NOTICE_AFTER_S if after is None else after,
+        lambda: print(message, file=sys.stderr, flush=True),
+    )
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -80,7 +102,11 @@ def run(args: argparse.Namespace) -> int:
     col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)
     if init > 0 and not (col_label >= 0).any():
         raise LabelerError(f"{args.input}: none of its labels is a marker of the model")
-    lab.warmup()
+    with notice_if_slow(
+        "compiling the labeling kernels (numba; the first run after an install takes about a "
+        "minute, later runs load them from the cache)..."
+    ):
+        lab.warmup()
 
     m = len(lab.marker_names)
     out = np.full((cap.n_frames, m, 3), np.nan, dtype=np.float32)

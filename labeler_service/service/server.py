@@ -220,6 +220,8 @@ class Server:
 
                     await asyncio.to_thread(load_model, s.model)
             if self.settings.warmup:
+                log.info("warming up the kernels (the first start after an install compiles "
+                         "them: a minute or more)")  # fmt: skip
                 self.warmup_s = await asyncio.to_thread(
                     warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
                 )

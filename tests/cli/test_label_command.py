@@ -126,3 +126,24 @@ def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, c
     err = capsys.readouterr().err
     assert "no point was labeled" in err and str(raw) in err
     assert out.exists()
+
+
+def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, monkeypatch):
+    """The first run after an install compiles the kernels for about a minute: said on stderr
+    instead of a silent minute (the warm-up is made slow here, the notice made early)."""
+    import time
+
+    from labeler_service.cli import label as label_cmd
+    from labeler_service.labeling.labeler import Labeler
+
+    warm = Labeler.warmup
+
+    def slow(self) -> None:
+        time.sleep(0.5)
+        warm(self)
+
+    monkeypatch.setattr(Labeler, "warmup", slow)
+    monkeypatch.setattr(label_cmd, "NOTICE_AFTER_S", 0.05)
+    src = take[0]
+    assert main(["label", str(src), str(tmp_path / "o.npz"), "--init-frames", "40"]) == 0
+    assert "compiling the labeling kernels" in capsys.readouterr().err
