@@ -211,6 +211,17 @@ class Subscriber:
                 why = "nothing listens there (connection refused): is the service running?"
             elif not self._heard:
                 why = "no answer from the service yet: is it running, is the address right?"
+            elif (
+                self.stream
+                and self.stream not in self.status
+                and self.stream not in self.models
+                and self.stats.frames == 0
+            ):
+                why = (
+                    f"the service answers but has announced no stream {self.stream!r} (no "
+                    "status, no model): is the stream name right? (an unlisted stream appears "
+                    "with its first frames)"
+                )
             elif self.stats.frames == 0 and self.stats.undecodable == 0:
                 why = "the service answers; the stream has not sent labeled frames yet"
             else:

@@ -107,3 +107,20 @@ def test_subscribe_says_why_a_stream_nobody_is_labeled_in_yet_is_lost():
     feed(encode_status("v", "online"))
     feed(encode_status("v", "lost"))
     assert sub.warnings[-1].endswith("stream v is lost"), sub.warnings[-1]
+
+
+def test_subscribe_to_a_stream_name_the_service_does_not_have_says_so():
+    """A typo in the stream name (``/cour`` for ``court``): the service answers but announces
+    no such stream; the silence warning asks whether the name is right."""
+    settings = load_settings(labeler="baseline", metrics_port=None, warmup=False,
+                             udp={"port": 0}, streams=[{"name": "court"}])  # fmt: skip
+
+    async def go():
+        async with Server(settings) as srv:
+            host, port = srv.transports[0].address
+            async with Subscriber(f"udp://{host}:{port}/cour", silence_s=0.3) as sub:
+                await until(lambda: sub.silent, "the silence warning", timeout=5)
+                return list(sub.warnings)
+
+    warnings = run(go())
+    assert any("announced no stream 'cour'" in w and "name right" in w for w in warnings), warnings
