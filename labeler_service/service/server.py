@@ -532,22 +532,26 @@ class Server:
                 reason = "labeler_error" if state.started else "no_model"
                 self.metrics.drop(reason, state.name)
                 self._rlog.warning(f"{reason}-{state.name}", "%s", exc)
+                if state.started:
+                    await self._failing(state, exc)
                 continue
             except InitBufferFullError as exc:
                 self.metrics.drop("init_overflow", state.name)
                 self._rlog.warning(f"init-{state.name}", "%s", exc)
                 continue
-            except Exception:
+            except Exception as exc:
                 self.metrics.drop("labeler_error", state.name)
                 if self._rlog.warning(f"err-{state.name}", "stream %s: labeler failed on seq %d",
                                       state.name, msg.seq):  # fmt: skip
                     log.exception("labeler error")
+                await self._failing(state, exc)
                 continue
             finally:
                 if state.recoveries != n_recoveries:
                     self.metrics.recovery(state.name)
             if out is None:
                 continue
+            state.failing_since = None
             if state.just_booted:
                 self._booted(state)
             elif state.booting is not None:
@@ -681,6 +685,22 @@ class Server:
             state.status = "online"
             await self._status(state.name, "online")
         return output
+
+    async def _failing(self, state: StreamState, exc: BaseException) -> None:
+        """A frame of a started stream failed (``labeler_error``). When every frame has failed
+        for ``health_window_s`` the status turns ``lost`` (logged once with the last error): a
+        stream that publishes nothing must not stay ``online``. The next labeled frame's health
+        update gives the status back."""
+        now = time.monotonic()
+        if state.failing_since is None:
+            state.failing_since = now
+        if now - state.failing_since < self.settings.health_window_s or state.status == "lost":
+            return
+        state.status = "lost"
+        log.warning("stream %s: no frame labeled for %.1f s, each one failed (last: %s: %s): "
+                    "status lost", state.name, now - state.failing_since, type(exc).__name__,
+                    exc)  # fmt: skip
+        await self._status(state.name, "lost")
 
     async def _health(self, state: StreamState, out) -> None:
         changed = state.update_health(out)

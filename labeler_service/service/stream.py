@@ -252,6 +252,8 @@ class StreamState:
         self.training = False  # a training job for this stream is running (server)
         # health
         self.status = "online"
+        #: monotonic time of the first of the frames that failed in a row (server); None
+        self.failing_since: float | None = None
         self.labeled_fraction = float("nan")
         self.recovered_fraction = float("nan")
         #: Called (by the server) when the status turns ``lost``: the hook for boot from a
