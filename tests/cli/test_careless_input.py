@@ -140,3 +140,44 @@ def test_truncated_input_warns_on_stderr(take, tmp_path):
     assert proc.returncode == 0
     assert "cut.c3d: truncated:" in proc.stderr and "of 80 frames" in proc.stderr
     assert "note: truncated:" in proc.stdout
+
+
+def test_replay_leave_makes_a_performer_vanish_and_come_back(rng, tmp_path, capsys):
+    """``replay --leave 1``: one performer's points are absent for --leave-seconds, then back
+    (the service's re-identification can be tried through the stream); said on stderr."""
+    import contextlib
+    import socket
+
+    from labeler_service.service.protocol import decode
+
+    truth, names = articulated(rng, subjects=2, frames=360)
+    path = tmp_path / "two.c3d"
+    write_capture(Capture(truth, names, 120.0, source="two"), path)
+    import threading
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(5)
+    port = rx.getsockname()[1]
+    counts: list[int] = []
+
+    def receive() -> None:  # concurrently: the kernel buffer does not hold 360 datagrams
+        with contextlib.suppress(OSError):
+            while len(counts) < 360:
+                counts.append(len(decode(rx.recv(65536)).points))
+
+    reader = threading.Thread(target=receive)
+    reader.start()
+    try:
+        args = ["replay", str(path), "--to", f"udp://127.0.0.1:{port}/x", "--init-frames",
+                "0", "--speed", "4", "--leave", "1", "--leave-seconds", "0.5"]  # fmt: skip
+        assert main(args) == 0
+        reader.join(10)
+    finally:
+        rx.close()
+    err = capsys.readouterr().err
+    assert "leaves at frame" in err and "is back at frame" in err, err
+    per = len(names) // 2
+    gone = [k for k, n in enumerate(counts) if n <= per]
+    assert 55 <= len(gone) <= 65, counts  # 0.5 s at 120 Hz
+    assert counts[-1] == len(names)
