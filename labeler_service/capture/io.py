@@ -347,6 +347,14 @@ def _write_c3d(capture: Capture, path: Path) -> None:
     c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = [""] * capture.n_markers
     c.add_parameter("POINT", "UNITS", ["mm"])
+    # the Vicon SUBJECTS group: the labels' subject:marker prefixes, for tools that list
+    # subjects from it rather than from the labels
+    named = [s for s in capture.subjects if s]
+    if named:
+        c.add_parameter("SUBJECTS", "NAMES", named)
+        c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
+        c.add_parameter("SUBJECTS", "USED", [len(named)])
+        c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
     pts = np.ones((4, capture.n_markers, capture.n_frames), dtype=np.float64)
     pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0))
     c["data"]["points"] = pts

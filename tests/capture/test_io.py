@@ -188,3 +188,17 @@ def test_label_evaluate_and_replay_take_a_frame_range(tmp_path, capsys) -> None:
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames"] == 120
     assert main(["label", f"{path}:500", str(out), "--model", str(model)]) == 2
     assert "past the capture's 240 frames" in capsys.readouterr().err
+
+
+def test_c3d_carries_the_subjects_group(tmp_path, rng) -> None:
+    """Tools that list subjects from the C3D SUBJECTS group (Vicon's convention) see them."""
+    import ezc3d
+
+    cap = _capture(rng)
+    write_capture(cap, tmp_path / "s.c3d")
+    p = ezc3d.c3d(str(tmp_path / "s.c3d"))["parameters"]
+    assert p["SUBJECTS"]["NAMES"]["value"] == ["A", "B"]
+    assert p["SUBJECTS"]["LABEL_PREFIXES"]["value"] == ["A:", "B:"]
+    assert list(p["SUBJECTS"]["USED"]["value"]) == [2]
+    back = read_capture(tmp_path / "s.c3d")
+    assert back.labels == cap.labels and back.subjects == ("A", "B")
