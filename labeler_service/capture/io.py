@@ -10,6 +10,8 @@ A C3D that ends before the frames its header declares is read up to its last com
 (ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
 warning (stderr from the CLI). Writers write a temporary file beside the target, check it
 (ezc3d reports no I/O error, so a C3D must have its full size) and rename it over the target.
+A C3D is written in millimetres with the labels as ``subject:marker`` and the Vicon ``SUBJECTS``
+group (names and label prefixes).
 """
 
 from __future__ import annotations
