@@ -1,6 +1,12 @@
 """Capture values and file I/O (C3D, TRC, NPZ)."""
 
-from labeler_service.capture.io import SUFFIXES, check_writable, read_capture, write_capture
+from labeler_service.capture.io import (
+    SUFFIXES,
+    check_writable,
+    read_capture,
+    read_segment,
+    write_capture,
+)
 from labeler_service.capture.model import Capture, is_ghost, split_label, subject_groups
 
 __all__ = [
@@ -9,6 +15,7 @@ __all__ = [
     "check_writable",
     "is_ghost",
     "read_capture",
+    "read_segment",
     "split_label",
     "subject_groups",
     "write_capture",

@@ -10,6 +10,8 @@ A C3D that ends before the frames its header declares is read up to its last com
 (ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
 warning (stderr from the CLI). Writers write a temporary file beside the target, check it
 (ezc3d reports no I/O error, so a C3D must have its full size) and rename it over the target.
+A C3D is written in millimetres with the labels as ``subject:marker`` and the Vicon ``SUBJECTS``
+group (names and label prefixes).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import struct
 import uuid
 import zipfile
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +74,40 @@ def read_capture(path: str | Path, up: str = "z", subject: str | None = None) ->
     return cap
 
 
+def read_segment(spec: str | Path, up: str = "z") -> Capture:
+    """Reads ``FILE[:start[:stop]]`` (frames, as ``train structure`` takes them): the whole
+    capture, or that frame range of it (so a model trained on one segment of a take can be
+    checked on another). A path that exists is read whole even if its name holds colons."""
+    text = str(spec)
+    path, start, stop = split_segment(text)
+    cap = read_capture(path, up=up)
+    if path == text:
+        return cap
+    if stop is not None and stop <= start:
+        raise CaptureError(f"{text}: need start < stop (frames)")
+    if start >= cap.n_frames:
+        raise CaptureError(f"{text}: start {start} is past the capture's {cap.n_frames} frames")
+    if stop is not None and stop > cap.n_frames:
+        raise CaptureError(f"{text}: stop {stop} is past the capture's {cap.n_frames} frames")
+    notes = (*cap.notes, f"frames {start}-{cap.n_frames if stop is None else stop} of {path}")
+    return replace(cap.frames(start, stop), notes=notes)
+
+
+def split_segment(text: str) -> tuple[str, int, int | None]:
+    """``FILE[:start[:stop]]`` -> ``(FILE, start, stop)``; a path that exists, or one whose
+    tail is not ``:digits``, is the whole file ``(text, 0, None)``."""
+    if Path(text).exists():
+        return text, 0, None
+    parts = text.rsplit(":", 2)
+    for n_nums in (2, 1):
+        head, nums = ":".join(parts[: len(parts) - n_nums]), parts[len(parts) - n_nums :]
+        if len(parts) > n_nums and all(x == "" or x.isdigit() for x in nums):
+            start = int(nums[0]) if nums[0] else 0
+            stop = int(nums[1]) if n_nums == 2 and nums[1] else None
+            return head, start, stop
+    return text, 0, None
+
+
 def write_capture(capture: Capture, path: str | Path) -> Path:
     """Writes a capture as C3D, TRC or NPZ (by suffix), creating parent folders.
 
@@ -96,12 +133,24 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
     return p
 
 
-def check_writable(path: str | Path, suffixes: tuple[str, ...] | None = SUFFIXES) -> Path:
+def check_writable(
+    path: str | Path,
+    suffixes: tuple[str, ...] | None = SUFFIXES,
+    inputs: tuple[str | Path, ...] = (),
+) -> Path:
     """Refuses, before any work is done, an output path that :func:`write_capture` could not
     write: unknown suffix (unless ``suffixes`` is ``None``: any file), a directory, a parent
-    folder that cannot be created or written."""
+    folder that cannot be created or written, or one of the command's ``inputs`` (files,
+    ``FILE:start:stop`` segments): the run would replace the capture it reads."""
     p = Path(path)
     target, suffix = _target(p, suffixes)
+    for spec in inputs:
+        src = Path(os.path.realpath(split_segment(str(spec))[0]))
+        if src == target:
+            raise CaptureError(
+                f"{p}: is the input {spec}: writing it would replace the capture being read; "
+                "choose another output"
+            )
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():  # a device or FIFO: opening could block
@@ -300,6 +349,14 @@ def _write_c3d(capture: Capture, path: Path) -> None:
     c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = [""] * capture.n_markers
     c.add_parameter("POINT", "UNITS", ["mm"])
+    # the Vicon SUBJECTS group: the labels' subject:marker prefixes, for tools that list
+    # subjects from it rather than from the labels
+    named = [s for s in capture.subjects if s]
+    if named:
+        c.add_parameter("SUBJECTS", "NAMES", named)
+        c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
+        c.add_parameter("SUBJECTS", "USED", [len(named)])
+        c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
     pts = np.ones((4, capture.n_markers, capture.n_frames), dtype=np.float64)
     pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0))
     c["data"]["points"] = pts

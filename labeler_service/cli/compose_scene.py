@@ -36,8 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import check_writable, write_capture
     from labeler_service.scenes.compose import TakeSpec, compose_scene
 
-    check_writable(args.out)
     specs = [TakeSpec.parse(t) for t in args.takes]
+    check_writable(args.out, inputs=tuple(s.path for s in specs if s.path is not None))
     scene = compose_scene(specs, args.radius, args.frames, args.seed, rate=args.rate)
     path = write_capture(scene, args.out)
     subjects = scene.subjects

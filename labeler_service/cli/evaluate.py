@@ -13,14 +13,18 @@ import json
 import sys
 from pathlib import Path
 
-from labeler_service.capture import check_writable, read_capture
+from labeler_service.capture import check_writable, read_segment
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("truth", help="labeled capture (.c3d/.trc/.npz); *N columns are ghosts")
+    p.add_argument(
+        "truth",
+        help="labeled capture (.c3d/.trc/.npz), TRUTH[:start[:stop]] (frames); *N columns "
+        "are ghosts",
+    )
     p.add_argument(
         "--method",
         nargs="+",
@@ -72,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:  # before the run, not after it
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
-    cap = read_capture(args.truth, up=args.up)
+    cap = read_segment(args.truth, up=args.up)
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
     common = dict(
@@ -90,6 +94,10 @@ def run(args: argparse.Namespace) -> int:
         leave_seconds=args.leave_seconds,
     )
     report, scores = evaluate(cap, downsample=args.downsample, **common)
+    # what was scored, as given: the file and its frame range, and the model file (the
+    # report's settings.model is what the model was trained on)
+    report["truth"] = str(args.truth)
+    report["settings"]["model_file"] = None if args.model is None else str(args.model)
     for note in report["notes"]:
         print(f"note: {note}", file=sys.stderr)
     if args.plot is not None:
@@ -123,13 +131,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_table(report: dict) -> None:
+    """The report for a reader: one row per measure, one column per method (so no header is
+    cut at any terminal width), then the error anatomy, the boot of each subject by name and
+    who left and came back."""
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(
-        title=f"{report['frames']} frames, {report['subjects']} subjects, "
-        f"{report['markers']} markers at {report['rate_hz']:g} Hz"
-    )
+    t = Table()
     cols = [
         "accuracy",
         "ghost_labeled_rate",
@@ -138,19 +146,27 @@ def _print_table(report: dict) -> None:
         "ms_per_frame_p50",
         "ms_per_frame_p99",
     ]
-    t.add_column("method")
+    t.add_column("measure", no_wrap=True)
+    for name in report["methods"]:
+        t.add_column(name, justify="right", no_wrap=True)
     for c in cols:
-        t.add_column(c, justify="right")
-    for name, s in report["methods"].items():
-        t.add_row(name, *["-" if s[c] is None else f"{s[c]:.4g}" for c in cols])
+        vals = [s.get(c) for s in report["methods"].values()]
+        t.add_row(c, *["-" if v is None else f"{v:.4g}" for v in vals])
     console = Console()
+    console.print(
+        f"{report['frames']} frames, {report['subjects']} subjects, "
+        f"{report['markers']} markers at {report['rate_hz']:g} Hz"
+    )
     console.print(t)
     e = report["errors"]
+    init = (report.get("settings") or {}).get("init_frames", 0)
+    unseen = (
+        f"; {report['unseen_at_init']} samples of markers unseen in the init window" if init else ""
+    )
     console.print(
         f"{report['method']}: {report['visible']} visible samples scored; errors: "
         f"{e['same_subject']} same-subject, {e['cross_subject']} cross-subject, "
-        f"{e['unlabeled']} unlabeled; {e['ghost_taken']} ghost points labeled; "
-        f"{report['unseen_at_init']} samples of markers unseen in the init window"
+        f"{e['unlabeled']} unlabeled; {e['ghost_taken']} ghost points labeled{unseen}"
     )
     swap = report["max_swap"]
     if swap:
@@ -162,11 +178,28 @@ def _print_table(report: dict) -> None:
     def sec(x: float | None) -> str:
         return "never" if x is None else f"{x:.3f} s"
 
+    boot_s = report.get("boot_s") or {}
+    if boot_s:
+        each = ", ".join(f"{name} {sec(v)}" for name, v in boot_s.items())
+        never = [name for name, v in boot_s.items() if v is None]
+        console.print(
+            f"boot (seconds until >= 95 % of a subject's visible markers are right for 10 "
+            f"frames): {each}; slowest {sec(report['boot_s_max'])}"
+        )
+        if never:
+            console.print(
+                f"never booted: {', '.join(never)} (its samples count in accuracy, not in "
+                "accuracy after boot)"
+            )
     n_ret = len(report["reid_s"])
     reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {n_ret} returns"
+    left = ", ".join(
+        f"{d['subject']} (frames {d['first_frame']}-{d['back_frame']})"
+        for d in report.get("departures") or []
+    )
     console.print(
-        f"boot: {sec(report['boot_s_max'])} (slowest subject), accuracy after boot "
-        f"{report['accuracy_after_boot']}; {reid if n_ret else 'no returns'}; "
+        f"accuracy after boot {report['accuracy_after_boot']}; "
+        f"{reid if n_ret else 'no returns'}{f' (left: {left})' if left else ''}; "
         f"{report['absent_labeled']} points given labels of absent subjects; "
         f"{report['identity_swaps']} identity swaps"
     )

@@ -7,11 +7,11 @@ import json
 
 import numpy as np
 
-from labeler_service.capture import Capture, read_capture
+from labeler_service.capture import Capture, read_segment
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", help="capture file (.c3d, .trc, .npz)")
+    p.add_argument("file", help="capture file (.c3d, .trc, .npz), FILE[:start[:stop]] (frames)")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
@@ -47,7 +47,7 @@ def summarize(cap: Capture) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    cap = read_capture(args.file, up=args.up)
+    cap = read_segment(args.file, up=args.up)
     s = summarize(cap)
     if args.json:
         print(json.dumps(s))

@@ -14,20 +14,46 @@ alike) are given anonymously, in a shuffled order.
   instead labels the first N frames from IN's columns with the model's names (the initial
   assignment of :meth:`Labeler.from_model`).
 
-OUT holds one column per marker (observed and, unless ``--drop-recovered``, recovered
-positions) plus the points that stayed unlabeled as ``*N`` columns. If the input carries labels
+OUT is in IN's axes and millimetres (a take read with ``--up y`` is rotated back) and holds
+one column per marker (observed and, unless ``--drop-recovered``, recovered
+positions) plus the points that stayed unlabeled as ``*N`` columns: ``*N`` is the point's
+column N of IN, so an unlabeled raw track stays one trajectory. If the input carries labels
 after the init window, the summary also says how often the labeler agreed with them.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+import threading
+from collections.abc import Iterator
+
+#: seconds of warm-up after which ``label`` says the kernels are being compiled
+NOTICE_AFTER_S = 3.0
+
+
+@contextlib.contextmanager
+def notice_if_slow(message: str, after: float | None = None) -> Iterator[None]:
+    """Prints ``message`` on stderr if the block is still running after ``after`` seconds
+    (default :data:`NOTICE_AFTER_S`): a first run compiles for a minute, silently otherwise."""
+    timer = threading.Timer(
+        NOTICE_AFTER_S if after is None else after,
+        lambda: print(message, file=sys.stderr, flush=True),
+    )
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", metavar="IN", help="capture to label (.c3d/.trc/.npz)")
+    p.add_argument(
+        "input", metavar="IN", help="capture to label (.c3d/.trc/.npz), IN[:start[:stop]] (frames)"
+    )
     p.add_argument("output", metavar="OUT", help="labeled capture to write")
     p.add_argument("--model", help="subject template (train structure); else train on IN")
     p.add_argument(
@@ -46,14 +72,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import Capture, check_writable, read_capture, write_capture
+    from labeler_service.capture import Capture, check_writable, read_segment, write_capture
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.registry import make_labeler
     from labeler_service.labeling.templates import load_model
 
-    check_writable(args.output)  # before minutes of labeling
-    cap = read_capture(args.input, up=args.up)
+    check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
+    cap = read_segment(args.input, up=args.up)
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):
@@ -76,11 +102,17 @@ def run(args: argparse.Namespace) -> int:
     col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)
     if init > 0 and not (col_label >= 0).any():
         raise LabelerError(f"{args.input}: none of its labels is a marker of the model")
-    lab.warmup()
+    with notice_if_slow(
+        "compiling the labeling kernels (numba; the first run after an install takes about a "
+        "minute, later runs load them from the cache)..."
+    ):
+        lab.warmup()
 
     m = len(lab.marker_names)
     out = np.full((cap.n_frames, m, 3), np.nan, dtype=np.float32)
-    extra: list[np.ndarray] = []
+    # points left unlabeled stay in a column of their input column (a raw track stays a track)
+    loose_all = np.full(cap.positions.shape, np.nan, dtype=np.float32)
+    seen = np.zeros((cap.n_frames, m), dtype=bool)  # observed (labeled) per frame and marker
     rng = np.random.default_rng(args.seed)
     agree = compared = observed = recovered = 0
     vis = cap.visible
@@ -101,11 +133,12 @@ def run(args: argparse.Namespace) -> int:
             truth = col_label[cols]
             res = lab.process(pts, f / cap.rate, truth if f < init else None)
             keep = res.state == MarkerState.OBSERVED
+            seen[f] = keep
             if not args.drop_recovered:
                 keep |= res.state == MarkerState.RECOVERED
             out[f, keep] = res.positions[keep]
-            loose = pts[res.point_labels < 0]
-            extra.append(loose)
+            free = res.point_labels < 0
+            loose_all[f, cols[free]] = pts[free]
             if f >= init:
                 observed += res.n_observed
                 recovered += res.n_recovered
@@ -117,13 +150,13 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.stop()
-    n_extra = max((e.shape[0] for e in extra), default=0)
-    loose_cols = np.full((cap.n_frames, n_extra, 3), np.nan, dtype=np.float32)
-    for f, e in enumerate(extra):
-        loose_cols[f, : e.shape[0]] = e
+    loose_in = np.flatnonzero(np.isfinite(loose_all[..., 0]).any(axis=0))
+    positions = np.concatenate([out, loose_all[:, loose_in]], axis=1)
+    if args.up == "y":  # back to IN's axes (read rotated to Z up): OUT overlays IN
+        positions = np.stack([positions[..., 0], positions[..., 2], -positions[..., 1]], axis=-1)
     result = Capture(
-        np.concatenate([out, loose_cols], axis=1),
-        lab.marker_names + tuple(f"*{i}" for i in range(n_extra)),
+        positions,
+        lab.marker_names + tuple(f"*{j}" for j in loose_in.tolist()),
         cap.rate,
         source=args.output,
         notes=(f"labeled by mocap-labeler label from {args.input}",),
@@ -138,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
         "observed_per_frame": round(observed / frames, 3),
         "recovered_per_frame": round(recovered / frames, 3),
         "agreement_with_input_labels": round(agree / compared, 6) if compared else None,
+        "subjects": _subjects(lab.marker_names, seen[init:], cap.rate),
     }
     if args.json:
         print(json.dumps(summary))
@@ -148,6 +182,17 @@ def run(args: argparse.Namespace) -> int:
         )
         if compared:
             print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
+        never = []
+        for name, s in summary["subjects"].items():
+            if s["first_labeled_s"] is None:
+                never.append(name)
+                continue
+            print(
+                f"  {name}: labeled from {s['first_labeled_s']:.2f} s, "
+                f"{s['observed_per_frame']} of {s['markers']} markers observed per frame"
+            )
+        if never:
+            print(f"  never labeled: {', '.join(never)}")
     if observed == 0 and frames > 0:
         # the output is written (nothing lost), but a run that labeled nothing is no success
         raise LabelerError(
@@ -156,3 +201,20 @@ def run(args: argparse.Namespace) -> int:
             f"(output written to {args.output})"
         )
     return 0
+
+
+def _subjects(names: tuple[str, ...], seen, rate: float) -> dict:
+    """Per model subject: when its first marker was labeled (seconds after the init window;
+    None: never, e.g. not in view or not booted) and its observed markers per frame."""
+    from labeler_service.capture import subject_groups
+
+    out = {}
+    for name, cols in subject_groups(list(names)).items():
+        per_frame = seen[:, cols].sum(axis=1)
+        hit = per_frame.nonzero()[0]
+        out[name] = {
+            "markers": len(cols),
+            "first_labeled_s": round(float(hit[0]) / rate, 4) if hit.size else None,
+            "observed_per_frame": round(float(per_frame.mean()), 3) if per_frame.size else 0.0,
+        }
+    return out

@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", type=Path, help="labeled capture (.c3d, .trc, .npz)")
+    p.add_argument("file", help="labeled capture (.c3d, .trc, .npz), FILE[:start[:stop]] (frames)")
     p.add_argument("--to", required=True, metavar="URL",
                    help="udp://host:port[/stream] or mqtt://host:port/stream")  # fmt: skip
     p.add_argument("--stream", default=None, help="stream name (default: from the URL, else "
@@ -25,6 +25,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dropouts", type=float, default=0.0, help="fraction of samples dropped")
     p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
     p.add_argument("--jitter", type=float, default=0.0, help="Gaussian noise per axis (mm)")
+    p.add_argument(
+        "--leave",
+        type=int,
+        default=0,
+        help="subjects that vanish once and come back displaced (re-identification)",
+    )
+    p.add_argument("--leave-seconds", type=float, default=1.0,
+                   help="how long each --leave subject is gone")  # fmt: skip
     p.add_argument("--no-shuffle", action="store_true", help="keep the capture's point order")
     p.add_argument("--loops", type=int, default=1, help="passes, alternating direction")
     p.add_argument("--up", choices=["z", "y"], default="z", help="vertical axis of the file")
@@ -41,19 +49,34 @@ async def _main(args: argparse.Namespace) -> int:
         downsample=args.downsample, gaps=args.gaps, gap_frames=args.gap_frames,
         dropouts=args.dropouts, ghosts=args.ghosts, jitter_mm=args.jitter,
         shuffle=not args.no_shuffle, protect_frames=args.init_frames, seed=args.seed,
+        leave=args.leave, leave_seconds=args.leave_seconds,
     )  # fmt: skip
-    frames = prepare(args.file, spec, up=args.up)
+    from labeler_service.capture import read_segment
+
+    frames = prepare(read_segment(args.file, up=args.up), spec)
+    if args.init_frames > 0 and not frames.marker_names:
+        raise LabelerError(
+            f"{args.file}: no labeled markers (only unlabeled *N tracks): --init-frames "
+            f"{args.init_frames} would send init frames without labels; use --init-frames 0 "
+            "towards a stream configured with a model (serve: [[streams]] model = ...)"
+        )
     if frames.n_frames <= args.init_frames:
         raise LabelerError(
             f"{args.file}: {frames.n_frames} frames (after --downsample), not more than "
             f"{args.init_frames} init frames: nothing would be left to label"
         )
     print(
-        f"replay {args.file.name}: {frames.n_frames} frames x {args.loops}, "
+        f"replay {Path(args.file).name}: {frames.n_frames} frames x {args.loops}, "
         f"{len(frames.marker_names)} markers, {frames.rate:g} Hz at speed {args.speed:g} "
         f"-> {redact_url(args.to)}",
         file=sys.stderr,
     )
+    for subject, gone, back in frames.departures:
+        print(
+            f"replay: {subject} leaves at frame {gone} ({gone / frames.rate:.2f} s) and is back "
+            f"at frame {back} ({back / frames.rate:.2f} s), displaced",
+            file=sys.stderr,
+        )
     async with open_sender(args.to, stream=args.stream) as (send, stream):
         stats = await replay(
             frames, send, stream=stream, init_frames=args.init_frames,

@@ -60,11 +60,7 @@ async def _main(args: argparse.Namespace) -> int:
               f"{s.missing_seq}, undecodable {s.undecodable}, latency p50 {lat['p50']:.2f} ms "
               f"p99 {lat['p99']:.2f} ms p99.9 {lat['p99.9']:.2f} ms")  # fmt: skip
     if recorder is not None:
-        n = recorder.write(args.out)
-        if n:
-            print(f"wrote {n} frames to {args.out}")
-        else:
-            print(f"no frames received: {args.out} not written")
+        print(recorder.report(args.out, recorder.write(args.out)))
     return 0
 
 

@@ -29,6 +29,7 @@ keeps the CPU; the next request starts a new one. A worker that dies raises
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing
 import os
 import threading
@@ -38,6 +39,8 @@ from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 from labeler_service.errors import BudgetExceeded, LabelerError
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from labeler_service.labeling.booting import BootingLabeler, BootSnapshot, StepRunner
@@ -246,6 +249,11 @@ class BootWorker:
         if self._closed:
             raise LabelerError("boot worker: closed")
         if self._proc is None or not self._proc.is_alive() or self._conn is None:
+            old = self._proc
+            if old is not None and not old.is_alive():
+                # not ended by us (_kill forgets the process first): killed (OOM) or crashed
+                log.warning("boot worker process %d had exited (exit code %s); starting a new "
+                            "one", old.pid, old.exitcode)  # fmt: skip
             self._kill()
             ctx = multiprocessing.get_context("spawn")
             parent, child = ctx.Pipe()

@@ -340,18 +340,32 @@ class ServiceMetrics:
                 "boot_attempts": self.value("mocap_boot_attempts_total", stream=s),
                 "boot_failed": self.value("mocap_boot_failed_total", stream=s),
                 "subjects_booted": self.value("mocap_subjects_booted", stream=s),
+                "labeled_fraction": self.value("mocap_labeled_fraction", stream=s),
             }
         return out
 
-    def log_line(self) -> str:
+    def log_line(self, streams: dict[str, tuple[str, int]] | None = None) -> str:
+        """The periodic log line. ``streams``: per stream its status and, for a stream that
+        boots, the number of its model's subjects: the line then says the status (with the
+        labeled fraction) and how many subjects are booted after how many attempts, so a
+        stream that labels nothing says so."""
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
-            parts.append(
+            line = (
                 f"[{s}] in={v['frames_in']:.0f} out={v['frames_out']:.0f} "
                 f"label p50/p99={v['labeling_ms_p50']:.2f}/{v['labeling_ms_p99']:.2f} ms "
                 f"latency p99={v['latency_ms_p99']:.2f} ms recovered={v['recovered']:.0f}"
             )
+            status, n_subjects = (streams or {}).get(s, ("", 0))
+            if status:
+                line += f" status={status} labeled={v['labeled_fraction']:.2f}"
+            if n_subjects:
+                line += (
+                    f" booted={v['subjects_booted']:.0f}/{n_subjects} "
+                    f"(boot attempts {v['boot_attempts']:.0f}, failed {v['boot_failed']:.0f})"
+                )
+            parts.append(line)
         drops = ", ".join(f"{r}={n}" for r, n in sorted(snap["drops"].items())) or "none"
         return " ".join(parts or ["no streams yet"]) + f" drops: {drops}"
 

@@ -220,6 +220,8 @@ class Server:
 
                     await asyncio.to_thread(load_model, s.model)
             if self.settings.warmup:
+                log.info("warming up the kernels (the first start after an install compiles "
+                         "them: a minute or more)")  # fmt: skip
                 self.warmup_s = await asyncio.to_thread(
                     warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
                 )
@@ -277,7 +279,7 @@ class Server:
         if self._stack is not None:
             stack, self._stack = self._stack, None
             await stack.aclose()
-        log.info("stopped: %s", self.metrics.log_line())
+        log.info("stopped: %s", self.metrics.log_line(self._log_streams()))
 
     def _spawn(self, coro, name: str) -> asyncio.Task:
         task = asyncio.create_task(coro, name=name)
@@ -505,12 +507,10 @@ class Server:
             await asyncio.sleep(0)
             msg, recv_ns, verdict = await queue.get()
             self.metrics.queue(state.name, len(queue))
+            n_recoveries = state.recoveries  # a new run or an unlabeled first frame starts one
             try:
                 if verdict.new_run:
-                    n = state.recoveries
                     state.new_run(msg, verdict)
-                    if state.recoveries != n:
-                        self.metrics.recovery(state.name)
                 if state.needs_training(msg):
                     out = await self._train(state, msg, recv_ns)
                 elif executor is not None:
@@ -532,19 +532,26 @@ class Server:
                 reason = "labeler_error" if state.started else "no_model"
                 self.metrics.drop(reason, state.name)
                 self._rlog.warning(f"{reason}-{state.name}", "%s", exc)
+                if state.started:
+                    await self._failing(state, exc)
                 continue
             except InitBufferFullError as exc:
                 self.metrics.drop("init_overflow", state.name)
                 self._rlog.warning(f"init-{state.name}", "%s", exc)
                 continue
-            except Exception:
+            except Exception as exc:
                 self.metrics.drop("labeler_error", state.name)
                 if self._rlog.warning(f"err-{state.name}", "stream %s: labeler failed on seq %d",
                                       state.name, msg.seq):  # fmt: skip
                     log.exception("labeler error")
+                await self._failing(state, exc)
                 continue
+            finally:
+                if state.recoveries != n_recoveries:
+                    self.metrics.recovery(state.name)
             if out is None:
                 continue
+            state.failing_since = None
             if state.just_booted:
                 self._booted(state)
             elif state.booting is not None:
@@ -679,6 +686,22 @@ class Server:
             await self._status(state.name, "online")
         return output
 
+    async def _failing(self, state: StreamState, exc: BaseException) -> None:
+        """A frame of a started stream failed (``labeler_error``). When every frame has failed
+        for ``health_window_s`` the status turns ``lost`` (logged once with the last error): a
+        stream that publishes nothing must not stay ``online``. The next labeled frame's health
+        update gives the status back."""
+        now = time.monotonic()
+        if state.failing_since is None:
+            state.failing_since = now
+        if now - state.failing_since < self.settings.health_window_s or state.status == "lost":
+            return
+        state.status = "lost"
+        log.warning("stream %s: no frame labeled for %.1f s, each one failed (last: %s: %s): "
+                    "status lost", state.name, now - state.failing_since, type(exc).__name__,
+                    exc)  # fmt: skip
+        await self._status(state.name, "lost")
+
     async def _health(self, state: StreamState, out) -> None:
         changed = state.update_health(out)
         self.metrics.health(state.name, state.labeled_fraction, state.recovered_fraction)
@@ -763,7 +786,15 @@ class Server:
             # large free, hence in a thread (ctypes releases the GIL)
             await asyncio.to_thread(release_memory)
 
+    def _log_streams(self) -> dict[str, tuple[str, int]]:
+        """Per stream its status and, when it boots, its model's subject count (log line)."""
+        out = {}
+        for name, st in self.streams.items():
+            lab = st.booting
+            out[name] = (st.status, len(lab.model.subjects) if lab is not None else 0)
+        return out
+
     async def _log_loop(self) -> None:
         while True:
             await asyncio.sleep(self.settings.log_interval_s)
-            log.info("%s", self.metrics.log_line())
+            log.info("%s", self.metrics.log_line(self._log_streams()))

@@ -271,7 +271,20 @@ def _format_errors(exc: ValidationError) -> str:
     lines = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(settings)"
-        lines.append(f"  {loc}: {err['msg']}")
+        msg = err["msg"]
+        key = str(err["loc"][-1]) if err["loc"] else ""
+        if (
+            err["type"] == "extra_forbidden"
+            and len(err["loc"]) == 3
+            and err["loc"][0] == "streams"
+            and key in ServiceSettings.model_fields
+        ):
+            # TOML: a key written below [[streams]] belongs to that stream's table
+            msg += (
+                f" ({key} is a setting of the whole service, not of one stream: in TOML, "
+                "write it above the first [[streams]] or [section])"
+            )
+        lines.append(f"  {loc}: {msg}")
     return "\n".join(lines)
 
 

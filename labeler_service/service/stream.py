@@ -49,7 +49,9 @@ path exactly like a model stream's (``boot_due`` / ``boot_request`` / ``boot_job
 ``boot_done``); points go out unlabeled until their performer is booted. Once every subject of
 the model has been labeled for ``HANDBACK_FRAMES`` frames, a plain labeler of the model is
 started from those frames' labels and takes over (no booting cost afterwards). A subject that
-never comes back keeps the stream on the booting labeler, which boots it when it does.
+never comes back keeps the stream on the booting labeler, which boots it when it does. A model
+stream with ``boot = false`` whose first frame carries no labels (a live source, ``replay
+--init-frames 0``) starts the same way instead of refusing every frame.
 """
 
 from __future__ import annotations
@@ -71,6 +73,7 @@ from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
+from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
@@ -249,6 +252,8 @@ class StreamState:
         self.training = False  # a training job for this stream is running (server)
         # health
         self.status = "online"
+        #: monotonic time of the first of the frames that failed in a row (server); None
+        self.failing_since: float | None = None
         self.labeled_fraction = float("nan")
         self.recovered_fraction = float("nan")
         #: Called (by the server) when the status turns ``lost``: the hook for boot from a
@@ -256,6 +261,8 @@ class StreamState:
         self.on_lost: Callable[[StreamState], None] | None = None
         # boot (model streams, see the module docstring)
         self.boot_inflight = False  # a boot job runs or waits to be installed
+        self._labels_seen = False  # a labeled frame reached the current labeler (_install)
+        self._warned_unknown = False
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
@@ -326,6 +333,8 @@ class StreamState:
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.labeler = labeler
+        self._labels_seen = False  # a labeled frame reached this labeler
+        self._warned_unknown = False  # labels naming no marker of the stream were logged
         self.recovering = False
         self._handback.clear()
         self.labeled_fraction = self.recovered_fraction = float("nan")
@@ -435,7 +444,28 @@ class StreamState:
         return self.encode(first, out, recv_ns, label_ns)
 
     def _label_indices(self, f: FrameMsg) -> np.ndarray | None:
-        return _indices(self._index, f.labels)
+        """The frame's labels as indices into the stream's marker names; ``None`` when it
+        carries none or none of them names a marker of the stream (a replay of another
+        take, subjects named otherwise than in the model): such a frame is labeled as an
+        unlabeled one. Labels the stream does not know are logged once per labeler."""
+        idx = _indices(self._index, f.labels)
+        if idx is None or f.labels is None:
+            return idx
+        unknown = [
+            x for x, i in zip(f.labels, idx.tolist(), strict=True) if x is not None and i < 0
+        ]
+        if unknown and not self._warned_unknown:
+            self._warned_unknown = True
+            known = int((idx >= 0).sum())
+            subjects = ", ".join(subject_groups(list(self.names))) or "none"
+            log.warning(
+                "stream %s: %d labels of a frame name no marker of the stream (e.g. %r; its "
+                "subjects: %s): %s",
+                self.name, len(unknown), unknown[0], subjects,
+                f"ignored, {known} labels used" if known
+                else "the frame is labeled as an unlabeled one",
+            )  # fmt: skip
+        return idx if (idx >= 0).any() else None
 
     def buffer_init(self, f: FrameMsg) -> None:
         """Buffers one labeled init frame (points as they are, labels as int16 indices into
@@ -535,6 +565,17 @@ class StreamState:
             return None
         return lab.model
 
+    def _waits_for_labels(self) -> bool:
+        """The plain online labeler of a model stream that has not had its first labeled
+        frame yet (``boot = false``): an unlabeled frame would be refused."""
+        lab = self.labeler
+        return (
+            isinstance(lab, Labeler)
+            and not lab.trained
+            and not self._labels_seen
+            and self.settings.labeler == "online"
+        )
+
     def start_recovery(self, why: str) -> bool:
         """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
         frame path, driven by the server like a model stream's boot); False when there is no
@@ -587,6 +628,7 @@ class StreamState:
         for pts, tt, labels in self._handback:
             plain.process(pts, tt, labels)
         self._swap(plain)
+        self._labels_seen = True  # it starts from the hand-back frames' labels
         self.handbacks += 1
         log.info("stream %s: recovered: every subject labeled again; back to the plain "
                  "labeler", self.name)  # fmt: skip
@@ -620,11 +662,19 @@ class StreamState:
         t = f.t + self._t_offset
         t0 = time.perf_counter_ns()
         self.just_booted = ()
+        labels = self._label_indices(f)
+        if labels is not None:
+            self._labels_seen = True
+        elif self._waits_for_labels():
+            # boot = false and no labeled frame: the plain labeler could only refuse every
+            # frame (labeler_error); boot the performers from the model instead
+            self.start_recovery("frames without labels and boot = false (no labeled frame to "
+                                "start from)")  # fmt: skip
         lab = self.labeler
         n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
         if self._boot_result is not None:
             self._install_boot(t)
-        out = self.labeler.process(f.points, t, self._label_indices(f))
+        out = self.labeler.process(f.points, t, labels)
         if isinstance(lab, BootingLabeler) and lab.events.total > n_events:
             self.verify_events = tuple(
                 (kind, name)

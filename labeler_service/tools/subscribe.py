@@ -136,6 +136,7 @@ class Subscriber:
         self.renew_s = renew_s
         self.models: dict[str, ModelMsg] = {}
         self.status: dict[str, str] = {}
+        self._labeled: dict[str, bool] = {}  # a frame of the stream had a labeled marker
         self.stats = SubscriberStats()
         self._out: DropOldestQueue[Received] = DropOldestQueue(queue_size)
         self._status_changed = asyncio.Event()
@@ -210,6 +211,17 @@ class Subscriber:
                 why = "nothing listens there (connection refused): is the service running?"
             elif not self._heard:
                 why = "no answer from the service yet: is it running, is the address right?"
+            elif (
+                self.stream
+                and self.stream not in self.status
+                and self.stream not in self.models
+                and self.stats.frames == 0
+            ):
+                why = (
+                    f"the service answers but has announced no stream {self.stream!r} (no "
+                    "status, no model): is the stream name right? (an unlisted stream appears "
+                    "with its first frames)"
+                )
             elif self.stats.frames == 0 and self.stats.undecodable == 0:
                 why = "the service answers; the stream has not sent labeled frames yet"
             else:
@@ -257,13 +269,21 @@ class Subscriber:
                 self.stats.undecodable += 1
                 return
             r = Received(msg, model.names, inc.recv_ns, len(inc.payload))
+            if not self._labeled.get(msg.stream) and (msg.state == MarkerState.OBSERVED).any():
+                self._labeled[msg.stream] = True
             self.stats.add(r)
             self._out.put(r)
         elif isinstance(msg, ModelMsg):
             self.models[msg.stream] = msg
         elif isinstance(msg, StatusMsg):
             if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
-                self._warn("subscribe %s: stream %s is %s", self._what(), msg.stream, msg.state)
+                why = ""
+                if msg.state in ("lost", "degraded") and not self._labeled.get(msg.stream):
+                    # a model stream that has not booted anyone yet reads as lost: say so
+                    why = (" (no marker labeled yet: the service is booting its performers "
+                           "from the model, or the model does not match them)")  # fmt: skip
+                self._warn("subscribe %s: stream %s is %s%s", self._what(), msg.stream,
+                           msg.state, why)  # fmt: skip
             self.status[msg.stream] = msg.state
             self._status_changed.set()
         elif isinstance(msg, ChallengeMsg):
@@ -296,13 +316,26 @@ class Subscriber:
 
 
 class Recorder:
-    """Collects labeled frames for writing a C3D (observed and recovered positions)."""
+    """Collects labeled frames for writing a C3D (observed and recovered positions).
+
+    The file's rate is the stream's, measured from the frames' ``t`` (median step between
+    consecutive ``seq``), not the model's: a stream sent at another rate than the model was
+    trained at (``replay --downsample``) keeps its duration. Frames missing in a ``seq`` gap
+    (lost on the network, dropped by the service) are written as missing samples, up to
+    :attr:`MAX_FILL_S` of them, so later frames stay at their time; a larger jump or a restart
+    (``seq`` back: a second replay) just continues the file.
+    """
+
+    MAX_FILL_S = 10.0
 
     def __init__(self) -> None:
         self.names: tuple[str, ...] | None = None
         self.rate: float | None = None
         self.positions: list[np.ndarray] = []
         self.skipped = 0
+        self.filled = 0  # missing frames written for seq gaps
+        self._last: tuple[int, float] | None = None  # seq, t of the last frame kept
+        self._steps: list[float] = []  # t steps between consecutive seq
 
     def add(self, r: Received, rate: float) -> None:
         if self.names is None:
@@ -310,13 +343,48 @@ class Recorder:
         if r.names != self.names:
             self.skipped += 1  # model changed mid-recording: keep the first model's frames
             return
+        seq, t = r.msg.seq, r.msg.t
+        if self._last is not None:
+            step = seq - self._last[0]
+            dt = t - self._last[1]
+            if step == 1 and dt > 0 and len(self._steps) < 10_000:
+                self._steps.append(dt)
+            elif 1 < step <= 1 + self.MAX_FILL_S * self.file_rate() and dt > 0:
+                gap = np.full_like(r.msg.positions, np.nan)
+                self.positions.extend([gap] * (step - 1))
+                self.filled += step - 1
+        self._last = (seq, t)
         self.positions.append(r.msg.positions)
+
+    def file_rate(self) -> float:
+        """The stream's rate from its ``t`` steps; the rate given to :meth:`add` before two
+        consecutive frames arrived."""
+        if self._steps:
+            return round(1.0 / float(np.median(self._steps)), 3)
+        return self.rate or 1.0
+
+    def report(self, path, n: int) -> str:
+        """The line the subscriber prints after :meth:`write` returned ``n``: what was written
+        and what was not (frames of a later model, missing frames written for seq gaps)."""
+        if not n:
+            why = f" ({self.skipped} frames of a later model not recorded)" if self.skipped else ""
+            return f"no frames received: {path} not written{why}"
+        line = f"wrote {n} frames to {path} at {self.file_rate():g} Hz"
+        if self.filled:
+            line += f"; {self.filled} frames lost in seq gaps written as missing"
+        if self.skipped:
+            line += (
+                f"; {self.skipped} frames of a later model (marker set changed mid-session) "
+                "not recorded"
+            )
+        return line
 
     def write(self, path) -> int:
         from labeler_service.capture import Capture, write_capture
 
         if not self.positions or self.names is None:
             return 0
-        cap = Capture(np.stack(self.positions), self.names, self.rate or 1.0, source=str(path))
+        rate = self.file_rate()
+        cap = Capture(np.stack(self.positions), self.names, rate, source=str(path))
         write_capture(cap, path)
         return len(self.positions)

@@ -134,3 +134,71 @@ def test_real_special_cases(real_path) -> None:
     # Metres were converted: a body is more than 1000 mm tall.
     z = two.positions[..., 2]
     assert np.nanmax(z) - np.nanmin(z) > 1000
+
+
+def test_read_segment_reads_a_frame_range_with_clear_errors(tmp_path, rng) -> None:
+    from labeler_service.capture import read_segment
+
+    cap = _capture(rng, frames=30)
+    path = tmp_path / "take.npz"
+    write_capture(cap, path)
+    whole = read_segment(path)
+    assert whole.n_frames == 30
+    seg = read_segment(f"{path}:10:25")
+    assert seg.n_frames == 15 and seg.rate == cap.rate and seg.labels == whole.labels
+    np.testing.assert_array_equal(seg.positions, whole.positions[10:25])
+    assert any("frames 10-25" in n for n in seg.notes)
+    assert read_segment(f"{path}:20").n_frames == 10
+    # a file whose name holds colons is read whole
+    odd = tmp_path / "a:1:2.npz"
+    write_capture(cap, odd)
+    assert read_segment(odd).n_frames == 30
+    for bad, why in (
+        (f"{path}:25:10", "start < stop"),
+        (f"{path}:30", "past the capture's 30 frames"),
+        (f"{path}:0:99", "stop 99 is past"),
+        (f"{path}:x", "no such file"),
+    ):
+        with pytest.raises(CaptureError, match=why):
+            read_segment(bad)
+
+
+def test_label_evaluate_and_replay_take_a_frame_range(tmp_path, capsys) -> None:
+    """Train on one segment of a take, label and score another: ``IN[:start[:stop]]``."""
+    import json
+
+    from labeler_service.scenes.simulate import simulate_scene
+
+    cap = simulate_scene(2, 4.0, "walk", seed=1, rate=60.0)
+    path = tmp_path / "walk.npz"
+    write_capture(cap, path)
+    model = tmp_path / "m.json"
+    assert main(["train", "structure", f"{path}:0:120", "--out", str(model)]) == 0
+    out = tmp_path / "out.npz"
+    args = ["label", f"{path}:120:240", str(out), "--model", str(model), "--json"]
+    assert main([*args, "--no-progress"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["frames"] == 120 and read_capture(out).n_frames == 120
+    args = ["evaluate", f"{path}:120:240", "--model", str(model), "--init-frames", "0"]
+    assert main([*args, "--json", "--no-progress"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["frames"] == 120
+    assert report["truth"] == f"{path}:120:240" and report["settings"]["model_file"] == str(model)
+    assert main(["info", f"{path}:120:240", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames"] == 120
+    assert main(["label", f"{path}:500", str(out), "--model", str(model)]) == 2
+    assert "past the capture's 240 frames" in capsys.readouterr().err
+
+
+def test_c3d_carries_the_subjects_group(tmp_path, rng) -> None:
+    """Tools that list subjects from the C3D SUBJECTS group (Vicon's convention) see them."""
+    import ezc3d
+
+    cap = _capture(rng)
+    write_capture(cap, tmp_path / "s.c3d")
+    p = ezc3d.c3d(str(tmp_path / "s.c3d"))["parameters"]
+    assert p["SUBJECTS"]["NAMES"]["value"] == ["A", "B"]
+    assert p["SUBJECTS"]["LABEL_PREFIXES"]["value"] == ["A:", "B:"]
+    assert list(p["SUBJECTS"]["USED"]["value"]) == [2]
+    back = read_capture(tmp_path / "s.c3d")
+    assert back.labels == cap.labels and back.subjects == ("A", "B")

@@ -72,6 +72,15 @@ def test_label_an_unlabeled_take_from_a_model(scene, tmp_path, capsys):
     assert main(["label", str(raw), str(out), "--model", str(model), "--json"]) == 0
     summary = _last_json(capsys)
     assert summary["agreement_with_input_labels"] is None  # nothing to compare: no labels
+    # when each subject was first labeled (booted), and how much of it
+    subj = summary["subjects"]
+    assert set(subj) == {"P1", "P2", "P3"}
+    for s in subj.values():
+        assert s["first_labeled_s"] is not None and s["first_labeled_s"] <= 1.0, subj
+        assert 0 < s["observed_per_frame"] <= s["markers"]
+    assert main(["label", str(raw), str(out), "--model", str(model), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "  P1: labeled from " in text and "never labeled" not in text, text
     res = read_capture(out)
     names = load_model(model).marker_names
     assert res.labels[: len(names)] == names
@@ -102,6 +111,28 @@ def test_evaluate_from_a_model_without_labels(scene, capsys):
     r = _last_json(capsys)
     assert len(r["departures"]) == 1 and len(r["reid_s"]) >= 1
     assert r["absent_labeled"] == 0
+
+
+def test_evaluate_table_names_each_subject_and_fits_the_terminal(scene, capsys):
+    """Without ``--json`` (a user reading the terminal, 80 columns when not a tty): no measure
+    name cut off, the boot time of each subject by name, the subjects that never booted and
+    who left; no 'unseen in the init window' count when there is no init window."""
+    from labeler_service.cli.evaluate import _print_table
+
+    _, _, _, model, test = scene
+    args = ["evaluate", str(test), "--model", str(model), "--init-frames", "0", "--json"]
+    assert main([*args, "--no-progress", "--leave", "1", "--leave-seconds", "0.5"]) == 0
+    report = _last_json(capsys)
+    report["boot_s"]["P2"] = None  # as when a subject never boots
+    _print_table(report)
+    out = " ".join(capsys.readouterr().out.split())
+    for measure in ("ghost_labeled_rate", "recovery_mean_ratio", "ms_per_frame_p99"):
+        assert measure in out, out
+    assert "P1 " in out and "P2 never" in out and "P3 " in out, out
+    assert "never booted: P2" in out, out
+    left = report["departures"][0]
+    assert f"left: {left['subject']} (frames {left['first_frame']}-" in out, out
+    assert "unseen in the init window" not in out
 
 
 def test_evaluate_boot_errors(scene, capsys):

@@ -55,6 +55,41 @@ def test_replay_refuses_more_init_frames_than_the_capture_has(take, capsys):
     _one_error_line(capsys.readouterr().err, "80 frames", "99999 init frames")
 
 
+def test_replay_of_a_frame_range_counts_the_range(take, capsys):
+    # FILE:start:stop replays that segment only: 30 frames cannot hold 50 init frames
+    code = main(["replay", f"{take}:20:50", "--to", "udp://127.0.0.1:9/x", "--init-frames", "50"])
+    assert code == 2
+    _one_error_line(capsys.readouterr().err, "30 frames", "50 init frames")
+    code = main(["replay", f"{take}:90", "--to", "udp://127.0.0.1:9/x"])
+    assert code == 2
+    _one_error_line(capsys.readouterr().err, "start 90 is past the capture's 80 frames")
+
+
+def test_replay_of_a_take_without_labels_needs_init_frames_0(take, tmp_path, capsys):
+    # a raw capture (only *N tracks) cannot give the training window: said before sending
+    from labeler_service.capture import read_capture
+
+    cap = read_capture(take)
+    raw = tmp_path / "raw.c3d"
+    write_capture(Capture(cap.positions, tuple(f"*{i}" for i in range(cap.n_markers)), 120.0), raw)
+    assert main(["replay", str(raw), "--to", "udp://127.0.0.1:9/x"]) == 2
+    _one_error_line(capsys.readouterr().err, "no labeled markers", "--init-frames 0")
+
+
+def test_label_and_compose_refuse_to_write_over_their_input(take, tmp_path, capsys):
+    # `label take.c3d take.c3d` replaced the take (its labels: the truth) with the output
+    before = take.read_bytes()
+    link = tmp_path / "link.c3d"
+    link.symlink_to(take)
+    for out in (str(take), str(link)):
+        assert main(["label", f"{take}:10", out, "--init-frames", "5", "--no-progress"]) == 2
+        _one_error_line(capsys.readouterr().err, "is the input", "choose another output")
+    args = ["compose", str(take), f"{take}:0", "--radius", "0", "--frames", "20", "--seed", "1"]
+    assert main(args) == 2
+    _one_error_line(capsys.readouterr().err, "is the input")
+    assert take.read_bytes() == before
+
+
 def test_subscribe_checks_out_before_connecting(capsys):
     t0 = time.monotonic()
     code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", UNWRITABLE + ".c3d",
@@ -105,3 +140,44 @@ def test_truncated_input_warns_on_stderr(take, tmp_path):
     assert proc.returncode == 0
     assert "cut.c3d: truncated:" in proc.stderr and "of 80 frames" in proc.stderr
     assert "note: truncated:" in proc.stdout
+
+
+def test_replay_leave_makes_a_performer_vanish_and_come_back(rng, tmp_path, capsys):
+    """``replay --leave 1``: one performer's points are absent for --leave-seconds, then back
+    (the service's re-identification can be tried through the stream); said on stderr."""
+    import contextlib
+    import socket
+
+    from labeler_service.service.protocol import decode
+
+    truth, names = articulated(rng, subjects=2, frames=360)
+    path = tmp_path / "two.c3d"
+    write_capture(Capture(truth, names, 120.0, source="two"), path)
+    import threading
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(5)
+    port = rx.getsockname()[1]
+    counts: list[int] = []
+
+    def receive() -> None:  # concurrently: the kernel buffer does not hold 360 datagrams
+        with contextlib.suppress(OSError):
+            while len(counts) < 360:
+                counts.append(len(decode(rx.recv(65536)).points))
+
+    reader = threading.Thread(target=receive)
+    reader.start()
+    try:
+        args = ["replay", str(path), "--to", f"udp://127.0.0.1:{port}/x", "--init-frames",
+                "0", "--speed", "4", "--leave", "1", "--leave-seconds", "0.5"]  # fmt: skip
+        assert main(args) == 0
+        reader.join(10)
+    finally:
+        rx.close()
+    err = capsys.readouterr().err
+    assert "leaves at frame" in err and "is back at frame" in err, err
+    per = len(names) // 2
+    gone = [k for k, n in enumerate(counts) if n <= per]
+    assert 55 <= len(gone) <= 65, counts  # 0.5 s at 120 Hz
+    assert counts[-1] == len(names)

@@ -38,6 +38,48 @@ def test_label_without_model_trains_on_first_frames(take, tmp_path, capsys):
     assert err.mean() < 0.5 * held.mean(), (err, held)
 
 
+def test_label_of_a_y_up_take_writes_in_its_axes(take, tmp_path, capsys):
+    """``--up y`` reads the take rotated to Z up; OUT is written back in IN's axes, so the
+    labeled file overlays the input (it came out rotated by 90 degrees)."""
+    _, pos, names, _ = take
+    yup = np.stack([pos[..., 0], pos[..., 2], -pos[..., 1]], axis=-1)  # Z up -> Y up
+    src = tmp_path / "yup.npz"
+    write_capture(Capture(yup, names, 120.0, source="yup"), src)
+    out = tmp_path / "out.npz"
+    assert main(["label", str(src), str(out), "--init-frames", "40", "--up", "y", "--json"]) == 0
+    assert (
+        json.loads(capsys.readouterr().out.strip().splitlines()[-1])["agreement_with_input_labels"]
+        == 1.0
+    )
+    res = read_capture(out)
+    np.testing.assert_allclose(res.positions[120, : len(names)], yup[120], atol=1e-3)
+
+
+def test_unlabeled_points_stay_in_their_input_track(take, tmp_path, capsys):
+    """Two ghost tracks far from the performers: each comes out as one ``*N`` column holding
+    its whole trajectory (they were dealt to columns in the shuffled order of each frame, so
+    a column jumped between the two)."""
+    _, pos, names, _ = take
+    n = pos.shape[0]
+    t = np.arange(n, dtype=np.float32)[:, None]
+    g0 = np.hstack([5000 + t, np.full((n, 1), 4000, np.float32), np.full((n, 1), 900, np.float32)])
+    g1 = np.hstack(
+        [-5000 - t, np.full((n, 1), -4000, np.float32), np.full((n, 1), 900, np.float32)]
+    )
+    src = tmp_path / "ghosts.npz"
+    cap = Capture(np.concatenate([pos, g0[:, None], g1[:, None]], axis=1),
+                  (*names, "*0", "*1"), 120.0, source="g")  # fmt: skip
+    write_capture(cap, src)
+    out = tmp_path / "out.npz"
+    assert main(["label", str(src), str(out), "--init-frames", "40", "--no-progress"]) == 0
+    capsys.readouterr()
+    res = read_capture(out)
+    m = len(names)
+    for j, g in ((m, g0), (m + 1, g1)):
+        col = res.labels.index(f"*{j}")
+        np.testing.assert_allclose(res.positions[:, col], g, atol=1e-3)
+
+
 def test_label_with_model(take, tmp_path, capsys):
     src, _, names, _ = take
     model = tmp_path / "m.json"
@@ -84,3 +126,24 @@ def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, c
     err = capsys.readouterr().err
     assert "no point was labeled" in err and str(raw) in err
     assert out.exists()
+
+
+def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, monkeypatch):
+    """The first run after an install compiles the kernels for about a minute: said on stderr
+    instead of a silent minute (the warm-up is made slow here, the notice made early)."""
+    import time
+
+    from labeler_service.cli import label as label_cmd
+    from labeler_service.labeling.labeler import Labeler
+
+    warm = Labeler.warmup
+
+    def slow(self) -> None:
+        time.sleep(0.5)
+        warm(self)
+
+    monkeypatch.setattr(Labeler, "warmup", slow)
+    monkeypatch.setattr(label_cmd, "NOTICE_AFTER_S", 0.05)
+    src = take[0]
+    assert main(["label", str(src), str(tmp_path / "o.npz"), "--init-frames", "40"]) == 0
+    assert "compiling the labeling kernels" in capsys.readouterr().err

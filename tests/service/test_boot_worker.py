@@ -90,6 +90,31 @@ def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
         w.step(lab.key, (model, lab.boot_config), snap.remote())
 
 
+def test_a_worker_killed_from_outside_is_logged_and_started_again(walk, caplog):
+    """The OOM killer (or anyone) ends the worker between attempts: the next attempt says so
+    in the log, with the exit code, and runs in a new worker."""
+    import logging
+    import signal
+
+    model, cap = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    _run(lab, Stream(cap, model, seed=6), range(20))
+    snap = lab.boot_snapshot()
+    w = BootWorker()
+    try:
+        w.start()
+        pid = w.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        w._proc.join(timeout=10)
+        caplog.set_level(logging.WARNING, logger="labeler_service.service.boot_worker")
+        res = lab.boot_step(snap, w.runner(lab))
+        assert len(res.subjects) == 3 and w.started == 2
+        assert f"boot worker process {pid} had exited (exit code -9)" in caplog.text
+    finally:
+        w.close()
+
+
 def test_the_worker_forgets_booters_as_it_drops_them(walk):
     """The worker keeps ``MAX_BOOTERS`` booters, least recently used dropped; the service's
     side mirrors it, so a labeler whose booter was dropped sends its model again (it used to

@@ -85,3 +85,19 @@ def test_the_docker_example_settings_are_valid():
     s = load_settings(path)
     assert s.mqtt.enabled and s.mqtt.host == "mosquitto" and s.udp.host == "0.0.0.0"
     assert [x.name for x in s.streams] == ["volume1"]
+
+
+def test_a_service_setting_written_under_streams_says_where_it_belongs(tmp_path):
+    # TOML: `boot = true` below [[streams]] lands in the stream's table, not the service's
+    model = tmp_path / "m.json"
+    model.write_text("{}")
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(f'[[streams]]\nname = "v"\nmodel = "{model}"\nboot = true\nnot_a_key = 1\n')
+    with pytest.raises(ConfigError) as err:
+        load_settings(cfg)
+    text = str(err.value)
+    assert "streams.0.boot: Extra inputs are not permitted (boot is a setting of the whole " in text
+    assert "above the first [[streams]]" in text
+    # a key that is no setting at all gets no such hint
+    line = next(x for x in text.splitlines() if "not_a_key" in x)
+    assert "whole service" not in line

@@ -225,6 +225,52 @@ def test_unknown_streams_no_model_and_labeler_failures_are_counted(rng):
     assert got[-1].seq == 39
 
 
+def test_a_stream_whose_every_frame_fails_turns_lost_and_says_why(rng, caplog):
+    """The labeler raises on every frame from some point on: each frame is counted
+    (labeler_error), and after ``health_window_s`` of nothing but failures the status turns
+    ``lost`` with one log line naming the error (it stayed ``online`` while publishing
+    nothing)."""
+    import logging
+
+    cap = moving_clusters(rng, frames=150)
+    p = stream_payloads(cap, rng, init=10)
+
+    class Breaks:
+        def __init__(self, inner):
+            self.inner, self.calls = inner, 0
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def process(self, points, t, labels=None):
+            self.calls += 1
+            if self.calls > 60:
+                raise RuntimeError("scripted: the labeler broke")
+            return self.inner.process(points, t, labels)
+
+    def factory(kind, *, marker_names=(), rate, config=None, model=None, boot=False):
+        return Breaks(make_labeler("baseline", marker_names=marker_names, rate=rate))
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.server")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False, health_window_s=0.2), [mem],
+                          factory=factory) as srv:  # fmt: skip
+            await _feed(mem, p, pause=1 / 120)
+            await until(lambda: srv.metrics.value("mocap_frames_in_total", stream="default")
+                        >= 140, "every frame in")  # fmt: skip
+            states = [decode(x).state for s, k, x, _ in mem.sent if k == "status"]
+            return srv.metrics, states
+
+    metrics, states = run(go())
+    assert metrics.drops("labeler_error") >= 80
+    assert states[-2:] == ["online", "lost"], states
+    assert "each one failed (last: RuntimeError: scripted: the labeler broke): status lost" in (
+        caplog.text
+    )
+
+
 def test_status_is_retained_online_then_offline_and_tasks_end(rng):
     async def go():
         mem = MemoryTransport()

@@ -82,3 +82,45 @@ def test_subscribe_reports_silence_resumption_and_the_services_offline_status(rn
     assert "no labeled frames" in warnings[1] and "frames again" in warnings[2]
     assert any("stream v is offline" in w for w in warnings[3:])
     assert "no labeled frames" in warnings[-1]
+
+
+def test_subscribe_says_why_a_stream_nobody_is_labeled_in_yet_is_lost():
+    """A model stream that boots publishes ``lost`` until its first performer is booted: the
+    subscriber says that nothing was labeled yet and the likely reasons, not only 'lost'; a
+    stream that had labeled markers and turns lost gets the plain line."""
+    from labeler_service.service.protocol import encode_labeled, encode_model, encode_status
+    from labeler_service.service.transports.base import Incoming
+
+    sub = Subscriber("udp://127.0.0.1:9/v", silence_s=1.0)
+
+    def feed(payload: bytes) -> None:
+        sub._handle(Incoming(payload, 0, "udp"))
+
+    names = ("A:m0", "A:m1")
+    feed(encode_model("v", 1, names, (("A", 0, 2),), 120.0))
+    feed(encode_status("v", "lost"))
+    assert "stream v is lost (no marker labeled yet: the service is booting" in sub.warnings[-1]
+    pos = np.zeros((2, 3), np.float32)
+    for seq, state in ((0, [0, 0]), (1, [1, 0])):
+        feed(encode_labeled("v", 1, seq, seq / 120, pos, np.array(state, np.uint8),
+                            np.zeros((0, 3), np.float32), None, 0, 0.0))  # fmt: skip
+    feed(encode_status("v", "online"))
+    feed(encode_status("v", "lost"))
+    assert sub.warnings[-1].endswith("stream v is lost"), sub.warnings[-1]
+
+
+def test_subscribe_to_a_stream_name_the_service_does_not_have_says_so():
+    """A typo in the stream name (``/cour`` for ``court``): the service answers but announces
+    no such stream; the silence warning asks whether the name is right."""
+    settings = load_settings(labeler="baseline", metrics_port=None, warmup=False,
+                             udp={"port": 0}, streams=[{"name": "court"}])  # fmt: skip
+
+    async def go():
+        async with Server(settings) as srv:
+            host, port = srv.transports[0].address
+            async with Subscriber(f"udp://{host}:{port}/cour", silence_s=0.3) as sub:
+                await until(lambda: sub.silent, "the silence warning", timeout=5)
+                return list(sub.warnings)
+
+    warnings = run(go())
+    assert any("announced no stream 'cour'" in w and "name right" in w for w in warnings), warnings

@@ -137,6 +137,36 @@ def test_recorder_writes_the_labeled_frames_to_c3d(tmp_path, rng):
     np.testing.assert_allclose(cap.positions, pos, atol=1e-3)
 
 
+def test_recorder_keeps_the_stream_rate_and_the_time_of_frames_after_a_gap(tmp_path, rng):
+    """A stream at 25 Hz labeled with a 50 Hz model (replay --downsample 2): the file says
+    25 Hz; frames lost in a seq gap are written missing so later frames keep their time; a
+    restart (seq back to 0) continues the file."""
+    from labeler_service.service.protocol import LabeledMsg
+
+    names = ("A:m0", "A:m1")
+    rec = Recorder()
+    seqs = [0, 1, 2, 5, 6, 0, 1]
+    pos = rng.normal(scale=100, size=(len(seqs), 2, 3)).astype(np.float32)
+    for k, seq in enumerate(seqs):
+        msg = LabeledMsg("s", 1, seq, seq / 25, pos[k], np.array([1, 1], np.uint8),
+                         np.zeros((0, 3), np.float32), None, 0, 0, 0.0)  # fmt: skip
+        rec.add(Received(msg, names, 0), 50.0)
+    assert rec.write(tmp_path / "out.c3d") == 9 and rec.filled == 2
+    # a frame of another model (the stream's marker set changed) is not recorded: said
+    other = LabeledMsg("s", 2, 2, 2 / 25, pos[0, :1], np.array([1], np.uint8),
+                       np.zeros((0, 3), np.float32), None, 0, 0, 0.0)  # fmt: skip
+    rec.add(Received(other, ("B:x",), 0), 50.0)
+    line = rec.report(tmp_path / "out.c3d", 9)
+    assert "wrote 9 frames" in line and "at 25 Hz" in line, line
+    assert "2 frames lost in seq gaps written as missing" in line, line
+    assert "1 frames of a later model" in line, line
+    cap = read_capture(tmp_path / "out.c3d")
+    assert cap.rate == 25.0 and cap.n_frames == 9
+    assert np.isnan(cap.positions[3:5]).all()
+    np.testing.assert_allclose(cap.positions[5], pos[3], atol=1e-3)
+    np.testing.assert_allclose(cap.positions[7:], pos[5:], atol=1e-3)
+
+
 def test_replay_and_subscribe_commands_end_to_end(tmp_path, rng):
     cap = moving_clusters(rng, subjects=2, markers=5, frames=180, rate=120.0)
     write_capture(cap, tmp_path / "scene.npz")
