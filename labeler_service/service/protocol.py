@@ -121,7 +121,15 @@ class StatusMsg:
 
 
 Message = FrameMsg | SubscribeMsg | ChallengeMsg | ModelMsg | LabeledMsg | StatusMsg
-_STATUS_STATES = ("starting", "online", "offline", "degraded", "lost", "training_failed")
+_STATUS_STATES = (
+    "starting",
+    "online",
+    "offline",
+    "degraded",
+    "lost",
+    "training_failed",
+    "booting",
+)
 
 
 # ----------------------------------------------------------------------------- encoding

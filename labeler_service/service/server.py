@@ -248,8 +248,8 @@ class Server:
             if self.metrics_port is not None:
                 log.info("metrics on http://%s:%d/metrics", self.settings.metrics_host,
                          self.metrics_port)  # fmt: skip
-            for name in self.streams:
-                await self._status(name, "online")
+            for name, st in self.streams.items():
+                await self._status(name, st.ready_status())
         except BaseException:
             await self._shutdown()
             raise
@@ -707,7 +707,7 @@ class Server:
         self.metrics.health(state.name, state.labeled_fraction, state.recovered_fraction)
         if changed is None:
             return
-        level = logging.INFO if changed == "online" else logging.WARNING
+        level = logging.INFO if changed in ("online", "booting") else logging.WARNING
         log.log(level, "stream %s: status %s (labeled fraction %.2f, recovered %.2f)",
                 state.name, changed, state.labeled_fraction, state.recovered_fraction)  # fmt: skip
         await self._status(state.name, changed)

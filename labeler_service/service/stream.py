@@ -252,6 +252,10 @@ class StreamState:
         self.training = False  # a training job for this stream is running (server)
         # health
         self.status = "online"
+        #: the stream has labeled: a subject of its booting labeler was booted, or a labeler
+        #: that does not boot gave an output (until then the status reads ``booting``, not
+        #: ``lost``: nothing is wrong yet; a recovery boot after a loss still reads ``lost``)
+        self._booted_once = False
         #: monotonic time of the first of the frames that failed in a row (server); None
         self.failing_since: float | None = None
         self.labeled_fraction = float("nan")
@@ -779,15 +783,29 @@ class StreamState:
             )
         )
 
+    def ready_status(self) -> str:
+        """The status the stream announces when the service is ready: ``booting`` for a
+        stream that boots its performers from a model (nobody is labeled yet), else
+        ``online``."""
+        self.status = "booting" if isinstance(self.labeler, BootingLabeler) else "online"
+        return self.status
+
     def update_health(self, out: Output) -> str | None:
         """Folds one output into the labeled/recovered fractions; returns the new status when
-        it changed (``online``, ``degraded``, ``lost``), else None."""
+        it changed (``online``, ``degraded``, ``lost``; ``booting`` while a booting labeler has
+        not labeled any subject of the stream yet), else None."""
         m = out.observed + out.recovered + out.missing
         if m <= 0:
             return None
         s = self.settings
         alpha = self._health_alpha
         lab, rec = out.observed / m, out.recovered / m
+        bl = self.labeler if isinstance(self.labeler, BootingLabeler) else None
+        if not self._booted_once and (bl is None or bl.n_active > 0):
+            # the first boot (or a labeler that does not boot): the fractions start from this
+            # frame (their average over the frames before it would read lost for a moment)
+            self._booted_once = True
+            self.labeled_fraction = float("nan")
         if math.isnan(self.labeled_fraction):
             self.labeled_fraction, self.recovered_fraction = lab, rec
         else:
@@ -795,7 +813,9 @@ class StreamState:
             self.recovered_fraction += alpha * (rec - self.recovered_fraction)
         x = self.labeled_fraction
         hyst = 0.05  # back to a better status only clearly above the threshold
-        if x < s.lost_below:
+        if bl is not None and not self._booted_once:
+            status = "booting"  # the first boot of the stream has not labeled anyone yet
+        elif x < s.lost_below:
             status = "lost"
         elif x < s.degraded_below:
             status = "lost" if self.status == "lost" and x < s.lost_below + hyst else "degraded"

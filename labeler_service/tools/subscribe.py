@@ -278,7 +278,9 @@ class Subscriber:
         elif isinstance(msg, StatusMsg):
             if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
                 why = ""
-                if msg.state in ("lost", "degraded") and not self._labeled.get(msg.stream):
+                if msg.state == "booting":
+                    why = " (booting its performers from the model: no one labeled yet)"
+                elif msg.state in ("lost", "degraded") and not self._labeled.get(msg.stream):
                     # a model stream that has not booted anyone yet reads as lost: say so
                     why = (" (no marker labeled yet: the service is booting its performers "
                            "from the model, or the model does not match them)")  # fmt: skip

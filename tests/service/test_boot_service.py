@@ -330,7 +330,7 @@ def test_the_log_line_says_when_a_booting_stream_labels_nobody(model_path):
 
     line = run(go(), timeout=120.0)
     assert "[vol] in=180 out=180" in line, line
-    assert "status=lost labeled=0.00" in line, line
+    assert "status=booting labeled=0.00" in line, line
     assert "booted=0/4 (boot attempts " in line, line
 
 
@@ -339,8 +339,8 @@ def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
 ):
     """All performers vanish for 1.5 s (only stray points), then come back: the labeler drops
     them (none of their labels go to the stray points; counted and logged), the status turns
-    ``lost``, the performers are booted again off the loop and the status returns to
-    ``online``."""
+    ``lost`` (``booting`` before the first boot), the performers are booted again off the loop
+    and the status returns to ``online``."""
     caplog.set_level(logging.INFO, logger="labeler_service.service.server")
     gone0, gone1 = 120, 300  # frames [gone0, gone1) carry only stray points
     rng = np.random.default_rng(0)
@@ -377,11 +377,11 @@ def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
         and srv_metrics.value("mocap_boot_verify_total", stream="vol", event="drop") == n_drops
     )
     assert "dropped as vanished" in caplog.text
-    # (lost before the first boot when it takes longer than the health window, online,) lost
+    # booting until the first boot (never lost before it: nothing is wrong yet), online, lost
     # while away, online again after the re-boot
-    changes = [s for s in states if s in ("lost", "online")]
+    changes = [s for s in states if s in ("booting", "lost", "online")]
     changes = [s for k, s in enumerate(changes) if k == 0 or s != changes[k - 1]]
-    assert changes[-3:] == ["online", "lost", "online"], states
+    assert changes == ["booting", "online", "lost", "online"], states
     # nothing labeled while nobody is there (after the labeler's drop delay)
     for msg, _ in outs:
         if gone0 + 24 <= msg.seq < gone1:
