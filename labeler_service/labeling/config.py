@@ -291,3 +291,56 @@ class LabelerConfig(BaseModel):
         description="a subject whose markers have all been missing this many frames has left: "
         "its markers are not re-acquired by the wide pass (0 = off)",
     )
+    # structure re-formed from the stream's own motion (ours, issue 10; labeling/restructure.py)
+    restructure_s: float = Field(
+        0.0,
+        ge=0,
+        description="every this many seconds of stream the rigid bodies and recovery sets are "
+        "re-formed (the body rule of training) from the pair-distance statistics of the "
+        "labeler's confident output accumulated since the start (0 = off: the structure of the "
+        "training window or model stays; off by default: measured worse on the cross-take "
+        "matrix, docs/algorithm.md)",
+    )
+    restructure_age: int = Field(
+        10,
+        ge=1,
+        description="a marker's distances count as evidence only while it has been observed "
+        "this many frames in a row and every body holding it passes the 3D check",
+    )
+    restructure_sample_hz: float = Field(
+        60.0,
+        gt=0,
+        description="the evidence is sampled at most this often (a 360 Hz stream adds every "
+        "sixth frame)",
+    )
+    restructure_prior_s: float = Field(
+        5.0,
+        ge=0,
+        description="a labeler from a model counts the model's D and A as this many seconds of "
+        "evidence (the trained model is the anchor; the stream relaxes the pairs it shows "
+        "bending)",
+    )
+    restructure_break_mm: float = Field(
+        40.0,
+        gt=0,
+        description="a body is dropped when the evidence shows a link costing more than this "
+        "(A + w D over the confident output: a hand against the pelvis, not a segment's soft "
+        "tissue)",
+    )
+    restructure_tolerance_mm: float = Field(
+        20.0,
+        gt=0,
+        description="the body rule's tolerance for new bodies formed on the evidence (for the "
+        "markers no kept body holds); larger than body_tolerance_mm: the evidence spans motion",
+    )
+    restructure_margin_mm: float = Field(
+        2.0,
+        ge=0,
+        description="a recovery set is replaced only by one whose worst link costs this much "
+        "less (each replacement waits for a new snapshot)",
+    )
+    restructure_recovery: bool = Field(
+        False,
+        description="re-form the recovery sets from the evidence too (the most rigid neighbours "
+        "under motion); off: a limb lost whole then has no member outside it (docs/algorithm.md)",
+    )
