@@ -295,11 +295,10 @@ class LabelerConfig(BaseModel):
     restructure_s: float = Field(
         0.0,
         ge=0,
-        description="every this many seconds of stream the rigid bodies and recovery sets are "
-        "re-formed (the body rule of training) from the pair-distance statistics of the "
-        "labeler's confident output accumulated since the start (0 = off: the structure of the "
-        "training window or model stays; off by default: measured worse on the cross-take "
-        "matrix, docs/algorithm.md)",
+        description="every this many seconds of stream the rigid bodies are re-formed (the body "
+        "rule of training) from the pair-distance statistics of the labeler's confident output "
+        "accumulated since the start (0 = off, the default: measured on the cross-take matrix "
+        "without a gain on the means, docs/algorithm.md)",
     )
     restructure_age: int = Field(
         10,
@@ -317,30 +316,35 @@ class LabelerConfig(BaseModel):
         5.0,
         ge=0,
         description="a labeler from a model counts the model's D and A as this many seconds of "
-        "evidence (the trained model is the anchor; the stream relaxes the pairs it shows "
-        "bending)",
+        "evidence (the trained model is the anchor the stream relaxes)",
+    )
+    restructure_max_train_frames: int = Field(
+        12,
+        ge=1,
+        description="only a structure learned from fewer samples than this is re-formed: a "
+        "labeled window of fewer frames (5 at 12.5 Hz) or a model counted as fewer "
+        "(restructure_prior_s times the rate); re-forming a 20-frame structure lost accuracy",
     )
     restructure_break_mm: float = Field(
-        40.0,
-        gt=0,
-        description="a body is dropped when the evidence shows a link costing more than this "
-        "(A + w D over the confident output: a hand against the pelvis, not a segment's soft "
-        "tissue)",
+        0.0,
+        ge=0,
+        description="0: every body is re-formed; > 0: a body is kept unless the evidence shows "
+        "a link of it costing more than this (A + w D), new bodies are formed only for the "
+        "markers no kept body holds",
     )
     restructure_tolerance_mm: float = Field(
-        20.0,
+        6.0,
         gt=0,
-        description="the body rule's tolerance for new bodies formed on the evidence (for the "
-        "markers no kept body holds); larger than body_tolerance_mm: the evidence spans motion",
-    )
-    restructure_margin_mm: float = Field(
-        2.0,
-        ge=0,
-        description="a recovery set is replaced only by one whose worst link costs this much "
-        "less (each replacement waits for a new snapshot)",
+        description="the body rule's tolerance (largest A + w D) on the evidence",
     )
     restructure_recovery: bool = Field(
         False,
         description="re-form the recovery sets from the evidence too (the most rigid neighbours "
         "under motion); off: a limb lost whole then has no member outside it (docs/algorithm.md)",
+    )
+    restructure_margin_mm: float = Field(
+        2.0,
+        ge=0,
+        description="with restructure_recovery, a recovery set is replaced only by one whose "
+        "worst link costs this much less (each replacement waits for a new snapshot)",
     )

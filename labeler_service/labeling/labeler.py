@@ -131,12 +131,14 @@ class Labeler:
         lab.model = model
         lab._build(model)
         lab._built = True
+        prior = lab.config.restructure_prior_s * lab.rate
+        if lab._ev is not None and prior >= lab.config.restructure_max_train_frames:
+            lab._ev = None  # the model counts as enough samples: its structure stays
         if lab._ev is not None:
             # the trained model is the anchor: its D, A count as restructure_prior_s of samples
-            w = lab.config.restructure_prior_s * lab.rate
             for s in model.subjects:
                 cols = lab._subject_cols[s.name]
-                add_prior(cols, s.D_array(), s.A_array(), w, *lab._ev)
+                add_prior(cols, s.D_array(), s.A_array(), prior, *lab._ev)
             lab._ev_mark()
         if subjects is not None:
             known = {s.name for s in model.subjects}
@@ -562,9 +564,24 @@ class Labeler:
                 continue
             seen = tr.state[body] == MarkerState.OBSERVED
             new.mpos[b, : len(body)][seen] = tr.pos[body][seen]
-            if seen.all() and (tr.age[body] >= c.repair_age).all():
-                new.ref[b, : len(body)] = tr.pos[body]  # a reference the tracks agree on
+            if (
+                seen.all()
+                and (tr.age[body] >= c.snapshot_age).all()
+                and old.ok[
+                    [old.mb_idx[q] for i in body for q in range(old.mb_ptr[i], old.mb_ptr[i + 1])]
+                ].all()
+            ):
+                new.ref[b, : len(body)] = tr.pos[body]  # a reference the confident tracks give
                 new.ref_ok[b] = True
+                continue
+            for ob in range(old.size.shape[0]):  # else the rows of a body it is part of
+                k = int(old.size[ob])
+                row = {int(v): e for e, v in enumerate(old.members[ob, :k])}
+                if old.ref_ok[ob] and all(i in row for i in body):
+                    new.ref[b, : len(body)] = old.ref[ob, [row[i] for i in body]]
+                    new.ref_ok[b] = True
+                    new.ref_model[b] = old.ref_model[ob]
+                    break
         recovery.ref[same_rec] = old_rec.ref[same_rec]
         recovery.ok[same_rec] = old_rec.ok[same_rec]
         self._bodies, self._recovery = new, recovery
@@ -634,6 +651,8 @@ class Labeler:
             add_samples(np.stack([p for _, p in self._pending]), *self._ev)
             if trained_here:
                 self._ev_mark()
+                if len(self._pending) >= self.config.restructure_max_train_frames:
+                    self._ev = None  # a window of that many samples: its structure stays
         self._warm_start()
         self._pending.clear()
         self._ready = True

@@ -133,9 +133,9 @@ def reform_bodies(
 
     Returns ``(kept, added)``: the current bodies ``old`` whose every link costs at most
     ``restructure_break_mm`` (``A + w D``: shown rigid, or bending like a segment with soft
-    tissue, not like a hand against the pelvis), and new bodies - the body rule of training
-    (:func:`~labeler_service.labeling.training.select_bodies`) with the tolerance
-    ``restructure_tolerance_mm`` - that hold a usable marker no kept body holds."""
+    tissue, not like a hand against the pelvis; none when it is 0), and new bodies - the body
+    rule of training (:func:`~labeler_service.labeling.training.select_bodies`) with the
+    tolerance ``restructure_tolerance_mm`` - that hold a usable marker no kept body holds."""
     from labeler_service.labeling.training import select_bodies
 
     cost = _cost(D, A, config.body_distance_weight)
@@ -143,7 +143,7 @@ def reform_bodies(
     for body in old:
         sub = cost[np.ix_(body, body)]
         np.fill_diagonal(sub, 0.0)
-        if sub.max() <= config.restructure_break_mm:
+        if config.restructure_break_mm > 0 and sub.max() <= config.restructure_break_mm:
             kept.append(body)
     covered = np.zeros(len(usable), dtype=bool)
     for body in kept:
@@ -159,7 +159,7 @@ def reform_bodies(
         distance_weight=config.body_distance_weight,
         min_size=config.body_min_size,
         max_size=config.body_max_size,
-        all_seeds=True,
+        all_seeds=config.body_all_seeds,
     )
     have = {tuple(sorted(b)) for b in kept}
     added = [b for b in chosen if need[b].any() and tuple(sorted(b)) not in have]

@@ -85,8 +85,8 @@ def _two_segments():
 
 def test_reform_drops_a_bending_body_and_covers_its_markers():
     D, A = _two_segments()
-    c = LabelerConfig()
     old = [[0, 1, 2, 3], [2, 3, 4, 5, 6, 7]]  # the second spans the joint
+    c = LabelerConfig(restructure_break_mm=40.0, restructure_tolerance_mm=20.0)
     kept, added = reform_bodies(D, A, np.ones(8, dtype=bool), old, c)
     assert kept == [[0, 1, 2, 3]]
     covered = {i for b in kept + added for i in b}
@@ -96,6 +96,18 @@ def test_reform_drops_a_bending_body_and_covers_its_markers():
     # evidence that shows every body rigid keeps the structure
     A2 = np.where(A > 10, 5.0, A)
     assert reform_bodies(D, A2, np.ones(8, dtype=bool), old, c) == (old, [])
+    # break 0 (the default): every body re-formed by the training rule, two segments
+    kept, added = reform_bodies(D, A, np.ones(8, dtype=bool), old, LabelerConfig())
+    assert kept == [] and sorted(map(sorted, added)) == [[0, 1, 2, 3], [4, 5, 6, 7]]
+
+
+def test_a_structure_from_enough_frames_is_not_re_formed():
+    pos, names = articulated(np.random.default_rng(1), subjects=2, frames=60)
+    cfg = LabelerConfig(restructure_s=0.1)
+    long, short = Labeler(names, 120.0, cfg), Labeler(names, 120.0, cfg)
+    _run(long, np.random.default_rng(2), pos, 12)
+    _run(short, np.random.default_rng(2), pos, 11)
+    assert long._ev is None and short._ev is not None
 
 
 def _run(lab, rng, pos, init, force_every=0):
@@ -146,7 +158,8 @@ def test_from_model_without_stream_evidence_keeps_the_model():
     pos, names = articulated(np.random.default_rng(4), subjects=2, frames=60)
     trainer = Labeler(names, 120.0)
     _run(trainer, np.random.default_rng(6), pos, 40)
-    cfg = LabelerConfig(restructure_s=1.0)
+    cfg = LabelerConfig(restructure_s=1.0, restructure_prior_s=0.05)  # 6 samples: re-formed
+    assert Labeler.from_model(trainer.model, 120.0, LabelerConfig(restructure_s=1.0))._ev is None
     lab = Labeler.from_model(trainer.model, 120.0, cfg)
     pts, truth = frame_points(np.random.default_rng(7), pos[0])
     lab.process(pts, 0.0, truth)
