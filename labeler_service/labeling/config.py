@@ -293,7 +293,7 @@ class LabelerConfig(BaseModel):
     )
     # structure re-formed from the stream's own motion (ours, issue 10; labeling/restructure.py)
     restructure_s: float = Field(
-        0.0,
+        0.5,
         ge=0,
         description="every this many seconds of stream the rigid bodies are re-formed (the body "
         "rule of training) from the pair-distance statistics of the labeler's confident output "
@@ -328,9 +328,9 @@ class LabelerConfig(BaseModel):
     restructure_break_mm: float = Field(
         0.0,
         ge=0,
-        description="0: every body is re-formed; > 0: a body is kept unless the evidence shows "
-        "a link of it costing more than this (A + w D), new bodies are formed only for the "
-        "markers no kept body holds",
+        description="a trained body is dropped when the evidence shows a link of it costing more "
+        "than this (A + w D); 0 = never (the default: bodies trained across a joint link a limb "
+        "to the trunk, and a lost limb is re-acquired through them)",
     )
     restructure_tolerance_mm: float = Field(
         6.0,
@@ -347,4 +347,10 @@ class LabelerConfig(BaseModel):
         ge=0,
         description="with restructure_recovery, a recovery set is replaced only by one whose "
         "worst link costs this much less (each replacement waits for a new snapshot)",
+    )
+    restructure_add: bool = Field(
+        True,
+        description="add every body the evidence shows rigid (the body rule at "
+        "restructure_tolerance_mm) that no kept body contains; off: only bodies for markers no "
+        "kept body holds",
     )

@@ -489,9 +489,10 @@ class Labeler:
             else:
                 D, A = pair_model(cols, s1, s2, n)
                 local = {int(g): k for k, g in enumerate(cols)}
-                old_b = [
+                old_b = [  # the trained bodies (added ones are chosen again, or not)
                     [local[int(v)] for v in old.members[ob, : old.size[ob]]]
                     for ob in self._subject_bodies[subj.name]
+                    if tuple(int(v) for v in old.members[ob, : old.size[ob]]) in self._trained
                 ]
                 kept, added = reform_bodies(D, A, self._body_marker[cols], old_b, c)
                 for body in kept:
@@ -713,6 +714,7 @@ class Labeler:
             self._bodies.ref_model[:] = True
         self._ref0 = self._bodies.ref.copy()
         self._ref0_ok = self._bodies.ref_ok.copy()
+        self._trained = {tuple(b) for b in bodies}  # (restructure keeps these, or drops them)
         self._recovery = recovery
         self._scratch = new_scratch(m, len(bodies), len(groups), c.K, max(64, 2 * m))
         self._pack()

@@ -131,11 +131,13 @@ def reform_bodies(
 ) -> tuple[list[list[int]], list[list[int]]]:
     """One subject's bodies re-formed on the evidence ``D``, ``A`` (subject order).
 
-    Returns ``(kept, added)``: the current bodies ``old`` whose every link costs at most
-    ``restructure_break_mm`` (``A + w D``: shown rigid, or bending like a segment with soft
-    tissue, not like a hand against the pelvis; none when it is 0), and new bodies - the body
-    rule of training (:func:`~labeler_service.labeling.training.select_bodies`) with the
-    tolerance ``restructure_tolerance_mm`` - that hold a usable marker no kept body holds."""
+    Returns ``(kept, added)``: the bodies ``old`` (the trained ones) whose every link costs at
+    most ``restructure_break_mm`` (``A + w D``; all of them when it is 0, the default: bodies
+    trained across a joint are the links a lost limb is re-acquired through), and new bodies -
+    the body rule of training (:func:`~labeler_service.labeling.training.select_bodies`, tolerance
+    ``restructure_tolerance_mm``) on the evidence - that no kept body contains
+    (``restructure_add``), or only those holding a usable marker no kept body holds."""
+
     from labeler_service.labeling.training import select_bodies
 
     cost = _cost(D, A, config.body_distance_weight)
@@ -143,13 +145,14 @@ def reform_bodies(
     for body in old:
         sub = cost[np.ix_(body, body)]
         np.fill_diagonal(sub, 0.0)
-        if config.restructure_break_mm > 0 and sub.max() <= config.restructure_break_mm:
+        if config.restructure_break_mm == 0 or sub.max() <= config.restructure_break_mm:
             kept.append(body)
     covered = np.zeros(len(usable), dtype=bool)
     for body in kept:
         covered[body] = True
     need = usable & ~covered
-    if not need.any():
+    add_all = config.restructure_add
+    if not need.any() and not add_all:
         return kept, []
     chosen = select_bodies(
         D,
@@ -162,7 +165,18 @@ def reform_bodies(
         all_seeds=config.body_all_seeds,
     )
     have = {tuple(sorted(b)) for b in kept}
-    added = [b for b in chosen if need[b].any() and tuple(sorted(b)) not in have]
+    rigid = []  # kept bodies the evidence shows rigid: a rigid part of a bending one is added
+    for body in kept:
+        sub = cost[np.ix_(body, body)]
+        np.fill_diagonal(sub, 0.0)
+        if sub.max() <= config.restructure_tolerance_mm:
+            rigid.append(body)
+    added = [
+        b
+        for b in chosen
+        if (need[b].any() or (add_all and not any(set(b) <= set(k) for k in rigid)))
+        and tuple(sorted(b)) not in have
+    ]
     return kept, added
 
 

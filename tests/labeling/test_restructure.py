@@ -86,7 +86,10 @@ def _two_segments():
 def test_reform_drops_a_bending_body_and_covers_its_markers():
     D, A = _two_segments()
     old = [[0, 1, 2, 3], [2, 3, 4, 5, 6, 7]]  # the second spans the joint
-    c = LabelerConfig(restructure_break_mm=40.0, restructure_tolerance_mm=20.0)
+    # the relax form: bodies shown bending dropped, new ones only for what they held
+    c = LabelerConfig(
+        restructure_break_mm=40.0, restructure_tolerance_mm=20.0, restructure_add=False
+    )
     kept, added = reform_bodies(D, A, np.ones(8, dtype=bool), old, c)
     assert kept == [[0, 1, 2, 3]]
     covered = {i for b in kept + added for i in b}
@@ -96,9 +99,15 @@ def test_reform_drops_a_bending_body_and_covers_its_markers():
     # evidence that shows every body rigid keeps the structure
     A2 = np.where(A > 10, 5.0, A)
     assert reform_bodies(D, A2, np.ones(8, dtype=bool), old, c) == (old, [])
-    # break 0 (the default): every body re-formed by the training rule, two segments
+    # the default (break 0): every trained body stays, and the rigid parts the evidence shows
+    # are added - also one inside a bending body ([4..7] inside [2..7])
     kept, added = reform_bodies(D, A, np.ones(8, dtype=bool), old, LabelerConfig())
-    assert kept == [] and sorted(map(sorted, added)) == [[0, 1, 2, 3], [4, 5, 6, 7]]
+    assert kept == old and sorted(map(sorted, added)) == [[4, 5, 6, 7]]
+    # a rigid kept body that contains the rigid part: nothing to add
+    kept, added = reform_bodies(
+        D, A, np.ones(8, dtype=bool), [[0, 1, 2, 3], [4, 5, 6, 7]], LabelerConfig()
+    )
+    assert added == []
 
 
 def test_a_structure_from_enough_frames_is_not_re_formed():
@@ -167,3 +176,16 @@ def test_from_model_without_stream_evidence_keeps_the_model():
     before = lab._bodies.members.copy()
     assert not lab.restructure()  # nothing confident yet: the model stays
     np.testing.assert_array_equal(lab._bodies.members, before)
+
+
+def test_default_keeps_the_trained_bodies_and_adds_rigid_ones():
+    pos, names = articulated(np.random.default_rng(1), subjects=2, frames=480)
+    lab = Labeler(names, 120.0)  # 5 labeled frames: a thin structure, re-formed every 0.5 s
+    out = _run(lab, np.random.default_rng(2), pos, 5)
+    correct = sum(int((a[t >= 0] == t[t >= 0]).sum()) for a, t in out[5:])
+    total = sum(int((t >= 0).sum()) for _, t in out[5:])
+    assert correct / total > 0.99
+    assert lab.restructures >= 1
+    bd = lab._bodies
+    now = {tuple(int(v) for v in bd.members[b, : bd.size[b]]) for b in range(bd.size.shape[0])}
+    assert lab._trained < now  # every trained body stays, rigid ones were added
