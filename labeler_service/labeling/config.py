@@ -295,10 +295,10 @@ class LabelerConfig(BaseModel):
     restructure_s: float = Field(
         0.5,
         ge=0,
-        description="every this many seconds of stream the rigid bodies are re-formed (the body "
-        "rule of training) from the pair-distance statistics of the labeler's confident output "
-        "accumulated since the start (0 = off, the default: measured on the cross-take matrix "
-        "without a gain on the means, docs/algorithm.md)",
+        description="every this many seconds of stream a thin structure (restructure_max_train_"
+        "frames) is re-formed from the pair-distance statistics of the labeler's confident "
+        "output: the trained bodies stay, the bodies the evidence shows rigid are added "
+        "(docs/algorithm.md; 0 = off)",
     )
     restructure_age: int = Field(
         10,

@@ -1,10 +1,9 @@
 """Structure re-formed from the stream's own motion (ours, issue 10; docs/algorithm.md).
 
 A labeler trained on its labeled first frames learns its rigid bodies and recovery sets from
-0.4 s of a performer standing still (5 frames at 12.5 Hz): pairs across a joint held still look
-rigid there (a tennis hand glued to the pelvis), and once the performer moves the bodies bend
-and the recovery sets put a lost hand where the pelvis says. This module keeps the evidence
-that fixes it and re-forms the structure from it:
+0.4 s (5 frames at 12.5 Hz): pairs across a joint held still look rigid there (a tennis hand
+glued to the pelvis), and 5 samples of a moving segment may not look rigid at all. This module
+keeps the evidence of the labeler's own confident output and re-forms the structure from it:
 
 - **Evidence** (:func:`_accumulate`, once per frame, at most ``restructure_sample_hz``): for
   every pair of markers of one subject that are both *confident* - observed now, observed for
@@ -15,12 +14,15 @@ that fixes it and re-forms the structure from it:
   training window (the same samples the structure was trained on); a labeler from a model
   starts them with the model's ``D``, ``A`` counted as ``restructure_prior_s`` seconds of
   samples, so the trained model is the anchor the stream relaxes.
-- **Re-forming** (:func:`pair_model`, :meth:`Labeler.restructure`, every ``restructure_s``):
-  ``D``, ``A`` of every pair from the sums, the body rule of training
-  (:func:`~labeler_service.labeling.training.select_bodies`) and the recovery sets on them. A
-  body whose members are unchanged keeps its whole state (window, motion, reference shape);
-  new bodies start with an empty window, their trained ``D``, ``A`` from the evidence. The
-  Kalman tracks are not touched.
+- **Re-forming** (:meth:`Labeler.restructure`, every ``restructure_s``, only for a structure
+  learned from fewer than ``restructure_max_train_frames`` samples): ``D``, ``A`` of every pair
+  from the sums (:func:`pair_model`); the trained bodies stay (they link limbs to the trunk, and
+  a lost limb is re-acquired through them), and every body the body rule of training
+  (:func:`~labeler_service.labeling.training.select_bodies`) finds on the evidence that no kept
+  body shown rigid contains is added (:func:`reform_bodies`). A body whose members are
+  unchanged keeps its whole state (window, motion, reference shape); new bodies start with an
+  empty window, their trained ``D``, ``A`` from the evidence. The Kalman tracks are not
+  touched. Measured on the cross-take matrix: docs/algorithm.md.
 """
 
 from __future__ import annotations
