@@ -189,3 +189,16 @@ def test_default_keeps_the_trained_bodies_and_adds_rigid_ones():
     bd = lab._bodies
     now = {tuple(int(v) for v in bd.members[b, : bd.size[b]]) for b in range(bd.size.shape[0])}
     assert lab._trained < now  # every trained body stays, rigid ones were added
+
+
+def test_recovery_sets_on_the_evidence_and_their_hysteresis():
+    from labeler_service.labeling.restructure import better_set, recovery_sets
+
+    D, A = _two_segments()
+    c = LabelerConfig(recovery_set_size=3)
+    sets = recovery_sets(D, A, np.ones(8, dtype=bool), c)
+    assert sets[0][0] == 0 and set(sets[0][1:]) == {1, 2, 3}  # its own segment
+    assert set(sets[5][1:]) == {4, 6, 7}
+    # a set across the joint is replaced; one as rigid as the new one is not
+    assert better_set(D, A, 0, [0, 1, 2, 3], [0, 1, 2, 4], c)
+    assert not better_set(D, A, 0, [0, 1, 2, 3], [0, 3, 2, 1], c)
