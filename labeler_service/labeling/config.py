@@ -291,3 +291,66 @@ class LabelerConfig(BaseModel):
         description="a subject whose markers have all been missing this many frames has left: "
         "its markers are not re-acquired by the wide pass (0 = off)",
     )
+    # structure re-formed from the stream's own motion (ours, issue 10; labeling/restructure.py)
+    restructure_s: float = Field(
+        0.5,
+        ge=0,
+        description="every this many seconds of stream a thin structure (restructure_max_train_"
+        "frames) is re-formed from the pair-distance statistics of the labeler's confident "
+        "output: the trained bodies stay, the bodies the evidence shows rigid are added "
+        "(docs/algorithm.md; 0 = off)",
+    )
+    restructure_age: int = Field(
+        10,
+        ge=1,
+        description="a marker's distances count as evidence only while it has been observed "
+        "this many frames in a row and every body holding it passes the 3D check",
+    )
+    restructure_sample_hz: float = Field(
+        60.0,
+        gt=0,
+        description="the evidence is sampled at most this often (a 360 Hz stream adds every "
+        "sixth frame)",
+    )
+    restructure_prior_s: float = Field(
+        5.0,
+        ge=0,
+        description="a labeler from a model counts the model's D and A as this many seconds of "
+        "evidence (the trained model is the anchor the stream relaxes)",
+    )
+    restructure_max_train_frames: int = Field(
+        12,
+        ge=1,
+        description="only a structure learned from fewer samples than this is re-formed: a "
+        "labeled window of fewer frames (5 at 12.5 Hz) or a model counted as fewer "
+        "(restructure_prior_s times the rate); re-forming a 20-frame structure lost accuracy",
+    )
+    restructure_break_mm: float = Field(
+        0.0,
+        ge=0,
+        description="a trained body is dropped when the evidence shows a link of it costing more "
+        "than this (A + w D); 0 = never (the default: bodies trained across a joint link a limb "
+        "to the trunk, and a lost limb is re-acquired through them)",
+    )
+    restructure_tolerance_mm: float = Field(
+        6.0,
+        gt=0,
+        description="the body rule's tolerance (largest A + w D) on the evidence",
+    )
+    restructure_recovery: bool = Field(
+        False,
+        description="re-form the recovery sets from the evidence too (the most rigid neighbours "
+        "under motion); off: a limb lost whole then has no member outside it (docs/algorithm.md)",
+    )
+    restructure_margin_mm: float = Field(
+        2.0,
+        ge=0,
+        description="with restructure_recovery, a recovery set is replaced only by one whose "
+        "worst link costs this much less (each replacement waits for a new snapshot)",
+    )
+    restructure_add: bool = Field(
+        True,
+        description="add every body the evidence shows rigid (the body rule at "
+        "restructure_tolerance_mm) that no kept body contains; off: only bodies for markers no "
+        "kept body holds",
+    )
