@@ -187,8 +187,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "kernel-warm-up-skipped",
         "labeler_service/service/server.py",
-        "            if self.settings.warmup:\n                self.warmup_s",
-        "            if False:\n                self.warmup_s",
+        "            if self.settings.warmup:\n                log.info(\"warming up",
+        "            if False:\n                log.info(\"warming up",
         (T + "service/test_server.py",),
         "the service reports ready before compiling its kernels",
         k="warmup_runs_before_ready",

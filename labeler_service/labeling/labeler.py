@@ -106,6 +106,9 @@ class Labeler:
         # pair-distance evidence of the confident output (labeling/restructure.py): sums of the
         # distance, its square and the count per marker pair (upper triangle), or None (off)
         self._ev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._ref0: np.ndarray  # every body's first reference shape (and whether it has one)
+        self._ref0_ok: np.ndarray
+        self._subject_bodies: dict[str, np.ndarray] = {}  # per subject: its body indices
         self._ev_base: dict[str, float] = {}  # per subject: the count before the stream's
         self.restructures = 0  # re-formings that changed the structure
 
@@ -432,18 +435,20 @@ class Labeler:
     def _evidence(self) -> None:
         """This frame's pair distances of the confident markers into the evidence (at most
         ``restructure_sample_hz``), and the structure re-formed every ``restructure_s``."""
-        c, f = self.config, self._frame_no
+        c, f, ev = self.config, self._frame_no, self._ev
+        assert ev is not None
         if f % max(1, round(self.rate / c.restructure_sample_hz)) == 0:
             tr, bd = self._tracks, self._bodies
             _accumulate(
                 tr.state, tr.age, tr.pos, bd.ok, bd.mb_ptr, bd.mb_idx, tr.subj_ptr, tr.subj_idx,
-                c.restructure_age, self._ev_conf, *self._ev,
+                c.restructure_age, self._ev_conf, *ev,
             )  # fmt: skip
         if f % max(1, round(self.rate * c.restructure_s)) == 0:
             self.restructure()
 
     def _ev_mark(self) -> None:
         """Records each subject's evidence count now (before the stream's own samples)."""
+        assert self._ev is not None
         n = self._ev[2]
         self._ev_base = {
             name: float(n[np.ix_(cols, cols)].sum()) for name, cols in self._subject_cols.items()
@@ -691,7 +696,7 @@ class Labeler:
         groups = list(subject_groups(self._names).values())
         # per subject: its body markers (the ones add/drop switch) and its bodies
         self._subject_markers: dict[str, np.ndarray] = {}
-        self._subject_bodies: dict[str, np.ndarray] = {}
+        self._subject_bodies = {}
         nb = 0
         self._subject_cols: dict[str, np.ndarray] = {}  # every marker of the subject
         for subj in model.subjects:
