@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1461,8 +1460,9 @@ def _fill(
     markers and among the map's own markers: robust to a minority of violated pairs, and the
     terms every map shares (a raised arm far from the trained hips) cancel between maps. The
     best map is taken only when it beats every other by ``FILL_MARGIN`` nats and by
-    ``EXCHANGE_MARGIN`` per leftover marker (with fewer points than markers a map also
-    chooses which markers are seen: 5 arm markers on 3 points), and then only if
+    ``EXCHANGE_MARGIN`` per leftover marker, plus ``log comb(nu, nc)`` when fewer points
+    (``nc``) than markers (``nu``) are left (a map then also chooses which markers are seen:
+    the best of 10 choices of 2 arm markers out of 5 won by 5.5 nats, wrongly), and only if
     - each new marker has most of its pairs to its ``art_anchors`` steadiest placed partners
       (least ``A``: its own and the next segments) within reach (``D + bound``: a pose brings
       them closer, rarely much farther) and keeps its steadiest partner's distance within
@@ -1486,7 +1486,7 @@ def _fill(
     centre = placed.mean(axis=0)
     cand = np.flatnonzero(free & (np.linalg.norm(pts - centre, axis=1) <= tpl.extent))
     cand = cand[np.isfinite(hist[cand, :, 0]).all(axis=1)]
-    if cand.size and others.shape[0] and not os.environ.get("FILL_NOGUARD"):
+    if cand.size and others.shape[0]:
         d_own = cKDTree(placed).query(pts[cand])[0]
         cand = cand[d_own < cKDTree(others).query(pts[cand])[0]]
     nu, nc = miss.size, cand.size
@@ -1511,7 +1511,9 @@ def _fill(
         for b in range(a + 1, k):
             total += pair[mk[:, a], mk[:, b], pt[:, a], pt[:, b]]
     best = int(np.argmin(total))
-    margin = max(FILL_MARGIN, EXCHANGE_MARGIN * nu)
+    # with fewer points than markers a map also chooses which markers are seen: the best of
+    # comb(nu, nc) such choices beats the others by chance more often (a Bonferroni term)
+    margin = max(FILL_MARGIN, EXCHANGE_MARGIN * nu) + math.log(math.comb(nu, nc))
     if np.count_nonzero(total <= total[best] + margin) > 1:
         return assign  # not unique: wait for more evidence (the next extension)
     out = assign.copy()
