@@ -5,6 +5,7 @@ free points. Everything here is private to :class:`~labeler_service.labeling.boo
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -1419,6 +1420,7 @@ FILL_MARGIN = 3.0
 FILL_MAX_MAPS = 60000
 
 
+@functools.lru_cache(maxsize=64)
 def _fill_maps(nu: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
     """Every injective map between ``nu`` markers and ``nc`` points that places
     ``min(nu, nc)`` of them: ``(maps, k)`` marker and point positions per slot."""
@@ -1429,7 +1431,10 @@ def _fill_maps(nu: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
     else:
         mk = np.array(list(itertools.permutations(range(nu), k)), dtype=np.int64).reshape(-1, k)
         pt = np.broadcast_to(np.arange(k), mk.shape)
-    return np.ascontiguousarray(mk), np.ascontiguousarray(pt)
+    mk, pt = np.ascontiguousarray(mk), np.ascontiguousarray(pt)
+    mk.flags.writeable = False  # (cached)
+    pt.flags.writeable = False
+    return mk, pt
 
 
 def _fill(
@@ -1530,12 +1535,18 @@ def _fill(
         track = track[np.isfinite(track)]
         if track.size == 0 or float(track.max() - track.min()) > 2.0 * tpl.tol[m, j]:
             return assign
-    for m in fresh:
-        for j in have:
-            mj = np.array([m, j])
-            now = _pair_error(tpl, mj, out[mj], out, pts)
-            if _pair_error(tpl, mj, out[mj[::-1]], out, pts) < now - EXCHANGE_MARGIN:
-                return assign
+    # a new marker and a placed one exchanging their points (:func:`_pair_error` of the two
+    # against the rest, from one (k, k, k) table as in :func:`_exchange`; the pair between
+    # them keeps its distance)
+    allm = np.flatnonzero(out >= 0)
+    E = _exchange_table(tpl, allm, pts[out[allm]])
+    T = E.sum(axis=2)
+    i = np.searchsorted(allm, fresh)[:, None]
+    j = np.searchsorted(allm, have)[None, :]
+    now = T[i, i] - E[i, i, i] - E[i, i, j] + T[j, j] - E[j, j, j] - E[j, j, i]
+    swap = T[i, j] - E[i, j, i] - E[i, j, j] + T[j, i] - E[j, i, j] - E[j, i, i]
+    if np.any(swap < now - EXCHANGE_MARGIN):
+        return assign
     q = tpl.chirality
     if q.shape[0]:
         new = np.zeros(n, dtype=bool)
