@@ -71,6 +71,7 @@ from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.boot_match import (
     EXCHANGE_MARGIN,
     _complete,
+    _fill,
     _hypotheses,
     _Hypothesis,
     _kabsch_batch,
@@ -299,13 +300,16 @@ class Booter:
         history: np.ndarray,
         labels: np.ndarray,
         subjects: list[int],
+        age: np.ndarray | None = None,
     ) -> np.ndarray:
         """Labels free points of subjects already labeled (:func:`_complete`): ``labels (N,)``
         global marker indices (-1 free) of ``points``, ``history (N, W, 3)`` their tracks; the
         subject's labeled points seed the node graph of its body candidates on the free tracked
         points near it (other segments join through their articulated links), then
-        trilateration; new markers must keep their rigid distances along the tracks. Labels
-        already given are never changed. Returns the new labels (a copy)."""
+        trilateration; new markers must keep their rigid distances along the tracks. With
+        ``age (N,)`` (seconds each point's track has lived) the markers still missing then
+        take free tracks at least ``fill_min_age_s`` old, judged jointly (:func:`_fill`).
+        Labels already given are never changed. Returns the new labels (a copy)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         hist = np.asarray(history, dtype=np.float64)
         out = np.asarray(labels, dtype=np.int64).copy()
@@ -321,6 +325,21 @@ class Booter:
             mine = (out >= tpl.offset) & (out < tpl.offset + tpl.n)
             assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
             grown = _complete(tpl, assign, pts, hist, taken, self.config)
+            fresh = (grown >= 0) & (assign < 0)
+            out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
+            taken[grown[fresh]] = True
+        if age is None:
+            return out
+        old = np.asarray(age, dtype=np.float64) >= self.config.fill_min_age_s
+        for s in subjects:
+            tpl = self._templates[s]
+            mine = (out >= tpl.offset) & (out < tpl.offset + tpl.n)
+            if not mine.any():
+                continue
+            assign = np.full(tpl.n, -1, dtype=np.int64)
+            assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
+            others = pts[(out >= 0) & ~mine]
+            grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config)
             fresh = (grown >= 0) & (assign < 0)
             out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
             taken[grown[fresh]] = True

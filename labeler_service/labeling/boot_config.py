@@ -91,6 +91,12 @@ class BootConfig(BaseModel):
     extend_every_s: float = Field(
         0.1, gt=0, description="BootingLabeler: free points joined to booted subjects this often"
     )
+    fill_min_age_s: float = Field(
+        0.2,
+        ge=0,
+        description="extension: a booted subject's leftover markers are assigned jointly to "
+        "free tracks at least this old (a ghost lives a few frames; see boot_match._fill)",
+    )
     boot_every_s: float = Field(
         0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
     )

@@ -5,7 +5,9 @@ free points. Everything here is private to :class:`~labeler_service.labeling.boo
 
 from __future__ import annotations
 
+import functools
 import itertools
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1408,3 +1410,152 @@ def warmup_kernels() -> None:
         M, np.zeros(2, dtype=np.bool_), M, M, dist, m, m, rigid, rigid.copy(), m, m,
         out_b, out_b.copy(), out_b.copy(), out_b.copy(), np.zeros((2, 2)), out_b.copy(),
     )  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- joint fill
+#: nats: the best joint assignment of a subject's leftover markers must beat every other by
+#: this, and by ``EXCHANGE_MARGIN`` per leftover marker (:func:`_fill`)
+FILL_MARGIN = 3.0
+#: most joint assignments :func:`_fill` enumerates (it does nothing beyond)
+FILL_MAX_MAPS = 60000
+
+
+@functools.lru_cache(maxsize=64)
+def _fill_maps(nu: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every injective map between ``nu`` markers and ``nc`` points that places
+    ``min(nu, nc)`` of them: ``(maps, k)`` marker and point positions per slot."""
+    k = min(nu, nc)
+    if nc >= nu:
+        pt = np.array(list(itertools.permutations(range(nc), k)), dtype=np.int64).reshape(-1, k)
+        mk = np.broadcast_to(np.arange(k), pt.shape)
+    else:
+        mk = np.array(list(itertools.permutations(range(nu), k)), dtype=np.int64).reshape(-1, k)
+        pt = np.broadcast_to(np.arange(k), mk.shape)
+    mk, pt = np.ascontiguousarray(mk), np.ascontiguousarray(pt)
+    mk.flags.writeable = False  # (cached)
+    pt.flags.writeable = False
+    return mk, pt
+
+
+def _fill(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    free: np.ndarray,
+    others: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray:
+    """Places a booted subject's leftover markers on its leftover persistent tracks, judged
+    jointly. A model trained on a segment that never exercised a joint (the broad jump's
+    landing: arms down) has its distances from the arms to the rest off in every other pose
+    and spurious rigid bodies across the arms, so no pair rule of the extension or of
+    :meth:`Booter.acquire` accepts them, while the stream's own evidence (which leftover point
+    is which leftover marker) is clear.
+
+    ``free (N,)``: points that may be taken (free, tracked at least ``fill_min_age_s``: a ghost
+    lives a few frames); ``others (K, 3)``: points labeled for other subjects. Candidates are
+    the free points within the subject's extent, tracked over the whole window, whose nearest
+    labeled point is this subject's; there must be no more of them than leftover markers (a
+    surplus is points no leftover marker explains: a model that lacks some of the subject's
+    markers, another performer) and at least two of each (a single pairing has no
+    alternative to beat). Every injective map of the leftover markers to the candidates is
+    scored by the negative log-likelihood of its distances, Cauchy in the pair's tolerance
+    (``tol`` for a pair of one trained body, the articulated ``link`` otherwise), to the placed
+    markers and among the map's own markers: robust to a minority of violated pairs, and the
+    terms every map shares (a raised arm far from the trained hips) cancel between maps. The
+    best map is taken only when it beats every other by ``FILL_MARGIN`` nats and by
+    ``EXCHANGE_MARGIN`` per leftover marker, plus ``log comb(nu, nc)`` when fewer points
+    (``nc``) than markers (``nu``) are left (a map then also chooses which markers are seen:
+    the best of 10 choices of 2 arm markers out of 5 won by 5.5 nats, wrongly), and only if
+    - each new marker has most of its pairs to its ``art_anchors`` steadiest placed partners
+      (least ``A``: its own and the next segments) within reach (``D + bound``: a pose brings
+      them closer, rarely much farther) and keeps its steadiest partner's distance within
+      twice its tolerance along the window (the point moves with this subject);
+    - no new marker would fit better (:func:`_pair_error`, by ``EXCHANGE_MARGIN``) with its
+      point exchanged with a placed marker's: a placed marker on the wrong point (a dancer's
+      fifth toe on the big toe's point) leaves its own point over, and filling it would lock
+      the error in;
+    - no thick chirality quadruple with a new marker is reversed (a subject booted with its
+      legs mirrored is not completed mirrored).
+    Otherwise nothing is placed. Returns the new assignment (a copy when changed)."""
+    n = tpl.n
+    have = np.flatnonzero(assign >= 0)
+    if have.size < max(3, int(np.ceil(config.min_fraction * n))) or have.size == n:
+        return assign
+    miss = np.flatnonzero(assign < 0)
+    miss = miss[np.isfinite(tpl.D[np.ix_(miss, have)]).any(axis=1)]
+    if miss.size < 2:
+        return assign
+    placed = pts[assign[have]]
+    centre = placed.mean(axis=0)
+    cand = np.flatnonzero(free & (np.linalg.norm(pts - centre, axis=1) <= tpl.extent))
+    cand = cand[np.isfinite(hist[cand, :, 0]).all(axis=1)]
+    if cand.size and others.shape[0]:
+        d_own = cKDTree(placed).query(pts[cand])[0]
+        cand = cand[d_own < cKDTree(others).query(pts[cand])[0]]
+    nu, nc = miss.size, cand.size
+    if nc < 2 or nc > nu or math.perm(nu, nc) > FILL_MAX_MAPS:
+        return assign
+    scale = np.where(tpl.strict, tpl.tol, tpl.link)
+    known = np.isfinite(tpl.D) & (scale > 0)
+
+    def cost(ma: np.ndarray, mb: np.ndarray, d: np.ndarray) -> np.ndarray:
+        e = (d - tpl.D[ma, mb]) / np.where(known[ma, mb], scale[ma, mb], 1.0)
+        return np.where(known[ma, mb], np.log1p(e * e), 0.0)
+
+    # unary: (nu, nc) to the placed markers; pairwise: (nu, nu, nc, nc) among the map's own
+    dp = np.linalg.norm(pts[cand][:, None] - placed[None], axis=2)  # (nc, h)
+    unary = cost(miss[:, None, None], have[None, None, :], dp[None]).sum(axis=2)
+    dc = np.linalg.norm(pts[cand][:, None] - pts[cand][None], axis=2)
+    pair = cost(miss[:, None, None, None], miss[None, :, None, None], dc[None, None])
+    mk, pt = _fill_maps(nu, nc)
+    total = unary[mk, pt].sum(axis=1)
+    k = mk.shape[1]
+    for a in range(k):
+        for b in range(a + 1, k):
+            total += pair[mk[:, a], mk[:, b], pt[:, a], pt[:, b]]
+    best = int(np.argmin(total))
+    # with fewer points than markers a map also chooses which markers are seen: the best of
+    # comb(nu, nc) such choices beats the others by chance more often (a Bonferroni term)
+    margin = max(FILL_MARGIN, EXCHANGE_MARGIN * nu) + math.log(math.comb(nu, nc))
+    if np.count_nonzero(total <= total[best] + margin) > 1:
+        return assign  # not unique: wait for more evidence (the next extension)
+    out = assign.copy()
+    fresh = miss[mk[best]]
+    out[fresh] = cand[pt[best]]
+    for m in fresh:
+        mine = np.flatnonzero((out >= 0) & (np.arange(n) != m) & np.isfinite(tpl.D[m]))
+        mine = mine[np.argsort(tpl.A[m, mine], kind="stable")[: config.art_anchors]]
+        d = np.linalg.norm(pts[out[mine]] - pts[out[m]], axis=1)
+        if 2 * int(np.count_nonzero(d > tpl.D[m, mine] + tpl.bound[m, mine])) > mine.size:
+            return assign
+        j = mine[np.argmin(tpl.A[m, mine])]
+        track = np.linalg.norm(hist[out[m]] - hist[out[j]], axis=1)
+        track = track[np.isfinite(track)]
+        if track.size == 0 or float(track.max() - track.min()) > 2.0 * tpl.tol[m, j]:
+            return assign
+    # a new marker and a placed one exchanging their points (:func:`_pair_error` of the two
+    # against the rest, from one (k, k, k) table as in :func:`_exchange`; the pair between
+    # them keeps its distance)
+    allm = np.flatnonzero(out >= 0)
+    E = _exchange_table(tpl, allm, pts[out[allm]])
+    T = E.sum(axis=2)
+    i = np.searchsorted(allm, fresh)[:, None]
+    j = np.searchsorted(allm, have)[None, :]
+    now = T[i, i] - E[i, i, i] - E[i, i, j] + T[j, j] - E[j, j, j] - E[j, j, i]
+    swap = T[i, j] - E[i, j, i] - E[i, j, j] + T[j, i] - E[j, i, j] - E[j, i, i]
+    if np.any(swap < now - EXCHANGE_MARGIN):
+        return assign
+    q = tpl.chirality
+    if q.shape[0]:
+        new = np.zeros(n, dtype=bool)
+        new[fresh] = True
+        use = np.all(out[q] >= 0, axis=1) & np.any(new[q], axis=1)
+        if use.any():
+            p = pts[out[q[use]]]
+            with np.errstate(all="ignore"):  # (coincident points)
+                det = np.linalg.det(p[:, 1:] - p[:, :1])
+            if np.any((np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)):
+                return assign
+    return out

@@ -31,6 +31,7 @@ class PointTracker:
         self._vel = np.zeros((0, 3))
         self._has_vel = np.zeros(0, dtype=bool)
         self._ids = np.zeros(0, dtype=np.int64)
+        self._birth = np.zeros(0)  # (per current point) when its track started
         self._t = np.nan
 
     def update(self, points: np.ndarray, t: float) -> np.ndarray:
@@ -43,6 +44,7 @@ class PointTracker:
         ids = np.full(n, -1, dtype=np.int64)
         vel = np.zeros((n, 3))
         has_vel = np.zeros(n, dtype=bool)
+        birth = np.full(n, float(t))
         if n and self._pts.shape[0]:
             pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
             g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
@@ -53,13 +55,19 @@ class PointTracker:
             ok = (i_tr[j_pt] == idx) & (d_pt <= gate[j_pt])
             k = j_pt[ok]
             ids[ok] = self._ids[k]
+            birth[ok] = self._birth[k]
             vel[ok] = (pts[ok] - self._pts[k]) / dt
             has_vel[ok] = True
         new = ids < 0
         ids[new] = np.arange(self._next, self._next + int(new.sum()))
         self._next += int(new.sum())
         self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t
+        self._birth = birth
         return ids
+
+    def ages(self) -> np.ndarray:
+        """``(N,)`` seconds each point of the last :meth:`update` has been tracked."""
+        return self._t - self._birth
 
 
 def track_history(frames: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) -> np.ndarray:

@@ -492,6 +492,7 @@ def extend_blocked(
     labels: np.ndarray,
     subjects: list[int],
     blocked: dict[int, np.ndarray] | None,
+    age: np.ndarray | None = None,
 ) -> np.ndarray:
     """:meth:`Booter.extend` where each subject of ``blocked`` (subject -> ``(N,)`` bool) may not
     take the points marked for it (their tracks are hidden from that subject's call)."""
@@ -499,9 +500,11 @@ def extend_blocked(
     plain = [s for s in subjects if s not in blocked]
     out = np.asarray(labels, dtype=np.int64)
     if plain:
-        out = booter.extend(points, history, out, plain)
+        out = booter.extend(points, history, out, plain, age)
     for s, mask in blocked.items():
         hist = np.array(history, dtype=np.float64, copy=True)
         hist[mask] = np.nan
+        # (no joint fill: the verifier has just withdrawn labels of this subject; filling its
+        # leftover markers would place them again on other points)
         out = booter.extend(points, hist, out, [s])
     return out

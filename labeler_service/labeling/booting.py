@@ -206,6 +206,8 @@ class BootSnapshot:
     #: per active subject the points (bool over ``points``) its extension may not take: tracks
     #: of labels the re-verification withdrew from it (``boot_verify.py``)
     blocked: dict[int, np.ndarray] | None = None
+    #: (N,) seconds each point's track has lived (the extension's joint fill reads it)
+    age: np.ndarray | None = None
 
     def remote(self) -> BootSnapshot:
         """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
@@ -611,6 +613,7 @@ class BootingLabeler:
             last.labels,
             sorted(self._active),
             self._block_masks(last.ids, last.t),
+            self._tracker.ages(),
         )
         added = (last.labels < 0) & (new >= 0)
         if not added.any():
@@ -699,6 +702,7 @@ class BootingLabeler:
             snap.labels = last.labels.copy()
             snap.active = sorted(self._active)
             snap.blocked = self._block_masks(last.ids, last.t)
+            snap.age = self._tracker.ages()
         return snap
 
     def boot_step(self, snapshot: BootSnapshot, runner: StepRunner | None = None) -> BootResult:
@@ -1116,6 +1120,7 @@ def boot_step_on(
             snapshot.labels,
             snapshot.active,
             snapshot.blocked,
+            snapshot.age,
         )
     if not snapshot.subjects:  # an extension only
         empty = BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})

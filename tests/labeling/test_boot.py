@@ -432,3 +432,61 @@ def test_a_dense_crowd_boots_without_partners_arms():
     ]
     assert np.all(lab[truth < 0] < 0)  # no ghost labeled
     assert (lab == truth)[truth >= 0].mean() >= 0.9
+
+
+# ---------------------------------------------------------------------------- joint fill
+def _fill_case(walk, leftover: tuple[str, ...]):
+    """P1 of the walk model placed on its true points except ``leftover`` markers, in the
+    first frame whose 12-frame window sees every P1 marker; its points and tracks."""
+    from labeler_service.labeling.boot_match import _prepare
+
+    model, cap = walk
+    tpl = _prepare(model, BootConfig())[0]
+    names = model.subjects[0].markers
+    cols = [cap.labels.index(f"P1:{n}") for n in names]
+    seen = np.isfinite(cap.positions[:, cols, 0]).all(axis=1)
+    frame = next(f for f in range(11, cap.n_frames) if seen[f - 11 : f + 1].all())
+    win = cap.positions[frame - 11 : frame + 1][:, cols]  # (W, m, 3)
+    hist = np.transpose(win, (1, 0, 2)).astype(np.float64)
+    pts = hist[:, -1]
+    assign = np.arange(tpl.n)
+    miss = np.array([names.index(n) for n in leftover])
+    assign[miss] = -1
+    free = np.zeros(tpl.n, dtype=bool)
+    free[miss] = True
+    return tpl, assign, pts, hist, free, miss
+
+
+def test_joint_fill_places_leftover_markers_on_leftover_tracks(walk):
+    """A booted subject's leftover markers take its leftover persistent points when the joint
+    assignment is unique (``_fill``): here a left arm, whose markers no pair rule placed."""
+    from labeler_service.labeling.boot_match import _fill
+
+    tpl, assign, pts, hist, free, miss = _fill_case(walk, ("LELB", "LWRA", "LFIN"))
+    out = _fill(tpl, assign, pts, hist, free, np.zeros((0, 3)), BootConfig())
+    assert np.array_equal(out, np.arange(tpl.n))
+
+
+def test_joint_fill_leaves_what_it_cannot_decide(walk):
+    """Nothing is placed from a single leftover pairing (no alternative to beat), from more
+    leftover points than markers (a point no leftover marker explains), from points that are
+    not free (short-lived: the caller's age test), or when a point is nearer another
+    subject's labeled points."""
+    from labeler_service.labeling.boot_match import _fill
+
+    cfg = BootConfig()
+    none = np.zeros((0, 3))
+    tpl, assign, pts, hist, free, miss = _fill_case(walk, ("LELB",))
+    assert np.array_equal(_fill(tpl, assign, pts, hist, free, none, cfg), assign)
+    tpl, assign, pts, hist, free, miss = _fill_case(walk, ("LELB", "LWRA", "LFIN"))
+    # one more free point near the arm (a fourth persistent point) than leftover markers
+    extra = pts[miss[0]] + np.array([0.0, 40.0, 0.0])
+    pts2 = np.concatenate([pts, extra[None]])
+    hist2 = np.concatenate([hist, (hist[miss[0]] + np.array([0.0, 40.0, 0.0]))[None]])
+    free2 = np.concatenate([free, [True]])
+    assert np.array_equal(_fill(tpl, assign, pts2, hist2, free2, none, cfg), assign)
+    young = free.copy()
+    young[miss[1:]] = False
+    assert np.array_equal(_fill(tpl, assign, pts, hist, young, none, cfg), assign)
+    near = pts[miss] + 1.0  # another subject's labeled points next to the leftover ones
+    assert np.array_equal(_fill(tpl, assign, pts, hist, free, near, cfg), assign)
