@@ -204,7 +204,7 @@ async def run_pipeline(
     from labeler_service.service.transports.url import parse_endpoint
     from labeler_service.testing.broker import LocalBroker
     from labeler_service.tools.replay import open_sender, replay
-    from labeler_service.tools.subscribe import Subscriber
+    from labeler_service.tools.subscribe import READY, Subscriber
 
     res = PipelineResult()
     with contextlib.ExitStack() as broker:
@@ -221,8 +221,9 @@ async def run_pipeline(
             else:
                 url = f"{broker_url}/{stream}"
             async with Subscriber(url) as sub:
-                if not await sub.wait_status(stream, "online", 30.0):
-                    raise MocapError(f"no 'online' status for stream {stream} from {url}")
+                if not await sub.wait_status(stream, READY, 30.0):
+                    raise MocapError(f"no 'online' or 'booting' status for stream {stream} from "
+                                     f"{url}")  # fmt: skip
                 received = res.received
 
                 async def consume() -> None:

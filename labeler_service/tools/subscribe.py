@@ -52,6 +52,11 @@ def percentiles(values, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
     return {f"p{q:g}": float(x) for q, x in zip(qs, np.percentile(v, qs), strict=True)}
 
 
+#: the statuses of a stream the service is ready to label: ``online``, or ``booting`` for a
+#: stream that boots its performers from a model and has labeled no one yet
+READY = ("online", "booting")
+
+
 @dataclass(slots=True)
 class Received:
     """One decoded labeled frame with the marker names of its model."""
@@ -294,11 +299,13 @@ class Subscriber:
             if self._transport is not None and self.endpoint.scheme == "udp":
                 self._send_subscribe()
 
-    async def wait_status(self, stream: str, state: str, timeout: float) -> bool:
-        """True once ``stream`` reports ``state`` (e.g. ``online``) within ``timeout`` s."""
+    async def wait_status(self, stream: str, state: str | tuple[str, ...], timeout: float) -> bool:
+        """True once ``stream`` reports ``state`` (e.g. ``online``; a tuple: any of them, e.g.
+        :data:`READY` for a service ready to label it) within ``timeout`` s."""
+        wanted = (state,) if isinstance(state, str) else tuple(state)
         try:
             async with asyncio.timeout(timeout):
-                while self.status.get(stream) != state:
+                while self.status.get(stream) not in wanted:
                     self._status_changed.clear()
                     await self._status_changed.wait()
         except TimeoutError:

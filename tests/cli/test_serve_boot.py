@@ -37,7 +37,7 @@ def test_replay_without_labels_into_serve_with_a_model(tmp_path):
             assert svc.udp is not None
             url = f"udp://{svc.udp[0]}:{svc.udp[1]}/vol"
             async with Subscriber(url) as sub:
-                assert await sub.wait_status("vol", "online", 30.0)
+                assert await sub.wait_status("vol", "booting", 30.0)  # ready, nobody booted
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, "-m", "labeler_service.cli.main", "replay", str(test),
                     "--to", url, "--init-frames", "0", "--speed", "1", "--seed", "2",

@@ -85,9 +85,10 @@ def test_subscribe_reports_silence_resumption_and_the_services_offline_status(rn
 
 
 def test_subscribe_says_why_a_stream_nobody_is_labeled_in_yet_is_lost():
-    """A model stream that boots publishes ``lost`` until its first performer is booted: the
-    subscriber says that nothing was labeled yet and the likely reasons, not only 'lost'; a
-    stream that had labeled markers and turns lost gets the plain line."""
+    """A stream that has labeled nothing and reads ``lost`` (a recovery boot that finds no
+    one): the subscriber says that nothing was labeled yet and the likely reasons, not only
+    'lost'; a stream that had labeled markers and turns lost gets the plain line; ``booting``
+    (a model stream before its first boot) says what it means."""
     from labeler_service.service.protocol import encode_labeled, encode_model, encode_status
     from labeler_service.service.transports.base import Incoming
 
@@ -98,6 +99,9 @@ def test_subscribe_says_why_a_stream_nobody_is_labeled_in_yet_is_lost():
 
     names = ("A:m0", "A:m1")
     feed(encode_model("v", 1, names, (("A", 0, 2),), 120.0))
+    feed(encode_status("v", "booting"))
+    assert sub.warnings[-1].endswith("stream v is booting (booting its performers from the "
+                                     "model: no one labeled yet)"), sub.warnings[-1]  # fmt: skip
     feed(encode_status("v", "lost"))
     assert "stream v is lost (no marker labeled yet: the service is booting" in sub.warnings[-1]
     pos = np.zeros((2, 3), np.float32)
