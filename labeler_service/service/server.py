@@ -665,6 +665,17 @@ class Server:
         """Trains the stream's labeler off the loop (budget ``train_budget_s``); a failure
         (over budget, or the training raised) is reported as ``training_failed``."""
         init = state.take_init()
+        cfg = self.settings.labeler_config
+        if (
+            self.settings.labeler == "online"
+            and cfg.restructure_s > 0
+            and len(init.frames) < cfg.restructure_max_train_frames
+        ):
+            log.warning("stream %s: %d labeled init frames: the labeler re-forms this thin "
+                        "structure from the stream every %.1f s, in the frame path (tens of ms "
+                        "when it changes); send %d or more init frames at high rates",
+                        state.name, len(init.frames), cfg.restructure_s,
+                        cfg.restructure_max_train_frames)  # fmt: skip
         self.metrics.training.inc()
         state.training = True
         try:

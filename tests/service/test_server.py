@@ -454,3 +454,27 @@ def test_labeling_thread_setting_moves_labeling_off_the_event_loop(rng, thread):
         assert all(n.startswith("label-default") for n in after), set(after)
     else:
         assert all(n == loop_thread for n in after), set(after)
+
+
+@pytest.mark.parametrize("init", [5, 30])
+def test_a_thin_labeled_start_is_logged_with_what_it_costs(rng, init, caplog):
+    """An online stream trained from fewer labeled init frames than the labeler re-forms
+    (``restructure_max_train_frames``) says so at training: its structure is re-formed in the
+    frame path (tens of ms when it changes), and more init frames avoid it; 30 frames: silent."""
+    import logging
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.server")
+    cap = moving_clusters(rng, subjects=2, markers=5, frames=60)
+    payloads = stream_payloads(cap, np.random.default_rng(3), init)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(labeler="online", warmup=False), [mem]):
+            await _feed(mem, payloads, pause=0.001)
+            await _labeled(mem, 60 - init)
+
+    run(go())
+    thin = "labeled init frames: the labeler re-forms this thin structure" in caplog.text
+    from labeler_service.labeling.config import LabelerConfig
+
+    assert thin == (init < LabelerConfig().restructure_max_train_frames), caplog.text
