@@ -40,6 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.templates import save_model
+    from labeler_service.labeling.training import DUPLICATE_MM
     from offline.structure import StructureTrainer
 
     trainer = StructureTrainer(
@@ -60,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
                 "bodies": len(s.bodies),
                 "body_sizes": [len(b) for b in s.bodies],
                 "chirality": len(s.chirality),
+                "no_body": sorted(
+                    set(s.markers) - {s.markers[i] for b in s.bodies for i in b}
+                ),
             }
             for s in model.subjects
         },
@@ -74,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
                 else "no chirality quadruples (a boot cannot refuse a mirrored reading)"
             )
             print(f"{name}: {s['markers']} markers in {s['bodies']} rigid bodies, {hand}")
+            if s["no_body"]:
+                print(f"  never labeled (no body: seen in fewer than 3 frames, or a duplicate "
+                      f"track within {DUPLICATE_MM:g} mm of another marker): "
+                      f"{', '.join(s['no_body'])}")  # fmt: skip
         print(f"wrote {args.out}")
     return 0
 

@@ -204,6 +204,25 @@ def motion_noise(pos: np.ndarray, rate: float, floor: float = 1.0e4) -> np.ndarr
     return np.maximum(q, floor)
 
 
+#: two labeled markers whose mean distance over the frames where both are seen is under this
+#: are one physical marker tracked twice (a split track, e.g. ``RBAC`` and ``RBAC-1``, 4 mm
+#: apart for 8 frames of a CMU take): markers are spheres of 9-25 mm and cannot overlap
+DUPLICATE_MM = 8.0
+
+
+def split_tracks(D: np.ndarray, seen: np.ndarray) -> dict[int, int]:
+    """Markers that duplicate another (a split track): ``{duplicate: original}`` for every pair
+    whose mean distance ``D`` is under :data:`DUPLICATE_MM`; the marker seen in fewer frames
+    (``seen``, per marker) is the duplicate."""
+    out: dict[int, int] = {}
+    close = np.argwhere(np.triu(np.nan_to_num(D, nan=np.inf) < DUPLICATE_MM, k=1))
+    close = close[close[:, 0] != close[:, 1]]
+    for i, j in close:
+        dup, orig = (int(j), int(i)) if seen[j] <= seen[i] else (int(i), int(j))
+        out.setdefault(dup, orig)
+    return out
+
+
 def train_subject(
     name: str,
     markers: list[str],
@@ -219,8 +238,9 @@ def train_subject(
 ) -> SubjectTemplate:
     """The template of one subject from its labeled frames ``pos`` ``(F, M, 3)`` (NaN missing).
 
-    Markers visible in fewer than ``min_pair_frames`` frames get no body (they can never be
-    labeled by the fit, but they do not break anything).
+    Markers visible in fewer than ``min_pair_frames`` frames, and markers that duplicate
+    another (:func:`split_tracks`), get no body (they can never be labeled by the fit, but they
+    do not break anything: a duplicate in a body would take its original's point).
     """
     pos = np.asarray(pos, dtype=np.float64)
     if pos.ndim != 3 or pos.shape[1] != len(markers) or pos.shape[2] != 3:
@@ -228,7 +248,11 @@ def train_subject(
             f"subject {name!r}: positions must be (frames, {len(markers)}, 3), got {pos.shape}"
         )
     D, A = model_pair_statistics(pos, min_pair_frames)
-    usable = np.isfinite(pos).all(axis=2).sum(axis=0) >= min_pair_frames
+    seen = np.isfinite(pos).all(axis=2).sum(axis=0)
+    usable = seen >= min_pair_frames
+    # the raw mean distances: the model's leave a pair at distance 0 unknown (one point under
+    # two names), which is a split track too
+    usable[list(split_tracks(pair_statistics(pos, min_pair_frames)[0], seen))] = False
     bodies = select_bodies(
         D,
         A,

@@ -83,4 +83,25 @@ def test_one_point_under_two_names_is_an_unknown_pair(rng):
     D, A = model_pair_statistics(pos)
     assert np.isnan(D[0, 3]) and np.isnan(A[0, 3]) and np.isnan(D[3, 0])
     assert D[0, 0] == 0.0 and np.isfinite(D[1, 3])
-    LabelerModel(rate=120.0, subjects=[train_subject("P", ["a", "b", "c", "a2"], pos, 120.0)])
+    tpl = train_subject("P", ["a", "b", "c", "a2"], pos, 120.0)
+    LabelerModel(rate=120.0, subjects=[tpl])
+    in_body = {i for b in tpl.bodies for i in b}
+    assert 0 in in_body and 3 not in in_body  # the second name is a split track: no body
+
+
+def test_a_split_track_gets_no_body_and_its_original_keeps_its_own(rng):
+    """A second track of one physical marker (a CMU take's ``RBAC-1``: 4 mm from ``RBAC`` in
+    the 8 frames it exists) would enter bodies as a rigid marker and, at a boot, take its
+    original's point; training gives it no body. Two real markers 9 mm apart keep theirs."""
+    from labeler_service.labeling.training import DUPLICATE_MM, split_tracks, train_subject
+
+    pos = _markers_with_a_swinging_hand(rng, frames=60)[:, :3]
+    dup = np.full_like(pos[:, :1], np.nan)
+    dup[20:28] = pos[20:28, :1] + np.array([3.0, 2.5, 0.0])  # 3.9 mm off marker 0, 8 frames
+    near = pos[:, 1:2] + np.array([0.0, 0.0, DUPLICATE_MM + 1.0])  # a real neighbour of 1
+    pos = np.concatenate([pos, dup, near], axis=1)
+    tpl = train_subject("P", ["a", "b", "c", "a-1", "b2"], pos, 120.0)
+    in_body = {i for b in tpl.bodies for i in b}
+    assert 3 not in in_body and {0, 1, 2, 4} <= in_body, tpl.bodies
+    D = np.array(tpl.D_array())
+    assert split_tracks(D, np.array([60, 60, 60, 8, 60])) == {3: 0}
