@@ -91,6 +91,25 @@ def test_cli_writes_a_loadable_model(rng, tmp_path, capsys):
     text = capsys.readouterr().out
     for s in model.subjects:
         assert f"{s.name}: 8 markers in" in text and "chirality quadruples" in text
+    assert summary["subjects"]["P0"]["no_body"] == [] and "never labeled" not in text
+
+
+def test_cli_names_a_split_track_that_will_never_be_labeled(rng, tmp_path, capsys):
+    """A second name for one physical marker (4 mm off it, for 10 frames) is left out of the
+    bodies, and the summary says which marker will never be labeled."""
+    cap = _capture(rng, subjects=1, frames=150)
+    dup = np.full((cap.n_frames, 1, 3), np.nan, dtype=np.float32)
+    dup[40:50, 0] = cap.positions[40:50, 0] + np.array([4.0, 0.0, 0.0], dtype=np.float32)
+    name = cap.labels[0] + "-1"
+    cap = Capture(np.concatenate([cap.positions, dup], axis=1), (*cap.labels, name), cap.rate)
+    src = tmp_path / "take.npz"
+    write_capture(cap, src)
+    out = tmp_path / "model.json"
+    assert main(["train", "structure", str(src), "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["subjects"]["P0"]["no_body"] == [name.split(":")[1]]
+    assert main(["train", "structure", str(src), "--out", str(out)]) == 0
+    assert "never labeled (no body" in capsys.readouterr().out
 
 
 @pytest.mark.realdata
