@@ -31,7 +31,6 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.frame import OBSERVED
-from labeler_service.labeling.templates import PAIR_DISTANCE_MM
 
 
 @njit
@@ -104,23 +103,10 @@ def pair_model(
     (:func:`~labeler_service.labeling.training.model_pair_statistics`)."""
     lo = np.minimum.outer(cols, cols)
     hi = np.maximum.outer(cols, cols)
+    from labeler_service.labeling.training import stats_from_sums, within_model_ranges
+
     c = n[lo, hi].astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        D = s1[lo, hi] / c
-        A = np.sqrt(np.maximum(s2[lo, hi] / c - D * D, 0.0))
-    bad = c < max(1, min_samples)
-    D[bad] = np.nan
-    A[bad] = np.nan
-    np.fill_diagonal(D, 0.0)
-    np.fill_diagonal(A, 0.0)
-    lo_mm, hi_mm = PAIR_DISTANCE_MM
-    off = np.isfinite(D) & (np.clip(D, lo_mm, hi_mm) != D)
-    np.fill_diagonal(off, False)
-    D[off] = np.nan
-    A[off] = np.nan
-    wide = np.isfinite(A) & (A >= D) & (D > 0)
-    A[wide] = 0.999 * D[wide]
-    return D, A
+    return within_model_ranges(*stats_from_sums(s1[lo, hi], s2[lo, hi], c, min_samples))
 
 
 def _cost(D: np.ndarray, A: np.ndarray, w: float) -> np.ndarray:

@@ -56,10 +56,19 @@ def pair_statistics(pos: np.ndarray, min_pair_frames: int = 3) -> tuple[np.ndarr
         s1 += d
         s2 += d * d
         n += ok
+    return stats_from_sums(s1, s2, n, min_pair_frames)
+
+
+def stats_from_sums(
+    s1: np.ndarray, s2: np.ndarray, n: np.ndarray, min_count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``D``, ``A`` (Eq. 1-2) of square matrices of sums of the distance ``s1``, of its square
+    ``s2`` and of sample counts ``n``; NaN where a pair has fewer than ``min_count`` samples,
+    0 on the diagonal."""
     with np.errstate(invalid="ignore", divide="ignore"):
         D = s1 / n
         A = np.sqrt(np.maximum(s2 / n - D * D, 0.0))
-    bad = n < max(1, min_pair_frames)
+    bad = n < max(1, min_count)
     D[bad] = np.nan
     A[bad] = np.nan
     np.fill_diagonal(D, 0.0)
@@ -76,7 +85,12 @@ def model_pair_statistics(
     distance varied as much as its mean (a few samples of a fast limb: a 5-frame window at
     12.5 Hz) keeps a deviation just below its distance - either way it is not rigid. Without
     this a trained model could fail its own validation."""
-    D, A = pair_statistics(pos, min_pair_frames)
+    return within_model_ranges(*pair_statistics(pos, min_pair_frames))
+
+
+def within_model_ranges(D: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``D``, ``A`` (changed in place) within the ranges every model must keep (see
+    :func:`model_pair_statistics`)."""
     lo, hi = PAIR_DISTANCE_MM
     off = np.isfinite(D) & (np.clip(D, lo, hi) != D)
     np.fill_diagonal(off, False)

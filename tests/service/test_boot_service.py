@@ -145,21 +145,25 @@ async def _paced(mem: MemoryTransport, frames: StreamFrames, labeled: int = 0) -
         mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f], labels))
 
 
+async def _stream_all(srv, mem, frames) -> list:
+    """Feeds every frame at its rate (no labels), waits until each one is handled (labeled or
+    dropped) and returns the labeled outputs with the stream's marker names."""
+    names = srv.streams["vol"].names
+    await _paced(mem, frames)
+    await until(
+        lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+        + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+    )  # fmt: skip
+    return [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
+
+
 @pytest.mark.parametrize("worker", ["process", "thread"])
 @pytest.mark.parametrize("thread", [False, True], ids=["inline", "labeling-thread"])
 def test_boot_in_memory_no_labels(model_path, frames, thread, worker):
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(model_path, thread, boot_worker=worker), [mem]) as srv:
-            names = srv.streams["vol"].names
-            await _paced(mem, frames)
-            await until(
-                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
-                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
-            )  # fmt: skip
-            outs = [
-                (decode(p), names) for s, kind, p, _ in mem.sent if kind == "labeled"
-            ]  # fmt: skip
+            outs = await _stream_all(srv, mem, frames)
             _check_boot(srv, frames, outs, frames.n_frames)
 
     run(go(), timeout=300.0)
@@ -238,15 +242,8 @@ def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_pa
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
-            names = srv.streams["vol"].names
-            await _paced(mem, frames)
-            await until(
-                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
-                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
-            )  # fmt: skip
-            st = srv.streams["vol"]
-            outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
-            return st, outs, srv.metrics
+            outs = await _stream_all(srv, mem, frames)
+            return srv.streams["vol"], outs, srv.metrics
 
     st, outs, metrics = run(go(), timeout=300.0)
     assert metrics.drops() == 0, metrics.snapshot()["drops"]

@@ -35,11 +35,16 @@ def worker():
     w.close()
 
 
+def _snapshot(model, cap, seed: int):
+    """A booting labeler run 20 frames of the walk (seed ``seed``) and its boot snapshot."""
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    _run(lab, Stream(cap, model, seed=seed), range(20))
+    return lab, lab.boot_snapshot()
+
+
 def test_a_step_in_the_worker_gives_the_local_result(walk, worker):
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    _run(lab, Stream(cap, model, seed=4), range(20))
-    snap = lab.boot_snapshot()
+    lab, snap = _snapshot(model, cap, seed=4)
     there = lab.boot_step(snap, worker.runner(lab))
     here = lab.boot_step(snap)
     assert there.subjects == here.subjects and len(here.subjects) == 3
@@ -66,9 +71,7 @@ def test_a_catch_up_in_the_worker_installs_as_the_local_one(walk, worker):
 
 def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    _run(lab, Stream(cap, model, seed=6), range(20))
-    snap = lab.boot_snapshot()
+    lab, snap = _snapshot(model, cap, seed=6)
     w = BootWorker()
     try:
         cancel = threading.Event()
@@ -97,9 +100,7 @@ def test_a_worker_killed_from_outside_is_logged_and_started_again(walk, caplog):
     import signal
 
     model, cap = walk
-    lab = BootingLabeler(model, RATE, inline_boot=False)
-    _run(lab, Stream(cap, model, seed=6), range(20))
-    snap = lab.boot_snapshot()
+    lab, snap = _snapshot(model, cap, seed=6)
     w = BootWorker()
     try:
         w.start()
