@@ -219,9 +219,10 @@ def motion_noise(pos: np.ndarray, rate: float, floor: float = 1.0e4) -> np.ndarr
 
 
 #: two labeled markers whose mean distance over the frames where both are seen is under this
-#: are one physical marker tracked twice (a split track, e.g. ``RBAC`` and ``RBAC-1``, 4 mm
-#: apart for 8 frames of a CMU take): markers are spheres of 9-25 mm and cannot overlap
-DUPLICATE_MM = 8.0
+#: are one physical marker tracked twice (a split track, e.g. ``RBAC`` and ``RBAC-1``, 4.4 mm
+#: apart for 8 frames of a CMU take): the centres of two markers of 5 mm or more (body markers
+#: are 9-25 mm) cannot be closer
+DUPLICATE_MM = 5.0
 
 
 def split_tracks(D: np.ndarray, seen: np.ndarray) -> dict[int, int]:

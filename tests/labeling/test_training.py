@@ -92,7 +92,7 @@ def test_one_point_under_two_names_is_an_unknown_pair(rng):
 def test_a_split_track_gets_no_body_and_its_original_keeps_its_own(rng):
     """A second track of one physical marker (a CMU take's ``RBAC-1``: 4 mm from ``RBAC`` in
     the 8 frames it exists) would enter bodies as a rigid marker and, at a boot, take its
-    original's point; training gives it no body. Two real markers 9 mm apart keep theirs."""
+    original's point; training gives it no body. Two real markers 6 mm apart keep theirs."""
     from labeler_service.labeling.training import DUPLICATE_MM, split_tracks, train_subject
 
     pos = _markers_with_a_swinging_hand(rng, frames=60)[:, :3]
