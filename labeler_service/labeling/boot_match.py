@@ -1581,11 +1581,13 @@ def _fill(
     # with fewer points than markers a map also chooses which markers are seen: the best of
     # comb(nu, nc) such choices beats the others by chance more often (a Bonferroni term)
     margin = max(FILL_MARGIN, EXCHANGE_MARGIN * nu) + math.log(math.comb(nu, nc))
-    # maps that reverse a thick chirality quadruple with a new marker are no reading at all
-    # (a mirror image fits every distance): they neither win nor make the winner ambiguous
+    # a map that reverses a thick chirality quadruple with a new marker is no reading (a
+    # mirror image fits every distance): it does not make the winner ambiguous; when the
+    # cheapest map is one, nothing is placed (the next-best, taken then, read a head's
+    # diagonal markers crossed in tune14)
     top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
     ok = ~_fill_reversed(tpl, assign, pts, miss[mk[top]], cand[pt[top]])
-    if not ok.any():
+    if not ok[0]:
         return assign
     best = int(top[np.argmax(ok)])
     rivals = np.count_nonzero(ok & (total[top] <= total[best] + margin))
