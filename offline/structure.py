@@ -80,7 +80,12 @@ def chirality_quads(
                 break
         if len(quads) >= CHIRALITY_POOL:
             break
-    hinge = _hinge_quads(bodies)
+    # (every pair must have a trained distance: ``load_model`` refuses a quadruple without)
+    hinge = {
+        h
+        for h in _hinge_quads(bodies)
+        if all(np.isfinite(A[i, j]) for i, j in itertools.combinations(h, 2))
+    }
     quads = sorted(hinge) + [q for q in quads if q not in hinge]
     if not quads:
         return []
