@@ -1479,14 +1479,15 @@ def _one_sided(tpl: _Template, assign: np.ndarray) -> np.ndarray:
     """Markers of mirror segments (:func:`_mirror_pairs`) placed whole on one side while no
     marker of the other side is placed and no thick-trained chirality quadruple has all four
     markers placed and one of them in the segment (nothing has told which side it is), while
-    a quadruple over it still lacks a marker the fill may place (its knee)."""
+    a local quadruple over it (:func:`_local_quads`: its leg's knee, ankle and toes) still
+    lacks a marker (its knee), which will tell the side once placed."""
     q = tpl.chirality
     if q.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
     covered = np.zeros(tpl.n, dtype=bool)
     covered[q[np.all(assign[q] >= 0, axis=1)].ravel()] = True
-    pending = np.zeros(tpl.n, dtype=bool)  # in a quadruple the fill may complete
-    pending[q[np.any(assign[q] < 0, axis=1)].ravel()] = True
+    pending = np.zeros(tpl.n, dtype=bool)  # in a local quadruple still lacking a marker
+    pending[q[np.any(assign[q] < 0, axis=1) & tpl.chiral_local].ravel()] = True
     out = []
     for s1, s2 in tpl.mirrors:
         for a, b in ((s1, s2), (s2, s1)):
