@@ -11,6 +11,7 @@ The fitted template set is ``model_`` (a :class:`~labeler_service.labeling.templ
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -29,9 +30,27 @@ CHIRALITY_PER_MARKER = 3  # a marker is in at most this many quadruples
 CHIRALITY_MAX = 64  # quadruples per subject
 CHIRALITY_FRAMES = 400  # frames looked at (evenly spread)
 CHIRALITY_POOL = 20000  # quadruples enumerated at most
+HINGE_MAX_MARKERS = 8  # a body or hinge union larger than this adds no quadruples (C(8,4) = 70)
 
 
-def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
+def _hinge_quads(bodies: Sequence[Sequence[int]]) -> set[tuple[int, int, int, int]]:
+    """Quadruples inside one trained body or the union of two bodies that share at least two
+    markers (a hinge: a foot and its ankle-knee body share the ankle and the fifth toe). Their
+    sign holds in poses the training frames did not show unless the hinge folds flat, so they
+    are kept even when a pair of them is not steady (knee to big toe across the ankle)."""
+    sets = [frozenset(int(i) for i in b) for b in bodies]
+    groups = {s for s in sets if len(s) >= 4}
+    groups |= {a | b for i, a in enumerate(sets) for b in sets[i + 1 :] if len(a & b) >= 2}
+    out: set[tuple[int, int, int, int]] = set()
+    for g in groups:
+        if len(g) <= HINGE_MAX_MARKERS:
+            out.update(itertools.combinations(sorted(g), 4))
+    return out
+
+
+def chirality_quads(
+    pos: np.ndarray, A: np.ndarray, bodies: Sequence[Sequence[int]] = ()
+) -> list[list[int]]:
     """Quadruples ``[a, b, c, d]`` of markers whose signed volume ``det(b - a, c - a, d - a)``
     is positive in the training frames ``pos (F, m, 3)``: every pair of the four steady
     (``A <= CHIRALITY_A_MM`` = 20 mm), the tetrahedron thick (cube root of ``|det|`` >= 20 mm in
@@ -39,7 +58,11 @@ def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
     of them.
     Pair distances are the same for a subject and its mirror image; these volumes are not, and
     the boot uses them to refuse a subject read mirrored (left for right). Thickest first, each
-    marker in at most ``CHIRALITY_PER_MARKER`` of them, at most ``CHIRALITY_MAX``."""
+    marker in at most ``CHIRALITY_PER_MARKER`` of them, at most ``CHIRALITY_MAX``.
+    Quadruples of one body or two bodies on a hinge (:func:`_hinge_quads`) are also tried
+    without the steadiness test and chosen before the others: a leg's knee, ankle and toes are
+    not all steady to 20 mm, yet their volume keeps its sign, and without them a dancer's
+    left foot read as the right one reverses no quadruple."""
     m = A.shape[0]
     steady = np.isfinite(A) & (A <= CHIRALITY_A_MM)
     np.fill_diagonal(steady, False)
@@ -57,6 +80,13 @@ def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
                 break
         if len(quads) >= CHIRALITY_POOL:
             break
+    # (every pair must have a trained distance: ``load_model`` refuses a quadruple without)
+    hinge = {
+        h
+        for h in _hinge_quads(bodies)
+        if all(np.isfinite(A[i, j]) for i, j in itertools.combinations(h, 2))
+    }
+    quads = sorted(hinge) + [q for q in quads if q not in hinge]
     if not quads:
         return []
     f = pos.shape[0]
@@ -81,7 +111,10 @@ def chirality_quads(pos: np.ndarray, A: np.ndarray) -> list[list[int]]:
     ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (np.nan_to_num(thick) >= CHIRALITY_MIN_MM)
     out: list[list[int]] = []
     use = np.zeros(m, dtype=np.int64)
-    for k in np.flatnonzero(ok)[np.argsort(-np.nan_to_num(thick[ok]), kind="stable")]:
+    first = np.array([tuple(int(x) for x in row) in hinge for row in q], dtype=bool)
+    ok_k = np.flatnonzero(ok)
+    order = np.lexsort((-np.nan_to_num(thick[ok_k]), ~first[ok_k]))  # hinge ones first
+    for k in ok_k[order]:
         if np.any(use[q[k]] >= CHIRALITY_PER_MARKER):
             continue
         i0, i1, i2, i3 = (int(x) for x in q[k])
@@ -188,7 +221,7 @@ class StructureTrainer:
             # the pooled frames' motion noise is replaced: noise depends on the rate, so it is
             # learned per capture and averaged (positive and finite like each capture's)
             q = np.mean(noises, axis=0)
-            quads = chirality_quads(pos, t.A_array())
+            quads = chirality_quads(pos, t.A_array(), t.bodies)
             shapes = handed_shapes(t.shapes, t.bodies, quads)
             templates.append(
                 t.model_copy(

@@ -930,6 +930,11 @@ def _hypotheses(
                 # a mirror image (left read for right): every distance fits, the volumes
                 # do not; its points stay free for the seeds that read it the right way
                 continue
+            # a mirror segment placed on one side with nothing to tell the side yet (a foot
+            # whose knee is not placed) is not guessed: the extension reads it with the knee
+            assign[_one_sided(tpl, assign)] = -1
+            if int((assign >= 0).sum()) < need:
+                continue
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
         if best is not None:
             # seeds inside this hypothesis need not be tried again
@@ -1392,6 +1397,14 @@ def _complete(
     pts_used = out[out >= 0]
     if np.unique(pts_used).size != pts_used.size:
         return assign
+    # no thick chirality quadruple with a new marker reversed (a leg completed mirrored), and
+    # a new mirror segment with nothing to tell its side yet is not guessed (:func:`_one_sided`)
+    loose = _one_sided(tpl, out)
+    loose = loose[assign[loose] < 0]
+    out[loose] = -1
+    new = np.flatnonzero(out != assign)
+    if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
+        return assign
     return out
 
 
@@ -1418,6 +1431,31 @@ def warmup_kernels() -> None:
 FILL_MARGIN = 3.0
 #: most joint assignments :func:`_fill` enumerates (it does nothing beyond)
 FILL_MAX_MAPS = 60000
+#: The fill judges chirality (:func:`_fill_reversed`) on this many of its cheapest maps.
+FILL_CHIRAL_TOP = 256
+
+
+def _fill_reversed(
+    tpl: _Template, assign: np.ndarray, pts: np.ndarray, marks: np.ndarray, points: np.ndarray
+) -> np.ndarray:
+    """Per map (``marks``, ``points``: ``(K, k)`` markers and their points): does it reverse a
+    thick chirality quadruple (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``) with all four
+    markers placed and at least one of them new?"""
+    q = tpl.chirality
+    K = marks.shape[0]
+    if q.shape[0] == 0 or K == 0:
+        return np.zeros(K, dtype=bool)
+    out = np.broadcast_to(assign, (K, tpl.n)).copy()
+    rows = np.arange(K)[:, None]
+    out[rows, marks] = points
+    new = np.zeros((K, tpl.n), dtype=bool)
+    new[rows, marks] = True
+    oq = out[:, q]  # (K, Q, 4)
+    use = np.all(oq >= 0, axis=2) & np.any(new[:, q], axis=2)
+    p = pts[np.where(oq >= 0, oq, 0)]  # (K, Q, 4, 3)
+    with np.errstate(all="ignore"):  # (coincident points)
+        det = np.linalg.det(p[:, :, 1:] - p[:, :, :1])
+    return np.any(use & (np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0), axis=1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -1435,6 +1473,32 @@ def _fill_maps(nu: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
     mk.flags.writeable = False  # (cached)
     pt.flags.writeable = False
     return mk, pt
+
+
+def _one_sided(tpl: _Template, assign: np.ndarray) -> np.ndarray:
+    """Markers of mirror segments (:func:`_mirror_pairs`) placed whole on one side while no
+    marker of the other side is placed and no thick-trained chirality quadruple has all four
+    markers placed and one of them in the segment (nothing has told which side it is), while
+    a local quadruple over it (:func:`_local_quads`: its leg's knee, ankle and toes) still
+    lacks a marker (its knee), which will tell the side once placed."""
+    q = tpl.chirality
+    if q.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    covered = np.zeros(tpl.n, dtype=bool)
+    covered[q[np.all(assign[q] >= 0, axis=1)].ravel()] = True
+    pending = np.zeros(tpl.n, dtype=bool)  # in a local quadruple still lacking a marker
+    pending[q[np.any(assign[q] < 0, axis=1) & tpl.chiral_local].ravel()] = True
+    out = []
+    for s1, s2 in tpl.mirrors:
+        for a, b in ((s1, s2), (s2, s1)):
+            if (
+                np.all(assign[a] >= 0)
+                and np.all(assign[b] < 0)
+                and not covered[a].any()
+                and pending[a].any()
+            ):
+                out.append(a)
+    return np.unique(np.concatenate(out)) if out else np.zeros(0, dtype=np.int64)
 
 
 def _fill(
@@ -1515,11 +1579,20 @@ def _fill(
     for a in range(k):
         for b in range(a + 1, k):
             total += pair[mk[:, a], mk[:, b], pt[:, a], pt[:, b]]
-    best = int(np.argmin(total))
     # with fewer points than markers a map also chooses which markers are seen: the best of
     # comb(nu, nc) such choices beats the others by chance more often (a Bonferroni term)
     margin = max(FILL_MARGIN, EXCHANGE_MARGIN * nu) + math.log(math.comb(nu, nc))
-    if np.count_nonzero(total <= total[best] + margin) > 1:
+    # a map that reverses a thick chirality quadruple with a new marker is no reading (a
+    # mirror image fits every distance): it does not make the winner ambiguous; when the
+    # cheapest map is one, nothing is placed (the next-best, taken then, read a head's
+    # diagonal markers crossed in tune14)
+    top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
+    ok = ~_fill_reversed(tpl, assign, pts, miss[mk[top]], cand[pt[top]])
+    if not ok[0]:
+        return assign
+    best = int(top[np.argmax(ok)])
+    rivals = np.count_nonzero(ok & (total[top] <= total[best] + margin))
+    if rivals > 1 or (top.size < total.size and total[top[-1]] <= total[best] + margin):
         return assign  # not unique: wait for more evidence (the next extension)
     out = assign.copy()
     fresh = miss[mk[best]]

@@ -3,6 +3,8 @@ no rigid evidence, exchanged markers, mirrored segments; and the tracker at spri
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -11,8 +13,10 @@ from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, trac
 from labeler_service.labeling.boot_match import (
     _articulate,
     _exchange,
+    _fill_reversed,
     _handedness,
     _hypotheses,
+    _one_sided,
     _pair_error,
     _Pairs,
     _relocate,
@@ -342,3 +346,40 @@ def test_a_limb_read_on_another_subjects_points_goes_back_to_its_owner():
     booter._reclaim(accepted, pts, h)
     np.testing.assert_array_equal(accepted[0].assign[limb], truth0[limb])
     assert not np.isin(truth0[limb], accepted[1].assign).any()
+
+
+def test_a_mirror_segment_without_handedness_is_not_guessed_and_fill_maps_see_chirality(walker):
+    """A mirror segment placed whole on one side, its partner and a quadruple over it not yet
+    placed, is reported by ``_one_sided`` (nothing has told its side); once its quadruples are
+    placed it is not. A fill map placing markers on their true points reverses no quadruple;
+    the same map on the mirrored points (every distance kept) does."""
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    assert tpl.mirrors and tpl.chirality.shape[0]
+    found = False
+    for s1, s2 in tpl.mirrors:
+        # every quadruple over s1 lacks a marker outside it (its knee), none lies inside it
+        over = np.array([np.isin(q, s1).any() for q in tpl.chirality], dtype=bool)
+        quads = tpl.chirality[over]
+        if not over.any() or np.any(truth[s1] < 0) or any(np.isin(q, s1).all() for q in quads):
+            continue
+        # the walker's quadruples over a limb are wide ones; only a local one (a leg's knee,
+        # ankle and toes) holds the segment back: as wide ones they do not
+        assign = truth.copy()
+        assign[s2] = -1
+        for q in quads:
+            assign[[m for m in q if m not in s1]] = -1
+        assert not np.isin(
+            s1, _one_sided(replace(tpl, chiral_local=np.zeros_like(over)), assign)
+        ).any()
+        tpl = replace(tpl, chiral_local=over)
+        if np.isin(s1, _one_sided(tpl, assign)).all():
+            found = True
+            assert _one_sided(tpl, truth).size == 0  # everything placed: nothing one-sided
+            break
+    assert found
+    marks = np.flatnonzero(truth >= 0)[None]
+    empty = np.full(tpl.n, -1, dtype=np.int64)
+    assert not _fill_reversed(tpl, empty, pts, marks, truth[marks])[0]
+    flip = np.array([-1.0, 1.0, 1.0])
+    assert _fill_reversed(tpl, empty, pts * flip, marks, truth[marks])[0]

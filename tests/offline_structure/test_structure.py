@@ -13,7 +13,7 @@ from labeler_service.cli.main import main
 from labeler_service.errors import ModelError
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import load_model
-from offline.structure import StructureTrainer
+from offline.structure import StructureTrainer, chirality_quads
 
 
 def _capture(rng, subjects=2, frames=200):
@@ -173,3 +173,27 @@ def test_a_body_never_seen_whole_gets_the_handedness_of_the_frames(tmp_path):
     mirrored = (dst * np.array([1, 1, -1])).tolist()
     np.testing.assert_allclose(np.asarray(handed_shapes([mirrored], [whole[0]], [quad])[0]), dst)
     assert handed_shapes([dst.tolist()], [whole[0]], [quad])[0] == dst.tolist()
+
+
+def test_chirality_quadruples_across_a_hinge_need_no_steady_pairs():
+    """Two bodies sharing two markers (a hinge: a foot and its ankle-knee body) give a
+    quadruple whose far pair (knee to toe) changes by far more than 20 mm as the hinge turns,
+    yet whose volume keeps its sign: it is learned when the bodies are given, not without."""
+    ang = np.linspace(np.radians(30), np.radians(150), 60)  # hinge angle, never flat
+    pos = np.zeros((ang.size, 4, 3))
+    pos[:, 1] = [100.0, 0.0, 0.0]  # the hinge axis: markers 0 and 1 along x
+    pos[:, 2] = [50.0, 120.0, 0.0]  # marker 2 on body one
+    pos[:, 3, 0] = 50.0  # marker 3 on body two, turning about the axis
+    pos[:, 3, 1] = 120.0 * np.cos(ang)
+    pos[:, 3, 2] = 120.0 * np.sin(ang)
+    d = np.linalg.norm(pos[:, :, None] - pos[:, None], axis=3)
+    A = d.max(axis=0) - d.min(axis=0)
+    assert A[2, 3] > 20.0
+    assert chirality_quads(pos, A) == []
+    quads = chirality_quads(pos, A, [[0, 1, 2], [0, 1, 3]])
+    assert len(quads) == 1 and sorted(quads[0]) == [0, 1, 2, 3]
+    a, b, c, e = quads[0]
+    det = np.linalg.det(
+        np.stack([pos[:, b] - pos[:, a], pos[:, c] - pos[:, a], pos[:, e] - pos[:, a]], axis=1)
+    )
+    assert np.all(det > 0)
