@@ -128,10 +128,12 @@ def _check_boot(srv: Server, frames: StreamFrames, outs, n_in: int) -> None:
     assert ghosts <= 0.02 * scored
 
 
-async def _paced(mem: MemoryTransport, frames: StreamFrames, labeled: int = 0) -> None:
+async def _paced(
+    mem: MemoryTransport, frames: StreamFrames, labeled: int = 0, subject: str | None = None
+) -> None:
     """Injects the frames at the capture rate, as a live source sends them (a burst of all
     frames at once would be labeled before any boot attempt could end); the first ``labeled``
-    carry their labels."""
+    carry their labels (under the subject name ``subject`` when given)."""
     loop = asyncio.get_running_loop()
     t0 = loop.time()
     for f in range(frames.n_frames):
@@ -142,6 +144,8 @@ async def _paced(mem: MemoryTransport, frames: StreamFrames, labeled: int = 0) -
         if f < labeled:
             labels = [frames.marker_names[m] if m >= 0 else None
                       for m in frames.truth[f].tolist()]  # fmt: skip
+            if subject is not None:
+                labels = [f"{subject}:{x.split(':')[1]}" if x else None for x in labels]
         mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f], labels))
 
 
@@ -268,17 +272,7 @@ def test_labels_naming_no_marker_of_the_model_are_logged_and_ignored(model_path,
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
-            loop = asyncio.get_running_loop()
-            t0 = loop.time()
-            for f in range(frames.n_frames):
-                delay = t0 + f / frames.rate - loop.time()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                labels = None
-                if f < 5:
-                    labels = [f"Other:{frames.marker_names[m].split(':')[1]}" if m >= 0 else None
-                              for m in frames.truth[f].tolist()]  # fmt: skip
-                mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f], labels))
+            await _paced(mem, frames, labeled=5, subject="Other")
             await until(
                 lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
                 + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
