@@ -284,8 +284,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "recorder-writes-the-period-as-rate",
         "labeler_service/tools/subscribe.py",
-        "            self.names, self.rate = r.names, rate",
-        "            self.names, self.rate = r.names, 1.0 / rate",
+        "            return round(1.0 / float(np.median(self._steps)), 3)",
+        "            return round(float(np.median(self._steps)), 3)",
         (T + "tools/test_tools.py",),
         "the subscriber's C3D recording carries a wrong rate",
         k="recorder",
