@@ -103,6 +103,8 @@ class MethodScore:
     accuracy_after_boot: float | None = None
     reid_s_p95: float | None = None
     reid_s: list[float | None] = field(default_factory=list)
+    #: ``reid_s`` per subject, in the order of its returns
+    reid_s_by_subject: dict[str, list[float | None]] = field(default_factory=dict)
     absent_labeled: int = 0
     identity_swaps: int = 0
     #: ``(F, M)`` int8 codes per frame and marker (``NOT_VISIBLE`` .. ``UNLABELED``).
@@ -133,6 +135,9 @@ class MethodScore:
             "accuracy_after_boot": r(self.accuracy_after_boot),
             "reid_s_p95": r(self.reid_s_p95, 4),
             "reid_s": [r(v, 4) for v in self.reid_s],
+            "reid_s_by_subject": {
+                k: [r(v, 4) for v in vs] for k, vs in self.reid_s_by_subject.items()
+            },
             "absent_labeled": self.absent_labeled,
             "identity_swaps": self.identity_swaps,
         }
@@ -305,6 +310,7 @@ class Scorer:
             "accuracy_after_boot": None,
             "reid_s_p95": None,
             "reid_s": [],
+            "reid_s_by_subject": {},
             "absent_labeled": int(self.absent_labeled),
             "identity_swaps": 0,
         }
@@ -332,6 +338,7 @@ class Scorer:
             runs[: n - BOOT_RUN + 1] = (c[BOOT_RUN:] - c[: n - BOOT_RUN + 1]) == BOOT_RUN
         boot_s: dict[str, float | None] = {}
         reid: list[float] = []
+        by_subject: dict[str, list[float | None]] = {}
         acc_ok = acc_vis = 0
         for k, name in enumerate(self._subjects):
             gone = np.flatnonzero(vis[:, k] == 0)
@@ -358,6 +365,9 @@ class Scorer:
                     boot_s[name] = None if not np.isfinite(delay) else float(delay)
                 else:
                     reid.append(float(delay))
+                    by_subject.setdefault(name, []).append(
+                        float(delay) if np.isfinite(delay) else None
+                    )
                 if hit.size and first_boot is None:
                     first_boot = st + int(hit[0])
             if first_boot is not None:
@@ -368,6 +378,7 @@ class Scorer:
             out["boot_s_max"] = max(v for v in boot_s.values() if v is not None)
         out["accuracy_after_boot"] = acc_ok / acc_vis if acc_vis else None
         out["reid_s"] = [v if np.isfinite(v) else None for v in reid]
+        out["reid_s_by_subject"] = by_subject
         if reid:
             p95 = float(np.percentile(reid, 95, method="higher"))
             out["reid_s_p95"] = p95 if np.isfinite(p95) else None

@@ -125,6 +125,7 @@ def test_reidentification_after_each_return():
 
     s = _run(120, truth, answer)
     assert sorted(s["reid_s"]) == [0.0, 0.15]
+    assert s["reid_s_by_subject"] == {"A": [0.0], "B": [0.15]}  # which return took how long
     assert s["reid_s_p95"] == 0.15
     assert s["boot_s_max"] == 0.0
 
