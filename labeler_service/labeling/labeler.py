@@ -469,14 +469,20 @@ class Labeler:
         c, m = self.config, len(self._names)
         s1, s2, n = self._ev
         old, old_rec = self._bodies, self._recovery
-        keys = {
-            tuple(int(v) for v in old.members[b, : old.size[b]]): b
-            for b in range(old.members.shape[0])
-        }
+        keys = self._body_keys()
         bodies: list[list[int]] = []
         d0: list[np.ndarray] = []
         a0: list[np.ndarray] = []
-        recovery = new_recovery(m)
+
+        def keep(ob: int) -> None:  # a current body, with its trained D, A
+            k = int(old.size[ob])
+            bodies.append(list(self._members(ob)))
+            d0.append(old.D0[ob, :k, :k])
+            a0.append(old.A0[ob, :k, :k])
+
+        recovery = new_recovery(m)  # the current sets, changed below where re-formed
+        recovery.members[:] = old_rec.members
+        recovery.size[:] = old_rec.size
         subject_bodies: dict[str, np.ndarray] = {}
         for subj in self.model.subjects:
             cols = self._subject_cols[subj.name]
@@ -484,28 +490,18 @@ class Labeler:
             base = self._ev_base.get(subj.name, 0.0)
             if float(n[np.ix_(cols, cols)].sum()) <= base:  # no evidence of the stream: keep
                 for b in self._subject_bodies[subj.name]:
-                    k = int(old.size[b])
-                    bodies.append([int(v) for v in old.members[b, :k]])
-                    d0.append(old.D0[b, :k, :k])
-                    a0.append(old.A0[b, :k, :k])
-                for i in cols:
-                    recovery.members[i] = old_rec.members[i]
-                    recovery.size[i] = old_rec.size[i]
+                    keep(int(b))
             else:
                 D, A = pair_model(cols, s1, s2, n)
                 local = {int(g): k for k, g in enumerate(cols)}
                 old_b = [  # the trained bodies (added ones are chosen again, or not)
-                    [local[int(v)] for v in old.members[ob, : old.size[ob]]]
+                    [local[v] for v in self._members(ob)]
                     for ob in self._subject_bodies[subj.name]
-                    if tuple(int(v) for v in old.members[ob, : old.size[ob]]) in self._trained
+                    if self._members(ob) in self._trained
                 ]
                 kept, added = reform_bodies(D, A, self._body_marker[cols], old_b, c)
                 for body in kept:
-                    ob = keys[tuple(int(cols[i]) for i in body)]
-                    k = len(body)
-                    bodies.append([int(cols[i]) for i in body])
-                    d0.append(old.D0[ob, :k, :k])
-                    a0.append(old.A0[ob, :k, :k])
+                    keep(keys[tuple(int(cols[i]) for i in body)])
                 for body in added:
                     bodies.append([int(cols[i]) for i in body])
                     d0.append(D[np.ix_(body, body)])
@@ -515,9 +511,6 @@ class Labeler:
                     if c.restructure_recovery
                     else {}
                 )
-                for i in cols:
-                    recovery.members[i] = old_rec.members[i]
-                    recovery.size[i] = old_rec.size[i]
                 for i, members in sets.items():
                     g = int(cols[i])
                     mine = [int(cols[j]) for j in members]
@@ -536,9 +529,17 @@ class Labeler:
         same_rec = (recovery.members == old_rec.members).all(axis=1)
         if len(bodies) == len(keys) and all(tuple(b) in keys for b in bodies) and same_rec.all():
             return False
-        self._install(bodies, d0, a0, recovery, subject_bodies)
+        self._install(bodies, d0, a0, recovery, subject_bodies, keys, same_rec)
         self.restructures += 1
         return True
+
+    def _members(self, b: int) -> tuple[int, ...]:
+        """The markers of current body ``b``, in order."""
+        return tuple(int(v) for v in self._bodies.members[b, : self._bodies.size[b]])
+
+    def _body_keys(self) -> dict[tuple[int, ...], int]:
+        """Each current body's index by its markers (in order)."""
+        return {self._members(b): b for b in range(self._bodies.members.shape[0])}
 
     def _install(
         self,
@@ -547,17 +548,15 @@ class Labeler:
         a0: list[np.ndarray],
         recovery: Recovery,
         subject_bodies: dict[str, np.ndarray],
+        keys: dict[tuple[int, ...], int],
+        same_rec: np.ndarray,
     ) -> None:
         """Installs a new structure between two frames: a body with the same members (in the
-        same order) as a current one keeps its state, and a recovery set with the same members
-        its snapshot; the tracks are not touched."""
+        same order) as a current one (``keys``: :meth:`_body_keys`) keeps its state, and a
+        recovery set with the same members (``same_rec``) its snapshot; the tracks are not
+        touched."""
         c, m = self.config, len(self._names)
         old, old_rec = self._bodies, self._recovery
-        keys = {
-            tuple(int(v) for v in old.members[b, : old.size[b]]): b
-            for b in range(old.members.shape[0])
-        }
-        same_rec = (recovery.members == old_rec.members).all(axis=1)
         new = new_bodies(m, bodies, d0, a0, c.window_T)
         ref0 = np.zeros_like(new.ref)
         ref0_ok = np.zeros_like(new.ref_ok)

@@ -131,7 +131,8 @@ def _run(lab, rng, pos, init, force_every=0):
             d0 = [bd.D0[b, : len(x), : len(x)] for b, x in enumerate(bl)]
             a0 = [bd.A0[b, : len(x), : len(x)] for b, x in enumerate(bl)]
             rec = type(lab._recovery)(*(a.copy() for a in lab._recovery))
-            lab._install(bl, d0, a0, rec, dict(lab._subject_bodies))
+            same = (rec.members == lab._recovery.members).all(axis=1)
+            lab._install(bl, d0, a0, rec, dict(lab._subject_bodies), lab._body_keys(), same)
     return labels
 
 
