@@ -262,12 +262,13 @@ def train_subject(
         raise LabelerError(
             f"subject {name!r}: positions must be (frames, {len(markers)}, 3), got {pos.shape}"
         )
-    D, A = model_pair_statistics(pos, min_pair_frames)
+    D_raw, A_raw = pair_statistics(pos, min_pair_frames)
+    D, A = within_model_ranges(D_raw.copy(), A_raw.copy())  # as model_pair_statistics
     seen = np.isfinite(pos).all(axis=2).sum(axis=0)
     usable = seen >= min_pair_frames
     # the raw mean distances: the model's leave a pair at distance 0 unknown (one point under
     # two names), which is a split track too
-    usable[list(split_tracks(pair_statistics(pos, min_pair_frames)[0], seen))] = False
+    usable[list(split_tracks(D_raw, seen))] = False
     bodies = select_bodies(
         D,
         A,
