@@ -365,9 +365,7 @@ class Scorer:
                     boot_s[name] = None if not np.isfinite(delay) else float(delay)
                 else:
                     reid.append(float(delay))
-                    by_subject.setdefault(name, []).append(
-                        float(delay) if np.isfinite(delay) else None
-                    )
+                    by_subject.setdefault(name, []).append(reid[-1] if hit.size else None)
                 if hit.size and first_boot is None:
                     first_boot = st + int(hit[0])
             if first_boot is not None:
@@ -377,7 +375,8 @@ class Scorer:
         if boot_s and all(v is not None for v in boot_s.values()):
             out["boot_s_max"] = max(v for v in boot_s.values() if v is not None)
         out["accuracy_after_boot"] = acc_ok / acc_vis if acc_vis else None
-        out["reid_s"] = [v if np.isfinite(v) else None for v in reid]
+        # the same delays, subject after subject (the order of ``reid``)
+        out["reid_s"] = [v for vs in by_subject.values() for v in vs]
         out["reid_s_by_subject"] = by_subject
         if reid:
             p95 = float(np.percentile(reid, 95, method="higher"))
