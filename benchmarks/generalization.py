@@ -61,7 +61,11 @@ next to its labeled-window fields,
 ``boot_minus_window`` (``accuracy_after_boot`` minus the labeled-window ``accuracy`` of the same
 cell, in fractions: the issue's bar is >= -0.002), the ``train``/``evaluate_boot`` commands, and
 the summary per group and cell gains ``boot``: worst and median ``boot_s_max`` (a subject never
-booted counts as infinite), worst ``boot_minus_window``, max ghost rate. In boot mode the
+booted counts as infinite), worst ``boot_minus_window``, max ghost rate, ``subjects_booted``
+(``[booted, subject-cells]``) and ``subjects_booted_model_complete`` (the same over the
+subject-cells whose model knows every marker the scene shows of that subject: a training
+segment that never showed a marker leaves the template without it, and that subject cannot
+reach the 95 % criterion). In boot mode the
 labeled-window fields and issue 10's ``bars`` are those of the (possibly cut) scored scenes:
 compare them with a default run only where ``scene_cut_from_frames`` is null. The default mode's
 output is unchanged.
@@ -85,7 +89,7 @@ from typing import Any
 import numpy as np
 from _common import emit
 
-from labeler_service.capture import Capture, read_capture
+from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import MocapError
 from labeler_service.evaluation.scoring import evaluate
 from labeler_service.scenes.compose import TakeSpec, compose_scene
@@ -545,8 +549,20 @@ def boot_summary(rows: list[dict]) -> dict[str, Any]:
     median_s = float(np.median(boot_s))
     worst_diff = min(diffs, key=lambda d: d[0]) if diffs else None
     never = [r["scene"] for r in done if r["boot"]["boot_s_max"] is None]
+    # per subject-cell: booted, and whether the model knows every marker the scene shows of it
+    # (a template trained on a segment that never showed a marker cannot name it, so that
+    # subject cannot reach the 95 % criterion: the short BTS walk)
+    cells = [
+        (v is not None, not any(split_label(n)[0] == s for n in r.get("model_missing_markers", ())))
+        for r in done
+        if r["boot"]["boot_s"]
+        for s, v in r["boot"]["boot_s"].items()
+    ]
+    complete = [b for b, ok in cells if ok]
     return {
         "scenes": len(done),
+        "subjects_booted": [sum(b for b, _ in cells), len(cells)],
+        "subjects_booted_model_complete": [sum(complete), len(complete)],
         "skipped": skipped,
         "never_booted": never,
         "boot_s_max_worst": None if math.isinf(worst_s) else round(worst_s, 4),
@@ -695,7 +711,10 @@ def main(argv: list[str] | None = None) -> int:
             if b and b["scenes"]:
                 print(
                     f"{group:>8} {cell:<8} boot: {b['scenes']} scenes ({len(b['skipped'])} without "
-                    f"room), {len(b['never_booted'])} with a subject never booted; boot_s_max "
+                    f"room), {len(b['never_booted'])} with a subject never booted; subjects "
+                    f"booted {b['subjects_booted'][0]}/{b['subjects_booted'][1]} "
+                    f"({b['subjects_booted_model_complete'][0]}/"
+                    f"{b['subjects_booted_model_complete'][1]} with a complete model); boot_s_max "
                     f"worst {b['boot_s_max_worst']} median {b['boot_s_max_median']}; after boot "
                     f"minus window worst {b['boot_minus_window_worst']} "
                     f"({b['boot_minus_window_worst_scene']}); ghosts max "

@@ -81,3 +81,30 @@ def test_boot_training_segments_never_overlap_the_scored_ones(real_path):
             assert not scored & train, (scene.name, take.key)
             assert (max(train) - min(train) + 1) / cap.rate >= gen.BOOT_MIN_TRAIN_S - 2.0 / rate
     assert planned > 3 * skipped  # most scenes have room for a training segment
+
+
+def test_boot_summary_counts_subjects_and_models_missing_their_markers():
+    def row(scene, boot_s, missing):
+        return {
+            "scene": scene,
+            "takes": ["x"],
+            "boot_minus_window": None,
+            "model_missing_markers": missing,
+            "boot": {
+                "boot_s_max": None if None in boot_s.values() else max(boot_s.values()),
+                "boot_s": boot_s,
+                "ghost_labeled_rate": None,
+                "absent_labeled": 0,
+                "identity_swaps": 0,
+            },
+        }
+
+    rows = [
+        row("s0", {"A": 0.1, "B": None}, ["B:knee"]),  # B's model lacks a marker
+        row("s1", {"A": None, "B": 0.2}, []),
+    ]
+    out = gen.boot_summary(rows)
+    assert out["subjects_booted"] == [2, 4]
+    # B in s0 is left out of the second count: its model cannot name every marker it shows
+    assert out["subjects_booted_model_complete"] == [2, 3]
+    assert out["never_booted"] == ["s0", "s1"]
