@@ -835,16 +835,24 @@ def _twin_votes(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> dict:
     return out
 
 
-def _twins(tpl: _Template, assign: np.ndarray, pts: np.ndarray, hist: np.ndarray) -> None:
+def _twins(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    movable: np.ndarray | None = None,
+) -> None:
     """Twin markers (two of one body whose exchange no trained distance and no chirality
     quadruple tells: a forearm's radius and ulna, ``SubjectTemplate.twin_witnesses``) placed
     the wrong way round are exchanged: when at least ``TWIN_MIN_VOTES`` of the pair's witness
     quadruples (:func:`_twin_votes`) are reversed over the window and more than ``TWIN_RATIO``
     times as many as are kept, and the exchange does not cost the subject's distances more
     than ``EXCHANGE_MARGIN`` (:func:`_pair_error`: the witnesses decide only what distances
-    cannot)."""
+    cannot). ``movable``: markers that may be exchanged (both of a pair); default all."""
     for (i, j), (kept, rev) in _twin_votes(tpl, assign, hist).items():
         if rev < TWIN_MIN_VOTES or not rev > TWIN_RATIO * kept:
+            continue
+        if movable is not None and not (movable[i] and movable[j]):
             continue
         mk = np.array([i, j], dtype=np.int64)
         base = assign.copy()
@@ -1458,6 +1466,7 @@ def _complete(
     # the new markers' segments read again (a hidden forearm and hand that appear mirrored)
     la = np.where(fresh | (fixed >= 0), la, -1)
     _readings(tpl, la, lp, movable=fresh)
+    _twins(tpl, la, lp, lh, movable=fresh)
     fresh = (fixed < 0) & (la >= 0)
     out[fresh] = local[la[fresh]]
     # one point per marker and one marker per point
