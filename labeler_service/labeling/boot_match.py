@@ -44,9 +44,10 @@ CHIRAL_REVERSED = 0.1
 #: A twin pair (:func:`_twins`) is exchanged when at least this many of its witnesses vote
 #: reversed ...
 TWIN_MIN_VOTES = 2
-#: ... and more than this many times as many as vote kept (a witness across a joint may flip
-#: in a pose the training never showed: weak or split evidence keeps the reading)
-TWIN_RATIO = 2.0
+#: ... and their evidence (summed ``|normalised volume|``) is more than this many times that
+#: of those voting kept (a witness across a joint may flip in a pose the training never
+#: showed: weak or split evidence keeps the reading)
+TWIN_RATIO = 1.5
 #: A twin witness whose normalised volume (:func:`_twin_votes`) is within this of zero abstains
 TWIN_ABSTAIN = 0.05
 
@@ -802,8 +803,10 @@ def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[in
 
 
 def _twin_votes(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> dict:
-    """Per twin pair ``(i, j)`` with both markers placed: how many of its witnesses with all
-    four markers placed keep their trained sign and how many are reversed. A witness is judged
+    """Per twin pair ``(i, j)`` with both markers placed: ``[kept, reversed, kept_weight,
+    reversed_weight]``, how many of its witnesses with all four markers placed keep their
+    trained sign and how many are reversed, and the sums of their ``|normalised volume|``
+    (the evidence each gives). A witness is judged
     over the window (``hist (N, W, 3)``) by its normalised volume ``det / (|e1| |e2| |e3|)``
     (scale-free, in [-1, 1]) averaged over the frames where its tetrahedron is thick (cube root
     of ``|det|`` >= ``CHIRAL_MIN_MM``); within ``TWIN_ABSTAIN`` of zero it does not vote: a
@@ -827,11 +830,13 @@ def _twin_votes(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> dict:
     n = thick.sum(axis=1)
     mean = np.where(thick, unit, 0.0).sum(axis=1) / np.maximum(n, 1)
     for (i, j), k, v in zip(w[:, :2].tolist(), n, mean, strict=True):
-        votes = out.setdefault((i, j), [0, 0])
+        votes = out.setdefault((i, j), [0, 0, 0.0, 0.0])
         if k and v > TWIN_ABSTAIN:
             votes[0] += 1
+            votes[2] += float(v)
         elif k and v < -TWIN_ABSTAIN:
             votes[1] += 1
+            votes[3] -= float(v)
     return out
 
 
@@ -845,12 +850,13 @@ def _twins(
     """Twin markers (two of one body whose exchange no trained distance and no chirality
     quadruple tells: a forearm's radius and ulna, ``SubjectTemplate.twin_witnesses``) placed
     the wrong way round are exchanged: when at least ``TWIN_MIN_VOTES`` of the pair's witness
-    quadruples (:func:`_twin_votes`) are reversed over the window and more than ``TWIN_RATIO``
-    times as many as are kept, and the exchange does not cost the subject's distances more
-    than ``EXCHANGE_MARGIN`` (:func:`_pair_error`: the witnesses decide only what distances
-    cannot). ``movable``: markers that may be exchanged (both of a pair); default all."""
-    for (i, j), (kept, rev) in _twin_votes(tpl, assign, hist).items():
-        if rev < TWIN_MIN_VOTES or not rev > TWIN_RATIO * kept:
+    quadruples (:func:`_twin_votes`) are reversed over the window, their summed evidence is
+    more than ``TWIN_RATIO`` times that of the kept ones, and the exchange does not cost the
+    subject's distances more than ``EXCHANGE_MARGIN`` (:func:`_pair_error`: the witnesses
+    decide only what distances cannot). ``movable``: markers that may be exchanged (both of
+    a pair); default all."""
+    for (i, j), (_, rev, w_kept, w_rev) in _twin_votes(tpl, assign, hist).items():
+        if rev < TWIN_MIN_VOTES or not w_rev > TWIN_RATIO * w_kept:
             continue
         if movable is not None and not (movable[i] and movable[j]):
             continue
