@@ -39,6 +39,7 @@ TWIN_AGREE = 0.99  # a witness keeps one sign in this fraction of the training f
 TWIN_MIN_FRAMES = 20  # ... seen in at least this many of them
 TWIN_WITNESSES = 6  # witnesses per twin pair at most
 TWIN_PER_MARKER = 2  # a third marker is in at most this many witnesses of one pair
+TWIN_REACH = 0.5  # a witness's other markers within this fraction of the subject's extent
 
 
 def _hinge_quads(bodies: Sequence[Sequence[int]]) -> set[tuple[int, int, int, int]]:
@@ -210,14 +211,19 @@ def twin_witnesses(
     and ``j`` reverses every witness of the pair. The steadiest first (least largest trained
     deviation ``A`` among the quadruple's pairs: a quadruple over one segment keeps its sign in
     any pose, one across a joint may flip in a pose the training never showed), at most
-    ``TWIN_WITNESSES`` per pair, a third marker in at most ``TWIN_PER_MARKER`` of them. The
-    boot votes with them (``boot_match._twins``)."""
+    ``TWIN_WITNESSES`` per pair, a third marker in at most ``TWIN_PER_MARKER`` of them, and
+    only markers within ``TWIN_REACH`` of the subject's extent (largest ``D``) of both twins,
+    about a limb's length: a dancer's toe markers witnessed by her head and shoulders keep
+    their sign only while her feet point the way they did in training, and all of them flip
+    together when she turns a foot. The boot votes with them (``boot_match._twins``)."""
     m = D.shape[0]
     f = pos.shape[0]
     p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
     out: list[list[int]] = []
+    extent = float(np.nanmax(D)) if np.isfinite(D).any() else 0.0
     for i, j in twin_pairs(pos, D, A, bodies, quads):
-        rest = [k for k in range(m) if k not in (i, j)]
+        near = np.fmax(D[i], D[j]) <= TWIN_REACH * extent  # (NaN: never seen together)
+        rest = [k for k in range(m) if k not in (i, j) and near[k]]
         ab = np.array(list(itertools.combinations(rest, 2)), dtype=np.int64).reshape(-1, 2)
         if ab.size == 0:
             continue

@@ -10,10 +10,13 @@ import numpy as np
 
 from labeler_service.capture import Capture
 
-MARKERS = ("T0", "T1", "T2", "T3", "T4", "Shoulder", "Elbow", "Radius", "Ulna", "Finger")
+MARKERS = ("T0", "T1", "T2", "T3", "T4", "Shoulder", "Elbow", "Radius", "Ulna", "Finger", "Foot")
+#: the trunk's markers and a foot rigid with it (human proportions: the subject's extent, head
+#: to foot, is what a witness's reach is measured against)
 TRUNK = np.array(
     [[0, 0, 0], [160, 0, -20], [40, 130, -150], [-60, 90, 140], [90, -40, -260]], dtype=float
 )
+FOOT = np.array([60.0, 0.0, -1300.0])
 JOINT = np.array([220.0, 0.0, 0.0])  # shoulder, in the trunk's frame
 UPPER, FOREARM, HALF_WIDTH, HAND = 280.0, 250.0, 40.0, 90.0
 
@@ -57,5 +60,6 @@ def twin_capture(seed: int, frames: int = 240, rate: float = 120.0) -> Capture:
         pos[k, 7] = wrist + HALF_WIDTH * v
         pos[k, 8] = wrist - HALF_WIDTH * v
         pos[k, 9] = wrist + HAND * u
+        pos[k, 10] = FOOT @ R.T + origin
     pos += rng.normal(0.0, 0.3, pos.shape)
     return Capture(pos.astype(np.float32), tuple(f"P:{m}" for m in MARKERS), rate, source="twin")
