@@ -32,6 +32,15 @@ CHIRALITY_FRAMES = 400  # frames looked at (evenly spread)
 CHIRALITY_POOL = 20000  # quadruples enumerated at most
 HINGE_MAX_MARKERS = 8  # a body or hinge union larger than this adds no quadruples (C(8,4) = 70)
 
+#: twin markers and their witnesses (see :func:`twin_witnesses`)
+TWIN_Z = 1.5  # |D[i,k] - D[j,k]| <= TWIN_Z (A[i,k] + A[j,k]) for every body partner k
+TWIN_SEPARATED = 0.9  # a chirality quadruple reversed by the exchange in this fraction separates
+TWIN_AGREE = 0.99  # a witness keeps one sign in this fraction of the training frames
+TWIN_MIN_FRAMES = 20  # ... seen in at least this many of them
+TWIN_WITNESSES = 6  # witnesses per twin pair at most
+TWIN_PER_MARKER = 2  # a third marker is in at most this many witnesses of one pair
+TWIN_REACH = 0.5  # a witness's other markers within this fraction of the subject's extent
+
 
 def _hinge_quads(bodies: Sequence[Sequence[int]]) -> set[tuple[int, int, int, int]]:
     """Quadruples inside one trained body or the union of two bodies that share at least two
@@ -122,6 +131,124 @@ def chirality_quads(
         use[q[k]] += 1
         if len(out) >= CHIRALITY_MAX:
             break
+    return out
+
+
+def _signed_volumes(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``det(p[b] - p[a], p[c] - p[a], p[d] - p[a])`` per frame of ``p (F, m, 3)`` and quadruple
+    ``[a, b, c, d]`` of ``q (Q, 4)``: ``(F, Q)``, NaN where a marker is unseen."""
+    e = p[:, q[:, 1:]] - p[:, q[:, :1]]  # (F, Q, 3, 3)
+    with np.errstate(all="ignore"):  # NaN or degenerate frames
+        return np.linalg.det(e.astype(np.float64))
+
+
+def _thickness(det: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column of ``det (F, Q)``: frames seen, fraction of them positive, and the 10th
+    percentile of the thickness (cube root of ``|det|``) over them."""
+    seen = np.isfinite(det)
+    n = seen.sum(axis=0)
+    pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
+    size = np.sort(np.cbrt(np.abs(np.where(seen, det, np.nan))), axis=0)  # NaN last
+    at = 0.1 * np.maximum(n - 1, 0)
+    lo = np.floor(at).astype(np.int64)
+    hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
+    cols = np.arange(size.shape[1])
+    thick = size[lo, cols] + (at - lo) * (size[hi, cols] - size[lo, cols])
+    return n, pos_frac, np.nan_to_num(thick)
+
+
+def twin_pairs(
+    pos: np.ndarray, D: np.ndarray, A: np.ndarray, bodies: Sequence[Sequence[int]], quads
+) -> list[tuple[int, int]]:
+    """Pairs of markers ``(i, j)`` of one body whose exchange the trained distances cannot
+    tell and no chirality quadruple separates: every marker ``k`` sharing a body with ``i`` or
+    ``j`` has ``|D[i,k] - D[j,k]| <= TWIN_Z (A[i,k] + A[j,k])`` (a forearm's radius and ulna
+    markers, 81 mm apart, at 271.8 and 277.5 mm from the elbow, 143.4 and 143.1 from the
+    finger), and no quadruple of ``quads`` containing ``i`` or ``j`` changes its sign in
+    ``TWIN_SEPARATED`` of the training frames ``pos (F, m, 3)`` when the two are exchanged."""
+    m = D.shape[0]
+    partner = np.zeros((m, m), dtype=bool)
+    for b in bodies:
+        idx = np.asarray(b, dtype=np.int64)
+        partner[np.ix_(idx, idx)] = True
+    np.fill_diagonal(partner, False)
+    q = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
+    f = pos.shape[0]
+    p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
+    out = []
+    for i, j in itertools.combinations(range(m), 2):
+        if not partner[i, j]:
+            continue
+        ks = np.flatnonzero(partner[i] | partner[j])
+        ks = ks[(ks != i) & (ks != j)]
+        d = np.abs(D[i, ks] - D[j, ks])
+        a = A[i, ks] + A[j, ks]
+        ok = np.isfinite(d) & np.isfinite(a)
+        if not ok.any() or np.any(d[ok] > TWIN_Z * np.maximum(a[ok], 1.0)):
+            continue
+        mine = q[np.any((q == i) | (q == j), axis=1)]
+        if mine.size:
+            swapped = np.where(mine == i, -1, mine)
+            swapped = np.where(mine == j, i, swapped)
+            swapped = np.where(swapped == -1, j, swapped)
+            before = _signed_volumes(p, mine)
+            after = _signed_volumes(p, swapped)
+            both = np.isfinite(before) & np.isfinite(after)
+            flip = np.where(both, np.sign(before) != np.sign(after), False).sum(axis=0)
+            if np.any(flip >= TWIN_SEPARATED * np.maximum(both.sum(axis=0), 1)):
+                continue
+        out.append((i, j))
+    return out
+
+
+def twin_witnesses(
+    pos: np.ndarray, D: np.ndarray, A: np.ndarray, bodies: Sequence[Sequence[int]], quads
+) -> list[list[int]]:
+    """Witness quadruples ``[i, j, a, b]`` of the twin pairs (:func:`twin_pairs`): ``a, b``
+    any two other markers of the subject with the signed volume ``det(j - i, a - i, b - i)``
+    positive in ``TWIN_AGREE`` of the training frames (at least ``TWIN_MIN_FRAMES`` seen) and
+    thick (cube root of ``|det|`` >= ``CHIRALITY_MIN_MM`` in 90 % of them). Exchanging ``i``
+    and ``j`` reverses every witness of the pair. The steadiest first (least largest trained
+    deviation ``A`` among the quadruple's pairs: a quadruple over one segment keeps its sign in
+    any pose, one across a joint may flip in a pose the training never showed), at most
+    ``TWIN_WITNESSES`` per pair, a third marker in at most ``TWIN_PER_MARKER`` of them, and
+    only markers within ``TWIN_REACH`` of the subject's extent (largest ``D``) of both twins,
+    about a limb's length: a dancer's toe markers witnessed by her head and shoulders keep
+    their sign only while her feet point the way they did in training, and all of them flip
+    together when she turns a foot. The boot votes with them (``boot_match._twins``)."""
+    m = D.shape[0]
+    f = pos.shape[0]
+    p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
+    out: list[list[int]] = []
+    extent = float(np.nanmax(D)) if np.isfinite(D).any() else 0.0
+    for i, j in twin_pairs(pos, D, A, bodies, quads):
+        near = np.fmax(D[i], D[j]) <= TWIN_REACH * extent  # (NaN: never seen together)
+        rest = [k for k in range(m) if k not in (i, j) and near[k]]
+        ab = np.array(list(itertools.combinations(rest, 2)), dtype=np.int64).reshape(-1, 2)
+        if ab.size == 0:
+            continue
+        q = np.concatenate([np.full((ab.shape[0], 1), i), np.full((ab.shape[0], 1), j), ab], 1)
+        n, pos_frac, thick = _thickness(_signed_volumes(p, q))
+        agree = np.maximum(pos_frac, 1.0 - pos_frac)
+        ok = (n >= TWIN_MIN_FRAMES) & (agree >= TWIN_AGREE) & (thick >= CHIRALITY_MIN_MM)
+        if not ok.any():
+            continue
+        k = np.flatnonzero(ok)
+        pairs = [(0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+        spread = np.max([A[q[k, u], q[k, v]] for u, v in pairs], axis=0)
+        spread = np.where(np.isfinite(spread), spread, np.inf)
+        use: dict[int, int] = {}
+        chosen = 0
+        for r in k[np.lexsort((-thick[k], spread))]:
+            a, b = int(q[r, 2]), int(q[r, 3])
+            if use.get(a, 0) >= TWIN_PER_MARKER or use.get(b, 0) >= TWIN_PER_MARKER:
+                continue
+            out.append([i, j, a, b] if pos_frac[r] >= 0.5 else [i, j, b, a])
+            use[a] = use.get(a, 0) + 1
+            use[b] = use.get(b, 0) + 1
+            chosen += 1
+            if chosen >= TWIN_WITNESSES:
+                break
     return out
 
 
@@ -223,12 +350,14 @@ class StructureTrainer:
             q = np.mean(noises, axis=0)
             quads = chirality_quads(pos, t.A_array(), t.bodies)
             shapes = handed_shapes(t.shapes, t.bodies, quads)
+            witnesses = twin_witnesses(pos, t.D_array(), t.A_array(), t.bodies, quads)
             templates.append(
                 t.model_copy(
                     update={
                         "motion_noise": [float(x) for x in q],
                         "chirality": quads,
                         "shapes": shapes,
+                        "twin_witnesses": witnesses,
                     }
                 )
             )

@@ -41,6 +41,15 @@ CHIRAL_MIN_MM = 10.0
 #: pose it never saw (a head, upper arm and hand of a hugging performer: 1 of 29 reversed on a
 #: correct reading).
 CHIRAL_REVERSED = 0.1
+#: A twin pair (:func:`_twins`) is exchanged when at least this many of its witnesses vote
+#: reversed ...
+TWIN_MIN_VOTES = 2
+#: ... and their evidence (summed ``|normalised volume|``) is more than this many times that
+#: of those voting kept (a witness across a joint may flip in a pose the training never
+#: showed: weak or split evidence keeps the reading)
+TWIN_RATIO = 1.5
+#: A twin witness whose normalised volume (:func:`_twin_votes`) is within this of zero abstains
+TWIN_ABSTAIN = 0.05
 
 
 # ---------------------------------------------------------------------------- templates
@@ -86,6 +95,9 @@ class _Template:
     chirality: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
     #: (q,) quadruples inside one body or two bodies sharing a marker (see _handedness)
     chiral_local: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: (w, 4) witness quadruples [i, j, a, b] of twin markers i, j
+    #: (``SubjectTemplate.twin_witnesses``, see _twins)
+    twins: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -149,6 +161,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tpl.extent = float(np.nanmax(Dm)) if np.isfinite(Dm).any() else 2000.0
         tpl.chirality = np.asarray(subj.chirality, dtype=np.int64).reshape(-1, 4)
         tpl.chiral_local = _local_quads(tpl.chirality, subj.bodies)
+        tpl.twins = np.asarray(subj.twin_witnesses, dtype=np.int64).reshape(-1, 4)
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
         _nll_tables(tpl)
@@ -789,6 +802,73 @@ def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[in
     return int(np.sum(thick & (det > 0))), int(rev.sum()), int(np.sum(rev & local))
 
 
+def _twin_votes(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> dict:
+    """Per twin pair ``(i, j)`` with both markers placed: ``[kept, reversed, kept_weight,
+    reversed_weight]``, how many of its witnesses with all four markers placed keep their
+    trained sign and how many are reversed, and the sums of their ``|normalised volume|``
+    (the evidence each gives). A witness is judged
+    over the window (``hist (N, W, 3)``) by its normalised volume ``det / (|e1| |e2| |e3|)``
+    (scale-free, in [-1, 1]) averaged over the frames where its tetrahedron is thick (cube root
+    of ``|det|`` >= ``CHIRAL_MIN_MM``); within ``TWIN_ABSTAIN`` of zero it does not vote: a
+    witness across a joint near the pose where it flips (measured on the synthetic arm: the
+    two that flipped in an unseen pose were at -0.02 and -0.00, the four right ones at 0.12 to
+    0.39) is no evidence either way."""
+    w = tpl.twins
+    out: dict[tuple[int, int], list[int]] = {}
+    if w.shape[0] == 0:
+        return out
+    use = np.all(assign[w] >= 0, axis=1)
+    if not use.any():
+        return out
+    w = w[use]
+    p = hist[assign[w]]  # (q, 4, W, 3)
+    e = np.transpose(p[:, 1:] - p[:, :1], (0, 2, 1, 3))  # (q, W, 3, 3)
+    with np.errstate(all="ignore"):  # untracked frames, coincident points
+        det = np.linalg.det(e)
+        unit = det / np.prod(np.linalg.norm(e, axis=3), axis=2)
+    thick = np.isfinite(unit) & (np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM)
+    n = thick.sum(axis=1)
+    mean = np.where(thick, unit, 0.0).sum(axis=1) / np.maximum(n, 1)
+    for (i, j), k, v in zip(w[:, :2].tolist(), n, mean, strict=True):
+        votes = out.setdefault((i, j), [0, 0, 0.0, 0.0])
+        if k and v > TWIN_ABSTAIN:
+            votes[0] += 1
+            votes[2] += float(v)
+        elif k and v < -TWIN_ABSTAIN:
+            votes[1] += 1
+            votes[3] -= float(v)
+    return out
+
+
+def _twins(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    movable: np.ndarray | None = None,
+) -> None:
+    """Twin markers (two of one body whose exchange no trained distance and no chirality
+    quadruple tells: a forearm's radius and ulna, ``SubjectTemplate.twin_witnesses``) placed
+    the wrong way round are exchanged: when at least ``TWIN_MIN_VOTES`` of the pair's witness
+    quadruples (:func:`_twin_votes`) are reversed over the window, their summed evidence is
+    more than ``TWIN_RATIO`` times that of the kept ones, and the exchange does not cost the
+    subject's distances more than ``EXCHANGE_MARGIN`` (:func:`_pair_error`: the witnesses
+    decide only what distances cannot). ``movable``: markers that may be exchanged (both of
+    a pair); default all."""
+    for (i, j), (_, rev, w_kept, w_rev) in _twin_votes(tpl, assign, hist).items():
+        if rev < TWIN_MIN_VOTES or not w_rev > TWIN_RATIO * w_kept:
+            continue
+        if movable is not None and not (movable[i] and movable[j]):
+            continue
+        mk = np.array([i, j], dtype=np.int64)
+        base = assign.copy()
+        base[mk] = -1
+        now = _pair_error(tpl, mk, assign[mk], base, pts)
+        then = _pair_error(tpl, mk, assign[mk[::-1]], base, pts)
+        if then <= now + EXCHANGE_MARGIN:
+            assign[i], assign[j] = assign[j], assign[i]
+
+
 @dataclass
 class _Hypothesis:
     template: int
@@ -925,6 +1005,7 @@ def _hypotheses(
             free = ~claimed
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
+            _twins(tpl, assign, pts, hist)
             kept, reversed_, local = _handedness(tpl, assign, pts)
             if local > 0 or reversed_ > CHIRAL_REVERSED * (kept + reversed_):
                 # a mirror image (left read for right): every distance fits, the volumes
@@ -1391,6 +1472,7 @@ def _complete(
     # the new markers' segments read again (a hidden forearm and hand that appear mirrored)
     la = np.where(fresh | (fixed >= 0), la, -1)
     _readings(tpl, la, lp, movable=fresh)
+    _twins(tpl, la, lp, lh, movable=fresh)
     fresh = (fixed < 0) & (la >= 0)
     out[fresh] = local[la[fresh]]
     # one point per marker and one marker per point

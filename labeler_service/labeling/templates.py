@@ -74,6 +74,12 @@ class SubjectTemplate(BaseModel):
     #: cannot carry (a subject read mirrored keeps every distance); learned by
     #: ``train structure``, empty in models without it
     chirality: list[list[int]] = Field(default_factory=list)
+    #: witness quadruples ``[i, j, a, b]`` of "twin" markers ``i, j`` (two markers of one body
+    #: whose exchange no trained distance and no chirality quadruple can tell: a forearm's
+    #: radius and ulna): ``det(j - i, a - i, b - i)`` kept a positive sign in the training
+    #: frames, so exchanging ``i`` and ``j`` reverses it; the boot votes with them
+    #: (``boot_match._twins``); learned by ``train structure``, empty in models without it
+    twin_witnesses: list[list[int]] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _check(self) -> SubjectTemplate:
@@ -133,6 +139,18 @@ class SubjectTemplate(BaseModel):
                             f"{where}: chirality entry {quad}: {self.markers[i]}-"
                             f"{self.markers[j]} has no trained distance"
                         )
+        if len(self.twin_witnesses) > MAX_CHIRALITY:
+            raise ValueError(
+                f"{where}: {len(self.twin_witnesses)} twin witnesses, more than {MAX_CHIRALITY}"
+            )
+        seen_w: set[tuple[int, ...]] = set()
+        for quad in self.twin_witnesses:
+            if len(quad) != 4 or len(set(quad)) != 4 or any(not 0 <= i < m for i in quad):
+                raise ValueError(f"{where}: twin witness {quad} must be 4 distinct marker indices")
+            key = (min(quad[:2]), max(quad[:2]), *sorted(quad[2:]))
+            if key in seen_w:
+                raise ValueError(f"{where}: twin witness {quad} repeats another")
+            seen_w.add(key)
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
         for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):
