@@ -802,7 +802,9 @@ def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[in
     return int(np.sum(thick & (det > 0))), int(rev.sum()), int(np.sum(rev & local))
 
 
-def _twin_votes(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> dict:
+def _twin_votes(
+    tpl: _Template, assign: np.ndarray, hist: np.ndarray
+) -> dict[tuple[int, int], list[float]]:
     """Per twin pair ``(i, j)`` with both markers placed: ``[kept, reversed, kept_weight,
     reversed_weight]``, how many of its witnesses with all four markers placed keep their
     trained sign and how many are reversed, and the sums of their ``|normalised volume|``
@@ -814,7 +816,7 @@ def _twin_votes(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> dict:
     two that flipped in an unseen pose were at -0.02 and -0.00, the four right ones at 0.12 to
     0.39) is no evidence either way."""
     w = tpl.twins
-    out: dict[tuple[int, int], list[int]] = {}
+    out: dict[tuple[int, int], list[float]] = {}
     if w.shape[0] == 0:
         return out
     use = np.all(assign[w] >= 0, axis=1)

@@ -147,10 +147,10 @@ class SubjectTemplate(BaseModel):
         for quad in self.twin_witnesses:
             if len(quad) != 4 or len(set(quad)) != 4 or any(not 0 <= i < m for i in quad):
                 raise ValueError(f"{where}: twin witness {quad} must be 4 distinct marker indices")
-            key = (min(quad[:2]), max(quad[:2]), *sorted(quad[2:]))
-            if key in seen_w:
+            wkey = (min(quad[:2]), max(quad[:2]), *sorted(quad[2:]))
+            if wkey in seen_w:
                 raise ValueError(f"{where}: twin witness {quad} repeats another")
-            seen_w.add(key)
+            seen_w.add(wkey)
         if len(self.shapes) != len(self.bodies):
             raise ValueError(f"{where}: {len(self.bodies)} bodies but {len(self.shapes)} shapes")
         for b, (body, shape) in enumerate(zip(self.bodies, self.shapes, strict=True)):
