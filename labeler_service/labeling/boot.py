@@ -309,7 +309,8 @@ class Booter:
         trilateration; new markers must keep their rigid distances along the tracks. With
         ``age (N,)`` (seconds each point's track has lived) the markers still missing then
         take free tracks at least ``fill_min_age_s`` old, judged jointly (:func:`_fill`).
-        Labels already given are never changed. Returns the new labels (a copy)."""
+        Labels already given are never changed, except that the fill may move a subject's
+        weakly placed markers (:func:`_weak_markers`). Returns the new labels (a copy)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         hist = np.asarray(history, dtype=np.float64)
         out = np.asarray(labels, dtype=np.int64).copy()
@@ -340,7 +341,11 @@ class Booter:
             assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
             others = pts[(out >= 0) & ~mine]
             grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config)
-            fresh = (grown >= 0) & (assign < 0)
+            # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
+            moved = assign[(assign >= 0) & (grown != assign)]
+            out[moved] = -1
+            taken[moved] = False
+            fresh = (grown >= 0) & (grown != assign)
             out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
             taken[grown[fresh]] = True
         return out
