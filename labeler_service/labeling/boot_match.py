@@ -1408,6 +1408,44 @@ def _complete(
     return out
 
 
+#: Rounds of :func:`_complete_weak` (each releases the weak markers the last one left).
+WEAK_ROUNDS = 3
+
+
+def _complete_weak(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    taken: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray:
+    """:func:`_complete`, then up to ``WEAK_ROUNDS`` re-readings with the weakly placed
+    markers (:func:`_weak_markers`) released: the completion without them is kept when it
+    places more of the subject's markers. A limb or plate read on another limb's points at
+    boot (the kneeling performer's right ankle, heel and toe triangle on its left hand and
+    forearm, a shank marker on a toe) holds its points and clashes with every candidate of
+    the segments next to it, which then stay unlabeled for the whole take; released, those
+    segments join on their rigid evidence and the released markers are placed again where
+    the completion finds them. Markers may move: the caller carries the moves."""
+    grown = _complete(tpl, assign, pts, hist, taken, config)
+    for _ in range(WEAK_ROUNDS):
+        if np.all(grown >= 0):
+            break
+        weak = _weak_markers(tpl, grown, np.flatnonzero(grown < 0), pts)
+        if weak.size == 0:
+            break
+        base = grown.copy()
+        base[weak] = -1
+        free = taken.copy()
+        free[grown[weak]] = False
+        alt = _complete(tpl, base, pts, hist, free, config)
+        if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
+            break
+        grown = alt
+    return grown
+
+
 def warmup_kernels() -> None:
     """Compiles (or loads from cache) the boot's numba kernels on a tiny input."""
     M = np.zeros(2, dtype=np.int64)
@@ -1596,7 +1634,8 @@ def _weak_markers(
     most ``WEAK_SUPPORT`` of their pairs of one trained body placed at their distance: the
     rigid evidence the joint resolution of :meth:`Booter.run` weighs a contested point by.
     A chain read one marker along (the tennis server's upper arm on the elbow's point, the
-    elbow on the forearm's) keeps each such marker with one or no rigid partner in place."""
+    elbow on the forearm's) keeps each such marker with one or no rigid partner in place.
+    Support from weak markers does not count (repeated until nothing changes)."""
     have = np.flatnonzero(assign >= 0)
     if have.size < 2 or miss.size == 0:
         return np.zeros(0, dtype=np.int64)
@@ -1609,8 +1648,14 @@ def _weak_markers(
     ok = tpl.strict[np.ix_(have, have)] & (
         np.abs(d - tpl.D[np.ix_(have, have)]) <= tpl.tol[np.ix_(have, have)]
     )
-    support = ok.sum(axis=1)
-    return have[share[have] & (support <= WEAK_SUPPORT)]
+    # support from weak markers does not count: a triangle read on another limb's points
+    # holds its three distances to itself (its two weakest make the third weak too)
+    weak = np.zeros(have.size, dtype=bool)
+    while True:
+        grown = share[have] & (ok[:, ~weak].sum(axis=1) <= WEAK_SUPPORT)
+        if np.array_equal(grown, weak):
+            return have[weak]
+        weak = grown
 
 
 def _fill_jointly(
