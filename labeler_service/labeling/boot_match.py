@@ -1422,12 +1422,14 @@ def _complete_weak(
 ) -> np.ndarray:
     """:func:`_complete`, then up to ``WEAK_ROUNDS`` re-readings with the weakly placed
     markers (:func:`_weak_markers`) released: the completion without them is kept when it
-    places more of the subject's markers. A limb or plate read on another limb's points at
-    boot (the kneeling performer's right ankle, heel and toe triangle on its left hand and
-    forearm, a shank marker on a toe) holds its points and clashes with every candidate of
-    the segments next to it, which then stay unlabeled for the whole take; released, those
-    segments join on their rigid evidence and the released markers are placed again where
-    the completion finds them. Markers may move: the caller carries the moves."""
+    places more of the subject's markers and every released marker it puts on another point
+    has more than ``WEAK_SUPPORT`` rigid partners there. A limb or plate read on another
+    limb's points at boot (the kneeling performer's right ankle, heel and toe triangle on its
+    left hand and forearm, a shank marker on a toe) holds its points and clashes with every
+    candidate of the segments next to it, which then stay unlabeled for the whole take;
+    released, those segments join on their rigid evidence and the released markers are
+    placed again where the completion finds them. Markers may move: the caller carries the
+    moves."""
     grown = _complete(tpl, assign, pts, hist, taken, config)
     for _ in range(WEAK_ROUNDS):
         if np.all(grown >= 0):
@@ -1441,6 +1443,11 @@ def _complete_weak(
         free[grown[weak]] = False
         alt = _complete(tpl, base, pts, hist, free, config)
         if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
+            break
+        # a released marker placed on another point must have rigid evidence there: the
+        # dancer's back hip markers (no rigid partner in that model) came back exchanged
+        moved = weak[(alt[weak] >= 0) & (alt[weak] != grown[weak])]
+        if moved.size and np.any(_support(tpl, alt, pts)[moved] <= WEAK_SUPPORT):
             break
         grown = alt
     return grown
@@ -1643,11 +1650,7 @@ def _weak_markers(
     for m in miss:
         for b in tpl.body_of[m]:
             share[tpl.bodies[b].markers] = True
-    p = pts[assign[have]]
-    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
-    ok = tpl.strict[np.ix_(have, have)] & (
-        np.abs(d - tpl.D[np.ix_(have, have)]) <= tpl.tol[np.ix_(have, have)]
-    )
+    ok = _support_pairs(tpl, assign, pts)
     # support from weak markers does not count: a triangle read on another limb's points
     # holds its three distances to itself (its two weakest make the third weak too)
     weak = np.zeros(have.size, dtype=bool)
@@ -1656,6 +1659,25 @@ def _weak_markers(
         if np.array_equal(grown, weak):
             return have[weak]
         weak = grown
+
+
+def _support_pairs(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``(h, h)`` over the placed markers of ``assign`` (in index order): pairs of one trained
+    body (``strict``) placed within their tolerance."""
+    have = np.flatnonzero(assign >= 0)
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    return tpl.strict[np.ix_(have, have)] & (
+        np.abs(d - tpl.D[np.ix_(have, have)]) <= tpl.tol[np.ix_(have, have)]
+    )
+
+
+def _support(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``(m,)`` per placed marker its pairs of one trained body placed within their tolerance
+    (0 for markers not placed)."""
+    out = np.zeros(tpl.n, dtype=np.int64)
+    out[assign >= 0] = _support_pairs(tpl, assign, pts).sum(axis=1)
+    return out
 
 
 def _fill_jointly(
