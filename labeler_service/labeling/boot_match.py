@@ -1422,8 +1422,9 @@ def _complete_weak(
 ) -> np.ndarray:
     """:func:`_complete`, then up to ``WEAK_ROUNDS`` re-readings with the weakly placed
     markers (:func:`_weak_markers`) released: the completion without them is kept when it
-    places more of the subject's markers and every released marker it puts on another point
-    has more than ``WEAK_SUPPORT`` rigid partners there. A limb or plate read on another
+    places more of the subject's markers and the released markers it puts on other points fit
+    the markers placed in both readings better there (:func:`_pair_error`, by
+    ``EXCHANGE_MARGIN``). A limb or plate read on another
     limb's points at boot (the kneeling performer's right ankle, heel and toe triangle on its
     left hand and forearm, a shank marker on a toe) holds its points and clashes with every
     candidate of the segments next to it, which then stay unlabeled for the whole take;
@@ -1444,11 +1445,16 @@ def _complete_weak(
         alt = _complete(tpl, base, pts, hist, free, config)
         if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
             break
-        # a released marker placed on another point must have rigid evidence there: the
-        # dancer's back hip markers (no rigid partner in that model) came back exchanged
+        # released markers placed on other points must fit the markers placed in both
+        # readings better there (:func:`_pair_error`, by ``EXCHANGE_MARGIN``): the dancer's
+        # back hip markers (no rigid partner in that model) came back exchanged otherwise
         moved = weak[(alt[weak] >= 0) & (alt[weak] != grown[weak])]
-        if moved.size and np.any(_support(tpl, alt, pts)[moved] <= WEAK_SUPPORT):
-            break
+        if moved.size:
+            both = (alt >= 0) & (grown >= 0)
+            now = _pair_error(tpl, moved, grown[moved], np.where(both, grown, -1), pts)
+            new = _pair_error(tpl, moved, alt[moved], np.where(both, alt, -1), pts)
+            if new > now - EXCHANGE_MARGIN:
+                break
         grown = alt
     return grown
 
@@ -1670,14 +1676,6 @@ def _support_pairs(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.nd
     return tpl.strict[np.ix_(have, have)] & (
         np.abs(d - tpl.D[np.ix_(have, have)]) <= tpl.tol[np.ix_(have, have)]
     )
-
-
-def _support(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """``(m,)`` per placed marker its pairs of one trained body placed within their tolerance
-    (0 for markers not placed)."""
-    out = np.zeros(tpl.n, dtype=np.int64)
-    out[assign >= 0] = _support_pairs(tpl, assign, pts).sum(axis=1)
-    return out
 
 
 def _fill_jointly(
