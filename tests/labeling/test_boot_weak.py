@@ -111,3 +111,26 @@ def test_extension_carries_moves_with_each_label_once(walk):
     plain = Booter(model).extend(pts, hist, labels, [0])  # (no ages: nothing moves)
     assert plain[ix["LWRA"]] == tpl.offset + ix["LFRM"]
     assert np.unique(plain[plain >= 0]).size == np.count_nonzero(plain >= 0)
+
+
+def test_completion_keeps_weak_markers_placed_right(walk):
+    """Weak is not wrong: with a bar marker and the hand hidden, the bar's two placed markers
+    are weak; released, they must come back where they were (a move must fit better)."""
+    from labeler_service.labeling.boot_match import _complete_weak, _weak_markers
+
+    tpl, names, pts, hist = _case(walk)
+    ix = {n: i for i, n in enumerate(names)}
+    assign = np.arange(tpl.n)
+    hidden = [ix["LWRB"], ix["LFIN"], ix["LHM2"], ix["LHM5"]]
+    assign[hidden] = -1
+    keep = np.ones(tpl.n, dtype=bool)
+    keep[hidden] = False  # the hidden markers' points are gone from the frame
+    pts2, hist2 = pts[keep], hist[keep]
+    back = np.cumsum(keep) - 1
+    assign = np.where(assign >= 0, back[np.maximum(assign, 0)], -1)
+    assert _weak_markers(tpl, assign, np.array(hidden), pts2).size
+    out = _complete_weak(
+        tpl, assign, pts2, hist2, np.zeros(pts2.shape[0], dtype=bool), BootConfig()
+    )
+    placed = assign >= 0
+    assert np.array_equal(out[placed], assign[placed])
