@@ -1600,7 +1600,7 @@ def _fill(
         return assign
     miss = np.flatnonzero(assign < 0)
     miss = miss[np.isfinite(tpl.D[np.ix_(miss, have)]).any(axis=1)]
-    if miss.size == 0:
+    if miss.size < 2:
         return assign
     placed = pts[assign[have]]
     centre = placed.mean(axis=0)
@@ -1609,10 +1609,9 @@ def _fill(
     if cand.size and others.shape[0]:
         d_own = cKDTree(placed).query(pts[cand])[0]
         cand = cand[d_own < cKDTree(others).query(pts[cand])[0]]
-    if miss.size >= 2:
-        out = _fill_jointly(tpl, assign, assign, miss, cand, pts, hist, config)
-        if out is not None:
-            return out
+    out = _fill_jointly(tpl, assign, assign, miss, cand, pts, hist, config)
+    if out is not None:
+        return out
     # Re-read with the weakly placed markers (:func:`_weak_markers`): an arm read one marker
     # along its chain at boot leaves the true points of its first markers free, and the plain
     # fill refuses them (a placed marker fits their points better); the weak markers and their
