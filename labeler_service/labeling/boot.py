@@ -71,6 +71,7 @@ from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.boot_match import (
     EXCHANGE_MARGIN,
     _complete,
+    _complete_weak,
     _fill,
     _hypotheses,
     _Hypothesis,
@@ -309,7 +310,9 @@ class Booter:
         trilateration; new markers must keep their rigid distances along the tracks. With
         ``age (N,)`` (seconds each point's track has lived) the markers still missing then
         take free tracks at least ``fill_min_age_s`` old, judged jointly (:func:`_fill`).
-        Labels already given are never changed. Returns the new labels (a copy)."""
+        Labels already given are never changed, except that with ``age`` the completion and
+        the fill may move a subject's weakly placed markers (:func:`_weak_markers`,
+        :func:`_complete_weak`). Returns the new labels (a copy)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         hist = np.asarray(history, dtype=np.float64)
         out = np.asarray(labels, dtype=np.int64).copy()
@@ -324,8 +327,14 @@ class Booter:
             assign = np.full(tpl.n, -1, dtype=np.int64)
             mine = (out >= tpl.offset) & (out < tpl.offset + tpl.n)
             assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
-            grown = _complete(tpl, assign, pts, hist, taken, self.config)
-            fresh = (grown >= 0) & (assign < 0)
+            if age is None:
+                grown = _complete(tpl, assign, pts, hist, taken, self.config)
+            else:  # (may move weakly placed markers: :func:`_complete_weak`)
+                grown = _complete_weak(tpl, assign, pts, hist, taken, self.config)
+            moved = assign[(assign >= 0) & (grown != assign)]
+            out[moved] = -1
+            taken[moved] = False
+            fresh = (grown >= 0) & (grown != assign)
             out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
             taken[grown[fresh]] = True
         if age is None:
@@ -340,7 +349,11 @@ class Booter:
             assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
             others = pts[(out >= 0) & ~mine]
             grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config)
-            fresh = (grown >= 0) & (assign < 0)
+            # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
+            moved = assign[(assign >= 0) & (grown != assign)]
+            out[moved] = -1
+            taken[moved] = False
+            fresh = (grown >= 0) & (grown != assign)
             out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
             taken[grown[fresh]] = True
         return out

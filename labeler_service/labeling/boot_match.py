@@ -1492,6 +1492,57 @@ def _complete(
     return out
 
 
+#: Rounds of :func:`_complete_weak` (each releases the weak markers the last one left).
+WEAK_ROUNDS = 3
+
+
+def _complete_weak(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    taken: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray:
+    """:func:`_complete`, then up to ``WEAK_ROUNDS`` re-readings with the weakly placed
+    markers (:func:`_weak_markers`) released: the completion without them is kept when it
+    places more of the subject's markers and the released markers it puts on other points fit
+    the markers placed in both readings better there (:func:`_pair_error`, by
+    ``EXCHANGE_MARGIN``). A limb or plate read on another
+    limb's points at boot (the kneeling performer's right ankle, heel and toe triangle on its
+    left hand and forearm, a shank marker on a toe) holds its points and clashes with every
+    candidate of the segments next to it, which then stay unlabeled for the whole take;
+    released, those segments join on their rigid evidence and the released markers are
+    placed again where the completion finds them. Markers may move: the caller carries the
+    moves."""
+    grown = _complete(tpl, assign, pts, hist, taken, config)
+    for _ in range(WEAK_ROUNDS):
+        if np.all(grown >= 0):
+            break
+        weak = _weak_markers(tpl, grown, np.flatnonzero(grown < 0), pts)
+        if weak.size == 0:
+            break
+        base = grown.copy()
+        base[weak] = -1
+        free = taken.copy()
+        free[grown[weak]] = False
+        alt = _complete(tpl, base, pts, hist, free, config)
+        if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
+            break
+        # released markers placed on other points must fit the markers placed in both
+        # readings better there (:func:`_pair_error`, by ``EXCHANGE_MARGIN``): the dancer's
+        # back hip markers (no rigid partner in that model) came back exchanged otherwise
+        moved = weak[(alt[weak] >= 0) & (alt[weak] != grown[weak])]
+        if moved.size:
+            both = (alt >= 0) & (grown >= 0)
+            now = _pair_error(tpl, moved, grown[moved], np.where(both, grown, -1), pts)
+            new = _pair_error(tpl, moved, alt[moved], np.where(both, alt, -1), pts)
+            if new > now - EXCHANGE_MARGIN:
+                break
+        grown = alt
+    return grown
+
+
 def warmup_kernels() -> None:
     """Compiles (or loads from cache) the boot's numba kernels on a tiny input."""
     M = np.zeros(2, dtype=np.int64)
@@ -1642,9 +1693,93 @@ def _fill(
     if cand.size and others.shape[0]:
         d_own = cKDTree(placed).query(pts[cand])[0]
         cand = cand[d_own < cKDTree(others).query(pts[cand])[0]]
+    out = _fill_jointly(tpl, assign, assign, miss, cand, pts, hist, config)
+    if out is not None:
+        return out
+    # Re-read with the weakly placed markers (:func:`_weak_markers`): an arm read one marker
+    # along its chain at boot leaves the true points of its first markers free, and the plain
+    # fill refuses them (a placed marker fits their points better); the weak markers and their
+    # points then join the leftover ones and the joint map may move them.
+    weak = _weak_markers(tpl, assign, miss, pts)
+    if weak.size == 0 or cand.size == 0:
+        return assign
+    base = assign.copy()
+    base[weak] = -1
+    out = _fill_jointly(
+        tpl,
+        assign,
+        base,
+        np.concatenate([miss, weak]),
+        np.concatenate([cand, assign[weak]]),
+        pts,
+        hist,
+        config,
+    )
+    return assign if out is None else out
+
+
+#: A placed marker with at most this many pairs of one trained body placed at their distance
+#: (``strict``, within ``tol``) has weak rigid evidence for its point (:func:`_weak_markers`).
+WEAK_SUPPORT = 1
+
+
+def _weak_markers(
+    tpl: _Template, assign: np.ndarray, miss: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
+    """Placed markers that share a trained body with a leftover marker (``miss``) and have at
+    most ``WEAK_SUPPORT`` of their pairs of one trained body placed at their distance: the
+    rigid evidence the joint resolution of :meth:`Booter.run` weighs a contested point by.
+    A chain read one marker along (the tennis server's upper arm on the elbow's point, the
+    elbow on the forearm's) keeps each such marker with one or no rigid partner in place.
+    Support from weak markers does not count (repeated until nothing changes)."""
+    have = np.flatnonzero(assign >= 0)
+    if have.size < 2 or miss.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    share = np.zeros(tpl.n, dtype=bool)
+    for m in miss:
+        for b in tpl.body_of[m]:
+            share[tpl.bodies[b].markers] = True
+    ok = _support_pairs(tpl, assign, pts)
+    # support from weak markers does not count: a triangle read on another limb's points
+    # holds its three distances to itself (its two weakest make the third weak too)
+    weak = np.zeros(have.size, dtype=bool)
+    while True:
+        grown = share[have] & (ok[:, ~weak].sum(axis=1) <= WEAK_SUPPORT)
+        if np.array_equal(grown, weak):
+            return have[weak]
+        weak = grown
+
+
+def _support_pairs(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``(h, h)`` over the placed markers of ``assign`` (in index order): pairs of one trained
+    body (``strict``) placed within their tolerance."""
+    have = np.flatnonzero(assign >= 0)
+    p = pts[assign[have]]
+    d = np.linalg.norm(p[:, None] - p[None, :], axis=2)
+    return tpl.strict[np.ix_(have, have)] & (
+        np.abs(d - tpl.D[np.ix_(have, have)]) <= tpl.tol[np.ix_(have, have)]
+    )
+
+
+def _fill_jointly(
+    tpl: _Template,
+    assign: np.ndarray,
+    base: np.ndarray,
+    miss: np.ndarray,
+    cand: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray | None:
+    """The joint map of :func:`_fill`: markers ``miss`` (unplaced in ``base``, which is
+    ``assign`` less the markers re-read) onto points ``cand``. Returns the new assignment, or
+    None when it is not unique or a check refuses it."""
+    n = tpl.n
+    have = np.flatnonzero(base >= 0)
+    placed = pts[base[have]]
     nu, nc = miss.size, cand.size
     if nc < 2 or nc > nu or math.perm(nu, nc) > FILL_MAX_MAPS:
-        return assign
+        return None
     scale = np.where(tpl.strict, tpl.tol, tpl.link)
     known = np.isfinite(tpl.D) & (scale > 0)
 
@@ -1671,27 +1806,29 @@ def _fill(
     # cheapest map is one, nothing is placed (the next-best, taken then, read a head's
     # diagonal markers crossed in tune14)
     top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
-    ok = ~_fill_reversed(tpl, assign, pts, miss[mk[top]], cand[pt[top]])
+    ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]])
     if not ok[0]:
-        return assign
+        return None
     best = int(top[np.argmax(ok)])
     rivals = np.count_nonzero(ok & (total[top] <= total[best] + margin))
     if rivals > 1 or (top.size < total.size and total[top[-1]] <= total[best] + margin):
-        return assign  # not unique: wait for more evidence (the next extension)
-    out = assign.copy()
-    fresh = miss[mk[best]]
-    out[fresh] = cand[pt[best]]
+        return None  # not unique: wait for more evidence (the next extension)
+    out = base.copy()
+    out[miss[mk[best]]] = cand[pt[best]]
+    if np.array_equal(out, assign):
+        return None
+    fresh = np.flatnonzero((out >= 0) & (out != assign))
     for m in fresh:
         mine = np.flatnonzero((out >= 0) & (np.arange(n) != m) & np.isfinite(tpl.D[m]))
         mine = mine[np.argsort(tpl.A[m, mine], kind="stable")[: config.art_anchors]]
         d = np.linalg.norm(pts[out[mine]] - pts[out[m]], axis=1)
         if 2 * int(np.count_nonzero(d > tpl.D[m, mine] + tpl.bound[m, mine])) > mine.size:
-            return assign
+            return None
         j = mine[np.argmin(tpl.A[m, mine])]
         track = np.linalg.norm(hist[out[m]] - hist[out[j]], axis=1)
         track = track[np.isfinite(track)]
         if track.size == 0 or float(track.max() - track.min()) > 2.0 * tpl.tol[m, j]:
-            return assign
+            return None
     # a new marker and a placed one exchanging their points (:func:`_pair_error` of the two
     # against the rest, from one (k, k, k) table as in :func:`_exchange`; the pair between
     # them keeps its distance)
@@ -1703,7 +1840,7 @@ def _fill(
     now = T[i, i] - E[i, i, i] - E[i, i, j] + T[j, j] - E[j, j, j] - E[j, j, i]
     swap = T[i, j] - E[i, j, i] - E[i, j, j] + T[j, i] - E[j, i, j] - E[j, i, i]
     if np.any(swap < now - EXCHANGE_MARGIN):
-        return assign
+        return None
     q = tpl.chirality
     if q.shape[0]:
         new = np.zeros(n, dtype=bool)
@@ -1714,5 +1851,5 @@ def _fill(
             with np.errstate(all="ignore"):  # (coincident points)
                 det = np.linalg.det(p[:, 1:] - p[:, :1])
             if np.any((np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)):
-                return assign
+                return None
     return out

@@ -615,13 +615,31 @@ class BootingLabeler:
             self._block_masks(last.ids, last.t),
             self._tracker.ages(),
         )
-        added = (last.labels < 0) & (new >= 0)
+        added = (new >= 0) & (new != last.labels)
         if not added.any():
             return False
+        # markers the joint fill moved (weakly placed at boot: boot_match._weak_markers) give
+        # up their old points first
+        self._unlabel(last.labels[(last.labels >= 0) & (new != last.labels)])
         extra = np.where(added, new, -1)
         self._spread(frames, last.ids, extra)
         self._install([])
         return True
+
+    def _unlabel(self, markers: np.ndarray) -> None:
+        """Markers moved to other points by an extension: their labels leave the window and
+        the inner labeler (:meth:`Labeler.withdraw_markers`); the install that follows seeds
+        them again from their new tracks (:meth:`Labeler.seed_markers`)."""
+        mk = np.unique(np.asarray(markers, dtype=np.int64))
+        if mk.size == 0:
+            return
+        kill = np.zeros(len(self._names) + 1, dtype=bool)  # (index -1: the last, False)
+        kill[mk] = True
+        for fr in self._window:
+            fr.labels[kill[fr.labels]] = -1
+        if not self._labeled_run:
+            self._inner.withdraw_markers(mk)
+        self._inner_known[mk] = False
 
     def _spread(self, frames: list, ids: np.ndarray, labels: np.ndarray) -> None:
         """Gives the labels of the last frame's tracks to the window's free points."""
@@ -751,9 +769,12 @@ class BootingLabeler:
         lab = result.labels
         ext = None
         if snapshot.labels is not None and snapshot.extended is not None:
-            # markers of active subjects the extension found (disjoint from the boot's)
-            add = (snapshot.labels < 0) & (snapshot.extended >= 0)
+            # markers of active subjects the extension found (disjoint from the boot's), and
+            # markers it moved (the joint fill re-reads weakly placed ones)
+            add = (snapshot.extended >= 0) & (snapshot.extended != snapshot.labels)
             add &= np.isin(self._subject_of[np.maximum(snapshot.extended, 0)], list(self._active))
+            gone = snapshot.labels[(snapshot.labels >= 0) & (snapshot.extended != snapshot.labels)]
+            self._unlabel(gone[np.isin(self._subject_of[gone], list(self._active))])
             for s, mask in self._block_masks(snapshot.ids, last.t).items():
                 # withdrawn from that subject since the snapshot
                 add &= ~(mask & (self._subject_of[np.maximum(snapshot.extended, 0)] == s))
