@@ -98,26 +98,11 @@ def chirality_quads(
     quads = sorted(hinge) + [q for q in quads if q not in hinge]
     if not quads:
         return []
-    f = pos.shape[0]
-    p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
     q = np.asarray(quads, dtype=np.int64)
-    e = p[:, q[:, 1:]] - p[:, q[:, :1]]  # (F, Q, 3, 3)
-    with np.errstate(all="ignore"):  # NaN or degenerate frames
-        det = np.linalg.det(e.astype(np.float64))  # NaN where a marker is unseen
-    seen = np.isfinite(det)
-    n = seen.sum(axis=0)
-    pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
+    n, pos_frac, thick = _thickness(_signed_volumes(_spread_frames(pos), q))
     sign = np.where(pos_frac >= 0.5, 1.0, -1.0)
     agree = np.maximum(pos_frac, 1.0 - pos_frac)
-    # the 10th percentile of the thickness over the frames seen (numpy's linear
-    # interpolation; nanpercentile loops over the columns and cost ~1 s a subject)
-    size = np.sort(np.cbrt(np.abs(np.where(seen, det, np.nan))), axis=0)  # NaN last
-    pos = 0.1 * np.maximum(n - 1, 0)
-    lo = np.floor(pos).astype(np.int64)
-    hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
-    cols = np.arange(size.shape[1])
-    thick = size[lo, cols] + (pos - lo) * (size[hi, cols] - size[lo, cols])
-    ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (np.nan_to_num(thick) >= CHIRALITY_MIN_MM)
+    ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (thick >= CHIRALITY_MIN_MM)
     out: list[list[int]] = []
     use = np.zeros(m, dtype=np.int64)
     first = np.array([tuple(int(x) for x in row) in hinge for row in q], dtype=bool)
@@ -134,6 +119,12 @@ def chirality_quads(
     return out
 
 
+def _spread_frames(pos: np.ndarray) -> np.ndarray:
+    """At most ``CHIRALITY_FRAMES`` frames of ``pos (F, m, 3)``, evenly spread."""
+    f = pos.shape[0]
+    return np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
+
+
 def _signed_volumes(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``det(p[b] - p[a], p[c] - p[a], p[d] - p[a])`` per frame of ``p (F, m, 3)`` and quadruple
     ``[a, b, c, d]`` of ``q (Q, 4)``: ``(F, Q)``, NaN where a marker is unseen."""
@@ -144,7 +135,8 @@ def _signed_volumes(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def _thickness(det: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per column of ``det (F, Q)``: frames seen, fraction of them positive, and the 10th
-    percentile of the thickness (cube root of ``|det|``) over them."""
+    percentile of the thickness (cube root of ``|det|``) over them, 0 where none (numpy's
+    linear interpolation; nanpercentile loops over the columns and cost ~1 s a subject)."""
     seen = np.isfinite(det)
     n = seen.sum(axis=0)
     pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
@@ -173,8 +165,7 @@ def twin_pairs(
         partner[np.ix_(idx, idx)] = True
     np.fill_diagonal(partner, False)
     q = np.asarray(quads, dtype=np.int64).reshape(-1, 4)
-    f = pos.shape[0]
-    p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
+    p = _spread_frames(pos)
     out = []
     for i, j in itertools.combinations(range(m), 2):
         if not partner[i, j]:
@@ -217,8 +208,7 @@ def twin_witnesses(
     their sign only while her feet point the way they did in training, and all of them flip
     together when she turns a foot. The boot votes with them (``boot_match._twins``)."""
     m = D.shape[0]
-    f = pos.shape[0]
-    p = np.asarray(pos[np.unique(np.linspace(0, f - 1, min(f, CHIRALITY_FRAMES)).astype(int))])
+    p = _spread_frames(pos)
     out: list[list[int]] = []
     extent = float(np.nanmax(D)) if np.isfinite(D).any() else 0.0
     for i, j in twin_pairs(pos, D, A, bodies, quads):
