@@ -513,13 +513,7 @@ class BootingLabeler:
             glab[hit] = -1
             pos[mk] = np.nan
             state[mk] = MarkerState.MISSING
-            kill = np.zeros(len(self._names) + 1, dtype=bool)  # (index -1: the last, False)
-            kill[mk] = True
-            for fr in self._window:
-                fr.labels[kill[fr.labels]] = -1
-            if not self._labeled_run:
-                self._inner.withdraw_markers(mk)
-            self._inner_known[mk] = False
+            self._unlabel(mk)
             self.events.append((t, "withdraw", self.model.subjects[s].name))
         drop = [s for s in verdict.drop if s in self._active]
         if not drop:
@@ -627,9 +621,10 @@ class BootingLabeler:
         return True
 
     def _unlabel(self, markers: np.ndarray) -> None:
-        """Markers moved to other points by an extension: their labels leave the window and
-        the inner labeler (:meth:`Labeler.withdraw_markers`); the install that follows seeds
-        them again from their new tracks (:meth:`Labeler.seed_markers`)."""
+        """Markers withdrawn (re-verification) or moved to other points by an extension: their
+        labels leave the window and the inner labeler (:meth:`Labeler.withdraw_markers`); a
+        moved marker is seeded again from its new track by the install that follows
+        (:meth:`Labeler.seed_markers`)."""
         mk = np.unique(np.asarray(markers, dtype=np.int64))
         if mk.size == 0:
             return
