@@ -80,6 +80,7 @@ from labeler_service.labeling.boot_match import (
     _Pairs,
     _prepare,
     _score,
+    _Template,
     warmup_kernels,
 )
 from labeler_service.labeling.boot_tracks import PointTracker, labels_along_tracks, track_history
@@ -324,38 +325,24 @@ class Booter:
             return out
         for s in subjects:
             tpl = self._templates[s]
-            assign = np.full(tpl.n, -1, dtype=np.int64)
-            mine = (out >= tpl.offset) & (out < tpl.offset + tpl.n)
-            assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
+            assign, _ = _subject_assign(tpl, out)
             if age is None:
                 grown = _complete(tpl, assign, pts, hist, taken, self.config)
             else:  # (may move weakly placed markers: :func:`_complete_weak`)
                 grown = _complete_weak(tpl, assign, pts, hist, taken, self.config)
-            moved = assign[(assign >= 0) & (grown != assign)]
-            out[moved] = -1
-            taken[moved] = False
-            fresh = (grown >= 0) & (grown != assign)
-            out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
-            taken[grown[fresh]] = True
+            _take(tpl, assign, grown, out, taken)
         if age is None:
             return out
         old = np.asarray(age, dtype=np.float64) >= self.config.fill_min_age_s
         for s in subjects:
             tpl = self._templates[s]
-            mine = (out >= tpl.offset) & (out < tpl.offset + tpl.n)
+            assign, mine = _subject_assign(tpl, out)
             if not mine.any():
                 continue
-            assign = np.full(tpl.n, -1, dtype=np.int64)
-            assign[out[mine] - tpl.offset] = np.flatnonzero(mine)
             others = pts[(out >= 0) & ~mine]
             grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config)
             # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
-            moved = assign[(assign >= 0) & (grown != assign)]
-            out[moved] = -1
-            taken[moved] = False
-            fresh = (grown >= 0) & (grown != assign)
-            out[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
-            taken[grown[fresh]] = True
+            _take(tpl, assign, grown, out, taken)
         return out
 
     def acquire(self, points: np.ndarray, labels: np.ndarray, subjects: list[int]) -> np.ndarray:
@@ -467,3 +454,25 @@ def boot(
     last_pts, last_ids = window[-1]
     res = Booter(model, cfg).run(last_pts, track_history(window, last_ids))
     return labels_along_tracks(window, last_ids, res.labels)
+
+
+def _subject_assign(tpl: _Template, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Subject ``tpl``'s reading of the global ``labels (N,)``: its marker -> point map (-1
+    unplaced) and the mask of the points labeled as its markers."""
+    mine = (labels >= tpl.offset) & (labels < tpl.offset + tpl.n)
+    assign = np.full(tpl.n, -1, dtype=np.int64)
+    assign[labels[mine] - tpl.offset] = np.flatnonzero(mine)
+    return assign, mine
+
+
+def _take(
+    tpl: _Template, assign: np.ndarray, grown: np.ndarray, labels: np.ndarray, taken: np.ndarray
+) -> None:
+    """Writes subject ``tpl``'s new reading ``grown`` (from ``assign``) into the global
+    ``labels`` and ``taken`` masks: points of moved markers are freed, new points taken."""
+    moved = assign[(assign >= 0) & (grown != assign)]
+    labels[moved] = -1
+    taken[moved] = False
+    fresh = (grown >= 0) & (grown != assign)
+    labels[grown[fresh]] = tpl.offset + np.flatnonzero(fresh)
+    taken[grown[fresh]] = True
