@@ -9,7 +9,13 @@ process on the ``bench latency --start boot`` scene (simulated hug, a model trai
 separately (``boot_step`` is not timed: it is off the frame path), from ``--skip-s`` on. Each
 ``--verify`` value is one run, in order, so ``--verify off on off on`` interleaves them.
 
+With ``--labeled-s S`` the first S seconds are sent with their labels (a client that does
+send them) and each run also reports ``first_unlabeled_ms``: the frame that ends the labeled
+run, in which the inner labeler is rebuilt from the labeled frames
+(``booting.LABELED_KEPT_S`` of them at most).
+
     .venv/bin/python benchmarks/boot_frame_cost.py --verify off on off on [--out FILE]
+    .venv/bin/python benchmarks/boot_frame_cost.py --verify on on --labeled-s 1.0 --skip-s 1.1
 """
 
 from __future__ import annotations
@@ -27,16 +33,25 @@ from labeler_service.scenes.simulate import simulate_scene
 from offline.structure import StructureTrainer
 
 
-def run(frames, model, rate: float, verify: bool, skip: int) -> dict:
+def run(frames, model, rate: float, verify: bool, skip: int, labeled: int = 0) -> dict:
     lab = BootingLabeler(
         model, rate, boot=BootConfig(verify=verify), inline_boot=False, inline_extend=False
     )
     lab.warmup()
+    index = {n: i for i, n in enumerate(model.marker_names)}
+    to_model = np.array([index.get(n, -1) for n in frames.marker_names], dtype=np.int64)
     proc, inst = [], []
+    first_unlabeled = None
     for f in range(frames.n_frames):
+        labels = None
+        if f < labeled:
+            tr = frames.truth[f]
+            labels = np.where(tr >= 0, to_model[np.maximum(tr, 0)], -1).astype(np.int32)
         t0 = time.perf_counter()
-        lab.process(frames.points[f], float(frames.times[f]))
+        lab.process(frames.points[f], float(frames.times[f]), labels)
         t1 = time.perf_counter()
+        if labeled and f == labeled:
+            first_unlabeled = round((t1 - t0) * 1e3, 3)
         if f >= skip:
             proc.append((t1 - t0) * 1e3)
         if lab.needs_boot():
@@ -58,6 +73,7 @@ def run(frames, model, rate: float, verify: bool, skip: int) -> dict:
         "installs": len(inst),
         "active_subjects": len(lab.active_subjects),
         "withdrawals": sum(1 for e in lab.events if e[1] == "withdraw"),
+        "first_unlabeled_ms": first_unlabeled,
     }
 
 
@@ -70,16 +86,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-s", type=float, default=0.5, help="seconds not timed at the start")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--verify", nargs="+", choices=["on", "off"], default=["off", "on"])
+    ap.add_argument("--labeled-s", type=float, default=0.0, help="seconds sent with labels")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     cap = simulate_scene(performers=a.subjects, seconds=a.train_seconds + a.seconds,
                          scenario="hug", seed=a.seed, rate=a.rate)  # fmt: skip
     split = int(round(a.train_seconds * a.rate))
     model = StructureTrainer().fit([cap.frames(0, split)]).model_
-    frames = corrupt(cap.frames(split, cap.n_frames), CorruptionSpec(protect_frames=0, seed=a.seed))
+    labeled = int(round(a.labeled_s * a.rate))
+    frames = corrupt(
+        cap.frames(split, cap.n_frames), CorruptionSpec(protect_frames=labeled, seed=a.seed)
+    )
     skip = int(round(a.skip_s * a.rate))
-    runs = [run(frames, model, a.rate, v == "on", skip) for v in a.verify]
-    emit({"subjects": a.subjects, "rate": a.rate, "seconds": a.seconds, "runs": runs}, a.out)
+    runs = [run(frames, model, a.rate, v == "on", skip, labeled) for v in a.verify]
+    emit(
+        {"subjects": a.subjects, "rate": a.rate, "seconds": a.seconds, "labeled_s": a.labeled_s,
+         "runs": runs},
+        a.out,
+    )  # fmt: skip
     return 0
 
 

@@ -36,8 +36,8 @@ in the volume are never booted, so their labels are never given.
 
 A marker hidden during the whole boot window has no Kalman state in the inner labeler; once an
 extension or acquisition labels it, the inner labeler starts its track from the window
-(``Labeler.seed_markers``; only the markers it lacks). The inner labeler is rebuilt from the
-window only after labeled frames (below).
+(``Labeler.seed_markers``; only the markers it lacks). The inner labeler is rebuilt only
+after labeled frames, from them (below).
 
 This labeler never needs labels; a frame that carries them (``process(points, t, labels)``)
 is taken as labeled: its subjects become active without a boot and the inner labeler starts
@@ -105,6 +105,12 @@ from labeler_service.labeling.templates import LabelerModel
 EXTEND_BACKOFF = 4
 #: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
 ACQUIRE_TRIES = 3
+#: The rebuild after labeled frames starts the inner labeler from at most this many seconds
+#: of them (the last ones): the window alone (0.1 s, 5 frames at 50 Hz) gave its Kalman states
+#: too short a start, and a fast forearm was read exchanged for seconds. The rebuild runs in
+#: the frame that ends the labeled run: 10 walkers at 360 Hz, 12-14 ms from the window alone,
+#: 35 ms from 1 s of frames.
+LABELED_KEPT_S = 0.5
 #: Frames kept for the catch-up of one attempt (:meth:`BootingLabeler.catch_up`), in seconds of
 #: stream: an attempt slower than this is installed along the tracks instead (a bound on memory:
 #: 10 performers at 360 Hz keep ~14 kB a frame).
@@ -284,6 +290,11 @@ class BootingLabeler:
         self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
         self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
+        #: the labeled frames of the current labeled run (the last ``LABELED_KEPT_S``): the
+        #: rebuild starts the inner labeler from all of them, not only from the window
+        self._labeled_frames: deque[_Frame] = deque(
+            maxlen=max(w, int(round(LABELED_KEPT_S * self.rate)))
+        )
         self._extent: np.ndarray | None = None
         #: (t, "boot"|"labeled"|"drop"|"withdraw"|"reject", subject), the last HISTORY_KEPT
         self.events: History = History()
@@ -335,8 +346,9 @@ class BootingLabeler:
         """Labels one frame of anonymous points ``(N, 3)`` mm. ``labels`` (optional, model marker
         index per point, -1 = unknown) are taken as that frame's answer: a subject with three
         or more labeled points becomes active without a boot, and the first unlabeled frame
-        after labeled ones rebuilds the inner labeler from the window with those labels (the
-        labeled start of ``Labeler.from_model``, so one labeler serves both starts)."""
+        after labeled ones rebuilds the inner labeler from those frames (the last
+        ``LABELED_KEPT_S`` of them: the labeled start of ``Labeler.from_model``, so one labeler
+        serves both starts)."""
         t0 = time.perf_counter_ns()
         pts = frame_points(points)
         t = float(t)
@@ -417,6 +429,9 @@ class BootingLabeler:
         dup = np.setdiff1d(np.arange(have.size), first)
         lab[have[dup]] = -1  # a label given twice: the first point keeps it
         self._window.append(_Frame(t, pts, ids, lab.copy()))
+        if not self._labeled_run:
+            self._labeled_frames.clear()  # a new labeled run
+        self._labeled_frames.append(self._window[-1])
         self._since = None  # labeled frames: a result in flight is installed along the tracks
         self._since_attempt += 1
         self._since_extend += 1
@@ -1076,19 +1091,20 @@ class BootingLabeler:
         self._since_acquire = 0
 
     def _rebuild(self) -> None:
-        """A new inner labeler for the active subjects, started from the window's labels (its
-        labeled first frames, the last one being this frame); the next frame is its first
-        unlabeled one."""
+        """A new inner labeler for the active subjects, started from the labeled frames of the
+        run that just ended (the last ``LABELED_KEPT_S`` of them; the window's when there are
+        none); the next frame is its first unlabeled one."""
         order = sorted(self._active)
         names = [self.model.subjects[s].name for s in order]
         inner = Labeler.from_model(self.model, self.rate, self.config, subjects=names)
         mine = np.isin(self._subject_of, order)
         if order:
-            for fr in self._window:
+            for fr in self._labeled_frames or self._window:
                 lab = np.where(fr.labels >= 0, fr.labels, -1)
                 lab[lab >= 0] = np.where(mine[lab[lab >= 0]], lab[lab >= 0], -1)
                 inner.process(fr.points, fr.t, lab)
         self._inner = inner
+        self._labeled_frames.clear()
         self._inner_known[:] = False
         for fr in self._window:
             self._inner_known[fr.labels[fr.labels >= 0]] = True

@@ -282,3 +282,28 @@ def test_the_event_and_timing_histories_stay_bounded_and_count_everything():
 
     back = pickle.loads(pickle.dumps(h))
     assert back == h and (back.total, back.keep) == (h.total, h.keep)
+
+
+def test_a_long_labeled_run_starts_the_inner_labeler_from_all_of_its_frames(walk):
+    """Labeled frames longer than the boot window (12 frames at 120 Hz): after them the inner
+    labeler is in the state ``Labeler.from_model`` reaches on the same labeled frames (Kalman
+    states, covariances, frames observed in a row) and labels alike. Before, it restarted from
+    the window's last 12 frames only; a fast forearm at 50 Hz started from five frames was read
+    exchanged for seconds (docs/algorithm.md, "What limits 12.5-25 Hz", item 5)."""
+    model, cap = walk
+    n_lab = 40
+    s = Stream(cap, model, seed=8)
+    frames = [s.frame(f) for f in range(n_lab + 3)]
+    booting = BootingLabeler(model, RATE)
+    ref = Labeler.from_model(model, RATE)
+    assert booting._window.maxlen < n_lab
+    for f, (pts, tr) in enumerate(frames):
+        b = booting.process(pts, f / RATE, tr if f < n_lab else None)
+        m = ref.process(pts, f / RATE, tr if f < n_lab else None)
+        if f >= n_lab:
+            np.testing.assert_array_equal(b.point_labels, m.point_labels)
+            inner, want = booting._inner._tracks, ref._tracks
+            np.testing.assert_array_equal(inner.age, want.age)
+            np.testing.assert_allclose(inner.P, want.P, rtol=1e-9)
+            np.testing.assert_allclose(inner.x, want.x, rtol=1e-9, atol=1e-9)
+    assert ref._tracks.age.max() > booting._window.maxlen  # (what the window alone cannot give)
