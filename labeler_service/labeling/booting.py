@@ -108,8 +108,8 @@ ACQUIRE_TRIES = 3
 #: The rebuild after labeled frames starts the inner labeler from at most this many seconds
 #: of them (the last ones): the window alone (0.1 s, 5 frames at 50 Hz) gave its Kalman states
 #: too short a start, and a fast forearm was read exchanged for seconds. The rebuild runs in
-#: the frame that ends the labeled run: 10 walkers at 360 Hz, 12-14 ms from the window alone,
-#: 35 ms from 1 s of frames.
+#: the frame that ends the labeled run: 10 performers at 360 Hz, 12 ms from the window alone,
+#: 22-23 ms from these 0.5 s (``benchmarks/boot_frame_cost.py --labeled-s 1.0``).
 LABELED_KEPT_S = 0.5
 #: Frames kept for the catch-up of one attempt (:meth:`BootingLabeler.catch_up`), in seconds of
 #: stream: an attempt slower than this is installed along the tracks instead (a bound on memory:
@@ -1092,14 +1092,14 @@ class BootingLabeler:
 
     def _rebuild(self) -> None:
         """A new inner labeler for the active subjects, started from the labeled frames of the
-        run that just ended (the last ``LABELED_KEPT_S`` of them; the window's when there are
-        none); the next frame is its first unlabeled one."""
+        run that just ended (the last ``LABELED_KEPT_S`` of them); the next frame is its first
+        unlabeled one."""
         order = sorted(self._active)
         names = [self.model.subjects[s].name for s in order]
         inner = Labeler.from_model(self.model, self.rate, self.config, subjects=names)
         mine = np.isin(self._subject_of, order)
         if order:
-            for fr in self._labeled_frames or self._window:
+            for fr in self._labeled_frames:
                 lab = np.where(fr.labels >= 0, fr.labels, -1)
                 lab[lab >= 0] = np.where(mine[lab[lab >= 0]], lab[lab >= 0], -1)
                 inner.process(fr.points, fr.t, lab)
