@@ -5,9 +5,19 @@ The service exposes it in its settings; ``docs/algorithm.md`` explains each choi
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, TypedDict
 
 from pydantic import BaseModel, ConfigDict, Field
+
+
+class BodyRule(TypedDict):
+    """Keywords of the rigid-body rule (``training.select_bodies``, ``train_subject``)."""
+
+    tolerance_mm: float
+    distance_weight: float
+    min_size: int
+    max_size: int
+    all_seeds: bool
 
 
 class LabelerConfig(BaseModel):
@@ -354,3 +364,15 @@ class LabelerConfig(BaseModel):
         "restructure_tolerance_mm) that no kept body contains; off: only bodies for markers no "
         "kept body holds",
     )
+
+    def body_rule(self, tolerance_mm: float | None = None) -> BodyRule:
+        """The rigid-body rule's settings as keywords of ``training.select_bodies`` and
+        ``training.train_subject`` (``tolerance_mm`` defaults to ``body_tolerance_mm``): one
+        place, so the window's training and the restructure use the same rule."""
+        return {
+            "tolerance_mm": self.body_tolerance_mm if tolerance_mm is None else tolerance_mm,
+            "distance_weight": self.body_distance_weight,
+            "min_size": self.body_min_size,
+            "max_size": self.body_max_size,
+            "all_seeds": self.body_all_seeds,
+        }

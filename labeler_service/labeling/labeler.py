@@ -627,19 +627,7 @@ class Labeler:
         subjects = []
         for name, cols in subject_groups(self._names).items():
             markers = [split_label(self._names[i])[1] for i in cols]
-            subjects.append(
-                train_subject(
-                    name,
-                    markers,
-                    pos[:, cols],
-                    rate,
-                    tolerance_mm=c.body_tolerance_mm,
-                    distance_weight=c.body_distance_weight,
-                    min_size=c.body_min_size,
-                    max_size=c.body_max_size,
-                    all_seeds=c.body_all_seeds,
-                )
-            )
+            subjects.append(train_subject(name, markers, pos[:, cols], rate, **c.body_rule()))
         return LabelerModel(rate=rate, subjects=subjects, source="training window")
 
     def _start(self) -> None:

@@ -142,16 +142,7 @@ def reform_bodies(
     add_all = config.restructure_add
     if not need.any() and not add_all:
         return kept, []
-    chosen = select_bodies(
-        D,
-        A,
-        usable,
-        tolerance_mm=config.restructure_tolerance_mm,
-        distance_weight=config.body_distance_weight,
-        min_size=config.body_min_size,
-        max_size=config.body_max_size,
-        all_seeds=config.body_all_seeds,
-    )
+    chosen = select_bodies(D, A, usable, **config.body_rule(config.restructure_tolerance_mm))
     have = {tuple(sorted(b)) for b in kept}
     rigid = []  # kept bodies the evidence shows rigid: a rigid part of a bending one is added
     for body in kept:
