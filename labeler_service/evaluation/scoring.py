@@ -619,6 +619,11 @@ def evaluate(
     """
     if init_frames < 0 or (init_frames == 0 and model is None):
         raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
+    if window_model is not None and (model is not None or init_frames == 0):
+        raise MocapError(
+            "the labeled start through a window model (--labeled-start model) trains its model "
+            "on the init window: it needs --init-frames >= 1 and no --model"
+        )
     loaded = _load_model(model)
     if init_frames == 0 and not methods:
         methods = ["online"]

@@ -36,6 +36,21 @@ def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
         make_window_labeler(model, rate=25.0, window_frames=0)
 
 
+def test_window_model_needs_a_window_and_no_model(rng):
+    from labeler_service.errors import MocapError
+    from labeler_service.evaluation.scoring import evaluate
+
+    model = _window_model(rng)
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    for kw in ({"model": model, "init_frames": 5}, {"model": model, "init_frames": 0}):
+        with pytest.raises(MocapError, match="--labeled-start model"):
+            evaluate(cap, window_model=lambda c: model, **kw)
+    report, _ = evaluate(cap, init_frames=10, window_model=lambda c: _window_model(rng))
+    assert report["settings"]["labeled_start"] == "model"
+    assert evaluate(cap, init_frames=10)[0]["settings"]["labeled_start"] == "labeler"
+
+
 def _cell(name: str, cell: str, start: str) -> dict:
     scene = next(s for s in gen.matrix("holdout", quick=False, seeds=2) if s.name == name)
     (row,) = gen.run_scene(scene, (cell,), 8.0, 1200, False, start)
