@@ -73,8 +73,22 @@ def main() -> int:
     p.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     p.add_argument("--write", type=Path, default=None, help="write the scenes (C3D) here")
     p.add_argument("--only", nargs="+", default=None, help="scene names to run (a b c)")
+    p.add_argument(
+        "--labeled-start",
+        choices=("labeler", "model"),
+        default="labeler",
+        help="model: the online labeler's labeled start through the model-based labeler "
+        "(evaluate --labeled-start model)",
+    )
     args = p.parse_args()
     results: dict[str, dict] = {}
+    window = None
+    if args.labeled_start == "model":
+        from offline.structure import StructureTrainer
+
+        def window(cap: Capture):  # type: ignore[no-redef]
+            return StructureTrainer().fit([cap]).model_
+
     for name, cap in scenes().items():
         if args.only and name not in args.only:
             continue
@@ -85,7 +99,7 @@ def main() -> int:
             write_capture(cap, args.write / f"scene_{name}.c3d")
         results[name] = {}
         for label, opts in SETTINGS.items():
-            report, _ = evaluate(cap, seed=0, **opts)
+            report, _ = evaluate(cap, seed=0, window_model=window, **opts)
             results[name][label] = {k: report.get(k) for k in KEYS}
             print(f"{name} {label}: {json.dumps(results[name][label])}", file=sys.stderr)
     text = json.dumps(results)

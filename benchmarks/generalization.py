@@ -92,6 +92,7 @@ from _common import emit
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import MocapError
 from labeler_service.evaluation.scoring import evaluate
+from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.compose import TakeSpec, compose_scene
 from labeler_service.testing.realdata import real_data_dir
 
@@ -353,10 +354,17 @@ def matrix(split: str, quick: bool, seeds: int = 2) -> list[Scene]:
 
 
 def run_scene(
-    scene: Scene, cells: tuple[str, ...], seconds: float, max_frames: int, boot: bool = False
+    scene: Scene,
+    cells: tuple[str, ...],
+    seconds: float,
+    max_frames: int,
+    boot: bool = False,
+    labeled_start: str = "labeler",
 ) -> list[dict]:
     """Every cell of one scene (a take alone gets only its ``alone`` cell); with ``boot`` also
-    scored from a model trained on other segments, with no labeled frame (``--start boot``)."""
+    scored from a model trained on other segments, with no labeled frame (``--start boot``);
+    ``labeled_start="model"``: the labeled start through the model-based labeler (a model
+    trained on the init window; ``evaluate --labeled-start model``)."""
     rate = scene.rate()
     frames = scene.frames(seconds, max_frames)
     full_frames = frames
@@ -373,6 +381,7 @@ def run_scene(
     ]
     chosen = {"alone": {}} if alone else {k: v for k, v in _cells(rate).items() if k in cells}
     out = []
+    start_flag = " --labeled-start model" if labeled_start == "model" else ""
     compose_cmd = (
         f"mocap-labeler compose SCENE.c3d {' '.join(scene.take_args())} --radius "
         f"{scene.radius:g} --frames {frames} --seed {scene.seed} --rate {rate:g}"
@@ -383,7 +392,14 @@ def run_scene(
         init = max(1, round(INIT_S * rate / step))
         t0 = time.perf_counter()
         try:
-            report, _ = evaluate(cap, methods=["online"], init_frames=init, seed=scene.seed, **opts)
+            report, _ = evaluate(
+                cap,
+                methods=["online"],
+                init_frames=init,
+                seed=scene.seed,
+                window_model=_window_model if labeled_start == "model" else None,
+                **opts,
+            )
         except MocapError as exc:
             if not boot or frames == full_frames:
                 raise
@@ -420,7 +436,7 @@ def run_scene(
                 "seconds": round(time.perf_counter() - t0, 2),
                 "compose": compose_cmd,
                 "evaluate": f"mocap-labeler evaluate SCENE.c3d --method online --init-frames "
-                f"{init} --seed {scene.seed} {flags} --json".replace("  ", " "),
+                f"{init} --seed {scene.seed} {flags}{start_flag} --json".replace("  ", " "),
             }
         )
         if boot:
@@ -476,8 +492,16 @@ def _pct(x: float | None) -> str:
     return "   -   " if x is None else f"{100 * x:7.3f}"
 
 
-def _run(job: tuple[Scene, tuple[str, ...], float, int, bool]) -> list[dict]:
+def _run(job: tuple[Scene, tuple[str, ...], float, int, bool, str]) -> list[dict]:
     return run_scene(*job)
+
+
+def _window_model(window: Capture) -> LabelerModel:
+    """``evaluate --labeled-start model``'s trainer: the offline structure trainer on the
+    init window."""
+    from offline.structure import StructureTrainer
+
+    return StructureTrainer().fit([window]).model_
 
 
 def summarize(results: list[dict]) -> dict[str, Any]:
@@ -647,6 +671,13 @@ def main(argv: list[str] | None = None) -> int:
         default="window",
         help="boot: also score every cell from a model trained on other segments, no labels",
     )
+    p.add_argument(
+        "--labeled-start",
+        choices=("labeler", "model"),
+        default="labeler",
+        help="model: the labeled start through the model-based labeler (a model trained on "
+        "the init window; evaluate --labeled-start model)",
+    )
     args = p.parse_args(argv)
     if real_data_dir() is None:
         print("error: no real captures (set MOCAP_DATA_DIR or ../shared/data/real)",
@@ -658,7 +689,7 @@ def main(argv: list[str] | None = None) -> int:
         scenes = [s for s in scenes if s.name in args.only]
     cells = tuple(args.cells or (QUICK_CELLS if args.quick else _cells(1.0)))
     boot = args.start == "boot"
-    jobs = [(s, cells, args.seconds, args.max_frames, boot) for s in scenes]
+    jobs = [(s, cells, args.seconds, args.max_frames, boot, args.labeled_start) for s in scenes]
     results: list[dict] = []
 
     def show(rows: list[dict]) -> None:

@@ -13,10 +13,11 @@ import json
 import sys
 from pathlib import Path
 
-from labeler_service.capture import check_writable, read_segment
+from labeler_service.capture import Capture, check_writable, read_segment
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
+from labeler_service.labeling.templates import LabelerModel
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,9 +62,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
     p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
+    p.add_argument(
+        "--labeled-start",
+        choices=("labeler", "model"),
+        default="labeler",
+        help="with --init-frames N and no --model: 'model' trains subject templates on the "
+        "init window and runs the online method through the model-based (booting) labeler "
+        "from them (its extension re-finds lost markers; docs/algorithm.md)",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON (last line)")
     p.add_argument("--plot", type=Path, default=None, help="PNG: accuracy vs down-sampling")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _window_model(window: Capture) -> LabelerModel:
+    """``--labeled-start model``: the subject templates of the init window (``train
+    structure``'s trainer; the CLI is the layer that may import ``offline``)."""
+    from offline.structure import StructureTrainer
+
+    return StructureTrainer().fit([window]).model_
 
 
 def _methods(arg: list[str] | None) -> list[str] | None:
@@ -92,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         leave=args.leave,
         leave_seconds=args.leave_seconds,
+        window_model=_window_model if args.labeled_start == "model" else None,
     )
     report, scores = evaluate(cap, downsample=args.downsample, **common)
     # what was scored, as given: the file and its frame range, and the model file (the

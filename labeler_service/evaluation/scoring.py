@@ -15,6 +15,9 @@ window only:
 - boot and re-identification (``boot_s_max``, ``accuracy_after_boot``, ``reid_s_p95``,
   ``absent_labeled``, ``identity_swaps``): see :class:`Scorer`. With a model and
   ``init_frames=0`` nothing is labeled: the labeler boots (``make_labeler(..., boot=True)``).
+- ``window_model`` (``evaluate --labeled-start model``): the online labeler's labeled start
+  goes through the model-based labeler (``make_window_labeler``): the callable trains subject
+  templates on the init window, the stream runs a ``BootingLabeler`` from them.
 
 A method that does not exist is never scored: ``available_methods`` says why.
 """
@@ -33,7 +36,7 @@ import numpy as np
 from labeler_service.capture import Capture, split_label
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
-from labeler_service.labeling.registry import make_labeler
+from labeler_service.labeling.registry import make_labeler, make_window_labeler
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
@@ -594,6 +597,7 @@ def evaluate(
     model: LabelerModel | str | os.PathLike[str] | None = None,
     leave: int = 0,
     leave_seconds: float = 1.0,
+    window_model: Callable[[Capture], LabelerModel] | None = None,
 ) -> tuple[dict[str, Any], dict[str, MethodScore]]:
     """Scores the chosen methods on one corrupted version of ``capture``.
 
@@ -605,9 +609,21 @@ def evaluate(
     frames' labels, with ``init_frames == 0`` by booting from anonymous points alone
     (``make_labeler(..., boot=True)``; the closest-point baseline cannot boot and is skipped).
     ``leave``/``leave_seconds``: subjects that vanish and return displaced (``CorruptionSpec``).
+
+    ``window_model`` (without ``model``, ``init_frames >= 1``): the labeled start of the online
+    method through the model-based labeler. ``window_model(window)`` trains subject templates
+    on the init window (a :class:`Capture` of its true positions; the CLI passes the offline
+    structure trainer) and the online method runs :func:`make_window_labeler` from them, fed the
+    window's labels; the closest-point baseline is unchanged. The report's
+    ``settings.labeled_start`` says which start ran (``labeler`` or ``model``).
     """
     if init_frames < 0 or (init_frames == 0 and model is None):
         raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
+    if window_model is not None and (model is not None or init_frames == 0):
+        raise MocapError(
+            "the labeled start through a window model (--labeled-start model) trains its model "
+            "on the init window: it needs --init-frames >= 1 and no --model"
+        )
     loaded = _load_model(model)
     if init_frames == 0 and not methods:
         methods = ["online"]
@@ -630,17 +646,27 @@ def evaluate(
     if not stream.marker_names:
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
-    for name in names:
-        labeler = make_labeler(
-            METHODS[name],
-            marker_names=stream.marker_names,
-            rate=stream.rate,
-            model=loaded,
-            boot=loaded is not None and init_frames == 0,
+    window = None
+    if window_model is not None and loaded is None and init_frames > 0 and "online" in names:
+        window = window_model(
+            Capture(stream.positions[:init_frames], stream.marker_names, stream.rate)
         )
+    for name in names:
+        start = loaded
+        if window is not None and METHODS[name] == "online":
+            start = window
+            labeler = make_window_labeler(window, rate=stream.rate, window_frames=init_frames)
+        else:
+            labeler = make_labeler(
+                METHODS[name],
+                marker_names=stream.marker_names,
+                rate=stream.rate,
+                model=loaded,
+                boot=loaded is not None and init_frames == 0,
+            )
         scores[name] = _with_progress(
-            lambda cb, lab=labeler, nm=name: score_labeler(  # type: ignore[misc]
-                lab, stream, init_frames, nm, cb, model=loaded
+            lambda cb, lab=labeler, nm=name, st=start: score_labeler(  # type: ignore[misc]
+                lab, stream, init_frames, nm, cb, model=st
             ),
             total=stream.n_frames,
             label=name,
@@ -669,6 +695,7 @@ def evaluate(
             "model": None if model is None else str(getattr(loaded, "source", "") or model),
             "leave": leave,
             "leave_seconds": leave_seconds,
+            "labeled_start": "labeler" if window is None else "model",
         },
         departures=[
             {"subject": s_, "first_frame": a, "back_frame": b} for s_, a, b in stream.departures
