@@ -471,3 +471,19 @@ def link_excess(m, p, skip, points, bodies, D0, A0, A, assigned, age, min_age, a
             tot += max(0.0, abs(d - D0[b][i, j]) - 3.0 * floor[i, j])
             cnt += 1
     return tot, cnt
+
+
+def match_tracks(pts, pred, gate):
+    """Twin of ``kernels/track.py``: mutual nearest neighbours by two KD-trees (unbounded
+    queries), kept when within the prediction's gate; -1 for a point with no such pair."""
+    from scipy.spatial import cKDTree
+
+    n = pts.shape[0]
+    out = np.full(n, -1, dtype=np.int64)
+    if n == 0 or pred.shape[0] == 0:
+        return out
+    d_pt, j_pt = cKDTree(pred).query(pts)
+    _, i_tr = cKDTree(pts).query(pred)
+    ok = (i_tr[j_pt] == np.arange(n)) & (d_pt <= gate[j_pt])
+    out[ok] = j_pt[ok]
+    return out

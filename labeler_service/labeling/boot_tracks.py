@@ -5,10 +5,10 @@ window, ``labels_along_tracks`` spreads the last frame's labels over the window.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.kernels.track import _match_tracks
 
 
 # ---------------------------------------------------------------------------- tracking
@@ -49,10 +49,10 @@ class PointTracker:
             pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
             g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
             gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
-            d_pt, j_pt = cKDTree(pred).query(pts)  # point -> nearest prediction
-            _, i_tr = cKDTree(pts).query(pred)  # prediction -> nearest point
-            idx = np.arange(n)
-            ok = (i_tr[j_pt] == idx) & (d_pt <= gate[j_pt])
+            # mutual nearest prediction within its gate (kernels/track.py: a sweep index with
+            # bounded searches; two KD-trees cost ~0.5 ms a frame at 500 points)
+            j_pt = _match_tracks(np.ascontiguousarray(pts), pred, gate.astype(np.float64))
+            ok = j_pt >= 0
             k = j_pt[ok]
             ids[ok] = self._ids[k]
             birth[ok] = self._birth[k]

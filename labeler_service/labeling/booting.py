@@ -467,16 +467,21 @@ class BootingLabeler:
         ``drop_after_s``."""
         dropped = []
         c = self.boot_config
-        for s in sorted(self._active):
-            sl = slice(self._offset[s], self._offset[s + 1])
-            n_obs = int(np.count_nonzero(state[sl] == MarkerState.OBSERVED))
-            ref = self._recent[s]
-            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)) and (
-                ref <= 0 or n_obs >= c.vanish_relative * ref
-            ):
-                self._gone[s] = 0
-                self._recent[s] = n_obs if ref <= 0 else ref + self._recent_alpha * (n_obs - ref)
-                continue
+        # every subject's observed count at once (a loop of per-subject slices cost ~0.1 ms a
+        # frame at 10 performers); only the vanishing ones are looked at one by one
+        act = np.array(sorted(self._active), dtype=np.int64)
+        obs = (state == MarkerState.OBSERVED).view(np.uint8)
+        n_obs = np.add.reduceat(obs, self._offset[:-1], dtype=np.int64)[act]
+        size = (self._offset[1:] - self._offset[:-1])[act]
+        ref = self._recent[act]
+        ok = (n_obs >= np.maximum(1.0, c.vanish_fraction * size)) & (
+            (ref <= 0) | (n_obs >= c.vanish_relative * ref)
+        )
+        self._gone[act[ok]] = 0
+        self._recent[act[ok]] = np.where(
+            ref[ok] <= 0, n_obs[ok], ref[ok] + self._recent_alpha * (n_obs[ok] - ref[ok])
+        )
+        for s in act[~ok].tolist():
             self._gone[s] += 1
             self._withhold(s, glab, pos, state)
             if self._gone[s] >= self._drop_frames:
