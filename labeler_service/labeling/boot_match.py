@@ -917,6 +917,11 @@ def _candidates(
     its (marker, point) nodes (as a last candidate row of its own, not a body)."""
     cands: list[_Candidate] = []
     for bi, body in enumerate(tpl.bodies):
+        if fixed is not None and np.all(fixed[body.markers] >= 0):
+            # every marker placed: each node of its candidates is a fixed node or clashes with
+            # one (a marker on two points), so none can join the completion (:func:`_select`);
+            # skipped, they cost nothing (most bodies of a booted subject's extension)
+            continue
         for c in _body_candidates(tpl, body, pts, hist, pairs, config):
             c.body = bi
             cands.append(c)
