@@ -487,3 +487,25 @@ def match_tracks(pts, pred, gate):
     ok = (i_tr[j_pt] == np.arange(n)) & (d_pt <= gate[j_pt])
     out[ok] = j_pt[ok]
     return out
+
+
+def pair_error(D, scale, logs, gauss, use, markers, points, assign, pts, sigmas):
+    """Twin of ``kernels/boot_pairs.py:_pair_error`` (the numpy ``boot_match._pair_error`` it
+    replaced): the pair table among ``markers`` (upper triangle) and against the rest of
+    ``assign``, each pair's negative log-likelihood as in ``boot_match._nll``."""
+    markers = np.asarray(markers, dtype=np.int64)
+    points = np.asarray(points, dtype=np.int64)
+
+    def nll(ma, pa, mb, pb):
+        d = np.linalg.norm(pts[pa][:, None, :] - pts[pb][None, :, :], axis=2)
+        r, c = ma[:, None], mb[None, :]
+        e = np.abs(d - D[r, c]) / scale[r, c]
+        cost = np.where(gauss[r, c], 0.5 * (sigmas * e) ** 2, np.log1p(e**2)) + logs[r, c]
+        return np.where(use[r, c] & np.isfinite(cost), cost, 0.0)
+
+    rest = np.flatnonzero(assign >= 0)
+    rest = rest[~np.isin(rest, markers)]
+    total = float(np.triu(nll(markers, points, markers, points), 1).sum())
+    if rest.size:
+        total += float(nll(markers, points, rest, assign[rest]).sum())
+    return total

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
 from labeler_service.labeling.templates import LabelerModel
 
 #: A tolerance (``tol_mm + tol_sigma A + tol_relative D``) spans about this many standard
@@ -1082,15 +1083,17 @@ def _pair_error(
     different tolerances (a wrist bar and its finger marker, or the loose body the trainer made
     of the forearm, wrist and elbow markers on the same three points: scored against the rest
     alone, the loose reading won and shifted a whole arm along its chain)."""
-    markers = np.asarray(markers, dtype=np.int64)
-    points = np.asarray(points, dtype=np.int64)
-    rest = np.flatnonzero(assign >= 0)
-    rest = rest[~np.isin(rest, markers)]
-    inner = _pair_nll(tpl, markers, points, markers, points, pts)
-    total = float(np.triu(inner, 1).sum())
-    if rest.size:
-        total += float(_pair_nll(tpl, markers, points, rest, assign[rest], pts).sum())
-    return total
+    # one numba loop over the pairs (kernels/boot_pairs.py; its numpy twin is
+    # tests/reference.py:pair_error): ~3,600 calls per attempt on 10 hugging performers
+    return float(
+        _pair_error_kernel(
+            tpl.D, tpl.nll_scale, tpl.nll_log, tpl.nll_gauss, tpl.nll_use,
+            np.ascontiguousarray(markers, dtype=np.int64),
+            np.ascontiguousarray(points, dtype=np.int64),
+            np.ascontiguousarray(assign, dtype=np.int64),
+            np.ascontiguousarray(pts, dtype=np.float64), STRICT_SIGMAS,
+        )
+    )  # fmt: skip
 
 
 def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int = 8) -> None:
