@@ -509,3 +509,55 @@ def pair_error(D, scale, logs, gauss, use, markers, points, assign, pts, sigmas)
     if rest.size:
         total += float(nll(markers, points, rest, assign[rest]).sum())
     return total
+
+
+def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link):
+    """Twin of ``kernels/boot_grow.py:_grow`` (the numpy ``boot_match._grow`` it replaced, with
+    its KD-tree ball query), in place on ``assign`` and ``taken``."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    for _ in range(3):
+        changed = False
+        have = np.flatnonzero(assign >= 0)
+        for m in np.flatnonzero(assign < 0):
+            part = have[rigid[m, have]]
+            if part.size < 2:
+                continue
+            j = part[np.argmin(D[m, part])]
+            near = tree.query_ball_point(pts[assign[j]], D[m, j] + TOL[m, j])
+            near = np.asarray(near, dtype=np.int64)
+            near = near[~taken[near]]
+            if near.size == 0:
+                continue
+            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+            dev = d - D[m, have]
+            rig = rigid[m, have]
+            st = strict[m, have]
+            tol = TOL[m, have]
+            # pairs of one trained body must hold; a pair rigid by A alone counts when it fits
+            fit = rig & (np.abs(dev) <= tol)
+            bad = (st & (np.abs(dev) > tol)) | (~st & (dev > bound[m, have]))
+            n_fit = fit.sum(axis=1)
+            ok = ~bad.any(axis=1) & (n_fit >= 2) & (2 * n_fit >= part.size)
+            if not np.any(ok & (n_fit >= 3)):
+                # two rigid partners only: a ring of solutions, the point must be unique and
+                # keep its articulated pairs in their trained range
+                lt = link[m, have]
+                ok &= ~np.any(~rig & (lt > 0) & (np.abs(dev) > lt), axis=1)
+                if ok.sum() != 1:
+                    continue
+            else:
+                ok &= n_fit >= 3
+            best = -1
+            if ok.any():
+                err = (np.where(fit, dev / tol, 0.0) ** 2).sum(axis=1) / np.maximum(n_fit, 1)
+                err = np.where(ok, err, np.inf)
+                best = int(near[int(np.argmin(err))])
+            if best >= 0:
+                assign[m] = best
+                taken[best] = True
+                have = np.flatnonzero(assign >= 0)
+                changed = True
+        if not changed:
+            return

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
 from labeler_service.labeling.templates import LabelerModel
 
@@ -649,50 +650,12 @@ def _grow(
     markers placed, and clashes with none of them, joins (trilateration). With two rigid
     partners only, the point must be the only one that also keeps every articulated pair in
     its trained range."""
-    for _ in range(3):
-        changed = False
-        have = np.flatnonzero(assign >= 0)
-        for m in np.flatnonzero(assign < 0):
-            part = have[tpl.rigid[m, have]]
-            if part.size < 2:
-                continue
-            j = part[np.argmin(tpl.D[m, part])]
-            near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
-            near = np.asarray(near, dtype=np.int64)
-            near = near[~taken[near]]
-            if near.size == 0:
-                continue
-            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
-            dev = d - tpl.D[m, have]
-            rig = tpl.rigid[m, have]
-            st = tpl.strict[m, have]
-            tol = tpl.tol[m, have]
-            # pairs of one trained body must hold; a pair rigid by A alone counts when it fits
-            fit = rig & (np.abs(dev) <= tol)
-            bad = (st & (np.abs(dev) > tol)) | (~st & (dev > tpl.bound[m, have]))
-            n_fit = fit.sum(axis=1)
-            ok = ~bad.any(axis=1) & (n_fit >= 2) & (2 * n_fit >= part.size)
-            if not np.any(ok & (n_fit >= 3)):
-                # two rigid partners only: a ring of solutions, the point must be unique and
-                # keep its articulated pairs in their trained range
-                lt = tpl.link[m, have]
-                ok &= ~np.any(~rig & (lt > 0) & (np.abs(dev) > lt), axis=1)
-                if ok.sum() != 1:
-                    continue
-            else:
-                ok &= n_fit >= 3
-            best = -1
-            if ok.any():
-                err = (np.where(fit, dev / tol, 0.0) ** 2).sum(axis=1) / np.maximum(n_fit, 1)
-                err = np.where(ok, err, np.inf)
-                best = int(near[int(np.argmin(err))])
-            if best >= 0:
-                assign[m] = best
-                taken[best] = True
-                have = np.flatnonzero(assign >= 0)
-                changed = True
-        if not changed:
-            return
+    # one numba loop (kernels/boot_grow.py; ``tree`` is not needed there: the ball query is
+    # a scan of the points; the numpy version is the twin tests/reference.py:grow)
+    _grow_kernel(
+        assign, taken, np.ascontiguousarray(pts, dtype=np.float64), tpl.D, tpl.tol, tpl.bound,
+        tpl.rigid, tpl.strict, tpl.link,
+    )  # fmt: skip
 
 
 def _articulate(
