@@ -18,6 +18,7 @@ from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
+from labeler_service.labeling.kernels.track import _match_tracks
 from labeler_service.labeling.templates import LabelerModel
 
 #: A tolerance (``tol_mm + tol_sigma A + tol_relative D``) spans about this many standard
@@ -1567,6 +1568,17 @@ def warmup_kernels() -> None:
         M, np.zeros(2, dtype=np.bool_), M, M, dist, m, m, rigid, rigid.copy(), m, m,
         out_b, out_b.copy(), out_b.copy(), out_b.copy(), np.zeros((2, 2)), out_b.copy(),
     )  # fmt: skip
+    # the kernels of kernels/boot_*.py and the point tracker's (every frame of a booting stream)
+    z, ones = np.zeros(2, dtype=np.int64), np.ones(2, dtype=np.bool_)
+    _greedy_nodes(
+        ~ones, z.copy(), z.copy(), z.copy(), np.zeros(2), z.copy(), ones.copy(), 2, ~ones, M, M,
+        dist, m, m, rigid, rigid.copy(), m, m, out_b, out_b.copy(), out_b.copy(), out_b.copy(),
+        np.zeros((2, 2)), out_b.copy(),
+    )  # fmt: skip
+    p3 = np.zeros((2, 3))
+    _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
+    _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
+    _match_tracks(p3, p3 + 1.0, np.ones(2))
 
 
 # ---------------------------------------------------------------------------- joint fill
