@@ -561,3 +561,18 @@ def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link):
                 changed = True
         if not changed:
             return
+
+
+def track_history(frames, ids):
+    """Twin of ``boot_tracks.track_history`` (its ``kernels/track.py`` pass): per frame a sort
+    of the frame's track ids and a search of ``ids`` in it."""
+    out = np.full((ids.shape[0], len(frames), 3), np.nan)
+    for w, (pts, fids) in enumerate(frames):
+        order = np.argsort(fids, kind="stable")
+        sids = fids[order]
+        if sids.shape[0] == 0:
+            continue
+        pos = np.minimum(np.searchsorted(sids, ids), sids.shape[0] - 1)
+        hit = sids[pos] == ids
+        out[hit, w] = pts[order[pos[hit]]]
+    return out

@@ -8,7 +8,7 @@ import numpy as np
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot_config import BootConfig
-from labeler_service.labeling.kernels.track import _match_tracks
+from labeler_service.labeling.kernels.track import _match_tracks, _track_history
 
 
 # ---------------------------------------------------------------------------- tracking
@@ -74,14 +74,16 @@ def track_history(frames: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) 
     """``(N, W, 3)`` positions of the tracks ``ids`` in the window ``frames`` (list of
     ``(points, ids)``, oldest first), NaN where a track has no point in a frame."""
     out = np.full((ids.shape[0], len(frames), 3), np.nan)
-    for w, (pts, fids) in enumerate(frames):
-        order = np.argsort(fids, kind="stable")
-        sids = fids[order]
-        if sids.shape[0] == 0:
-            continue
-        pos = np.minimum(np.searchsorted(sids, ids), sids.shape[0] - 1)
-        hit = sids[pos] == ids
-        out[hit, w] = pts[order[pos[hit]]]
+    if not frames:
+        return out
+    # one numba pass over the stacked window (kernels/track.py): a sort and a search per frame
+    # cost ~0.7 ms of each snapshot on the frame thread at 500 points and 24 frames
+    sizes = np.array([f[1].shape[0] for f in frames], dtype=np.int64)
+    starts = np.zeros(sizes.size + 1, dtype=np.int64)
+    np.cumsum(sizes, out=starts[1:])
+    pts = np.concatenate([np.asarray(f[0], dtype=np.float64).reshape(-1, 3) for f in frames])
+    fids = np.concatenate([np.asarray(f[1], dtype=np.int64) for f in frames])
+    _track_history(np.ascontiguousarray(ids, dtype=np.int64), pts, fids, starts, out)
     return out
 
 

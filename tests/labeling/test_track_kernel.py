@@ -54,3 +54,26 @@ def test_tracker_keeps_ids_along_moving_points():
         if first is None:
             first = back
         np.testing.assert_array_equal(back, first)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_track_history_matches_twin(seed):
+    from labeler_service.labeling.boot import track_history
+    from tests.reference import track_history as track_history_ref
+
+    rng = np.random.default_rng(seed)
+    tr = PointTracker(120.0)
+    frames = []
+    base = rng.uniform(-1000, 1000, (80, 3))
+    for f in range(int(rng.integers(1, 24))):
+        keep = rng.random(80) < 0.85  # points drop out and come back as new tracks
+        pts = base[keep] + rng.normal(0, 0.5, (int(keep.sum()), 3)) + f
+        pts = np.vstack([pts, rng.uniform(-1000, 1000, (int(rng.integers(0, 5)), 3))])
+        pts = pts[rng.permutation(pts.shape[0])]
+        frames.append((pts, tr.update(pts, f / 120.0)))
+    frames.insert(0, (np.zeros((0, 3)), np.zeros(0, dtype=np.int64)))  # an empty frame
+    ids = np.concatenate([frames[-1][1], [10_000, -5]])  # and ids never seen
+    got = track_history(frames, ids)
+    np.testing.assert_array_equal(got, track_history_ref(frames, ids))
+    assert np.isfinite(got[:, -1, 0]).sum() == frames[-1][1].size
+    assert track_history([], ids).shape == (ids.size, 0, 3)

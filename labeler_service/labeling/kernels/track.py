@@ -69,3 +69,34 @@ def match_tracks(pts: np.ndarray, pred: np.ndarray, gate: np.ndarray) -> np.ndar
     if gate.shape != (pred.shape[0],):
         raise ValueError(f"gate must be ({pred.shape[0]},), got {gate.shape}")
     return _match_tracks(pts, pred, gate)
+
+
+@njit
+def _track_history(ids, points, fids, starts, out):
+    """Fills ``out (Q, W, 3)`` (NaN beforehand) with the positions of the tracks ``ids (Q,)`` in
+    the ``W`` frames whose points ``points (sum N_w, 3)`` and track ids ``fids`` are stacked,
+    frame ``w`` at rows ``starts[w]:starts[w + 1]``: one lookup table over the window's id
+    range, filled and cleared per frame (track ids are unique within a frame)."""
+    q = ids.shape[0]
+    w_all = starts.shape[0] - 1
+    if q == 0 or fids.shape[0] == 0:
+        return
+    lo = fids[0]
+    hi = fids[0]
+    for k in range(fids.shape[0]):
+        lo = min(lo, fids[k])
+        hi = max(hi, fids[k])
+    table = np.full(hi - lo + 1, -1, dtype=np.int64)
+    for w in range(w_all):
+        for k in range(starts[w], starts[w + 1]):
+            table[fids[k] - lo] = k
+        for i in range(q):
+            t = ids[i] - lo
+            if 0 <= t <= hi - lo:
+                k = table[t]
+                if k >= 0:
+                    out[i, w, 0] = points[k, 0]
+                    out[i, w, 1] = points[k, 1]
+                    out[i, w, 2] = points[k, 2]
+        for k in range(starts[w], starts[w + 1]):
+            table[fids[k] - lo] = -1
