@@ -211,6 +211,17 @@ class _Pairs:
         order = np.argsort(dd, kind="stable")
         self.a, self.b, self.d = a[order], b[order], dd[order]
         self.tree = tree
+        self._pts = pts
+        self._dist: np.ndarray | None = None
+
+    @property
+    def dist(self) -> np.ndarray:
+        """``(n, n)`` distances of all point pairs, computed once (every template's node
+        graph of a boot attempt reads the same points: :class:`_Graph`)."""
+        if self._dist is None:
+            p = np.ascontiguousarray(self._pts, dtype=np.float64)
+            self._dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        return self._dist
 
     def within(self, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         i0, i1 = np.searchsorted(self.d, [lo, hi])
@@ -365,14 +376,23 @@ class _Graph:
     a 10-person hug, where the whole square cost 0.1-0.2 s per template and 160 MB). The arrays
     are allocated whole but untouched rows cost no memory. Every relation is symmetric."""
 
-    def __init__(self, tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> None:
+    def __init__(
+        self,
+        tpl: _Template,
+        M: np.ndarray,
+        P: np.ndarray,
+        pts: np.ndarray,
+        dist: np.ndarray | None = None,
+    ) -> None:
         n = M.shape[0]
         self.M = M.astype(np.int64)
         self.P = P.astype(np.int64)
         self._tables = (tpl.D, tpl.tol, tpl.rigid, tpl.strict, tpl.bound, tpl.link)
         self.A = tpl.A  # trained deviations (the steadiest links: _steady_links)
-        p = np.ascontiguousarray(pts, dtype=np.float64)
-        self._dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        if dist is None:  # (``dist``: the points' distance table, shared by the templates)
+            p = np.ascontiguousarray(pts, dtype=np.float64)
+            dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        self._dist = dist
         self.agree = np.empty((n, n), dtype=np.bool_)
         self.clash = np.empty((n, n), dtype=np.bool_)
         self.differ = np.empty((n, n), dtype=np.bool_)
@@ -936,7 +956,7 @@ def _candidates(
     if not keys or not np.concatenate(keys).size:
         return None
     uniq, inv = np.unique(np.concatenate(keys), return_inverse=True)
-    g = _Graph(tpl, uniq // n, uniq % n, pts)
+    g = _Graph(tpl, uniq // n, uniq % n, pts, pairs.dist)
     bounds = np.cumsum([0] + [k.size for k in keys])
     seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(keys))]
     rows = np.full((len(cands), 8), -1, dtype=np.int64)
