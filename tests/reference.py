@@ -471,3 +471,108 @@ def link_excess(m, p, skip, points, bodies, D0, A0, A, assigned, age, min_age, a
             tot += max(0.0, abs(d - D0[b][i, j]) - 3.0 * floor[i, j])
             cnt += 1
     return tot, cnt
+
+
+def match_tracks(pts, pred, gate):
+    """Twin of ``kernels/track.py``: mutual nearest neighbours by two KD-trees (unbounded
+    queries), kept when within the prediction's gate; -1 for a point with no such pair."""
+    from scipy.spatial import cKDTree
+
+    n = pts.shape[0]
+    out = np.full(n, -1, dtype=np.int64)
+    if n == 0 or pred.shape[0] == 0:
+        return out
+    d_pt, j_pt = cKDTree(pred).query(pts)
+    _, i_tr = cKDTree(pts).query(pred)
+    ok = (i_tr[j_pt] == np.arange(n)) & (d_pt <= gate[j_pt])
+    out[ok] = j_pt[ok]
+    return out
+
+
+def pair_error(D, scale, logs, gauss, use, markers, points, assign, pts, sigmas):
+    """Twin of ``kernels/boot_pairs.py:_pair_error`` (the numpy ``boot_match._pair_error`` it
+    replaced): the pair table among ``markers`` (upper triangle) and against the rest of
+    ``assign``, each pair's negative log-likelihood as in ``boot_match._nll``."""
+    markers = np.asarray(markers, dtype=np.int64)
+    points = np.asarray(points, dtype=np.int64)
+
+    def nll(ma, pa, mb, pb):
+        d = np.linalg.norm(pts[pa][:, None, :] - pts[pb][None, :, :], axis=2)
+        r, c = ma[:, None], mb[None, :]
+        e = np.abs(d - D[r, c]) / scale[r, c]
+        cost = np.where(gauss[r, c], 0.5 * (sigmas * e) ** 2, np.log1p(e**2)) + logs[r, c]
+        return np.where(use[r, c] & np.isfinite(cost), cost, 0.0)
+
+    rest = np.flatnonzero(assign >= 0)
+    rest = rest[~np.isin(rest, markers)]
+    total = float(np.triu(nll(markers, points, markers, points), 1).sum())
+    if rest.size:
+        total += float(nll(markers, points, rest, assign[rest]).sum())
+    return total
+
+
+def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link):
+    """Twin of ``kernels/boot_grow.py:_grow`` (the numpy ``boot_match._grow`` it replaced, with
+    its KD-tree ball query), in place on ``assign`` and ``taken``."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    for _ in range(3):
+        changed = False
+        have = np.flatnonzero(assign >= 0)
+        for m in np.flatnonzero(assign < 0):
+            part = have[rigid[m, have]]
+            if part.size < 2:
+                continue
+            j = part[np.argmin(D[m, part])]
+            near = tree.query_ball_point(pts[assign[j]], D[m, j] + TOL[m, j])
+            near = np.asarray(near, dtype=np.int64)
+            near = near[~taken[near]]
+            if near.size == 0:
+                continue
+            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
+            dev = d - D[m, have]
+            rig = rigid[m, have]
+            st = strict[m, have]
+            tol = TOL[m, have]
+            # pairs of one trained body must hold; a pair rigid by A alone counts when it fits
+            fit = rig & (np.abs(dev) <= tol)
+            bad = (st & (np.abs(dev) > tol)) | (~st & (dev > bound[m, have]))
+            n_fit = fit.sum(axis=1)
+            ok = ~bad.any(axis=1) & (n_fit >= 2) & (2 * n_fit >= part.size)
+            if not np.any(ok & (n_fit >= 3)):
+                # two rigid partners only: a ring of solutions, the point must be unique and
+                # keep its articulated pairs in their trained range
+                lt = link[m, have]
+                ok &= ~np.any(~rig & (lt > 0) & (np.abs(dev) > lt), axis=1)
+                if ok.sum() != 1:
+                    continue
+            else:
+                ok &= n_fit >= 3
+            best = -1
+            if ok.any():
+                err = (np.where(fit, dev / tol, 0.0) ** 2).sum(axis=1) / np.maximum(n_fit, 1)
+                err = np.where(ok, err, np.inf)
+                best = int(near[int(np.argmin(err))])
+            if best >= 0:
+                assign[m] = best
+                taken[best] = True
+                have = np.flatnonzero(assign >= 0)
+                changed = True
+        if not changed:
+            return
+
+
+def track_history(frames, ids):
+    """Twin of ``boot_tracks.track_history`` (its ``kernels/track.py`` pass): per frame a sort
+    of the frame's track ids and a search of ``ids`` in it."""
+    out = np.full((ids.shape[0], len(frames), 3), np.nan)
+    for w, (pts, fids) in enumerate(frames):
+        order = np.argsort(fids, kind="stable")
+        sids = fids[order]
+        if sids.shape[0] == 0:
+            continue
+        pos = np.minimum(np.searchsorted(sids, ids), sids.shape[0] - 1)
+        hit = sids[pos] == ids
+        out[hit, w] = pts[order[pos[hit]]]
+    return out

@@ -386,8 +386,7 @@ class Booter:
         if not unlabeled.any():
             return out
         k = min(8, have.size)
-        dist, near = cKDTree(pts[have]).query(pts[free], k=k, distance_upper_bound=self._a_reach)
-        dist, near = dist.reshape(free.size, k), near.reshape(free.size, k)
+        dist, near = _nearest_within(pts[free], pts[have], k, self._a_reach)
         cand = np.flatnonzero(unlabeled)
         fit_mm = self.config.fit_mm
         for i in range(free.size):
@@ -425,6 +424,32 @@ class Booter:
             out[free[i]] = m
             unlabeled[m] = False
         return out
+
+
+#: Above this many query-point pairs :func:`_nearest_within` builds a KD-tree instead.
+NEAREST_BLOCK = 20_000
+
+
+def _nearest_within(
+    query: np.ndarray, points: np.ndarray, k: int, reach: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(Q, k)`` distances and indices of the ``k`` points nearest each query point, ``inf``
+    (and an index to ignore) beyond ``reach``, as ``cKDTree.query(k=k,
+    distance_upper_bound=reach)`` (order within a row aside). The acquisition asks this for
+    the few free points of a frame against every labeled one (~500 at 10 performers): the
+    distances of that small block cost less than building a KD-tree over the labeled points
+    in every frame (0.3 ms); a large block (many free points at once) still gets the tree."""
+    if query.shape[0] * points.shape[0] > NEAREST_BLOCK:
+        dist, near = cKDTree(points).query(query, k=k, distance_upper_bound=reach)
+        return dist.reshape(query.shape[0], k), near.reshape(query.shape[0], k)
+    d = np.linalg.norm(query[:, None, :] - points[None, :, :], axis=2)
+    if k < points.shape[0]:
+        near = np.argpartition(d, k - 1, axis=1)[:, :k]
+    else:
+        near = np.broadcast_to(np.arange(points.shape[0]), d.shape).copy()
+    dist = np.take_along_axis(d, near, axis=1)
+    dist[~(dist < reach)] = np.inf
+    return dist, near
 
 
 def _rigid_support(tpl, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -16,6 +16,9 @@ from scipy.spatial import cKDTree
 
 from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
+from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
+from labeler_service.labeling.kernels.track import _match_tracks, _track_history
 from labeler_service.labeling.templates import LabelerModel
 
 #: A tolerance (``tol_mm + tol_sigma A + tol_relative D``) spans about this many standard
@@ -208,6 +211,17 @@ class _Pairs:
         order = np.argsort(dd, kind="stable")
         self.a, self.b, self.d = a[order], b[order], dd[order]
         self.tree = tree
+        self._pts = pts
+        self._dist: np.ndarray | None = None
+
+    @property
+    def dist(self) -> np.ndarray:
+        """``(n, n)`` distances of all point pairs, computed once (every template's node
+        graph of a boot attempt reads the same points: :class:`_Graph`)."""
+        if self._dist is None:
+            p = np.ascontiguousarray(self._pts, dtype=np.float64)
+            self._dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        return self._dist
 
     def within(self, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         i0, i1 = np.searchsorted(self.d, [lo, hi])
@@ -362,14 +376,23 @@ class _Graph:
     a 10-person hug, where the whole square cost 0.1-0.2 s per template and 160 MB). The arrays
     are allocated whole but untouched rows cost no memory. Every relation is symmetric."""
 
-    def __init__(self, tpl: _Template, M: np.ndarray, P: np.ndarray, pts: np.ndarray) -> None:
+    def __init__(
+        self,
+        tpl: _Template,
+        M: np.ndarray,
+        P: np.ndarray,
+        pts: np.ndarray,
+        dist: np.ndarray | None = None,
+    ) -> None:
         n = M.shape[0]
         self.M = M.astype(np.int64)
         self.P = P.astype(np.int64)
         self._tables = (tpl.D, tpl.tol, tpl.rigid, tpl.strict, tpl.bound, tpl.link)
         self.A = tpl.A  # trained deviations (the steadiest links: _steady_links)
-        p = np.ascontiguousarray(pts, dtype=np.float64)
-        self._dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        if dist is None:  # (``dist``: the points' distance table, shared by the templates)
+            p = np.ascontiguousarray(pts, dtype=np.float64)
+            dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        self._dist = dist
         self.agree = np.empty((n, n), dtype=np.bool_)
         self.clash = np.empty((n, n), dtype=np.bool_)
         self.differ = np.empty((n, n), dtype=np.bool_)
@@ -458,6 +481,51 @@ def _graph_rows(
             link_err[a, b] = adev / t if lk else 0.0
 
 
+@njit(fastmath=False)
+def _greedy_nodes(
+    chosen, support, against, links, lerr, possible, blocked, min_support, done, M, P, dist,
+    D, tol, rigid, strict, bound, lt, agree, clash, differ, link, link_err, art,
+):  # fmt: skip
+    """The node steps of :func:`_select` in one loop (in place): while the best unblocked node
+    (most rigid agreements with the set, articulated links breaking ties) has at least
+    ``min_support`` agreements, it joins and its row (:func:`_graph_rows`, computed here on
+    demand) is added to the counts. Exactly the numpy steps it replaced (same scores, first
+    maximum wins; no fastmath, so the division is not replaced by a reciprocal): a node step
+    was ~8 numpy passes over ~3,400 nodes, ~40 steps per hypothesis."""
+    n = M.shape[0]
+    one = np.zeros(1, dtype=np.int64)
+    nch = 0
+    for i in range(n):
+        if chosen[i]:
+            nch += 1
+    while True:
+        denom = 1.0 + nch
+        c = 0
+        best = -np.inf
+        for i in range(n):
+            s = -1.0 if blocked[i] else support[i] + (links[i] - lerr[i]) / denom
+            if s > best:
+                best = s
+                c = i
+        if support[c] < min_support or blocked[c]:
+            return
+        chosen[c] = True
+        nch += 1
+        one[0] = c
+        _graph_rows(
+            one, done, M, P, dist, D, tol, rigid, strict, bound, lt, agree, clash, differ, link,
+            link_err, art,
+        )  # fmt: skip
+        for i in range(n):
+            support[i] += agree[c, i]
+            against[i] += differ[c, i]
+            links[i] += link[c, i]
+            lerr[i] += link_err[c, i]
+            possible[i] += art[c, i]
+            blocked[i] |= clash[c, i]
+        blocked[c] = True
+
+
 def _select(
     g: _Graph,
     seed: np.ndarray,
@@ -483,20 +551,13 @@ def _select(
     refused = np.zeros(bodies.shape[0], dtype=bool)  # candidates whose steadiest links fail
     while True:
         # rigid agreement first; among equals, the node more articulated pairs agree with
-        # (breaks the near-symmetries of small segments: a wrist bar read either way)
-        score = np.where(blocked, -1.0, support + (links - lerr) / (1.0 + chosen.sum()))
-        c = int(np.argmax(score))
-        if support[c] >= config.min_support and not blocked[c]:
-            chosen[c] = True
-            g.rows(c)
-            support += g.agree[c]
-            against += g.differ[c]
-            links += g.link[c]
-            lerr += g.link_err[c]
-            possible += g.art[c]
-            blocked |= g.clash[c]
-            blocked[c] = True
-            continue
+        # (breaks the near-symmetries of small segments: a wrist bar read either way); every
+        # such node step in one numba loop
+        _greedy_nodes(
+            chosen, support, against, links, lerr, possible, blocked, config.min_support,
+            g._done, g.M, g.P, g._dist, *g._tables,
+            g.agree, g.clash, g.differ, g.link, g.link_err, g.art,
+        )  # fmt: skip
         if bodies.shape[0] == 0:
             return np.flatnonzero(chosen)
         bb = bodies >= 0
@@ -610,50 +671,12 @@ def _grow(
     markers placed, and clashes with none of them, joins (trilateration). With two rigid
     partners only, the point must be the only one that also keeps every articulated pair in
     its trained range."""
-    for _ in range(3):
-        changed = False
-        have = np.flatnonzero(assign >= 0)
-        for m in np.flatnonzero(assign < 0):
-            part = have[tpl.rigid[m, have]]
-            if part.size < 2:
-                continue
-            j = part[np.argmin(tpl.D[m, part])]
-            near = tree.query_ball_point(pts[assign[j]], tpl.D[m, j] + tpl.tol[m, j])
-            near = np.asarray(near, dtype=np.int64)
-            near = near[~taken[near]]
-            if near.size == 0:
-                continue
-            d = np.linalg.norm(pts[near][:, None, :] - pts[assign[have]][None, :, :], axis=2)
-            dev = d - tpl.D[m, have]
-            rig = tpl.rigid[m, have]
-            st = tpl.strict[m, have]
-            tol = tpl.tol[m, have]
-            # pairs of one trained body must hold; a pair rigid by A alone counts when it fits
-            fit = rig & (np.abs(dev) <= tol)
-            bad = (st & (np.abs(dev) > tol)) | (~st & (dev > tpl.bound[m, have]))
-            n_fit = fit.sum(axis=1)
-            ok = ~bad.any(axis=1) & (n_fit >= 2) & (2 * n_fit >= part.size)
-            if not np.any(ok & (n_fit >= 3)):
-                # two rigid partners only: a ring of solutions, the point must be unique and
-                # keep its articulated pairs in their trained range
-                lt = tpl.link[m, have]
-                ok &= ~np.any(~rig & (lt > 0) & (np.abs(dev) > lt), axis=1)
-                if ok.sum() != 1:
-                    continue
-            else:
-                ok &= n_fit >= 3
-            best = -1
-            if ok.any():
-                err = (np.where(fit, dev / tol, 0.0) ** 2).sum(axis=1) / np.maximum(n_fit, 1)
-                err = np.where(ok, err, np.inf)
-                best = int(near[int(np.argmin(err))])
-            if best >= 0:
-                assign[m] = best
-                taken[best] = True
-                have = np.flatnonzero(assign >= 0)
-                changed = True
-        if not changed:
-            return
+    # one numba loop (kernels/boot_grow.py; ``tree`` is not needed there: the ball query is
+    # a scan of the points; the numpy version is the twin tests/reference.py:grow)
+    _grow_kernel(
+        assign, taken, np.ascontiguousarray(pts, dtype=np.float64), tpl.D, tpl.tol, tpl.bound,
+        tpl.rigid, tpl.strict, tpl.link,
+    )  # fmt: skip
 
 
 def _articulate(
@@ -917,6 +940,11 @@ def _candidates(
     its (marker, point) nodes (as a last candidate row of its own, not a body)."""
     cands: list[_Candidate] = []
     for bi, body in enumerate(tpl.bodies):
+        if fixed is not None and np.all(fixed[body.markers] >= 0):
+            # every marker placed: each node of its candidates is a fixed node or clashes with
+            # one (a marker on two points), so none can join the completion (:func:`_select`);
+            # skipped, they cost nothing (most bodies of a booted subject's extension)
+            continue
         for c in _body_candidates(tpl, body, pts, hist, pairs, config):
             c.body = bi
             cands.append(c)
@@ -928,7 +956,7 @@ def _candidates(
     if not keys or not np.concatenate(keys).size:
         return None
     uniq, inv = np.unique(np.concatenate(keys), return_inverse=True)
-    g = _Graph(tpl, uniq // n, uniq % n, pts)
+    g = _Graph(tpl, uniq // n, uniq % n, pts, pairs.dist)
     bounds = np.cumsum([0] + [k.size for k in keys])
     seeds = [inv[bounds[i] : bounds[i + 1]] for i in range(len(keys))]
     rows = np.full((len(cands), 8), -1, dtype=np.int64)
@@ -1077,15 +1105,17 @@ def _pair_error(
     different tolerances (a wrist bar and its finger marker, or the loose body the trainer made
     of the forearm, wrist and elbow markers on the same three points: scored against the rest
     alone, the loose reading won and shifted a whole arm along its chain)."""
-    markers = np.asarray(markers, dtype=np.int64)
-    points = np.asarray(points, dtype=np.int64)
-    rest = np.flatnonzero(assign >= 0)
-    rest = rest[~np.isin(rest, markers)]
-    inner = _pair_nll(tpl, markers, points, markers, points, pts)
-    total = float(np.triu(inner, 1).sum())
-    if rest.size:
-        total += float(_pair_nll(tpl, markers, points, rest, assign[rest], pts).sum())
-    return total
+    # one numba loop over the pairs (kernels/boot_pairs.py; its numpy twin is
+    # tests/reference.py:pair_error): ~3,600 calls per attempt on 10 hugging performers
+    return float(
+        _pair_error_kernel(
+            tpl.D, tpl.nll_scale, tpl.nll_log, tpl.nll_gauss, tpl.nll_use,
+            np.ascontiguousarray(markers, dtype=np.int64),
+            np.ascontiguousarray(points, dtype=np.int64),
+            np.ascontiguousarray(assign, dtype=np.int64),
+            np.ascontiguousarray(pts, dtype=np.float64), STRICT_SIGMAS,
+        )
+    )  # fmt: skip
 
 
 def _exchange(tpl: _Template, assign: np.ndarray, pts: np.ndarray, rounds: int = 8) -> None:
@@ -1558,6 +1588,18 @@ def warmup_kernels() -> None:
         M, np.zeros(2, dtype=np.bool_), M, M, dist, m, m, rigid, rigid.copy(), m, m,
         out_b, out_b.copy(), out_b.copy(), out_b.copy(), np.zeros((2, 2)), out_b.copy(),
     )  # fmt: skip
+    # the kernels of kernels/boot_*.py and the point tracker's (every frame of a booting stream)
+    z, ones = np.zeros(2, dtype=np.int64), np.ones(2, dtype=np.bool_)
+    _greedy_nodes(
+        ~ones, z.copy(), z.copy(), z.copy(), np.zeros(2), z.copy(), ones.copy(), 2, ~ones, M, M,
+        dist, m, m, rigid, rigid.copy(), m, m, out_b, out_b.copy(), out_b.copy(), out_b.copy(),
+        np.zeros((2, 2)), out_b.copy(),
+    )  # fmt: skip
+    p3 = np.zeros((2, 3))
+    _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
+    _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
+    _match_tracks(p3, p3 + 1.0, np.ones(2))
+    _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))
 
 
 # ---------------------------------------------------------------------------- joint fill

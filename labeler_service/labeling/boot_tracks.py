@@ -5,10 +5,10 @@ window, ``labels_along_tracks`` spreads the last frame's labels over the window.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.kernels.track import _match_tracks, _track_history
 
 
 # ---------------------------------------------------------------------------- tracking
@@ -49,10 +49,10 @@ class PointTracker:
             pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
             g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
             gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
-            d_pt, j_pt = cKDTree(pred).query(pts)  # point -> nearest prediction
-            _, i_tr = cKDTree(pts).query(pred)  # prediction -> nearest point
-            idx = np.arange(n)
-            ok = (i_tr[j_pt] == idx) & (d_pt <= gate[j_pt])
+            # mutual nearest prediction within its gate (kernels/track.py: a sweep index with
+            # bounded searches; two KD-trees cost ~0.5 ms a frame at 500 points)
+            j_pt = _match_tracks(np.ascontiguousarray(pts), pred, gate.astype(np.float64))
+            ok = j_pt >= 0
             k = j_pt[ok]
             ids[ok] = self._ids[k]
             birth[ok] = self._birth[k]
@@ -74,14 +74,16 @@ def track_history(frames: list[tuple[np.ndarray, np.ndarray]], ids: np.ndarray) 
     """``(N, W, 3)`` positions of the tracks ``ids`` in the window ``frames`` (list of
     ``(points, ids)``, oldest first), NaN where a track has no point in a frame."""
     out = np.full((ids.shape[0], len(frames), 3), np.nan)
-    for w, (pts, fids) in enumerate(frames):
-        order = np.argsort(fids, kind="stable")
-        sids = fids[order]
-        if sids.shape[0] == 0:
-            continue
-        pos = np.minimum(np.searchsorted(sids, ids), sids.shape[0] - 1)
-        hit = sids[pos] == ids
-        out[hit, w] = pts[order[pos[hit]]]
+    if not frames:
+        return out
+    # one numba pass over the stacked window (kernels/track.py): a sort and a search per frame
+    # cost ~0.7 ms of each snapshot on the frame thread at 500 points and 24 frames
+    sizes = np.array([f[1].shape[0] for f in frames], dtype=np.int64)
+    starts = np.zeros(sizes.size + 1, dtype=np.int64)
+    np.cumsum(sizes, out=starts[1:])
+    pts = np.concatenate([np.asarray(f[0], dtype=np.float64).reshape(-1, 3) for f in frames])
+    fids = np.concatenate([np.asarray(f[1], dtype=np.int64) for f in frames])
+    _track_history(np.ascontiguousarray(ids, dtype=np.int64), pts, fids, starts, out)
     return out
 
 

@@ -467,16 +467,21 @@ class BootingLabeler:
         ``drop_after_s``."""
         dropped = []
         c = self.boot_config
-        for s in sorted(self._active):
-            sl = slice(self._offset[s], self._offset[s + 1])
-            n_obs = int(np.count_nonzero(state[sl] == MarkerState.OBSERVED))
-            ref = self._recent[s]
-            if n_obs >= max(1, c.vanish_fraction * (sl.stop - sl.start)) and (
-                ref <= 0 or n_obs >= c.vanish_relative * ref
-            ):
-                self._gone[s] = 0
-                self._recent[s] = n_obs if ref <= 0 else ref + self._recent_alpha * (n_obs - ref)
-                continue
+        # every subject's observed count at once (a loop of per-subject slices cost ~0.1 ms a
+        # frame at 10 performers); only the vanishing ones are looked at one by one
+        act = np.array(sorted(self._active), dtype=np.int64)
+        obs = (state == MarkerState.OBSERVED).view(np.uint8)
+        n_obs = np.add.reduceat(obs, self._offset[:-1], dtype=np.int64)[act]
+        size = (self._offset[1:] - self._offset[:-1])[act]
+        ref = self._recent[act]
+        ok = (n_obs >= np.maximum(1.0, c.vanish_fraction * size)) & (
+            (ref <= 0) | (n_obs >= c.vanish_relative * ref)
+        )
+        self._gone[act[ok]] = 0
+        self._recent[act[ok]] = np.where(
+            ref[ok] <= 0, n_obs[ok], ref[ok] + self._recent_alpha * (n_obs[ok] - ref[ok])
+        )
+        for s in act[~ok].tolist():
             self._gone[s] += 1
             self._withhold(s, glab, pos, state)
             if self._gone[s] >= self._drop_frames:
@@ -563,7 +568,10 @@ class BootingLabeler:
                 del self._blocked[s]
                 continue
             self._blocked[s] = (bid[live], until[live])
-            out[s] = np.isin(ids, bid[live])
+            # (a sorted search: np.isin's set-up cost ~30 us per subject, every frame)
+            keys = np.sort(bid[live])
+            at = np.minimum(np.searchsorted(keys, ids), keys.size - 1)
+            out[s] = keys[at] == ids
         return out
 
     def _acquire(
@@ -595,6 +603,8 @@ class BootingLabeler:
         self._acq_ids, self._acq_tries = fid[order], tries[order] + 1
         look = free.copy()
         look[free] = tries < ACQUIRE_TRIES
+        if not look.any():  # (most frames once booted: no block masks needed)
+            return
         for mask in self._block_masks(ids, t).values():
             look &= ~mask  # (withdrawn from a subject: not looked at for a while)
         if not look.any():
