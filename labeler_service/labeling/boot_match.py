@@ -1571,13 +1571,21 @@ FILL_CHIRAL_TOP = 256
 
 
 def _fill_reversed(
-    tpl: _Template, assign: np.ndarray, pts: np.ndarray, marks: np.ndarray, points: np.ndarray
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    marks: np.ndarray,
+    points: np.ndarray,
+    stale: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per map (``marks``, ``points``: ``(K, k)`` markers and their points): does it reverse a
     thick chirality quadruple (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``) with all four
-    markers placed and at least one of them new?"""
+    markers placed and at least one of them new? ``stale (m, m)``: pairs the stream
+    contradicts (:func:`_stale_pairs`); a quadruple holding one does not count."""
     q = tpl.chirality
     K = marks.shape[0]
+    if stale is not None and q.shape[0]:
+        q = q[~_quads_holding(q, stale)]
     if q.shape[0] == 0 or K == 0:
         return np.zeros(K, dtype=bool)
     out = np.broadcast_to(assign, (K, tpl.n)).copy()
@@ -1591,6 +1599,42 @@ def _fill_reversed(
     with np.errstate(all="ignore"):  # (coincident points)
         det = np.linalg.det(p[:, :, 1:] - p[:, :, :1])
     return np.any(use & (np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0), axis=1)
+
+
+def _quads_holding(q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Per quadruple of ``q (Q, 4)``: does one of its six pairs hold in ``pairs (m, m)``?"""
+    out = np.zeros(q.shape[0], dtype=bool)
+    for a, b in itertools.combinations(range(4), 2):
+        out |= pairs[q[:, a], q[:, b]]
+    return out
+
+
+def _stale_pairs(
+    tpl: _Template, miss: np.ndarray, have: np.ndarray, dp: np.ndarray, dc: np.ndarray
+) -> np.ndarray:
+    """``(m, m)`` pairs of one trained body (``strict``) of a leftover marker (``miss``) with
+    a placed one (``have``) or with another leftover marker that the stream contradicts: no
+    candidate point (``dp (nc, h)``: its distances to the placed markers), or no two distinct
+    candidates (``dc (nc, nc)``), are at the pair's trained distance within ``tol``. Whatever
+    the map, such a body is not rigid in this segment: the model learned it across a joint the
+    training segment never moved (the broad jumper's ``[R.Shoulder, Sternum, R.Elbow]``,
+    trained on a landing with the arms held; in the take-off ``R.Shoulder-R.Elbow`` is 21-86
+    mm off, ``tol`` 14). A pair across bodies off its distance says nothing of the kind (a
+    pose, or a marker placed on the wrong point) and is not listed."""
+    out = np.zeros((tpl.n, tpl.n), dtype=bool)
+    nc = dc.shape[0]
+    if nc == 0 or miss.size == 0:
+        return out
+    D, tol = tpl.D[np.ix_(miss, have)], tpl.tol[np.ix_(miss, have)]
+    fit = np.abs(dp[None] - D[:, None, :]) <= tol[:, None, :]  # (nu, nc, h)
+    out[np.ix_(miss, have)] = tpl.strict[np.ix_(miss, have)] & ~fit.any(axis=1)
+    if nc >= 2:
+        D2, tol2 = tpl.D[np.ix_(miss, miss)], tpl.tol[np.ix_(miss, miss)]
+        two = ~np.eye(nc, dtype=bool)
+        fit2 = np.abs(dc[None, None] - D2[:, :, None, None]) <= tol2[:, :, None, None]
+        out[np.ix_(miss, miss)] = tpl.strict[np.ix_(miss, miss)] & ~(fit2 & two).any(axis=(2, 3))
+    out |= out.T
+    return out
 
 
 @functools.lru_cache(maxsize=64)
@@ -1781,6 +1825,11 @@ def _fill_jointly(
     if nc < 2 or nc > nu or math.perm(nu, nc) > FILL_MAX_MAPS:
         return None
     scale = np.where(tpl.strict, tpl.tol, tpl.link)
+    dp = np.linalg.norm(pts[cand][:, None] - placed[None], axis=2)  # (nc, h)
+    dc = np.linalg.norm(pts[cand][:, None] - pts[cand][None], axis=2)
+    # bodies no candidate keeps rigid (a model trained in another pose): their quadruples
+    # do not vote on chirality
+    stale = _stale_pairs(tpl, miss, have, dp, dc)
     known = np.isfinite(tpl.D) & (scale > 0)
 
     def cost(ma: np.ndarray, mb: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -1788,9 +1837,7 @@ def _fill_jointly(
         return np.where(known[ma, mb], np.log1p(e * e), 0.0)
 
     # unary: (nu, nc) to the placed markers; pairwise: (nu, nu, nc, nc) among the map's own
-    dp = np.linalg.norm(pts[cand][:, None] - placed[None], axis=2)  # (nc, h)
     unary = cost(miss[:, None, None], have[None, None, :], dp[None]).sum(axis=2)
-    dc = np.linalg.norm(pts[cand][:, None] - pts[cand][None], axis=2)
     pair = cost(miss[:, None, None, None], miss[None, :, None, None], dc[None, None])
     mk, pt = _fill_maps(nu, nc)
     total = unary[mk, pt].sum(axis=1)
@@ -1806,15 +1853,31 @@ def _fill_jointly(
     # cheapest map is one, nothing is placed (the next-best, taken then, read a head's
     # diagonal markers crossed in tune14)
     top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
-    ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]])
+    ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]], stale)
     if not ok[0]:
         return None
     best = int(top[np.argmax(ok)])
-    rivals = np.count_nonzero(ok & (total[top] <= total[best] + margin))
-    if rivals > 1 or (top.size < total.size and total[top[-1]] <= total[best] + margin):
-        return None  # not unique: wait for more evidence (the next extension)
+    if top.size < total.size and total[top[-1]] <= total[best] + margin:
+        return None  # rivals beyond the maps judged: wait for more evidence
+    near = top[ok & (total[top] <= total[best] + margin)]
     out = base.copy()
-    out[miss[mk[best]]] = cand[pt[best]]
+    if near.size == 1:
+        out[miss[mk[best]]] = cand[pt[best]]
+    else:
+        # not unique: the markers every rival map puts on one point are placed (the evidence
+        # is there for them), the others wait for the next extension (a marker re-read,
+        # ``assign`` placed, keeps its point)
+        got = np.full((near.size, nu), -1, dtype=np.int64)
+        got[np.arange(near.size)[:, None], mk[near]] = cand[pt[near]]
+        agree = np.all(got == got[:1], axis=0) & (got[0] >= 0)
+        if not agree.any():
+            return None
+        out[miss[agree]] = got[0, agree]
+        rest = miss[~agree]
+        out[rest] = assign[rest]
+        used = out[out >= 0]
+        if np.unique(used).size != used.size:
+            return None
     if np.array_equal(out, assign):
         return None
     fresh = np.flatnonzero((out >= 0) & (out != assign))
@@ -1842,6 +1905,7 @@ def _fill_jointly(
     if np.any(swap < now - EXCHANGE_MARGIN):
         return None
     q = tpl.chirality
+    q = q[~_quads_holding(q, stale)]
     if q.shape[0]:
         new = np.zeros(n, dtype=bool)
         new[fresh] = True
