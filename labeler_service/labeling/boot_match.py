@@ -76,6 +76,10 @@ class _Template:
     #: pair rigid by ``A`` alone (an arm held still against the chest in the training frames)
     #: may change with the pose, so its mismatch is no evidence against a placement
     strict: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    #: (m, m) pairs inside a trained body whose every pair is rigid (one segment); a pair of
+    #: ``strict`` outside every such body sits in a body the trainer completed across a joint
+    #: (one of its pairs moved in training): see _stale_pairs
+    whole: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     extent: float = 2000.0  # longest pair distance D (mm)
     r_max: float = 0.0  # longest anchor edge + tolerance (mm)
     segments: list[np.ndarray] = field(default_factory=list)  # see _segments
@@ -146,6 +150,13 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             same[np.ix_(members, members)] = True
         np.fill_diagonal(same, False)
         tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link, same & rigid)
+        tpl.whole = np.zeros((m, m), dtype=bool)
+        for body in subj.bodies:
+            members = np.asarray(body, dtype=np.int64)
+            inside = rigid[np.ix_(members, members)] | np.eye(members.size, dtype=bool)
+            if inside.all():
+                tpl.whole[np.ix_(members, members)] = True
+        np.fill_diagonal(tpl.whole, False)
         tpl.body_of = [[] for _ in range(m)]
         for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
             if len(body) < 3:
@@ -1612,27 +1623,32 @@ def _quads_holding(q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
 def _stale_pairs(
     tpl: _Template, miss: np.ndarray, have: np.ndarray, dp: np.ndarray, dc: np.ndarray
 ) -> np.ndarray:
-    """``(m, m)`` pairs of one trained body (``strict``) of a leftover marker (``miss``) with
-    a placed one (``have``) or with another leftover marker that the stream contradicts: no
-    candidate point (``dp (nc, h)``: its distances to the placed markers), or no two distinct
-    candidates (``dc (nc, nc)``), are at the pair's trained distance within ``tol``. Whatever
-    the map, such a body is not rigid in this segment: the model learned it across a joint the
-    training segment never moved (the broad jumper's ``[R.Shoulder, Sternum, R.Elbow]``,
-    trained on a landing with the arms held; in the take-off ``R.Shoulder-R.Elbow`` is 21-86
-    mm off, ``tol`` 14). A pair across bodies off its distance says nothing of the kind (a
-    pose, or a marker placed on the wrong point) and is not listed."""
+    """``(m, m)`` rigid pairs of a trained body that was not rigid as a whole (``strict`` and
+    not ``whole``), of a leftover marker (``miss``) with a placed one (``have``) or with
+    another leftover marker, that the stream contradicts: no candidate point (``dp (nc, h)``:
+    its distances to the placed markers), or no two distinct candidates (``dc (nc, nc)``),
+    are at the pair's trained distance within ``tol``. Whatever the map, such a body is not
+    rigid in this segment: the trainer completed it across a joint (one of its pairs moved)
+    and the training segment never moved the joint between the other two (the broad jumper's
+    ``[R.Shoulder, Sternum, R.Elbow]``, trained on a landing with the arms held:
+    ``Sternum-R.Elbow`` ``A`` 11.7 mm; in the take-off ``R.Shoulder-R.Elbow`` is 21-86 mm
+    off, ``tol`` 14). A pair that a wholly rigid body holds is one segment: contradicted, it
+    says a marker is placed on the wrong point (a tennis player's hand read with its finger
+    and wrist markers exchanged at boot, ``RFRM-RWRB`` 234 mm for 131), and a pair across
+    bodies off its distance is a pose; neither is listed."""
     out = np.zeros((tpl.n, tpl.n), dtype=bool)
     nc = dc.shape[0]
     if nc == 0 or miss.size == 0:
         return out
+    loose = tpl.strict & ~tpl.whole
     D, tol = tpl.D[np.ix_(miss, have)], tpl.tol[np.ix_(miss, have)]
     fit = np.abs(dp[None] - D[:, None, :]) <= tol[:, None, :]  # (nu, nc, h)
-    out[np.ix_(miss, have)] = tpl.strict[np.ix_(miss, have)] & ~fit.any(axis=1)
+    out[np.ix_(miss, have)] = loose[np.ix_(miss, have)] & ~fit.any(axis=1)
     if nc >= 2:
         D2, tol2 = tpl.D[np.ix_(miss, miss)], tpl.tol[np.ix_(miss, miss)]
         two = ~np.eye(nc, dtype=bool)
         fit2 = np.abs(dc[None, None] - D2[:, :, None, None]) <= tol2[:, :, None, None]
-        out[np.ix_(miss, miss)] = tpl.strict[np.ix_(miss, miss)] & ~(fit2 & two).any(axis=(2, 3))
+        out[np.ix_(miss, miss)] = loose[np.ix_(miss, miss)] & ~(fit2 & two).any(axis=(2, 3))
     out |= out.T
     return out
 

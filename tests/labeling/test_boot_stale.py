@@ -48,15 +48,26 @@ def _case(walk, leftover: tuple[str, ...]):
     return tpl, ix, assign, pts, hist, free, miss
 
 
-def _stale_model(tpl, ix, pts, shift: float):
-    """The template with one thick chirality quadruple over the upper arm and elbow
+def _stale_model(walk, tpl, ix, pts, shift: float, loose: bool):
+    """P1's template with one thick chirality quadruple over the upper arm and elbow
     ``[LUPA, LUPB, LELB, LFRM]`` that the true points reverse (as if trained in a pose where
-    the elbow sat on the other side), and the trained body pair ``LUPA-LELB`` ``shift`` mm
-    longer than in the stream (that body learned across a joint the training never moved)."""
-    t = copy.deepcopy(tpl)
-    a, b = ix["LUPA"], ix["LELB"]
-    t.D[a, b] += shift
-    t.D[b, a] += shift
+    the elbow sat on the other side), the trained body pair ``LUPA-LELB`` ``shift`` mm longer
+    than in the stream and, with ``loose``, the body ``[LUPA, LUPB, LELB]`` not rigid as a
+    whole in training (``LUPB-LELB`` ``A`` 12 mm: the trainer completed it across a joint)."""
+    from labeler_service.labeling.boot_match import _prepare
+
+    model, _ = walk
+    subj = model.subjects[0]
+    D, A = subj.D_array(), subj.A_array()
+    a, b, c = ix["LUPA"], ix["LELB"], ix["LUPB"]
+    D[a, b] += shift
+    D[b, a] += shift
+    if loose:
+        A[b, c] = A[c, b] = 12.0
+    edited = subj.model_copy(update={"D": D.tolist(), "A": A.tolist()})
+    both = model.model_copy(update={"subjects": [edited, *model.subjects[1:]]})
+    t = _prepare(both, BootConfig())[0]
+    assert t.strict[a, b] and t.whole[a, b] != loose
     quad = [ix["LUPA"], ix["LUPB"], ix["LELB"], ix["LFRM"]]
     p = pts[quad]
     if np.linalg.det(p[1:] - p[:1]) > 0:
@@ -69,9 +80,11 @@ def _stale_model(tpl, ix, pts, shift: float):
     return t
 
 
-def test_stale_pairs_are_trained_body_pairs_no_candidate_keeps(walk):
-    """A pair of one trained body between a leftover and a placed marker is stale when no
-    candidate point is at its trained distance; pairs the stream keeps are not."""
+def test_stale_pairs_are_body_pairs_no_candidate_keeps(walk):
+    """A rigid pair of a trained body that was not rigid as a whole, between a leftover and a
+    placed marker, is stale when no candidate point is at its trained distance; pairs the
+    stream keeps, pairs a wholly rigid body holds (a marker placed wrong) and pairs across
+    bodies (a pose) are not."""
     from labeler_service.labeling.boot_match import _stale_pairs
 
     tpl, ix, assign, pts, hist, free, miss = _case(walk, ("LELB", "LWRA", "LFIN"))
@@ -79,12 +92,13 @@ def test_stale_pairs_are_trained_body_pairs_no_candidate_keeps(walk):
     dp = np.linalg.norm(pts[miss][:, None] - pts[have][None], axis=2)
     dc = np.linalg.norm(pts[miss][:, None] - pts[miss][None], axis=2)
     assert not _stale_pairs(tpl, miss, have, dp, dc).any()
-    t = _stale_model(tpl, ix, pts, 40.0)
-    stale = _stale_pairs(t, miss, have, dp, dc)
+    for shift, loose in ((0.0, True), (40.0, False)):
+        t = _stale_model(walk, tpl, ix, pts, shift, loose)
+        assert not _stale_pairs(t, miss, have, dp, dc).any()
+    stale = _stale_pairs(_stale_model(walk, tpl, ix, pts, 40.0, True), miss, have, dp, dc)
     a, b = ix["LUPA"], ix["LELB"]
     assert stale[a, b] and stale[b, a]
     assert np.count_nonzero(stale) == 2
-    # a pair across bodies off its distance is no evidence of a stale body
     u = copy.deepcopy(tpl)
     c = ix["LKNE"]
     assert not u.strict[b, c]
@@ -95,16 +109,18 @@ def test_stale_pairs_are_trained_body_pairs_no_candidate_keeps(walk):
 
 def test_a_stale_body_does_not_refuse_the_fill_by_chirality(walk):
     """The reversed quadruple refuses the fill while its body holds its trained distances (a
-    mirror image keeps every distance), not when the stream contradicts that body."""
+    mirror image keeps every distance) or is rigid as a whole (then a placed marker is wrong),
+    not when the stream contradicts a body trained across a joint."""
     from labeler_service.labeling.boot_match import _fill
 
     tpl, ix, assign, pts, hist, free, miss = _case(walk, ("LELB", "LWRA", "LFIN"))
     none, cfg = np.zeros((0, 3)), BootConfig()
     assert np.array_equal(_fill(tpl, assign, pts, hist, free, none, cfg), np.arange(tpl.n))
-    kept = _stale_model(tpl, ix, pts, 0.0)
-    assert np.array_equal(_fill(kept, assign, pts, hist, free, none, cfg), assign)
-    stale = _stale_model(tpl, ix, pts, 40.0)
-    assert np.array_equal(_fill(stale, assign, pts, hist, free, none, cfg), np.arange(tpl.n))
+    for shift, loose in ((0.0, True), (40.0, False)):
+        t = _stale_model(walk, tpl, ix, pts, shift, loose)
+        assert np.array_equal(_fill(t, assign, pts, hist, free, none, cfg), assign)
+    t = _stale_model(walk, tpl, ix, pts, 40.0, True)
+    assert np.array_equal(_fill(t, assign, pts, hist, free, none, cfg), np.arange(tpl.n))
 
 
 def _twins_alike(tpl, i: int, j: int):
