@@ -1880,14 +1880,23 @@ def _fill_jointly(
     if near.size == 1:
         out[miss[mk[best]]] = cand[pt[best]]
     else:
-        # not unique: the markers every rival map puts on one point are placed (the evidence
-        # is there for them), the others wait for the next extension (a marker re-read,
-        # ``assign`` placed, keeps its point)
+        # not unique: the markers every rival map puts on one point are placed when a pair
+        # of one trained body holds there (rigid evidence; with fewer points than markers
+        # every map places every point, a point of a marker the model lacks too), the others
+        # wait for the next extension (a marker re-read, ``assign`` placed, keeps its point)
         got = np.full((near.size, nu), -1, dtype=np.int64)
         got[np.arange(near.size)[:, None], mk[near]] = cand[pt[near]]
         agree = np.all(got == got[:1], axis=0) & (got[0] >= 0)
+        out[miss[agree]] = got[0, agree]
+        held = np.flatnonzero(out >= 0)
+        d = np.linalg.norm(pts[out[miss]][:, None] - pts[out[held]][None], axis=2)
+        fits = tpl.strict[np.ix_(miss, held)] & (
+            np.abs(d - tpl.D[np.ix_(miss, held)]) <= tpl.tol[np.ix_(miss, held)]
+        )
+        agree &= fits.any(axis=1)
         if not agree.any():
             return None
+        out = base.copy()
         out[miss[agree]] = got[0, agree]
         rest = miss[~agree]
         out[rest] = assign[rest]
