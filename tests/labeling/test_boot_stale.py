@@ -142,18 +142,25 @@ def _twins_alike(tpl, i: int, j: int):
 
 def test_a_fill_that_is_not_unique_places_what_every_rival_agrees_on(walk):
     """With two leftover markers the model cannot tell apart, the maps exchanging them tie:
-    the others are placed (every rival map agrees on them), the two wait."""
+    the other leftover marker is placed (every rival map agrees on it and a pair of one
+    trained body holds at its point), the two wait. A marker every rival agrees on but with
+    no such pair (a forearm marker whose body partners are the two waiting) waits too."""
     from labeler_service.labeling.boot_match import _fill
 
-    tpl, ix, assign, pts, hist, free, miss = _case(walk, ("LELB", "LFRM", "LWRA", "LWRB"))
     none, cfg = np.zeros((0, 3)), BootConfig()
+    tpl, ix, assign, pts, hist, free, miss = _case(walk, ("LELB", "LWRA", "LWRB"))
     assert np.array_equal(_fill(tpl, assign, pts, hist, free, none, cfg), np.arange(tpl.n))
     t = _twins_alike(tpl, ix["LWRA"], ix["LWRB"])
-    out = _fill(t, assign, pts, hist, free, none, cfg)
     want = np.arange(tpl.n)
     want[[ix["LWRA"], ix["LWRB"]]] = -1
-    assert np.array_equal(out, want)
+    assert np.array_equal(_fill(t, assign, pts, hist, free, none, cfg), want)
+    tpl, ix, assign, pts, hist, free, miss = _case(walk, ("LELB", "LFRM", "LWRA", "LWRB"))
+    assert np.array_equal(_fill(tpl, assign, pts, hist, free, none, cfg), np.arange(tpl.n))
+    t = _twins_alike(tpl, ix["LWRA"], ix["LWRB"])
+    assert not t.strict[ix["LFRM"], ix["LELB"]]
+    want[ix["LFRM"]] = -1
+    assert np.array_equal(_fill(t, assign, pts, hist, free, none, cfg), want)
     # nothing agreed (only the two twins left): nothing placed
-    tpl2, ix2, assign2, pts2, hist2, free2, _ = _case(walk, ("LWRA", "LWRB"))
-    t2 = _twins_alike(tpl2, ix2["LWRA"], ix2["LWRB"])
-    assert np.array_equal(_fill(t2, assign2, pts2, hist2, free2, none, cfg), assign2)
+    tpl, ix, assign, pts, hist, free, _ = _case(walk, ("LWRA", "LWRB"))
+    t = _twins_alike(tpl, ix["LWRA"], ix["LWRB"])
+    assert np.array_equal(_fill(t, assign, pts, hist, free, none, cfg), assign)
