@@ -1834,7 +1834,6 @@ def _fill_jointly(
     """The joint map of :func:`_fill`: markers ``miss`` (unplaced in ``base``, which is
     ``assign`` less the markers re-read) onto points ``cand``. Returns the new assignment, or
     None when it is not unique or a check refuses it."""
-    n = tpl.n
     have = np.flatnonzero(base >= 0)
     placed = pts[base[have]]
     nu, nc = miss.size, cand.size
@@ -1877,9 +1876,15 @@ def _fill_jointly(
         return None  # rivals beyond the maps judged: wait for more evidence
     near = top[ok & (total[top] <= total[best] + margin)]
     out = base.copy()
-    if near.size == 1:
-        out[miss[mk[best]]] = cand[pt[best]]
-    else:
+    out[miss[mk[best]]] = cand[pt[best]]
+    if near.size > 1:
+        # the cheapest map must pass the checks as a whole (a reading wrong somewhere makes
+        # its rivals' agreement suspect: a performer read with its arms mixed agreed on a
+        # right forearm marker on the left wrist's point, tune00)
+        if np.array_equal(out, assign) or not _fill_checks(
+            tpl, assign, out, have, pts, hist, stale, config
+        ):
+            return None
         # not unique: the markers every rival map puts on one point are placed when a pair
         # of one trained body holds there (rigid evidence; with fewer points than markers
         # every map places every point, a point of a marker the model lacks too), the others
@@ -1887,9 +1892,10 @@ def _fill_jointly(
         got = np.full((near.size, nu), -1, dtype=np.int64)
         got[np.arange(near.size)[:, None], mk[near]] = cand[pt[near]]
         agree = np.all(got == got[:1], axis=0) & (got[0] >= 0)
+        out = base.copy()
         out[miss[agree]] = got[0, agree]
         held = np.flatnonzero(out >= 0)
-        d = np.linalg.norm(pts[out[miss]][:, None] - pts[out[held]][None], axis=2)
+        d = np.linalg.norm(pts[got[0]][:, None] - pts[out[held]][None], axis=2)
         fits = tpl.strict[np.ix_(miss, held)] & (
             np.abs(d - tpl.D[np.ix_(miss, held)]) <= tpl.tol[np.ix_(miss, held)]
         )
@@ -1905,18 +1911,36 @@ def _fill_jointly(
             return None
     if np.array_equal(out, assign):
         return None
+    return out if _fill_checks(tpl, assign, out, have, pts, hist, stale, config) else None
+
+
+def _fill_checks(
+    tpl: _Template,
+    assign: np.ndarray,
+    out: np.ndarray,
+    have: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    stale: np.ndarray,
+    config: BootConfig,
+) -> bool:
+    """The checks of :func:`_fill` on a reading ``out`` of ``assign`` (``have``: the markers
+    placed before the map): reach and steadiest partner of each new marker, no exchange with
+    a placed marker, no thick chirality quadruple reversed (quadruples holding a ``stale``
+    pair do not count)."""
+    n = tpl.n
     fresh = np.flatnonzero((out >= 0) & (out != assign))
     for m in fresh:
         mine = np.flatnonzero((out >= 0) & (np.arange(n) != m) & np.isfinite(tpl.D[m]))
         mine = mine[np.argsort(tpl.A[m, mine], kind="stable")[: config.art_anchors]]
         d = np.linalg.norm(pts[out[mine]] - pts[out[m]], axis=1)
         if 2 * int(np.count_nonzero(d > tpl.D[m, mine] + tpl.bound[m, mine])) > mine.size:
-            return None
+            return False
         j = mine[np.argmin(tpl.A[m, mine])]
         track = np.linalg.norm(hist[out[m]] - hist[out[j]], axis=1)
         track = track[np.isfinite(track)]
         if track.size == 0 or float(track.max() - track.min()) > 2.0 * tpl.tol[m, j]:
-            return None
+            return False
     # a new marker and a placed one exchanging their points (:func:`_pair_error` of the two
     # against the rest, from one (k, k, k) table as in :func:`_exchange`; the pair between
     # them keeps its distance)
@@ -1928,7 +1952,7 @@ def _fill_jointly(
     now = T[i, i] - E[i, i, i] - E[i, i, j] + T[j, j] - E[j, j, j] - E[j, j, i]
     swap = T[i, j] - E[i, j, i] - E[i, j, j] + T[j, i] - E[j, i, j] - E[j, i, i]
     if np.any(swap < now - EXCHANGE_MARGIN):
-        return None
+        return False
     q = tpl.chirality
     q = q[~_quads_holding(q, stale)]
     if q.shape[0]:
@@ -1940,5 +1964,5 @@ def _fill_jointly(
             with np.errstate(all="ignore"):  # (coincident points)
                 det = np.linalg.det(p[:, 1:] - p[:, :1])
             if np.any((np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)):
-                return None
-    return out
+                return False
+    return True
