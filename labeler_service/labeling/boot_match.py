@@ -1633,8 +1633,8 @@ def _stale_pairs(
     ``[R.Shoulder, Sternum, R.Elbow]``, trained on a landing with the arms held:
     ``Sternum-R.Elbow`` ``A`` 11.7 mm; in the take-off ``R.Shoulder-R.Elbow`` is 21-86 mm
     off, ``tol`` 14). A pair that a wholly rigid body holds is one segment: contradicted, it
-    says a marker is placed on the wrong point (a tennis player's hand read with its finger
-    and wrist markers exchanged at boot, ``RFRM-RWRB`` 234 mm for 131), and a pair across
+    says a marker is placed on the wrong point (the two-player copy's hand read with its
+    finger and wrist markers exchanged at boot, ``RFRM-RWRB`` 234 mm for 131), and a pair across
     bodies off its distance is a pose; neither is listed."""
     out = np.zeros((tpl.n, tpl.n), dtype=bool)
     nc = dc.shape[0]
@@ -1736,7 +1736,12 @@ def _fill(
       fifth toe on the big toe's point) leaves its own point over, and filling it would lock
       the error in;
     - no thick chirality quadruple with a new marker is reversed (a subject booted with its
-      legs mirrored is not completed mirrored).
+      legs mirrored is not completed mirrored), except quadruples holding a pair the stream
+      contradicts of a body not rigid as a whole in training (:func:`_stale_pairs`: a body
+      learned across a joint the training segment never moved).
+    When the best map is not unique, the markers every map within the margin puts on one
+    point are placed, if a pair of one trained body holds there and the best map passes
+    the checks above as a whole (:func:`_fill_checks`); the others wait.
     Otherwise nothing is placed. Returns the new assignment (a copy when changed)."""
     n = tpl.n
     have = np.flatnonzero(assign >= 0)
@@ -1895,7 +1900,7 @@ def _fill_jointly(
         out = base.copy()
         out[miss[agree]] = got[0, agree]
         held = np.flatnonzero(out >= 0)
-        d = np.linalg.norm(pts[got[0]][:, None] - pts[out[held]][None], axis=2)
+        d = np.linalg.norm(pts[np.maximum(got[0], 0)][:, None] - pts[out[held]][None], axis=2)
         fits = tpl.strict[np.ix_(miss, held)] & (
             np.abs(d - tpl.D[np.ix_(miss, held)]) <= tpl.tol[np.ix_(miss, held)]
         )
