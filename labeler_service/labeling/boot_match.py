@@ -79,6 +79,10 @@ class _Template:
     #: pair rigid by ``A`` alone (an arm held still against the chest in the training frames)
     #: may change with the pose, so its mismatch is no evidence against a placement
     strict: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    #: (m, m) pairs inside a trained body whose every pair is rigid (one segment); a pair of
+    #: ``strict`` outside every such body sits in a body the trainer completed across a joint
+    #: (one of its pairs moved in training): see _stale_pairs
+    whole: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     extent: float = 2000.0  # longest pair distance D (mm)
     r_max: float = 0.0  # longest anchor edge + tolerance (mm)
     segments: list[np.ndarray] = field(default_factory=list)  # see _segments
@@ -149,6 +153,13 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             same[np.ix_(members, members)] = True
         np.fill_diagonal(same, False)
         tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link, same & rigid)
+        tpl.whole = np.zeros((m, m), dtype=bool)
+        for body in subj.bodies:
+            members = np.asarray(body, dtype=np.int64)
+            inside = rigid[np.ix_(members, members)] | np.eye(members.size, dtype=bool)
+            if inside.all():
+                tpl.whole[np.ix_(members, members)] = True
+        np.fill_diagonal(tpl.whole, False)
         tpl.body_of = [[] for _ in range(m)]
         for b, (body, shape) in enumerate(zip(subj.bodies, subj.shapes, strict=True)):
             if len(body) < 3:
@@ -1613,13 +1624,21 @@ FILL_CHIRAL_TOP = 256
 
 
 def _fill_reversed(
-    tpl: _Template, assign: np.ndarray, pts: np.ndarray, marks: np.ndarray, points: np.ndarray
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    marks: np.ndarray,
+    points: np.ndarray,
+    stale: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per map (``marks``, ``points``: ``(K, k)`` markers and their points): does it reverse a
     thick chirality quadruple (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``) with all four
-    markers placed and at least one of them new?"""
+    markers placed and at least one of them new? ``stale (m, m)``: pairs the stream
+    contradicts (:func:`_stale_pairs`); a quadruple holding one does not count."""
     q = tpl.chirality
     K = marks.shape[0]
+    if stale is not None and q.shape[0]:
+        q = q[~_quads_holding(q, stale)]
     if q.shape[0] == 0 or K == 0:
         return np.zeros(K, dtype=bool)
     out = np.broadcast_to(assign, (K, tpl.n)).copy()
@@ -1633,6 +1652,47 @@ def _fill_reversed(
     with np.errstate(all="ignore"):  # (coincident points)
         det = np.linalg.det(p[:, :, 1:] - p[:, :, :1])
     return np.any(use & (np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0), axis=1)
+
+
+def _quads_holding(q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Per quadruple of ``q (Q, 4)``: does one of its six pairs hold in ``pairs (m, m)``?"""
+    out = np.zeros(q.shape[0], dtype=bool)
+    for a, b in itertools.combinations(range(4), 2):
+        out |= pairs[q[:, a], q[:, b]]
+    return out
+
+
+def _stale_pairs(
+    tpl: _Template, miss: np.ndarray, have: np.ndarray, dp: np.ndarray, dc: np.ndarray
+) -> np.ndarray:
+    """``(m, m)`` rigid pairs of a trained body that was not rigid as a whole (``strict`` and
+    not ``whole``), of a leftover marker (``miss``) with a placed one (``have``) or with
+    another leftover marker, that the stream contradicts: no candidate point (``dp (nc, h)``:
+    its distances to the placed markers), or no two distinct candidates (``dc (nc, nc)``),
+    are at the pair's trained distance within ``tol``. Whatever the map, such a body is not
+    rigid in this segment: the trainer completed it across a joint (one of its pairs moved)
+    and the training segment never moved the joint between the other two (the broad jumper's
+    ``[R.Shoulder, Sternum, R.Elbow]``, trained on a landing with the arms held:
+    ``Sternum-R.Elbow`` ``A`` 11.7 mm; in the take-off ``R.Shoulder-R.Elbow`` is 21-86 mm
+    off, ``tol`` 14). A pair that a wholly rigid body holds is one segment: contradicted, it
+    says a marker is placed on the wrong point (the two-player copy's hand read with its
+    finger and wrist markers exchanged at boot, ``RFRM-RWRB`` 234 mm for 131), and a pair across
+    bodies off its distance is a pose; neither is listed."""
+    out = np.zeros((tpl.n, tpl.n), dtype=bool)
+    nc = dc.shape[0]
+    if nc == 0 or miss.size == 0:
+        return out
+    loose = tpl.strict & ~tpl.whole
+    D, tol = tpl.D[np.ix_(miss, have)], tpl.tol[np.ix_(miss, have)]
+    fit = np.abs(dp[None] - D[:, None, :]) <= tol[:, None, :]  # (nu, nc, h)
+    out[np.ix_(miss, have)] = loose[np.ix_(miss, have)] & ~fit.any(axis=1)
+    if nc >= 2:
+        D2, tol2 = tpl.D[np.ix_(miss, miss)], tpl.tol[np.ix_(miss, miss)]
+        two = ~np.eye(nc, dtype=bool)
+        fit2 = np.abs(dc[None, None] - D2[:, :, None, None]) <= tol2[:, :, None, None]
+        out[np.ix_(miss, miss)] = loose[np.ix_(miss, miss)] & ~(fit2 & two).any(axis=(2, 3))
+    out |= out.T
+    return out
 
 
 @functools.lru_cache(maxsize=64)
@@ -1718,7 +1778,12 @@ def _fill(
       fifth toe on the big toe's point) leaves its own point over, and filling it would lock
       the error in;
     - no thick chirality quadruple with a new marker is reversed (a subject booted with its
-      legs mirrored is not completed mirrored).
+      legs mirrored is not completed mirrored), except quadruples holding a pair the stream
+      contradicts of a body not rigid as a whole in training (:func:`_stale_pairs`: a body
+      learned across a joint the training segment never moved).
+    When the best map is not unique, the markers every map within the margin puts on one
+    point are placed, if a pair of one trained body holds there and the best map passes
+    the checks above as a whole (:func:`_fill_checks`); the others wait.
     Otherwise nothing is placed. Returns the new assignment (a copy when changed)."""
     n = tpl.n
     have = np.flatnonzero(assign >= 0)
@@ -1816,13 +1881,17 @@ def _fill_jointly(
     """The joint map of :func:`_fill`: markers ``miss`` (unplaced in ``base``, which is
     ``assign`` less the markers re-read) onto points ``cand``. Returns the new assignment, or
     None when it is not unique or a check refuses it."""
-    n = tpl.n
     have = np.flatnonzero(base >= 0)
     placed = pts[base[have]]
     nu, nc = miss.size, cand.size
     if nc < 2 or nc > nu or math.perm(nu, nc) > FILL_MAX_MAPS:
         return None
     scale = np.where(tpl.strict, tpl.tol, tpl.link)
+    dp = np.linalg.norm(pts[cand][:, None] - placed[None], axis=2)  # (nc, h)
+    dc = np.linalg.norm(pts[cand][:, None] - pts[cand][None], axis=2)
+    # bodies no candidate keeps rigid (a model trained in another pose): their quadruples
+    # do not vote on chirality
+    stale = _stale_pairs(tpl, miss, have, dp, dc)
     known = np.isfinite(tpl.D) & (scale > 0)
 
     def cost(ma: np.ndarray, mb: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -1830,9 +1899,7 @@ def _fill_jointly(
         return np.where(known[ma, mb], np.log1p(e * e), 0.0)
 
     # unary: (nu, nc) to the placed markers; pairwise: (nu, nu, nc, nc) among the map's own
-    dp = np.linalg.norm(pts[cand][:, None] - placed[None], axis=2)  # (nc, h)
     unary = cost(miss[:, None, None], have[None, None, :], dp[None]).sum(axis=2)
-    dc = np.linalg.norm(pts[cand][:, None] - pts[cand][None], axis=2)
     pair = cost(miss[:, None, None, None], miss[None, :, None, None], dc[None, None])
     mk, pt = _fill_maps(nu, nc)
     total = unary[mk, pt].sum(axis=1)
@@ -1848,29 +1915,79 @@ def _fill_jointly(
     # cheapest map is one, nothing is placed (the next-best, taken then, read a head's
     # diagonal markers crossed in tune14)
     top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
-    ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]])
+    ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]], stale)
     if not ok[0]:
         return None
     best = int(top[np.argmax(ok)])
-    rivals = np.count_nonzero(ok & (total[top] <= total[best] + margin))
-    if rivals > 1 or (top.size < total.size and total[top[-1]] <= total[best] + margin):
-        return None  # not unique: wait for more evidence (the next extension)
+    if top.size < total.size and total[top[-1]] <= total[best] + margin:
+        return None  # rivals beyond the maps judged: wait for more evidence
+    near = top[ok & (total[top] <= total[best] + margin)]
     out = base.copy()
     out[miss[mk[best]]] = cand[pt[best]]
+    if near.size > 1:
+        # the cheapest map must pass the checks as a whole (a reading wrong somewhere makes
+        # its rivals' agreement suspect: a performer read with its arms mixed agreed on a
+        # right forearm marker on the left wrist's point, tune00)
+        if np.array_equal(out, assign) or not _fill_checks(
+            tpl, assign, out, have, pts, hist, stale, config
+        ):
+            return None
+        # not unique: the markers every rival map puts on one point are placed when a pair
+        # of one trained body holds there (rigid evidence; with fewer points than markers
+        # every map places every point, a point of a marker the model lacks too), the others
+        # wait for the next extension (a marker re-read, ``assign`` placed, keeps its point)
+        got = np.full((near.size, nu), -1, dtype=np.int64)
+        got[np.arange(near.size)[:, None], mk[near]] = cand[pt[near]]
+        agree = np.all(got == got[:1], axis=0) & (got[0] >= 0)
+        out = base.copy()
+        out[miss[agree]] = got[0, agree]
+        held = np.flatnonzero(out >= 0)
+        d = np.linalg.norm(pts[np.maximum(got[0], 0)][:, None] - pts[out[held]][None], axis=2)
+        fits = tpl.strict[np.ix_(miss, held)] & (
+            np.abs(d - tpl.D[np.ix_(miss, held)]) <= tpl.tol[np.ix_(miss, held)]
+        )
+        agree &= fits.any(axis=1)
+        if not agree.any():
+            return None
+        out = base.copy()
+        out[miss[agree]] = got[0, agree]
+        rest = miss[~agree]
+        out[rest] = assign[rest]
+        used = out[out >= 0]
+        if np.unique(used).size != used.size:
+            return None
     if np.array_equal(out, assign):
         return None
+    return out if _fill_checks(tpl, assign, out, have, pts, hist, stale, config) else None
+
+
+def _fill_checks(
+    tpl: _Template,
+    assign: np.ndarray,
+    out: np.ndarray,
+    have: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    stale: np.ndarray,
+    config: BootConfig,
+) -> bool:
+    """The checks of :func:`_fill` on a reading ``out`` of ``assign`` (``have``: the markers
+    placed before the map): reach and steadiest partner of each new marker, no exchange with
+    a placed marker, no thick chirality quadruple reversed (quadruples holding a ``stale``
+    pair do not count)."""
+    n = tpl.n
     fresh = np.flatnonzero((out >= 0) & (out != assign))
     for m in fresh:
         mine = np.flatnonzero((out >= 0) & (np.arange(n) != m) & np.isfinite(tpl.D[m]))
         mine = mine[np.argsort(tpl.A[m, mine], kind="stable")[: config.art_anchors]]
         d = np.linalg.norm(pts[out[mine]] - pts[out[m]], axis=1)
         if 2 * int(np.count_nonzero(d > tpl.D[m, mine] + tpl.bound[m, mine])) > mine.size:
-            return None
+            return False
         j = mine[np.argmin(tpl.A[m, mine])]
         track = np.linalg.norm(hist[out[m]] - hist[out[j]], axis=1)
         track = track[np.isfinite(track)]
         if track.size == 0 or float(track.max() - track.min()) > 2.0 * tpl.tol[m, j]:
-            return None
+            return False
     # a new marker and a placed one exchanging their points (:func:`_pair_error` of the two
     # against the rest, from one (k, k, k) table as in :func:`_exchange`; the pair between
     # them keeps its distance)
@@ -1882,8 +1999,9 @@ def _fill_jointly(
     now = T[i, i] - E[i, i, i] - E[i, i, j] + T[j, j] - E[j, j, j] - E[j, j, i]
     swap = T[i, j] - E[i, j, i] - E[i, j, j] + T[j, i] - E[j, i, j] - E[j, i, i]
     if np.any(swap < now - EXCHANGE_MARGIN):
-        return None
+        return False
     q = tpl.chirality
+    q = q[~_quads_holding(q, stale)]
     if q.shape[0]:
         new = np.zeros(n, dtype=bool)
         new[fresh] = True
@@ -1893,5 +2011,5 @@ def _fill_jointly(
             with np.errstate(all="ignore"):  # (coincident points)
                 det = np.linalg.det(p[:, 1:] - p[:, :1])
             if np.any((np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)):
-                return None
-    return out
+                return False
+    return True
