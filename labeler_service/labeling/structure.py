@@ -358,3 +358,12 @@ class StructureTrainer:
         )
         self.n_frames_ = int(sum(c.n_frames for c in caps))
         return self
+
+
+def window_model(window: Capture) -> LabelerModel:
+    """The subject templates of a labeled init window (``window``: its frames, true labels):
+    what the labeled start through the model-based labeler boots from
+    (:func:`~labeler_service.labeling.registry.make_window_labeler`; ``evaluate --labeled-start
+    model``, a service stream with ``labeled_start = "model"``). The default trainer, as
+    ``train structure`` runs it."""
+    return StructureTrainer().fit([window]).model_
