@@ -90,3 +90,31 @@ def test_window_start_settings_are_checked(tmp_path):
     model.write_text("{}")
     with pytest.raises(ConfigError, match="starts from that model"):
         load_settings(streams=[{"name": "vol", "labeled_start": "model", "model": str(model)}])
+
+
+def _train(names: list[str], labeled_start: str, rng):
+    """A stream's training job on 12 labeled frames of 5 markers named ``names``."""
+    from labeler_service.service.protocol import FrameMsg
+    from labeler_service.service.stream import StreamState
+
+    settings = _settings(labeled_start, warmup=False)
+    state = StreamState("vol", settings, settings.streams[0])
+    base = rng.normal(scale=60.0, size=(5, 3))
+    for k in range(12):
+        pts = (base + rng.normal(size=(5, 3)) + k).astype("float32")
+        state.buffer_init(FrameMsg("vol", k, k / 50.0, pts, tuple(names)))
+    first = FrameMsg("vol", 12, 12 / 50.0, (base + 12).astype("float32"))
+    return state.train(state.take_init(), first)
+
+
+def test_window_start_needs_subject_labels(rng):
+    from labeler_service.errors import LabelerError
+
+    with pytest.raises(LabelerError, match="subject:marker labels"):
+        _train([f"m{i}" for i in range(5)], "model", rng)
+    labeler, rate, out, _ = _train([f"s:m{i}" for i in range(5)], "model", rng)
+    assert isinstance(labeler, BootingLabeler) and rate == pytest.approx(50.0)
+    assert labeler.model is not None and labeler.model.subjects[0].name == "s"
+    # the same window without the setting trains the labeler in place
+    plain, *_ = _train([f"s:m{i}" for i in range(5)], "labeler", rng)
+    assert not isinstance(plain, BootingLabeler)
