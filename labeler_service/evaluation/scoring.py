@@ -617,8 +617,8 @@ def evaluate(
     window (its true positions, :func:`~labeler_service.labeling.structure.window_model`) and
     the online method runs :func:`make_window_labeler` from them, fed the window's labels; the
     closest-point baseline is unchanged (``"labeler"``, the default: the labeler trained in
-    place). The report's
-    ``settings.labeled_start`` says which start ran (``labeler`` or ``model``).
+    place). The report's ``settings.labeled_start`` says which start ran (``labeler`` or
+    ``model``).
     """
     if init_frames < 0 or (init_frames == 0 and model is None):
         raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
