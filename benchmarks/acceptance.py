@@ -82,13 +82,6 @@ def main() -> int:
     )
     args = p.parse_args()
     results: dict[str, dict] = {}
-    window = None
-    if args.labeled_start == "model":
-        from offline.structure import StructureTrainer
-
-        def window(cap: Capture):  # type: ignore[no-redef]
-            return StructureTrainer().fit([cap]).model_
-
     for name, cap in scenes().items():
         if args.only and name not in args.only:
             continue
@@ -99,7 +92,7 @@ def main() -> int:
             write_capture(cap, args.write / f"scene_{name}.c3d")
         results[name] = {}
         for label, opts in SETTINGS.items():
-            report, _ = evaluate(cap, seed=0, window_model=window, **opts)
+            report, _ = evaluate(cap, seed=0, labeled_start=args.labeled_start, **opts)
             results[name][label] = {k: report.get(k) for k in KEYS}
             print(f"{name} {label}: {json.dumps(results[name][label])}", file=sys.stderr)
     text = json.dumps(results)

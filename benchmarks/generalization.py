@@ -92,7 +92,6 @@ from _common import emit
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import MocapError
 from labeler_service.evaluation.scoring import evaluate
-from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.compose import TakeSpec, compose_scene
 from labeler_service.testing.realdata import real_data_dir
 
@@ -397,7 +396,7 @@ def run_scene(
                 methods=["online"],
                 init_frames=init,
                 seed=scene.seed,
-                window_model=_window_model if labeled_start == "model" else None,
+                labeled_start=labeled_start,
                 **opts,
             )
         except MocapError as exc:
@@ -494,14 +493,6 @@ def _pct(x: float | None) -> str:
 
 def _run(job: tuple[Scene, tuple[str, ...], float, int, bool, str]) -> list[dict]:
     return run_scene(*job)
-
-
-def _window_model(window: Capture) -> LabelerModel:
-    """``evaluate --labeled-start model``'s trainer: the offline structure trainer on the
-    init window."""
-    from offline.structure import StructureTrainer
-
-    return StructureTrainer().fit([window]).model_
 
 
 def summarize(results: list[dict]) -> dict[str, Any]:

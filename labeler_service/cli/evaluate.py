@@ -13,11 +13,11 @@ import json
 import sys
 from pathlib import Path
 
-from labeler_service.capture import Capture, check_writable, read_segment
+from labeler_service.capture import check_writable, read_segment
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
-from labeler_service.labeling.templates import LabelerModel
+from labeler_service.labeling.registry import LABELED_STARTS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -64,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
     p.add_argument(
         "--labeled-start",
-        choices=("labeler", "model"),
+        choices=LABELED_STARTS,
         default="labeler",
         help="with --init-frames N and no --model: 'model' trains subject templates on the "
         "init window and runs the online method through the model-based (booting) labeler "
@@ -73,14 +73,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the report as JSON (last line)")
     p.add_argument("--plot", type=Path, default=None, help="PNG: accuracy vs down-sampling")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-def _window_model(window: Capture) -> LabelerModel:
-    """``--labeled-start model``: the subject templates of the init window (``train
-    structure``'s trainer; the CLI is the layer that may import ``offline``)."""
-    from offline.structure import StructureTrainer
-
-    return StructureTrainer().fit([window]).model_
 
 
 def _methods(arg: list[str] | None) -> list[str] | None:
@@ -109,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         model=args.model,
         leave=args.leave,
         leave_seconds=args.leave_seconds,
-        window_model=_window_model if args.labeled_start == "model" else None,
+        labeled_start=args.labeled_start,
     )
     report, scores = evaluate(cap, downsample=args.downsample, **common)
     # what was scored, as given: the file and its frame range, and the model file (the

@@ -15,9 +15,10 @@ window only:
 - boot and re-identification (``boot_s_max``, ``accuracy_after_boot``, ``reid_s_p95``,
   ``absent_labeled``, ``identity_swaps``): see :class:`Scorer`. With a model and
   ``init_frames=0`` nothing is labeled: the labeler boots (``make_labeler(..., boot=True)``).
-- ``window_model`` (``evaluate --labeled-start model``): the online labeler's labeled start
-  goes through the model-based labeler (``make_window_labeler``): the callable trains subject
-  templates on the init window, the stream runs a ``BootingLabeler`` from them.
+- ``labeled_start="model"`` (``evaluate --labeled-start model``): the online labeler's labeled
+  start goes through the model-based labeler (``make_window_labeler``): subject templates are
+  trained on the init window (:func:`~labeler_service.labeling.structure.window_model`), the
+  stream runs a ``BootingLabeler`` from them.
 
 A method that does not exist is never scored: ``available_methods`` says why.
 """
@@ -36,7 +37,8 @@ import numpy as np
 from labeler_service.capture import Capture, split_label
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
-from labeler_service.labeling.registry import make_labeler, make_window_labeler
+from labeler_service.labeling.registry import LABELED_STARTS, make_labeler, make_window_labeler
+from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
@@ -597,7 +599,7 @@ def evaluate(
     model: LabelerModel | str | os.PathLike[str] | None = None,
     leave: int = 0,
     leave_seconds: float = 1.0,
-    window_model: Callable[[Capture], LabelerModel] | None = None,
+    labeled_start: str = "labeler",
 ) -> tuple[dict[str, Any], dict[str, MethodScore]]:
     """Scores the chosen methods on one corrupted version of ``capture``.
 
@@ -610,16 +612,21 @@ def evaluate(
     (``make_labeler(..., boot=True)``; the closest-point baseline cannot boot and is skipped).
     ``leave``/``leave_seconds``: subjects that vanish and return displaced (``CorruptionSpec``).
 
-    ``window_model`` (without ``model``, ``init_frames >= 1``): the labeled start of the online
-    method through the model-based labeler. ``window_model(window)`` trains subject templates
-    on the init window (a :class:`Capture` of its true positions; the CLI passes the offline
-    structure trainer) and the online method runs :func:`make_window_labeler` from them, fed the
-    window's labels; the closest-point baseline is unchanged. The report's
-    ``settings.labeled_start`` says which start ran (``labeler`` or ``model``).
+    ``labeled_start="model"`` (without ``model``, ``init_frames >= 1``): the labeled start of the
+    online method through the model-based labeler. Subject templates are trained on the init
+    window (its true positions, :func:`~labeler_service.labeling.structure.window_model`) and
+    the online method runs :func:`make_window_labeler` from them, fed the window's labels; the
+    closest-point baseline is unchanged (``"labeler"``, the default: the labeler trained in
+    place). The report's ``settings.labeled_start`` says which start ran (``labeler`` or
+    ``model``).
     """
     if init_frames < 0 or (init_frames == 0 and model is None):
         raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
-    if window_model is not None and (model is not None or init_frames == 0):
+    if labeled_start not in LABELED_STARTS:
+        raise MocapError(
+            f"unknown labeled start {labeled_start!r} (choose from {', '.join(LABELED_STARTS)})"
+        )
+    if labeled_start == "model" and (model is not None or init_frames == 0):
         raise MocapError(
             "the labeled start through a window model (--labeled-start model) trains its model "
             "on the init window: it needs --init-frames >= 1 and no --model"
@@ -647,7 +654,7 @@ def evaluate(
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
     window = None
-    if window_model is not None and loaded is None and init_frames > 0 and "online" in names:
+    if labeled_start == "model" and "online" in names:
         window = window_model(
             Capture(stream.positions[:init_frames], stream.marker_names, stream.rate)
         )

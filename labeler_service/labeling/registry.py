@@ -30,7 +30,8 @@ A labeled start can also go through the model-based labeler (:func:`make_window_
 model trained on the labeled init window itself, and a ``BootingLabeler`` fed the window's
 labels. Its extension (free tracks joined to a subject from its template) re-finds markers the
 plain labeler loses at low rates (``evaluate --labeled-start model``; docs/algorithm.md, "What
-limits 12.5-25 Hz", item (5)).
+limits 12.5-25 Hz", item (5)); a service stream with ``labeled_start = "model"`` trains and runs
+it in-stream.
 
 The labeler modules are imported only when built, so importing this module stays cheap.
 """
@@ -54,6 +55,10 @@ if TYPE_CHECKING:
 #: Every kind :func:`make_labeler` builds (aliases map onto these).
 KINDS: tuple[str, ...] = ("online", "baseline")
 ALIASES: dict[str, str] = {"closest-point": "baseline"}
+#: How a labeled start runs: ``labeler`` (the labeler trained in place on the labeled frames)
+#: or ``model`` (:func:`make_window_labeler`); ``evaluate --labeled-start``, the service's
+#: stream setting ``labeled_start``.
+LABELED_STARTS: tuple[str, ...] = ("labeler", "model")
 
 
 class LabelerFactory(Protocol):
@@ -164,8 +169,8 @@ def make_window_labeler(
     """The labeled start through the model-based labeler: a
     :class:`~labeler_service.labeling.booting.BootingLabeler` from ``model``, the subject
     templates trained on the labeled init window of ``window_frames`` frames (the caller trains
-    them: the offline structure trainer, which ``labeler_service`` may not import), to be fed
-    those frames with their labels, then the stream.
+    them: :func:`labeler_service.labeling.structure.window_model`), to be fed those frames with
+    their labels, then the stream.
 
     Two settings differ from a boot:
 

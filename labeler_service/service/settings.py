@@ -27,7 +27,15 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from labeler_service.errors import ConfigError
@@ -141,6 +149,12 @@ class StreamSettings(_Section):
     model: Path | None = None
     #: Capture rate in Hz. None: estimated from the init frames' times (model: its rate).
     rate: float | None = Field(None, gt=0)
+    #: How a start from labeled init frames runs (no ``model``): ``labeler`` (default) trains
+    #: the online labeler in place; ``model`` trains subject templates on the init window (as
+    #: ``train structure`` does) and runs the booting labeler from them, fed the window's
+    #: labels, which re-finds markers the labeler loses at low rates (``evaluate
+    #: --labeled-start model``; docs/service.md "The labeled start through a window model").
+    labeled_start: Literal["labeler", "model"] = "labeler"
 
     @field_validator("name")
     @classmethod
@@ -153,6 +167,15 @@ class StreamSettings(_Section):
         if v is not None and not Path(v).is_file():
             raise ValueError(f"model file {v} does not exist")
         return v
+
+    @model_validator(mode="after")
+    def _start(self) -> StreamSettings:
+        if self.labeled_start == "model" and self.model is not None:
+            raise ValueError(
+                f"stream {self.name}: labeled_start = 'model' trains its model on the labeled "
+                "init frames; a stream with a model file starts from that model"
+            )
+        return self
 
 
 class ServiceSettings(BaseSettings):
@@ -253,6 +276,16 @@ class ServiceSettings(BaseSettings):
         if degraded is not None and v > degraded:
             raise ValueError(f"lost_below ({v}) must not exceed degraded_below ({degraded})")
         return v
+
+    @model_validator(mode="after")
+    def _model_start_is_online(self) -> ServiceSettings:
+        model = [s.name for s in self.streams if s.labeled_start == "model"]
+        if model and self.labeler != "online":
+            raise ValueError(
+                f"streams {', '.join(model)}: labeled_start = 'model' runs the online labeler's "
+                f"booting labeler; labeler is {self.labeler!r}"
+            )
+        return self
 
     @classmethod
     def settings_customise_sources(

@@ -69,12 +69,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from labeler_service.capture import split_label, subject_groups
+from labeler_service.capture import Capture, is_ghost, split_label, subject_groups
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.labeler import Labeler
-from labeler_service.labeling.registry import LabelerFactory, make_labeler
+from labeler_service.labeling.registry import LabelerFactory, make_labeler, make_window_labeler
+from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
@@ -401,15 +402,50 @@ class StreamState:
         if not names:
             raise LabelerError(f"stream {self.name}: the init frames carry no labels")
         rate = self._estimate_rate(init.frames)
-        labeler = self._factory(
-            self.settings.labeler,
-            marker_names=names,
+        labeler: FrameLabeler
+        if self.stream_settings.labeled_start == "model":
+            labeler = self._window_labeler(init, names, rate)
+            names = tuple(labeler.marker_names)
+        else:
+            labeler = self._factory(
+                self.settings.labeler,
+                marker_names=names,
+                rate=rate,
+                config=self.settings.labeler_config,
+            )
+        index = {n: i for i, n in enumerate(names)}
+        remap = np.array([index.get(n, -1) for n in init.names] + [-1], dtype=np.int32)
+        return labeler, rate, remap
+
+    def _window_labeler(
+        self, init: InitWindow, names: tuple[str, ...], rate: float
+    ) -> FrameLabeler:
+        """``labeled_start = "model"``: subject templates trained on the init window (its
+        frames as a capture, ``train structure``'s trainer), and the booting labeler from them
+        (:func:`~labeler_service.labeling.registry.make_window_labeler`), its boot kernels
+        compiled here (off the event loop) when the service warms up."""
+        unprefixed = [n for n in names if split_label(n)[0] is None and not is_ghost(n)]
+        if unprefixed:
+            raise LabelerError(
+                f"stream {self.name}: labeled_start = 'model' needs subject:marker labels "
+                f"(the model names its subjects), got {unprefixed[0]!r}"
+            )
+        column = {n: i for i, n in enumerate(names)}
+        to_col = np.array([column[n] for n in init.names] + [-1], dtype=np.int64)
+        pos = np.full((len(init.frames), len(names), 3), np.nan, dtype=np.float32)
+        for k, (f, idx) in enumerate(zip(init.frames, init.idx, strict=True)):
+            c = to_col[idx]  # -1 (unlabeled) picks the last entry, -1
+            pos[k, c[c >= 0]] = f.points[c >= 0]
+        window = Capture(pos, names, rate, source=f"stream {self.name} init window")
+        labeler = make_window_labeler(
+            window_model(window),
             rate=rate,
+            window_frames=len(init.frames),
             config=self.settings.labeler_config,
         )
-        index = {n: i for i, n in enumerate(names)}
-        remap = np.array([index[n] for n in init.names] + [-1], dtype=np.int32)
-        return labeler, rate, remap
+        if self.settings.warmup:
+            labeler.warmup()
+        return labeler
 
     def train(
         self, init: InitWindow, first: FrameMsg, cancel=None
@@ -426,6 +462,11 @@ class StreamState:
             labeler.process(f.points, f.t, remap[idx])  # -1 stays -1 (remap's last entry)
         t0 = time.perf_counter_ns()
         out = labeler.process(first.points, first.t, None)
+        if isinstance(labeler, BootingLabeler):
+            # (labeled_start = "model") from now on the server runs its boot and extension
+            # off the event loop, as for a model stream that boots
+            labeler.inline_boot = False
+            labeler.inline_extend = False
         return labeler, rate, out, time.perf_counter_ns() - t0
 
     def take_init(self) -> InitWindow:

@@ -11,16 +11,15 @@ from labeler_service.capture import Capture
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.registry import make_window_labeler
+from labeler_service.labeling.structure import window_model
 
 gen = load_benchmark("generalization")
 
 
 def _window_model(walk_rng):
-    from offline.structure import StructureTrainer
-
     pos = walk_rng.normal(scale=60.0, size=(1, 5, 3)) + walk_rng.normal(size=(12, 5, 3))
     cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
-    return StructureTrainer().fit([cap]).model_
+    return window_model(cap)
 
 
 def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
@@ -36,6 +35,17 @@ def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
         make_window_labeler(model, rate=25.0, window_frames=0)
 
 
+def test_window_model_is_the_structure_trainers_model(rng):
+    """The window model is ``train structure``'s default trainer on the window (offline's
+    trainer is the same class plus file reading)."""
+    from offline.structure import StructureTrainer
+
+    pos = rng.normal(scale=60.0, size=(1, 6, 3)) + rng.normal(size=(40, 6, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(6)), 50.0)
+    offline = StructureTrainer().fit([cap]).model_
+    assert window_model(cap).model_dump_json() == offline.model_dump_json()
+
+
 def test_window_model_needs_a_window_and_no_model(rng):
     from labeler_service.errors import MocapError
     from labeler_service.evaluation.scoring import evaluate
@@ -45,8 +55,10 @@ def test_window_model_needs_a_window_and_no_model(rng):
     cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
     for kw in ({"model": model, "init_frames": 5}, {"model": model, "init_frames": 0}):
         with pytest.raises(MocapError, match="--labeled-start model"):
-            evaluate(cap, window_model=lambda c: model, **kw)
-    report, _ = evaluate(cap, init_frames=10, window_model=lambda c: _window_model(rng))
+            evaluate(cap, labeled_start="model", **kw)
+    with pytest.raises(MocapError, match="unknown labeled start 'window'"):
+        evaluate(cap, init_frames=10, labeled_start="window")
+    report, _ = evaluate(cap, init_frames=10, labeled_start="model")
     assert report["settings"]["labeled_start"] == "model"
     assert evaluate(cap, init_frames=10)[0]["settings"]["labeled_start"] == "labeler"
 

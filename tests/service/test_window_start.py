@@ -1,0 +1,120 @@
+"""A stream's labeled start through a window model (stream setting ``labeled_start = "model"``).
+
+The stream trains subject templates on its labeled init frames in-stream (off the event loop,
+``train_budget_s``) and runs the booting labeler from them (``make_window_labeler``), fed the
+window's labels; the frames after the window come out labeled. The same simulated scene and
+scoring as :mod:`test_online`, over UDP.
+"""
+
+from __future__ import annotations
+
+import pytest
+from service.helpers import run, until
+from service.test_online import INIT, _score
+
+from labeler_service.capture import Capture
+from labeler_service.errors import ConfigError
+from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.service.server import Server
+from labeler_service.service.settings import load_settings
+from labeler_service.tools.replay import open_sender, replay
+from labeler_service.tools.subscribe import Subscriber
+
+RATE = 120.0
+
+
+@pytest.fixture(scope="module")
+def scene() -> Capture:
+    return simulate_scene(2, 3.0, "walk", seed=7, rate=RATE, ghosts=0.5)
+
+
+def _settings(labeled_start: str, **kw):
+    return load_settings(
+        labeler="online", metrics_port=None, queue_size=2048, udp={"port": 0},
+        streams=[{"name": "vol", "labeled_start": labeled_start}], **kw,
+    )  # fmt: skip
+
+
+def test_a_stream_starts_from_its_window_model(scene):
+    frames = corrupt(scene, CorruptionSpec(protect_frames=INIT, seed=11))
+
+    async def go():
+        async with Server(_settings("model")) as srv:
+            host, port = srv.transports[0].address
+            url = f"udp://{host}:{port}/vol"
+            async with Subscriber(url) as sub:
+                await until(lambda: srv.transports[0].subscribers, "the registration")
+                async with open_sender(url) as (send, stream):
+                    stats = await replay(frames, send, stream=stream, init_frames=INIT, speed=2.0)
+                assert stats.failed == 0
+                out_total = frames.n_frames - INIT
+
+                def done() -> bool:
+                    m = srv.metrics
+                    handled = m.value("mocap_frames_out_total", stream="vol") + m.drops()
+                    return handled >= out_total and sub.stats.frames >= m.value(
+                        "mocap_frames_out_total", stream="vol"
+                    )
+
+                await until(done, "every frame labeled and received", timeout=120.0)
+                lab = srv.streams["vol"].labeler
+                return sub.drain(), sub.models["vol"], srv.metrics, lab
+
+    got, model_msg, metrics, lab = run(go(), timeout=240.0)
+    # the booting labeler from a model trained on the stream's own init window, its boot and
+    # extension handed to the server (off the event loop) once trained
+    assert isinstance(lab, BootingLabeler)
+    assert not lab.inline_boot and not lab.inline_extend
+    assert lab.model is not None and "stream vol init window" in lab.model.source
+    assert lab.config.restructure_prior_s == pytest.approx(INIT / RATE, rel=1e-3)
+    assert metrics.drops() == metrics.drops("queue_full")  # no training failure, no error
+    assert metrics.drops("queue_full") <= 0.05 * frames.n_frames
+    assert len(got) >= 0.95 * (frames.n_frames - INIT)
+    assert min(r.msg.seq for r in got) >= INIT  # the frames after the window
+    assert sorted(model_msg.names) == sorted(frames.marker_names)
+    assert model_msg.rate == pytest.approx(RATE, rel=1e-6)
+    acc, ghosts_labeled, scored = _score(frames, got)
+    assert acc >= 0.99, acc
+    assert ghosts_labeled <= 0.02 * scored
+
+
+def test_window_start_settings_are_checked(tmp_path):
+    assert load_settings().streams[0].labeled_start == "labeler"
+    with pytest.raises(ConfigError, match="labeled_start"):
+        _settings("window")
+    with pytest.raises(ConfigError, match="labeler is 'baseline'"):
+        load_settings(streams=[{"name": "vol", "labeled_start": "model"}], labeler="baseline")
+    model = tmp_path / "m.json"
+    model.write_text("{}")
+    with pytest.raises(ConfigError, match="starts from that model"):
+        load_settings(streams=[{"name": "vol", "labeled_start": "model", "model": str(model)}])
+
+
+def _train(names: list[str], labeled_start: str, rng):
+    """A stream's training job on 12 labeled frames of 5 markers named ``names``."""
+    from labeler_service.service.protocol import FrameMsg
+    from labeler_service.service.stream import StreamState
+
+    settings = _settings(labeled_start, warmup=False)
+    state = StreamState("vol", settings, settings.streams[0])
+    base = rng.normal(scale=60.0, size=(5, 3))
+    for k in range(12):
+        pts = (base + rng.normal(size=(5, 3)) + k).astype("float32")
+        state.buffer_init(FrameMsg("vol", k, k / 50.0, pts, tuple(names)))
+    first = FrameMsg("vol", 12, 12 / 50.0, (base + 12).astype("float32"))
+    return state.train(state.take_init(), first)
+
+
+def test_window_start_needs_subject_labels(rng):
+    from labeler_service.errors import LabelerError
+
+    with pytest.raises(LabelerError, match="subject:marker labels"):
+        _train([f"m{i}" for i in range(5)], "model", rng)
+    labeler, rate, out, _ = _train([f"s:m{i}" for i in range(5)], "model", rng)
+    assert isinstance(labeler, BootingLabeler) and rate == pytest.approx(50.0)
+    assert labeler.model is not None and labeler.model.subjects[0].name == "s"
+    # the same window without the setting trains the labeler in place
+    plain, *_ = _train([f"s:m{i}" for i in range(5)], "labeler", rng)
+    assert not isinstance(plain, BootingLabeler)
