@@ -7,13 +7,20 @@ from labeler_service.capture.io import (
     read_segment,
     write_capture,
 )
-from labeler_service.capture.model import Capture, is_ghost, split_label, subject_groups
+from labeler_service.capture.model import (
+    Capture,
+    is_ghost,
+    join_label,
+    split_label,
+    subject_groups,
+)
 
 __all__ = [
     "SUFFIXES",
     "Capture",
     "check_writable",
     "is_ghost",
+    "join_label",
     "read_capture",
     "read_segment",
     "split_label",

@@ -24,6 +24,12 @@ def split_label(label: str) -> tuple[str | None, str]:
     return subject, marker
 
 
+def join_label(subject: str | None, marker: str) -> str:
+    """The inverse of :func:`split_label`: ``("subj", "LASI")`` -> ``"subj:LASI"``; a subject
+    ``""`` or ``None`` (labels that carried no prefix, :func:`subject_groups`) -> ``"LASI"``."""
+    return f"{subject}:{marker}" if subject else marker
+
+
 def is_ghost(label: str) -> bool:
     """True for an unlabeled track (``*N``, with or without a subject prefix)."""
     return bool(_GHOST.match(split_label(label)[1]))

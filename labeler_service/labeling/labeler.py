@@ -665,7 +665,7 @@ class Labeler:
         recovery = new_recovery(m)
         for subj in model.subjects:
             try:
-                gidx = [self._index[f"{subj.name}:{mk}"] for mk in subj.markers]
+                gidx = [self._index[label] for label in subj.labels]
             except KeyError as exc:
                 raise ModelError(f"model marker {exc.args[0]!r} is not a labeler marker") from exc
             Dm = subj.D_array()
@@ -687,7 +687,7 @@ class Labeler:
         nb = 0
         self._subject_cols: dict[str, np.ndarray] = {}  # every marker of the subject
         for subj in model.subjects:
-            cols = np.array([self._index[f"{subj.name}:{mk}"] for mk in subj.markers])
+            cols = np.array([self._index[label] for label in subj.labels])
             self._subject_cols[subj.name] = cols
             self._subject_markers[subj.name] = cols[active[cols]]
             self._subject_bodies[subj.name] = np.arange(nb, nb + len(subj.bodies))

@@ -26,6 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from labeler_service.capture.model import join_label
 from labeler_service.errors import ModelError
 
 SCHEMA_VERSION: Literal[1] = 1
@@ -80,6 +81,12 @@ class SubjectTemplate(BaseModel):
     #: frames, so exchanging ``i`` and ``j`` reverses it; the boot votes with them
     #: (``boot_match._twins``); learned by ``train structure``, empty in models without it
     twin_witnesses: list[list[int]] = Field(default_factory=list)
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """``subject:marker`` labels of the markers, in order (a subject ``""``, trained on
+        labels without a prefix, gives the bare marker names back)."""
+        return tuple(join_label(self.name, m) for m in self.markers)
 
     @model_validator(mode="after")
     def _check(self) -> SubjectTemplate:
@@ -204,7 +211,7 @@ class LabelerModel(BaseModel):
     @property
     def marker_names(self) -> tuple[str, ...]:
         """``subject:marker`` labels in model order (subjects, then their markers)."""
-        return tuple(f"{s.name}:{m}" for s in self.subjects for m in s.markers)
+        return tuple(label for s in self.subjects for label in s.labels)
 
 
 def _matrix(a: np.ndarray) -> list[list[float | None]]:

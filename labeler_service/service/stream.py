@@ -146,7 +146,7 @@ def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[i
         return ()
     index = {n: i for i, n in enumerate(names)}
     return tuple(
-        tuple(index[f"{subj.name}:{subj.markers[i]}"] for i in body)
+        tuple(index[subj.labels[i]] for i in body)
         for subj in labeler.model.subjects
         for body in subj.bodies
     )

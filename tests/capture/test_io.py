@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labeler_service.capture import Capture, is_ghost, read_capture, split_label, write_capture
+from labeler_service.capture import (
+    Capture,
+    is_ghost,
+    join_label,
+    read_capture,
+    split_label,
+    write_capture,
+)
 from labeler_service.cli.main import main
 from labeler_service.errors import CaptureError, CaptureFormatError
 
@@ -31,6 +38,9 @@ def _capture(rng: np.random.Generator, frames: int = 15, markers: int = 7) -> Ca
 def test_labels_split_and_ghosts() -> None:
     assert split_label("subj:LASI") == ("subj", "LASI")
     assert split_label("LASI") == (None, "LASI")
+    for label in ("subj:LASI", "LASI", "a:b:c"):
+        assert join_label(*split_label(label)) == label
+    assert join_label("", "LASI") == "LASI"
     assert is_ghost("*12") and is_ghost("s:*3")
     assert not is_ghost("*x") and not is_ghost("LASI")
 

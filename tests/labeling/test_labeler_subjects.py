@@ -213,3 +213,17 @@ def test_booting_labeler_installs_a_later_subject_without_a_rebuild(walkers):
         ok += int(np.count_nonzero(o.point_labels[m] == t[m]))
         vis += int(m.sum())
     assert ok / vis >= 0.9
+
+
+def test_labels_without_a_subject_prefix_train_one_unnamed_subject(rng):
+    """A single performer streamed with bare marker names (``LASI``, no ``subject:``): the
+    labeler trained in place groups them as subject ``""`` and its model gives the bare names
+    back (:attr:`SubjectTemplate.labels`); it used to look for ``":LASI"`` and refuse."""
+    pos, names = articulated(rng, subjects=1)
+    bare = tuple(n.split(":", 1)[1] for n in names)
+    lab = Labeler(list(bare), rate=120.0)
+    acc, _, _ = run(lab, rng, pos)
+    assert lab.model is not None
+    assert [s.name for s in lab.model.subjects] == [""]
+    assert lab.model.marker_names == bare
+    assert acc > 0.99
