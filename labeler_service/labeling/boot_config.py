@@ -97,6 +97,13 @@ class BootConfig(BaseModel):
         description="extension: a booted subject's leftover markers are assigned jointly to "
         "free tracks at least this old (a ghost lives a few frames; see boot_match._fill)",
     )
+    fill_agreement: bool = Field(
+        True,
+        description="extension: when the joint fill's cheapest map is not unique, place the "
+        "markers every rival map puts on one point (boot_match._fill_jointly); it trusts the "
+        "trained distances to rank maps, so a model trained on a few frames (the labeled "
+        "start's window model, registry.make_window_labeler) runs without it",
+    )
     boot_every_s: float = Field(
         0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
     )

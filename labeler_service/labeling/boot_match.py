@@ -1924,6 +1924,8 @@ def _fill_jointly(
     near = top[ok & (total[top] <= total[best] + margin)]
     out = base.copy()
     out[miss[mk[best]]] = cand[pt[best]]
+    if near.size > 1 and not config.fill_agreement:
+        return None
     if near.size > 1:
         # the cheapest map must pass the checks as a whole (a reading wrong somewhere makes
         # its rivals' agreement suspect: a performer read with its arms mixed agreed on a

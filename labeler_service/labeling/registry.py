@@ -172,7 +172,7 @@ def make_window_labeler(
     them: :func:`labeler_service.labeling.structure.window_model`), to be fed those frames with
     their labels, then the stream.
 
-    Two settings differ from a boot:
+    Three settings differ from a boot:
 
     - the inner labeler counts the model as the window's own samples
       (``restructure_prior_s = window_frames / rate``), not as ``restructure_prior_s`` seconds:
@@ -183,7 +183,11 @@ def make_window_labeler(
     - no subject's labels are withheld while it vanishes (``vanish_fraction`` and
       ``vanish_relative`` 0; a subject with no observed marker is still dropped): a performer
       who walks out of the volume keeps the labels of his markers still seen, as the plain
-      labeler does (withheld: the BTS walker's cells lost about a point each).
+      labeler does (withheld: the BTS walker's cells lost about a point each);
+    - the joint fill places nothing when its cheapest map is not unique (``fill_agreement``
+      off): the agreement of rival maps trusts the trained distances to rank the maps, and a
+      window's distances come from a few frames (at 12.5 Hz, 5: with it on, tune18 and tune17
+      ``quarter`` 90.9 -> 78.5 % and 92.7 -> 85.2 %).
     """
     from labeler_service.labeling.boot import BootConfig
     from labeler_service.labeling.config import LabelerConfig
@@ -194,5 +198,5 @@ def make_window_labeler(
         raise LabelerError(f"invalid frame rate {rate}")
     base = config or LabelerConfig()
     cfg = LabelerConfig(**{**base.model_dump(), "restructure_prior_s": window_frames / rate})
-    boot = BootConfig(vanish_fraction=0.0, vanish_relative=0.0)
+    boot = BootConfig(vanish_fraction=0.0, vanish_relative=0.0, fill_agreement=False)
     return make_labeler("online", model=model, rate=rate, config=cfg, boot=boot)

@@ -64,7 +64,8 @@ def test_window_model_needs_a_window_and_no_model(rng):
 
 
 def _cell(name: str, cell: str, start: str) -> dict:
-    scene = next(s for s in gen.matrix("holdout", quick=False, seeds=2) if s.name == name)
+    group = "tune" if name.startswith("tune") else "holdout"
+    scene = next(s for s in gen.matrix(group, quick=False, seeds=2) if s.name == name)
     (row,) = gen.run_scene(scene, (cell,), 8.0, 1200, False, start)
     return row
 
@@ -80,10 +81,14 @@ def _cell(name: str, cell: str, start: str) -> dict:
         # 10 frames at 25 Hz: counted as 5 s of samples the window's structure froze
         # (84.20 %) where the labeler trained in place re-forms it
         ("holdout04", "quarter"),
+        # two performers at 12.5 Hz, a 5-frame window model: the joint fill's agreement of
+        # rival maps (fill_agreement) placed the two-player's arm markers wrong (78.5 %)
+        ("tune18", "quarter"),
     ],
 )
 def test_model_start_is_no_worse_on_the_cells_it_lost(real_path, scene, cell):
     real_path("gait_bts_yup_22markers_100hz.c3d")  # skips without the real data
+    real_path("dance_qualisys_28markers_60hz.c3d")
     plain = _cell(scene, cell, "labeler")
     model = _cell(scene, cell, "model")
     assert "--labeled-start model" in model["evaluate"]
