@@ -4,6 +4,7 @@ no worse than the plain labeler's start."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from benchmark_scripts import load_benchmark
 
@@ -88,3 +89,32 @@ def test_model_start_is_no_worse_on_the_cells_it_lost(real_path, scene, cell):
     model = _cell(scene, cell, "model")
     assert "--labeled-start model" in model["evaluate"]
     assert model["accuracy_seen"] >= plain["accuracy_seen"]
+
+
+@pytest.mark.parametrize("init_frames", [1, 2])
+def test_a_window_too_short_for_the_model_start_names_the_fix(rng, init_frames):
+    """One or two init frames give no pair statistics: the model start says how many frames it
+    needs (it used to fail deep inside the template schema: 'bodies: List should have at least
+    1 item'), as the labeler trained in place does."""
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    with pytest.raises(
+        LabelerError, match=rf"at least 3 labeled init frames .*got {init_frames}.*--init-frames"
+    ):
+        evaluate(cap, init_frames=init_frames, methods=["online"], labeled_start="model")
+
+
+@pytest.mark.parametrize("start", ["labeler", "model"])
+def test_an_init_window_that_never_sees_a_subject_names_it(rng, start):
+    """A subject none of whose markers the init window sees (a take that starts before the
+    performer enters the volume, as the BTS walk) is named with the way out, for both starts."""
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 8, 3)) + rng.normal(size=(60, 8, 3))
+    pos[:20, 4:] = np.nan  # subject 'b' enters after the 20-frame window
+    names = tuple(f"a:m{i}" for i in range(4)) + tuple(f"b:m{i}" for i in range(4))
+    cap = Capture(pos.astype("float32"), names, 50.0)
+    with pytest.raises(LabelerError, match=r"subject 'b': no marker is seen .* 20 labeled"):
+        evaluate(cap, init_frames=20, methods=["online"], labeled_start=start)
