@@ -637,6 +637,11 @@ def evaluate(
     names, notes = resolve_methods(methods)
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
+    if labeled_start == "model" and "online" not in names:
+        raise MocapError(
+            "the labeled start through a window model (--labeled-start model) runs the online "
+            f"method, which --method {','.join(names)} leaves out: add online to --method"
+        )
     spec = CorruptionSpec(
         downsample=downsample,
         gaps=gaps,

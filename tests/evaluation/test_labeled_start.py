@@ -118,3 +118,19 @@ def test_an_init_window_that_never_sees_a_subject_names_it(rng, start):
     cap = Capture(pos.astype("float32"), names, 50.0)
     with pytest.raises(LabelerError, match=r"subject 'b': no marker is seen .* 20 labeled"):
         evaluate(cap, init_frames=20, methods=["online"], labeled_start=start)
+
+
+def test_the_model_start_without_the_online_method_is_refused(rng):
+    """``--labeled-start model --method closest-point`` used to score the baseline alone and
+    report ``labeled_start: labeler``: the flag was silently ignored."""
+    from labeler_service.errors import MocapError
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    with pytest.raises(MocapError, match=r"--method closest-point leaves out.*add online"):
+        evaluate(cap, init_frames=10, methods=["closest-point"], labeled_start="model")
+    report, _ = evaluate(
+        cap, init_frames=10, methods=["closest-point", "online"], labeled_start="model"
+    )
+    assert report["settings"]["labeled_start"] == "model"
