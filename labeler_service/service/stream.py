@@ -428,7 +428,9 @@ class StreamState:
         if unprefixed:
             raise LabelerError(
                 f"stream {self.name}: labeled_start = 'model' needs subject:marker labels "
-                f"(the model names its subjects), got {unprefixed[0]!r}"
+                f"(the model names its subjects), got {unprefixed[0]!r}: prefix the init "
+                "frames' labels with the performer's name, or set labeled_start = 'labeler' "
+                "on this stream (it accepts bare marker names)"
             )
         column = {n: i for i, n in enumerate(names)}
         to_col = np.array([column[n] for n in init.names] + [-1], dtype=np.int64)

@@ -110,7 +110,9 @@ def _train(names: list[str], labeled_start: str, rng):
 def test_window_start_needs_subject_labels(rng):
     from labeler_service.errors import LabelerError
 
-    with pytest.raises(LabelerError, match="subject:marker labels"):
+    with pytest.raises(
+        LabelerError, match=r"subject:marker labels.*'m0'.*labeled_start = 'labeler'"
+    ):
         _train([f"m{i}" for i in range(5)], "model", rng)
     labeler, rate, out, _ = _train([f"s:m{i}" for i in range(5)], "model", rng)
     assert isinstance(labeler, BootingLabeler) and rate == pytest.approx(50.0)
