@@ -283,7 +283,8 @@ class ServiceSettings(BaseSettings):
         if model and self.labeler != "online":
             raise ValueError(
                 f"streams {', '.join(model)}: labeled_start = 'model' runs the online labeler's "
-                f"booting labeler; labeler is {self.labeler!r}"
+                f"booting labeler; labeler is {self.labeler!r}: set labeler = 'online', or "
+                "labeled_start = 'labeler' on these streams"
             )
         return self
 
@@ -316,6 +317,17 @@ def _format_errors(exc: ValidationError) -> str:
             msg += (
                 f" ({key} is a setting of the whole service, not of one stream: in TOML, "
                 "write it above the first [[streams]] or [section])"
+            )
+        elif (
+            err["type"] == "extra_forbidden"
+            and len(err["loc"]) == 1
+            and key in StreamSettings.model_fields
+            and key not in ServiceSettings.model_fields
+        ):
+            # the mirror case: a stream's key written at the top of the file
+            msg += (
+                f" ({key} is a setting of one stream: in TOML, write it below that stream's "
+                '[[streams]] name = "..."; in the environment, in MOCAP_STREAMS)'
             )
         lines.append(f"  {loc}: {msg}")
     return "\n".join(lines)

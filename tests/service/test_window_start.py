@@ -84,7 +84,7 @@ def test_window_start_settings_are_checked(tmp_path):
     assert load_settings().streams[0].labeled_start == "labeler"
     with pytest.raises(ConfigError, match="labeled_start"):
         _settings("window")
-    with pytest.raises(ConfigError, match="labeler is 'baseline'"):
+    with pytest.raises(ConfigError, match="labeler is 'baseline': set labeler = 'online', or"):
         load_settings(streams=[{"name": "vol", "labeled_start": "model"}], labeler="baseline")
     model = tmp_path / "m.json"
     model.write_text("{}")
@@ -120,3 +120,13 @@ def test_window_start_needs_subject_labels(rng):
     # the same window without the setting trains the labeler in place
     plain, *_ = _train([f"s:m{i}" for i in range(5)], "labeler", rng)
     assert not isinstance(plain, BootingLabeler)
+
+
+def test_a_stream_setting_written_at_the_top_of_the_file_says_where_it_belongs(tmp_path):
+    """``labeled_start = "model"`` above ``[[streams]]`` (TOML puts it at the top level, where
+    it is no setting) says it belongs to a stream's table, not only 'Extra inputs are not
+    permitted'."""
+    path = tmp_path / "s.toml"
+    path.write_text('labeled_start = "model"\n[[streams]]\nname = "vol"\n')
+    with pytest.raises(ConfigError, match=r"labeled_start: Extra inputs.*setting of one stream"):
+        load_settings(path)
