@@ -301,7 +301,18 @@ class ServiceSettings(BaseSettings):
         return env_settings, init_settings
 
 
-def _format_errors(exc: ValidationError) -> str:
+def _env_names(loc: tuple[Any, ...], environ: Any) -> list[str]:
+    """The ``MOCAP_`` variables that set the value at ``loc`` of a validation error: the value
+    itself, one that holds it (``MOCAP_STREAMS`` for ``streams.0.rate``) or a part of it
+    (``MOCAP_STREAMS__0__RATE`` for ``streams``)."""
+    path = ["MOCAP_" + "__".join(str(p) for p in loc[:i]).upper() for i in range(1, len(loc) + 1)]
+    return sorted(
+        k for k in environ if k.upper() in path or (path and k.upper().startswith(path[-1] + "__"))
+    )
+
+
+def _format_errors(exc: ValidationError, environ: Any = None) -> str:
+    env = os.environ if environ is None else environ
     lines = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(settings)"
@@ -329,6 +340,15 @@ def _format_errors(exc: ValidationError) -> str:
                 f" ({key} is a setting of one stream: in TOML, write it below that stream's "
                 '[[streams]] name = "..."; in the environment, in MOCAP_STREAMS)'
             )
+        names = _env_names(tuple(err["loc"]), env) if err["loc"] else []
+        if names:
+            # the environment wins over the file: say which variable the value came from
+            msg += f" (from the environment: {', '.join(names)})"
+            if err["loc"][0] == "streams" and any("__" in n[len("MOCAP_") :] for n in names):
+                msg += (
+                    "; streams is a list, set whole as JSON: "
+                    """MOCAP_STREAMS='[{"name": "volume1", "labeled_start": "model"}]'"""
+                )
         lines.append(f"  {loc}: {msg}")
     return "\n".join(lines)
 
@@ -348,9 +368,20 @@ def check_env(environ: dict[str, str] | None = None) -> None:
             bad.append(key)
     if bad:
         allowed = ", ".join(sorted(NON_SETTING_ENV))
+        stream_keys = {f.upper() for f in StreamSettings.model_fields} - fields
+
+        def line(b: str) -> str:
+            top = b.upper()[len("MOCAP_") :].split("__", 1)[0]
+            if top not in stream_keys:
+                return f"  {b}"
+            return (
+                f"  {b} ({top.lower()} is a setting of one stream: set it in MOCAP_STREAMS, "
+                f"""e.g. MOCAP_STREAMS='[{{"name": "volume1", "{top.lower()}": ...}}]')"""
+            )
+
         raise ConfigError(
             "unknown MOCAP_ environment variable(s) (not a setting; other allowed names: "
-            f"{allowed}):\n" + "\n".join(f"  {b}" for b in sorted(bad))
+            f"{allowed}):\n" + "\n".join(line(b) for b in sorted(bad))
         )
 
 
