@@ -130,3 +130,22 @@ def test_a_stream_setting_written_at_the_top_of_the_file_says_where_it_belongs(t
     path.write_text('labeled_start = "model"\n[[streams]]\nname = "vol"\n')
     with pytest.raises(ConfigError, match=r"labeled_start: Extra inputs.*setting of one stream"):
         load_settings(path)
+
+
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_ghost_labels_in_the_init_frames_stay_ghosts(rng, labeled_start):
+    """A point labeled ``*N`` in an init frame is a ghost (DESIGN.md): it used to become a
+    marker ``*9`` of the labeler trained in place (its label then given to ghosts)."""
+    labeler, *_ = _train(["s:m0", "s:m1", "s:m2", "s:m3", "*9"], labeled_start, rng)
+    assert tuple(labeler.marker_names) == ("s:m0", "s:m1", "s:m2", "s:m3")
+
+
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_an_empty_subject_name_is_refused_by_name(rng, labeled_start):
+    """``:m0`` (an empty subject): the labeler trained in place refused its own model ('model
+    marker 'm0' is not a labeler marker') and the window model renamed the subject, so the
+    window's labels matched no marker; both now name the label."""
+    from labeler_service.errors import LabelerError
+
+    with pytest.raises(LabelerError, match=r"label ':m0' has an empty subject name"):
+        _train([f":m{i}" for i in range(5)], labeled_start, rng)
