@@ -29,6 +29,10 @@ from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.templates import LabelerModel, reversed_in_shape
 from labeler_service.labeling.training import motion_noise, train_subject
 
+#: labeled frames a window model needs (:func:`window_model`; the default trainer's
+#: ``min_pair_frames``: fewer give no pair statistics, so no rigid body)
+WINDOW_MIN_FRAMES = 3
+
 #: chirality quadruples (see :func:`chirality_quads`)
 CHIRALITY_A_MM = 20.0  # every pair of a quadruple this steady (a segment, or two beside a joint)
 CHIRALITY_MIN_MM = 20.0  # thick: cube root of |det| above this in 90 % of the frames
@@ -369,9 +373,9 @@ def window_model(window: Capture) -> LabelerModel:
     statistics (``min_pair_frames``, 3) raises :class:`LabelerError`, as the labeler trained in
     place does."""
     trainer = StructureTrainer()
-    if window.n_frames < trainer.min_pair_frames:
+    if window.n_frames < max(WINDOW_MIN_FRAMES, trainer.min_pair_frames):
         raise LabelerError(
-            f"the labeled start through a window model needs at least {trainer.min_pair_frames} "
+            f"the labeled start through a window model needs at least {WINDOW_MIN_FRAMES} "
             f"labeled init frames to train subject templates on (got {window.n_frames}): send "
             "more init frames (evaluate --init-frames, replay --init-frames)"
         )

@@ -91,19 +91,27 @@ def test_model_start_is_no_worse_on_the_cells_it_lost(real_path, scene, cell):
     assert model["accuracy_seen"] >= plain["accuracy_seen"]
 
 
-@pytest.mark.parametrize("init_frames", [1, 2])
+@pytest.mark.parametrize("init_frames", [0, 1, 2])
 def test_a_window_too_short_for_the_model_start_names_the_fix(rng, init_frames):
     """One or two init frames give no pair statistics: the model start says how many frames it
     needs (it used to fail deep inside the template schema: 'bodies: List should have at least
-    1 item'), as the labeler trained in place does."""
+    1 item'), as the labeler trained in place does; with 0, ``evaluate`` said 'or 0 with a
+    model', which the model start refuses too."""
+    from labeler_service.errors import MocapError
     from labeler_service.evaluation.scoring import evaluate
 
     pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
     cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
     with pytest.raises(
-        LabelerError, match=rf"at least 3 labeled init frames .*got {init_frames}.*--init-frames"
+        MocapError, match=rf"--init-frames >= 3 and no --model \(got --init-frames {init_frames}\)"
     ):
         evaluate(cap, init_frames=init_frames, methods=["online"], labeled_start="model")
+    if init_frames:
+        window = Capture(cap.positions[:init_frames], cap.labels, cap.rate)
+        with pytest.raises(
+            LabelerError, match=rf"at least 3 labeled init frames .*got {init_frames}"
+        ):
+            window_model(window)
 
 
 @pytest.mark.parametrize("start", ["labeler", "model"])
