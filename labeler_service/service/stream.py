@@ -351,12 +351,16 @@ class StreamState:
         subjects = subject_slices(self.names)
         self.bodies = rigid_bodies(labeler, self.names)
         self.model_payload = self._encode_model()
+        window = (
+            isinstance(labeler, BootingLabeler) and self.stream_settings.labeled_start == "model"
+        )
         log.info(
-            "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz)",
+            "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz%s)",
             self.name,
             len(self.names),
             len(subjects),
             self.rate,
+            ", labeled start through the init window's model" if window else "",
         )
 
     def _encode_model(self) -> bytes:

@@ -92,8 +92,9 @@ def test_window_start_settings_are_checked(tmp_path):
         load_settings(streams=[{"name": "vol", "labeled_start": "model", "model": str(model)}])
 
 
-def _train(names: list[str], labeled_start: str, rng):
-    """A stream's training job on 12 labeled frames of 5 markers named ``names``."""
+def _train(names: list[str], labeled_start: str, rng, state_out: list | None = None):
+    """A stream's training job on 12 labeled frames of 5 markers named ``names`` (the stream
+    and its first unlabeled frame appended to ``state_out``)."""
     from labeler_service.service.protocol import FrameMsg
     from labeler_service.service.stream import StreamState
 
@@ -104,6 +105,8 @@ def _train(names: list[str], labeled_start: str, rng):
         pts = (base + rng.normal(size=(5, 3)) + k).astype("float32")
         state.buffer_init(FrameMsg("vol", k, k / 50.0, pts, tuple(names)))
     first = FrameMsg("vol", 12, 12 / 50.0, (base + 12).astype("float32"))
+    if state_out is not None:
+        state_out += [state, first]
     return state.train(state.take_init(), first)
 
 
@@ -149,3 +152,18 @@ def test_an_empty_subject_name_is_refused_by_name(rng, labeled_start):
 
     with pytest.raises(LabelerError, match=r"label ':m0' has an empty subject name"):
         _train([f":m{i}" for i in range(5)], labeled_start, rng)
+
+
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_the_ready_line_says_which_labeled_start_ran(rng, caplog, labeled_start):
+    """The operator sees in the log that the setting took effect (the ready line was the same
+    for both starts)."""
+    import logging
+
+    got: list = []
+    labeler, rate, out, ns = _train([f"s:m{i}" for i in range(5)], labeled_start, rng, got)
+    state, first = got
+    with caplog.at_level(logging.INFO, logger="labeler_service.service.stream"):
+        state.install_trained(labeler, rate, first, out, 0, ns)
+    (line,) = [r.getMessage() for r in caplog.records if "labeler ready" in r.getMessage()]
+    assert ("through the init window's model" in line) == (labeled_start == "model"), line
