@@ -173,7 +173,8 @@ class StreamSettings(_Section):
         if self.labeled_start == "model" and self.model is not None:
             raise ValueError(
                 f"stream {self.name}: labeled_start = 'model' trains its model on the labeled "
-                "init frames; a stream with a model file starts from that model"
+                "init frames; a stream with a model file starts from that model: drop one "
+                "of model and labeled_start on this stream"
             )
         return self
 

@@ -88,7 +88,9 @@ def test_window_start_settings_are_checked(tmp_path):
         load_settings(streams=[{"name": "vol", "labeled_start": "model"}], labeler="baseline")
     model = tmp_path / "m.json"
     model.write_text("{}")
-    with pytest.raises(ConfigError, match="starts from that model"):
+    with pytest.raises(
+        ConfigError, match="starts from that model: drop one of model and labeled_start"
+    ):
         load_settings(streams=[{"name": "vol", "labeled_start": "model", "model": str(model)}])
 
 
