@@ -318,6 +318,8 @@ def _format_errors(exc: ValidationError, environ: Any = None) -> str:
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(settings)"
         msg = err["msg"]
+        if err["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")  # our validators' messages say it all
         key = str(err["loc"][-1]) if err["loc"] else ""
         if (
             err["type"] == "extra_forbidden"

@@ -135,3 +135,11 @@ def test_a_stream_setting_as_a_top_level_variable_points_to_mocap_streams(monkey
         match=r"MOCAP_LABELED_START \(labeled_start is a setting of one stream: .*MOCAP_STREAMS",
     ):
         load_settings()
+
+
+def test_our_validators_messages_come_without_pydantics_prefix():
+    """A validator's own sentence is the message ('Value error, ' was pydantic's prefix)."""
+    with pytest.raises(ConfigError) as err:
+        load_settings(labeler="baseline", streams=[{"name": "v", "labeled_start": "model"}])
+    assert "  (settings): streams v: labeled_start = 'model' runs" in str(err.value)
+    assert "Value error" not in str(err.value)
