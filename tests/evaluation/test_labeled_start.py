@@ -142,3 +142,18 @@ def test_the_model_start_without_the_online_method_is_refused(rng):
         cap, init_frames=10, methods=["closest-point", "online"], labeled_start="model"
     )
     assert report["settings"]["labeled_start"] == "model"
+
+
+def test_the_text_report_says_the_model_start_ran(tmp_path, rng, capsys):
+    """Without ``--json`` the reader saw the same table for both starts."""
+    from labeler_service.capture import write_capture
+    from labeler_service.cli.main import main
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(60, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    path = write_capture(cap, tmp_path / "t.c3d")
+    for start in ("labeler", "model"):
+        args = ["evaluate", str(path), "--method", "online", "--init-frames", "10"]
+        assert main([*args, "--labeled-start", start, "--no-progress"]) == 0
+        out = " ".join(capsys.readouterr().out.split())  # rich wraps at the terminal width
+        assert ("labeled start through the init window's model" in out) == (start == "model")
