@@ -166,6 +166,11 @@ def _print_table(report: dict) -> None:
     console.print(
         f"{report['frames']} frames, {report['subjects']} subjects, "
         f"{report['markers']} markers at {report['rate_hz']:g} Hz"
+        + (
+            "; online: labeled start through the init window's model"
+            if (report.get("settings") or {}).get("labeled_start") == "model"
+            else ""
+        )
     )
     console.print(t)
     e = report["errors"]

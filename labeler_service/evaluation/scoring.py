@@ -38,7 +38,7 @@ from labeler_service.capture import Capture, split_label
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.registry import LABELED_STARTS, make_labeler, make_window_labeler
-from labeler_service.labeling.structure import window_model
+from labeler_service.labeling.structure import WINDOW_MIN_FRAMES, window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 
@@ -620,23 +620,30 @@ def evaluate(
     place). The report's ``settings.labeled_start`` says which start ran (``labeler`` or
     ``model``).
     """
-    if init_frames < 0 or (init_frames == 0 and model is None):
-        raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
     if labeled_start not in LABELED_STARTS:
         raise MocapError(
             f"unknown labeled start {labeled_start!r} (choose from {', '.join(LABELED_STARTS)})"
         )
-    if labeled_start == "model" and (model is not None or init_frames == 0):
+    if labeled_start == "model" and (model is not None or init_frames < WINDOW_MIN_FRAMES):
+        # before the init-frames check: its advice (0 with a model) does not apply here
         raise MocapError(
             "the labeled start through a window model (--labeled-start model) trains its model "
-            "on the init window: it needs --init-frames >= 1 and no --model"
+            f"on the init window: it needs --init-frames >= {WINDOW_MIN_FRAMES} and no --model "
+            f"(got --init-frames {init_frames}{' and --model' if model is not None else ''})"
         )
+    if init_frames < 0 or (init_frames == 0 and model is None):
+        raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
     loaded = _load_model(model)
     if init_frames == 0 and not methods:
         methods = ["online"]
     names, notes = resolve_methods(methods)
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
+    if labeled_start == "model" and "online" not in names:
+        raise MocapError(
+            "the labeled start through a window model (--labeled-start model) runs the online "
+            f"method, which --method {','.join(names)} leaves out: add online to --method"
+        )
     spec = CorruptionSpec(
         downsample=downsample,
         gaps=gaps,

@@ -25,9 +25,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from labeler_service.capture.model import Capture, split_label
-from labeler_service.errors import ModelError
+from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.templates import LabelerModel, reversed_in_shape
 from labeler_service.labeling.training import motion_noise, train_subject
+
+#: labeled frames a window model needs (:func:`window_model`; the default trainer's
+#: ``min_pair_frames``: fewer give no pair statistics, so no rigid body)
+WINDOW_MIN_FRAMES = 3
 
 #: chirality quadruples (see :func:`chirality_quads`)
 CHIRALITY_A_MM = 20.0  # every pair of a quadruple this steady (a segment, or two beside a joint)
@@ -365,5 +369,14 @@ def window_model(window: Capture) -> LabelerModel:
     what the labeled start through the model-based labeler boots from
     (:func:`~labeler_service.labeling.registry.make_window_labeler`; ``evaluate --labeled-start
     model``, a service stream with ``labeled_start = "model"``). The default trainer, as
-    ``train structure`` runs it."""
-    return StructureTrainer().fit([window]).model_
+    ``train structure`` runs it. A window of fewer frames than the trainer needs for a pair's
+    statistics (``min_pair_frames``, 3) raises :class:`LabelerError`, as the labeler trained in
+    place does."""
+    trainer = StructureTrainer()
+    if window.n_frames < max(WINDOW_MIN_FRAMES, trainer.min_pair_frames):
+        raise LabelerError(
+            f"the labeled start through a window model needs at least {WINDOW_MIN_FRAMES} "
+            f"labeled init frames to train subject templates on (got {window.n_frames}): send "
+            "more init frames (evaluate --init-frames, replay --init-frames)"
+        )
+    return trainer.fit([window]).model_

@@ -255,7 +255,8 @@ def train_subject(
 
     Markers visible in fewer than ``min_pair_frames`` frames, and markers that duplicate
     another (:func:`split_tracks`), get no body (they can never be labeled by the fit, but they
-    do not break anything: a duplicate in a body would take its original's point).
+    do not break anything: a duplicate in a body would take its original's point). A subject
+    none of whose markers is usable (not seen in the frames) raises :class:`LabelerError`.
     """
     pos = np.asarray(pos, dtype=np.float64)
     if pos.ndim != 3 or pos.shape[1] != len(markers) or pos.shape[2] != 3:
@@ -279,6 +280,13 @@ def train_subject(
         max_size=max_size,
         all_seeds=all_seeds,
     )
+    if not bodies:
+        raise LabelerError(
+            f"subject {name!r}: no marker is seen in {min_pair_frames} or more of its "
+            f"{pos.shape[0]} labeled training frames, so it has no rigid body to label with: "
+            "give more labeled frames in which the subject is visible (more init frames, or "
+            "start where the subject is in the volume)"
+        )
     shapes = [reference_shape(pos, b, D) for b in bodies]
     q = motion_noise(pos, rate)
     return make_subject(name, markers, D, A, bodies, shapes, q)

@@ -173,7 +173,8 @@ class StreamSettings(_Section):
         if self.labeled_start == "model" and self.model is not None:
             raise ValueError(
                 f"stream {self.name}: labeled_start = 'model' trains its model on the labeled "
-                "init frames; a stream with a model file starts from that model"
+                "init frames; a stream with a model file starts from that model: drop one "
+                "of model and labeled_start on this stream"
             )
         return self
 
@@ -283,7 +284,8 @@ class ServiceSettings(BaseSettings):
         if model and self.labeler != "online":
             raise ValueError(
                 f"streams {', '.join(model)}: labeled_start = 'model' runs the online labeler's "
-                f"booting labeler; labeler is {self.labeler!r}"
+                f"booting labeler; labeler is {self.labeler!r}: set labeler = 'online', or "
+                "labeled_start = 'labeler' on these streams"
             )
         return self
 
@@ -300,11 +302,24 @@ class ServiceSettings(BaseSettings):
         return env_settings, init_settings
 
 
-def _format_errors(exc: ValidationError) -> str:
+def _env_names(loc: tuple[Any, ...], environ: Any) -> list[str]:
+    """The ``MOCAP_`` variables that set the value at ``loc`` of a validation error: the value
+    itself, one that holds it (``MOCAP_STREAMS`` for ``streams.0.rate``) or a part of it
+    (``MOCAP_STREAMS__0__RATE`` for ``streams``)."""
+    path = ["MOCAP_" + "__".join(str(p) for p in loc[:i]).upper() for i in range(1, len(loc) + 1)]
+    return sorted(
+        k for k in environ if k.upper() in path or (path and k.upper().startswith(path[-1] + "__"))
+    )
+
+
+def _format_errors(exc: ValidationError, environ: Any = None) -> str:
+    env = os.environ if environ is None else environ
     lines = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "(settings)"
         msg = err["msg"]
+        if err["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")  # our validators' messages say it all
         key = str(err["loc"][-1]) if err["loc"] else ""
         if (
             err["type"] == "extra_forbidden"
@@ -317,6 +332,26 @@ def _format_errors(exc: ValidationError) -> str:
                 f" ({key} is a setting of the whole service, not of one stream: in TOML, "
                 "write it above the first [[streams]] or [section])"
             )
+        elif (
+            err["type"] == "extra_forbidden"
+            and len(err["loc"]) == 1
+            and key in StreamSettings.model_fields
+            and key not in ServiceSettings.model_fields
+        ):
+            # the mirror case: a stream's key written at the top of the file
+            msg += (
+                f" ({key} is a setting of one stream: in TOML, write it below that stream's "
+                '[[streams]] name = "..."; in the environment, in MOCAP_STREAMS)'
+            )
+        names = _env_names(tuple(err["loc"]), env) if err["loc"] else []
+        if names:
+            # the environment wins over the file: say which variable the value came from
+            msg += f" (from the environment: {', '.join(names)})"
+            if err["loc"][0] == "streams" and any("__" in n[len("MOCAP_") :] for n in names):
+                msg += (
+                    "; streams is a list, set whole as JSON: "
+                    """MOCAP_STREAMS='[{"name": "volume1", "labeled_start": "model"}]'"""
+                )
         lines.append(f"  {loc}: {msg}")
     return "\n".join(lines)
 
@@ -336,9 +371,20 @@ def check_env(environ: dict[str, str] | None = None) -> None:
             bad.append(key)
     if bad:
         allowed = ", ".join(sorted(NON_SETTING_ENV))
+        stream_keys = {f.upper() for f in StreamSettings.model_fields} - fields
+
+        def line(b: str) -> str:
+            top = b.upper()[len("MOCAP_") :].split("__", 1)[0]
+            if top not in stream_keys:
+                return f"  {b}"
+            return (
+                f"  {b} ({top.lower()} is a setting of one stream: set it in MOCAP_STREAMS, "
+                f"""e.g. MOCAP_STREAMS='[{{"name": "volume1", "{top.lower()}": ...}}]')"""
+            )
+
         raise ConfigError(
             "unknown MOCAP_ environment variable(s) (not a setting; other allowed names: "
-            f"{allowed}):\n" + "\n".join(f"  {b}" for b in sorted(bad))
+            f"{allowed}):\n" + "\n".join(line(b) for b in sorted(bad))
         )
 
 

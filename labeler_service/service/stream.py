@@ -351,12 +351,16 @@ class StreamState:
         subjects = subject_slices(self.names)
         self.bodies = rigid_bodies(labeler, self.names)
         self.model_payload = self._encode_model()
+        window = (
+            isinstance(labeler, BootingLabeler) and self.stream_settings.labeled_start == "model"
+        )
         log.info(
-            "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz)",
+            "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz%s)",
             self.name,
             len(self.names),
             len(subjects),
             self.rate,
+            ", labeled start through the init window's model" if window else "",
         )
 
     def _encode_model(self) -> bytes:
@@ -398,9 +402,19 @@ class StreamState:
     def _labeler_for(self, init: InitWindow) -> tuple[FrameLabeler, float, np.ndarray]:
         """A new labeler for the init window's markers (subject-grouped), its rate, and the
         remap from the window's label indices to the labeler's markers (``-1`` stays ``-1``)."""
-        names = group_by_subject(init.names)
+        # a *N label is a ghost point (DESIGN.md): it stays unlabeled, never becomes a marker
+        names = group_by_subject([n for n in init.names if not is_ghost(n)])
         if not names:
-            raise LabelerError(f"stream {self.name}: the init frames carry no labels")
+            raise LabelerError(
+                f"stream {self.name}: the init frames carry no labels"
+                + (" (only ghost *N labels)" if init.names else "")
+            )
+        empty = [n for n in names if split_label(n)[0] == ""]
+        if empty:
+            raise LabelerError(
+                f"stream {self.name}: label {empty[0]!r} has an empty subject name: send "
+                "subject:marker or a bare marker name"
+            )
         rate = self._estimate_rate(init.frames)
         labeler: FrameLabeler
         if self.stream_settings.labeled_start == "model":
@@ -424,14 +438,16 @@ class StreamState:
         frames as a capture, ``train structure``'s trainer), and the booting labeler from them
         (:func:`~labeler_service.labeling.registry.make_window_labeler`), its boot kernels
         compiled here (off the event loop) when the service warms up."""
-        unprefixed = [n for n in names if split_label(n)[0] is None and not is_ghost(n)]
+        unprefixed = [n for n in names if split_label(n)[0] is None]
         if unprefixed:
             raise LabelerError(
                 f"stream {self.name}: labeled_start = 'model' needs subject:marker labels "
-                f"(the model names its subjects), got {unprefixed[0]!r}"
+                f"(the model names its subjects), got {unprefixed[0]!r}: prefix the init "
+                "frames' labels with the performer's name, or set labeled_start = 'labeler' "
+                "on this stream (it accepts bare marker names)"
             )
         column = {n: i for i, n in enumerate(names)}
-        to_col = np.array([column[n] for n in init.names] + [-1], dtype=np.int64)
+        to_col = np.array([column.get(n, -1) for n in init.names] + [-1], dtype=np.int64)
         pos = np.full((len(init.frames), len(names), 3), np.nan, dtype=np.float32)
         for k, (f, idx) in enumerate(zip(init.frames, init.idx, strict=True)):
             c = to_col[idx]  # -1 (unlabeled) picks the last entry, -1

@@ -285,6 +285,10 @@ class Subscriber:
                 why = ""
                 if msg.state == "booting":
                     why = " (booting its performers from the model: no one labeled yet)"
+                elif msg.state == "training_failed":
+                    why = (" (training on its labeled init frames failed or ran over "
+                           "train_budget_s: the service log says why; it waits for new "
+                           "labeled init frames)")  # fmt: skip
                 elif msg.state in ("lost", "degraded") and not self._labeled.get(msg.stream):
                     # a model stream that has not booted anyone yet reads as lost: say so
                     why = (" (no marker labeled yet: the service is booting its performers "

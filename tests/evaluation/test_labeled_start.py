@@ -4,6 +4,7 @@ no worse than the plain labeler's start."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from benchmark_scripts import load_benchmark
 
@@ -93,3 +94,71 @@ def test_model_start_is_no_worse_on_the_cells_it_lost(real_path, scene, cell):
     model = _cell(scene, cell, "model")
     assert "--labeled-start model" in model["evaluate"]
     assert model["accuracy_seen"] >= plain["accuracy_seen"]
+
+
+@pytest.mark.parametrize("init_frames", [0, 1, 2])
+def test_a_window_too_short_for_the_model_start_names_the_fix(rng, init_frames):
+    """One or two init frames give no pair statistics: the model start says how many frames it
+    needs (it used to fail deep inside the template schema: 'bodies: List should have at least
+    1 item'), as the labeler trained in place does; with 0, ``evaluate`` said 'or 0 with a
+    model', which the model start refuses too."""
+    from labeler_service.errors import MocapError
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    with pytest.raises(
+        MocapError, match=rf"--init-frames >= 3 and no --model \(got --init-frames {init_frames}\)"
+    ):
+        evaluate(cap, init_frames=init_frames, methods=["online"], labeled_start="model")
+    if init_frames:
+        window = Capture(cap.positions[:init_frames], cap.labels, cap.rate)
+        with pytest.raises(
+            LabelerError, match=rf"at least 3 labeled init frames .*got {init_frames}"
+        ):
+            window_model(window)
+
+
+@pytest.mark.parametrize("start", ["labeler", "model"])
+def test_an_init_window_that_never_sees_a_subject_names_it(rng, start):
+    """A subject none of whose markers the init window sees (a take that starts before the
+    performer enters the volume, as the BTS walk) is named with the way out, for both starts."""
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 8, 3)) + rng.normal(size=(60, 8, 3))
+    pos[:20, 4:] = np.nan  # subject 'b' enters after the 20-frame window
+    names = tuple(f"a:m{i}" for i in range(4)) + tuple(f"b:m{i}" for i in range(4))
+    cap = Capture(pos.astype("float32"), names, 50.0)
+    with pytest.raises(LabelerError, match=r"subject 'b': no marker is seen .* 20 labeled"):
+        evaluate(cap, init_frames=20, methods=["online"], labeled_start=start)
+
+
+def test_the_model_start_without_the_online_method_is_refused(rng):
+    """``--labeled-start model --method closest-point`` used to score the baseline alone and
+    report ``labeled_start: labeler``: the flag was silently ignored."""
+    from labeler_service.errors import MocapError
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    with pytest.raises(MocapError, match=r"--method closest-point leaves out.*add online"):
+        evaluate(cap, init_frames=10, methods=["closest-point"], labeled_start="model")
+    report, _ = evaluate(
+        cap, init_frames=10, methods=["closest-point", "online"], labeled_start="model"
+    )
+    assert report["settings"]["labeled_start"] == "model"
+
+
+def test_the_text_report_says_the_model_start_ran(tmp_path, rng, capsys):
+    """Without ``--json`` the reader saw the same table for both starts."""
+    from labeler_service.capture import write_capture
+    from labeler_service.cli.main import main
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(60, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    path = write_capture(cap, tmp_path / "t.c3d")
+    for start in ("labeler", "model"):
+        args = ["evaluate", str(path), "--method", "online", "--init-frames", "10"]
+        assert main([*args, "--labeled-start", start, "--no-progress"]) == 0
+        out = " ".join(capsys.readouterr().out.split())  # rich wraps at the terminal width
+        assert ("labeled start through the init window's model" in out) == (start == "model")

@@ -101,3 +101,45 @@ def test_a_service_setting_written_under_streams_says_where_it_belongs(tmp_path)
     # a key that is no setting at all gets no such hint
     line = next(x for x in text.splitlines() if "not_a_key" in x)
     assert "whole service" not in line
+
+
+def test_an_invalid_value_from_the_environment_names_its_variable(tmp_path, monkeypatch):
+    """The environment wins over the file, so an error in a value it set names the variable,
+    not only the file (``MOCAP_STREAMS__0__LABELED_START=model`` read as 'streams: Input should
+    be a valid list' "in s.toml"); a nested variable into the list says how to set a list."""
+    f = tmp_path / "s.toml"
+    f.write_text('[udp]\nhost = 5\n[[streams]]\nname = "v"\n')
+    monkeypatch.setenv("MOCAP_UDP__PORT", "2222")
+    monkeypatch.setenv("MOCAP_STREAMS__0__LABELED_START", "model")
+    with pytest.raises(ConfigError) as err:
+        load_settings(f)
+    lines = str(err.value).splitlines()
+    streams = next(x for x in lines if x.strip().startswith("streams:"))
+    assert "(from the environment: MOCAP_STREAMS__0__LABELED_START)" in streams
+    assert "MOCAP_STREAMS='[{" in streams
+    # the file's bad udp.host is not blamed on MOCAP_UDP__PORT, which set another field
+    host = next(x for x in lines if x.strip().startswith("udp.host:"))
+    assert "environment" not in host
+    monkeypatch.delenv("MOCAP_STREAMS__0__LABELED_START")
+    monkeypatch.setenv("MOCAP_STREAMS", '[{"name": "v", "labeled_start": "window"}]')
+    with pytest.raises(
+        ConfigError, match=r"labeled_start: .*\(from the environment: MOCAP_STREAMS\)"
+    ):
+        load_settings(f)
+
+
+def test_a_stream_setting_as_a_top_level_variable_points_to_mocap_streams(monkeypatch):
+    monkeypatch.setenv("MOCAP_LABELED_START", "model")
+    with pytest.raises(
+        ConfigError,
+        match=r"MOCAP_LABELED_START \(labeled_start is a setting of one stream: .*MOCAP_STREAMS",
+    ):
+        load_settings()
+
+
+def test_our_validators_messages_come_without_pydantics_prefix():
+    """A validator's own sentence is the message ('Value error, ' was pydantic's prefix)."""
+    with pytest.raises(ConfigError) as err:
+        load_settings(labeler="baseline", streams=[{"name": "v", "labeled_start": "model"}])
+    assert "  (settings): streams v: labeled_start = 'model' runs" in str(err.value)
+    assert "Value error" not in str(err.value)

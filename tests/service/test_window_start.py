@@ -84,16 +84,19 @@ def test_window_start_settings_are_checked(tmp_path):
     assert load_settings().streams[0].labeled_start == "labeler"
     with pytest.raises(ConfigError, match="labeled_start"):
         _settings("window")
-    with pytest.raises(ConfigError, match="labeler is 'baseline'"):
+    with pytest.raises(ConfigError, match="labeler is 'baseline': set labeler = 'online', or"):
         load_settings(streams=[{"name": "vol", "labeled_start": "model"}], labeler="baseline")
     model = tmp_path / "m.json"
     model.write_text("{}")
-    with pytest.raises(ConfigError, match="starts from that model"):
+    with pytest.raises(
+        ConfigError, match="starts from that model: drop one of model and labeled_start"
+    ):
         load_settings(streams=[{"name": "vol", "labeled_start": "model", "model": str(model)}])
 
 
-def _train(names: list[str], labeled_start: str, rng):
-    """A stream's training job on 12 labeled frames of 5 markers named ``names``."""
+def _train(names: list[str], labeled_start: str, rng, state_out: list | None = None):
+    """A stream's training job on 12 labeled frames of 5 markers named ``names`` (the stream
+    and its first unlabeled frame appended to ``state_out``)."""
     from labeler_service.service.protocol import FrameMsg
     from labeler_service.service.stream import StreamState
 
@@ -104,13 +107,17 @@ def _train(names: list[str], labeled_start: str, rng):
         pts = (base + rng.normal(size=(5, 3)) + k).astype("float32")
         state.buffer_init(FrameMsg("vol", k, k / 50.0, pts, tuple(names)))
     first = FrameMsg("vol", 12, 12 / 50.0, (base + 12).astype("float32"))
+    if state_out is not None:
+        state_out += [state, first]
     return state.train(state.take_init(), first)
 
 
 def test_window_start_needs_subject_labels(rng):
     from labeler_service.errors import LabelerError
 
-    with pytest.raises(LabelerError, match="subject:marker labels"):
+    with pytest.raises(
+        LabelerError, match=r"subject:marker labels.*'m0'.*labeled_start = 'labeler'"
+    ):
         _train([f"m{i}" for i in range(5)], "model", rng)
     labeler, rate, out, _ = _train([f"s:m{i}" for i in range(5)], "model", rng)
     assert isinstance(labeler, BootingLabeler) and rate == pytest.approx(50.0)
@@ -118,3 +125,47 @@ def test_window_start_needs_subject_labels(rng):
     # the same window without the setting trains the labeler in place
     plain, *_ = _train([f"s:m{i}" for i in range(5)], "labeler", rng)
     assert not isinstance(plain, BootingLabeler)
+
+
+def test_a_stream_setting_written_at_the_top_of_the_file_says_where_it_belongs(tmp_path):
+    """``labeled_start = "model"`` above ``[[streams]]`` (TOML puts it at the top level, where
+    it is no setting) says it belongs to a stream's table, not only 'Extra inputs are not
+    permitted'."""
+    path = tmp_path / "s.toml"
+    path.write_text('labeled_start = "model"\n[[streams]]\nname = "vol"\n')
+    with pytest.raises(ConfigError, match=r"labeled_start: Extra inputs.*setting of one stream"):
+        load_settings(path)
+
+
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_ghost_labels_in_the_init_frames_stay_ghosts(rng, labeled_start):
+    """A point labeled ``*N`` in an init frame is a ghost (DESIGN.md): it used to become a
+    marker ``*9`` of the labeler trained in place (its label then given to ghosts)."""
+    labeler, *_ = _train(["s:m0", "s:m1", "s:m2", "s:m3", "*9"], labeled_start, rng)
+    assert tuple(labeler.marker_names) == ("s:m0", "s:m1", "s:m2", "s:m3")
+
+
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_an_empty_subject_name_is_refused_by_name(rng, labeled_start):
+    """``:m0`` (an empty subject): the labeler trained in place refused its own model ('model
+    marker 'm0' is not a labeler marker') and the window model renamed the subject, so the
+    window's labels matched no marker; both now name the label."""
+    from labeler_service.errors import LabelerError
+
+    with pytest.raises(LabelerError, match=r"label ':m0' has an empty subject name"):
+        _train([f":m{i}" for i in range(5)], labeled_start, rng)
+
+
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_the_ready_line_says_which_labeled_start_ran(rng, caplog, labeled_start):
+    """The operator sees in the log that the setting took effect (the ready line was the same
+    for both starts)."""
+    import logging
+
+    got: list = []
+    labeler, rate, out, ns = _train([f"s:m{i}" for i in range(5)], labeled_start, rng, got)
+    state, first = got
+    with caplog.at_level(logging.INFO, logger="labeler_service.service.stream"):
+        state.install_trained(labeler, rate, first, out, 0, ns)
+    (line,) = [r.getMessage() for r in caplog.records if "labeler ready" in r.getMessage()]
+    assert ("through the init window's model" in line) == (labeled_start == "model"), line

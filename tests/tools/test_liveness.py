@@ -128,3 +128,19 @@ def test_subscribe_to_a_stream_name_the_service_does_not_have_says_so():
 
     warnings = run(go())
     assert any("announced no stream 'cour'" in w and "name right" in w for w in warnings), warnings
+
+
+def test_subscribe_says_what_training_failed_means():
+    """``training_failed`` (a labeled start whose training raised, e.g. bare marker names on a
+    ``labeled_start = "model"`` stream, or ran over ``train_budget_s``) points to the service
+    log and says the stream waits for new labeled init frames, not the bare state alone."""
+    from labeler_service.service.protocol import encode_status
+    from labeler_service.service.transports.base import Incoming
+
+    sub = Subscriber("udp://127.0.0.1:9/v", silence_s=1.0)
+    sub._handle(Incoming(encode_status("v", "training_failed"), 0, "udp"))
+    assert (
+        "stream v is training_failed (training on its labeled init frames failed"
+        in (sub.warnings[-1])
+    )
+    assert "the service log says why" in sub.warnings[-1]
