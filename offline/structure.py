@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from labeler_service.capture import Capture, read_capture
 from labeler_service.labeling import structure as _core
@@ -40,24 +41,10 @@ class StructureTrainer(_core.StructureTrainer):
     """:class:`labeler_service.labeling.structure.StructureTrainer` that also takes capture
     files (``.c3d``/``.trc``/``.npz`` paths, read with ``up`` as the vertical axis)."""
 
-    def __init__(
-        self,
-        tolerance_mm: float = 6.0,
-        distance_weight: float = 0.02,
-        min_size: int = 3,
-        max_size: int = 6,
-        min_pair_frames: int = 3,
-        all_seeds: bool = True,
-        up: str = "z",
-    ) -> None:
-        super().__init__(
-            tolerance_mm=tolerance_mm,
-            distance_weight=distance_weight,
-            min_size=min_size,
-            max_size=max_size,
-            min_pair_frames=min_pair_frames,
-            all_seeds=all_seeds,
-        )
+    def __init__(self, *, up: str = "z", **rule: Any) -> None:
+        """``rule``: the keywords of the core trainer (``tolerance_mm``, ``distance_weight``,
+        ``min_size``, ``max_size``, ``min_pair_frames``, ``all_seeds``)."""
+        super().__init__(**rule)
         self.up = up
 
     def fit(self, captures: Sequence[Capture | str | Path]) -> StructureTrainer:

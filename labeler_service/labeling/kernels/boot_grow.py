@@ -73,6 +73,7 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link):
             ok = np.zeros(nn, dtype=np.bool_)
             nfit = np.zeros(nn, dtype=np.int64)
             art_bad = np.zeros(nn, dtype=np.bool_)
+            devs = np.empty((nn, nh))  # distance deviations, read again by the ranking below
             for i in range(nn):
                 p = pts[near[i]]
                 bad = False
@@ -85,6 +86,7 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link):
                     ey = p[1] - pb[1]
                     ez = p[2] - pb[2]
                     dev = np.sqrt(ex * ex + ey * ey + ez * ez) - D[m, b]
+                    devs[i, h] = dev
                     adev = abs(dev)
                     if rigid[m, b] and adev <= tol[m, b]:
                         nf += 1
@@ -123,15 +125,10 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link):
             for i in range(nn):
                 if not ok[i]:
                     continue
-                p = pts[near[i]]
                 s = 0.0
                 for h in range(nh):
                     b = have[h]
-                    pb = pts[assign[b]]
-                    ex = p[0] - pb[0]
-                    ey = p[1] - pb[1]
-                    ez = p[2] - pb[2]
-                    dev = np.sqrt(ex * ex + ey * ey + ez * ez) - D[m, b]
+                    dev = devs[i, h]
                     if rigid[m, b] and abs(dev) <= tol[m, b]:
                         e = dev / tol[m, b]
                         s += e * e
