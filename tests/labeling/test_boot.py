@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from labeling.walks import train as _train
 
 from labeler_service.capture import Capture, read_capture
 from labeler_service.errors import LabelerError
@@ -19,12 +20,6 @@ from labeler_service.scenes.simulate import simulate_scene
 
 RATE = 120.0
 HIDE = 0.15
-
-
-def _train(capture: Capture) -> LabelerModel:
-    from offline.structure import StructureTrainer
-
-    return StructureTrainer().fit([capture]).model_
 
 
 @pytest.fixture(scope="module")

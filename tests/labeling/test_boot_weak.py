@@ -7,22 +7,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from labeling.walks import split_walk
 
 from labeler_service.labeling.boot import BootConfig, Booter
-from labeler_service.labeling.templates import LabelerModel
-from labeler_service.scenes.simulate import simulate_scene
 
 RATE = 120.0
 
 
 @pytest.fixture(scope="module")
 def walk():
-    from offline.structure import StructureTrainer
-
-    cap = simulate_scene(5, 6.0, "walk", seed=7, rate=RATE, ghosts=2.0)
-    half = cap.n_frames // 2
-    model: LabelerModel = StructureTrainer().fit([cap.frames(0, half)]).model_
-    return model, cap.frames(half, cap.n_frames)
+    return split_walk(5, 6.0, seed=7, rate=RATE, ghosts=2.0)
 
 
 def _case(walk):

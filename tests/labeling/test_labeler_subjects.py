@@ -160,7 +160,7 @@ def test_subject_call_errors(rng, scene):
 @pytest.fixture(scope="module")
 def walkers():
     """Three walkers streamed, a model of five (as ``test_boot.walk``)."""
-    from labeling.test_boot import _train
+    from labeling.walks import train as _train
 
     from labeler_service.scenes.simulate import simulate_scene
 

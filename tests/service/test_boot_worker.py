@@ -10,6 +10,7 @@ import threading
 import numpy as np
 import pytest
 from labeling.test_boot import RATE, Stream, _attempt, _run
+from labeling.walks import split_walk
 
 from labeler_service.errors import BudgetExceeded, LabelerError
 from labeler_service.labeling.booting import BootingLabeler
@@ -18,13 +19,7 @@ from labeler_service.service.boot_worker import BootWorker
 
 @pytest.fixture(scope="module")
 def walk():
-    from labeling.test_boot import _train
-
-    from labeler_service.scenes.simulate import simulate_scene
-
-    cap = simulate_scene(3, 4.0, "walk", seed=11, rate=RATE, ghosts=1.0)
-    half = cap.n_frames // 2
-    return _train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+    return split_walk(3, 4.0, seed=11, rate=RATE, ghosts=1.0)
 
 
 @pytest.fixture(scope="module")
