@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 import pytest
-from labeling.walks import split_walk
+from labeling.walks import split_walk, subject_on_its_points
 
 from labeler_service.labeling.boot import BootConfig
 
@@ -23,16 +23,7 @@ def walk():
 def _case(walk, leftover: tuple[str, ...]):
     """P1 on its true points except ``leftover`` markers (free, tracked), in the first frame
     whose 12-frame window sees all of them; point ``i`` is marker ``i``."""
-    from labeler_service.labeling.boot_match import _prepare
-
-    model, cap = walk
-    tpl = _prepare(model, BootConfig())[0]
-    names = list(model.subjects[0].markers)
-    cols = [cap.labels.index(f"P1:{n}") for n in names]
-    seen = np.isfinite(cap.positions[:, cols, 0]).all(axis=1)
-    frame = next(f for f in range(11, cap.n_frames) if seen[f - 11 : f + 1].all())
-    hist = np.transpose(cap.positions[frame - 11 : frame + 1][:, cols], (1, 0, 2)).astype(float)
-    pts = np.ascontiguousarray(hist[:, -1])
+    tpl, names, pts, hist = subject_on_its_points(walk)
     ix = {n: i for i, n in enumerate(names)}
     miss = np.array([ix[n] for n in leftover])
     assign = np.arange(tpl.n)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from labeling.walks import split_walk
+from labeling.walks import split_walk, subject_on_its_points
 
 from labeler_service.labeling.boot import BootConfig, Booter
 
@@ -22,16 +22,7 @@ def walk():
 def _case(walk):
     """P1 on its true points in the first frame whose 12-frame window sees all of them:
     ``(tpl, names, pts, hist)``; point ``i`` is marker ``i``."""
-    from labeler_service.labeling.boot_match import _prepare
-
-    model, cap = walk
-    tpl = _prepare(model, BootConfig())[0]
-    names = list(model.subjects[0].markers)
-    cols = [cap.labels.index(f"P1:{n}") for n in names]
-    seen = np.isfinite(cap.positions[:, cols, 0]).all(axis=1)
-    frame = next(f for f in range(11, cap.n_frames) if seen[f - 11 : f + 1].all())
-    hist = np.transpose(cap.positions[frame - 11 : frame + 1][:, cols], (1, 0, 2)).astype(float)
-    return tpl, names, np.ascontiguousarray(hist[:, -1]), hist
+    return subject_on_its_points(walk)
 
 
 def test_weak_markers_are_the_ones_read_along_the_chain(walk):

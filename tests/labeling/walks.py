@@ -23,3 +23,23 @@ def split_walk(
     cap = simulate_scene(performers, seconds, "walk", seed=seed, rate=rate, ghosts=ghosts)
     half = cap.n_frames // 2
     return train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+
+
+def subject_on_its_points(walk: tuple[LabelerModel, Capture], subject: str = "P1"):
+    """``subject`` (the model's first template) on its true points, in the first frame whose
+    12-frame window sees all of its markers: ``(tpl, names, pts, hist)``, the boot's prepared
+    template, its marker names, the points (point ``i`` is marker ``i``) and their tracks
+    ``(markers, 12, 3)``."""
+    import numpy as np
+
+    from labeler_service.labeling.boot import BootConfig
+    from labeler_service.labeling.boot_match import _prepare
+
+    model, cap = walk
+    tpl = _prepare(model, BootConfig())[0]
+    names = list(model.subjects[0].markers)
+    cols = [cap.labels.index(f"{subject}:{n}") for n in names]
+    seen = np.isfinite(cap.positions[:, cols, 0]).all(axis=1)
+    frame = next(f for f in range(11, cap.n_frames) if seen[f - 11 : f + 1].all())
+    hist = np.transpose(cap.positions[frame - 11 : frame + 1][:, cols], (1, 0, 2)).astype(float)
+    return tpl, names, np.ascontiguousarray(hist[:, -1]), hist
