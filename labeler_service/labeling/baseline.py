@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from labeler_service.labeling.frame import LabeledFrame, MarkerState
+from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_labels
 
 if TYPE_CHECKING:
     from labeler_service.labeling.templates import LabelerModel
@@ -77,10 +77,8 @@ class ClosestPointLabeler:
         n, m = pts.shape[0], len(self._names)
         point_labels = np.full(n, -1, dtype=np.int32)
         if labels is not None:
-            lab = np.asarray(labels, dtype=np.int64).reshape(-1)
-            if lab.shape[0] != n:
-                raise ValueError(f"{lab.shape[0]} labels for {n} points")
-            ok = (lab >= 0) & (lab < m)
+            lab = frame_labels(labels, n, m)
+            ok = lab >= 0
             point_labels[ok] = lab[ok]
         else:
             point_labels = self._assign(pts, float(t))

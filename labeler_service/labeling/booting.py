@@ -97,7 +97,7 @@ from labeler_service.labeling.boot import (
 )
 from labeler_service.labeling.boot_verify import BootVerifier, extend_blocked
 from labeler_service.labeling.config import LabelerConfig
-from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
+from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_labels, frame_points
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
 
@@ -420,14 +420,7 @@ class BootingLabeler:
     ) -> LabeledFrame:
         """A frame that carries its labels (see :meth:`process`)."""
         m = len(self._names)
-        lab = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
-        if lab.shape[0] != pts.shape[0]:
-            raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
-        lab = np.where((lab >= 0) & (lab < m), lab, -1)
-        have = np.flatnonzero(lab >= 0)
-        _, first = np.unique(lab[have], return_index=True)
-        dup = np.setdiff1d(np.arange(have.size), first)
-        lab[have[dup]] = -1  # a label given twice: the first point keeps it
+        lab = frame_labels(labels, pts.shape[0], m)
         self._window.append(_Frame(t, pts, ids, lab.copy()))
         if not self._labeled_run:
             self._labeled_frames.clear()  # a new labeled run

@@ -107,3 +107,19 @@ def frame_points(points: np.ndarray) -> np.ndarray:
     if not np.isfinite(pts).all():
         raise LabelerError("points must be finite (drop missing points instead of NaN)")
     return np.ascontiguousarray(pts)
+
+
+def frame_labels(labels: np.ndarray, n_points: int, n_markers: int) -> np.ndarray:
+    """A labeled frame's labels as the labelers take them: ``(n_points,)`` int64 marker
+    indices, -1 for a point without one (a negative or out-of-range label included), and a
+    label given to several points kept by the first of them only (the others -1: which point
+    is the marker cannot be told, and no output frame may carry a label twice). Raises
+    :class:`LabelerError` when the count does not match the points."""
+    lab = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
+    if lab.shape[0] != n_points:
+        raise LabelerError(f"{lab.shape[0]} labels for {n_points} points")
+    lab = np.where((lab >= 0) & (lab < n_markers), lab, -1)
+    have = np.flatnonzero(lab >= 0)
+    _, first = np.unique(lab[have], return_index=True)
+    lab[np.delete(have, first)] = -1
+    return lab

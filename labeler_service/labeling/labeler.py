@@ -31,7 +31,7 @@ from labeler_service._numba import njit
 from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
-from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_points
+from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_labels, frame_points
 from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import kernel_params
 from labeler_service.labeling.kernels.rigid import _snapshot
@@ -345,10 +345,8 @@ class Labeler:
         t_prev = np.nan
         for k, (t, pts, lab) in enumerate(frames):
             pts = frame_points(pts)
-            lab = np.asarray(lab).astype(np.int64, copy=False).reshape(-1)
-            if lab.shape[0] != pts.shape[0]:
-                raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
-            ok = (lab >= 0) & (lab < m)
+            lab = frame_labels(lab, pts.shape[0], m)
+            ok = lab >= 0
             ok[ok] = mask[lab[ok]]
             obs[k, lab[ok]] = pts[ok]
             dt = float(t) - t_prev
@@ -391,11 +389,8 @@ class Labeler:
         return self._label(pts, float(t), t0)
 
     def _collect(self, pts: np.ndarray, t: float, labels: np.ndarray, t0: int) -> LabeledFrame:
-        lab = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
-        if lab.shape[0] != pts.shape[0]:
-            raise LabelerError(f"{lab.shape[0]} labels for {pts.shape[0]} points")
         m = len(self._names)
-        lab = np.where((lab >= 0) & (lab < m), lab, -1)
+        lab = frame_labels(labels, pts.shape[0], m)
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         ok = lab >= 0
         pos[lab[ok]] = pts[ok]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from labeler_service.errors import LabelerError
 from labeler_service.labeling.baseline import ClosestPointLabeler
 from labeler_service.labeling.frame import MarkerState
 
@@ -44,7 +45,7 @@ def test_empty_frames_and_bad_input() -> None:
     lab = ClosestPointLabeler(("a",), rate=100.0)
     out = lab.process(np.empty((0, 3), np.float32), 0.0)
     assert out.point_labels.shape == (0,) and out.state.tolist() == [MarkerState.MISSING]
-    with pytest.raises(ValueError):
+    with pytest.raises(LabelerError, match="2 labels for 1 points"):
         lab.process(_pts((0, 0, 0)), 0.0, np.array([0, 0]))
     with pytest.raises(ValueError):
         ClosestPointLabeler((), rate=100.0)

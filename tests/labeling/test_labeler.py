@@ -225,3 +225,21 @@ def test_named_entry_and_field_tuple_entry_agree(rng):
         np.testing.assert_array_equal(oa.state, ob.state)
     np.testing.assert_array_equal(a._tracks.x, b._tracks.x)
     np.testing.assert_array_equal(a._bodies.D, b._bodies.D)
+
+
+def test_a_label_given_twice_in_a_labeled_frame_is_kept_by_its_first_point(rng):
+    """A client that labels two points with one marker: which point is the marker cannot be
+    told, so the first point keeps the label and the other is unlabeled, in the labeler's
+    output and in what it learns from; no output frame carries a label twice (the labeler
+    used to echo the label on both points and learn the last one)."""
+    from labeler_service.labeling.frame import frame_labels
+    from labeler_service.labeling.registry import make_labeler
+
+    assert frame_labels(np.array([2, 0, 2, -5, 9, 0]), 6, 3).tolist() == [2, 0, -1, -1, -1, -1]
+    pts = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0], [0, 0, 100]], np.float32)
+    labels = np.array([0, 1, 2, 0])  # the last point repeats marker 0
+    for kind in ("online", "baseline"):
+        lab = make_labeler(kind, marker_names=["s:a", "s:b", "s:c"], rate=120.0)
+        out = lab.process(pts, 0.0, labels)
+        assert out.point_labels.tolist() == [0, 1, 2, -1], kind
+        np.testing.assert_array_equal(out.positions[0], pts[0])
