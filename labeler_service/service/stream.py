@@ -152,6 +152,17 @@ def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[i
     )
 
 
+def _off_the_loop(labeler: FrameLabeler) -> bool:
+    """A :class:`BootingLabeler` the server drives: its boot and its extension to new markers
+    run off the event loop (``inline_boot``/``inline_extend`` off). False for another labeler
+    (left as it is)."""
+    if not isinstance(labeler, BootingLabeler):
+        return False
+    labeler.inline_boot = False
+    labeler.inline_extend = False
+    return True
+
+
 @dataclass(slots=True)
 class BootRequest:
     """One boot attempt in flight: the labeler it belongs to and its snapshot."""
@@ -328,10 +339,7 @@ class StreamState:
         cfg = self.settings.labeler_config
         labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path,
                                 boot=self.settings.boot_config if boot else False)  # fmt: skip
-        if isinstance(labeler, BootingLabeler):
-            # the server runs the boot and the extension to new markers off the event loop
-            labeler.inline_boot = False
-            labeler.inline_extend = False
+        _off_the_loop(labeler)
         self.boot_inflight = False
         self._boot_result = None
         self._install(labeler, rate)
@@ -478,11 +486,7 @@ class StreamState:
             labeler.process(f.points, f.t, remap[idx])  # -1 stays -1 (remap's last entry)
         t0 = time.perf_counter_ns()
         out = labeler.process(first.points, first.t, None)
-        if isinstance(labeler, BootingLabeler):
-            # (labeled_start = "model") from now on the server runs its boot and extension
-            # off the event loop, as for a model stream that boots
-            labeler.inline_boot = False
-            labeler.inline_extend = False
+        _off_the_loop(labeler)  # (labeled_start = "model": from now on, as a model stream's)
         return labeler, rate, out, time.perf_counter_ns() - t0
 
     def take_init(self) -> InitWindow:
@@ -647,10 +651,8 @@ class StreamState:
         lab = self._factory(self.settings.labeler, rate=self.rate, model=model,
                             config=self.settings.labeler_config,
                             boot=self.settings.boot_config)  # fmt: skip
-        if not isinstance(lab, BootingLabeler):
+        if not _off_the_loop(lab):
             return False
-        lab.inline_boot = False
-        lab.inline_extend = False
         self._swap(lab)
         self.recovering = True
         self.recoveries += 1
