@@ -661,7 +661,7 @@ def evaluate(
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
     window = None
-    if labeled_start == "model" and "online" in names:
+    if labeled_start == "model":  # (with the online method: checked above)
         window = window_model(
             Capture(stream.positions[:init_frames], stream.marker_names, stream.rate)
         )
@@ -709,7 +709,7 @@ def evaluate(
             "model": None if model is None else str(getattr(loaded, "source", "") or model),
             "leave": leave,
             "leave_seconds": leave_seconds,
-            "labeled_start": "labeler" if window is None else "model",
+            "labeled_start": labeled_start,
         },
         departures=[
             {"subject": s_, "first_frame": a, "back_frame": b} for s_, a, b in stream.departures
