@@ -93,3 +93,15 @@ class SlowLabeler:
             positions=np.full((m, 3), np.nan, dtype=np.float32),
             state=np.full(m, MarkerState.MISSING, dtype=np.uint8),
         )
+
+
+def all_handled(srv, sub, stream: str, total: int):
+    """A predicate for :func:`until`: ``total`` frames of ``stream`` labeled or dropped by the
+    server, and every labeled one received by the subscriber ``sub``."""
+
+    def done() -> bool:
+        m = srv.metrics
+        out = m.value("mocap_frames_out_total", stream=stream)
+        return out + m.drops() >= total and sub.stats.frames >= out
+
+    return done

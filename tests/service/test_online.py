@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service.helpers import run, until
+from service.helpers import all_handled, run, until
 
 from labeler_service.capture import Capture, read_capture
 from labeler_service.labeling.templates import save_model
@@ -94,14 +94,11 @@ def _through_server(transport, broker, thread, model, frames: StreamFrames, init
                 assert stats.failed == 0
                 out_total = frames.n_frames - (0 if model is not None else init)
 
-                def done() -> bool:
-                    m = srv.metrics
-                    handled = m.value("mocap_frames_out_total", stream="vol") + m.drops()
-                    return handled >= out_total and sub.stats.frames >= m.value(
-                        "mocap_frames_out_total", stream="vol"
-                    )
-
-                await until(done, "every frame labeled and received", timeout=120.0)
+                await until(
+                    all_handled(srv, sub, "vol", out_total),
+                    "every frame labeled and received",
+                    timeout=120.0,
+                )
                 got = sub.drain()
                 recorder = Recorder()
                 for r in got:

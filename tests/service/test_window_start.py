@@ -9,7 +9,7 @@ scoring as :mod:`test_online`, over UDP.
 from __future__ import annotations
 
 import pytest
-from service.helpers import run, until
+from service.helpers import all_handled, run, until
 from service.test_online import INIT, _score
 
 from labeler_service.capture import Capture
@@ -51,14 +51,11 @@ def test_a_stream_starts_from_its_window_model(scene):
                 assert stats.failed == 0
                 out_total = frames.n_frames - INIT
 
-                def done() -> bool:
-                    m = srv.metrics
-                    handled = m.value("mocap_frames_out_total", stream="vol") + m.drops()
-                    return handled >= out_total and sub.stats.frames >= m.value(
-                        "mocap_frames_out_total", stream="vol"
-                    )
-
-                await until(done, "every frame labeled and received", timeout=120.0)
+                await until(
+                    all_handled(srv, sub, "vol", out_total),
+                    "every frame labeled and received",
+                    timeout=120.0,
+                )
                 lab = srv.streams["vol"].labeler
                 return sub.drain(), sub.models["vol"], srv.metrics, lab
 
