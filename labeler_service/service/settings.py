@@ -149,12 +149,14 @@ class StreamSettings(_Section):
     model: Path | None = None
     #: Capture rate in Hz. None: estimated from the init frames' times (model: its rate).
     rate: float | None = Field(None, gt=0)
-    #: How a start from labeled init frames runs (no ``model``): ``labeler`` (default) trains
-    #: the online labeler in place; ``model`` trains subject templates on the init window (as
-    #: ``train structure`` does) and runs the booting labeler from them, fed the window's
-    #: labels, which re-finds markers the labeler loses at low rates (``evaluate
-    #: --labeled-start model``; docs/service.md "The labeled start through a window model").
-    labeled_start: Literal["labeler", "model"] = "labeler"
+    #: How a start from labeled init frames runs (no ``model``): ``labeler`` trains the online
+    #: labeler in place; ``model`` trains subject templates on the init window (as ``train
+    #: structure`` does) and runs the booting labeler from them, fed the window's labels,
+    #: which re-finds markers the labeler loses at low rates (``evaluate --labeled-start
+    #: model``; docs/service.md "The labeled start through a window model"); ``auto``
+    #: (default): ``model`` where it applies (the online labeler, 3 or more init frames,
+    #: subject:marker labels), else ``labeler`` (logged).
+    labeled_start: Literal["auto", "labeler", "model"] = "auto"
 
     @field_validator("name")
     @classmethod

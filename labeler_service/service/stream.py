@@ -74,7 +74,12 @@ from labeler_service.errors import InitBufferFullError, LabelerError, LimitExcee
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.labeler import Labeler
-from labeler_service.labeling.registry import LabelerFactory, make_labeler, make_window_labeler
+from labeler_service.labeling.registry import (
+    LabelerFactory,
+    make_labeler,
+    make_window_labeler,
+    resolve_labeled_start,
+)
 from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
@@ -262,6 +267,9 @@ class StreamState:
         #: who took the stream's slot (UDP: the sender address; else the transport's name)
         self.source: object = None
         self.training = False  # a training job for this stream is running (server)
+        #: the labeled start the last labeler from init frames runs (``labeler``/``model``;
+        #: ``auto`` resolved, :func:`resolve_labeled_start`); None before one is built
+        self.labeled_start: str | None = None
         # health
         self.status = "online"
         #: the stream has labeled: a subject of its booting labeler was booted, or a labeler
@@ -359,9 +367,7 @@ class StreamState:
         subjects = subject_slices(self.names)
         self.bodies = rigid_bodies(labeler, self.names)
         self.model_payload = self._encode_model()
-        window = (
-            isinstance(labeler, BootingLabeler) and self.stream_settings.labeled_start == "model"
-        )
+        window = isinstance(labeler, BootingLabeler) and self.labeled_start == "model"
         log.info(
             "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz%s)",
             self.name,
@@ -425,7 +431,16 @@ class StreamState:
             )
         rate = self._estimate_rate(init.frames)
         labeler: FrameLabeler
-        if self.stream_settings.labeled_start == "model":
+        start, why = resolve_labeled_start(
+            self.stream_settings.labeled_start,
+            online=self.settings.labeler == "online",
+            init_frames=len(init.frames),
+            subject_names=all(split_label(n)[0] is not None for n in names),
+        )
+        if why is not None:
+            log.info("stream %s: labeled start: the labeler trained in place (%s)", self.name, why)
+        self.labeled_start = start
+        if start == "model":
             labeler = self._window_labeler(init, names, rate)
             names = tuple(labeler.marker_names)
         else:
