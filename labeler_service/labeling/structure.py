@@ -89,11 +89,11 @@ def chirality_quads(
     quads: list[tuple[int, int, int, int]] = []
     for a in range(m):
         nb = np.flatnonzero(steady[a, a + 1 :]) + a + 1
-        for bi, b in enumerate(nb):
+        for bi, b in enumerate(nb.tolist()):
             nc = nb[bi + 1 :][steady[b, nb[bi + 1 :]]]
-            for ci, c in enumerate(nc):
+            for ci, c in enumerate(nc.tolist()):
                 nd = nc[ci + 1 :][steady[c, nc[ci + 1 :]]]
-                quads.extend((a, int(b), int(c), int(d)) for d in nd)
+                quads.extend([(a, b, c, d) for d in nd.tolist()])
                 if len(quads) >= CHIRALITY_POOL:
                     break
             if len(quads) >= CHIRALITY_POOL:
@@ -115,16 +115,17 @@ def chirality_quads(
     agree = np.maximum(pos_frac, 1.0 - pos_frac)
     ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (thick >= CHIRALITY_MIN_MM)
     out: list[list[int]] = []
-    use = np.zeros(m, dtype=np.int64)
-    first = np.array([tuple(int(x) for x in row) in hinge for row in q], dtype=bool)
+    first = np.zeros(len(q), dtype=bool)
+    first[: len(hinge)] = True  # (sorted(hinge) leads ``quads``)
     ok_k = np.flatnonzero(ok)
-    order = np.lexsort((-np.nan_to_num(thick[ok_k]), ~first[ok_k]))  # hinge ones first
-    for k in ok_k[order]:
-        if np.any(use[q[k]] >= CHIRALITY_PER_MARKER):
+    order = ok_k[np.lexsort((-np.nan_to_num(thick[ok_k]), ~first[ok_k]))]  # hinge ones first
+    use = [0] * m
+    for (i0, i1, i2, i3), s in zip(q[order].tolist(), sign[order].tolist(), strict=True):
+        if max(use[i0], use[i1], use[i2], use[i3]) >= CHIRALITY_PER_MARKER:
             continue
-        i0, i1, i2, i3 = (int(x) for x in q[k])
-        out.append([i0, i1, i2, i3] if sign[k] > 0 else [i0, i1, i3, i2])
-        use[q[k]] += 1
+        out.append([i0, i1, i2, i3] if s > 0 else [i0, i1, i3, i2])
+        for i in (i0, i1, i2, i3):
+            use[i] += 1
         if len(out) >= CHIRALITY_MAX:
             break
     return out
@@ -139,9 +140,11 @@ def _spread_frames(pos: np.ndarray) -> np.ndarray:
 def _signed_volumes(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``det(p[b] - p[a], p[c] - p[a], p[d] - p[a])`` per frame of ``p (F, m, 3)`` and quadruple
     ``[a, b, c, d]`` of ``q (Q, 4)``: ``(F, Q)``, NaN where a marker is unseen."""
-    e = p[:, q[:, 1:]] - p[:, q[:, :1]]  # (F, Q, 3, 3)
-    with np.errstate(all="ignore"):  # NaN or degenerate frames
-        return np.linalg.det(e.astype(np.float64))
+    a = p[:, q[:, 0]]
+    # rows b - a, c - a, d - a (differences in p's dtype, as a (F, Q, 3, 3) stack would take
+    # them); the triple product ``(b - a) . ((c - a) x (d - a))``, NaN where a marker is unseen
+    u, v, w = ((p[:, q[:, k]] - a).astype(np.float64) for k in (1, 2, 3))
+    return np.einsum("fqi,fqi->fq", u, np.cross(v, w))
 
 
 def _thickness(det: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
