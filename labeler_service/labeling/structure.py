@@ -26,6 +26,7 @@ import numpy as np
 
 from labeler_service.capture.model import Capture, split_label
 from labeler_service.errors import LabelerError, ModelError
+from labeler_service.labeling.kernels.chirality import volume_stats
 from labeler_service.labeling.templates import LabelerModel, reversed_in_shape
 from labeler_service.labeling.training import motion_noise, train_subject
 
@@ -36,6 +37,7 @@ WINDOW_MIN_FRAMES = 3
 #: chirality quadruples (see :func:`chirality_quads`)
 CHIRALITY_A_MM = 20.0  # every pair of a quadruple this steady (a segment, or two beside a joint)
 CHIRALITY_MIN_MM = 20.0  # thick: cube root of |det| above this in 90 % of the frames
+THICK_QUANTILE = 0.1  # ... the 10th percentile of the cube root over the frames seen
 CHIRALITY_AGREE = 0.98  # one sign in this fraction of the frames
 CHIRALITY_PER_MARKER = 3  # a marker is in at most this many quadruples
 CHIRALITY_MAX = 64  # quadruples per subject
@@ -110,7 +112,7 @@ def chirality_quads(
     if not quads:
         return []
     q = np.asarray(quads, dtype=np.int64)
-    n, pos_frac, thick = _thickness(_signed_volumes(_spread_frames(pos), q))
+    n, pos_frac, thick = volume_stats(_spread_frames(pos), q, THICK_QUANTILE)
     sign = np.where(pos_frac >= 0.5, 1.0, -1.0)
     agree = np.maximum(pos_frac, 1.0 - pos_frac)
     ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (thick >= CHIRALITY_MIN_MM)
@@ -145,22 +147,6 @@ def _signed_volumes(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     # them); the triple product ``(b - a) . ((c - a) x (d - a))``, NaN where a marker is unseen
     u, v, w = ((p[:, q[:, k]] - a).astype(np.float64) for k in (1, 2, 3))
     return np.einsum("fqi,fqi->fq", u, np.cross(v, w))
-
-
-def _thickness(det: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per column of ``det (F, Q)``: frames seen, fraction of them positive, and the 10th
-    percentile of the thickness (cube root of ``|det|``) over them, 0 where none (numpy's
-    linear interpolation; nanpercentile loops over the columns and cost ~1 s a subject)."""
-    seen = np.isfinite(det)
-    n = seen.sum(axis=0)
-    pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
-    size = np.sort(np.cbrt(np.abs(np.where(seen, det, np.nan))), axis=0)  # NaN last
-    at = 0.1 * np.maximum(n - 1, 0)
-    lo = np.floor(at).astype(np.int64)
-    hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
-    cols = np.arange(size.shape[1])
-    thick = size[lo, cols] + (at - lo) * (size[hi, cols] - size[lo, cols])
-    return n, pos_frac, np.nan_to_num(thick)
 
 
 def twin_pairs(
@@ -232,7 +218,7 @@ def twin_witnesses(
         if ab.size == 0:
             continue
         q = np.concatenate([np.full((ab.shape[0], 1), i), np.full((ab.shape[0], 1), j), ab], 1)
-        n, pos_frac, thick = _thickness(_signed_volumes(p, q))
+        n, pos_frac, thick = volume_stats(p, q, THICK_QUANTILE)
         agree = np.maximum(pos_frac, 1.0 - pos_frac)
         ok = (n >= TWIN_MIN_FRAMES) & (agree >= TWIN_AGREE) & (thick >= CHIRALITY_MIN_MM)
         if not ok.any():
