@@ -237,4 +237,6 @@ def make_window_labeler(
     base = config or LabelerConfig()
     cfg = LabelerConfig(**{**base.model_dump(), "restructure_prior_s": window_frames / rate})
     boot = BootConfig(vanish_fraction=0.0, vanish_relative=0.0, fill_agreement=False)
-    return make_labeler("online", model=model, rate=rate, config=cfg, boot=boot)
+    labeler = make_labeler("online", model=model, rate=rate, config=cfg, boot=boot)
+    labeler.window_frames = window_frames  # type: ignore[attr-defined]
+    return labeler
