@@ -266,7 +266,9 @@ class StructureTrainer:
     ``tolerance_mm`` (largest ``A + distance_weight D`` inside a body), ``distance_weight``,
     ``min_size``/``max_size`` (markers per body, 1-8), ``min_pair_frames`` (samples needed for a
     pair's statistics) and ``all_seeds`` (every marker seeds a body: there is time for the
-    richer, overlapping body set).
+    richer, overlapping body set); ``glimpsed``: a marker seen in fewer than
+    ``min_pair_frames`` frames joins a body of its nearest markers
+    (:func:`~labeler_service.labeling.training.glimpse_bodies`; the window model's trainer).
     """
 
     def __init__(
@@ -277,6 +279,7 @@ class StructureTrainer:
         max_size: int = 6,
         min_pair_frames: int = 3,
         all_seeds: bool = True,
+        glimpsed: bool = False,
     ) -> None:
         self.tolerance_mm = tolerance_mm
         self.distance_weight = distance_weight
@@ -284,6 +287,7 @@ class StructureTrainer:
         self.max_size = max_size
         self.min_pair_frames = min_pair_frames
         self.all_seeds = all_seeds
+        self.glimpsed = glimpsed
 
     def fit(self, captures: Sequence[Capture]) -> StructureTrainer:
         """Learns ``model_`` (one template per subject found in the captures)."""
@@ -326,6 +330,7 @@ class StructureTrainer:
                 max_size=self.max_size,
                 min_pair_frames=self.min_pair_frames,
                 all_seeds=self.all_seeds,
+                glimpsed=self.glimpsed,
             )
             # the pooled frames' motion noise is replaced: noise depends on the rate, so it is
             # learned per capture and averaged (positive and finite like each capture's)
@@ -361,7 +366,7 @@ def window_model(window: Capture) -> LabelerModel:
     ``train structure`` runs it. A window of fewer frames than the trainer needs for a pair's
     statistics (``min_pair_frames``, 3) raises :class:`LabelerError`, as the labeler trained in
     place does."""
-    trainer = StructureTrainer()
+    trainer = StructureTrainer(glimpsed=True)
     if window.n_frames < max(WINDOW_MIN_FRAMES, trainer.min_pair_frames):
         raise LabelerError(
             f"the labeled start through a window model needs at least {WINDOW_MIN_FRAMES} "
