@@ -78,7 +78,8 @@ def test_a_stream_starts_from_its_window_model(scene):
 
 
 def test_window_start_settings_are_checked(tmp_path):
-    assert load_settings().streams[0].labeled_start == "auto"
+    # the service trains in place by default (evaluate and label: auto; docs/service.md)
+    assert load_settings().streams[0].labeled_start == "labeler"
     with pytest.raises(ConfigError, match="labeled_start"):
         _settings("window")
     with pytest.raises(ConfigError, match="labeler is 'baseline': set labeler = 'online', or"):
