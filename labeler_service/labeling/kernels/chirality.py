@@ -7,8 +7,9 @@ fraction of them positive and the 10th percentile (numpy's linear interpolation)
 thickness, the cube root of ``|volume|`` (0 where none is seen). The window model of a labeled
 start trains these for every subject in-stream: the numpy version built ``(F, Q, 3)`` stacks
 for up to 20,000 quadruples a subject, ~80 % of a 10-person window's training. Compiled without
-fastmath: the result is the numpy version's, bit for bit (``structure._signed_volumes`` and
-``_thickness``, its twin, which the tests compare it with).
+fastmath: the window models it gives are the numpy version's, byte for byte (checked on 45
+windows when it replaced it); its twin, per frame with ``np.linalg.det``, is
+``tests/reference.py``'s ``volume_stats``.
 """
 
 from __future__ import annotations
