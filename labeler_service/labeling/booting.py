@@ -240,9 +240,12 @@ class BootingLabeler:
         boot: BootConfig | None = None,
         inline_boot: bool = True,
         inline_extend: bool = True,
+        labeled_kept_s: float = LABELED_KEPT_S,
     ) -> None:
         if not (np.isfinite(rate) and rate > 0):
             raise LabelerError(f"invalid frame rate {rate}")
+        if not (np.isfinite(labeled_kept_s) and labeled_kept_s > 0):
+            raise LabelerError(f"labeled_kept_s must be > 0 seconds, got {labeled_kept_s}")
         self.model = model
         self.rate = float(rate)
         self.config = config or LabelerConfig()
@@ -290,10 +293,11 @@ class BootingLabeler:
         self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
         self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
-        #: the labeled frames of the current labeled run (the last ``LABELED_KEPT_S``): the
-        #: rebuild starts the inner labeler from all of them, not only from the window
+        #: the labeled frames of the current labeled run (the last ``labeled_kept_s``,
+        #: default ``LABELED_KEPT_S``): the rebuild starts the inner labeler from all of them,
+        #: not only from the window
         self._labeled_frames: deque[_Frame] = deque(
-            maxlen=max(w, int(round(LABELED_KEPT_S * self.rate)))
+            maxlen=max(w, int(round(labeled_kept_s * self.rate)))
         )
         self._extent: np.ndarray | None = None
         #: (t, "boot"|"labeled"|"drop"|"withdraw"|"reject", subject), the last HISTORY_KEPT
