@@ -338,6 +338,8 @@ class Booter:
         for s in subjects:
             tpl = self._templates[s]
             assign, _ = _subject_assign(tpl, out)
+            if np.all(assign >= 0):
+                continue  # (every marker placed: the completion has none to add or move)
             if age is None:
                 grown = _complete(tpl, assign, pts, hist, taken, self.config)
             else:  # (may move weakly placed markers: :func:`_complete_weak`)
