@@ -22,6 +22,7 @@ from pathlib import Path
 
 from labeler_service.capture import Capture, write_capture
 from labeler_service.evaluation.scoring import evaluate
+from labeler_service.labeling.registry import LABELED_STARTS
 from labeler_service.scenes.compose import compose_scene
 from labeler_service.scenes.simulate import simulate_scene
 from labeler_service.testing.realdata import real_file
@@ -75,10 +76,10 @@ def main() -> int:
     p.add_argument("--only", nargs="+", default=None, help="scene names to run (a b c)")
     p.add_argument(
         "--labeled-start",
-        choices=("labeler", "model"),
-        default="labeler",
-        help="model: the online labeler's labeled start through the model-based labeler "
-        "(evaluate --labeled-start model)",
+        choices=LABELED_STARTS,
+        default="auto",
+        help="evaluate --labeled-start: auto (default) and model run the online labeler's "
+        "labeled start through the model-based labeler; labeler: the labeler trained in place",
     )
     args = p.parse_args()
     results: dict[str, dict] = {}

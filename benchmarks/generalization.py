@@ -92,6 +92,7 @@ from _common import emit
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import MocapError
 from labeler_service.evaluation.scoring import evaluate
+from labeler_service.labeling.registry import LABELED_STARTS
 from labeler_service.scenes.compose import TakeSpec, compose_scene
 from labeler_service.testing.realdata import real_data_dir
 
@@ -358,12 +359,13 @@ def run_scene(
     seconds: float,
     max_frames: int,
     boot: bool = False,
-    labeled_start: str = "labeler",
+    labeled_start: str = "auto",
 ) -> list[dict]:
     """Every cell of one scene (a take alone gets only its ``alone`` cell); with ``boot`` also
     scored from a model trained on other segments, with no labeled frame (``--start boot``);
-    ``labeled_start="model"``: the labeled start through the model-based labeler (a model
-    trained on the init window; ``evaluate --labeled-start model``)."""
+    ``labeled_start``: ``evaluate --labeled-start`` (``auto``, the default, runs the labeled
+    start through the model-based labeler, a model trained on the init window; ``labeler``:
+    the labeler trained in place)."""
     rate = scene.rate()
     frames = scene.frames(seconds, max_frames)
     full_frames = frames
@@ -380,7 +382,7 @@ def run_scene(
     ]
     chosen = {"alone": {}} if alone else {k: v for k, v in _cells(rate).items() if k in cells}
     out = []
-    start_flag = " --labeled-start model" if labeled_start == "model" else ""
+    start_flag = "" if labeled_start == "auto" else f" --labeled-start {labeled_start}"
     compose_cmd = (
         f"mocap-labeler compose SCENE.c3d {' '.join(scene.take_args())} --radius "
         f"{scene.radius:g} --frames {frames} --seed {scene.seed} --rate {rate:g}"
@@ -664,10 +666,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--labeled-start",
-        choices=("labeler", "model"),
-        default="labeler",
-        help="model: the labeled start through the model-based labeler (a model trained on "
-        "the init window; evaluate --labeled-start model)",
+        choices=LABELED_STARTS,
+        default="auto",
+        help="evaluate --labeled-start: auto (default) and model run the labeled start through "
+        "the model-based labeler (a model trained on the init window); labeler: the labeler "
+        "trained in place",
     )
     args = p.parse_args(argv)
     if real_data_dir() is None:

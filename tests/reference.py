@@ -576,3 +576,26 @@ def track_history(frames, ids):
         hit = sids[pos] == ids
         out[hit, w] = pts[order[pos[hit]]]
     return out
+
+
+# ------------------------------------------------------- chirality volumes (structure training)
+
+
+def volume_stats(p, q, quantile=0.1):
+    """Twin of ``kernels.chirality.volume_stats``: ``np.linalg.det`` of each frame's edge
+    vectors (NaN where a marker is unseen: LAPACK returns 0 for a singular matrix holding a
+    NaN row), then per column the frames seen, the fraction positive and the ``quantile`` of
+    the cube root of ``|det|`` (numpy's linear interpolation; 0 where none)."""
+    det = np.full((p.shape[0], q.shape[0]), np.nan)
+    for f, k in itertools.product(range(p.shape[0]), range(q.shape[0])):
+        e = (p[f, q[k, 1:]] - p[f, q[k, 0]]).astype(np.float64)
+        if np.isfinite(e).all():
+            det[f, k] = np.linalg.det(e)
+    seen = np.isfinite(det)
+    n = seen.sum(axis=0)
+    pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
+    thick = np.array(
+        [np.percentile(np.cbrt(np.abs(col[ok])), 100 * quantile) if ok.any() else 0.0
+         for col, ok in zip(det.T, seen.T, strict=True)]
+    )  # fmt: skip
+    return n, pos_frac, thick

@@ -65,10 +65,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--labeled-start",
         choices=LABELED_STARTS,
-        default="labeler",
+        default="auto",
         help="with --init-frames N and no --model: 'model' trains subject templates on the "
         "init window and runs the online method through the model-based (booting) labeler "
-        "from them (its extension re-finds lost markers; docs/algorithm.md)",
+        "from them (its extension re-finds lost markers; docs/algorithm.md); 'labeler' trains "
+        "the labeler in place; 'auto' (default): 'model' where it applies (online method, "
+        "--init-frames >= 3), else 'labeler'",
     )
     p.add_argument("--json", action="store_true", help="print the report as JSON (last line)")
     p.add_argument("--plot", type=Path, default=None, help="PNG: accuracy vs down-sampling")

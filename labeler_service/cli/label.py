@@ -7,6 +7,10 @@ alike) are given anonymously, in a shuffled order.
 
 - Without ``--model`` the first ``--init-frames`` frames carry the capture's own labels and are
   the training window (Yu, Li and Deng 2007); the marker set is the capture's labeled columns.
+  By default (``--labeled-start auto``, as ``evaluate``) subject templates are trained on that
+  window and the capture is labeled through the model-based labeler
+  (:func:`~labeler_service.labeling.registry.make_window_labeler`); ``--labeled-start labeler``
+  trains the labeler in place instead.
 - With ``--model`` the marker set is the model's and, by default (``--init-frames 0``), IN needs
   no labels at all: the labeler boots the model's subjects from the anonymous points
   (:class:`~labeler_service.labeling.booting.BootingLabeler`, ``make_labeler(..., boot=True)``),
@@ -29,6 +33,8 @@ import json
 import sys
 import threading
 from collections.abc import Iterator
+
+from labeler_service.labeling.registry import LABELED_STARTS
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
 NOTICE_AFTER_S = 3.0
@@ -62,6 +68,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="labeled frames at the start (default 50; with --model default 0: boot, no labels)",
     )
+    p.add_argument(
+        "--labeled-start",
+        choices=LABELED_STARTS,
+        default="auto",
+        help="without --model: 'model' trains subject templates on the init frames and labels "
+        "through the model-based labeler; 'labeler' trains the labeler in place; 'auto' "
+        "(default): 'model' with 3 or more init frames (as evaluate)",
+    )
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of IN")
     p.add_argument("--seed", type=int, default=0, help="seed of the per-frame shuffle")
     p.add_argument("--drop-recovered", action="store_true", help="write only observed samples")
@@ -75,7 +89,12 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import Capture, check_writable, read_segment, write_capture
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
-    from labeler_service.labeling.registry import make_labeler
+    from labeler_service.labeling.registry import (
+        make_labeler,
+        make_window_labeler,
+        resolve_labeled_start,
+    )
+    from labeler_service.labeling.structure import WINDOW_MIN_FRAMES, window_model
     from labeler_service.labeling.templates import load_model
 
     check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
@@ -91,13 +110,26 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
-    lab = make_labeler(
-        "online",
-        marker_names=names,
-        rate=cap.rate,
-        model=model,
-        boot=model is not None and init == 0,
+    start, _ = resolve_labeled_start(
+        args.labeled_start, online=True, init_frames=init, model_given=model is not None
     )
+    if start == "model" and (model is not None or init < WINDOW_MIN_FRAMES):
+        raise LabelerError(
+            "--labeled-start model trains its model on the init frames: it needs "
+            f"--init-frames >= {WINDOW_MIN_FRAMES} and no --model"
+        )
+    if start == "model":
+        cols = np.flatnonzero(~cap.ghost_mask)
+        window = Capture(cap.positions[:init][:, cols], names, cap.rate, source=args.input)
+        lab = make_window_labeler(window_model(window), rate=cap.rate, window_frames=init)
+    else:
+        lab = make_labeler(
+            "online",
+            marker_names=names,
+            rate=cap.rate,
+            model=model,
+            boot=model is not None and init == 0,
+        )
     index = {n: i for i, n in enumerate(lab.marker_names)}
     col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)
     if init > 0 and not (col_label >= 0).any():
@@ -172,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         "recovered_per_frame": round(recovered / frames, 3),
         "agreement_with_input_labels": round(agree / compared, 6) if compared else None,
         "subjects": _subjects(lab.marker_names, seen[init:], cap.rate),
+        "labeled_start": start if init > 0 and model is None else None,
     }
     if args.json:
         print(json.dumps(summary))

@@ -37,7 +37,11 @@ import numpy as np
 from labeler_service.capture import Capture, split_label
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
-from labeler_service.labeling.registry import LABELED_STARTS, make_labeler, make_window_labeler
+from labeler_service.labeling.registry import (
+    make_labeler,
+    make_window_labeler,
+    resolve_labeled_start,
+)
 from labeler_service.labeling.structure import WINDOW_MIN_FRAMES, window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
@@ -599,7 +603,7 @@ def evaluate(
     model: LabelerModel | str | os.PathLike[str] | None = None,
     leave: int = 0,
     leave_seconds: float = 1.0,
-    labeled_start: str = "labeler",
+    labeled_start: str = "auto",
 ) -> tuple[dict[str, Any], dict[str, MethodScore]]:
     """Scores the chosen methods on one corrupted version of ``capture``.
 
@@ -612,18 +616,17 @@ def evaluate(
     (``make_labeler(..., boot=True)``; the closest-point baseline cannot boot and is skipped).
     ``leave``/``leave_seconds``: subjects that vanish and return displaced (``CorruptionSpec``).
 
-    ``labeled_start="model"`` (without ``model``, ``init_frames >= 1``): the labeled start of the
+    ``labeled_start="model"`` (without ``model``, ``init_frames >= 3``): the labeled start of the
     online method through the model-based labeler. Subject templates are trained on the init
     window (its true positions, :func:`~labeler_service.labeling.structure.window_model`) and
     the online method runs :func:`make_window_labeler` from them, fed the window's labels; the
-    closest-point baseline is unchanged (``"labeler"``, the default: the labeler trained in
-    place). The report's ``settings.labeled_start`` says which start ran (``labeler`` or
-    ``model``).
+    closest-point baseline is unchanged. ``"labeler"``: the labeler trained in place.
+    ``"auto"`` (the default): ``model`` wherever it applies, else ``labeler``
+    (:func:`~labeler_service.labeling.registry.resolve_labeled_start`; the report's notes say
+    why). The report's ``settings.labeled_start`` says which start ran (``labeler`` or
+    ``model``), ``settings.labeled_start_asked`` what was asked.
     """
-    if labeled_start not in LABELED_STARTS:
-        raise MocapError(
-            f"unknown labeled start {labeled_start!r} (choose from {', '.join(LABELED_STARTS)})"
-        )
+    asked = labeled_start
     if labeled_start == "model" and (model is not None or init_frames < WINDOW_MIN_FRAMES):
         # before the init-frames check: its advice (0 with a model) does not apply here
         raise MocapError(
@@ -637,6 +640,14 @@ def evaluate(
     if init_frames == 0 and not methods:
         methods = ["online"]
     names, notes = resolve_methods(methods)
+    labeled_start, why = resolve_labeled_start(
+        asked,
+        online="online" in names,
+        init_frames=init_frames,
+        model_given=model is not None,
+    )
+    if why is not None:
+        notes = [*notes, f"labeled start: the labeler trained in place ({why})"]
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
     if labeled_start == "model" and "online" not in names:
@@ -710,6 +721,7 @@ def evaluate(
             "leave": leave,
             "leave_seconds": leave_seconds,
             "labeled_start": labeled_start,
+            "labeled_start_asked": asked,
         },
         departures=[
             {"subject": s_, "first_frame": a, "back_frame": b} for s_, a, b in stream.departures

@@ -254,6 +254,9 @@ class BootingLabeler:
         self.inline_boot = bool(inline_boot)
         #: False: :meth:`process` never extends; the extension rides on the boot calls
         self.inline_extend = bool(inline_extend)
+        #: the labeled start through a window model (``registry.make_window_labeler``): the
+        #: labeled frames its model was trained on; None for a boot from a model file
+        self.window_frames: int | None = None
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)

@@ -55,10 +55,48 @@ if TYPE_CHECKING:
 #: Every kind :func:`make_labeler` builds (aliases map onto these).
 KINDS: tuple[str, ...] = ("online", "baseline")
 ALIASES: dict[str, str] = {"closest-point": "baseline"}
-#: How a labeled start runs: ``labeler`` (the labeler trained in place on the labeled frames)
-#: or ``model`` (:func:`make_window_labeler`); ``evaluate --labeled-start``, the service's
-#: stream setting ``labeled_start``.
-LABELED_STARTS: tuple[str, ...] = ("labeler", "model")
+#: How a labeled start runs: ``labeler`` (the labeler trained in place on the labeled frames),
+#: ``model`` (:func:`make_window_labeler`), or ``auto`` (the default: ``model`` wherever it
+#: applies, see :func:`resolve_labeled_start`); ``evaluate``/``label --labeled-start``, the
+#: service's stream setting ``labeled_start``.
+LABELED_STARTS: tuple[str, ...] = ("auto", "labeler", "model")
+
+
+def resolve_labeled_start(
+    requested: str,
+    *,
+    online: bool,
+    init_frames: int,
+    model_given: bool = False,
+    subject_names: bool = True,
+) -> tuple[str, str | None]:
+    """The start a labeled start runs: ``(start, why)``, ``start`` ``labeler`` or ``model``.
+
+    ``labeler`` and ``model`` are returned as asked (the caller checks that ``model`` applies
+    and says why not). ``auto`` is ``model`` when it applies: the online labeler (``online``),
+    at least :data:`~labeler_service.labeling.structure.WINDOW_MIN_FRAMES` labeled frames to
+    train the window model on, no model file (a model file is its own start) and labels that
+    name their subjects (``subject_names``; the window model names its subjects). Else
+    ``labeler``, with ``why`` saying what kept the model start out (``None`` when nothing did
+    or nothing was asked)."""
+    from labeler_service.labeling.structure import WINDOW_MIN_FRAMES
+
+    if requested not in LABELED_STARTS:
+        raise LabelerError(
+            f"unknown labeled start {requested!r} (choose from {', '.join(LABELED_STARTS)})"
+        )
+    if requested != "auto" or model_given:
+        return ("labeler" if requested == "auto" else requested), None
+    why = None
+    if not online:
+        why = "the labeled start through a window model runs the online labeler only"
+    elif init_frames < WINDOW_MIN_FRAMES:
+        why = (
+            f"the window model needs {WINDOW_MIN_FRAMES} or more labeled frames, got {init_frames}"
+        )
+    elif not subject_names:
+        why = "the window model names its subjects: the labels give bare marker names"
+    return ("labeler", why) if why else ("model", None)
 
 
 class LabelerFactory(Protocol):
@@ -206,4 +244,6 @@ def make_window_labeler(
     from labeler_service.labeling.booting import BootingLabeler
 
     # the whole window starts the inner labeler (not its last ``LABELED_KEPT_S``)
-    return BootingLabeler(model, rate, cfg, boot, labeled_kept_s=window_frames / rate)
+    labeler = BootingLabeler(model, rate, cfg, boot, labeled_kept_s=window_frames / rate)
+    labeler.window_frames = window_frames  # type: ignore[attr-defined]
+    return labeler

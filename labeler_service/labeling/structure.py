@@ -26,6 +26,7 @@ import numpy as np
 
 from labeler_service.capture.model import Capture, split_label
 from labeler_service.errors import LabelerError, ModelError
+from labeler_service.labeling.kernels.chirality import volume_stats
 from labeler_service.labeling.templates import LabelerModel, reversed_in_shape
 from labeler_service.labeling.training import motion_noise, train_subject
 
@@ -36,6 +37,7 @@ WINDOW_MIN_FRAMES = 3
 #: chirality quadruples (see :func:`chirality_quads`)
 CHIRALITY_A_MM = 20.0  # every pair of a quadruple this steady (a segment, or two beside a joint)
 CHIRALITY_MIN_MM = 20.0  # thick: cube root of |det| above this in 90 % of the frames
+THICK_QUANTILE = 0.1  # ... the 10th percentile of the cube root over the frames seen
 CHIRALITY_AGREE = 0.98  # one sign in this fraction of the frames
 CHIRALITY_PER_MARKER = 3  # a marker is in at most this many quadruples
 CHIRALITY_MAX = 64  # quadruples per subject
@@ -89,11 +91,11 @@ def chirality_quads(
     quads: list[tuple[int, int, int, int]] = []
     for a in range(m):
         nb = np.flatnonzero(steady[a, a + 1 :]) + a + 1
-        for bi, b in enumerate(nb):
+        for bi, b in enumerate(nb.tolist()):
             nc = nb[bi + 1 :][steady[b, nb[bi + 1 :]]]
-            for ci, c in enumerate(nc):
+            for ci, c in enumerate(nc.tolist()):
                 nd = nc[ci + 1 :][steady[c, nc[ci + 1 :]]]
-                quads.extend((a, int(b), int(c), int(d)) for d in nd)
+                quads.extend([(a, b, c, d) for d in nd.tolist()])
                 if len(quads) >= CHIRALITY_POOL:
                     break
             if len(quads) >= CHIRALITY_POOL:
@@ -110,21 +112,22 @@ def chirality_quads(
     if not quads:
         return []
     q = np.asarray(quads, dtype=np.int64)
-    n, pos_frac, thick = _thickness(_signed_volumes(_spread_frames(pos), q))
+    n, pos_frac, thick = volume_stats(_spread_frames(pos), q, THICK_QUANTILE)
     sign = np.where(pos_frac >= 0.5, 1.0, -1.0)
     agree = np.maximum(pos_frac, 1.0 - pos_frac)
     ok = (n >= 10) & (agree >= CHIRALITY_AGREE) & (thick >= CHIRALITY_MIN_MM)
     out: list[list[int]] = []
-    use = np.zeros(m, dtype=np.int64)
-    first = np.array([tuple(int(x) for x in row) in hinge for row in q], dtype=bool)
+    first = np.zeros(len(q), dtype=bool)
+    first[: len(hinge)] = True  # (sorted(hinge) leads ``quads``)
     ok_k = np.flatnonzero(ok)
-    order = np.lexsort((-np.nan_to_num(thick[ok_k]), ~first[ok_k]))  # hinge ones first
-    for k in ok_k[order]:
-        if np.any(use[q[k]] >= CHIRALITY_PER_MARKER):
+    order = ok_k[np.lexsort((-np.nan_to_num(thick[ok_k]), ~first[ok_k]))]  # hinge ones first
+    use = [0] * m
+    for (i0, i1, i2, i3), s in zip(q[order].tolist(), sign[order].tolist(), strict=True):
+        if max(use[i0], use[i1], use[i2], use[i3]) >= CHIRALITY_PER_MARKER:
             continue
-        i0, i1, i2, i3 = (int(x) for x in q[k])
-        out.append([i0, i1, i2, i3] if sign[k] > 0 else [i0, i1, i3, i2])
-        use[q[k]] += 1
+        out.append([i0, i1, i2, i3] if s > 0 else [i0, i1, i3, i2])
+        for i in (i0, i1, i2, i3):
+            use[i] += 1
         if len(out) >= CHIRALITY_MAX:
             break
     return out
@@ -139,25 +142,11 @@ def _spread_frames(pos: np.ndarray) -> np.ndarray:
 def _signed_volumes(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``det(p[b] - p[a], p[c] - p[a], p[d] - p[a])`` per frame of ``p (F, m, 3)`` and quadruple
     ``[a, b, c, d]`` of ``q (Q, 4)``: ``(F, Q)``, NaN where a marker is unseen."""
-    e = p[:, q[:, 1:]] - p[:, q[:, :1]]  # (F, Q, 3, 3)
-    with np.errstate(all="ignore"):  # NaN or degenerate frames
-        return np.linalg.det(e.astype(np.float64))
-
-
-def _thickness(det: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per column of ``det (F, Q)``: frames seen, fraction of them positive, and the 10th
-    percentile of the thickness (cube root of ``|det|``) over them, 0 where none (numpy's
-    linear interpolation; nanpercentile loops over the columns and cost ~1 s a subject)."""
-    seen = np.isfinite(det)
-    n = seen.sum(axis=0)
-    pos_frac = np.where(seen, det > 0, False).sum(axis=0) / np.maximum(n, 1)
-    size = np.sort(np.cbrt(np.abs(np.where(seen, det, np.nan))), axis=0)  # NaN last
-    at = 0.1 * np.maximum(n - 1, 0)
-    lo = np.floor(at).astype(np.int64)
-    hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
-    cols = np.arange(size.shape[1])
-    thick = size[lo, cols] + (at - lo) * (size[hi, cols] - size[lo, cols])
-    return n, pos_frac, np.nan_to_num(thick)
+    a = p[:, q[:, 0]]
+    # rows b - a, c - a, d - a (differences in p's dtype, as a (F, Q, 3, 3) stack would take
+    # them); the triple product ``(b - a) . ((c - a) x (d - a))``, NaN where a marker is unseen
+    u, v, w = ((p[:, q[:, k]] - a).astype(np.float64) for k in (1, 2, 3))
+    return np.einsum("fqi,fqi->fq", u, np.cross(v, w))
 
 
 def twin_pairs(
@@ -229,7 +218,7 @@ def twin_witnesses(
         if ab.size == 0:
             continue
         q = np.concatenate([np.full((ab.shape[0], 1), i), np.full((ab.shape[0], 1), j), ab], 1)
-        n, pos_frac, thick = _thickness(_signed_volumes(p, q))
+        n, pos_frac, thick = volume_stats(p, q, THICK_QUANTILE)
         agree = np.maximum(pos_frac, 1.0 - pos_frac)
         ok = (n >= TWIN_MIN_FRAMES) & (agree >= TWIN_AGREE) & (thick >= CHIRALITY_MIN_MM)
         if not ok.any():
@@ -277,7 +266,9 @@ class StructureTrainer:
     ``tolerance_mm`` (largest ``A + distance_weight D`` inside a body), ``distance_weight``,
     ``min_size``/``max_size`` (markers per body, 1-8), ``min_pair_frames`` (samples needed for a
     pair's statistics) and ``all_seeds`` (every marker seeds a body: there is time for the
-    richer, overlapping body set).
+    richer, overlapping body set); ``glimpsed``: a marker seen in fewer than
+    ``min_pair_frames`` frames joins a body of its nearest markers
+    (:func:`~labeler_service.labeling.training.glimpse_bodies`; the window model's trainer).
     """
 
     def __init__(
@@ -288,6 +279,7 @@ class StructureTrainer:
         max_size: int = 6,
         min_pair_frames: int = 3,
         all_seeds: bool = True,
+        glimpsed: bool = False,
     ) -> None:
         self.tolerance_mm = tolerance_mm
         self.distance_weight = distance_weight
@@ -295,6 +287,7 @@ class StructureTrainer:
         self.max_size = max_size
         self.min_pair_frames = min_pair_frames
         self.all_seeds = all_seeds
+        self.glimpsed = glimpsed
 
     def fit(self, captures: Sequence[Capture]) -> StructureTrainer:
         """Learns ``model_`` (one template per subject found in the captures)."""
@@ -337,6 +330,7 @@ class StructureTrainer:
                 max_size=self.max_size,
                 min_pair_frames=self.min_pair_frames,
                 all_seeds=self.all_seeds,
+                glimpsed=self.glimpsed,
             )
             # the pooled frames' motion noise is replaced: noise depends on the rate, so it is
             # learned per capture and averaged (positive and finite like each capture's)
@@ -372,7 +366,7 @@ def window_model(window: Capture) -> LabelerModel:
     ``train structure`` runs it. A window of fewer frames than the trainer needs for a pair's
     statistics (``min_pair_frames``, 3) raises :class:`LabelerError`, as the labeler trained in
     place does."""
-    trainer = StructureTrainer()
+    trainer = StructureTrainer(glimpsed=True)
     if window.n_frames < max(WINDOW_MIN_FRAMES, trainer.min_pair_frames):
         raise LabelerError(
             f"the labeled start through a window model needs at least {WINDOW_MIN_FRAMES} "

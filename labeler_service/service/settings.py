@@ -149,12 +149,16 @@ class StreamSettings(_Section):
     model: Path | None = None
     #: Capture rate in Hz. None: estimated from the init frames' times (model: its rate).
     rate: float | None = Field(None, gt=0)
-    #: How a start from labeled init frames runs (no ``model``): ``labeler`` (default) trains
-    #: the online labeler in place; ``model`` trains subject templates on the init window (as
-    #: ``train structure`` does) and runs the booting labeler from them, fed the window's
-    #: labels, which re-finds markers the labeler loses at low rates (``evaluate
-    #: --labeled-start model``; docs/service.md "The labeled start through a window model").
-    labeled_start: Literal["labeler", "model"] = "labeler"
+    #: How a start from labeled init frames runs (no ``model``): ``labeler`` trains the online
+    #: labeler in place; ``model`` trains subject templates on the init window (as ``train
+    #: structure`` does) and runs the booting labeler from them, fed the window's labels,
+    #: which re-finds markers the labeler loses at low rates (``evaluate --labeled-start
+    #: model``; docs/service.md "The labeled start through a window model"); ``auto``:
+    #: ``model`` where it applies (the online labeler, 3 or more init frames, subject:marker
+    #: labels), else ``labeler`` (logged). The default is ``labeler``, unlike ``evaluate``'s
+    #: ``auto``: in a stream the window model's training stalls the frames longer, and at 10
+    #: people and 360 Hz the frames dropped meanwhile lost 8 of 10 subjects (docs/service.md).
+    labeled_start: Literal["auto", "labeler", "model"] = "labeler"
 
     @field_validator("name")
     @classmethod

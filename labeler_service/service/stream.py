@@ -74,7 +74,12 @@ from labeler_service.errors import InitBufferFullError, LabelerError, LimitExcee
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.labeler import Labeler
-from labeler_service.labeling.registry import LabelerFactory, make_labeler, make_window_labeler
+from labeler_service.labeling.registry import (
+    LabelerFactory,
+    make_labeler,
+    make_window_labeler,
+    resolve_labeled_start,
+)
 from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
@@ -262,6 +267,10 @@ class StreamState:
         #: who took the stream's slot (UDP: the sender address; else the transport's name)
         self.source: object = None
         self.training = False  # a training job for this stream is running (server)
+        #: the labeled start through a window model (``labeled_start``, :meth:`_labeler_for`):
+        #: the init frames its model was trained on; None for any other start. A recovery
+        #: boots from that model and hands back to such a labeler.
+        self.window_frames: int | None = None
         # health
         self.status = "online"
         #: the stream has labeled: a subject of its booting labeler was booted, or a labeler
@@ -359,9 +368,8 @@ class StreamState:
         subjects = subject_slices(self.names)
         self.bodies = rigid_bodies(labeler, self.names)
         self.model_payload = self._encode_model()
-        window = (
-            isinstance(labeler, BootingLabeler) and self.stream_settings.labeled_start == "model"
-        )
+        self.window_frames = labeler.window_frames if isinstance(labeler, BootingLabeler) else None
+        window = self.window_frames is not None
         log.info(
             "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz%s)",
             self.name,
@@ -425,7 +433,15 @@ class StreamState:
             )
         rate = self._estimate_rate(init.frames)
         labeler: FrameLabeler
-        if self.stream_settings.labeled_start == "model":
+        start, why = resolve_labeled_start(
+            self.stream_settings.labeled_start,
+            online=self.settings.labeler == "online",
+            init_frames=len(init.frames),
+            subject_names=all(split_label(n)[0] is not None for n in names),
+        )
+        if why is not None:
+            log.info("stream %s: labeled start: the labeler trained in place (%s)", self.name, why)
+        if start == "model":
             labeler = self._window_labeler(init, names, rate)
             names = tuple(labeler.marker_names)
         else:
@@ -623,11 +639,16 @@ class StreamState:
     # --------------------------------------------------------------------- recovery
     def recovery_model(self) -> LabelerModel | None:
         """The subject model a recovery boots from: the online labeler's templates (trained
-        from the init frames, or the model file of a stream that does not boot); None for
-        the baseline, a labeler without templates yet, or one that boots already."""
+        from the init frames, the window start's window model, or the model file of a stream
+        that does not boot); None for the baseline, a labeler without templates yet, or one
+        that boots from a model file already."""
         lab = self.labeler
-        if lab is None or self.settings.labeler != "online" or self.booting is not None:
+        if lab is None or self.settings.labeler != "online":
             return None
+        if self.booting is not None:
+            # the window start's labeler boots already, but only the subjects it drops: a
+            # recovery boots every subject from its window model (not while recovering)
+            return lab.model if self.window_frames is not None and not self.recovering else None
         return lab.model
 
     def _waits_for_labels(self) -> bool:
@@ -686,10 +707,16 @@ class StreamState:
         self._handback.append((f.points, t, out.point_labels))
         if len(self._handback) < HANDBACK_FRAMES:
             return
-        plain = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
-                              config=self.settings.labeler_config)  # fmt: skip
+        plain: FrameLabeler
+        if self.window_frames is not None:  # back to the window start's labeler
+            plain = make_window_labeler(lab.model, rate=lab.rate, window_frames=self.window_frames,
+                                        config=self.settings.labeler_config)  # fmt: skip
+        else:
+            plain = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
+                                  config=self.settings.labeler_config)  # fmt: skip
         for pts, tt, labels in self._handback:
             plain.process(pts, tt, labels)
+        _off_the_loop(plain)
         self._swap(plain)
         self._labels_seen = True  # it starts from the hand-back frames' labels
         self.handbacks += 1

@@ -179,6 +179,27 @@ class PipelineResult:
     service_returncode: int | None = None
 
 
+#: after the replay: the wait ends when the frames stop coming for this long ...
+DRAIN_QUIET_S = 0.5
+#: ... or after this long in all
+DRAIN_MAX_S = 10.0
+
+
+async def _drain(count: list[int], expected: int) -> None:
+    """Waits until ``count[0]`` reaches ``expected``, or no frame came for
+    :data:`DRAIN_QUIET_S` once frames came (before the first, a stream may still be training),
+    or :data:`DRAIN_MAX_S` passed."""
+    start = quiet = time.monotonic()
+    last = count[0]
+    while count[0] < expected:
+        await asyncio.sleep(0.02)
+        now = time.monotonic()
+        if count[0] != last:
+            last, quiet = count[0], now
+        elif (last and now - quiet >= DRAIN_QUIET_S) or now - start >= DRAIN_MAX_S:
+            return
+
+
 async def run_pipeline(
     frames: StreamFrames,
     settings: dict,
@@ -225,9 +246,11 @@ async def run_pipeline(
                     raise MocapError(f"no 'online' or 'booting' status for stream {stream} from "
                                      f"{url}")  # fmt: skip
                 received = res.received
+                count = [0]  # frames received (kept or not)
 
                 async def consume() -> None:
                     async for r in sub.frames():
+                        count[0] += 1
                         if keep_frames:
                             received.append(r)
                         res.max_payload = max(res.max_payload, r.nbytes)
@@ -251,7 +274,9 @@ async def run_pipeline(
                                           speed=speed, loops=loops, on_frame=progress,
                                           max_frames=max_frames)  # fmt: skip
                     res.sent = st.sent
-                    await asyncio.sleep(0.5)  # let the last frames arrive
+                    # let the last frames arrive: a backlog (a training stall at the first
+                    # unlabeled frame) drains rather than being counted lost
+                    await _drain(count, st.sent - init_frames * loops)
                 finally:
                     if gc_was_enabled:
                         gc.enable()

@@ -80,6 +80,20 @@ def test_unlabeled_points_stay_in_their_input_track(take, tmp_path, capsys):
         np.testing.assert_allclose(res.positions[:, col], g, atol=1e-3)
 
 
+@pytest.mark.parametrize("start", ["auto", "labeler", "model"])
+def test_label_runs_the_labeled_start_evaluate_runs(take, tmp_path, capsys, start):
+    """``--labeled-start`` as in ``evaluate``: ``auto`` (default) trains a window model on the
+    init frames and labels through it; the summary says which start ran."""
+    src, _, names, _ = take
+    out = tmp_path / "out.npz"
+    args = ["label", str(src), str(out), "--init-frames", "40", "--json"]
+    assert main([*args, "--labeled-start", start]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["labeled_start"] == ("labeler" if start == "labeler" else "model")
+    assert summary["agreement_with_input_labels"] >= 0.999
+    assert read_capture(out).labels[: len(names)] == names
+
+
 def test_label_with_model(take, tmp_path, capsys):
     src, _, names, _ = take
     model = tmp_path / "m.json"
@@ -90,6 +104,9 @@ def test_label_with_model(take, tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["agreement_with_input_labels"] >= 0.999
     assert summary["markers"] == len(names)
+    assert summary["labeled_start"] is None  # a model file is its own start
+    assert main([*args, "--labeled-start", "model"]) == 2
+    assert "--labeled-start model trains its model on the init frames" in capsys.readouterr().err
 
 
 def test_label_errors_are_clean(take, tmp_path, capsys):

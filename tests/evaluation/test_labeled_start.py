@@ -61,7 +61,47 @@ def test_window_model_needs_a_window_and_no_model(rng):
         evaluate(cap, init_frames=10, labeled_start="window")
     report, _ = evaluate(cap, init_frames=10, labeled_start="model")
     assert report["settings"]["labeled_start"] == "model"
-    assert evaluate(cap, init_frames=10)[0]["settings"]["labeled_start"] == "labeler"
+    plain = evaluate(cap, init_frames=10, labeled_start="labeler")[0]["settings"]
+    assert plain["labeled_start"] == "labeler" and plain["labeled_start_asked"] == "labeler"
+
+
+def test_auto_start_is_the_window_model_wherever_it_applies(rng):
+    """``auto`` (the default) runs the window model's start when the online method, 3+ init
+    frames and no model file allow it; else the labeler trained in place, and the report's
+    notes say why (nothing silent)."""
+    from labeler_service.evaluation.scoring import evaluate
+
+    pos = rng.normal(scale=60.0, size=(1, 5, 3)) + rng.normal(size=(30, 5, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(5)), 50.0)
+    report, _ = evaluate(cap, init_frames=10)
+    assert report["settings"]["labeled_start"] == "model"
+    assert report["settings"]["labeled_start_asked"] == "auto"
+    assert not any("labeled start" in n for n in report["notes"])
+    baseline, _ = evaluate(cap, init_frames=10, methods=["closest-point"])
+    assert baseline["settings"]["labeled_start"] == "labeler"
+    assert any("online labeler only" in n for n in baseline["notes"])
+    booted, _ = evaluate(cap, init_frames=0, model=_window_model(rng))
+    assert booted["settings"]["labeled_start"] == "labeler"
+    assert not any("labeled start" in n for n in booted["notes"])
+
+
+def test_resolve_labeled_start():
+    from labeler_service.labeling.registry import resolve_labeled_start
+
+    assert resolve_labeled_start("auto", online=True, init_frames=3) == ("model", None)
+    start, why = resolve_labeled_start("auto", online=True, init_frames=2)
+    assert start == "labeler" and "needs 3 or more labeled frames, got 2" in why
+    start, why = resolve_labeled_start("auto", online=True, init_frames=5, subject_names=False)
+    assert start == "labeler" and "bare marker names" in why
+    assert resolve_labeled_start("auto", online=True, init_frames=50, model_given=True) == (
+        "labeler",
+        None,
+    )
+    # asked explicitly: returned as asked (the caller says why it cannot run)
+    assert resolve_labeled_start("model", online=False, init_frames=1) == ("model", None)
+    assert resolve_labeled_start("labeler", online=True, init_frames=50) == ("labeler", None)
+    with pytest.raises(LabelerError, match="unknown labeled start 'window'"):
+        resolve_labeled_start("window", online=True, init_frames=50)
 
 
 def _cell(name: str, cell: str, start: str) -> dict:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 from hostile.helpers import collect, model_names, moving_clusters, payloads, run, settings
 
 from labeler_service.capture import Capture
@@ -106,17 +107,22 @@ def _check_recovered(back, srv, mem, msgs):
     assert np.mean([np.mean(m.state == MarkerState.OBSERVED) for m in tail]) > 0.95
     states = [decode(p).state for s, kind, p, _ in mem.sent if kind == "status"][:-1]
     assert states[-1] == "online"
-    assert st.recoveries == 1 and st.handbacks == 1
-    assert st.booting is None  # handed back to the plain labeler
+    assert st.recoveries == 1 and st.handbacks == 1 and not st.recovering
+    # handed back to the start's own kind of labeler: the plain one, or the window start's
+    # (a booting labeler of its window model, which boots only the subjects it drops)
+    assert (st.booting is None) == (st.window_frames is None)
     assert srv.metrics.value("mocap_recoveries_total", stream="default") == 1
     # the boot ran off the event loop, in the background runner's thread
     assert st.boots and all(b.thread.startswith("boot-default") for b in st.boots)
     assert srv.metrics.value("mocap_boot_attempts_total", stream="default") >= 1
 
 
-def test_a_stream_trained_from_init_frames_reboots_after_a_gap_with_performers_displaced():
-    cap, back, srv, mem, msgs = _gap_run(settings(), INIT)
+@pytest.mark.parametrize("start", ["labeler", "model"])
+def test_a_stream_trained_from_init_frames_reboots_after_a_gap_with_performers_displaced(start):
+    cfg = settings(streams=[{"name": "default", "labeled_start": start}])
+    cap, back, srv, mem, msgs = _gap_run(cfg, INIT)
     _check_recovered(back, srv, mem, msgs)
+    assert (srv.streams["default"].window_frames == INIT) == (start == "model")
     assert srv.metrics.drops("time_jump") == 2  # run_confirm_frames - 1
     before = [m for m in msgs if m.seq < BEFORE]
     assert np.mean([np.mean(m.state == MarkerState.OBSERVED) for m in before]) > 0.95

@@ -78,6 +78,7 @@ def test_a_stream_starts_from_its_window_model(scene):
 
 
 def test_window_start_settings_are_checked(tmp_path):
+    # the service trains in place by default (evaluate and label: auto; docs/service.md)
     assert load_settings().streams[0].labeled_start == "labeler"
     with pytest.raises(ConfigError, match="labeled_start"):
         _settings("window")
@@ -119,9 +120,23 @@ def test_window_start_needs_subject_labels(rng):
     labeler, rate, out, _ = _train([f"s:m{i}" for i in range(5)], "model", rng)
     assert isinstance(labeler, BootingLabeler) and rate == pytest.approx(50.0)
     assert labeler.model is not None and labeler.model.subjects[0].name == "s"
-    # the same window without the setting trains the labeler in place
+    # the same window with labeled_start = "labeler" trains the labeler in place
     plain, *_ = _train([f"s:m{i}" for i in range(5)], "labeler", rng)
     assert not isinstance(plain, BootingLabeler)
+
+
+def test_the_auto_start_is_the_window_model_where_it_applies(rng, caplog):
+    """``auto`` (the default): the window model's start for subject:marker labels; bare marker
+    names (which the window model cannot name subjects from) train the labeler in place, and
+    the log says why."""
+    import logging
+
+    window, *_ = _train([f"s:m{i}" for i in range(5)], "auto", rng)
+    assert isinstance(window, BootingLabeler) and window.window_frames == 12
+    with caplog.at_level(logging.INFO, logger="labeler_service.service.stream"):
+        bare, *_ = _train([f"m{i}" for i in range(5)], "auto", rng)
+    assert not isinstance(bare, BootingLabeler)
+    assert "the labeler trained in place (the window model names its subjects" in caplog.text
 
 
 def test_a_stream_setting_written_at_the_top_of_the_file_says_where_it_belongs(tmp_path):
