@@ -338,6 +338,8 @@ class Booter:
         for s in subjects:
             tpl = self._templates[s]
             assign, _ = _subject_assign(tpl, out)
+            if np.all(assign >= 0):
+                continue  # (every marker placed: the completion has none to add or move)
             if age is None:
                 grown = _complete(tpl, assign, pts, hist, taken, self.config)
             else:  # (may move weakly placed markers: :func:`_complete_weak`)
@@ -376,7 +378,9 @@ class Booter:
         out = np.asarray(labels, dtype=np.int64).copy()
         if not subjects or self._a_reach <= 0:
             return out
-        active = np.isin(self._a_subject, subjects)
+        on = np.zeros(len(self._templates), dtype=bool)
+        on[subjects] = True  # (np.isin over every marker cost ~10 us a frame)
+        active = on[self._a_subject]
         have = np.flatnonzero((out >= 0) & active[np.maximum(out, 0)])
         free = np.flatnonzero(out == -1)
         if have.size < 2 or free.size == 0:
@@ -389,16 +393,21 @@ class Booter:
         dist, near = _nearest_within(pts[free], pts[have], k, self._a_reach)
         cand = np.flatnonzero(unlabeled)
         fit_mm = self.config.fit_mm
+        # the pair tests of every free point at once, (C candidates, F free points, k nearest):
+        # a loop over the free points with three fancy indexings each cost ~30 us a point
+        ok_all = np.isfinite(dist)
+        g_all = out[have[np.where(ok_all, near, 0)]]
+        st_all = self._a_strict[cand][:, g_all] & ok_all[None]
+        fit_all = st_all & (
+            np.abs(dist[None] - self._a_D[cand][:, g_all]) <= self._a_tol[cand][:, g_all]
+        )
+        n_fit_all = fit_all.sum(axis=2)
+        base_all = (n_fit_all >= 2) & ~np.any(st_all & ~fit_all, axis=2)
         for i in range(free.size):
-            ok_n = np.isfinite(dist[i])
-            if ok_n.sum() < 2:
+            if ok_all[i].sum() < 2:
                 continue
-            g = out[have[near[i, ok_n]]]
-            st = self._a_strict[np.ix_(cand, g)]
-            dev = np.abs(dist[i, ok_n][None, :] - self._a_D[np.ix_(cand, g)])
-            fit = st & (dev <= self._a_tol[np.ix_(cand, g)])
-            n_fit = fit.sum(axis=1)
-            good = (n_fit >= 2) & ~np.any(st & ~fit, axis=1) & unlabeled[cand]
+            n_fit = n_fit_all[:, i]
+            good = base_all[:, i] & unlabeled[cand]
             if good.sum() != 1:
                 continue  # none, or a symmetric pair of markers: not guessed
             m = int(cand[np.flatnonzero(good)[0]])

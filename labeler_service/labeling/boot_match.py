@@ -18,7 +18,7 @@ from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
-from labeler_service.labeling.kernels.track import _match_tracks, _track_history
+from labeler_service.labeling.kernels.track import _match_tracks, _track_history, _track_step
 from labeler_service.labeling.templates import LabelerModel
 
 #: A tolerance (``tol_mm + tol_sigma A + tol_relative D``) spans about this many standard
@@ -1610,6 +1610,7 @@ def warmup_kernels() -> None:
     _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
     _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
+    _track_step(p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0)
     _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))
 
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.boot_config import BootConfig
-from labeler_service.labeling.kernels.track import _match_tracks, _track_history
+from labeler_service.labeling.kernels.track import _track_history, _track_step
 
 
 # ---------------------------------------------------------------------------- tracking
@@ -35,32 +35,29 @@ class PointTracker:
         self._t = np.nan
 
     def update(self, points: np.ndarray, t: float) -> np.ndarray:
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        n = pts.shape[0]
+        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         dt = t - self._t
         if not (np.isfinite(dt) and dt > 0):
             dt = 1.0 / self.rate
         c = self.config
-        ids = np.full(n, -1, dtype=np.int64)
-        vel = np.zeros((n, 3))
-        has_vel = np.zeros(n, dtype=bool)
-        birth = np.full(n, float(t))
-        if n and self._pts.shape[0]:
-            pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
-            g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
-            gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
-            # mutual nearest prediction within its gate (kernels/track.py: a sweep index with
-            # bounded searches; two KD-trees cost ~0.5 ms a frame at 500 points)
-            j_pt = _match_tracks(np.ascontiguousarray(pts), pred, gate.astype(np.float64))
-            ok = j_pt >= 0
-            k = j_pt[ok]
-            ids[ok] = self._ids[k]
-            birth[ok] = self._birth[k]
-            vel[ok] = (pts[ok] - self._pts[k]) / dt
-            has_vel[ok] = True
-        new = ids < 0
-        ids[new] = np.arange(self._next, self._next + int(new.sum()))
-        self._next += int(new.sum())
+        g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+        # mutual nearest prediction within its gate (kernels/track.py: a sweep index with
+        # bounded searches; two KD-trees cost ~0.5 ms a frame at 500 points), the prediction,
+        # the gates and the new state in the same kernel
+        ids, vel, has_vel, birth, nxt = _track_step(
+            pts,
+            self._pts,
+            self._vel,
+            self._has_vel,
+            self._ids,
+            self._birth,
+            float(dt),
+            float(t),
+            float(g0),
+            float(c.track_speed_mm_s * dt),
+            self._next,
+        )
+        self._next = int(nxt)
         self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t
         self._birth = birth
         return ids

@@ -318,6 +318,14 @@ class BootVerifier:
     def verifies(self, subject: int) -> bool:
         return bool(self._on[subject])
 
+    def idle(self) -> bool:
+        """True when no subject is verified: :meth:`update` would only count the frame, which
+        this then does (the caller skips building its arguments)."""
+        if self._on.any():
+            return False
+        self._frame += 1
+        return True
+
     def reset_subject(self, subject: int) -> None:
         self._recent[subject] = 0.0
         self._forget(self._subject_of[self.ea] == subject)

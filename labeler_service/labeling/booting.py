@@ -240,9 +240,12 @@ class BootingLabeler:
         boot: BootConfig | None = None,
         inline_boot: bool = True,
         inline_extend: bool = True,
+        labeled_kept_s: float = LABELED_KEPT_S,
     ) -> None:
         if not (np.isfinite(rate) and rate > 0):
             raise LabelerError(f"invalid frame rate {rate}")
+        if not (np.isfinite(labeled_kept_s) and labeled_kept_s > 0):
+            raise LabelerError(f"labeled_kept_s must be > 0 seconds, got {labeled_kept_s}")
         self.model = model
         self.rate = float(rate)
         self.config = config or LabelerConfig()
@@ -293,10 +296,11 @@ class BootingLabeler:
         self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
         self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
-        #: the labeled frames of the current labeled run (the last ``LABELED_KEPT_S``): the
-        #: rebuild starts the inner labeler from all of them, not only from the window
+        #: the labeled frames of the current labeled run (the last ``labeled_kept_s``,
+        #: default ``LABELED_KEPT_S``): the rebuild starts the inner labeler from all of them,
+        #: not only from the window
         self._labeled_frames: deque[_Frame] = deque(
-            maxlen=max(w, int(round(LABELED_KEPT_S * self.rate)))
+            maxlen=max(w, int(round(labeled_kept_s * self.rate)))
         )
         self._extent: np.ndarray | None = None
         #: (t, "boot"|"labeled"|"drop"|"withdraw"|"reject", subject), the last HISTORY_KEPT
@@ -466,17 +470,25 @@ class BootingLabeler:
         # every subject's observed count at once (a loop of per-subject slices cost ~0.1 ms a
         # frame at 10 performers); only the vanishing ones are looked at one by one
         act = np.array(sorted(self._active), dtype=np.int64)
-        obs = (state == MarkerState.OBSERVED).view(np.uint8)
-        n_obs = np.add.reduceat(obs, self._offset[:-1], dtype=np.int64)[act]
-        size = (self._offset[1:] - self._offset[:-1])[act]
-        ref = self._recent[act]
-        ok = (n_obs >= np.maximum(1.0, c.vanish_fraction * size)) & (
-            (ref <= 0) | (n_obs >= c.vanish_relative * ref)
-        )
-        self._gone[act[ok]] = 0
-        self._recent[act[ok]] = np.where(
-            ref[ok] <= 0, n_obs[ok], ref[ok] + self._recent_alpha * (n_obs[ok] - ref[ok])
-        )
+        if c.vanish_fraction <= 0 and c.vanish_relative <= 0:
+            # (the window labeler: a subject vanishes only with no marker observed, and the
+            # moving average is never read; a third of this step's cost)
+            seen = np.zeros(len(self._offset) - 1, dtype=bool)
+            seen[self._subject_of[state == MarkerState.OBSERVED]] = True
+            ok = seen[act]
+            self._gone[act[ok]] = 0
+        else:
+            obs = (state == MarkerState.OBSERVED).view(np.uint8)
+            n_obs = np.add.reduceat(obs, self._offset[:-1], dtype=np.int64)[act]
+            size = (self._offset[1:] - self._offset[:-1])[act]
+            ref = self._recent[act]
+            ok = (n_obs >= np.maximum(1.0, c.vanish_fraction * size)) & (
+                (ref <= 0) | (n_obs >= c.vanish_relative * ref)
+            )
+            self._gone[act[ok]] = 0
+            self._recent[act[ok]] = np.where(
+                ref[ok] <= 0, n_obs[ok], ref[ok] + self._recent_alpha * (n_obs[ok] - ref[ok])
+            )
         for s in act[~ok].tolist():
             self._gone[s] += 1
             self._withhold(s, glab, pos, state)
@@ -514,6 +526,8 @@ class BootingLabeler:
         the window, the inner labeler) and their tracks are kept from that subject for
         ``verify_block_s``; a subject that mostly fails is dropped and booted again."""
         assert self._verifier is not None
+        if self._verifier.idle():  # (the labeled start: its subjects are not re-verified)
+            return
         tracks = np.full(len(self._names), -1, dtype=np.int64)
         have = glab >= 0
         tracks[glab[have]] = ids[have]

@@ -210,7 +210,7 @@ def make_window_labeler(
     them: :func:`labeler_service.labeling.structure.window_model`), to be fed those frames with
     their labels, then the stream.
 
-    Three settings differ from a boot:
+    Four settings differ from a boot:
 
     - the inner labeler counts the model as the window's own samples
       (``restructure_prior_s = window_frames / rate``), not as ``restructure_prior_s`` seconds:
@@ -225,7 +225,11 @@ def make_window_labeler(
     - the joint fill places nothing when its cheapest map is not unique (``fill_agreement``
       off): the agreement of rival maps trusts the trained distances to rank the maps, and a
       window's distances come from a few frames (at 12.5 Hz, 5: with it on, tune18 and tune17
-      ``quarter`` 90.9 -> 78.5 % and 92.7 -> 85.2 %).
+      ``quarter`` 90.9 -> 78.5 % and 92.7 -> 85.2 %);
+    - the inner labeler starts from the whole labeled window (``labeled_kept_s``), as the
+      labeler trained in place does, not from its last ``booting.LABELED_KEPT_S`` (0.5 s):
+      started from the last 15 of 50 frames at 30 Hz, it gave a ghost a hidden hand marker's
+      label (acceptance scene c ``downsample4``, ghosts labeled 1.06 -> 0.71 %).
     """
     from labeler_service.labeling.boot import BootConfig
     from labeler_service.labeling.config import LabelerConfig
@@ -237,6 +241,9 @@ def make_window_labeler(
     base = config or LabelerConfig()
     cfg = LabelerConfig(**{**base.model_dump(), "restructure_prior_s": window_frames / rate})
     boot = BootConfig(vanish_fraction=0.0, vanish_relative=0.0, fill_agreement=False)
-    labeler = make_labeler("online", model=model, rate=rate, config=cfg, boot=boot)
+    from labeler_service.labeling.booting import BootingLabeler
+
+    # the whole window starts the inner labeler (not its last ``LABELED_KEPT_S``)
+    labeler = BootingLabeler(model, rate, cfg, boot, labeled_kept_s=window_frames / rate)
     labeler.window_frames = window_frames  # type: ignore[attr-defined]
     return labeler

@@ -59,6 +59,50 @@ def _match_tracks(pts, pred, gate):
     return out
 
 
+@njit(fastmath=False)
+def _track_step(pts, prev, prev_vel, prev_has_vel, prev_ids, prev_birth, dt, t, g0, speed_dt, nxt):
+    """One frame of ``PointTracker.update`` (boot_tracks.py) in one pass: the previous points
+    ``prev (K, 3)`` predicted at constant velocity (``prev_vel`` where ``prev_has_vel``) with
+    gates ``g0`` (``g0 + speed_dt`` without a velocity), matched (:func:`_match_tracks`), and
+    per point of ``pts (N, 3)`` its track id (new ones from ``nxt`` on, in point order), velocity,
+    whether it has one, and its track's birth time (``t`` for a new track). Returns ``(ids,
+    vel, has_vel, birth, nxt)``. The same arithmetic as the former numpy steps, without
+    fastmath (no fused or reassociated operations): the same tracks to the bit; the numpy
+    steps around the kernel cost more than the kernel (~55 of ~90 us at 300 points)."""
+    n = pts.shape[0]
+    k = prev.shape[0]
+    ids = np.full(n, -1, dtype=np.int64)
+    vel = np.zeros((n, 3))
+    has_vel = np.zeros(n, dtype=np.bool_)
+    birth = np.full(n, t)
+    if n > 0 and k > 0:
+        pred = np.empty((k, 3))
+        gate = np.empty(k)
+        for j in range(k):
+            if prev_has_vel[j]:
+                for a in range(3):
+                    pred[j, a] = prev[j, a] + prev_vel[j, a] * dt
+                gate[j] = g0
+            else:
+                for a in range(3):
+                    pred[j, a] = prev[j, a] + 0.0
+                gate[j] = g0 + speed_dt
+        j_pt = _match_tracks(pts, pred, gate)
+        for i in range(n):
+            j = j_pt[i]
+            if j >= 0:
+                ids[i] = prev_ids[j]
+                birth[i] = prev_birth[j]
+                for a in range(3):
+                    vel[i, a] = (pts[i, a] - prev[j, a]) / dt
+                has_vel[i] = True
+    for i in range(n):
+        if ids[i] < 0:
+            ids[i] = nxt
+            nxt += 1
+    return ids, vel, has_vel, birth, nxt
+
+
 def match_tracks(pts: np.ndarray, pred: np.ndarray, gate: np.ndarray) -> np.ndarray:
     """Validating entry of :func:`_match_tracks` (float64, C-contiguous, finite positions)."""
     pts = np.ascontiguousarray(pts, dtype=np.float64)

@@ -1,0 +1,79 @@
+"""``PointTracker.update`` in one kernel (kernels/track.py ``_track_step``) against the numpy
+steps it replaced: the same track ids, velocities and birth times, to the bit."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.boot_tracks import PointTracker
+from labeler_service.labeling.kernels.track import _match_tracks
+
+
+class _NumpyTracker:
+    """The former ``PointTracker.update`` (numpy around the matching kernel)."""
+
+    def __init__(self, rate: float, config: BootConfig) -> None:
+        self.rate, self.config = rate, config
+        self._next = 0
+        self._pts = np.zeros((0, 3))
+        self._vel = np.zeros((0, 3))
+        self._has_vel = np.zeros(0, dtype=bool)
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._birth = np.zeros(0)
+        self._t = np.nan
+
+    def update(self, points: np.ndarray, t: float) -> np.ndarray:
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        n = pts.shape[0]
+        dt = t - self._t
+        if not (np.isfinite(dt) and dt > 0):
+            dt = 1.0 / self.rate
+        c = self.config
+        ids = np.full(n, -1, dtype=np.int64)
+        vel = np.zeros((n, 3))
+        has_vel = np.zeros(n, dtype=bool)
+        birth = np.full(n, float(t))
+        if n and self._pts.shape[0]:
+            pred = self._pts + np.where(self._has_vel[:, None], self._vel * dt, 0.0)
+            g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+            gate = np.where(self._has_vel, g0, g0 + c.track_speed_mm_s * dt)
+            j_pt = _match_tracks(np.ascontiguousarray(pts), pred, gate.astype(np.float64))
+            ok = j_pt >= 0
+            k = j_pt[ok]
+            ids[ok] = self._ids[k]
+            birth[ok] = self._birth[k]
+            vel[ok] = (pts[ok] - self._pts[k]) / dt
+            has_vel[ok] = True
+        new = ids < 0
+        ids[new] = np.arange(self._next, self._next + int(new.sum()))
+        self._next += int(new.sum())
+        self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t
+        self._birth = birth
+        return ids
+
+
+def test_tracker_kernel_matches_the_numpy_steps(rng):
+    cfg = BootConfig()
+    rate = 50.0
+    a, b = PointTracker(rate, cfg), _NumpyTracker(rate, cfg)
+    n = 120
+    base = rng.normal(scale=400.0, size=(n, 3))
+    speed = rng.normal(scale=600.0, size=(n, 3))  # mm/s: fast points leave their gates
+    t = 0.0
+    for f in range(300):
+        t += (1.0 + 0.5 * rng.random()) / rate  # uneven frame times
+        pos = base + speed * t + rng.normal(scale=2.0, size=(n, 3))
+        keep = rng.random(n) > 0.1  # dropouts: tracks end and start
+        ghosts = rng.normal(scale=400.0, size=(rng.integers(0, 6), 3))
+        pts = np.concatenate([pos[keep], ghosts])[
+            rng.permutation(int(keep.sum()) + ghosts.shape[0])
+        ]
+        if f == 150:
+            pts = pts[:0]  # an empty frame
+        ia, ib = a.update(pts.astype(np.float32), t), b.update(pts.astype(np.float32), t)
+        np.testing.assert_array_equal(ia, ib)
+        np.testing.assert_array_equal(a.ages(), t - b._birth)
+        np.testing.assert_array_equal(a._vel, b._vel)
+        np.testing.assert_array_equal(a._has_vel, b._has_vel)
+    assert a._next == b._next > n  # tracks did break and restart
