@@ -29,7 +29,10 @@ from _common import emit
 
 from labeler_service.capture import Capture, read_capture
 from labeler_service.evaluation.scoring import WARMUP_FRAMES, Scorer
+from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.labeler import Labeler
+from labeler_service.labeling.registry import make_window_labeler
+from labeler_service.labeling.structure import window_model
 from labeler_service.scenes.corrupt import CorruptionSpec, iter_stream
 from labeler_service.scenes.sim import SCENARIOS
 
@@ -83,13 +86,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--trace-heap", action="store_true", help="tracemalloc heap growth (slows every frame)"
     )
+    p.add_argument(
+        "--labeled-start",
+        choices=("labeler", "model"),
+        default="labeler",
+        help="model: the window model's start (evaluate's default, --labeled-start auto): the "
+        "booting labeler from templates trained on the 50 labeled frames",
+    )
     args = p.parse_args(argv)
 
     t_sim = time.perf_counter()
     cap = _capture(args)
     t_sim = time.perf_counter() - t_sim
     plan, frames = iter_stream(cap, CorruptionSpec(protect_frames=INIT, seed=args.seed))
-    lab = Labeler(plan.marker_names, plan.rate)
+    lab: FrameLabeler
+    if args.labeled_start == "model":
+        window = Capture(cap.positions[:INIT], cap.labels, cap.rate)
+        lab = make_window_labeler(window_model(window), rate=plan.rate, window_frames=INIT)
+        if tuple(lab.marker_names) != tuple(plan.marker_names):  # (the scorer's indices)
+            raise SystemExit("the window model orders the markers otherwise than the scene")
+    else:
+        lab = Labeler(plan.marker_names, plan.rate)
     t0 = time.perf_counter()
     lab.warmup()
     warm_s = time.perf_counter() - t0
@@ -136,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     t = times[WARMUP_FRAMES:]  # the first labeled frames after training are not steady state
     p50 = float(np.median(t))
     result = {
+        "labeled_start": args.labeled_start,
         "source": args.capture or f"simulate {args.performers} {args.scenario} seed {args.seed}",
         "frames": int(times.size),
         "subjects": subjects,
