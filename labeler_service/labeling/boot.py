@@ -295,13 +295,13 @@ class Booter:
                 ob[theirs] = -1
                 nll_mine = _evidence(tpl, mine, grown[mine], h.assign, pts)
                 nll_theirs = _evidence(ot, theirs, other.assign[theirs], ob, pts)
-                # and never against clearly stronger rigid evidence for them (the rule of the
-                # contested points above): a partner's hand, rigid with its own hand markers,
-                # is not an upper-arm marker that fits this subject's loose ranges
-                sup_mine = _rigid_support(tpl, np.where(np.isin(np.arange(tpl.n), mine),
-                                                        grown, h.assign), pts)[mine].sum()  # fmt: skip
-                sup_theirs = _rigid_support(ot, other.assign, pts)[theirs].sum()
-                if nll_mine < nll_theirs - EXCHANGE_MARGIN and sup_theirs <= sup_mine + 1:
+                # and never against clearly stronger rigid evidence tying them to the rest of
+                # their holder (the rule of the contested points above; :func:`_tied`): a
+                # partner's hand, rigid with the rest of its hand, is not an upper-arm marker
+                # that fits this subject's loose ranges
+                tie_mine = _tied(tpl, mine, grown[mine], h.assign, pts)
+                tie_theirs = _tied(ot, theirs, other.assign[theirs], ob, pts)
+                if nll_mine < nll_theirs - EXCHANGE_MARGIN and tie_theirs <= tie_mine + 1:
                     other.assign[theirs] = -1
                     h.assign[mine] = grown[mine]
                     holder[grown[mine]] = i
@@ -476,6 +476,27 @@ def _evidence(
     use = tpl.nll_use & np.isfinite(tpl.D)
     n_pairs = int(np.triu(use[np.ix_(mk, mk)], 1).sum() + use[np.ix_(mk, rest)].sum())
     return _pair_error(tpl, mk, points, assign, pts) - n_pairs * float(np.log(tpl.extent))
+
+
+def _tied(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> int:
+    """How many pairs of one trained body (``strict``) tie ``markers`` on ``points`` to the
+    markers placed by ``assign`` outside them, within their tolerance: the rigid evidence that
+    the points belong to *this* subject. Pairs among ``markers`` are left out: any reading of
+    the same limb has them (as many as the template's bodies over those markers: a model's loose
+    body of forearm, wrist and hand markers gives a partner's forearm read as this subject's
+    hand a dozen)."""
+    mk = np.asarray(markers, dtype=np.int64)
+    have = np.flatnonzero(assign >= 0)
+    rest = have[~np.isin(have, mk)]
+    if mk.size == 0 or rest.size == 0:
+        return 0
+    d = np.linalg.norm(pts[points][:, None] - pts[assign[rest]][None], axis=2)
+    ok = tpl.strict[np.ix_(mk, rest)] & (
+        np.abs(d - tpl.D[np.ix_(mk, rest)]) <= tpl.tol[np.ix_(mk, rest)]
+    )
+    return int(ok.sum())
 
 
 def _rigid_support(tpl, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
