@@ -81,6 +81,7 @@ from labeler_service.labeling.boot_match import (
     _prepare,
     _score,
     _Template,
+    _tied,
     warmup_kernels,
 )
 from labeler_service.labeling.boot_tracks import PointTracker, labels_along_tracks, track_history
@@ -476,27 +477,6 @@ def _evidence(
     use = tpl.nll_use & np.isfinite(tpl.D)
     n_pairs = int(np.triu(use[np.ix_(mk, mk)], 1).sum() + use[np.ix_(mk, rest)].sum())
     return _pair_error(tpl, mk, points, assign, pts) - n_pairs * float(np.log(tpl.extent))
-
-
-def _tied(
-    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
-) -> int:
-    """How many pairs of one trained body (``strict``) tie ``markers`` on ``points`` to the
-    markers placed by ``assign`` outside them, within their tolerance: the rigid evidence that
-    the points belong to *this* subject. Pairs among ``markers`` are left out: any reading of
-    the same limb has them (as many as the template's bodies over those markers: a model's loose
-    body of forearm, wrist and hand markers gives a partner's forearm read as this subject's
-    hand a dozen)."""
-    mk = np.asarray(markers, dtype=np.int64)
-    have = np.flatnonzero(assign >= 0)
-    rest = have[~np.isin(have, mk)]
-    if mk.size == 0 or rest.size == 0:
-        return 0
-    d = np.linalg.norm(pts[points][:, None] - pts[assign[rest]][None], axis=2)
-    ok = tpl.strict[np.ix_(mk, rest)] & (
-        np.abs(d - tpl.D[np.ix_(mk, rest)]) <= tpl.tol[np.ix_(mk, rest)]
-    )
-    return int(ok.sum())
 
 
 def _rigid_support(tpl, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:

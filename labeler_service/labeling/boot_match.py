@@ -1581,7 +1581,74 @@ def _complete_weak(
             if new > now - EXCHANGE_MARGIN:
                 break
         grown = alt
+    # whole segments that nothing rigid ties to the rest of the subject, released one at a
+    # time (:func:`_loose_part`), under the same test
+    for seg in tpl.segments:
+        if np.all(grown >= 0):
+            break
+        part = _loose_part(tpl, seg, grown, pts)
+        if part.size == 0:
+            continue
+        base = grown.copy()
+        base[part] = -1
+        free = taken.copy()
+        free[grown[part]] = False
+        alt = _complete(tpl, base, pts, hist, free, config)
+        if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
+            continue
+        moved = part[(alt[part] >= 0) & (alt[part] != grown[part])]
+        if moved.size:
+            both = (alt >= 0) & (grown >= 0)
+            now = _pair_error(tpl, moved, grown[moved], np.where(both, grown, -1), pts)
+            new = _pair_error(tpl, moved, alt[moved], np.where(both, alt, -1), pts)
+            if new > now - EXCHANGE_MARGIN:
+                continue
+        grown = alt
     return grown
+
+
+def _tied(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> int:
+    """How many pairs of one trained body (``strict``) tie ``markers`` on ``points`` to the
+    markers placed by ``assign`` outside them, within their tolerance: the rigid evidence that
+    the points belong to *this* subject. Pairs among ``markers`` are left out: any reading of
+    the same limb has them (as many as the template's bodies over those markers: a model's loose
+    body of forearm, wrist and hand markers gives a partner's forearm read as this subject's
+    hand a dozen)."""
+    mk = np.asarray(markers, dtype=np.int64)
+    have = np.flatnonzero(assign >= 0)
+    rest = have[~np.isin(have, mk)]
+    if mk.size == 0 or rest.size == 0:
+        return 0
+    d = np.linalg.norm(pts[points][:, None] - pts[assign[rest]][None], axis=2)
+    ok = tpl.strict[np.ix_(mk, rest)] & (
+        np.abs(d - tpl.D[np.ix_(mk, rest)]) <= tpl.tol[np.ix_(mk, rest)]
+    )
+    return int(ok.sum())
+
+
+def _loose_part(tpl: _Template, seg: np.ndarray, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """The placed markers of segment ``seg`` (:func:`_segments`) when the segment is *loose*:
+    at most ``WEAK_SUPPORT`` pairs of one trained body tie them to the rest of the subject
+    (:func:`_tied`) and a marker of the segment's bodies or of their chain neighbours
+    (``tpl.near``) is still unplaced; else an empty array. A hugging partner's hand joined
+    through articulated links where this performer's hand should be, with the forearm and
+    upper arm between left out, holds its three points by its own rigid pairs (no marker of it
+    is weak, :func:`_weak_markers`) and clashes with every candidate of this performer's own
+    forearm; nothing rigid ties it to the shoulder."""
+    part = seg[assign[seg] >= 0]
+    if part.size == 0:
+        return part
+    miss = assign < 0
+    nxt = False
+    for b in {b for m in seg for b in tpl.body_of[m]}:
+        if miss[tpl.bodies[b].markers].any() or (tpl.near[b] & miss).any():
+            nxt = True
+            break
+    if not nxt or _tied(tpl, part, assign[part], assign, pts) > WEAK_SUPPORT:
+        return part[:0]
+    return part
 
 
 def warmup_kernels() -> None:
