@@ -72,11 +72,11 @@ from labeler_service.labeling.boot_match import (
     EXCHANGE_MARGIN,
     _complete,
     _complete_weak,
+    _evidence,
     _fill,
     _hypotheses,
     _Hypothesis,
     _kabsch_batch,
-    _pair_error,
     _Pairs,
     _prepare,
     _score,
@@ -458,25 +458,6 @@ def _nearest_within(
     dist = np.take_along_axis(d, near, axis=1)
     dist[~(dist < reach)] = np.inf
     return dist, near
-
-
-def _evidence(
-    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
-) -> float:
-    """:func:`_pair_error` of ``markers`` on ``points`` (against the rest of ``assign`` and
-    among themselves) as a log-likelihood ratio: less the same pairs' negative log-likelihood
-    were the points unrelated to the subject (a pair distance uniform over the template's
-    ``extent``: ``log extent`` each). Each pair's ``_nll`` is a density in mm, so the plain sum
-    grows with the number of pairs, right or wrong: two subjects reading the same points are
-    compared on different pair counts, and the one with fewer markers placed looked better (a
-    hugging partner's arm taken from a performer with 41 markers placed, whose 7 rigid pairs to
-    it held, by one with 32 and none: 1,213 against 1,370 nats; as ratios -227 against -565)."""
-    have = np.flatnonzero(assign >= 0)
-    rest = have[~np.isin(have, markers)]
-    mk = np.asarray(markers, dtype=np.int64)
-    use = tpl.nll_use & np.isfinite(tpl.D)
-    n_pairs = int(np.triu(use[np.ix_(mk, mk)], 1).sum() + use[np.ix_(mk, rest)].sum())
-    return _pair_error(tpl, mk, points, assign, pts) - n_pairs * float(np.log(tpl.extent))
 
 
 def _rigid_support(tpl, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:

@@ -1596,15 +1596,36 @@ def _complete_weak(
         alt = _complete(tpl, base, pts, hist, free, config)
         if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
             continue
+        # released markers placed on other points must fit better there, each reading
+        # against the rest of it (:func:`_evidence`): the segments the release let in are
+        # what tells a partner's hand from this performer's own, at the end of its forearm
         moved = part[(alt[part] >= 0) & (alt[part] != grown[part])]
         if moved.size:
-            both = (alt >= 0) & (grown >= 0)
-            now = _pair_error(tpl, moved, grown[moved], np.where(both, grown, -1), pts)
-            new = _pair_error(tpl, moved, alt[moved], np.where(both, alt, -1), pts)
+            now = _evidence(tpl, moved, grown[moved], grown, pts)
+            new = _evidence(tpl, moved, alt[moved], alt, pts)
             if new > now - EXCHANGE_MARGIN:
                 continue
         grown = alt
     return grown
+
+
+def _evidence(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> float:
+    """:func:`_pair_error` of ``markers`` on ``points`` (against the rest of ``assign`` and
+    among themselves) as a log-likelihood ratio: less the same pairs' negative log-likelihood
+    were the points unrelated to the subject (a pair distance uniform over the template's
+    ``extent``: ``log extent`` each). Each pair's ``_nll`` is a density in mm, so the plain sum
+    grows with the number of pairs, right or wrong: two subjects reading the same points are
+    compared on different pair counts, and the one with fewer markers placed looked better (a
+    hugging partner's arm taken from a performer with 41 markers placed, whose 7 rigid pairs to
+    it held, by one with 32 and none: 1,213 against 1,370 nats; as ratios -227 against -565)."""
+    have = np.flatnonzero(assign >= 0)
+    rest = have[~np.isin(have, markers)]
+    mk = np.asarray(markers, dtype=np.int64)
+    use = tpl.nll_use & np.isfinite(tpl.D)
+    n_pairs = int(np.triu(use[np.ix_(mk, mk)], 1).sum() + use[np.ix_(mk, rest)].sum())
+    return _pair_error(tpl, mk, points, assign, pts) - n_pairs * float(np.log(tpl.extent))
 
 
 def _tied(
