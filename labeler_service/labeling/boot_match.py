@@ -1594,12 +1594,19 @@ def _complete_weak(
         free = taken.copy()
         free[grown[part]] = False
         alt = _complete(tpl, base, pts, hist, free, config)
-        if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
+        # more markers placed, the released ones among them (the segment may be right: a
+        # pelvis plate let go for markers placed elsewhere is not undone by the next rounds)
+        if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0) or np.any(alt[part] < 0):
             continue
         # released markers placed on other points must fit better there, each reading
         # against the rest of it (:func:`_evidence`): the segments the release let in are
         # what tells a partner's hand from this performer's own, at the end of its forearm
         moved = part[(alt[part] >= 0) & (alt[part] != grown[part])]
+        if np.isin(alt[moved], grown[part]).any():
+            # the segment read again on its own points (a head plate turned round) is the
+            # readings' business (:func:`_readings`), not the release's: against each
+            # reading's own rest, the completion's added markers would decide it
+            continue
         if moved.size:
             now = _evidence(tpl, moved, grown[moved], grown, pts)
             new = _evidence(tpl, moved, alt[moved], alt, pts)
