@@ -1598,26 +1598,18 @@ def _complete_weak(
         # pelvis plate let go for markers placed elsewhere is not undone by the next rounds)
         if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0) or np.any(alt[part] < 0):
             continue
-        # the segment read again on exactly its own points (a head plate turned round) is
-        # the readings' business (:func:`_readings`, with the whole subject), not the release's
-        if np.array_equal(np.sort(alt[part]), np.sort(grown[part])):
-            continue
-        # released markers placed on other points must fit better there (by
-        # ``EXCHANGE_MARGIN``). Partly on the segment's own points (an arm read one marker
-        # along), against the markers placed in both readings, as the weak markers above: the
-        # markers the completion added would otherwise vote for the reading that let them in.
-        # All on other points, each reading against its own rest (:func:`_evidence`): the
-        # forearm the release let in is what tells this performer's hand from a partner's,
-        # which fits the trunk as well in a hug
+        # released markers placed on other points must fit better there, each reading
+        # against the rest of it (:func:`_evidence`): the segments the release let in are
+        # what tells a partner's hand from this performer's own, at the end of its forearm
         moved = part[(alt[part] >= 0) & (alt[part] != grown[part])]
+        if np.isin(alt[moved], grown[part]).any():
+            # the segment read again on its own points (a head plate turned round) is the
+            # readings' business (:func:`_readings`), not the release's: against each
+            # reading's own rest, the completion's added markers would decide it
+            continue
         if moved.size:
-            if np.isin(alt[moved], grown[part]).any():
-                both = (alt >= 0) & (grown >= 0)
-                now = _pair_error(tpl, moved, grown[moved], np.where(both, grown, -1), pts)
-                new = _pair_error(tpl, moved, alt[moved], np.where(both, alt, -1), pts)
-            else:
-                now = _evidence(tpl, moved, grown[moved], grown, pts)
-                new = _evidence(tpl, moved, alt[moved], alt, pts)
+            now = _evidence(tpl, moved, grown[moved], grown, pts)
+            new = _evidence(tpl, moved, alt[moved], alt, pts)
             if new > now - EXCHANGE_MARGIN:
                 continue
         grown = alt
