@@ -253,8 +253,9 @@ class Booter:
         """Limbs read on another subject's points: each accepted subject is completed
         (:func:`_complete`) with the other subjects' points free; markers it then places on
         points another subject holds move to it when its model explains those points better
-        given the rest of it (:func:`_pair_error`, the readings' negative log-likelihood: lower
-        by more than ``EXCHANGE_MARGIN``) and the loser keeps its 50 %. Two performers side by
+        given the rest of it (:func:`_evidence`, the readings' log-likelihood ratios: lower by
+        more than ``EXCHANGE_MARGIN``), the holder's rigid pairs to the rest of it do not tie
+        them clearly more (:func:`_tied`) and the loser keeps its 50 %. Two performers side by
         side: the hypotheses are grown per template, and one took the other's forearm and hand
         for its own hand through articulated links while the owner's hypothesis had left that
         arm out (no point was contested, so the resolution above never saw it)."""
