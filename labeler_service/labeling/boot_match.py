@@ -1659,22 +1659,24 @@ def _tied(
 def _loose_part(tpl: _Template, seg: np.ndarray, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """The placed markers of segment ``seg`` (:func:`_segments`) when the segment is *loose*:
     at most ``WEAK_SUPPORT`` pairs of one trained body tie them to the rest of the subject
-    (:func:`_tied`) and a marker of the segment's bodies or of their chain neighbours
-    (``tpl.near``) is still unplaced; else an empty array. A hugging partner's hand joined
-    through articulated links where this performer's hand should be, with the forearm and
-    upper arm between left out, holds its three points by its own rigid pairs (no marker of it
-    is weak, :func:`_weak_markers`) and clashes with every candidate of this performer's own
-    forearm; nothing rigid ties it to the shoulder."""
+    (:func:`_tied`) and two or more markers of the segment's bodies or of their chain
+    neighbours (``tpl.near``) are still unplaced; else an empty array. A hugging partner's
+    hand joined through articulated links where this performer's hand should be, with the
+    forearm and upper arm between left out, holds its three points by its own rigid pairs (no
+    marker of it is weak, :func:`_weak_markers`) and clashes with every candidate of this
+    performer's own forearm; nothing rigid ties it to the shoulder."""
     part = seg[assign[seg] >= 0]
     if part.size == 0:
         return part
-    miss = assign < 0
-    nxt = False
+    # the segments between it and the trunk unplaced: two or more markers (a marker hidden
+    # next to a plate rightly placed is the common case, and each release costs a completion)
+    around = np.zeros(tpl.n, dtype=bool)
     for b in {b for m in seg for b in tpl.body_of[m]}:
-        if miss[tpl.bodies[b].markers].any() or (tpl.near[b] & miss).any():
-            nxt = True
-            break
-    if not nxt or _tied(tpl, part, assign[part], assign, pts) > WEAK_SUPPORT:
+        around[tpl.bodies[b].markers] = True
+        around |= tpl.near[b]
+    if np.count_nonzero(around & (assign < 0)) < 2:
+        return part[:0]
+    if _tied(tpl, part, assign[part], assign, pts) > WEAK_SUPPORT:
         return part[:0]
     return part
 
