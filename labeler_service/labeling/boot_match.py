@@ -1554,8 +1554,10 @@ def _complete_weak(
     left hand and forearm, a shank marker on a toe) holds its points and clashes with every
     candidate of the segments next to it, which then stay unlabeled for the whole take;
     released, those segments join on their rigid evidence and the released markers are
-    placed again where the completion finds them. Markers may move: the caller carries the
-    moves."""
+    placed again where the completion finds them. Then each loose segment (:func:`_loose_part`:
+    nothing rigid ties it to the rest, a hugging partner's hand read as this performer's) is
+    released alone, under the same test with each reading judged against its own rest
+    (:func:`_evidence`). Markers may move: the caller carries the moves."""
     grown = _complete(tpl, assign, pts, hist, taken, config)
     for _ in range(WEAK_ROUNDS):
         if np.all(grown >= 0):
