@@ -72,15 +72,16 @@ from labeler_service.labeling.boot_match import (
     EXCHANGE_MARGIN,
     _complete,
     _complete_weak,
+    _evidence,
     _fill,
     _hypotheses,
     _Hypothesis,
     _kabsch_batch,
-    _pair_error,
     _Pairs,
     _prepare,
     _score,
     _Template,
+    _tied,
     warmup_kernels,
 )
 from labeler_service.labeling.boot_tracks import PointTracker, labels_along_tracks, track_history
@@ -252,8 +253,9 @@ class Booter:
         """Limbs read on another subject's points: each accepted subject is completed
         (:func:`_complete`) with the other subjects' points free; markers it then places on
         points another subject holds move to it when its model explains those points better
-        given the rest of it (:func:`_pair_error`, the readings' negative log-likelihood: lower
-        by more than ``EXCHANGE_MARGIN``) and the loser keeps its 50 %. Two performers side by
+        given the rest of it (:func:`_evidence`, the readings' log-likelihood ratios: lower by
+        more than ``EXCHANGE_MARGIN``), the holder's rigid pairs to the rest of it do not tie
+        them clearly more (:func:`_tied`) and the loser keeps its 50 %. Two performers side by
         side: the hypotheses are grown per template, and one took the other's forearm and hand
         for its own hand through articulated links while the owner's hypothesis had left that
         arm out (no point was contested, so the resolution above never saw it)."""
@@ -289,12 +291,19 @@ class Booter:
                 need = max(3, int(np.ceil(self.config.min_fraction * ot.n)))
                 if int((other.assign >= 0).sum()) - theirs.size < need:
                     continue
-                # the likelihood of those points under each subject, given the rest of it
+                # the likelihood of those points under each subject, given the rest of it,
+                # against their being unrelated to it (:func:`_evidence`)
                 ob = other.assign.copy()
                 ob[theirs] = -1
-                nll_mine = _pair_error(tpl, mine, grown[mine], h.assign, pts)
-                nll_theirs = _pair_error(ot, theirs, other.assign[theirs], ob, pts)
-                if nll_mine < nll_theirs - EXCHANGE_MARGIN:
+                nll_mine = _evidence(tpl, mine, grown[mine], h.assign, pts)
+                nll_theirs = _evidence(ot, theirs, other.assign[theirs], ob, pts)
+                # and never against clearly stronger rigid evidence tying them to the rest of
+                # their holder (the rule of the contested points above; :func:`_tied`): a
+                # partner's hand, rigid with the rest of its hand, is not an upper-arm marker
+                # that fits this subject's loose ranges
+                tie_mine = _tied(tpl, mine, grown[mine], h.assign, pts)
+                tie_theirs = _tied(ot, theirs, other.assign[theirs], ob, pts)
+                if nll_mine < nll_theirs - EXCHANGE_MARGIN and tie_theirs <= tie_mine + 1:
                     other.assign[theirs] = -1
                     h.assign[mine] = grown[mine]
                     holder[grown[mine]] = i

@@ -1554,8 +1554,10 @@ def _complete_weak(
     left hand and forearm, a shank marker on a toe) holds its points and clashes with every
     candidate of the segments next to it, which then stay unlabeled for the whole take;
     released, those segments join on their rigid evidence and the released markers are
-    placed again where the completion finds them. Markers may move: the caller carries the
-    moves."""
+    placed again where the completion finds them. Then each loose segment (:func:`_loose_part`:
+    nothing rigid ties it to the rest, a hugging partner's hand read as this performer's) is
+    released alone, under the same test with each reading judged against its own rest
+    (:func:`_evidence`). Markers may move: the caller carries the moves."""
     grown = _complete(tpl, assign, pts, hist, taken, config)
     for _ in range(WEAK_ROUNDS):
         if np.all(grown >= 0):
@@ -1581,7 +1583,104 @@ def _complete_weak(
             if new > now - EXCHANGE_MARGIN:
                 break
         grown = alt
+    # whole segments that nothing rigid ties to the rest of the subject, released one at a
+    # time (:func:`_loose_part`), under the same test
+    for seg in tpl.segments:
+        if np.all(grown >= 0):
+            break
+        part = _loose_part(tpl, seg, grown, pts)
+        if part.size == 0:
+            continue
+        base = grown.copy()
+        base[part] = -1
+        free = taken.copy()
+        free[grown[part]] = False
+        alt = _complete(tpl, base, pts, hist, free, config)
+        # more markers placed, the released ones among them (the segment may be right: a
+        # pelvis plate let go for markers placed elsewhere is not undone by the next rounds)
+        if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0) or np.any(alt[part] < 0):
+            continue
+        # released markers placed on other points must fit better there, each reading
+        # against the rest of it (:func:`_evidence`): the segments the release let in are
+        # what tells a partner's hand from this performer's own, at the end of its forearm
+        moved = part[(alt[part] >= 0) & (alt[part] != grown[part])]
+        if np.isin(alt[moved], grown[part]).any():
+            # the segment read again on its own points (a head plate turned round) is the
+            # readings' business (:func:`_readings`), not the release's: against each
+            # reading's own rest, the completion's added markers would decide it
+            continue
+        if moved.size:
+            now = _evidence(tpl, moved, grown[moved], grown, pts)
+            new = _evidence(tpl, moved, alt[moved], alt, pts)
+            if new > now - EXCHANGE_MARGIN:
+                continue
+        grown = alt
     return grown
+
+
+def _evidence(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> float:
+    """:func:`_pair_error` of ``markers`` on ``points`` (against the rest of ``assign`` and
+    among themselves) as a log-likelihood ratio: less the same pairs' negative log-likelihood
+    were the points unrelated to the subject (a pair distance uniform over the template's
+    ``extent``: ``log extent`` each). Each pair's ``_nll`` is a density in mm, so the plain sum
+    grows with the number of pairs, right or wrong: two subjects reading the same points are
+    compared on different pair counts, and the one with fewer markers placed looked better (a
+    hugging partner's arm taken from a performer with 41 markers placed, whose 7 rigid pairs to
+    it held, by one with 32 and none: 1,213 against 1,370 nats; as ratios -227 against -565)."""
+    have = np.flatnonzero(assign >= 0)
+    rest = have[~np.isin(have, markers)]
+    mk = np.asarray(markers, dtype=np.int64)
+    use = tpl.nll_use & np.isfinite(tpl.D)
+    n_pairs = int(np.triu(use[np.ix_(mk, mk)], 1).sum() + use[np.ix_(mk, rest)].sum())
+    return _pair_error(tpl, mk, points, assign, pts) - n_pairs * float(np.log(tpl.extent))
+
+
+def _tied(
+    tpl: _Template, markers: np.ndarray, points: np.ndarray, assign: np.ndarray, pts: np.ndarray
+) -> int:
+    """How many pairs of one trained body (``strict``) tie ``markers`` on ``points`` to the
+    markers placed by ``assign`` outside them, within their tolerance: the rigid evidence that
+    the points belong to *this* subject. Pairs among ``markers`` are left out: any reading of
+    the same limb has them (as many as the template's bodies over those markers: a model's loose
+    body of forearm, wrist and hand markers gives a partner's forearm read as this subject's
+    hand a dozen)."""
+    mk = np.asarray(markers, dtype=np.int64)
+    have = np.flatnonzero(assign >= 0)
+    rest = have[~np.isin(have, mk)]
+    if mk.size == 0 or rest.size == 0:
+        return 0
+    d = np.linalg.norm(pts[points][:, None] - pts[assign[rest]][None], axis=2)
+    ok = tpl.strict[np.ix_(mk, rest)] & (
+        np.abs(d - tpl.D[np.ix_(mk, rest)]) <= tpl.tol[np.ix_(mk, rest)]
+    )
+    return int(ok.sum())
+
+
+def _loose_part(tpl: _Template, seg: np.ndarray, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """The placed markers of segment ``seg`` (:func:`_segments`) when the segment is *loose*:
+    at most ``WEAK_SUPPORT`` pairs of one trained body tie them to the rest of the subject
+    (:func:`_tied`) and two or more markers of the segment's bodies or of their chain
+    neighbours (``tpl.near``) are still unplaced; else an empty array. A hugging partner's
+    hand joined through articulated links where this performer's hand should be, with the
+    forearm and upper arm between left out, holds its three points by its own rigid pairs (no
+    marker of it is weak, :func:`_weak_markers`) and clashes with every candidate of this
+    performer's own forearm; nothing rigid ties it to the shoulder."""
+    part = seg[assign[seg] >= 0]
+    if part.size == 0:
+        return part
+    # the segments between it and the trunk unplaced: two or more markers (a marker hidden
+    # next to a plate rightly placed is the common case, and each release costs a completion)
+    around = np.zeros(tpl.n, dtype=bool)
+    for b in {b for m in seg for b in tpl.body_of[m]}:
+        around[tpl.bodies[b].markers] = True
+        around |= tpl.near[b]
+    if np.count_nonzero(around & (assign < 0)) < 2:
+        return part[:0]
+    if _tied(tpl, part, assign[part], assign, pts) > WEAK_SUPPORT:
+        return part[:0]
+    return part
 
 
 def warmup_kernels() -> None:
