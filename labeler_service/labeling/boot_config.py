@@ -104,6 +104,13 @@ class BootConfig(BaseModel):
         "trained distances to rank maps, so a model trained on a few frames (the labeled "
         "start's window model, registry.make_window_labeler) runs without it",
     )
+    release_loose: bool = Field(
+        True,
+        description="extension: the weak completion also releases loose segments one at a "
+        "time (boot_match._complete_weak, _loose_part: a partner's limb held by its own rigid "
+        "pairs); the labeled start's window model (registry.make_window_labeler) runs without "
+        "it: its window's labels placed every segment",
+    )
     boot_every_s: float = Field(
         0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
     )

@@ -1585,7 +1585,7 @@ def _complete_weak(
         grown = alt
     # whole segments that nothing rigid ties to the rest of the subject, released one at a
     # time (:func:`_loose_part`), under the same test
-    for seg in tpl.segments:
+    for seg in tpl.segments if config.release_loose else ():
         if np.all(grown >= 0):
             break
         part = _loose_part(tpl, seg, grown, pts)
