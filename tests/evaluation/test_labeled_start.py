@@ -32,6 +32,8 @@ def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
     assert lab.config.restructure_prior_s == pytest.approx(0.4)
     assert lab.config.restructure_prior_s * 25.0 < lab.config.restructure_max_train_frames
     assert lab.boot_config.vanish_fraction == 0.0 and lab.boot_config.vanish_relative == 0.0
+    # the window's labels placed every segment: no release of loose ones (tune04 quarter)
+    assert not lab.boot_config.release_loose and not lab.boot_config.fill_agreement
     with pytest.raises(LabelerError, match="at least one labeled frame"):
         make_window_labeler(model, rate=25.0, window_frames=0)
 
