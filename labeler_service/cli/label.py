@@ -86,7 +86,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import Capture, check_writable, read_segment, write_capture
+    from labeler_service.capture import (
+        Capture,
+        check_writable,
+        read_segment,
+        split_label,
+        write_capture,
+    )
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.registry import (
@@ -110,8 +116,19 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
-    start, _ = resolve_labeled_start(
-        args.labeled_start, online=True, init_frames=init, model_given=model is not None
+    # a label without ``subject:`` would come back renamed from the window model
+    named = all(split_label(n)[0] for n in names)
+    if args.labeled_start == "model" and model is None and not named:
+        raise LabelerError(
+            f"--labeled-start model names its subjects, and {args.input} has labels without "
+            "a subject prefix (subject:marker): name them, or use --labeled-start labeler"
+        )
+    start, why = resolve_labeled_start(
+        args.labeled_start,
+        online=True,
+        init_frames=init,
+        model_given=model is not None,
+        subject_names=named,
     )
     if start == "model" and (model is not None or init < WINDOW_MIN_FRAMES):
         raise LabelerError(
@@ -205,6 +222,8 @@ def run(args: argparse.Namespace) -> int:
         "agreement_with_input_labels": round(agree / compared, 6) if compared else None,
         "subjects": _subjects(lab.marker_names, seen[init:], cap.rate),
         "labeled_start": start if init > 0 and model is None else None,
+        # why ``auto`` fell back to the labeler trained in place (None: it did not)
+        "labeled_start_note": why,
     }
     if args.json:
         print(json.dumps(summary))
@@ -213,6 +232,8 @@ def run(args: argparse.Namespace) -> int:
             f"{args.output}: {frames} frames labeled, {summary['observed_per_frame']} of {m} "
             f"markers observed and {summary['recovered_per_frame']} recovered per frame"
         )
+        if why is not None:
+            print(f"labeled start: the labeler trained in place ({why})")
         if compared:
             print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
         never = []
