@@ -95,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
     from labeler_service.labeling.registry import (
         make_labeler,
         make_window_labeler,
@@ -109,6 +110,11 @@ def run(args: argparse.Namespace) -> int:
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):
         raise LabelerError(f"--init-frames must be >= 1, or 0 with --model (boot), got {init}")
+    if model is None and init < MIN_TRAIN_FRAMES:  # before the labeler's own, vaguer error
+        raise LabelerError(
+            f"--init-frames must be >= {MIN_TRAIN_FRAMES} without --model (the labeler trains "
+            f"on them), got {init}"
+        )
     if cap.n_frames <= init:
         raise LabelerError(f"{args.input}: {cap.n_frames} frames, not more than {init} init frames")
     names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))

@@ -657,6 +657,13 @@ def evaluate(
     )
     if why is not None:
         notes = [*notes, f"labeled start: the labeler trained in place ({why})"]
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
+
+    if model is None and "online" in names and init_frames < MIN_TRAIN_FRAMES:
+        raise SceneError(
+            f"the online method trains on the init frames: --init-frames must be >= "
+            f"{MIN_TRAIN_FRAMES} without --model, got {init_frames}"
+        )
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
     if labeled_start == "model" and "online" not in names:
