@@ -10,9 +10,9 @@ alike) are given anonymously, in a shuffled order.
   By default (``--labeled-start auto``, as ``evaluate``) subject templates are trained on that
   window and the capture is labeled through the model-based labeler
   (:func:`~labeler_service.labeling.registry.make_window_labeler`); ``--labeled-start labeler``
-  trains the labeler in place instead, as ``auto`` does where the window model does not apply
-  (fewer than 3 init frames, or a label without ``subject:``, which the window model would
-  rename): the summary's ``labeled_start`` says which start ran, ``labeled_start_note`` why
+  trains the labeler in place instead, as ``auto`` does for a capture with a label without
+  ``subject:`` (the window model would rename it); either needs 3 or more init frames. The
+  summary's ``labeled_start`` says which start ran, ``labeled_start_note`` why
   ``auto`` fell back.
 - With ``--model`` the marker set is the model's and, by default (``--init-frames 0``), IN needs
   no labels at all: the labeler boots the model's subjects from the anonymous points
