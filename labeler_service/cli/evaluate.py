@@ -115,11 +115,18 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         curves: dict = {}
         for factor in (1, 2, 4):
-            rep = (
-                report
-                if factor == args.downsample
-                else evaluate(cap, downsample=factor, **common)[0]
-            )
+            if factor == args.downsample:
+                rep = report
+            elif -(-cap.n_frames // factor) <= args.init_frames:
+                # too short at this factor for the init window: the asked report still stands
+                report["notes"].append(
+                    f"plot: --downsample {factor} left out ({-(-cap.n_frames // factor)} "
+                    f"frames, not more than the {args.init_frames}-frame init window)"
+                )
+                print(f"note: {report['notes'][-1]}", file=sys.stderr)
+                continue
+            else:
+                rep = evaluate(cap, downsample=factor, **common)[0]
             for name, s in rep["methods"].items():
                 curves.setdefault(name, []).append((factor, s["accuracy"]))
         try:

@@ -10,7 +10,10 @@ alike) are given anonymously, in a shuffled order.
   By default (``--labeled-start auto``, as ``evaluate``) subject templates are trained on that
   window and the capture is labeled through the model-based labeler
   (:func:`~labeler_service.labeling.registry.make_window_labeler`); ``--labeled-start labeler``
-  trains the labeler in place instead.
+  trains the labeler in place instead, as ``auto`` does for a capture with a label without
+  ``subject:`` (the window model would rename it); either needs 3 or more init frames. The
+  summary's ``labeled_start`` says which start ran, ``labeled_start_note`` why
+  ``auto`` fell back.
 - With ``--model`` the marker set is the model's and, by default (``--init-frames 0``), IN needs
   no labels at all: the labeler boots the model's subjects from the anonymous points
   (:class:`~labeler_service.labeling.booting.BootingLabeler`, ``make_labeler(..., boot=True)``),
@@ -86,9 +89,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import Capture, check_writable, read_segment, write_capture
+    from labeler_service.capture import (
+        Capture,
+        check_writable,
+        read_segment,
+        split_label,
+        write_capture,
+    )
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
     from labeler_service.labeling.registry import (
         make_labeler,
         make_window_labeler,
@@ -103,6 +113,11 @@ def run(args: argparse.Namespace) -> int:
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):
         raise LabelerError(f"--init-frames must be >= 1, or 0 with --model (boot), got {init}")
+    if model is None and init < MIN_TRAIN_FRAMES:  # before the labeler's own, vaguer error
+        raise LabelerError(
+            f"--init-frames must be >= {MIN_TRAIN_FRAMES} without --model (the labeler trains "
+            f"on them), got {init}"
+        )
     if cap.n_frames <= init:
         raise LabelerError(f"{args.input}: {cap.n_frames} frames, not more than {init} init frames")
     names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
@@ -110,8 +125,19 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
-    start, _ = resolve_labeled_start(
-        args.labeled_start, online=True, init_frames=init, model_given=model is not None
+    # a label without ``subject:`` would come back renamed from the window model
+    named = all(split_label(n)[0] for n in names)
+    if args.labeled_start == "model" and model is None and not named:
+        raise LabelerError(
+            f"--labeled-start model names its subjects, and {args.input} has labels without "
+            "a subject prefix (subject:marker): name them, or use --labeled-start labeler"
+        )
+    start, why = resolve_labeled_start(
+        args.labeled_start,
+        online=True,
+        init_frames=init,
+        model_given=model is not None,
+        subject_names=named,
     )
     if start == "model" and (model is not None or init < WINDOW_MIN_FRAMES):
         raise LabelerError(
@@ -205,6 +231,8 @@ def run(args: argparse.Namespace) -> int:
         "agreement_with_input_labels": round(agree / compared, 6) if compared else None,
         "subjects": _subjects(lab.marker_names, seen[init:], cap.rate),
         "labeled_start": start if init > 0 and model is None else None,
+        # why ``auto`` fell back to the labeler trained in place (None: it did not)
+        "labeled_start_note": why,
     }
     if args.json:
         print(json.dumps(summary))
@@ -213,6 +241,8 @@ def run(args: argparse.Namespace) -> int:
             f"{args.output}: {frames} frames labeled, {summary['observed_per_frame']} of {m} "
             f"markers observed and {summary['recovered_per_frame']} recovered per frame"
         )
+        if why is not None:
+            print(f"labeled start: the labeler trained in place ({why})")
         if compared:
             print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
         never = []

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from labeler_service.capture import Capture, split_label
+from labeler_service.capture import Capture, is_ghost, split_label
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.registry import (
@@ -640,14 +640,30 @@ def evaluate(
     if init_frames == 0 and not methods:
         methods = ["online"]
     names, notes = resolve_methods(methods)
+    # a label without ``subject:`` would come back renamed from the window model
+    named = all(split_label(x)[0] for x in capture.labels if not is_ghost(x))
+    if labeled_start == "model" and not named:
+        raise MocapError(
+            "the labeled start through a window model (--labeled-start model) names its "
+            f"subjects, and {capture.source or 'the capture'} has labels without a subject "
+            "prefix (subject:marker): name them, or use --labeled-start labeler"
+        )
     labeled_start, why = resolve_labeled_start(
         asked,
         online="online" in names,
         init_frames=init_frames,
         model_given=model is not None,
+        subject_names=named,
     )
     if why is not None:
         notes = [*notes, f"labeled start: the labeler trained in place ({why})"]
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
+
+    if model is None and "online" in names and init_frames < MIN_TRAIN_FRAMES:
+        raise SceneError(
+            f"the online method trains on the init frames: --init-frames must be >= "
+            f"{MIN_TRAIN_FRAMES} without --model, got {init_frames}"
+        )
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
     if labeled_start == "model" and "online" not in names:
