@@ -310,7 +310,9 @@ def glimpse_bodies(
 ) -> list[list[int]]:
     """Bodies for markers a labeled window saw in too few frames for pair statistics
     (``thin``): each with the ``size - 1`` usable markers nearest to it in the frames it was
-    seen (at least two, else none; ``train_subject`` passes ``max_size``: with two neighbours
+    seen (at least three, else none: on two, a triangle hinged on them, every glimpsed marker of
+    a take that showed only two usable ones took wrong points; ``train_subject`` passes
+    ``max_size``: with two neighbours
     the BTS walker's `SCL2` took the point of `SCL1`, a marker his window never saw, for 216
     frames of holdout07 `ghosts3`), its distances to them their mean there and their deviation
     ``deviation_mm`` (the body rule's tolerance: rigid, but at the edge). ``D``/``A`` are
@@ -323,7 +325,7 @@ def glimpse_bodies(
     for g in np.flatnonzero(thin):
         near = [int(k) for k in np.argsort(d_once[g]) if usable[k] and np.isfinite(d_once[g, k])]
         near = near[: max(size - 1, 2)]
-        if len(near) < 2:
+        if len(near) < 3:
             continue
         for k in near:
             D[g, k] = D[k, g] = d_once[g, k]
