@@ -126,18 +126,13 @@ def run(args: argparse.Namespace) -> int:
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
     # a label without ``subject:`` would come back renamed from the window model
-    named = all(split_label(n)[0] for n in names)
-    if args.labeled_start == "model" and model is None and not named:
-        raise LabelerError(
-            f"--labeled-start model names its subjects, and {args.input} has labels without "
-            "a subject prefix (subject:marker): name them, or use --labeled-start labeler"
-        )
     start, why = resolve_labeled_start(
         args.labeled_start,
         online=True,
         init_frames=init,
         model_given=model is not None,
-        subject_names=named,
+        subject_names=all(split_label(n)[0] for n in names),
+        source=args.input,
     )
     if start == "model" and (model is not None or init < WINDOW_MIN_FRAMES):
         raise LabelerError(

@@ -641,19 +641,13 @@ def evaluate(
         methods = ["online"]
     names, notes = resolve_methods(methods)
     # a label without ``subject:`` would come back renamed from the window model
-    named = all(split_label(x)[0] for x in capture.labels if not is_ghost(x))
-    if labeled_start == "model" and not named:
-        raise MocapError(
-            "the labeled start through a window model (--labeled-start model) names its "
-            f"subjects, and {capture.source or 'the capture'} has labels without a subject "
-            "prefix (subject:marker): name them, or use --labeled-start labeler"
-        )
     labeled_start, why = resolve_labeled_start(
         asked,
         online="online" in names,
         init_frames=init_frames,
         model_given=model is not None,
-        subject_names=named,
+        subject_names=all(split_label(x)[0] for x in capture.labels if not is_ghost(x)),
+        source=capture.source or "the capture",
     )
     if why is not None:
         notes = [*notes, f"labeled start: the labeler trained in place ({why})"]

@@ -69,11 +69,14 @@ def resolve_labeled_start(
     init_frames: int,
     model_given: bool = False,
     subject_names: bool = True,
+    source: str = "the capture",
 ) -> tuple[str, str | None]:
     """The start a labeled start runs: ``(start, why)``, ``start`` ``labeler`` or ``model``.
 
     ``labeler`` and ``model`` are returned as asked (the caller checks that ``model`` applies
-    and says why not). ``auto`` is ``model`` when it applies: the online labeler (``online``),
+    and says why not), except ``model`` with labels that do not name their subjects: the window
+    model would rename them (:class:`LabelerError` names the source, ``source``). ``auto`` is
+    ``model`` when it applies: the online labeler (``online``),
     at least :data:`~labeler_service.labeling.structure.WINDOW_MIN_FRAMES` labeled frames to
     train the window model on, no model file (a model file is its own start) and labels that
     name their subjects (``subject_names``; the window model names its subjects). Else
@@ -84,6 +87,12 @@ def resolve_labeled_start(
     if requested not in LABELED_STARTS:
         raise LabelerError(
             f"unknown labeled start {requested!r} (choose from {', '.join(LABELED_STARTS)})"
+        )
+    if requested == "model" and not model_given and not subject_names:
+        raise LabelerError(
+            "the labeled start through a window model (--labeled-start model) names its "
+            f"subjects, and {source} has labels without a subject prefix (subject:marker): "
+            "name them, or use --labeled-start labeler"
         )
     if requested != "auto" or model_given:
         return ("labeler" if requested == "auto" else requested), None
