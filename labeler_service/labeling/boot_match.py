@@ -1565,11 +1565,7 @@ def _complete_weak(
         weak = _weak_markers(tpl, grown, np.flatnonzero(grown < 0), pts)
         if weak.size == 0:
             break
-        base = grown.copy()
-        base[weak] = -1
-        free = taken.copy()
-        free[grown[weak]] = False
-        alt = _complete(tpl, base, pts, hist, free, config)
+        alt = _released(tpl, grown, weak, pts, hist, taken, config)
         if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0):
             break
         # released markers placed on other points must fit the markers placed in both
@@ -1591,11 +1587,7 @@ def _complete_weak(
         part = _loose_part(tpl, seg, grown, pts)
         if part.size == 0:
             continue
-        base = grown.copy()
-        base[part] = -1
-        free = taken.copy()
-        free[grown[part]] = False
-        alt = _complete(tpl, base, pts, hist, free, config)
+        alt = _released(tpl, grown, part, pts, hist, taken, config)
         # more markers placed, the released ones among them (the segment may be right: a
         # pelvis plate let go for markers placed elsewhere is not undone by the next rounds)
         if np.count_nonzero(alt >= 0) <= np.count_nonzero(grown >= 0) or np.any(alt[part] < 0):
@@ -1616,6 +1608,24 @@ def _complete_weak(
                 continue
         grown = alt
     return grown
+
+
+def _released(
+    tpl: _Template,
+    grown: np.ndarray,
+    released: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+    taken: np.ndarray,
+    config: BootConfig,
+) -> np.ndarray:
+    """:func:`_complete` of ``grown`` with the markers ``released`` unplaced and their points
+    free again (the re-reading :func:`_complete_weak` tests)."""
+    base = grown.copy()
+    base[released] = -1
+    free = taken.copy()
+    free[grown[released]] = False
+    return _complete(tpl, base, pts, hist, free, config)
 
 
 def _evidence(
