@@ -93,7 +93,6 @@ def run(args: argparse.Namespace) -> int:
         Capture,
         check_writable,
         read_segment,
-        split_label,
         write_capture,
     )
     from labeler_service.errors import LabelerError
@@ -131,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
         online=True,
         init_frames=init,
         model_given=model is not None,
-        subject_names=all(split_label(n)[0] for n in names),
+        labels=names,
         source=args.input,
     )
     if start == "model" and (model is not None or init < WINDOW_MIN_FRAMES):

@@ -646,7 +646,7 @@ def evaluate(
         online="online" in names,
         init_frames=init_frames,
         model_given=model is not None,
-        subject_names=all(split_label(x)[0] for x in capture.labels if not is_ghost(x)),
+        labels=[x for x in capture.labels if not is_ghost(x)],
         source=capture.source or "the capture",
     )
     if why is not None:

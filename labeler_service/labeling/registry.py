@@ -68,31 +68,34 @@ def resolve_labeled_start(
     online: bool,
     init_frames: int,
     model_given: bool = False,
-    subject_names: bool = True,
+    labels: Sequence[str] = (),
     source: str = "the capture",
+    advice: str = "use --labeled-start labeler",
 ) -> tuple[str, str | None]:
     """The start a labeled start runs: ``(start, why)``, ``start`` ``labeler`` or ``model``.
 
     ``labeler`` and ``model`` are returned as asked (the caller checks that ``model`` applies
-    and says why not), except ``model`` with labels that do not name their subjects: the window
-    model would rename them (:class:`LabelerError` names the source, ``source``). ``auto`` is
-    ``model`` when it applies: the online labeler (``online``),
-    at least :data:`~labeler_service.labeling.structure.WINDOW_MIN_FRAMES` labeled frames to
-    train the window model on, no model file (a model file is its own start) and labels that
-    name their subjects (``subject_names``; the window model names its subjects). Else
-    ``labeler``, with ``why`` saying what kept the model start out (``None`` when nothing did
-    or nothing was asked)."""
+    and says why not), except ``model`` with ``labels`` (the labeled frames' markers) that do
+    not all name their subjects: the window model would rename them, so it is a
+    :class:`LabelerError` naming ``source`` and the first such label, with ``advice``.
+    ``auto`` is ``model`` when it applies: the online labeler (``online``), at least
+    :data:`~labeler_service.labeling.structure.WINDOW_MIN_FRAMES` labeled frames to train the
+    window model on, no model file (a model file is its own start) and ``subject:marker``
+    labels. Else ``labeler``, with ``why`` saying what kept the model start out (``None`` when
+    nothing did or nothing was asked)."""
+    from labeler_service.capture import split_label
     from labeler_service.labeling.structure import WINDOW_MIN_FRAMES
 
     if requested not in LABELED_STARTS:
         raise LabelerError(
             f"unknown labeled start {requested!r} (choose from {', '.join(LABELED_STARTS)})"
         )
-    if requested == "model" and not model_given and not subject_names:
+    bare = next((n for n in labels if not split_label(n)[0]), None)
+    if requested == "model" and not model_given and bare is not None:
         raise LabelerError(
-            "the labeled start through a window model (--labeled-start model) names its "
-            f"subjects, and {source} has labels without a subject prefix (subject:marker): "
-            "name them, or use --labeled-start labeler"
+            f"{source}: the labeled start through a window model needs subject:marker labels "
+            f"(the model names its subjects), got {bare!r}, a label without a subject prefix: "
+            f"prefix the labels with the performer's name, or {advice}"
         )
     if requested != "auto" or model_given:
         return ("labeler" if requested == "auto" else requested), None
@@ -103,8 +106,8 @@ def resolve_labeled_start(
         why = (
             f"the window model needs {WINDOW_MIN_FRAMES} or more labeled frames, got {init_frames}"
         )
-    elif not subject_names:
-        why = "the window model names its subjects: the labels give bare marker names"
+    elif bare is not None:
+        why = f"the window model names its subjects: the labels give bare marker names ({bare!r})"
     return ("labeler", why) if why else ("model", None)
 
 

@@ -437,7 +437,9 @@ class StreamState:
             self.stream_settings.labeled_start,
             online=self.settings.labeler == "online",
             init_frames=len(init.frames),
-            subject_names=all(split_label(n)[0] is not None for n in names),
+            labels=names,
+            source=f"stream {self.name}",
+            advice="set labeled_start = 'labeler' on this stream (it accepts bare marker names)",
         )
         if why is not None:
             log.info("stream %s: labeled start: the labeler trained in place (%s)", self.name, why)
@@ -462,14 +464,6 @@ class StreamState:
         frames as a capture, ``train structure``'s trainer), and the booting labeler from them
         (:func:`~labeler_service.labeling.registry.make_window_labeler`), its boot kernels
         compiled here (off the event loop) when the service warms up."""
-        unprefixed = [n for n in names if split_label(n)[0] is None]
-        if unprefixed:
-            raise LabelerError(
-                f"stream {self.name}: labeled_start = 'model' needs subject:marker labels "
-                f"(the model names its subjects), got {unprefixed[0]!r}: prefix the init "
-                "frames' labels with the performer's name, or set labeled_start = 'labeler' "
-                "on this stream (it accepts bare marker names)"
-            )
         column = {n: i for i, n in enumerate(names)}
         to_col = np.array([column.get(n, -1) for n in init.names] + [-1], dtype=np.int64)
         pos = np.full((len(init.frames), len(names), 3), np.nan, dtype=np.float32)

@@ -93,8 +93,8 @@ def test_resolve_labeled_start():
     assert resolve_labeled_start("auto", online=True, init_frames=3) == ("model", None)
     start, why = resolve_labeled_start("auto", online=True, init_frames=2)
     assert start == "labeler" and "needs 3 or more labeled frames, got 2" in why
-    start, why = resolve_labeled_start("auto", online=True, init_frames=5, subject_names=False)
-    assert start == "labeler" and "bare marker names" in why
+    start, why = resolve_labeled_start("auto", online=True, init_frames=5, labels=["s:a", "b"])
+    assert start == "labeler" and "bare marker names ('b')" in why
     assert resolve_labeled_start("auto", online=True, init_frames=50, model_given=True) == (
         "labeler",
         None,
