@@ -241,6 +241,7 @@ class BootingLabeler:
         inline_boot: bool = True,
         inline_extend: bool = True,
         labeled_kept_s: float = LABELED_KEPT_S,
+        window_frames: int | None = None,
     ) -> None:
         if not (np.isfinite(rate) and rate > 0):
             raise LabelerError(f"invalid frame rate {rate}")
@@ -256,7 +257,7 @@ class BootingLabeler:
         self.inline_extend = bool(inline_extend)
         #: the labeled start through a window model (``registry.make_window_labeler``): the
         #: labeled frames its model was trained on; None for a boot from a model file
-        self.window_frames: int | None = None
+        self.window_frames = window_frames
         c = self.boot_config
         self._names = model.marker_names
         self._booter = Booter(model, c)

@@ -261,6 +261,6 @@ def make_window_labeler(
     from labeler_service.labeling.booting import BootingLabeler
 
     # the whole window starts the inner labeler (not its last ``LABELED_KEPT_S``)
-    labeler = BootingLabeler(model, rate, cfg, boot, labeled_kept_s=window_frames / rate)
-    labeler.window_frames = window_frames  # type: ignore[attr-defined]
-    return labeler
+    return BootingLabeler(
+        model, rate, cfg, boot, labeled_kept_s=window_frames / rate, window_frames=window_frames
+    )
