@@ -310,21 +310,23 @@ def glimpse_bodies(
 ) -> list[list[int]]:
     """Bodies for markers a labeled window saw in too few frames for pair statistics
     (``thin``): each with the ``size - 1`` usable markers nearest to it in the frames it was
-    seen (at least three, else none: on two, a triangle hinged on them, every glimpsed marker of
-    a take that showed only two usable ones took wrong points; ``train_subject`` passes
-    ``max_size``: with two neighbours
-    the BTS walker's `SCL2` took the point of `SCL1`, a marker his window never saw, for 216
-    frames of holdout07 `ghosts3`), its distances to them their mean there and their deviation
+    seen (at least three, else none: on two, a triangle hinged on them, every glimpsed marker
+    of a take that showed only two usable ones took wrong points; ``train_subject`` passes
+    ``max_size``: with two neighbours the BTS walker's `SCL2` took the point of `SCL1`, a
+    marker his window never saw, for 216 frames of holdout07 `ghosts3`), its distances to
+    them their mean there and their deviation
     ``deviation_mm`` (the body rule's tolerance: rigid, but at the edge). ``D``/``A`` are
     changed in place. Without them a marker the window glimpsed at its start or end (a BTS
     walker's scapula and bar markers, 1-2 of 40 frames) could never be labeled: no body, no
     trained distance, for the whole stream; with them the fit and the extension place it where
     its neighbours say, and the stream's own motion re-forms the body (``restructure``)."""
     out: list[list[int]] = []
-    d_once, _ = stats_from_sums(*_pair_sums(pos, np.flatnonzero(thin)), 1)
+    if not thin.any():
+        return out
+    d_once, _ = pair_statistics(pos, 1)  # (one frame together is enough here)
     for g in np.flatnonzero(thin):
         near = [int(k) for k in np.argsort(d_once[g]) if usable[k] and np.isfinite(d_once[g, k])]
-        near = near[: max(size - 1, 2)]
+        near = near[: size - 1]
         if len(near) < 3:
             continue
         for k in near:
@@ -333,19 +335,3 @@ def glimpse_bodies(
         out.append(sorted([int(g), *near]))
     within_model_ranges(D, A)
     return out
-
-
-def _pair_sums(pos: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sums of the distance, of its square and sample counts of the pairs of markers ``rows``
-    with every marker over the frames of ``pos`` (other pairs: 0), for :func:`stats_from_sums`."""
-    p = np.asarray(pos, dtype=np.float64)
-    m = p.shape[1]
-    s1, s2, n = np.zeros((m, m)), np.zeros((m, m)), np.zeros((m, m))
-    for k in range(p.shape[0]):
-        d = np.sqrt(((p[k, rows, None, :] - p[k, None, :, :]) ** 2).sum(-1))
-        ok = np.isfinite(d)
-        d = np.where(ok, d, 0.0)
-        s1[rows] += d
-        s2[rows] += d * d
-        n[rows] += ok
-    return s1, s2, n
