@@ -115,13 +115,14 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         curves: dict = {}
         for factor in (1, 2, 4):
+            kept = -(-cap.n_frames // factor)  # frames left at this factor
             if factor == args.downsample:
                 rep = report
-            elif -(-cap.n_frames // factor) <= args.init_frames:
+            elif kept <= args.init_frames:
                 # too short at this factor for the init window: the asked report still stands
                 report["notes"].append(
-                    f"plot: --downsample {factor} left out ({-(-cap.n_frames // factor)} "
-                    f"frames, not more than the {args.init_frames}-frame init window)"
+                    f"plot: --downsample {factor} left out ({kept} frames, not more than the "
+                    f"{args.init_frames}-frame init window)"
                 )
                 print(f"note: {report['notes'][-1]}", file=sys.stderr)
                 continue

@@ -89,12 +89,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import (
-        Capture,
-        check_writable,
-        read_segment,
-        write_capture,
-    )
+    from labeler_service.capture import Capture, check_writable, read_segment, write_capture
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
