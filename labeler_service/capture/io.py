@@ -105,6 +105,13 @@ def split_segment(text: str) -> tuple[str, int, int | None]:
             start = int(nums[0]) if nums[0] else 0
             stop = int(nums[1]) if n_nums == 2 and nums[1] else None
             return head, start, stop
+    for n_nums in (2, 1):  # FILE:-5, FILE:a:b - the file exists, its range does not parse
+        head = ":".join(parts[: len(parts) - n_nums])
+        if len(parts) > n_nums and Path(head).is_file():
+            raise CaptureError(
+                f"{text}: bad frame range {':'.join(parts[len(parts) - n_nums :])!r}: expected "
+                "FILE[:start[:stop]] with frame numbers >= 0"
+            )
     return text, 0, None
 
 
@@ -230,17 +237,25 @@ def _finish(
 
 
 def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
+    """Empty labels become unlabeled tracks ``*N``; a repeated name gets a ``~k`` suffix, and
+    a repeated ``*N`` a fresh ``*N`` (it stays an unlabeled track, never becomes a marker)."""
+    taken = set(labels)
     seen: dict[str, int] = {}
     out = []
+    free = 0
     for i, label in enumerate(labels):
         name = label or f"*{i}"
         if name in seen:
             seen[name] += 1
-            new = f"{name}~{seen[name]}"
+            if is_ghost(name):
+                while f"*{free}" in taken or f"*{free}" in seen:
+                    free += 1
+                new = f"*{free}"
+            else:
+                new = f"{name}~{seen[name]}"
             notes.append(f"duplicate label {name!r} renamed {new!r}")
             name = new
-        else:
-            seen[name] = 0
+        seen.setdefault(name, 0)
         out.append(name)
     return out
 

@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         make_labeler,
         make_window_labeler,
         resolve_labeled_start,
+        thin_subjects,
     )
     from labeler_service.labeling.structure import WINDOW_MIN_FRAMES, window_model
     from labeler_service.labeling.templates import load_model
@@ -119,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
+    for note in thin_subjects(names) if init > 0 else ():
+        print(f"note: {args.input}: {note}", file=sys.stderr)
     # a label without ``subject:`` would come back renamed from the window model
     start, why = resolve_labeled_start(
         args.labeled_start,

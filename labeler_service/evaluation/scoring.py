@@ -41,6 +41,7 @@ from labeler_service.labeling.registry import (
     make_labeler,
     make_window_labeler,
     resolve_labeled_start,
+    thin_subjects,
 )
 from labeler_service.labeling.structure import WINDOW_MIN_FRAMES, window_model
 from labeler_service.labeling.templates import LabelerModel
@@ -651,6 +652,7 @@ def evaluate(
     )
     if why is not None:
         notes = [*notes, f"labeled start: the labeler trained in place ({why})"]
+    notes = [*notes, *thin_subjects(capture.labels)]
     from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
 
     if model is None and "online" in names and init_frames < MIN_TRAIN_FRAMES:

@@ -111,6 +111,25 @@ def resolve_labeled_start(
     return ("labeler", why) if why else ("model", None)
 
 
+def thin_subjects(labels: Sequence[str], min_markers: int | None = None) -> list[str]:
+    """Notes on the subjects ``labels`` name with fewer markers than the presence check needs
+    (``LabelerConfig.presence_min_markers``, ``min_markers``): a subject of fewer markers is
+    absent in every frame, so none of its markers is ever labeled. Said once, where the labels
+    come in (``evaluate``'s notes, ``label``, the service's log), not found in the scores."""
+    from labeler_service.capture import subject_groups
+    from labeler_service.labeling.config import LabelerConfig
+
+    need = LabelerConfig().presence_min_markers if min_markers is None else min_markers
+    groups = subject_groups(labels, skip_ghosts=True)
+    return [
+        f"subject {s or '(no subject)'} has {len(cols)} marker{'s' * (len(cols) != 1)}, fewer "
+        f"than the {need} the labeler needs to see a subject present: its markers stay "
+        "unlabeled"
+        for s, cols in groups.items()
+        if len(cols) < need
+    ]
+
+
 class LabelerFactory(Protocol):
     """The signature of :func:`make_labeler`; the service accepts any such callable (tests
     inject slow or failing labelers through it)."""

@@ -167,7 +167,10 @@ def test_read_segment_reads_a_frame_range_with_clear_errors(tmp_path, rng) -> No
         (f"{path}:25:10", "start < stop"),
         (f"{path}:30", "past the capture's 30 frames"),
         (f"{path}:0:99", "stop 99 is past"),
-        (f"{path}:x", "no such file"),
+        (f"{path}:x", "bad frame range 'x'"),
+        (f"{path}:-5", "bad frame range '-5'"),
+        (f"{path}:3:x", "bad frame range '3:x'"),
+        (f"{tmp_path / 'none.npz'}:3", "none.npz: no such file"),
     ):
         with pytest.raises(CaptureError, match=why):
             read_segment(bad)
@@ -212,3 +215,16 @@ def test_c3d_carries_the_subjects_group(tmp_path, rng) -> None:
     assert list(p["SUBJECTS"]["USED"]["value"]) == [2]
     back = read_capture(tmp_path / "s.c3d")
     assert back.labels == cap.labels and back.subjects == ("A", "B")
+
+
+def test_repeated_labels_are_renamed_and_a_repeated_ghost_stays_a_ghost(tmp_path) -> None:
+    """A file may repeat a name: a marker gets ``~k``, an unlabeled ``*N`` a fresh ``*N``
+    (read as a marker, it would be scored and trained as one)."""
+    path = tmp_path / "dup.npz"
+    pos = np.arange(2 * 6 * 3, dtype=np.float32).reshape(2, 6, 3) + 1.0
+    labels = ["S:a", "S:a", "*3", "*3", "", "S:b"]
+    np.savez(path, positions=pos, labels=np.asarray(labels, dtype=str), rate=np.float64(100.0))
+    cap = read_capture(path)
+    assert cap.labels[:2] == ("S:a", "S:a~1") and cap.labels[5] == "S:b"
+    assert all(is_ghost(x) for x in cap.labels[2:5]) and len(set(cap.labels)) == 6
+    assert any("duplicate label '*3' renamed" in n for n in cap.notes)
