@@ -34,6 +34,11 @@ and ``occlude2`` (``--occlude 2``, 0.3 s each), all at the scene rate unless nam
 is also scored alone at its own rate (``alone``). The init window is 0.4 s at every rate (48
 frames at 120 Hz, 20 at 50 Hz, 5 at 12.5 Hz). Every random choice is seeded.
 
+Crowds (``--crowd N``, N > 2): instead of pairs, each take with the next N - 1 takes of its
+group (same radii, seeds and starts rule; no take alone). Performers crossing each other are more
+frequent there: with 4 performers a marker of one can swap with another's and keep the swap
+(docs/algorithm.md, "Swaps between performers that cross").
+
 Reported: one line per cell on stderr while running, then one JSON object: every cell (with the
 ``compose``/``evaluate`` commands that reproduce it), and per group and cell the worst scene,
 the mean, the pooled error anatomy and the longest swap. ``leaves`` names the takes that end
@@ -74,6 +79,7 @@ output is unchanged.
     .venv/bin/python benchmarks/generalization.py --quick                         # a subset
     .venv/bin/python benchmarks/generalization.py --split holdout --jobs 2
     .venv/bin/python benchmarks/generalization.py --start boot --cells rate --jobs 2
+    .venv/bin/python benchmarks/generalization.py --crowd 4 --cells rate half --jobs 2
 """
 
 from __future__ import annotations
@@ -321,8 +327,10 @@ def _train(scene: Scene, plan: TrainPlan):
     return StructureTrainer().fit([cap]).model_
 
 
-def matrix(split: str, quick: bool, seeds: int = 2) -> list[Scene]:
-    """The scenes of the matrix (see the module docstring), pairs and then takes alone."""
+def matrix(split: str, quick: bool, seeds: int = 2, crowd: int = 2) -> list[Scene]:
+    """The scenes of the matrix (see the module docstring), pairs and then takes alone; with
+    ``crowd`` > 2, scenes of that many consecutive takes of the group instead (every take in
+    ``crowd`` of them per seed), and no take alone."""
     scenes: list[Scene] = []
     for group in GROUPS:
         if split not in ("all", group):
@@ -331,21 +339,28 @@ def matrix(split: str, quick: bool, seeds: int = 2) -> list[Scene]:
         n = len(takes)
         uses: dict[str, int] = {}
 
-        pairs = [(i, (i + 1) % n) for i in range(n)] + [(i, (i + 3) % n) for i in range(n)]
-        pairs = pairs * seeds  # the same pairs again: another seed, radius and start
+        if crowd > 2:
+            if crowd > n:
+                raise MocapError(f"--crowd {crowd}: the {group} group has {n} takes")
+            sets = [tuple((i + k) % n for k in range(crowd)) for i in range(n)]
+        else:
+            sets = [(i, (i + 1) % n) for i in range(n)] + [(i, (i + 3) % n) for i in range(n)]
+        sets = sets * seeds  # the same sets again: another seed, radius and start
         if quick:
-            pairs = pairs[:2]
-        for number, (i, j) in enumerate(pairs):
-            a, b = takes[i], takes[j]
+            sets = sets[:2]
+        prefix = group if crowd <= 2 else f"{group}-crowd{crowd}-"
+        for number, members in enumerate(sets):
             scenes.append(
                 Scene(
-                    name=f"{group}{number:02d}",
+                    name=f"{prefix}{number:02d}",
                     group=group,
-                    takes=((a, _start(a, uses)), (b, _start(b, uses))),
+                    takes=tuple((takes[i], _start(takes[i], uses)) for i in members),
                     radius=RADII[number % len(RADII)],
                     seed=100 + number + (0 if group == "tune" else 500),
                 )
             )
+        if crowd > 2:
+            continue
         for t in takes if not quick else [t for t in takes if "tennis" in t.file][:1]:
             scenes.append(
                 Scene(f"{group}-alone-{t.key}", group, ((t, load(t)[1]),), radius=0.0, seed=0)
@@ -654,6 +669,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cells", nargs="+", default=None, help="cells to run (default: all)")
     p.add_argument("--only", nargs="+", default=None, help="scene names to run")
     p.add_argument("--seeds", type=int, default=2, help="scenes per pair of takes")
+    p.add_argument(
+        "--crowd",
+        type=int,
+        default=2,
+        help="performers per scene: above 2, scenes of that many consecutive takes of the group "
+        "(no takes alone); 2 is the matrix above",
+    )
     p.add_argument("--seconds", type=float, default=8.0, help="longest scene (s)")
     p.add_argument("--max-frames", type=int, default=1200, help="longest scene (frames)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes")
@@ -678,7 +700,9 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)  # fmt: skip
         return 2
     t0 = time.perf_counter()
-    scenes = matrix(args.split, args.quick, args.seeds)
+    if args.crowd < 2:
+        p.error("--crowd must be >= 2")
+    scenes = matrix(args.split, args.quick, args.seeds, args.crowd)
     if args.only:
         scenes = [s for s in scenes if s.name in args.only]
     cells = tuple(args.cells or (QUICK_CELLS if args.quick else _cells(1.0)))
@@ -757,6 +781,7 @@ def main(argv: list[str] | None = None) -> int:
     emit(
         {
             **({"start": "boot"} if boot else {}),
+            **({"crowd": args.crowd} if args.crowd > 2 else {}),
             "split": args.split,
             "quick": args.quick,
             "init_s": INIT_S,

@@ -44,6 +44,21 @@ def test_matrix_scenes(real_path):
     assert gen.matrix("holdout", quick=True, seeds=2)[0].group == "holdout"
 
 
+@pytest.mark.realdata
+def test_crowd_scenes_hold_that_many_distinct_takes_of_one_group(real_path):
+    real_path("tennis_serve_pig_39markers_50hz.c3d")  # skips without the real data
+    scenes = gen.matrix("all", quick=False, seeds=1, crowd=4)
+    assert len(scenes) == len(gen.TAKES)  # every take starts one crowd per seed, none alone
+    for s in scenes:
+        keys = [t.key for t, _ in s.takes]
+        assert len(keys) == 4 == len(set(keys)) and {t.group for t, _ in s.takes} == {s.group}
+        assert "crowd4" in s.name
+    per_take = {t.key: sum(t.key in [x.key for x, _ in s.takes] for s in scenes) for t in gen.TAKES}
+    assert set(per_take.values()) == {4}
+    with pytest.raises(gen.MocapError, match="--crowd 8"):
+        gen.matrix("tune", quick=False, seeds=1, crowd=8)
+
+
 def test_scored_span_counts_the_interpolated_neighbour():
     assert gen.scored_span(10, 5, 1.0) == (10, 15)  # same rate: frames 10..14
     assert gen.scored_span(10, 5, 2.0) == (10, 19)  # decimation: 10, 12, .., 18
