@@ -219,9 +219,9 @@ class LabelerConfig(BaseModel):
         2.5,
         ge=0,
         description="the gate radius is at least this many times the marker's own recent "
-        "prediction residual (running RMS over the frames it was tracked into, memory "
-        "body_error_frames): a filter whose motion noise came from a quiet window gates too "
-        "narrowly at low rates; the candidates keep the filter's metric (0 = off)",
+        "prediction residual (running RMS over frames it was tracked into, memory "
+        "body_error_frames, rising at once): a filter whose motion noise came from a quiet "
+        "window gates too narrowly at low rates (0 = off)",
     )
     body_rigid_mm: float = Field(
         20.0,

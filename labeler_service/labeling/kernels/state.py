@@ -79,7 +79,7 @@ class Tracks(NamedTuple):
       ``A + w D`` (anchored coasting, :mod:`.anchor`).
     - ``res (M,)``: running mean squared prediction residual (mm^2, all three axes) over the
       frames the marker was observed in after being observed in the previous one (memory
-      ``body_error_frames``; NaN = no record): the residual gate
+      ``body_error_frames``, rising at once; NaN = no record): the residual gate
       (``residual_gate``, :func:`.step._process_frame` step 3).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was

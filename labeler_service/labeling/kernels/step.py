@@ -34,7 +34,7 @@ from labeler_service.labeling.kernels.anchor import (
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
-from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
+from labeler_service.labeling.kernels.motion import _body_motion, _body_predict, _remember
 from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
@@ -104,8 +104,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
         if params.residual_gate > 0.0 and tracks.res[i] == tracks.res[i]:  # noqa: PLR0124
-            # residual gate (ours): radius >= residual_gate x the marker's recent RMS residual;
-            # it only admits candidates (_kalman_metric below)
+            # residual gate (ours): radius >= residual_gate x the marker's recent RMS residual
             s_res = params.residual_gate**2 * tracks.res[i] / params.gate_chi2
             if s_res > s[i]:
                 s[i] = s_res
@@ -113,8 +112,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             s[i] = params.s_min  # the subject left: only the narrowest gate at its last place
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
-    if params.residual_gate > 0.0:
-        _kalman_metric(P, r, params.s_min, tracks.gone, s, cand_d2, ncand)
     # Algorithm 1
     for i in range(m_total):
         assigned[i] = UNDECIDED
@@ -148,8 +145,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
                 for c in range(3):
                     d = obs[i, c] - x[i, c]
                     e2 += d * d
-                rv = tracks.res[i]  # running mean, NaN = no record yet
-                tracks.res[i] = e2 if rv != rv else (1.0 - res_alpha) * rv + res_alpha * e2  # noqa: PLR0124
+                tracks.res[i] = _remember(tracks.res[i], e2, res_alpha)
             age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
             state[i] = OBSERVED
@@ -217,25 +213,6 @@ def _process_frame_fields(points, dt, ptr, frame_no, tracks, bodies, recovery, s
         Scratch(*named),
         Params(*params),
     )
-
-
-@njit
-def _kalman_metric(P, r, s_min, gone, s, cand_d2, ncand):
-    """After a gate the residual gate widened: every later stage reads the Kalman filter's own
-    innovation variance again (``s = p_pp + r``, floored), and each candidate's squared
-    Mahalanobis distance is rescaled to it, so the motion term of Eq. 5 and track continuity
-    still prefer the point nearest the prediction: the residual only admits candidates.
-    (Read with the metric of the widened gate, Eq. 5 saw every admitted point as equally
-    likely: tune ``rate`` worst 98.42 -> 95.22 %.)"""
-    for i in range(s.shape[0]):
-        s0 = P[i, 0] + r
-        if s0 < s_min or gone[i]:
-            s0 = s_min
-        if s[i] > s0:
-            f = s[i] / s0
-            for c in range(ncand[i]):
-                cand_d2[i, c] *= f
-            s[i] = s0
 
 
 @njit
