@@ -215,14 +215,6 @@ class LabelerConfig(BaseModel):
         description="memory (frames) of the running prediction errors that choose between the "
         "rigid-body and the Kalman prediction of each marker",
     )
-    residual_gate: float = Field(
-        2.5,
-        ge=0,
-        description="the gate radius is at least this many times the marker's own recent "
-        "prediction residual (running RMS over frames it was tracked into, memory "
-        "body_error_frames, rising at once): a filter whose motion noise came from a quiet "
-        "window gates too narrowly at low rates (0 = off)",
-    )
     body_rigid_mm: float = Field(
         20.0,
         ge=0,

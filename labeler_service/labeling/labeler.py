@@ -302,7 +302,6 @@ class Labeler:
         tr.x[markers] = np.nan
         tr.P[markers] = 0.0
         tr.kx[markers] = np.nan
-        tr.res[markers] = np.nan
         for a in (tr.age, tr.n_reject, tr.lost):
             a[markers] = 0
         tr.gone[markers] = False

@@ -77,10 +77,6 @@ class Tracks(NamedTuple):
       rigid window links) at its last observation, -1 none; ``anc_ref (M, 3, 3)``: the positions
       of the marker and its two anchors then; ``anc_cost (M, 2)``: their links' window
       ``A + w D`` (anchored coasting, :mod:`.anchor`).
-    - ``res (M,)``: running mean squared prediction residual (mm^2, all three axes) over the
-      frames the marker was observed in after being observed in the previous one (memory
-      ``body_error_frames``, rising at once; NaN = no record): the residual gate
-      (``residual_gate``, :func:`.step._process_frame` step 3).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -102,7 +98,6 @@ class Tracks(NamedTuple):
     anc: np.ndarray
     anc_ref: np.ndarray
     anc_cost: np.ndarray
-    res: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -125,7 +120,6 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         anc=np.full((m, 2), -1, dtype=np.int64),
         anc_ref=np.full((m, 3, 3), np.nan),
         anc_cost=np.zeros((m, 2)),
-        res=np.full(m, np.nan),
     )
 
 

@@ -34,7 +34,7 @@ from labeler_service.labeling.kernels.anchor import (
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
-from labeler_service.labeling.kernels.motion import _body_motion, _body_predict, _remember
+from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
 from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
@@ -103,11 +103,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         s[i] = P[i, 0] + r
         if s[i] < params.s_min:  # gate floor: radius^2 = s_min * gate
             s[i] = params.s_min
-        if params.residual_gate > 0.0 and tracks.res[i] == tracks.res[i]:  # noqa: PLR0124
-            # residual gate (ours): radius >= residual_gate x the marker's recent RMS residual
-            s_res = params.residual_gate**2 * tracks.res[i] / params.gate_chi2
-            if s_res > s[i]:
-                s[i] = s_res
         if tracks.gone[i]:
             s[i] = params.s_min  # the subject left: only the narrowest gate at its last place
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
@@ -133,19 +128,12 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     if params.presence_min_markers > 0:
         _presence(points, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
-    res_alpha = 1.0 / params.body_error_frames if params.body_error_frames > 1.0 else 1.0
     for i in range(m_total):
         a = assigned[i]
         if a >= 0:
             missing[i] = False  # the 3D check used it as scratch
             tracks.lost[i] = 0
             n_reject[i] = 0
-            if age[i] > 0 and x[i, 0] == x[i, 0]:  # noqa: PLR0124 (tracked into this frame)
-                e2 = 0.0
-                for c in range(3):
-                    d = obs[i, c] - x[i, c]
-                    e2 += d * d
-                tracks.res[i] = _remember(tracks.res[i], e2, res_alpha)
             age[i] += 1
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
             state[i] = OBSERVED
