@@ -148,6 +148,42 @@ def warm_up(kind: str, config, factory: LabelerFactory = make_labeler) -> float:
     return time.perf_counter() - t0
 
 
+def window_starts(settings: ServiceSettings) -> bool:
+    """True when a stream of the service may start through a window model (``labeled_start``
+    not ``labeler`` on a stream without a model file, or on the streams not listed, which
+    take the default): the service then warms the booting labeler's kernels up too."""
+    if settings.labeler != "online":
+        return False
+    listed = any(s.model is None and s.labeled_start != "labeler" for s in settings.streams)
+    default = StreamSettings.model_fields["labeled_start"].default
+    return listed or (settings.allow_new_streams and default != "labeler")
+
+
+def warm_up_window_start(config) -> float:
+    """Runs the window start over the synthetic scene (window model, booting labeler and its
+    boot kernels, which numba compiles or loads here rather than in the first handover);
+    returns the seconds it took."""
+    from labeler_service.capture import Capture
+    from labeler_service.labeling.registry import make_window_labeler
+    from labeler_service.labeling.structure import window_model
+
+    t0 = time.perf_counter()
+    names, frames = synthetic_warmup_frames()
+    labeled = [(p, t, lab) for p, t, lab in frames if lab is not None]
+    pos = np.full((len(labeled), len(names), 3), np.nan, dtype=np.float32)
+    for k, (p, _, lab) in enumerate(labeled):
+        pos[k, lab[lab >= 0]] = p[lab >= 0]
+    model = window_model(Capture(pos, names, 120.0, source="warm-up"))
+    labeler = make_window_labeler(model, rate=120.0, window_frames=len(labeled), config=config)
+    labeler.warmup()
+    try:
+        for points, t, lab in frames:
+            labeler.process(points, t, lab)
+    except Exception as exc:
+        raise LabelerError(f"window start warm-up failed: {exc}") from exc
+    return time.perf_counter() - t0
+
+
 class Server:
     """The labeling service over the given transports. Use as ``async with Server(...)``."""
 
@@ -225,6 +261,10 @@ class Server:
                 self.warmup_s = await asyncio.to_thread(
                     warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
                 )
+                if window_starts(self.settings):
+                    self.warmup_s += await asyncio.to_thread(
+                        warm_up_window_start, self.settings.labeler_config
+                    )
                 log.info("kernels warm (%.2f s)", self.warmup_s)
             for s in self.settings.streams:
                 state = self._new_stream(s.name, s)
@@ -574,6 +614,42 @@ class Server:
                     log.exception("health error")
             if state.boot_due():
                 await self._start_boot(state, executor)
+            if state.handover_due():
+                self._start_handover(state)
+
+    # ------------------------------------------------------------------ handover
+    def _start_handover(self, state: StreamState) -> None:
+        """Runs the window start's handover job (:meth:`StreamState.handover_job`: the window
+        model, its labeler, the catch-up) off the loop (task ``handover-<stream>``)."""
+        h = state.handover
+        assert h is not None
+        h.inflight = True
+        h.again = False
+        self._spawn(self._handover(state, h), f"handover-{state.name}")
+
+    async def _handover(self, state: StreamState, h) -> None:
+        """One handover job through :class:`Background` (budget ``train_budget_s``); the next
+        frame of the stream installs its window labeler (or sends it back for another round);
+        a failure or the budget abandons the handover (the plain labeler stays)."""
+        t0 = time.perf_counter()
+        try:
+            fed = await self.background.run(
+                state.handover_job, h, budget_s=self.settings.train_budget_s,
+                name=f"handover-{state.name}",
+            )  # fmt: skip
+        except asyncio.CancelledError:
+            state.handover_done(h, False, "the service stops")
+            raise
+        except Exception as exc:
+            if not h.abandoned:
+                log.warning("stream %s: the window start's handover failed: %s: %s",
+                            state.name, type(exc).__name__, exc)  # fmt: skip
+            state.handover_done(h, False, f"{type(exc).__name__}: {exc}")
+            self._trim_soon = True
+            return
+        log.info("stream %s: the window start's job %d ended after %.2f s (%d frames caught "
+                 "up on)", state.name, h.rounds, time.perf_counter() - t0, fed)  # fmt: skip
+        state.handover_done(h, True)
 
     # ------------------------------------------------------------------ boot
     async def _start_boot(self, state: StreamState, executor: ThreadPoolExecutor | None) -> None:
@@ -679,8 +755,8 @@ class Server:
         self.metrics.training.inc()
         state.training = True
         try:
-            labeler, rate, out, label_ns = await self.background.run(
-                state.train, init, msg, budget_s=self.settings.train_budget_s,
+            labeler, rate, out, label_ns, handover = await self.background.run(
+                state.train_staged, init, msg, budget_s=self.settings.train_budget_s,
                 name=f"train-{state.name}",
             )  # fmt: skip
         except BudgetExceeded:
@@ -691,7 +767,9 @@ class Server:
             self.metrics.training.dec()
             state.training = False
             state.last_activity = time.monotonic()
-        output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns)
+        output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns, handover)
+        if state.handover_due():
+            self._start_handover(state)
         if state.status != "online":
             state.status = "online"
             await self._status(state.name, "online")
