@@ -58,6 +58,12 @@ TAIL_S = 0.1
 #: ... in the first this many rounds; later rounds stride to the newest frame (a loaded
 #: machine, where a frame costs more than a period, never catches up at the full rate).
 TAIL_ROUNDS = 4
+#: Seconds of catch-up one job runs at most: it then gives the background slot up (other
+#: streams' trainings and boots take it first, :data:`YIELD_S`) and goes on in a new job.
+SLICE_S = 0.25
+#: The wait between two catch-up jobs: longer than a waiting job's poll for the slot
+#: (``Background.run``, 0.05 s), so such a job runs first.
+YIELD_S = 0.06
 #: Rounds of one job at most before it hands the window labeler over as it is (the frame
 #: boundary then feeds the few frames left or sends it back).
 MAX_ROUNDS = 64
@@ -83,6 +89,7 @@ class Handover:
     frames: deque = field(default_factory=deque)
     ready: bool = False  # a job finished: the next frame installs (or sends it back)
     again: bool = False  # the next frame found too many frames left: another round is due
+    more: bool = False  # the last job ended its time slice behind: another job follows
     inflight: bool = False  # a job runs
     rounds: int = 0  # jobs run (the training's included)
     cancel: threading.Event = field(default_factory=threading.Event)

@@ -66,6 +66,7 @@ from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.background import Background, configure_allocator, release_memory
 from labeler_service.service.boot_worker import BootWorker
 from labeler_service.service.continuity import Verdict
+from labeler_service.service.handover import YIELD_S
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
 from labeler_service.service.settings import ServiceSettings, StreamSettings, exposure_warnings
@@ -632,11 +633,18 @@ class Server:
         frame of the stream installs its window labeler (or sends it back for another round);
         a failure or the budget abandons the handover (the plain labeler stays)."""
         t0 = time.perf_counter()
+        fed = jobs = 0
         try:
-            fed = await self.background.run(
-                state.handover_job, h, budget_s=self.settings.train_budget_s,
-                name=f"handover-{state.name}",
-            )  # fmt: skip
+            while True:
+                fed += await self.background.run(
+                    state.handover_job, h, budget_s=self.settings.train_budget_s,
+                    name=f"handover-{state.name}",
+                )  # fmt: skip
+                jobs += 1
+                if not h.more or h.abandoned:
+                    break
+                # a time slice ended behind the stream: other streams' waiting jobs first
+                await asyncio.sleep(YIELD_S)
         except asyncio.CancelledError:
             state.handover_done(h, False, "the service stops")
             raise
@@ -647,9 +655,9 @@ class Server:
             state.handover_done(h, False, f"{type(exc).__name__}: {exc}")
             self._trim_soon = True
             return
-        log.info("stream %s: the window start's job %d ended after %.2f s (%d frames caught "
-                 "up on)", state.name, h.rounds, time.perf_counter() - t0, fed)  # fmt: skip
-        state.handover_done(h, True)
+        log.info("stream %s: the window start's catch-up caught up after %.2f s (%d jobs, %d "
+                 "frames fed)", state.name, time.perf_counter() - t0, jobs, fed)  # fmt: skip
+        state.handover_done(h, not h.abandoned, "abandoned")
 
     # ------------------------------------------------------------------ boot
     async def _start_boot(self, state: StreamState, executor: ThreadPoolExecutor | None) -> None:

@@ -88,6 +88,7 @@ from labeler_service.service.handover import (
     CATCH_UP_HZ,
     HANDOVER_LEFT_MAX,
     MAX_ROUNDS,
+    SLICE_S,
     TAIL_ROUNDS,
     TAIL_S,
     Handover,
@@ -604,6 +605,8 @@ class StreamState:
             h.init = None  # (its frames are the model's now)
             h.labeler = lab
         lab = h.labeler
+        h.more = False
+        until = time.perf_counter() + SLICE_S
         stride = max(1, int(h.rate // CATCH_UP_HZ))
         tail = max(2, int(round(TAIL_S * h.rate)))
         fed = rounds = 0
@@ -637,6 +640,9 @@ class StreamState:
             fed += len(idx)
             h.done += len(pending)
             rounds += 1
+            if time.perf_counter() > until and h.received - h.done > HANDOVER_LEFT_MAX:
+                h.more = True  # the slot goes to other jobs; the server runs the next slice
+                break
         _off_the_loop(lab)  # from now on boot and extension are the server's (frame thread)
         h.rounds += 1
         return fed
