@@ -20,6 +20,11 @@ per stream (the first unlabeled frame, which trains the labeler), which runs off
 :class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
 it: status ``training_failed``) so other streams keep flowing. ``labeling_thread = true``
 labels every frame in one thread per stream instead (the numba kernels release the GIL).
+A stream of the window start (``labeled_start``) is trained as a plain one first; its window
+model, booting labeler and catch-up then run through the same ``Background`` (task
+``handover-<stream>``, budget ``train_budget_s`` per job, catch-up in time slices that give the
+slot up between them) and the stream swaps labelers at a frame boundary
+(:mod:`~labeler_service.service.handover`).
 
 Boot (a configured stream with a ``model``; ``boot = true``): after each frame, when the
 stream's booting labeler wants an attempt and none is in flight, its snapshot is taken in the

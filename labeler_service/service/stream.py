@@ -19,6 +19,18 @@ model); an unlabeled one continues with the current labeler, time re-based so th
 one frame period across the jump, unless ``t`` jumped: then (a gap of unknown length) the
 stream recovers by boot (below) when its labeler has a model.
 
+**The window start** (``labeled_start`` ``auto`` where it applies, or ``model``): the server's
+training job (:meth:`StreamState.train_staged`) trains the plain labeler, as the ``labeler``
+start does, and returns a :class:`~labeler_service.service.handover.Handover`; frames flow at
+once, each one recorded after the plain labeler labeled it. The window model, its booting
+labeler and the catch-up on the recorded frames run off the event loop
+(:meth:`StreamState.handover_job`, through the same ``Background``); the next frame after the
+job installs the window labeler (:meth:`StreamState._install_handover`: the frames recorded
+since the job ended, normally 0-2, fed on the frame path, more sent back for another job). A
+new run, a recovery, another install or the stream's removal abandon it (the plain labeler
+stays). :meth:`StreamState.train` (in-process use, :meth:`StreamState.process`) still builds
+the window labeler at once.
+
 Limits (counted by the server when hit): ``max_init_frames`` and ``max_init_bytes`` of buffered
 init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``). Training runs
 off the event loop through :class:`~labeler_service.service.background.Background`
@@ -59,7 +71,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 import re
 import threading
 import time
@@ -104,8 +115,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: MEASUREMENT ONLY (removed before merge): the catch-up fed the plain labeler's labels
-_LABELED_CATCH_UP = os.environ.get("SVCAUTO_LABELED_CATCH_UP") == "1"
 #: Frames every subject must have been labeled by a recovery labeler before the stream is
 #: handed back to a plain labeler (they are its labeled first frames).
 HANDBACK_FRAMES = 4
@@ -541,7 +550,7 @@ class StreamState:
         if deferred:
             handover = Handover(init, tuple(labeler.marker_names), rate)
             # the first frame is the first one the window labeler catches up on
-            handover.record(first.points, first.t, out.point_labels)
+            handover.record(first.points, first.t)
         return labeler, rate, out, label_ns, handover
 
     def take_init(self) -> InitWindow:
@@ -601,7 +610,6 @@ class StreamState:
             for f, idx in zip(h.init.frames, h.init.idx, strict=True):
                 check()
                 lab.process(f.points, f.t, remap[idx])
-            h.to_window = np.array([column.get(n, -1) for n in h.names] + [-1], dtype=np.int32)
             h.init = None  # (its frames are the model's now)
             h.labeler = lab
         lab = h.labeler
@@ -627,15 +635,9 @@ class StreamState:
                 waited = True
                 continue
             idx = catch_up_plan(len(pending), stride, tail if rounds < TAIL_ROUNDS else 0)
-            if _LABELED_CATCH_UP and h.rounds == 0 and rounds == 0 and len(idx) > 1:
-                for i in range(len(pending) - 1):
-                    check()
-                    p, t, labels = pending[i]
-                    lab.process(p, t, h.to_window[labels])
-                idx = [len(pending) - 1]
             for i in idx:
                 check()
-                p, t, _ = pending[i]
+                p, t = pending[i]
                 lab.process(p, t, None)
             fed += len(idx)
             h.done += len(pending)
@@ -686,7 +688,7 @@ class StreamState:
             h.again = True
             return
         lab = h.labeler
-        for p, t, _ in pending:
+        for p, t in pending:
             lab.process(p, t, None)
         self.handover = None
         self.window_frames = lab.window_frames if isinstance(lab, BootingLabeler) else None
@@ -956,7 +958,7 @@ class StreamState:
         out = self.labeler.process(f.points, t, labels)
         h = self.handover
         if h is not None and lab is h.plain:
-            h.record(f.points, t, out.point_labels)
+            h.record(f.points, t)
         if isinstance(lab, BootingLabeler) and lab.events.total > n_events:
             self.verify_events = tuple(
                 (kind, name)
