@@ -337,6 +337,7 @@ class Server:
     def _new_stream(self, name: str, s: StreamSettings | None) -> StreamState:
         state = StreamState(name, self.settings, s, self.factory)
         state.boot_worker = self.boot_worker
+        state.window_in_process = self.settings.window_worker == "process"
         self.streams[name] = state
         self._queues[name] = DropOldestQueue(self.settings.queue_size)
         if self.settings.labeling_thread:

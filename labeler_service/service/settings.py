@@ -229,6 +229,10 @@ class ServiceSettings(BaseSettings):
     #: ``service/boot_worker.py``; the attempt's Python no longer holds the frame path's GIL)
     #: or ``thread`` (a background thread of the service, as before; no extra process).
     boot_worker: Literal["process", "thread"] = "process"
+    #: Where the window start's handover trains its window model (``labeled_start``):
+    #: ``process`` (default: a ``spawn`` child per handover, which costs its imports, a few
+    #: seconds, but holds none of the frame path's GIL) or ``thread`` (the handover's job).
+    window_worker: Literal["process", "thread"] = "process"
     #: The boot's tunables (``labeler_service.labeling.boot_config.BootConfig``).
     boot_config: BootConfig = Field(default_factory=BootConfig)
     #: Restart rule (docs/service.md): a seq step beyond this, forward or back, is a jump.

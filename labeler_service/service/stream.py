@@ -94,6 +94,7 @@ from labeler_service.labeling.registry import (
 )
 from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
+from labeler_service.service.background import run_in_process
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
 from labeler_service.service.handover import (
     CATCH_UP_HZ,
@@ -298,6 +299,8 @@ class StreamState:
         self.handover: Handover | None = None
         self.handovers = 0  # window labelers that took over from the plain labeler
         self.handovers_abandoned = 0  # handovers given up (new run, recovery, failure)
+        #: the handover trains its window model in a child process (``window_worker``)
+        self.window_in_process = False
         # health
         self.status = "online"
         #: the stream has labeled: a subject of its booting labeler was booted, or a labeler
@@ -491,7 +494,7 @@ class StreamState:
         return labeler, rate, remap, deferred
 
     def _window_labeler(
-        self, init: InitWindow, names: tuple[str, ...], rate: float
+        self, init: InitWindow, names: tuple[str, ...], rate: float, cancel=None
     ) -> FrameLabeler:
         """``labeled_start = "model"``: subject templates trained on the init window (its
         frames as a capture, ``train structure``'s trainer), and the booting labeler from them
@@ -504,8 +507,15 @@ class StreamState:
             c = to_col[idx]  # -1 (unlabeled) picks the last entry, -1
             pos[k, c[c >= 0]] = f.points[c >= 0]
         window = Capture(pos, names, rate, source=f"stream {self.name} init window")
+        if self.window_in_process:
+            # its Python holds a child process's GIL, not the frame path's (~1-2 s at 10
+            # people: labeling p99 0.6-1.9 -> 12-17 ms beside it in a thread, loaded machine)
+            model = run_in_process(window_model, window, cancel=cancel,
+                                   name=f"window-model-{self.name}")  # fmt: skip
+        else:
+            model = window_model(window)
         labeler = make_window_labeler(
-            window_model(window),
+            model,
             rate=rate,
             window_frames=len(init.frames),
             config=self.settings.labeler_config,
@@ -604,7 +614,7 @@ class StreamState:
 
         if h.labeler is None:
             assert h.init is not None
-            lab = self._window_labeler(h.init, h.names, h.rate)
+            lab = self._window_labeler(h.init, h.names, h.rate, cancel or h.cancel)
             column = {n: i for i, n in enumerate(lab.marker_names)}
             remap = np.array([column.get(n, -1) for n in h.init.names] + [-1], dtype=np.int32)
             for f, idx in zip(h.init.frames, h.init.idx, strict=True):

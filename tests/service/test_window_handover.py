@@ -234,11 +234,11 @@ def test_a_new_labeled_run_while_the_window_model_trains_abandons_it(frames, mon
     calls: list[int] = []
     original = StreamState._window_labeler
 
-    def held(self, init, names, rate):
+    def held(self, init, names, rate, cancel=None):
         calls.append(len(init.frames))
         if len(calls) == 1:
             gate.wait(timeout=120.0)
-        return original(self, init, names, rate)
+        return original(self, init, names, rate, cancel)
 
     monkeypatch.setattr(StreamState, "_window_labeler", held)
 
@@ -273,3 +273,22 @@ def test_a_new_labeled_run_while_the_window_model_trains_abandons_it(frames, mon
     assert st.labeler is not first.labeler and isinstance(st.labeler, BootingLabeler)
     assert st.handovers == 1 and st.handovers_abandoned == 1
     assert len(calls) == 2
+
+
+def test_run_in_process_returns_raises_and_cancels():
+    """The window model's training runs in a child process (``window_worker = "process"``):
+    its result comes back, its error is named, a cancelled call terminates the child."""
+    import math
+    import time
+
+    from labeler_service.errors import BudgetExceeded
+    from labeler_service.service.background import run_in_process
+
+    assert run_in_process(math.factorial, 10) == 3_628_800
+    with pytest.raises(LabelerError, match="failed in its process: ValueError"):
+        run_in_process(math.factorial, -1, name="fact")
+    cancel = threading.Event()
+    cancel.set()
+    with pytest.raises(BudgetExceeded, match="sleepy: cancelled; its process was terminated"):
+        run_in_process(time.sleep, 60.0, cancel=cancel, name="sleepy")
+    assert _settings().window_worker == "process"
