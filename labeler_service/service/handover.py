@@ -8,9 +8,10 @@ were dropped (270 -> ~700), the stream jumped and the booting labeler dropped 8 
 as vanished (steady p99 8 -> ~100 ms). The service now starts such a stream in two steps::
 
     first unlabeled frame --train (off the loop, as the "labeler" start)--> plain labeler
-        |  frames labeled by the plain labeler; each recorded here (points, t, its labels)
+        |  frames labeled by the plain labeler; each recorded here (points, t)
         v
-    handover job (Background, budget train_budget_s):  window model -> window labeler
+    handover job (Background, budget train_budget_s):  window model (in a spawn child,
+        window_worker = "process") -> window labeler
         -> fed the init window with its labels (as train does) -> caught up on the recorded
            frames (unlabeled, every stride-th while far behind, then at the full rate)
         v
