@@ -183,8 +183,8 @@ def warm_up_window_start(config) -> float:
     labeler = make_window_labeler(model, rate=120.0, window_frames=len(labeled), config=config)
     labeler.warmup()
     try:
-        for points, t, lab in frames:
-            labeler.process(points, t, lab)
+        for points, t, given in frames:
+            labeler.process(points, t, given)
     except Exception as exc:
         raise LabelerError(f"window start warm-up failed: {exc}") from exc
     return time.perf_counter() - t0

@@ -644,12 +644,12 @@ class StreamState:
                     break
                 waited = True
                 continue
-            idx = catch_up_plan(len(pending), stride, tail if rounds < TAIL_ROUNDS else 0)
-            for i in idx:
+            plan = catch_up_plan(len(pending), stride, tail if rounds < TAIL_ROUNDS else 0)
+            for i in plan:
                 check()
                 p, t = pending[i]
                 lab.process(p, t, None)
-            fed += len(idx)
+            fed += len(plan)
             h.done += len(pending)
             rounds += 1
             if time.perf_counter() > until and h.received - h.done > HANDOVER_LEFT_MAX:
