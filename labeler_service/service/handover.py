@@ -27,8 +27,9 @@ run, a recovery, an expired or removed stream abandon the handover (the plain la
 
 The catch-up feeds the recorded frames **unlabeled**: the window labeler labels them itself, as
 ``evaluate`` runs it from the init window on. Fed the plain labeler's labels instead (labeled
-frames, then its inner labeler rebuilt from the last of them), it started from the plain
-labeler's mistakes: on 19 two-take scenes of the cross-take matrix (every third), handed over
+frames, then its inner labeler rebuilt from the last of them; a variant measured before it was
+removed), it started from the plain labeler's mistakes: on 19 two-take scenes of the cross-take
+matrix (``benchmarks/handover_delay.py --every 3`` for the other columns), handed over
 after 1 s, ``quarter`` mean 93.70 % (tune) / 97.12 % (holdout) against 94.83 / 97.16 %
 unlabeled, and one ``rate`` cell 99.78 -> 92.87 %; the unlabeled catch-up stays within a few
 tenths of a handover after one frame (94.47 / 97.60 %; the labeler trained in place 91.09 /
