@@ -55,6 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-frames", type=int, default=None,
                    help="labeled frames first (default: 5 with model, 50 with init)")  # fmt: skip
     p.add_argument("--labeler", choices=["online", "baseline"], default="online")
+    p.add_argument("--labeled-start", choices=["auto", "labeler", "model"], default=None,
+                   help="--start init: the stream's labeled_start (else the default)")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workdir", type=Path, default=None, help="keep service log/config here")
     p.add_argument("--json", action="store_true", help="print the result as JSON (last line)")
@@ -86,6 +88,8 @@ async def bench(args, workdir: Path) -> dict:
                                   args.seed, args.scenario)  # fmt: skip
     n_total = int(round(args.seconds * frames.rate))
     stream_cfg: dict = {"name": stream, "rate": frames.rate}
+    if args.labeled_start is not None and args.start == "init":
+        stream_cfg["labeled_start"] = args.labeled_start
     if args.start == "model":
         stream_cfg["model"] = str(train_model_file(frames, 50, workdir / "model.json"))
     elif args.start == "boot":
@@ -123,6 +127,7 @@ async def bench(args, workdir: Path) -> dict:
         "transport": args.transport,
         "labeler": args.labeler,
         "start": args.start,
+        "labeled_start": stream_cfg.get("labeled_start"),
         "subjects": args.subjects,
         "markers": len(frames.marker_names),
         "rate": frames.rate,
@@ -147,10 +152,27 @@ async def bench(args, workdir: Path) -> dict:
         **{f"{k}_ms_p99": q["p99"] for k, q in leg_q.items()},
         "service_exit_code": res.service_returncode,
     }
+    if args.start == "init":
+        out.update(init_report(frames, received, loops_to_cover(frames.n_frames, n_total),
+                               n_total, init))  # fmt: skip
     if args.start == "boot":
         out.update(boot_report(frames, received, loops_to_cover(frames.n_frames, n_total),
                                n_total, res.service))  # fmt: skip
     return out
+
+
+def init_report(frames, received, loops: int, n_total: int, init: int) -> dict:
+    """``--start init``: accuracy (``evaluate``'s, a lost frame scored unlabeled) over the
+    frames after the labeled ones, and over the last 2 s (what the start left running)."""
+    from labeler_service.cli.demo import score
+    from labeler_service.tools.replay import frame_order
+
+    seq_frames = looped(frames, frame_order(frames.n_frames, loops)[:n_total])
+    tail = max(init, n_total - int(round(2.0 * frames.rate)))
+    return {
+        "accuracy": score(seq_frames, received, init).summary()["accuracy"],
+        "accuracy_last_2s": score(seq_frames, received, tail).summary()["accuracy"],
+    }
 
 
 def boot_scene(args, path: Path):

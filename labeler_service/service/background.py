@@ -236,3 +236,65 @@ def configure_allocator() -> None:
     switch = getattr(multiarray, "_set_madvise_hugepage", None)
     if switch is not None:
         switch(False)
+
+
+#: How often :func:`run_in_process` looks at its child and its cancel event (s).
+PROCESS_POLL_S = 0.02
+#: ``os.nice`` increment of a :func:`run_in_process` child (as the boot worker's).
+PROCESS_NICE = 5
+
+
+def _child(conn, fn: Callable[..., Any], args: tuple) -> None:  # pragma: no cover (child)
+    import os
+    import traceback
+
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(PROCESS_NICE)
+    try:
+        out = (True, fn(*args))
+    except BaseException as exc:  # handed back to the parent
+        out = (False, f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=5)}")
+    try:
+        conn.send(out)
+    finally:
+        conn.close()
+
+
+def run_in_process(
+    fn: Callable[..., T], *args: Any, cancel: threading.Event | None = None, name: str = "job"
+) -> T:
+    """``fn(*args)`` in a ``spawn`` child process (its Python holds the child's GIL, not the
+    event loop's), blocking the calling thread (a :class:`Background` job) until it returns.
+    ``fn`` and ``args`` must pickle (a module-level function). ``cancel`` set: the child is
+    terminated and :class:`~labeler_service.errors.BudgetExceeded` raised; a child that fails
+    or dies raises :class:`~labeler_service.errors.LabelerError` (as the boot worker's). The
+    child costs its imports (seconds: numpy, numba, the labeler's modules) on top of ``fn``;
+    meant for rare, heavy calls (a stream's window model), not per frame."""
+    import multiprocessing
+
+    from labeler_service.errors import LabelerError
+
+    ctx = multiprocessing.get_context("spawn")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(child, fn, args), name=name, daemon=True)
+    proc.start()
+    child.close()
+    try:
+        while not parent.poll(PROCESS_POLL_S):
+            if cancel is not None and cancel.is_set():
+                raise BudgetExceeded(f"{name}: cancelled; its process was terminated")
+            if not proc.is_alive() and not parent.poll(0):
+                raise LabelerError(f"{name}: its process ended (exit code {proc.exitcode}) "
+                                      "without a result")  # fmt: skip
+        try:
+            ok, value = parent.recv()
+        except EOFError as exc:
+            raise LabelerError(f"{name}: its process ended without a result") from exc
+        if not ok:
+            raise LabelerError(f"{name} failed in its process: {value}")
+        return value
+    finally:
+        parent.close()
+        if proc.is_alive():
+            proc.terminate()
+        proc.join(timeout=5.0)

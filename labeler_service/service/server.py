@@ -20,6 +20,11 @@ per stream (the first unlabeled frame, which trains the labeler), which runs off
 :class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
 it: status ``training_failed``) so other streams keep flowing. ``labeling_thread = true``
 labels every frame in one thread per stream instead (the numba kernels release the GIL).
+A stream of the window start (``labeled_start``) is trained as a plain one first; its window
+model, booting labeler and catch-up then run through the same ``Background`` (task
+``handover-<stream>``, budget ``train_budget_s`` per job, catch-up in time slices that give the
+slot up between them) and the stream swaps labelers at a frame boundary
+(:mod:`~labeler_service.service.handover`).
 
 Boot (a configured stream with a ``model``; ``boot = true``): after each frame, when the
 stream's booting labeler wants an attempt and none is in flight, its snapshot is taken in the
@@ -66,6 +71,7 @@ from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.background import Background, configure_allocator, release_memory
 from labeler_service.service.boot_worker import BootWorker
 from labeler_service.service.continuity import Verdict
+from labeler_service.service.handover import YIELD_S
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
 from labeler_service.service.settings import ServiceSettings, StreamSettings, exposure_warnings
@@ -148,6 +154,42 @@ def warm_up(kind: str, config, factory: LabelerFactory = make_labeler) -> float:
     return time.perf_counter() - t0
 
 
+def window_starts(settings: ServiceSettings) -> bool:
+    """True when a stream of the service may start through a window model (``labeled_start``
+    not ``labeler`` on a stream without a model file, or on the streams not listed, which
+    take the default): the service then warms the booting labeler's kernels up too."""
+    if settings.labeler != "online":
+        return False
+    listed = any(s.model is None and s.labeled_start != "labeler" for s in settings.streams)
+    default = StreamSettings.model_fields["labeled_start"].default
+    return listed or (settings.allow_new_streams and default != "labeler")
+
+
+def warm_up_window_start(config) -> float:
+    """Runs the window start over the synthetic scene (window model, booting labeler and its
+    boot kernels, which numba compiles or loads here rather than in the first handover);
+    returns the seconds it took."""
+    from labeler_service.capture import Capture
+    from labeler_service.labeling.registry import make_window_labeler
+    from labeler_service.labeling.structure import window_model
+
+    t0 = time.perf_counter()
+    names, frames = synthetic_warmup_frames()
+    labeled = [(p, t, lab) for p, t, lab in frames if lab is not None]
+    pos = np.full((len(labeled), len(names), 3), np.nan, dtype=np.float32)
+    for k, (p, _, lab) in enumerate(labeled):
+        pos[k, lab[lab >= 0]] = p[lab >= 0]
+    model = window_model(Capture(pos, names, 120.0, source="warm-up"))
+    labeler = make_window_labeler(model, rate=120.0, window_frames=len(labeled), config=config)
+    labeler.warmup()
+    try:
+        for points, t, given in frames:
+            labeler.process(points, t, given)
+    except Exception as exc:
+        raise LabelerError(f"window start warm-up failed: {exc}") from exc
+    return time.perf_counter() - t0
+
+
 class Server:
     """The labeling service over the given transports. Use as ``async with Server(...)``."""
 
@@ -225,6 +267,10 @@ class Server:
                 self.warmup_s = await asyncio.to_thread(
                     warm_up, self.settings.labeler, self.settings.labeler_config, self.factory
                 )
+                if window_starts(self.settings):
+                    self.warmup_s += await asyncio.to_thread(
+                        warm_up_window_start, self.settings.labeler_config
+                    )
                 log.info("kernels warm (%.2f s)", self.warmup_s)
             for s in self.settings.streams:
                 state = self._new_stream(s.name, s)
@@ -291,6 +337,7 @@ class Server:
     def _new_stream(self, name: str, s: StreamSettings | None) -> StreamState:
         state = StreamState(name, self.settings, s, self.factory)
         state.boot_worker = self.boot_worker
+        state.window_in_process = self.settings.window_worker == "process"
         self.streams[name] = state
         self._queues[name] = DropOldestQueue(self.settings.queue_size)
         if self.settings.labeling_thread:
@@ -574,6 +621,49 @@ class Server:
                     log.exception("health error")
             if state.boot_due():
                 await self._start_boot(state, executor)
+            if state.handover_due():
+                self._start_handover(state)
+
+    # ------------------------------------------------------------------ handover
+    def _start_handover(self, state: StreamState) -> None:
+        """Runs the window start's handover job (:meth:`StreamState.handover_job`: the window
+        model, its labeler, the catch-up) off the loop (task ``handover-<stream>``)."""
+        h = state.handover
+        assert h is not None
+        h.inflight = True
+        h.again = False
+        self._spawn(self._handover(state, h), f"handover-{state.name}")
+
+    async def _handover(self, state: StreamState, h) -> None:
+        """One handover job through :class:`Background` (budget ``train_budget_s``); the next
+        frame of the stream installs its window labeler (or sends it back for another round);
+        a failure or the budget abandons the handover (the plain labeler stays)."""
+        t0 = time.perf_counter()
+        fed = jobs = 0
+        try:
+            while True:
+                fed += await self.background.run(
+                    state.handover_job, h, budget_s=self.settings.train_budget_s,
+                    name=f"handover-{state.name}",
+                )  # fmt: skip
+                jobs += 1
+                if not h.more or h.abandoned:
+                    break
+                # a time slice ended behind the stream: other streams' waiting jobs first
+                await asyncio.sleep(YIELD_S)
+        except asyncio.CancelledError:
+            state.handover_done(h, False, "the service stops")
+            raise
+        except Exception as exc:
+            if not h.abandoned:
+                log.warning("stream %s: the window start's handover failed: %s: %s",
+                            state.name, type(exc).__name__, exc)  # fmt: skip
+            state.handover_done(h, False, f"{type(exc).__name__}: {exc}")
+            self._trim_soon = True
+            return
+        log.info("stream %s: the window start's catch-up caught up after %.2f s (%d jobs, %d "
+                 "frames fed)", state.name, time.perf_counter() - t0, jobs, fed)  # fmt: skip
+        state.handover_done(h, not h.abandoned, "abandoned")
 
     # ------------------------------------------------------------------ boot
     async def _start_boot(self, state: StreamState, executor: ThreadPoolExecutor | None) -> None:
@@ -679,8 +769,8 @@ class Server:
         self.metrics.training.inc()
         state.training = True
         try:
-            labeler, rate, out, label_ns = await self.background.run(
-                state.train, init, msg, budget_s=self.settings.train_budget_s,
+            labeler, rate, out, label_ns, handover = await self.background.run(
+                state.train_staged, init, msg, budget_s=self.settings.train_budget_s,
                 name=f"train-{state.name}",
             )  # fmt: skip
         except BudgetExceeded:
@@ -691,7 +781,9 @@ class Server:
             self.metrics.training.dec()
             state.training = False
             state.last_activity = time.monotonic()
-        output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns)
+        output = state.install_trained(labeler, rate, msg, out, recv_ns, label_ns, handover)
+        if state.handover_due():
+            self._start_handover(state)
         if state.status != "online":
             state.status = "online"
             await self._status(state.name, "online")

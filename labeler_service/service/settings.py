@@ -155,9 +155,10 @@ class StreamSettings(_Section):
     #: which re-finds markers the labeler loses at low rates (``evaluate --labeled-start
     #: model``; docs/service.md "The labeled start through a window model"); ``auto``:
     #: ``model`` where it applies (the online labeler, 3 or more init frames, subject:marker
-    #: labels), else ``labeler`` (logged). The default is ``labeler``, unlike ``evaluate``'s
-    #: ``auto``: in a stream the window model's training stalls the frames longer, and at 10
-    #: people and 360 Hz the frames dropped meanwhile lost 8 of 10 subjects (docs/service.md).
+    #: labels), else ``labeler`` (logged). The window start trains the plain labeler first and
+    #: hands over to the window labeler once it is trained and caught up off the loop
+    #: (``service/handover.py``). The default is ``labeler``, unlike ``evaluate``'s ``auto``:
+    #: on a loaded machine the window labeler still costs latency (docs/service.md).
     labeled_start: Literal["auto", "labeler", "model"] = "labeler"
 
     @field_validator("name")
@@ -229,6 +230,10 @@ class ServiceSettings(BaseSettings):
     #: ``service/boot_worker.py``; the attempt's Python no longer holds the frame path's GIL)
     #: or ``thread`` (a background thread of the service, as before; no extra process).
     boot_worker: Literal["process", "thread"] = "process"
+    #: Where the window start's handover trains its window model (``labeled_start``):
+    #: ``process`` (default: a ``spawn`` child per handover, which costs its imports, a few
+    #: seconds, but holds none of the frame path's GIL) or ``thread`` (the handover's job).
+    window_worker: Literal["process", "thread"] = "process"
     #: The boot's tunables (``labeler_service.labeling.boot_config.BootConfig``).
     boot_config: BootConfig = Field(default_factory=BootConfig)
     #: Restart rule (docs/service.md): a seq step beyond this, forward or back, is a jump.

@@ -19,6 +19,18 @@ model); an unlabeled one continues with the current labeler, time re-based so th
 one frame period across the jump, unless ``t`` jumped: then (a gap of unknown length) the
 stream recovers by boot (below) when its labeler has a model.
 
+**The window start** (``labeled_start`` ``auto`` where it applies, or ``model``): the server's
+training job (:meth:`StreamState.train_staged`) trains the plain labeler, as the ``labeler``
+start does, and returns a :class:`~labeler_service.service.handover.Handover`; frames flow at
+once, each one recorded after the plain labeler labeled it. The window model, its booting
+labeler and the catch-up on the recorded frames run off the event loop
+(:meth:`StreamState.handover_job`, through the same ``Background``); the next frame after the
+job installs the window labeler (:meth:`StreamState._install_handover`: the frames recorded
+since the job ended, normally 0-2, fed on the frame path, more sent back for another job). A
+new run, a recovery, another install or the stream's removal abandon it (the plain labeler
+stays). :meth:`StreamState.train` (in-process use, :meth:`StreamState.process`) still builds
+the window labeler at once.
+
 Limits (counted by the server when hit): ``max_init_frames`` and ``max_init_bytes`` of buffered
 init frames (``init_overflow``), ``max_markers`` distinct labels (``marker_cap``). Training runs
 off the event loop through :class:`~labeler_service.service.background.Background`
@@ -82,7 +94,18 @@ from labeler_service.labeling.registry import (
 )
 from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
+from labeler_service.service.background import run_in_process
 from labeler_service.service.continuity import ACCEPT, Continuity, Verdict
+from labeler_service.service.handover import (
+    CATCH_UP_HZ,
+    HANDOVER_LEFT_MAX,
+    MAX_ROUNDS,
+    SLICE_S,
+    TAIL_ROUNDS,
+    TAIL_S,
+    Handover,
+    catch_up_plan,
+)
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
 
@@ -271,6 +294,13 @@ class StreamState:
         #: the init frames its model was trained on; None for any other start. A recovery
         #: boots from that model and hands back to such a labeler.
         self.window_frames: int | None = None
+        #: the window start in progress (:mod:`~labeler_service.service.handover`): the plain
+        #: labeler labels while the window labeler trains off the loop; None otherwise
+        self.handover: Handover | None = None
+        self.handovers = 0  # window labelers that took over from the plain labeler
+        self.handovers_abandoned = 0  # handovers given up (new run, recovery, failure)
+        #: the handover trains its window model in a child process (``window_worker``)
+        self.window_in_process = False
         # health
         self.status = "online"
         #: the stream has labeled: a subject of its booting labeler was booted, or a labeler
@@ -354,6 +384,7 @@ class StreamState:
         self._install(labeler, rate)
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
+        self.abandon_handover("another labeler was installed")
         self.labeler = labeler
         self._labels_seen = False  # a labeled frame reached this labeler
         self._warned_unknown = False  # labels naming no marker of the stream were logged
@@ -415,9 +446,13 @@ class StreamState:
         self._t_last = t_last
         self._rebase = True
 
-    def _labeler_for(self, init: InitWindow) -> tuple[FrameLabeler, float, np.ndarray]:
-        """A new labeler for the init window's markers (subject-grouped), its rate, and the
-        remap from the window's label indices to the labeler's markers (``-1`` stays ``-1``)."""
+    def _labeler_for(
+        self, init: InitWindow, staged: bool = False
+    ) -> tuple[FrameLabeler, float, np.ndarray, bool]:
+        """A new labeler for the init window's markers (subject-grouped), its rate, the remap
+        from the window's label indices to the labeler's markers (``-1`` stays ``-1``), and
+        whether a window start was deferred: with ``staged`` the window start's labeler is the
+        plain one, the window labeler comes later (:mod:`~labeler_service.service.handover`)."""
         # a *N label is a ghost point (DESIGN.md): it stays unlabeled, never becomes a marker
         names = group_by_subject([n for n in init.names if not is_ghost(n)])
         if not names:
@@ -443,7 +478,8 @@ class StreamState:
         )
         if why is not None:
             log.info("stream %s: labeled start: the labeler trained in place (%s)", self.name, why)
-        if start == "model":
+        deferred = start == "model" and staged
+        if start == "model" and not staged:
             labeler = self._window_labeler(init, names, rate)
             names = tuple(labeler.marker_names)
         else:
@@ -455,10 +491,10 @@ class StreamState:
             )
         index = {n: i for i, n in enumerate(names)}
         remap = np.array([index.get(n, -1) for n in init.names] + [-1], dtype=np.int32)
-        return labeler, rate, remap
+        return labeler, rate, remap, deferred
 
     def _window_labeler(
-        self, init: InitWindow, names: tuple[str, ...], rate: float
+        self, init: InitWindow, names: tuple[str, ...], rate: float, cancel=None
     ) -> FrameLabeler:
         """``labeled_start = "model"``: subject templates trained on the init window (its
         frames as a capture, ``train structure``'s trainer), and the booting labeler from them
@@ -471,8 +507,15 @@ class StreamState:
             c = to_col[idx]  # -1 (unlabeled) picks the last entry, -1
             pos[k, c[c >= 0]] = f.points[c >= 0]
         window = Capture(pos, names, rate, source=f"stream {self.name} init window")
+        if self.window_in_process:
+            # its Python holds a child process's GIL, not the frame path's (~1-2 s at 10
+            # people: labeling p99 0.6-1.9 -> 12-17 ms beside it in a thread, loaded machine)
+            model = run_in_process(window_model, window, cancel=cancel,
+                                   name=f"window-model-{self.name}")  # fmt: skip
+        else:
+            model = window_model(window)
         labeler = make_window_labeler(
-            window_model(window),
+            model,
             rate=rate,
             window_frames=len(init.frames),
             config=self.settings.labeler_config,
@@ -489,7 +532,22 @@ class StreamState:
         Returns ``(labeler, rate, labeled first frame, labeling ns)``; touches no state, so an
         abandoned job leaves the stream as it was. ``cancel`` (an Event) stops it between
         frames."""
-        labeler, rate, remap = self._labeler_for(init)
+        labeler, rate, out, label_ns, _ = self._train(init, first, cancel, staged=False)
+        return labeler, rate, out, label_ns
+
+    def train_staged(
+        self, init: InitWindow, first: FrameMsg, cancel=None
+    ) -> tuple[FrameLabeler, float, LabeledFrame, int, Handover | None]:
+        """The server's training job: as :meth:`train`, but a window start trains the plain
+        labeler (the ``labeler`` start's short stall) and returns with it the
+        :class:`Handover` that trains the window labeler off the loop afterwards
+        (:meth:`handover_job`); None for any other start."""
+        return self._train(init, first, cancel, staged=True)
+
+    def _train(
+        self, init: InitWindow, first: FrameMsg, cancel, staged: bool
+    ) -> tuple[FrameLabeler, float, LabeledFrame, int, Handover | None]:
+        labeler, rate, remap, deferred = self._labeler_for(init, staged)
         for f, idx in zip(init.frames, init.idx, strict=True):
             if cancel is not None and cancel.is_set():
                 raise LabelerError(f"stream {self.name}: training cancelled")
@@ -497,7 +555,13 @@ class StreamState:
         t0 = time.perf_counter_ns()
         out = labeler.process(first.points, first.t, None)
         _off_the_loop(labeler)  # (labeled_start = "model": from now on, as a model stream's)
-        return labeler, rate, out, time.perf_counter_ns() - t0
+        label_ns = time.perf_counter_ns() - t0
+        handover = None
+        if deferred:
+            handover = Handover(init, tuple(labeler.marker_names), rate)
+            # the first frame is the first one the window labeler catches up on
+            handover.record(first.points, first.t)
+        return labeler, rate, out, label_ns, handover
 
     def take_init(self) -> InitWindow:
         """Hands the buffered init frames to a training job and empties the buffer."""
@@ -510,13 +574,149 @@ class StreamState:
 
     def install_trained(
         self, labeler: FrameLabeler, rate: float, first: FrameMsg, out: LabeledFrame,
-        recv_ns: int, label_ns: int,
+        recv_ns: int, label_ns: int, handover: Handover | None = None,
     ) -> Output:  # fmt: skip
-        """Installs a labeler from :meth:`train` and encodes its first labeled frame."""
+        """Installs a labeler from :meth:`train` (or :meth:`train_staged`, with its
+        ``handover``) and encodes its first labeled frame."""
         self._install(labeler, rate)
         self._t_offset = 0.0
         self._t_last = first.t
+        if handover is not None:
+            handover.plain = labeler
+            self.handover = handover
+            log.info("stream %s: labeling with the labeler trained in place while the init "
+                     "window's model trains off the frame path", self.name)  # fmt: skip
         return self.encode(first, out, recv_ns, label_ns)
+
+    # --------------------------------------------------------------------- handover
+    def handover_due(self) -> bool:
+        """Cheap: True when the handover needs a job (the first, or another catch-up round
+        because the last one left too many frames)."""
+        h = self.handover
+        return (
+            h is not None
+            and not h.inflight
+            and (h.labeler is None or h.again)
+            and not (h.ready or h.abandoned)
+        )
+
+    def handover_job(self, h: Handover, cancel: threading.Event | None = None) -> int:
+        """The heavy part of the handover (runs off the event loop; touches no stream state,
+        only ``h``): the first time, the window model trained on the init window and the
+        window labeler built from it and fed the window with its labels (as :meth:`train`);
+        then the catch-up on the frames the plain labeler labeled since (module docstring of
+        :mod:`~labeler_service.service.handover`). Returns the frames fed; raises
+        :class:`LabelerError` when abandoned or behind the record."""
+
+        def check() -> None:
+            if h.abandoned or (cancel is not None and cancel.is_set()):
+                raise LabelerError(f"stream {self.name}: handover abandoned")
+
+        if h.labeler is None:
+            assert h.init is not None
+            lab = self._window_labeler(h.init, h.names, h.rate, cancel or h.cancel)
+            column = {n: i for i, n in enumerate(lab.marker_names)}
+            remap = np.array([column.get(n, -1) for n in h.init.names] + [-1], dtype=np.int32)
+            for f, idx in zip(h.init.frames, h.init.idx, strict=True):
+                check()
+                lab.process(f.points, f.t, remap[idx])
+            h.init = None  # (its frames are the model's now)
+            h.labeler = lab
+        lab = h.labeler
+        h.more = False
+        until = time.perf_counter() + SLICE_S
+        stride = max(1, int(h.rate // CATCH_UP_HZ))
+        tail = max(2, int(round(TAIL_S * h.rate)))
+        fed = rounds = 0
+        waited = False
+        while rounds < MAX_ROUNDS:
+            check()
+            pending = h.pending()
+            if pending is None:
+                raise LabelerError(
+                    f"stream {self.name}: the window labeler fell more than the recorded "
+                    "frames behind the stream; handover abandoned"
+                )
+            if not pending:
+                # wait (two frame periods at most) for the next frame and label it too, so
+                # the result arrives just after a frame and the swap rarely finds one left
+                if waited or not h.wait_for_frame(2.0 / h.rate):
+                    break
+                waited = True
+                continue
+            plan = catch_up_plan(len(pending), stride, tail if rounds < TAIL_ROUNDS else 0)
+            for i in plan:
+                check()
+                p, t = pending[i]
+                lab.process(p, t, None)
+            fed += len(plan)
+            h.done += len(pending)
+            rounds += 1
+            if time.perf_counter() > until and h.received - h.done > HANDOVER_LEFT_MAX:
+                h.more = True  # the slot goes to other jobs; the server runs the next slice
+                break
+        _off_the_loop(lab)  # from now on boot and extension are the server's (frame thread)
+        h.rounds += 1
+        return fed
+
+    def handover_done(self, h: Handover, ok: bool, why: str = "") -> None:
+        """Hands a finished job to the next :meth:`process` (``ok``) or abandons the handover
+        (a failure or over budget: the plain labeler stays)."""
+        h.inflight = False
+        if h is not self.handover:
+            return
+        if ok:
+            h.ready = True
+        else:
+            self.abandon_handover(why or "its job failed")
+
+    def abandon_handover(self, why: str) -> None:
+        """Gives the handover up (the plain labeler stays); its job stops at its next frame."""
+        h, self.handover = self.handover, None
+        if h is None:
+            return
+        h.cancel.set()
+        self.handovers_abandoned += 1
+        log.info("stream %s: the window start's handover abandoned (%s); the labeler trained "
+                 "in place stays", self.name, why)  # fmt: skip
+
+    def _install_handover(self) -> None:
+        """At a frame boundary (before the frame is labeled): the window labeler is fed the
+        frames recorded since its job ended and replaces the plain labeler; with more than
+        ``HANDOVER_LEFT_MAX`` left it goes back for another round off the loop."""
+        h = self.handover
+        assert h is not None and h.ready
+        h.ready = False
+        if self.labeler is not h.plain or h.labeler is None:
+            self.abandon_handover("the stream's labeler changed")
+            return
+        pending = h.pending()
+        if pending is None:
+            self.abandon_handover("the window labeler fell behind the recorded frames")
+            return
+        if len(pending) > HANDOVER_LEFT_MAX:
+            h.again = True
+            return
+        lab = h.labeler
+        for p, t in pending:
+            lab.process(p, t, None)
+        self.handover = None
+        self.window_frames = lab.window_frames if isinstance(lab, BootingLabeler) else None
+        self._boot_result = None
+        self.boot_inflight = False
+        self._handback.clear()
+        self.recovering = False
+        self.labeler = lab
+        if tuple(lab.marker_names) != self.names:  # (the window model's order differs)
+            self.names = tuple(lab.marker_names)
+            self._index = {n: i for i, n in enumerate(self.names)}
+        self.bodies = rigid_bodies(lab, self.names)
+        self.model_id += 1  # the window model's bodies (and marker order) for the view
+        self.model_payload = self._encode_model()
+        self.handovers += 1
+        log.info("stream %s: the init window's model took over from the labeler trained in "
+                 "place (%d catch-up rounds, %d frames at the swap)", self.name, h.rounds,
+                 len(pending))  # fmt: skip
 
     def _label_indices(self, f: FrameMsg) -> np.ndarray | None:
         """The frame's labels as indices into the stream's marker names; ``None`` when it
@@ -601,6 +801,7 @@ class StreamState:
         references to the state that outlive it (a cancelled worker's frame, an abandoned job)
         then hold nothing large."""
         self.take_init()
+        self.abandon_handover("the stream was removed")
         self.labeler = None
         self._boot_result = None
         self._handback.clear()
@@ -609,6 +810,7 @@ class StreamState:
     def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
         """Applies a new run (see the module docstring) before ``f`` is processed."""
         self.runs += 1
+        self.abandon_handover(f"new run {self.runs}")
         if f.labels is not None:
             log.info("stream %s: new run %d with labeled init frames: retraining", self.name,
                      self.runs)  # fmt: skip
@@ -663,6 +865,7 @@ class StreamState:
         model = self.recovery_model()
         if model is None or self.rate is None:
             return False
+        self.abandon_handover(f"recovery: {why}")
         lab = self._factory(self.settings.labeler, rate=self.rate, model=model,
                             config=self.settings.labeler_config,
                             boot=self.settings.boot_config)  # fmt: skip
@@ -754,11 +957,18 @@ class StreamState:
             # frame (labeler_error); boot the performers from the model instead
             self.start_recovery("frames without labels and boot = false (no labeled frame to "
                                 "start from)")  # fmt: skip
+        if self.handover is not None and self.handover.ready:
+            self._install_handover()
+            if labels is not None and f.labels is not None:
+                labels = self._label_indices(f)  # (the window model's marker order)
         lab = self.labeler
         n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, labels)
+        h = self.handover
+        if h is not None and lab is h.plain:
+            h.record(f.points, t)
         if isinstance(lab, BootingLabeler) and lab.events.total > n_events:
             self.verify_events = tuple(
                 (kind, name)

@@ -77,7 +77,7 @@ def _wrong_and_first_full(msgs, names, cap, start):
     return wrong / max(given, 1), first
 
 
-def _gap_run(cfg, init: int):
+def _gap_run(cfg, init: int, handover: bool = False):
     cap = _scene()
     back = _displaced(cap)
     before = payloads(cap, np.random.default_rng(0), init, frames=range(0, BEFORE))
@@ -88,7 +88,15 @@ def _gap_run(cfg, init: int):
     async def go():
         mem = MemoryTransport()
         async with Server(cfg, [mem]) as srv:
-            await _feed(mem, before, 0.0005)
+            if handover:  # the window start: its window labeler takes over before the gap
+                await _feed(mem, before[:-5], 0.0005)
+                async with asyncio.timeout(120.0):
+                    while (h := srv.streams["default"].handover) is None or not h.ready:
+                        await asyncio.sleep(0.01)
+                before_rest = before[-5:]
+            else:
+                before_rest = before
+            await _feed(mem, before_rest, 0.0005)
             await collect(srv, mem, quiet=0.1)
             await _feed(mem, after, 1.0 / cap.rate)  # a live sender
             msgs = await collect(srv, mem)
@@ -120,7 +128,7 @@ def _check_recovered(back, srv, mem, msgs):
 @pytest.mark.parametrize("start", ["labeler", "model"])
 def test_a_stream_trained_from_init_frames_reboots_after_a_gap_with_performers_displaced(start):
     cfg = settings(streams=[{"name": "default", "labeled_start": start}])
-    cap, back, srv, mem, msgs = _gap_run(cfg, INIT)
+    cap, back, srv, mem, msgs = _gap_run(cfg, INIT, handover=start == "model")
     _check_recovered(back, srv, mem, msgs)
     assert (srv.streams["default"].window_frames == INIT) == (start == "model")
     assert srv.metrics.drops("time_jump") == 2  # run_confirm_frames - 1
