@@ -91,6 +91,7 @@ from labeler_service.labeling.registry import (
     make_labeler,
     make_window_labeler,
     resolve_labeled_start,
+    thin_subjects,
 )
 from labeler_service.labeling.structure import window_model
 from labeler_service.labeling.templates import LabelerModel
@@ -466,6 +467,8 @@ class StreamState:
                 f"stream {self.name}: label {empty[0]!r} has an empty subject name: send "
                 "subject:marker or a bare marker name"
             )
+        for note in thin_subjects(names, self.settings.labeler_config.presence_min_markers):
+            log.warning("stream %s: %s", self.name, note)
         rate = self._estimate_rate(init.frames)
         labeler: FrameLabeler
         start, why = resolve_labeled_start(

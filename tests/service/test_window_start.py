@@ -199,3 +199,15 @@ def test_the_ready_line_says_which_labeled_start_ran(rng, caplog, labeled_start)
         state.install_trained(labeler, rate, first, out, 0, ns)
     (line,) = [r.getMessage() for r in caplog.records if "labeler ready" in r.getMessage()]
     assert ("through the init window's model" in line) == (labeled_start == "model"), line
+
+
+def test_a_subject_of_too_few_markers_is_named_in_the_log(rng, caplog):
+    """A stream whose labels give a subject fewer markers than the presence check needs logs
+    it once, at training (that subject is never labeled: not silent)."""
+    import logging
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.stream")
+    names = ["A:m0", "A:m1", "A:m2", "B:p", "B:q"]
+    _train(names, "labeler", rng)
+    assert "stream vol: subject B has 2 markers, fewer than the 3" in caplog.text
+    assert "subject A" not in caplog.text
