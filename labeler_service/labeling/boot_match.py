@@ -1476,10 +1476,13 @@ def _complete(
     hist: np.ndarray,
     taken: np.ndarray,
     config: BootConfig,
+    reread: bool = False,
 ) -> np.ndarray:
     """Adds markers to a placed subject ``assign`` from free points near it: body candidates
     (other segments, linked through articulated pairs) and trilateration. Markers already
-    placed stay; new ones must pass the distance constancy along the tracks."""
+    placed stay; new ones must pass the distance constancy along the tracks. With ``reread``,
+    a completion refused for a reversed chirality quadruple may read the new markers'
+    segments again, moving placed markers (:func:`_chiral_reread`)."""
     have = np.flatnonzero(assign >= 0)
     if have.size == 0:
         return assign
@@ -1529,8 +1532,60 @@ def _complete(
     out[loose] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
-        return assign
+        return _chiral_reread(tpl, assign, out, new, pts) if reread else assign
     return out
+
+
+def _changed_reversed(tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: np.ndarray) -> bool:
+    """Does the reading ``out`` of ``assign`` reverse a thick chirality quadruple holding a
+    marker it places on another point (:func:`_fill_reversed`)?"""
+    changed = np.flatnonzero((out >= 0) & (out != assign))
+    if changed.size == 0:
+        return False
+    base = out.copy()
+    base[changed] = -1
+    return bool(_fill_reversed(tpl, base, pts, changed[None], out[changed][None])[0])
+
+
+def _chiral_reread(
+    tpl: _Template, assign: np.ndarray, out: np.ndarray, new: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
+    """A completion ``out`` of ``assign`` refused because a new marker reverses a thick
+    chirality quadruple (:func:`_complete`) says, when the new marker is where it should be,
+    that the markers placed beside it are a mirror reading: a plate of four markers symmetric
+    about the body's plane (a pelvis, ASIS and PSIS left and right) booted with one marker
+    hidden is three markers with no handedness, read left for right as well as right; every
+    distance fits, and the fourth marker, when it shows, can only join mirrored too. So each
+    segment (:func:`_segments`) holding a new marker and an old one is read again on its
+    points (:func:`_segment_readings`: the maps that keep the distances of one trained body);
+    the reading that reverses no thick quadruple with a marker it moves, and fits the rest of
+    the subject within ``EXCHANGE_MARGIN`` of the refused one (a mirror keeps every
+    distance), is taken, the lowest :func:`_pair_error` first. Returns ``assign`` when none
+    is found (nothing placed, nothing moved)."""
+    old = assign >= 0
+    for seg in tpl.segments:
+        if not np.isin(new, seg).any() or not np.any(old[seg]):
+            continue
+        placed, options = _segment_readings(tpl, seg, out, pts)
+        if not options:
+            continue
+        points = out[placed]
+        base = out.copy()
+        base[placed] = -1
+        now = _pair_error(tpl, placed, points, base, pts)
+        best, best_err = None, math.inf
+        for mk in options:
+            err = _pair_error(tpl, mk, points, base, pts)
+            if err > now + EXCHANGE_MARGIN or err >= best_err:
+                continue
+            alt = base.copy()
+            alt[mk] = points
+            if _changed_reversed(tpl, assign, alt, pts):
+                continue
+            best, best_err = alt, err
+        if best is not None:
+            return best
+    return assign
 
 
 #: Rounds of :func:`_complete_weak` (each releases the weak markers the last one left).
@@ -1558,7 +1613,7 @@ def _complete_weak(
     nothing rigid ties it to the rest, a hugging partner's hand read as this performer's) is
     released alone, under the same test with each reading judged against its own rest
     (:func:`_evidence`). Markers may move: the caller carries the moves."""
-    grown = _complete(tpl, assign, pts, hist, taken, config)
+    grown = _complete(tpl, assign, pts, hist, taken, config, reread=True)
     for _ in range(WEAK_ROUNDS):
         if np.all(grown >= 0):
             break
