@@ -1547,6 +1547,17 @@ def _changed_reversed(tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: 
     return bool(_fill_reversed(tpl, base, pts, changed[None], out[changed][None])[0])
 
 
+def _held(tpl: _Template, out: np.ndarray, m: int, old: np.ndarray, pts: np.ndarray) -> int:
+    """How many pairs of one trained body (``strict``) tie marker ``m`` of ``out`` to the
+    markers ``old`` placed before, within their tolerance."""
+    o = np.flatnonzero(old & (out >= 0) & tpl.strict[m])
+    o = o[o != m]
+    if out[m] < 0 or o.size == 0:
+        return 0
+    d = np.linalg.norm(pts[out[o]] - pts[out[m]], axis=1)
+    return int(np.count_nonzero(np.abs(d - tpl.D[m, o]) <= tpl.tol[m, o]))
+
+
 def _chiral_reread(
     tpl: _Template, assign: np.ndarray, out: np.ndarray, new: np.ndarray, pts: np.ndarray
 ) -> np.ndarray:
@@ -1558,13 +1569,23 @@ def _chiral_reread(
     distance fits, and the fourth marker, when it shows, can only join mirrored too. So each
     segment (:func:`_segments`) holding a new marker and an old one is read again on its
     points (:func:`_segment_readings`: the maps that keep the distances of one trained body);
-    the reading that reverses no thick quadruple with a marker it moves, and fits the rest of
-    the subject within ``EXCHANGE_MARGIN`` of the refused one (a mirror keeps every
-    distance), is taken, the lowest :func:`_pair_error` first. Returns ``assign`` when none
-    is found (nothing placed, nothing moved)."""
+    the reading that reverses no thick quadruple with a marker it moves, keeps every new
+    marker placed and fits the rest of the subject within ``EXCHANGE_MARGIN`` of the refused
+    one (a mirror keeps every distance), is taken, the lowest :func:`_pair_error` first. Only
+    when each new marker of the segment is tied to the markers placed before by more than
+    ``WEAK_SUPPORT`` pairs of one trained body (:func:`_held`): the new marker is then where
+    the old reading says, and the side is what is wrong; a new marker tied by one pair may be
+    on the wrong point itself (a hand marker on its neighbour's in the labeled start of
+    tune11: reading the wrist segment again there moved four right labels). Returns
+    ``assign`` when none is found (nothing placed, nothing moved)."""
     old = assign >= 0
     for seg in tpl.segments:
         if not np.isin(new, seg).any() or not np.any(old[seg]):
+            continue
+        mine = new[np.isin(new, seg)]
+        if any(_held(tpl, out, int(m), old, pts) <= WEAK_SUPPORT for m in mine):
+            # a new marker weakly tied to the placed ones may itself be on the wrong point
+            # (a hand marker on its neighbour's, tune11 labeled start): not a mirror
             continue
         placed, options = _segment_readings(tpl, seg, out, pts)
         if not options:
@@ -1580,7 +1601,7 @@ def _chiral_reread(
                 continue
             alt = base.copy()
             alt[mk] = points
-            if _changed_reversed(tpl, assign, alt, pts):
+            if np.any(alt[new] < 0) or _changed_reversed(tpl, assign, alt, pts):
                 continue
             best, best_err = alt, err
         if best is not None:
