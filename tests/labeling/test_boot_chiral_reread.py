@@ -52,8 +52,8 @@ def test_the_mirror_completion_is_refused_and_read_again(walk):
 def test_a_right_reading_is_not_moved(walk):
     """The plate read right with LASI hidden: a completion putting LASI on its own point
     reverses nothing, so there is nothing to read again; offered a refused completion anyway
-    (LASI on a point of another body), no reading of the plate avoids the reversal and fits,
-    and nothing is placed or moved."""
+    (LASI on a point of another body, tied to the plate by no rigid pair: the new marker may
+    be the one off), nothing is placed or moved."""
     from labeler_service.labeling.boot_match import _chiral_reread, _fill_reversed
 
     tpl, ix, pts, _, _ = _mirrored(walk)
