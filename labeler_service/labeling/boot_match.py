@@ -2103,7 +2103,19 @@ def _fill_jointly(
     top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
     ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]], stale)
     if not ok[0]:
-        return None
+        # the cheapest map reversed, and unique: its segments read again (a plate placed
+        # mirrored leaves its own fourth marker only the mirror point, :func:`_chiral_reread`)
+        if top.size > 1 and total[top[1]] <= total[top[0]] + margin:
+            return None
+        out = base.copy()
+        marks = miss[mk[top[0]]]
+        out[marks] = cand[pt[top[0]]]
+        got = _chiral_reread(tpl, base, out, marks, pts)
+        if np.array_equal(got, base) or not _fill_checks(
+            tpl, assign, got, have, pts, hist, stale, config
+        ):
+            return None
+        return got
     best = int(top[np.argmax(ok)])
     if top.size < total.size and total[top[-1]] <= total[best] + margin:
         return None  # rivals beyond the maps judged: wait for more evidence
