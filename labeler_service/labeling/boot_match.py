@@ -1476,10 +1476,13 @@ def _complete(
     hist: np.ndarray,
     taken: np.ndarray,
     config: BootConfig,
+    reread: bool = False,
 ) -> np.ndarray:
     """Adds markers to a placed subject ``assign`` from free points near it: body candidates
     (other segments, linked through articulated pairs) and trilateration. Markers already
-    placed stay; new ones must pass the distance constancy along the tracks."""
+    placed stay; new ones must pass the distance constancy along the tracks. With ``reread``,
+    a completion refused for a reversed chirality quadruple may read the new markers'
+    segments again, moving placed markers (:func:`_chiral_reread`)."""
     have = np.flatnonzero(assign >= 0)
     if have.size == 0:
         return assign
@@ -1529,8 +1532,81 @@ def _complete(
     out[loose] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
-        return assign
+        return _chiral_reread(tpl, assign, out, new, pts) if reread else assign
     return out
+
+
+def _changed_reversed(tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: np.ndarray) -> bool:
+    """Does the reading ``out`` of ``assign`` reverse a thick chirality quadruple holding a
+    marker it places on another point (:func:`_fill_reversed`)?"""
+    changed = np.flatnonzero((out >= 0) & (out != assign))
+    if changed.size == 0:
+        return False
+    base = out.copy()
+    base[changed] = -1
+    return bool(_fill_reversed(tpl, base, pts, changed[None], out[changed][None])[0])
+
+
+def _held(tpl: _Template, out: np.ndarray, m: int, old: np.ndarray, pts: np.ndarray) -> int:
+    """How many pairs of one trained body (``strict``) tie marker ``m`` of ``out`` to the
+    markers ``old`` placed before, within their tolerance."""
+    o = np.flatnonzero(old & (out >= 0) & tpl.strict[m])
+    o = o[o != m]
+    if out[m] < 0 or o.size == 0:
+        return 0
+    d = np.linalg.norm(pts[out[o]] - pts[out[m]], axis=1)
+    return int(np.count_nonzero(np.abs(d - tpl.D[m, o]) <= tpl.tol[m, o]))
+
+
+def _chiral_reread(
+    tpl: _Template, assign: np.ndarray, out: np.ndarray, new: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
+    """A completion ``out`` of ``assign`` refused because a new marker reverses a thick
+    chirality quadruple (:func:`_complete`) says, when the new marker is where it should be,
+    that the markers placed beside it are a mirror reading: a plate of four markers symmetric
+    about the body's plane (a pelvis, ASIS and PSIS left and right) booted with one marker
+    hidden is three markers with no handedness, read left for right as well as right; every
+    distance fits, and the fourth marker, when it shows, can only join mirrored too. So each
+    segment (:func:`_segments`) holding a new marker and an old one is read again on its
+    points (:func:`_segment_readings`: the maps that keep the distances of one trained body);
+    the reading that reverses no thick quadruple with a marker it moves, keeps every new
+    marker placed and fits the rest of the subject within ``EXCHANGE_MARGIN`` of the refused
+    one (a mirror keeps every distance), is taken, the lowest :func:`_pair_error` first. Only
+    when each new marker of the segment is tied to the markers placed before by more than
+    ``WEAK_SUPPORT`` pairs of one trained body (:func:`_held`): the new marker is then where
+    the old reading says, and the side is what is wrong; a new marker tied by one pair may be
+    on the wrong point itself (a hand marker on its neighbour's in the labeled start of
+    tune11: reading the wrist segment again there moved four right labels). Returns
+    ``assign`` when none is found (nothing placed, nothing moved)."""
+    old = assign >= 0
+    for seg in tpl.segments:
+        if not np.isin(new, seg).any() or not np.any(old[seg]):
+            continue
+        mine = new[np.isin(new, seg)]
+        if any(_held(tpl, out, int(m), old, pts) <= WEAK_SUPPORT for m in mine):
+            # a new marker weakly tied to the placed ones may itself be on the wrong point
+            # (a hand marker on its neighbour's, tune11 labeled start): not a mirror
+            continue
+        placed, options = _segment_readings(tpl, seg, out, pts)
+        if not options:
+            continue
+        points = out[placed]
+        base = out.copy()
+        base[placed] = -1
+        now = _pair_error(tpl, placed, points, base, pts)
+        best, best_err = None, math.inf
+        for mk in options:
+            err = _pair_error(tpl, mk, points, base, pts)
+            if err > now + EXCHANGE_MARGIN or err >= best_err:
+                continue
+            alt = base.copy()
+            alt[mk] = points
+            if np.any(alt[new] < 0) or _changed_reversed(tpl, assign, alt, pts):
+                continue
+            best, best_err = alt, err
+        if best is not None:
+            return best
+    return assign
 
 
 #: Rounds of :func:`_complete_weak` (each releases the weak markers the last one left).
@@ -1558,7 +1634,7 @@ def _complete_weak(
     nothing rigid ties it to the rest, a hugging partner's hand read as this performer's) is
     released alone, under the same test with each reading judged against its own rest
     (:func:`_evidence`). Markers may move: the caller carries the moves."""
-    grown = _complete(tpl, assign, pts, hist, taken, config)
+    grown = _complete(tpl, assign, pts, hist, taken, config, reread=True)
     for _ in range(WEAK_ROUNDS):
         if np.all(grown >= 0):
             break
@@ -2027,7 +2103,19 @@ def _fill_jointly(
     top = np.argsort(total, kind="stable")[:FILL_CHIRAL_TOP]
     ok = ~_fill_reversed(tpl, base, pts, miss[mk[top]], cand[pt[top]], stale)
     if not ok[0]:
-        return None
+        # the cheapest map reversed, and unique: its segments read again (a plate placed
+        # mirrored leaves its own fourth marker only the mirror point, :func:`_chiral_reread`)
+        if top.size > 1 and total[top[1]] <= total[top[0]] + margin:
+            return None
+        out = base.copy()
+        marks = miss[mk[top[0]]]
+        out[marks] = cand[pt[top[0]]]
+        got = _chiral_reread(tpl, base, out, marks, pts)
+        if np.array_equal(got, base) or not _fill_checks(
+            tpl, assign, got, have, pts, hist, stale, config
+        ):
+            return None
+        return got
     best = int(top[np.argmax(ok)])
     if top.size < total.size and total[top[-1]] <= total[best] + margin:
         return None  # rivals beyond the maps judged: wait for more evidence
