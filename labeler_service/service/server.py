@@ -145,13 +145,19 @@ def warm_up(kind: str, config, factory: LabelerFactory = make_labeler) -> float:
     t0 = time.perf_counter()
     names, frames = synthetic_warmup_frames()
     labeler = factory(kind, marker_names=names, rate=120.0, config=config)
+    _feed_warmup(labeler, frames, f"labeler warm-up failed ({kind})")
+    return time.perf_counter() - t0
+
+
+def _feed_warmup(labeler, frames, failed: str) -> None:
+    """Warms ``labeler`` up and feeds it the synthetic ``frames``; a failure is a
+    :class:`LabelerError` starting with ``failed``."""
     labeler.warmup()
     try:
         for points, t, labels in frames:
             labeler.process(points, t, labels)
     except Exception as exc:
-        raise LabelerError(f"labeler warm-up failed ({kind}): {exc}") from exc
-    return time.perf_counter() - t0
+        raise LabelerError(f"{failed}: {exc}") from exc
 
 
 def window_starts(settings: ServiceSettings) -> bool:
@@ -181,12 +187,7 @@ def warm_up_window_start(config) -> float:
         pos[k, lab[lab >= 0]] = p[lab >= 0]
     model = window_model(Capture(pos, names, 120.0, source="warm-up"))
     labeler = make_window_labeler(model, rate=120.0, window_frames=len(labeled), config=config)
-    labeler.warmup()
-    try:
-        for points, t, given in frames:
-            labeler.process(points, t, given)
-    except Exception as exc:
-        raise LabelerError(f"window start warm-up failed: {exc}") from exc
+    _feed_warmup(labeler, frames, "window start warm-up failed")
     return time.perf_counter() - t0
 
 

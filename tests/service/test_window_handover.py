@@ -189,6 +189,13 @@ async def _feed(
     await asyncio.sleep(1.0 / RATE)  # (the job's thread gets the GIL as a live source allows)
 
 
+def _inject_init(mem: MemoryTransport, frames) -> None:
+    """The stream's labeled init frames, into the service's input."""
+    for f in range(INIT):
+        mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f],
+                                list(_labels(frames, f))))  # fmt: skip
+
+
 def _statuses(mem: MemoryTransport) -> list[str]:
     return [decode(p).state for s, kind, p, _ in mem.sent if kind == "status" and s == "vol"]
 
@@ -197,9 +204,7 @@ def test_a_service_stream_hands_over_without_losing_a_frame(frames):
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(), [mem]) as srv:
-            for f in range(INIT):
-                mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f],
-                                        list(_labels(frames, f))))  # fmt: skip
+            _inject_init(mem, frames)
             f = INIT
             st = srv.streams["vol"]
             while st.handovers == 0:
@@ -245,9 +250,7 @@ def test_a_new_labeled_run_while_the_window_model_trains_abandons_it(frames, mon
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(), [mem]) as srv:
-            for f in range(INIT):
-                mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f],
-                                        list(_labels(frames, f))))  # fmt: skip
+            _inject_init(mem, frames)
             for f in range(INIT, INIT + 10):
                 await _feed(srv, mem, frames, f)
             st = srv.streams["vol"]
