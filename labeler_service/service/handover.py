@@ -136,6 +136,22 @@ class Handover:
         return True
 
 
+class AnyOf:
+    """Set when any of its events is: what
+    :func:`~labeler_service.service.background.run_in_process` watches (``is_set``) for "stop".
+    The handover's job stops on its budget
+    (the :class:`~labeler_service.service.background.Background` job's event) *or* on the
+    handover's abandonment (:attr:`Handover.cancel`: the stream removed or expired, a new run,
+    a recovery); watching only the first left a window model's child process running on after
+    its stream was gone."""
+
+    def __init__(self, *events: threading.Event | None) -> None:
+        self.events = tuple(e for e in events if e is not None)
+
+    def is_set(self) -> bool:
+        return any(e.is_set() for e in self.events)
+
+
 def catch_up_plan(n: int, stride: int, tail: int) -> list[int]:
     """Which of ``n`` pending frames a round feeds: every ``stride``-th, then the last ``tail``
     (0: none at the full rate) all; the newest always."""

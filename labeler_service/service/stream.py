@@ -104,6 +104,7 @@ from labeler_service.service.handover import (
     SLICE_S,
     TAIL_ROUNDS,
     TAIL_S,
+    AnyOf,
     Handover,
     catch_up_plan,
 )
@@ -617,7 +618,7 @@ class StreamState:
 
         if h.labeler is None:
             assert h.init is not None
-            lab = self._window_labeler(h.init, h.names, h.rate, cancel or h.cancel)
+            lab = self._window_labeler(h.init, h.names, h.rate, AnyOf(cancel, h.cancel))
             column = {n: i for i, n in enumerate(lab.marker_names)}
             remap = np.array([column.get(n, -1) for n in h.init.names] + [-1], dtype=np.int32)
             for f, idx in zip(h.init.frames, h.init.idx, strict=True):

@@ -295,3 +295,49 @@ def test_run_in_process_returns_raises_and_cancels():
     with pytest.raises(BudgetExceeded, match="sleepy: cancelled; its process was terminated"):
         run_in_process(time.sleep, 60.0, cancel=cancel, name="sleepy")
     assert _settings().window_worker == "process"
+
+
+def test_an_abandoned_handover_terminates_its_window_models_process(frames, monkeypatch):
+    """The stream removed (or a new run, a recovery) while its window model trains in a child
+    process: the child is terminated then, not left running until the model is done. The
+    server's job gets a budget event of its own (``Background``); only that one reached the
+    child, the handover's abandonment did not (hostile run: a stream removed mid-handover left
+    its ``window-model-<stream>`` process training on)."""
+    import multiprocessing
+    import time
+
+    from labeler_service.errors import BudgetExceeded
+    from labeler_service.service import stream as stream_mod
+
+    real = stream_mod.run_in_process
+    started = threading.Event()
+
+    def slow(fn, *args, cancel=None, name="job"):  # a window model that takes its time
+        started.set()
+        return real(time.sleep, 30.0, cancel=cancel, name=name)
+
+    monkeypatch.setattr(stream_mod, "run_in_process", slow)
+    st, h = _started(frames)
+    st.window_in_process = True
+    budget = threading.Event()  # the Background job's own (never set here)
+    errors: list[BaseException] = []
+
+    def job() -> None:
+        try:
+            st.handover_job(h, cancel=budget)
+        except BaseException as exc:
+            errors.append(exc)
+
+    th = threading.Thread(target=job, daemon=True)
+    th.start()
+    assert started.wait(60.0), "the window model never started"
+    deadline = time.monotonic() + 30.0
+    while not [p for p in multiprocessing.active_children() if p.name == "window-model-vol"]:
+        assert time.monotonic() < deadline, "no window-model child process"
+        time.sleep(0.01)
+    st.release()  # (the server, when the stream is removed or expires)
+    th.join(timeout=25.0)
+    assert not th.is_alive(), "the job waited for its abandoned window model"
+    assert errors and isinstance(errors[0], BudgetExceeded | LabelerError), errors
+    assert not [p for p in multiprocessing.active_children() if p.name == "window-model-vol"]
+    assert h.abandoned and st.handover is None and st.handovers_abandoned == 1
