@@ -86,6 +86,7 @@ class Handover:
     rate: float
     plain: FrameLabeler | None = None  # the labeler it replaces (set when installed)
     labeler: FrameLabeler | None = None  # the window labeler, once trained
+    model: object | None = None  # the window model, when trained before the first job
     #: frames the window labeler has been fed (absolute: 0 = the first recorded frame)
     done: int = 0
     #: frames recorded in all; ``base`` the absolute index of ``frames[0]``
