@@ -86,6 +86,7 @@ class Handover:
     rate: float
     plain: FrameLabeler | None = None  # the labeler it replaces (set when installed)
     labeler: FrameLabeler | None = None  # the window labeler, once trained
+    model: object | None = None  # the window model, when trained before the first job
     #: frames the window labeler has been fed (absolute: 0 = the first recorded frame)
     done: int = 0
     #: frames recorded in all; ``base`` the absolute index of ``frames[0]``
@@ -134,6 +135,22 @@ class Handover:
                 return False
             time.sleep(0.0002)
         return True
+
+
+class AnyOf:
+    """Set when any of its events is: what
+    :func:`~labeler_service.service.background.run_in_process` watches (``is_set``) for "stop".
+    The handover's job stops on its budget
+    (the :class:`~labeler_service.service.background.Background` job's event) *or* on the
+    handover's abandonment (:attr:`Handover.cancel`: the stream removed or expired, a new run,
+    a recovery); watching only the first left a window model's child process running on after
+    its stream was gone."""
+
+    def __init__(self, *events: threading.Event | None) -> None:
+        self.events = tuple(e for e in events if e is not None)
+
+    def is_set(self) -> bool:
+        return any(e.is_set() for e in self.events)
 
 
 def catch_up_plan(n: int, stride: int, tail: int) -> list[int]:

@@ -49,6 +49,7 @@ import asyncio
 import contextlib
 import gc
 import logging
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -642,6 +643,8 @@ class Server:
         t0 = time.perf_counter()
         fed = jobs = 0
         try:
+            if h.labeler is None and h.model is None and state.window_in_process:
+                h.model = await self._window_model(state, h)
             while True:
                 fed += await self.background.run(
                     state.handover_job, h, budget_s=self.settings.train_budget_s,
@@ -665,6 +668,23 @@ class Server:
         log.info("stream %s: the window start's catch-up caught up after %.2f s (%d jobs, %d "
                  "frames fed)", state.name, time.perf_counter() - t0, jobs, fed)  # fmt: skip
         state.handover_done(h, not h.abandoned, "abandoned")
+
+    async def _window_model(self, state: StreamState, h):
+        """The window model in its child process (:meth:`StreamState.window_model`), outside
+        the ``Background`` slot (the child needs none of our GIL: other streams' trainings and
+        boots run meanwhile), within ``train_budget_s``; over it the child is terminated."""
+        cancel = threading.Event()
+        budget = self.settings.train_budget_s
+        try:
+            return await asyncio.wait_for(
+                asyncio.to_thread(state.window_model, h, cancel), timeout=budget
+            )
+        except TimeoutError:
+            raise BudgetExceeded(
+                f"window-model-{state.name}: over its budget of {budget:g} s, abandoned"
+            ) from None
+        finally:
+            cancel.set()  # (ended: a no-op; over budget or the service stops: the child ends)
 
     # ------------------------------------------------------------------ boot
     async def _start_boot(self, state: StreamState, executor: ThreadPoolExecutor | None) -> None:

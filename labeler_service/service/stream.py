@@ -104,6 +104,7 @@ from labeler_service.service.handover import (
     SLICE_S,
     TAIL_ROUNDS,
     TAIL_S,
+    AnyOf,
     Handover,
     catch_up_plan,
 )
@@ -496,27 +497,44 @@ class StreamState:
         remap = np.array([index.get(n, -1) for n in init.names] + [-1], dtype=np.int32)
         return labeler, rate, remap, deferred
 
-    def _window_labeler(
-        self, init: InitWindow, names: tuple[str, ...], rate: float, cancel=None
-    ) -> FrameLabeler:
-        """``labeled_start = "model"``: subject templates trained on the init window (its
-        frames as a capture, ``train structure``'s trainer), and the booting labeler from them
-        (:func:`~labeler_service.labeling.registry.make_window_labeler`), its boot kernels
-        compiled here (off the event loop) when the service warms up."""
+    def window_model(self, h: Handover, cancel=None):
+        """The handover's window model alone, in a ``spawn`` child process
+        (``window_worker = "process"``); the server runs it before the handover's first job,
+        outside the ``Background`` slot: the child holds none of this process's GIL, and a
+        second stream's training waited the whole window model behind it (hostile run: 0.7 s
+        of a 120 Hz stream's start at 62 markers x 1000 init frames). ``cancel``: stops and
+        terminates the child (the handover's abandonment stops it too)."""
+        assert h.init is not None
+        window = self._window_capture(h.init, h.names, h.rate)
+        return run_in_process(window_model, window, cancel=AnyOf(cancel, h.cancel),
+                              name=f"window-model-{self.name}")  # fmt: skip
+
+    def _window_capture(self, init: InitWindow, names: tuple[str, ...], rate: float) -> Capture:
         column = {n: i for i, n in enumerate(names)}
         to_col = np.array([column.get(n, -1) for n in init.names] + [-1], dtype=np.int64)
         pos = np.full((len(init.frames), len(names), 3), np.nan, dtype=np.float32)
         for k, (f, idx) in enumerate(zip(init.frames, init.idx, strict=True)):
             c = to_col[idx]  # -1 (unlabeled) picks the last entry, -1
             pos[k, c[c >= 0]] = f.points[c >= 0]
-        window = Capture(pos, names, rate, source=f"stream {self.name} init window")
-        if self.window_in_process:
+        return Capture(pos, names, rate, source=f"stream {self.name} init window")
+
+    def _window_labeler(
+        self, init: InitWindow, names: tuple[str, ...], rate: float, cancel=None, model=None
+    ) -> FrameLabeler:
+        """``labeled_start = "model"``: subject templates trained on the init window (its
+        frames as a capture, ``train structure``'s trainer), and the booting labeler from them
+        (:func:`~labeler_service.labeling.registry.make_window_labeler`), its boot kernels
+        compiled here (off the event loop) when the service warms up."""
+        if model is not None:  # (trained already: StreamState.window_model)
+            pass
+        elif self.window_in_process:
+            window = self._window_capture(init, names, rate)
             # its Python holds a child process's GIL, not the frame path's (~1-2 s at 10
             # people: labeling p99 0.6-1.9 -> 12-17 ms beside it in a thread, loaded machine)
             model = run_in_process(window_model, window, cancel=cancel,
                                    name=f"window-model-{self.name}")  # fmt: skip
         else:
-            model = window_model(window)
+            model = window_model(self._window_capture(init, names, rate))
         labeler = make_window_labeler(
             model,
             rate=rate,
@@ -617,13 +635,13 @@ class StreamState:
 
         if h.labeler is None:
             assert h.init is not None
-            lab = self._window_labeler(h.init, h.names, h.rate, cancel or h.cancel)
+            lab = self._window_labeler(h.init, h.names, h.rate, AnyOf(cancel, h.cancel), h.model)
             column = {n: i for i, n in enumerate(lab.marker_names)}
             remap = np.array([column.get(n, -1) for n in h.init.names] + [-1], dtype=np.int32)
             for f, idx in zip(h.init.frames, h.init.idx, strict=True):
                 check()
                 lab.process(f.points, f.t, remap[idx])
-            h.init = None  # (its frames are the model's now)
+            h.init = h.model = None  # (its frames are the model's now)
             h.labeler = lab
         lab = h.labeler
         h.more = False

@@ -239,11 +239,11 @@ def test_a_new_labeled_run_while_the_window_model_trains_abandons_it(frames, mon
     calls: list[int] = []
     original = StreamState._window_labeler
 
-    def held(self, init, names, rate, cancel=None):
+    def held(self, init, names, rate, cancel=None, model=None):
         calls.append(len(init.frames))
         if len(calls) == 1:
             gate.wait(timeout=120.0)
-        return original(self, init, names, rate, cancel)
+        return original(self, init, names, rate, cancel, model)
 
     monkeypatch.setattr(StreamState, "_window_labeler", held)
 
@@ -295,3 +295,93 @@ def test_run_in_process_returns_raises_and_cancels():
     with pytest.raises(BudgetExceeded, match="sleepy: cancelled; its process was terminated"):
         run_in_process(time.sleep, 60.0, cancel=cancel, name="sleepy")
     assert _settings().window_worker == "process"
+
+
+@pytest.mark.parametrize("entry", ["handover_job", "window_model"])
+def test_an_abandoned_handover_terminates_its_window_models_process(frames, monkeypatch, entry):
+    """The stream removed (or a new run, a recovery) while its window model trains in a child
+    process: the child is terminated then, not left running until the model is done. The
+    server's job gets a budget event of its own (``Background``); only that one reached the
+    child, the handover's abandonment did not (hostile run: a stream removed mid-handover left
+    its ``window-model-<stream>`` process training on)."""
+    import multiprocessing
+    import time
+
+    from labeler_service.errors import BudgetExceeded
+    from labeler_service.service import stream as stream_mod
+
+    real = stream_mod.run_in_process
+    started = threading.Event()
+
+    def slow(fn, *args, cancel=None, name="job"):  # a window model that takes its time
+        started.set()
+        return real(time.sleep, 30.0, cancel=cancel, name=name)
+
+    monkeypatch.setattr(stream_mod, "run_in_process", slow)
+    st, h = _started(frames)
+    st.window_in_process = True
+    budget = threading.Event()  # the Background job's own (never set here)
+    errors: list[BaseException] = []
+
+    def job() -> None:
+        try:
+            getattr(st, entry)(h, cancel=budget)  # (the server: window_model, then the job)
+        except BaseException as exc:
+            errors.append(exc)
+
+    th = threading.Thread(target=job, daemon=True)
+    th.start()
+    assert started.wait(60.0), "the window model never started"
+    deadline = time.monotonic() + 30.0
+    while not [p for p in multiprocessing.active_children() if p.name == "window-model-vol"]:
+        assert time.monotonic() < deadline, "no window-model child process"
+        time.sleep(0.01)
+    st.release()  # (the server, when the stream is removed or expires)
+    th.join(timeout=25.0)
+    assert not th.is_alive(), "the job waited for its abandoned window model"
+    assert errors and isinstance(errors[0], BudgetExceeded | LabelerError), errors
+    assert not [p for p in multiprocessing.active_children() if p.name == "window-model-vol"]
+    assert h.abandoned and st.handover is None and st.handovers_abandoned == 1
+
+
+def test_the_window_model_process_holds_no_background_slot(frames, monkeypatch):
+    """While a stream's window model trains in its child process, another job (a second
+    stream's training, a boot) gets the background slot: the child needs none of the
+    service's GIL (hostile run: a second stream starting then waited the whole window model,
+    0.7 s of its frames). The handover then completes with that model."""
+    from labeler_service.service import stream as stream_mod
+
+    gate = threading.Event()
+    started = threading.Event()
+    real = stream_mod.run_in_process
+
+    def held(fn, *args, cancel=None, name="job"):  # the child, held until the test lets go
+        started.set()
+        while not gate.wait(0.01):
+            if cancel is not None and cancel.is_set():
+                raise LabelerError("cancelled")
+        return real(fn, *args, cancel=cancel, name=name)
+
+    monkeypatch.setattr(stream_mod, "run_in_process", held)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(), [mem]) as srv:
+            _inject_init(mem, frames)
+            st = srv.streams["vol"]
+            await _feed(srv, mem, frames, INIT)
+            await until(started.is_set, "the window model's training")
+            # the slot is free: a job of another stream runs while the window model trains
+            other = await srv.background.run(lambda: "other", budget_s=60.0, name="other")
+            assert not gate.is_set() and st.handover is not None and st.handovers == 0
+            gate.set()
+            f = INIT + 1
+            while st.handovers == 0:
+                assert f < frames.n_frames - 10, "no handover before the scene's end"
+                await _feed(srv, mem, frames, f)
+                f += 1
+            return st, other
+
+    st, other = run(go(), timeout=300.0)
+    assert other == "other"
+    assert isinstance(st.labeler, BootingLabeler) and st.handovers_abandoned == 0
