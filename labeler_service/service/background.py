@@ -46,7 +46,7 @@ import inspect
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from labeler_service.errors import BudgetExceeded
 
@@ -260,8 +260,15 @@ def _child(conn, fn: Callable[..., Any], args: tuple) -> None:  # pragma: no cov
         conn.close()
 
 
+class StopFlag(Protocol):
+    """What :func:`run_in_process` watches to stop: a :class:`threading.Event`, or anything
+    with its ``is_set`` (the handover's :class:`~labeler_service.service.handover.AnyOf`)."""
+
+    def is_set(self) -> bool: ...
+
+
 def run_in_process(
-    fn: Callable[..., T], *args: Any, cancel: threading.Event | None = None, name: str = "job"
+    fn: Callable[..., T], *args: Any, cancel: StopFlag | None = None, name: str = "job"
 ) -> T:
     """``fn(*args)`` in a ``spawn`` child process (its Python holds the child's GIL, not the
     event loop's), blocking the calling thread (a :class:`Background` job) until it returns.
