@@ -242,6 +242,11 @@ class ServiceSettings(BaseSettings):
     max_time_step_s: float = Field(1.0, gt=0)
     #: Consecutive frames that must continue a jump before it is adopted as a new run.
     run_confirm_frames: int = Field(3, ge=1, le=100)
+    #: A frame this many seconds of stream after the last one labeled (frames the service
+    #: dropped meanwhile: a training stall, a busy machine) starts a recovery: the performers
+    #: moved where the tracks cannot follow, so they are booted from the stream's model
+    #: (0 = off).
+    recover_gap_s: float = Field(0.25, ge=0)
     #: A stream not listed in ``streams`` that received nothing for this long is removed
     #: (its trained labeler is kept in a small cache so it resumes without labels).
     stream_idle_s: float = Field(60.0, gt=0)

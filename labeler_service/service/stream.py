@@ -879,6 +879,17 @@ class StreamState:
             and self.settings.labeler == "online"
         )
 
+    def _dropped_gap(self, t: float) -> bool:
+        """Frame time ``t`` comes more than ``recover_gap_s`` after the last frame labeled, and
+        no recovery runs already."""
+        gap_s = self.settings.recover_gap_s
+        return (
+            gap_s > 0
+            and self._t_last is not None
+            and not self.recovering
+            and t - self._t_last > gap_s
+        )
+
     def start_recovery(self, why: str) -> bool:
         """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
         frame path, driven by the server like a model stream's boot); False when there is no
@@ -973,6 +984,13 @@ class StreamState:
         labels = self._label_indices(f)
         if labels is not None:
             self._labels_seen = True
+        elif self._dropped_gap(t):
+            gap = t - (self._t_last or t)
+            # frames dropped in the service (a training stall, a busy machine): the tracks
+            # cannot follow the performers over that gap, and the labeler trained in place
+            # went on labeling ~75 % of them wrong while its labeled fraction stayed high
+            # (10 performers at 360 Hz after the training's 0.7 s stall)
+            self.start_recovery(f"{gap:.2f} s of stream dropped before this frame")
         elif self._waits_for_labels():
             # boot = false and no labeled frame: the plain labeler could only refuse every
             # frame (labeler_error); boot the performers from the model instead
