@@ -879,16 +879,14 @@ class StreamState:
             and self.settings.labeler == "online"
         )
 
-    def _dropped_gap(self, t: float) -> bool:
-        """Frame time ``t`` comes more than ``recover_gap_s`` after the last frame labeled, and
-        no recovery runs already."""
+    def _dropped_gap(self, t: float) -> float:
+        """Seconds from the last frame labeled to frame time ``t`` when more than
+        ``recover_gap_s`` and no recovery runs already; else 0."""
         gap_s = self.settings.recover_gap_s
-        return (
-            gap_s > 0
-            and self._t_last is not None
-            and not self.recovering
-            and t - self._t_last > gap_s
-        )
+        if gap_s <= 0 or self._t_last is None or self.recovering:
+            return 0.0
+        gap = t - self._t_last
+        return gap if gap > gap_s else 0.0
 
     def start_recovery(self, why: str) -> bool:
         """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
@@ -984,8 +982,7 @@ class StreamState:
         labels = self._label_indices(f)
         if labels is not None:
             self._labels_seen = True
-        elif self._dropped_gap(t):
-            gap = t - (self._t_last or t)
+        elif gap := self._dropped_gap(t):
             # frames dropped in the service (a training stall, a busy machine): the tracks
             # cannot follow the performers over that gap, and the labeler trained in place
             # went on labeling ~75 % of them wrong while its labeled fraction stayed high
