@@ -49,6 +49,7 @@ from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
 from labeler_service.errors import BudgetExceeded
+from labeler_service.service.boot_worker import NICE, POLL_S  # a child as the boot worker's
 
 T = TypeVar("T")
 
@@ -238,18 +239,12 @@ def configure_allocator() -> None:
         switch(False)
 
 
-#: How often :func:`run_in_process` looks at its child and its cancel event (s).
-PROCESS_POLL_S = 0.02
-#: ``os.nice`` increment of a :func:`run_in_process` child (as the boot worker's).
-PROCESS_NICE = 5
-
-
 def _child(conn, fn: Callable[..., Any], args: tuple) -> None:  # pragma: no cover (child)
     import os
     import traceback
 
     with contextlib.suppress(OSError, AttributeError):
-        os.nice(PROCESS_NICE)
+        os.nice(NICE)  # (the boot worker's priority)
     try:
         out = (True, fn(*args))
     except BaseException as exc:  # handed back to the parent
@@ -287,7 +282,7 @@ def run_in_process(
     proc.start()
     child.close()
     try:
-        while not parent.poll(PROCESS_POLL_S):
+        while not parent.poll(POLL_S):
             if cancel is not None and cancel.is_set():
                 raise BudgetExceeded(f"{name}: cancelled; its process was terminated")
             if not proc.is_alive() and not parent.poll(0):
