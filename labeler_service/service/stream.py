@@ -493,9 +493,7 @@ class StreamState:
                 rate=rate,
                 config=self.settings.labeler_config,
             )
-        index = {n: i for i, n in enumerate(names)}
-        remap = np.array([index.get(n, -1) for n in init.names] + [-1], dtype=np.int32)
-        return labeler, rate, remap, deferred
+        return labeler, rate, _remap(names, init.names), deferred
 
     def window_model(self, h: Handover, cancel=None):
         """The handover's window model alone, in a ``spawn`` child process
@@ -505,18 +503,28 @@ class StreamState:
         of a 120 Hz stream's start at 62 markers x 1000 init frames). ``cancel``: stops and
         terminates the child (the handover's abandonment stops it too)."""
         assert h.init is not None
-        window = self._window_capture(h.init, h.names, h.rate)
-        return run_in_process(window_model, window, cancel=AnyOf(cancel, h.cancel),
-                              name=f"window-model-{self.name}")  # fmt: skip
+        return self._train_window(h.init, h.names, h.rate, AnyOf(cancel, h.cancel), True)
 
-    def _window_capture(self, init: InitWindow, names: tuple[str, ...], rate: float) -> Capture:
+    def _train_window(
+        self, init: InitWindow, names: tuple[str, ...], rate: float, cancel=None,
+        in_process: bool = False,
+    ) -> LabelerModel:  # fmt: skip
+        """The subject templates of the init window's frames (as a capture, ``train
+        structure``'s trainer): in a ``spawn`` child with ``in_process`` (``cancel`` stops and
+        terminates it; its Python holds the child's GIL, not the frame path's: ~1-2 s at 10
+        people, labeling p99 0.6-1.9 -> 12-17 ms beside it in a thread, loaded machine), else
+        here."""
         column = {n: i for i, n in enumerate(names)}
         to_col = np.array([column.get(n, -1) for n in init.names] + [-1], dtype=np.int64)
         pos = np.full((len(init.frames), len(names), 3), np.nan, dtype=np.float32)
         for k, (f, idx) in enumerate(zip(init.frames, init.idx, strict=True)):
             c = to_col[idx]  # -1 (unlabeled) picks the last entry, -1
             pos[k, c[c >= 0]] = f.points[c >= 0]
-        return Capture(pos, names, rate, source=f"stream {self.name} init window")
+        window = Capture(pos, names, rate, source=f"stream {self.name} init window")
+        if not in_process:
+            return window_model(window)
+        return run_in_process(window_model, window, cancel=cancel,
+                              name=f"window-model-{self.name}")  # fmt: skip
 
     def _window_labeler(
         self, init: InitWindow, names: tuple[str, ...], rate: float, cancel=None, model=None
@@ -525,16 +533,8 @@ class StreamState:
         frames as a capture, ``train structure``'s trainer), and the booting labeler from them
         (:func:`~labeler_service.labeling.registry.make_window_labeler`), its boot kernels
         compiled here (off the event loop) when the service warms up."""
-        if model is not None:  # (trained already: StreamState.window_model)
-            pass
-        elif self.window_in_process:
-            window = self._window_capture(init, names, rate)
-            # its Python holds a child process's GIL, not the frame path's (~1-2 s at 10
-            # people: labeling p99 0.6-1.9 -> 12-17 ms beside it in a thread, loaded machine)
-            model = run_in_process(window_model, window, cancel=cancel,
-                                   name=f"window-model-{self.name}")  # fmt: skip
-        else:
-            model = window_model(self._window_capture(init, names, rate))
+        if model is None:  # (else trained already: StreamState.window_model)
+            model = self._train_window(init, names, rate, cancel, self.window_in_process)
         labeler = make_window_labeler(
             model,
             rate=rate,
@@ -636,8 +636,7 @@ class StreamState:
         if h.labeler is None:
             assert h.init is not None
             lab = self._window_labeler(h.init, h.names, h.rate, AnyOf(cancel, h.cancel), h.model)
-            column = {n: i for i, n in enumerate(lab.marker_names)}
-            remap = np.array([column.get(n, -1) for n in h.init.names] + [-1], dtype=np.int32)
+            remap = _remap(lab.marker_names, h.init.names)
             for f, idx in zip(h.init.frames, h.init.idx, strict=True):
                 check()
                 lab.process(f.points, f.t, remap[idx])
@@ -1182,6 +1181,13 @@ class StreamState:
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
         )
+
+
+def _remap(names: Sequence[str], window_names: Sequence[str]) -> np.ndarray:
+    """From the init window's label indices to indices into a labeler's ``names``, one more
+    entry (-1) at the end so that an unlabeled ``-1`` stays ``-1``."""
+    index = {n: i for i, n in enumerate(names)}
+    return np.array([index.get(n, -1) for n in window_names] + [-1], dtype=np.int32)
 
 
 def _indices(index: dict[str, int], labels: Sequence[str | None] | None) -> np.ndarray | None:
