@@ -178,6 +178,13 @@ class ServiceMetrics:
             "Recoveries by boot from the stream's own model (lost, or a new run after a time "
             "jump)", ["stream"], registry=r,
         )  # fmt: skip
+        self.handovers = Counter(
+            "mocap_handovers",
+            "The window start's handovers (labeled_start auto/model): the window labeler took "
+            "over from the labeler trained in place (took_over), or the handover was given up "
+            "and the plain labeler stayed (abandoned)", ["stream", "outcome"], registry=r,
+        )  # fmt: skip
+        self._handovers_seen: dict[tuple[str, str], int] = {}
         self._recent_label: dict[str, _Recent] = {}
         self._recent_latency: dict[str, _Recent] = {}
         self._out: dict[str, _StreamOut] = {}
@@ -216,6 +223,15 @@ class ServiceMetrics:
     def recovery(self, stream: str) -> None:
         self._child(self.recoveries, stream).inc()
 
+    def handover_totals(self, stream: str, took_over: int, abandoned: int) -> None:
+        """Brings ``mocap_handovers`` up to a stream's running totals (the stream counts its
+        handovers wherever they end: a frame, the handover's job, a recovery, a new run)."""
+        for outcome, total in (("took_over", took_over), ("abandoned", abandoned)):
+            seen = self._handovers_seen.get((stream, outcome), 0)
+            if total > seen:
+                self._child(self.handovers, stream, outcome).inc(total - seen)
+                self._handovers_seen[(stream, outcome)] = total
+
     def subjects(self, stream: str, n: int) -> None:
         self._child(self.subjects_booted, stream).set(n)
 
@@ -238,6 +254,10 @@ class ServiceMetrics:
         for event in ("withdraw", "reject", "drop"):
             with contextlib.suppress(KeyError):
                 self.boot_verify.remove(stream, event)
+        for outcome in ("took_over", "abandoned"):
+            self._handovers_seen.pop((stream, outcome), None)
+            with contextlib.suppress(KeyError):
+                self.handovers.remove(stream, outcome)
         for (s, reason), n in list(self._drops.items()):
             if s == stream:
                 del self._drops[(s, reason)]
@@ -341,6 +361,10 @@ class ServiceMetrics:
                 "boot_failed": self.value("mocap_boot_failed_total", stream=s),
                 "subjects_booted": self.value("mocap_subjects_booted", stream=s),
                 "labeled_fraction": self.value("mocap_labeled_fraction", stream=s),
+                "handovers": self.value("mocap_handovers_total", stream=s, outcome="took_over"),
+                "handovers_abandoned": self.value(
+                    "mocap_handovers_total", stream=s, outcome="abandoned"
+                ),
             }
         return out
 

@@ -598,6 +598,7 @@ class Server:
             finally:
                 if state.recoveries != n_recoveries:
                     self.metrics.recovery(state.name)
+                self._count_handovers(state)
             if out is None:
                 continue
             state.failing_since = None
@@ -663,11 +664,16 @@ class Server:
                 log.warning("stream %s: the window start's handover failed: %s: %s",
                             state.name, type(exc).__name__, exc)  # fmt: skip
             state.handover_done(h, False, f"{type(exc).__name__}: {exc}")
+            self._count_handovers(state)
             self._trim_soon = True
             return
         log.info("stream %s: the window start's catch-up caught up after %.2f s (%d jobs, %d "
                  "frames fed)", state.name, time.perf_counter() - t0, jobs, fed)  # fmt: skip
         state.handover_done(h, not h.abandoned, "abandoned")
+        self._count_handovers(state)
+
+    def _count_handovers(self, state: StreamState) -> None:
+        self.metrics.handover_totals(state.name, state.handovers, state.handovers_abandoned)
 
     async def _window_model(self, state: StreamState, h):
         """The window model in its child process (:meth:`StreamState.window_model`), outside

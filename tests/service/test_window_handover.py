@@ -220,6 +220,10 @@ def test_a_service_stream_hands_over_without_losing_a_frame(frames):
 
     st, metrics, outs, swapped, end, statuses = run(go(), timeout=300.0)
     assert metrics.drops() == 0
+    # the handover is counted where a dashboard sees it
+    assert metrics.value("mocap_handovers_total", stream="vol", outcome="took_over") == 1
+    assert metrics.value("mocap_handovers_total", stream="vol", outcome="abandoned") == 0
+    assert metrics.snapshot()["streams"]["vol"]["handovers"] == 1
     assert sorted(m.seq for m in outs) == list(range(INIT, end))  # every frame labeled
     assert set(statuses[statuses.index("online") :]) == {"online"}  # never degraded or lost
     after = [m for m in outs if m.seq >= swapped]
@@ -270,11 +274,13 @@ def test_a_new_labeled_run_while_the_window_model_trains_abandons_it(frames, mon
                 assert f < frames.n_frames - 10, "no handover before the scene's end"
                 await _feed(srv, mem, frames, f, seq0, t0)
                 f += 1
-            return st, first
+            return st, first, srv.metrics
 
-    st, first = run(go(), timeout=300.0)
+    st, first, metrics = run(go(), timeout=300.0)
     assert st.labeler is not first.labeler and isinstance(st.labeler, BootingLabeler)
     assert st.handovers == 1 and st.handovers_abandoned == 1
+    for outcome in ("took_over", "abandoned"):
+        assert metrics.value("mocap_handovers_total", stream="vol", outcome=outcome) == 1
     assert len(calls) == 2
 
 
