@@ -6,6 +6,9 @@ recorded Y-up is rotated when the caller says so (``up="y"``). What was changed 
 ``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject named after
 the file stem. Problems raise :class:`CaptureError` naming the file, never a bare traceback.
 
+Points a processing model wrote beside the markers (angles, forces, virtual markers: the groups
+the C3D's POINT parameters list) are left out with a note (:func:`_c3d_markers`).
+
 A C3D that ends before the frames its header declares is read up to its last complete frame
 (ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
 warning (stderr from the CLI). Writers write a temporary file beside the target, check it
@@ -331,7 +334,52 @@ def _read_c3d(path: Path) -> Capture:
         msg = f"truncated: {pos.shape[0]} of {declared} frames (the file ends early)"
         notes.append(msg)
         log.warning("%s: %s", path, msg)
-    return _finish(pos, _c3d_labels(point, n_markers), rate, path, notes)
+    labels = _c3d_labels(point, n_markers)
+    keep = _c3d_markers(point, labels, notes)
+    if keep is not None:
+        pos, labels = pos[:, keep], [labels[i] for i in keep]
+    return _finish(pos, labels, rate, path, notes)
+
+
+#: POINT parameters that list, by label, points that are not physical markers: a processing
+#: model's outputs (Vicon Plug-in Gait: joint angles, forces, moments, powers; scalars, ground
+#: reactions) and its virtual markers (joint centres, markers reconstructed from a static
+#: trial), which no camera sees. ``TYPE_GROUPS`` names more such lists (``USERMOS``: a model's
+#: user outputs, EMG, ...). C3D stores all of them as points beside the markers.
+_NON_MARKER_GROUPS = (
+    "ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS", "MODELED_MARKERS",
+    "USERMOS",
+)  # fmt: skip
+
+
+def _c3d_markers(point: dict, labels: list[str], notes: list[str]) -> list[int] | None:
+    """Indices of the points that are markers, or None when all are: the points a processing
+    model wrote (:data:`_NON_MARKER_GROUPS` and the groups ``TYPE_GROUPS`` names) are left
+    out, with a note naming them. Without them a take labels like what cameras see; with them
+    a jump take's ten model outputs (forces, EMG, angles near the origin) and eight virtual
+    markers were scored as markers nobody could label (accuracy 0.74)."""
+    groups = list(_NON_MARKER_GROUPS)
+    type_groups = [str(x) for x in point.get("TYPE_GROUPS", {}).get("value", [])]
+    groups += [g for g in type_groups[0::2] if g and g not in groups]
+    listed: dict[str, str] = {}
+    for g in groups:
+        for x in point.get(g, {}).get("value", []):
+            if isinstance(x, str) and x.strip():
+                listed.setdefault(x.strip(), g)
+    drop = [i for i, x in enumerate(labels) if x.strip() in listed]
+    if not drop:
+        return None
+    by_group: dict[str, list[str]] = {}
+    for i in drop:
+        x = labels[i].strip()
+        by_group.setdefault(listed[x], []).append(x)
+    said = "; ".join(
+        f"{g} {len(xs)} ({', '.join(xs[:4])}{', ...' if len(xs) > 4 else ''})"
+        for g, xs in by_group.items()
+    )
+    notes.append(f"{len(drop)} points a processing model wrote left out (not markers): {said}")
+    dropped = set(drop)
+    return [i for i in range(len(labels)) if i not in dropped]
 
 
 def _c3d_declared_frames(path: Path, point: dict) -> int | None:

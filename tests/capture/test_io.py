@@ -228,3 +228,30 @@ def test_repeated_labels_are_renamed_and_a_repeated_ghost_stays_a_ghost(tmp_path
     assert cap.labels[:2] == ("S:a", "S:a~1") and cap.labels[5] == "S:b"
     assert all(is_ghost(x) for x in cap.labels[2:5]) and len(set(cap.labels)) == 6
     assert any("duplicate label '*3' renamed" in n for n in cap.notes)
+
+
+def test_points_a_processing_model_wrote_are_not_markers(tmp_path, rng) -> None:
+    """A processed Vicon C3D stores the model's outputs (angles, forces, user outputs such as
+    EMG) and virtual markers (joint centres) as points beside the markers; the POINT group
+    lists them. No camera sees them: they are left out, with a note naming them (a real jump
+    take scored 0.74 with them read as markers, 0.997 without)."""
+    import ezc3d
+
+    labels = ("P:LASI", "P:RASI", "P:LKNE", "*3", "P:LKneeAngles", "P:LHJC", "USERMO0", "F1")
+    pos = (rng.normal(size=(12, len(labels), 3)) * 300).astype(np.float32)
+    write_capture(Capture(pos, labels, 100.0, source="mem"), tmp_path / "m.c3d")
+    c = ezc3d.c3d(str(tmp_path / "m.c3d"))
+    c.add_parameter("POINT", "ANGLES", ["P:LKneeAngles"])
+    c.add_parameter("POINT", "MODELED_MARKERS", ["P:LHJC"])
+    c.add_parameter("POINT", "USERMOS", ["USERMO0"])
+    c.add_parameter("POINT", "FORCE_OUTPUTS", ["F1"])  # named only through TYPE_GROUPS
+    c.add_parameter("POINT", "TYPE_GROUPS", ["MODELED_MARKERS", "MODELED_MARKER",
+                                             "FORCE_OUTPUTS", "FORCE_OUTPUT"])  # fmt: skip
+    c.write(str(tmp_path / "m.c3d"))
+    cap = read_capture(tmp_path / "m.c3d")
+    assert cap.labels == ("P:LASI", "P:RASI", "P:LKNE", "*3")
+    np.testing.assert_allclose(cap.positions, pos[:, :4], rtol=1e-5, atol=1e-3)
+    note = next(n for n in cap.notes if "processing model" in n)
+    for name in ("ANGLES 1 (P:LKneeAngles)", "MODELED_MARKERS 1 (P:LHJC)", "USERMOS 1",
+                 "FORCE_OUTPUTS 1 (F1)"):  # fmt: skip
+        assert name in note
