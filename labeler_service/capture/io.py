@@ -234,9 +234,66 @@ def _finish(
         pos[zero] = np.nan
         notes.append(f"{int(zero.sum())} (0,0,0) samples mapped to missing")
     labels = _unique_labels([x.strip() for x in labels], notes)
+    copies = _exact_copies(pos, labels)
+    if copies:
+        said = ", ".join(f"{labels[i]} = {labels[j]}" for i, j in copies[:4])
+        notes.append(
+            f"{len(copies)} points that repeat another point exactly in every frame left out "
+            f"(a computed point, not a marker): {said}{', ...' if len(copies) > 4 else ''}"
+        )
+        gone = {i for i, _ in copies}
+        keep = [k for k in range(len(labels)) if k not in gone]
+        pos, labels = np.ascontiguousarray(pos[:, keep]), [labels[k] for k in keep]
     return Capture(
         positions=pos, labels=tuple(labels), rate=rate, source=str(source), notes=tuple(notes)
     )
+
+
+#: two points closer than this (mm) in every frame where both are seen are one point twice
+#: (float32 storage: ~1e-4 mm of rounding at a few metres)
+COPY_TOL_MM = 0.01
+#: frames sampled to find candidate copies before the full check
+COPY_PROBE_FRAMES = 16
+
+
+def _exact_copies(pos: np.ndarray, labels: list[str]) -> list[tuple[int, int]]:
+    """``(copy, kept)`` pairs: a column that repeats an earlier one exactly wherever both are
+    seen (at least 2 such frames, and never seen alone while the other is missing - a marker
+    filled from another's gap is not a copy). Two markers cannot share a position; a processing
+    pipeline writes the same computed point under two names (a toe segment's proximal axis
+    point is the foot's origin), and such a pair can only be scored half wrong. A named
+    column is kept over an unlabeled ``*N`` one."""
+    n_frames, n = pos.shape[:2]
+    if n < 2 or n_frames == 0:
+        return []
+    from scipy.spatial import cKDTree
+
+    seen = np.isfinite(pos[..., 0])
+    probe = np.unique(np.linspace(0, n_frames - 1, COPY_PROBE_FRAMES).astype(int))
+    tol = COPY_TOL_MM
+    candidates: set[tuple[int, int]] = set()
+    for f in probe:
+        idx = np.flatnonzero(seen[f])
+        if idx.size > 1:
+            close = cKDTree(pos[f, idx].astype(np.float64)).query_pairs(tol)
+            candidates |= {(int(idx[a]), int(idx[b])) for a, b in close}
+    if not candidates:
+        return []
+    out: list[tuple[int, int]] = []
+    dropped: set[int] = set()
+    for a, b in sorted(candidates or ()):
+        if a in dropped or b in dropped:
+            continue
+        common = seen[:, a] & seen[:, b]
+        if common.sum() < 2 or np.any(seen[:, a] != seen[:, b]):
+            continue
+        d = np.linalg.norm(pos[common, a].astype(np.float64) - pos[common, b], axis=1)
+        if float(d.max()) > tol:
+            continue
+        copy, kept = (a, b) if is_ghost(labels[a]) and not is_ghost(labels[b]) else (b, a)
+        out.append((copy, kept))
+        dropped.add(copy)
+    return out
 
 
 def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:

@@ -255,3 +255,21 @@ def test_points_a_processing_model_wrote_are_not_markers(tmp_path, rng) -> None:
     for name in ("ANGLES 1 (P:LKneeAngles)", "MODELED_MARKERS 1 (P:LHJC)", "USERMOS 1",
                  "FORCE_OUTPUTS 1 (F1)"):  # fmt: skip
         assert name in note
+
+
+@pytest.mark.parametrize("suffix", [".c3d", ".npz"])
+def test_a_point_written_twice_is_read_once(tmp_path, rng, suffix: str) -> None:
+    """A pipeline may write one computed point under two names (a toe's proximal axis point
+    is the foot's origin): no two markers share a position, and the pair could only be scored
+    half wrong. The copy is left out with a note; a point that merely fills another's gap, or
+    a marker that passes close once, is no copy."""
+    pos = (rng.normal(size=(30, 6, 3)) * 300).astype(np.float32)
+    pos[:, 3] = pos[:, 1]  # B is A written twice
+    pos[:, 4] = pos[:, 2]
+    pos[10:20, 4] = np.nan  # ... but C2 is seen alone: no copy
+    pos[5, 5] = pos[5, 0]  # D meets M once
+    labels = ("P:M", "P:A", "P:C", "P:B", "P:C2", "P:D")
+    write_capture(Capture(pos, labels, 100.0, source="mem"), tmp_path / f"d{suffix}")
+    cap = read_capture(tmp_path / f"d{suffix}")
+    assert cap.labels == ("P:M", "P:A", "P:C", "P:C2", "P:D")
+    assert any("P:B = P:A" in n for n in cap.notes)
