@@ -79,6 +79,7 @@ from labeler_service.labeling.boot_match import (
     _kabsch_batch,
     _Pairs,
     _prepare,
+    _reach,
     _score,
     _Template,
     _tied,
@@ -367,7 +368,16 @@ class Booter:
             if not mine.any():
                 continue
             others = pts[(out >= 0) & ~mine]
-            grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config)
+            # free points another active subject could still put a leftover marker on
+            claimed = np.zeros(pts.shape[0], dtype=bool)
+            cand = np.flatnonzero(~taken & old)
+            for o in subjects:
+                if o != s and cand.size:
+                    tpl_o = self._templates[o]
+                    claimed[cand] |= _reach(
+                        tpl_o, _subject_assign(tpl_o, out)[0], pts, cand, self.config
+                    )
+            grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config, claimed)
             # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
             _take(tpl, assign, grown, out, taken)
         return out
