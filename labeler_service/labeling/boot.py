@@ -371,7 +371,8 @@ class Booter:
             got[cand] = _reach(tpl_o, _subject_assign(tpl_o, out)[0], pts, cand, self.config)
             return got
 
-        reach_of = {o: reach(o) for o in subjects} if cand.size else {}
+        past = self.config.fill_past_partner and cand.size > 0
+        reach_of = {o: reach(o) for o in subjects} if past else {}
         for s in subjects:
             if self._blind[s]:
                 continue  # (no joint fill: see above)
@@ -380,9 +381,9 @@ class Booter:
             if not mine.any():
                 continue
             others = pts[(out >= 0) & ~mine]
-            claimed = np.zeros(pts.shape[0], dtype=bool)
+            claimed = np.zeros(pts.shape[0], dtype=bool) if past else None
             for o, r in reach_of.items():
-                if o != s:
+                if o != s and claimed is not None:
                     claimed |= r
             grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config, claimed)
             # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
