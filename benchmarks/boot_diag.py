@@ -33,9 +33,8 @@ _BUILT: dict = {}
 
 
 def diagnose(name: str, cell: str) -> list[dict]:
-    group = "tune" if name.startswith("tune") else "holdout"
     if name not in _BUILT:
-        scene = next(s for s in matrix(group, False) if s.name == name or s.name.endswith(name))
+        scene = next(s for s in matrix("all", False) if s.name == name or s.name.endswith(name))
         frames = scene.frames(8.0, 1200)
         frames, plan = boot_frames(scene, frames)
         _BUILT.clear()
