@@ -79,6 +79,7 @@ from labeler_service.labeling.boot_match import (
     _kabsch_batch,
     _Pairs,
     _prepare,
+    _reach,
     _score,
     _Template,
     _tied,
@@ -359,6 +360,19 @@ class Booter:
         if age is None:
             return out
         old = np.asarray(age, dtype=np.float64) >= self.config.fill_min_age_s
+        # per subject, the free old points one of its leftover markers could be on (the fill's
+        # candidates nearer another subject are offered only when no other subject reaches
+        # them: :func:`_fill`); a subject's entry is refreshed after its own fill
+        cand = np.flatnonzero(~taken & old)
+
+        def reach(o: int) -> np.ndarray:
+            tpl_o = self._templates[o]
+            got = np.zeros(pts.shape[0], dtype=bool)
+            got[cand] = _reach(tpl_o, _subject_assign(tpl_o, out)[0], pts, cand, self.config)
+            return got
+
+        past = self.config.fill_past_partner and cand.size > 0
+        reach_of = {o: reach(o) for o in subjects} if past else {}
         for s in subjects:
             if self._blind[s]:
                 continue  # (no joint fill: see above)
@@ -367,9 +381,15 @@ class Booter:
             if not mine.any():
                 continue
             others = pts[(out >= 0) & ~mine]
-            grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config)
+            claimed = np.zeros(pts.shape[0], dtype=bool) if past else None
+            for o, r in reach_of.items():
+                if o != s and claimed is not None:
+                    claimed |= r
+            grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config, claimed)
             # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
             _take(tpl, assign, grown, out, taken)
+            if reach_of and grown is not assign:
+                reach_of[s] = reach(s)
         return out
 
     def acquire(self, points: np.ndarray, labels: np.ndarray, subjects: list[int]) -> np.ndarray:

@@ -111,6 +111,14 @@ class BootConfig(BaseModel):
         "pairs); the labeled start's window model (registry.make_window_labeler) runs without "
         "it: its window's labels placed every segment",
     )
+    fill_past_partner: bool = Field(
+        True,
+        description="extension: when the joint fill places nothing, free points nearer another "
+        "subject's labeled points join its candidates if one of this subject's leftover "
+        "markers reaches them and no other active subject's does (boot_match._fill, _reach); "
+        "the labeled start's window model (registry.make_window_labeler) runs without it: its "
+        "reach comes from a window's few frames",
+    )
     boot_every_s: float = Field(
         0.05, gt=0, description="BootingLabeler: a boot attempt at most this often"
     )

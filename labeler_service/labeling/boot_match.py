@@ -1932,6 +1932,7 @@ def _fill(
     free: np.ndarray,
     others: np.ndarray,
     config: BootConfig,
+    claimed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Places a booted subject's leftover markers on its leftover persistent tracks, judged
     jointly. A model trained on a segment that never exercised a joint (the broad jump's
@@ -1970,7 +1971,11 @@ def _fill(
     When the best map is not unique, the markers every map within the margin puts on one
     point are placed, if a pair of one trained body holds there and the best map passes
     the checks above as a whole (:func:`_fill_checks`); the others wait.
-    Otherwise nothing is placed. Returns the new assignment (a copy when changed)."""
+    Otherwise nothing is placed. When that places nothing and ``claimed (N,)`` is given (free
+    points within reach of another active subject's leftover markers, :func:`_reach`), the
+    free points nearer another subject's labeled points that no other subject claims and one
+    of this subject's leftover markers reaches join the candidates, and the joint map is
+    tried again with the same rules. Returns the new assignment (a copy when changed)."""
     n = tpl.n
     have = np.flatnonzero(assign >= 0)
     if have.size < max(3, int(np.ceil(config.min_fraction * n))) or have.size == n:
@@ -1983,12 +1988,27 @@ def _fill(
     centre = placed.mean(axis=0)
     cand = np.flatnonzero(free & (np.linalg.norm(pts - centre, axis=1) <= tpl.extent))
     cand = cand[np.isfinite(hist[cand, :, 0]).all(axis=1)]
+    far = cand[:0]
     if cand.size and others.shape[0]:
         d_own = cKDTree(placed).query(pts[cand])[0]
-        cand = cand[d_own < cKDTree(others).query(pts[cand])[0]]
+        nearer = d_own < cKDTree(others).query(pts[cand])[0]
+        far, cand = cand[~nearer], cand[nearer]
     out = _fill_jointly(tpl, assign, assign, miss, cand, pts, hist, config)
     if out is not None:
         return out
+    # Points nearer another subject's labeled points that no other subject can still claim
+    # (``claimed``: within reach of another active subject's leftover markers) and that one of
+    # this subject's leftover markers reaches: a whole segment left over (a kneeling
+    # performer's forearm and hand, a jumper's raised arms over a partner) lies farther from
+    # its own placed markers than from a partner's, and the nearest-point rule above refused
+    # every one of its points while the partner, complete there, has no marker to put on them.
+    if claimed is not None and far.size:
+        extra = far[~claimed[far] & _reach(tpl, assign, pts, far, config)]
+        if extra.size:
+            wide = np.sort(np.concatenate([cand, extra]))
+            out = _fill_jointly(tpl, assign, assign, miss, wide, pts, hist, config)
+            if out is not None:
+                return out
     # Re-read with the weakly placed markers (:func:`_weak_markers`): an arm read one marker
     # along its chain at boot leaves the true points of its first markers free, and the plain
     # fill refuses them (a placed marker fits their points better); the weak markers and their
@@ -2009,6 +2029,27 @@ def _fill(
         config,
     )
     return assign if out is None else out
+
+
+def _reach(
+    tpl: _Template, assign: np.ndarray, pts: np.ndarray, idx: np.ndarray, config: BootConfig
+) -> np.ndarray:
+    """``(len(idx),)``: the points ``idx`` some leftover marker of the subject (unplaced in
+    ``assign``) could be on, by the reach test of :func:`_fill_checks`: most of its distances
+    to its ``art_anchors`` steadiest placed partners within ``D + bound``."""
+    out = np.zeros(idx.size, dtype=bool)
+    have = np.flatnonzero(assign >= 0)
+    if have.size == 0 or idx.size == 0:
+        return out
+    d_all = np.linalg.norm(pts[idx][:, None] - pts[assign[have]][None], axis=2)  # (k, h)
+    for m in np.flatnonzero(assign < 0):
+        known = np.flatnonzero(np.isfinite(tpl.D[m, have]))
+        if known.size == 0:
+            continue
+        mine = known[np.argsort(tpl.A[m, have[known]], kind="stable")[: config.art_anchors]]
+        lim = tpl.D[m, have[mine]] + tpl.bound[m, have[mine]]
+        out |= 2 * (d_all[:, mine] > lim).sum(axis=1) <= mine.size
+    return out
 
 
 #: A placed marker with at most this many pairs of one trained body placed at their distance

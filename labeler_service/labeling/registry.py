@@ -241,7 +241,7 @@ def make_window_labeler(
     them: :func:`labeler_service.labeling.structure.window_model`), to be fed those frames with
     their labels, then the stream.
 
-    Five settings differ from a boot:
+    Six settings differ from a boot:
 
     - the inner labeler counts the model as the window's own samples
       (``restructure_prior_s = window_frames / rate``), not as ``restructure_prior_s`` seconds:
@@ -260,6 +260,9 @@ def make_window_labeler(
     - the weak completion releases no loose segment (``release_loose`` off): the window's
       labels placed every segment, and at 12.5 Hz the release moved the worst cell's arm
       (tune04 ``quarter`` 76.61 -> 75.02 %; tune18 90.89 -> 93.57 %);
+    - the joint fill takes no point nearer another subject's labeled points
+      (``fill_past_partner`` off): with it, tune25 and tune26 ``quarter`` 91.82 -> 91.39 % and
+      96.71 -> 96.48 %, tune07 ``half`` 99.20 -> 99.17 % (tune25 ``half`` 95.03 -> 95.07 %);
     - the inner labeler starts from the whole labeled window (``labeled_kept_s``), as the
       labeler trained in place does, not from its last ``booting.LABELED_KEPT_S`` (0.5 s):
       started from the last 15 of 50 frames at 30 Hz, it gave a ghost a hidden hand marker's
@@ -275,7 +278,11 @@ def make_window_labeler(
     base = config or LabelerConfig()
     cfg = LabelerConfig(**{**base.model_dump(), "restructure_prior_s": window_frames / rate})
     boot = BootConfig(
-        vanish_fraction=0.0, vanish_relative=0.0, fill_agreement=False, release_loose=False
+        vanish_fraction=0.0,
+        vanish_relative=0.0,
+        fill_agreement=False,
+        release_loose=False,
+        fill_past_partner=False,
     )
     from labeler_service.labeling.booting import BootingLabeler
 

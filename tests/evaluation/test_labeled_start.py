@@ -34,6 +34,8 @@ def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
     assert lab.boot_config.vanish_fraction == 0.0 and lab.boot_config.vanish_relative == 0.0
     # the window's labels placed every segment: no release of loose ones (tune04 quarter)
     assert not lab.boot_config.release_loose and not lab.boot_config.fill_agreement
+    # nor does its fill take points nearer a partner (a window's reach: tune25 quarter)
+    assert not lab.boot_config.fill_past_partner
     with pytest.raises(LabelerError, match="at least one labeled frame"):
         make_window_labeler(model, rate=25.0, window_frames=0)
 
