@@ -9,7 +9,8 @@ its own performer's neighbours *before* the contact, once the points are apart a
 
 - **Contact.** After the 3D check, swap repair and presence check, a labeled marker ``m``
   whose point lies within ``contact_mm`` of a point labeled for a marker ``m2`` of another
-  subject (neither already in a contact) registers the pair: ``tracks.ct_with[m] = m2`` and
+  subject (neither already in a contact, and the two not that close in the previous frame: a
+  pair just decided must not take a reference from during its contact) registers the pair: ``tracks.ct_with[m] = m2`` and
   back, and each keeps a copy of its recovery snapshot (``recovery.ref``, taken at the end of
   the previous frame, before the contact) in ``tracks.ct_ref``.
 - **Parting.** While both markers hold points more than ``contact_part_mm`` apart (closer,
@@ -165,7 +166,9 @@ def _contacts(points, index, dt, tracks, bodies, recovery, scratch, params):
             if not recovery.ok[m2]:
                 continue
             d = _dist(points[a], points[j])
-            if d < best:
+            # only a pair coming together: a pair already this close in the previous frame
+            # (a contact just decided) would take a reference from during the contact
+            if d < best and not _dist(tracks.pos[m], tracks.pos[m2]) < near:
                 best = d
                 bm = m2
         if bm < 0:
