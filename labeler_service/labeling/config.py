@@ -289,8 +289,7 @@ class LabelerConfig(BaseModel):
     contact_max_s: float = Field(
         2.0,
         gt=0,
-        description="a contact that has not parted within this many seconds is dropped "
-        "undecided",
+        description="a contact that has not parted within this many seconds is dropped undecided",
     )
     window_guard: bool = Field(
         True,

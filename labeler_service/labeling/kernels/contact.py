@@ -10,9 +10,10 @@ its own performer's neighbours *before* the contact, once the points are apart a
 - **Contact.** After the 3D check, swap repair and presence check, a labeled marker ``m``
   whose point lies within ``contact_mm`` of a point labeled for a marker ``m2`` of another
   subject (neither already in a contact, and the two not that close in the previous frame: a
-  pair just decided must not take a reference from during its contact) registers the pair: ``tracks.ct_with[m] = m2`` and
-  back, and each keeps a copy of its recovery snapshot (``recovery.ref``, taken at the end of
-  the previous frame, before the contact) in ``tracks.ct_ref``.
+  pair just decided must not take a reference from during its contact) registers the pair:
+  ``tracks.ct_with[m] = m2`` and back, and each keeps a copy of its recovery snapshot
+  (``recovery.ref``, taken at the end of the previous frame, before the contact) in
+  ``tracks.ct_ref``.
 - **Parting.** While both markers hold points more than ``contact_part_mm`` apart (closer,
   the two hypotheses cannot be told apart), each hypothesis is judged by the pre-contact
   references: the Kabsch estimate of ``m`` from its neighbours now and in ``ct_ref[m]`` (robust
@@ -35,7 +36,6 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.kernels.rigid import _robust_kabsch
-from labeler_service.labeling.kernels.spatial import _span
 
 
 @njit
@@ -150,33 +150,49 @@ def _contacts(points, index, dt, tracks, bodies, recovery, scratch, params):
             ct_with[m] = -1
             ct_with[m2] = -1
             changes += 1
-    # new contacts: a labeled point within contact_mm of another subject's labeled point
+    # new contacts: a labeled point within contact_mm of another subject's labeled point (one
+    # forward sweep of the sorted points: each pair once), the nearest such partner of each
+    ct_near, ct_dn = scratch.ct_near, scratch.ct_dn
     for m in range(m_total):
-        a = assigned[m]
-        if a < 0 or ct_with[m] >= 0 or not recovery.ok[m]:
+        ct_near[m] = -1
+        ct_dn[m] = near
+    order, keys = index.order, index.keys
+    n = keys.shape[0]
+    for q in range(n):
+        kq = keys[q]
+        if not np.isfinite(kq):
+            break  # non-finite keys sort last
+        j = order[q]
+        m = owner[j]
+        if m < 0 or ct_with[m] >= 0 or not recovery.ok[m]:
             continue
-        lo, hi = _span(index, points[a], near)
-        best = near
-        bm = -1
-        for q in range(lo, hi):
-            j = index.order[q]
-            m2 = owner[j]
-            if j == a or m2 < 0 or subj[m2] == subj[m] or ct_with[m2] >= 0:
+        for q2 in range(q + 1, n):
+            if keys[q2] - kq > near:
+                break
+            j2 = order[q2]
+            m2 = owner[j2]
+            if m2 < 0 or subj[m2] == subj[m] or ct_with[m2] >= 0 or not recovery.ok[m2]:
                 continue
-            if not recovery.ok[m2]:
+            d = _dist(points[j], points[j2])
+            if d >= ct_dn[m] and d >= ct_dn[m2]:
                 continue
-            d = _dist(points[a], points[j])
             # only a pair coming together: a pair already this close in the previous frame
             # (a contact just decided) would take a reference from during the contact
-            if d < best and not _dist(tracks.pos[m], tracks.pos[m2]) < near:
-                best = d
-                bm = m2
-        if bm < 0:
+            if _dist(tracks.pos[m], tracks.pos[m2]) < near:
+                continue
+            if d < ct_dn[m]:
+                ct_dn[m] = d
+                ct_near[m] = m2
+            if d < ct_dn[m2]:
+                ct_dn[m2] = d
+                ct_near[m2] = m
+    for m in range(m_total):
+        bm = ct_near[m]
+        if bm < 0 or ct_with[m] >= 0 or ct_with[bm] >= 0:
             continue
         ct_with[m] = bm
         ct_with[bm] = m
-        lo_m = min(m, bm)
-        ct_t[lo_m] = 0.0
+        ct_t[min(m, bm)] = 0.0
         for mm in (m, bm):
             for k in range(recovery.size[mm]):
                 for c in range(3):

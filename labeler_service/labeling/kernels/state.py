@@ -388,6 +388,8 @@ class Scratch(NamedTuple):
       of the 3D check); ``anchored (M,)`` bool: searched around its anchored estimate in the
       re-acquisition pass (kernels/anchor.py).
     - ``cm_buf (3, M)``, ``cm_shift (S, 3)``: the common-mode shift's offsets and result.
+    - ``ct_near (M,)`` int64, ``ct_dn (M,)``: each marker's nearest new contact partner and its
+      distance (:func:`.contact._contacts`).
     - ``fit``: :class:`FitScratch`; ``kab``: :class:`KabschScratch`.
     """
 
@@ -404,6 +406,8 @@ class Scratch(NamedTuple):
     anchored: np.ndarray
     cm_buf: np.ndarray
     cm_shift: np.ndarray
+    ct_near: np.ndarray
+    ct_dn: np.ndarray
     fit: FitScratch
     kab: KabschScratch
 
@@ -425,6 +429,8 @@ def new_scratch(n_markers: int, n_bodies: int, n_subjects: int, K: int, n_points
         anchored=np.zeros(m, dtype=np.bool_),
         cm_buf=np.zeros((3, m)),
         cm_shift=np.zeros((n_subjects, 3)),
+        ct_near=np.full(m, -1, dtype=np.int64),
+        ct_dn=np.zeros(m),
         fit=new_fit_scratch(m, n_bodies, K),
         kab=new_kabsch_scratch(),
     )
