@@ -265,6 +265,32 @@ class LabelerConfig(BaseModel):
         "when the mean excess of its trained links to long-tracked anchors (beyond 3 trained "
         "deviations) exceeds repair_check_mm and the change cuts it to a third (False = off)",
     )
+    contact_mm: float = Field(
+        25.0,
+        ge=0,
+        description="a labeled point within this of another subject's labeled point registers "
+        "a contact between the two markers, decided when the points part (0 = off)",
+    )
+    contact_part_mm: float = Field(
+        10.0,
+        gt=0,
+        description="a contact is judged while its two points are this far apart (up to twice "
+        "contact_mm): "
+        "the labels are exchanged when the exchange fits the pre-contact neighbourhoods "
+        "clearly better",
+    )
+    contact_ratio: float = Field(
+        1.0 / 3.0,
+        gt=0,
+        le=1,
+        description="a contact's exchange needs its summed distance to the two pre-contact "
+        "estimates below this fraction of the kept assignment's",
+    )
+    contact_max_s: float = Field(
+        2.0,
+        gt=0,
+        description="a contact that has not parted within this many seconds is dropped undecided",
+    )
     window_guard: bool = Field(
         True,
         description="Eq. 1-2 learns only from bodies that pass the 3D template check",

@@ -305,6 +305,7 @@ class Labeler:
         for a in (tr.age, tr.n_reject, tr.lost):
             a[markers] = 0
         tr.gone[markers] = False
+        tr.ct_with[markers] = -1
         tr.state[markers] = MarkerState.MISSING
         tr.pos[markers] = np.nan
         self._recovery.ok[markers] = False
@@ -584,6 +585,7 @@ class Labeler:
                     new.ref_ok[b] = True
                     new.ref_model[b] = old.ref_model[ob]
                     break
+        tr.ct_with[:] = -1  # contact references are rows of the old recovery sets
         recovery.ref[same_rec] = old_rec.ref[same_rec]
         recovery.ok[same_rec] = old_rec.ok[same_rec]
         self._bodies, self._recovery = new, recovery

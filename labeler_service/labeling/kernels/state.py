@@ -77,6 +77,11 @@ class Tracks(NamedTuple):
       rigid window links) at its last observation, -1 none; ``anc_ref (M, 3, 3)``: the positions
       of the marker and its two anchors then; ``anc_cost (M, 2)``: their links' window
       ``A + w D`` (anchored coasting, :mod:`.anchor`).
+    - ``subj (M,)`` int64: the marker's subject (row of ``subj_ptr``).
+    - Contacts between performers (:mod:`.contact`): ``ct_with (M,)`` int64 the marker of
+      another subject whose point came within ``contact_mm`` (-1 none; both markers point at
+      each other); ``ct_t (M,)`` seconds since the contact (on the pair's lower marker);
+      ``ct_ref (M, 8, 3)`` the marker's recovery snapshot from before the contact.
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -98,6 +103,10 @@ class Tracks(NamedTuple):
     anc: np.ndarray
     anc_ref: np.ndarray
     anc_cost: np.ndarray
+    subj: np.ndarray
+    ct_with: np.ndarray
+    ct_t: np.ndarray
+    ct_ref: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -120,7 +129,20 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         anc=np.full((m, 2), -1, dtype=np.int64),
         anc_ref=np.full((m, 3, 3), np.nan),
         anc_cost=np.zeros((m, 2)),
+        subj=_subjects(m, groups),
+        ct_with=np.full(m, -1, dtype=np.int64),
+        ct_t=np.zeros(m),
+        ct_ref=np.full((m, MAX_BODY, 3), np.nan),
     )
+
+
+def _subjects(m: int, groups: Sequence[Sequence[int]]) -> np.ndarray:
+    """Marker -> subject (its group's row; -1 for a marker in no group)."""
+    subj = np.full(m, -1, dtype=np.int64)
+    for s, g in enumerate(groups):
+        for i in g:
+            subj[i] = s
+    return subj
 
 
 class Bodies(NamedTuple):
@@ -366,6 +388,8 @@ class Scratch(NamedTuple):
       of the 3D check); ``anchored (M,)`` bool: searched around its anchored estimate in the
       re-acquisition pass (kernels/anchor.py).
     - ``cm_buf (3, M)``, ``cm_shift (S, 3)``: the common-mode shift's offsets and result.
+    - ``ct_near (M,)`` int64, ``ct_dn (M,)``: each marker's nearest new contact partner and its
+      distance (:func:`.contact._contacts`).
     - ``fit``: :class:`FitScratch`; ``kab``: :class:`KabschScratch`.
     """
 
@@ -382,6 +406,8 @@ class Scratch(NamedTuple):
     anchored: np.ndarray
     cm_buf: np.ndarray
     cm_shift: np.ndarray
+    ct_near: np.ndarray
+    ct_dn: np.ndarray
     fit: FitScratch
     kab: KabschScratch
 
@@ -403,6 +429,8 @@ def new_scratch(n_markers: int, n_bodies: int, n_subjects: int, K: int, n_points
         anchored=np.zeros(m, dtype=np.bool_),
         cm_buf=np.zeros((3, m)),
         cm_shift=np.zeros((n_subjects, 3)),
+        ct_near=np.full(m, -1, dtype=np.int64),
+        ct_dn=np.zeros(m),
         fit=new_fit_scratch(m, n_bodies, K),
         kab=new_kabsch_scratch(),
     )

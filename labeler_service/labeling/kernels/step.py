@@ -31,6 +31,7 @@ from labeler_service.labeling.kernels.anchor import (
     _anchor_lost,
     _anchor_snapshot,
 )
+from labeler_service.labeling.kernels.contact import _contacts
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
@@ -127,6 +128,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _repair(points, index, frame_no, tracks, bodies, scratch, params)
     if params.presence_min_markers > 0:
         _presence(points, tracks, bodies, scratch, params)
+    if params.contact_mm > 0.0:  # contacts between performers (ours, kernels/contact.py)
+        _contacts(points, index, dt, tracks, bodies, recovery, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]
