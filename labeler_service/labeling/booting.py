@@ -813,9 +813,10 @@ class BootingLabeler:
             # markers of active subjects the extension found (disjoint from the boot's), and
             # markers it moved (the joint fill re-reads weakly placed ones)
             add = (snapshot.extended >= 0) & (snapshot.extended != snapshot.labels)
-            add &= np.isin(self._subject_of[np.maximum(snapshot.extended, 0)], list(self._active))
+            active = self._subjects_in(self._active)
+            add &= active[self._subject_of[np.maximum(snapshot.extended, 0)]]
             gone = snapshot.labels[(snapshot.labels >= 0) & (snapshot.extended != snapshot.labels)]
-            self._unlabel(gone[np.isin(self._subject_of[gone], list(self._active))])
+            self._unlabel(gone[active[self._subject_of[gone]]])
             for s, mask in self._block_masks(snapshot.ids, last.t).items():
                 # withdrawn from that subject since the snapshot
                 add &= ~(mask & (self._subject_of[np.maximum(snapshot.extended, 0)] == s))
@@ -852,12 +853,11 @@ class BootingLabeler:
                 else min(2 * self._extend_wait, EXTEND_BACKOFF * self._extend_every)
             )
         if ext is not None:  # extension labels that still follow a track to this frame
-            ok = np.isin(self._subject_of[np.maximum(now, 0)], list(self._active) + keep)
+            ok = self._subjects_in([*self._active, *keep])[self._subject_of[np.maximum(now, 0)]]
             now[~ok] = -1  # a subject dropped since the snapshot
+            active = self._subjects_in(self._active)
             extended = bool(np.any(now >= 0)) and bool(
-                np.any(
-                    np.isin(self._subject_of[np.maximum(now, 0)], list(self._active)) & (now >= 0)
-                )
+                np.any(active[self._subject_of[np.maximum(now, 0)]] & (now >= 0))
             )
         if not booted.size and not extended and not self._acquired_new:
             return booted
@@ -1092,6 +1092,13 @@ class BootingLabeler:
         sh.acquired = 0
         return sh
 
+    def _subjects_in(self, subjects) -> np.ndarray:
+        """``(S,)`` bool: which model subjects are in ``subjects`` (index it with
+        ``self._subject_of[...]``: a lookup, where ``np.isin`` sorts its input each call)."""
+        out = np.zeros(len(self.model.subjects), dtype=bool)
+        out[list(subjects)] = True
+        return out
+
     def _install(self, added: list[int]) -> None:
         """The inner labeler takes over the window's labels of the subjects ``added`` (booted
         now: :meth:`Labeler.add_subjects`) and of the active subjects' markers it has not got
@@ -1102,7 +1109,7 @@ class BootingLabeler:
         win = [(fr.t, fr.points, fr.labels) for fr in self._window]
         if added:
             self._inner.add_subjects([self.model.subjects[s].name for s in added], win)
-        old = np.isin(self._subject_of, [s for s in self._active if s not in added])
+        old = self._subjects_in([s for s in self._active if s not in added])[self._subject_of]
         last = self._window[-1].labels
         seen = np.zeros(len(self._names), dtype=bool)
         for fr in self._window:
@@ -1115,7 +1122,7 @@ class BootingLabeler:
         )
         if seed.any():
             self._inner.seed_markers(np.flatnonzero(seed), win)
-        self._inner_known[np.isin(self._subject_of, added)] = False  # (a subject booted again)
+        self._inner_known[self._subjects_in(added)[self._subject_of]] = False  # (booted again)
         self._inner_known |= seen
         self._acquired_new = False
         self._since_acquire = 0
