@@ -578,6 +578,50 @@ def track_history(frames, ids):
     return out
 
 
+def window_obs(frames, mask):
+    """Twin of ``frame.window_observations`` (its ``kernels/stacked.py`` pass): per frame
+    ``frame_points``, ``frame_labels`` and a scatter of the labels in ``mask``."""
+    from labeler_service.labeling.frame import frame_labels, frame_points
+
+    m = mask.shape[0]
+    obs = np.full((len(frames), m, 3), np.nan)
+    for k, (_, pts, lab) in enumerate(frames):
+        pts = frame_points(pts)
+        lab = frame_labels(lab, pts.shape[0], m)
+        ok = lab >= 0
+        ok[ok] = mask[lab[ok]]
+        obs[k, lab[ok]] = pts[ok]
+    return obs
+
+
+def spread_labels(window_ids, window_labels, ids, labels):
+    """Twin of ``BootingLabeler._spread`` (its ``kernels/stacked.py`` pass): per frame the
+    track labels by a search, and per label its first free point unless the frame has it
+    (``np.unique``'s first occurrence). Returns new label arrays."""
+    lab = labels >= 0
+    tid, tl = ids[lab], labels[lab]
+    order = np.argsort(tid)
+    tid, tl = tid[order], tl[order]
+    out = []
+    for fids, old in zip(window_ids, window_labels, strict=True):
+        old = old.copy()
+        spread = np.full(fids.shape[0], -1, dtype=np.int64)
+        if tid.size:
+            pos = np.minimum(np.searchsorted(tid, fids), tid.size - 1)
+            hit = tid[pos] == fids
+            spread[hit] = tl[pos[hit]]
+        cand = np.flatnonzero((old < 0) & (spread >= 0))
+        if cand.size:
+            taken = np.zeros(int(max(old.max(initial=-1), spread.max()) + 1), dtype=bool)
+            taken[old[old >= 0]] = True
+            new = spread[cand]
+            _, first = np.unique(new, return_index=True)
+            ok = first[~taken[new[first]]]
+            old[cand[ok]] = new[ok]
+        out.append(old)
+    return out
+
+
 # ------------------------------------------------------- chirality volumes (structure training)
 
 

@@ -424,12 +424,14 @@ class Booter:
         fit_mm = self.config.fit_mm
         # the pair tests of every free point at once, (C candidates, F free points, k nearest):
         # a loop over the free points with three fancy indexings each cost ~30 us a point
+        # (the (C, F, k) blocks are read in one fancy index each: through ``[cand]`` first
+        # every candidate's whole row of the model (~500 markers) was copied, 0.39 -> 0.16 ms
+        # a call at 10 performers)
         ok_all = np.isfinite(dist)
         g_all = out[have[np.where(ok_all, near, 0)]]
-        st_all = self._a_strict[cand][:, g_all] & ok_all[None]
-        fit_all = st_all & (
-            np.abs(dist[None] - self._a_D[cand][:, g_all]) <= self._a_tol[cand][:, g_all]
-        )
+        at = (cand[:, None, None], g_all[None])
+        st_all = self._a_strict[at] & ok_all[None]
+        fit_all = st_all & (np.abs(dist[None] - self._a_D[at]) <= self._a_tol[at])
         n_fit_all = fit_all.sum(axis=2)
         base_all = (n_fit_all >= 2) & ~np.any(st_all & ~fit_all, axis=2)
         for i in range(free.size):

@@ -18,6 +18,7 @@ from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
+from labeler_service.labeling.kernels.stacked import _spread_labels
 from labeler_service.labeling.kernels.track import _match_tracks, _track_history, _track_step
 from labeler_service.labeling.templates import LabelerModel
 
@@ -1797,6 +1798,9 @@ def warmup_kernels() -> None:
     _match_tracks(p3, p3 + 1.0, np.ones(2))
     _track_step(p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0)
     _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))
+    # a booting labeler's installs (kernels/stacked.py; the other one warms with the inner
+    # labeler's install: BootingLabeler.warmup)
+    _spread_labels(z[:1], z[:1], z.copy(), z - 1, np.array([0, 2]), 2)
 
 
 # ---------------------------------------------------------------------------- joint fill

@@ -31,7 +31,13 @@ from labeler_service._numba import njit
 from labeler_service.capture import split_label, subject_groups
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.config import LabelerConfig
-from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_labels, frame_points
+from labeler_service.labeling.frame import (
+    LabeledFrame,
+    MarkerState,
+    frame_labels,
+    frame_points,
+    window_observations,
+)
 from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import kernel_params
 from labeler_service.labeling.kernels.rigid import _snapshot
@@ -341,15 +347,10 @@ class Labeler:
         )
         T = bd.ring.shape[3]
         nf = len(frames)
-        obs = np.full((nf, m, 3), np.nan)
+        obs = window_observations(frames, mask)
         dts = np.empty(nf)
         t_prev = np.nan
-        for k, (t, pts, lab) in enumerate(frames):
-            pts = frame_points(pts)
-            lab = frame_labels(lab, pts.shape[0], m)
-            ok = lab >= 0
-            ok[ok] = mask[lab[ok]]
-            obs[k, lab[ok]] = pts[ok]
+        for k, (t, _, _) in enumerate(frames):
             dt = float(t) - t_prev
             dts[k] = dt if np.isfinite(dt) and dt > 0 else 1.0 / self.rate
             t_prev = float(t)

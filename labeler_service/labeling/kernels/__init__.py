@@ -11,6 +11,7 @@ and each kernel has a plain-numpy twin in ``tests/reference.py``.
 - :mod:`.window`: sliding-window update of D and A (Eq. 1-2);
 - :mod:`.spatial`: the sweep index behind every "points near here" query;
 - :mod:`.step`: the whole per-frame loop, one entry point;
+- :mod:`.stacked`: labels over a window of stacked frames (a booting labeler's installs);
 - :mod:`.state`: the state it works on, as named structures (``Tracks``, ``Bodies``,
   ``Recovery``, ``Scratch``) and their builders;
 - :mod:`.params`: every setting as one named tuple ``Params``, built from ``LabelerConfig``.
