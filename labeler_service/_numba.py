@@ -3,15 +3,29 @@
 ``njit`` compiles with ``cache=True`` (compile once per machine, not per process) and a fastmath
 set that keeps NaN/inf semantics: a NaN is how a missing marker is spelled in this project, so
 ``nnan``/``ninf`` are never enabled.
+
+numba's on-disk cache checks only the source file of each cached function: a kernel whose callee
+in another file changed (an edit, an upgrade that rewrote some files) kept running its old
+compiled code, silently. Here the project's kernels are cached under a stamp of *every* file
+that holds kernels (:func:`kernel_sources`), so any change to one of them recompiles them all
+once. This hooks numba's cache locators (``CacheImpl._locator_classes``, not a public API);
+when a numba version lacks them, the default per-file check stays and :data:`SET_STAMPED` is
+False.
 """
 
 from __future__ import annotations
 
+import hashlib
+from functools import cache
+from pathlib import Path
 from typing import Any
 
 import numba
 
 FASTMATH = frozenset({"nsz", "arcp", "contract", "afn", "reassoc"})
+_PACKAGE = Path(__file__).resolve().parent
+#: the folders whose modules define kernels (``labeling`` with ``kernels``, the simulator's)
+_KERNEL_DIRS = (_PACKAGE / "labeling", _PACKAGE / "scenes" / "sim")
 
 
 def njit(*args: Any, **kwargs: Any) -> Any:
@@ -20,3 +34,86 @@ def njit(*args: Any, **kwargs: Any) -> Any:
     kwargs.setdefault("fastmath", set(FASTMATH))
     kwargs.setdefault("nogil", True)
     return numba.njit(*args, **kwargs)
+
+
+def kernel_sources() -> list[Path]:
+    """Every source file whose change must recompile the project's cached kernels: the files
+    of a ``kernels`` folder (kernels, and the state types and constants they read) and every
+    other file of :data:`_KERNEL_DIRS` that uses numba. A file without kernels (the booting
+    wrapper, the trainer) recompiles nothing when it changes."""
+    files = {Path(__file__).resolve()}
+    for d in _KERNEL_DIRS:
+        for p in d.rglob("*.py"):
+            if "__pycache__" in p.parts:
+                continue
+            if "kernels" in p.parts or _uses_numba(p):
+                files.add(p.resolve())
+    return sorted(files)
+
+
+def _uses_numba(p: Path) -> bool:
+    text = p.read_text(encoding="utf-8", errors="replace")
+    return "_numba import" in text or "import numba" in text or "from numba" in text
+
+
+@cache
+def kernel_set_stamp() -> str:
+    """A hash of :func:`kernel_sources` (their bytes) and the numba version."""
+    h = hashlib.sha256(numba.__version__.encode())
+    for p in kernel_sources():
+        h.update((str(p.relative_to(_PACKAGE)) if p.is_relative_to(_PACKAGE) else p.name).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _in_package(py_file: str) -> bool:
+    try:
+        return Path(py_file).resolve().is_relative_to(_PACKAGE)
+    except (OSError, ValueError):
+        return False
+
+
+def _stamp_locators() -> bool:
+    """Puts a set-stamped twin before each of numba's source-file cache locators (for the
+    project's files only). Returns False when this numba has no such hook."""
+    try:
+        from numba.core import caching
+
+        impl = caching.CacheImpl
+        bases = [
+            c for c in impl._locator_classes
+            if issubclass(c, caching._SourceFileBackedLocatorMixin)
+        ]  # fmt: skip
+    except (ImportError, AttributeError):
+        return False
+    if not bases or any(getattr(c, "_mocap_stamped", False) for c in impl._locator_classes):
+        return bool(bases)
+    out: list[Any] = []
+    for c in impl._locator_classes:
+        if c in bases:
+
+            def from_function(cls, py_func, py_file, _base=c):
+                if not _in_package(py_file):
+                    return None
+                return super(cls, cls).from_function.__func__(cls, py_func, py_file)
+
+            def get_source_stamp(self, _base=c):
+                return (_base.get_source_stamp(self), kernel_set_stamp())
+
+            twin = type(
+                f"SetStamped{c.__name__}",
+                (c,),
+                {
+                    "_mocap_stamped": True,
+                    "from_function": classmethod(from_function),
+                    "get_source_stamp": get_source_stamp,
+                },
+            )
+            out.append(twin)
+        out.append(c)
+    impl._locator_classes = out
+    return True
+
+
+#: True when the project's kernels are cached under the stamp of the whole kernel set
+SET_STAMPED = _stamp_locators()

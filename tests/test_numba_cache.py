@@ -1,0 +1,87 @@
+"""numba's cache and an edited callee in another file (``labeler_service._numba``).
+
+``cache=True`` checks only the cached function's own source file: a kernel whose callee in
+another file changed kept its old compiled code. The project's kernels are cached under a stamp
+of every kernel file, so the caller recompiles."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from labeler_service import _numba
+
+ROOT = Path(__file__).resolve().parents[1]
+CALLEE = "from labeler_service._numba import njit\n\n\n@njit\ndef g():\n    return {}\n"
+CALLER = (
+    "from labeler_service._numba import njit\n"
+    "from labeler_service.labeling.kernels.zz_callee import g\n\n\n"
+    "@njit\ndef f():\n    return g() + 100\n"
+)
+DEFAULT_ONLY = (  # the negative control: numba's own per-file check
+    "from numba.core import caching\n"
+    "import labeler_service._numba\n"
+    "caching.CacheImpl._locator_classes = [c for c in caching.CacheImpl._locator_classes\n"
+    "    if not getattr(c, '_mocap_stamped', False)]\n"
+)
+
+
+def _run(tree: Path, prelude: str = "") -> int:
+    code = prelude + "from labeler_service.labeling.kernels.zz_caller import f\nprint(f())\n"
+    env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"}
+    env.pop("NUMBA_CACHE_DIR", None)
+    env.pop("NUMBA_DISABLE_JIT", None)
+    out = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, check=True,
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    return int(out.stdout.split()[-1])
+
+
+def _edit_callee(kernels: Path, value: int) -> None:
+    p = kernels / "zz_callee.py"
+    p.write_text(CALLEE.format(value))
+    st = p.stat()
+    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns + 2_000_000_000))
+
+
+@pytest.mark.parametrize("stamped", [True, False])
+def test_a_kernel_recompiles_when_its_callee_in_another_file_changes(tmp_path, stamped):
+    assert _numba.SET_STAMPED  # this numba has the locator hook
+    tree = tmp_path / "tree"
+    shutil.copytree(ROOT / "labeler_service", tree / "labeler_service",
+                    ignore=shutil.ignore_patterns("__pycache__", "static"))  # fmt: skip
+    kernels = tree / "labeler_service" / "labeling" / "kernels"
+    (kernels / "zz_caller.py").write_text(CALLER)
+    _edit_callee(kernels, 1)
+    prelude = "" if stamped else DEFAULT_ONLY
+    assert _run(tree, prelude) == 101
+    assert any(kernels.glob("__pycache__/zz_caller*.nbi"))  # cached on disk
+    _edit_callee(kernels, 2)
+    # numba's own check alone runs the caller's old code (the stale class this removes)
+    assert _run(tree, prelude) == (102 if stamped else 101)
+
+
+def test_the_stamp_covers_every_kernel_file(tmp_path, monkeypatch):
+    files = _numba.kernel_sources()
+    names = {p.name for p in files}
+    assert {"_numba.py", "step.py", "contact.py", "labeler.py", "occlusion.py"} <= names
+    d = tmp_path / "labeling"
+    d.mkdir()
+    (d / "a.py").write_text("from labeler_service._numba import njit\nX = 1\n")
+    (d / "plain.py").write_text("Y = 1\n")  # no kernels: no recompile when it changes
+    monkeypatch.setattr(_numba, "_KERNEL_DIRS", (d,))
+    _numba.kernel_set_stamp.cache_clear()
+    try:
+        before = _numba.kernel_set_stamp()
+        (d / "plain.py").write_text("Y = 2\n")
+        _numba.kernel_set_stamp.cache_clear()
+        assert _numba.kernel_set_stamp() == before
+        (d / "a.py").write_text("from labeler_service._numba import njit\nX = 2\n")
+        _numba.kernel_set_stamp.cache_clear()
+        assert _numba.kernel_set_stamp() != before
+    finally:
+        _numba.kernel_set_stamp.cache_clear()
