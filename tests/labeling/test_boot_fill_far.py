@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from labeling.walks import split_walk, subject_on_its_points
+from labeling.walks import split_walk, subject_with_leftover
 
 from labeler_service.labeling.boot import BootConfig
 
@@ -22,13 +22,7 @@ def walk():
 def _case(walk):
     """P1 on its true points with its left forearm and hand free (tracked), and a partner's
     labeled point 10 mm from each of them (a hug: the partner's arm along this one's)."""
-    tpl, names, pts, hist = subject_on_its_points(walk)
-    ix = {n: i for i, n in enumerate(names)}
-    miss = np.array([ix[n] for n in ARM])
-    assign = np.arange(tpl.n)
-    assign[miss] = -1
-    free = np.zeros(tpl.n, dtype=bool)
-    free[miss] = True
+    tpl, _, assign, pts, hist, free, miss = subject_with_leftover(walk, ARM)
     others = pts[miss] + np.array([0.0, 0.0, 10.0])
     return tpl, assign, pts, hist, free, miss, others
 

@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 import pytest
-from labeling.walks import split_walk, subject_on_its_points
+from labeling.walks import split_walk, subject_with_leftover
 
 from labeler_service.labeling.boot import BootConfig
 
@@ -23,14 +23,7 @@ def walk():
 def _case(walk, leftover: tuple[str, ...]):
     """P1 on its true points except ``leftover`` markers (free, tracked), in the first frame
     whose 12-frame window sees all of them; point ``i`` is marker ``i``."""
-    tpl, names, pts, hist = subject_on_its_points(walk)
-    ix = {n: i for i, n in enumerate(names)}
-    miss = np.array([ix[n] for n in leftover])
-    assign = np.arange(tpl.n)
-    assign[miss] = -1
-    free = np.zeros(tpl.n, dtype=bool)
-    free[miss] = True
-    return tpl, ix, assign, pts, hist, free, miss
+    return subject_with_leftover(walk, leftover)
 
 
 def _stale_model(walk, tpl, ix, pts, shift: float, loose: bool):

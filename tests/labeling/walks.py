@@ -43,3 +43,20 @@ def subject_on_its_points(walk: tuple[LabelerModel, Capture], subject: str = "P1
     frame = next(f for f in range(11, cap.n_frames) if seen[f - 11 : f + 1].all())
     hist = np.transpose(cap.positions[frame - 11 : frame + 1][:, cols], (1, 0, 2)).astype(float)
     return tpl, names, np.ascontiguousarray(hist[:, -1]), hist
+
+
+def subject_with_leftover(walk: tuple[LabelerModel, Capture], leftover: tuple[str, ...]):
+    """:func:`subject_on_its_points` with the ``leftover`` markers free (tracked, unplaced):
+    ``(tpl, ix, assign, pts, hist, free, miss)`` - ``ix`` marker name -> index, ``assign``
+    marker -> point (-1 for the leftover), ``free`` the points no marker holds, ``miss`` the
+    leftover markers' indices."""
+    import numpy as np
+
+    tpl, names, pts, hist = subject_on_its_points(walk)
+    ix = {n: i for i, n in enumerate(names)}
+    miss = np.array([ix[n] for n in leftover])
+    assign = np.arange(tpl.n)
+    assign[miss] = -1
+    free = np.zeros(tpl.n, dtype=bool)
+    free[miss] = True
+    return tpl, ix, assign, pts, hist, free, miss
