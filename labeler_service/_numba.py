@@ -92,7 +92,7 @@ def _stamp_locators() -> bool:
     for c in impl._locator_classes:
         if c in bases:
 
-            def from_function(cls, py_func, py_file, _base=c):
+            def from_function(cls, py_func, py_file):
                 if not _in_package(py_file):
                     return None
                 return super(cls, cls).from_function.__func__(cls, py_func, py_file)

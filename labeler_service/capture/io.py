@@ -270,25 +270,24 @@ def _exact_copies(pos: np.ndarray, labels: list[str]) -> list[tuple[int, int]]:
 
     seen = np.isfinite(pos[..., 0])
     probe = np.unique(np.linspace(0, n_frames - 1, COPY_PROBE_FRAMES).astype(int))
-    tol = COPY_TOL_MM
     candidates: set[tuple[int, int]] = set()
     for f in probe:
         idx = np.flatnonzero(seen[f])
         if idx.size > 1:
-            close = cKDTree(pos[f, idx].astype(np.float64)).query_pairs(tol)
+            close = cKDTree(pos[f, idx].astype(np.float64)).query_pairs(COPY_TOL_MM)
             candidates |= {(int(idx[a]), int(idx[b])) for a, b in close}
     if not candidates:
         return []
     out: list[tuple[int, int]] = []
     dropped: set[int] = set()
-    for a, b in sorted(candidates or ()):
+    for a, b in sorted(candidates):
         if a in dropped or b in dropped:
             continue
         common = seen[:, a] & seen[:, b]
         if common.sum() < 2 or np.any(seen[:, a] != seen[:, b]):
             continue
         d = np.linalg.norm(pos[common, a].astype(np.float64) - pos[common, b], axis=1)
-        if float(d.max()) > tol:
+        if float(d.max()) > COPY_TOL_MM:
             continue
         copy, kept = (a, b) if is_ghost(labels[a]) and not is_ghost(labels[b]) else (b, a)
         out.append((copy, kept))
