@@ -149,9 +149,7 @@ def window_observations(
             raise LabelerError(f"points must be (N, 3), got shape {p.shape}")
         if lab.shape[0] != p.shape[0]:
             raise LabelerError(f"{lab.shape[0]} labels for {p.shape[0]} points")
-    allp = np.concatenate(pts)
-    if not np.isfinite(allp).all():
-        raise LabelerError("points must be finite (drop missing points instead of NaN)")
+    allp = frame_points(np.concatenate(pts))  # (the finite check, once for the window)
     starts = np.zeros(nf + 1, dtype=np.int64)
     np.cumsum([p.shape[0] for p in pts], out=starts[1:])
     _window_obs(allp, np.concatenate(labs), starts, np.ascontiguousarray(mask, dtype=np.bool_), obs)
