@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import struct
 import uuid
 import zipfile
@@ -295,15 +296,35 @@ def _exact_copies(pos: np.ndarray, labels: list[str]) -> list[tuple[int, int]]:
     return out
 
 
+#: names other systems give a trajectory nobody labeled (Vicon writes ``*N``): OptiTrack
+#: Motive ``Unlabeled 1234`` / ``Unlabeled:1234`` (``_0001`` when told to rename them), other
+#: exporters ``Unidentified 3``, ``Unnamed 12``, ``unknown``; with or without a subject prefix
+_UNLABELED_NAME = re.compile(
+    r"^(?:(?:unlabell?ed|unidentified|unnamed|unknown)(?:[\s_:#.-]*\d+)?|_\d+)$", re.IGNORECASE
+)
+
+
+def _names_no_marker(label: str) -> bool:
+    """True for a vendor's name of an unlabeled trajectory (:data:`_UNLABELED_NAME`)."""
+    return bool(_UNLABELED_NAME.match(label) or _UNLABELED_NAME.match(split_label(label)[1]))
+
+
 def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
-    """Empty labels become unlabeled tracks ``*N``; a repeated name gets a ``~k`` suffix, and
-    a repeated ``*N`` a fresh ``*N`` (it stays an unlabeled track, never becomes a marker)."""
+    """Empty labels, and the names other systems give unlabeled trajectories
+    (:data:`_UNLABELED_NAME`), become unlabeled tracks ``*N``; a repeated name gets a ``~k``
+    suffix, and a repeated ``*N`` a fresh ``*N`` (it stays an unlabeled track, never becomes
+    a marker). Read as markers, a Motive take's hundreds of short unlabeled tracks would be
+    scored and trained as markers nobody can label."""
     taken = set(labels)
     seen: dict[str, int] = {}
     out = []
     free = 0
+    renamed = [x for x in labels if x and _names_no_marker(x)]
+    if renamed:
+        said = ", ".join(repr(x) for x in renamed[:3]) + (", ..." if len(renamed) > 3 else "")
+        notes.append(f"{len(renamed)} unlabeled trajectories ({said}) read as unlabeled tracks *N")
     for i, label in enumerate(labels):
-        name = label or f"*{i}"
+        name = f"*{i}" if not label or _names_no_marker(label) else label
         if name in seen:
             seen[name] += 1
             if is_ghost(name):

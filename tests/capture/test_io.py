@@ -273,3 +273,22 @@ def test_a_point_written_twice_is_read_once(tmp_path, rng, suffix: str) -> None:
     cap = read_capture(tmp_path / f"d{suffix}")
     assert cap.labels == ("P:M", "P:A", "P:C", "P:C2", "P:D")
     assert any("P:B = P:A" in n for n in cap.notes)
+
+
+@pytest.mark.parametrize("suffix", [".c3d", ".trc"])
+def test_other_systems_unlabeled_names_are_unlabeled_tracks(tmp_path, rng, suffix: str) -> None:
+    """Motive writes a trajectory nobody labeled as ``Unlabeled 1234`` (or ``_0001``), other
+    exporters ``Unidentified 3``: read as markers, each would be scored and trained as a marker
+    nobody can label. They are read as unlabeled tracks, like Vicon's ``*N``, with a note; a
+    marker whose name merely contains such a word stays a marker."""
+    labels = ["S:LASI", "Unlabeled 1234", "Unlabeled:1235", "S:_0001", "Unidentified 3",
+              "S:unknown", "S:UnlabeledStrap", "S:RASI"]  # fmt: skip
+    pos = rng.normal(0.0, 300.0, (5, len(labels), 3)).astype(np.float32)
+    cap = Capture(positions=pos, labels=tuple(labels), rate=100.0)
+    path = write_capture(cap, tmp_path / f"u{suffix}")
+    cap = read_capture(path)
+    assert [is_ghost(x) for x in cap.labels] == [False] + [True] * 5 + [False, False]
+    assert cap.labels[0] == "S:LASI" and cap.labels[6:] == ("S:UnlabeledStrap", "S:RASI")
+    assert len(set(cap.labels)) == len(labels)
+    assert any("5 unlabeled trajectories" in n for n in cap.notes)
+    np.testing.assert_allclose(cap.positions, pos, atol=1e-3)
