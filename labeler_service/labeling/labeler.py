@@ -257,8 +257,17 @@ class Labeler:
         self._withdrawn[back] = False
         if not self._tracks.active[mk].all():
             raise LabelerError("seed_markers takes markers of active subjects only")
+        # an open contact between performers (kernels/contact.py) outlives the restart: the
+        # pair is still touching, and its pre-contact references (tracks.ct_ref) are untouched
+        # by the new track; cleared, the partner would drop the contact undecided and a swap
+        # made while the points are still close would last
+        ct = self._tracks.ct_with
+        partner = ct[mk].copy()
         self._reset(mk, np.zeros(0, dtype=np.int64))
         self._seed(mk, np.zeros(0, dtype=np.int64), frames)
+        open_ = partner >= 0
+        open_[open_] = ct[partner[open_]] == mk[open_]
+        ct[mk[open_]] = partner[open_]
 
     def drop_subject(self, name: str) -> None:
         """Stops labeling subject ``name`` (it left): its markers become inactive, so from the

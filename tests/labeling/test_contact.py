@@ -95,3 +95,40 @@ def test_right_labels_at_contact_stay(seed):
     on = _wrong_frames(seed, LabelerConfig())
     assert np.count_nonzero(on >= PARTED) == 0
     assert on.size <= _wrong_frames(seed, LabelerConfig(contact_mm=0.0)).size
+
+
+def _wrong_frames_reseeded(seed: int, at: int) -> np.ndarray:
+    """As :func:`_wrong_frames`, on a labeler started from a model, with the first performer's
+    hand restarted at frame ``at`` (``Labeler.seed_markers`` from the last 12 frames with that
+    hand's true label, as the booting labeler's fill does for a marker it labels anew)."""
+    pos, names = _scene(seed)
+    trainer = Labeler(names, RATE, LabelerConfig())
+    for f in range(INIT + 1):
+        trainer.process(pos[f], f / RATE, np.arange(len(names)) if f < INIT else None)
+    model = trainer.model
+    perm = [names.index(n) for n in model.marker_names]
+    pos = pos[:, perm]
+    hand = model.marker_names.index("P0:hand")
+    lab = Labeler.from_model(model, RATE, LabelerConfig())
+    rng = np.random.default_rng(seed + 100)
+    wrong, recent = [], []
+    for f in range(FRAMES):
+        order = rng.permutation(pos.shape[1]).astype(np.int32)
+        pts = np.ascontiguousarray(pos[f, order])
+        if f == at:
+            lab.seed_markers([hand], [(t, p, np.where(o == hand, o, -1)) for t, p, o in recent])
+        out = lab.process(pts, f / RATE, order if f < INIT else None)
+        recent = [*recent[-11:], (f / RATE, pts, order)]
+        if f >= INIT and np.any(np.asarray(out.point_labels) != order):
+            wrong.append(f)
+    return np.array(wrong, dtype=np.int64)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 5])
+def test_contact_outlives_a_reseeded_marker(seed):
+    """A marker restarted while its contact is open (the booting labeler's fill labels it anew
+    and ``seed_markers`` restarts its track; s2 of BENCHMARKS.md, the walker's ``LMT5`` and the
+    dancer's ``Ankle_L``) keeps the contact: the toss made after the restart, the points still
+    touching, is undone when they part. The restart once dropped the contact undecided."""
+    on = _wrong_frames_reseeded(seed, 180)
+    assert np.count_nonzero(on >= PARTED) == 0

@@ -26,8 +26,11 @@ its own performer's neighbours *before* the contact, once the points are apart a
   An exchange also exchanges the two Kalman states (they followed the points), and forgets
   the two markers' last body positions (``bodies.mpos``: no rigid motion from a point to the
   other performer's).
-- A contact that has not parted within ``contact_max_s`` seconds, or whose partner was reset,
-  is dropped without a decision.
+- A contact that has not parted within ``contact_max_s`` seconds, or whose partner was reset
+  (withdrawn, dropped, a re-formed structure), is dropped without a decision. A marker whose
+  track is restarted (``Labeler.seed_markers``, e.g. the booting labeler's fill labels it
+  anew) keeps its open contact: the pair still touches, and ``ct_ref`` does not depend on the
+  new track.
 """
 
 from __future__ import annotations
