@@ -643,3 +643,14 @@ def volume_stats(p, q, quantile=0.1):
          for col, ok in zip(det.T, seen.T, strict=True)]
     )  # fmt: skip
     return n, pos_frac, thick
+
+
+def constancy_counts(hist, pts, D, tol, strict):
+    """Twin of ``kernels/boot_pairs.py:_constancy_counts`` (the numpy block of
+    ``boot_match._constancy`` it replaced): per placed marker, its strict pairs' distances along
+    the tracks seen, and those off ``D +- tol``."""
+    h = hist[np.asarray(pts, dtype=np.int64)]  # (n, W, 3)
+    d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
+    pair = strict[..., None] & np.isfinite(d)
+    bad = pair & (np.abs(d - D[..., None]) > tol[..., None])
+    return pair.sum(axis=(1, 2)), bad.sum(axis=(1, 2))

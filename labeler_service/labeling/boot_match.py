@@ -5,9 +5,12 @@ free points. Everything here is private to :class:`~labeler_service.labeling.boo
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import itertools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,6 +20,7 @@ from scipy.spatial import cKDTree
 from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
+from labeler_service.labeling.kernels.boot_pairs import _constancy_counts
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
 from labeler_service.labeling.kernels.stacked import _spread_labels
 from labeler_service.labeling.kernels.track import _match_tracks, _track_history, _track_step
@@ -371,6 +375,54 @@ def _body_candidates(
         v = ok[c]
         out.append(_Candidate(body.markers[v], pp[c, v], float(err[c])))
     return out
+
+
+class _Memo:
+    """The point pairs and body candidates of one local point set, computed once per boot
+    attempt or extension (:func:`memo`). A completion (:func:`_complete`) reads the free points
+    within a subject's reach; :func:`_complete_weak` completes the same subject again with its
+    weak markers or a loose segment released (:func:`_released`), most often on the same
+    local points, and each of those recomputed the same pairs and the same candidates of every
+    body not yet placed (10 hugging performers: 72 completions in one extension, ~60 % of its
+    CPU in ``_candidates``). Both are pure functions of the template, the local points and
+    their tracks, so a reuse changes no label. Keyed by the template, the body and the local
+    point indices into the arrays of the call that opened the memo (those arrays are not
+    changed while it is open)."""
+
+    def __init__(self) -> None:
+        self.pairs: dict[tuple, _Pairs] = {}
+        self.cands: dict[tuple, list[_Candidate]] = {}
+        self.keep: list[tuple[np.ndarray, np.ndarray]] = []
+
+
+_MEMO: contextvars.ContextVar[_Memo | None] = contextvars.ContextVar("boot_memo", default=None)
+
+
+@contextlib.contextmanager
+def memo() -> Iterator[None]:
+    """Pairs and body candidates of the completions inside are computed once per local point
+    set (:class:`_Memo`); open it around one call on one set of points and tracks."""
+    token = _MEMO.set(_Memo())
+    try:
+        yield
+    finally:
+        _MEMO.reset(token)
+
+
+def _local_pairs(
+    tpl: _Template, pts: np.ndarray, hist: np.ndarray, local: np.ndarray
+) -> tuple[_Pairs, tuple | None]:
+    """``_Pairs`` of the points ``pts[local]`` (radius ``tpl.r_max``), from the memo when one
+    is open; returns the memo key of the local set too (None: no memo)."""
+    m = _MEMO.get()
+    if m is None:
+        return _Pairs(pts[local], tpl.r_max), None
+    key = (tpl.offset, id(pts), id(hist), local.tobytes())
+    pairs = m.pairs.get(key)
+    if pairs is None:
+        pairs = m.pairs[key] = _Pairs(pts[local], tpl.r_max)
+        m.keep.append((pts, hist))  # (their ids stay theirs while the memo is open)
+    return pairs, key
 
 
 class _Graph:
@@ -766,14 +818,13 @@ def _constancy(
         have = np.flatnonzero(assign >= 0)
         if have.size < 2:
             return assign
-        h = hist[assign[have]]  # (n, W, 3)
-        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
-        D = tpl.D[np.ix_(have, have)][..., None]
-        tol = tpl.tol[np.ix_(have, have)][..., None]
-        pair = tpl.strict[np.ix_(have, have)][..., None] & np.isfinite(d)
-        bad = pair & (np.abs(d - D) > tol)
-        n_pair = pair.sum(axis=(1, 2))
-        frac_bad = bad.sum(axis=(1, 2)) / np.maximum(n_pair, 1)
+        # per marker, its strict pairs' distances along the tracks seen and off D +- tol
+        # (kernels/boot_pairs.py; its numpy twin is tests/reference.py:constancy_counts)
+        sub = np.ix_(have, have)
+        n_pair, n_bad = _constancy_counts(
+            hist, assign[have], tpl.D[sub], tpl.tol[sub], tpl.strict[sub]
+        )
+        frac_bad = n_bad / np.maximum(n_pair, 1)
         worst = int(np.argmax(frac_bad))
         if frac_bad[worst] <= 1.0 - config.constancy:
             return assign
@@ -947,18 +998,28 @@ def _candidates(
     pairs: _Pairs,
     config: BootConfig,
     fixed: np.ndarray | None = None,
+    key: tuple | None = None,
 ) -> _Candidates | None:
     """Every body candidate of ``tpl`` and their graph; ``fixed`` (a template assignment) adds
-    its (marker, point) nodes (as a last candidate row of its own, not a body)."""
+    its (marker, point) nodes (as a last candidate row of its own, not a body). ``key``: the
+    local point set's key in the open memo (:func:`_local_pairs`), whose body candidates are
+    then computed once."""
     cands: list[_Candidate] = []
+    mem = _MEMO.get() if key is not None else None
     for bi, body in enumerate(tpl.bodies):
         if fixed is not None and np.all(fixed[body.markers] >= 0):
             # every marker placed: each node of its candidates is a fixed node or clashes with
             # one (a marker on two points), so none can join the completion (:func:`_select`);
             # skipped, they cost nothing (most bodies of a booted subject's extension)
             continue
-        for c in _body_candidates(tpl, body, pts, hist, pairs, config):
-            c.body = bi
+        known = None if mem is None else mem.cands.get((bi, key))
+        found = (
+            known if known is not None else _body_candidates(tpl, body, pts, hist, pairs, config)
+        )
+        if mem is not None and known is None:
+            mem.cands[(bi, key)] = found
+        for c in found:
+            c.body = bi  # (read only downstream: a memo's candidates are shared)
             cands.append(c)
     n = pts.shape[0]
     keys = [c.markers * n + c.points for c in cands]
@@ -1497,7 +1558,8 @@ def _complete(
     back[local] = np.arange(local.size)
     lp, lh = pts[local], hist[local]
     fixed = np.where(assign >= 0, back[np.maximum(assign, 0)], -1)
-    cg = _candidates(tpl, lp, lh, _Pairs(lp, tpl.r_max), config, fixed)
+    pairs, key = _local_pairs(tpl, pts, hist, local)
+    cg = _candidates(tpl, lp, lh, pairs, config, fixed, key)
     out = assign.copy()
     if cg is not None:
         nodes = _select(
@@ -1795,6 +1857,7 @@ def warmup_kernels() -> None:
     p3 = np.zeros((2, 3))
     _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
     _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
+    _constancy_counts(np.zeros((2, 2, 3)), z.copy(), np.zeros((2, 2)), np.ones((2, 2)), ~out_b)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
     _track_step(p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0)
     _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))
