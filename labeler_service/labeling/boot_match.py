@@ -378,16 +378,17 @@ def _body_candidates(
 
 
 class _Memo:
-    """The point pairs and body candidates of one local point set, computed once per boot
-    attempt or extension (:func:`memo`). A completion (:func:`_complete`) reads the free points
-    within a subject's reach; :func:`_complete_weak` completes the same subject again with its
-    weak markers or a loose segment released (:func:`_released`), most often on the same
-    local points, and each of those recomputed the same pairs and the same candidates of every
-    body not yet placed (10 hugging performers: 72 completions in one extension, ~60 % of its
-    CPU in ``_candidates``). Both are pure functions of the template, the local points and
-    their tracks, so a reuse changes no label. Keyed by the template, the body and the local
-    point indices into the arrays of the call that opened the memo (those arrays are not
-    changed while it is open)."""
+    """The point pairs and body candidates of one local point set, computed once while a memo
+    is open (:func:`memo`; :meth:`Booter.extend` opens one per subject it completes). A
+    completion (:func:`_complete`) reads the free points within a subject's reach;
+    :func:`_complete_weak` completes the same subject again with its weak markers or a loose
+    segment released (:func:`_released`), most often on the same local points, and each of
+    those recomputed the same pairs and the same candidates of every body not yet placed (10
+    hugging performers, the two extensions of a catch-up: 72 completions, half their CPU in
+    ``_candidates``, 396 body candidate searches of which 267 repeated one). Both are pure
+    functions of the template, the local points and their tracks, so a reuse changes no label.
+    Keyed by the template, the body and the local point indices into the arrays of the call
+    that opened the memo (those arrays are not changed while it is open)."""
 
     def __init__(self) -> None:
         self.pairs: dict[tuple, _Pairs] = {}
