@@ -643,3 +643,41 @@ def volume_stats(p, q, quantile=0.1):
          for col, ok in zip(det.T, seen.T, strict=True)]
     )  # fmt: skip
     return n, pos_frac, thick
+
+
+def constancy_counts(hist, pts, D, tol, strict):
+    """Twin of ``kernels/boot_pairs.py:_constancy_counts`` (the numpy block of
+    ``boot_match._constancy`` it replaced): per placed marker, its strict pairs' distances along
+    the tracks seen, and those off ``D +- tol``."""
+    h = hist[np.asarray(pts, dtype=np.int64)]  # (n, W, 3)
+    d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
+    pair = strict[..., None] & np.isfinite(d)
+    bad = pair & (np.abs(d - D[..., None]) > tol[..., None])
+    return pair.sum(axis=(1, 2)), bad.sum(axis=(1, 2))
+
+
+def body_scores(
+    bodies, chosen, blocked, links, lerr, possible, support, against, near, M, refused,
+    complete, link_fraction,
+):  # fmt: skip
+    """Twin of ``boot_match._body_scores`` (the numpy body step of ``boot_match._select`` it
+    replaced): ``(total, rsum, count, free & beside, bb)``."""
+    bb = bodies >= 0
+    if complete:
+        shared = (chosen[bodies] & bb).sum(axis=1)
+        bb = bb & ~chosen[np.maximum(bodies, 0)]
+    else:
+        shared = np.zeros(bodies.shape[0], dtype=np.int64)
+    free = ~np.any(blocked[bodies] & bb, axis=1) & bb.any(axis=1)
+    count = (links[bodies] * bb).sum(axis=1)
+    soft = count - (lerr[bodies] * bb).sum(axis=1)
+    frac = count / np.maximum((possible[bodies] * bb).sum(axis=1), 1)
+    placed = np.zeros(near.shape[1], dtype=bool)
+    placed[M[chosen]] = True
+    beside = (near & placed).sum(axis=1) >= (1 if complete else 2)
+    sup = support[bodies] * bb
+    differ = (against[bodies] * bb).sum(axis=1)
+    ok = free & beside & (differ <= sup.sum(axis=1)) & ~refused
+    total = np.where(ok & (frac >= link_fraction), soft, -1.0)
+    rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1) + shared, 0)
+    return total, rsum, count, free & beside, bb

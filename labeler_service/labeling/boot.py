@@ -83,6 +83,7 @@ from labeler_service.labeling.boot_match import (
     _score,
     _Template,
     _tied,
+    memo,
     warmup_kernels,
 )
 from labeler_service.labeling.boot_tracks import PointTracker, labels_along_tracks, track_history
@@ -350,10 +351,13 @@ class Booter:
             assign, _ = _subject_assign(tpl, out)
             if np.all(assign >= 0):
                 continue  # (every marker placed: the completion has none to add or move)
-            if age is None:
-                grown = _complete(tpl, assign, pts, hist, taken, self.config)
-            else:  # (may move weakly placed markers: :func:`_complete_weak`)
-                grown = _complete_weak(tpl, assign, pts, hist, taken, self.config)
+            # (the re-readings complete the subject again, mostly on the same local points:
+            # their pairs and body candidates are computed once, :class:`boot_match._Memo`)
+            with memo():
+                if age is None:
+                    grown = _complete(tpl, assign, pts, hist, taken, self.config)
+                else:  # (may move weakly placed markers: :func:`_complete_weak`)
+                    grown = _complete_weak(tpl, assign, pts, hist, taken, self.config)
             if self._blind[s]:
                 grown = _rigid_only(tpl, assign, grown, pts)
             _take(tpl, assign, grown, out, taken)

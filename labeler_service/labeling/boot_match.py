@@ -5,9 +5,12 @@ free points. Everything here is private to :class:`~labeler_service.labeling.boo
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import itertools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,6 +20,7 @@ from scipy.spatial import cKDTree
 from labeler_service._numba import njit
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
+from labeler_service.labeling.kernels.boot_pairs import _constancy_counts
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
 from labeler_service.labeling.kernels.stacked import _spread_labels
 from labeler_service.labeling.kernels.track import _match_tracks, _track_history, _track_step
@@ -373,6 +377,55 @@ def _body_candidates(
     return out
 
 
+class _Memo:
+    """The point pairs and body candidates of one local point set, computed once while a memo
+    is open (:func:`memo`; :meth:`Booter.extend` opens one per subject it completes). A
+    completion (:func:`_complete`) reads the free points within a subject's reach;
+    :func:`_complete_weak` completes the same subject again with its weak markers or a loose
+    segment released (:func:`_released`), most often on the same local points, and each of
+    those recomputed the same pairs and the same candidates of every body not yet placed (10
+    hugging performers, the two extensions of a catch-up: 72 completions, half their CPU in
+    ``_candidates``, 396 body candidate searches of which 267 repeated one). Both are pure
+    functions of the template, the local points and their tracks, so a reuse changes no label.
+    Keyed by the template, the body and the local point indices into the arrays of the call
+    that opened the memo (those arrays are not changed while it is open)."""
+
+    def __init__(self) -> None:
+        self.pairs: dict[tuple, _Pairs] = {}
+        self.cands: dict[tuple, list[_Candidate]] = {}
+        self.keep: list[tuple[np.ndarray, np.ndarray]] = []
+
+
+_MEMO: contextvars.ContextVar[_Memo | None] = contextvars.ContextVar("boot_memo", default=None)
+
+
+@contextlib.contextmanager
+def memo() -> Iterator[None]:
+    """Pairs and body candidates of the completions inside are computed once per local point
+    set (:class:`_Memo`); open it around one call on one set of points and tracks."""
+    token = _MEMO.set(_Memo())
+    try:
+        yield
+    finally:
+        _MEMO.reset(token)
+
+
+def _local_pairs(
+    tpl: _Template, pts: np.ndarray, hist: np.ndarray, local: np.ndarray
+) -> tuple[_Pairs, tuple | None]:
+    """``_Pairs`` of the points ``pts[local]`` (radius ``tpl.r_max``), from the memo when one
+    is open; returns the memo key of the local set too (None: no memo)."""
+    m = _MEMO.get()
+    if m is None:
+        return _Pairs(pts[local], tpl.r_max), None
+    key = (tpl.offset, id(pts), id(hist), local.tobytes())
+    pairs = m.pairs.get(key)
+    if pairs is None:
+        pairs = m.pairs[key] = _Pairs(pts[local], tpl.r_max)
+        m.keep.append((pts, hist))  # (their ids stay theirs while the memo is open)
+    return pairs, key
+
+
 class _Graph:
     """Marker-to-point assignments (nodes) of one template and their pairwise relations:
     ``agree[a, b]``: a rigid pair (``A <= rigid_a_mm``) whose point distance matches ``D``;
@@ -538,6 +591,84 @@ def _greedy_nodes(
         blocked[c] = True
 
 
+@njit(fastmath=False)
+def _body_scores(
+    bodies, chosen, blocked, links, lerr, possible, support, against, near, M, refused,
+    complete, link_fraction,
+):  # fmt: skip
+    """The body step's scores of :func:`_select` for every candidate row of ``bodies (C, 8)``
+    (node indices, -1 padded) in one pass: ``(total, rsum, count, fb, bb)``, exactly the numpy
+    arrays it replaced (``total``: soft link count of a segment free of clashes, beside a placed
+    neighbour, not against most of its rigid pairs and linked enough, else -1; ``rsum``: its
+    rigid agreements with the set plus shared nodes when spread over two or more markers, else
+    0; ``count``: its links; ``fb``: free and beside; ``bb``: its new nodes). The float sums
+    over a row of 8 are numpy's pairwise order (no fastmath), so ``argmax`` ties break the same.
+    The numpy version was ~20 small array calls per step, ~2,000 steps per attempt of 10
+    hugging performers."""
+    C, K = bodies.shape
+    N = chosen.shape[0]
+    m = near.shape[1]
+    placed = np.zeros(m, dtype=np.bool_)
+    for i in range(N):
+        if chosen[i]:
+            placed[M[i]] = True
+    need = 1 if complete else 2
+    total = np.empty(C)
+    rsum = np.zeros(C, dtype=np.int64)
+    count = np.zeros(C, dtype=np.int64)
+    fb = np.zeros(C, dtype=np.bool_)
+    bb = np.zeros((C, K), dtype=np.bool_)
+    v = np.zeros(K)
+    for c in range(C):
+        shared = 0
+        anyb = False
+        clash = False
+        cnt = 0
+        poss = 0
+        sup = 0
+        npos = 0
+        dif = 0
+        for k in range(K):
+            b = bodies[c, k]
+            j = b if b >= 0 else N + b
+            on = b >= 0
+            if complete:
+                if on and chosen[j]:
+                    shared += 1
+                on = on and not chosen[j]
+            bb[c, k] = on
+            v[k] = lerr[j] * (1.0 if on else 0.0)
+            if on:
+                anyb = True
+                clash = clash or blocked[j]
+                cnt += links[j]
+                poss += possible[j]
+                sup += support[j]
+                dif += against[j]
+                if support[j] > 0:
+                    npos += 1
+        if K == 8:
+            ls = ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]))
+        else:
+            ls = 0.0
+            for k in range(K):
+                ls += v[k]
+        free = anyb and not clash
+        nb = 0
+        for q in range(m):
+            if near[c, q] and placed[q]:
+                nb += 1
+        beside = nb >= need
+        count[c] = cnt
+        fb[c] = free and beside
+        frac = cnt / max(poss, 1)
+        ok = free and beside and dif <= sup and not refused[c]
+        total[c] = cnt - ls if ok and frac >= link_fraction else -1.0
+        if free and npos >= 2:
+            rsum[c] = sup + shared
+    return total, rsum, count, fb, bb
+
+
 def _select(
     g: _Graph,
     seed: np.ndarray,
@@ -572,45 +703,31 @@ def _select(
         )  # fmt: skip
         if bodies.shape[0] == 0:
             return np.flatnonzero(chosen)
-        bb = bodies >= 0
-        if complete:
-            # completing a booted subject, a candidate may share placed markers (the same
-            # nodes: a foot body on the placed ankle, whose heel, toe and metatarsal have no
-            # other rigid partner placed): its new nodes are what it adds and is scored on,
-            # the shared ones count as agreements with the set
-            shared = (chosen[bodies] & bb).sum(axis=1)
-            bb = bb & ~chosen[np.maximum(bodies, 0)]
-        else:
-            shared = np.zeros(bodies.shape[0], dtype=np.int64)
-        free = ~np.any(blocked[bodies] & bb, axis=1) & bb.any(axis=1)
-        count = (links[bodies] * bb).sum(axis=1)
-        # links counted softly (1 - |d - D| / tolerance each): a symmetric segment read either
-        # way, or the left foot read as the right one, has as many links but farther from D
-        soft = count - (lerr[bodies] * bb).sum(axis=1)
-        frac = count / np.maximum((possible[bodies] * bb).sum(axis=1), 1)
-        # a segment joins when most of its articulated pairs to the set are in range (another
-        # performer's hand within reach of this one's shoulder is not, of its hips neither)
-        # ... and only next to a neighbour in the chain already placed (two of its markers; one
-        # when completing a booted subject: the neighbour's others may be hidden)
-        placed = np.zeros(near.shape[1], dtype=bool)
-        placed[g.M[chosen]] = True
-        beside = (near & placed).sum(axis=1) >= (1 if complete else 2)
-        sup = support[bodies] * bb
-        differ = (against[bodies] * bb).sum(axis=1)
-        # ... and not against most of its pairs rigid by A alone (a forearm read on a
-        # shoulder and the head: in range of the hips, but off the trained arm-to-chest pairs)
-        ok = free & beside & (differ <= sup.sum(axis=1)) & ~refused
-        total = np.where(ok & (frac >= config.link_fraction), soft, -1.0)
-        best = int(np.argmax(total))
-        # a segment whose markers keep their rigid distances to the set (an elbow's to the
+        # completing a booted subject, a candidate may share placed markers (the same nodes:
+        # a foot body on the placed ankle, whose heel, toe and metatarsal have no other rigid
+        # partner placed): its new nodes (``bb``) are what it adds and is scored on, the shared
+        # ones count as agreements with the set. A segment joins when most of its articulated
+        # pairs to the set are in range (another performer's hand within reach of this one's
+        # shoulder is not, of its hips neither; links counted softly, 1 - |d - D| / tolerance
+        # each: a symmetric segment read either way, or the left foot read as the right one,
+        # has as many links but farther from D), only next to a neighbour in the chain already
+        # placed (two of its markers; one when completing: the neighbour's others may be
+        # hidden), and not against most of its pairs rigid by A alone (a forearm read on a
+        # shoulder and the head: in range of the hips, but off the trained arm-to-chest pairs).
+        # A segment whose markers keep their rigid distances to the set (an elbow's to the
         # forearm's) joins first, however far its articulated pairs are from the trained
         # poses: at least ``min_support + 1`` agreements spread over two or more of its markers
-        rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1) + shared, 0)
+        # (``rsum``). Every score in one kernel pass (:func:`_body_scores`).
+        total, rsum, count, fb, bb = _body_scores(
+            bodies, chosen, blocked, links, lerr, possible, support, against, near, g.M,
+            refused, complete, config.link_fraction,
+        )  # fmt: skip
+        best = int(np.argmax(total))
         if rsum.max() > config.min_support:
             best = int(np.argmax(rsum))
         elif count[best] < config.min_links or total[best] < 0:
             rows = np.where(bb, bodies, -1)
-            best = _beside_joint(g, chosen, rows, free & beside, near) if complete else -1
+            best = _beside_joint(g, chosen, rows, fb, near) if complete else -1
             if best < 0:
                 return np.flatnonzero(chosen)
         elif not _steady_links(g, bodies[best][bb[best]], np.flatnonzero(chosen & near[best][g.M])):
@@ -766,14 +883,13 @@ def _constancy(
         have = np.flatnonzero(assign >= 0)
         if have.size < 2:
             return assign
-        h = hist[assign[have]]  # (n, W, 3)
-        d = np.linalg.norm(h[:, None] - h[None, :], axis=3)  # (n, n, W)
-        D = tpl.D[np.ix_(have, have)][..., None]
-        tol = tpl.tol[np.ix_(have, have)][..., None]
-        pair = tpl.strict[np.ix_(have, have)][..., None] & np.isfinite(d)
-        bad = pair & (np.abs(d - D) > tol)
-        n_pair = pair.sum(axis=(1, 2))
-        frac_bad = bad.sum(axis=(1, 2)) / np.maximum(n_pair, 1)
+        # per marker, its strict pairs' distances along the tracks seen and off D +- tol
+        # (kernels/boot_pairs.py; its numpy twin is tests/reference.py:constancy_counts)
+        sub = np.ix_(have, have)
+        n_pair, n_bad = _constancy_counts(
+            hist, assign[have], tpl.D[sub], tpl.tol[sub], tpl.strict[sub]
+        )
+        frac_bad = n_bad / np.maximum(n_pair, 1)
         worst = int(np.argmax(frac_bad))
         if frac_bad[worst] <= 1.0 - config.constancy:
             return assign
@@ -947,18 +1063,28 @@ def _candidates(
     pairs: _Pairs,
     config: BootConfig,
     fixed: np.ndarray | None = None,
+    key: tuple | None = None,
 ) -> _Candidates | None:
     """Every body candidate of ``tpl`` and their graph; ``fixed`` (a template assignment) adds
-    its (marker, point) nodes (as a last candidate row of its own, not a body)."""
+    its (marker, point) nodes (as a last candidate row of its own, not a body). ``key``: the
+    local point set's key in the open memo (:func:`_local_pairs`), whose body candidates are
+    then computed once."""
     cands: list[_Candidate] = []
+    mem = _MEMO.get() if key is not None else None
     for bi, body in enumerate(tpl.bodies):
         if fixed is not None and np.all(fixed[body.markers] >= 0):
             # every marker placed: each node of its candidates is a fixed node or clashes with
             # one (a marker on two points), so none can join the completion (:func:`_select`);
             # skipped, they cost nothing (most bodies of a booted subject's extension)
             continue
-        for c in _body_candidates(tpl, body, pts, hist, pairs, config):
-            c.body = bi
+        known = None if mem is None else mem.cands.get((bi, key))
+        found = (
+            known if known is not None else _body_candidates(tpl, body, pts, hist, pairs, config)
+        )
+        if mem is not None and known is None:
+            mem.cands[(bi, key)] = found
+        for c in found:
+            c.body = bi  # (read only downstream: a memo's candidates are shared)
             cands.append(c)
     n = pts.shape[0]
     keys = [c.markers * n + c.points for c in cands]
@@ -1497,7 +1623,8 @@ def _complete(
     back[local] = np.arange(local.size)
     lp, lh = pts[local], hist[local]
     fixed = np.where(assign >= 0, back[np.maximum(assign, 0)], -1)
-    cg = _candidates(tpl, lp, lh, _Pairs(lp, tpl.r_max), config, fixed)
+    pairs, key = _local_pairs(tpl, pts, hist, local)
+    cg = _candidates(tpl, lp, lh, pairs, config, fixed, key)
     out = assign.copy()
     if cg is not None:
         nodes = _select(
@@ -1792,9 +1919,14 @@ def warmup_kernels() -> None:
         dist, m, m, rigid, rigid.copy(), m, m, out_b, out_b.copy(), out_b.copy(), out_b.copy(),
         np.zeros((2, 2)), out_b.copy(),
     )  # fmt: skip
+    _body_scores(
+        np.array([[0, 1, -1, -1, -1, -1, -1, -1]]), ~ones, ~ones, z.copy(), np.zeros(2),
+        z.copy(), z.copy(), z.copy(), np.ones((1, 2), dtype=np.bool_), M, ~ones[:1], True, 0.5,
+    )  # fmt: skip
     p3 = np.zeros((2, 3))
     _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
     _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
+    _constancy_counts(np.zeros((2, 2, 3)), z.copy(), np.zeros((2, 2)), np.ones((2, 2)), ~out_b)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
     _track_step(p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0)
     _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))

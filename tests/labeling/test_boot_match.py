@@ -383,3 +383,45 @@ def test_a_mirror_segment_without_handedness_is_not_guessed_and_fill_maps_see_ch
     assert not _fill_reversed(tpl, empty, pts, marks, truth[marks])[0]
     flip = np.array([-1.0, 1.0, 1.0])
     assert _fill_reversed(tpl, empty, pts * flip, marks, truth[marks])[0]
+
+
+def test_completions_in_a_memo_reuse_candidates_and_give_the_same_markers(walker, monkeypatch):
+    """A subject with two segments unplaced and two markers exchanged is completed
+    (:func:`_complete_weak`) inside :func:`memo` and without: the same markers; a completion
+    on the same local points again (a re-reading) takes every body candidate from the memo."""
+    import labeler_service.labeling.boot_match as bm
+
+    tpl, hist, truth = walker
+    pts = hist[:, -1]
+    assign = truth.copy()
+    for body in tpl.bodies[-2:]:  # two segments hidden from the boot
+        assign[body.markers] = -1
+    # two markers of another segment exchanged (weakly placed: their pairs are off)
+    a, b = [m for m in tpl.bodies[0].markers if assign[m] >= 0][:2]
+    assign[[a, b]] = assign[[b, a]]
+    taken = np.zeros(pts.shape[0], dtype=bool)
+    calls = []
+    real = bm._body_candidates
+
+    def counted(*args):
+        calls.append(args[1])
+        return real(*args)
+
+    monkeypatch.setattr(bm, "_body_candidates", counted)
+    cfg = BootConfig()
+    plain = bm._complete_weak(tpl, assign.copy(), pts, hist, taken, cfg)
+    assert (plain >= 0).sum() > (assign >= 0).sum()  # it did complete
+    n_plain = len(calls)
+    calls.clear()
+    with bm.memo():
+        memoized = bm._complete_weak(tpl, assign.copy(), pts, hist, taken, cfg)
+        assert len(calls) <= n_plain
+        first = len(calls)
+        # the same subject completed again on the same points (as a re-reading does)
+        again = bm._complete(tpl, assign.copy(), pts, hist, taken, cfg, reread=True)
+        assert len(calls) == first  # every candidate from the memo
+    np.testing.assert_array_equal(memoized, plain)
+    np.testing.assert_array_equal(
+        again, bm._complete(tpl, assign.copy(), pts, hist, taken, cfg, reread=True)
+    )
+    assert bm._MEMO.get() is None  # closed

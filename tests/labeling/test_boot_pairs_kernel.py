@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labeler_service.labeling.kernels.boot_pairs import _pair_error
-from tests.reference import pair_error
+from labeler_service.labeling.kernels.boot_pairs import _constancy_counts, _pair_error
+from tests.reference import constancy_counts, pair_error
 
 
 def _tables(rng, m):
@@ -49,3 +49,39 @@ def test_pair_error_degenerate():
     assert _pair_error(D, scale, logs, gauss, use, mk, pp, assign, pts, 4.0) == pytest.approx(
         pair_error(D, scale, logs, gauss, use, mk, pp, assign, pts, 4.0)
     )
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_constancy_counts_match_twin(seed):
+    rng = np.random.default_rng(seed)
+    N, W, n = int(rng.integers(3, 80)), int(rng.integers(1, 25)), int(rng.integers(1, 20))
+    n = min(n, N)
+    hist = rng.normal(0, 300, (N, W, 3))
+    hist[rng.random((N, W)) < 0.15] = np.nan  # untracked frames give no sample
+    pts = rng.permutation(N)[:n].astype(np.int64)
+    d0 = np.linalg.norm(hist[pts][:, None, 0] - hist[pts][None, :, 0], axis=2)
+    # D at a frame's exact distance (a zero tolerance there is the edge: not off)
+    D = np.where(np.isfinite(d0), d0, rng.uniform(50, 600, (n, n)))
+    tol = rng.uniform(0, 20, (n, n))
+    tol[rng.random((n, n)) < 0.3] = 0.0
+    strict = rng.random((n, n)) < 0.6
+    seen, bad = _constancy_counts(hist, pts, D, tol, strict)
+    want_seen, want_bad = constancy_counts(hist, pts, D, tol, strict)
+    np.testing.assert_array_equal(seen, want_seen)
+    np.testing.assert_array_equal(bad, want_bad)
+
+
+def test_constancy_counts_degenerate():
+    hist = np.full((3, 4, 3), np.nan)  # nothing tracked: nothing seen
+    pts = np.array([0, 1, 2], dtype=np.int64)
+    D, tol = np.zeros((3, 3)), np.ones((3, 3))
+    seen, bad = _constancy_counts(hist, pts, D, tol, np.ones((3, 3), dtype=bool))
+    assert seen.tolist() == [0, 0, 0] and bad.tolist() == [0, 0, 0]
+    hist = np.zeros((2, 3, 3))
+    hist[1, :, 0] = [10.0, 10.0, 30.0]  # 10 mm apart twice, then 30 mm
+    two = np.array([0, 1], dtype=np.int64)
+    strict = np.array([[False, True], [True, False]])
+    seen, bad = _constancy_counts(hist, two, np.full((2, 2), 10.0), np.full((2, 2), 5.0), strict)
+    assert seen.tolist() == [3, 3] and bad.tolist() == [1, 1]
+    seen, bad = _constancy_counts(hist, two[:0], D[:0, :0], tol[:0, :0], strict[:0, :0])
+    assert seen.size == 0 and bad.size == 0
