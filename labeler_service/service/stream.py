@@ -110,6 +110,7 @@ from labeler_service.service.handover import (
 )
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
+from labeler_service.service.units import UnitCheck
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
@@ -320,6 +321,8 @@ class StreamState:
         self.boot_inflight = False  # a boot job runs or waits to be installed
         self._labels_seen = False  # a labeled frame reached the current labeler (_install)
         self._warned_unknown = False
+        #: points in another unit than the model's (metres): warned by the server
+        self.units = UnitCheck()
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
