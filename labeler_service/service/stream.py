@@ -110,7 +110,7 @@ from labeler_service.service.handover import (
 )
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
-from labeler_service.service.units import UnitCheck
+from labeler_service.service.units import UnitCheck, init_span_warning
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
@@ -583,6 +583,10 @@ class StreamState:
     def _train(
         self, init: InitWindow, first: FrameMsg, cancel, staged: bool
     ) -> tuple[FrameLabeler, float, LabeledFrame, int, Handover | None]:
+        units = init_span_warning(self.name, [f.points for f in init.frames], init.idx,
+                                  init.names)  # fmt: skip
+        if units is not None:
+            log.warning("%s", units)
         labeler, rate, remap, deferred = self._labeler_for(init, staged)
         for f, idx in zip(init.frames, init.idx, strict=True):
             if cancel is not None and cancel.is_set():

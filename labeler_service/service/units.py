@@ -26,6 +26,36 @@ WINDOW_S = 2.0
 SMALL = 1 / 20
 #: points spanning more than this multiple of a subject: another unit (micrometres)
 LARGE = 1000.0
+#: labeled init frames none of whose subjects spans this many mm are in another unit (no
+#: person's markers span less than a head's, ~150 mm); a model trained on them matches their
+#: points, so the check above cannot see it
+TINY_MM = 50.0
+
+
+def init_span_warning(
+    stream: str, frames: list[np.ndarray], idx: list[np.ndarray], names: list[str]
+) -> str | None:
+    """A warning when the labeled init frames' subjects all span less than ``TINY_MM``: the
+    largest extent, over the frames, of one subject's labeled points in one frame."""
+    subject = np.array([n.split(":", 1)[0] if ":" in n else "" for n in names] + [""])
+    codes = np.unique(subject[:-1], return_inverse=True)[1]
+    codes = np.append(codes, -1)  # idx -1 (unlabeled point) -> no subject
+    span = 0.0
+    for pts, ix in zip(frames, idx, strict=True):
+        if len(pts) < 2:
+            continue
+        sub = codes[np.asarray(ix, dtype=np.int64)]
+        for c in np.unique(sub[sub >= 0]):
+            p = pts[sub == c]
+            if len(p) >= 2:
+                span = max(span, float(np.max(np.ptp(p, axis=0))))
+    if not 0.0 < span < TINY_MM:
+        return None
+    return (
+        f"stream {stream}: the subjects of its labeled init frames span at most {span:.4g}: if "
+        "they are people, their points are in another unit, metres (x 1000) or centimetres "
+        "(x 10)? Points travel in millimetres (docs/protocol.md)"
+    )
 
 
 def model_scale(model: LabelerModel) -> float:
@@ -56,12 +86,13 @@ class UnitCheck:
     def update(
         self, stream: str, points: np.ndarray, t: float, observed: int, model: object
     ) -> str | None:
-        if observed > 0 or not isinstance(model, LabelerModel):
+        if not isinstance(model, LabelerModel):
             self.reset()
             return None
         if id(model) != self._model_id:
             self._model_id, self._scale = id(model), model_scale(model)
-        if self._scale <= 0.0:
+        if self._scale <= 0.0 or observed > 0:
+            self.reset()
             return None
         if self._since is None or t < self._since:
             self._since, self._span = t, 0.0

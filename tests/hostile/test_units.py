@@ -17,7 +17,7 @@ from labeler_service.labeling.training import train_subject
 from labeler_service.service.protocol import encode_frame
 from labeler_service.service.server import Server
 from labeler_service.service.transports.memory import MemoryTransport
-from labeler_service.service.units import UnitCheck
+from labeler_service.service.units import UnitCheck, init_span_warning
 
 TRAIN = 60
 
@@ -86,3 +86,32 @@ def test_the_check_waits_for_a_window_with_nothing_labeled_and_restarts_on_a_lab
     assert "metres" in (chk.update("v", small, 3.95, 0, model) or "")
     # no model (the baseline, a labeler not trained yet): nothing to compare with
     assert all(chk.update("v", small, 10 + k / 100, 0, None) is None for k in range(400))
+
+
+def test_a_stream_trained_from_init_frames_in_metres_is_named_in_the_log(scene, caplog):
+    # its model is trained on the metres themselves, so points and model agree: the check
+    # is the model's own size (no person's markers span less than 50 mm)
+    frames = frames_of(scene, np.random.default_rng(1))
+    items = []
+    for k in range(200):
+        p, truth = frames[k]
+        labels = [scene.labels[i] for i in truth] if k < 20 else None
+        items.append(encode_frame("default", k, k / scene.rate, p * np.float32(1e-3), labels))
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(), [mem]) as srv:
+            for p in items:
+                mem.inject(p)
+            return srv, await collect(srv, mem)
+
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.stream"):
+        srv, msgs = run(go())
+    warned = [r.getMessage() for r in caplog.records if "init frames span" in r.getMessage()]
+    assert len(msgs) == 200 - 20 and len(warned) == 1, warned
+    assert "stream default" in warned[0] and "metres" in warned[0]
+    # the same frames in millimetres: no warning
+    idx = [np.asarray(t, dtype=np.int16) for _, t in (frames[k] for k in range(20))]
+    pts = [frames[k][0] for k in range(20)]
+    assert init_span_warning("v", pts, idx, list(scene.labels)) is None
+    assert init_span_warning("v", [p * 1e-3 for p in pts], idx, list(scene.labels))
