@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.training import DUPLICATE_MM
     from offline.structure import StructureTrainer
 
+    _check_out(args.out, args.inputs)
     trainer = StructureTrainer(
         tolerance_mm=args.tolerance_mm,
         distance_weight=args.distance_weight,
@@ -82,6 +83,23 @@ def run(args: argparse.Namespace) -> int:
                       f"{', '.join(s['no_body'])}")  # fmt: skip
         print(f"wrote {args.out}")
     return 0
+
+
+def _check_out(out: str, inputs: list[str]) -> None:
+    """Refuses, before the training, a model path that could not be written or that would
+    replace a capture: a directory, an unwritable folder, one of the inputs, or a name with a
+    capture's suffix (a model is JSON: ``--out take.c3d`` would overwrite a take)."""
+    from pathlib import Path
+
+    from labeler_service.capture import SUFFIXES, check_writable
+    from labeler_service.errors import ModelError
+
+    if Path(out).suffix.lower() in SUFFIXES:
+        raise ModelError(
+            f"{out}: a model is JSON, not a capture ({Path(out).suffix}): "
+            "name it e.g. model.json (this would replace a capture file)"
+        )
+    check_writable(out, suffixes=None, inputs=tuple(inputs))
 
 
 def parse_take(text: str) -> tuple[str, int, int | None]:

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import uuid
 from pathlib import Path
 from typing import Literal
 
@@ -260,12 +262,34 @@ def _first_error(exc: ValidationError, raw: object = None) -> str:
 
 
 def save_model(model: LabelerModel, path: str | Path) -> None:
-    """Writes ``model`` as JSON."""
+    """Writes ``model`` as JSON, creating parent folders.
+
+    The JSON goes to a temporary file next to the target, is synced and renamed over it, so
+    the model file is either complete or untouched: an interrupted run (Ctrl-C, a full disk)
+    never leaves half a model, and a service (re)starting meanwhile reads the old or the new
+    model, never a truncated one. A symbolic link is followed (the file it points to is
+    replaced)."""
     p = Path(path)
+    text = model.model_dump_json(indent=1).encode("utf-8")
+    target = Path(os.path.realpath(p))
+    tmp = target.parent / f".{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
     try:
-        p.write_text(model.model_dump_json(indent=1))
+        if target.is_dir():
+            raise IsADirectoryError(21, "Is a directory")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # umask applies
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     except OSError as exc:
-        raise ModelError(f"{p}: cannot write model: {exc}") from exc
+        reason = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno and exc.strerror else exc
+        raise ModelError(f"{p}: cannot write model: {reason}") from exc
 
 
 def load_model(path: str | Path) -> LabelerModel:

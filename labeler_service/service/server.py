@@ -602,6 +602,10 @@ class Server:
             if out is None:
                 continue
             state.failing_since = None
+            units = state.units.update(state.name, msg.points, msg.t, out.observed,
+                                       getattr(state.labeler, "model", None))  # fmt: skip
+            if units is not None:
+                self._rlog.warning(f"units-{state.name}", "%s", units)
             if state.just_booted:
                 self._booted(state)
             elif state.booting is not None:

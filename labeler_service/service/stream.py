@@ -110,6 +110,7 @@ from labeler_service.service.handover import (
 )
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
+from labeler_service.service.units import UnitCheck, init_span_warning
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
@@ -320,6 +321,10 @@ class StreamState:
         self.boot_inflight = False  # a boot job runs or waits to be installed
         self._labels_seen = False  # a labeled frame reached the current labeler (_install)
         self._warned_unknown = False
+        #: the stream's model file as read at its first start (``start_from_model``)
+        self._model_file: LabelerModel | None = None
+        #: points in another unit than the model's (metres): warned by the server
+        self.units = UnitCheck()
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
@@ -367,18 +372,28 @@ class StreamState:
         return self.labeler is not None
 
     def start_from_model(self) -> None:
-        """Builds the labeler from the stream's model file (mode 1)."""
+        """Builds the labeler from the stream's model file (mode 1).
+
+        The file is read once, at the stream's first start; a new labeled run rebuilds from
+        that model. It used to be read again at every new run: a model file replaced, deleted
+        or half-written while the service ran broke the stream at its next run (one
+        ``labeler_error``, then every frame published unlabeled until a restart), and a file
+        replaced by another marker set's model switched the stream's markers mid-session.
+        Replacing the model takes a restart of the service."""
         path = self.stream_settings.model
         if path is None:
             raise ModelError(f"stream {self.name}: no model file configured")
-        rate = self.stream_settings.rate
-        if rate is None:
+        if self._model_file is None:
             from labeler_service.labeling.templates import load_model
 
-            rate = load_model(path).rate
+            self._model_file = load_model(path)
+        model = self._model_file
+        rate = self.stream_settings.rate
+        if rate is None:
+            rate = model.rate
         boot = self.settings.boot and self.settings.labeler == "online"
         cfg = self.settings.labeler_config
-        labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=path,
+        labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
                                 boot=self.settings.boot_config if boot else False)  # fmt: skip
         _off_the_loop(labeler)
         self.boot_inflight = False
@@ -568,6 +583,10 @@ class StreamState:
     def _train(
         self, init: InitWindow, first: FrameMsg, cancel, staged: bool
     ) -> tuple[FrameLabeler, float, LabeledFrame, int, Handover | None]:
+        units = init_span_warning(self.name, [f.points for f in init.frames], init.idx,
+                                  init.names)  # fmt: skip
+        if units is not None:
+            log.warning("%s", units)
         labeler, rate, remap, deferred = self._labeler_for(init, staged)
         for f, idx in zip(init.frames, init.idx, strict=True):
             if cancel is not None and cancel.is_set():

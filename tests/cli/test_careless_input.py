@@ -181,3 +181,46 @@ def test_replay_leave_makes_a_performer_vanish_and_come_back(rng, tmp_path, caps
     gone = [k for k, n in enumerate(counts) if n <= per]
     assert 55 <= len(gone) <= 65, counts  # 0.5 s at 120 Hz
     assert counts[-1] == len(names)
+
+
+def test_train_structure_refuses_an_output_that_would_replace_a_capture(take, tmp_path, capsys):
+    # `train structure take.c3d --out take.c3d` wrote the model's JSON over the take
+    before = take.read_bytes()
+    other = tmp_path / "other.trc"
+    other.write_bytes(b"kept")
+    for out, needle in ((str(take), "a model is JSON"), (str(other), "a model is JSON")):
+        assert main(["train", "structure", str(take), "--out", out]) == 2
+        _one_error_line(capsys.readouterr().err, needle)
+    # a JSON-named link to the take is still the take
+    link = tmp_path / "link.json"
+    link.symlink_to(take)
+    assert main(["train", "structure", f"{take}:0:40", "--out", str(link)]) == 2
+    _one_error_line(capsys.readouterr().err, "is the input")
+    assert take.read_bytes() == before and other.read_bytes() == b"kept"
+
+
+def test_train_structure_checks_its_output_before_training(tmp_path, capsys):
+    # the input does not exist either: the output is refused first, before any work
+    for out in (UNWRITABLE + ".json", str(tmp_path)):
+        assert main(["train", "structure", str(tmp_path / "missing.c3d"), "--out", out]) == 2
+        _one_error_line(capsys.readouterr().err, "cannot write")
+
+
+def test_a_model_write_cut_short_leaves_the_old_model_whole(take, tmp_path):
+    # a write that stops part-way (here the file size limit: EFBIG, as a full disk would) used
+    # to leave the model truncated: the next `serve` refused it, a running one kept the old
+    out = tmp_path / "m.json"
+    assert main(["train", "structure", str(take), "--out", str(out)]) == 0
+    before = out.read_bytes()
+    code = (
+        "import resource, signal, sys\n"
+        "from labeler_service.labeling.templates import load_model, save_model\n"
+        "m = load_model(sys.argv[1])\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (1000, 1000))\n"
+        "save_model(m, sys.argv[1])\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True)
+    assert r.returncode != 0 and "cannot write model" in r.stderr, r.stderr
+    assert out.read_bytes() == before  # untouched, and no temporary file left beside it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "take.c3d"]

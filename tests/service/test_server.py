@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from service.helpers import SlowLabeler, frames_of, moving_clusters, run, stream_payloads, until
 
 from labeler_service.labeling.registry import make_labeler
-from labeler_service.labeling.templates import LabelerModel, save_model
+from labeler_service.labeling.templates import LabelerModel, load_model, save_model
 from labeler_service.labeling.training import train_subject
 from labeler_service.service.protocol import LabeledMsg, ModelMsg, StatusMsg, decode, encode_frame
 from labeler_service.service.server import Server
@@ -103,7 +103,8 @@ def test_stream_starts_from_a_model_file(tmp_path, rng):
             return srv, model, got
 
     srv, model, got = run(go())
-    assert calls[-1] == ((), cap.rate, path)  # calls[0]: the synthetic warm-up labeler
+    # calls[0]: the synthetic warm-up labeler; the file is read once, the model passed on
+    assert calls[-1][:2] == ((), cap.rate) and calls[-1][2] == load_model(path)
     assert model.names == cap.labels and model.rate == cap.rate
     assert got[0].seq == 0 and got[0].positions.shape == (10, 3)
 

@@ -1,0 +1,117 @@
+"""A sender that streams metres to a model stream: the points are a thousand times closer than
+the model's subjects, nothing is ever labeled and the stream read ``booting`` for good, as if
+nobody were in the volume, with no word of why. Now the log says what is wrong, while the
+stream keeps flowing (every frame still published, nothing dropped)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from hostile.helpers import collect, frames_of, run, settings
+from synthetic import moving_clusters
+
+from labeler_service.labeling.templates import LabelerModel, load_model, save_model
+from labeler_service.labeling.training import train_subject
+from labeler_service.service.protocol import encode_frame
+from labeler_service.service.server import Server
+from labeler_service.service.transports.memory import MemoryTransport
+from labeler_service.service.units import UnitCheck, init_span_warning
+
+TRAIN = 60
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return moving_clusters(np.random.default_rng(5), subjects=2, markers=6, frames=TRAIN + 360)
+
+
+@pytest.fixture(scope="module")
+def model_path(scene, tmp_path_factory):
+    subjects = []
+    for s in scene.subjects:
+        cols = scene.subject_columns(s)
+        markers = [scene.labels[c].split(":")[1] for c in cols]
+        subjects.append(train_subject(s, markers, scene.positions[:TRAIN, cols], scene.rate))
+    path = tmp_path_factory.mktemp("units") / "model.json"
+    save_model(LabelerModel(rate=scene.rate, subjects=subjects), path)
+    return path
+
+
+def _stream(scene, model_path, scale: float, caplog):
+    frames = frames_of(scene, np.random.default_rng(1))
+    items = [
+        encode_frame("vol", k, k / scene.rate, frames[f][0] * np.float32(scale))
+        for k, f in enumerate(range(TRAIN, scene.n_frames))
+    ]
+
+    async def go():
+        mem = MemoryTransport()
+        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
+                "boot_worker": "thread"}  # fmt: skip
+        async with Server(settings(**over), [mem]) as srv:
+            for p in items:
+                mem.inject(p)
+            msgs = await collect(srv, mem, "vol")
+            return srv, msgs
+
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
+        srv, msgs = run(go())
+    warned = [r.getMessage() for r in caplog.records
+              if "Points travel in millimetres" in r.getMessage()]  # fmt: skip
+    return srv, msgs, warned, len(items)
+
+
+def test_points_in_metres_are_named_in_the_log(scene, model_path, caplog):
+    srv, msgs, warned, n = _stream(scene, model_path, 1e-3, caplog)
+    assert len(msgs) == n and srv.metrics.drops() == 0  # the stream flows as before
+    assert warned, [r.getMessage() for r in caplog.records]
+    assert "stream vol" in warned[0] and "metres" in warned[0]
+
+
+def test_points_in_millimetres_give_no_such_warning(scene, model_path, caplog):
+    srv, msgs, warned, n = _stream(scene, model_path, 1.0, caplog)
+    assert len(msgs) == n and not warned
+
+
+def test_the_check_waits_for_a_window_with_nothing_labeled_and_restarts_on_a_label(model_path):
+    model = load_model(model_path)
+    small = np.random.default_rng(0).normal(scale=0.3, size=(6, 3)).astype(np.float32)  # metres
+    chk = UnitCheck()
+    # 1.9 s of frames with nothing labeled: not yet
+    assert all(chk.update("v", small, k / 100, 0, model) is None for k in range(190))
+    assert chk.update("v", small, 1.9, 3, model) is None  # a label restarts the window
+    assert all(chk.update("v", small, 1.9 + k / 100, 0, model) is None for k in range(1, 200))
+    assert "metres" in (chk.update("v", small, 3.95, 0, model) or "")
+    # no model (the baseline, a labeler not trained yet): nothing to compare with
+    assert all(chk.update("v", small, 10 + k / 100, 0, None) is None for k in range(400))
+
+
+def test_a_stream_trained_from_init_frames_in_metres_is_named_in_the_log(scene, caplog):
+    # its model is trained on the metres themselves, so points and model agree: the check
+    # is the model's own size (no person's markers span less than 50 mm)
+    frames = frames_of(scene, np.random.default_rng(1))
+    items = []
+    for k in range(200):
+        p, truth = frames[k]
+        labels = [scene.labels[i] for i in truth] if k < 20 else None
+        items.append(encode_frame("default", k, k / scene.rate, p * np.float32(1e-3), labels))
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(), [mem]) as srv:
+            for p in items:
+                mem.inject(p)
+            return srv, await collect(srv, mem)
+
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.stream"):
+        srv, msgs = run(go())
+    warned = [r.getMessage() for r in caplog.records if "init frames span" in r.getMessage()]
+    assert len(msgs) == 200 - 20 and len(warned) == 1, warned
+    assert "stream default" in warned[0] and "metres" in warned[0]
+    # the same frames in millimetres: no warning
+    idx = [np.asarray(t, dtype=np.int16) for _, t in (frames[k] for k in range(20))]
+    pts = [frames[k][0] for k in range(20)]
+    assert init_span_warning("v", pts, idx, list(scene.labels)) is None
+    assert init_span_warning("v", [p * 1e-3 for p in pts], idx, list(scene.labels))
