@@ -26,6 +26,12 @@ class BootConfig(BaseModel):
         description="speed the gate allows for a point without velocity yet (a sprint is 9 m/s: "
         "at 3 m/s no marker of a sprinter ever got a second frame)",
     )
+    track_hold_frames: int = Field(
+        2,
+        ge=0,
+        description="empty frames in a row (a camera dropout: no point at all) that the tracks "
+        "outlive; one empty frame in ten ended every track, so a stream never booted",
+    )
     min_track_fraction: float = Field(
         0.75, gt=0, le=1, description="a point must be tracked over this fraction of the window"
     )

@@ -19,6 +19,8 @@ class PointTracker:
     it continues, or a new id. A match must be mutual (each is the other's nearest) and within
     ``track_gate_mm + a dt^2`` of the constant-velocity prediction (``+ v dt`` for a track with
     no velocity yet). Ambiguous points simply start new tracks: the boot wants few, clean tracks.
+    A frame with no point at all (a dropout) leaves the tracks as they were, up to
+    ``track_hold_frames`` such frames in a row; the next points continue them over the gap.
     """
 
     def __init__(self, rate: float, config: BootConfig | None = None) -> None:
@@ -33,9 +35,14 @@ class PointTracker:
         self._ids = np.zeros(0, dtype=np.int64)
         self._birth = np.zeros(0)  # (per current point) when its track started
         self._t = np.nan
+        self._empty = 0  # empty frames in a row held over
 
     def update(self, points: np.ndarray, t: float) -> np.ndarray:
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        if pts.shape[0] == 0 and self._ids.size and self._empty < self.config.track_hold_frames:
+            self._empty += 1
+            return np.zeros(0, dtype=np.int64)
+        self._empty = 0
         dt = t - self._t
         if not (np.isfinite(dt) and dt > 0):
             dt = 1.0 / self.rate

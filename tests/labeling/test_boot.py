@@ -83,6 +83,45 @@ def test_tracker_keeps_ids_of_moving_shuffled_points(rng):
     assert ids[0] not in set(first.tolist())
 
 
+def test_tracks_outlive_a_dropout_of_empty_frames(rng):
+    """A frame with no point at all (a camera dropout) leaves the tracks as they were, up to
+    ``track_hold_frames`` in a row: the next points continue them. A longer silence ends them."""
+    base = rng.uniform(-500, 500, (20, 3))
+    vel = rng.normal(0, 600, (20, 3))
+    tracker = PointTracker(RATE)
+    first = tracker.update(base, 0.0)
+    for k in (1, 2):
+        assert tracker.update(base[:0], k / RATE).shape == (0,)
+    ids = tracker.update(base + vel * 3 / RATE, 3 / RATE)
+    np.testing.assert_array_equal(ids, first)
+    assert np.allclose(tracker.ages(), 3 / RATE)
+    for k in (4, 5, 6):
+        tracker.update(base[:0], k / RATE)
+    ids = tracker.update(base + vel * 7 / RATE, 7 / RATE)
+    assert not set(ids.tolist()) & set(first.tolist())
+
+
+def test_a_stream_with_dropout_frames_boots(walk):
+    """One empty frame in every ten (hostile pass: before, every track ended at each one, no
+    window ever held tracks long enough, and the stream read 'booting' for good)."""
+    model, stream_cap = walk
+    s = Stream(stream_cap, model, seed=3)
+    lab = BootingLabeler(model, RATE)
+    lab.warmup()
+    ok = vis = 0
+    for f in range(stream_cap.n_frames):
+        pts, tr = s.frame(f)
+        if f % 10 == 9:
+            pts, tr = pts[:0], tr[:0]
+        out = lab.process(pts, f / s.rate)
+        if f >= round(0.5 * RATE):
+            m = tr >= 0
+            ok += int(np.count_nonzero(out.point_labels[m] == tr[m]))
+            vis += int(m.sum())
+    assert set(lab.active_subjects) == {"P1", "P2", "P3"}
+    assert ok / vis >= 0.9
+
+
 # ---------------------------------------------------------------------------- one window
 def test_boot_labels_a_window_of_anonymous_frames(walk):
     model, stream_cap = walk
