@@ -3,6 +3,7 @@ script's folder is on ``sys.path`` and ``from _common import emit`` resolves."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 from typing import Any
@@ -17,3 +18,29 @@ def emit(result: dict[str, Any], out: str | Path | None = None) -> None:
         path = Path(out)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(line + "\n")
+
+
+def add_hug_args(ap: argparse.ArgumentParser, seconds: float) -> None:
+    """The simulated hug the boot-cost benchmarks stream (the service bench's scene): its
+    performers, rate, streamed and training seconds, seed."""
+    ap.add_argument("--subjects", type=int, default=10)
+    ap.add_argument("--rate", type=float, default=360.0)
+    ap.add_argument("--seconds", type=float, default=seconds, help="streamed seconds")
+    ap.add_argument("--train-seconds", type=float, default=3.0)
+    ap.add_argument("--seed", type=int, default=0)
+
+
+def hug_scene(a: argparse.Namespace, protect_frames: int = 0) -> tuple[Any, Any]:
+    """``(model, frames)`` for :func:`add_hug_args`' arguments: a model trained on the first
+    ``train_seconds``, then the rest with the default corruption (``protect_frames`` at its
+    start left whole)."""
+    from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.scenes.simulate import simulate_scene
+    from offline.structure import StructureTrainer
+
+    cap = simulate_scene(performers=a.subjects, seconds=a.train_seconds + a.seconds,
+                         scenario="hug", seed=a.seed, rate=a.rate)  # fmt: skip
+    split = int(round(a.train_seconds * a.rate))
+    model = StructureTrainer().fit([cap.frames(0, split)]).model_
+    spec = CorruptionSpec(protect_frames=protect_frames, seed=a.seed)
+    return model, corrupt(cap.frames(split, cap.n_frames), spec)

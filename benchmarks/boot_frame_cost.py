@@ -27,13 +27,10 @@ import argparse
 import time
 
 import numpy as np
-from _common import emit
+from _common import add_hug_args, emit, hug_scene
 
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.booting import BootingLabeler
-from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-from labeler_service.scenes.simulate import simulate_scene
-from offline.structure import StructureTrainer
 
 
 def run(frames, model, rate: float, verify: bool, skip: int, labeled: int = 0) -> dict:
@@ -97,24 +94,14 @@ def run(frames, model, rate: float, verify: bool, skip: int, labeled: int = 0) -
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--subjects", type=int, default=10)
-    ap.add_argument("--rate", type=float, default=360.0)
-    ap.add_argument("--seconds", type=float, default=3.0, help="streamed seconds")
-    ap.add_argument("--train-seconds", type=float, default=3.0)
+    add_hug_args(ap, seconds=3.0)
     ap.add_argument("--skip-s", type=float, default=0.5, help="seconds not timed at the start")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--verify", nargs="+", choices=["on", "off"], default=["off", "on"])
     ap.add_argument("--labeled-s", type=float, default=0.0, help="seconds sent with labels")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    cap = simulate_scene(performers=a.subjects, seconds=a.train_seconds + a.seconds,
-                         scenario="hug", seed=a.seed, rate=a.rate)  # fmt: skip
-    split = int(round(a.train_seconds * a.rate))
-    model = StructureTrainer().fit([cap.frames(0, split)]).model_
     labeled = int(round(a.labeled_s * a.rate))
-    frames = corrupt(
-        cap.frames(split, cap.n_frames), CorruptionSpec(protect_frames=labeled, seed=a.seed)
-    )
+    model, frames = hug_scene(a, protect_frames=labeled)
     skip = int(round(a.skip_s * a.rate))
     runs = [run(frames, model, a.rate, v == "on", skip, labeled) for v in a.verify]
     emit(

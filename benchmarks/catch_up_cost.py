@@ -23,14 +23,11 @@ import hashlib
 import time
 
 import numpy as np
-from _common import emit
+from _common import add_hug_args, emit, hug_scene
 
 from labeler_service.labeling import booting
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.booting import BootingLabeler
-from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
-from labeler_service.scenes.simulate import simulate_scene
-from offline.structure import StructureTrainer
 
 
 def _timed(stages: dict[str, list[float]], name: str) -> None:
@@ -49,20 +46,12 @@ def _timed(stages: dict[str, list[float]], name: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--subjects", type=int, default=10)
-    ap.add_argument("--rate", type=float, default=360.0)
-    ap.add_argument("--seconds", type=float, default=5.0, help="streamed seconds simulated")
-    ap.add_argument("--train-seconds", type=float, default=3.0)
+    add_hug_args(ap, seconds=5.0)
     ap.add_argument("--late-s", type=float, default=1.5, help="stream seconds the result is late")
     ap.add_argument("--after-s", type=float, default=1.0, help="seconds labeled after install")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    cap = simulate_scene(performers=a.subjects, seconds=a.train_seconds + a.seconds,
-                         scenario="hug", seed=a.seed, rate=a.rate)  # fmt: skip
-    split = int(round(a.train_seconds * a.rate))
-    model = StructureTrainer().fit([cap.frames(0, split)]).model_
-    frames = corrupt(cap.frames(split, cap.n_frames), CorruptionSpec(protect_frames=0, seed=a.seed))
+    model, frames = hug_scene(a)
     lab = BootingLabeler(model, a.rate, boot=BootConfig(), inline_boot=False, inline_extend=False)
     lab.warmup()
     f = 0

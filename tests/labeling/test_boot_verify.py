@@ -229,3 +229,25 @@ def test_the_frame_cost_benchmark_times_both_settings_on_one_stream():
     assert off["withdrawals"] == 0
     assert off["frames_timed"] == on["frames_timed"] == 120 - 60
     assert 0 < off["process_ms_p50"] <= off["process_ms_p99"] <= off["process_ms_p99_9"]
+
+
+def test_the_catch_up_benchmark_boots_and_digests_the_same_labels_twice():
+    """``benchmarks/catch_up_cost.py``: the first attempt boots the scene's performers, and the
+    label digest (what its speed-ups are checked against) is the same in a second run."""
+    import contextlib
+    import io
+    import json
+
+    from benchmark_scripts import load_benchmark
+
+    bench = load_benchmark("catch_up_cost")
+    argv = ["--subjects", "3", "--rate", "120", "--seconds", "2", "--train-seconds", "2",
+            "--late-s", "0.3", "--after-s", "0.5"]  # fmt: skip
+    outs = []
+    for _ in range(2):
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            assert bench.main(argv) == 0
+        outs.append(json.loads(buf.getvalue()))
+    assert outs[0]["subjects_booted"] == 3 and outs[0]["attempt_cpu_ms"] > 0
+    assert outs[0]["labels_sha256"] == outs[1]["labels_sha256"]
