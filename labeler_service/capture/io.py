@@ -484,6 +484,8 @@ def _c3d_declared_frames(path: Path, point: dict) -> int | None:
 def _write_c3d(capture: Capture, path: Path) -> None:
     import ezc3d
 
+    if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
+        raise CaptureError("a C3D holds at least one frame; this capture has none")
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [capture.rate]
     c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)

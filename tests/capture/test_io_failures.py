@@ -63,6 +63,18 @@ def test_unwritable_folder_is_an_error(tmp_path, rng):
         write_capture(_capture(rng), folder)
 
 
+def test_a_capture_without_frames_is_a_clear_error_as_c3d(tmp_path, rng):
+    """A C3D holds at least one frame: ezc3d fails with a ZeroDivisionError, so the writer says
+    so first and leaves nothing; TRC and NPZ write an empty capture that reads back."""
+    empty = _capture(rng, frames=0)
+    with pytest.raises(CaptureError, match=r"e\.c3d: cannot write: a C3D holds at least one"):
+        write_capture(empty, tmp_path / "e.c3d")
+    assert not list(tmp_path.iterdir())
+    for suffix in (".trc", ".npz"):
+        back = read_capture(write_capture(empty, tmp_path / f"e{suffix}"))
+        assert back.n_frames == 0 and back.labels == empty.labels
+
+
 def test_write_follows_a_symlink_and_replaces_the_file(tmp_path, rng):
     real = tmp_path / "real.c3d"
     link = tmp_path / "link.c3d"
