@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from labeler_service.capture.model import subject_groups
 from labeler_service.labeling.templates import LabelerModel
 
 #: seconds of stream (frame ``t``) with nothing labeled before the extents are compared
@@ -37,9 +38,9 @@ def init_span_warning(
 ) -> str | None:
     """A warning when the labeled init frames' subjects all span less than ``TINY_MM``: the
     largest extent, over the frames, of one subject's labeled points in one frame."""
-    subject = np.array([n.split(":", 1)[0] if ":" in n else "" for n in names] + [""])
-    codes = np.unique(subject[:-1], return_inverse=True)[1]
-    codes = np.append(codes, -1)  # idx -1 (unlabeled point) -> no subject
+    codes = np.full(len(names) + 1, -1, dtype=np.int64)  # idx -1 (unlabeled point): none
+    for c, members in enumerate(subject_groups(names).values()):
+        codes[members] = c
     span = 0.0
     for pts, ix in zip(frames, idx, strict=True):
         if len(pts) < 2:
