@@ -136,9 +136,9 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
         if target.exists() and not target.is_file():
             _write_through(capture, target, writer, suffix)
         else:
-            _write_replace(capture, target, writer, suffix)
+            replace_file(target, lambda tmp: writer(capture, tmp), suffix)
     except OSError as exc:
-        raise CaptureError(f"{p}: cannot write: {_os_reason(exc)}") from exc
+        raise CaptureError(f"{p}: cannot write: {os_reason(exc)}") from exc
     except CaptureError as exc:
         raise CaptureError(f"{p}: cannot write: {exc}") from exc
     return p
@@ -173,7 +173,7 @@ def check_writable(
             os.close(fd)
             os.unlink(probe)
     except OSError as exc:
-        raise CaptureError(f"{p}: cannot write: {_os_reason(exc)}") from exc
+        raise CaptureError(f"{p}: cannot write: {os_reason(exc)}") from exc
     return p
 
 
@@ -189,7 +189,7 @@ def _target(p: Path, suffixes: tuple[str, ...] | None) -> tuple[Path, str]:
     return target, suffix
 
 
-def _os_reason(exc: OSError) -> str:
+def os_reason(exc: OSError) -> str:
     """``[Errno 28] No space left on device`` without the (temporary) file name."""
     return f"[Errno {exc.errno}] {exc.strerror}" if exc.errno and exc.strerror else str(exc)
 
@@ -199,12 +199,15 @@ def _temp_name(target: Path, suffix: str) -> Path:
     return target.parent / f".{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp{suffix}"
 
 
-def _write_replace(capture: Capture, target: Path, writer: _Writer, suffix: str) -> None:
+def replace_file(target: Path, write: Callable[[Path], object], suffix: str = "") -> None:
+    """Writes ``target`` (a resolved path) through ``write(tmp)`` on a temporary file next to
+    it (ending in ``suffix``), synced and renamed over it: the file is complete or untouched,
+    and a failed or interrupted write leaves no temporary behind. Captures and models."""
     tmp = _temp_name(target, suffix)
     fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # umask applies
     os.close(fd)
     try:
-        writer(capture, tmp)
+        write(tmp)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, target)

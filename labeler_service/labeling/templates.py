@@ -18,16 +18,17 @@ A template (seed 003, Sec. 3.1) holds, per subject:
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
-import uuid
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from labeler_service.capture.io import os_reason, replace_file
 from labeler_service.capture.model import join_label
 from labeler_service.errors import ModelError
 
@@ -272,24 +273,13 @@ def save_model(model: LabelerModel, path: str | Path) -> None:
     p = Path(path)
     text = model.model_dump_json(indent=1).encode("utf-8")
     target = Path(os.path.realpath(p))
-    tmp = target.parent / f".{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
     try:
         if target.is_dir():
-            raise IsADirectoryError(21, "Is a directory")
+            raise IsADirectoryError(errno.EISDIR, "Is a directory")
         target.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)  # umask applies
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(text)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, target)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        replace_file(target, lambda tmp: tmp.write_bytes(text))
     except OSError as exc:
-        reason = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno and exc.strerror else exc
-        raise ModelError(f"{p}: cannot write model: {reason}") from exc
+        raise ModelError(f"{p}: cannot write model: {os_reason(exc)}") from exc
 
 
 def load_model(path: str | Path) -> LabelerModel:
