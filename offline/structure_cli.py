@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.training import DUPLICATE_MM
     from offline.structure import StructureTrainer
 
-    _check_out(args.out, args.inputs)
+    _check_out(args.out, [parse_take(t)[0] for t in args.inputs])  # (bad takes said first)
     trainer = StructureTrainer(
         tolerance_mm=args.tolerance_mm,
         distance_weight=args.distance_weight,
