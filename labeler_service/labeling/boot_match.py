@@ -1077,12 +1077,11 @@ def _candidates(
             # one (a marker on two points), so none can join the completion (:func:`_select`);
             # skipped, they cost nothing (most bodies of a booted subject's extension)
             continue
-        known = None if mem is None else mem.cands.get((bi, key))
-        found = (
-            known if known is not None else _body_candidates(tpl, body, pts, hist, pairs, config)
-        )
-        if mem is not None and known is None:
-            mem.cands[(bi, key)] = found
+        found = None if mem is None else mem.cands.get((bi, key))
+        if found is None:
+            found = _body_candidates(tpl, body, pts, hist, pairs, config)
+            if mem is not None:
+                mem.cands[(bi, key)] = found
         for c in found:
             c.body = bi  # (read only downstream: a memo's candidates are shared)
             cands.append(c)
