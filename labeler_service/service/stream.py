@@ -774,10 +774,12 @@ class StreamState:
             subjects = ", ".join(subject_groups(list(self.names))) or "none"
             log.warning(
                 "stream %s: %d labels of a frame name no marker of the stream (e.g. %r; its "
-                "subjects: %s): %s",
+                "subjects: %s): %s; send labels named as the stream's markers are (e.g. %r), "
+                "or give the stream a model of these performers (train structure)",
                 self.name, len(unknown), unknown[0], subjects,
                 f"ignored, {known} labels used" if known
                 else "the frame is labeled as an unlabeled one",
+                self.names[0] if self.names else "subject:marker",
             )  # fmt: skip
         return idx if (idx >= 0).any() else None
 
