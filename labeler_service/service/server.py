@@ -225,6 +225,7 @@ class Server:
         self._tasks: set[asyncio.Task] = set()
         self._stack: AsyncExitStack | None = None
         self._rlog = RateLimitedLog(log)
+        self._transport_down: dict[str, str | None] = {}  # transport name -> its trouble
         self.ready: asyncio.Event | None = None
         self.metrics_port: int | None = None
         self.warmup_s = 0.0
@@ -304,6 +305,7 @@ class Server:
         self.metrics.ready.set(1)
         self.ready.set()
         log.info("ready: %s", ", ".join(t.name for t in self.transports))
+        self._transport_health(log_all=True)
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -901,6 +903,7 @@ class Server:
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
+            self._transport_health()
             self.metrics.background_threads.set(self.background.running)
             if self.background.abandoned_ended > abandoned:
                 # an abandoned job ended (its state is freed only now); a job that ended in time
@@ -928,7 +931,22 @@ class Server:
             out[name] = (st.status, len(lab.model.subjects) if lab is not None else 0)
         return out
 
+    def _transport_health(self, log_all: bool = False) -> None:
+        """Sets ``mocap_transport_up`` per transport; logs each transport that is down (every
+        call with ``log_all``, else when it goes down) and each that comes back."""
+        for t in self.transports or ():
+            trouble = t.trouble()
+            self.metrics.transport_up.labels(transport=t.name).set(trouble is None)
+            was = self._transport_down.get(t.name)
+            if trouble is not None and (log_all or was is None):
+                log.warning("%s: %s; frames do not flow through it until then", t.name,
+                            trouble)  # fmt: skip
+            elif trouble is None and was is not None:
+                log.info("%s: carries frames again", t.name)
+            self._transport_down[t.name] = trouble
+
     async def _log_loop(self) -> None:
         while True:
             await asyncio.sleep(self.settings.log_interval_s)
             log.info("%s", self.metrics.log_line(self._log_streams()))
+            self._transport_health(log_all=True)

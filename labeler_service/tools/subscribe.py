@@ -211,9 +211,12 @@ class Subscriber:
                 continue
             self.silent = True
             udp = self._udp
+            trouble = self._transport.trouble() if self._transport is not None else None
             if udp is not None and udp.refused > refused:
                 refused = udp.refused
                 why = "nothing listens there (connection refused): is the service running?"
+            elif trouble is not None:  # MQTT: the broker, not the service, is out of reach
+                why = trouble
             elif not self._heard:
                 why = "no answer from the service yet: is it running, is the address right?"
             elif (
