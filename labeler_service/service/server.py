@@ -608,6 +608,9 @@ class Server:
                                        getattr(state.labeler, "model", None))  # fmt: skip
             if units is not None:
                 self._rlog.warning(f"units-{state.name}", "%s", units)
+            rate = state.rate_check.update(state.name, msg.t, state.rate)
+            if rate is not None:
+                log.warning("%s", rate)
             if state.just_booted:
                 self._booted(state)
             elif state.booting is not None:

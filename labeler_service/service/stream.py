@@ -110,7 +110,7 @@ from labeler_service.service.handover import (
 )
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
-from labeler_service.service.units import UnitCheck, init_span_warning
+from labeler_service.service.units import RateCheck, UnitCheck, init_span_warning
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
@@ -325,6 +325,7 @@ class StreamState:
         self._model_file: LabelerModel | None = None
         #: points in another unit than the model's (metres): warned by the server
         self.units = UnitCheck()
+        self.rate_check = RateCheck()
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None

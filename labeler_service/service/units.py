@@ -186,3 +186,49 @@ class UnitCheck:
             f"{span:.4g} where a subject of its model spans {self._scale:.0f} mm, {hint} "
             "Points travel in millimetres (docs/protocol.md)"
         )
+
+
+#: seconds of stream (frame ``t``) whose frame steps give the measured rate
+RATE_WINDOW_S = 2.0
+#: frame steps needed at least before the rates are compared
+RATE_MIN_STEPS = 20
+#: measured / stream rate outside [1 / RATE_OFF, RATE_OFF]: said in the log
+RATE_OFF = 1.25
+
+
+class RateCheck:
+    """Per stream: the rate its frames come at (the median step of their ``t`` over
+    ``RATE_WINDOW_S``) against the rate the stream runs at (``streams[].rate``, else its
+    model's: a model trained at 240 Hz fed a 48 Hz stream sized its boot window and point
+    tracker for 240 Hz, and labeled 0.76 of the markers where ``rate = 48`` labeled all).
+    Returns one warning per stream rate that does not match, with the setting to change."""
+
+    def __init__(self) -> None:
+        self._steps: list[float] = []
+        self._since: float | None = None
+        self._t_last: float | None = None
+        self._warned: float | None = None  # the stream rate already warned about
+
+    def update(self, stream: str, t: float, rate: float | None) -> str | None:
+        if rate is None or not math.isfinite(t) or rate == self._warned:
+            return None
+        last, self._t_last = self._t_last, t
+        if last is None or not t > last:
+            self._steps, self._since = [], None  # a restart or a time jump: measure again
+            return None
+        if self._since is None:
+            self._since = last
+        self._steps.append(t - last)
+        if t - self._since < RATE_WINDOW_S or len(self._steps) < RATE_MIN_STEPS:
+            return None
+        measured = 1.0 / float(np.median(self._steps))
+        self._steps, self._since = [], None
+        if 1.0 / RATE_OFF <= measured / rate <= RATE_OFF:
+            return None
+        self._warned = rate
+        return (
+            f"stream {stream}: its frames come at {measured:.4g} Hz (the steps of their t) where "
+            f"the stream runs at {rate:.4g} Hz (streams[].rate, else its model's rate): the boot "
+            f"and its point tracks are sized for {rate:.4g} Hz; set rate = {measured:.4g} in "
+            "this stream's [[streams]] table"
+        )

@@ -165,3 +165,54 @@ def test_the_match_check_waits_for_points_and_gives_way_to_the_unit_warning(mode
     got = [chk.update("v", person * 1e-3, k / 100, 0, model) for k in range(1200)]
     said = [g for g in got if g is not None]
     assert said and all("metres" in g for g in said)
+
+
+def _rate_warnings(scene, model_path, step: int, caplog) -> tuple[int, list[str]]:
+    frames = frames_of(scene, np.random.default_rng(1))
+    items = [
+        encode_frame("vol", k, f / scene.rate, frames[f][0])
+        for k, f in enumerate(range(TRAIN, scene.n_frames, step))
+    ]
+
+    async def go():
+        mem = MemoryTransport()
+        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
+                "boot_worker": "thread"}  # fmt: skip
+        async with Server(settings(**over), [mem]) as srv:
+            for p in items:
+                mem.inject(p)
+            return await collect(srv, mem, "vol")
+
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
+        msgs = run(go())
+    return len(msgs) - len(items), [
+        r.getMessage() for r in caplog.records if "its frames come at" in r.getMessage()
+    ]
+
+
+def test_frames_at_another_rate_than_the_model_name_the_setting(scene, model_path, caplog):
+    """A model trained at 120 Hz fed a stream at 30 Hz (every 4th frame): the stream ran at
+    the model's rate, its boot window and point tracks sized for 120 Hz, with no word. Now
+    the log says the rate the frames come at and the setting to change, once; frames flow."""
+    lost, warned = _rate_warnings(scene, model_path, 4, caplog)
+    assert lost == 0
+    assert len(warned) == 1, warned
+    assert "stream vol: its frames come at 30 Hz" in warned[0]
+    assert "runs at 120 Hz" in warned[0] and "set rate = 30" in warned[0]
+
+
+def test_frames_at_the_model_rate_give_no_rate_warning(scene, model_path, caplog):
+    lost, warned = _rate_warnings(scene, model_path, 1, caplog)
+    assert lost == 0 and not warned
+
+
+def test_the_rate_check_measures_again_after_a_time_jump():
+    from labeler_service.service.units import RateCheck
+
+    chk = RateCheck()
+    # 1.5 s at 100 Hz, then a jump back (a new run): nothing yet
+    assert all(chk.update("v", k / 100, 100.0) is None for k in range(150))
+    assert all(chk.update("v", k / 25, 100.0) is None for k in range(40))  # 1.6 s at 25 Hz
+    said = [chk.update("v", 1.6 + k / 25, 100.0) for k in range(1, 20)]
+    assert sum(s is not None for s in said) == 1
+    assert all(chk.update("v", 3 + k / 25, 100.0) is None for k in range(200))  # said once
