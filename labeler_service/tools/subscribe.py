@@ -155,6 +155,7 @@ class Subscriber:
         self.silence_s = silence_s
         self._last_frame = time.monotonic()  # last labeled frame (or the start)
         self._heard = False  # any message from the service so far
+        self._any_frame = False  # any labeled frame so far
         self.silent = False  # a silence warning is out and no frame came since
         self.warnings: list[str] = []  # every liveness line, oldest first (bounded)
 
@@ -269,8 +270,11 @@ class Subscriber:
             now = time.monotonic()
             if self.silent:
                 self.silent = False
-                self._warn("subscribe %s: labeled frames again (stream %s) after %.1f s",
-                           self._what(), msg.stream, now - self._last_frame)  # fmt: skip
+                # the first frame after a silence since the start is no resumption
+                what = "labeled frames again" if self._any_frame else "first labeled frames"
+                self._warn("subscribe %s: %s (stream %s) after %.1f s", self._what(), what,
+                           msg.stream, now - self._last_frame)  # fmt: skip
+            self._any_frame = True
             self._last_frame = now
             model = self.models.get(msg.stream)
             if model is None or model.model != msg.model or len(model.names) != len(msg.state):
