@@ -76,7 +76,7 @@ from labeler_service.service.handover import YIELD_S
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
 from labeler_service.service.settings import ServiceSettings, StreamSettings, exposure_warnings
-from labeler_service.service.stream import StreamState
+from labeler_service.service.stream import StreamState, no_start
 from labeler_service.service.transports.base import (
     DropOldestQueue,
     Incoming,
@@ -406,6 +406,9 @@ class Server:
             return name
         if name in starting or name in self.cache:
             return name
+        # said (rate-limited), else the frames went as a count in the periodic line only
+        self._rlog.warning("unknown-stream", "udp: frames dropped unread (unknown_stream): %s",
+                           no_start(name))  # fmt: skip
         return None
 
     def _free_slot(self, source: object = None) -> bool:

@@ -988,9 +988,7 @@ class StreamState:
                 self.buffer_init(f)
                 return None
             if not self.init_frames:
-                raise LabelerError(
-                    f"stream {self.name}: unlabeled frame before any model or labeled init frame"
-                )
+                raise LabelerError(no_start(self.name))
             labeler, rate, out, label_ns = self.train(self.take_init(), f)
             return self.install_trained(labeler, rate, f, out, recv_ns, label_ns)
         if self._rebase:
@@ -1203,6 +1201,17 @@ class StreamState:
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
         )
+
+
+def no_start(stream: str) -> str:
+    """Why a stream's unlabeled frames are dropped before it started, and the two fixes: the
+    one sentence for the ``no_model`` drop and the UDP pre-filter's ``unknown_stream``."""
+    return (
+        f"stream {stream}: unlabeled frames, and nothing to start the stream from (no model, no "
+        f"labeled init frames before them): give it a model (a [[streams]] table with name = "
+        f'"{stream}", model = "MODEL.json" from train structure, and boot = true), or send '
+        "labeled init frames first (replay --init-frames 50)"
+    )
 
 
 def _remap(names: Sequence[str], window_names: Sequence[str]) -> np.ndarray:

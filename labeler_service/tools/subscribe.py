@@ -229,7 +229,8 @@ class Subscriber:
                 why = (
                     f"the service answers but has announced no stream {self.stream!r} (no "
                     "status, no model): is the stream name right? (an unlisted stream appears "
-                    "with its first frames)"
+                    "with its first labeled frames; unlabeled ones need a model for it in the "
+                    "service's settings: its log says so)"
                 )
             elif self.stats.frames == 0 and self.stats.undecodable == 0:
                 why = "the service answers; the stream has not sent labeled frames yet"
