@@ -49,7 +49,11 @@ from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
 from labeler_service.errors import BudgetExceeded
-from labeler_service.service.boot_worker import NICE, POLL_S  # a child as the boot worker's
+from labeler_service.service.boot_worker import (  # a child as the boot worker's
+    NICE,
+    POLL_S,
+    start_child,
+)
 
 T = TypeVar("T")
 
@@ -279,7 +283,7 @@ def run_in_process(
     ctx = multiprocessing.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(child, fn, args), name=name, daemon=True)
-    proc.start()
+    start_child(proc)
     child.close()
     try:
         while not parent.poll(POLL_S):
