@@ -11,6 +11,7 @@ process instead::
 
     worker = BootWorker()
     worker.start()                       # spawn + kernel warm-up (a few s; at service start)
+    worker.prepare(labeler)              # its booter and the shadow's kernels (at service start)
     result = labeler.boot_step(snap, worker.runner(labeler, cancel))   # in a Background job
     worker.close()
 
@@ -18,8 +19,18 @@ The worker is a ``spawn`` child (the service has threads; ``fork`` would copy th
 with a lower CPU priority (``os.nice(NICE)``, 5: on a busy machine the frame path wins the core;
 at 10 the boot itself starved on a machine shared with other jobs).
 It keeps a :class:`~labeler_service.labeling.boot.Booter` per labeler (``labeler.key``; the
-model is sent once, ~0.5 MB for 10 subjects, and the booter is prepared once, ~0.2 s); a
-snapshot is ~0.3 MB (500 points, a 24-frame history). One request at a time (a lock): the
+model is sent once, ~0.5 MB for 10 subjects, and the booter is prepared once, ~0.3 s of CPU:
+the service does both at start with :meth:`BootWorker.prepare`, which also warms the inner
+labeler's kernels a catch-up's shadow runs, so the first attempt pays neither); a snapshot is
+~0.3 MB (500 points, a 24-frame history).
+
+With ``helpers=1`` (``HELPERS``, off by default: measured slower on the shared machine) the
+worker has a *helper* process: an attempt's hypotheses are computed per subject template, each
+a pure function of the template and the points (~85 % of a 10-performer attempt's CPU), so
+the worker and the helper take the subjects from one shared counter (the next one nobody has
+taken) and the worker then resolves them together as alone (the same labels). A helper that
+dies leaves the worker alone (it does the subjects itself); a killed worker takes its helper
+with it. One request at a time (a lock): the
 service runs one background job at a time anyway. A request whose job is abandoned
 (``cancel`` set: over ``boot_budget_s``, or shutdown) kills the worker, so no stale attempt
 keeps the CPU; the next request starts a new one. A worker that dies raises
@@ -50,8 +61,11 @@ NICE = 5
 #: Booters (one per labeler) a worker keeps, least recently used dropped first.
 MAX_BOOTERS = 8
 #: Helper processes of the worker (0 or 1): an attempt's subjects are shared between the two
-#: (each takes the next subject nobody has taken; labels as computed alone).
-HELPERS = 1
+#: (each takes the next subject nobody has taken; labels as computed alone). Off: on the shared
+#: 2-core machine (load 4-5, autogroup scheduling: a session's processes share one slice) the
+#: first attempt took longer with it (``benchmarks/boot_worker_step.py``: median 1.41 -> 2.07
+#: s); not measured on a quiet machine, where the second core is free before the first boot.
+HELPERS = 0
 #: How often a waiting request looks at its cancel event and the worker's health (s).
 POLL_S = 0.02
 
