@@ -61,6 +61,7 @@ hypotheses, readings, completion). Step 6 is :meth:`Booter.run`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,6 +94,7 @@ __all__ = [
     "BootConfig",
     "BootResult",
     "Booter",
+    "HypothesesShare",
     "PointTracker",
     "boot",
     "labels_along_tracks",
@@ -102,6 +104,11 @@ __all__ = [
 
 
 # ---------------------------------------------------------------------------- public API
+#: ``share(booter, subjects, pts, hist, pairs)`` -> the hypotheses of ``subjects`` in their
+#: order, as ``[booter.hypotheses(s, pts, hist, pairs) for s in subjects]`` concatenated
+HypothesesShare = Callable[["Booter", list[int], np.ndarray, np.ndarray, _Pairs], list[_Hypothesis]]
+
+
 @dataclass
 class BootResult:
     """``labels[i]``: global marker index (into ``model.marker_names``) of input point ``i``,
@@ -167,13 +174,16 @@ class Booter:
         *,
         free: np.ndarray | None = None,
         subjects: list[int] | None = None,
+        share: HypothesesShare | None = None,
     ) -> BootResult:
         """Labels ``points (N, 3)`` (the window's last frame).
 
         ``history (N, W, 3)``: each point's track over the window (NaN where untracked; its
         last column is ``points``); without it the boot relies on one frame. ``free``: points
         that may be labeled (default all); ``subjects``: model subject indices to look for
-        (default all).
+        (default all). ``share``: computes the hypotheses of the subjects (each template's
+        are a pure function of it and the points: :meth:`hypotheses`) with help, e.g. of
+        another process (the service's boot worker); it returns them in the subjects' order.
         """
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         n = pts.shape[0]
@@ -188,11 +198,14 @@ class Booter:
         if idx.size < 3:
             return BootResult(np.full(n, -1, dtype=np.int64), [], {})
         sub_pts, sub_hist = pts[idx], hist[idx]
-        pairs = _Pairs(sub_pts, self._r_max)
-        wanted = range(len(self._templates)) if subjects is None else subjects
+        pairs = self.pairs(sub_pts)
+        wanted = list(range(len(self._templates)) if subjects is None else subjects)
         hyps: list[_Hypothesis] = []
-        for s in wanted:
-            hyps += _hypotheses(self._templates[s], sub_pts, sub_hist, pairs, self.config)
+        if share is not None:
+            hyps = share(self, wanted, sub_pts, sub_hist, pairs)
+        else:
+            for s in wanted:
+                hyps += self.hypotheses(s, sub_pts, sub_hist, pairs)
         # one performer explained by several templates (similar bodies): the template whose
         # rigid distances fit clearly better goes first, whatever the marker counts
         sets = [set(h.assign[h.assign >= 0].tolist()) for h in hyps]
@@ -250,6 +263,19 @@ class Booter:
             booted.append(tpl.name)
             scores[tpl.name] = _score(tpl, h.assign, sub_pts)
         return BootResult(labels, booted, scores)
+
+    def hypotheses(
+        self, subject: int, pts: np.ndarray, hist: np.ndarray, pairs: _Pairs | None = None
+    ) -> list[_Hypothesis]:
+        """The hypotheses of one subject on ``pts`` (the free tracked points of :meth:`run`,
+        ``hist`` their tracks; ``pairs`` their :class:`_Pairs`, built when None)."""
+        if pairs is None:
+            pairs = self.pairs(pts)
+        return _hypotheses(self._templates[subject], pts, hist, pairs, self.config)
+
+    def pairs(self, pts: np.ndarray) -> _Pairs:
+        """The point pairs :meth:`hypotheses` reads (within the longest anchor edge)."""
+        return _Pairs(pts, self._r_max)
 
     def _reclaim(self, accepted: list[_Hypothesis], pts: np.ndarray, hist: np.ndarray) -> None:
         """Limbs read on another subject's points: each accepted subject is completed

@@ -90,6 +90,7 @@ from labeler_service.labeling.boot import (
     BootConfig,
     Booter,
     BootResult,
+    HypothesesShare,
     PointTracker,
     track_history,
     warmup_kernels,
@@ -931,6 +932,24 @@ class BootingLabeler:
         if remote is None:
             shadow._catch_up_extend()
         else:
+            try:
+                remote.extend()
+                # the frames that arrived during the extension, at the full rate, there too:
+                # labeled here (after the transfer) they held the frame path's GIL, and a frame
+                # path that labels at about the frame rate left it few periods (10 hugging
+                # performers at 360 Hz: ~200 frames, 0.4 s, after a 0.1 s extension)
+                for _ in range(CATCH_UP_TAIL_ROUNDS):
+                    if len(since) - done <= 1:
+                        break
+                    if cancel is not None and cancel.is_set():
+                        remote.abort()
+                        return False
+                    batch = [(f.t, f.points) for f in since[done:]]
+                    done += len(batch)
+                    feed(batch)
+            except BaseException:
+                remote.abort()
+                raise
             # it comes back without its inner labeler, which is started here from its
             # window's labels (as an install would: ~10 ms)
             shadow = remote.finish()
@@ -1153,20 +1172,27 @@ class BootingLabeler:
         """Compiles the boot's and the inner labeler's kernels (see :meth:`Labeler.warmup`)
         without touching this labeler's state."""
         warmup_kernels()
-        Labeler(["w:a", "w:b", "w:c"], self.rate, self.config).warmup()
-        # the install's kernels (Labeler.add_subjects' warm start): on a tiny model of its own
-        rng = np.random.default_rng(0)
-        base = rng.normal(0, 100, (6, 3)).astype(np.float32)
-        names = [f"w:m{i}" for i in range(6)]
-        train = Labeler(names, self.rate, self.config)
-        frames = []
-        for k in range(12):
-            pts = base + rng.normal(0, 0.5, (6, 3)).astype(np.float32) + np.float32(k)
-            frames.append((k / self.rate, pts, np.arange(6)))
-            train.process(pts, k / self.rate, np.arange(6))
-        inner = Labeler.from_model(train.train_model(), self.rate, self.config, subjects=())
-        inner.add_subjects(["w"], frames[-4:])
-        inner.process(base + np.float32(12), 12 / self.rate)
+        warmup_labeler(self.rate, self.config)
+
+
+def warmup_labeler(rate: float, config: LabelerConfig) -> None:
+    """Compiles (or loads) the inner labeler's kernels, its install's included
+    (``Labeler.add_subjects``' warm start), on tiny labelers of their own: what a booting
+    labeler's frames run besides the boot (:meth:`BootingLabeler.warmup`; the service's boot
+    worker runs it for the catch-up's shadow)."""
+    Labeler(["w:a", "w:b", "w:c"], rate, config).warmup()
+    rng = np.random.default_rng(0)
+    base = rng.normal(0, 100, (6, 3)).astype(np.float32)
+    names = [f"w:m{i}" for i in range(6)]
+    train = Labeler(names, rate, config)
+    frames = []
+    for k in range(12):
+        pts = base + rng.normal(0, 0.5, (6, 3)).astype(np.float32) + np.float32(k)
+        frames.append((k / rate, pts, np.arange(6)))
+        train.process(pts, k / rate, np.arange(6))
+    inner = Labeler.from_model(train.train_model(), rate, config, subjects=())
+    inner.add_subjects(["w"], frames[-4:])
+    inner.process(base + np.float32(12), 12 / rate)
 
 
 #: Runs :func:`boot_step_on` somewhere (see :meth:`BootingLabeler.boot_step`).
@@ -1174,12 +1200,13 @@ StepRunner = Callable[[BootSnapshot], tuple[BootResult, np.ndarray | None, float
 
 
 def boot_step_on(
-    booter: Booter, snapshot: BootSnapshot
+    booter: Booter, snapshot: BootSnapshot, share: HypothesesShare | None = None
 ) -> tuple[BootResult, np.ndarray | None, float]:
     """One attempt's step on ``snapshot`` (its :meth:`~BootSnapshot.remote` part suffices):
     the extension of the subjects labeled (when the snapshot carries their labels: the new
     labels, else None), then the boot of the others; returns ``(result, extended, boot ms)``.
-    A plain function of the booter and the snapshot, so a worker process can run it."""
+    A plain function of the booter and the snapshot, so a worker process can run it
+    (``share``: :meth:`Booter.run`'s)."""
     extended = None
     if snapshot.labels is not None:
         extended = extend_blocked(
@@ -1196,7 +1223,11 @@ def boot_step_on(
         return empty, extended, 0.0
     tb = time.perf_counter()
     res = booter.run(
-        snapshot.points, snapshot.history, free=snapshot.free, subjects=snapshot.subjects
+        snapshot.points,
+        snapshot.history,
+        free=snapshot.free,
+        subjects=snapshot.subjects,
+        share=share,
     )
     return res, extended, (time.perf_counter() - tb) * 1e3
 
@@ -1213,6 +1244,9 @@ class CatchUpRemote(Protocol):
     ) -> list[int] | None: ...
 
     def frames(self, batch: list[tuple[float, np.ndarray]]) -> None: ...
+
+    def extend(self) -> None:
+        """The extension at the end of the catch-up (:meth:`BootingLabeler._catch_up_extend`)."""
 
     def finish(self) -> BootingLabeler: ...
 

@@ -11,6 +11,7 @@ process instead::
 
     worker = BootWorker()
     worker.start()                       # spawn + kernel warm-up (a few s; at service start)
+    worker.prepare(labeler)              # its booter and the shadow's kernels (at service start)
     result = labeler.boot_step(snap, worker.runner(labeler, cancel))   # in a Background job
     worker.close()
 
@@ -18,8 +19,18 @@ The worker is a ``spawn`` child (the service has threads; ``fork`` would copy th
 with a lower CPU priority (``os.nice(NICE)``, 5: on a busy machine the frame path wins the core;
 at 10 the boot itself starved on a machine shared with other jobs).
 It keeps a :class:`~labeler_service.labeling.boot.Booter` per labeler (``labeler.key``; the
-model is sent once, ~0.5 MB for 10 subjects, and the booter is prepared once, ~0.2 s); a
-snapshot is ~0.3 MB (500 points, a 24-frame history). One request at a time (a lock): the
+model is sent once, ~0.5 MB for 10 subjects, and the booter is prepared once, ~0.3 s of CPU:
+the service does both at start with :meth:`BootWorker.prepare`, which also warms the inner
+labeler's kernels a catch-up's shadow runs, so the first attempt pays neither); a snapshot is
+~0.3 MB (500 points, a 24-frame history).
+
+With ``helpers=1`` (``HELPERS``, off by default: measured slower on the shared machine) the
+worker has a *helper* process: an attempt's hypotheses are computed per subject template, each
+a pure function of the template and the points (~85 % of a 10-performer attempt's CPU), so
+the worker and the helper take the subjects from one shared counter (the next one nobody has
+taken) and the worker then resolves them together as alone (the same labels). A helper that
+dies leaves the worker alone (it does the subjects itself); a killed worker takes its helper
+with it. One request at a time (a lock): the
 service runs one background job at a time anyway. A request whose job is abandoned
 (``cancel`` set: over ``boot_budget_s``, or shutdown) kills the worker, so no stale attempt
 keeps the CPU; the next request starts a new one. A worker that dies raises
@@ -50,6 +61,12 @@ if TYPE_CHECKING:
 NICE = 5
 #: Booters (one per labeler) a worker keeps, least recently used dropped first.
 MAX_BOOTERS = 8
+#: Helper processes of the worker (0 or 1): an attempt's subjects are shared between the two
+#: (each takes the next subject nobody has taken; labels as computed alone). Off: on the shared
+#: 2-core machine (load 4-5, autogroup scheduling: a session's processes share one slice) the
+#: first attempt took longer with it (``benchmarks/boot_worker_step.py``: median 1.41 -> 2.07
+#: s); not measured on a quiet machine, where the second core is free before the first boot.
+HELPERS = 0
 #: How often a waiting request looks at its cancel event and the worker's health (s).
 POLL_S = 0.02
 
@@ -108,6 +125,13 @@ class _Session:
             self._release()
             raise
 
+    def extend(self) -> None:
+        try:
+            self.worker._request(("extend",), self.cancel, "catch-up")
+        except BaseException:
+            self._release()
+            raise
+
     def finish(self) -> BootingLabeler:
         try:
             return self.worker._request(("finish",), self.cancel, "catch-up")
@@ -127,33 +151,47 @@ class _Session:
             self.worker._lock.release()
 
 
-def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in the child
-    """The worker's loop, one request at a time, each answered ``(True, value)`` or
-    ``(False, traceback text)``: ``("ping",)`` -> None once the kernels are warm; ``("step",
-    key, model_and_config_or_None, snapshot)`` -> ``(result, extended, ms)``; a catch-up:
-    ``("catch", key, model_and_config_or_None, shadow, snapshot, result)`` -> the subjects
-    booted (the shadow stays here), ``("frames", batch)`` labels a batch on it, ``("finish",)``
-    -> the shadow (for transfer)."""
-    with contextlib.suppress(OSError):
-        os.nice(nice)
-    from labeler_service.labeling.boot import Booter, warmup_kernels
-    from labeler_service.labeling.booting import boot_step_on
+class _Booters:
+    """A worker process's booters by labeler key, least recently used dropped first."""
 
-    warmup_kernels()
-    booters: OrderedDict[str, Booter] = OrderedDict()
-    shadow: Any = None  # the catch-up in progress
+    def __init__(self) -> None:
+        self._booters: OrderedDict[str, Any] = OrderedDict()
 
-    def booter_of(key: str, spec) -> Booter:
-        booter = booters.get(key)
+    def get(self, key: str, spec) -> Any:
+        from labeler_service.labeling.boot import Booter
+
+        booter = self._booters.get(key)
         if booter is None:
             if spec is None:
                 raise LabelerError(f"boot worker: no model for labeler {key}")
-            booter = booters[key] = Booter(*spec)
-            while len(booters) > MAX_BOOTERS:
-                booters.popitem(last=False)
-        booters.move_to_end(key)
+            booter = self._booters[key] = Booter(*spec)
+            while len(self._booters) > MAX_BOOTERS:
+                self._booters.popitem(last=False)
+        self._booters.move_to_end(key)
         return booter
 
+
+def _grab(counter: Any, n: int) -> int:
+    """The next subject (index into the attempt's list) nobody has taken yet, -1: none left."""
+    with counter.get_lock():
+        k = int(counter.value)
+        if k >= n:
+            return -1
+        counter.value = k + 1
+        return k
+
+
+def _help(conn: Connection, counter: Any, nice: int) -> None:  # pragma: no cover - child
+    """The helper's loop (see :class:`BootWorker`), requests from the worker: ``("ping",)``;
+    ``("prepare", key, model_and_config)``; ``("hyps", key, model_and_config_or_None, subjects,
+    pts, hist)`` -> ``{k: hypotheses of subjects[k]}`` for the subjects it took from the shared
+    counter. Answers ``(True, value)`` or ``(False, traceback text)``."""
+    with contextlib.suppress(OSError):
+        os.nice(nice)
+    from labeler_service.labeling.boot import warmup_kernels
+
+    warmup_kernels()
+    booters = _Booters()
     while True:
         try:
             msg = conn.recv()
@@ -163,19 +201,134 @@ def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in t
             kind = msg[0]
             if kind == "ping":
                 conn.send((True, None))
+            elif kind == "prepare":
+                booters.get(msg[1], msg[2])
+                conn.send((True, None))
+            elif kind == "hyps":
+                _, key, spec, wanted, pts, hist = msg
+                booter = booters.get(key, spec)
+                pairs = booter.pairs(pts)
+                out = {}
+                while (k := _grab(counter, len(wanted))) >= 0:
+                    out[k] = booter.hypotheses(wanted[k], pts, hist, pairs)
+                conn.send((True, out))
+            else:
+                raise LabelerError(f"boot helper: unknown request {kind!r}")
+        except Exception:
+            conn.send((False, traceback.format_exc()))
+
+
+class _Helper:
+    """The worker's side of its helper: shares an attempt's subjects with it (a
+    :data:`~labeler_service.labeling.boot.HypothesesShare`)."""
+
+    def __init__(self, conn: Connection | None, counter: Any) -> None:
+        self.conn, self.counter = conn, counter
+        self._known: OrderedDict[str, None] = OrderedDict()  # mirror of its booters' LRU
+
+    def request(self, msg: tuple) -> Any:
+        assert self.conn is not None
+        self.conn.send(msg)
+        ok, value = self.conn.recv()
+        if not ok:
+            raise LabelerError(f"boot helper failed:\n{value}")
+        return value
+
+    def note(self, key: str) -> None:
+        self._known[key] = None
+        self._known.move_to_end(key)
+        while len(self._known) > MAX_BOOTERS:
+            self._known.popitem(last=False)
+
+    def share(self, key: str):
+        def run(booter, wanted: list[int], pts, hist, pairs) -> list:
+            if self.conn is None or len(wanted) < 2:
+                return [h for s in wanted for h in booter.hypotheses(s, pts, hist, pairs)]
+            with self.counter.get_lock():
+                self.counter.value = 0
+            spec = None if key in self._known else (booter.model, booter.config)
+            try:
+                self.conn.send(("hyps", key, spec, wanted, pts, hist))
+            except (OSError, ValueError):
+                self.conn = None  # (gone: the worker goes on alone)
+                return run(booter, wanted, pts, hist, pairs)
+            self.note(key)
+            mine = {}
+            while (k := _grab(self.counter, len(wanted))) >= 0:
+                mine[k] = booter.hypotheses(wanted[k], pts, hist, pairs)
+            try:
+                ok, theirs = self.conn.recv()
+            except (EOFError, OSError):
+                ok, theirs = False, "lost"
+            if not ok:
+                log.warning("boot helper failed; its subjects are done here:\n%s", theirs)
+                self.conn = None
+                theirs = {k: booter.hypotheses(wanted[k], pts, hist, pairs)
+                          for k in range(len(wanted)) if k not in mine}  # fmt: skip
+            both = {**mine, **theirs}
+            return [h for k in range(len(wanted)) for h in both[k]]
+
+        return run
+
+
+def _serve(
+    conn: Connection, nice: int, peer: Connection | None = None, counter: Any = None
+) -> None:  # pragma: no cover - runs in the child
+    """The worker's loop, one request at a time, each answered ``(True, value)`` or
+    ``(False, traceback text)``: ``("ping",)`` -> None once the kernels are warm (the helper's
+    too); ``("step", key, model_and_config_or_None, snapshot)`` -> ``(result, extended, ms)``
+    (the subjects' hypotheses shared with the helper, ``peer``, through ``counter``); a
+    catch-up: ``("catch", key, model_and_config_or_None, shadow, snapshot, result)`` -> the
+    subjects booted (the shadow stays here), ``("frames", batch)`` labels a batch on it,
+    ``("extend",)`` extends its subjects (the catch-up's last extension), ``("finish",)`` ->
+    the shadow (for transfer); ``("prepare", key, model_and_config, rate, labeler_config)``
+    builds the booter of ``key`` (the helper's too) and warms the kernels a shadow's frames
+    run (before the first attempt)."""
+    with contextlib.suppress(OSError):
+        os.nice(nice)
+    from labeler_service.labeling.boot import warmup_kernels
+    from labeler_service.labeling.booting import boot_step_on, warmup_labeler
+
+    warmup_kernels()
+    booters = _Booters()
+    helper = _Helper(peer, counter)
+    shadow: Any = None  # the catch-up in progress
+
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        try:
+            kind = msg[0]
+            if kind == "ping":
+                if helper.conn is not None:
+                    helper.request(("ping",))
+                conn.send((True, None))
+            elif kind == "prepare":
+                _, key, spec, rate, config = msg
+                booters.get(key, spec)
+                if helper.conn is not None:
+                    helper.request(("prepare", key, spec))
+                    helper.note(key)
+                warmup_labeler(rate, config)
+                conn.send((True, None))
             elif kind == "step":
                 _, key, spec, snapshot = msg
-                conn.send((True, boot_step_on(booter_of(key, spec), snapshot)))
+                out = boot_step_on(booters.get(key, spec), snapshot, helper.share(key))
+                conn.send((True, out))
             elif kind == "catch":
                 _, key, spec, shadow, snapshot, result = msg
-                booter = booter_of(key, spec)
+                booter = booters.get(key, spec)
                 shadow._booter, shadow.model = booter, booter.model
                 conn.send((True, shadow._begin_catch_up(snapshot, result)))
             elif kind == "frames":
                 shadow._catch_up_frames(msg[1])
                 conn.send((True, None))
-            elif kind == "finish":
+            elif kind == "extend":
                 shadow._catch_up_extend()
+                conn.send((True, None))
+            elif kind == "finish":
                 out, shadow = shadow.for_transfer(), None
                 conn.send((True, out))
             else:
@@ -188,10 +341,14 @@ def _serve(conn: Connection, nice: int) -> None:  # pragma: no cover - runs in t
 class BootWorker:
     """One boot worker process (see the module docstring). Thread-safe."""
 
-    def __init__(self, nice: int = NICE) -> None:
+    def __init__(self, nice: int = NICE, helpers: int = HELPERS) -> None:
         self.nice = nice
+        #: 1: an attempt shares its subjects' hypotheses with a helper process; 0: none
+        self.helpers = int(helpers)
         self._lock = threading.Lock()
         self._proc: Any = None
+        self._helper: Any = None
+        self._counter: Any = None
         self._conn: Connection | None = None
         #: labeler keys whose booter the worker has, in the worker's LRU order
         self._known: OrderedDict[str, None] = OrderedDict()
@@ -210,6 +367,18 @@ class BootWorker:
         event loop, e.g. with ``asyncio.to_thread``)."""
         with self._lock:
             self._request(("ping",), None, "warm-up")
+
+    def prepare(self, labeler: BootingLabeler) -> None:
+        """Sends ``labeler``'s model to the worker, which prepares its booter and warms the
+        kernels a catch-up's shadow runs (the inner labeler's), so that the first attempt pays
+        neither (blocking, like :meth:`start`; a no-op for a labeler the worker knows)."""
+        with self._lock:
+            if labeler.key in self._known:
+                return
+            spec = (labeler.model, labeler.boot_config)
+            self._request(("prepare", labeler.key, spec, labeler.rate, labeler.config), None,
+                          "preparation")  # fmt: skip
+            self._note(labeler.key)
 
     def runner(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> StepRunner:
         """The ``runner`` for ``labeler.boot_step`` (see the module docstring)."""
@@ -280,11 +449,23 @@ class BootWorker:
             self._kill()
             ctx = multiprocessing.get_context("spawn")
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_serve, args=(child, self.nice), name="boot-worker",
-                               daemon=True)  # fmt: skip
+            peer = helper = counter = None
+            if self.helpers > 0:
+                counter = ctx.Value("i", 0)
+                peer, theirs = ctx.Pipe()
+                helper = ctx.Process(target=_help, args=(theirs, counter, self.nice),
+                                     name="boot-helper", daemon=True)  # fmt: skip
+                start_child(helper)
+                theirs.close()
+            proc = ctx.Process(target=_serve, args=(child, self.nice, peer, counter),
+                               name="boot-worker", daemon=True)  # fmt: skip
             start_child(proc)
             child.close()
+            if peer is not None:
+                peer.close()  # (the worker's now: the helper ends when the worker does)
             self._proc, self._conn, self._known = proc, parent, OrderedDict()
+            # (kept: the children open its semaphore by name, unlinked when it is collected)
+            self._helper, self._counter = helper, counter
             self.started += 1
             if self._closed:  # closed while it started (close takes no lock)
                 self._kill()
@@ -316,13 +497,14 @@ class BootWorker:
         return value
 
     def _kill(self) -> None:
-        proc, conn = self._proc, self._conn
-        self._proc, self._conn, self._known = None, None, OrderedDict()
+        proc, conn, helper = self._proc, self._conn, self._helper
+        self._proc, self._conn, self._known, self._helper = None, None, OrderedDict(), None
         if conn is not None:
             with contextlib.suppress(OSError):
                 conn.close()
-        if proc is not None:
-            with contextlib.suppress(OSError, ValueError):
-                if proc.is_alive():
-                    proc.kill()
-                proc.join(timeout=5.0)
+        for p in (proc, helper):
+            if p is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    if p.is_alive():
+                        p.kill()
+                    p.join(timeout=5.0)

@@ -283,6 +283,8 @@ class Server:
                         await asyncio.to_thread(state.booting.warmup)  # the boot's kernels too
                     if state.booting is not None and self.boot_worker is not None:
                         await asyncio.to_thread(self.boot_worker.start)  # (once: no-op after)
+                        # its booter and the catch-up's kernels, before the first attempt
+                        await asyncio.to_thread(self.boot_worker.prepare, state.booting)
                     await self._publish_model(state)
             # everything alive now (modules, compiled kernels, models) lives as long as the
             # process: the collector skips it from now on (full collections stay cheap)

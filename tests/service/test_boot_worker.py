@@ -148,7 +148,8 @@ def test_an_abandoned_catch_up_frees_the_worker_for_the_next_request(walk):
             cancel.set()  # the budget runs out while the first batch is prepared
             return out
 
-        frames, finish, abort = session.frames, session.finish, session.abort
+        frames, extend, finish = session.frames, session.extend, session.finish
+        abort = session.abort
 
     try:
         assert not lab.catch_up(snap, res, cancel, AbandonedAfterBegin())
@@ -160,6 +161,53 @@ def test_an_abandoned_catch_up_frees_the_worker_for_the_next_request(walk):
         t.start()
         t.join(timeout=120.0)
         assert done and len(done[0].subjects) == 3 and w.started == 2
+    finally:
+        w.close()
+
+
+def test_a_prepared_worker_boots_without_the_model_and_its_helper_changes_nothing(walk):
+    """``prepare`` (at service start) builds the labeler's booter in the worker and its
+    helper: the first attempt sends no model; with and without the helper (which takes
+    subjects' hypotheses from the same list) the attempt gives the local result."""
+    model, cap = walk
+    lab, snap = _snapshot(model, cap, seed=8)
+    here = lab.boot_step(snap)
+    assert len(here.subjects) == 3
+    for helpers in (0, 1):
+        w = BootWorker(helpers=helpers)
+        try:
+            w.start()
+            w.prepare(lab)
+            assert lab.key in w._known
+            # no model sent: the booter must be there already
+            there = w.step(lab.key, (None, None), snap.remote())[0]
+            assert there.subjects == here.subjects
+            np.testing.assert_array_equal(there.labels, here.labels)
+            assert (w._helper is not None) == (helpers == 1)
+        finally:
+            w.close()
+
+
+def test_a_lost_helper_leaves_the_worker_alone_with_the_same_result(walk):
+    """The helper killed from outside: the worker does its subjects itself (the same
+    result) and goes on without it; the worker itself is not restarted."""
+    import signal
+
+    model, cap = walk
+    lab, snap = _snapshot(model, cap, seed=9)
+    here = lab.boot_step(snap)
+    w = BootWorker(helpers=1)
+    try:
+        w.start()
+        w.prepare(lab)
+        pid = w.pid
+        os.kill(w._helper.pid, signal.SIGKILL)
+        w._helper.join(timeout=10)
+        for _ in range(2):
+            there = lab.boot_step(snap, w.runner(lab))
+            assert there.subjects == here.subjects
+            np.testing.assert_array_equal(there.labels, here.labels)
+        assert w.pid == pid and w.started == 1
     finally:
         w.close()
 
