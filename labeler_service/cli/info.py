@@ -16,6 +16,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 
+def up_hint(cap: Capture) -> str | None:
+    """A note when every subject of the capture, as read, looks Y-up (``detect_up`` on each
+    subject's markers: a composed scene of Z-up people spread wide is not mistaken): the
+    commands read Z up unless told ``--up y``. None otherwise (Z up, or undecided). The
+    labeler does not depend on the axis (BTS's walk: the same accuracy read either way)."""
+    from labeler_service.errors import SceneError
+    from labeler_service.scenes.compose import detect_up
+
+    facts = []
+    for s in cap.subjects:
+        try:
+            up, why = detect_up(cap.select(cap.subject_columns(s)), s or "take")
+        except SceneError:
+            return None
+        if up != "y":
+            return None
+        facts.append(why)
+    if not facts:
+        return None
+    return (
+        f"looks Y-up ({facts[0]}): read it with --up y (compose: TAKE:start:y) where the "
+        "vertical axis matters (a composed scene, the live view); labeling does not depend on it"
+    )
+
+
 def summarize(cap: Capture) -> dict:
     """The numbers ``info`` prints, as a plain dict."""
     gaps = cap.gaps()
@@ -42,7 +67,7 @@ def summarize(cap: Capture) -> dict:
         "gaps": int(len(gaps)),
         "gap_frames_max": int(lengths.max()) if lengths.size else 0,
         "gap_frames_median": float(np.median(lengths)) if lengths.size else 0.0,
-        "notes": list(cap.notes),
+        "notes": list(cap.notes) + [n for n in (up_hint(cap),) if n is not None],
     }
 
 

@@ -282,27 +282,48 @@ def save_model(model: LabelerModel, path: str | Path) -> None:
         raise ModelError(f"{p}: cannot write model: {os_reason(exc)}") from exc
 
 
+#: what a model file is, said with every "this file is no model" error
+MODEL_IS = (
+    "a subject model is the JSON file `mocap-labeler train structure TAKE... --out MODEL.json` "
+    "writes"
+)
+
+
+def _not_a_model(p: Path, why: str) -> ModelError:
+    """The error for a file that is no model at all: why, what a model is, and, for a capture
+    given in its place (``--model take.c3d``), that it is one."""
+    if p.suffix.lower() in (".c3d", ".trc", ".npz"):
+        return ModelError(
+            f"{p}: a capture, not a subject model; train one on it: mocap-labeler train "
+            f"structure {p.name} --out MODEL.json ({why})"
+        )
+    return ModelError(f"{p}: {why}: not a subject model; {MODEL_IS}")
+
+
 def load_model(path: str | Path) -> LabelerModel:
     """Reads and validates a JSON model; raises :class:`ModelError` naming the problem."""
     p = Path(path)
     try:
         size = p.stat().st_size
         if size > MAX_MODEL_BYTES:
-            raise ModelError(f"{p}: {size} bytes, larger than a model can be ({MAX_MODEL_BYTES})")
+            raise _not_a_model(p, f"{size} bytes, larger than a model can be ({MAX_MODEL_BYTES})")
         raw = json.loads(p.read_bytes().decode("utf-8"))
     except OSError as exc:
         raise ModelError(f"{p}: cannot read model: {exc}") from exc
     except UnicodeDecodeError as exc:
-        raise ModelError(f"{p}: not UTF-8 text (byte {exc.start})") from exc
+        raise _not_a_model(p, f"not UTF-8 text (byte {exc.start})") from exc
     except json.JSONDecodeError as exc:
-        raise ModelError(f"{p}: not JSON: {exc}") from exc
+        raise _not_a_model(p, f"not JSON: {exc}") from exc
     except RecursionError as exc:
-        raise ModelError(f"{p}: not a model: JSON nested too deeply") from exc
+        raise _not_a_model(p, "JSON nested too deeply") from exc
     if not isinstance(raw, dict):
-        raise ModelError(f"{p}: a model is a JSON object")
+        raise _not_a_model(p, "not a JSON object")
+    if "version" not in raw:
+        raise _not_a_model(p, "no 'version' key")
     if raw.get("version") != SCHEMA_VERSION:
         raise ModelError(
-            f"{p}: unsupported model version {raw.get('version')!r} (expected {SCHEMA_VERSION})"
+            f"{p}: unsupported model version {raw.get('version')!r} (expected {SCHEMA_VERSION}; "
+            "a model from another release of mocap-labeler: train it again with this one)"
         )
     try:
         return LabelerModel.model_validate(raw)

@@ -49,7 +49,11 @@ from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
 from labeler_service.errors import BudgetExceeded
-from labeler_service.service.boot_worker import NICE, POLL_S  # a child as the boot worker's
+from labeler_service.service.boot_worker import (  # a child as the boot worker's
+    NICE,
+    POLL_S,
+    start_child,
+)
 
 T = TypeVar("T")
 
@@ -239,13 +243,14 @@ def configure_allocator() -> None:
         switch(False)
 
 
-def _child(conn, fn: Callable[..., Any], args: tuple) -> None:  # pragma: no cover (child)
+def _child(conn) -> None:  # pragma: no cover (child)
     import os
     import traceback
 
     with contextlib.suppress(OSError, AttributeError):
         os.nice(NICE)  # (the boot worker's priority)
     try:
+        fn, args = conn.recv()  # (run_in_process: the job over our pipe, not the bootstrap's)
         out = (True, fn(*args))
     except BaseException as exc:  # handed back to the parent
         out = (False, f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=5)}")
@@ -277,11 +282,21 @@ def run_in_process(
     from labeler_service.errors import LabelerError
 
     ctx = multiprocessing.get_context("spawn")
-    parent, child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(child, fn, args), name=name, daemon=True)
-    proc.start()
+    # the job goes over our own pipe, not as the Process's args: multiprocessing writes those
+    # into the child's bootstrap pipe while it still holds that pipe's read end itself, so a
+    # child dying before it read them all (a window of 250 kB; killed, or Ctrl-C before its
+    # SIGINT was blocked) left this thread blocked in start() for good, and the service's exit
+    # waited on it. Our pipe's other end is closed here once the child has it: its death
+    # breaks the send.
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_child, args=(child,), name=name, daemon=True)
+    start_child(proc)
     child.close()
     try:
+        try:
+            parent.send((fn, args))
+        except OSError as exc:  # BrokenPipeError, ConnectionResetError: the child is gone
+            raise LabelerError(f"{name}: its process ended before it took its job") from exc
         while not parent.poll(POLL_S):
             if cancel is not None and cancel.is_set():
                 raise BudgetExceeded(f"{name}: cancelled; its process was terminated")

@@ -43,6 +43,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import traceback
 from collections import OrderedDict
@@ -68,6 +69,28 @@ MAX_BOOTERS = 8
 HELPERS = 0
 #: How often a waiting request looks at its cancel event and the worker's health (s).
 POLL_S = 0.02
+
+
+def start_child(proc: multiprocessing.process.BaseProcess) -> None:
+    """Starts a ``spawn`` child with SIGINT blocked in it, as CPython's resource tracker is
+    started: Ctrl-C in a terminal goes to the whole foreground process group, and a child
+    still importing (the boot worker, a window model's process) printed a KeyboardInterrupt
+    traceback, or died mid-attempt (``boot worker: lost``) while the service shut down
+    cleanly. The service ends its children itself (terminate, kill). The mask is the calling
+    thread's, restored at once; a SIGINT meanwhile is delivered to the service after it."""
+    if not hasattr(signal, "pthread_sigmask"):
+        proc.start()
+        return
+    from multiprocessing import resource_tracker
+
+    # start() launches the resource tracker the first time, which ends by *unblocking* SIGINT
+    # in the calling thread (resource_tracker._launch): launched first, it leaves our mask be
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        proc.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class _Session:
@@ -432,11 +455,11 @@ class BootWorker:
                 peer, theirs = ctx.Pipe()
                 helper = ctx.Process(target=_help, args=(theirs, counter, self.nice),
                                      name="boot-helper", daemon=True)  # fmt: skip
-                helper.start()
+                start_child(helper)
                 theirs.close()
             proc = ctx.Process(target=_serve, args=(child, self.nice, peer, counter),
                                name="boot-worker", daemon=True)  # fmt: skip
-            proc.start()
+            start_child(proc)
             child.close()
             if peer is not None:
                 peer.close()  # (the worker's now: the helper ends when the worker does)

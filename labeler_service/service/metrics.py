@@ -138,6 +138,12 @@ class ServiceMetrics:
             "Kernel receive buffer of the UDP socket as the OS granted it (getsockopt)",
             registry=r,
         )  # fmt: skip
+        self.transport_up = Gauge(
+            "mocap_transport_up",
+            "1 while the transport carries frames, 0 while it cannot (MQTT: the broker "
+            "unreachable; the log says why)",
+            ["transport"], registry=r,
+        )  # fmt: skip
         self.training = Gauge(
             "mocap_training_jobs", "In-stream trainings running or waiting (off the loop)",
             registry=r,

@@ -76,7 +76,7 @@ from labeler_service.service.handover import YIELD_S
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
 from labeler_service.service.settings import ServiceSettings, StreamSettings, exposure_warnings
-from labeler_service.service.stream import StreamState
+from labeler_service.service.stream import StreamState, no_start
 from labeler_service.service.transports.base import (
     DropOldestQueue,
     Incoming,
@@ -225,6 +225,7 @@ class Server:
         self._tasks: set[asyncio.Task] = set()
         self._stack: AsyncExitStack | None = None
         self._rlog = RateLimitedLog(log)
+        self._transport_down: dict[str, str | None] = {}  # transport name -> its trouble
         self.ready: asyncio.Event | None = None
         self.metrics_port: int | None = None
         self.warmup_s = 0.0
@@ -306,6 +307,7 @@ class Server:
         self.metrics.ready.set(1)
         self.ready.set()
         log.info("ready: %s", ", ".join(t.name for t in self.transports))
+        self._transport_health(log_all=True)
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -406,6 +408,9 @@ class Server:
             return name
         if name in starting or name in self.cache:
             return name
+        # said (rate-limited), else the frames went as a count in the periodic line only
+        self._rlog.warning("unknown-stream", "udp: frames dropped unread (unknown_stream): %s",
+                           no_start(name))  # fmt: skip
         return None
 
     def _free_slot(self, source: object = None) -> bool:
@@ -608,6 +613,9 @@ class Server:
                                        getattr(state.labeler, "model", None))  # fmt: skip
             if units is not None:
                 self._rlog.warning(f"units-{state.name}", "%s", units)
+            rate = state.rate_check.update(state.name, msg.t, state.rate)
+            if rate is not None:
+                log.warning("%s", rate)
             if state.just_booted:
                 self._booted(state)
             elif state.booting is not None:
@@ -903,6 +911,7 @@ class Server:
         while True:
             await asyncio.sleep(1.0)
             self._count_transport_drops()
+            self._transport_health()
             self.metrics.background_threads.set(self.background.running)
             if self.background.abandoned_ended > abandoned:
                 # an abandoned job ended (its state is freed only now); a job that ended in time
@@ -930,7 +939,22 @@ class Server:
             out[name] = (st.status, len(lab.model.subjects) if lab is not None else 0)
         return out
 
+    def _transport_health(self, log_all: bool = False) -> None:
+        """Sets ``mocap_transport_up`` per transport; logs each transport that is down (every
+        call with ``log_all``, else when it goes down) and each that comes back."""
+        for t in self.transports or ():
+            trouble = t.trouble()
+            self.metrics.transport_up.labels(transport=t.name).set(trouble is None)
+            was = self._transport_down.get(t.name)
+            if trouble is not None and (log_all or was is None):
+                log.warning("%s: %s; frames do not flow through it until then", t.name,
+                            trouble)  # fmt: skip
+            elif trouble is None and was is not None:
+                log.info("%s: carries frames again", t.name)
+            self._transport_down[t.name] = trouble
+
     async def _log_loop(self) -> None:
         while True:
             await asyncio.sleep(self.settings.log_interval_s)
             log.info("%s", self.metrics.log_line(self._log_streams()))
+            self._transport_health(log_all=True)

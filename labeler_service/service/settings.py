@@ -21,6 +21,7 @@ Example (``docker/service.toml`` is a complete one)::
 
 from __future__ import annotations
 
+import difflib
 import json
 import os
 import tomllib
@@ -316,6 +317,31 @@ class ServiceSettings(BaseSettings):
         return env_settings, init_settings
 
 
+#: The settings tables below the top level, by key (``streams``: each stream's table).
+_TABLES: dict[str, type[BaseModel]] = {
+    "udp": UdpSettings,
+    "mqtt": MqttSettings,
+    "streams": StreamSettings,
+    "boot_config": BootConfig,
+    "labeler_config": LabelerConfig,
+}
+
+
+def _section_keys(loc: tuple[Any, ...]) -> list[str]:
+    """The keys allowed in the table that holds ``loc`` (list indices skipped: ``streams.0``
+    is a stream's table); empty when ``loc`` is in no table this module knows."""
+    parent = tuple(str(p) for p in loc[:-1] if not isinstance(p, int))
+    model = ServiceSettings if not parent else _TABLES.get(parent[0]) if len(parent) == 1 else None
+    return [] if model is None else list(model.model_fields)
+
+
+def _did_you_mean(name: str, known: list[str], prefix: str = "") -> str:
+    """`` (did you mean X?)`` for a name a typo or two from a known key (``prefix`` + the key:
+    ``MOCAP_`` for a variable), else ``""``."""
+    close = difflib.get_close_matches(name.lower(), known, n=1, cutoff=0.75)
+    return f" (did you mean {prefix}{close[0].upper() if prefix else close[0]}?)" if close else ""
+
+
 def _env_names(loc: tuple[Any, ...], environ: Any) -> list[str]:
     """The ``MOCAP_`` variables that set the value at ``loc`` of a validation error: the value
     itself, one that holds it (``MOCAP_STREAMS`` for ``streams.0.rate``) or a part of it
@@ -335,6 +361,8 @@ def _format_errors(exc: ValidationError, environ: Any = None) -> str:
         if err["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")  # our validators' messages say it all
         key = str(err["loc"][-1]) if err["loc"] else ""
+        if err["type"] == "extra_forbidden":
+            msg = "not a setting"  # pydantic's "Extra inputs are not permitted"
         if (
             err["type"] == "extra_forbidden"
             and len(err["loc"]) == 3
@@ -357,6 +385,8 @@ def _format_errors(exc: ValidationError, environ: Any = None) -> str:
                 f" ({key} is a setting of one stream: in TOML, write it below that stream's "
                 '[[streams]] name = "..."; in the environment, in MOCAP_STREAMS)'
             )
+        elif err["type"] == "extra_forbidden" and err["loc"]:
+            msg += _did_you_mean(key, _section_keys(tuple(err["loc"])))
         names = _env_names(tuple(err["loc"]), env) if err["loc"] else []
         if names:
             # the environment wins over the file: say which variable the value came from
@@ -390,7 +420,12 @@ def check_env(environ: dict[str, str] | None = None) -> None:
         def line(b: str) -> str:
             top = b.upper()[len("MOCAP_") :].split("__", 1)[0]
             if top not in stream_keys:
-                return f"  {b}"
+                nested = [f for f in _TABLES if top.startswith(f.upper() + "_")]
+                if nested:  # MOCAP_UDP_PORT for MOCAP_UDP__PORT
+                    inner = top[len(nested[0]) + 1 :]
+                    where = f"MOCAP_{nested[0].upper()}__{inner}"
+                    return f"  {b} (nested keys are joined with '__': {where})"
+                return f"  {b}" + _did_you_mean(top, list(ServiceSettings.model_fields), "MOCAP_")
             return (
                 f"  {b} ({top.lower()} is a setting of one stream: set it in MOCAP_STREAMS, "
                 f"""e.g. MOCAP_STREAMS='[{{"name": "volume1", "{top.lower()}": ...}}]')"""

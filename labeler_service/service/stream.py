@@ -110,7 +110,7 @@ from labeler_service.service.handover import (
 )
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
-from labeler_service.service.units import UnitCheck, init_span_warning
+from labeler_service.service.units import RateCheck, UnitCheck, init_span_warning
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
@@ -325,6 +325,7 @@ class StreamState:
         self._model_file: LabelerModel | None = None
         #: points in another unit than the model's (metres): warned by the server
         self.units = UnitCheck()
+        self.rate_check = RateCheck()
         #: the server's boot worker process (None: the step runs in the job's thread)
         self.boot_worker: BootWorker | None = None
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
@@ -774,10 +775,12 @@ class StreamState:
             subjects = ", ".join(subject_groups(list(self.names))) or "none"
             log.warning(
                 "stream %s: %d labels of a frame name no marker of the stream (e.g. %r; its "
-                "subjects: %s): %s",
+                "subjects: %s): %s; send labels named as the stream's markers are (e.g. %r), "
+                "or give the stream a model of these performers (train structure)",
                 self.name, len(unknown), unknown[0], subjects,
                 f"ignored, {known} labels used" if known
                 else "the frame is labeled as an unlabeled one",
+                self.names[0] if self.names else "subject:marker",
             )  # fmt: skip
         return idx if (idx >= 0).any() else None
 
@@ -985,9 +988,7 @@ class StreamState:
                 self.buffer_init(f)
                 return None
             if not self.init_frames:
-                raise LabelerError(
-                    f"stream {self.name}: unlabeled frame before any model or labeled init frame"
-                )
+                raise LabelerError(no_start(self.name))
             labeler, rate, out, label_ns = self.train(self.take_init(), f)
             return self.install_trained(labeler, rate, f, out, recv_ns, label_ns)
         if self._rebase:
@@ -1200,6 +1201,17 @@ class StreamState:
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
         )
+
+
+def no_start(stream: str) -> str:
+    """Why a stream's unlabeled frames are dropped before it started, and the two fixes: the
+    one sentence for the ``no_model`` drop and the UDP pre-filter's ``unknown_stream``."""
+    return (
+        f"stream {stream}: unlabeled frames, and nothing to start the stream from (no model, no "
+        f"labeled init frames before them): give it a model (a [[streams]] table with name = "
+        f'"{stream}", model = "MODEL.json" from train structure, and boot = true), or send '
+        "labeled init frames first (replay --init-frames 50)"
+    )
 
 
 def _remap(names: Sequence[str], window_names: Sequence[str]) -> np.ndarray:

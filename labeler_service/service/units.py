@@ -7,7 +7,11 @@ template distance matches, nothing is ever labeled, and a booting stream reads `
 for good, as if nobody were in the volume. :class:`UnitCheck` compares, while a stream labels
 nothing, the largest extent of its frames' points over ``WINDOW_S`` of stream with the size of
 its model's subjects (their longest trained marker-pair distance) and returns a warning when
-they differ by more than a person can (``SMALL``, ``LARGE``). It never changes a frame.
+they differ by more than a person can (``SMALL``, ``LARGE``). A stream whose points are in
+millimetres but whose model is of other performers (another marker set: a 31-marker model fed
+a 39-marker take) read ``booting`` for good too: after ``MATCH_S`` of points with nothing
+labeled the check says how many points its frames carry beside the model's markers, and the
+fix. It never changes a frame.
 """
 
 from __future__ import annotations
@@ -27,6 +31,12 @@ WINDOW_S = 2.0
 SMALL = 1 / 20
 #: points spanning more than this multiple of a subject: another unit (micrometres)
 LARGE = 1000.0
+#: seconds of stream with points but nothing labeled before the points per frame are compared
+#: with the model's markers (a model of another marker set, or performers the boot cannot
+#: place: either way the log says it, where the stream only read ``booting``)
+MATCH_S = 10.0
+#: frames with fewer points than this are an empty volume, not a mismatch
+MIN_POINTS = 3
 #: labeled init frames none of whose subjects spans this many mm are in another unit (no
 #: person's markers span less than a head's, ~150 mm); a model trained on them matches their
 #: points, so the check above cannot see it
@@ -70,31 +80,88 @@ def model_scale(model: LabelerModel) -> float:
     return best
 
 
+def match_warning(stream: str, model: LabelerModel, counts: list[int], seconds: float) -> str:
+    """The points per frame of a stream that labeled nothing for ``seconds``, beside its model's
+    subjects and markers, and what to do about each reading."""
+    points = int(np.median(counts))
+    sizes = ", ".join(f"{s.name} {len(s.markers)}" for s in model.subjects)
+    total = sum(len(s.markers) for s in model.subjects)
+    head = (
+        f"stream {stream}: nothing labeled for {seconds:.1f} s of stream; its frames carry "
+        f"{points} points (median) where its model has {total} markers ({sizes})"
+    )
+    if points > total:
+        why = (
+            "more points than the model has markers: if they are not all ghosts, the model is "
+            "not of these performers or marker set"
+        )
+    else:
+        why = (
+            "if the model is of these performers and marker set, the boot has not placed them "
+            "yet (docs/algorithm.md, boot limits); else"
+        )
+    return (
+        f"{head}: {why}; train a model on a labeled take of these performers "
+        "(mocap-labeler train structure TAKE... --out MODEL), set it as the stream's model and "
+        "restart"
+    )
+
+
 class UnitCheck:
     """Per stream: fed every published frame (points, ``t``, markers observed, the labeler's
-    model); returns a warning line when the points look like another unit than the model's."""
+    model); returns a warning line when the points look like another unit than the model's,
+    or, after ``MATCH_S`` of points with nothing labeled, one comparing the points per frame
+    with the model's markers (:func:`match_warning`)."""
 
     def __init__(self) -> None:
         self._since: float | None = None
         self._span = 0.0
         self._model_id: int | None = None
         self._scale = 0.0
+        self._quiet_since: float | None = None  # the nothing-labeled run, for the match check
+        self._counts: list[int] = []
+        self._units_off = False  # a unit warning was given in this run: it says it better
         self.warnings = 0  # warnings returned (tests, the log line)
 
     def reset(self) -> None:
         self._since, self._span = None, 0.0
+
+    def _reset_match(self) -> None:
+        self._quiet_since, self._counts, self._units_off = None, [], False
+
+    def _match(self, stream: str, points: np.ndarray, t: float, model: LabelerModel) -> str | None:
+        if len(points) < MIN_POINTS:
+            return None  # an empty volume says nothing about the model
+        if self._quiet_since is None or t < self._quiet_since:
+            self._quiet_since, self._counts = t, []
+        self._counts.append(len(points))
+        dt = t - self._quiet_since
+        if dt < MATCH_S:
+            return None
+        counts, units_off = self._counts, self._units_off
+        self._reset_match()
+        self._units_off = units_off
+        if units_off:
+            return None
+        self.warnings += 1
+        return match_warning(stream, model, counts, dt)
 
     def update(
         self, stream: str, points: np.ndarray, t: float, observed: int, model: object
     ) -> str | None:
         if not isinstance(model, LabelerModel):
             self.reset()
+            self._reset_match()
             return None
         if id(model) != self._model_id:
             self._model_id, self._scale = id(model), model_scale(model)
         if self._scale <= 0.0 or observed > 0:
             self.reset()
+            self._reset_match()
             return None
+        match = self._match(stream, points, t, model)
+        if match is not None:
+            return match
         if self._since is None or t < self._since:
             self._since, self._span = t, 0.0
         if len(points) >= 2:
@@ -107,6 +174,7 @@ class UnitCheck:
         if SMALL <= ratio <= LARGE:
             return None
         self.warnings += 1
+        self._units_off = True
         if ratio < SMALL:
             hint = (
                 f"{1 / ratio:.0f} times smaller: are they in metres (x 1000) or centimetres (x 10)?"
@@ -117,4 +185,50 @@ class UnitCheck:
             f"stream {stream}: nothing labeled for {dt:.1f} s of stream; its points span at most "
             f"{span:.4g} where a subject of its model spans {self._scale:.0f} mm, {hint} "
             "Points travel in millimetres (docs/protocol.md)"
+        )
+
+
+#: seconds of stream (frame ``t``) whose frame steps give the measured rate
+RATE_WINDOW_S = 2.0
+#: frame steps needed at least before the rates are compared
+RATE_MIN_STEPS = 20
+#: measured / stream rate outside [1 / RATE_OFF, RATE_OFF]: said in the log
+RATE_OFF = 1.25
+
+
+class RateCheck:
+    """Per stream: the rate its frames come at (the median step of their ``t`` over
+    ``RATE_WINDOW_S``) against the rate the stream runs at (``streams[].rate``, else its
+    model's: a model trained at 240 Hz fed a 48 Hz stream sized its boot window and point
+    tracker for 240 Hz, and labeled 0.76 of the markers where ``rate = 48`` labeled all).
+    Returns one warning per stream rate that does not match, with the setting to change."""
+
+    def __init__(self) -> None:
+        self._steps: list[float] = []
+        self._since: float | None = None
+        self._t_last: float | None = None
+        self._warned: float | None = None  # the stream rate already warned about
+
+    def update(self, stream: str, t: float, rate: float | None) -> str | None:
+        if rate is None or not math.isfinite(t) or rate == self._warned:
+            return None
+        last, self._t_last = self._t_last, t
+        if last is None or not t > last:
+            self._steps, self._since = [], None  # a restart or a time jump: measure again
+            return None
+        if self._since is None:
+            self._since = last
+        self._steps.append(t - last)
+        if t - self._since < RATE_WINDOW_S or len(self._steps) < RATE_MIN_STEPS:
+            return None
+        measured = 1.0 / float(np.median(self._steps))
+        self._steps, self._since = [], None
+        if 1.0 / RATE_OFF <= measured / rate <= RATE_OFF:
+            return None
+        self._warned = rate
+        return (
+            f"stream {stream}: its frames come at {measured:.4g} Hz (the steps of their t) where "
+            f"the stream runs at {rate:.4g} Hz (streams[].rate, else its model's rate): the boot "
+            f"and its point tracks are sized for {rate:.4g} Hz; set rate = {measured:.4g} in "
+            "this stream's [[streams]] table"
         )

@@ -171,7 +171,7 @@ async def open_sender(
 
     async with MqttEndpoint(mqtt_settings_for(ep, mqtt), stream) as client:
         if not await client.wait_connected(connect_timeout):
-            raise ConfigError(f"cannot connect to the MQTT broker at {ep.host}:{ep.port}")
+            raise ConfigError(f"replay: {client.trouble() or 'not connected'}")
 
         async def send_mqtt(payload: bytes) -> bool:
             return await client.publish("unlabeled", payload)

@@ -155,6 +155,7 @@ class Subscriber:
         self.silence_s = silence_s
         self._last_frame = time.monotonic()  # last labeled frame (or the start)
         self._heard = False  # any message from the service so far
+        self._any_frame = False  # any labeled frame so far
         self.silent = False  # a silence warning is out and no frame came since
         self.warnings: list[str] = []  # every liveness line, oldest first (bounded)
 
@@ -211,9 +212,12 @@ class Subscriber:
                 continue
             self.silent = True
             udp = self._udp
+            trouble = self._transport.trouble() if self._transport is not None else None
             if udp is not None and udp.refused > refused:
                 refused = udp.refused
                 why = "nothing listens there (connection refused): is the service running?"
+            elif trouble is not None:  # MQTT: the broker, not the service, is out of reach
+                why = trouble
             elif not self._heard:
                 why = "no answer from the service yet: is it running, is the address right?"
             elif (
@@ -225,7 +229,8 @@ class Subscriber:
                 why = (
                     f"the service answers but has announced no stream {self.stream!r} (no "
                     "status, no model): is the stream name right? (an unlisted stream appears "
-                    "with its first frames)"
+                    "with its first labeled frames; unlabeled ones need a model for it in the "
+                    "service's settings: its log says so)"
                 )
             elif self.stats.frames == 0 and self.stats.undecodable == 0:
                 why = "the service answers; the stream has not sent labeled frames yet"
@@ -266,8 +271,11 @@ class Subscriber:
             now = time.monotonic()
             if self.silent:
                 self.silent = False
-                self._warn("subscribe %s: labeled frames again (stream %s) after %.1f s",
-                           self._what(), msg.stream, now - self._last_frame)  # fmt: skip
+                # the first frame after a silence since the start is no resumption
+                what = "labeled frames again" if self._any_frame else "first labeled frames"
+                self._warn("subscribe %s: %s (stream %s) after %.1f s", self._what(), what,
+                           msg.stream, now - self._last_frame)  # fmt: skip
+            self._any_frame = True
             self._last_frame = now
             model = self.models.get(msg.stream)
             if model is None or model.model != msg.model or len(model.names) != len(msg.state):

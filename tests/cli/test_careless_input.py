@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from labeling.scene import articulated
 
@@ -224,3 +225,20 @@ def test_a_model_write_cut_short_leaves_the_old_model_whole(take, tmp_path):
     assert r.returncode != 0 and "cannot write model" in r.stderr, r.stderr
     assert out.read_bytes() == before  # untouched, and no temporary file left beside it
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "take.c3d"]
+
+
+def test_info_says_when_a_take_looks_y_up(rng, tmp_path, capsys):
+    """A Y-up take (BTS's) read Z up said nothing of it in ``info``: now a note gives the
+    detected axis and ``--up y``; read with ``--up y``, or Z up, it says nothing."""
+    truth, names = articulated(rng, subjects=1, frames=80)
+    zup = tmp_path / "zup.c3d"
+    write_capture(Capture(truth, names, 120.0, source="zup"), zup)
+    yup = tmp_path / "yup.c3d"
+    turned = np.stack([truth[..., 0], truth[..., 2], -truth[..., 1]], axis=-1)
+    write_capture(Capture(turned, names, 120.0, source="yup"), yup)
+    for argv, said in (([str(yup)], True), ([str(yup), "--up", "y"], False), ([str(zup)], False)):
+        assert main(["info", *argv]) == 0
+        out = capsys.readouterr().out
+        assert ("note: looks Y-up" in out) == said, (argv, out)
+        if said:
+            assert "--up y" in out

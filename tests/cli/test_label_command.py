@@ -120,7 +120,7 @@ def test_label_errors_are_clean(take, tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text("{}")
     assert main(["label", str(src), str(tmp_path / "o.npz"), "--model", str(bad)]) == 2
-    assert "model version" in capsys.readouterr().err
+    assert "not a subject model" in capsys.readouterr().err
 
 
 def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, capsys):

@@ -115,3 +115,104 @@ def test_a_stream_trained_from_init_frames_in_metres_is_named_in_the_log(scene, 
     pts = [frames[k][0] for k in range(20)]
     assert init_span_warning("v", pts, idx, list(scene.labels)) is None
     assert init_span_warning("v", [p * 1e-3 for p in pts], idx, list(scene.labels))
+
+
+def test_points_of_another_marker_set_are_named_in_the_log(model_path, caplog):
+    """A model stream fed another marker set's points (the model of 2 x 6 markers, frames of
+    3 x 7 other markers, in millimetres) read ``booting`` for good with no word of why. After
+    ``MATCH_S`` of stream with points and nothing labeled, the log compares the points per
+    frame with the model's markers and names the fix; the frames still flow."""
+    other = moving_clusters(np.random.default_rng(9), subjects=3, markers=7, frames=1300)
+    frames = frames_of(other, np.random.default_rng(1))
+    items = [encode_frame("vol", k, k / other.rate, frames[k][0]) for k in range(other.n_frames)]
+
+    async def go():
+        mem = MemoryTransport()
+        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
+                "boot_worker": "thread"}  # fmt: skip
+        async with Server(settings(**over), [mem]) as srv:
+            for p in items:
+                mem.inject(p)
+            return srv, await collect(srv, mem, "vol")
+
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
+        srv, msgs = run(go())
+    warned = [r.getMessage() for r in caplog.records if "nothing labeled for" in r.getMessage()]
+    assert len(msgs) == len(items) and srv.metrics.drops() == 0
+    assert len(warned) == 1, warned
+    assert "stream vol" in warned[0] and "21 points (median)" in warned[0]
+    assert "its model has 12 markers" in warned[0] and "train structure" in warned[0]
+    assert "metres" not in warned[0]
+
+
+def test_the_match_check_waits_for_points_and_gives_way_to_the_unit_warning(model_path):
+    model = load_model(model_path)
+    rng = np.random.default_rng(0)
+    person = rng.normal(scale=300.0, size=(12, 3)).astype(np.float32)  # mm, a person's size
+    chk = UnitCheck()
+    # empty frames (nobody in the volume) never count, however long
+    assert all(chk.update("v", person[:1], k / 100, 0, model) is None for k in range(2000))
+    # points with nothing labeled: said once MATCH_S of them went by, not before
+    got = [chk.update("v", person, 20 + k / 100, 0, model) for k in range(1001)]
+    assert all(g is None for g in got[:-1])
+    assert "12 points (median) where its model has 12 markers" in (got[-1] or "")
+    assert "the boot has not placed them" in (got[-1] or "")
+    # a label restarts it
+    assert chk.update("v", person, 31, 5, model) is None
+    assert all(chk.update("v", person, 31 + k / 100, 0, model) is None for k in range(1, 900))
+    # metres: the unit warning, and no second one about the markers
+    chk = UnitCheck()
+    got = [chk.update("v", person * 1e-3, k / 100, 0, model) for k in range(1200)]
+    said = [g for g in got if g is not None]
+    assert said and all("metres" in g for g in said)
+
+
+def _rate_warnings(scene, model_path, step: int, caplog) -> tuple[int, list[str]]:
+    frames = frames_of(scene, np.random.default_rng(1))
+    items = [
+        encode_frame("vol", k, f / scene.rate, frames[f][0])
+        for k, f in enumerate(range(TRAIN, scene.n_frames, step))
+    ]
+
+    async def go():
+        mem = MemoryTransport()
+        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
+                "boot_worker": "thread"}  # fmt: skip
+        async with Server(settings(**over), [mem]) as srv:
+            for p in items:
+                mem.inject(p)
+            return await collect(srv, mem, "vol")
+
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
+        msgs = run(go())
+    return len(msgs) - len(items), [
+        r.getMessage() for r in caplog.records if "its frames come at" in r.getMessage()
+    ]
+
+
+def test_frames_at_another_rate_than_the_model_name_the_setting(scene, model_path, caplog):
+    """A model trained at 120 Hz fed a stream at 30 Hz (every 4th frame): the stream ran at
+    the model's rate, its boot window and point tracks sized for 120 Hz, with no word. Now
+    the log says the rate the frames come at and the setting to change, once; frames flow."""
+    lost, warned = _rate_warnings(scene, model_path, 4, caplog)
+    assert lost == 0
+    assert len(warned) == 1, warned
+    assert "stream vol: its frames come at 30 Hz" in warned[0]
+    assert "runs at 120 Hz" in warned[0] and "set rate = 30" in warned[0]
+
+
+def test_frames_at_the_model_rate_give_no_rate_warning(scene, model_path, caplog):
+    lost, warned = _rate_warnings(scene, model_path, 1, caplog)
+    assert lost == 0 and not warned
+
+
+def test_the_rate_check_measures_again_after_a_time_jump():
+    from labeler_service.service.units import RateCheck
+
+    chk = RateCheck()
+    # 1.5 s at 100 Hz, then a jump back (a new run): nothing yet
+    assert all(chk.update("v", k / 100, 100.0) is None for k in range(150))
+    assert all(chk.update("v", k / 25, 100.0) is None for k in range(40))  # 1.6 s at 25 Hz
+    said = [chk.update("v", 1.6 + k / 25, 100.0) for k in range(1, 20)]
+    assert sum(s is not None for s in said) == 1
+    assert all(chk.update("v", 3 + k / 25, 100.0) is None for k in range(200))  # said once

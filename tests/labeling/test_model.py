@@ -61,10 +61,28 @@ def test_unreadable_files(tmp_path):
     with pytest.raises(ModelError, match="not JSON"):
         load_model(p)
     p.write_text("[1, 2]")
-    with pytest.raises(ModelError, match="JSON object"):
+    with pytest.raises(ModelError, match="not a JSON object"):
         load_model(p)
 
 
 def test_make_subject_names_the_subject():
     with pytest.raises(ModelError, match="subject 'bad'"):
         make_subject("bad", ["a", "a"], np.zeros((2, 2)), np.zeros((2, 2)), [], [], np.ones(2))
+
+
+def test_a_file_that_is_no_model_says_what_a_model_is(tmp_path):
+    """``--model take.c3d`` said "not UTF-8 text (byte 14)", a JSON of something else
+    "unsupported model version None": neither named the mistake nor the fix."""
+    take = tmp_path / "take.c3d"
+    take.write_bytes(b"\x02\x50" + bytes(range(256)))
+    with pytest.raises(ModelError) as err:
+        load_model(take)
+    assert "a capture, not a subject model" in str(err.value)
+    assert "mocap-labeler train structure take.c3d --out MODEL.json" in str(err.value)
+    other = tmp_path / "settings.json"
+    for text in ('{"udp": {"port": 9870}}', "[1, 2]", "{not json"):
+        other.write_text(text)
+        with pytest.raises(ModelError) as err:
+            load_model(other)
+        assert "not a subject model; a subject model is the JSON file" in str(err.value)
+        assert "train structure TAKE... --out MODEL.json" in str(err.value)

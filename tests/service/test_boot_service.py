@@ -299,6 +299,8 @@ def test_labels_naming_no_marker_of_the_model_are_logged_and_ignored(model_path,
     assert len(warned) == 1, warned
     assert "'Other:" in warned[0] and "P1, P2, P3, P4" in warned[0], warned[0]
     assert "labeled as an unlabeled one" in warned[0]
+    # and the fix: labels named as the stream's markers, or a model of these performers
+    assert "send labels named as the stream's markers are (e.g. 'P1:" in warned[0], warned[0]
     assert metrics.drops() == 0, metrics.snapshot()["drops"]
     # the very first frame started the boot (no start from empty labeled frames)
     assert "frames without labels and boot = false" in caplog.text

@@ -210,3 +210,30 @@ def test_a_lost_helper_leaves_the_worker_alone_with_the_same_result(walk):
         assert w.pid == pid and w.started == 1
     finally:
         w.close()
+
+
+def _blocked(pid: int) -> int:
+    """The process's blocked-signal mask (Linux ``/proc``)."""
+    with open(f"/proc/{pid}/status", encoding="ascii") as f:
+        for line in f:
+            if line.startswith("SigBlk:"):
+                return int(line.split()[1], 16)
+    raise AssertionError("no SigBlk line")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs Linux /proc")
+def test_the_service_children_ignore_the_terminals_ctrl_c(worker):
+    """Ctrl-C goes to the whole foreground process group: the boot worker and a window
+    model's process, still importing, printed a KeyboardInterrupt traceback (or died
+    mid-attempt) while the service itself shut down cleanly. They start with SIGINT blocked
+    (the service ends them itself); the caller's own mask is left as it was."""
+    import signal
+
+    from labeler_service.service.background import run_in_process
+
+    bit = 1 << (signal.SIGINT - 1)
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    assert worker._proc is not None and _blocked(worker._proc.pid) & bit
+    assert signal.SIGINT in run_in_process(signal.pthread_sigmask, signal.SIG_BLOCK, [])
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before
+    assert signal.SIGINT not in before

@@ -96,7 +96,7 @@ def test_a_service_setting_written_under_streams_says_where_it_belongs(tmp_path)
     with pytest.raises(ConfigError) as err:
         load_settings(cfg)
     text = str(err.value)
-    assert "streams.0.boot: Extra inputs are not permitted (boot is a setting of the whole " in text
+    assert "streams.0.boot: not a setting (boot is a setting of the whole " in text
     assert "above the first [[streams]]" in text
     # a key that is no setting at all gets no such hint
     line = next(x for x in text.splitlines() if "not_a_key" in x)
@@ -143,3 +143,35 @@ def test_our_validators_messages_come_without_pydantics_prefix():
         load_settings(labeler="baseline", streams=[{"name": "v", "labeled_start": "model"}])
     assert "  (settings): streams v: labeled_start = 'model' runs" in str(err.value)
     assert "Value error" not in str(err.value)
+
+
+def test_a_misspelt_key_names_the_key_it_is_close_to(tmp_path):
+    """A typo in a file's key, at the top or in a table, says which key was meant ('Extra
+    inputs are not permitted' named no fix)."""
+    path = tmp_path / "s.toml"
+    path.write_text(
+        "queue_sise = 8\n[udp]\nprot = 9870\n[boot_config]\nwindow_ss = 1\n"
+        '[[streams]]\nname = "v"\nmodle = "m.json"\n'
+    )
+    with pytest.raises(ConfigError) as err:
+        load_settings(path)
+    text = str(err.value)
+    assert "  queue_sise: not a setting (did you mean queue_size?)" in text
+    assert "  udp.prot: not a setting (did you mean port?)" in text
+    assert "  boot_config.window_ss: not a setting (did you mean window_s?)" in text
+    assert "  streams.0.modle: not a setting (did you mean model?)" in text
+    assert "Extra inputs" not in text
+
+
+def test_a_misspelt_or_flat_variable_says_what_was_meant(monkeypatch):
+    """``MOCAP_QUEUE_SISE`` names ``MOCAP_QUEUE_SIZE``; ``MOCAP_UDP_PORT`` (one underscore)
+    and ``MOCAP_BOOT_CONFIG_WINDOW_S`` show the ``__`` spelling of the nested key."""
+    monkeypatch.setenv("MOCAP_QUEUE_SISE", "8")
+    monkeypatch.setenv("MOCAP_UDP_PORT", "9871")
+    monkeypatch.setenv("MOCAP_BOOT_CONFIG_WINDOW_S", "1")
+    with pytest.raises(ConfigError) as err:
+        load_settings()
+    text = str(err.value)
+    assert "MOCAP_QUEUE_SISE (did you mean MOCAP_QUEUE_SIZE?)" in text
+    assert "MOCAP_UDP_PORT (nested keys are joined with '__': MOCAP_UDP__PORT)" in text
+    assert "(nested keys are joined with '__': MOCAP_BOOT_CONFIG__WINDOW_S)" in text

@@ -350,3 +350,40 @@ def test_replay_command_stream_option_sets_the_topic_too(broker, rng, tmp_path):
 
     metrics = run(go())
     assert metrics.drops() == 0
+
+
+def test_a_broker_out_of_reach_is_named_in_the_log_metrics_and_tools(broker, caplog):
+    """The service started while no broker listened said ``ready: mqtt`` and went quiet
+    after three ``[Errno 111] Connection refused`` lines naming only its client id; a
+    subscriber blamed the service ("no answer from the service yet"). Now the log says which
+    broker is out of reach and what to check (at ready and with every periodic line),
+    ``mocap_transport_up{transport="mqtt"}`` is 0 until it connects, the subscriber and
+    ``replay`` name the broker, and the service says when frames flow again."""
+    import logging
+
+    from labeler_service.errors import ConfigError
+
+    broker.stop()
+    where = f"MQTT broker at {broker.host}:{broker.port}"
+    caplog.set_level(logging.INFO, logger="labeler_service.service.server")
+
+    async def go():
+        async with Server(_settings(broker, warmup=False, log_interval_s=0.5)) as srv:
+            up = srv.metrics.value("mocap_transport_up", transport="mqtt")
+            with pytest.raises(ConfigError, match=where):
+                async with open_sender(f"{broker.url}/vol", connect_timeout=0.5):
+                    pass
+            async with Subscriber(f"{broker.url}/vol", silence_s=0.3) as sub:
+                await until(lambda: sub.warnings, "a silence warning")
+                said = sub.warnings[0]
+            broker.start()
+            await until(lambda: srv.metrics.value("mocap_transport_up", transport="mqtt") == 1,
+                        "the connection up", timeout=60.0)  # fmt: skip
+            return up, said
+
+    up, said = run(go(), timeout=120.0)
+    assert up == 0
+    assert where in said and "is a broker (mosquitto) running there" in said, said
+    down = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(m.startswith("mqtt: not connected to the " + where) for m in down), down
+    assert "mqtt: carries frames again" in caplog.text

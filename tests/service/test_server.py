@@ -479,3 +479,36 @@ def test_a_thin_labeled_start_is_logged_with_what_it_costs(rng, init, caplog):
     from labeler_service.labeling.config import LabelerConfig
 
     assert thin == (init < LabelerConfig().restructure_max_train_frames), caplog.text
+
+
+def test_unlabeled_frames_with_nothing_to_start_from_name_the_two_fixes(caplog):
+    """Unlabeled frames of an unlisted stream (``replay --init-frames 0`` to a service without
+    that stream's model) went as ``unknown_stream`` in the periodic line's count only, and
+    the subscriber blamed the stream name. Now the log names the stream and both fixes (a
+    model for it, or labeled init frames first); a listed stream without a model (``no_model``)
+    says the same."""
+    import logging
+    import socket
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.server")
+    pts = np.zeros((4, 3), np.float32)
+
+    async def go():
+        s = _settings(warmup=False, streams=[{"name": "listed"}], udp={"port": 0})
+        async with Server(s) as srv:
+            host, port = srv.transports[0].address
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+                for k in range(3):
+                    sock.sendto(encode_frame("nomodel", k, k / 100, pts), (host, port))
+                    sock.sendto(encode_frame("listed", k, k / 100, pts), (host, port))
+            await until(lambda: srv.metrics.drops("unknown_stream") >= 3
+                        and srv.metrics.drops("no_model") >= 3, "the drops")  # fmt: skip
+
+    run(go())
+    said = [r.getMessage() for r in caplog.records]
+    for name in ("nomodel", "listed"):
+        line = [m for m in said if f"stream {name}: unlabeled frames" in m]
+        assert len(line) == 1, said
+        assert f'name = "{name}", model = "MODEL.json"' in line[0]
+        assert "replay --init-frames 50" in line[0]
+    assert any(m.startswith("udp: frames dropped unread (unknown_stream)") for m in said)

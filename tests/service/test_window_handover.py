@@ -10,6 +10,7 @@ asserted: events (a job's end, a frame handled) decide when a test goes on.
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 
 import pytest
@@ -391,3 +392,55 @@ def test_the_window_model_process_holds_no_background_slot(frames, monkeypatch):
     st, other = run(go(), timeout=300.0)
     assert other == "other"
     assert isinstance(st.labeler, BootingLabeler) and st.handovers_abandoned == 0
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="needs Linux /proc")
+def test_a_child_killed_before_it_read_its_job_fails_the_call_instead_of_hanging_it():
+    """The job (a window of ~250 kB) went as the child Process's args, which multiprocessing
+    writes into the child's bootstrap pipe while holding that pipe's read end itself: a child
+    killed before it read them all (Ctrl-C reaching it mid-import) left the calling thread
+    blocked in ``start()`` for good, and the service's exit waited on it after "stopped".
+    Now the job goes over a pipe whose other end only the child holds: the call fails."""
+    import os
+    import signal
+    import time
+
+    from labeler_service.service.background import run_in_process
+
+    big = b"x" * (8 << 20)  # far more than a pipe holds
+    box: list[BaseException | object] = []
+
+    def call():
+        try:
+            box.append(run_in_process(len, big, name="big"))
+        except BaseException as exc:  # noqa: BLE001 (handed to the test thread)
+            box.append(exc)
+
+    def spawned() -> set[int]:
+        """Our spawn children, from /proc (multiprocessing lists one only once started)."""
+        out = set()
+        for d in os.listdir("/proc"):
+            try:
+                with open(f"/proc/{d}/stat", encoding="ascii") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+                with open(f"/proc/{d}/cmdline", "rb") as f:
+                    cmd = f.read()
+            except (OSError, ValueError, IndexError):
+                continue
+            if ppid == os.getpid() and b"spawn_main" in cmd:
+                out.add(int(d))
+        return out
+
+    before = spawned()
+    t = threading.Thread(target=call, daemon=True)
+    t.start()
+    deadline = time.monotonic() + 60
+    kids: set[int] = set()
+    while not kids and time.monotonic() < deadline:
+        kids = spawned() - before
+        time.sleep(0.001)
+    assert kids, "no child started"
+    os.kill(kids.pop(), signal.SIGKILL)
+    t.join(timeout=60)
+    assert not t.is_alive(), "run_in_process hung on a child that died before its job"
+    assert isinstance(box[0], LabelerError), box

@@ -163,7 +163,7 @@ def test_a_stream_setting_written_at_the_top_of_the_file_says_where_it_belongs(t
     permitted'."""
     path = tmp_path / "s.toml"
     path.write_text('labeled_start = "model"\n[[streams]]\nname = "vol"\n')
-    with pytest.raises(ConfigError, match=r"labeled_start: Extra inputs.*setting of one stream"):
+    with pytest.raises(ConfigError, match=r"labeled_start: not a setting.*setting of one stream"):
         load_settings(path)
 
 

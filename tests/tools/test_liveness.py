@@ -144,3 +144,26 @@ def test_subscribe_says_what_training_failed_means():
         in (sub.warnings[-1])
     )
     assert "the service log says why" in sub.warnings[-1]
+
+
+def test_the_first_frames_after_a_silence_at_the_start_are_not_called_a_resumption(rng):
+    """A subscriber started before the stream warned of the silence, then said "labeled
+    frames again" at the first frame it ever got; it says "first labeled frames" now."""
+    cap = moving_clusters(rng, frames=60, rate=120.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
+
+    async def go():
+        async with Server(_settings()) as srv:
+            host, port = srv.transports[0].address
+            url = f"udp://{host}:{port}/v"
+            async with Subscriber(url, silence_s=0.3) as sub:
+                await until(lambda: sub.silent, "the silence warning", timeout=5)
+                async with open_sender(url) as (send, stream):
+                    await replay(frames, send, stream=stream, init_frames=10, speed=2.0)
+                await until(lambda: not sub.silent, "the first frames", timeout=5)
+                return list(sub.warnings)
+
+    warnings = run(go())
+    first = [w for w in warnings if "labeled frames" in w and " after " in w]
+    assert first and "first labeled frames (stream v)" in first[0], warnings
+    assert not any("frames again" in w for w in warnings), warnings

@@ -77,6 +77,12 @@ class Transport(Protocol):
     @property
     def address(self) -> tuple[str, int]: ...
 
+    def trouble(self) -> str | None:
+        """What keeps the transport from carrying frames now, with the fix to look for (the
+        broker unreachable); None when it works. Logged with the periodic line and counted in
+        ``mocap_transport_up``."""
+        ...
+
     @property
     def receive_buffer_bytes(self) -> int | None:
         """The kernel receive buffer the transport's socket got; None when it has none of its

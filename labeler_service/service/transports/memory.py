@@ -36,6 +36,7 @@ class MemoryTransport:
         self.entered = False
         self.closed = False
         self.fail_sends = False  # tests: simulate a broken link
+        self.down: str | None = None  # tests: what :meth:`trouble` says (a link that is down)
         self.subscribers: dict[object, str] = {}
 
     async def __aenter__(self) -> MemoryTransport:
@@ -62,6 +63,10 @@ class MemoryTransport:
         if reply_to is None:
             raise ProtocolError("memory: subscribe needs a reply address", "type")
         self.subscribers[reply_to] = stream
+
+    def trouble(self) -> str | None:
+        """``down`` when set (a test's broken transport), else None."""
+        return self.down
 
     def drop_counts(self) -> dict[tuple[str, str], int]:
         """Injected messages the full inbox discarded (``rx_overflow``), as UDP and MQTT do."""

@@ -97,6 +97,25 @@ class ReconnectingClient:
         self.connected = asyncio.Event()
         self.connects = 0
         self.failures = 0
+        self.last_error = ""  # the last connection failure, for :meth:`trouble`
+        self._down_since = time.monotonic()  # not connected since (start, or the last drop)
+
+    @property
+    def broker(self) -> str:
+        return f"{self.settings.host}:{self.settings.port}"
+
+    def trouble(self) -> str | None:
+        """What keeps this connection down, with the fix to look for; None while connected.
+        One sentence for the service's log and the tools' errors and warnings alike."""
+        if self.connected.is_set():
+            return None
+        down = time.monotonic() - self._down_since
+        tries = f"{self.failures} attempt{'s' if self.failures != 1 else ''}"
+        last = f"; last: {self.last_error}" if self.last_error else ""
+        return (
+            f"not connected to the MQTT broker at {self.broker} for {down:.1f} s ({tries}{last}): "
+            "is a broker (mosquitto) running there, and are its host and port right?"
+        )
 
     def _make(self) -> aiomqtt.Client:
         s = self.settings
@@ -153,10 +172,14 @@ class ReconnectingClient:
                     # CancelledError into an MqttError; never reconnect after a cancel
                     raise asyncio.CancelledError from exc
                 self.failures += 1
+                self.last_error = str(exc)
                 level = logging.WARNING if self.failures <= 3 or self.connects else logging.DEBUG
-                log.log(level, "mqtt %s: %s; retrying in %.1f s", self.identifier, exc, backoff)
+                log.log(level, "mqtt %s: broker %s: %s; retrying in %.1f s", self.identifier,
+                        self.broker, exc, backoff)  # fmt: skip
             finally:
                 self.client = None
+                if self.connected.is_set():
+                    self._down_since = time.monotonic()
                 self.connected.clear()
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, self.settings.reconnect_max_s)
@@ -303,6 +326,15 @@ class MqttTransport:
             return False
         return True
 
+    def trouble(self) -> str | None:
+        """The first stream connection's :meth:`ReconnectingClient.trouble` (how many of the
+        streams' connections are down when more than one is); None while all are up."""
+        down = [t for c in self.clients.values() if (t := c.trouble()) is not None]
+        if not down:
+            return None
+        n = len(self.clients)
+        return down[0] + (f" ({len(down)} of {n} stream connections down)" if n > 1 else "")
+
     async def __aenter__(self) -> MqttTransport:
         for s, c in self.clients.items():
             self._tasks.append(asyncio.create_task(c.run(), name=f"mqtt-{s}"))
@@ -390,6 +422,10 @@ class MqttEndpoint:
         if self._task is not None:
             await cancel_and_wait([self._task])
             self._task = None
+
+    def trouble(self) -> str | None:
+        """:meth:`ReconnectingClient.trouble` of the one connection."""
+        return self.client.trouble()
 
     async def wait_connected(self, timeout: float) -> bool:
         try:

@@ -250,6 +250,10 @@ class UdpTransport:
             raise RuntimeError("UdpTransport is not open")
         return self._sock.sock.getsockname()[:2]
 
+    def trouble(self) -> str | None:
+        """None: a bound socket has no connection to lose (refused sends are ``send_error``)."""
+        return None
+
     def drop_counts(self) -> dict[tuple[str, str], int]:
         """Cumulative drops inside the transport by ``(stream, reason)``: ``rx_overflow`` (the
         receive queue was full, the oldest datagram went) and ``send_error`` (datagrams the
@@ -419,6 +423,10 @@ class UdpClient:
         """ICMP "connection refused" reports so far: nothing listens at ``remote`` (each is
         a datagram that went nowhere; a lower bound, the kernel keeps one pending)."""
         return self._sock.refused if self._sock is not None else 0
+
+    def trouble(self) -> None:
+        """None: UDP has no connection to lose (nothing listening shows in :attr:`refused`)."""
+        return None
 
     async def __aenter__(self) -> UdpClient:
         sock = _Socket(self._queue, self.name, self._buffer)
