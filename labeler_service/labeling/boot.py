@@ -83,6 +83,7 @@ from labeler_service.labeling.boot_match import (
     _score,
     _Template,
     _tied,
+    _window_exchange,
     memo,
     warmup_kernels,
 )
@@ -341,6 +342,13 @@ class Booter:
         hist = np.asarray(history, dtype=np.float64)
         out = np.asarray(labels, dtype=np.int64).copy()
         w = hist.shape[1]
+        taken0 = np.zeros(pts.shape[0], dtype=bool)
+        for s in subjects:  # markers of one subject on each other's points (_window_exchange)
+            tpl = self._templates[s]
+            assign, _ = _subject_assign(tpl, out)
+            swapped = _window_exchange(tpl, assign, hist)
+            if swapped is not assign:
+                _take(tpl, assign, swapped, out, taken0)
         tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)
         usable = tracked >= max(1, int(np.ceil(self.config.min_track_fraction * w)))
         taken = (out >= 0) | ~usable
