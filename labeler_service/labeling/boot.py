@@ -84,6 +84,7 @@ from labeler_service.labeling.boot_match import (
     _score,
     _Template,
     _tied,
+    _window_exchange,
     memo,
     warmup_kernels,
 )
@@ -343,6 +344,7 @@ class Booter:
         labels: np.ndarray,
         subjects: list[int],
         age: np.ndarray | None = None,
+        checked: list[int] | tuple[int, ...] = (),
     ) -> np.ndarray:
         """Labels free points of subjects already labeled (:func:`_complete`): ``labels (N,)``
         global marker indices (-1 free) of ``points``, ``history (N, W, 3)`` their tracks; the
@@ -353,7 +355,9 @@ class Booter:
         take free tracks at least ``fill_min_age_s`` old, judged jointly (:func:`_fill`).
         Labels already given are never changed, except that with ``age`` the completion and
         the fill may move a subject's weakly placed markers (:func:`_weak_markers`,
-        :func:`_complete_weak`). Returns the new labels (a copy).
+        :func:`_complete_weak`), and that the readings of the subjects ``checked`` (booted from
+        the stream's points, not labeled by it) first have pairs of markers on each other's
+        points exchanged back (:func:`_window_exchange`). Returns the new labels (a copy).
 
         A subject whose template has untrained markers (no distance to any other: unseen in
         the training frames) cannot tell a free point near it from one of those: it gets only
@@ -367,6 +371,15 @@ class Booter:
         hist = np.asarray(history, dtype=np.float64)
         out = np.asarray(labels, dtype=np.int64).copy()
         w = hist.shape[1]
+        taken0 = np.zeros(pts.shape[0], dtype=bool)
+        for s in subjects:  # markers of one subject on each other's points (_window_exchange)
+            if s not in checked:
+                continue
+            tpl = self._templates[s]
+            assign, _ = _subject_assign(tpl, out)
+            swapped = _window_exchange(tpl, assign, hist)
+            if swapped is not assign:
+                _take(tpl, assign, swapped, out, taken0)
         tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)
         usable = tracked >= max(1, int(np.ceil(self.config.min_track_fraction * w)))
         taken = (out >= 0) | ~usable

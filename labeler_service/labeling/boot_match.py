@@ -35,6 +35,13 @@ STRICT_SIGMAS = 4.0
 #: A reading exchange (:func:`_exchange`, :func:`_swap_mirrors`) must lower the negative
 #: log-likelihood by more than this (nats): ties and noise keep the reading the candidates gave.
 EXCHANGE_MARGIN = 1.0
+#: A placed pair exchanged along the window (:func:`_window_exchange`) must fit better in this
+#: share of the frames that track both points, ...
+WINDOW_EXCHANGE_SHARE = 0.8
+#: ... by this many nats in the median (a true exchange on the real takes: thousands), ...
+WINDOW_EXCHANGE_NATS = 10.0
+#: ... at most this many exchanges per subject and extension.
+WINDOW_EXCHANGE_ROUNDS = 3
 #: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
 #: steadiest pair deviation to any other body.
 NEIGHBOUR = 1.5
@@ -2389,3 +2396,98 @@ def _fill_checks(
             if np.any((np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)):
                 return False
     return True
+
+
+
+def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np.ndarray:
+    """Subject ``tpl``'s reading ``assign`` with pairs of its placed markers exchanged where
+    their *tracks* fit the template better the other way round along the window (``hist (N,
+    W, 3)``, the tracks of the current points): a booted subject read with two markers on each
+    other's points (a wrist bar's ulna marker on the hand's point and the hand's on the ulna's,
+    a pelvis read left for right) keeps that reading for the rest of the take, since the
+    labeler then tracks both points well. A placed marker is *doubtful* when two or more of its
+    pairs of one trained body (``strict``) are off their tolerance in the last frame, more
+    than are within it; a doubtful marker ``i`` and another placed marker ``q`` exchange when
+    the exchange lowers the subject's :func:`_nll` over all its pairs with the two markers
+    (the pair between them keeps its distance) by more than ``EXCHANGE_MARGIN`` in
+    ``WINDOW_EXCHANGE_SHARE`` of the window frames that track both points (at least half the
+    window), by ``WINDOW_EXCHANGE_NATS`` in the median, and reverses no thick chirality
+    quadruple. Returns ``assign`` itself when nothing changes, else a new reading."""
+    out = assign
+    for _ in range(WINDOW_EXCHANGE_ROUNDS):
+        have = np.flatnonzero(out >= 0)
+        k = have.size
+        if k < 3:
+            return out
+        H = np.transpose(hist[out[have]], (1, 0, 2))  # (W, k, 3)
+        w = H.shape[0]
+        last = H[-1]
+        d = np.linalg.norm(last[:, None] - last[None, :], axis=2)
+        hh = np.ix_(have, have)
+        strict = tpl.strict[hh]
+        with np.errstate(invalid="ignore"):
+            off = np.abs(d - tpl.D[hh]) > tpl.tol[hh]
+        bad = (strict & off).sum(axis=1)
+        good = (strict & ~off & np.isfinite(d)).sum(axis=1)
+        doubt = np.flatnonzero((bad >= 2) & (bad > good) & np.isfinite(last[:, 0]))
+        if doubt.size == 0:
+            return out
+        dd = np.linalg.norm(H[:, :, None] - H[:, None, :], axis=3)  # (W, q, j)
+        N = _nll(tpl, have[:, None], have[None, :], dd)  # every marker on its point, vs j
+        seen = np.isfinite(H[:, :, 0])  # (W, k)
+        best = (0.0, -1, -1)
+        for i in doubt:
+            X = _nll(tpl, have[i], have[None, :], dd)  # i on point q, vs j
+            Y = _nll(tpl, have[:, None], have[None, :], dd[:, i][:, None, :])  # q on i's point
+            keep = np.ones((k, k), dtype=bool)
+            keep[:, i] = False
+            keep[np.arange(k), np.arange(k)] = False
+            delta = ((X + Y - N[:, i][:, None, :] - N) * keep).sum(axis=2)  # (W, q)
+            both = seen & seen[:, i][:, None]
+            n = both.sum(axis=0)
+            with np.errstate(invalid="ignore"):
+                share = (both & (delta < -EXCHANGE_MARGIN)).sum(axis=0) / np.maximum(n, 1)
+                med = np.nanmedian(np.where(both, delta, np.nan), axis=0)
+            ok = (n >= max(2, w // 2)) & (share >= WINDOW_EXCHANGE_SHARE)
+            ok &= med < -WINDOW_EXCHANGE_NATS
+            ok[i] = False
+            if not ok.any():
+                continue
+            q = int(np.flatnonzero(ok)[np.argmin(med[ok])])
+            if med[q] < best[0]:
+                best = (float(med[q]), int(have[i]), int(have[q]))
+        if best[1] < 0:
+            return out
+        _, a, b = best
+        new = out.copy()
+        new[a], new[b] = out[b], out[a]
+        if _changed_reversed(tpl, out, new, hist[:, -1]) or _still_doubtful(tpl, new, hist, a, b):
+            return out
+        out = new
+    return out
+
+
+def _strict_fit(tpl: _Template, assign: np.ndarray, pts: np.ndarray, m: int) -> tuple[int, int]:
+    """Marker ``m``'s pairs of one trained body (``strict``) to the other placed markers of
+    ``assign`` off their tolerance and within it, on points ``pts``."""
+    o = np.flatnonzero((assign >= 0) & tpl.strict[m])
+    o = o[o != m]
+    if assign[m] < 0 or o.size == 0:
+        return 0, 0
+    d = np.linalg.norm(pts[assign[o]] - pts[assign[m]], axis=1)
+    fin = np.isfinite(d)
+    off = np.abs(d[fin] - tpl.D[m, o][fin]) > tpl.tol[m, o][fin]
+    return int(off.sum()), int((~off).sum())
+
+
+def _still_doubtful(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b: int) -> bool:
+    """After exchanging ``a`` and ``b`` (reading ``new``), is either still doubtful in the last
+    frame (two or more of its strict pairs off, more than within)? An exchange that only makes a
+    reading less wrong (a model whose arm pairs the stream contradicts either way) is no
+    evidence for it."""
+    pts = hist[:, -1]
+    for m in (a, b):
+        bad, good = _strict_fit(tpl, new, pts, m)
+        if bad >= 2 and bad > good:
+            return True
+    return False

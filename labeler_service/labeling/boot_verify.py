@@ -501,18 +501,20 @@ def extend_blocked(
     subjects: list[int],
     blocked: dict[int, np.ndarray] | None,
     age: np.ndarray | None = None,
+    checked: list[int] | tuple[int, ...] = (),
 ) -> np.ndarray:
     """:meth:`Booter.extend` where each subject of ``blocked`` (subject -> ``(N,)`` bool) may not
-    take the points marked for it (their tracks are hidden from that subject's call)."""
+    take the points marked for it (their tracks are hidden from that subject's call);
+    ``checked``: the subjects whose readings it re-checks (:meth:`Booter.extend`)."""
     blocked = {s: b for s, b in (blocked or {}).items() if s in subjects and b.any()}
     plain = [s for s in subjects if s not in blocked]
     out = np.asarray(labels, dtype=np.int64)
     if plain:
-        out = booter.extend(points, history, out, plain, age)
+        out = booter.extend(points, history, out, plain, age, checked)
     for s, mask in blocked.items():
         hist = np.array(history, dtype=np.float64, copy=True)
         hist[mask] = np.nan
         # (no joint fill: the verifier has just withdrawn labels of this subject; filling its
         # leftover markers would place them again on other points)
-        out = booter.extend(points, hist, out, [s])
+        out = booter.extend(points, hist, out, [s], checked=checked)
     return out

@@ -215,6 +215,8 @@ class BootSnapshot:
     blocked: dict[int, np.ndarray] | None = None
     #: (N,) seconds each point's track has lived (the extension's joint fill reads it)
     age: np.ndarray | None = None
+    #: the active subjects whose readings the extension re-checks (:meth:`Booter.extend`)
+    checked: list[int] = field(default_factory=list)
 
     def remote(self) -> BootSnapshot:
         """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
@@ -645,6 +647,7 @@ class BootingLabeler:
             sorted(self._active),
             self._block_masks(last.ids, last.t),
             self._tracker.ages(),
+            self._checked(),
         )
         added = (new >= 0) & (new != last.labels)
         if not added.any():
@@ -656,6 +659,13 @@ class BootingLabeler:
         self._spread(last.ids, extra)
         self._install([])
         return True
+
+    def _checked(self) -> list[int]:
+        """The active subjects whose readings the extension re-checks (markers on each other's
+        points: :func:`~.boot_match._window_exchange`): those booted from the stream's points,
+        which the re-verification verifies; a subject the stream's labels placed keeps them."""
+        v = self._verifier
+        return [] if v is None else [s for s in sorted(self._active) if v.verifies(s)]
 
     def _unlabel(self, markers: np.ndarray) -> None:
         """Markers withdrawn (re-verification) or moved to other points by an extension: their
@@ -763,6 +773,7 @@ class BootingLabeler:
             snap.active = sorted(self._active)
             snap.blocked = self._block_masks(last.ids, last.t)
             snap.age = self._tracker.ages()
+            snap.checked = self._checked()
         return snap
 
     def boot_step(self, snapshot: BootSnapshot, runner: StepRunner | None = None) -> BootResult:
@@ -1217,6 +1228,7 @@ def boot_step_on(
             snapshot.active,
             snapshot.blocked,
             snapshot.age,
+            snapshot.checked,
         )
     if not snapshot.subjects:  # an extension only
         empty = BootResult(np.full(snapshot.points.shape[0], -1, dtype=np.int64), [], {})

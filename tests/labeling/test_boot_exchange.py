@@ -1,0 +1,77 @@
+"""Markers of one booted subject on each other's points (boot_match._window_exchange): the
+kneeling performer booted with its ulna and hand markers exchanged kept them so for 817
+frames, since the labeler then tracks both points well. The extension exchanges them back
+when the tracks say so along the window."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.walks import split_walk, subject_on_its_points
+
+from labeler_service.labeling.boot_match import _window_exchange
+
+RATE = 120.0
+
+
+@pytest.fixture(scope="module")
+def walk():
+    return split_walk(3, 6.0, seed=11, rate=RATE)
+
+
+def _swapped(walk, a: str, b: str):
+    tpl, names, pts, hist = subject_on_its_points(walk)
+    ix = {n: i for i, n in enumerate(names)}
+    assign = np.arange(tpl.n)
+    assign[ix[a]], assign[ix[b]] = ix[b], ix[a]
+    return tpl, ix, assign, hist
+
+
+@pytest.mark.parametrize("pair", [("LWRB", "LFIN"), ("LELB", "LFRM"), ("LASI", "RASI"), ("C7", "T10")])
+def test_two_markers_on_each_others_points_are_exchanged_back(walk, pair):
+    tpl, ix, assign, hist = _swapped(walk, *pair)
+    out = _window_exchange(tpl, assign, hist)
+    assert np.array_equal(out, np.arange(tpl.n))
+
+
+def test_a_right_reading_is_left_as_it_is(walk):
+    tpl, names, pts, hist = subject_on_its_points(walk)
+    assign = np.arange(tpl.n)
+    assert _window_exchange(tpl, assign, hist) is assign
+
+
+def test_evidence_of_fewer_than_half_the_window_is_not_acted_on(walk):
+    """The two points tracked only in the last frames: no exchange on so short a look."""
+    tpl, ix, assign, hist = _swapped(walk, "LWRB", "LFIN")
+    short = hist.copy()
+    w = short.shape[1]
+    short[[ix["LWRB"], ix["LFIN"]], : w - w // 2 + 1] = np.nan
+    assert _window_exchange(tpl, assign, short) is assign
+    assert np.array_equal(_window_exchange(tpl, assign, hist), np.arange(tpl.n))
+
+
+def test_an_exchange_that_leaves_a_marker_off_its_body_is_refused(walk):
+    """A reading the model contradicts either way (one of the two points is 80 mm off where
+    the marker should be: a pose or a body the training never saw) gains by the exchange but
+    stays wrong: no evidence that the exchange is the answer."""
+    tpl, ix, assign, hist = _swapped(walk, "LWRB", "LFIN")
+    moved = hist.copy()
+    moved[ix["LWRB"]] += np.array([80.0, 0.0, 0.0])  # the point LFIN holds, LWRB's if exchanged
+    assert _window_exchange(tpl, assign, moved) is assign
+
+
+def test_the_extension_rechecks_only_the_subjects_it_is_told_to(walk):
+    """A subject the stream's labels placed (a labeled start) keeps its labels; a booted one
+    (``checked``) has the pair exchanged back."""
+    from labeler_service.labeling.boot import BootConfig, Booter
+
+    model, _ = walk
+    tpl, ix, assign, hist = _swapped(walk, "LWRB", "LFIN")
+    booter = Booter(model, BootConfig())
+    labels = np.full(tpl.n, -1, dtype=np.int64)
+    labels[assign] = np.arange(tpl.n)  # point -> marker (P1's offset is 0)
+    pts = np.ascontiguousarray(hist[:, -1])
+    kept = booter.extend(pts, hist, labels, [0])
+    assert np.array_equal(kept, labels)
+    fixed = booter.extend(pts, hist, labels, [0], checked=[0])
+    assert np.array_equal(fixed, np.arange(tpl.n))
