@@ -27,7 +27,9 @@ def _swapped(walk, a: str, b: str):
     return tpl, ix, assign, hist
 
 
-@pytest.mark.parametrize("pair", [("LWRB", "LFIN"), ("LELB", "LFRM"), ("LASI", "RASI"), ("C7", "T10")])
+@pytest.mark.parametrize(
+    "pair", [("LWRB", "LFIN"), ("LELB", "LFRM"), ("LASI", "RASI"), ("C7", "T10")]
+)
 def test_two_markers_on_each_others_points_are_exchanged_back(walk, pair):
     tpl, ix, assign, hist = _swapped(walk, *pair)
     out = _window_exchange(tpl, assign, hist)
