@@ -2398,7 +2398,6 @@ def _fill_checks(
     return True
 
 
-
 def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np.ndarray:
     """Subject ``tpl``'s reading ``assign`` with pairs of its placed markers exchanged where
     their *tracks* fit the template better the other way round along the window (``hist (N,
