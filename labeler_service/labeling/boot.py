@@ -85,6 +85,7 @@ from labeler_service.labeling.boot_match import (
     _Template,
     _tied,
     _window_exchange,
+    _window_mirrors,
     memo,
     warmup_kernels,
 )
@@ -377,7 +378,7 @@ class Booter:
                 continue
             tpl = self._templates[s]
             assign, _ = _subject_assign(tpl, out)
-            swapped = _window_exchange(tpl, assign, hist)
+            swapped = _window_mirrors(tpl, _window_exchange(tpl, assign, hist), hist)
             if swapped is not assign:
                 _take(tpl, assign, swapped, out, taken0)
         tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)

@@ -2490,3 +2490,46 @@ def _still_doubtful(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b
         if bad >= 2 and bad > good:
             return True
     return False
+
+
+def _window_mirrors(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np.ndarray:
+    """Subject ``tpl``'s reading ``assign`` with mirror segments (:func:`_mirror_pairs`) read
+    on each other's points exchanged (:func:`_swap_mirrors`' exchange), judged along the window
+    (``hist (N, W, 3)``, the tracks of the current points) as :func:`_window_exchange` judges
+    a pair: a segment's own distances cannot tell left from right, and a boot that read a
+    performer's arms in a near-symmetric pose keeps the mirror while the labeler tracks both.
+    The exchange must fit the rest of the subject better by more than ``EXCHANGE_MARGIN`` in
+    ``WINDOW_EXCHANGE_SHARE`` of the window frames that track every point of the two segments
+    (at least half the window), by ``WINDOW_EXCHANGE_NATS`` in the median, and reverse no thick
+    chirality quadruple. Returns ``assign`` itself when nothing changes, else a new reading."""
+    out = assign
+    w = hist.shape[1]
+    for s1, s2 in tpl.mirrors:
+        union = np.concatenate([s1, s2])
+        placed = union[out[union] >= 0]
+        if placed.size < 3:
+            continue
+        swapped = out.copy()
+        swapped[s1], swapped[s2] = out[s2], out[s1]
+        base = out.copy()
+        base[union] = -1
+        other = union[swapped[union] >= 0]
+        tracked = np.all(np.isfinite(hist[out[placed], :, 0]), axis=0)
+        frames = np.flatnonzero(tracked)
+        if frames.size < max(2, w // 2):
+            continue
+        gain = np.array(
+            [
+                _pair_error(tpl, placed, out[placed], base, hist[:, f])
+                - _pair_error(tpl, other, swapped[other], base, hist[:, f])
+                for f in frames
+            ]
+        )
+        if np.mean(gain > EXCHANGE_MARGIN) < WINDOW_EXCHANGE_SHARE:
+            continue
+        if not np.median(gain) > WINDOW_EXCHANGE_NATS:
+            continue
+        if _changed_reversed(tpl, out, swapped, hist[:, -1]):
+            continue
+        out = swapped
+    return out
