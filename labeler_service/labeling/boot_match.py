@@ -18,6 +18,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from labeler_service._numba import njit
+from labeler_service.capture import side_pairs
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _constancy_counts
@@ -105,6 +106,9 @@ class _Template:
     body_of: list[list[int]] = field(default_factory=list)  # marker -> bodies
     #: mirror segments (left and right feet...): see _mirror_pairs
     mirrors: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: the mirror pairs whose markers are named as left and right twins (``LKNE``/``RKNE``,
+    #: ``Ulna_L``/``Ulna_R``: :func:`~labeler_service.capture.side_pairs`), marker by marker
+    sided: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     #: per-pair constants of _nll (see _nll_tables)
     nll_scale: np.ndarray = field(default_factory=lambda: np.ones((0, 0)))
     nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
@@ -190,6 +194,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tpl.twins = np.asarray(subj.twin_witnesses, dtype=np.int64).reshape(-1, 4)
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
+        tpl.sided = _sided(tpl.mirrors, list(subj.markers))
         _nll_tables(tpl)
         tpl.near = _adjacent(tpl)
         for bd in tpl.bodies:
@@ -1388,6 +1393,19 @@ def _mirror_pairs(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def _sided(
+    mirrors: list[tuple[np.ndarray, np.ndarray]], names: list[str]
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The pairs of ``mirrors`` whose markers correspond as named left and right twins: a
+    shape match alone also pairs a shin plate with a head's markers."""
+    twins = {frozenset(p) for p in side_pairs(names)}
+    return [
+        (s1, s2)
+        for s1, s2 in mirrors
+        if all(frozenset((int(a), int(b))) in twins for a, b in zip(s1, s2, strict=True))
+    ]
+
+
 def _swap_mirrors(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
     """Mirror segments (:func:`_mirror_pairs`) read on each other's points (a dancer's left
     foot placed as the right one and the right as the left: their own distances cannot tell)
@@ -2504,7 +2522,7 @@ def _window_mirrors(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np.
     chirality quadruple. Returns ``assign`` itself when nothing changes, else a new reading."""
     out = assign
     w = hist.shape[1]
-    for s1, s2 in tpl.mirrors:
+    for s1, s2 in tpl.sided:
         union = np.concatenate([s1, s2])
         placed = union[out[union] >= 0]
         if placed.size < 3:
