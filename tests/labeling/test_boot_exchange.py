@@ -96,6 +96,9 @@ def test_mirror_segments_are_exchanged_back_along_the_window(walk):
     short = hist.copy()
     short[np.concatenate([s1, s2]), : short.shape[1] - 2] = np.nan
     assert _window_mirrors(tpl, mirrored, short) is mirrored  # too short a look
+    partner = hist[s1[0], -1][None] + 100.0  # another performer's point beside the segment
+    assert _window_mirrors(tpl, mirrored, hist, partner, 250.0) is mirrored
+    assert np.array_equal(_window_mirrors(tpl, mirrored, hist, partner, 50.0), assign)
 
 
 def test_only_mirror_segments_named_as_twins_are_looked_at():
