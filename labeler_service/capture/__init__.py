@@ -11,6 +11,7 @@ from labeler_service.capture.model import (
     Capture,
     is_ghost,
     join_label,
+    side_pairs,
     split_label,
     subject_groups,
 )
@@ -23,6 +24,7 @@ __all__ = [
     "join_label",
     "read_capture",
     "read_segment",
+    "side_pairs",
     "split_label",
     "subject_groups",
     "write_capture",

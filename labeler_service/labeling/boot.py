@@ -85,6 +85,7 @@ from labeler_service.labeling.boot_match import (
     _Template,
     _tied,
     _window_exchange,
+    _window_mirrors,
     memo,
     warmup_kernels,
 )
@@ -376,8 +377,10 @@ class Booter:
             if s not in checked:
                 continue
             tpl = self._templates[s]
-            assign, _ = _subject_assign(tpl, out)
+            assign, mine = _subject_assign(tpl, out)
+            others = pts[(out >= 0) & ~mine]
             swapped = _window_exchange(tpl, assign, hist)
+            swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
             if swapped is not assign:
                 _take(tpl, assign, swapped, out, taken0)
         tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)

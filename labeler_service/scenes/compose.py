@@ -34,7 +34,6 @@ Sec. 1 and 4: the 5-person dog pile and 10-person hug at 120 Hz).
 from __future__ import annotations
 
 import math
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.capture import Capture, read_capture, split_label
+from labeler_service.capture import Capture, read_capture, side_pairs, split_label
 from labeler_service.errors import SceneError
 
 #: A marker must be visible in at least this fraction of the window to be kept.
@@ -57,8 +56,6 @@ UP_EXTENT_RATIO = 1.5
 #: 5th percentile of the per-frame minimum is at least this, mm; floors are at 0 in labs).
 FLOOR_MM = -100.0
 UP_AXES = ("auto", "z", "y")
-#: Twin markers named ``L*``/``R*``: enough of them and no other naming convention is tried.
-MIN_CLASSIC_PAIRS = 3
 
 
 @dataclass(frozen=True)
@@ -269,50 +266,6 @@ def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
         line = trend[0] + t[:, None] * trend[1]
         centre = line + gaussian_filter1d(centre - line, sigma_frames, axis=0, mode="nearest")
     return centre
-
-
-_PREFIX = re.compile(r"^(left|right|l|r)([ _.\-]?)(.+)$", re.IGNORECASE)
-_SUFFIX = re.compile(r"^(.+?)([ _.\-]?)(left|right|l|r)$", re.IGNORECASE)
-
-
-def _side_key(token: str) -> tuple[str, str]:
-    """``"L"`` -> ``("l", "upper")``: which side, and the spelling (so ``L`` pairs with ``R``,
-    ``l`` with ``r``, ``Left`` with ``Right``)."""
-    low = token.lower()
-    side = low[0]
-    form = "word" if len(low) > 1 else ("upper" if token.isupper() else "lower")
-    return side, form
-
-
-def side_pairs(names: Sequence[str]) -> list[tuple[int, int]]:
-    """``(left, right)`` index pairs of twin markers.
-
-    The classic convention first: ``L*`` / ``R*`` (``LSHO``/``RSHO``). When it finds fewer
-    than ``MIN_CLASSIC_PAIRS`` pairs (a BTS take has ``LATT``/``RATT`` beside ``l knee``), every
-    convention: a side token (``L``, ``R``, ``l``, ``r``, ``Left``, ``Right``) as
-    prefix or suffix, with or without a separator (space, ``_``, ``.``, ``-``): ``L_IAS``,
-    ``Shoulder_L``, ``R.Knee``, ``r knee``, ``ASISr``. Two names pair when everything but the
-    side agrees (stem, separator, position and spelling of the side).
-    """
-    index = {n: i for i, n in enumerate(names)}
-    classic = [
-        (i, index["R" + n[1:]])
-        for i, n in enumerate(names)
-        if len(n) > 1 and n[0] == "L" and "R" + n[1:] in index
-    ]
-    if len(classic) >= MIN_CLASSIC_PAIRS:
-        return classic
-    keyed: dict[tuple[str, ...], dict[str, int]] = {}
-    for i, n in enumerate(names):
-        for kind, pattern in (("pre", _PREFIX), ("suf", _SUFFIX)):
-            m = pattern.match(n)
-            if m is None:
-                continue
-            token, sep, stem = (m[1], m[2], m[3]) if kind == "pre" else (m[3], m[2], m[1])
-            side, form = _side_key(token)
-            keyed.setdefault((kind, sep, stem, form), {}).setdefault(side, i)
-    pairs = {(d["l"], d["r"]) for d in keyed.values() if "l" in d and "r" in d}
-    return sorted(pairs)
 
 
 def heading(capture: Capture) -> float | None:

@@ -77,3 +77,43 @@ def test_the_extension_rechecks_only_the_subjects_it_is_told_to(walk):
     assert np.array_equal(kept, labels)
     fixed = booter.extend(pts, hist, labels, [0], checked=[0])
     assert np.array_equal(fixed, np.arange(tpl.n))
+
+
+def test_mirror_segments_are_exchanged_back_along_the_window(walk):
+    """Two mirror segments read on each other's points (a boot in a near-symmetric pose) are
+    exchanged when the window's frames say so; a right reading is left alone."""
+    from labeler_service.labeling.boot_match import _window_mirrors
+
+    tpl, names, pts, hist = subject_on_its_points(walk)
+    assert tpl.mirrors
+    tpl.sided = tpl.mirrors[:1]  # (the simulated body's shape matches are not named twins)
+    s1, s2 = tpl.sided[0]
+    assign = np.arange(tpl.n)
+    assert _window_mirrors(tpl, assign, hist) is assign
+    mirrored = assign.copy()
+    mirrored[s1], mirrored[s2] = assign[s2], assign[s1]
+    assert np.array_equal(_window_mirrors(tpl, mirrored, hist), assign)
+    short = hist.copy()
+    short[np.concatenate([s1, s2]), : short.shape[1] - 2] = np.nan
+    assert _window_mirrors(tpl, mirrored, short) is mirrored  # too short a look
+    partner = hist[s1[0], -1][None] + 100.0  # another performer's point beside the segment
+    assert _window_mirrors(tpl, mirrored, hist, partner, 250.0) is mirrored
+    assert np.array_equal(_window_mirrors(tpl, mirrored, hist, partner, 50.0), assign)
+
+
+def test_only_mirror_segments_named_as_twins_are_looked_at():
+    """A shape match of a shin plate and head markers is no left/right pair; ``LRAD``/``RRAD``
+    ... are, marker by marker (not a permutation that only matches shapes)."""
+    from labeler_service.labeling.boot_match import _sided
+
+    names = ["LRAD", "LULN", "LHAND", "RRAD", "RULN", "RHAND", "LSHN", "LTIB", "FHD", "BHD"]
+    ix = {n: i for i, n in enumerate(names)}
+
+    def seg(*ns):
+        return np.array([ix[n] for n in ns])
+
+    arms = (seg("LRAD", "LULN", "LHAND"), seg("RRAD", "RULN", "RHAND"))
+    crossed = (seg("LRAD", "LULN", "LHAND"), seg("RULN", "RRAD", "RHAND"))
+    odd = (seg("LSHN", "LTIB"), seg("FHD", "BHD"))
+    out = _sided([arms, crossed, odd], names)
+    assert len(out) == 1 and np.array_equal(out[0][1], arms[1])
