@@ -44,3 +44,16 @@ def hug_scene(a: argparse.Namespace, protect_frames: int = 0) -> tuple[Any, Any]
     model = StructureTrainer().fit([cap.frames(0, split)]).model_
     spec = CorruptionSpec(protect_frames=protect_frames, seed=a.seed)
     return model, corrupt(cap.frames(split, cap.n_frames), spec)
+
+
+def until_first_attempt(lab: Any, frames: Any) -> tuple[Any, int]:
+    """Feeds ``frames`` to the booting labeler ``lab`` (``inline_boot=False``) until its first
+    boot attempt is due: ``(snapshot, index of the frame it was taken after)``."""
+    f = 0
+    while True:
+        lab.process(frames.points[f], float(frames.times[f]))
+        f += 1
+        if lab.needs_boot():
+            snap = lab.boot_snapshot()
+            if snap.subjects:
+                return snap, f - 1

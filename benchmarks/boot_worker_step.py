@@ -27,7 +27,7 @@ import statistics
 import time
 
 import numpy as np
-from _common import add_hug_args, emit, hug_scene
+from _common import add_hug_args, emit, hug_scene, until_first_attempt
 
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.booting import BootingLabeler
@@ -45,14 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     model, frames = hug_scene(a)
     lab = BootingLabeler(model, a.rate, boot=BootConfig(), inline_boot=False, inline_extend=False)
-    f = 0
-    while True:  # until the first attempt is due
-        lab.process(frames.points[f], float(frames.times[f]))
-        f += 1
-        if lab.needs_boot():
-            snap = lab.boot_snapshot()
-            if snap.subjects:
-                break
+    snap, first = until_first_attempt(lab, frames)
     remote = snap.remote()
     walls: dict[str, list[float]] = {s: [] for s in a.setups}
     starts: dict[str, list[float]] = {s: [] for s in a.setups}
@@ -78,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             digests[name].add(digest.hexdigest()[:16])
     emit(
         {
-            "subjects": a.subjects, "rate": a.rate, "attempt_frame": f - 1,
+            "subjects": a.subjects, "rate": a.rate, "attempt_frame": first,
             "points": int(snap.points.shape[0]), "load": [round(x, 2) for x in loads],
             **{f"{s}_ms": [round(x, 1) for x in walls[s]] for s in a.setups},
             **{f"{s}_ms_median": round(statistics.median(walls[s]), 1) for s in a.setups},

@@ -23,7 +23,7 @@ import hashlib
 import time
 
 import numpy as np
-from _common import add_hug_args, emit, hug_scene
+from _common import add_hug_args, emit, hug_scene, until_first_attempt
 
 from labeler_service.labeling import booting
 from labeler_service.labeling.boot_config import BootConfig
@@ -54,15 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     model, frames = hug_scene(a)
     lab = BootingLabeler(model, a.rate, boot=BootConfig(), inline_boot=False, inline_extend=False)
     lab.warmup()
-    f = 0
-    while True:  # until the first attempt is due
-        lab.process(frames.points[f], float(frames.times[f]))
-        f += 1
-        if lab.needs_boot():
-            snap = lab.boot_snapshot()
-            if snap.subjects:
-                break
-    first = f - 1
+    snap, first = until_first_attempt(lab, frames)
+    f = first + 1
     c0 = time.process_time()
     res = lab.boot_step(snap)
     attempt_ms = (time.process_time() - c0) * 1e3

@@ -39,6 +39,18 @@ def model_path(scene, tmp_path_factory):
     return path
 
 
+async def _serve(model_path, items):
+    """A booting stream of the model at ``model_path`` fed the encoded frames ``items``:
+    ``(server, labeled messages)``."""
+    mem = MemoryTransport()
+    over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
+            "boot_worker": "thread"}  # fmt: skip
+    async with Server(settings(**over), [mem]) as srv:
+        for p in items:
+            mem.inject(p)
+        return srv, await collect(srv, mem, "vol")
+
+
 def _stream(scene, model_path, scale: float, caplog):
     frames = frames_of(scene, np.random.default_rng(1))
     items = [
@@ -46,18 +58,8 @@ def _stream(scene, model_path, scale: float, caplog):
         for k, f in enumerate(range(TRAIN, scene.n_frames))
     ]
 
-    async def go():
-        mem = MemoryTransport()
-        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
-                "boot_worker": "thread"}  # fmt: skip
-        async with Server(settings(**over), [mem]) as srv:
-            for p in items:
-                mem.inject(p)
-            msgs = await collect(srv, mem, "vol")
-            return srv, msgs
-
     with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
-        srv, msgs = run(go())
+        srv, msgs = run(_serve(model_path, items))
     warned = [r.getMessage() for r in caplog.records
               if "Points travel in millimetres" in r.getMessage()]  # fmt: skip
     return srv, msgs, warned, len(items)
@@ -126,17 +128,8 @@ def test_points_of_another_marker_set_are_named_in_the_log(model_path, caplog):
     frames = frames_of(other, np.random.default_rng(1))
     items = [encode_frame("vol", k, k / other.rate, frames[k][0]) for k in range(other.n_frames)]
 
-    async def go():
-        mem = MemoryTransport()
-        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
-                "boot_worker": "thread"}  # fmt: skip
-        async with Server(settings(**over), [mem]) as srv:
-            for p in items:
-                mem.inject(p)
-            return srv, await collect(srv, mem, "vol")
-
     with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
-        srv, msgs = run(go())
+        srv, msgs = run(_serve(model_path, items))
     warned = [r.getMessage() for r in caplog.records if "nothing labeled for" in r.getMessage()]
     assert len(msgs) == len(items) and srv.metrics.drops() == 0
     assert len(warned) == 1, warned
