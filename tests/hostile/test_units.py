@@ -10,6 +10,7 @@ import logging
 import numpy as np
 import pytest
 from hostile.helpers import collect, frames_of, run, settings
+from service.helpers import until
 from synthetic import moving_clusters
 
 from labeler_service.labeling.templates import LabelerModel, load_model, save_model
@@ -48,6 +49,12 @@ async def _serve(model_path, items):
     async with Server(settings(**over), [mem]) as srv:
         for p in items:
             mem.inject(p)
+        # (every frame handled first: a frame whose kernels compile, on a cold cache, holds the
+        # stream's worker for seconds with its queue empty, which ``collect`` took for idle)
+        await until(
+            lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+            + srv.metrics.drops() >= len(items), "every frame handled", timeout=180.0,
+        )  # fmt: skip
         return srv, await collect(srv, mem, "vol")
 
 
