@@ -1406,6 +1406,21 @@ def _sided(
     ]
 
 
+def _mirror_exchange(assign: np.ndarray, s1: np.ndarray, s2: np.ndarray) -> tuple | None:
+    """The exchange of mirror segments ``s1``/``s2`` in ``assign``: ``(union, placed, swapped,
+    base, other)`` - their markers, those placed, the exchanged reading, the reading without
+    them, and those placed in the exchanged one; None when fewer than three are placed."""
+    union = np.concatenate([s1, s2])
+    placed = union[assign[union] >= 0]
+    if placed.size < 3:
+        return None
+    swapped = assign.copy()
+    swapped[s1], swapped[s2] = assign[s2], assign[s1]
+    base = assign.copy()
+    base[union] = -1
+    return union, placed, swapped, base, union[swapped[union] >= 0]
+
+
 def _swap_mirrors(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
     """Mirror segments (:func:`_mirror_pairs`) read on each other's points (a dancer's left
     foot placed as the right one and the right as the left: their own distances cannot tell)
@@ -1413,16 +1428,11 @@ def _swap_mirrors(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> None:
     ``EXCHANGE_MARGIN``; a segment placed on one side only moves to the other side's markers
     when those are free."""
     for s1, s2 in tpl.mirrors:
-        union = np.concatenate([s1, s2])
-        placed = union[assign[union] >= 0]
-        if placed.size < 3:
+        ex = _mirror_exchange(assign, s1, s2)
+        if ex is None:
             continue
-        swapped = assign.copy()
-        swapped[s1], swapped[s2] = assign[s2], assign[s1]
-        base = assign.copy()
-        base[union] = -1
+        union, placed, swapped, base, other = ex
         now = _pair_error(tpl, placed, assign[placed], base, pts)
-        other = union[swapped[union] >= 0]
         then = _pair_error(tpl, other, swapped[other], base, pts)
         if then < now - EXCHANGE_MARGIN:
             assign[union] = swapped[union]
@@ -2533,15 +2543,10 @@ def _window_mirrors(
     out = assign
     w = hist.shape[1]
     for s1, s2 in tpl.sided:
-        union = np.concatenate([s1, s2])
-        placed = union[out[union] >= 0]
-        if placed.size < 3:
+        ex = _mirror_exchange(out, s1, s2)
+        if ex is None:
             continue
-        swapped = out.copy()
-        swapped[s1], swapped[s2] = out[s2], out[s1]
-        base = out.copy()
-        base[union] = -1
-        other = union[swapped[union] >= 0]
+        _, placed, swapped, base, other = ex
         if others is not None and others.shape[0] and contact_mm > 0:
             near = np.linalg.norm(hist[out[placed], -1][:, None] - others[None], axis=2)
             if np.nanmin(near) < contact_mm:

@@ -174,17 +174,8 @@ def _rate_warnings(scene, model_path, step: int, caplog) -> tuple[int, list[str]
         for k, f in enumerate(range(TRAIN, scene.n_frames, step))
     ]
 
-    async def go():
-        mem = MemoryTransport()
-        over = {"streams": [{"name": "vol", "model": str(model_path)}], "boot": True,
-                "boot_worker": "thread"}  # fmt: skip
-        async with Server(settings(**over), [mem]) as srv:
-            for p in items:
-                mem.inject(p)
-            return await collect(srv, mem, "vol")
-
     with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
-        msgs = run(go())
+        _, msgs = run(_serve(model_path, items))
     return len(msgs) - len(items), [
         r.getMessage() for r in caplog.records if "its frames come at" in r.getMessage()
     ]
