@@ -50,7 +50,8 @@ async def _serve(model_path, items):
         for p in items:
             mem.inject(p)
         # (every frame handled first: a frame whose kernels compile, on a cold cache, holds the
-        # stream's worker for seconds with its queue empty, which ``collect`` took for idle)
+        # stream's worker for seconds with its queue empty, which ``collect`` took for idle; the
+        # callers allow for a first boot attempt that compiles, ~1 min on a loaded machine)
         await until(
             lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
             + srv.metrics.drops() >= len(items), "every frame handled", timeout=180.0,
@@ -66,7 +67,7 @@ def _stream(scene, model_path, scale: float, caplog):
     ]
 
     with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
-        srv, msgs = run(_serve(model_path, items))
+        srv, msgs = run(_serve(model_path, items), timeout=240.0)
     warned = [r.getMessage() for r in caplog.records
               if "Points travel in millimetres" in r.getMessage()]  # fmt: skip
     return srv, msgs, warned, len(items)
@@ -136,7 +137,7 @@ def test_points_of_another_marker_set_are_named_in_the_log(model_path, caplog):
     items = [encode_frame("vol", k, k / other.rate, frames[k][0]) for k in range(other.n_frames)]
 
     with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
-        srv, msgs = run(_serve(model_path, items))
+        srv, msgs = run(_serve(model_path, items), timeout=240.0)
     warned = [r.getMessage() for r in caplog.records if "nothing labeled for" in r.getMessage()]
     assert len(msgs) == len(items) and srv.metrics.drops() == 0
     assert len(warned) == 1, warned
@@ -175,7 +176,7 @@ def _rate_warnings(scene, model_path, step: int, caplog) -> tuple[int, list[str]
     ]
 
     with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
-        _, msgs = run(_serve(model_path, items))
+        _, msgs = run(_serve(model_path, items), timeout=240.0)
     return len(msgs) - len(items), [
         r.getMessage() for r in caplog.records if "its frames come at" in r.getMessage()
     ]
