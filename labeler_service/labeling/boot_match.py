@@ -2448,15 +2448,7 @@ def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np
             return out
         H = np.transpose(hist[out[have]], (1, 0, 2))  # (W, k, 3)
         w = H.shape[0]
-        last = H[-1]
-        d = np.linalg.norm(last[:, None] - last[None, :], axis=2)
-        hh = np.ix_(have, have)
-        strict = tpl.strict[hh]
-        with np.errstate(invalid="ignore"):
-            off = np.abs(d - tpl.D[hh]) > tpl.tol[hh]
-        bad = (strict & off).sum(axis=1)
-        good = (strict & ~off & np.isfinite(d)).sum(axis=1)
-        doubt = np.flatnonzero((bad >= 2) & (bad > good) & np.isfinite(last[:, 0]))
+        doubt = np.flatnonzero(_doubtful(tpl, have, H[-1]))
         if doubt.size == 0:
             return out
         dd = np.linalg.norm(H[:, :, None] - H[:, None, :], axis=3)  # (W, q, j)
@@ -2494,30 +2486,26 @@ def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np
     return out
 
 
-def _strict_fit(tpl: _Template, assign: np.ndarray, pts: np.ndarray, m: int) -> tuple[int, int]:
-    """Marker ``m``'s pairs of one trained body (``strict``) to the other placed markers of
-    ``assign`` off their tolerance and within it, on points ``pts``."""
-    o = np.flatnonzero((assign >= 0) & tpl.strict[m])
-    o = o[o != m]
-    if assign[m] < 0 or o.size == 0:
-        return 0, 0
-    d = np.linalg.norm(pts[assign[o]] - pts[assign[m]], axis=1)
-    fin = np.isfinite(d)
-    off = np.abs(d[fin] - tpl.D[m, o][fin]) > tpl.tol[m, o][fin]
-    return int(off.sum()), int((~off).sum())
+def _doubtful(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Per placed marker ``have[i]`` on ``pos[i]`` (last frame): two or more of its pairs of
+    one trained body (``strict``) to the other placed markers off their tolerance, more than
+    within it (a marker whose point is untracked in that frame is never doubtful)."""
+    d = np.linalg.norm(pos[:, None] - pos[None, :], axis=2)
+    hh = np.ix_(have, have)
+    strict = tpl.strict[hh]
+    with np.errstate(invalid="ignore"):
+        off = np.abs(d - tpl.D[hh]) > tpl.tol[hh]
+    bad = (strict & off).sum(axis=1)
+    good = (strict & ~off & np.isfinite(d)).sum(axis=1)
+    return (bad >= 2) & (bad > good) & np.isfinite(pos[:, 0])
 
 
 def _still_doubtful(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b: int) -> bool:
     """After exchanging ``a`` and ``b`` (reading ``new``), is either still doubtful in the last
-    frame (two or more of its strict pairs off, more than within)? An exchange that only makes a
-    reading less wrong (a model whose arm pairs the stream contradicts either way) is no
-    evidence for it."""
-    pts = hist[:, -1]
-    for m in (a, b):
-        bad, good = _strict_fit(tpl, new, pts, m)
-        if bad >= 2 and bad > good:
-            return True
-    return False
+    frame (:func:`_doubtful`)? An exchange that only makes a reading less wrong (a model whose
+    arm pairs the stream contradicts either way) is no evidence for it."""
+    have = np.flatnonzero(new >= 0)
+    return bool(_doubtful(tpl, have, hist[new[have], -1])[np.isin(have, [a, b])].any())
 
 
 def _window_mirrors(
