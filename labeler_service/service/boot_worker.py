@@ -192,29 +192,41 @@ def _help(conn: Connection, counter: Any, nice: int) -> None:  # pragma: no cove
 
     warmup_kernels()
     booters = _Booters()
+
+    def handle(msg: tuple) -> Any:
+        kind = msg[0]
+        if kind == "ping":
+            return None
+        if kind == "prepare":
+            booters.get(msg[1], msg[2])
+            return None
+        if kind == "hyps":
+            _, key, spec, wanted, pts, hist = msg
+            booter = booters.get(key, spec)
+            pairs = booter.pairs(pts)
+            out = {}
+            while (k := _grab(counter, len(wanted))) >= 0:
+                out[k] = booter.hypotheses(wanted[k], pts, hist, pairs)
+            return out
+        raise LabelerError(f"boot helper: unknown request {kind!r}")
+
+    _answer(conn, handle)
+
+
+def _answer(conn: Connection, handle: Any, failed: Any = None) -> None:  # pragma: no cover
+    """A child's request loop (the worker's and its helper's): each request is answered
+    ``(True, handle(request))``, or ``(False, traceback text)`` when that raises (``failed()``
+    runs first); returns when the pipe closes."""
     while True:
         try:
             msg = conn.recv()
         except (EOFError, OSError):
             return
         try:
-            kind = msg[0]
-            if kind == "ping":
-                conn.send((True, None))
-            elif kind == "prepare":
-                booters.get(msg[1], msg[2])
-                conn.send((True, None))
-            elif kind == "hyps":
-                _, key, spec, wanted, pts, hist = msg
-                booter = booters.get(key, spec)
-                pairs = booter.pairs(pts)
-                out = {}
-                while (k := _grab(counter, len(wanted))) >= 0:
-                    out[k] = booter.hypotheses(wanted[k], pts, hist, pairs)
-                conn.send((True, out))
-            else:
-                raise LabelerError(f"boot helper: unknown request {kind!r}")
+            conn.send((True, handle(msg)))
         except Exception:
+            if failed is not None:
+                failed()
             conn.send((False, traceback.format_exc()))
 
 
@@ -294,48 +306,45 @@ def _serve(
     helper = _Helper(peer, counter)
     shadow: Any = None  # the catch-up in progress
 
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return
-        try:
-            kind = msg[0]
-            if kind == "ping":
-                if helper.conn is not None:
-                    helper.request(("ping",))
-                conn.send((True, None))
-            elif kind == "prepare":
-                _, key, spec, rate, config = msg
-                booters.get(key, spec)
-                if helper.conn is not None:
-                    helper.request(("prepare", key, spec))
-                    helper.note(key)
-                warmup_labeler(rate, config)
-                conn.send((True, None))
-            elif kind == "step":
-                _, key, spec, snapshot = msg
-                out = boot_step_on(booters.get(key, spec), snapshot, helper.share(key))
-                conn.send((True, out))
-            elif kind == "catch":
-                _, key, spec, shadow, snapshot, result = msg
-                booter = booters.get(key, spec)
-                shadow._booter, shadow.model = booter, booter.model
-                conn.send((True, shadow._begin_catch_up(snapshot, result)))
-            elif kind == "frames":
-                shadow._catch_up_frames(msg[1])
-                conn.send((True, None))
-            elif kind == "extend":
-                shadow._catch_up_extend()
-                conn.send((True, None))
-            elif kind == "finish":
-                out, shadow = shadow.for_transfer(), None
-                conn.send((True, out))
-            else:
-                raise LabelerError(f"boot worker: unknown request {kind!r}")
-        except Exception:
-            shadow = None
-            conn.send((False, traceback.format_exc()))
+    def handle(msg: tuple) -> Any:
+        nonlocal shadow
+        kind = msg[0]
+        if kind == "ping":
+            if helper.conn is not None:
+                helper.request(("ping",))
+            return None
+        if kind == "prepare":
+            _, key, spec, rate, config = msg
+            booters.get(key, spec)
+            if helper.conn is not None:
+                helper.request(("prepare", key, spec))
+                helper.note(key)
+            warmup_labeler(rate, config)
+            return None
+        if kind == "step":
+            _, key, spec, snapshot = msg
+            return boot_step_on(booters.get(key, spec), snapshot, helper.share(key))
+        if kind == "catch":
+            _, key, spec, shadow, snapshot, result = msg
+            booter = booters.get(key, spec)
+            shadow._booter, shadow.model = booter, booter.model
+            return shadow._begin_catch_up(snapshot, result)
+        if kind == "frames":
+            shadow._catch_up_frames(msg[1])
+            return None
+        if kind == "extend":
+            shadow._catch_up_extend()
+            return None
+        if kind == "finish":
+            out, shadow = shadow.for_transfer(), None
+            return out
+        raise LabelerError(f"boot worker: unknown request {kind!r}")
+
+    def failed() -> None:
+        nonlocal shadow
+        shadow = None
+
+    _answer(conn, handle, failed)
 
 
 class BootWorker:
