@@ -357,6 +357,28 @@ def _y_up_to_z_up(cap: Capture) -> Capture:
     return cap.with_positions(rotated, notes=(*cap.notes, "rotated from Y up to Z up"))
 
 
+#: with no UNITS parameter, coordinates all within this of the origin are metres: no person
+#: fits within 50 mm, and a capture volume in metres is well inside 50 m
+METRE_GUESS_MAX = 50.0
+
+
+def _guess_units(pos: np.ndarray, notes: list[str]) -> str:
+    """The units of a C3D without a UNITS parameter: ``"m"`` when every captured coordinate
+    (not the (0,0,0) of a gap) lies within :data:`METRE_GUESS_MAX` of the origin (a take in
+    metres read as millimetres is a body 2 mm tall that no labeler gate fits), else ``""``
+    (millimetres, :func:`_unit_scale` notes it)."""
+    seen = np.isfinite(pos).all(axis=2) & np.any(pos != 0.0, axis=2)
+    if not seen.any():
+        return ""
+    reach = float(np.abs(pos[seen]).max())
+    if reach >= METRE_GUESS_MAX:
+        return ""
+    notes.append(
+        f"no UNITS parameter and every coordinate within {reach:.3g} of the origin: read as metres"
+    )
+    return "m"
+
+
 def _unit_scale(units: str, source: Path, notes: list[str]) -> float:
     u = units.strip().lower()
     if not u:
@@ -401,8 +423,11 @@ def _read_c3d(path: Path) -> Capture:
         raise CaptureFormatError(f"{path}: no POINT:RATE")
     rate = float(rate_values[0])
     units = point.get("UNITS", {}).get("value", [])
-    scale = _unit_scale(units[0] if len(units) else "", path, notes)
-    pos = np.transpose(data[:3], (2, 1, 0)) * scale  # (F, M, 3)
+    pos = np.transpose(data[:3], (2, 1, 0))  # (F, M, 3)
+    unit = units[0] if len(units) else ""
+    if not unit.strip():
+        unit = _guess_units(pos, notes)
+    pos = pos * _unit_scale(unit, path, notes)
     residuals = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, F)
     if residuals.size:
         neg = residuals[0].T < 0
