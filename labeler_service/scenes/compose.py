@@ -139,6 +139,12 @@ class TakeSpec:
 
     def _pick_subject(self, cap: Capture, notes: list[str]) -> Capture:
         subjects = [s for s in cap.subjects if s]
+        if not cap.subjects:
+            raise SceneError(
+                f"{self.name}: no labeled marker ({int(cap.ghost_mask.sum())} unlabeled tracks "
+                "*N): compose places labeled single-person takes; label this one first "
+                "(label --model)"
+            )
         if self.subject is None:
             if len(subjects) > 1:
                 raise SceneError(
