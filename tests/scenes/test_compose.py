@@ -506,3 +506,15 @@ def test_a_take_with_only_unlabeled_tracks_is_a_clear_error(rng, tmp_path):
         == 2
     )
 
+
+def test_a_one_frame_take_composes_without_numpy_warnings(rng):
+    one = synthetic_take(rng, frames=1, name="One")
+    other = synthetic_take(rng, frames=60, name="B")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene = compose_scene(
+            [TakeSpec(capture=one, up="z"), other], radius=300.0, frames=50, seed=0
+        )
+    assert any("ends at scene frame 1 of 50" in n for n in scene.notes)
