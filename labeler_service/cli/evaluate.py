@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from pathlib import Path
 
 from labeler_service.capture import check_writable, read_segment
@@ -251,7 +252,9 @@ def plot_accuracy_vs_downsampling(
     ax.set_xticks([1, 2, 4], labels=["1", "2", "4"])
     ax.set_xlabel("down-sampling factor")
     ax.set_ylabel("labels correct (%)")
-    ax.set_title(f"accuracy vs down-sampling {title}".strip())
+    # the take's name on its own lines: a long name and frame range ran past the right edge
+    lines = ["accuracy vs down-sampling", *textwrap.wrap(title, 48, break_on_hyphens=False)]
+    ax.set_title("\n".join(lines), fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
