@@ -1,10 +1,11 @@
 """Reading and writing captures: C3D (ezc3d), TRC (text) and NPZ (numpy, lossless and fast).
 
 Every reader returns a :class:`Capture` in millimetres, Z up, NaN for missing samples:
-(0, 0, 0) samples and negative C3D residuals become NaN, metres are converted, and a take
-recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is recorded in
-``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject named after
-the file stem. Problems raise :class:`CaptureError` naming the file, never a bare traceback.
+(0, 0, 0) and infinite samples and negative C3D residuals become NaN, metres are converted,
+and a take recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is
+recorded in ``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject
+named after the file stem. Problems raise :class:`CaptureError` naming the file, never a bare
+traceback.
 
 Points a processing model wrote beside the markers (angles, forces, virtual markers: the groups
 the C3D's POINT parameters list) are left out with a note (:func:`_c3d_markers`).
@@ -232,7 +233,12 @@ def _finish(
     positions: np.ndarray, labels: list[str], rate: float, source: Path, notes: list[str]
 ) -> Capture:
     """Applies the shared missing-sample and label rules, then builds the Capture."""
-    pos = np.ascontiguousarray(positions, dtype=np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, mapped below
+        pos = np.ascontiguousarray(positions, dtype=np.float32)
+    infinite = np.isinf(pos).any(axis=2)
+    if infinite.any():  # the labeler takes finite points only: missing, as NaN is
+        pos[infinite] = np.nan
+        notes.append(f"{int(infinite.sum())} infinite samples mapped to missing")
     zero = np.all(pos == 0.0, axis=2)
     if zero.any():
         pos[zero] = np.nan
