@@ -243,7 +243,7 @@ def _finish(
     if zero.any():
         pos[zero] = np.nan
         notes.append(f"{int(zero.sum())} (0,0,0) samples mapped to missing")
-    labels = _unique_labels([x.strip() for x in labels], notes)
+    labels = _unique_labels(_no_empty_prefix([x.strip() for x in labels], notes), notes)
     copies = _exact_copies(pos, labels)
     if copies:
         said = ", ".join(f"{labels[i]} = {labels[j]}" for i, j in copies[:4])
@@ -316,6 +316,17 @@ _UNLABELED_NAME = re.compile(
 def _names_no_marker(label: str) -> bool:
     """True for a vendor's name of an unlabeled trajectory (:data:`_UNLABELED_NAME`)."""
     return bool(_UNLABELED_NAME.match(label) or _UNLABELED_NAME.match(split_label(label)[1]))
+
+
+def _no_empty_prefix(labels: list[str], notes: list[str]) -> list[str]:
+    """``:CLAV`` -> ``CLAV``: an empty subject prefix is no prefix (kept, the name split into
+    subject ``""`` and joined back without the colon: a marker nothing could find)."""
+    empty = [x for x in labels if x.startswith(":")]
+    if not empty:
+        return labels
+    said = ", ".join(repr(x) for x in empty[:3]) + (", ..." if len(empty) > 3 else "")
+    notes.append(f"{len(empty)} labels with an empty subject prefix ({said}) read without it")
+    return [x[1:].strip() if x.startswith(":") else x for x in labels]
 
 
 def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
