@@ -436,8 +436,13 @@ def _read_c3d(path: Path) -> Capture:
     n_markers = data.shape[1]
     notes: list[str] = []
     rate_values = point.get("RATE", {}).get("value", [])
-    if len(rate_values) == 0 or not float(rate_values[0]) > 0:
+    if len(rate_values) == 0:
         raise CaptureFormatError(f"{path}: no POINT:RATE")
+    if not float(rate_values[0]) > 0:
+        raise CaptureFormatError(
+            f"{path}: POINT:RATE is {float(rate_values[0]):g}: a capture needs a positive "
+            "frame rate (Hz)"
+        )
     rate = float(rate_values[0])
     units = point.get("UNITS", {}).get("value", [])
     pos = np.transpose(data[:3], (2, 1, 0))  # (F, M, 3)
