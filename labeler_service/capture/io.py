@@ -339,6 +339,9 @@ def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
     seen: dict[str, int] = {}
     out = []
     free = 0
+    empty = sum(1 for x in labels if not x)
+    if empty:
+        notes.append(f"{empty} empty labels read as unlabeled tracks *N")
     renamed = [x for x in labels if x and _names_no_marker(x)]
     if renamed:
         said = ", ".join(repr(x) for x in renamed[:3]) + (", ..." if len(renamed) > 3 else "")
