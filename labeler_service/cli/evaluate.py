@@ -15,6 +15,7 @@ import textwrap
 from pathlib import Path
 
 from labeler_service.capture import check_writable, read_segment
+from labeler_service.cli.args import seed
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
@@ -61,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--occlude-frames", type=int, default=15, help="frames each part is hidden")
     p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    p.add_argument("--seed", type=seed, default=0, help="seed of every random choice")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
     p.add_argument(
         "--labeled-start",

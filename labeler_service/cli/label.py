@@ -37,6 +37,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
+from labeler_service.cli.args import seed
 from labeler_service.labeling.registry import LABELED_STARTS
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
@@ -80,7 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(default): 'model' with 3 or more init frames (as evaluate)",
     )
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of IN")
-    p.add_argument("--seed", type=int, default=0, help="seed of the per-frame shuffle")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the per-frame shuffle")
     p.add_argument("--drop-recovered", action="store_true", help="write only observed samples")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -7,6 +7,8 @@ import asyncio
 import sys
 from pathlib import Path
 
+from labeler_service.cli.args import seed
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", help="labeled capture (.c3d, .trc, .npz), FILE[:start[:stop]] (frames)")
@@ -36,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-shuffle", action="store_true", help="keep the capture's point order")
     p.add_argument("--loops", type=int, default=1, help="passes, alternating direction")
     p.add_argument("--up", choices=["z", "y"], default="z", help="vertical axis of the file")
-    p.add_argument("--seed", type=int, default=0, help="corruption seed")
+    p.add_argument("--seed", type=seed, default=0, help="corruption seed")
 
 
 async def _main(args: argparse.Namespace) -> int:
