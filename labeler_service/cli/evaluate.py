@@ -15,7 +15,7 @@ import textwrap
 from pathlib import Path
 
 from labeler_service.capture import check_writable, read_segment
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import check_init_window, seed
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
     cap = read_segment(args.truth, up=args.up)
+    check_init_window(cap, args.truth, args.init_frames * max(args.downsample, 1))
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
     common = dict(

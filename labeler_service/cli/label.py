@@ -37,7 +37,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import check_init_window, seed
 from labeler_service.labeling.registry import LABELED_STARTS
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
+    check_init_window(cap, args.input, init)
     for note in thin_subjects(names) if init > 0 else ():
         print(f"note: {args.input}: {note}", file=sys.stderr)
     # a label without ``subject:`` would come back renamed from the window model
