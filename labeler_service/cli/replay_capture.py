@@ -7,7 +7,7 @@ import asyncio
 import sys
 from pathlib import Path
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import check_init_window, seed
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -55,7 +55,9 @@ async def _main(args: argparse.Namespace) -> int:
     )  # fmt: skip
     from labeler_service.capture import read_segment
 
-    frames = prepare(read_segment(args.file, up=args.up), spec)
+    cap = read_segment(args.file, up=args.up)
+    check_init_window(cap, args.file, args.init_frames * max(args.downsample, 1))
+    frames = prepare(cap, spec)
     if args.init_frames > 0 and not frames.marker_names:
         raise LabelerError(
             f"{args.file}: no labeled markers (only unlabeled *N tracks): --init-frames "

@@ -1,6 +1,7 @@
 """A take that starts before anyone is in view (BTS's gait walk: nothing visible for its first
 239 frames): ``label`` and ``evaluate`` said "no marker is seen in 3 or more of its 50 labeled
 training frames ... start where the subject is in the volume" without saying where that is.
+``replay`` sent the empty frames and the service logged "the init frames carry no labels".
 They now name the first frame that shows a marker, as a ``FILE:start`` to run."""
 
 from __future__ import annotations
@@ -22,10 +23,12 @@ def late_take(rng, tmp_path):
     return write_capture(Capture(pos, names, 100.0, source="late"), tmp_path / "late.npz")
 
 
-@pytest.mark.parametrize("command", ["label", "evaluate"])
+@pytest.mark.parametrize("command", ["label", "evaluate", "replay"])
 def test_an_empty_init_window_names_the_first_frame_with_a_marker(late_take, tmp_path, command,
                                                                   capsys):  # fmt: skip
-    out = [str(tmp_path / "out.c3d")] if command == "label" else []
+    out = {"label": [str(tmp_path / "out.c3d")], "replay": ["--to", "udp://127.0.0.1:9/x"]}.get(
+        command, []
+    )
     assert main([command, str(late_take), *out]) == 2
     err = capsys.readouterr().err
     assert "no labeled marker is seen in the first 50 frames" in err, err
