@@ -40,7 +40,11 @@ log = logging.getLogger(__name__)
 
 SUFFIXES = (".c3d", ".trc", ".npz")
 _Writer = Callable[[Capture, Path], None]
-_UNIT_SCALE = {"mm": 1.0, "millimeters": 1.0, "cm": 10.0, "m": 1000.0, "meters": 1000.0}
+_UNIT_SCALE = {
+    **dict.fromkeys(("mm", "millimeter", "millimeters", "millimetre", "millimetres"), 1.0),
+    **dict.fromkeys(("cm", "centimeter", "centimeters", "centimetre", "centimetres"), 10.0),
+    **dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 1000.0),
+}
 
 
 def read_capture(path: str | Path, up: str = "z", subject: str | None = None) -> Capture:

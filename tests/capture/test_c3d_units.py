@@ -57,3 +57,16 @@ def test_declared_units_are_trusted(tmp_path, rng) -> None:
     _write(tmp_path / "said_mm.c3d", pos, units="mm")
     cap = read_capture(tmp_path / "said_mm.c3d")
     np.testing.assert_allclose(cap.positions, pos, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "units, scale",
+    [("meter", 1000.0), ("Metres", 1000.0), ("millimetre", 1.0), ("MM", 1.0),
+     ("centimeters", 10.0), ("cm ", 10.0)],
+)  # fmt: skip
+def test_other_spellings_of_the_units(tmp_path, rng, units, scale):
+    """'meter' stopped the read with "unknown point units 'meter'"."""
+    pos = _body(rng) / scale
+    _write(tmp_path / "u.c3d", pos, units=units)
+    cap = read_capture(tmp_path / "u.c3d")
+    np.testing.assert_allclose(cap.positions, pos * scale, rtol=1e-5, atol=0.05)
