@@ -456,6 +456,14 @@ def _read_c3d(path: Path) -> Capture:
     unit = units[0] if len(units) else ""
     if not unit.strip():
         unit = _guess_units(pos, notes)
+    elif _unit_scale(unit, path, []) == 1.0 and _guess_units(pos, []) == "m":
+        msg = (
+            f"UNITS says {unit.strip()} but every coordinate is within "
+            f"{METRE_GUESS_MAX:g} of the origin: the take may be in metres (nothing can be "
+            "labeled on a body a few millimetres tall)"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
     pos = pos * _unit_scale(unit, path, notes)
     residuals = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, F)
     if residuals.size:

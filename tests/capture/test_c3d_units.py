@@ -57,6 +57,8 @@ def test_declared_units_are_trusted(tmp_path, rng) -> None:
     _write(tmp_path / "said_mm.c3d", pos, units="mm")
     cap = read_capture(tmp_path / "said_mm.c3d")
     np.testing.assert_allclose(cap.positions, pos, atol=1e-6)
+    # but a body 2 mm tall is said: the labeler labels nothing on it
+    assert any("UNITS says mm" in n and "metres" in n for n in cap.notes), cap.notes
 
 
 @pytest.mark.parametrize(
