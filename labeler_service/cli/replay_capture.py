@@ -47,6 +47,11 @@ async def _main(args: argparse.Namespace) -> int:
     from labeler_service.service.transports.url import redact_url
     from labeler_service.tools.replay import open_sender, prepare, replay
 
+    if args.init_frames < 0:
+        raise LabelerError(
+            f"--init-frames must be >= 0 (0: a stream configured with a model), "
+            f"got {args.init_frames}"
+        )
     spec = CorruptionSpec(
         downsample=args.downsample, gaps=args.gaps, gap_frames=args.gap_frames,
         dropouts=args.dropouts, ghosts=args.ghosts, jitter_mm=args.jitter,
