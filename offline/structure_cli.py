@@ -138,10 +138,20 @@ def _renames(items: list[str]) -> dict[str, str]:
 
 def _read_takes(texts: list[str], up: str, rename: dict[str, str]) -> list:
     """The takes, renamed; an OLD name no take has is an error (a misspelt one renamed
-    nothing, and the model kept a name the scene does not use)."""
+    nothing, and the model kept a name the scene does not use). A subject never seen in a
+    take is left out of it, with a note (training stopped at it)."""
+    import sys
+
     from labeler_service.errors import ModelError
 
-    caps = [_read_take(t, up) for t in texts]
+    caps = []
+    for text in texts:
+        cap, absent = _read_take(text, up).without_absent_subjects()
+        for name in absent:
+            print(
+                f"note: {text}: subject {name} is never seen in the take: left out", file=sys.stderr
+            )
+        caps.append(cap)
     found = {s for c in caps for s in c.subjects if s}
     for old in rename:
         if old not in found:

@@ -46,3 +46,14 @@ def check_init_window(cap, spec: str, init: int) -> None:
         f"{spec}: no labeled marker is seen in the first {init} frames (the labeled init "
         f"window): {where}"
     )
+
+
+def without_absent_subjects(cap, spec: str):
+    """``cap`` without the subjects never seen in it (:meth:`Capture.without_absent_subjects`),
+    each said on stderr."""
+    import sys
+
+    kept, absent = cap.without_absent_subjects()
+    for name in absent:
+        print(f"note: {spec}: subject {name} is never seen in the take: left out", file=sys.stderr)
+    return kept

@@ -15,7 +15,7 @@ import textwrap
 from pathlib import Path
 
 from labeler_service.capture import check_writable, read_segment
-from labeler_service.cli.args import check_init_window, seed
+from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:  # before the run, not after it
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
-    cap = read_segment(args.truth, up=args.up)
+    cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
     check_init_window(cap, args.truth, args.init_frames * max(args.downsample, 1))
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()

@@ -37,7 +37,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
-from labeler_service.cli.args import check_init_window, seed
+from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.labeling.registry import LABELED_STARTS
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.templates import load_model
 
     check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
-    cap = read_segment(args.input, up=args.up)
+    cap = without_absent_subjects(read_segment(args.input, up=args.up), args.input)
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):
