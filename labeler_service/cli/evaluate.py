@@ -90,7 +90,9 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
     cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
-    check_init_window(cap, args.truth, args.init_frames * max(args.downsample, 1))
+    check_init_window(
+        cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None
+    )
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
     common = dict(

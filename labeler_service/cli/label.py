@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
-    check_init_window(cap, args.input, init)
+    check_init_window(cap, args.input, init, subjects=model is None)
     for note in thin_subjects(names) if init > 0 else ():
         print(f"note: {args.input}: {note}", file=sys.stderr)
     # a label without ``subject:`` would come back renamed from the window model

@@ -61,7 +61,8 @@ async def _main(args: argparse.Namespace) -> int:
     from labeler_service.capture import read_segment
 
     cap = read_segment(args.file, up=args.up)
-    check_init_window(cap, args.file, args.init_frames * max(args.downsample, 1))
+    # (a stream may hold a model that knows a performer the window misses: no subject check)
+    check_init_window(cap, args.file, args.init_frames, max(args.downsample, 1), subjects=False)
     frames = prepare(cap, spec)
     if args.init_frames > 0 and not frames.marker_names:
         raise LabelerError(

@@ -41,3 +41,20 @@ def test_an_empty_init_window_names_the_first_frame_with_a_marker(late_take, tmp
 
 def test_the_suggested_start_labels(late_take, tmp_path, capsys):
     assert main(["label", f"{late_take}:80", str(tmp_path / "out.c3d")]) == 0
+
+
+@pytest.mark.parametrize("command", ["label", "evaluate"])
+def test_a_subject_who_enters_after_the_window_is_named(rng, tmp_path, command, capsys):
+    """Two performers, the second walks in at frame 100: the training error named him but
+    not where he is in view."""
+    pos, names = articulated(rng, subjects=2, frames=300)
+    pos = np.array(pos, dtype=np.float32)
+    late = names[-1].split(":")[0]
+    pos[:100, [i for i, n in enumerate(names) if n.startswith(late + ":")]] = np.nan
+    path = write_capture(Capture(pos, names, 100.0, source="two"), tmp_path / "two.npz")
+    out = [str(tmp_path / "out.c3d")] if command == "label" else []
+    assert main([command, str(path), *out]) == 2
+    err = capsys.readouterr().err
+    assert f"subject {late} shows no marker in 3 or more of the first 50 frames" in err, err
+    assert f"every subject is in view from frame 100 ({path}:100)" in err
+    assert main([command, f"{path}:100", *out]) == 0
