@@ -87,6 +87,7 @@ def _methods(arg: list[str] | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     if args.plot is not None:  # before the run, not after it
+        _check_plot_format(args.plot)
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
     cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
@@ -236,6 +237,23 @@ def _print_table(report: dict) -> None:
     worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
     if worst:
         console.print(f"worst markers: {worst}")
+
+
+def _check_plot_format(path: Path) -> None:
+    """A ``--plot`` suffix matplotlib cannot write is refused before the run (no suffix:
+    PNG); it was matplotlib's ValueError traceback after the three evaluations."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    suffix = path.suffix.lower().lstrip(".")
+    formats = Figure().canvas.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise CaptureError(
+            f"{path}: cannot write a plot as .{suffix} (use .png, or one of "
+            f"{', '.join(sorted(formats))})"
+        )
 
 
 def plot_accuracy_vs_downsampling(

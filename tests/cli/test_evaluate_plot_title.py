@@ -25,3 +25,15 @@ def test_a_long_take_name_stays_inside_the_figure(tmp_path, monkeypatch):
     box = ax.title.get_window_extent(renderer)
     assert box.x0 >= 0 and box.x1 <= fig.bbox.width
     assert "".join(ax.get_title().split()).endswith("120:900")
+
+
+def test_a_plot_format_matplotlib_cannot_write_is_refused_before_the_run(tmp_path, capsys):
+    """``--plot out.xyz`` ran the three evaluations, then ended in matplotlib's traceback
+    "ValueError: Format 'xyz' is not supported"."""
+    from labeler_service.cli.main import main
+
+    code = main(["evaluate", str(tmp_path / "missing.c3d"), "--plot", str(tmp_path / "p.xyz")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "p.xyz: cannot write a plot as .xyz" in err and "png" in err
+    assert "missing.c3d" not in err  # said before the capture is read
