@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         min_size=args.min_size,
         max_size=args.max_size,
         up=args.up,
-    ).fit([_read_take(t, args.up, _renames(args.rename)) for t in args.inputs])
+    ).fit(_read_takes(args.inputs, args.up, _renames(args.rename)))
     model = trainer.model_
     save_model(model, args.out)
     summary = {
@@ -136,11 +136,37 @@ def _renames(items: list[str]) -> dict[str, str]:
     return out
 
 
-def _read_take(text: str, up: str, rename: dict[str, str]):
+def _read_takes(texts: list[str], up: str, rename: dict[str, str]) -> list:
+    """The takes, renamed; an OLD name no take has is an error (a misspelt one renamed
+    nothing, and the model kept a name the scene does not use). A subject never seen in a
+    take is left out of it, with a note (training stopped at it)."""
+    import sys
+
+    from labeler_service.errors import ModelError
+
+    caps = []
+    for text in texts:
+        cap, absent = _read_take(text, up).without_absent_subjects()
+        for name in absent:
+            print(
+                f"note: {text}: subject {name} is never seen in the take: left out", file=sys.stderr
+            )
+        caps.append(cap)
+    found = {s for c in caps for s in c.subjects if s}
+    for old in rename:
+        if old not in found:
+            raise ModelError(
+                f"--rename {old}={rename[old]}: no subject {old!r} in the takes "
+                f"(found {', '.join(sorted(found))})"
+            )
+    return [_renamed(c, rename) for c in caps]
+
+
+def _read_take(text: str, up: str):
     """The capture of ``TAKE[:start[:stop]]``, its subjects named as ``compose`` names them."""
     from pathlib import Path
 
-    from labeler_service.capture import Capture, read_capture, split_label
+    from labeler_service.capture import read_capture
     from labeler_service.errors import ModelError
 
     path, start, stop = parse_take(text)
@@ -152,10 +178,17 @@ def _read_take(text: str, up: str, rename: dict[str, str]):
     cap = cap.frames(start, stop)
     if not [s for s in cap.subjects if s]:
         cap = cap.with_subject(Path(path).stem.replace(":", "_") or "subject")
-    if rename:
-        labels = []
-        for lab in cap.labels:
-            subj, marker = split_label(lab)
-            labels.append(f"{rename[subj]}:{marker}" if subj in rename else lab)
-        cap = Capture(cap.positions, tuple(labels), cap.rate, source=cap.source)
     return cap
+
+
+def _renamed(cap, rename: dict[str, str]):
+    """``cap`` with its subjects OLD named NEW (``--rename OLD=NEW``)."""
+    from labeler_service.capture import Capture, split_label
+
+    if not rename:
+        return cap
+    labels = []
+    for lab in cap.labels:
+        subj, marker = split_label(lab)
+        labels.append(f"{rename[subj]}:{marker}" if subj in rename else lab)
+    return Capture(cap.positions, tuple(labels), cap.rate, source=cap.source)

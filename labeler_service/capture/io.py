@@ -1,10 +1,11 @@
 """Reading and writing captures: C3D (ezc3d), TRC (text) and NPZ (numpy, lossless and fast).
 
 Every reader returns a :class:`Capture` in millimetres, Z up, NaN for missing samples:
-(0, 0, 0) samples and negative C3D residuals become NaN, metres are converted, and a take
-recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is recorded in
-``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject named after
-the file stem. Problems raise :class:`CaptureError` naming the file, never a bare traceback.
+(0, 0, 0) and infinite samples and negative C3D residuals become NaN, metres are converted,
+and a take recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is
+recorded in ``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject
+named after the file stem. Problems raise :class:`CaptureError` naming the file, never a bare
+traceback.
 
 Points a processing model wrote beside the markers (angles, forces, virtual markers: the groups
 the C3D's POINT parameters list) are left out with a note (:func:`_c3d_markers`).
@@ -39,7 +40,11 @@ log = logging.getLogger(__name__)
 
 SUFFIXES = (".c3d", ".trc", ".npz")
 _Writer = Callable[[Capture, Path], None]
-_UNIT_SCALE = {"mm": 1.0, "millimeters": 1.0, "cm": 10.0, "m": 1000.0, "meters": 1000.0}
+_UNIT_SCALE = {
+    **dict.fromkeys(("mm", "millimeter", "millimeters", "millimetre", "millimetres"), 1.0),
+    **dict.fromkeys(("cm", "centimeter", "centimeters", "centimetre", "centimetres"), 10.0),
+    **dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 1000.0),
+}
 
 
 def read_capture(path: str | Path, up: str = "z", subject: str | None = None) -> Capture:
@@ -232,12 +237,17 @@ def _finish(
     positions: np.ndarray, labels: list[str], rate: float, source: Path, notes: list[str]
 ) -> Capture:
     """Applies the shared missing-sample and label rules, then builds the Capture."""
-    pos = np.ascontiguousarray(positions, dtype=np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, mapped below
+        pos = np.ascontiguousarray(positions, dtype=np.float32)
+    infinite = np.isinf(pos).any(axis=2)
+    if infinite.any():  # the labeler takes finite points only: missing, as NaN is
+        pos[infinite] = np.nan
+        notes.append(f"{int(infinite.sum())} infinite samples mapped to missing")
     zero = np.all(pos == 0.0, axis=2)
     if zero.any():
         pos[zero] = np.nan
         notes.append(f"{int(zero.sum())} (0,0,0) samples mapped to missing")
-    labels = _unique_labels([x.strip() for x in labels], notes)
+    labels = _unique_labels(_no_empty_prefix([x.strip() for x in labels], notes), notes)
     copies = _exact_copies(pos, labels)
     if copies:
         said = ", ".join(f"{labels[i]} = {labels[j]}" for i, j in copies[:4])
@@ -312,6 +322,17 @@ def _names_no_marker(label: str) -> bool:
     return bool(_UNLABELED_NAME.match(label) or _UNLABELED_NAME.match(split_label(label)[1]))
 
 
+def _no_empty_prefix(labels: list[str], notes: list[str]) -> list[str]:
+    """``:CLAV`` -> ``CLAV``: an empty subject prefix is no prefix (kept, the name split into
+    subject ``""`` and joined back without the colon: a marker nothing could find)."""
+    empty = [x for x in labels if x.startswith(":")]
+    if not empty:
+        return labels
+    said = ", ".join(repr(x) for x in empty[:3]) + (", ..." if len(empty) > 3 else "")
+    notes.append(f"{len(empty)} labels with an empty subject prefix ({said}) read without it")
+    return [x[1:].strip() if x.startswith(":") else x for x in labels]
+
+
 def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
     """Empty labels, and the names other systems give unlabeled trajectories
     (:data:`_UNLABELED_NAME`), become unlabeled tracks ``*N``; a repeated name gets a ``~k``
@@ -322,6 +343,9 @@ def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
     seen: dict[str, int] = {}
     out = []
     free = 0
+    empty = sum(1 for x in labels if not x)
+    if empty:
+        notes.append(f"{empty} empty labels read as unlabeled tracks *N")
     renamed = [x for x in labels if x and _names_no_marker(x)]
     if renamed:
         said = ", ".join(repr(x) for x in renamed[:3]) + (", ..." if len(renamed) > 3 else "")
@@ -355,6 +379,28 @@ def _y_up_to_z_up(cap: Capture) -> Capture:
     x, y, z = (cap.positions[..., i] for i in range(3))
     rotated = np.stack([x, -z, y], axis=-1)
     return cap.with_positions(rotated, notes=(*cap.notes, "rotated from Y up to Z up"))
+
+
+#: with no UNITS parameter, coordinates all within this of the origin are metres: no person
+#: fits within 50 mm, and a capture volume in metres is well inside 50 m
+METRE_GUESS_MAX = 50.0
+
+
+def _guess_units(pos: np.ndarray, notes: list[str]) -> str:
+    """The units of a C3D without a UNITS parameter: ``"m"`` when every captured coordinate
+    (not the (0,0,0) of a gap) lies within :data:`METRE_GUESS_MAX` of the origin (a take in
+    metres read as millimetres is a body 2 mm tall that no labeler gate fits), else ``""``
+    (millimetres, :func:`_unit_scale` notes it)."""
+    seen = np.isfinite(pos).all(axis=2) & np.any(pos != 0.0, axis=2)
+    if not seen.any():
+        return ""
+    reach = float(np.abs(pos[seen]).max())
+    if reach >= METRE_GUESS_MAX:
+        return ""
+    notes.append(
+        f"no UNITS parameter and every coordinate within {reach:.3g} of the origin: read as metres"
+    )
+    return "m"
 
 
 def _unit_scale(units: str, source: Path, notes: list[str]) -> float:
@@ -397,12 +443,28 @@ def _read_c3d(path: Path) -> Capture:
     n_markers = data.shape[1]
     notes: list[str] = []
     rate_values = point.get("RATE", {}).get("value", [])
-    if len(rate_values) == 0 or not float(rate_values[0]) > 0:
+    if len(rate_values) == 0:
         raise CaptureFormatError(f"{path}: no POINT:RATE")
+    if not float(rate_values[0]) > 0:
+        raise CaptureFormatError(
+            f"{path}: POINT:RATE is {float(rate_values[0]):g}: a capture needs a positive "
+            "frame rate (Hz)"
+        )
     rate = float(rate_values[0])
     units = point.get("UNITS", {}).get("value", [])
-    scale = _unit_scale(units[0] if len(units) else "", path, notes)
-    pos = np.transpose(data[:3], (2, 1, 0)) * scale  # (F, M, 3)
+    pos = np.transpose(data[:3], (2, 1, 0))  # (F, M, 3)
+    unit = units[0] if len(units) else ""
+    if not unit.strip():
+        unit = _guess_units(pos, notes)
+    elif _unit_scale(unit, path, []) == 1.0 and _guess_units(pos, []) == "m":
+        msg = (
+            f"UNITS says {unit.strip()} but every coordinate is within "
+            f"{METRE_GUESS_MAX:g} of the origin: the take may be in metres (nothing can be "
+            "labeled on a body a few millimetres tall)"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+    pos = pos * _unit_scale(unit, path, notes)
     residuals = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, F)
     if residuals.size:
         neg = residuals[0].T < 0

@@ -171,6 +171,19 @@ class Capture:
             labels=tuple(self.labels[i] for i in cols),
         )
 
+    def without_absent_subjects(self) -> tuple[Capture, tuple[str, ...]]:
+        """``(capture, names)``: the capture without the subjects none of whose markers is
+        ever visible (a session's subject list holds someone not in this take), and their
+        names. Nothing can be trained on or scored for such a subject, and a labeled start
+        stopped at it ("no marker is seen in 3 or more of its labeled training frames")."""
+        groups = subject_groups(self.labels, skip_ghosts=True)
+        seen = np.asarray(self.visible.any(axis=0))
+        absent = tuple(s for s, cols in groups.items() if s and not seen[cols].any())
+        if not absent or len(absent) == len(groups):  # all absent: the callers' errors say so
+            return self, ()
+        keep = [i for i, x in enumerate(self.labels) if split_label(x)[0] not in absent]
+        return self.select(keep), absent
+
     def frames(self, start: int = 0, stop: int | None = None, step: int = 1) -> Capture:
         """A frame range (``step`` > 1 decimates and divides the rate)."""
         if step < 1:

@@ -31,6 +31,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from labeler_service.cli.args import seed
 from labeler_service.errors import MocapError
 
 
@@ -57,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--labeler", choices=["online", "baseline"], default="online")
     p.add_argument("--labeled-start", choices=["auto", "labeler", "model"], default=None,
                    help="--start init: the stream's labeled_start (else the default)")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--workdir", type=Path, default=None, help="keep service log/config here")
     p.add_argument("--json", action="store_true", help="print the result as JSON (last line)")
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 
+from labeler_service.cli.args import seed
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", help="output capture (.c3d, .trc or .npz)")
@@ -23,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--radius", type=float, required=True, help="circle radius in mm (e.g. 300)")
     p.add_argument("--frames", type=int, required=True, help="frames in the scene (output rate)")
-    p.add_argument("--seed", type=int, required=True, help="seed for phase and yaw offsets")
+    p.add_argument("--seed", type=seed, required=True, help="seed for phase and yaw offsets")
     p.add_argument(
         "--rate",
         type=float,

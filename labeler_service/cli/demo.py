@@ -51,13 +51,14 @@ from pathlib import Path
 
 import numpy as np
 
+from labeler_service.cli.args import seed
 from labeler_service.errors import MocapError
 from labeler_service.testing.realdata import real_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("reports/demo"), help="report folder")
-    p.add_argument("--seed", type=int, default=7, help="scene and corruption seed")
+    p.add_argument("--seed", type=seed, default=7, help="scene and corruption seed")
     p.add_argument("--frames", type=int, default=1200, help="scene length (frames)")
     p.add_argument("--init-frames", type=int, default=None,
                    help="labeled window (default 50; 0: no labels, --start boot)")  # fmt: skip

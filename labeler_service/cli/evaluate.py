@@ -11,9 +11,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from pathlib import Path
 
 from labeler_service.capture import check_writable, read_segment
+from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
@@ -60,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--occlude-frames", type=int, default=15, help="frames each part is hidden")
     p.add_argument("--ghosts", type=float, default=0.0, help="mean ghost points per frame")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    p.add_argument("--seed", type=seed, default=0, help="seed of every random choice")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the file")
     p.add_argument(
         "--labeled-start",
@@ -85,9 +87,13 @@ def _methods(arg: list[str] | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     if args.plot is not None:  # before the run, not after it
+        _check_plot_format(args.plot)
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
-    cap = read_segment(args.truth, up=args.up)
+    cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
+    check_init_window(
+        cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None
+    )
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
     common = dict(
@@ -233,6 +239,23 @@ def _print_table(report: dict) -> None:
         console.print(f"worst markers: {worst}")
 
 
+def _check_plot_format(path: Path) -> None:
+    """A ``--plot`` suffix matplotlib cannot write is refused before the run (no suffix:
+    PNG); it was matplotlib's ValueError traceback after the three evaluations."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    suffix = path.suffix.lower().lstrip(".")
+    formats = Figure().canvas.get_supported_filetypes()
+    if suffix and suffix not in formats:
+        raise CaptureError(
+            f"{path}: cannot write a plot as .{suffix} (use .png, or one of "
+            f"{', '.join(sorted(formats))})"
+        )
+
+
 def plot_accuracy_vs_downsampling(
     curves: dict[str, list[tuple[int, float]]], out: Path, title: str = ""
 ) -> Path:
@@ -251,7 +274,9 @@ def plot_accuracy_vs_downsampling(
     ax.set_xticks([1, 2, 4], labels=["1", "2", "4"])
     ax.set_xlabel("down-sampling factor")
     ax.set_ylabel("labels correct (%)")
-    ax.set_title(f"accuracy vs down-sampling {title}".strip())
+    # the take's name on its own lines: a long name and frame range ran past the right edge
+    lines = ["accuracy vs down-sampling", *textwrap.wrap(title, 48, break_on_hyphens=False)]
+    ax.set_title("\n".join(lines), fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()

@@ -37,6 +37,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
+from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.labeling.registry import LABELED_STARTS
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
@@ -80,7 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(default): 'model' with 3 or more init frames (as evaluate)",
     )
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of IN")
-    p.add_argument("--seed", type=int, default=0, help="seed of the per-frame shuffle")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the per-frame shuffle")
     p.add_argument("--drop-recovered", action="store_true", help="write only observed samples")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.templates import load_model
 
     check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
-    cap = read_segment(args.input, up=args.up)
+    cap = without_absent_subjects(read_segment(args.input, up=args.up), args.input)
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):
@@ -120,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         raise LabelerError(
             f"{args.input} has no labeled markers: give --model, or label its first frames"
         )
+    check_init_window(cap, args.input, init, subjects=model is None)
     for note in thin_subjects(names) if init > 0 else ():
         print(f"note: {args.input}: {note}", file=sys.stderr)
     # a label without ``subject:`` would come back renamed from the window model

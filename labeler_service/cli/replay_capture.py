@@ -7,6 +7,8 @@ import asyncio
 import sys
 from pathlib import Path
 
+from labeler_service.cli.args import check_init_window, seed
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", help="labeled capture (.c3d, .trc, .npz), FILE[:start[:stop]] (frames)")
@@ -36,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-shuffle", action="store_true", help="keep the capture's point order")
     p.add_argument("--loops", type=int, default=1, help="passes, alternating direction")
     p.add_argument("--up", choices=["z", "y"], default="z", help="vertical axis of the file")
-    p.add_argument("--seed", type=int, default=0, help="corruption seed")
+    p.add_argument("--seed", type=seed, default=0, help="corruption seed")
 
 
 async def _main(args: argparse.Namespace) -> int:
@@ -45,6 +47,11 @@ async def _main(args: argparse.Namespace) -> int:
     from labeler_service.service.transports.url import redact_url
     from labeler_service.tools.replay import open_sender, prepare, replay
 
+    if args.init_frames < 0:
+        raise LabelerError(
+            f"--init-frames must be >= 0 (0: a stream configured with a model), "
+            f"got {args.init_frames}"
+        )
     spec = CorruptionSpec(
         downsample=args.downsample, gaps=args.gaps, gap_frames=args.gap_frames,
         dropouts=args.dropouts, ghosts=args.ghosts, jitter_mm=args.jitter,
@@ -53,7 +60,10 @@ async def _main(args: argparse.Namespace) -> int:
     )  # fmt: skip
     from labeler_service.capture import read_segment
 
-    frames = prepare(read_segment(args.file, up=args.up), spec)
+    cap = read_segment(args.file, up=args.up)
+    # (a stream may hold a model that knows a performer the window misses: no subject check)
+    check_init_window(cap, args.file, args.init_frames, max(args.downsample, 1), subjects=False)
+    frames = prepare(cap, spec)
     if args.init_frames > 0 and not frames.marker_names:
         raise LabelerError(
             f"{args.file}: no labeled markers (only unlabeled *N tracks): --init-frames "

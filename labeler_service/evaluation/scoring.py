@@ -680,6 +680,16 @@ def evaluate(
         seed=seed,
     )
     stream = corrupt(capture, spec)
+    if stream.n_frames <= init_frames:  # before a window model's error (asks for init frames)
+        if downsample > 1:
+            raise SceneError(
+                f"--downsample {downsample} leaves {stream.n_frames} of the {capture.n_frames} "
+                f"frames, not more than the {init_frames}-frame init window: down-sample less, "
+                "or give fewer --init-frames"
+            )
+        raise SceneError(
+            f"{stream.n_frames} frames is not more than the {init_frames}-frame init window"
+        )
     if not stream.marker_names:
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}

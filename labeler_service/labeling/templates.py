@@ -250,7 +250,7 @@ def _first_error(exc: ValidationError, raw: object = None) -> str:
     subject also names it (``subjects.0 ('P1').chirality.0.3: ...``)."""
     err = exc.errors()[0]
     where = [str(x) for x in err.get("loc", ())]
-    msg = str(err.get("msg", "invalid"))
+    msg = str(err.get("msg", "invalid")).removeprefix("Value error, ")  # pydantic's, not ours
     if len(where) >= 2 and where[0] == "subjects" and isinstance(raw, dict):
         subjects = raw.get("subjects")
         k = int(where[1]) if where[1].isdigit() else -1

@@ -35,7 +35,12 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service.errors import LabelerError
-from labeler_service.labeling.templates import PAIR_DISTANCE_MM, SubjectTemplate, make_subject
+from labeler_service.labeling.templates import (
+    MOTION_NOISE_RANGE,
+    PAIR_DISTANCE_MM,
+    SubjectTemplate,
+    make_subject,
+)
 
 
 def pair_statistics(pos: np.ndarray, min_pair_frames: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -296,6 +301,14 @@ def train_subject(
         bodies += glimpse_bodies(pos, D, A, usable, thin, max_size, tolerance_mm)
     shapes = [reference_shape(pos, b, D) for b in bodies]
     q = motion_noise(pos, rate)
+    worst = int(np.argmax(q))
+    if q[worst] > MOTION_NOISE_RANGE[1]:  # the template would refuse it, in its own words
+        raise LabelerError(
+            f"subject {name!r}: its markers accelerate beyond any body in the labeled frames "
+            f"({markers[worst]}: motion noise {q[worst]:.3g} (mm/s^2)^2, at most "
+            f"{MOTION_NOISE_RANGE[1]:g}): is the capture's frame rate ({rate:g} Hz) right, are "
+            "its units millimetres, and do its labels stay on their markers?"
+        )
     return make_subject(name, markers, D, A, bodies, shapes, q)
 
 

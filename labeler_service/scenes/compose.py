@@ -139,6 +139,12 @@ class TakeSpec:
 
     def _pick_subject(self, cap: Capture, notes: list[str]) -> Capture:
         subjects = [s for s in cap.subjects if s]
+        if not cap.subjects:
+            raise SceneError(
+                f"{self.name}: no labeled marker ({int(cap.ghost_mask.sum())} unlabeled tracks "
+                "*N): compose places labeled single-person takes; label this one first "
+                "(label --model)"
+            )
         if self.subject is None:
             if len(subjects) > 1:
                 raise SceneError(
@@ -257,7 +263,7 @@ def body_centre(positions: np.ndarray, sigma_frames: float = 0.0) -> np.ndarray:
         t: np.ndarray = np.arange(f)
         for axis in (0, 1):
             centre[~ok, axis] = np.interp(t[~ok], t[ok], centre[ok, axis])
-    if sigma_frames > 0:
+    if sigma_frames > 0 and f >= 2:  # (a straight line through one frame is no fit)
         from scipy.ndimage import gaussian_filter1d
 
         # Smooth around the straight-line drift so that the ends do not lag behind a walk.

@@ -47,7 +47,9 @@ class CorruptionSpec:
       random angle (uniform, +-180 degrees) and shifted horizontally by a random vector of
       length up to ``leave_shift_mm`` (1 m). The absence starts at a random frame after
       ``protect_frames``, and the return leaves at least ``leave_seconds`` (at least one
-      frame) before the take ends. Applied before every other corruption.
+      frame) before the take ends, and before the subject's own markers end (a short take
+      in a composed scene): subjects that end too soon for that are not chosen. Applied
+      before every other corruption.
     - ``protect_frames``: the first frames (after down-sampling) get no gaps, drop-outs,
       departures or ghosts (the labeler's supervised training window).
     """
@@ -217,11 +219,28 @@ def _departures(
             f"the return need {2 * away} frames after the init window, there are "
             f"{n_frames - start}"
         )
+    # latest first frame gone of each subject: its return and leave_seconds after it fall
+    # before its take ends (a composed short take ends inside the window: a departure after
+    # that, or one whose return is, would bring back no one)
+    visible = np.isfinite(positions[..., 0])
+    latest: dict[str, int] = {}
+    for name in subjects:
+        frames = np.flatnonzero(visible[:, sub.subject_columns(name)].any(axis=1))
+        end = int(frames[-1]) + 1 if frames.size else 0
+        if end - 2 * away >= start:
+            latest[name] = min(last, end - 2 * away)
+    if spec.leave > len(latest):
+        raise SceneError(
+            f"--leave {spec.leave}: only {len(latest)} of the {len(subjects)} subjects are "
+            f"present long enough for a departure and a return of --leave-seconds "
+            f"{spec.leave_seconds:g} after the init window (a short take ends inside the scene)"
+        )
+    subjects = [name for name in subjects if name in latest]
     out = []
     for k in sorted(rng.choice(len(subjects), size=spec.leave, replace=False)):
         name = subjects[int(k)]
         cols = sub.subject_columns(name)
-        f0 = int(rng.integers(start, last + 1))
+        f0 = int(rng.integers(start, latest[name] + 1))
         back = f0 + away
         angle = rng.uniform(-np.pi, np.pi)
         r = spec.leave_shift_mm * np.sqrt(rng.random())

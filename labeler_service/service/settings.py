@@ -385,6 +385,17 @@ def _format_errors(exc: ValidationError, environ: Any = None) -> str:
                 f" ({key} is a setting of one stream: in TOML, write it below that stream's "
                 '[[streams]] name = "..."; in the environment, in MOCAP_STREAMS)'
             )
+        elif (
+            err["type"] == "extra_forbidden"
+            and len(err["loc"]) == 2
+            and err["loc"][0] != "streams"
+            and key in ServiceSettings.model_fields
+        ):
+            # TOML: a key written below [udp] or [mqtt] belongs to that section's table
+            msg += (
+                f" ({key} is a setting of the whole service, not of [{err['loc'][0]}]: in "
+                "TOML, write it above the first [section] or [[streams]])"
+            )
         elif err["type"] == "extra_forbidden" and err["loc"]:
             msg += _did_you_mean(key, _section_keys(tuple(err["loc"])))
         names = _env_names(tuple(err["loc"]), env) if err["loc"] else []

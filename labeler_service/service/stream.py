@@ -475,8 +475,13 @@ class StreamState:
         names = group_by_subject([n for n in init.names if not is_ghost(n)])
         if not names:
             raise LabelerError(
-                f"stream {self.name}: the init frames carry no labels"
-                + (" (only ghost *N labels)" if init.names else "")
+                f"stream {self.name}: the init frames hold no labeled point"
+                + (
+                    " (only ghost *N labels)"
+                    if init.names
+                    else " (no points: a take that starts before anyone is in view? start the "
+                    "replay where the performers are: replay FILE:start)"
+                )
             )
         empty = [n for n in names if split_label(n)[0] == ""]
         if empty:

@@ -25,6 +25,8 @@ import json
 import time
 from pathlib import Path
 
+from labeler_service.cli.args import seed
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("train", help="training capture (.c3d, .trc, .npz)")
@@ -35,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("--k", type=int, nargs="+", default=[3, 4, 5, 6], help="segment counts")
     p.add_argument("--restarts", type=int, default=1000, help="k-means restarts [1000]")
-    p.add_argument("--seed", type=int, default=0, help="random seed [0]")
+    p.add_argument("--seed", type=seed, default=0, help="random seed [0]")
     p.add_argument("--faces", help="marker-surface triangles (three marker names per line)")
     p.add_argument("--truth", help="ground truth truth.npz from simulate-shoulder")
     p.add_argument("--subject", help="subject to segment (default: the one with most markers)")

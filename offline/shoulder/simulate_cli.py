@@ -13,6 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
+from labeler_service.cli.args import seed
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", help="output folder")
@@ -24,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--gap-rate", type=float, default=0.0, help="occlusion gaps per marker per 1000 frames [0]"
     )
     p.add_argument("--rate", type=float, default=120.0, help="frame rate, Hz [120]")
-    p.add_argument("--seed", type=int, default=0, help="random seed [0]")
+    p.add_argument("--seed", type=seed, default=0, help="random seed [0]")
     p.add_argument(
         "--format", choices=("c3d", "npz", "trc"), default="c3d", help="capture format [c3d]"
     )

@@ -59,6 +59,10 @@ def test_train_structure_on_a_frame_range_names_subjects_like_compose(scene, tmp
         assert why in capsys.readouterr().err
     assert main(["train", "structure", str(solo), "--rename", "nope", "--out", str(out)]) == 2
     assert "OLD=NEW" in capsys.readouterr().err
+    # a misspelt OLD renamed nothing and the model kept the old name, silently
+    args = ["train", "structure", str(solo), "--rename", "solo-take=P2", "--out", str(out)]
+    assert main(args) == 2
+    assert "no subject 'solo-take' in the takes (found solo_take)" in capsys.readouterr().err
 
 
 def test_label_an_unlabeled_take_from_a_model(scene, tmp_path, capsys):

@@ -56,6 +56,13 @@ def test_replay_refuses_more_init_frames_than_the_capture_has(take, capsys):
     _one_error_line(capsys.readouterr().err, "80 frames", "99999 init frames")
 
 
+def test_replay_refuses_negative_init_frames_by_their_flag(take, capsys):
+    # it said "invalid corruption setting: protect_frames=-1", a name no flag has
+    code = main(["replay", str(take), "--to", "udp://127.0.0.1:9/x", "--init-frames", "-1"])
+    assert code == 2
+    _one_error_line(capsys.readouterr().err, "--init-frames must be >= 0", "got -1")
+
+
 def test_replay_of_a_frame_range_counts_the_range(take, capsys):
     # FILE:start:stop replays that segment only: 30 frames cannot hold 50 init frames
     code = main(["replay", f"{take}:20:50", "--to", "udp://127.0.0.1:9/x", "--init-frames", "50"])

@@ -323,6 +323,31 @@ def test_leave_errors(rng):
         CorruptionSpec(leave=1, leave_seconds=0.0)
 
 
+def test_leave_picks_performers_present_through_the_return(rng):
+    """In a composed scene a short take ends inside the window (its performer leaves the
+    volume). ``--leave`` picked such a performer, or a departure after his take ended, and
+    his return was into nothing: no return to re-identify. A departure now ends, and the
+    performer stays ``leave_seconds`` after it, before his take does."""
+    cap = _walkers(rng, subjects=3)
+    pos = cap.positions.copy()
+    pos[150:, 4:8] = np.nan  # P2's take ends at frame 150
+    cap = cap.with_positions(pos)
+    picked_p2 = 0
+    for seed in range(40):
+        st = corrupt(cap, CorruptionSpec(leave=2, leave_seconds=0.5, protect_frames=20, seed=seed))
+        for subject, f0, back in st.departures:
+            cols = [i for i, n in enumerate(st.marker_names) if n.startswith(subject + ":")]
+            after = np.isfinite(st.positions[back : back + 50, cols, 0]).any(axis=1)
+            assert after.all(), (seed, subject, f0, back)
+            picked_p2 += subject == "P2"
+    assert picked_p2 > 0  # a performer whose take ends is still chosen when his return fits
+    pos[40:, 4:8] = np.nan  # P2 gone before a departure and a return fit
+    with pytest.raises(SceneError, match="present"):
+        corrupt(cap.with_positions(pos), CorruptionSpec(leave=3, leave_seconds=0.5))
+    st = corrupt(cap.with_positions(pos), CorruptionSpec(leave=2, leave_seconds=0.5))
+    assert {d[0] for d in st.departures} == {"P1", "P3"}
+
+
 def test_scorer_sees_leave_returns(rng):
     """An oracle labeler on a --leave stream: every return is re-identified at once."""
     cap = _walkers(rng)

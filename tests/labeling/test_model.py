@@ -70,6 +70,23 @@ def test_make_subject_names_the_subject():
         make_subject("bad", ["a", "a"], np.zeros((2, 2)), np.zeros((2, 2)), [], [], np.ones(2))
 
 
+def test_model_errors_carry_no_pydantic_prefix(tmp_path):
+    """'invalid model: Value error, duplicate subject names': pydantic's prefix, not ours."""
+    with pytest.raises(ModelError) as err:
+        make_subject("bad", ["a", "a"], np.zeros((2, 2)), np.zeros((2, 2)), [], [], np.ones(2))
+    assert "Value error" not in str(err.value)
+    path = tmp_path / "m.json"
+    save_model(LabelerModel(rate=120.0, subjects=[_subject("s")]), path)
+    import json
+
+    raw = json.loads(path.read_text())
+    raw["subjects"].append(raw["subjects"][0])
+    path.write_text(json.dumps(raw))
+    with pytest.raises(ModelError, match="duplicate subject names") as err:
+        load_model(path)
+    assert "Value error" not in str(err.value)
+
+
 def test_a_file_that_is_no_model_says_what_a_model_is(tmp_path):
     """``--model take.c3d`` said "not UTF-8 text (byte 14)", a JSON of something else
     "unsupported model version None": neither named the mistake nor the fix."""

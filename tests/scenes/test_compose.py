@@ -485,3 +485,36 @@ def test_real_takes_of_other_conventions(real_path):
         cap = read_capture(path)
         assert len(side_pairs([split_label(x)[1] for x in cap.labels])) == pairs, path.name
     assert "facing from left/right marker pairs" in notes
+
+
+def test_a_take_with_only_unlabeled_tracks_is_a_clear_error(rng, tmp_path):
+    """A raw take (every column ``*N``, as raw_unlabeled_kneel_to_run) has no performer to
+    place: compose says so instead of a numpy traceback from the up-axis test."""
+    take = synthetic_take(rng, frames=60, name="Raw")
+    raw = Capture(take.positions, tuple(f"*{i}" for i in range(take.n_markers)), take.rate)
+    other = synthetic_take(rng, frames=60, name="B")
+    with pytest.raises(SceneError, match="no labeled marker.*unlabeled tracks"):
+        compose_scene([raw, other], radius=300.0, frames=50, seed=0)
+    from labeler_service.capture import write_capture
+
+    path = write_capture(raw, tmp_path / "raw.c3d")
+    out = tmp_path / "scene.c3d"
+    assert (
+        main(
+            ["compose", str(out), f"{path}:0:z", "--radius", "300", "--frames", "50", "--seed", "0"]
+        )
+        == 2
+    )
+
+
+def test_a_one_frame_take_composes_without_numpy_warnings(rng):
+    one = synthetic_take(rng, frames=1, name="One")
+    other = synthetic_take(rng, frames=60, name="B")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene = compose_scene(
+            [TakeSpec(capture=one, up="z"), other], radius=300.0, frames=50, seed=0
+        )
+    assert any("ends at scene frame 1 of 50" in n for n in scene.notes)

@@ -103,6 +103,23 @@ def test_a_service_setting_written_under_streams_says_where_it_belongs(tmp_path)
     assert "whole service" not in line
 
 
+def test_a_service_setting_written_under_a_section_says_where_it_belongs(tmp_path):
+    # TOML: `labeler = ...` below [udp] lands in the udp table: "udp.labeler: not a setting"
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(
+        '[udp]\nport = 9870\nlabeler = "online"\n[mqtt]\nenabled = false\nstreams = []\n'
+    )
+    with pytest.raises(ConfigError) as err:
+        load_settings(cfg)
+    text = str(err.value)
+    assert (
+        "udp.labeler: not a setting (labeler is a setting of the whole service, not of [udp]"
+        in text
+    )
+    assert "mqtt.streams: not a setting (streams is a setting of the whole service" in text
+    assert "above the first [section]" in text
+
+
 def test_an_invalid_value_from_the_environment_names_its_variable(tmp_path, monkeypatch):
     """The environment wins over the file, so an error in a value it set names the variable,
     not only the file (``MOCAP_STREAMS__0__LABELED_START=model`` read as 'streams: Input should

@@ -1,0 +1,88 @@
+"""Argument types and input checks shared by the commands."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def seed(text: str) -> int:
+    """``--seed``: a whole number >= 0 (numpy refuses a negative seed with a traceback)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a seed is a whole number >= 0, got {text!r}")
+    return value
+
+
+#: frames of the window a marker must be seen in to be trained (``train_subject``'s
+#: ``min_pair_frames``)
+MIN_SEEN_FRAMES = 3
+
+
+def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool = True) -> None:
+    """Refuses labeled init frames (the first ``init`` frames, every ``step``-th) that show no
+    labeled marker at all (a take that starts before anyone is in view), or, with
+    ``subjects``, that show a subject in fewer than 3 frames (no marker of his can be trained:
+    he walks in later), naming the frame to start at as ``FILE:start`` (in the file's
+    numbering, as ``spec``'s range is); the labeler's own error said only "start where the
+    subject is in the volume"."""
+    import numpy as np
+
+    from labeler_service.capture import subject_groups
+    from labeler_service.capture.io import split_segment
+    from labeler_service.errors import LabelerError
+
+    if init <= 0:
+        return
+    named = np.flatnonzero(~cap.ghost_mask)
+    visible = np.isfinite(cap.positions[:, named, 0])
+    seen = visible.any(axis=1)
+    window = visible[: init * step : step]
+    path, start, _ = split_segment(spec)
+    if not window.any() and seen.any():
+        first = start + int(np.argmax(seen))
+        where = f"the first frame that shows one is {first} ({path}:{first})"
+        every = visible.all(axis=1)
+        if every.any() and start + int(np.argmax(every)) > first:
+            full = start + int(np.argmax(every))
+            where += (
+                f", the first that shows all {visible.shape[1]} is {full} ({path}:{full}; the "
+                "markers a window does not show stay unlabeled)"
+            )
+        raise LabelerError(
+            f"{spec}: no labeled marker is seen in the first {init} frames (the labeled init "
+            f"window): {where}"
+        )
+    if not subjects or init < MIN_SEEN_FRAMES:  # (too few init frames: the commands say so)
+        return
+    groups = subject_groups([cap.labels[i] for i in named])
+    outside = [
+        s for s, cols in groups.items() if window[:, cols].sum(axis=0).max() < MIN_SEEN_FRAMES
+    ]
+    if not outside or not window.any():
+        return
+    present = np.stack([visible[:, cols].any(axis=1) for cols in groups.values()], axis=1)
+    every = np.asarray(present.all(axis=1))
+    if not every.any() or every[0]:
+        return  # the labeler's own error names the subject (no later start would help)
+    first = start + int(np.argmax(every))
+    more = f" (and {len(outside) - 1} more)" if len(outside) > 1 else ""
+    raise LabelerError(
+        f"{spec}: subject {outside[0] or '(no prefix)'}{more} shows no marker in "
+        f"{MIN_SEEN_FRAMES} or more of the first {init} frames (the labeled init window), so "
+        f"nothing of him can be learned: every subject is in view from frame {first} "
+        f"({path}:{first})"
+    )
+
+
+def without_absent_subjects(cap, spec: str):
+    """``cap`` without the subjects never seen in it (:meth:`Capture.without_absent_subjects`),
+    each said on stderr."""
+    import sys
+
+    kept, absent = cap.without_absent_subjects()
+    for name in absent:
+        print(f"note: {spec}: subject {name} is never seen in the take: left out", file=sys.stderr)
+    return kept

@@ -1,0 +1,26 @@
+"""A C3D whose POINT:RATE is 0 or negative (a broken export) says so; it said "no POINT:RATE",
+which sends the user looking for a parameter the file has."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import Capture, read_capture, write_capture
+from labeler_service.errors import CaptureFormatError
+
+MARK = 12345.0  # a rate to find in the file's bytes (ezc3d aborts on writing a rate of 0)
+
+
+@pytest.mark.parametrize("rate", [0.0, -50.0])
+def test_a_zero_or_negative_rate_is_named(tmp_path, rng, rate):
+    pos = rng.normal(scale=300.0, size=(5, 3, 3)).astype(np.float32)
+    path = write_capture(Capture(pos, ("S:a", "S:b", "S:c"), MARK), tmp_path / "r.c3d")
+    raw = bytearray(path.read_bytes())
+    old, new = struct.pack("<f", MARK), struct.pack("<f", rate)
+    assert raw.count(old) >= 1
+    path.write_bytes(bytes(raw).replace(old, new))
+    with pytest.raises(CaptureFormatError, match=f"POINT:RATE is {rate:g}.*positive"):
+        read_capture(path)

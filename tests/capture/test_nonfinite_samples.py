@@ -1,0 +1,43 @@
+"""Samples a file stores as infinite (or too large for float32: a C3D's float 1e39 becomes inf)
+are missing, as NaN and (0,0,0) are: they reached the labeler, and ``evaluate`` stopped with
+'points must be finite (drop missing points instead of NaN)', an error about the labeler's
+input that the user never wrote."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from labeler_service.capture import Capture, read_capture, write_capture
+from labeler_service.cli.main import main
+
+
+def test_infinite_samples_read_as_missing_with_a_note(tmp_path, rng, capsys):
+    t = np.arange(80)[:, None, None] / 100.0
+    pos = rng.normal(scale=300.0, size=(1, 6, 3)) + np.array([200.0, 0.0, 0.0]) * t
+    pos[10:14, 2] = np.inf
+    pos[20, 3, 1] = -np.inf
+    pos[30, 4] = 1e39  # a float64 beyond float32
+    path = tmp_path / "inf.npz"
+    np.savez(path, positions=pos, labels=np.array([f"S:m{i}" for i in range(6)]), rate=100.0)
+    cap = read_capture(path)
+    gone = ~np.isfinite(cap.positions).all(axis=2)
+    expected = np.zeros((80, 6), dtype=bool)
+    expected[10:14, 2] = expected[20, 3] = expected[30, 4] = True
+    np.testing.assert_array_equal(gone, expected)
+    assert np.isnan(cap.positions[gone]).all()
+    assert any("6 infinite samples mapped to missing" in n for n in cap.notes), cap.notes
+    # and the CLI scores it
+    assert main(["evaluate", str(path), "--init-frames", "5", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["frames"] > 0
+
+
+def test_finite_captures_get_no_note(tmp_path, rng):
+    pos = rng.normal(scale=300.0, size=(10, 3, 3)).astype(np.float32)
+    pos[2, 1] = np.nan
+    cap = read_capture(
+        write_capture(Capture(pos, ("S:a", "S:b", "S:c"), 100.0), tmp_path / "a.c3d")
+    )
+    assert not any("infinite" in n for n in cap.notes)

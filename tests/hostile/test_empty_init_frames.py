@@ -1,0 +1,36 @@
+"""Labeled init frames that hold no point (``replay --init-frames 50`` of a take that starts
+before anyone is in view): the service's training error said "the init frames carry no labels",
+and the user had sent labels; it now says the init frames hold no labeled point."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import numpy as np
+from hostile.helpers import run, settings
+
+from labeler_service.service.protocol import encode_frame
+from labeler_service.service.server import Server
+from labeler_service.service.transports.memory import MemoryTransport
+
+
+def test_init_frames_without_points_are_named_as_such(caplog):
+    caplog.set_level(logging.WARNING)
+    empty = np.zeros((0, 3), np.float32)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(labeler="baseline"), [mem]) as srv:
+            for k in range(5):
+                mem.inject(encode_frame("default", k, k / 100, empty, []))
+            pts = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
+            mem.inject(encode_frame("default", 5, 0.05, pts))
+            async with asyncio.timeout(10):
+                while srv.metrics.drops("training_failed") == 0:
+                    await asyncio.sleep(0.05)
+
+    run(go(), timeout=30)
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert "the init frames hold no labeled point" in text, text
+    assert "carry no labels" not in text
