@@ -95,7 +95,6 @@ def test_tracker_kernel_matches_the_numpy_steps(rng):
     assert a._next == b._next > n  # tracks did break and restart
 
 
-
 def test_a_fast_limb_is_tracked_with_its_neighbours():
     """A sprinter at 250 Hz: the body moves 9 m/s, the swinging foot 12 m/s (48 mm a frame,
     beyond the gate of a point with no velocity yet, which is left in place). The foot's points
