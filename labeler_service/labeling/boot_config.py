@@ -46,13 +46,6 @@ class BootConfig(BaseModel):
         "the relative speed dt) is at most this: a gate wider than the spacing of a segment's "
         "markers tells no marker from the next (at 25 Hz and below it cost the matrix labels)",
     )
-    track_ratio: float = Field(
-        0.0,
-        ge=0,
-        lt=1,
-        description="every gate is at least this fraction of the distance from the prediction "
-        "to its second-nearest point (0: off), at most the gate of a point without velocity",
-    )
     track_hold_frames: int = Field(
         2,
         ge=0,

@@ -71,7 +71,6 @@ class PointTracker:
             self._next,
             float(rel_dt),
             float(c.track_neighbour_mm if g0 + rel_dt <= c.track_neighbour_gate_mm else 0.0),
-            float(c.track_ratio),
         )
         self._next = int(nxt)
         self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.spatial import ANY, _index, _nearest, _span
+from labeler_service.labeling.kernels.spatial import ANY, _index, _nearest
 
 # tracks whose velocities predict a track that has none yet (``_neighbour_velocity``)
 NEIGHBOURS = 3
@@ -59,28 +59,6 @@ def _match_tracks(pts, pred, gate):
         if back == i:
             out[i] = j
     return out
-
-
-@njit
-def _two_nearest(points, index, centre, lim2):
-    """Squared distances from ``centre`` to its nearest and second-nearest point of ``points``
-    below ``lim2`` (``lim2`` where there is none)."""
-    lo, hi = _span(index, centre, np.sqrt(lim2) if lim2 > 0.0 else 0.0)
-    order = index.order
-    b1 = lim2
-    b2 = lim2
-    for k in range(lo, hi):
-        j = order[k]
-        d2 = 0.0
-        for c in range(3):
-            d = points[j, c] - centre[c]
-            d2 += d * d
-        if d2 < b1:
-            b2 = b1
-            b1 = d2
-        elif d2 < b2:
-            b2 = d2
-    return b1, b2
 
 
 @njit(fastmath=False)
@@ -123,7 +101,7 @@ def _neighbour_velocity(prev, prev_vel, prev_has_vel, j, radius, out):
 @njit(fastmath=False)
 def _track_step(
     pts, prev, prev_vel, prev_has_vel, prev_ids, prev_birth, dt, t, g0, speed_dt, nxt,
-    rel_dt, radius, ratio,
+    rel_dt, radius,
 ):  # fmt: skip
     """One frame of ``PointTracker.update`` (boot_tracks.py) in one pass: the previous points
     ``prev (K, 3)`` predicted at constant velocity (``prev_vel`` where ``prev_has_vel``) with
@@ -136,10 +114,7 @@ def _track_step(
 
     A track with no velocity yet moves with its neighbours when ``radius > 0``: predicted at
     the mean velocity of the nearest tracks that have one within ``radius`` mm, gate ``g0 +
-    rel_dt`` (a marker's speed relative to its neighbours). With ``ratio > 0`` every gate is at
-    least ``ratio`` times the distance from the prediction to its second-nearest point, at most
-    the no-velocity gate ``g0 + speed_dt`` (a mutual nearest pair far from any other point is
-    no ambiguity, however far from its prediction)."""
+    rel_dt`` (a marker's speed relative to its neighbours)."""
     n = pts.shape[0]
     k = prev.shape[0]
     ids = np.full(n, -1, dtype=np.int64)
@@ -163,14 +138,6 @@ def _track_step(
                 for a in range(3):
                     pred[j, a] = prev[j, a] + 0.0
                 gate[j] = g0 + speed_dt
-        if ratio > 0.0:
-            gmax = g0 + speed_dt
-            ipts = _index(pts)
-            for j in range(k):
-                if gate[j] >= gmax:
-                    continue
-                _, d2 = _two_nearest(pts, ipts, pred[j], (gmax / ratio) ** 2)
-                gate[j] = max(gate[j], min(gmax, ratio * np.sqrt(d2)))
         j_pt = _match_tracks(pts, pred, gate)
         for i in range(n):
             j = j_pt[i]
