@@ -26,6 +26,26 @@ class BootConfig(BaseModel):
         description="speed the gate allows for a point without velocity yet (a sprint is 9 m/s: "
         "at 3 m/s no marker of a sprinter ever got a second frame)",
     )
+    track_neighbour_mm: float = Field(
+        300.0,
+        ge=0,
+        description="a point without velocity yet is predicted at the mean velocity of the "
+        "nearest tracked points within this distance (0: not moved); a sprinter's foot moves "
+        "85 mm a frame at 250 Hz, and a broken track could never be continued",
+    )
+    track_relative_speed_mm_s: float = Field(
+        5000.0,
+        ge=0,
+        description="speed relative to its neighbours the gate allows for a point predicted "
+        "from them",
+    )
+    track_neighbour_gate_mm: float = Field(
+        150.0,
+        gt=0,
+        description="the neighbours' prediction only while its gate (track_gate_mm + a dt^2 + "
+        "the relative speed dt) is at most this: a gate wider than the spacing of a segment's "
+        "markers tells no marker from the next (at 25 Hz and below it cost the matrix labels)",
+    )
     track_hold_frames: int = Field(
         2,
         ge=0,

@@ -1962,7 +1962,10 @@ def warmup_kernels() -> None:
     _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
     _constancy_counts(np.zeros((2, 2, 3)), z.copy(), np.zeros((2, 2)), np.ones((2, 2)), ~out_b)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
-    _track_step(p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0)
+    _track_step(
+        p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0, 1.0,
+        300.0,
+    )  # fmt: skip
     _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))
     # a booting labeler's installs (kernels/stacked.py; the other one warms with the inner
     # labeler's install: BootingLabeler.warmup)

@@ -17,8 +17,13 @@ class PointTracker:
 
     ``update(points, t)`` returns one track id per point: the id of the previous frame's point
     it continues, or a new id. A match must be mutual (each is the other's nearest) and within
-    ``track_gate_mm + a dt^2`` of the constant-velocity prediction (``+ v dt`` for a track with
-    no velocity yet). Ambiguous points simply start new tracks: the boot wants few, clean tracks.
+    ``track_gate_mm + a dt^2`` of the constant-velocity prediction. A track with no velocity yet
+    (one frame old) is predicted at the mean velocity of its nearest tracked neighbours within
+    ``track_neighbour_mm`` (gate ``+ track_relative_speed_mm_s dt``, while that gate is at most
+    ``track_neighbour_gate_mm``: at 25 Hz and below it is not), or not moved (gate ``+
+    track_speed_mm_s dt``): a point that broke its track in a fast limb would
+    otherwise never be continued. Ambiguous points simply start new tracks: the boot wants few,
+    clean tracks.
     A frame with no point at all (a dropout) leaves the tracks as they were, up to
     ``track_hold_frames`` such frames in a row; the next points continue them over the gap.
     """
@@ -48,6 +53,7 @@ class PointTracker:
             dt = 1.0 / self.rate
         c = self.config
         g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+        rel_dt = c.track_relative_speed_mm_s * dt
         # mutual nearest prediction within its gate (kernels/track.py: a sweep index with
         # bounded searches; two KD-trees cost ~0.5 ms a frame at 500 points), the prediction,
         # the gates and the new state in the same kernel
@@ -63,6 +69,8 @@ class PointTracker:
             float(g0),
             float(c.track_speed_mm_s * dt),
             self._next,
+            float(rel_dt),
+            float(c.track_neighbour_mm if g0 + rel_dt <= c.track_neighbour_gate_mm else 0.0),
         )
         self._next = int(nxt)
         self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t

@@ -28,6 +28,8 @@ import numpy as np
 from labeler_service._numba import njit
 from labeler_service.labeling.kernels.spatial import ANY, _index, _nearest
 
+# tracks whose velocities predict a track that has none yet (``_neighbour_velocity``)
+NEIGHBOURS = 3
 # relative slack on squared distances handed to a bounded search as its (strict) limit
 _REL = 1e-9
 
@@ -60,7 +62,47 @@ def _match_tracks(pts, pred, gate):
 
 
 @njit(fastmath=False)
-def _track_step(pts, prev, prev_vel, prev_has_vel, prev_ids, prev_birth, dt, t, g0, speed_dt, nxt):
+def _neighbour_velocity(prev, prev_vel, prev_has_vel, j, radius, out):
+    """The mean velocity of the (up to) ``NEIGHBOURS`` tracks with a velocity nearest
+    ``prev[j]`` within ``radius`` mm, into ``out (3,)``; False when there is none."""
+    bd = np.full(NEIGHBOURS, radius * radius)
+    bi = np.full(NEIGHBOURS, -1, dtype=np.int64)
+    for q in range(prev.shape[0]):
+        if not prev_has_vel[q]:
+            continue
+        d2 = 0.0
+        for c in range(3):
+            d = prev[q, c] - prev[j, c]
+            d2 += d * d
+        if d2 >= bd[NEIGHBOURS - 1]:
+            continue
+        s = NEIGHBOURS - 1
+        while s > 0 and bd[s - 1] > d2:
+            bd[s] = bd[s - 1]
+            bi[s] = bi[s - 1]
+            s -= 1
+        bd[s] = d2
+        bi[s] = q
+    m = 0
+    for c in range(3):
+        out[c] = 0.0
+    for s in range(NEIGHBOURS):
+        if bi[s] >= 0:
+            m += 1
+            for c in range(3):
+                out[c] += prev_vel[bi[s], c]
+    if m == 0:
+        return False
+    for c in range(3):
+        out[c] /= m
+    return True
+
+
+@njit(fastmath=False)
+def _track_step(
+    pts, prev, prev_vel, prev_has_vel, prev_ids, prev_birth, dt, t, g0, speed_dt, nxt,
+    rel_dt, radius,
+):  # fmt: skip
     """One frame of ``PointTracker.update`` (boot_tracks.py) in one pass: the previous points
     ``prev (K, 3)`` predicted at constant velocity (``prev_vel`` where ``prev_has_vel``) with
     gates ``g0`` (``g0 + speed_dt`` without a velocity), matched (:func:`_match_tracks`), and
@@ -68,7 +110,11 @@ def _track_step(pts, prev, prev_vel, prev_has_vel, prev_ids, prev_birth, dt, t, 
     whether it has one, and its track's birth time (``t`` for a new track). Returns ``(ids,
     vel, has_vel, birth, nxt)``. The same arithmetic as the former numpy steps, without
     fastmath (no fused or reassociated operations): the same tracks to the bit; the numpy
-    steps around the kernel cost more than the kernel (~55 of ~90 us at 300 points)."""
+    steps around the kernel cost more than the kernel (~55 of ~90 us at 300 points).
+
+    A track with no velocity yet moves with its neighbours when ``radius > 0``: predicted at
+    the mean velocity of the nearest tracks that have one within ``radius`` mm, gate ``g0 +
+    rel_dt`` (a marker's speed relative to its neighbours)."""
     n = pts.shape[0]
     k = prev.shape[0]
     ids = np.full(n, -1, dtype=np.int64)
@@ -78,11 +124,16 @@ def _track_step(pts, prev, prev_vel, prev_has_vel, prev_ids, prev_birth, dt, t, 
     if n > 0 and k > 0:
         pred = np.empty((k, 3))
         gate = np.empty(k)
+        v = np.empty(3)
         for j in range(k):
             if prev_has_vel[j]:
                 for a in range(3):
                     pred[j, a] = prev[j, a] + prev_vel[j, a] * dt
                 gate[j] = g0
+            elif radius > 0.0 and _neighbour_velocity(prev, prev_vel, prev_has_vel, j, radius, v):
+                for a in range(3):
+                    pred[j, a] = prev[j, a] + v[a] * dt
+                gate[j] = g0 + rel_dt
             else:
                 for a in range(3):
                     pred[j, a] = prev[j, a] + 0.0
