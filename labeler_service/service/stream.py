@@ -1118,7 +1118,8 @@ class StreamState:
         The same install at the same frame boundary as that frame's would be: after the last
         frame labeled, before the next. Sets :attr:`just_booted` and :attr:`verify_events`
         (the next :meth:`process` resets them). Returns its wall time (s), or None when
-        nothing was installed (no result waits, or no frame was labeled yet)."""
+        nothing was installed (no result waits, no frame was labeled yet, or the result was
+        for a labeler replaced since: discarded)."""
         if self._boot_result is None or self._t_last is None:
             return None
         t0 = time.perf_counter()
@@ -1127,6 +1128,8 @@ class StreamState:
         self.just_booted = ()
         self._installed_before = self._install_boot(float("nan"))
         self.verify_events = _verify_events(lab, n_events)
+        if self._installed_before is None:  # (for a labeler replaced meanwhile: discarded)
+            return None
         return time.perf_counter() - t0
 
     def _install_boot(self, t: float) -> BootRecord | None:
