@@ -19,7 +19,9 @@ visible until its visible markers are >= 95 % correct for 10 frames in a row),
 ``accuracy_after_boot``, ``boot_done_s`` (the last subject's boot), ``labeling_ms_p99_9_boot``
 and ``labeling_ms_max_boot`` (labeling time of the frames up to ``boot_done_s``, boot installs
 included), ``boot_attempts``/``boot_failed`` and the mean attempt time from the service's
-metrics.
+metrics, and the results (boots and extensions) installed between frames rather than in a
+frame's labeling (``boot_installs_between_frames``, their mean wall time
+``boot_install_ms_mean``: a frame that arrives meanwhile waits, which its latency shows).
 """
 
 from __future__ import annotations
@@ -238,6 +240,8 @@ def boot_report(frames, received, loops: int, n_total: int, service: dict) -> di
     failed = sum(v for k, v in service.items() if k.startswith("mocap_boot_failed_total"))
     b_sum = sum(v for k, v in service.items() if k.startswith("mocap_boot_seconds_sum"))
     b_n = sum(v for k, v in service.items() if k.startswith("mocap_boot_seconds_count"))
+    i_sum = sum(v for k, v in service.items() if k.startswith("mocap_boot_install_seconds_sum"))
+    i_n = sum(v for k, v in service.items() if k.startswith("mocap_boot_install_seconds_count"))
     return {
         "boot_s": boot_s,
         "boot_s_max": done,
@@ -252,6 +256,8 @@ def boot_report(frames, received, loops: int, n_total: int, service: dict) -> di
         "boot_attempts": int(attempts),
         "boot_failed": int(failed),
         "boot_attempt_s_mean": b_sum / b_n if b_n else None,
+        "boot_installs_between_frames": int(i_n),
+        "boot_install_ms_mean": 1e3 * i_sum / i_n if i_n else None,
     }
 
 

@@ -169,6 +169,12 @@ class ServiceMetrics:
             "mocap_boot_seconds", "Wall time of finished boot attempts", ["stream"],
             buckets=(0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0), registry=r,
         )  # fmt: skip
+        self.boot_install_duration = Histogram(
+            "mocap_boot_install_seconds",
+            "Wall time of boot results installed between frames (a result that finds a frame "
+            "waiting is installed in that frame's labeling instead)", ["stream"],
+            buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1), registry=r,
+        )  # fmt: skip
         self.subjects_booted = Gauge(
             "mocap_subjects_booted", "Subjects of the model labeled now (booted)", ["stream"],
             registry=r,
@@ -223,6 +229,9 @@ class ServiceMetrics:
     def boot_seconds(self, stream: str, seconds: float) -> None:
         self._child(self.boot_duration, stream).observe(seconds)
 
+    def boot_install(self, stream: str, seconds: float) -> None:
+        self._child(self.boot_install_duration, stream).observe(seconds)
+
     def verify_event(self, stream: str, event: str) -> None:
         self._child(self.boot_verify, stream, event).inc()
 
@@ -249,7 +258,8 @@ class ServiceMetrics:
         for metric in (
             self.frames_in, self.frames_out, self.seq_gap, self.labeling, self.latency,
             self.unlabeled, self.queue_depth, self.labeled_fraction, self.recovered_fraction,
-            self.boot_attempts, self.boot_failures, self.boot_duration, self.subjects_booted,
+            self.boot_attempts, self.boot_failures, self.boot_duration, self.boot_install_duration,
+            self.subjects_booted,
             self.recoveries,
         ):  # fmt: skip
             with contextlib.suppress(KeyError):

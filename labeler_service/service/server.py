@@ -561,7 +561,11 @@ class Server:
             # yield once per frame: readers drain the sockets into the drop-oldest queues
             # first, so a backlog is dropped (counted) rather than aged in kernel buffers
             await asyncio.sleep(0)
-            msg, recv_ns, verdict = await queue.get()
+            item = await queue.get_or_wake()
+            if item is None:  # woken by a finished boot attempt while no frame waits
+                self._install_between(state)
+                continue
+            msg, recv_ns, verdict = item
             self.metrics.queue(state.name, len(queue))
             n_recoveries = state.recoveries  # a new run or an unlabeled first frame starts one
             try:
@@ -740,7 +744,7 @@ class Server:
             self.metrics.boot_failed(state.name)
             self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt abandoned: %s",
                                state.name, exc)  # fmt: skip
-            state.boot_done(req, None)
+            self._boot_done(state, req, None)
             return
         except asyncio.CancelledError:
             state.boot_done(req, None)
@@ -750,11 +754,45 @@ class Server:
             if self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt failed",
                                   state.name):  # fmt: skip
                 log.exception("boot error")
-            state.boot_done(req, None)
+            self._boot_done(state, req, None)
             return
         if req.snapshot.subjects:
             self.metrics.boot_seconds(state.name, outcome.seconds)
+        self._boot_done(state, req, outcome)
+
+    def _boot_done(self, state: StreamState, req, outcome) -> None:
+        """Hands an attempt's outcome (None: abandoned or failed) to the stream and wakes its
+        worker, which installs it between frames (:meth:`_install_between`) unless a frame
+        is already waiting (that frame installs it)."""
         state.boot_done(req, outcome)
+        queue = self._queues.get(state.name)
+        if state.install_due and queue is not None:
+            queue.wake()
+
+    def _install_between(self, state: StreamState) -> None:
+        """Installs a finished attempt's result between frames, in the stream's worker while
+        no frame waits (:meth:`StreamState.install_pending`): the next frame's labeling does
+        not carry it. Only when frames are labeled on the loop: with ``labeling_thread`` the
+        next frame installs it in its thread."""
+        if state.name in self._executors:
+            return
+        try:
+            seconds = state.install_pending()
+        except Exception:  # as a frame's labeler error: logged, the stream goes on
+            self.metrics.drop("labeler_error", state.name)
+            if self._rlog.warning(f"err-{state.name}", "stream %s: boot install failed",
+                                  state.name):  # fmt: skip
+                log.exception("boot install error")
+            return
+        if seconds is None:
+            return
+        self.metrics.boot_install(state.name, seconds)
+        if state.just_booted:
+            self._booted(state)
+        elif state.booting is not None:
+            self.metrics.subjects(state.name, state.booting.n_active)
+        if state.verify_events:
+            self._verified(state)
 
     @staticmethod
     def _lost_reboots(state: StreamState) -> None:

@@ -225,7 +225,9 @@ class BootRecord:
 
     boot: bool  # an attempt to boot subjects (False: an extension of booted ones only)
     t: float  # the snapshot's (labeler) time
-    installed_t: float  # the (labeler) time of the frame that installed it
+    #: the (labeler) time of the first frame labeled with it (installed in that frame, or
+    #: just before it: :meth:`StreamState.install_pending`; NaN until that frame)
+    installed_t: float
     booted: tuple[str, ...]
     failed: bool
     thread: str
@@ -331,6 +333,8 @@ class StreamState:
         self._boot_result: tuple[BootRequest, BootOutcome | None] | None = None
         #: finished attempts, newest last (bounded)
         self.boots: deque[BootRecord] = deque(maxlen=256)
+        #: installed between frames (install_pending): its installed_t is the next frame's
+        self._installed_before: BootRecord | None = None
         self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
         #: the last process()'s re-verification and drop events of the booting labeler:
         #: (kind, subject), kind "withdraw" (markers' labels withdrawn), "reject" (dropped by
@@ -1023,18 +1027,16 @@ class StreamState:
                 labels = self._label_indices(f)  # (the window model's marker order)
         lab = self.labeler
         n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
+        if self._installed_before is not None:
+            self._installed_before.installed_t = t
+            self._installed_before = None
         if self._boot_result is not None:
             self._install_boot(t)
         out = self.labeler.process(f.points, t, labels)
         h = self.handover
         if h is not None and lab is h.plain:
             h.record(f.points, t)
-        if isinstance(lab, BootingLabeler) and lab.events.total > n_events:
-            self.verify_events = tuple(
-                (kind, name)
-                for _, kind, name in lab.events[n_events - lab.events.total :]
-                if kind in ("withdraw", "reject", "drop")
-            )
+        self.verify_events = _verify_events(lab, n_events)
         if self.recovering:
             self._after_recovery_frame(f, t, out)
         label_ns = time.perf_counter_ns() - t0
@@ -1108,14 +1110,43 @@ class StreamState:
             return
         self._boot_result = (request, outcome)
 
-    def _install_boot(self, t: float) -> None:
+    @property
+    def install_due(self) -> bool:
+        """A finished attempt waits for its install (:meth:`install_pending`, else the next
+        :meth:`process`)."""
+        return self._boot_result is not None
+
+    def install_pending(self) -> float | None:
+        """Installs a finished attempt's result now, between two frames (the server calls it
+        on the event loop when the result comes and no frame waits: the install then costs
+        no frame its labeling time, where :meth:`process` put it in the next frame's).
+        The same install at the same frame boundary as that frame's would be: after the last
+        frame labeled, before the next. Sets :attr:`just_booted` and :attr:`verify_events`
+        (the next :meth:`process` resets them). Returns its wall time (s), or None when
+        nothing was installed (no result waits, no frame was labeled yet, or the result was
+        for a labeler replaced since: discarded)."""
+        if self._boot_result is None or self._t_last is None:
+            return None
+        t0 = time.perf_counter()
+        lab = self.labeler
+        n_events = lab.events.total if isinstance(lab, BootingLabeler) else 0
+        self.just_booted = ()
+        self._installed_before = self._install_boot(float("nan"))
+        self.verify_events = _verify_events(lab, n_events)
+        if self._installed_before is None:  # (for a labeler replaced meanwhile: discarded)
+            return None
+        return time.perf_counter() - t0
+
+    def _install_boot(self, t: float) -> BootRecord | None:
+        """Installs the finished attempt; returns its record (None: its labeler was replaced
+        meanwhile, the result is discarded)."""
         assert self._boot_result is not None
         request, outcome = self._boot_result
         self._boot_result = None
         self.boot_inflight = False
         lab = request.labeler
         if lab is not self.labeler:
-            return
+            return None
         booted = lab.install_boot(request.snapshot, None if outcome is None else outcome.result)
         names = tuple(lab.model.subjects[int(i)].name for i in booted)
         self.just_booted = names
@@ -1132,6 +1163,7 @@ class StreamState:
                 caught_frames=0 if outcome is None else outcome.caught_frames,
             )
         )
+        return self.boots[-1]
 
     def ready_status(self) -> str:
         """The status the stream announces when the service is ready: ``booting`` for a
@@ -1206,6 +1238,19 @@ class StreamState:
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
         )
+
+
+def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, str], ...]:
+    """``(kind, subject)`` of the re-verification's and the vanishing's events
+    (``withdraw``, ``reject``, ``drop``) a booting labeler logged since it counted
+    ``n_events``."""
+    if not isinstance(lab, BootingLabeler) or lab.events.total <= n_events:
+        return ()
+    return tuple(
+        (kind, name)
+        for _, kind, name in lab.events[n_events - lab.events.total :]
+        if kind in ("withdraw", "reject", "drop")
+    )
 
 
 def no_start(stream: str) -> str:

@@ -94,7 +94,9 @@ class DropOldestQueue(Generic[T]):
     """A bounded FIFO for real-time data: when full, ``put`` discards the oldest item.
 
     ``put`` never blocks and returns the discarded item (or ``None``) so the caller can count
-    it; ``dropped`` counts them all. ``get`` waits for an item.
+    it; ``dropped`` counts them all. ``get`` waits for an item; ``get_or_wake`` also returns
+    ``None`` once :meth:`wake` was called while the queue was empty (the stream's worker is
+    woken to install a boot result between frames).
     """
 
     def __init__(self, maxsize: int) -> None:
@@ -104,6 +106,7 @@ class DropOldestQueue(Generic[T]):
         self.dropped = 0
         self._items: deque[T] = deque()
         self._event = asyncio.Event()
+        self._woken = False
 
     def __len__(self) -> int:
         return len(self._items)
@@ -119,6 +122,22 @@ class DropOldestQueue(Generic[T]):
 
     async def get(self) -> T:
         while not self._items:
+            self._event.clear()
+            await self._event.wait()
+        return self._items.popleft()
+
+    def wake(self) -> None:
+        """Makes the next :meth:`get_or_wake` that finds the queue empty return ``None``."""
+        self._woken = True
+        self._event.set()
+
+    async def get_or_wake(self) -> T | None:
+        """The oldest item (waiting for one), or ``None`` when :meth:`wake` was called and no
+        item is there (items first: a frame already waiting is served before the wake)."""
+        while not self._items:
+            if self._woken:
+                self._woken = False
+                return None
             self._event.clear()
             await self._event.wait()
         return self._items.popleft()
