@@ -14,7 +14,7 @@ kernel refused) is added to the drop metric once a second, when freed C-heap mem
 returned to the OS (``malloc_trim`` in a thread, :mod:`~labeler_service.service.background`;
 after a removed stream or the end of an abandoned job also a full ``gc.collect``, cheap because
 the objects of the start-up are frozen). Kernels are compiled on a synthetic scene before the
-status turns ``online`` and ``ready`` is set.
+status turns ``online`` (``booting`` for a stream that cannot label yet) and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
 per stream (the first unlabeled frame, which trains the labeler), which runs off the loop through
 :class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
@@ -384,7 +384,7 @@ class Server:
         state.source = source
         if cached is not None:
             state.resume(*cached)
-        self._spawn(self._status(name, "online"), f"status-{name}")
+        self._spawn(self._status(name, state.ready_status()), f"status-{name}")
         return state
 
     def _admit(self, name: str, payload: bytes) -> str | None:

@@ -1134,10 +1134,12 @@ class StreamState:
         )
 
     def ready_status(self) -> str:
-        """The status the stream announces when the service is ready: ``booting`` for a
-        stream that boots its performers from a model (nobody is labeled yet), else
-        ``online``."""
-        self.status = "booting" if isinstance(self.labeler, BootingLabeler) else "online"
+        """The status the stream announces when the service is ready (or the stream gets its
+        slot): ``booting`` while nobody can be labeled yet — the stream boots its performers
+        from a model, or it has no labeler until its labeled init frames have trained one
+        (the server turns it ``online`` then, :meth:`Server._train`) —, else ``online``."""
+        waiting = self.labeler is None or isinstance(self.labeler, BootingLabeler)
+        self.status = "booting" if waiting else "online"
         return self.status
 
     def update_health(self, out: Output) -> str | None:

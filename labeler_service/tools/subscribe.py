@@ -53,7 +53,8 @@ def percentiles(values, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
 
 
 #: the statuses of a stream the service is ready to label: ``online``, or ``booting`` for a
-#: stream that boots its performers from a model and has labeled no one yet
+#: stream that has labeled no one yet (it boots its performers from a model, or waits for the
+#: labeled init frames that train its labeler)
 READY = ("online", "booting")
 
 
@@ -291,7 +292,11 @@ class Subscriber:
         elif isinstance(msg, StatusMsg):
             if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
                 why = ""
-                if msg.state == "booting":
+                if msg.state == "booting" and msg.stream not in self.models:
+                    # no model message: the stream starts from labeled init frames
+                    why = (" (waiting for labeled init frames to train its labeler: no one "
+                           "labeled yet)")  # fmt: skip
+                elif msg.state == "booting":
                     why = " (booting its performers from the model: no one labeled yet)"
                 elif msg.state == "training_failed":
                     why = (" (training on its labeled init frames failed or ran over "
