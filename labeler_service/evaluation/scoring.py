@@ -46,6 +46,7 @@ from labeler_service.labeling.registry import (
 from labeler_service.labeling.structure import WINDOW_MIN_FRAMES, window_model
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
+from labeler_service.wording import plural
 
 WARMUP_FRAMES = 10  # frames after the init window whose time is not counted
 
@@ -503,7 +504,9 @@ def score_labeler(
     scene) are scored as extra columns, so labels given to them count in ``absent_labeled``."""
     n = stream.n_frames
     if n <= init_frames:
-        raise SceneError(f"{n} frames is not more than the {init_frames}-frame init window")
+        raise SceneError(
+            f"{plural(n, 'frame')} is not more than the {init_frames}-frame init window"
+        )
     names = tuple(stream.marker_names)
     to_score = to_labeler = None
     sizes = None
@@ -688,7 +691,8 @@ def evaluate(
                 "or give fewer --init-frames"
             )
         raise SceneError(
-            f"{stream.n_frames} frames is not more than the {init_frames}-frame init window"
+            f"{plural(stream.n_frames, 'frame')} is not more than the {init_frames}-frame init "
+            "window"
         )
     if not stream.marker_names:
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")

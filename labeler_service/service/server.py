@@ -83,6 +83,7 @@ from labeler_service.service.transports.base import (
     Transport,
     cancel_and_wait,
 )
+from labeler_service.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -768,11 +769,12 @@ class Server:
         active = state.subjects_booted
         self.metrics.subjects(state.name, len(active))
         rec = state.boots[-1] if state.boots else None
-        log.info("stream %s: booted %s (attempt %.3f s in thread %s, caught up over %d "
-                 "frames); labeling %d of %d subjects", state.name, ", ".join(state.just_booted),
+        log.info("stream %s: booted %s (attempt %.3f s in thread %s, caught up over %s); "
+                 "labeling %d of %s", state.name, ", ".join(state.just_booted),
                  rec.seconds if rec else float("nan"), rec.thread if rec else "?",
-                 rec.caught_frames if rec else 0, len(active),
-                 len(state.booting.model.subjects) if state.booting else 0)  # fmt: skip
+                 plural(rec.caught_frames if rec else 0, "frame"), len(active),
+                 plural(len(state.booting.model.subjects) if state.booting else 0,
+                        "subject"))  # fmt: skip
 
     def _verified(self, state: StreamState) -> None:
         """Counts and logs (rate-limited, per stream) the booted subjects whose labels the
@@ -802,10 +804,11 @@ class Server:
             and cfg.restructure_s > 0
             and len(init.frames) < cfg.restructure_max_train_frames
         ):
-            log.warning("stream %s: %d labeled init frames: the labeler re-forms this thin "
+            log.warning("stream %s: %s: the labeler re-forms this thin "
                         "structure from the stream every %.1f s, in the frame path (tens of ms "
                         "when it changes); send %d or more init frames at high rates",
-                        state.name, len(init.frames), cfg.restructure_s,
+                        state.name, plural(len(init.frames), "labeled init frame"),
+                        cfg.restructure_s,
                         cfg.restructure_max_train_frames)  # fmt: skip
         self.metrics.training.inc()
         state.training = True
