@@ -35,6 +35,7 @@ import numpy as np
 
 from labeler_service.capture.model import Capture, is_ghost, split_label
 from labeler_service.errors import CaptureError, CaptureFormatError
+from labeler_service.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -252,7 +253,8 @@ def _finish(
     if copies:
         said = ", ".join(f"{labels[i]} = {labels[j]}" for i, j in copies[:4])
         notes.append(
-            f"{len(copies)} points that repeat another point exactly in every frame left out "
+            f"{plural(len(copies), 'point')} that {'repeats' if len(copies) == 1 else 'repeat'} "
+            "another point exactly in every frame left out "
             f"(a computed point, not a marker): {said}{', ...' if len(copies) > 4 else ''}"
         )
         gone = {i for i, _ in copies}
@@ -329,7 +331,9 @@ def _no_empty_prefix(labels: list[str], notes: list[str]) -> list[str]:
     if not empty:
         return labels
     said = ", ".join(repr(x) for x in empty[:3]) + (", ..." if len(empty) > 3 else "")
-    notes.append(f"{len(empty)} labels with an empty subject prefix ({said}) read without it")
+    notes.append(
+        f"{plural(len(empty), 'label')} with an empty subject prefix ({said}) read without it"
+    )
     return [x[1:].strip() if x.startswith(":") else x for x in labels]
 
 
@@ -345,7 +349,7 @@ def _unique_labels(labels: list[str], notes: list[str]) -> list[str]:
     free = 0
     empty = sum(1 for x in labels if not x)
     if empty:
-        notes.append(f"{empty} empty labels read as unlabeled tracks *N")
+        notes.append(f"{plural(empty, 'empty label')} read as unlabeled tracks *N")
     renamed = [x for x in labels if x and _names_no_marker(x)]
     if renamed:
         said = ", ".join(repr(x) for x in renamed[:3]) + (", ..." if len(renamed) > 3 else "")
@@ -519,7 +523,9 @@ def _c3d_markers(point: dict, labels: list[str], notes: list[str]) -> list[int] 
         f"{g} {len(xs)} ({', '.join(xs[:4])}{', ...' if len(xs) > 4 else ''})"
         for g, xs in by_group.items()
     )
-    notes.append(f"{len(drop)} points a processing model wrote left out (not markers): {said}")
+    notes.append(
+        f"{plural(len(drop), 'point')} a processing model wrote left out (not markers): {said}"
+    )
     dropped = set(drop)
     return [i for i in range(len(labels)) if i not in dropped]
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from labeler_service.wording import plural
+
 
 def seed(text: str) -> int:
     """``--seed``: a whole number >= 0 (numpy refuses a negative seed with a traceback)."""
@@ -52,7 +54,8 @@ def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool =
                 "markers a window does not show stay unlabeled)"
             )
         raise LabelerError(
-            f"{spec}: no labeled marker is seen in the first {init} frames (the labeled init "
+            f"{spec}: no labeled marker is seen in the first {plural(init, 'frame')} (the "
+            "labeled init "
             f"window): {where}"
         )
     if not subjects or init < MIN_SEEN_FRAMES:  # (too few init frames: the commands say so)
@@ -71,7 +74,8 @@ def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool =
     more = f" (and {len(outside) - 1} more)" if len(outside) > 1 else ""
     raise LabelerError(
         f"{spec}: subject {outside[0] or '(no prefix)'}{more} shows no marker in "
-        f"{MIN_SEEN_FRAMES} or more of the first {init} frames (the labeled init window), so "
+        f"{MIN_SEEN_FRAMES} or more of the first {plural(init, 'frame')} (the labeled init "
+        "window), so "
         f"nothing of him can be learned: every subject is in view from frame {first} "
         f"({path}:{first})"
     )

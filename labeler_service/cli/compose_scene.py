@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 
 from labeler_service.cli.args import seed
+from labeler_service.wording import plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,8 +45,9 @@ def run(args: argparse.Namespace) -> int:
     path = write_capture(scene, args.out)
     subjects = scene.subjects
     print(
-        f"{path}: {len(subjects)} subjects ({', '.join(subjects)}), {scene.n_markers} markers, "
-        f"{scene.n_frames} frames at {scene.rate:g} Hz"
+        f"{path}: {plural(len(subjects), 'subject')} ({', '.join(subjects)}), "
+        f"{plural(scene.n_markers, 'marker')}, {plural(scene.n_frames, 'frame')} at "
+        f"{scene.rate:g} Hz"
     )
     for note in scene.notes:
         print(f"  {note}")

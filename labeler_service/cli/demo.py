@@ -54,6 +54,7 @@ import numpy as np
 from labeler_service.cli.args import seed
 from labeler_service.errors import MocapError
 from labeler_service.testing.realdata import real_file
+from labeler_service.wording import plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -290,8 +291,9 @@ def run(args: argparse.Namespace) -> int:
     spec = CorruptionSpec(gaps=args.gaps, gap_frames=args.gap_frames, ghosts=args.ghosts,
                           protect_frames=args.init_frames, seed=args.seed)  # fmt: skip
     frames = corrupt(cap, spec)
-    print(f"scene: {what}: {len(cap.subjects)} subjects, {len(frames.marker_names)} markers, "
-          f"{frames.n_frames} frames at {frames.rate:g} Hz")  # fmt: skip
+    print(f"scene: {what}: {plural(len(cap.subjects), 'subject')}, "
+          f"{plural(len(frames.marker_names), 'marker')}, "
+          f"{plural(frames.n_frames, 'frame')} at {frames.rate:g} Hz")  # fmt: skip
     print(f"streaming over loopback UDP at {args.speed:g}x ({frames.n_frames / frames.rate / max(args.speed, 1e-9):.0f} s), "  # noqa: E501
           f"first {args.init_frames} frames labeled, {args.gaps} gap(s)/subject, "
           f"{args.ghosts:g} ghosts/frame")  # fmt: skip

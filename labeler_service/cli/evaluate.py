@@ -20,6 +20,7 @@ from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 from labeler_service.labeling.registry import LABELED_STARTS
+from labeler_service.wording import plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -180,8 +181,8 @@ def _print_table(report: dict) -> None:
         t.add_row(c, *["-" if v is None else f"{v:.4g}" for v in vals])
     console = Console()
     console.print(
-        f"{report['frames']} frames, {report['subjects']} subjects, "
-        f"{report['markers']} markers at {report['rate_hz']:g} Hz"
+        f"{plural(report['frames'], 'frame')}, {plural(report['subjects'], 'subject')}, "
+        f"{plural(report['markers'], 'marker')} at {report['rate_hz']:g} Hz"
         + (
             "; online: labeled start through the init window's model"
             if (report.get("settings") or {}).get("labeled_start") == "model"
@@ -197,12 +198,12 @@ def _print_table(report: dict) -> None:
     console.print(
         f"{report['method']}: {report['visible']} visible samples scored; errors: "
         f"{e['same_subject']} same-subject, {e['cross_subject']} cross-subject, "
-        f"{e['unlabeled']} unlabeled; {e['ghost_taken']} ghost points labeled{unseen}"
+        f"{e['unlabeled']} unlabeled; {plural(e['ghost_taken'], 'ghost point')} labeled{unseen}"
     )
     swap = report["max_swap"]
     if swap:
         console.print(
-            f"longest swap: {report['max_swap_frames']} frames ({swap['marker']}, frames "
+            f"longest swap: {plural(report['max_swap_frames'], 'frame')} ({swap['marker']}, frames "
             f"{swap['first_frame']}-{swap['last_frame']})"
         )
 
@@ -223,7 +224,7 @@ def _print_table(report: dict) -> None:
                 "accuracy after boot)"
             )
     n_ret = len(report["reid_s"])
-    reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {n_ret} returns"
+    reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {plural(n_ret, 'return')}"
     left = ", ".join(
         f"{d['subject']} (frames {d['first_frame']}-{d['back_frame']})"
         for d in report.get("departures") or []
@@ -231,8 +232,8 @@ def _print_table(report: dict) -> None:
     console.print(
         f"accuracy after boot {report['accuracy_after_boot']}; "
         f"{reid if n_ret else 'no returns'}{f' (left: {left})' if left else ''}; "
-        f"{report['absent_labeled']} points given labels of absent subjects; "
-        f"{report['identity_swaps']} identity swaps"
+        f"{plural(report['absent_labeled'], 'point')} given labels of absent subjects; "
+        f"{plural(report['identity_swaps'], 'identity swap')}"
     )
     worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
     if worst:

@@ -8,6 +8,7 @@ import json
 import numpy as np
 
 from labeler_service.capture import Capture, read_segment
+from labeler_service.wording import plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -79,17 +80,21 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"{s['file']}")
     print(
-        f"  {s['frames']} frames at {s['rate_hz']:g} Hz ({s['duration_s']:.2f} s), "
-        f"{s['markers']} markers, {s['missing_fraction']:.1%} samples missing"
+        f"  {plural(s['frames'], 'frame')} at {s['rate_hz']:g} Hz ({s['duration_s']:.2f} s), "
+        f"{plural(s['markers'], 'marker')}, {s['missing_fraction']:.1%} samples missing"
     )
     for name, sub in s["subjects"].items():
-        print(f"  subject {name}: {sub['markers']} markers, {sub['missing_fraction']:.1%} missing")
+        print(
+            f"  subject {name}: {plural(sub['markers'], 'marker')}, "
+            f"{sub['missing_fraction']:.1%} missing"
+        )
     if s["unlabeled_tracks"]:
-        print(f"  {s['unlabeled_tracks']} unlabeled tracks (*N)")
+        print(f"  {plural(s['unlabeled_tracks'], 'unlabeled track')} (*N)")
     if s["never_visible"]:
         print(f"  never visible: {', '.join(s['never_visible'])}")
     print(
-        f"  {s['gaps']} gaps inside tracks (longest {s['gap_frames_max']} frames, "
+        f"  {plural(s['gaps'], 'gap')} inside tracks "
+        f"(longest {plural(s['gap_frames_max'], 'frame')}, "
         f"median {s['gap_frames_median']:g})"
     )
     for note in s["notes"]:

@@ -39,6 +39,7 @@ from collections.abc import Iterator
 
 from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.labeling.registry import LABELED_STARTS
+from labeler_service.wording import plural
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
 NOTICE_AFTER_S = 3.0
@@ -115,7 +116,10 @@ def run(args: argparse.Namespace) -> int:
             f"on them), got {init}"
         )
     if cap.n_frames <= init:
-        raise LabelerError(f"{args.input}: {cap.n_frames} frames, not more than {init} init frames")
+        raise LabelerError(
+            f"{args.input}: {plural(cap.n_frames, 'frame')}, not more than "
+            f"{plural(init, 'init frame')}"
+        )
     names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
     if model is None and not names:
         raise LabelerError(
@@ -232,8 +236,9 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         print(
-            f"{args.output}: {frames} frames labeled, {summary['observed_per_frame']} of {m} "
-            f"markers observed and {summary['recovered_per_frame']} recovered per frame"
+            f"{args.output}: {plural(frames, 'frame')} labeled, "
+            f"{summary['observed_per_frame']} of {plural(m, 'marker')} "
+            f"observed and {summary['recovered_per_frame']} recovered per frame"
         )
         if why is not None:
             print(f"labeled start: the labeler trained in place ({why})")
@@ -246,15 +251,15 @@ def run(args: argparse.Namespace) -> int:
                 continue
             print(
                 f"  {name}: labeled from {s['first_labeled_s']:.2f} s, "
-                f"{s['observed_per_frame']} of {s['markers']} markers observed per frame"
+                f"{s['observed_per_frame']} of {plural(s['markers'], 'marker')} observed per frame"
             )
         if never:
             print(f"  never labeled: {', '.join(never)}")
     if observed == 0 and frames > 0:
         # the output is written (nothing lost), but a run that labeled nothing is no success
         raise LabelerError(
-            f"{args.input}: no point was labeled in {frames} frames; does the model's marker "
-            "set match the capture's (names, subjects), and are the performers in view? "
+            f"{args.input}: no point was labeled in {plural(frames, 'frame')}; does the model's "
+            "marker set match the capture's (names, subjects), and are the performers in view? "
             f"(output written to {args.output})"
         )
     return 0

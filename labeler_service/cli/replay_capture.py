@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from labeler_service.cli.args import check_init_window, seed
+from labeler_service.wording import plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,12 +73,12 @@ async def _main(args: argparse.Namespace) -> int:
         )
     if frames.n_frames <= args.init_frames:
         raise LabelerError(
-            f"{args.file}: {frames.n_frames} frames (after --downsample), not more than "
-            f"{args.init_frames} init frames: nothing would be left to label"
+            f"{args.file}: {plural(frames.n_frames, 'frame')} (after --downsample), not more "
+            f"than {plural(args.init_frames, 'init frame')}: nothing would be left to label"
         )
     print(
-        f"replay {Path(args.file).name}: {frames.n_frames} frames x {args.loops}, "
-        f"{len(frames.marker_names)} markers, {frames.rate:g} Hz at speed {args.speed:g} "
+        f"replay {Path(args.file).name}: {plural(frames.n_frames, 'frame')} x {args.loops}, "
+        f"{plural(len(frames.marker_names), 'marker')}, {frames.rate:g} Hz at speed {args.speed:g} "
         f"-> {redact_url(args.to)}",
         file=sys.stderr,
     )

@@ -10,6 +10,7 @@ import argparse
 
 from labeler_service.cli.args import seed
 from labeler_service.scenes.sim import SCENARIOS
+from labeler_service.wording import plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,8 +37,9 @@ def run(args: argparse.Namespace) -> int:
     ghosts = int(scene.ghost_mask.sum())
     labeled = scene.n_markers - ghosts
     print(
-        f"{path}: {args.scenario}, {len(scene.subjects)} subjects ({', '.join(scene.subjects)}), "
-        f"{labeled} markers + {ghosts} ghost columns, {scene.n_frames} frames at "
+        f"{path}: {args.scenario}, {plural(len(scene.subjects), 'subject')} "
+        f"({', '.join(scene.subjects)}), {plural(labeled, 'marker')} + "
+        f"{plural(ghosts, 'ghost column')}, {plural(scene.n_frames, 'frame')} at "
         f"{scene.rate:g} Hz, {scene.missing_fraction:.1%} of marker samples occluded"
     )
     return 0

@@ -20,6 +20,7 @@ from labeler_service.evaluation.scoring import (
     UNLABELED,
     MethodScore,
 )
+from labeler_service.wording import plural
 
 MAX_ROWS = 80  # above this, only markers with errors are drawn
 _COLOURS = {
@@ -77,7 +78,7 @@ def plot_error_raster(
     if rows.size <= MAX_ROWS:
         ax.set_yticks(np.arange(rows.size), labels=[names[i] for i in rows], fontsize=6)
     ax.set_xlabel("capture time (s)")
-    kept = f" ({hidden} markers without errors not drawn)" if hidden else ""
+    kept = f" ({plural(hidden, 'marker')} without errors not drawn)" if hidden else ""
     acc = "" if not np.isfinite(score.accuracy) else f", accuracy {100 * score.accuracy:.2f} %"
     ax.set_title(f"errors per marker {title}{acc}{kept}".strip(), fontsize=9)
     handles = [

@@ -19,6 +19,7 @@ import numpy as np
 
 from labeler_service.capture import Capture
 from labeler_service.errors import SceneError
+from labeler_service.wording import plural
 
 
 @dataclass(frozen=True)
@@ -210,7 +211,9 @@ def _departures(
     sub = Capture(positions[:1], names, rate)
     subjects = [s for s in sub.subjects if s]
     if spec.leave > len(subjects):
-        raise SceneError(f"--leave {spec.leave}: the scene has only {len(subjects)} subjects")
+        raise SceneError(
+            f"--leave {spec.leave}: the scene has only {plural(len(subjects), 'subject')}"
+        )
     away = max(1, int(round(spec.leave_seconds * rate)))
     last = n_frames - 2 * away  # latest first frame gone: back >= leave_seconds before the end
     if last < start:
@@ -231,7 +234,8 @@ def _departures(
             latest[name] = min(last, end - 2 * away)
     if spec.leave > len(latest):
         raise SceneError(
-            f"--leave {spec.leave}: only {len(latest)} of the {len(subjects)} subjects are "
+            f"--leave {spec.leave}: only {len(latest)} of the "
+            f"{plural(len(subjects), 'subject')} are "
             f"present long enough for a departure and a return of --leave-seconds "
             f"{spec.leave_seconds:g} after the init window (a short take ends inside the scene)"
         )

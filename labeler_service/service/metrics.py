@@ -388,7 +388,8 @@ class ServiceMetrics:
         """The periodic log line. ``streams``: per stream its status and, for a stream that
         boots, the number of its model's subjects: the line then says the status (with the
         labeled fraction) and how many subjects are booted after how many attempts, so a
-        stream that labels nothing says so."""
+        stream that labels nothing says so; a stream in ``streams`` that has had no frame yet
+        (a configured stream before its first frame) reads ``[name] no frames yet``."""
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
@@ -406,6 +407,9 @@ class ServiceMetrics:
                     f"(boot attempts {v['boot_attempts']:.0f}, failed {v['boot_failed']:.0f})"
                 )
             parts.append(line)
+        for s, (status, _) in (streams or {}).items():
+            if s not in snap["streams"]:  # a configured stream that has had no frame yet
+                parts.append(f"[{s}] no frames yet" + (f" status={status}" if status else ""))
         drops = ", ".join(f"{r}={n}" for r, n in sorted(snap["drops"].items())) or "none"
         return " ".join(parts or ["no streams yet"]) + f" drops: {drops}"
 

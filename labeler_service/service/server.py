@@ -14,7 +14,7 @@ kernel refused) is added to the drop metric once a second, when freed C-heap mem
 returned to the OS (``malloc_trim`` in a thread, :mod:`~labeler_service.service.background`;
 after a removed stream or the end of an abandoned job also a full ``gc.collect``, cheap because
 the objects of the start-up are frozen). Kernels are compiled on a synthetic scene before the
-status turns ``online`` and ``ready`` is set.
+status turns ``online`` (``booting`` for a stream that cannot label yet) and ``ready`` is set.
 Labeling runs inline on the event loop (measured fastest on 2 cores), except the one heavy call
 per stream (the first unlabeled frame, which trains the labeler), which runs off the loop through
 :class:`~labeler_service.service.background.Background` with a ``train_budget_s`` budget (over
@@ -83,6 +83,7 @@ from labeler_service.service.transports.base import (
     Transport,
     cancel_and_wait,
 )
+from labeler_service.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -384,7 +385,7 @@ class Server:
         state.source = source
         if cached is not None:
             state.resume(*cached)
-        self._spawn(self._status(name, "online"), f"status-{name}")
+        self._spawn(self._status(name, state.ready_status()), f"status-{name}")
         return state
 
     def _admit(self, name: str, payload: bytes) -> str | None:
@@ -806,11 +807,12 @@ class Server:
         active = state.subjects_booted
         self.metrics.subjects(state.name, len(active))
         rec = state.boots[-1] if state.boots else None
-        log.info("stream %s: booted %s (attempt %.3f s in thread %s, caught up over %d "
-                 "frames); labeling %d of %d subjects", state.name, ", ".join(state.just_booted),
+        log.info("stream %s: booted %s (attempt %.3f s in thread %s, caught up over %s); "
+                 "labeling %d of %s", state.name, ", ".join(state.just_booted),
                  rec.seconds if rec else float("nan"), rec.thread if rec else "?",
-                 rec.caught_frames if rec else 0, len(active),
-                 len(state.booting.model.subjects) if state.booting else 0)  # fmt: skip
+                 plural(rec.caught_frames if rec else 0, "frame"), len(active),
+                 plural(len(state.booting.model.subjects) if state.booting else 0,
+                        "subject"))  # fmt: skip
 
     def _verified(self, state: StreamState) -> None:
         """Counts and logs (rate-limited, per stream) the booted subjects whose labels the
@@ -840,10 +842,11 @@ class Server:
             and cfg.restructure_s > 0
             and len(init.frames) < cfg.restructure_max_train_frames
         ):
-            log.warning("stream %s: %d labeled init frames: the labeler re-forms this thin "
+            log.warning("stream %s: %s: the labeler re-forms this thin "
                         "structure from the stream every %.1f s, in the frame path (tens of ms "
                         "when it changes); send %d or more init frames at high rates",
-                        state.name, len(init.frames), cfg.restructure_s,
+                        state.name, plural(len(init.frames), "labeled init frame"),
+                        cfg.restructure_s,
                         cfg.restructure_max_train_frames)  # fmt: skip
         self.metrics.training.inc()
         state.training = True

@@ -111,6 +111,7 @@ from labeler_service.service.handover import (
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
 from labeler_service.service.units import RateCheck, UnitCheck, init_span_warning
+from labeler_service.wording import plural
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
@@ -424,10 +425,10 @@ class StreamState:
         self.window_frames = labeler.window_frames if isinstance(labeler, BootingLabeler) else None
         window = self.window_frames is not None
         log.info(
-            "stream %s: labeler ready (%d markers, %d subjects, %.1f Hz%s)",
+            "stream %s: labeler ready (%s, %s, %.1f Hz%s)",
             self.name,
-            len(self.names),
-            len(subjects),
+            plural(len(self.names), "marker"),
+            plural(len(subjects), "subject"),
             self.rate,
             ", labeled start through the init window's model" if window else "",
         )
@@ -783,11 +784,12 @@ class StreamState:
             known = int((idx >= 0).sum())
             subjects = ", ".join(subject_groups(list(self.names))) or "none"
             log.warning(
-                "stream %s: %d labels of a frame name no marker of the stream (e.g. %r; its "
+                "stream %s: %s of a frame %s no marker of the stream (e.g. %r; its "
                 "subjects: %s): %s; send labels named as the stream's markers are (e.g. %r), "
                 "or give the stream a model of these performers (train structure)",
-                self.name, len(unknown), unknown[0], subjects,
-                f"ignored, {known} labels used" if known
+                self.name, plural(len(unknown), "label"),
+                "names" if len(unknown) == 1 else "name", unknown[0], subjects,
+                f"ignored, {plural(known, 'label')} used" if known
                 else "the frame is labeled as an unlabeled one",
                 self.names[0] if self.names else "subject:marker",
             )  # fmt: skip
@@ -934,8 +936,9 @@ class StreamState:
         self._swap(lab)
         self.recovering = True
         self.recoveries += 1
-        log.warning("stream %s: %s: booting its %d subjects from the stream's model (recovery "
-                    "%d)", self.name, why, len(model.subjects), self.recoveries)  # fmt: skip
+        log.warning("stream %s: %s: booting its %s from the stream's model (recovery "
+                    "%d)", self.name, why, plural(len(model.subjects), "subject"),
+                    self.recoveries)  # fmt: skip
         return True
 
     def _swap(self, labeler: FrameLabeler) -> None:
@@ -1166,10 +1169,12 @@ class StreamState:
         return self.boots[-1]
 
     def ready_status(self) -> str:
-        """The status the stream announces when the service is ready: ``booting`` for a
-        stream that boots its performers from a model (nobody is labeled yet), else
-        ``online``."""
-        self.status = "booting" if isinstance(self.labeler, BootingLabeler) else "online"
+        """The status the stream announces when the service is ready (or the stream gets its
+        slot): ``booting`` while nobody can be labeled yet — the stream boots its performers
+        from a model, or it has no labeler until its labeled init frames have trained one
+        (the server turns it ``online`` then, :meth:`Server._train`) —, else ``online``."""
+        waiting = self.labeler is None or isinstance(self.labeler, BootingLabeler)
+        self.status = "booting" if waiting else "online"
         return self.status
 
     def update_health(self, out: Output) -> str | None:

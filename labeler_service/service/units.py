@@ -22,6 +22,7 @@ import numpy as np
 
 from labeler_service.capture.model import subject_groups
 from labeler_service.labeling.templates import LabelerModel
+from labeler_service.wording import plural
 
 #: seconds of stream (frame ``t``) with nothing labeled before the extents are compared
 WINDOW_S = 2.0
@@ -88,7 +89,8 @@ def match_warning(stream: str, model: LabelerModel, counts: list[int], seconds: 
     total = sum(len(s.markers) for s in model.subjects)
     head = (
         f"stream {stream}: nothing labeled for {seconds:.1f} s of stream; its frames carry "
-        f"{points} points (median) where its model has {total} markers ({sizes})"
+        f"{plural(points, 'point')} (median) where its model has {plural(total, 'marker')} "
+        f"({sizes})"
     )
     if points > total:
         why = (

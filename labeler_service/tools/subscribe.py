@@ -36,6 +36,7 @@ from labeler_service.service.protocol import (
 from labeler_service.service.settings import MqttSettings
 from labeler_service.service.transports.base import DropOldestQueue, Incoming, cancel_and_wait
 from labeler_service.service.transports.url import Endpoint, parse_endpoint
+from labeler_service.wording import plural
 
 if TYPE_CHECKING:
     from labeler_service.service.transports.mqtt import MqttEndpoint
@@ -53,7 +54,8 @@ def percentiles(values, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
 
 
 #: the statuses of a stream the service is ready to label: ``online``, or ``booting`` for a
-#: stream that boots its performers from a model and has labeled no one yet
+#: stream that has labeled no one yet (it boots its performers from a model, or waits for the
+#: labeled init frames that train its labeler)
 READY = ("online", "booting")
 
 
@@ -291,7 +293,11 @@ class Subscriber:
         elif isinstance(msg, StatusMsg):
             if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
                 why = ""
-                if msg.state == "booting":
+                if msg.state == "booting" and msg.stream not in self.models:
+                    # no model message: the stream starts from labeled init frames
+                    why = (" (waiting for labeled init frames to train its labeler: no one "
+                           "labeled yet)")  # fmt: skip
+                elif msg.state == "booting":
                     why = " (booting its performers from the model: no one labeled yet)"
                 elif msg.state == "training_failed":
                     why = (" (training on its labeled init frames failed or ran over "
@@ -388,14 +394,19 @@ class Recorder:
         """The line the subscriber prints after :meth:`write` returned ``n``: what was written
         and what was not (frames of a later model, missing frames written for seq gaps)."""
         if not n:
-            why = f" ({self.skipped} frames of a later model not recorded)" if self.skipped else ""
+            why = (
+                f" ({plural(self.skipped, 'frame')} of a later model not recorded)"
+                if self.skipped
+                else ""
+            )
             return f"no frames received: {path} not written{why}"
-        line = f"wrote {n} frames to {path} at {self.file_rate():g} Hz"
+        line = f"wrote {plural(n, 'frame')} to {path} at {self.file_rate():g} Hz"
         if self.filled:
-            line += f"; {self.filled} frames lost in seq gaps written as missing"
+            line += f"; {plural(self.filled, 'frame')} lost in seq gaps written as missing"
         if self.skipped:
             line += (
-                f"; {self.skipped} frames of a later model (marker set changed mid-session) "
+                f"; {plural(self.skipped, 'frame')} of a later model (marker set changed "
+                "mid-session) "
                 "not recorded"
             )
         return line

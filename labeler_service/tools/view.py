@@ -55,6 +55,7 @@ from labeler_service.tools.view_frames import (
     encode_view_frame,
     model_message,
 )
+from labeler_service.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -322,8 +323,8 @@ class Viewer:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):
                 await sender
-            log.info("viewer: browser %d left (sent %d frames, dropped %d)", c.id,
-                     c.outbox.sent, c.outbox.dropped)  # fmt: skip
+            log.info("viewer: browser %d left (sent %s, dropped %d)", c.id,
+                     plural(c.outbox.sent, "frame"), c.outbox.dropped)  # fmt: skip
         return ws
 
     def _on_text(self, c: Connection, data: str) -> None:

@@ -229,7 +229,7 @@ def test_repeated_labels_are_renamed_and_a_repeated_ghost_stays_a_ghost(tmp_path
     assert all(is_ghost(x) for x in cap.labels[2:5]) and len(set(cap.labels)) == 6
     assert any("duplicate label '*3' renamed" in n for n in cap.notes)
     # the empty label is said too: a column read as an unlabeled track, not a marker
-    assert any("1 empty labels read as unlabeled tracks *N" in n for n in cap.notes), cap.notes
+    assert any("1 empty label read as unlabeled tracks *N" in n for n in cap.notes), cap.notes
 
 
 def test_points_a_processing_model_wrote_are_not_markers(tmp_path, rng) -> None:

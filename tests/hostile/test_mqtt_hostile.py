@@ -24,7 +24,7 @@ from labeler_service.service.protocol import encode_model, encode_status
 from labeler_service.service.server import Server
 from labeler_service.testing.broker import LocalBroker, mosquitto_binary
 from labeler_service.tools.replay import open_sender, replay
-from labeler_service.tools.subscribe import Subscriber
+from labeler_service.tools.subscribe import READY, Subscriber
 
 pytestmark = pytest.mark.broker
 ROOT = Path(__file__).resolve().parents[2]
@@ -133,7 +133,7 @@ def test_the_broker_acl_lets_each_role_do_only_its_job(acl_broker):
         cfg = _mqtt_settings(broker, "labeler", pw["labeler"])
         async with Server(cfg) as srv:
             async with Subscriber(as_user("subscriber")) as sub:
-                assert await sub.wait_status("vol", "online", 5.0)
+                assert await sub.wait_status("vol", READY, 5.0)
                 async with open_sender(as_user("replay")) as (send, stream):
                     await replay(frames, send, stream=stream, init_frames=20, speed=2.0)
                 got = []

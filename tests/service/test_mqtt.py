@@ -17,7 +17,7 @@ from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
 from labeler_service.service.server import Server
 from labeler_service.service.settings import load_settings
 from labeler_service.tools.replay import open_sender, replay
-from labeler_service.tools.subscribe import Subscriber
+from labeler_service.tools.subscribe import READY, Subscriber
 
 pytestmark = pytest.mark.broker
 
@@ -41,7 +41,7 @@ def test_frames_in_and_out_over_mqtt_with_retained_model_and_status(broker, rng)
     async def go():
         async with Server(_settings(broker)) as srv:
             async with Subscriber(f"{broker.url}/vol") as sub:
-                assert await sub.wait_status("vol", "online", 30.0)
+                assert await sub.wait_status("vol", READY, 30.0)
                 async with open_sender(f"{broker.url}/vol") as (send, stream):
                     stats = await replay(frames, send, stream=stream, init_frames=20, speed=2.0)
                 got = []
@@ -81,7 +81,7 @@ def test_last_will_marks_the_stream_offline_when_the_service_dies(broker):
 
     async def go():
         async with Subscriber(f"{broker.url}/vol") as sub:
-            assert await sub.wait_status("vol", "online", 30.0)
+            assert await sub.wait_status("vol", READY, 30.0)
             proc.kill()  # no goodbye: only the broker's last will can say offline
             return await sub.wait_status("vol", "offline", 10.0)
 
@@ -159,9 +159,9 @@ def _online_for(secured, mqtt: dict, url: str, client=None) -> tuple[bool, bool]
                                 **mqtt})  # fmt: skip
         async with Server(s):
             async with Subscriber(url, mqtt=client) as good:
-                ok = await good.wait_status("vol", "online", 30.0)
+                ok = await good.wait_status("vol", READY, 30.0)
             async with Subscriber(f"{secured.url}/vol") as plain:
-                refused = not await plain.wait_status("vol", "online", 1.5)
+                refused = not await plain.wait_status("vol", READY, 1.5)
         return ok, refused
 
     return run(go())

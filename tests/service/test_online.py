@@ -21,7 +21,7 @@ from labeler_service.scenes.simulate import simulate_scene
 from labeler_service.service.server import Server
 from labeler_service.service.settings import load_settings
 from labeler_service.tools.replay import open_sender, replay
-from labeler_service.tools.subscribe import Recorder, Subscriber
+from labeler_service.tools.subscribe import READY, Recorder, Subscriber
 from offline.structure import StructureTrainer
 
 RATE = 120.0
@@ -88,7 +88,7 @@ def _through_server(transport, broker, thread, model, frames: StreamFrames, init
                 if transport == "udp":
                     await until(lambda: srv.transports[0].subscribers, "the registration")
                 else:
-                    assert await sub.wait_status("vol", "online", 30.0)
+                    assert await sub.wait_status("vol", READY, 30.0)
                 async with open_sender(url) as (send, stream):
                     stats = await replay(frames, send, stream=stream, init_frames=init, speed=2.0)
                 assert stats.failed == 0

@@ -272,22 +272,40 @@ def test_a_stream_whose_every_frame_fails_turns_lost_and_says_why(rng, caplog):
     )
 
 
-def test_status_is_retained_online_then_offline_and_tasks_end(rng):
+def test_status_is_retained_booting_until_labeled_then_offline_and_tasks_end(rng):
+    """A configured stream without a model has no labeler until its labeled init frames have
+    trained one: it reads ``booting`` (ready, nobody labeled yet), not ``online``, and turns
+    ``online`` once they did; the log line names the configured streams ("no streams yet"
+    was printed while they waited for their first frame)."""
+    cap = moving_clusters(rng, subjects=2, markers=4, frames=60)
+    frames = frames_of(cap, np.random.default_rng(3))
+    payloads = [
+        encode_frame("a", f, f / cap.rate, p, [cap.labels[i] for i in t] if f < 20 else None)
+        for f, (p, t) in enumerate(frames)
+    ]
+
     async def go():
         mem = MemoryTransport()
         srv = Server(_settings(streams=[{"name": "a"}, {"name": "b"}]), [mem])
         async with srv:
-            online = {s: decode(mem.retained[(s, "status")]).state for s in ("a", "b")}
+            ready = {s: decode(mem.retained[(s, "status")]).state for s in ("a", "b")}
+            line = srv.metrics.log_line(srv._log_streams())
             tasks = list(srv._tasks)
             assert srv.ready.is_set()
+            await _feed(mem, payloads, pause=0.001)
+            await _labeled(mem, 40)
+            labeled = {s: decode(mem.retained[(s, "status")]).state for s in ("a", "b")}
         offline = {s: decode(mem.retained[(s, "status")]).state for s in ("a", "b")}
         states = [decode(p).state for s, k, p, _ in mem.sent if k == "status" and s == "a"]
-        return online, offline, states, tasks, mem
+        return ready, line, labeled, offline, states, tasks, mem
 
-    online, offline, states, tasks, mem = run(go())
-    assert online == {"a": "online", "b": "online"}
+    ready, line, labeled, offline, states, tasks, mem = run(go())
+    assert ready == {"a": "booting", "b": "booting"}
+    assert "no streams yet" not in line
+    assert "[a] no frames yet status=booting" in line and "[b] no frames yet" in line, line
+    assert labeled == {"a": "online", "b": "booting"}
     assert offline == {"a": "offline", "b": "offline"}
-    assert states == ["starting", "online", "offline"]
+    assert states == ["starting", "booting", "online", "offline"]
     assert all(t.done() for t in tasks) and mem.closed
 
 

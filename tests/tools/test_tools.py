@@ -159,7 +159,7 @@ def test_recorder_keeps_the_stream_rate_and_the_time_of_frames_after_a_gap(tmp_p
     line = rec.report(tmp_path / "out.c3d", 9)
     assert "wrote 9 frames" in line and "at 25 Hz" in line, line
     assert "2 frames lost in seq gaps written as missing" in line, line
-    assert "1 frames of a later model" in line, line
+    assert "1 frame of a later model" in line, line
     cap = read_capture(tmp_path / "out.c3d")
     assert cap.rate == 25.0 and cap.n_frames == 9
     assert np.isnan(cap.positions[3:5]).all()

@@ -19,7 +19,7 @@ from labeler_service.errors import ConfigError, ProtocolError
 from labeler_service.service.protocol import LabeledMsg, ModelMsg, decode, encode_model
 from labeler_service.service.settings import load_settings
 from labeler_service.service.stream import StreamState
-from labeler_service.tools.subscribe import Received
+from labeler_service.tools.subscribe import READY, Received
 from labeler_service.tools.view import Viewer, is_loopback
 from labeler_service.tools.view_frames import (
     Decimator,
@@ -362,7 +362,7 @@ def test_the_viewer_follows_an_mqtt_stream(tmp_path, rng):
                                        "port": broker.port})  # fmt: skip
         url = f"{broker.url}/vol"
         async with Server(settings), Viewer(url, port=0) as v, aiohttp.ClientSession() as http:
-            assert await v.subscriber.wait_status("vol", "online", 10.0)
+            assert await v.subscriber.wait_status("vol", READY, 10.0)
             ws = await http.ws_connect(f"http://127.0.0.1:{v.port}/ws")
             async with open_sender(url) as (send, stream):
                 sender = asyncio.create_task(

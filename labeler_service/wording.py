@@ -1,0 +1,12 @@
+"""Counts in messages: :func:`plural` writes ``1 frame`` and ``2 frames``, so a message whose
+count can be 1 reads right (a new user's pass read "only 1 subjects" and "1 frames")."""
+
+from __future__ import annotations
+
+
+def plural(n: int | float, noun: str, many: str | None = None) -> str:
+    """``n`` and ``noun`` in the number ``n`` needs: ``plural(1, "frame")`` is ``"1 frame"``,
+    ``plural(2, "frame")`` ``"2 frames"``, ``plural(0, "frame")`` ``"0 frames"``. ``many``:
+    the plural when it is not ``noun + "s"`` (``plural(3, "body", "bodies")``)."""
+    word = noun if n == 1 else (many if many is not None else noun + "s")
+    return f"{n} {word}"
