@@ -379,7 +379,7 @@ class Booter:
             tpl = self._templates[s]
             assign, mine = _subject_assign(tpl, out)
             others = pts[(out >= 0) & ~mine]
-            swapped = _window_exchange(tpl, assign, hist)
+            swapped = _window_exchange(tpl, assign, hist, others, self.config.verify_contact_mm)
             swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
             if swapped is not assign:
                 _take(tpl, assign, swapped, out, taken0)

@@ -43,6 +43,10 @@ WINDOW_EXCHANGE_SHARE = 0.8
 WINDOW_EXCHANGE_NATS = 10.0
 #: ... at most this many exchanges per subject and extension.
 WINDOW_EXCHANGE_ROUNDS = 3
+#: An exchange of two markers of one segment neither of which is doubtful (inside a triangle,
+#: :func:`_window_exchange`) must gain this many nats in the median: the dancer's wrist bar,
+#: symmetric, gained 10-13 read either way round.
+WINDOW_TRIANGLE_NATS = 50.0
 #: Bodies are neighbours in the chain (:func:`_adjacent`) up to this multiple of a body's
 #: steadiest pair deviation to any other body.
 NEIGHBOUR = 1.5
@@ -2429,7 +2433,13 @@ def _fill_checks(
     return True
 
 
-def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np.ndarray:
+def _window_exchange(
+    tpl: _Template,
+    assign: np.ndarray,
+    hist: np.ndarray,
+    others: np.ndarray | None = None,
+    contact_mm: float = 0.0,
+) -> np.ndarray:
     """Subject ``tpl``'s reading ``assign`` with pairs of its placed markers exchanged where
     their *tracks* fit the template better the other way round along the window (``hist (N,
     W, 3)``, the tracks of the current points): a booted subject read with two markers on each
@@ -2442,7 +2452,20 @@ def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np
     (the pair between them keeps its distance) by more than ``EXCHANGE_MARGIN`` in
     ``WINDOW_EXCHANGE_SHARE`` of the window frames that track both points (at least half the
     window), by ``WINDOW_EXCHANGE_NATS`` in the median, and reverses no thick chirality
-    quadruple. Returns ``assign`` itself when nothing changes, else a new reading."""
+    quadruple, and neither is doubtful after it (:func:`_still_doubtful`).
+
+    Two markers of one segment exchanged inside it (``a``, ``b`` of a triangle ``a b c``: the
+    pair between them keeps its distance, each has one pair off, neither is doubtful) are
+    judged by the same evidence when one of them has a pair of one trained body off in the
+    last frame (a *suspect*) and both sit in one trained body whose every pair is rigid
+    (``whole``: not a body the trainer completed across a joint, the broad jumper's elbow and
+    wrist), by ``WINDOW_TRIANGLE_NATS`` in the median, and exchanged only when the exchange
+    leaves both wholly consistent with their bodies along the window
+    (:func:`_window_consistent`): a reading the model contradicts either way does not pass; and
+    not while a point of their segment is within ``contact_mm`` of ``others`` (other subjects'
+    labeled points, last frame), as :func:`_window_mirrors`. A doubtful marker's exchange is
+    taken first. Returns ``assign`` itself when nothing
+    changes, else a new reading."""
     out = assign
     for _ in range(WINDOW_EXCHANGE_ROUNDS):
         have = np.flatnonzero(out >= 0)
@@ -2451,14 +2474,17 @@ def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np
             return out
         H = np.transpose(hist[out[have]], (1, 0, 2))  # (W, k, 3)
         w = H.shape[0]
-        doubt = np.flatnonzero(_doubtful(tpl, have, H[-1]))
-        if doubt.size == 0:
+        bad, good = _strict_off(tpl, have, H[-1])
+        doubtful = (bad >= 2) & (bad > good)
+        suspect = bad >= 1
+        if not suspect.any():
             return out
         dd = np.linalg.norm(H[:, :, None] - H[:, None, :], axis=3)  # (W, q, j)
         N = _nll(tpl, have[:, None], have[None, :], dd)  # every marker on its point, vs j
         seen = np.isfinite(H[:, :, 0])  # (W, k)
-        best = (0.0, -1, -1)
-        for i in doubt:
+        whole = tpl.whole[np.ix_(have, have)]
+        best = {True: (0.0, -1, -1), False: (0.0, -1, -1)}  # doubtful i / suspect i
+        for i in np.flatnonzero(suspect):
             X = _nll(tpl, have[i], have[None, :], dd)  # i on point q, vs j
             Y = _nll(tpl, have[:, None], have[None, :], dd[:, i][:, None, :])  # q on i's point
             keep = np.ones((k, k), dtype=bool)
@@ -2473,34 +2499,97 @@ def _window_exchange(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> np
             ok = (n >= max(2, w // 2)) & (share >= WINDOW_EXCHANGE_SHARE)
             ok &= med < -WINDOW_EXCHANGE_NATS
             ok[i] = False
+            if not doubtful[i]:  # (a doubtful q is judged as i of its own)
+                ok &= whole[i] & ~doubtful & (med < -WINDOW_TRIANGLE_NATS)
             if not ok.any():
                 continue
             q = int(np.flatnonzero(ok)[np.argmin(med[ok])])
-            if med[q] < best[0]:
-                best = (float(med[q]), int(have[i]), int(have[q]))
-        if best[1] < 0:
-            return out
-        _, a, b = best
-        new = out.copy()
-        new[a], new[b] = out[b], out[a]
-        if _changed_reversed(tpl, out, new, hist[:, -1]) or _still_doubtful(tpl, new, hist, a, b):
+            if med[q] < best[bool(doubtful[i])][0]:
+                best[bool(doubtful[i])] = (float(med[q]), int(have[i]), int(have[q]))
+        new = None
+        for doubt in (True, False):  # a doubtful marker's exchange first
+            _, a, b = best[doubt]
+            if a < 0:
+                continue
+            new = out.copy()
+            new[a], new[b] = out[b], out[a]
+            if _changed_reversed(tpl, out, new, hist[:, -1]) or (
+                _still_doubtful(tpl, new, hist, a, b)
+                if doubt
+                else _in_contact(tpl, new, hist, a, b, others, contact_mm)
+                or not _window_consistent(tpl, new, hist, a, b)
+            ):
+                new = None
+                continue
+            break
+        if new is None:
             return out
         out = new
     return out
+
+
+def _strict_off(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per placed marker ``have[i]`` on ``pos[i]``: how many of its pairs of one trained body
+    (``strict``) to the other placed markers are off their tolerance, and how many within it
+    (a marker whose point is untracked has neither)."""
+    d = np.linalg.norm(pos[:, None] - pos[None, :], axis=2)
+    hh = np.ix_(have, have)
+    strict = tpl.strict[hh]
+    with np.errstate(invalid="ignore"):
+        off = np.abs(d - tpl.D[hh]) > tpl.tol[hh]
+    seen = np.isfinite(pos[:, 0])
+    bad = (strict & off).sum(axis=1) * seen
+    good = (strict & ~off & np.isfinite(d)).sum(axis=1)
+    return bad, good
+
+
+def _in_contact(
+    tpl: _Template,
+    new: np.ndarray,
+    hist: np.ndarray,
+    a: int,
+    b: int,
+    others: np.ndarray | None,
+    contact_mm: float,
+) -> bool:
+    """Is a placed point of the segment of ``a`` and ``b`` (``whole``) within ``contact_mm`` of
+    ``others`` in the last frame? In contact a partner's points confound the evidence (the 10
+    hugging performers lost a boot to a triangle exchange without this)."""
+    if others is None or others.shape[0] == 0 or contact_mm <= 0:
+        return False
+    seg = np.flatnonzero((new >= 0) & (tpl.whole[a] | tpl.whole[b]))
+    seg = np.union1d(seg, [a, b])
+    with np.errstate(invalid="ignore"):
+        near = np.linalg.norm(hist[new[seg], -1][:, None] - others[None], axis=2)
+    return bool(np.any(near < contact_mm))
+
+
+def _window_consistent(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b: int) -> bool:
+    """After exchanging ``a`` and ``b`` (reading ``new``), does each keep every pair of one
+    trained body (``strict``) to the placed markers within its tolerance in
+    ``WINDOW_EXCHANGE_SHARE`` of the window frames that track both points? An exchange inside
+    a triangle that leaves a pair off only makes a reading the model contradicts either way
+    less wrong."""
+    have = np.flatnonzero(new >= 0)
+    two = np.isin(have, [a, b])
+    seg = two | tpl.whole[a, have] | tpl.whole[b, have]
+    P = hist[new[have]]  # (k, W, 3)
+    both = np.all(np.isfinite(P[two, :, 0]), axis=0)
+    if not both.any():
+        return False
+    ok = 0
+    for t in np.flatnonzero(both):
+        bad, good = _strict_off(tpl, have, P[:, t])
+        ok += not bad[seg].any() and bool(np.all(good[two] >= 2))
+    return ok >= WINDOW_EXCHANGE_SHARE * both.sum()
 
 
 def _doubtful(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Per placed marker ``have[i]`` on ``pos[i]`` (last frame): two or more of its pairs of
     one trained body (``strict``) to the other placed markers off their tolerance, more than
     within it (a marker whose point is untracked in that frame is never doubtful)."""
-    d = np.linalg.norm(pos[:, None] - pos[None, :], axis=2)
-    hh = np.ix_(have, have)
-    strict = tpl.strict[hh]
-    with np.errstate(invalid="ignore"):
-        off = np.abs(d - tpl.D[hh]) > tpl.tol[hh]
-    bad = (strict & off).sum(axis=1)
-    good = (strict & ~off & np.isfinite(d)).sum(axis=1)
-    return (bad >= 2) & (bad > good) & np.isfinite(pos[:, 0])
+    bad, good = _strict_off(tpl, have, pos)
+    return (bad >= 2) & (bad > good)
 
 
 def _still_doubtful(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b: int) -> bool:

@@ -62,6 +62,52 @@ def test_an_exchange_that_leaves_a_marker_off_its_body_is_refused(walk):
     assert _window_exchange(tpl, assign, moved) is assign
 
 
+@pytest.mark.parametrize("pair", [("RUPA", "RELB"), ("LTHI", "LTHA"), ("LUPB", "LELB")])
+def test_two_markers_exchanged_inside_a_triangle_are_exchanged_back(walk, pair):
+    """``a`` and ``b`` of one segment ``a b c`` on each other's points: the pair between them
+    keeps its distance and each has one pair off, so neither is doubtful (with ``LUPB``/``LELB``
+    the third marker ``LUPA`` is, and has no exchange of its own to make); the exchange back
+    fits the segment along the window and leaves both wholly consistent with it."""
+    from labeler_service.labeling.boot_match import _doubtful
+
+    tpl, ix, assign, hist = _swapped(walk, *pair)
+    have = np.arange(tpl.n)
+    doubtful = _doubtful(tpl, have, hist[assign, -1])
+    assert not doubtful[[ix[pair[0]], ix[pair[1]]]].any()
+    out = _window_exchange(tpl, assign, hist)
+    assert np.array_equal(out, np.arange(tpl.n))
+
+
+def test_a_right_reading_with_a_marker_off_its_segment_is_left_as_it_is(walk):
+    """A right reading whose ``RELB`` point is 40 mm off (a pair of one trained body off: the
+    elbow and its upper-arm neighbours are suspects) has no exchange that makes it right."""
+    tpl, names, pts, hist = subject_on_its_points(walk)
+    ix = {n: i for i, n in enumerate(names)}
+    moved = hist.copy()
+    moved[ix["RELB"]] += np.array([0.0, 40.0, 0.0])
+    assign = np.arange(tpl.n)
+    assert _window_exchange(tpl, assign, moved) is assign
+
+
+def test_a_triangle_exchange_that_leaves_a_marker_off_its_segment_is_refused(walk):
+    """``RUPA``/``RELB`` exchanged, and the point ``RELB`` would hold 40 mm off: the exchange
+    back fits better but leaves ``RELB`` off its segment, a reading the model contradicts
+    either way."""
+    tpl, ix, assign, hist = _swapped(walk, "RUPA", "RELB")
+    moved = hist.copy()
+    moved[ix["RELB"]] += np.array([40.0, 0.0, 0.0])
+    assert _window_exchange(tpl, assign, moved) is assign
+
+
+def test_a_triangle_exchange_in_contact_is_not_made(walk):
+    """Another performer's point beside the segment (a hug): its points may confound the
+    evidence, so a triangle exchange waits."""
+    tpl, ix, assign, hist = _swapped(walk, "RUPA", "RELB")
+    partner = hist[ix["RUPB"], -1][None] + 100.0
+    assert _window_exchange(tpl, assign, hist, partner, 250.0) is assign
+    assert np.array_equal(_window_exchange(tpl, assign, hist, partner, 50.0), np.arange(tpl.n))
+
+
 def test_the_extension_rechecks_only_the_subjects_it_is_told_to(walk):
     """A subject the stream's labels placed (a labeled start) keeps its labels; a booted one
     (``checked``) has the pair exchanged back."""
