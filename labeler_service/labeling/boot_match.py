@@ -2493,9 +2493,10 @@ def _window_exchange(
             delta = ((X + Y - N[:, i][:, None, :] - N) * keep).sum(axis=2)  # (W, q)
             both = seen & seen[:, i][:, None]
             n = both.sum(axis=0)
-            with np.errstate(invalid="ignore"):
-                share = (both & (delta < -EXCHANGE_MARGIN)).sum(axis=0) / np.maximum(n, 1)
-                med = np.nanmedian(np.where(both, delta, np.nan), axis=0)
+            share = (both & (delta < -EXCHANGE_MARGIN)).sum(axis=0) / np.maximum(n, 1)
+            med = np.full(k, np.inf)  # no frame tracks both points: no evidence
+            cols = n > 0  # (nanmedian of an all-NaN column warns on the user's console)
+            med[cols] = np.nanmedian(np.where(both[:, cols], delta[:, cols], np.nan), axis=0)
             ok = (n >= max(2, w // 2)) & (share >= WINDOW_EXCHANGE_SHARE)
             ok &= med < -WINDOW_EXCHANGE_NATS
             ok[i] = False

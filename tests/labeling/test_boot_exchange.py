@@ -163,3 +163,15 @@ def test_only_mirror_segments_named_as_twins_are_looked_at():
     odd = (seg("LSHN", "LTIB"), seg("FHD", "BHD"))
     out = _sided([arms, crossed, odd], names)
     assert len(out) == 1 and np.array_equal(out[0][1], arms[1])
+
+
+def test_a_marker_with_no_frame_in_common_is_no_evidence_and_no_warning(walk):
+    """A placed marker whose track shares no frame with the doubtful one's (here a hidden
+    point: NaN all along) gives no evidence either way; the median over no frame was numpy's
+    'All-NaN slice' warning on the user's console (the suite turns warnings into errors). The
+    exchange that has evidence is still made."""
+    tpl, ix, assign, hist = _swapped(walk, "LWRB", "LFIN")
+    gap = hist.copy()
+    gap[ix["C7"]] = np.nan
+    out = _window_exchange(tpl, assign, gap)
+    assert out[ix["LWRB"]] == ix["LWRB"] and out[ix["LFIN"]] == ix["LFIN"]
