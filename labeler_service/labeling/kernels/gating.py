@@ -75,6 +75,11 @@ def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
             )
 
 
+# the common mode's first search radius (mm) for a marker with no point yet: a point within it
+# is the nearest within the full radius too; none -> the full radius is searched
+_CM_FIRST_MM = 40.0
+
+
 @njit
 def _select(v, lo, hi, k):
     """Partially sorts ``v[lo:hi+1]`` in place so that ``v[k]`` is its ``k``-th smallest value
@@ -170,24 +175,30 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
                         lim = d0 * (1.0 + 1e-12) + 1e-12  # just above d0: keeps its ties
                         if lim > r2:
                             lim = r2
-                rs = np.sqrt(lim) + _SLACK
-                lo = np.searchsorted(keys, ca - rs, side="left")
-                hi = np.searchsorted(keys, ca + rs, side="right")
-                best = lim
-                bk = -1
-                bj = -1
-                for k in range(lo, hi):
-                    d2 = 0.0
-                    d = sp[k, 0] - cx
-                    d2 += d * d
-                    d = sp[k, 1] - cy
-                    d2 += d * d
-                    d = sp[k, 2] - cz
-                    d2 += d * d
-                    if d2 < best or (d2 == best and bj >= 0 and order[k] < bj):
-                        best = d2
-                        bj = order[k]
-                        bk = k
+                if lim == r2 and r2 > _CM_FIRST_MM * _CM_FIRST_MM:
+                    lim = _CM_FIRST_MM * _CM_FIRST_MM  # a point within it is the nearest
+                for _try in range(2):
+                    rs = np.sqrt(lim) + _SLACK
+                    lo = np.searchsorted(keys, ca - rs, side="left")
+                    hi = np.searchsorted(keys, ca + rs, side="right")
+                    best = lim
+                    bk = -1
+                    bj = -1
+                    for k in range(lo, hi):
+                        d2 = 0.0
+                        d = sp[k, 0] - cx
+                        d2 += d * d
+                        d = sp[k, 1] - cy
+                        d2 += d * d
+                        d = sp[k, 2] - cz
+                        d2 += d * d
+                        if d2 < best or (d2 == best and bj >= 0 and order[k] < bj):
+                            best = d2
+                            bj = order[k]
+                            bk = k
+                    if bk >= 0 or lim == r2:
+                        break
+                    lim = r2  # none that near: the whole radius
                 near[e] = bk
                 if bk >= 0:
                     buf[0, c] = sp[bk, 0] - cx
