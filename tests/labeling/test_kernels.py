@@ -8,7 +8,7 @@ import reference as ref
 
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.kernels.fitting import _fit_bodies, _search_body
-from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
+from labeler_service.labeling.kernels.gating import _common_mode, _gate, _median_inplace, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import DISPLACEMENT, KABSCH, kernel_params
 from labeler_service.labeling.kernels.rigid import (
@@ -163,6 +163,53 @@ def test_common_mode_matches_twin(rng):
     np.testing.assert_allclose(x, xr, atol=1e-6)
     np.testing.assert_allclose(out, sr, atol=1e-6)
     np.testing.assert_allclose(out, shift, atol=1.5)  # and it finds the jump
+
+
+def test_median_in_place_is_np_median():
+    """The common mode's in-place median is ``np.median``'s value, bit for bit (odd and even
+    counts, ties, sorted and reversed input)."""
+    rng = np.random.default_rng(3)
+    for n in list(range(1, 40)) + [51, 64, 101]:
+        for kind in range(4):
+            v = rng.normal(0, 30, n)
+            if kind == 1:
+                v = v.round()  # ties
+            elif kind == 2:
+                v = np.sort(v)
+            elif kind == 3:
+                v = np.sort(v)[::-1].copy()
+            buf = np.concatenate([v, rng.normal(0, 1, 5)])  # entries past n are not read
+            assert _median_inplace(buf, n) == np.median(v)
+            assert sorted(buf[:n]) == sorted(v)  # reordered only
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_common_mode_crowd_matches_full_scan(seed):
+    """A crowd: subjects packed within the radius of each other, ghost points, markers whose
+    nearest point lies beyond the first narrow search or beyond the radius, inactive and NaN
+    markers; the bounded searches choose the full scan's points, so the shifts are its own."""
+    rng = np.random.default_rng(seed)
+    n_subj, per = 5, 12
+    m = n_subj * per
+    truth = rng.normal(0, 60, (m, 3)) + np.repeat(rng.normal(0, 150, (n_subj, 3)), per, axis=0)
+    jump = rng.normal(0, 45, (n_subj, 3))  # some nearest points beyond the first 40 mm
+    x = np.zeros((m, 6))
+    x[:, :3] = truth - np.repeat(jump, per, axis=0) + rng.normal(0, 8, (m, 3))
+    x[3, :3] += 500.0  # nothing within the radius
+    x[7, 0] = np.nan
+    ghosts = rng.normal(0, 200, (40, 3))
+    points = np.vstack([truth + rng.normal(0, 1, truth.shape), ghosts]).astype(np.float32)
+    points = points[rng.permutation(len(points))]
+    active = rng.random(m) > 0.1
+    groups = [np.arange(k * per, (k + 1) * per) for k in range(n_subj)]
+    xr, sr = ref.common_mode(x, active, groups, points, 120.0, 3)
+    out = np.zeros((n_subj, 3))
+    subj_ptr = np.arange(0, m + 1, per)
+    _common_mode(
+        x, active, subj_ptr, np.arange(m), points, _index(points), 120.0, 3, np.zeros((3, m)), out
+    )
+    np.testing.assert_allclose(x, xr, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(out, sr, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- Eq. 5 search

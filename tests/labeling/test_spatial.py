@@ -7,7 +7,7 @@ import pytest
 import reference as ref
 
 from labeler_service.labeling.kernels.gating import _gate, _regate
-from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _index, _nearest
+from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _index, _nearest, _span
 
 
 def _cloud(rng, n, spread=4000.0):
@@ -95,3 +95,35 @@ def test_gate_and_regate_on_a_stage_equal_the_twins(rng, K):
     _regate(pred, lost, points, index, owner, radius, 16.27, K, cand, cand_d2, ncand)
     for i, js in ref.regate(pred, lost, points, owner, radius, 16.27, K).items():
         assert list(cand[i, : ncand[i]]) == js
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_span_ends_are_searchsorted(seed):
+    """A slab's ends are ``np.searchsorted``'s of its bounds: on ties, non-finite points, a far
+    outlier and centres off either end."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 300))
+    points = rng.normal(0, 400, (n, 3)).round(int(rng.integers(-1, 3)))  # many ties
+    if seed % 2:
+        points[rng.integers(n)] = [1e7, -1e7, 0.0]  # a far outlier
+    points[rng.random(n) < 0.05, 0] = np.nan
+    index = _index(points)
+    keys = index.keys
+    centres = [points[j] for j in range(n)] + list(rng.normal(0, 1500, (200, 3)))
+    centres += [np.full(3, keys[0] + 8.0 * b) for b in range(-2, 40)]
+    for c in centres:
+        for radius in (0.0, 8.0, 30.0, 120.0, 1e4):
+            lo, hi = _span(index, c, radius)
+            if not np.isfinite(c[index.axis]):
+                assert (lo, hi) == (0, 0)
+                continue
+            r = radius + 1e-6
+            a = c[index.axis]
+            assert lo == np.searchsorted(keys, a - r, side="left")
+            assert hi == np.searchsorted(keys, a + r, side="right")
+
+
+def test_span_of_no_finite_point():
+    index = _index(np.full((4, 3), np.nan))
+    assert _span(index, np.zeros(3), 100.0) == (0, 0)
+    assert _span(_index(np.zeros((0, 3))), np.zeros(3), 100.0) == (0, 0)

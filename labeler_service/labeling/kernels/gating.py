@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.spatial import ANY, _nearest, _span
+from labeler_service.labeling.kernels.spatial import _SLACK, _span
 
 
 @njit
@@ -75,6 +75,51 @@ def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
             )
 
 
+# the common mode's first search radius (mm) for a marker with no point yet: a point within it
+# is the nearest within the full radius too; none -> the full radius is searched
+_CM_FIRST_MM = 40.0
+
+
+@njit
+def _select(v, lo, hi, k):
+    """Partially sorts ``v[lo:hi+1]`` in place so that ``v[k]`` is its ``k``-th smallest value
+    (quickselect, middle pivot); returns it."""
+    while hi > lo:
+        pivot = v[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while v[i] < pivot:
+                i += 1
+            while v[j] > pivot:
+                j -= 1
+            if i <= j:
+                v[i], v[j] = v[j], v[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return v[k]
+
+
+@njit
+def _median_inplace(v, n):
+    """``np.median(v[:n])`` (``n >= 1``, no NaN) without its copy: ``v[:n]`` is reordered.
+    The same value: the middle order statistic, or ``(a + b) / 2`` of the two middle ones."""
+    h = n >> 1
+    if n & 1:
+        return _select(v, 0, n - 1, h)
+    b = _select(v, 0, n - 1, h)
+    a = v[0]  # the largest of v[:h], all <= b after the partition
+    for t in range(1, h):
+        if v[t] > a:
+            a = v[t]
+    return (a + b) / 2
+
+
 @njit
 def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, buf, shift):
     """Per-subject common-mode correction of the predictions, in place.
@@ -85,27 +130,85 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
     per-marker motion model foresees (a capture's per-frame re-centring, a sudden step at a low
     rate) are thereby absorbed before the Mahalanobis gate. ``shift (S, 3)`` receives the
     total correction per subject.
+
+    The nearest point is :func:`.spatial._nearest`'s (``ANY``, same sums, same ties) written out
+    here, over a copy of the points in key order (a slab is contiguous), and from the second
+    pass on within the distance of the last pass's point (the nearest is no farther: a slab of
+    a few points instead of ~30). The median is taken in place in
+    ``buf`` (:func:`_median_inplace`: ``np.median``'s value without its copy).
     """
     r2 = radius * radius
-    anyone = np.empty(0, np.int32)  # ANY reads no owner
+    order, keys, axis = index.order, index.keys, index.axis
+    n = order.shape[0]
+    sp = np.empty((n, 3))  # the points in key order: a slab is contiguous
+    for k in range(n):
+        for a in range(3):
+            sp[k, a] = points[order[k], a]
+    near = np.empty(subj_idx.shape[0], np.int64)  # each entry's nearest (key position), last pass
     for s in range(subj_ptr.shape[0] - 1):
         for a in range(3):
             shift[s, a] = 0.0
+        for e in range(subj_ptr[s], subj_ptr[s + 1]):
+            near[e] = -1
         for _it in range(iters):
             c = 0
             for e in range(subj_ptr[s], subj_ptr[s + 1]):
                 i = subj_idx[e]
                 if not active[i] or x[i, 0] != x[i, 0]:  # noqa: PLR0124 (NaN test)
                     continue
-                bj, _d2 = _nearest(points, index, x[i], r2, anyone, ANY, -1)
-                if bj >= 0:
-                    for a in range(3):
-                        buf[a, c] = points[bj, a] - x[i, a]
+                cx, cy, cz = x[i, 0], x[i, 1], x[i, 2]
+                ca = cx if axis == 0 else cy
+                if not np.isfinite(ca):
+                    near[e] = -1
+                    continue  # (_span: empty)
+                lim = r2
+                h = near[e]
+                if h >= 0:  # the last pass's point bounds the nearest: d2 <= d0
+                    d0 = 0.0
+                    d = sp[h, 0] - cx
+                    d0 += d * d
+                    d = sp[h, 1] - cy
+                    d0 += d * d
+                    d = sp[h, 2] - cz
+                    d0 += d * d
+                    if d0 < r2:
+                        lim = d0 * (1.0 + 1e-12) + 1e-12  # just above d0: keeps its ties
+                        if lim > r2:
+                            lim = r2
+                if lim == r2 and r2 > _CM_FIRST_MM * _CM_FIRST_MM:
+                    lim = _CM_FIRST_MM * _CM_FIRST_MM  # a point within it is the nearest
+                for _try in range(2):
+                    rs = np.sqrt(lim) + _SLACK
+                    lo = np.searchsorted(keys, ca - rs, side="left")
+                    hi = np.searchsorted(keys, ca + rs, side="right")
+                    best = lim
+                    bk = -1
+                    bj = -1
+                    for k in range(lo, hi):
+                        d2 = 0.0
+                        d = sp[k, 0] - cx
+                        d2 += d * d
+                        d = sp[k, 1] - cy
+                        d2 += d * d
+                        d = sp[k, 2] - cz
+                        d2 += d * d
+                        if d2 < best or (d2 == best and bj >= 0 and order[k] < bj):
+                            best = d2
+                            bj = order[k]
+                            bk = k
+                    if bk >= 0 or lim == r2:
+                        break
+                    lim = r2  # none that near: the whole radius
+                near[e] = bk
+                if bk >= 0:
+                    buf[0, c] = sp[bk, 0] - cx
+                    buf[1, c] = sp[bk, 1] - cy
+                    buf[2, c] = sp[bk, 2] - cz
                     c += 1
             if c < 3:
                 break
             for a in range(3):
-                d = np.median(buf[a, :c])
+                d = _median_inplace(buf[a], c)
                 shift[s, a] += d
                 for e in range(subj_ptr[s], subj_ptr[s + 1]):
                     i = subj_idx[e]
