@@ -621,12 +621,7 @@ class Server:
             rate = state.rate_check.update(state.name, msg.t, state.rate)
             if rate is not None:
                 log.warning("%s", rate)
-            if state.just_booted:
-                self._booted(state)
-            elif state.booting is not None:
-                self.metrics.subjects(state.name, state.booting.n_active)
-            if state.verify_events:
-                self._verified(state)
+            self._boot_news(state)
             if self._published_model.get(state.name) != state.model_id:
                 await self._publish_model(state)
             sent_ok = await self._send_all(state.name, "labeled", out.payload)
@@ -788,6 +783,11 @@ class Server:
         if seconds is None:
             return
         self.metrics.boot_install(state.name, seconds)
+        self._boot_news(state)
+
+    def _boot_news(self, state: StreamState) -> None:
+        """What a frame or an install between frames changed in a booting stream: subjects
+        booted (log, metrics), the active count, the re-verification's withdrawals."""
         if state.just_booted:
             self._booted(state)
         elif state.booting is not None:
