@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import reference as ref
 
-from labeler_service.labeling.kernels.gating import _gate, _regate
+from labeler_service.labeling.kernels.gating import _candidates, _gate, _regate
 from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _index, _nearest, _span
 
 
@@ -95,6 +95,36 @@ def test_gate_and_regate_on_a_stage_equal_the_twins(rng, K):
     _regate(pred, lost, points, index, owner, radius, 16.27, K, cand, cand_d2, ncand)
     for i, js in ref.regate(pred, lost, points, owner, radius, 16.27, K).items():
         assert list(cand[i, : ncand[i]]) == js
+
+
+@pytest.mark.parametrize("K", [1, 3, 8])
+def test_gate_is_the_candidate_search_bit_for_bit(rng, K):
+    """The gate's search over the key-ordered copy gives :func:`_candidates`'s result exactly:
+    the same candidates in the same order, the same distances to the bit (a crowd with ghosts,
+    exact duplicates, non-finite points and markers, inactive markers, narrow and wide gates)."""
+    points = _cloud(rng, 400, spread=1500.0)
+    m = 300
+    pred = np.zeros((m, 6))
+    pred[:, :3] = points[rng.integers(0, 400, m)] + rng.normal(0, 10, (m, 3))
+    pred[:20, :3] = points[5]  # on the duplicate pair: exact ties
+    pred[30, :3] = np.nan
+    pred[31, 0] = np.inf
+    s = rng.uniform(0.5, 3000, m)
+    active = rng.random(m) < 0.9
+    index = _index(points)
+    got = [np.zeros((m, K), np.int32), np.zeros((m, K)), np.zeros(m, np.int32)]
+    _gate(pred, s, active, points, index, 16.27, K, *got)
+    want = [np.zeros((m, K), np.int32), np.zeros((m, K)), np.zeros(m, np.int32)]
+    anyone = np.empty(0, np.int32)
+    for i in range(m):
+        if active[i]:
+            sc, r = 1.0 / s[i], np.sqrt(16.27 * s[i])
+            _candidates(i, pred[i], sc, r, points, index, anyone, False, 16.27, K, *want)
+    assert np.array_equal(got[2], want[2])
+    for i in range(m):
+        c = got[2][i]
+        assert np.array_equal(got[0][i, :c], want[0][i, :c])
+        assert np.array_equal(got[1][i, :c], want[1][i, :c])
 
 
 @pytest.mark.parametrize("seed", range(8))

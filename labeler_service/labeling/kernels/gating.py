@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.spatial import _SLACK, _span
+from labeler_service.labeling.kernels.spatial import _SLACK, _key_ordered, _span
 
 
 @njit
@@ -64,15 +64,30 @@ def _candidates(
 def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
     """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place (``index``: the
     sweep index of ``points``, :func:`.spatial._index`)."""
-    anyone = np.empty(0, np.int32)  # every point is a candidate: no owner is read
+    order, keys, axis = index.order, index.keys, index.axis
+    sp = _key_ordered(points, index)  # a slab is contiguous
     for i in range(pred.shape[0]):
         ncand[i] = 0
-        if active[i]:
-            radius = np.sqrt(gate * s[i])
-            sc = 1.0 / s[i]
-            _candidates(
-                i, pred[i], sc, radius, points, index, anyone, False, gate, K, cand, cand_d2, ncand
-            )
+        if not active[i]:
+            continue
+        # _candidates(..., free_only=False) written out over ``sp``: the same slab, the same
+        # sums in the same order of visit, so the same candidates, distances and ties
+        radius = np.sqrt(gate * s[i])
+        sc = 1.0 / s[i]
+        px, py, pz = pred[i, 0], pred[i, 1], pred[i, 2]
+        ca = px if axis == 0 else py
+        if not (np.isfinite(ca) and radius >= 0.0):
+            continue  # (_span: empty)
+        rs = radius + _SLACK
+        lo = np.searchsorted(keys, ca - rs, side="left")
+        hi = np.searchsorted(keys, ca + rs, side="right")
+        for k in range(lo, hi):
+            dx = sp[k, 0] - px
+            dy = sp[k, 1] - py
+            dz = sp[k, 2] - pz
+            d2 = (dx * dx + dy * dy + dz * dz) * sc
+            if d2 < gate:  # also rejects NaN
+                _insert(i, order[k], d2, K, cand, cand_d2, ncand)
 
 
 # the common mode's first search radius (mm) for a marker with no point yet: a point within it
@@ -139,11 +154,7 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
     """
     r2 = radius * radius
     order, keys, axis = index.order, index.keys, index.axis
-    n = order.shape[0]
-    sp = np.empty((n, 3))  # the points in key order: a slab is contiguous
-    for k in range(n):
-        for a in range(3):
-            sp[k, a] = points[order[k], a]
+    sp = _key_ordered(points, index)  # a slab is contiguous
     near = np.empty(subj_idx.shape[0], np.int64)  # each entry's nearest (key position), last pass
     for s in range(subj_ptr.shape[0] - 1):
         for a in range(3):

@@ -82,6 +82,20 @@ def _span(index, centre, radius):
 
 
 @njit
+def _key_ordered(points, index):
+    """A float64 copy of ``points`` in ``index``'s key order (row ``k`` is point
+    ``index.order[k]``): a slab is then contiguous. For the kernels that search many slabs of
+    one frame (the common-mode shift, the gate); the same coordinates, so the same sums."""
+    order = index.order
+    n = order.shape[0]
+    sp = np.empty((n, 3))
+    for k in range(n):
+        for a in range(3):
+            sp[k, a] = points[order[k], a]
+    return sp
+
+
+@njit
 def _nearest(points, index, centre, lim2, owner, which, skip):
     """The point nearest ``centre`` with squared distance below ``lim2`` (ties: lower index);
     ``which`` = ``ANY``, ``FREE`` (``owner < 0``) or ``OWNED`` (``owner >= 0``, not ``skip``).
