@@ -120,6 +120,20 @@ def _select(v, lo, hi, k):
     return v[k]
 
 
+@njit(inline="always")
+def _row_d2(sp, k, cx, cy, cz):
+    """Squared distance from row ``k`` of ``sp`` to ``(cx, cy, cz)``, summed x, y, z as
+    :func:`.spatial._nearest` sums it (the same float result)."""
+    d2 = 0.0
+    d = sp[k, 0] - cx
+    d2 += d * d
+    d = sp[k, 1] - cy
+    d2 += d * d
+    d = sp[k, 2] - cz
+    d2 += d * d
+    return d2
+
+
 @njit
 def _median_inplace(v, n):
     """``np.median(v[:n])`` (``n >= 1``, no NaN) without its copy: ``v[:n]`` is reordered.
@@ -175,13 +189,7 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
                 lim = r2
                 h = near[e]
                 if h >= 0:  # the last pass's point bounds the nearest: d2 <= d0
-                    d0 = 0.0
-                    d = sp[h, 0] - cx
-                    d0 += d * d
-                    d = sp[h, 1] - cy
-                    d0 += d * d
-                    d = sp[h, 2] - cz
-                    d0 += d * d
+                    d0 = _row_d2(sp, h, cx, cy, cz)
                     if d0 < r2:
                         lim = d0 * (1.0 + 1e-12) + 1e-12  # just above d0: keeps its ties
                         if lim > r2:
@@ -196,13 +204,7 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
                     bk = -1
                     bj = -1
                     for k in range(lo, hi):
-                        d2 = 0.0
-                        d = sp[k, 0] - cx
-                        d2 += d * d
-                        d = sp[k, 1] - cy
-                        d2 += d * d
-                        d = sp[k, 2] - cz
-                        d2 += d * d
+                        d2 = _row_d2(sp, k, cx, cy, cz)
                         if d2 < best or (d2 == best and bj >= 0 and order[k] < bj):
                             best = d2
                             bj = order[k]
