@@ -294,9 +294,10 @@ class Subscriber:
             if self.silence_s is not None and self.status.get(msg.stream) != msg.state:
                 why = ""
                 if msg.state == "booting" and msg.stream not in self.models:
-                    # no model message: the stream starts from labeled init frames
-                    why = (" (waiting for labeled init frames to train its labeler: no one "
-                           "labeled yet)")  # fmt: skip
+                    # no model message (yet): a stream that starts from labeled init frames,
+                    # or a model stream whose model message comes with its first frames
+                    why = (" (no one labeled yet: it boots its performers from a model, or "
+                           "waits for labeled init frames to train its labeler)")  # fmt: skip
                 elif msg.state == "booting":
                     why = " (booting its performers from the model: no one labeled yet)"
                 elif msg.state == "training_failed":

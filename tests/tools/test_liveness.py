@@ -79,7 +79,10 @@ def test_subscribe_reports_silence_resumption_and_the_services_offline_status(rn
 
     warnings = run(go())
     # no model: booting until the labeled init frames have trained the stream's labeler
-    assert "stream v is booting (waiting for labeled init frames" in warnings[0]
+    assert (
+        "stream v is booting (no one labeled yet: it boots its performers from a model, or "
+        "waits for labeled init frames" in warnings[0]
+    )
     assert "stream v is online" in warnings[1]
     assert "no labeled frames" in warnings[2] and "frames again" in warnings[3]
     assert any("stream v is offline" in w for w in warnings[4:])
@@ -117,15 +120,17 @@ def test_subscribe_says_why_a_stream_nobody_is_labeled_in_yet_is_lost():
 
 def test_subscribe_says_a_booting_stream_without_a_model_waits_for_labeled_init_frames():
     """A configured stream without a model reads ``booting`` until its labeled init frames
-    have trained its labeler (it read ``online`` from the start): no model message came, so
-    the subscriber does not say it boots performers from a model."""
+    have trained its labeler (it read ``online`` from the start). No model message came, and a
+    model stream's comes with its first frames (`make demo` said "waiting for labeled init
+    frames" of a stream that boots from a model), so the subscriber names both."""
     from labeler_service.service.protocol import encode_status
     from labeler_service.service.transports.base import Incoming
 
     sub = Subscriber("udp://127.0.0.1:9/v", silence_s=1.0)
     sub._handle(Incoming(encode_status("v", "booting"), 0, "udp"))
-    want = "stream v is booting (waiting for labeled init frames to train its labeler: no one "
-    assert sub.warnings[-1].endswith(want + "labeled yet)"), sub.warnings[-1]
+    want = "stream v is booting (no one labeled yet: it boots its performers from a model, or "
+    assert sub.warnings[-1].endswith(want + "waits for labeled init frames to train its "
+                                     "labeler)"), sub.warnings[-1]  # fmt: skip
 
 
 def test_subscribe_to_a_stream_name_the_service_does_not_have_says_so():
