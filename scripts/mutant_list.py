@@ -32,8 +32,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "gating-no-chi-square-gate",
         "labeler_service/labeling/kernels/gating.py",
-        "i, pred[i], sc, radius, points, index, anyone, False, gate, K, cand, cand_d2, ncand",
-        "i, pred[i], sc, np.inf, points, index, anyone, False, np.inf, K, cand, cand_d2, ncand",
+        "        rs = radius + _SLACK\n",  # the slab, then the ellipsoid: both removed
+        "        rs = np.inf\n        gate = np.inf\n",
         (T + "labeling/test_gating.py",),
         "every point is a candidate of every marker (the gate removed)",
         kernel=True,
@@ -274,8 +274,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "metres-scaled-wrong",
         "labeler_service/capture/io.py",
-        '"m": 1000.0,',
-        '"m": 100.0,',
+        '**dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 1000.0),',
+        '**dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 100.0),',
         (T + "capture/test_io.py",),
         "files in metres come out 10x too small",
         k="metres",
