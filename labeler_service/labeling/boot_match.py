@@ -2475,7 +2475,7 @@ def _window_exchange(
         H = np.transpose(hist[out[have]], (1, 0, 2))  # (W, k, 3)
         w = H.shape[0]
         bad, good = _strict_off(tpl, have, H[-1])
-        doubtful = (bad >= 2) & (bad > good)
+        doubtful = _doubtful_counts(bad, good)
         suspect = bad >= 1
         if not suspect.any():
             return out
@@ -2556,12 +2556,18 @@ def _in_contact(
     """Is a placed point of the segment of ``a`` and ``b`` (``whole``) within ``contact_mm`` of
     ``others`` in the last frame? In contact a partner's points confound the evidence (the 10
     hugging performers lost a boot to a triangle exchange without this)."""
-    if others is None or others.shape[0] == 0 or contact_mm <= 0:
-        return False
     seg = np.flatnonzero((new >= 0) & (tpl.whole[a] | tpl.whole[b]))
     seg = np.union1d(seg, [a, b])
+    return _touches(hist[new[seg], -1], others, contact_mm)
+
+
+def _touches(points: np.ndarray, others: np.ndarray | None, contact_mm: float) -> bool:
+    """Is one of ``points`` within ``contact_mm`` of ``others`` (other subjects' labeled
+    points; untracked points, NaN, are never near)?"""
+    if others is None or others.shape[0] == 0 or contact_mm <= 0:
+        return False
     with np.errstate(invalid="ignore"):
-        near = np.linalg.norm(hist[new[seg], -1][:, None] - others[None], axis=2)
+        near = np.linalg.norm(points[:, None] - others[None], axis=2)
     return bool(np.any(near < contact_mm))
 
 
@@ -2589,7 +2595,11 @@ def _doubtful(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Per placed marker ``have[i]`` on ``pos[i]`` (last frame): two or more of its pairs of
     one trained body (``strict``) to the other placed markers off their tolerance, more than
     within it (a marker whose point is untracked in that frame is never doubtful)."""
-    bad, good = _strict_off(tpl, have, pos)
+    return _doubtful_counts(*_strict_off(tpl, have, pos))
+
+
+def _doubtful_counts(bad: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """Doubtful from :func:`_strict_off`'s counts: two or more pairs off, more than within."""
     return (bad >= 2) & (bad > good)
 
 
@@ -2628,10 +2638,8 @@ def _window_mirrors(
         if ex is None:
             continue
         _, placed, swapped, base, other = ex
-        if others is not None and others.shape[0] and contact_mm > 0:
-            near = np.linalg.norm(hist[out[placed], -1][:, None] - others[None], axis=2)
-            if np.nanmin(near) < contact_mm:
-                continue
+        if _touches(hist[out[placed], -1], others, contact_mm):
+            continue
         tracked = np.all(np.isfinite(hist[out[placed], :, 0]), axis=0)
         frames = np.flatnonzero(tracked)
         if frames.size < max(2, w // 2):
