@@ -18,26 +18,23 @@ def seed(text: str) -> int:
     return value
 
 
-#: frames of the window a marker must be seen in to be trained (``train_subject``'s
-#: ``min_pair_frames``)
-MIN_SEEN_FRAMES = 3
-
-
 def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool = True) -> None:
     """Refuses labeled init frames (the first ``init`` frames, every ``step``-th) that show no
     labeled marker at all (a take that starts before anyone is in view), or, with
-    ``subjects``, that show a subject in fewer than 3 frames (no marker of his can be trained:
-    he walks in later), naming the frame to start at as ``FILE:start`` (in the file's
-    numbering, as ``spec``'s range is); the labeler's own error said only "start where the
-    subject is in the volume"."""
+    ``subjects``, that show a subject in fewer than the trainer's ``min_pair_frames`` (3)
+    frames (no marker of his can be trained: he walks in later), naming the frame to start at
+    as ``FILE:start`` (in the file's numbering, as ``spec``'s range is); the labeler's own
+    error said only "start where the subject is in the volume"."""
     import numpy as np
 
     from labeler_service.capture import subject_groups
     from labeler_service.capture.io import split_segment
     from labeler_service.errors import LabelerError
+    from labeler_service.labeling.structure import StructureTrainer
 
     if init <= 0:
         return
+    need = StructureTrainer().min_pair_frames  # frames a marker must be seen in to be trained
     named = np.flatnonzero(~cap.ghost_mask)
     visible = np.isfinite(cap.positions[:, named, 0])
     seen = visible.any(axis=1)
@@ -58,12 +55,10 @@ def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool =
             "labeled init "
             f"window): {where}"
         )
-    if not subjects or init < MIN_SEEN_FRAMES:  # (too few init frames: the commands say so)
+    if not subjects or init < need:  # (too few init frames: the commands say so)
         return
     groups = subject_groups([cap.labels[i] for i in named])
-    outside = [
-        s for s, cols in groups.items() if window[:, cols].sum(axis=0).max() < MIN_SEEN_FRAMES
-    ]
+    outside = [s for s, cols in groups.items() if window[:, cols].sum(axis=0).max() < need]
     if not outside or not window.any():
         return
     present = np.stack([visible[:, cols].any(axis=1) for cols in groups.values()], axis=1)
@@ -74,7 +69,7 @@ def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool =
     more = f" (and {len(outside) - 1} more)" if len(outside) > 1 else ""
     raise LabelerError(
         f"{spec}: subject {outside[0] or '(no prefix)'}{more} shows no marker in "
-        f"{MIN_SEEN_FRAMES} or more of the first {plural(init, 'frame')} (the labeled init "
+        f"{need} or more of the first {plural(init, 'frame')} (the labeled init "
         "window), so "
         f"nothing of him can be learned: every subject is in view from frame {first} "
         f"({path}:{first})"

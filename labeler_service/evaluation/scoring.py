@@ -505,9 +505,7 @@ def score_labeler(
     scene) are scored as extra columns, so labels given to them count in ``absent_labeled``."""
     n = stream.n_frames
     if n <= init_frames:
-        raise SceneError(
-            f"{plural(n, 'frame')} is not more than the {init_frames}-frame init window"
-        )
+        raise _too_short(n, init_frames)
     names = tuple(stream.marker_names)
     to_score = to_labeler = None
     sizes = None
@@ -691,10 +689,7 @@ def evaluate(
                 f"frames, not more than the {init_frames}-frame init window: down-sample less, "
                 "or give fewer --init-frames"
             )
-        raise SceneError(
-            f"{plural(stream.n_frames, 'frame')} is not more than the {init_frames}-frame init "
-            "window"
-        )
+        raise _too_short(stream.n_frames, init_frames)
     if not stream.marker_names:
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
     scores: dict[str, MethodScore] = {}
@@ -763,6 +758,11 @@ def evaluate(
         notes=notes,
     )
     return report, scores
+
+
+def _too_short(n: int, init_frames: int) -> SceneError:
+    """A stream of ``n`` frames leaves nothing to score after the init window."""
+    return SceneError(f"{plural(n, 'frame')} is not more than the {init_frames}-frame init window")
 
 
 def baseline_gate_note(stream: StreamFrames, init_frames: int, baseline: object) -> str | None:
