@@ -25,6 +25,16 @@ that frame (the raw data had joined two markers' trajectories). ``--plot FILE.pn
 label of every long track over time.
 
     .venv/bin/python benchmarks/raw_unlabeled.py --boot --plot raw_boot.png --out raw_boot.json
+
+The raw take has no ground truth; two runs can be compared on its tracks: ``--labels-out
+FILE.npy`` keeps a run's labels (frame x file column, -1 unlabeled) and ``--against FILE.npy``
+scores this run's labels against another's (:func:`track_agreement`: per track the other run's
+most frequent label; a labeled sample on such a track agrees or not). An earlier boot is
+checked against a later one this way: where they disagree on a track that runs from the
+kneeling start into the run, at least one of them read it wrong.
+
+    .venv/bin/python benchmarks/raw_unlabeled.py --boot --labels-out late.npy
+    .venv/bin/python benchmarks/raw_unlabeled.py --boot --against late.npy  # another build
 """
 
 from __future__ import annotations
@@ -60,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train", help=f"with --boot and no --model: labeled take (default {TRAIN})")
     p.add_argument("--long-s", type=float, default=0.5, help="tracks at least this long count")
     p.add_argument("--plot", help="with --boot: PNG of every long track's label over time")
+    p.add_argument("--labels-out", help="with --boot: save the labels (frames x columns, .npy)")
+    p.add_argument("--against", help="with --boot: score the labels against another run's .npy")
     args = p.parse_args(argv)
     path = args.capture or real_file(DEFAULT)
     if path is None:
@@ -189,6 +201,41 @@ def track_scores(
     return scores, track, long
 
 
+def track_agreement(
+    label: np.ndarray, ref: np.ndarray, visible: np.ndarray, rate: float
+) -> dict[str, object]:
+    """``label`` against another run's labels ``ref`` (both ``[frame, column]``, -1
+    unlabeled) on the raw tracks: per track the reference label is ``ref``'s most frequent
+    label on it; each labeled sample of ``label`` on a track with a reference label agrees or
+    disagrees (also counted before ``ref``'s first label: what an earlier boot adds), and the
+    most frequent ``(reference, label)`` pairs of the disagreements (label indices)."""
+    track = _runs(visible)
+    n = int(track.max()) + 1
+    on = visible & (ref >= 0)
+    keys = track[on].astype(np.int64) * (int(ref.max()) + 1) + ref[on]
+    counts = np.bincount(keys, minlength=n * (int(ref.max()) + 1)).reshape(n, -1)
+    ref_label = np.where(counts.max(axis=1) > 0, counts.argmax(axis=1), -1)
+    r = np.where(visible, ref_label[np.maximum(track, 0)], -1)
+    both = visible & (label >= 0) & (r >= 0)
+    bad = both & (label != r)
+    ref_first = np.flatnonzero(on.any(axis=1))
+    before = np.zeros(visible.shape[0], dtype=bool)
+    before[: int(ref_first[0]) if ref_first.size else visible.shape[0]] = True
+    pairs: dict[tuple[int, int], int] = {}
+    for a, b in zip(r[bad].tolist(), label[bad].tolist(), strict=True):
+        pairs[(a, b)] = pairs.get((a, b), 0) + 1
+    worst = sorted(pairs.items(), key=lambda kv: -kv[1])[:10]
+    return {
+        "reference_first_label_s": round(float(ref_first[0]) / rate, 3) if ref_first.size else None,
+        "samples_on_reference_tracks": int(both.sum()),
+        "agree": int((both & ~bad).sum()),
+        "disagree": int(bad.sum()),
+        "disagree_before_reference_boot": int((bad & before[:, None]).sum()),
+        "agree_before_reference_boot": int((both & ~bad & before[:, None]).sum()),
+        "worst_pairs": [[a, b, c] for (a, b), c in worst],
+    }
+
+
 def _boot(cap: Capture, path: str, args: argparse.Namespace) -> dict[str, object]:
     """The raw take booted from a model with no label at all; scored on the raw tracks."""
     model = _model(args)
@@ -207,6 +254,16 @@ def _boot(cap: Capture, path: str, args: argparse.Namespace) -> dict[str, object
         label[f, cols] = out.point_labels
     scores, track, long = track_scores(label, vis, args.long_s * cap.rate)
     first = np.flatnonzero((label >= 0).any(axis=1))
+    if args.labels_out:
+        np.save(args.labels_out, label)
+    if args.against:
+        other = np.load(args.against)
+        if other.shape != label.shape:
+            raise LabelerError(f"{args.against}: labels {other.shape}, this take {label.shape}")
+        agreement = track_agreement(label, other, vis, cap.rate)
+        names = lab.marker_names
+        agreement["worst_pairs"] = [[names[a], names[b], c] for a, b, c in agreement["worst_pairs"]]
+        scores["against"] = {"file": args.against, **agreement}
     t = np.asarray(times[WARMUP_FRAMES:])
     if args.plot:
         _plot(args.plot, label, track, long, cap.rate, lab.marker_names)

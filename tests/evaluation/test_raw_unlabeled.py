@@ -38,3 +38,19 @@ def test_short_tracks_are_left_out_of_the_long_fraction():
     scores, _, long = raw.track_scores(label, vis, long_frames=2)
     assert scores["labeled_fraction_long_tracks"] == 1.0
     assert scores["labeled_fraction"] == 0.75 and not long[0, 1]
+
+
+def test_agreement_reads_each_track_by_the_other_runs_most_frequent_label():
+    vis = np.ones((5, 3), dtype=bool)
+    vis[2, 2] = False  # column 2: two tracks, frames 0-1 and 3-4
+    ref = np.array([[-1, -1, -1], [-1, -1, -1], [0, 1, -1], [0, 1, 2], [0, 3, 2]])
+    # column 0 reads 0 from frame 0 (agrees, 2 samples before the reference's first label);
+    # column 1 reads 0 where the reference has 1 (its most frequent label on that track);
+    # column 2's first track has no reference label: not counted
+    label = np.array([[0, 0, 5], [0, 0, 5], [0, 0, -1], [0, 1, 2], [0, 1, 2]])
+    out = raw.track_agreement(label, ref, vis, rate=10.0)
+    assert out["reference_first_label_s"] == 0.2
+    assert out["samples_on_reference_tracks"] == 12
+    assert out["agree"] == 9 and out["disagree"] == 3
+    assert out["agree_before_reference_boot"] == 2 and out["disagree_before_reference_boot"] == 2
+    assert out["worst_pairs"] == [[1, 0, 3]]
