@@ -1188,7 +1188,7 @@ def _hypotheses(
             free = ~claimed
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
-            _free_readings(tpl, assign, pts, free, pairs.tree)
+            _free_readings(tpl, assign, pts, free, pairs.tree, hist)
             _twins(tpl, assign, pts, hist)
             kept, reversed_, local = _handedness(tpl, assign, pts)
             if local > 0 or reversed_ > CHIRAL_REVERSED * (kept + reversed_):
@@ -2025,8 +2025,37 @@ def _maps_onto(
     return None if len(maps) > FREE_READ_MAX_MAPS else maps
 
 
+def _gain_along(
+    tpl: _Template,
+    placed: np.ndarray,
+    old: np.ndarray,
+    new: np.ndarray,
+    base: np.ndarray,
+    hist: np.ndarray,
+) -> float | None:
+    """The median over the window's samples of how much better markers ``placed`` fit on
+    points ``new`` than on ``old`` (:func:`_pair_error` against the rest of ``base``), over the
+    samples that track every point of both readings (at least half the window); ``None`` when
+    fewer."""
+    both = np.concatenate([old, new])
+    ok = np.all(np.isfinite(hist[both, :, 0]), axis=0)
+    if ok.sum() < max(1, hist.shape[1] // 2):
+        return None
+    gains = [
+        _pair_error(tpl, placed, old, base, hist[:, f])
+        - _pair_error(tpl, placed, new, base, hist[:, f])
+        for f in np.flatnonzero(ok)
+    ]
+    return float(np.median(gains))
+
+
 def _free_readings(
-    tpl: _Template, assign: np.ndarray, pts: np.ndarray, free: np.ndarray, tree: cKDTree
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    free: np.ndarray,
+    tree: cKDTree,
+    hist: np.ndarray | None = None,
 ) -> None:
     """Every segment (two to four placed markers) is read again over its own points and the
     free points within its reach: the injective map of its placed markers to those points that
@@ -2068,6 +2097,9 @@ def _free_readings(
         out[placed] = best
         if _changed_reversed(tpl, assign, out, pts):
             continue
+        along = None if hist is None else _gain_along(tpl, placed, own, best, base, hist)
+        if hist is not None and not (along is not None and along > FREE_READ_NATS):
+            continue  # the window must agree (a coincidence of one frame: tune22 quarter)
         free[own] = True
         free[best] = False
         assign[placed] = best
