@@ -1188,6 +1188,7 @@ def _hypotheses(
             free = ~claimed
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
+            _free_readings(tpl, assign, pts, free, pairs.tree, hist)
             _twins(tpl, assign, pts, hist)
             kept, reversed_, local = _handedness(tpl, assign, pts)
             if local > 0 or reversed_ > CHIRAL_REVERSED * (kept + reversed_):
@@ -2094,6 +2095,128 @@ def warmup_kernels() -> None:
 FILL_MARGIN = 3.0
 #: most joint assignments :func:`_fill` enumerates (it does nothing beyond)
 FILL_MAX_MAPS = 60000
+#: A segment read again onto free points (:func:`_free_readings`) must lower the negative
+#: log-likelihood by more than this (nats): a move to points no marker held is a new reading,
+#: not an exchange, and must beat the one the candidates gave clearly (the fill's 3 nats).
+FREE_READ_NATS = 3.0
+#: ... and is not tried when more maps than this keep the segment's distances (a crowd).
+FREE_READ_MAX_MAPS = 2000
+
+
+def _maps_onto(
+    tpl: _Template, placed: np.ndarray, pool: np.ndarray, pts: np.ndarray
+) -> list[np.ndarray] | None:
+    """Injective maps of markers ``placed`` to points of ``pool`` that keep the distances of
+    one trained body (depth-first, each marker checked against those already given); ``None``
+    when there are more than ``FREE_READ_MAX_MAPS``."""
+    D, tol, strict = tpl.D, tpl.tol, tpl.strict
+    d = np.linalg.norm(pts[pool][:, None] - pts[pool][None, :], axis=2)
+    maps: list[np.ndarray] = []
+    chosen: list[int] = []  # indices into pool, one per placed marker
+
+    def place(k: int) -> None:
+        if len(maps) > FREE_READ_MAX_MAPS:
+            return
+        if k == placed.size:
+            maps.append(pool[chosen])
+            return
+        m = placed[k]
+        for i in range(pool.size):
+            if i in chosen:
+                continue
+            if any(
+                strict[m, placed[j]] and not abs(d[i, c] - D[m, placed[j]]) <= tol[m, placed[j]]
+                for j, c in enumerate(chosen)
+            ):
+                continue
+            chosen.append(i)
+            place(k + 1)
+            chosen.pop()
+
+    place(0)
+    return None if len(maps) > FREE_READ_MAX_MAPS else maps
+
+
+def _gain_along(
+    tpl: _Template,
+    placed: np.ndarray,
+    old: np.ndarray,
+    new: np.ndarray,
+    base: np.ndarray,
+    hist: np.ndarray,
+) -> float | None:
+    """The median over the window's samples of how much better markers ``placed`` fit on
+    points ``new`` than on ``old`` (:func:`_pair_error` against the rest of ``base``), over the
+    samples that track every point of both readings (at least half the window); ``None`` when
+    fewer."""
+    both = np.concatenate([old, new])
+    ok = np.all(np.isfinite(hist[both, :, 0]), axis=0)
+    if ok.sum() < max(1, hist.shape[1] // 2):
+        return None
+    gains = [
+        _pair_error(tpl, placed, old, base, hist[:, f])
+        - _pair_error(tpl, placed, new, base, hist[:, f])
+        for f in np.flatnonzero(ok)
+    ]
+    return float(np.median(gains))
+
+
+def _free_readings(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    free: np.ndarray,
+    tree: cKDTree,
+    hist: np.ndarray | None = None,
+) -> None:
+    """Every segment (two to four placed markers) is read again over its own points and the
+    free points within its reach: the injective map of its placed markers to those points that
+    keeps the distances of one trained body and fits the rest of the subject best
+    (:func:`_pair_error`) replaces the current one when it is better by ``FREE_READ_NATS`` and
+    reverses no thick chirality quadruple with a marker it moves. A model that lacks a marker
+    (a ROM take that never showed it) leaves that marker's point free, and a plate read
+    mirrored onto it (a pelvis's right ASIS on the left ASIS's point, the PSIS exchanged) keeps
+    every distance of the plate; :func:`_readings` permutes the placed points only and cannot
+    reach the true point, which the mirror left free. ``free`` is updated."""
+    D = tpl.D
+    for seg in tpl.segments:
+        placed = seg[assign[seg] >= 0]
+        if placed.size < 2 or placed.size > 4:
+            continue
+        own = assign[placed]
+        size = float(np.nanmax(np.where(np.isfinite(D[np.ix_(seg, seg)]), D[np.ix_(seg, seg)], 0)))
+        centre = pts[own].mean(axis=0)
+        near = np.asarray(tree.query_ball_point(centre, size + 20.0), dtype=np.int64)
+        near = near[free[near]]
+        if near.size == 0:
+            continue
+        pool = np.concatenate([own, near])
+        maps = _maps_onto(tpl, placed, pool, pts)
+        if maps is None:
+            continue
+        base = assign.copy()
+        base[placed] = -1
+        best, best_err = None, _pair_error(tpl, placed, own, base, pts) - FREE_READ_NATS
+        for mp in maps:
+            if np.all(np.isin(mp, own)):
+                continue  # a permutation of its own points: :func:`_readings`' business
+            err = _pair_error(tpl, placed, mp, base, pts)
+            if err < best_err:
+                best, best_err = mp, err
+        if best is None:
+            continue
+        out = assign.copy()
+        out[placed] = best
+        if _changed_reversed(tpl, assign, out, pts):
+            continue
+        along = None if hist is None else _gain_along(tpl, placed, own, best, base, hist)
+        if hist is not None and not (along is not None and along > FREE_READ_NATS):
+            continue  # the window must agree (a coincidence of one frame: tune22 quarter)
+        free[own] = True
+        free[best] = False
+        assign[placed] = best
+
+
 #: The fill judges chirality (:func:`_fill_reversed`) on this many of its cheapest maps.
 FILL_CHIRAL_TOP = 256
 
