@@ -2177,7 +2177,11 @@ def _free_readings(
     (a ROM take that never showed it) leaves that marker's point free, and a plate read
     mirrored onto it (a pelvis's right ASIS on the left ASIS's point, the PSIS exchanged) keeps
     every distance of the plate; :func:`_readings` permutes the placed points only and cannot
-    reach the true point, which the mirror left free. ``free`` is updated."""
+    reach the true point, which the mirror left free. With the window's tracks ``hist (N, W,
+    3)`` the move must also fit better by ``FREE_READ_NATS`` in the median over the window
+    frames that track every point of both readings (at least half the window,
+    :func:`_gain_along`): a reading that fits one frame only is a coincidence. ``free`` is
+    updated."""
     D = tpl.D
     for seg in tpl.segments:
         placed = seg[assign[seg] >= 0]
