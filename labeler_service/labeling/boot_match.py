@@ -2111,26 +2111,33 @@ def _maps_onto(
     when there are more than ``FREE_READ_MAX_MAPS``."""
     D, tol, strict = tpl.D, tpl.tol, tpl.strict
     d = np.linalg.norm(pts[pool][:, None] - pts[pool][None, :], axis=2)
+    k = placed.size
+    # fits[a, b] (pool, pool): pool point i for placed[a] and j for placed[b] keep the pair's
+    # trained distance; only pairs of one trained body (``strict``) are checked
+    fits = {
+        (a, b): np.abs(d - D[placed[a], placed[b]]) <= tol[placed[a], placed[b]]
+        for a in range(k)
+        for b in range(a)
+        if strict[placed[a], placed[b]]
+    }
     maps: list[np.ndarray] = []
     chosen: list[int] = []  # indices into pool, one per placed marker
 
-    def place(k: int) -> None:
+    def place(a: int) -> None:
         if len(maps) > FREE_READ_MAX_MAPS:
             return
-        if k == placed.size:
+        if a == k:
             maps.append(pool[chosen])
             return
-        m = placed[k]
-        for i in range(pool.size):
-            if i in chosen:
-                continue
-            if any(
-                strict[m, placed[j]] and not abs(d[i, c] - D[m, placed[j]]) <= tol[m, placed[j]]
-                for j, c in enumerate(chosen)
-            ):
-                continue
+        ok = np.ones(pool.size, dtype=bool)
+        ok[chosen] = False
+        for b, c in enumerate(chosen):
+            f = fits.get((a, b))
+            if f is not None:
+                ok &= f[:, c]
+        for i in np.flatnonzero(ok).tolist():
             chosen.append(i)
-            place(k + 1)
+            place(a + 1)
             chosen.pop()
 
     place(0)
