@@ -70,7 +70,9 @@ booted counts as infinite), worst ``boot_minus_window``, max ghost rate, ``subje
 (``[booted, subject-cells]``) and ``subjects_booted_model_complete`` (the same over the
 subject-cells whose model knows every marker the scene shows of that subject: a training
 segment that never showed a marker leaves the template without it, and that subject cannot
-reach the 95 % criterion). In boot mode the
+reach the 95 % criterion) and ``subjects_booted_known_markers`` (every subject-cell, booted by
+``boot_s_known`` where its model lacks markers: the 95 % counted over the markers the model
+knows). In boot mode the
 labeled-window fields and issue 10's ``bars`` are those of the (possibly cut) scored scenes:
 compare them with a default run only where ``scene_cut_from_frames`` is null. The default mode's
 output is unchanged.
@@ -479,8 +481,9 @@ def _boot_fields(
         cap, methods=["online"], init_frames=0, seed=scene.seed, model=model, **opts
     )
     fields = (
-        "boot_s_max", "boot_s", "accuracy_after_boot", "absent_labeled", "identity_swaps",
-        "ghost_labeled_rate", "accuracy", "accuracy_seen", "errors", "max_swap_frames",
+        "boot_s_max", "boot_s", "boot_s_known", "accuracy_after_boot", "absent_labeled",
+        "identity_swaps", "ghost_labeled_rate", "accuracy", "accuracy_seen", "errors",
+        "max_swap_frames",
     )  # fmt: skip
     after = report["accuracy_after_boot"]
     return {
@@ -591,10 +594,18 @@ def boot_summary(rows: list[dict]) -> dict[str, Any]:
         for s, v in r["boot"]["boot_s"].items()
     ]
     complete = [b for b, ok in cells if ok]
+    # the same, counting for a subject whose model lacks markers only the markers it knows
+    known = [
+        (r["boot"].get("boot_s_known") or {}).get(s, v) is not None
+        for r in done
+        if r["boot"]["boot_s"]
+        for s, v in r["boot"]["boot_s"].items()
+    ]
     return {
         "scenes": len(done),
         "subjects_booted": [sum(b for b, _ in cells), len(cells)],
         "subjects_booted_model_complete": [sum(complete), len(complete)],
+        "subjects_booted_known_markers": [sum(known), len(known)],
         "skipped": skipped,
         "never_booted": never,
         "boot_s_max_worst": None if math.isinf(worst_s) else round(worst_s, 4),

@@ -112,6 +112,9 @@ class MethodScore:
     #: Boot and re-identification (see :class:`Scorer`); ``None`` when not measurable.
     boot_s_max: float | None = None
     boot_s: dict[str, float | None] = field(default_factory=dict)
+    #: ``boot_s`` counting only the markers the labeler can name (a model's markers); empty
+    #: when it knows every marker of the scene
+    boot_s_known: dict[str, float | None] = field(default_factory=dict)
     accuracy_after_boot: float | None = None
     reid_s_p95: float | None = None
     reid_s: list[float | None] = field(default_factory=list)
@@ -144,6 +147,7 @@ class MethodScore:
             "worst_markers": self.worst_markers,
             "boot_s_max": r(self.boot_s_max, 4),
             "boot_s": {k: r(v, 4) for k, v in self.boot_s.items()},
+            "boot_s_known": {k: r(v, 4) for k, v in self.boot_s_known.items()},
             "accuracy_after_boot": r(self.accuracy_after_boot),
             "reid_s_p95": r(self.reid_s_p95, 4),
             "reid_s": [r(v, 4) for v in self.reid_s],
@@ -192,6 +196,10 @@ class Scorer:
     swap, counted per subject: a frame in which more than half of subject A's visible markers
     carry the same-named marker of one other subject B with the same marker set (same
     template), when A's previous frame with visible markers did not show that swap.
+    ``known`` (``(M,)`` bool, the markers the labeler can name: a model lacks those its
+    training never showed): ``boot_s_known`` is ``boot_s`` with the 95 % counted over a
+    subject's known visible markers only (the first episode as ``boot_s`` finds it); it is
+    reported only when some marker is unknown.
     """
 
     def __init__(
@@ -202,8 +210,10 @@ class Scorer:
         method: str = "",
         rate: float | None = None,
         template_sizes: dict[str, int] | None = None,
+        known: np.ndarray | None = None,
     ) -> None:
         self.names = tuple(marker_names)
+        self._known = None if known is None or np.all(known) else np.asarray(known, dtype=bool)
         self.method = method
         self.init_frames = int(init_frames)
         subj = [split_label(n)[0] or "" for n in self.names]
@@ -319,6 +329,7 @@ class Scorer:
         out: dict[str, Any] = {
             "boot_s_max": None,
             "boot_s": {},
+            "boot_s_known": {},
             "accuracy_after_boot": None,
             "reid_s_p95": None,
             "reid_s": [],
@@ -344,10 +355,15 @@ class Scorer:
         present = vis >= PRESENT * self._n_tpl
         good = (vis > 0) & (ok >= BOOT_GOOD * vis)
         n = vis.shape[0]
-        runs = np.zeros((n, good.shape[1]), dtype=bool)  # good[f : f + BOOT_RUN].all()
-        if n >= BOOT_RUN:
-            c = np.concatenate([np.zeros((1, good.shape[1]), np.int64), np.cumsum(good, 0)])
-            runs[: n - BOOT_RUN + 1] = (c[BOOT_RUN:] - c[: n - BOOT_RUN + 1]) == BOOT_RUN
+        runs = _runs(good)
+        runs_known = None
+        if self._known is not None:
+            kv = raster[f0:][:, self._known]
+            oh = self._onehot[self._known]
+            vis_k = (kv != NOT_VISIBLE).astype(np.int64) @ oh
+            ok_k = (kv == CORRECT).astype(np.int64) @ oh
+            runs_known = _runs((vis_k > 0) & (ok_k >= BOOT_GOOD * vis_k))
+        boot_known: dict[str, float | None] = {}
         boot_s: dict[str, float | None] = {}
         reid: list[float] = []
         by_subject: dict[str, list[float | None]] = {}
@@ -375,6 +391,9 @@ class Scorer:
                 delay = hit[0] / self.rate if hit.size else np.inf
                 if e == 0:
                     boot_s[name] = None if not np.isfinite(delay) else float(delay)
+                    if runs_known is not None:
+                        hk = np.flatnonzero(runs_known[st:end, k])
+                        boot_known[name] = float(hk[0] / self.rate) if hk.size else None
                 else:
                     reid.append(float(delay))
                     by_subject.setdefault(name, []).append(reid[-1] if hit.size else None)
@@ -384,6 +403,7 @@ class Scorer:
                 acc_ok += int(ok[first_boot:, k].sum())
                 acc_vis += int(vis[first_boot:, k].sum())
         out["boot_s"] = boot_s
+        out["boot_s_known"] = boot_known
         if boot_s and all(v is not None for v in boot_s.values()):
             out["boot_s_max"] = max(v for v in boot_s.values() if v is not None)
         out["accuracy_after_boot"] = acc_ok / acc_vis if acc_vis else None
@@ -467,6 +487,16 @@ class Scorer:
         )
 
 
+def _runs(good: np.ndarray) -> np.ndarray:
+    """``(F, S)``: ``good[f : f + BOOT_RUN].all()`` per subject column."""
+    n = good.shape[0]
+    runs = np.zeros(good.shape, dtype=bool)
+    if n >= BOOT_RUN:
+        c = np.concatenate([np.zeros((1, good.shape[1]), np.int64), np.cumsum(good, 0)])
+        runs[: n - BOOT_RUN + 1] = (c[BOOT_RUN:] - c[: n - BOOT_RUN + 1]) == BOOT_RUN
+    return runs
+
+
 def _longest_swap(raster: np.ndarray, names: Sequence[str]) -> tuple[int, dict[str, Any] | None]:
     """Longest run of wrong-label frames of one marker (absent frames skipped, see Scorer)."""
     best, where = 0, None
@@ -526,7 +556,13 @@ def score_labeler(
                 "--rename OLD=NEW)"
             )
     labeler.warmup()
-    scorer = Scorer(names, init_frames, n, method, rate=stream.rate, template_sizes=sizes)
+    known = None
+    if to_score is not None:
+        known = np.zeros(len(names), dtype=bool)
+        known[to_score] = True
+    scorer = Scorer(
+        names, init_frames, n, method, rate=stream.rate, template_sizes=sizes, known=known
+    )
     m_all = len(names)
     for f in range(n):
         pts, truth = stream.points[f], stream.truth[f]

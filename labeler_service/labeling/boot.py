@@ -399,7 +399,9 @@ class Booter:
                 if age is None:
                     grown = _complete(tpl, assign, pts, hist, taken, self.config)
                 else:  # (may move weakly placed markers: :func:`_complete_weak`)
-                    grown = _complete_weak(tpl, assign, pts, hist, taken, self.config)
+                    grown = _complete_weak(
+                        tpl, assign, pts, hist, taken, self.config, exchange=s in checked
+                    )
             if self._blind[s]:
                 grown = _rigid_only(tpl, assign, grown, pts)
             _take(tpl, assign, grown, out, taken)
@@ -431,7 +433,9 @@ class Booter:
             for o, r in reach_of.items():
                 if o != s and claimed is not None:
                     claimed |= r
-            grown = _fill(tpl, assign, pts, hist, ~taken & old, others, self.config, claimed)
+            grown = _fill(
+                tpl, assign, pts, hist, ~taken & old, others, self.config, claimed, s in checked
+            )
             # the fill may move weakly placed markers (:func:`_weak_markers`) to other points
             _take(tpl, assign, grown, out, taken)
             if reach_of and grown is not assign:

@@ -1188,6 +1188,7 @@ def _hypotheses(
             free = ~claimed
             free[assign[assign >= 0]] = False
             _relocate(tpl, assign, pts, free, pairs.tree)
+            _free_readings(tpl, assign, pts, free, pairs.tree, hist)
             _twins(tpl, assign, pts, hist)
             kept, reversed_, local = _handedness(tpl, assign, pts)
             if local > 0 or reversed_ > CHIRAL_REVERSED * (kept + reversed_):
@@ -1642,12 +1643,15 @@ def _complete(
     taken: np.ndarray,
     config: BootConfig,
     reread: bool = False,
+    exchange: bool = False,
 ) -> np.ndarray:
     """Adds markers to a placed subject ``assign`` from free points near it: body candidates
     (other segments, linked through articulated pairs) and trilateration. Markers already
     placed stay; new ones must pass the distance constancy along the tracks. With ``reread``,
     a completion refused for a reversed chirality quadruple may read the new markers'
-    segments again, moving placed markers (:func:`_chiral_reread`)."""
+    segments again, moving placed markers (:func:`_chiral_reread`); with ``exchange`` as
+    well, when that finds nothing, two placed markers of the reversed quadruples may exchange
+    their points on the window's evidence (:func:`_chiral_exchange`)."""
     have = np.flatnonzero(assign >= 0)
     if have.size == 0:
         return assign
@@ -1698,7 +1702,12 @@ def _complete(
     out[loose] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
-        return _chiral_reread(tpl, assign, out, new, pts) if reread else assign
+        if not reread:
+            return assign
+        got = _chiral_reread(tpl, assign, out, new, pts)
+        if got is assign and exchange:
+            got = _chiral_exchange(tpl, assign, out, new, pts, hist)
+        return got
     return out
 
 
@@ -1775,6 +1784,108 @@ def _chiral_reread(
     return assign
 
 
+def _chiral_exchange(
+    tpl: _Template,
+    assign: np.ndarray,
+    out: np.ndarray,
+    new: np.ndarray,
+    pts: np.ndarray,
+    hist: np.ndarray,
+) -> np.ndarray:
+    """A completion ``out`` of ``assign`` refused because its new markers ``new`` reverse a
+    thick chirality quadruple, and not a mirror of their segment (:func:`_chiral_reread`: the
+    new markers are tied to the placed ones by ``WEAK_SUPPORT`` pairs or fewer), may say that
+    two markers placed before, in a reversed quadruple, sit on each other's points: a hand
+    triangle nearly isosceles (the tennis model's ``RFIN RWRA RWRB``, ``D`` 102.7 and 99.6 mm)
+    booted with its finger and outer wrist exchanged keeps every distance among the placed
+    markers, and the forearm and elbow markers, the only evidence, are refused at every
+    extension because their quadruple with the hand is reversed. Each placed marker ``a`` of
+    a reversed quadruple and each placed marker ``b`` in one trained body with it
+    (``strict``; the other member of the exchange need not be in the quadruple) are exchanged
+    in the completion when, over the window frames that track both points (at least half the
+    window, ``hist (N, W, 3)``):
+
+    - with the completion's markers placed, the exchange lowers the subject's :func:`_nll` of
+      the two markers' pairs by more than ``EXCHANGE_MARGIN`` in ``WINDOW_EXCHANGE_SHARE`` of
+      the frames and by ``WINDOW_EXCHANGE_NATS`` in the median (the new markers tell);
+    - without them (``assign`` alone) it neither costs more than ``EXCHANGE_MARGIN`` nor gains
+      more than ``WINDOW_EXCHANGE_NATS`` in the median: the markers placed before cannot tell
+      the two readings apart (a reading they hold is not overturned by markers added from
+      free points, and one they contradict is :func:`_window_exchange`'s);
+    - with the exchange, no thick chirality quadruple with a new or moved marker is reversed,
+      and neither moved marker is doubtful in the last frame (:func:`_still_doubtful`).
+
+    The best such exchange (largest median gain) is taken. Returns ``out`` with it, or
+    ``assign`` (nothing placed, nothing moved)."""
+    q = tpl.chirality
+    if q.shape[0] == 0:
+        return assign
+    fresh = np.zeros(tpl.n, dtype=bool)
+    fresh[new] = True
+    use = np.all(out[q] >= 0, axis=1) & np.any(fresh[q], axis=1)
+    if not use.any():
+        return assign
+    qu = q[use]
+    p = pts[out[qu]]
+    with np.errstate(all="ignore"):  # (coincident points)
+        det = np.linalg.det(p[:, 1:] - p[:, :1])
+    rev = qu[(np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)]
+    olds = np.unique(rev[~fresh[rev]])
+    placed = (assign >= 0) & ~fresh
+    pairs = sorted(
+        {
+            (min(a, b), max(a, b))
+            for a in olds.tolist()
+            for b in np.flatnonzero(placed & tpl.strict[a]).tolist()
+            if b != a
+        }
+    )
+    w = hist.shape[1]
+    best, best_gain = assign, -math.inf
+    for a, b in pairs:
+        alt = out.copy()
+        alt[a], alt[b] = out[b], out[a]
+        moved = np.concatenate([new, [a, b]])
+        base = alt.copy()
+        base[moved] = -1
+        if _fill_reversed(tpl, base, pts, moved[None], alt[moved][None])[0]:
+            continue
+        both = np.isfinite(hist[out[a], :, 0]) & np.isfinite(hist[out[b], :, 0])
+        if int(both.sum()) < max(2, w // 2):
+            continue
+        with_new = _window_swap_gain(tpl, out, a, b, hist)[both]
+        if np.mean(with_new > EXCHANGE_MARGIN) < WINDOW_EXCHANGE_SHARE:
+            continue
+        gain = float(np.median(with_new))
+        if gain <= WINDOW_EXCHANGE_NATS or gain <= best_gain:
+            continue
+        alone = float(np.median(_window_swap_gain(tpl, assign, a, b, hist)[both]))
+        if not -EXCHANGE_MARGIN <= alone <= WINDOW_EXCHANGE_NATS:
+            continue
+        if _still_doubtful(tpl, alt, hist, a, b):
+            continue
+        best, best_gain = alt, gain
+    return best
+
+
+def _window_swap_gain(
+    tpl: _Template, assign: np.ndarray, a: int, b: int, hist: np.ndarray
+) -> np.ndarray:
+    """``(W,)`` per window frame: how much lower the :func:`_nll` of the pairs of placed
+    markers ``a`` and ``b`` with the other placed markers of ``assign`` is with their points
+    exchanged (the pair between them keeps its distance; an untracked point's pairs count 0)."""
+    rest = np.flatnonzero(assign >= 0)
+    rest = rest[(rest != a) & (rest != b)]
+    H = hist[assign[rest]]  # (r, W, 3)
+    pa, pb = hist[assign[a]], hist[assign[b]]  # (W, 3)
+    da = np.linalg.norm(H - pa[None], axis=2)  # (r, W)
+    db = np.linalg.norm(H - pb[None], axis=2)
+    r, ma, mb = rest[:, None], np.array([a]), np.array([b])
+    now = _nll(tpl, ma, r, da) + _nll(tpl, mb, r, db)
+    swap = _nll(tpl, ma, r, db) + _nll(tpl, mb, r, da)
+    return (now - swap).sum(axis=0)
+
+
 #: Rounds of :func:`_complete_weak` (each releases the weak markers the last one left).
 WEAK_ROUNDS = 3
 
@@ -1786,9 +1897,11 @@ def _complete_weak(
     hist: np.ndarray,
     taken: np.ndarray,
     config: BootConfig,
+    exchange: bool = False,
 ) -> np.ndarray:
-    """:func:`_complete`, then up to ``WEAK_ROUNDS`` re-readings with the weakly placed
-    markers (:func:`_weak_markers`) released: the completion without them is kept when it
+    """:func:`_complete` (``exchange``: see there), then up to ``WEAK_ROUNDS`` re-readings
+    with the weakly placed markers (:func:`_weak_markers`) released: the completion without
+    them is kept when it
     places more of the subject's markers and the released markers it puts on other points fit
     the markers placed in both readings better there (:func:`_pair_error`, by
     ``EXCHANGE_MARGIN``). A limb or plate read on another
@@ -1800,7 +1913,7 @@ def _complete_weak(
     nothing rigid ties it to the rest, a hugging partner's hand read as this performer's) is
     released alone, under the same test with each reading judged against its own rest
     (:func:`_evidence`). Markers may move: the caller carries the moves."""
-    grown = _complete(tpl, assign, pts, hist, taken, config, reread=True)
+    grown = _complete(tpl, assign, pts, hist, taken, config, reread=True, exchange=exchange)
     for _ in range(WEAK_ROUNDS):
         if np.all(grown >= 0):
             break
@@ -1982,6 +2095,139 @@ def warmup_kernels() -> None:
 FILL_MARGIN = 3.0
 #: most joint assignments :func:`_fill` enumerates (it does nothing beyond)
 FILL_MAX_MAPS = 60000
+#: A segment read again onto free points (:func:`_free_readings`) must lower the negative
+#: log-likelihood by more than this (nats): a move to points no marker held is a new reading,
+#: not an exchange, and must beat the one the candidates gave clearly (the fill's 3 nats).
+FREE_READ_NATS = 3.0
+#: ... and is not tried when more maps than this keep the segment's distances (a crowd).
+FREE_READ_MAX_MAPS = 2000
+
+
+def _maps_onto(
+    tpl: _Template, placed: np.ndarray, pool: np.ndarray, pts: np.ndarray
+) -> list[np.ndarray] | None:
+    """Injective maps of markers ``placed`` to points of ``pool`` that keep the distances of
+    one trained body (depth-first, each marker checked against those already given); ``None``
+    when there are more than ``FREE_READ_MAX_MAPS``."""
+    D, tol, strict = tpl.D, tpl.tol, tpl.strict
+    d = np.linalg.norm(pts[pool][:, None] - pts[pool][None, :], axis=2)
+    k = placed.size
+    # fits[a, b] (pool, pool): pool point i for placed[a] and j for placed[b] keep the pair's
+    # trained distance; only pairs of one trained body (``strict``) are checked
+    fits = {
+        (a, b): np.abs(d - D[placed[a], placed[b]]) <= tol[placed[a], placed[b]]
+        for a in range(k)
+        for b in range(a)
+        if strict[placed[a], placed[b]]
+    }
+    maps: list[np.ndarray] = []
+    chosen: list[int] = []  # indices into pool, one per placed marker
+
+    def place(a: int) -> None:
+        if len(maps) > FREE_READ_MAX_MAPS:
+            return
+        if a == k:
+            maps.append(pool[chosen])
+            return
+        ok = np.ones(pool.size, dtype=bool)
+        ok[chosen] = False
+        for b, c in enumerate(chosen):
+            f = fits.get((a, b))
+            if f is not None:
+                ok &= f[:, c]
+        for i in np.flatnonzero(ok).tolist():
+            chosen.append(i)
+            place(a + 1)
+            chosen.pop()
+
+    place(0)
+    return None if len(maps) > FREE_READ_MAX_MAPS else maps
+
+
+def _gain_along(
+    tpl: _Template,
+    placed: np.ndarray,
+    old: np.ndarray,
+    new: np.ndarray,
+    base: np.ndarray,
+    hist: np.ndarray,
+) -> float | None:
+    """The median over the window's samples of how much better markers ``placed`` fit on
+    points ``new`` than on ``old`` (:func:`_pair_error` against the rest of ``base``), over the
+    samples that track every point of both readings (at least half the window); ``None`` when
+    fewer."""
+    both = np.concatenate([old, new])
+    ok = np.all(np.isfinite(hist[both, :, 0]), axis=0)
+    if ok.sum() < max(1, hist.shape[1] // 2):
+        return None
+    gains = [
+        _pair_error(tpl, placed, old, base, hist[:, f])
+        - _pair_error(tpl, placed, new, base, hist[:, f])
+        for f in np.flatnonzero(ok)
+    ]
+    return float(np.median(gains))
+
+
+def _free_readings(
+    tpl: _Template,
+    assign: np.ndarray,
+    pts: np.ndarray,
+    free: np.ndarray,
+    tree: cKDTree,
+    hist: np.ndarray | None = None,
+) -> None:
+    """Every segment (two to four placed markers) is read again over its own points and the
+    free points within its reach: the injective map of its placed markers to those points that
+    keeps the distances of one trained body and fits the rest of the subject best
+    (:func:`_pair_error`) replaces the current one when it is better by ``FREE_READ_NATS`` and
+    reverses no thick chirality quadruple with a marker it moves. A model that lacks a marker
+    (a ROM take that never showed it) leaves that marker's point free, and a plate read
+    mirrored onto it (a pelvis's right ASIS on the left ASIS's point, the PSIS exchanged) keeps
+    every distance of the plate; :func:`_readings` permutes the placed points only and cannot
+    reach the true point, which the mirror left free. With the window's tracks ``hist (N, W,
+    3)`` the move must also fit better by ``FREE_READ_NATS`` in the median over the window
+    frames that track every point of both readings (at least half the window,
+    :func:`_gain_along`): a reading that fits one frame only is a coincidence. ``free`` is
+    updated."""
+    D = tpl.D
+    for seg in tpl.segments:
+        placed = seg[assign[seg] >= 0]
+        if placed.size < 2 or placed.size > 4:
+            continue
+        own = assign[placed]
+        size = float(np.nanmax(np.where(np.isfinite(D[np.ix_(seg, seg)]), D[np.ix_(seg, seg)], 0)))
+        centre = pts[own].mean(axis=0)
+        near = np.asarray(tree.query_ball_point(centre, size + 20.0), dtype=np.int64)
+        near = near[free[near]]
+        if near.size == 0:
+            continue
+        pool = np.concatenate([own, near])
+        maps = _maps_onto(tpl, placed, pool, pts)
+        if maps is None:
+            continue
+        base = assign.copy()
+        base[placed] = -1
+        best, best_err = None, _pair_error(tpl, placed, own, base, pts) - FREE_READ_NATS
+        for mp in maps:
+            if np.all(np.isin(mp, own)):
+                continue  # a permutation of its own points: :func:`_readings`' business
+            err = _pair_error(tpl, placed, mp, base, pts)
+            if err < best_err:
+                best, best_err = mp, err
+        if best is None:
+            continue
+        out = assign.copy()
+        out[placed] = best
+        if _changed_reversed(tpl, assign, out, pts):
+            continue
+        along = None if hist is None else _gain_along(tpl, placed, own, best, base, hist)
+        if hist is not None and not (along is not None and along > FREE_READ_NATS):
+            continue  # the window must agree (a coincidence of one frame: tune22 quarter)
+        free[own] = True
+        free[best] = False
+        assign[placed] = best
+
+
 #: The fill judges chirality (:func:`_fill_reversed`) on this many of its cheapest maps.
 FILL_CHIRAL_TOP = 256
 
@@ -2110,6 +2356,7 @@ def _fill(
     others: np.ndarray,
     config: BootConfig,
     claimed: np.ndarray | None = None,
+    exchange: bool = False,
 ) -> np.ndarray:
     """Places a booted subject's leftover markers on its leftover persistent tracks, judged
     jointly. A model trained on a segment that never exercised a joint (the broad jump's
@@ -2170,7 +2417,7 @@ def _fill(
         d_own = cKDTree(placed).query(pts[cand])[0]
         nearer = d_own < cKDTree(others).query(pts[cand])[0]
         far, cand = cand[~nearer], cand[nearer]
-    out = _fill_jointly(tpl, assign, assign, miss, cand, pts, hist, config)
+    out = _fill_jointly(tpl, assign, assign, miss, cand, pts, hist, config, exchange)
     if out is not None:
         return out
     # Points nearer another subject's labeled points that no other subject can still claim
@@ -2183,7 +2430,7 @@ def _fill(
         extra = far[~claimed[far] & _reach(tpl, assign, pts, far, config)]
         if extra.size:
             wide = np.sort(np.concatenate([cand, extra]))
-            out = _fill_jointly(tpl, assign, assign, miss, wide, pts, hist, config)
+            out = _fill_jointly(tpl, assign, assign, miss, wide, pts, hist, config, exchange)
             if out is not None:
                 return out
     # Re-read with the weakly placed markers (:func:`_weak_markers`): an arm read one marker
@@ -2204,6 +2451,7 @@ def _fill(
         pts,
         hist,
         config,
+        exchange,
     )
     return assign if out is None else out
 
@@ -2281,10 +2529,14 @@ def _fill_jointly(
     pts: np.ndarray,
     hist: np.ndarray,
     config: BootConfig,
+    exchange: bool = False,
 ) -> np.ndarray | None:
     """The joint map of :func:`_fill`: markers ``miss`` (unplaced in ``base``, which is
     ``assign`` less the markers re-read) onto points ``cand``. Returns the new assignment, or
-    None when it is not unique or a check refuses it."""
+    None when it is not unique or a check refuses it. A unique cheapest map that reverses a
+    thick chirality quadruple is read again (:func:`_chiral_reread`), and with ``exchange``,
+    when that finds nothing, may exchange two placed markers of the reversed quadruples
+    (:func:`_chiral_exchange`)."""
     have = np.flatnonzero(base >= 0)
     placed = pts[base[have]]
     nu, nc = miss.size, cand.size
@@ -2329,6 +2581,8 @@ def _fill_jointly(
         marks = miss[mk[top[0]]]
         out[marks] = cand[pt[top[0]]]
         got = _chiral_reread(tpl, base, out, marks, pts)
+        if got is base and exchange:
+            got = _chiral_exchange(tpl, base, out, marks, pts, hist)
         if np.array_equal(got, base) or not _fill_checks(
             tpl, assign, got, have, pts, hist, stale, config
         ):

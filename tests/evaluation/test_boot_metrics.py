@@ -363,3 +363,24 @@ def test_scorer_sees_leave_returns(rng):
 def _oracle(truth: np.ndarray, m: int) -> LabeledFrame:
     return LabeledFrame(0.0, truth.astype(np.int32), np.full((m, 3), np.nan, np.float32),
                         np.zeros(m, np.uint8))  # fmt: skip
+
+
+def test_boot_over_the_known_markers_leaves_out_markers_the_labeler_cannot_name():
+    # C's labeler knows x0-x3 but not x4 (its model was trained without it): C's labels are
+    # right from frame 15 on and x4 is never labeled, so 4 of 5 visible markers are right (80 %)
+    # and C never boots by the 95 % criterion; counted over its known markers it boots at 0.15 s
+    known = np.ones(M, dtype=bool)
+    known[NAMES.index("C:x4")] = False
+
+    def answer(f, truth):
+        lab = truth.copy()
+        lab[truth == NAMES.index("C:x4")] = -1
+        if f < 15:
+            lab[10:15] = -1
+        return lab
+
+    s = _run(60, _all, answer, known=known)
+    assert s["boot_s"]["C"] is None
+    assert s["boot_s_known"] == {"A": 0.0, "B": 0.0, "C": 0.15}
+    # a labeler that knows every marker: no second criterion
+    assert _run(60, _all, answer)["boot_s_known"] == {}
