@@ -19,7 +19,7 @@ import json
 import sys
 
 import numpy as np
-from generalization import _cells, boot_frames, compose_scene, matrix
+from generalization import _cells, boot_frames, matrix, training_capture
 
 import labeler_service.evaluation.scoring as scoring
 from labeler_service.capture import split_label
@@ -37,13 +37,7 @@ from labeler_service.evaluation.scoring import (
 def _train_without(scene, plan, drop: set[str]):
     from offline.structure import StructureTrainer
 
-    cap = compose_scene(
-        [scene.spec(t, a) for t, a in plan.takes],
-        radius=scene.radius,
-        frames=plan.frames,
-        seed=scene.seed + 1,
-        rate=scene.rate(),
-    )
+    cap = training_capture(scene, plan)
     keep = [i for i, lab in enumerate(cap.labels) if split_label(lab)[1] not in drop]
     return StructureTrainer().fit([cap.select(keep)]).model_
 

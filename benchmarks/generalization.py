@@ -315,18 +315,22 @@ def boot_frames(scene: Scene, frames: int) -> tuple[int, TrainPlan | None]:
     return frames, None
 
 
-def _train(scene: Scene, plan: TrainPlan):
-    """The model of ``train structure TRAIN.c3d`` on the composed training scene."""
-    from offline.structure import StructureTrainer
-
-    cap = compose_scene(
+def training_capture(scene: Scene, plan: TrainPlan):
+    """The composed training scene (``TRAIN.c3d`` of the cell's ``train_compose``)."""
+    return compose_scene(
         [scene.spec(t, a) for t, a in plan.takes],
         radius=scene.radius,
         frames=plan.frames,
         seed=scene.seed + 1,
         rate=scene.rate(),
     )
-    return StructureTrainer().fit([cap]).model_
+
+
+def _train(scene: Scene, plan: TrainPlan):
+    """The model of ``train structure TRAIN.c3d`` on the composed training scene."""
+    from offline.structure import StructureTrainer
+
+    return StructureTrainer().fit([training_capture(scene, plan)]).model_
 
 
 def matrix(split: str, quick: bool, seeds: int = 2, crowd: int = 2) -> list[Scene]:
