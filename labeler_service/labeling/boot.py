@@ -75,6 +75,7 @@ from labeler_service.labeling.boot_match import (
     _complete_weak,
     _evidence,
     _fill,
+    _free_readings,
     _hypotheses,
     _Hypothesis,
     _kabsch_batch,
@@ -381,6 +382,13 @@ class Booter:
             others = pts[(out >= 0) & ~mine]
             swapped = _window_exchange(tpl, assign, hist, others, self.config.verify_contact_mm)
             swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
+            # a segment of three or more placed markers read again onto free points
+            # (:func:`_free_readings`): two points keep one distance, which a plate's two
+            # diagonals share (a head plate's LBHD and RFHD read onto RBHD's and LFHD's points)
+            read = swapped.copy()
+            _free_readings(tpl, read, pts, out < 0, cKDTree(pts), hist, min_placed=3)
+            if not np.array_equal(read, swapped):
+                swapped = read
             if swapped is not assign:
                 _take(tpl, assign, swapped, out, taken0)
         tracked = np.isfinite(hist[:, :, 0]).sum(axis=1)

@@ -2175,13 +2175,14 @@ def _free_readings(
     free: np.ndarray,
     tree: cKDTree,
     hist: np.ndarray | None = None,
+    min_placed: int = 2,
 ) -> None:
-    """Every segment (two to four placed markers) is read again over its own points and the
-    free points within its reach: the injective map of its placed markers to those points that
-    keeps the distances of one trained body and fits the rest of the subject best
-    (:func:`_pair_error`) replaces the current one when it is better by ``FREE_READ_NATS`` and
-    reverses no thick chirality quadruple with a marker it moves. A model that lacks a marker
-    (a ROM take that never showed it) leaves that marker's point free, and a plate read
+    """Every segment (``min_placed``, at least two, to four placed markers) is read again over its
+    own points and the free points within its reach: the injective map of its placed markers to
+    those points that keeps the distances of one trained body and fits the rest of the subject
+    best (:func:`_pair_error`) replaces the current one when it is better by ``FREE_READ_NATS``
+    and reverses no thick chirality quadruple with a marker it moves. A model that lacks a
+    marker (a ROM take that never showed it) leaves that marker's point free, and a plate read
     mirrored onto it (a pelvis's right ASIS on the left ASIS's point, the PSIS exchanged) keeps
     every distance of the plate; :func:`_readings` permutes the placed points only and cannot
     reach the true point, which the mirror left free. With the window's tracks ``hist (N, W,
@@ -2192,7 +2193,7 @@ def _free_readings(
     D = tpl.D
     for seg in tpl.segments:
         placed = seg[assign[seg] >= 0]
-        if placed.size < 2 or placed.size > 4:
+        if placed.size < max(2, min_placed) or placed.size > 4:
             continue
         own = assign[placed]
         size = float(np.nanmax(np.where(np.isfinite(D[np.ix_(seg, seg)]), D[np.ix_(seg, seg)], 0)))

@@ -17,9 +17,19 @@ RATE = 120.0
 
 
 @pytest.fixture(scope="module")
-def partial():
-    """P1 of a simulated walk, with a model trained on the first half without LASI: ``(tpl,
-    ix, pts, hist, lasi)``: point ``i`` is the template's marker ``i``, point ``lasi`` (the
+def partial_model():
+    """``(model, partial)``: the model without LASI, and :func:`partial`'s tuple."""
+    return _partial()
+
+
+@pytest.fixture(scope="module")
+def partial(partial_model):
+    return partial_model[1]
+
+
+def _partial():
+    """P1 of a simulated walk, with a model trained on the first half without LASI: ``(model,
+    (tpl, ix, pts, hist, lasi))``: point ``i`` is the template's marker ``i``, point ``lasi`` (the
     last) is LASI's, a point the model cannot name; ``hist`` the points' 12-frame tracks."""
     from labeler_service.capture import split_label
     from labeler_service.labeling.boot import BootConfig
@@ -39,7 +49,7 @@ def partial():
     frame = next(f for f in range(11, second.n_frames) if seen[f - 11 : f + 1].all())
     hist = np.transpose(second.positions[frame - 11 : frame + 1][:, cols], (1, 0, 2))
     hist = np.ascontiguousarray(hist, dtype=float)
-    return tpl, {n: i for i, n in enumerate(names)}, hist[:, -1].copy(), hist, len(names)
+    return model, (tpl, {n: i for i, n in enumerate(names)}, hist[:, -1].copy(), hist, len(names))
 
 
 def test_a_plate_read_mirrored_onto_an_unknown_markers_point_is_read_right(partial):
@@ -94,3 +104,46 @@ def test_a_right_reading_is_left_alone(partial):
     _free_readings(tpl, assign, pts, free, cKDTree(pts), hist)
     assert np.array_equal(assign, np.arange(tpl.n))
     assert free[lasi]
+
+
+def _mirrored(ix: dict[str, int], n: int, lasi: int) -> np.ndarray:
+    """The pelvis read mirrored: RASI on LASI's point, the PSIS exchanged (point -> marker)."""
+    assign = np.arange(n)
+    assign[ix["RASI"]] = lasi
+    assign[ix["RPSI"]], assign[ix["LPSI"]] = ix["LPSI"], ix["RPSI"]
+    return assign
+
+
+def test_a_segment_needs_min_placed_markers_to_be_read_again(partial):
+    """The pelvis has three placed markers (the model lacks LASI): read again with
+    ``min_placed`` 3, left with 4 (a two-point reading keeps one distance, which a plate's two
+    diagonals share: the extension asks for three)."""
+    from scipy.spatial import cKDTree
+
+    from labeler_service.labeling.boot_match import _free_readings
+
+    tpl, ix, pts, hist, lasi = partial
+    for need, right in ((3, True), (4, False)):
+        assign = _mirrored(ix, tpl.n, lasi)
+        free = np.zeros(pts.shape[0], dtype=bool)
+        free[ix["RASI"]] = True
+        _free_readings(tpl, assign, pts, free, cKDTree(pts), hist, min_placed=need)
+        assert np.array_equal(assign, np.arange(tpl.n)) == right
+
+
+def test_the_extension_reads_a_booted_subjects_segment_again(partial_model):
+    """A booted subject (``checked``) with its pelvis read mirrored onto the point of the marker
+    its model lacks is read right by the extension; a subject the stream's labels placed (a
+    labeled start) keeps its labels."""
+    from labeler_service.labeling.boot import BootConfig, Booter
+
+    model, (tpl, ix, pts, hist, lasi) = partial_model
+    booter = Booter(model, BootConfig())
+    labels = np.full(pts.shape[0], -1, dtype=np.int64)
+    labels[_mirrored(ix, tpl.n, lasi)] = np.arange(tpl.n)  # point -> marker (P1's offset is 0)
+    kept = booter.extend(pts, hist, labels, [0])
+    assert np.array_equal(kept, labels)
+    fixed = booter.extend(pts, hist, labels, [0], checked=[0])
+    want = np.full(pts.shape[0], -1, dtype=np.int64)
+    want[: tpl.n] = np.arange(tpl.n)
+    assert np.array_equal(fixed, want)
