@@ -380,4 +380,22 @@ MUTANTS: list[Mutant] = [
         "the fixed-point equations of the joint centre have the translation flipped",
         k="joint_centre",
     ),
+    Mutant(
+        "boot-free-reading-without-the-window",
+        "labeler_service/labeling/boot_match.py",
+        "        if hist is not None and not (along is not None and along > FREE_READ_NATS):",
+        "        if False:",
+        (T + "labeling/test_boot_free_readings.py",),
+        "a segment is moved onto free points on one frame's fit, the window not asked",
+        k="window",
+    ),
+    Mutant(
+        "boot-extension-no-free-reading",
+        "labeler_service/labeling/boot.py",
+        "            _free_readings(tpl, read, pts, out < 0, cKDTree(pts), hist, min_placed=3)",
+        "            pass",
+        (T + "labeling/test_boot_free_readings.py",),
+        "the extension no longer reads a booted subject's segments again onto free points",
+        k="extension",
+    ),
 ]
