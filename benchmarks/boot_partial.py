@@ -4,9 +4,9 @@ For each ``SCENE:CELL`` the cell is rebuilt as ``generalization.py --start boot`
 except that the model is trained with the markers ``--drop`` lists hidden (their columns left
 out of the training scene, as a ROM take that never showed them); every subject whose local
 marker name is listed loses it. Per subject one JSON line: ``boot_s`` (the matrix's criterion:
-95 % of every visible marker right), ``boot_s_known`` (the same criterion over the markers
-the model knows: the best a labeler without the others can do), wrong labels (on known and on
-unknown markers' points) and unlabeled known markers after the first boot.
+95 % of every visible marker right), ``boot_s_known`` (``evaluate``'s: the same criterion over
+the markers the model knows: the best a labeler without the others can do), wrong labels
+(on known and on unknown markers' points) and unlabeled known markers after the first boot.
 
     .venv/bin/python benchmarks/boot_partial.py tune-alone-clinical_gait_pig_35markers_100hz:alone \
         --drop C7 RSHO LASI RHEE LBAK RBAK
@@ -24,11 +24,8 @@ from generalization import _cells, boot_frames, matrix, training_capture
 import labeler_service.evaluation.scoring as scoring
 from labeler_service.capture import split_label
 from labeler_service.evaluation.scoring import (
-    BOOT_GOOD,
-    BOOT_RUN,
     CORRECT,
     NOT_VISIBLE,
-    PRESENT,
     UNLABELED,
     evaluate,
 )
@@ -40,17 +37,6 @@ def _train_without(scene, plan, drop: set[str]):
     cap = training_capture(scene, plan)
     keep = [i for i, lab in enumerate(cap.labels) if split_label(lab)[1] not in drop]
     return StructureTrainer().fit([cap.select(keep)]).model_
-
-
-def _first_run(vis: np.ndarray, ok: np.ndarray, present: np.ndarray, rate: float):
-    good = (vis > 0) & (ok >= BOOT_GOOD * vis)
-    p = np.flatnonzero(present)
-    if p.size == 0:
-        return None
-    for f in range(int(p[0]), len(good) - BOOT_RUN + 1):
-        if good[f : f + BOOT_RUN].all():
-            return round((f - int(p[0])) / rate, 4)
-    return None
 
 
 def run(name: str, cell: str, drop: set[str]) -> list[dict]:
@@ -88,18 +74,15 @@ def run(name: str, cell: str, drop: set[str]) -> list[dict]:
         scoring.Scorer.add, scoring.make_labeler = add, make
     sc = scores["online"]
     raster, names = sc.raster, list(sc.marker_names)
-    rate = report["rate_hz"]
     known = set(model.marker_names)
-    sizes = {s.name: len(s.markers) for s in model.subjects}
     out = []
     for subj, bs in report["boot_s"].items():
         cols = [j for j, n in enumerate(names) if split_label(n)[0] == subj]
         kcols = [j for j in cols if names[j] in known]
         ucols = [j for j in cols if names[j] not in known]
-        r, rk, ru = raster[:, cols], raster[:, kcols], raster[:, ucols]
+        rk, ru = raster[:, kcols], raster[:, ucols]
         visk = (rk != NOT_VISIBLE).sum(1)
         okk = (rk == CORRECT).sum(1)
-        present = (r != NOT_VISIBLE).sum(1) >= PRESENT * sizes.get(subj, len(cols))
         wk = int(((rk != NOT_VISIBLE) & (rk != CORRECT) & (rk != UNLABELED)).sum())
         wu = int(((ru != NOT_VISIBLE) & (ru != CORRECT) & (ru != UNLABELED)).sum())
         out.append(
@@ -108,7 +91,7 @@ def run(name: str, cell: str, drop: set[str]) -> list[dict]:
                 "subject": subj,
                 "dropped": sorted(split_label(names[j])[1] for j in ucols),
                 "boot_s": bs,
-                "boot_s_known": _first_run(visk, okk, present, rate),
+                "boot_s_known": report["boot_s_known"].get(subj, bs),
                 "wrong_known": wk,
                 "wrong_on_unknown": wu,
                 "unlabeled_known": int((rk == UNLABELED).sum()),
