@@ -948,6 +948,19 @@ def _local_quads(quads: np.ndarray, bodies: list[list[int]]) -> np.ndarray:
     return np.array([any(set(q.tolist()) <= u for u in unions) for q in quads], dtype=bool)
 
 
+def _volumes(p: np.ndarray) -> np.ndarray:
+    """Signed volumes ``det(p1 - p0, p2 - p0, p3 - p0)`` of quadruples ``p (..., 4, 3)``
+    (coincident points give 0 or nan, without a warning)."""
+    with np.errstate(all="ignore"):
+        return np.linalg.det(p[..., 1:, :] - p[..., :1, :])
+
+
+def _reversed_thick(det: np.ndarray) -> np.ndarray:
+    """Quadruples whose signed volume ``det`` is reversed (negative; the trained sign is
+    positive) and thick enough to vote (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``)."""
+    return (np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)
+
+
 def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[int, int, int]:
     """Of the template's chirality quadruples with all four markers placed and a thick
     tetrahedron (cube root of ``|det|`` >= ``CHIRAL_MIN_MM``), how many keep the trained sign,
@@ -961,9 +974,7 @@ def _handedness(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> tuple[in
     q, local = q[placed], tpl.chiral_local[placed]
     if q.shape[0] == 0:
         return 0, 0, 0
-    p = pts[assign[q]]  # (q, 4, 3)
-    with np.errstate(all="ignore"):  # a degenerate quadruple (coincident points)
-        det = np.linalg.det(p[:, 1:] - p[:, :1])
+    det = _volumes(pts[assign[q]])
     thick = np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM
     rev = thick & (det < 0)
     return int(np.sum(thick & (det > 0))), int(rev.sum()), int(np.sum(rev & local))
@@ -1826,10 +1837,7 @@ def _chiral_exchange(
     if not use.any():
         return assign
     qu = q[use]
-    p = pts[out[qu]]
-    with np.errstate(all="ignore"):  # (coincident points)
-        det = np.linalg.det(p[:, 1:] - p[:, :1])
-    rev = qu[(np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)]
+    rev = qu[_reversed_thick(_volumes(pts[out[qu]]))]
     olds = np.unique(rev[~fresh[rev]])
     placed = (assign >= 0) & ~fresh
     pairs = sorted(
@@ -2258,10 +2266,8 @@ def _fill_reversed(
     new[rows, marks] = True
     oq = out[:, q]  # (K, Q, 4)
     use = np.all(oq >= 0, axis=2) & np.any(new[:, q], axis=2)
-    p = pts[np.where(oq >= 0, oq, 0)]  # (K, Q, 4, 3)
-    with np.errstate(all="ignore"):  # (coincident points)
-        det = np.linalg.det(p[:, :, 1:] - p[:, :, :1])
-    return np.any(use & (np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0), axis=1)
+    det = _volumes(pts[np.where(oq >= 0, oq, 0)])  # (K, Q)
+    return np.any(use & _reversed_thick(det), axis=1)
 
 
 def _quads_holding(q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
@@ -2679,12 +2685,8 @@ def _fill_checks(
         new = np.zeros(n, dtype=bool)
         new[fresh] = True
         use = np.all(out[q] >= 0, axis=1) & np.any(new[q], axis=1)
-        if use.any():
-            p = pts[out[q[use]]]
-            with np.errstate(all="ignore"):  # (coincident points)
-                det = np.linalg.det(p[:, 1:] - p[:, :1])
-            if np.any((np.cbrt(np.abs(det)) >= CHIRAL_MIN_MM) & (det < 0)):
-                return False
+        if use.any() and np.any(_reversed_thick(_volumes(pts[out[q[use]]]))):
+            return False
     return True
 
 
