@@ -374,6 +374,7 @@ class Booter:
         out = np.asarray(labels, dtype=np.int64).copy()
         w = hist.shape[1]
         taken0 = np.zeros(pts.shape[0], dtype=bool)
+        tree = None  # (the frame's points, for the segments read again onto free points)
         for s in subjects:  # markers of one subject on each other's points (_window_exchange)
             if s not in checked:
                 continue
@@ -386,7 +387,8 @@ class Booter:
             # (:func:`_free_readings`): two points keep one distance, which a plate's two
             # diagonals share (a head plate's LBHD and RFHD read onto RBHD's and LFHD's points)
             read = swapped.copy()
-            _free_readings(tpl, read, pts, out < 0, cKDTree(pts), hist, min_placed=3)
+            tree = cKDTree(pts) if tree is None else tree
+            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3)
             if not np.array_equal(read, swapped):
                 swapped = read
             if swapped is not assign:
