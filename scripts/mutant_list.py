@@ -392,10 +392,19 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "boot-extension-no-free-reading",
         "labeler_service/labeling/boot.py",
-        "            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3)",
+        "            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3, doubtful=doubt)",
         "            pass",
         (T + "labeling/test_boot_free_readings.py",),
         "the extension no longer reads a booted subject's segments again onto free points",
         k="extension",
+    ),
+    Mutant(
+        "boot-free-reading-ignores-doubt",
+        "labeler_service/labeling/boot_match.py",
+        "        if doubtful is not None and doubtful.sum() > doubtful[seg].sum():",
+        "        if False:",
+        (T + "labeling/test_boot_free_readings.py",),
+        "a segment is read again against a rest of the subject that is itself in doubt",
+        k="doubt",
     ),
 ]

@@ -73,6 +73,7 @@ from labeler_service.labeling.boot_match import (
     EXCHANGE_MARGIN,
     _complete,
     _complete_weak,
+    _doubtful,
     _evidence,
     _fill,
     _free_readings,
@@ -385,10 +386,15 @@ class Booter:
             swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
             # a segment of three or more placed markers read again onto free points
             # (:func:`_free_readings`): two points keep one distance, which a plate's two
-            # diagonals share (a head plate's LBHD and RFHD read onto RBHD's and LFHD's points)
+            # diagonals share (a head plate's LBHD and RFHD read onto RBHD's and LFHD's
+            # points); not while a marker outside the segment is doubtful (a reading already
+            # wrong elsewhere, moved from one wrong reading to another: the pile)
             read = swapped.copy()
             tree = cKDTree(pts) if tree is None else tree
-            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3)
+            have = np.flatnonzero(read >= 0)
+            doubt = np.zeros(tpl.n, dtype=bool)
+            doubt[have] = _doubtful(tpl, have, hist[read[have], -1])
+            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3, doubtful=doubt)
             if not np.array_equal(read, swapped):
                 swapped = read
             if swapped is not assign:

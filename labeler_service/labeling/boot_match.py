@@ -2184,6 +2184,7 @@ def _free_readings(
     tree: cKDTree,
     hist: np.ndarray | None = None,
     min_placed: int = 2,
+    doubtful: np.ndarray | None = None,
 ) -> None:
     """Every segment (``min_placed``, at least two, to four placed markers) is read again over its
     own points and the free points within its reach: the injective map of its placed markers to
@@ -2196,13 +2197,17 @@ def _free_readings(
     reach the true point, which the mirror left free. With the window's tracks ``hist (N, W,
     3)`` the move must also fit better by ``FREE_READ_NATS`` in the median over the window
     frames that track every point of both readings (at least half the window,
-    :func:`_gain_along`): a reading that fits one frame only is a coincidence. ``free`` is
-    updated."""
+    :func:`_gain_along`): a reading that fits one frame only is a coincidence. With
+    ``doubtful`` (``(n,)`` bool, markers whose pairs are off: :func:`_doubtful`) a segment is
+    read again only when no doubtful marker lies outside it: the move is judged against the
+    rest of the subject, and a rest in doubt is no reference. ``free`` is updated."""
     D = tpl.D
     for seg in tpl.segments:
         placed = seg[assign[seg] >= 0]
         if placed.size < max(2, min_placed) or placed.size > 4:
             continue
+        if doubtful is not None and doubtful.sum() > doubtful[seg].sum():
+            continue  # the rest the move is judged against is itself in doubt
         own = assign[placed]
         size = float(np.nanmax(np.where(np.isfinite(D[np.ix_(seg, seg)]), D[np.ix_(seg, seg)], 0)))
         centre = pts[own].mean(axis=0)

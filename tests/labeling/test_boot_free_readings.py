@@ -147,3 +147,23 @@ def test_the_extension_reads_a_booted_subjects_segment_again(partial_model):
     want = np.full(pts.shape[0], -1, dtype=np.int64)
     want[: tpl.n] = np.arange(tpl.n)
     assert np.array_equal(fixed, want)
+
+
+def test_a_segment_is_not_read_again_against_a_rest_in_doubt(partial):
+    """A doubtful marker outside the segment (its pairs off: a reading already wrong there, a
+    pile's performer read on four others' points) leaves the segment as it is: the move is
+    judged against the rest of the subject, which is then no reference. A doubtful marker
+    inside the segment does not stop it."""
+    from scipy.spatial import cKDTree
+
+    from labeler_service.labeling.boot_match import _free_readings
+
+    tpl, ix, pts, hist, lasi = partial
+    for inside, right in (("RPSI", True), ("LFHD", False)):
+        assign = _mirrored(ix, tpl.n, lasi)
+        free = np.zeros(pts.shape[0], dtype=bool)
+        free[ix["RASI"]] = True
+        doubt = np.zeros(tpl.n, dtype=bool)
+        doubt[ix[inside]] = True
+        _free_readings(tpl, assign, pts, free, cKDTree(pts), hist, min_placed=3, doubtful=doubt)
+        assert np.array_equal(assign, np.arange(tpl.n)) == right
