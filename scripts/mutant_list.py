@@ -392,7 +392,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "boot-extension-no-free-reading",
         "labeler_service/labeling/boot.py",
-        "            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3, doubtful=doubt)",
+        "            _free_readings(tpl, read, pts, out < 0, tree, hist, doubtful=doubt)",
         "            pass",
         (T + "labeling/test_boot_free_readings.py",),
         "the extension no longer reads a booted subject's segments again onto free points",

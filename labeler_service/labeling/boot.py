@@ -394,7 +394,7 @@ class Booter:
             have = np.flatnonzero(read >= 0)
             doubt = np.zeros(tpl.n, dtype=bool)
             doubt[have] = _doubtful(tpl, have, hist[read[have], -1])
-            _free_readings(tpl, read, pts, out < 0, tree, hist, min_placed=3, doubtful=doubt)
+            _free_readings(tpl, read, pts, out < 0, tree, hist, doubtful=doubt)
             if not np.array_equal(read, swapped):
                 swapped = read
             if swapped is not assign:

@@ -2183,24 +2183,25 @@ def _free_readings(
     free: np.ndarray,
     tree: cKDTree,
     hist: np.ndarray | None = None,
-    min_placed: int = 2,
+    min_placed: int = 3,
     doubtful: np.ndarray | None = None,
 ) -> None:
-    """Every segment (``min_placed``, at least two, to four placed markers) is read again over its
-    own points and the free points within its reach: the injective map of its placed markers to
-    those points that keeps the distances of one trained body and fits the rest of the subject
-    best (:func:`_pair_error`) replaces the current one when it is better by ``FREE_READ_NATS``
-    and reverses no thick chirality quadruple with a marker it moves. A model that lacks a
-    marker (a ROM take that never showed it) leaves that marker's point free, and a plate read
-    mirrored onto it (a pelvis's right ASIS on the left ASIS's point, the PSIS exchanged) keeps
-    every distance of the plate; :func:`_readings` permutes the placed points only and cannot
-    reach the true point, which the mirror left free. With the window's tracks ``hist (N, W,
-    3)`` the move must also fit better by ``FREE_READ_NATS`` in the median over the window
-    frames that track every point of both readings (at least half the window,
-    :func:`_gain_along`): a reading that fits one frame only is a coincidence. With
-    ``doubtful`` (``(n,)`` bool, markers whose pairs are off: :func:`_doubtful`) a segment is
-    read again only when no doubtful marker lies outside it: the move is judged against the
-    rest of the subject, and a rest in doubt is no reference. ``free`` is updated."""
+    """Every segment (``min_placed`` to four placed markers; three by default: two points keep one
+    distance, which a plate's two diagonals share) is read again over its own points and the
+    free points within its reach: the injective map of its placed markers to those points that
+    keeps the distances of one trained body and fits the rest of the subject best
+    (:func:`_pair_error`) replaces the current one when it is better by ``FREE_READ_NATS`` and
+    reverses no thick chirality quadruple with a marker it moves. A model that lacks a marker (a
+    ROM take that never showed it) leaves that marker's point free, and a plate read mirrored
+    onto it (a pelvis's right ASIS on the left ASIS's point, the PSIS exchanged) keeps every
+    distance of the plate; :func:`_readings` permutes the placed points only and cannot reach
+    the true point, which the mirror left free. With the window's tracks ``hist (N, W, 3)`` the
+    move must also fit better by ``FREE_READ_NATS`` in the median over the window frames that
+    track every point of both readings (at least half the window, :func:`_gain_along`): a
+    reading that fits one frame only is a coincidence. With ``doubtful`` (``(n,)`` bool, markers
+    whose pairs are off: :func:`_doubtful`) a segment is read again only when no doubtful marker
+    lies outside it: the move is judged against the rest of the subject, and a rest in doubt is
+    no reference. ``free`` is updated."""
     D = tpl.D
     for seg in tpl.segments:
         placed = seg[assign[seg] >= 0]
