@@ -588,28 +588,26 @@ def boot_summary(rows: list[dict]) -> dict[str, Any]:
     median_s = float(np.median(boot_s))
     worst_diff = min(diffs, key=lambda d: d[0]) if diffs else None
     never = [r["scene"] for r in done if r["boot"]["boot_s_max"] is None]
-    # per subject-cell: booted, and whether the model knows every marker the scene shows of it
-    # (a template trained on a segment that never showed a marker cannot name it, so that
-    # subject cannot reach the 95 % criterion: the short BTS walk)
+    # per subject-cell: booted; whether the model knows every marker the scene shows of it (a
+    # template trained on a segment that never showed a marker cannot name it, so that subject
+    # cannot reach the 95 % criterion: the short BTS walk); booted counting, where the model
+    # lacks markers, only the markers it knows (``boot_s_known``)
     cells = [
-        (v is not None, not any(split_label(n)[0] == s for n in r.get("model_missing_markers", ())))
+        (
+            v is not None,
+            not any(split_label(n)[0] == s for n in r.get("model_missing_markers", ())),
+            (r["boot"].get("boot_s_known") or {}).get(s, v) is not None,
+        )
         for r in done
         if r["boot"]["boot_s"]
         for s, v in r["boot"]["boot_s"].items()
     ]
-    complete = [b for b, ok in cells if ok]
-    # the same, counting for a subject whose model lacks markers only the markers it knows
-    known = [
-        (r["boot"].get("boot_s_known") or {}).get(s, v) is not None
-        for r in done
-        if r["boot"]["boot_s"]
-        for s, v in r["boot"]["boot_s"].items()
-    ]
+    complete = [b for b, ok, _ in cells if ok]
     return {
         "scenes": len(done),
-        "subjects_booted": [sum(b for b, _ in cells), len(cells)],
+        "subjects_booted": [sum(b for b, _, _ in cells), len(cells)],
         "subjects_booted_model_complete": [sum(complete), len(complete)],
-        "subjects_booted_known_markers": [sum(known), len(known)],
+        "subjects_booted_known_markers": [sum(k for _, _, k in cells), len(cells)],
         "skipped": skipped,
         "never_booted": never,
         "boot_s_max_worst": None if math.isinf(worst_s) else round(worst_s, 4),
