@@ -383,8 +383,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "boot-free-reading-without-the-window",
         "labeler_service/labeling/boot_match.py",
-        "        if hist is not None and not (along is not None and along > FREE_READ_NATS):",
-        "        if False:",
+        "            if along is None or along <= FREE_READ_NATS:",
+        "            if False:",
         (T + "labeling/test_boot_free_readings.py",),
         "a segment is moved onto free points on one frame's fit, the window not asked",
         k="window",

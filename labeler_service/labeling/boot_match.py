@@ -1557,32 +1557,48 @@ def _segment_readings(
     if placed.size < 2 or placed.size > 4:
         return placed, []
     points = assign[placed]
-    options = np.concatenate([placed, seg[assign[seg] < 0]]).tolist()
+    options = np.concatenate([placed, seg[assign[seg] < 0]])
     d = np.linalg.norm(pts[points][:, None] - pts[points][None, :], axis=2)
-    D, tol, strict = tpl.D, tpl.tol, tpl.strict
-    out: list[np.ndarray] = []
+    oo = np.ix_(options, options)
+    strict, D, tol = tpl.strict[oo], tpl.D[oo], tpl.tol[oo]
+    # point k on option marker m and point j on option marker c keep the pair (m, c)
+    fits = {
+        (k, j): ~strict | (np.abs(d[k, j] - D) <= tol) for k in range(placed.size) for j in range(k)
+    }
+    maps = _injective_maps(placed.size, options.size, fits) or []
+    return placed, [mk for mk in (options[m] for m in maps) if not np.array_equal(mk, placed)]
+
+
+def _injective_maps(
+    k: int, n: int, fits: dict[tuple[int, int], np.ndarray], limit: int | None = None
+) -> list[np.ndarray] | None:
+    """Every injective map of items ``0..k-1`` to options ``0..n-1`` (depth-first, options in
+    order) such that for each pair ``(a, b)``, ``b < a``, in ``fits`` item ``a``'s option ``i``
+    and item ``b``'s option ``j`` have ``fits[a, b][i, j]``: the readings of a segment that
+    keep one trained body's distances (:func:`_segment_readings` maps points to markers,
+    :func:`_maps_onto` markers to points). ``None`` when there are more than ``limit``."""
+    maps: list[np.ndarray] = []
     chosen: list[int] = []
 
-    def place(k: int) -> None:
-        if k == placed.size:
-            mk = np.array(chosen, dtype=np.int64)
-            if not np.array_equal(mk, placed):
-                out.append(mk)
+    def place(a: int) -> None:
+        if limit is not None and len(maps) > limit:
             return
-        for m in options:
-            if m in chosen:
-                continue
-            if any(
-                strict[m, c] and not abs(d[k, j] - D[m, c]) <= tol[m, c]
-                for j, c in enumerate(chosen)
-            ):
-                continue
-            chosen.append(m)
-            place(k + 1)
+        if a == k:
+            maps.append(np.array(chosen, dtype=np.int64))
+            return
+        ok = np.ones(n, dtype=bool)
+        ok[chosen] = False
+        for b, c in enumerate(chosen):
+            f = fits.get((a, b))
+            if f is not None:
+                ok &= f[:, c]
+        for i in np.flatnonzero(ok).tolist():
+            chosen.append(i)
+            place(a + 1)
             chosen.pop()
 
     place(0)
-    return placed, out
+    return None if limit is not None and len(maps) > limit else maps
 
 
 def _readings(
@@ -2119,37 +2135,16 @@ def _maps_onto(
     when there are more than ``FREE_READ_MAX_MAPS``."""
     D, tol, strict = tpl.D, tpl.tol, tpl.strict
     d = np.linalg.norm(pts[pool][:, None] - pts[pool][None, :], axis=2)
-    k = placed.size
-    # fits[a, b] (pool, pool): pool point i for placed[a] and j for placed[b] keep the pair's
-    # trained distance; only pairs of one trained body (``strict``) are checked
+    # marker a on pool point i and marker b on pool point j keep the pair's trained distance;
+    # only pairs of one trained body (``strict``) are checked
     fits = {
         (a, b): np.abs(d - D[placed[a], placed[b]]) <= tol[placed[a], placed[b]]
-        for a in range(k)
+        for a in range(placed.size)
         for b in range(a)
         if strict[placed[a], placed[b]]
     }
-    maps: list[np.ndarray] = []
-    chosen: list[int] = []  # indices into pool, one per placed marker
-
-    def place(a: int) -> None:
-        if len(maps) > FREE_READ_MAX_MAPS:
-            return
-        if a == k:
-            maps.append(pool[chosen])
-            return
-        ok = np.ones(pool.size, dtype=bool)
-        ok[chosen] = False
-        for b, c in enumerate(chosen):
-            f = fits.get((a, b))
-            if f is not None:
-                ok &= f[:, c]
-        for i in np.flatnonzero(ok).tolist():
-            chosen.append(i)
-            place(a + 1)
-            chosen.pop()
-
-    place(0)
-    return None if len(maps) > FREE_READ_MAX_MAPS else maps
+    maps = _injective_maps(placed.size, pool.size, fits, FREE_READ_MAX_MAPS)
+    return None if maps is None else [pool[m] for m in maps]
 
 
 def _gain_along(
@@ -2205,12 +2200,13 @@ def _free_readings(
     D = tpl.D
     for seg in tpl.segments:
         placed = seg[assign[seg] >= 0]
-        if placed.size < max(2, min_placed) or placed.size > 4:
+        if placed.size < min_placed or placed.size > 4:
             continue
         if doubtful is not None and doubtful.sum() > doubtful[seg].sum():
             continue  # the rest the move is judged against is itself in doubt
         own = assign[placed]
-        size = float(np.nanmax(np.where(np.isfinite(D[np.ix_(seg, seg)]), D[np.ix_(seg, seg)], 0)))
+        sub = D[np.ix_(seg, seg)]
+        size = float(np.where(np.isfinite(sub), sub, 0.0).max())
         centre = pts[own].mean(axis=0)
         near = np.asarray(tree.query_ball_point(centre, size + 20.0), dtype=np.int64)
         near = near[free[near]]
@@ -2235,9 +2231,10 @@ def _free_readings(
         out[placed] = best
         if _changed_reversed(tpl, assign, out, pts):
             continue
-        along = None if hist is None else _gain_along(tpl, placed, own, best, base, hist)
-        if hist is not None and not (along is not None and along > FREE_READ_NATS):
-            continue  # the window must agree (a coincidence of one frame: tune22 quarter)
+        if hist is not None:  # the window must agree (a coincidence of one frame: tune22 quarter)
+            along = _gain_along(tpl, placed, own, best, base, hist)
+            if along is None or along <= FREE_READ_NATS:
+                continue
         free[own] = True
         free[best] = False
         assign[placed] = best
