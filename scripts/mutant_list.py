@@ -78,6 +78,16 @@ MUTANTS: list[Mutant] = [
         k="branch_and_bound",
         kernel=True,
     ),
+    Mutant(
+        "pair-check-trusts-bending-links",
+        "labeler_service/labeling/kernels/repair.py",
+        "            if A[b, i, j] > 3.0 * a0:\n",  # a link that bends now counts as evidence
+        "            if False:\n",
+        (T + "labeling/test_swap_repair.py",),
+        "the pair check weighs links trained across a joint held still",
+        k="pair_check or link_excess",
+        kernel=True,
+    ),
     # ------------------------------------------------------------------ labeler, training
     Mutant(
         "labeler-trains-on-scrambled-init-frames",

@@ -450,22 +450,21 @@ def gone(lost, active, groups, absent_frames):
 def link_excess(m, p, skip, points, bodies, D0, A0, A, assigned, age, min_age, a_floor, a_rel):
     """``(sum, count)`` over marker ``m``'s trained links (``bodies``: member lists; ``D0``,
     ``A0``, ``A`` per body ``(k, k)``) to anchors (assigned, ``age >= min_age``, not ``m`` or
-    ``skip``) in bodies none of whose links has a window ``A`` beyond 3 floored ``A0``: how far
-    point ``p``'s distance to the anchor's point is off ``D0`` beyond 3 floored ``A0``."""
+    ``skip``) whose window ``A`` is within 3 floored ``A0`` (a link that bends now is left
+    out, not its whole body): how far point ``p``'s distance to the anchor's point is off ``D0``
+    beyond 3 floored ``A0``."""
     tot, cnt = 0.0, 0
     for b, body in enumerate(bodies):
         if m not in body:
             continue
-        k = len(body)
         floor = np.maximum(np.maximum(A0[b], a_floor), a_rel * D0[b])
-        off = ~np.eye(k, dtype=bool) & ~np.isnan(A0[b])
-        if np.any(A[b][off] > 3.0 * floor[off]):
-            continue
         i = body.index(m)
         for j, other in enumerate(body):
             if other in (m, skip) or assigned[other] < 0 or age[other] < min_age:
                 continue
             if np.isnan(D0[b][i, j]) or np.isnan(A0[b][i, j]):
+                continue
+            if A[b][i, j] > 3.0 * floor[i, j]:
                 continue
             d = np.linalg.norm(points[p] - points[assigned[other]])
             tot += max(0.0, abs(d - D0[b][i, j]) - 3.0 * floor[i, j])

@@ -356,6 +356,49 @@ def test_pair_check_leaves_tracked_markers_and_bending_bodies_alone(rng):
     assert list(scratch.assigned[:4]) == [0, 2, 1, 3]
 
 
+def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
+    # the tennis hand of issue 10: trained on a window held still, the only body holding the
+    # finger F and the wrist pair R, U also holds a pelvis marker P (its links to the hand bend
+    # once the arm moves). R took U's point and U is missing. The elbow's links (272 / 265 mm)
+    # cannot tell R from U; F's (159 / 108 mm) can, inside the body that bends elsewhere.
+    config = LabelerConfig()
+    pelvis = np.array([[-150.0, 300.0, -400.0]])
+    shape = np.vstack([FOREARM, pelvis])  # E, R, U, F, P
+    lists = [[1, 2, 3, 4], [0, 1, 2]]
+    d0 = [np.linalg.norm(shape[b][:, None] - shape[b][None], axis=2) for b in lists]
+    a0 = [np.full((len(b), len(b)), 1.0) for b in lists]
+    pts = FOREARM @ _rotation(rng).T + [300.0, -100.0, 1100.0] + rng.normal(0, 0.5, (4, 3))
+    pts = np.vstack([pts, [[0.0, 900.0, 600.0]]])  # the pelvis elsewhere now
+    tracks = new_tracks(np.full(5, 1e6), np.ones(5, dtype=bool), [list(range(5))])
+    tracks.x[:, :3] = shape
+    tracks.age[:] = 100
+    tracks.age[1] = 3  # R re-acquired 3 frames ago (on U's point)
+    bodies = new_bodies(5, lists, d0, a0, 20)
+    bodies.A[0, 3, :3] = bodies.A[0, :3, 3] = 40.0  # every link to P bends in the window
+    scratch = new_scratch(5, len(lists), 1, config.K, 64)
+    assigned = np.array([0, 2, NONE, 3, 4], dtype=np.int32)
+    scratch.assigned[:] = assigned
+    scratch.owner[:] = NONE
+    for k, a in enumerate(assigned):
+        if a >= 0:
+            scratch.owner[a] = k
+            scratch.obs[k] = pts[a]
+        else:
+            scratch.obs[k] = np.nan
+    params = kernel_params(config)
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 1
+    assert list(scratch.assigned[:5]) == [0, NONE, 2, 3, 4]  # U's point back to U
+    # with F's links bending too, no link tells R from U: nothing moves
+    scratch.assigned[:] = assigned
+    scratch.owner[:] = NONE
+    for k, a in enumerate(assigned):
+        if a >= 0:
+            scratch.owner[a] = k
+    bodies.A[0, :4, :4] = 40.0
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    assert list(scratch.assigned[:5]) == list(assigned)
+
+
 @pytest.mark.parametrize("trial", range(6))
 def test_link_excess_matches_twin(rng, trial):
     m_total = 6
@@ -366,6 +409,7 @@ def test_link_excess_matches_twin(rng, trial):
     a0 = [(a + a.T) / 2 for a in a0]
     bodies = new_bodies(m_total, body_lists, d0, a0, 20)
     window_a = [a * rng.choice([1.0, 5.0], size=a.shape, p=[0.8, 0.2]) for a in a0]
+    window_a[0][0, 1] = window_a[0][1, 0] = 50.0  # one link bends: the body's others still count
     for b, body in enumerate(body_lists):
         k = len(body)
         bodies.A[b, :k, :k] = (window_a[b] + window_a[b].T) / 2
@@ -374,6 +418,7 @@ def test_link_excess_matches_twin(rng, trial):
     assigned = rng.permutation(m_total).astype(np.int32)
     assigned[rng.random(m_total) < 0.2] = NONE
     age = rng.integers(0, 60, m_total)
+    age[[0, 3]] = 40  # anchors of marker 2 inside the body that bends
     for m in range(m_total):
         for p in range(m_total):
             skip = int(rng.integers(-1, m_total))

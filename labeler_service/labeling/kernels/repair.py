@@ -47,8 +47,9 @@ longest swap 350 -> 57 frames).
 points and relabels inside one body; a marker in triangles only (a dancer's radius and ulna)
 or whose wrong point only its other bodies can refute stays swapped. For every marker
 re-acquired less than ``repair_age`` frames ago, the trained pair distances (``D0`` beyond 3
-floored deviations ``A0``) to the long-tracked members of all its bodies that do not bend now
-(window ``A`` within 3 floored ``A0``) decide whether its point belongs to a body partner
+floored deviations ``A0``) to the long-tracked members of all its bodies, over the links that
+do not bend now (window ``A`` within 3 floored ``A0``; a body trained across a joint held still
+keeps its rigid links as evidence), decide whether its point belongs to a body partner
 (missing: the point moves; holding a point and re-acquired recently too: the two exchange)
 when the summed mean excess exceeds ``repair_check_mm`` and the change cuts it to a third,
 unless it makes a 4+-point body with a reference fail its proper-rotation template
@@ -252,25 +253,13 @@ def _unique3(ref, pts, best, n, rms, check_mm, kab):
 
 
 @njit
-def _bends(b, n, D0, A0, A, a_floor, a_rel):
-    """Whether a link of body ``b`` (``n`` members) deviates in the sliding window (``A``,
-    Eq. 2) by more than 3 trained deviations (``A0`` with the floor of Eq. 5)."""
-    for i in range(n):
-        for j in range(i + 1, n):
-            a0 = A0[b, i, j]
-            if a0 != a0:
-                continue
-            if A[b, i, j] > 3.0 * max(a0, a_floor, a_rel * D0[b, i, j]):
-                return True
-    return False
-
-
-@njit
 def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_rel):
     """``(sum, count)`` over the trained links of marker ``m`` (every body that contains it) to
     *anchors* - members observed now and for at least ``min_age`` frames before, other than
     ``m`` and ``skip`` - of how far (mm) point ``p``'s distance to the anchor's point differs
-    from the trained ``D0`` beyond 3 trained deviations ``A0`` (0 within them)."""
+    from the trained ``D0`` beyond 3 trained deviations ``A0`` (0 within them). A link that
+    bends now (window ``A`` beyond 3 floored ``A0``: trained across a joint held still) is no
+    evidence and is left out; the body's other links still count."""
     members, size, D0, A0, A = bodies.members, bodies.size, bodies.D0, bodies.A0, bodies.A
     mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
     tot = 0.0
@@ -278,8 +267,6 @@ def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_
     for e in range(mb_ptr[m], mb_ptr[m + 1]):
         b = mb_idx[e]
         n = size[b]
-        if _bends(b, n, D0, A0, A, a_floor, a_rel):
-            continue  # a body trained across a joint held still: its links are no evidence
         i = 0
         while i < n and members[b, i] != m:
             i += 1
@@ -292,6 +279,8 @@ def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_
             if d0 != d0 or a0 != a0:
                 continue
             a0 = max(a0, a_floor, a_rel * d0)  # the floor of Eq. 5
+            if A[b, i, j] > 3.0 * a0:
+                continue  # a link that bends now (trained across a joint held still)
             q = assigned[k]
             d2 = 0.0
             for a in range(3):
