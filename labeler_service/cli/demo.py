@@ -62,7 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, default=7, help="scene and corruption seed")
     p.add_argument("--frames", type=int, default=1200, help="scene length (frames)")
     p.add_argument("--init-frames", type=int, default=None,
-                   help="labeled window (default 50; 0: no labels, --start boot)")  # fmt: skip
+                   help="labeled frames at the start: N > 0 starts from a labeled window "
+                        "(--start window), 0 sends no labels (--start boot); default: none, the "
+                        "demo boots (50 with --start window)")  # fmt: skip
     p.add_argument("--gaps", type=int, default=1, help="markers hidden per subject per gap")
     p.add_argument("--gap-frames", type=int, default=20, help="frames per gap")
     p.add_argument("--ghosts", type=float, default=1.0, help="mean ghost points per frame")
@@ -298,6 +300,8 @@ def run(args: argparse.Namespace) -> int:
           f"first {args.init_frames} frames labeled, {args.gaps} gap(s)/subject, "
           f"{args.ghosts:g} ghosts/frame")  # fmt: skip
     view = _start_view(args, out) if args.view else None  # (process, url)
+    print("starting the service: its first start in a fresh checkout compiles the labeling "
+          "kernels (a minute or two); later starts load them", file=sys.stderr)  # fmt: skip
     res = asyncio.run(_run_pipeline(args, frames, out))
     scored = score(frames, res.received, args.init_frames, rate=frames.rate)
     s = scored.summary()

@@ -1197,8 +1197,11 @@ def warmup_labeler(rate: float, config: LabelerConfig) -> None:
     names = [f"w:m{i}" for i in range(6)]
     train = Labeler(names, rate, config)
     frames = []
+    # jitter whose second differences stay those of 0.5 mm at 120 Hz at any rate: a fixed 0.5 mm
+    # at 2,000 Hz reads as accelerations no body has, and training refused the warm-up itself
+    jitter = 0.5 * min(1.0, (120.0 / rate) ** 2)
     for k in range(12):
-        pts = base + rng.normal(0, 0.5, (6, 3)).astype(np.float32) + np.float32(k)
+        pts = base + rng.normal(0, jitter, (6, 3)).astype(np.float32) + np.float32(k)
         frames.append((k / rate, pts, np.arange(6)))
         train.process(pts, k / rate, np.arange(6))
     inner = Labeler.from_model(train.train_model(), rate, config, subjects=())

@@ -43,6 +43,8 @@ VERSION = 1
 #: Stream names become MQTT topic levels: letters, digits, ``_ . -``; 1-64 characters.
 STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}\Z")
 _F32 = np.dtype("<f4")
+#: longest label a frame may carry (``subject:marker``)
+MAX_LABEL = 128
 _U8 = np.dtype("u1")
 _U64_MAX = 2**64 - 1
 
@@ -133,6 +135,8 @@ _STATUS_STATES = (
 
 
 # ----------------------------------------------------------------------------- encoding
+
+
 def _pack(obj: dict) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
 
@@ -316,8 +320,15 @@ def _decode_frame(m: dict, max_points: int) -> FrameMsg:
         if not isinstance(labels, list) or len(labels) != len(points):
             raise _reject("labels", f"labels must be a list of {len(points)} entries")
         for lab in labels:
-            if lab is not None and not (isinstance(lab, str) and 0 < len(lab) <= 128):
-                raise _reject("labels", f"label {lab!r} must be a string or nil")
+            if lab is not None and not (isinstance(lab, str) and 0 < len(lab) <= MAX_LABEL):
+                shown = (
+                    repr(lab)
+                    if not isinstance(lab, str) or len(lab) <= 40
+                    else (f"{lab[:40]!r}... ({len(lab)} characters)")
+                )
+                raise _reject(
+                    "labels", f"label {shown} must be nil or a string of 1-{MAX_LABEL} characters"
+                )
         labels = tuple(labels)
     sent = m.get("sent")
     if sent is not None:
@@ -484,11 +495,18 @@ def peek_frame_stream(payload: bytes) -> str | None:
         return None
 
 
-def decode(payload: bytes, max_points: int = 2000, max_bytes: int = 65_507) -> Message:
+def decode(
+    payload: bytes,
+    max_points: int = 2000,
+    max_bytes: int = 65_507,
+    accept: frozenset[str] | None = None,
+) -> Message:
     """Decodes and validates one message; raises :class:`ProtocolError` with a ``reason``.
 
     Checks, in order: size (``oversize``), msgpack (``not_msgpack``), a map (``not_map``),
-    ``v == 1`` (``version``), a known ``type`` (``type``), then the type's fields: stream name,
+    ``v == 1`` (``version``), a known ``type`` that is in ``accept`` when given (``type``: the
+    service accepts only ``frame`` and ``subscribe``, so a service-output message sent to it is
+    refused for its type, not for its fields), then the type's fields: stream name,
     ``seq`` an unsigned int, ``t`` finite, ``points`` a whole number of float32 triples
     (``points``) no more than ``max_points`` (``too_many_points``) all finite (``non_finite``),
     ``labels`` one string-or-nil per point (``labels``).
@@ -513,6 +531,8 @@ def decode(payload: bytes, max_points: int = 2000, max_bytes: int = 65_507) -> M
     if m.get("v") != VERSION or isinstance(m.get("v"), bool):
         raise _reject("version", f"unsupported protocol version {m.get('v')!r}")
     kind = m.get("type", "frame")
+    if accept is not None and kind not in accept:
+        raise _reject("type", f"a {kind!r} message is not accepted here")
     if kind == "frame":
         return _decode_frame(m, max_points)
     if kind == "labeled":

@@ -85,6 +85,8 @@ from labeler_service.service.transports.base import (
 )
 from labeler_service.wording import plural
 
+#: the message types a client may send the service (the others are its output)
+_ACCEPTED = frozenset({"frame", "subscribe"})
 log = logging.getLogger(__name__)
 
 #: Frames of sequential progress (:attr:`StreamState.progress`) that protect a stream in its
@@ -515,7 +517,9 @@ class Server:
                     log.exception("ingest error")
 
     def _handle(self, transport: Transport, inc: Incoming) -> None:
-        msg = decode(inc.payload, self.settings.max_points, self.settings.max_message_bytes)
+        msg = decode(
+            inc.payload, self.settings.max_points, self.settings.max_message_bytes, _ACCEPTED
+        )
         if isinstance(msg, FrameMsg):
             self._on_frame(msg, inc)
         elif isinstance(msg, SubscribeMsg):

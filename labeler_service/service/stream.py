@@ -48,9 +48,11 @@ that carries labels is used as the answer for its subjects (no boot needed for t
 client that sends labeled init frames still starts as before. A performer who leaves is dropped
 by the labeler and booted again when back (the ``lost`` status needs nothing more).
 
-Health: the labeled fraction (observed markers / model markers) and the recovered fraction are
-averaged over ``health_window_s``; below ``degraded_below`` / ``lost_below`` the stream's status
-becomes ``degraded`` / ``lost`` (:meth:`StreamState.update_health`). ``on_lost`` is the hook the
+Health: the labeled fraction (observed markers / model markers; for a booting labeler, / the
+markers of the subjects it has booted, so a model listing performers who are not in the volume
+does not read ``degraded``) and the recovered fraction are averaged over ``health_window_s``;
+below ``degraded_below`` / ``lost_below`` the stream's status becomes ``degraded`` / ``lost``
+(:meth:`StreamState.update_health`). ``on_lost`` is the hook the
 server calls then (a booting model stream's only logs: its labeler re-boots by itself); without
 one the server starts a recovery.
 
@@ -248,6 +250,10 @@ class Output:
     recovered: int
     missing: int
     unlabeled: int
+    #: markers the health counts: those of the subjects a booting labeler has booted (a model
+    #: may list performers who are not in the volume), every marker otherwise or before the
+    #: first boot; 0 = all
+    scope: int = 0
 
 
 class StreamState:
@@ -479,15 +485,20 @@ class StreamState:
         # a *N label is a ghost point (DESIGN.md): it stays unlabeled, never becomes a marker
         names = group_by_subject([n for n in init.names if not is_ghost(n)])
         if not names:
-            raise LabelerError(
-                f"stream {self.name}: the init frames hold no labeled point"
-                + (
-                    " (only ghost *N labels)"
-                    if init.names
-                    else " (no points: a take that starts before anyone is in view? start the "
+            points = sum(len(f.points) for f in init.frames)
+            if init.names:
+                hint = " (only ghost *N labels)"
+            elif points:
+                hint = (
+                    f" ({points} points, every label nil: send subject:marker labels on the "
+                    "init frames, or start from a model with none)"
+                )
+            else:
+                hint = (
+                    " (no points: a take that starts before anyone is in view? start the "
                     "replay where the performers are: replay FILE:start)"
                 )
-            )
+            raise LabelerError(f"stream {self.name}: the init frames hold no labeled point" + hint)
         empty = [n for n in names if split_label(n)[0] == ""]
         if empty:
             raise LabelerError(
@@ -1181,7 +1192,7 @@ class StreamState:
         """Folds one output into the labeled/recovered fractions; returns the new status when
         it changed (``online``, ``degraded``, ``lost``; ``booting`` while a booting labeler has
         not labeled any subject of the stream yet), else None."""
-        m = out.observed + out.recovered + out.missing
+        m = out.scope or out.observed + out.recovered + out.missing
         if m <= 0:
             return None
         s = self.settings
@@ -1242,7 +1253,17 @@ class StreamState:
             recovered=recovered,
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
+            scope=self._health_scope(),
         )
+
+    def _health_scope(self) -> int:
+        """Markers of the subjects a booting labeler has booted (0 when it has none, or for
+        another labeler: the health then counts every marker)."""
+        bl = self.labeler
+        if not isinstance(bl, BootingLabeler) or bl.n_active == 0:
+            return 0
+        active = set(bl.active_subjects)
+        return sum(len(s.markers) for s in bl.model.subjects if s.name in active)
 
 
 def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, str], ...]:

@@ -95,15 +95,15 @@ def match_warning(stream: str, model: LabelerModel, counts: list[int], seconds: 
     if points > total:
         why = (
             "more points than the model has markers: if they are not all ghosts, the model is "
-            "not of these performers or marker set"
+            "not of these performers or marker set;"
         )
     else:
         why = (
             "if the model is of these performers and marker set, the boot has not placed them "
-            "yet (docs/algorithm.md, boot limits); else"
+            "yet (docs/algorithm.md, boot limits); otherwise"
         )
     return (
-        f"{head}: {why}; train a model on a labeled take of these performers "
+        f"{head}: {why} train a model on a labeled take of these performers "
         "(mocap-labeler train structure TAKE... --out MODEL), set it as the stream's model and "
         "restart"
     )

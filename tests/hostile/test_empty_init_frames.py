@@ -34,3 +34,24 @@ def test_init_frames_without_points_are_named_as_such(caplog):
     text = "\n".join(r.getMessage() for r in caplog.records)
     assert "the init frames hold no labeled point" in text, text
     assert "carry no labels" not in text
+
+
+def test_init_frames_whose_labels_are_all_nil_are_named_as_such(caplog):
+    # points were sent, every label nil: the hint must not blame an empty volume
+    caplog.set_level(logging.WARNING)
+    pts = np.random.default_rng(1).normal(scale=300.0, size=(12, 3)).astype(np.float32)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(labeler="baseline"), [mem]) as srv:
+            for k in range(5):
+                mem.inject(encode_frame("default", k, k / 100, pts, [None] * 12))
+            mem.inject(encode_frame("default", 5, 0.05, pts))
+            async with asyncio.timeout(10):
+                while srv.metrics.drops("training_failed") == 0:
+                    await asyncio.sleep(0.05)
+
+    run(go(), timeout=30)
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert "60 points, every label nil" in text, text
+    assert "before anyone is in view" not in text

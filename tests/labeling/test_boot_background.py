@@ -302,3 +302,13 @@ def test_a_long_labeled_run_starts_the_inner_labeler_from_all_of_its_frames(walk
             np.testing.assert_allclose(inner.P, want.P, rtol=1e-9)
             np.testing.assert_allclose(inner.x, want.x, rtol=1e-9, atol=1e-9)
     assert ref._tracks.age.max() > booting._window.maxlen  # (what the window alone cannot give)
+
+
+@pytest.mark.parametrize("rate", [30.0, 2000.0, 10000.0])
+def test_warmup_scene_trains_at_any_rate(rate):
+    # the warm-up's own tiny scene must never trip the training's motion-noise check: at 2,000
+    # Hz a fixed 0.5 mm jitter read as 300 g and every capture at that rate was refused
+    from labeler_service.labeling.booting import warmup_labeler
+    from labeler_service.labeling.config import LabelerConfig
+
+    warmup_labeler(rate, LabelerConfig())

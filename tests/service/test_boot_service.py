@@ -415,3 +415,37 @@ def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
     last = max(b.installed_t for b in rebooted)
     acc, ghosts, scored = _score(frames, outs, int(np.searchsorted(frames.times, last - 1e-9)))
     assert scored > 0 and acc >= 0.95, acc
+
+
+def test_performers_the_model_lists_but_who_are_absent_do_not_degrade_the_stream(
+    model_path, frames
+):
+    """Only P1 of the model's four performers is in the volume (a model may list absent
+    subjects): once P1 is booted the stream reads ``online``; the health counts the markers of
+    the booted subjects, not the absent ones' (3 of 4 missing for good read ``degraded``)."""
+    keep = [i for i, n in enumerate(frames.marker_names) if n.startswith("P1:")]
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, False, health_window_s=0.3), [mem]) as srv:
+            st = srv.streams["vol"]
+            loop = asyncio.get_running_loop()
+            t0 = loop.time()
+            for f in range(frames.n_frames):
+                delay = t0 + f / frames.rate - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                mine = np.isin(frames.truth[f], keep)
+                mem.inject(encode_frame("vol", f, float(frames.times[f]), frames.points[f][mine]))
+            await until(
+                lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
+                + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
+            )  # fmt: skip
+            states = [decode(p).state for _, kind, p, _ in mem.sent if kind == "status"]
+            return st, states
+
+    st, states = run(go(), timeout=300.0)
+    assert set(st.subjects_booted) == {"P1"}, st.subjects_booted
+    assert "online" in states, states
+    assert "degraded" not in states[states.index("online") :], states
+    assert st.status == "online"

@@ -116,6 +116,7 @@ _INF = np.array([[0, 0, np.inf]], np.float32).tobytes()
         (_frame(labels=["a:x"]), "labels"),
         (_frame(labels=["a:x", 3]), "labels"),
         (_frame(labels="a:x"), "labels"),
+        (_frame(labels=["a:x", "a:" + "y" * 200]), "labels"),
         (_frame(sent=-5), "field"),
         (b"\x00" * 70_000, "oversize"),
     ],
@@ -125,6 +126,23 @@ def test_every_malformed_message_is_rejected_with_its_reason(payload, reason):
         decode(payload, max_points=10)
     assert info.value.reason == reason
     assert reason in REJECT_REASONS
+
+
+def test_a_label_too_long_is_refused_with_the_limit_and_not_echoed_whole():
+    with pytest.raises(ProtocolError) as info:
+        decode(_frame(labels=["a:x", "a:" + "y" * 1200]))
+    assert "1-128 characters" in str(info.value) and "1202 characters" in str(info.value)
+    assert len(str(info.value)) < 200
+
+
+@pytest.mark.parametrize("kind", ["labeled", "model", "status", "challenge"])
+def test_a_service_output_type_sent_to_the_service_is_refused_for_its_type(kind):
+    # the fields of a service-output message are not what a client sends: refused for the
+    # type before they are read (a "labeled" map was counted under ``points`` before)
+    with pytest.raises(ProtocolError) as info:
+        decode(_frame(type=kind), accept=frozenset({"frame", "subscribe"}))
+    assert info.value.reason == "type"
+    assert isinstance(decode(_frame(), accept=frozenset({"frame"})), FrameMsg)
 
 
 def test_size_bound_covers_a_large_labeled_frame(rng):
