@@ -15,43 +15,35 @@ from labeler_service.service.server import Server
 from labeler_service.service.transports.memory import MemoryTransport
 
 
-def test_init_frames_without_points_are_named_as_such(caplog):
+def _training_failure_log(caplog, init_points: np.ndarray, labels: list) -> str:
+    """Five init frames of ``init_points`` with ``labels``, then an unlabeled frame; the log
+    once training has failed."""
     caplog.set_level(logging.WARNING)
-    empty = np.zeros((0, 3), np.float32)
+    pts = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
 
     async def go():
         mem = MemoryTransport()
         async with Server(settings(labeler="baseline"), [mem]) as srv:
             for k in range(5):
-                mem.inject(encode_frame("default", k, k / 100, empty, []))
-            pts = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
+                mem.inject(encode_frame("default", k, k / 100, init_points, labels))
             mem.inject(encode_frame("default", 5, 0.05, pts))
             async with asyncio.timeout(10):
                 while srv.metrics.drops("training_failed") == 0:
                     await asyncio.sleep(0.05)
 
     run(go(), timeout=30)
-    text = "\n".join(r.getMessage() for r in caplog.records)
+    return "\n".join(r.getMessage() for r in caplog.records)
+
+
+def test_init_frames_without_points_are_named_as_such(caplog):
+    text = _training_failure_log(caplog, np.zeros((0, 3), np.float32), [])
     assert "the init frames hold no labeled point" in text, text
     assert "carry no labels" not in text
 
 
 def test_init_frames_whose_labels_are_all_nil_are_named_as_such(caplog):
     # points were sent, every label nil: the hint must not blame an empty volume
-    caplog.set_level(logging.WARNING)
     pts = np.random.default_rng(1).normal(scale=300.0, size=(12, 3)).astype(np.float32)
-
-    async def go():
-        mem = MemoryTransport()
-        async with Server(settings(labeler="baseline"), [mem]) as srv:
-            for k in range(5):
-                mem.inject(encode_frame("default", k, k / 100, pts, [None] * 12))
-            mem.inject(encode_frame("default", 5, 0.05, pts))
-            async with asyncio.timeout(10):
-                while srv.metrics.drops("training_failed") == 0:
-                    await asyncio.sleep(0.05)
-
-    run(go(), timeout=30)
-    text = "\n".join(r.getMessage() for r in caplog.records)
+    text = _training_failure_log(caplog, pts, [None] * 12)
     assert "60 points, every label nil" in text, text
     assert "before anyone is in view" not in text

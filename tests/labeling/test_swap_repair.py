@@ -108,7 +108,14 @@ def _one_body_state(config, points, assigned, ref_shape, age=100):
     bodies.ref[0, :m] = ref_shape
     bodies.ref_ok[0] = True
     scratch = new_scratch(m, 1, 1, config.K, max(64, len(points)))
-    scratch.assigned[:] = assigned
+    _set_assignment(scratch, points, assigned)
+    return tracks, bodies, scratch
+
+
+def _set_assignment(scratch, points, assigned) -> None:
+    """``assigned[m]``: marker ``m``'s row of ``points`` (or ``NONE``), with ``owner`` and
+    ``obs`` to match."""
+    scratch.assigned[: len(assigned)] = assigned
     scratch.owner[:] = NONE
     for k, a in enumerate(assigned):
         if a >= 0:
@@ -116,7 +123,6 @@ def _one_body_state(config, points, assigned, ref_shape, age=100):
             scratch.obs[k] = points[a]
         else:
             scratch.obs[k] = np.nan
-    return tracks, bodies, scratch
 
 
 def test_mirrored_assignment_is_repaired_after_repair_frames(rng):
@@ -297,11 +303,7 @@ def _forearm_state(config, points, assigned, young=(1, 2)):
     a0 = [np.full((3, 3), 1.0) for _ in FOREARM_BODIES]
     bodies = new_bodies(m, FOREARM_BODIES, d0, a0, 20)
     scratch = new_scratch(m, len(FOREARM_BODIES), 1, config.K, 64)
-    scratch.assigned[:] = assigned
-    scratch.owner[:] = NONE
-    for k, a in enumerate(assigned):
-        scratch.owner[a] = k if a >= 0 else scratch.owner[a]
-        scratch.obs[k] = points[a] if a >= 0 else np.nan
+    _set_assignment(scratch, points, assigned)
     return tracks, bodies, scratch
 
 
@@ -377,23 +379,12 @@ def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
     bodies.A[0, 3, :3] = bodies.A[0, :3, 3] = 40.0  # every link to P bends in the window
     scratch = new_scratch(5, len(lists), 1, config.K, 64)
     assigned = np.array([0, 2, NONE, 3, 4], dtype=np.int32)
-    scratch.assigned[:] = assigned
-    scratch.owner[:] = NONE
-    for k, a in enumerate(assigned):
-        if a >= 0:
-            scratch.owner[a] = k
-            scratch.obs[k] = pts[a]
-        else:
-            scratch.obs[k] = np.nan
+    _set_assignment(scratch, pts, assigned)
     params = kernel_params(config)
     assert _pair_check(pts, tracks, bodies, scratch, params) == 1
     assert list(scratch.assigned[:5]) == [0, NONE, 2, 3, 4]  # U's point back to U
     # with F's links bending too, no link tells R from U: nothing moves
-    scratch.assigned[:] = assigned
-    scratch.owner[:] = NONE
-    for k, a in enumerate(assigned):
-        if a >= 0:
-            scratch.owner[a] = k
+    _set_assignment(scratch, pts, assigned)
     bodies.A[0, :4, :4] = 40.0
     assert _pair_check(pts, tracks, bodies, scratch, params) == 0
     assert list(scratch.assigned[:5]) == list(assigned)
