@@ -18,9 +18,12 @@ abandoned: its result, if it ever comes, is discarded.
 
 At most ``concurrency`` jobs run at once (default 1: CPU jobs share the GIL with the event
 loop, so two at once slow the live streams without finishing sooner); the others wait for a
-slot, and the wait counts against their budget. A slot is freed when a thread really ends, not
-when its job is abandoned, so abandoned work never piles up: with every slot held by abandoned
-threads, new jobs wait and then fail their budget.
+slot in the order they asked (first come, first served: a stream whose jobs keep failing cannot
+take every free slot from another's), and the wait counts against their budget - or, with
+``wait_s``, against that bound and the budget starts when the job does (a boot waits its turn
+behind the other streams' jobs, each bounded by its budget, instead of failing for their
+sake). A slot is freed when a thread really ends, not when its job is abandoned, so abandoned
+work never piles up: with every slot held by abandoned threads, new jobs wait and then fail.
 
 While a job runs, the interpreter's switch interval drops from 5 ms to ``SWITCH_INTERVAL_S``
 (0.5 ms): the event loop gives up the GIL at every socket call, and with a CPU-bound thread
@@ -39,11 +42,14 @@ heap so that freeing them returns them at once.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import ctypes
 import ctypes.util
 import inspect
+import itertools
 import sys
+import logging
 import threading
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
@@ -56,6 +62,7 @@ from labeler_service.service.boot_worker import (  # a child as the boot worker'
 )
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 #: Interpreter switch interval while a background job runs (see the module docstring).
 SWITCH_INTERVAL_S = 0.0005
@@ -87,6 +94,9 @@ class Background:
     def __init__(self, concurrency: int = 1) -> None:
         self.concurrency = concurrency
         self._slots = threading.BoundedSemaphore(concurrency)
+        #: tickets of the jobs waiting for a slot, in the order they asked (first come first)
+        self._waiting: collections.deque[int] = collections.deque()
+        self._tickets = itertools.count()
         self._running: dict[threading.Thread, threading.Event] = {}
         self._closed = False
         #: abandoned jobs that have ended since the start (their frames are freed only then)
@@ -98,23 +108,47 @@ class Background:
         self._running = {t: e for t, e in self._running.items() if t.is_alive()}
         return len(self._running)
 
-    async def run(self, fn: Callable[..., T], *args: Any, budget_s: float, name: str = "job") -> T:
+    async def run(
+        self,
+        fn: Callable[..., T],
+        *args: Any,
+        budget_s: float,
+        name: str = "job",
+        wait_s: float | None = None,
+    ) -> T:
         """``fn(*args)`` in a daemon thread; raises :class:`BudgetExceeded` after ``budget_s``.
 
-        Exceptions of ``fn`` propagate. If ``fn`` accepts a ``cancel`` keyword it gets a
-        :class:`threading.Event` set when the job is abandoned or the runner closes.
+        Jobs get a slot in the order they asked. Without ``wait_s`` the wait for it counts
+        against ``budget_s``; with it, the wait is bounded by ``wait_s`` and ``budget_s`` starts
+        when the job does (a wait of a second or more is logged). Exceptions of ``fn``
+        propagate. If ``fn`` accepts a ``cancel`` keyword it gets a :class:`threading.Event`
+        set when the job is abandoned or the runner closes.
         """
         if self._closed:
             raise BudgetExceeded(f"{name}: the background runner is closed")
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + budget_s
-        while not self._slots.acquire(blocking=False):  # wait for a slot, within the budget
-            if loop.time() >= deadline:
-                raise BudgetExceeded(
-                    f"{name}: no free slot within its budget of {budget_s:g} s "
-                    f"({self.concurrency} job(s) still running)"
-                )
-            await asyncio.sleep(0.05)
+        asked = loop.time()
+        deadline = asked + (budget_s if wait_s is None else wait_s)
+        ticket = next(self._tickets)
+        self._waiting.append(ticket)
+        try:
+            # wait for a slot, first come first served, within the bound
+            while not (self._waiting[0] == ticket and self._slots.acquire(blocking=False)):
+                if loop.time() >= deadline:
+                    bound = "budget" if wait_s is None else "wait bound"
+                    raise BudgetExceeded(
+                        f"{name}: no free slot within its {bound} of "
+                        f"{deadline - asked:g} s ({self.concurrency} job(s) still running, "
+                        f"{len(self._waiting) - 1} other(s) waiting)"
+                    )
+                await asyncio.sleep(0.05)
+        finally:
+            self._waiting.remove(ticket)
+        waited = loop.time() - asked
+        if waited >= 1.0:
+            log.info("%s: waited %.1f s for a free background slot", name, waited)
+        if wait_s is not None:
+            deadline = loop.time() + budget_s
         fut: asyncio.Future[T] = loop.create_future()
         cancel = threading.Event()
         kwargs = {"cancel": cancel} if _takes_cancel(fn) else {}

@@ -735,10 +735,13 @@ class Server:
         through :class:`Background` (budget ``boot_budget_s``)."""
         if req.snapshot.subjects:  # an extension alone is not a boot attempt
             self.metrics.boot_attempt(state.name)
+        budget = self.settings.boot_budget_s
         try:
+            # its turn comes after the jobs that asked first, one per stream at most, each
+            # bounded by its budget: waiting for them is no failure of this stream's boot
             outcome = await self.background.run(
-                state.boot_job, req, budget_s=self.settings.boot_budget_s,
-                name=f"boot-{state.name}",
+                state.boot_job, req, budget_s=budget, name=f"boot-{state.name}",
+                wait_s=budget * max(1, len(self.streams)),
             )  # fmt: skip
         except BudgetExceeded as exc:
             self.metrics.boot_failed(state.name)

@@ -1,5 +1,6 @@
 """The one mechanism for CPU jobs off the event loop (service/background.py): results and
-exceptions come back, a job over budget is abandoned (and told so), one job runs at a time,
+exceptions come back, a job over budget is abandoned (and told so), one job runs at a time
+and the waiting ones start first come first served (a wait bound of their own for boots),
 and a closed runner refuses new jobs. In-stream training uses it; boot from a model will."""
 
 from __future__ import annotations
@@ -80,6 +81,58 @@ def test_a_slot_held_by_an_abandoned_job_makes_the_next_wait_then_fail():
             await bg.run(lambda: 3, budget_s=1)
 
     run(go())
+
+
+def test_slots_go_first_come_first_served():
+    # a stream whose jobs keep asking must not take every free slot from another's: the jobs
+    # waiting behind a running one start in the order they asked
+    release = threading.Event()
+    order: list[str] = []
+
+    async def go():
+        bg = Background(concurrency=1)
+        first = asyncio.ensure_future(bg.run(lambda: release.wait(10), budget_s=30))
+        await asyncio.sleep(0.1)  # (the first holds the slot)
+        waiters = []
+        for name in "abcdefgh":
+            waiters.append(
+                asyncio.ensure_future(bg.run(lambda n=name: order.append(n), budget_s=30))
+            )
+            await asyncio.sleep(0.06)  # asked in this order, over a few polls
+        release.set()
+        await asyncio.gather(first, *waiters)
+
+    run(go(), timeout=30)
+    assert "".join(order) == "abcdefgh"
+
+
+def test_with_a_wait_bound_the_budget_starts_when_the_job_does():
+    # a boot waiting its turn behind another stream's job is not over its own budget: the wait
+    # has its bound (wait_s), the budget counts the job
+    release = threading.Event()
+
+    async def go():
+        bg = Background(concurrency=1)
+        holder = asyncio.ensure_future(bg.run(lambda: release.wait(10), budget_s=30))
+        await asyncio.sleep(0.1)
+        waiting = asyncio.ensure_future(bg.run(lambda: "ran", budget_s=0.2, wait_s=30))
+        await asyncio.sleep(0.5)  # longer than the waiter's budget
+        assert not waiting.done()
+        release.set()
+        assert await waiting == "ran"
+        await holder
+        # without the bound the wait still counts against the budget (in-stream training)
+        release.clear()
+        holder = asyncio.ensure_future(bg.run(lambda: release.wait(10), budget_s=30))
+        await asyncio.sleep(0.1)
+        with pytest.raises(BudgetExceeded, match="no free slot within its budget"):
+            await bg.run(lambda: 1, budget_s=0.2)
+        with pytest.raises(BudgetExceeded, match="no free slot within its wait bound"):
+            await bg.run(lambda: 1, budget_s=5, wait_s=0.2)
+        release.set()
+        await holder
+
+    run(go(), timeout=30)
 
 
 class _Big:
