@@ -22,8 +22,9 @@ import errno
 import json
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -40,6 +41,22 @@ SCHEMA_VERSION: Literal[1] = 1
 PAIR_DISTANCE_MM = (1.0, 3000.0)
 MOTION_NOISE_TYPICAL = 1.0e7
 MOTION_NOISE_RANGE = (MOTION_NOISE_TYPICAL * 1e-6, MOTION_NOISE_TYPICAL * 1e6)
+#: a subject whose most rigid bodies' links vary by more than this (the median of their
+#: trained deviations ``A``, mm) was trained on labels that do not stay on their markers: the
+#: real takes' models give 0.1-4.6 mm, labels shuffled every frame ~230 mm; its bodies would
+#: match any points (a boot attempt with such a model ran for minutes)
+LABELS_OFF_MM = 50.0
+
+
+def body_link_spread(A: Any, bodies: Sequence[Sequence[int]]) -> float:
+    """Median trained deviation ``A`` (mm; a matrix, ``None``/NaN = unknown) over the links
+    inside ``bodies`` (0 without one)."""
+    a = np.array([[np.nan if v is None else v for v in row] for row in A], dtype=float)
+    vals = [a[i, j] for b in bodies for k, i in enumerate(b) for j in b[k + 1 :]]
+    vals = [v for v in vals if np.isfinite(v)]
+    return float(np.median(vals)) if vals else 0.0
+
+
 #: Most chirality quadruples per subject (``train structure`` writes at most 64).
 MAX_CHIRALITY = 1024
 #: A chirality quadruple inside one body whose reference shape is at least this thick (cube
@@ -173,6 +190,13 @@ class SubjectTemplate(BaseModel):
             if not np.all(np.isfinite(np.asarray(shape, dtype=float))):
                 raise ValueError(f"{where}: shape of body {b} is not finite")
             self._check_chirality(b, body, np.asarray(shape, dtype=float))
+        spread = body_link_spread(self.A, self.bodies)
+        if spread > LABELS_OFF_MM:
+            raise ValueError(
+                f"{where}: the links inside its bodies vary by {spread:.0f} mm (median trained "
+                f"deviation A, at most {LABELS_OFF_MM:g}): trained on labels that do not stay "
+                "on their markers; train it again on a correctly labeled take"
+            )
         return self
 
     def _check_chirality(self, b: int, body: list[int], shape: np.ndarray) -> None:

@@ -36,9 +36,11 @@ import numpy as np
 
 from labeler_service.errors import LabelerError
 from labeler_service.labeling.templates import (
+    LABELS_OFF_MM,
     MOTION_NOISE_RANGE,
     PAIR_DISTANCE_MM,
     SubjectTemplate,
+    body_link_spread,
     make_subject,
 )
 
@@ -294,6 +296,14 @@ def train_subject(
             f"{pos.shape[0]} labeled training frames, so it has no rigid body to label with: "
             "give more labeled frames in which the subject is visible (more init frames, or "
             "start where the subject is in the volume)"
+        )
+    spread = body_link_spread(A, bodies)
+    if spread > LABELS_OFF_MM:
+        raise LabelerError(
+            f"subject {name!r}: its labels do not stay on their markers in the labeled frames: "
+            f"the distances inside its most rigid groups of markers vary by {spread:.0f} mm "
+            f"(median standard deviation; a labeled take gives under 5, at most "
+            f"{LABELS_OFF_MM:g} is accepted): are the training frames' labels right?"
         )
     if glimpsed:
         thin = (seen >= 1) & ~usable

@@ -48,8 +48,8 @@ import ctypes
 import ctypes.util
 import inspect
 import itertools
-import sys
 import logging
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
