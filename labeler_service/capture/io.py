@@ -20,6 +20,7 @@ group (names and label prefixes).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -168,6 +169,13 @@ def check_writable(
                 f"{p}: is the input {spec}: writing it would replace the capture being read; "
                 "choose another output"
             )
+    # folders the probe makes are removed again: the writers make them when they write, and a
+    # run that fails later leaves no empty folders behind
+    created = []
+    parent = target.parent
+    while not parent.exists() and parent != parent.parent:
+        created.append(parent)
+        parent = parent.parent
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():  # a device or FIFO: opening could block
@@ -180,6 +188,10 @@ def check_writable(
             os.unlink(probe)
     except OSError as exc:
         raise CaptureError(f"{p}: cannot write: {os_reason(exc)}") from exc
+    finally:
+        for folder in created:  # deepest first
+            with contextlib.suppress(OSError):
+                folder.rmdir()
     return p
 
 
@@ -441,7 +453,16 @@ def _c3d_labels(point: dict, n: int) -> list[str]:
 def _read_c3d(path: Path) -> Capture:
     import ezc3d
 
-    c = ezc3d.c3d(str(path))
+    try:
+        c = ezc3d.c3d(str(path))
+    except Exception as exc:  # ezc3d's own words, e.g. "Data::frame method is trying to ..."
+        if "maximum number of frames is 0" in str(exc):
+            raise CaptureFormatError(
+                f"{path}: holds no frame data: the file ends before its first frame (truncated?)"
+            ) from exc
+        raise CaptureFormatError(
+            f"{path}: cannot be read as C3D (damaged or truncated?): {exc}"
+        ) from exc
     point = c["parameters"]["POINT"]
     data = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, M, F)
     n_markers = data.shape[1]

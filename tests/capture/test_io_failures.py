@@ -97,7 +97,16 @@ def test_check_writable_refuses_bad_suffix_and_leaves_no_probe(tmp_path):
         check_writable(tmp_path / "o.txt")
     assert check_writable(tmp_path / "sub" / "o.c3d") == tmp_path / "sub" / "o.c3d"
     assert check_writable(tmp_path / "plot.png", suffixes=None) == tmp_path / "plot.png"
-    assert list((tmp_path / "sub").iterdir()) == [] and not (tmp_path / "plot.png").exists()
+    assert not (tmp_path / "plot.png").exists()
+    # the folders the probe made are gone again (a run that fails later leaves none behind; the
+    # writers make them when they write), one that was there stays
+    assert not (tmp_path / "sub").exists()
+    assert check_writable(tmp_path / "a" / "b" / "o.c3d") and not (tmp_path / "a").exists()
+    (tmp_path / "kept").mkdir()
+    assert check_writable(tmp_path / "kept" / "x" / "o.npz") and (tmp_path / "kept").is_dir()
+    assert list((tmp_path / "kept").iterdir()) == []
+    cap = _capture(np.random.default_rng(0), frames=10, markers=2)
+    assert write_capture(cap, tmp_path / "a" / "b" / "o.c3d").is_file()
 
 
 def test_truncated_c3d_is_noted_and_warned(tmp_path, rng, caplog):
@@ -118,3 +127,17 @@ def test_truncated_c3d_is_noted_and_warned(tmp_path, rng, caplog):
         complete = read_capture(full)
     assert complete.n_frames == 600
     assert not any("truncated" in n for n in complete.notes) and not caplog.records
+
+
+def test_a_c3d_cut_before_its_first_frame_says_so_in_our_words(tmp_path, rng):
+    # ezc3d's own words were "Data::frame method is trying to access the frame 0 while the
+    # maximum number of frames is 0."
+    full = tmp_path / "full.c3d"
+    write_capture(_capture(rng, frames=50, markers=4), full)
+    raw = full.read_bytes()
+    data_block = int.from_bytes(raw[16:18], "little")  # header word 9: first data block
+    cut = tmp_path / "cut.c3d"
+    cut.write_bytes(raw[: (data_block - 1) * 512])
+    with pytest.raises(CaptureError, match="holds no frame data") as info:
+        read_capture(cut)
+    assert "Data::frame" not in str(info.value)
