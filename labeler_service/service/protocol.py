@@ -45,6 +45,9 @@ STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}\Z")
 _F32 = np.dtype("<f4")
 #: longest label a frame may carry (``subject:marker``)
 MAX_LABEL = 128
+#: largest coordinate a frame may carry, mm (10 km): beyond it a point is garbage, and near the
+#: float32 limit (3.4e38) the labeler's arithmetic overflows
+MAX_COORD_MM = 1.0e7
 _U8 = np.dtype("u1")
 _U64_MAX = 2**64 - 1
 
@@ -60,6 +63,7 @@ REJECT_REASONS = (
     "time",
     "points",
     "non_finite",
+    "out_of_range",
     "too_many_points",
     "labels",
     "field",
@@ -315,6 +319,12 @@ def _decode_frame(m: dict, max_points: int) -> FrameMsg:
     points = _get_array(m, "points", _F32, 3, max_points)
     if not np.isfinite(points).all():
         raise _reject("non_finite", "points contain NaN or infinity")
+    if points.size and float(np.abs(points).max()) > MAX_COORD_MM:
+        raise _reject(
+            "out_of_range",
+            f"a coordinate is {float(np.abs(points).max()):.3g} mm from the origin, beyond "
+            f"{MAX_COORD_MM:g} mm (no capture volume is that large)",
+        )
     labels = m.get("labels")
     if labels is not None:
         if not isinstance(labels, list) or len(labels) != len(points):
@@ -508,7 +518,8 @@ def decode(
     service accepts only ``frame`` and ``subscribe``, so a service-output message sent to it is
     refused for its type, not for its fields), then the type's fields: stream name,
     ``seq`` an unsigned int, ``t`` finite, ``points`` a whole number of float32 triples
-    (``points``) no more than ``max_points`` (``too_many_points``) all finite (``non_finite``),
+    (``points``) no more than ``max_points`` (``too_many_points``) all finite (``non_finite``)
+    and within :data:`MAX_COORD_MM` of the origin (``out_of_range``),
     ``labels`` one string-or-nil per point (``labels``).
     """
     if len(payload) > max_bytes:

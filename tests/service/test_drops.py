@@ -47,6 +47,7 @@ BAD = {
     "time": _frame(t=float("nan")),
     "points": _frame(points=b"\x00" * 13),
     "non_finite": _frame(points=np.array([[0, np.nan, 0]], np.float32).tobytes()),
+    "out_of_range": _frame(points=np.array([[0, 3.4e38, 0]], np.float32).tobytes()),
     "too_many_points": _frame(points=np.zeros((25, 3), np.float32).tobytes()),
     "labels": _frame(labels=["a:x"]),
     "field": _frame(sent=-5),

@@ -112,6 +112,8 @@ _INF = np.array([[0, 0, np.inf]], np.float32).tobytes()
         (_frame(points=[1.0, 2.0, 3.0]), "points"),
         (_frame(points=_NAN), "non_finite"),
         (_frame(points=_INF), "non_finite"),
+        (_frame(points=np.array([[0, -3.4e38, 0]], np.float32).tobytes()), "out_of_range"),
+        (_frame(points=np.array([[1.5e7, 0, 0]], np.float32).tobytes()), "out_of_range"),
         (_frame(points=np.zeros((11, 3), np.float32).tobytes()), "too_many_points"),
         (_frame(labels=["a:x"]), "labels"),
         (_frame(labels=["a:x", 3]), "labels"),
@@ -197,3 +199,10 @@ def test_fuzz_structured_maps_are_decoded_or_rejected(m, kind):
     if isinstance(msg, FrameMsg):
         assert msg.points.ndim == 2 and msg.points.shape[1] == 3
         assert np.isfinite(msg.points).all() and math.isfinite(msg.t)
+
+
+def test_a_coordinate_within_the_range_is_accepted():
+    pts = np.array([[9.9e6, -9.9e6, 0.0]], np.float32)
+    msg = decode(encode_frame("s", 1, 0.0, pts))
+    assert isinstance(msg, FrameMsg)
+    np.testing.assert_array_equal(msg.points, pts)
