@@ -351,6 +351,12 @@ class BootingLabeler:
         """How many subjects are booted and labeled now (no tuple built: per-frame gauges)."""
         return len(self._active)
 
+    @property
+    def n_active_markers(self) -> int:
+        """The markers of the subjects booted and labeled now (a stream's health counts these:
+        a model may list performers who are not in the volume)."""
+        return sum(len(self.model.subjects[i].markers) for i in self._active)
+
     def process(
         self, points: np.ndarray, t: float, labels: np.ndarray | None = None
     ) -> LabeledFrame:

@@ -319,11 +319,12 @@ def _decode_frame(m: dict, max_points: int) -> FrameMsg:
     points = _get_array(m, "points", _F32, 3, max_points)
     if not np.isfinite(points).all():
         raise _reject("non_finite", "points contain NaN or infinity")
-    if points.size and float(np.abs(points).max()) > MAX_COORD_MM:
+    far = float(np.abs(points).max()) if points.size else 0.0
+    if far > MAX_COORD_MM:
         raise _reject(
             "out_of_range",
-            f"a coordinate is {float(np.abs(points).max()):.3g} mm from the origin, beyond "
-            f"{MAX_COORD_MM:g} mm (no capture volume is that large)",
+            f"a coordinate is {far:.3g} mm from the origin, beyond {MAX_COORD_MM:g} mm (no "
+            "capture volume is that large)",
         )
     labels = m.get("labels")
     if labels is not None:

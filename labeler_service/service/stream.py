@@ -1253,17 +1253,9 @@ class StreamState:
             recovered=recovered,
             missing=len(state) - observed - recovered,
             unlabeled=int(unlabeled.shape[0]),
-            scope=self._health_scope(),
+            # (0 for another labeler, or before a boot: the health counts every marker)
+            scope=self.labeler.n_active_markers if isinstance(self.labeler, BootingLabeler) else 0,
         )
-
-    def _health_scope(self) -> int:
-        """Markers of the subjects a booting labeler has booted (0 when it has none, or for
-        another labeler: the health then counts every marker)."""
-        bl = self.labeler
-        if not isinstance(bl, BootingLabeler) or bl.n_active == 0:
-            return 0
-        active = set(bl.active_subjects)
-        return sum(len(s.markers) for s in bl.model.subjects if s.name in active)
 
 
 def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, str], ...]:
