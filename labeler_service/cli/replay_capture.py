@@ -94,7 +94,7 @@ async def _main(args: argparse.Namespace) -> int:
             speed=args.speed, loops=args.loops,
         )  # fmt: skip
     print(
-        f"sent {stats.sent} frames ({stats.failed} failed) in {stats.seconds:.1f} s "
+        f"sent {plural(stats.sent, 'frame')} ({stats.failed} failed) in {stats.seconds:.1f} s "
         f"({stats.rate:.0f}/s, latest send {stats.max_late_ms:.1f} ms behind schedule)"
     )
     return 0 if stats.failed == 0 else 1

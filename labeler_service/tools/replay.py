@@ -33,6 +33,7 @@ from labeler_service.service.transports.url import Endpoint, parse_endpoint
 SendFn = Callable[[bytes], Awaitable[bool]]
 
 log = logging.getLogger(__name__)
+REFUSED_S = 1.0  # a UDP send this soon after a "connection refused" report counts as failed
 
 
 def prepare(source: str | Path | Capture, spec: CorruptionSpec, up: str = "z") -> StreamFrames:
@@ -149,21 +150,22 @@ async def open_sender(
         from labeler_service.service.transports.udp import UdpClient
 
         async with UdpClient(ep.host, ep.port) as udp:
-            seen = [0, 0.0]  # refusals counted so far, monotonic time of the last one
+            seen = [0, -np.inf]  # refusals counted so far, monotonic time of the last one
 
             async def send_udp(payload: bytes) -> bool:
                 # the kernel reports "connection refused" (ICMP port unreachable: nothing
-                # listens there) on a later receive or send: an earlier datagram went nowhere;
-                # a send after which a new report was read counts as failed
+                # listens there) on a later receive or send, not for each datagram: a send
+                # within REFUSED_S of the last report counts as failed (sent as fast as
+                # possible, every other datagram read a report, and half were called sent)
                 ok = udp.send(payload)
-                if udp.refused == seen[0]:
-                    return ok
                 now = time.monotonic()
-                if now - seen[1] > 1.0:
-                    log.warning("replay: nothing listens at udp://%s:%d (connection refused); "
-                                "frames are counted as failed", ep.host, ep.port)  # fmt: skip
-                seen[:] = [udp.refused, now]
-                return False
+                if udp.refused != seen[0]:
+                    if now - seen[1] > REFUSED_S:
+                        log.warning("replay: nothing listens at udp://%s:%d (connection "
+                                    "refused); frames are counted as failed",
+                                    ep.host, ep.port)  # fmt: skip
+                    seen[:] = [udp.refused, now]
+                return ok and now - seen[1] > REFUSED_S
 
             yield send_udp, stream
         return

@@ -42,6 +42,22 @@ def test_replay_to_a_port_where_nothing_listens_counts_the_frames_as_failed(capl
     assert len(warned) == 1  # once per episode, not per frame
 
 
+def test_replay_as_fast_as_possible_to_a_dead_port_counts_no_frame_sent_after_a_refusal():
+    """At ``--speed 0`` the kernel's refusals arrive after some sends, not one per datagram:
+    every other send read one, so half the frames were called sent. A send within
+    ``REFUSED_S`` of a refusal counts as failed: only frames before the first report remain."""
+    cap = moving_clusters(np.random.default_rng(0), frames=200, rate=200.0)
+    frames = corrupt(cap, CorruptionSpec(seed=1))
+
+    async def go():
+        async with open_sender(f"udp://127.0.0.1:{_dead_port()}/x") as (send, stream):
+            return await replay(frames, send, stream=stream, init_frames=5, speed=0.0)
+
+    stats = run(go())
+    assert stats.sent + stats.failed == 200
+    assert stats.sent <= 5, stats
+
+
 def test_subscribe_without_a_service_warns_that_nothing_listens():
     async def go():
         async with Subscriber(f"udp://127.0.0.1:{_dead_port()}/v", silence_s=0.2) as sub:
