@@ -1,8 +1,9 @@
 """Reading and writing captures: C3D (ezc3d), TRC (text) and NPZ (numpy, lossless and fast).
 
 Every reader returns a :class:`Capture` in millimetres, Z up, NaN for missing samples:
-(0, 0, 0) and infinite samples and negative C3D residuals become NaN, metres are converted,
-and a take recorded Y-up is rotated when the caller says so (``up="y"``). What was changed is
+(0, 0, 0) samples, infinite ones, ones farther than 10 km (``MAX_COORD_MM``) and negative C3D
+residuals become NaN, metres are converted, and a take recorded Y-up is rotated when the caller
+says so (``up="y"``). What was changed is
 recorded in ``Capture.notes``. A file whose labels carry no ``subject:`` prefix is one subject
 named after the file stem. Problems raise :class:`CaptureError` naming the file, never a bare
 traceback.
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.capture.model import Capture, is_ghost, split_label
+from labeler_service.capture.model import MAX_COORD_MM, Capture, is_ghost, split_label
 from labeler_service.errors import CaptureError, CaptureFormatError
 from labeler_service.wording import plural
 
@@ -256,6 +257,16 @@ def _finish(
     if infinite.any():  # the labeler takes finite points only: missing, as NaN is
         pos[infinite] = np.nan
         notes.append(f"{int(infinite.sum())} infinite samples mapped to missing")
+    with np.errstate(invalid="ignore"):  # NaN compares False
+        far = (np.abs(pos) > MAX_COORD_MM).any(axis=2)
+    if far.any():  # garbage (a writer's sentinel, a corrupt file): missing, with a note
+        pos[far] = np.nan
+        msg = (
+            f"{plural(int(far.sum()), 'sample')} beyond {MAX_COORD_MM:g} mm of the origin "
+            "mapped to missing (no capture volume is that large)"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", source, msg)
     zero = np.all(pos == 0.0, axis=2)
     if zero.any():
         pos[zero] = np.nan

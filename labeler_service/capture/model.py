@@ -11,6 +11,10 @@ import numpy as np
 from labeler_service.errors import CaptureFormatError
 
 _GHOST = re.compile(r"^\*\d+$")
+#: largest coordinate a point may have, mm (10 km): beyond it a sample is garbage (no capture
+#: volume is that large), and near the float32 limit (3.4e38) the labeler's arithmetic overflows.
+#: Readers map such samples to missing; the service refuses such frames (``out_of_range``).
+MAX_COORD_MM = 1.0e7
 
 
 def split_label(label: str) -> tuple[str | None, str]:

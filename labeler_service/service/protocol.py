@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import msgpack
 import numpy as np
 
+from labeler_service.capture.model import MAX_COORD_MM
 from labeler_service.errors import ProtocolError
 
 VERSION = 1
@@ -45,9 +46,6 @@ STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}\Z")
 _F32 = np.dtype("<f4")
 #: longest label a frame may carry (``subject:marker``)
 MAX_LABEL = 128
-#: largest coordinate a frame may carry, mm (10 km): beyond it a point is garbage, and near the
-#: float32 limit (3.4e38) the labeler's arithmetic overflows
-MAX_COORD_MM = 1.0e7
 _U8 = np.dtype("u1")
 _U64_MAX = 2**64 - 1
 

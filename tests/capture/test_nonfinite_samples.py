@@ -41,3 +41,24 @@ def test_finite_captures_get_no_note(tmp_path, rng):
         write_capture(Capture(pos, ("S:a", "S:b", "S:c"), 100.0), tmp_path / "a.c3d")
     )
     assert not any("infinite" in n for n in cap.notes)
+
+
+def test_samples_beyond_ten_km_read_as_missing_with_a_note(tmp_path, rng, capsys):
+    """A C3D holding 3e38 (finite in float32) at a few samples: ``compose`` printed numpy's
+    cast-overflow warning, ``info`` said nothing, and ``evaluate``'s speed note quoted a marker
+    moving at 2.6e40 mm/s. Such samples are missing now, as the service refuses such frames."""
+    t = np.arange(60)[:, None, None] / 100.0
+    pos = rng.normal(scale=300.0, size=(1, 5, 3)) + np.array([200.0, 0.0, 0.0]) * t
+    pos[5:9, 1, 0] = 3e38
+    pos[12, 2, 2] = -2e7
+    pos[13, 2, 2] = 9e6  # within the limit: kept
+    cap = read_capture(write_capture(Capture(pos.astype(np.float32), tuple(
+        f"S:m{i}" for i in range(5)), 100.0), tmp_path / "far.c3d"))  # fmt: skip
+    gone = np.isnan(cap.positions).any(axis=2)
+    expected = np.zeros((60, 5), dtype=bool)
+    expected[5:9, 1] = expected[12, 2] = True
+    np.testing.assert_array_equal(gone, expected)
+    assert any("5 samples beyond 1e+07 mm of the origin mapped to missing" in n
+               for n in cap.notes), cap.notes  # fmt: skip
+    assert main(["info", str(tmp_path / "far.c3d")]) == 0
+    assert "5 samples beyond 1e+07 mm" in capsys.readouterr().out
