@@ -2,6 +2,7 @@
 
 from labeler_service.capture.io import (
     SUFFIXES,
+    c3d_frames_fit,
     check_writable,
     read_capture,
     read_segment,
@@ -19,6 +20,7 @@ from labeler_service.capture.model import (
 __all__ = [
     "SUFFIXES",
     "Capture",
+    "c3d_frames_fit",
     "check_writable",
     "is_ghost",
     "join_label",

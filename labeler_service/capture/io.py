@@ -508,7 +508,14 @@ def _read_c3d(path: Path) -> Capture:
             pos[neg] = np.nan
             notes.append(f"{int(neg.sum())} samples with negative residual mapped to missing")
     declared = _c3d_declared_frames(path, point)
-    if declared is not None and pos.shape[0] < declared:
+    if declared is not None and declared < 0:
+        msg = (
+            f"holds data for about {-declared:,} frames past its {C3D_MAX_FRAMES:,}-frame count "
+            f"(C3D counts frames in 16 bits): only the first {pos.shape[0]:,} frames are read"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+    elif declared is not None and pos.shape[0] < declared:
         msg = f"truncated: {pos.shape[0]} of {declared} frames (the file ends early)"
         notes.append(msg)
         log.warning("%s: %s", path, msg)
@@ -565,7 +572,9 @@ def _c3d_markers(point: dict, labels: list[str], notes: list[str]) -> list[int] 
 def _c3d_declared_frames(path: Path, point: dict) -> int | None:
     """Frames the raw C3D header declares, when the file is too short to hold them (ezc3d
     silently reads the complete frames a truncated file holds and rewrites its own header
-    counts); ``None`` when the file is complete or the header cannot tell (16-bit overflow)."""
+    counts); ``-N`` when the header's count is full (65,535) and the file holds data for about
+    ``N`` frames (written past the 16-bit count: ezc3d reads the first 65,535); ``None`` when
+    the file is complete or the header cannot tell."""
     with open(path, "rb") as f:
         header = f.read(512)
         if len(header) < 512 or header[0] < 1:
@@ -575,13 +584,35 @@ def _c3d_declared_frames(path: Path, point: dict) -> int | None:
     big = proc == bytes([86])  # processor type 3 (MIPS): big-endian integers
     words = struct.unpack((">" if big else "<") + "256H", header)
     n_points, n_analog, first, last, data_block = words[1], words[2], words[3], words[4], words[8]
-    if last == 0xFFFF or last < first or data_block < 1:
+    full = last == 0xFFFF and first == 1  # the 16-bit count is full: data may run past it
+    if (last == 0xFFFF and not full) or last < first or data_block < 1:
         return None
     scale = point.get("SCALE", {}).get("value", [-1.0])
     item = 4 if len(scale) == 0 or float(scale[0]) < 0 else 2
     declared = last - first + 1
-    need = (data_block - 1) * 512 + declared * (4 * n_points + n_analog) * item
-    return declared if path.stat().st_size < need else None
+    frame_bytes = (4 * n_points + n_analog) * item
+    need = (data_block - 1) * 512 + declared * frame_bytes
+    size = path.stat().st_size
+    if full and frame_bytes and size - need >= 512 + frame_bytes:
+        # more data than the 16-bit count holds (a C3D written past 65,535 frames): ezc3d reads
+        # the first 65,535; say so (negative: the reader notes it as data past the count)
+        return -((size - (data_block - 1) * 512) // frame_bytes)
+    return declared if size < need else None
+
+
+#: frames a C3D can hold: its header counts them in 16 bits (ezc3d writes more and reads back
+#: 65,535, silently)
+C3D_MAX_FRAMES = 65535
+
+
+def c3d_frames_fit(path: str | Path, n_frames: int) -> None:
+    """Refuses ``n_frames`` for a ``.c3d`` output (other suffixes take any count): raises
+    :class:`CaptureError` naming the formats that hold them."""
+    if Path(path).suffix.lower() == ".c3d" and n_frames > C3D_MAX_FRAMES:
+        raise CaptureError(
+            f"{path}: a C3D holds at most {C3D_MAX_FRAMES:,} frames (its header counts them in "
+            f"16 bits), not {n_frames:,}: write .npz or .trc, which hold any number"
+        )
 
 
 def _write_c3d(capture: Capture, path: Path) -> None:
@@ -589,6 +620,11 @@ def _write_c3d(capture: Capture, path: Path) -> None:
 
     if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
         raise CaptureError("a C3D holds at least one frame; this capture has none")
+    if capture.n_frames > C3D_MAX_FRAMES:
+        raise CaptureError(
+            f"a C3D holds at most {C3D_MAX_FRAMES:,} frames (its header counts them in 16 "
+            f"bits), not {capture.n_frames:,}: write .npz or .trc, which hold any number"
+        )
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [capture.rate]
     c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)

@@ -36,11 +36,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from labeler_service.capture import check_writable, write_capture
+    from labeler_service.capture import c3d_frames_fit, check_writable, write_capture
     from labeler_service.scenes.compose import TakeSpec, compose_scene
 
     specs = [TakeSpec.parse(t) for t in args.takes]
     check_writable(args.out, inputs=tuple(s.path for s in specs if s.path is not None))
+    c3d_frames_fit(args.out, args.frames)
     scene = compose_scene(specs, args.radius, args.frames, args.seed, rate=args.rate)
     path = write_capture(scene, args.out)
     subjects = scene.subjects

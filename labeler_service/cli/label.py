@@ -91,7 +91,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from labeler_service.capture import Capture, check_writable, read_segment, write_capture
+    from labeler_service.capture import (
+        Capture,
+        c3d_frames_fit,
+        check_writable,
+        read_segment,
+        write_capture,
+    )
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
@@ -106,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
     cap = without_absent_subjects(read_segment(args.input, up=args.up), args.input)
+    c3d_frames_fit(args.output, cap.n_frames)  # before minutes of labeling too
     model = load_model(args.model) if args.model else None
     init = args.init_frames if args.init_frames is not None else (0 if model else 50)
     if init < 0 or (init == 0 and model is None):

@@ -60,7 +60,8 @@ async def _main(args: argparse.Namespace) -> int:
               f"{s.missing_seq}, undecodable {s.undecodable}, latency p50 {lat['p50']:.2f} ms "
               f"p99 {lat['p99']:.2f} ms p99.9 {lat['p99.9']:.2f} ms")  # fmt: skip
     if recorder is not None:
-        print(recorder.report(args.out, recorder.write(args.out)))
+        n = recorder.write(args.out)
+        print(recorder.report(recorder.written or args.out, n))
     return 0
 
 

@@ -19,6 +19,7 @@ import logging
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -361,6 +362,7 @@ class Recorder:
         self.rate: float | None = None
         self.positions: list[np.ndarray] = []
         self.skipped = 0
+        self.written: Path | None = None  # where write() put the frames (.npz past a C3D's 65,535)
         self.filled = 0  # missing frames written for seq gaps
         self._last: tuple[int, float] | None = None  # seq, t of the last frame kept
         self._steps: list[float] = []  # t steps between consecutive seq
@@ -413,11 +415,18 @@ class Recorder:
         return line
 
     def write(self, path) -> int:
-        from labeler_service.capture import Capture, write_capture
+        from labeler_service.capture import Capture, c3d_frames_fit, write_capture
+        from labeler_service.errors import CaptureError
 
         if not self.positions or self.names is None:
             return 0
         rate = self.file_rate()
         cap = Capture(np.stack(self.positions), self.names, rate, source=str(path))
+        try:
+            c3d_frames_fit(path, cap.n_frames)
+        except CaptureError as exc:  # a session longer than a C3D holds: nothing is lost
+            path = Path(path).with_suffix(".npz")
+            log.warning("%s; written as %s instead", exc, path)
         write_capture(cap, path)
+        self.written = path
         return len(self.positions)
