@@ -46,8 +46,17 @@ async def _main(args: argparse.Namespace) -> int:
     from labeler_service.errors import LabelerError
     from labeler_service.scenes.corrupt import CorruptionSpec
     from labeler_service.service.transports.url import redact_url
-    from labeler_service.tools.replay import open_sender, prepare, replay
+    from labeler_service.tools.replay import (
+        check_pace,
+        open_sender,
+        prepare,
+        replay,
+        replay_stream,
+    )
 
+    # every argument checked before the start-up line (a bad URL, stream name, speed)
+    stream_name = replay_stream(args.to, args.stream)
+    check_pace(args.speed, args.loops)
     if args.init_frames < 0:
         raise LabelerError(
             f"--init-frames must be >= 0 (0: a stream configured with a model), "
@@ -79,7 +88,7 @@ async def _main(args: argparse.Namespace) -> int:
     print(
         f"replay {Path(args.file).name}: {plural(frames.n_frames, 'frame')} x {args.loops}, "
         f"{plural(len(frames.marker_names), 'marker')}, {frames.rate:g} Hz at speed {args.speed:g} "
-        f"-> {redact_url(args.to)}",
+        f"-> {redact_url(args.to)}, stream {stream_name}",
         file=sys.stderr,
     )
     for subject, gone, back in frames.departures:

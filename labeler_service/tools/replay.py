@@ -26,7 +26,7 @@ import numpy as np
 from labeler_service.capture import Capture, read_capture
 from labeler_service.errors import ConfigError
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
-from labeler_service.service.protocol import encode_frame
+from labeler_service.service.protocol import STREAM_NAME, encode_frame
 from labeler_service.service.settings import MqttSettings
 from labeler_service.service.transports.url import Endpoint, parse_endpoint
 
@@ -90,10 +90,7 @@ async def replay(
 
     ``max_frames`` stops after that many frames (e.g. a duration cut from a looped scene).
     """
-    if speed < 0 or not np.isfinite(speed):
-        raise ConfigError(f"--speed must be >= 0 (0 = as fast as possible), got {speed}")
-    if loops < 1:
-        raise ConfigError(f"--loops must be >= 1, got {loops}")
+    check_pace(speed, loops)
     order = frame_order(frames.n_frames, loops)[:max_frames]
     dt = 1.0 / frames.rate
     stats = ReplayStats()
@@ -121,6 +118,27 @@ async def replay(
     return stats
 
 
+def check_pace(speed: float, loops: int) -> None:
+    """Refuses a playback speed below 0 (or not finite) and fewer than one loop."""
+    if speed < 0 or not np.isfinite(speed):
+        raise ConfigError(f"--speed must be >= 0 (0 = as fast as possible), got {speed}")
+    if loops < 1:
+        raise ConfigError(f"--loops must be >= 1, got {loops}")
+
+
+def replay_stream(url: str, stream: str | None = None) -> str:
+    """The stream a replay to ``url`` sends to: ``stream`` (``--stream``), else the URL's, else
+    ``default``. Raises :class:`ConfigError` for a bad URL or stream name (the service refuses
+    every frame of a stream name it cannot take, so a replay would send them all for nothing)."""
+    ep = parse_endpoint(url)
+    if stream is not None and not STREAM_NAME.match(stream):
+        raise ConfigError(
+            f"--stream {stream!r}: bad stream name (1-64 letters, digits, _ . -; the service "
+            "refuses frames of such a stream)"
+        )
+    return stream or ep.stream or "default"
+
+
 def mqtt_settings_for(ep: Endpoint, base: MqttSettings | None = None) -> MqttSettings:
     """MQTT settings for a tool URL (credentials and TLS from the URL override ``base``)."""
     data = (base or MqttSettings()).model_dump()
@@ -145,7 +163,7 @@ async def open_sender(
     stream's topic, so topic and payload agree when the caller encodes the returned name.
     """
     ep = parse_endpoint(url)
-    stream = stream or ep.stream or "default"
+    stream = replay_stream(url, stream)
     if ep.scheme == "udp":
         from labeler_service.service.transports.udp import UdpClient
 

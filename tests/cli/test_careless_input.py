@@ -63,6 +63,21 @@ def test_replay_refuses_negative_init_frames_by_their_flag(take, capsys):
     _one_error_line(capsys.readouterr().err, "--init-frames must be >= 0", "got -1")
 
 
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--stream", "b c"], "--stream 'b c': bad stream name"),
+        (["--speed", "-1"], "--speed must be >= 0"),
+        (["--loops", "0"], "--loops must be >= 1"),
+    ],
+)
+def test_replay_refuses_bad_arguments_before_its_start_up_line(take, capsys, extra, needle):
+    """A ``--stream`` the service cannot take was sent anyway (every frame refused there, the
+    replay said 0 failed), and a bad speed or loop count failed after the start-up line."""
+    assert main(["replay", str(take), "--to", "udp://127.0.0.1:9/x", *extra]) == 2
+    _one_error_line(capsys.readouterr().err, needle)
+
+
 def test_replay_of_a_frame_range_counts_the_range(take, capsys):
     # FILE:start:stop replays that segment only: 30 frames cannot hold 50 init frames
     code = main(["replay", f"{take}:20:50", "--to", "udp://127.0.0.1:9/x", "--init-frames", "50"])
