@@ -649,12 +649,14 @@ class Labeler:
         if not self._built:
             self._build(model, from_file=not trained_here)
             self._built = True
+        if trained_here and len(self._pending) >= self.config.restructure_max_train_frames:
+            self._ev = None  # a window of that many samples: its structure stays
         if self._ev is not None:  # the labeled frames are evidence (trained on: the baseline)
-            add_samples(np.stack([p for _, p in self._pending]), *self._ev)
+            tr = self._tracks
+            add_samples(np.stack([p for _, p in self._pending]), tr.subj_ptr, tr.subj_idx,
+                        *self._ev)  # fmt: skip
             if trained_here:
                 self._ev_mark()
-                if len(self._pending) >= self.config.restructure_max_train_frames:
-                    self._ev = None  # a window of that many samples: its structure stays
         self._warm_start()
         self._pending.clear()
         self._ready = True

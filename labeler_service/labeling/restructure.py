@@ -66,17 +66,31 @@ def _accumulate(state, age, pos, ok, mb_ptr, mb_idx, subj_ptr, subj_idx, min_age
                 n[lo, hi] += 1
 
 
-def add_samples(pos: np.ndarray, s1: np.ndarray, s2: np.ndarray, n: np.ndarray) -> None:
-    """Adds the labeled frames ``pos (F, M, 3)`` (NaN = not labeled) to the sums, every pair
-    (the training window: the samples the first structure was trained on)."""
-    p = np.asarray(pos, dtype=np.float64)
-    iu = np.triu(np.ones(s1.shape, dtype=bool), 1)
-    for k in range(p.shape[0]):
-        d = np.sqrt(((p[k, :, None, :] - p[k, None, :, :]) ** 2).sum(-1))
-        seen = np.isfinite(d) & iu
-        s1[seen] += d[seen]
-        s2[seen] += d[seen] ** 2
-        n[seen] += 1
+@njit
+def add_samples(pos, subj_ptr, subj_idx, s1, s2, n):
+    """Adds the labeled frames ``pos (F, M, 3)`` (NaN = not labeled) to the sums, every pair of
+    markers of one subject (the training window: the samples the first structure was trained
+    on). A kernel over each subject's pairs: all ``M x M`` pairs in numpy cost 1.8 s of a
+    1,000-marker stream's training, holding the interpreter that other streams need."""
+    for k in range(pos.shape[0]):
+        for s in range(subj_ptr.shape[0] - 1):
+            for e in range(subj_ptr[s], subj_ptr[s + 1]):
+                i = subj_idx[e]
+                if pos[k, i, 0] != pos[k, i, 0]:
+                    continue
+                for f in range(e + 1, subj_ptr[s + 1]):
+                    j = subj_idx[f]
+                    if pos[k, j, 0] != pos[k, j, 0]:
+                        continue
+                    d2 = 0.0
+                    for a in range(3):
+                        d = np.float64(pos[k, i, a]) - np.float64(pos[k, j, a])
+                        d2 += d * d
+                    d = np.sqrt(d2)
+                    lo, hi = (i, j) if i < j else (j, i)
+                    s1[lo, hi] += d
+                    s2[lo, hi] += d2
+                    n[lo, hi] += 1
 
 
 def add_prior(cols: np.ndarray, D: np.ndarray, A: np.ndarray, weight: float, s1, s2, n) -> None:

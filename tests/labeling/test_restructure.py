@@ -26,7 +26,7 @@ def test_pair_model_is_the_training_statistics(rng):
     pos = rng.normal(0, 200, (30, 6, 3))
     pos[rng.random((30, 6)) < 0.2] = np.nan
     ev = _sums(6)
-    add_samples(pos, *ev)
+    add_samples(pos, np.array([0, 6]), np.arange(6), *ev)
     D, A = pair_model(np.arange(6), *ev)
     D0, A0 = model_pair_statistics(pos)
     np.testing.assert_allclose(D, D0, rtol=1e-9, atol=1e-9)
@@ -35,6 +35,22 @@ def test_pair_model_is_the_training_statistics(rng):
     cols = np.array([4, 1, 3])
     Ds, _ = pair_model(cols, *ev)
     np.testing.assert_allclose(Ds, D0[np.ix_(cols, cols)], atol=1e-9)
+
+
+def test_window_samples_are_summed_within_each_subject_only(rng):
+    """Pairs of two subjects are never read (a subject's ``pair_model``): the window's samples
+    are summed per subject, subjects in any marker order."""
+    pos = rng.normal(0, 200, (10, 5, 3))
+    ev = _sums(5)
+    add_samples(pos, np.array([0, 2, 5]), np.array([3, 0, 1, 4, 2]), *ev)
+    n = ev[2]
+    inside = {(0, 3), (1, 4), (1, 2), (2, 4)}
+    for i in range(5):
+        for j in range(i + 1, 5):
+            assert n[i, j] == (10 if (i, j) in inside else 0), (i, j)
+    D, _ = pair_model(np.array([1, 4, 2]), *ev)
+    D0, _ = model_pair_statistics(pos[:, [1, 4, 2]])
+    np.testing.assert_allclose(D, D0, atol=1e-9)
 
 
 def test_prior_counts_as_samples_of_the_model():
