@@ -59,6 +59,8 @@ def read_capture(path: str | Path, up: str = "z", subject: str | None = None) ->
     p = Path(path)
     if up not in ("z", "y"):
         raise ValueError(f"up must be 'z' or 'y', got {up!r}")
+    if p.is_dir():
+        raise CaptureError(f"{p}: is a folder, not a capture file (.c3d, .trc, .npz)")
     if not p.is_file():
         raise CaptureError(f"{p}: no such file")
     suffix = p.suffix.lower()
@@ -144,7 +146,10 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
         if target.exists() and not target.is_file():
             _write_through(capture, target, writer, suffix)
         else:
-            replace_file(target, lambda tmp: writer(capture, tmp), suffix)
+            if suffix == ".trc":  # (the header names the file: the target's name)
+                replace_file(target, lambda tmp: _write_trc(capture, tmp, target.name), suffix)
+            else:
+                replace_file(target, lambda tmp: writer(capture, tmp), suffix)
     except OSError as exc:
         raise CaptureError(f"{p}: cannot write: {os_reason(exc)}") from exc
     except CaptureError as exc:
@@ -689,10 +694,11 @@ def _read_trc(path: Path) -> Capture:
     return _finish(pos, labels, rate, path, notes)
 
 
-def _write_trc(capture: Capture, path: Path) -> None:
+def _write_trc(capture: Capture, path: Path, name: str | None = None) -> None:
+    """``name``: the file name the header states (the target's, not the temporary file's)."""
     f, m = capture.n_frames, capture.n_markers
     lines = [
-        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        f"PathFileType\t4\t(X/Y/Z)\t{name or path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
         "OrigDataStartFrame\tOrigNumFrames",
         f"{capture.rate:g}\t{capture.rate:g}\t{f}\t{m}\tmm\t{capture.rate:g}\t1\t{f}",

@@ -52,7 +52,9 @@ def summarize(cap: Capture) -> dict:
         cols = cap.subject_columns(s)
         subjects[s or "(no prefix)"] = {
             "markers": int(cols.size),
-            "missing_fraction": round(float(1 - vis[:, cols].mean()), 4) if cols.size else 0.0,
+            "missing_fraction": round(float(1 - vis[:, cols].mean()), 4)
+            if cols.size and cap.n_frames
+            else 0.0,
         }
     ghosts = int(cap.ghost_mask.sum())
     return {
@@ -68,13 +70,16 @@ def summarize(cap: Capture) -> dict:
         "gaps": int(len(gaps)),
         "gap_frames_max": int(lengths.max()) if lengths.size else 0,
         "gap_frames_median": float(np.median(lengths)) if lengths.size else 0.0,
-        "notes": list(cap.notes) + [n for n in (up_hint(cap),) if n is not None],
+        "notes": list(cap.notes)
+        + [n for n in (up_hint(cap),) if n is not None]
+        + (["holds no frames: nothing to label"] if cap.n_frames == 0 else []),
     }
 
 
 def run(args: argparse.Namespace) -> int:
     cap = read_segment(args.file, up=args.up)
     s = summarize(cap)
+    s["file"] = str(args.file)  # as given: FILE:start:stop keeps its range
     if args.json:
         print(json.dumps(s))
         return 0

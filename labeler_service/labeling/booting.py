@@ -102,6 +102,45 @@ from labeler_service.labeling.kernels.stacked import _spread_labels
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
 
+#: Models whose boot preparation (:class:`Booter`, the :class:`BootVerifier`'s structures) is
+#: kept for the next labeler of the same model: a stream's recovery builds a
+#: :class:`BootingLabeler` of its model on the frame path, and preparing a 1,000-marker model
+#: took 2.8 s there (every stream of the service waited); the training job prepares it first,
+#: off the loop (:func:`prepare_boot`).
+PREPARED_KEPT = 8
+_prepared: dict[tuple[int, str], tuple[LabelerModel, Booter, dict[float, BootVerifier]]] = {}
+_prepared_lock = threading.Lock()
+
+
+def prepare_boot(
+    model: LabelerModel, config: BootConfig, rate: float
+) -> tuple[Booter, BootVerifier | None]:
+    """The :class:`Booter` of ``model`` and a fresh :class:`BootVerifier` (None when
+    ``config.verify`` is off), from the preparation of an earlier call with the same model object
+    and settings when one is kept (the booter is read-only once built, so labelers share it; the
+    verifier, which keeps evidence over time, is a copy of a prepared one)."""
+    key = (id(model), config.model_dump_json())
+    with _prepared_lock:
+        hit = _prepared.get(key)
+        if hit is not None and hit[0] is model:
+            _prepared[key] = _prepared.pop(key)  # most recently used last
+    if hit is None or hit[0] is not model:
+        hit = (model, Booter(model, config), {})
+        with _prepared_lock:
+            _prepared[key] = hit
+            while len(_prepared) > PREPARED_KEPT:
+                del _prepared[next(iter(_prepared))]
+    booter, verifiers = hit[1], hit[2]
+    if not config.verify:
+        return booter, None
+    proto = verifiers.get(rate)
+    if proto is None:
+        proto = BootVerifier(booter, rate, config)
+        with _prepared_lock:
+            verifiers.setdefault(rate, proto)
+    return booter, copy.deepcopy(proto)
+
+
 #: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
 EXTEND_BACKOFF = 4
 #: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
@@ -263,7 +302,7 @@ class BootingLabeler:
         self.window_frames = window_frames
         c = self.boot_config
         self._names = model.marker_names
-        self._booter = Booter(model, c)
+        self._booter, verifier = prepare_boot(model, c, self.rate)
         #: names this labeler's model and boot settings in a worker process's booter cache
         self.key = uuid.uuid4().hex
         self._tracker = PointTracker(self.rate, c)
@@ -315,7 +354,7 @@ class BootingLabeler:
         self._since_max = max(1, int(CATCH_UP_MAX_S * self.rate))
         self.boot_ms: History = History()  # wall time of every boot attempt (the last ones)
         #: re-verification of booted subjects over time (boot_verify.py); None when off
-        self._verifier = BootVerifier(self._booter, self.rate, c) if c.verify else None
+        self._verifier = verifier
         #: per subject the tracks of its withdrawn labels and until when it may not take them
         self._blocked: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 

@@ -81,8 +81,10 @@ class UdpSettings(_Section):
     #: A registered subscriber that has not renewed within this many seconds is dropped.
     subscriber_ttl_s: float = Field(5.0, gt=0)
     max_subscribers: int = Field(64, ge=1)
-    #: Confirmed subscribers per source host (IP) at most (``subscribe_host_limit``).
-    max_subscribers_per_host: int = Field(4, ge=1)
+    #: Confirmed subscribers per source host (IP) at most (``subscribe_host_limit``). 16: on one
+    #: machine every client shares the loopback address, and 4 refused the fifth (a viewer, a
+    #: demo and three subscribers); 4 hosts still cannot take all of ``max_subscribers``' 64.
+    max_subscribers_per_host: int = Field(16, ge=1)
     #: Kernel receive/send buffer sizes requested. Linux caps them at net.core.rmem_max /
     #: wmem_max unless the process has CAP_NET_ADMIN (then SO_RCVBUFFORCE is used); a clamped
     #: buffer is logged at start-up and the granted size is the gauge

@@ -85,7 +85,7 @@ import numpy as np
 
 from labeler_service.capture import Capture, is_ghost, split_label, subject_groups
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
-from labeler_service.labeling.booting import BootingLabeler
+from labeler_service.labeling.booting import BootingLabeler, prepare_boot
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.registry import (
@@ -618,6 +618,12 @@ class StreamState:
         out = labeler.process(first.points, first.t, None)
         _off_the_loop(labeler)  # (labeled_start = "model": from now on, as a model stream's)
         label_ns = time.perf_counter_ns() - t0
+        model = getattr(labeler, "model", None)
+        if self.settings.labeler == "online" and model is not None:
+            # a recovery builds a BootingLabeler of this model on the frame path: its boot is
+            # prepared here, off the loop (1,000 markers: 2.8 s during which every stream of
+            # the service waited; 30-90 ms for a take of one or two performers)
+            prepare_boot(model, self.settings.boot_config, rate)
         handover = None
         if deferred:
             handover = Handover(init, tuple(labeler.marker_names), rate)
@@ -1011,7 +1017,7 @@ class StreamState:
                 self.buffer_init(f)
                 return None
             if not self.init_frames:
-                raise LabelerError(no_start(self.name))
+                raise LabelerError(no_start(self.name, failed=self.status == "training_failed"))
             labeler, rate, out, label_ns = self.train(self.take_init(), f)
             return self.install_trained(labeler, rate, f, out, recv_ns, label_ns)
         if self._rebase:
@@ -1271,14 +1277,22 @@ def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, 
     )
 
 
-def no_start(stream: str) -> str:
+def no_start(stream: str, failed: bool = False) -> str:
     """Why a stream's unlabeled frames are dropped before it started, and the two fixes: the
-    one sentence for the ``no_model`` drop and the UDP pre-filter's ``unknown_stream``."""
+    one sentence for the ``no_model`` drop and the UDP pre-filter's ``unknown_stream``.
+    ``failed``: the stream's training on its labeled init frames failed (``training_failed``);
+    it said "no labeled init frames" of a stream that had sent them."""
+    why = (
+        "its training on the labeled init frames failed, as logged above, and it has no model"
+        if failed
+        else "no model, no labeled init frames before them"
+    )
     return (
-        f"stream {stream}: unlabeled frames, and nothing to start the stream from (no model, no "
-        f"labeled init frames before them): give it a model (a [[streams]] table with name = "
-        f'"{stream}", model = "MODEL.json" from train structure, and boot = true), or send '
-        "labeled init frames first (replay --init-frames 50)"
+        f"stream {stream}: unlabeled frames, and nothing to start the stream from ({why}): "
+        "give it a model (a [[streams]] table with name = "
+        f'"{stream}" and model = "MODEL.json" from train structure, with boot = true at the '
+        "top of the settings, outside any table), or send "
+        f"{'new ' if failed else ''}labeled init frames first (replay --init-frames 50)"
     )
 
 

@@ -233,7 +233,9 @@ class Subscriber:
                     f"the service answers but has announced no stream {self.stream!r} (no "
                     "status, no model): is the stream name right? (an unlisted stream appears "
                     "with its first labeled frames; unlabeled ones need a model for it in the "
-                    "service's settings: its log says so)"
+                    "service's settings: its log says so; or the service refused this "
+                    "subscriber over UDP, e.g. too many from one remote host: its log names "
+                    "the limit)"
                 )
             elif self.stats.frames == 0 and self.stats.undecodable == 0:
                 why = "the service answers; the stream has not sent labeled frames yet"

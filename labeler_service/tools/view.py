@@ -41,6 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -86,6 +87,22 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def refusal(host_header: str, origin: str | None, bound: str) -> str | None:
+    """Why the viewer refuses a request, or None. Any web page open in the user's browser could
+    read the live capture from a viewer on 127.0.0.1 (its scripts may open a WebSocket to any
+    address), and a page whose domain name resolves to 127.0.0.1 (DNS rebinding) could also
+    read ``/api/state``. So: a request whose ``Origin`` is another site than the one it asks
+    (a cross-site page) is refused; and a viewer on a loopback address answers only requests
+    that name a loopback host (``localhost``, ``127.0.0.1``, ``[::1]``). Tools that send no
+    ``Origin`` (curl, the tests) are served."""
+    name = urlsplit("//" + host_header).hostname or ""
+    if is_loopback(bound) and not (is_loopback(name) or name == bound):
+        return f"host {host_header!r} is not this viewer's address (a loopback viewer)"
+    if origin is not None and urlsplit(origin).netloc.lower() != host_header.lower():
+        return f"origin {origin!r} is another site than {host_header!r}"
+    return None
+
+
 class Viewer:
     """``async with Viewer("udp://127.0.0.1:9870/demo") as v: print(v.url)``
 
@@ -124,6 +141,7 @@ class Viewer:
         self.stream: str | None = None
         self.model: ModelMsg | None = None
         self.frames_in = 0
+        self.refused = 0  # requests refused by refusal(): cross-site, foreign Host
         self.frames_out = 0
         self.dropped = 0  # outbox drops, every connection, ever
         self.last_seq: int | None = None
@@ -151,7 +169,7 @@ class Viewer:
 
         try:
             self.subscriber = await self._stack.enter_async_context(Subscriber(self.source))
-            app = web.Application()
+            app = web.Application(middlewares=[self._guard])
             app.router.add_get("/", self._index)
             app.router.add_get("/ws", self._ws)
             app.router.add_get("/api/state", self._state)
@@ -247,6 +265,23 @@ class Viewer:
                 c.wake.set()
 
     # ------------------------------------------------------------------ browser side
+    @property
+    def _guard(self):
+        from aiohttp import web
+
+        @web.middleware
+        async def guard(request, handler):
+            why = refusal(request.host, request.headers.get("Origin"), self.host)
+            if why is not None:
+                self.refused += 1
+                if self.refused == 1 or self.refused % 100 == 0:  # (a page may retry forever)
+                    log.warning("viewer: refused %s %s from %s: %s (%s so far)", request.method,
+                                request.path, request.remote, why, self.refused)  # fmt: skip
+                return web.Response(status=403, text=f"refused: {why}\n")
+            return await handler(request)
+
+        return guard
+
     async def _no_content(self, request):
         from aiohttp import web
 

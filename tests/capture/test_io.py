@@ -55,6 +55,12 @@ def test_round_trip(tmp_path, rng, suffix: str) -> None:
     np.testing.assert_allclose(back.positions, cap.positions, rtol=1e-6, atol=1e-3)
 
 
+def test_a_trc_header_names_the_file_not_its_temporary_name(tmp_path, rng) -> None:
+    write_capture(_capture(rng), tmp_path / "walk.trc")
+    first = (tmp_path / "walk.trc").read_text().splitlines()[0]
+    assert first == "PathFileType\t4\t(X/Y/Z)\twalk.trc", first
+
+
 def test_c3d_round_trip_over_255_markers(tmp_path, rng) -> None:
     pos = rng.normal(size=(4, 300, 3)).astype(np.float32)
     cap = Capture(pos, tuple(f"s{i // 50}:m{i}" for i in range(300)), 60.0)
@@ -94,6 +100,9 @@ def test_y_up_rotation(tmp_path) -> None:
 def test_bad_files_raise_clear_errors(tmp_path) -> None:
     with pytest.raises(CaptureError, match="no such file"):
         read_capture(tmp_path / "none.c3d")
+    (tmp_path / "takes.c3d").mkdir()  # a folder was called "no such file"
+    with pytest.raises(CaptureError, match="takes.c3d: is a folder, not a capture file"):
+        read_capture(tmp_path / "takes.c3d")
     bad = tmp_path / "bad.c3d"
     bad.write_bytes(b"not a c3d")
     with pytest.raises(CaptureFormatError, match="bad.c3d"):

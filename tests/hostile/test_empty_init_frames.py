@@ -47,3 +47,34 @@ def test_init_frames_whose_labels_are_all_nil_are_named_as_such(caplog):
     text = _training_failure_log(caplog, pts, [None] * 12)
     assert "60 points, every label nil" in text, text
     assert "before anyone is in view" not in text
+
+
+def test_frames_after_a_failed_training_are_not_said_to_lack_init_frames(caplog):
+    """After ``training_failed`` the next unlabeled frames were dropped as ``no_model`` with
+    "no model, no labeled init frames before them": the stream had sent them. The line now says
+    the training failed and asks for new labeled init frames."""
+    caplog.set_level(logging.WARNING)
+    pts = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(settings(labeler="baseline"), [mem]) as srv:
+            for k in range(5):
+                mem.inject(encode_frame("default", k, k / 100, np.zeros((0, 3), np.float32), []))
+            mem.inject(encode_frame("default", 5, 0.05, pts))
+            async with asyncio.timeout(10):
+                while srv.metrics.drops("training_failed") == 0:
+                    await asyncio.sleep(0.05)
+            mem.inject(encode_frame("default", 6, 0.06, pts))
+            async with asyncio.timeout(10):
+                while srv.metrics.drops("no_model") == 0:
+                    await asyncio.sleep(0.05)
+
+    run(go(), timeout=30)
+    lines = [
+        r.getMessage() for r in caplog.records if "nothing to start the stream" in r.getMessage()
+    ]
+    assert lines, [r.getMessage() for r in caplog.records]
+    assert "its training on the labeled init frames failed" in lines[-1], lines[-1]
+    assert "no labeled init frames before them" not in lines[-1]
+    assert "send new labeled init frames" in lines[-1]

@@ -20,7 +20,7 @@ from labeler_service.service.protocol import LabeledMsg, ModelMsg, decode, encod
 from labeler_service.service.settings import load_settings
 from labeler_service.service.stream import StreamState
 from labeler_service.tools.subscribe import READY, Received
-from labeler_service.tools.view import Viewer, is_loopback
+from labeler_service.tools.view import Viewer, is_loopback, refusal
 from labeler_service.tools.view_frames import (
     Decimator,
     Outbox,
@@ -206,6 +206,46 @@ def test_is_loopback():
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.0.2.1")
     assert not is_loopback("example.org")
+
+
+def test_refusal_of_cross_site_pages_and_foreign_host_names():
+    assert refusal("127.0.0.1:8765", None, "127.0.0.1") is None  # curl, scripts
+    assert refusal("localhost:8765", "http://localhost:8765", "127.0.0.1") is None  # the page
+    assert refusal("[::1]:8765", "http://[::1]:8765", "::1") is None
+    assert "another site" in refusal("127.0.0.1:8765", "http://evil.example", "127.0.0.1")
+    assert "another site" in refusal("127.0.0.1:8765", "null", "127.0.0.1")  # a file:// page
+    # DNS rebinding: a foreign name that resolves to the loopback viewer
+    assert "not this viewer's address" in refusal("evil.example:8765", None, "127.0.0.1")
+    # bound to every address on purpose: any host name, still same-site only
+    assert refusal("mocap-lab.local:8765", None, "0.0.0.0") is None
+    assert refusal("10.0.0.5:8765", "http://evil.example", "0.0.0.0") is not None
+
+
+def test_the_viewer_refuses_a_cross_site_websocket_and_a_foreign_host(rng):
+    """Any page open in the user's browser could read the live capture: its WebSocket to the
+    loopback viewer was answered (101) and got the model and the frames; ``/api/state`` answered
+    a foreign ``Host``. Both get 403 now; the viewer's own page and plain tools are served."""
+    import aiohttp
+
+    async def go():
+        srv, _ = _service(rng, 10)
+        async with srv:
+            host, port = srv.transports[0].address
+            async with Viewer(f"udp://{host}:{port}/v", port=0) as v, \
+                    aiohttp.ClientSession() as http:  # fmt: skip
+                base = f"http://127.0.0.1:{v.port}"
+                with pytest.raises(aiohttp.WSServerHandshakeError) as cross:
+                    await http.ws_connect(f"{base}/ws", origin="http://evil.example")
+                foreign = await http.get(f"{base}/api/state", headers={"Host": "evil.example"})
+                own = await http.ws_connect(f"{base}/ws", origin=base)
+                first = await own.receive(timeout=5)
+                await own.close()
+                plain = await http.get(f"{base}/api/state")
+                return cross.value.status, foreign.status, first.type, plain.status, v.refused
+
+    cross, foreign, first, plain, refused = run(go())
+    assert cross == 403 and foreign == 403 and refused == 2
+    assert first == aiohttp.WSMsgType.TEXT and plain == 200
 
 
 def _service(rng, frames: int):
