@@ -214,8 +214,15 @@ async def run_pipeline(
     rss_every_s: float | None = None,
     progress=None,
     max_frames: int | None = None,
+    init_published: bool | None = None,
 ) -> PipelineResult:
     """Runs replay -> service subprocess -> subscriber once; see the module docstring.
+
+    ``init_published``: the service publishes the labeled init frames too (a stream with a
+    model labels its labeled first frames), so the run waits for every frame sent; None: True
+    when the stream's settings give it a model. Without it the wait ended ``init_frames`` short
+    and the last frame of a model-started bench arrived after the subscriber stopped (480 sent,
+    479 received, one "drop" no counter named).
 
     Over MQTT the service is pointed at ``broker_url`` (its host and port go into the
     settings); without one, a throw-away Mosquitto (:class:`LocalBroker` in ``workdir``) runs
@@ -228,6 +235,10 @@ async def run_pipeline(
     from labeler_service.tools.subscribe import READY, Subscriber
 
     res = PipelineResult()
+    if init_published is None:
+        cfgs = settings.get("streams") or []
+        init_published = any(c.get("name") == stream and c.get("model") for c in cfgs)
+    published = init_published
     with contextlib.ExitStack() as broker:
         if transport == "mqtt":
             if broker_url is None:
@@ -276,7 +287,7 @@ async def run_pipeline(
                     res.sent = st.sent
                     # let the last frames arrive: a backlog (a training stall at the first
                     # unlabeled frame) drains rather than being counted lost
-                    await _drain(count, st.sent - init_frames * loops)
+                    await _drain(count, st.sent - (0 if published else init_frames * loops))
                 finally:
                     if gc_was_enabled:
                         gc.enable()
