@@ -450,8 +450,9 @@ def peek_frame_stream(payload: bytes) -> str | None:
     receiver's pre-filter: a flood for unknown streams is dropped at a few microseconds per
     datagram instead of a full :func:`decode`). Walks the map's leading entries (string keys,
     scalar/string/bin values) up to ``stream``; returns ``None`` when the message is not
-    recognisably a frame (another ``type``, not a map, a key order or value it does not walk,
-    a name that breaks :data:`STREAM_NAME`): the caller then decodes it in full. Never raises.
+    recognisably a frame (another ``type`` or protocol version ``v``, not a map, a key order or
+    value it does not walk, a name that breaks :data:`STREAM_NAME`): the caller then decodes it
+    in full (a ``v`` 2 frame was counted ``unknown_stream``, not ``version``). Never raises.
     A name returned is only a hint: :func:`decode` still validates the whole message.
     """
     b = payload
@@ -477,6 +478,8 @@ def peek_frame_stream(payload: bytes) -> str | None:
                 return None
             j = i + 1 + (c & 0x1F)
             key = b[i + 1 : j]
+            if key == b"v" and b[j] != VERSION:  # (another version: decoded, refused as such)
+                return None
             if key == b"stream" or key == b"type":
                 c = b[j]
                 if 0xA0 <= c <= 0xBF:

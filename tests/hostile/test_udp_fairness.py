@@ -64,6 +64,10 @@ def test_peek_reads_the_stream_of_our_frames_and_gives_up_on_anything_else():
     assert peek_frame_stream(encode_frame("vol", 1, 0.0, pts)[:12]) is None
     assert peek_frame_stream(_pack([1, 2])) is None
     assert peek_frame_stream(b"") is None
+    # another protocol version: decoded in full, so it is refused as ``version`` (it was
+    # counted ``unknown_stream``, with the hint to configure the stream)
+    assert peek_frame_stream(_pack({"v": 2, "stream": "x"})) is None
+    assert peek_frame_stream(_pack({"stream": "x", "v": 2, "seq": 1})) == "x"  # (v after it)
 
 
 @settings(max_examples=300, deadline=None)
