@@ -46,6 +46,9 @@ STREAM_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}\Z")
 _F32 = np.dtype("<f4")
 #: longest label a frame may carry (``subject:marker``)
 MAX_LABEL = 128
+#: characters a label may not hold: C0/C1 controls, and the format characters that reorder or
+#: hide text (bidirectional overrides and isolates, zero-width ones, the BOM)
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2060-\u2069\ufeff]")
 _U8 = np.dtype("u1")
 _U64_MAX = 2**64 - 1
 
@@ -337,6 +340,14 @@ def _decode_frame(m: dict, max_points: int) -> FrameMsg:
                 )
                 raise _reject(
                     "labels", f"label {shown} must be nil or a string of 1-{MAX_LABEL} characters"
+                )
+            if lab is not None and _CONTROL.search(lab):
+                # a newline forged log lines, a right-to-left override reversed them, and C3D
+                # drops a NUL: no capture system names a marker so
+                raise _reject(
+                    "labels",
+                    f"label {lab!r} holds a control or format character (newline, NUL, "
+                    "direction override): not a marker name",
                 )
         labels = tuple(labels)
     sent = m.get("sent")

@@ -137,6 +137,19 @@ def test_a_label_too_long_is_refused_with_the_limit_and_not_echoed_whole():
     assert len(str(info.value)) < 200
 
 
+@pytest.mark.parametrize("bad", ["a:x\nWARNING forged", "a:\u202eevil", "a:x\x00", "a:\u200b"])
+def test_a_label_with_control_or_format_characters_is_refused(bad):
+    """A newline in a label forged a line of the service's log, a right-to-left override
+    reversed one, and a NUL vanished in C3D output; names in any script stay accepted."""
+    with pytest.raises(ProtocolError) as info:
+        decode(_frame(labels=["a:x", bad]))
+    assert info.value.reason == "labels" and "control or format character" in str(info.value)
+    assert decode(_frame(labels=["Ünï:cöde", "日本:マーカー"])).labels == (
+        "Ünï:cöde",
+        "日本:マーカー",
+    )
+
+
 @pytest.mark.parametrize("kind", ["labeled", "model", "status", "challenge"])
 def test_a_service_output_type_sent_to_the_service_is_refused_for_its_type(kind):
     # the fields of a service-output message are not what a client sends: refused for the
