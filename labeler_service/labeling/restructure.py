@@ -34,26 +34,18 @@ from labeler_service.labeling.frame import OBSERVED
 
 
 @njit
-def _accumulate(state, age, pos, ok, mb_ptr, mb_idx, subj_ptr, subj_idx, min_age, conf, s1, s2, n):
-    """Adds this frame's distances between confident markers of one subject to ``s1``, ``s2``
-    (sums of the distance and its square) and ``n`` (count), ``(M, M)``, upper triangle in the
-    labeler's marker order. ``conf (M,)`` bool: scratch (the confident markers)."""
-    for m in range(state.shape[0]):
-        c = state[m] == OBSERVED and age[m] >= min_age
-        if c:
-            for q in range(mb_ptr[m], mb_ptr[m + 1]):
-                if not ok[mb_idx[q]]:
-                    c = False
-                    break
-        conf[m] = c
+def _add_pairs(pos, use, subj_ptr, subj_idx, s1, s2, n):
+    """Adds one frame's distances between the markers ``use (M,)`` of each subject to ``s1``,
+    ``s2`` (sums of the distance and its square) and ``n`` (count), ``(M, M)``, upper triangle
+    in the labeler's marker order; ``pos (M, 3)``."""
     for s in range(subj_ptr.shape[0] - 1):
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
             i = subj_idx[e]
-            if not conf[i]:
+            if not use[i]:
                 continue
             for f in range(e + 1, subj_ptr[s + 1]):
                 j = subj_idx[f]
-                if not conf[j]:
+                if not use[j]:
                     continue
                 d2 = 0.0
                 for a in range(3):
@@ -67,30 +59,31 @@ def _accumulate(state, age, pos, ok, mb_ptr, mb_idx, subj_ptr, subj_idx, min_age
 
 
 @njit
+def _accumulate(state, age, pos, ok, mb_ptr, mb_idx, subj_ptr, subj_idx, min_age, conf, s1, s2, n):
+    """Adds this frame's distances between confident markers of one subject to the sums
+    (:func:`_add_pairs`). ``conf (M,)`` bool: scratch (the confident markers)."""
+    for m in range(state.shape[0]):
+        c = state[m] == OBSERVED and age[m] >= min_age
+        if c:
+            for q in range(mb_ptr[m], mb_ptr[m + 1]):
+                if not ok[mb_idx[q]]:
+                    c = False
+                    break
+        conf[m] = c
+    _add_pairs(pos, conf, subj_ptr, subj_idx, s1, s2, n)
+
+
+@njit
 def add_samples(pos, subj_ptr, subj_idx, s1, s2, n):
     """Adds the labeled frames ``pos (F, M, 3)`` (NaN = not labeled) to the sums, every pair of
     markers of one subject (the training window: the samples the first structure was trained
     on). A kernel over each subject's pairs: all ``M x M`` pairs in numpy cost 1.8 s of a
     1,000-marker stream's training, holding the interpreter that other streams need."""
+    use = np.empty(pos.shape[1], dtype=np.bool_)
     for k in range(pos.shape[0]):
-        for s in range(subj_ptr.shape[0] - 1):
-            for e in range(subj_ptr[s], subj_ptr[s + 1]):
-                i = subj_idx[e]
-                if pos[k, i, 0] != pos[k, i, 0]:
-                    continue
-                for f in range(e + 1, subj_ptr[s + 1]):
-                    j = subj_idx[f]
-                    if pos[k, j, 0] != pos[k, j, 0]:
-                        continue
-                    d2 = 0.0
-                    for a in range(3):
-                        d = np.float64(pos[k, i, a]) - np.float64(pos[k, j, a])
-                        d2 += d * d
-                    d = np.sqrt(d2)
-                    lo, hi = (i, j) if i < j else (j, i)
-                    s1[lo, hi] += d
-                    s2[lo, hi] += d2
-                    n[lo, hi] += 1
+        for m in range(pos.shape[1]):
+            use[m] = pos[k, m, 0] == pos[k, m, 0]
+        _add_pairs(pos[k], use, subj_ptr, subj_idx, s1, s2, n)
 
 
 def add_prior(cols: np.ndarray, D: np.ndarray, A: np.ndarray, weight: float, s1, s2, n) -> None:

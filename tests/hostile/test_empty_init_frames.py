@@ -15,11 +15,17 @@ from labeler_service.service.server import Server
 from labeler_service.service.transports.memory import MemoryTransport
 
 
-def _training_failure_log(caplog, init_points: np.ndarray, labels: list) -> str:
+def _training_failure_log(caplog, init_points: np.ndarray, labels: list, then: int = 0) -> str:
     """Five init frames of ``init_points`` with ``labels``, then an unlabeled frame; the log
-    once training has failed."""
+    once training has failed (and, with ``then``, once that many more unlabeled frames were
+    dropped as ``no_model``)."""
     caplog.set_level(logging.WARNING)
     pts = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
+
+    async def until(srv, reason: str, count: int) -> None:
+        async with asyncio.timeout(10):
+            while srv.metrics.drops(reason) < count:
+                await asyncio.sleep(0.05)
 
     async def go():
         mem = MemoryTransport()
@@ -27,9 +33,10 @@ def _training_failure_log(caplog, init_points: np.ndarray, labels: list) -> str:
             for k in range(5):
                 mem.inject(encode_frame("default", k, k / 100, init_points, labels))
             mem.inject(encode_frame("default", 5, 0.05, pts))
-            async with asyncio.timeout(10):
-                while srv.metrics.drops("training_failed") == 0:
-                    await asyncio.sleep(0.05)
+            await until(srv, "training_failed", 1)
+            for k in range(then):
+                mem.inject(encode_frame("default", 6 + k, 0.06 + k / 100, pts))
+            await until(srv, "no_model", then)
 
     run(go(), timeout=30)
     return "\n".join(r.getMessage() for r in caplog.records)
@@ -53,24 +60,7 @@ def test_frames_after_a_failed_training_are_not_said_to_lack_init_frames(caplog)
     """After ``training_failed`` the next unlabeled frames were dropped as ``no_model`` with
     "no model, no labeled init frames before them": the stream had sent them. The line now says
     the training failed and asks for new labeled init frames."""
-    caplog.set_level(logging.WARNING)
-    pts = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
-
-    async def go():
-        mem = MemoryTransport()
-        async with Server(settings(labeler="baseline"), [mem]) as srv:
-            for k in range(5):
-                mem.inject(encode_frame("default", k, k / 100, np.zeros((0, 3), np.float32), []))
-            mem.inject(encode_frame("default", 5, 0.05, pts))
-            async with asyncio.timeout(10):
-                while srv.metrics.drops("training_failed") == 0:
-                    await asyncio.sleep(0.05)
-            mem.inject(encode_frame("default", 6, 0.06, pts))
-            async with asyncio.timeout(10):
-                while srv.metrics.drops("no_model") == 0:
-                    await asyncio.sleep(0.05)
-
-    run(go(), timeout=30)
+    _training_failure_log(caplog, np.zeros((0, 3), np.float32), [], then=1)
     lines = [
         r.getMessage() for r in caplog.records if "nothing to start the stream" in r.getMessage()
     ]

@@ -28,15 +28,19 @@ def _dead_port() -> int:
     return port
 
 
-def test_replay_to_a_port_where_nothing_listens_counts_the_frames_as_failed(caplog):
-    cap = moving_clusters(np.random.default_rng(0), frames=30, rate=200.0)
+def _replay_to_a_dead_port(n_frames: int, speed: float):
+    cap = moving_clusters(np.random.default_rng(0), frames=n_frames, rate=200.0)
     frames = corrupt(cap, CorruptionSpec(seed=1))
 
     async def go():
         async with open_sender(f"udp://127.0.0.1:{_dead_port()}/x") as (send, stream):
-            return await replay(frames, send, stream=stream, init_frames=5, speed=1.0)
+            return await replay(frames, send, stream=stream, init_frames=5, speed=speed)
 
-    stats = run(go())
+    return run(go())
+
+
+def test_replay_to_a_port_where_nothing_listens_counts_the_frames_as_failed(caplog):
+    stats = _replay_to_a_dead_port(30, 1.0)
     assert stats.failed >= 20 and stats.sent + stats.failed == 30
     warned = [r for r in caplog.records if "connection refused" in r.getMessage()]
     assert len(warned) == 1  # once per episode, not per frame
@@ -46,14 +50,7 @@ def test_replay_as_fast_as_possible_to_a_dead_port_counts_no_frame_sent_after_a_
     """At ``--speed 0`` the kernel's refusals arrive after some sends, not one per datagram:
     every other send read one, so half the frames were called sent. A send within
     ``REFUSED_S`` of a refusal counts as failed: only frames before the first report remain."""
-    cap = moving_clusters(np.random.default_rng(0), frames=200, rate=200.0)
-    frames = corrupt(cap, CorruptionSpec(seed=1))
-
-    async def go():
-        async with open_sender(f"udp://127.0.0.1:{_dead_port()}/x") as (send, stream):
-            return await replay(frames, send, stream=stream, init_frames=5, speed=0.0)
-
-    stats = run(go())
+    stats = _replay_to_a_dead_port(200, 0.0)
     assert stats.sent + stats.failed == 200
     assert stats.sent <= 5, stats
 
