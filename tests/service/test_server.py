@@ -527,6 +527,7 @@ def test_unlabeled_frames_with_nothing_to_start_from_name_the_two_fixes(caplog):
     for name in ("nomodel", "listed"):
         line = [m for m in said if f"stream {name}: unlabeled frames" in m]
         assert len(line) == 1, said
-        assert f'name = "{name}", model = "MODEL.json"' in line[0]
+        assert f'name = "{name}" and model = "MODEL.json"' in line[0]
+        assert "boot = true at the top of the settings, outside any table" in line[0]
         assert "replay --init-frames 50" in line[0]
     assert any(m.startswith("udp: frames dropped unread (unknown_stream)") for m in said)
