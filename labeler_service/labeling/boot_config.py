@@ -151,6 +151,22 @@ class BootConfig(BaseModel):
     boot_backoff_s: float = Field(
         0.2, gt=0, description="BootingLabeler: longest wait between fruitless boot attempts"
     )
+    relearn_every_s: float = Field(
+        0.0,
+        ge=0,
+        description="BootingLabeler of a labeled start (registry.make_window_labeler sets 2): "
+        "the booter's templates learned again this often from the stream's own clean frames "
+        "(every point labeled, and the 5 frames either side), the labeler kept (0 = off; "
+        "BootingLabeler._relearn). Only where the extension runs in the labeler "
+        "(inline_extend): evaluate, label",
+    )
+    relearn_min_frames: int = Field(
+        100,
+        ge=3,
+        description="... from at least this many clean frames of the last "
+        "booting.RELEARN_HISTORY_S seconds (from 50 frames of its own 25 Hz labels, a forearm "
+        "was re-acquired on the wrong points)",
+    )
     drop_after_s: float = Field(
         0.1,
         gt=0,

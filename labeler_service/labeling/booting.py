@@ -141,6 +141,12 @@ def prepare_boot(
     return booter, copy.deepcopy(proto)
 
 
+#: Seconds of the stream's own frames a relearn reads (``BootConfig.relearn_every_s``).
+RELEARN_HISTORY_S = 10.0
+#: Frames on either side of a frame with an unlabeled point that a relearn leaves out too.
+RELEARN_MARGIN = 5
+
+
 #: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
 EXTEND_BACKOFF = 4
 #: A free track is offered to :meth:`Booter.acquire` in this many frames after it appears.
@@ -300,6 +306,15 @@ class BootingLabeler:
         #: the labeled start through a window model (``registry.make_window_labeler``): the
         #: labeled frames its model was trained on; None for a boot from a model file
         self.window_frames = window_frames
+        #: the booter's templates learned again from the stream (:meth:`_relearn`): its frames
+        #: ``(t, points, labels)``, whether each was clean, and the relearns done
+        every = self.boot_config.relearn_every_s
+        self._relearn_every = max(1, round(every * self.rate)) if every > 0 else 0
+        hist = max(window_frames or 0, round(RELEARN_HISTORY_S * self.rate))
+        self._relearn_frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=hist)
+        self._relearn_clean: deque[bool] = deque(maxlen=hist)
+        self._since_relearn = 0
+        self.relearned = 0
         c = self.boot_config
         self._names = model.marker_names
         self._booter, verifier = prepare_boot(model, c, self.rate)
@@ -463,6 +478,8 @@ class BootingLabeler:
             if booted.size:
                 glab = self._window[-1].labels
                 _mark_observed(glab, pts, pos, state)
+        if self._relearn_record(t, pts, glab, clean=not np.any(glab < 0)):
+            self._relearn()
         return LabeledFrame(
             t=t,
             point_labels=glab.astype(np.int32),
@@ -497,6 +514,7 @@ class BootingLabeler:
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         state = np.zeros(m, dtype=np.uint8)
         _mark_observed(lab, pts, pos, state)
+        self._relearn_record(t, pts, lab, clean=True)
         return LabeledFrame(
             t=t,
             point_labels=lab.astype(np.int32),
@@ -504,6 +522,58 @@ class BootingLabeler:
             state=state,
             process_us=(time.perf_counter_ns() - t0) / 1e3,
         )
+
+    # ------------------------------------------------------------------ relearn
+    def _relearn_record(self, t: float, pts: np.ndarray, labels: np.ndarray, clean: bool) -> bool:
+        """Keeps a frame and its labels for :meth:`_relearn` (only when relearning is on and
+        the extension runs here); True when a relearn is due: ``relearn_every_s`` of unlabeled
+        frames since the last one, the last ``window_frames`` frames clean."""
+        if not (self._relearn_every and self.inline_extend):
+            return False
+        self._relearn_frames.append((t, pts, np.asarray(labels, dtype=np.int64).copy()))
+        self._relearn_clean.append(bool(clean))
+        if self._labeled_run:
+            return False
+        self._since_relearn += 1
+        feed = self.window_frames or 1
+        if self._since_relearn < self._relearn_every:
+            return False
+        clean_tail = list(self._relearn_clean)[-feed:]
+        if not all(clean_tail):
+            return False
+        self._since_relearn = 0
+        return True
+
+    def _relearn(self) -> bool:
+        """The booter's templates - the model the boot and the extension place markers with -
+        trained again (:func:`~labeler_service.labeling.structure.window_model`) on the
+        stream's own clean frames of the last :data:`RELEARN_HISTORY_S` seconds: every point
+        labeled, and no frame within :data:`RELEARN_MARGIN` of one that was not. The labeler
+        (its tracks, bodies, windows) is kept. Why: a labeled start knows the 0.4 s of its
+        window; the tennis take's arm, still there, was lost for 4.6 s at the third serve
+        (docs/algorithm.md). False when too few clean frames (``relearn_min_frames``) or the
+        training refuses them."""
+        from labeler_service.capture import Capture
+        from labeler_service.errors import MocapError
+        from labeler_service.labeling.frame import window_observations
+        from labeler_service.labeling.structure import window_model
+
+        ok = np.array(self._relearn_clean, dtype=bool)
+        good = ok.copy()
+        for k in range(1, RELEARN_MARGIN + 1):
+            good[k:] &= ok[:-k]
+            good[:-k] &= ok[k:]
+        frames = [f for f, g in zip(self._relearn_frames, good, strict=True) if g]
+        if len(frames) < max(self.window_frames or 1, self.boot_config.relearn_min_frames):
+            return False
+        pos = window_observations(frames, np.ones(len(self._names), dtype=bool))
+        try:
+            model = window_model(Capture(pos.astype(np.float32), self._names, self.rate))
+        except MocapError:
+            return False
+        self._booter, self._verifier = prepare_boot(model, self.boot_config, self.rate)
+        self.relearned += 1
+        return True
 
     # ------------------------------------------------------------------ steps
     def _drop_vanished(

@@ -283,6 +283,7 @@ def make_window_labeler(
         fill_agreement=False,
         release_loose=False,
         fill_past_partner=False,
+        relearn_every_s=2.0,
     )
     from labeler_service.labeling.booting import BootingLabeler
 

@@ -1,0 +1,77 @@
+"""The labeled start's booter learned again from the stream's own clean frames
+(``BootConfig.relearn_every_s``, ``BootingLabeler._relearn``; docs/algorithm.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.test_boot import RATE, Stream
+from labeling.walks import split_walk
+
+from labeler_service.capture import Capture
+from labeler_service.labeling.registry import make_window_labeler
+from labeler_service.labeling.structure import window_model
+
+WINDOW = 20
+
+
+@pytest.fixture(scope="module")
+def walk():
+    return split_walk(2, 8.0, seed=5, rate=RATE)
+
+
+def _run(walk, frames: int, ghost: bool = False, **boot):
+    """A labeled start (window model of the first ``WINDOW`` frames, as ``evaluate`` makes it)
+    fed ``frames`` frames of the walk; ``ghost``: one stray point in every frame."""
+    model, cap = walk
+    s = Stream(cap, model, seed=2, hide=0.0)
+    first = [s.frame(f) for f in range(WINDOW)]
+    pos = np.full((WINDOW, len(model.marker_names), 3), np.nan, np.float32)
+    for k, (pts, tr) in enumerate(first):
+        pos[k, tr[tr >= 0]] = pts[tr >= 0]
+    window = window_model(Capture(pos, model.marker_names, RATE))
+    lab = make_window_labeler(window, rate=RATE, window_frames=WINDOW)
+    if boot:  # (the settings are frozen: a copy, and the period read again)
+        lab.boot_config = lab.boot_config.model_copy(update=boot)
+        every = lab.boot_config.relearn_every_s
+        lab._relearn_every = round(every * RATE) if every > 0 else 0
+    for f in range(frames):
+        pts, tr = s.frame(f)
+        if ghost:
+            pts = np.concatenate([pts, np.array([[5000.0, 5000.0, 5000.0]], np.float32)])
+            tr = np.concatenate([tr, [-1]])
+        lab.process(pts, f / RATE, tr if f < WINDOW else None)
+    return lab, window
+
+
+def test_the_booter_learns_again_from_the_clean_stream_and_the_labeler_stays(walk):
+    lab, window = _run(walk, WINDOW + round(2.2 * RATE))
+    assert lab.relearned == 1
+    assert lab._booter.model is not window and lab.model is window  # only the booter's
+    inner = lab._inner
+    lab2, window2 = _run(walk, WINDOW + round(2.2 * RATE), relearn_every_s=0.0)
+    assert lab2.relearned == 0 and lab2._booter.model is window2
+    assert inner is lab._inner  # the labeler and its state are kept
+    # learned from ~2 s of motion, not the window's 20 frames: its pair deviations differ
+    new, old = lab._booter.model.subjects[0], window.subjects[0]
+    assert not np.allclose(np.asarray(new.A, float), np.asarray(old.A, float), equal_nan=True)
+
+
+def test_no_relearn_from_frames_with_an_unlabeled_point_or_too_few(walk):
+    lab, window = _run(walk, WINDOW + round(2.2 * RATE), ghost=True)
+    assert lab.relearned == 0 and lab._booter.model is window
+    lab, window = _run(walk, WINDOW + round(2.2 * RATE), relearn_min_frames=10_000)
+    assert lab.relearned == 0
+
+
+def test_no_relearn_where_the_extension_runs_elsewhere(walk):
+    """The service runs the extension off the frame path (``inline_extend`` off), where a
+    window model trained on the frame path would stall the stream: no relearn there."""
+    model, cap = walk
+    lab, _ = _run(walk, 2)
+    lab.inline_extend = False
+    s = Stream(cap, model, seed=3, hide=0.0)
+    for f in range(2, WINDOW + round(2.2 * RATE)):
+        pts, tr = s.frame(f)
+        lab.process(pts, f / RATE, tr if f < WINDOW else None)
+    assert lab.relearned == 0 and len(lab._relearn_frames) == 2
