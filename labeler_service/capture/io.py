@@ -32,6 +32,7 @@ import zipfile
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -512,16 +513,16 @@ def _read_c3d(path: Path) -> Capture:
         if neg.any():
             pos[neg] = np.nan
             notes.append(f"{int(neg.sum())} samples with negative residual mapped to missing")
-    declared = _c3d_declared_frames(path, point)
-    if declared is not None and declared < 0:
+    counts = _c3d_frame_counts(path, point)
+    if counts is not None and counts.past:
         msg = (
-            f"holds data for about {-declared:,} frames past its {C3D_MAX_FRAMES:,}-frame count "
+            f"holds data for about {counts.held:,} frames past its {C3D_MAX_FRAMES:,}-frame count "
             f"(C3D counts frames in 16 bits): only the first {pos.shape[0]:,} frames are read"
         )
         notes.append(msg)
         log.warning("%s: %s", path, msg)
-    elif declared is not None and pos.shape[0] < declared:
-        msg = f"truncated: {pos.shape[0]} of {declared} frames (the file ends early)"
+    elif counts is not None and counts.held < counts.declared and pos.shape[0] < counts.declared:
+        msg = f"truncated: {pos.shape[0]} of {counts.declared} frames (the file ends early)"
         notes.append(msg)
         log.warning("%s: %s", path, msg)
     labels = _c3d_labels(point, n_markers)
@@ -574,12 +575,19 @@ def _c3d_markers(point: dict, labels: list[str], notes: list[str]) -> list[int] 
     return [i for i in range(len(labels)) if i not in dropped]
 
 
-def _c3d_declared_frames(path: Path, point: dict) -> int | None:
-    """Frames the raw C3D header declares, when the file is too short to hold them (ezc3d
-    silently reads the complete frames a truncated file holds and rewrites its own header
-    counts); ``-N`` when the header's count is full (65,535) and the file holds data for about
-    ``N`` frames (written past the 16-bit count: ezc3d reads the first 65,535); ``None`` when
-    the file is complete or the header cannot tell."""
+class _C3DFrames(NamedTuple):
+    """Frame counts of a C3D's raw header and size (:func:`_c3d_frame_counts`)."""
+
+    declared: int  # the header's count
+    held: int  # whole frames the file's data holds
+    past: bool  # the 16-bit count is full (65,535) and the data goes on past it
+
+
+def _c3d_frame_counts(path: Path, point: dict) -> _C3DFrames | None:
+    """The frames a C3D's raw header declares and the whole frames its size holds: ezc3d
+    silently reads the complete frames of a file that ends early (and rewrites its own header
+    counts), and the first 65,535 of one written past the 16-bit count. ``None`` when the header
+    cannot tell."""
     with open(path, "rb") as f:
         header = f.read(512)
         if len(header) < 512 or header[0] < 1:
@@ -596,13 +604,12 @@ def _c3d_declared_frames(path: Path, point: dict) -> int | None:
     item = 4 if len(scale) == 0 or float(scale[0]) < 0 else 2
     declared = last - first + 1
     frame_bytes = (4 * n_points + n_analog) * item
-    need = (data_block - 1) * 512 + declared * frame_bytes
-    size = path.stat().st_size
-    if full and frame_bytes and size - need >= 512 + frame_bytes:
-        # more data than the 16-bit count holds (a C3D written past 65,535 frames): ezc3d reads
-        # the first 65,535; say so (negative: the reader notes it as data past the count)
-        return -((size - (data_block - 1) * 512) // frame_bytes)
-    return declared if size < need else None
+    data = path.stat().st_size - (data_block - 1) * 512
+    if frame_bytes == 0:
+        return _C3DFrames(declared, declared if data >= 0 else 0, False)
+    # past the count: more than the last 512-byte block's padding beyond the declared frames
+    past = full and data - declared * frame_bytes >= 512 + frame_bytes
+    return _C3DFrames(declared, data // frame_bytes, past)
 
 
 #: frames a C3D can hold: its header counts them in 16 bits (ezc3d writes more and reads back
@@ -610,14 +617,18 @@ def _c3d_declared_frames(path: Path, point: dict) -> int | None:
 C3D_MAX_FRAMES = 65535
 
 
+def _too_many_frames(n_frames: int) -> str:
+    return (
+        f"a C3D holds at most {C3D_MAX_FRAMES:,} frames (its header counts them in 16 bits), "
+        f"not {n_frames:,}: write .npz or .trc, which hold any number"
+    )
+
+
 def c3d_frames_fit(path: str | Path, n_frames: int) -> None:
     """Refuses ``n_frames`` for a ``.c3d`` output (other suffixes take any count): raises
     :class:`CaptureError` naming the formats that hold them."""
     if Path(path).suffix.lower() == ".c3d" and n_frames > C3D_MAX_FRAMES:
-        raise CaptureError(
-            f"{path}: a C3D holds at most {C3D_MAX_FRAMES:,} frames (its header counts them in "
-            f"16 bits), not {n_frames:,}: write .npz or .trc, which hold any number"
-        )
+        raise CaptureError(f"{path}: {_too_many_frames(n_frames)}")
 
 
 def _write_c3d(capture: Capture, path: Path) -> None:
@@ -626,10 +637,7 @@ def _write_c3d(capture: Capture, path: Path) -> None:
     if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
         raise CaptureError("a C3D holds at least one frame; this capture has none")
     if capture.n_frames > C3D_MAX_FRAMES:
-        raise CaptureError(
-            f"a C3D holds at most {C3D_MAX_FRAMES:,} frames (its header counts them in 16 "
-            f"bits), not {capture.n_frames:,}: write .npz or .trc, which hold any number"
-        )
+        raise CaptureError(_too_many_frames(capture.n_frames))
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [capture.rate]
     c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)
