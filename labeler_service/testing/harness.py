@@ -238,7 +238,6 @@ async def run_pipeline(
     if init_published is None:
         cfgs = settings.get("streams") or []
         init_published = any(c.get("name") == stream and c.get("model") for c in cfgs)
-    published = init_published
     with contextlib.ExitStack() as broker:
         if transport == "mqtt":
             if broker_url is None:
@@ -287,7 +286,7 @@ async def run_pipeline(
                     res.sent = st.sent
                     # let the last frames arrive: a backlog (a training stall at the first
                     # unlabeled frame) drains rather than being counted lost
-                    await _drain(count, st.sent - (0 if published else init_frames * loops))
+                    await _drain(count, st.sent - (0 if init_published else init_frames * loops))
                 finally:
                     if gc_was_enabled:
                         gc.enable()
