@@ -510,9 +510,13 @@ def _read_c3d(path: Path) -> Capture:
     residuals = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, F)
     if residuals.size:
         neg = residuals[0].T < 0
-        if neg.any():
-            pos[neg] = np.nan
-            notes.append(f"{int(neg.sum())} samples with negative residual mapped to missing")
+        # the usual way to write "not captured" (coordinates NaN or 0): no news; coordinates
+        # that a negative residual discards are (a label run's missing samples are the former)
+        held = neg & np.isfinite(pos).all(axis=2) & (pos != 0).any(axis=2)
+        pos[neg] = np.nan
+        if held.any():
+            notes.append(f"{int(held.sum())} samples with coordinates but a negative residual "
+                         "(not captured) mapped to missing")  # fmt: skip
     counts = _c3d_frame_counts(path, point)
     if counts is not None and counts.past:
         msg = (

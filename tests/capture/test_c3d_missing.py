@@ -65,7 +65,18 @@ def test_reader_treats_negative_residuals_as_missing(tmp_path, monkeypatch):
     np.testing.assert_array_equal(gone, expected)
     assert np.isnan(cap.positions[gone]).all()  # all three coordinates, not one
     np.testing.assert_allclose(cap.positions[~gone], np.transpose(pts[:3], (2, 1, 0))[~gone])
-    assert any("negative residual" in n for n in cap.notes)
+    assert any("2 samples with coordinates but a negative residual" in n for n in cap.notes)
+
+
+def test_missing_samples_written_as_such_need_no_note(tmp_path, rng):
+    """The writer's own missing samples (residual -1 on NaN coordinates) are the usual
+    convention: read back missing, with no note that would say data was discarded."""
+    pos = rng.normal(scale=300.0, size=(10, 3, 3)).astype(np.float32)
+    pos[2:5, 1] = np.nan
+    path = write_capture(Capture(pos, ("S:a", "S:b", "S:c"), 100.0), tmp_path / "m.c3d")
+    cap = read_capture(path)
+    assert np.isnan(cap.positions[2:5, 1]).all()
+    assert not any("residual" in n for n in cap.notes)
 
 
 def test_negative_residuals_round_trip_through_ezc3d(tmp_path):
