@@ -425,4 +425,14 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_relearn.py",),
         "the booter is learned again from frames with unlabeled points (the labeler's losses)",
     ),
+    Mutant(
+        "exchange-ignores-shape",
+        "labeler_service/labeling/kernels/rigid.py",
+        "            if t < miss_term:\n                return False",
+        "            if t < 0.0:\n                return False",
+        (T + "labeling/test_kernels.py",),
+        "two tracked markers exchange their points whatever their bodies' shape says",
+        k="exchange",
+        kernel=True,
+    ),
 ]

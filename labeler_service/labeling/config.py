@@ -42,6 +42,19 @@ class LabelerConfig(BaseModel):
     common_mode_iters: int = Field(
         2, ge=0, le=5, description="iterations of the common-mode shift (0 = off)"
     )
+    exchange: bool = Field(
+        True,
+        description="two markers tracked in the previous frame that hold each other's points "
+        "exchange them when that halves their distances to their predictions and their bodies' "
+        "shape does not refute it (a symmetric body's pair)",
+    )
+    exchange_ratio: float = Field(
+        0.25,
+        gt=0,
+        le=1,
+        description="exchange: the exchanged points' summed distances to the two predictions "
+        "must be below this fraction of the current ones",
+    )
     reacquire_mm: float = Field(
         250.0,
         ge=0,

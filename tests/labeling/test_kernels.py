@@ -13,6 +13,7 @@ from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import DISPLACEMENT, KABSCH, kernel_params
 from labeler_service.labeling.kernels.rigid import (
     _contest,
+    _exchange,
     _kabsch,
     _max_residual,
     _recover,
@@ -730,3 +731,71 @@ def test_max_residual_matches_twin_and_flags_a_moved_pair(rng):
     res = _max_residual(s2, d2, kept, R, t)
     assert res > 5.0
     assert res == pytest.approx(ref.max_residual(s2[:kept], d2[:kept], R, t), abs=1e-9)
+
+
+# --------------------------------------------------------------------------- exchange
+
+
+def _exchange_scene(apex_offset):
+    """A triangle body {0, 1, 2} (a pelvis: 0 and 1 are the hips 215 mm apart, 2 behind them
+    ``apex_offset`` mm off the midline) and a fourth marker in no body; every marker tracked in
+    the previous frame and predicted 40 mm off its point. Returns ``(points, x, bodies)``."""
+    points = np.array(
+        [[108.0, 0.0, 0.0], [-107.0, 0.0, 0.0], [apex_offset, -250.0, 0.0], [0.0, 500.0, 0.0]]
+    )
+    x = np.zeros((4, 6))
+    x[:, :3] = points + np.array([30.0, 25.0, 10.0])  # 40.3 mm off, as a 25 Hz pelvis
+    d = np.linalg.norm(points[:3, None] - points[None, :3], axis=2)
+    bodies = new_bodies(4, [[0, 1, 2]], [d], [np.full((3, 3), 3.0)], 2)
+    return points, x, bodies
+
+
+def _run_exchange(points, x, bodies, assigned, prev=None, **config):
+    m = x.shape[0]
+    owner = np.full(points.shape[0], -1, dtype=np.int32)
+    owner[assigned[assigned >= 0]] = np.flatnonzero(assigned >= 0)
+    prev = np.ones(m, dtype=np.uint8) if prev is None else prev
+    scratch = _scratch(m, points.shape[0], assigned=assigned, owner=owner)
+    params = kernel_params(LabelerConfig(**config))
+    n = _exchange(points, _tracks(x, prev), bodies, scratch, params)
+    return n, owner
+
+
+def test_exchange_undoes_a_symmetric_pair_the_predictions_refute():
+    points, x, bodies = _exchange_scene(apex_offset=0.5)
+    assigned = np.array([1, 0, 2, 3], dtype=np.int32)  # the hips on each other's points
+    n, owner = _run_exchange(points, x, bodies, assigned)
+    assert n == 1
+    np.testing.assert_array_equal(assigned, [0, 1, 2, 3])
+    np.testing.assert_array_equal(owner, [0, 1, 2, 3])
+    # a right reading stays as it is
+    assert _run_exchange(points, x, bodies, assigned)[0] == 0
+    np.testing.assert_array_equal(assigned, [0, 1, 2, 3])
+
+
+def test_exchange_leaves_what_shape_or_tracking_does_not_support():
+    # the hips on their own points, but predicted on each other's (a fast turn): with the apex
+    # 60 mm off the midline the exchanged hips would break their links to it by ~46 mm, worse
+    # than Eq. 5's missing marker - the shape refutes the exchange, the reading stays
+    points, x, bodies = _exchange_scene(apex_offset=60.0)
+    x[[0, 1]] = x[[1, 0]]
+    assigned = np.array([0, 1, 2, 3], dtype=np.int32)
+    assert _run_exchange(points, x, bodies, assigned)[0] == 0
+    np.testing.assert_array_equal(assigned, [0, 1, 2, 3])
+    # on the near-symmetric body the shape cannot tell, and the predictions decide
+    points, x, bodies = _exchange_scene(apex_offset=0.5)
+    x[[0, 1]] = x[[1, 0]]
+    assert _run_exchange(points, x, bodies, assigned.copy())[0] == 1
+    points, x, bodies = _exchange_scene(apex_offset=0.5)
+    wrong = np.array([1, 0, 2, 3], dtype=np.int32)
+    # a marker not tracked in the previous frame has no prediction to trust
+    prev = np.array([1, 2, 1, 1], dtype=np.uint8)
+    assert _run_exchange(points, x, bodies, wrong.copy(), prev)[0] == 0
+    # predictions that favour the exchange by less than the ratio asked (0.18 here)
+    assert _run_exchange(points, x, bodies, wrong.copy(), exchange_ratio=0.1)[0] == 0
+    assert _run_exchange(points, x, bodies, wrong.copy(), exchange_ratio=0.2)[0] == 1
+    # markers in no shared body are never exchanged (marker 3 holds the right hip's point)
+    a = np.array([3, 1, 2, 0], dtype=np.int32)
+    x[3, :3] = points[0] + 5.0
+    x[0, :3] = points[3] + 5.0
+    assert _run_exchange(points, x, bodies, a)[0] == 0

@@ -19,6 +19,7 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.frame import OBSERVED
+from labeler_service.labeling.kernels.fitting import _pair_term
 from labeler_service.labeling.kernels.params import KABSCH
 from labeler_service.labeling.kernels.spatial import FREE, OWNED, _nearest
 from labeler_service.labeling.kernels.state import NONE
@@ -535,6 +536,93 @@ def _contest(points, tracks, recovery, scratch, params):
             obs[bm, c] = points[a, c]
             obs[m, c] = np.nan
         changes += 1
+    return changes
+
+
+@njit
+def _shape_allows(m, q, partner, points, bodies, assigned, a_floor, a_rel, miss_term):
+    """True when marker ``m`` on point ``q`` fits every link of its bodies to an assigned
+    co-member (``partner``, whose point changes too, left out) no worse than Eq. 5's missing
+    marker: the body's shape does not refute the reading (:func:`_exchange`)."""
+    members, size, D, A = bodies.members, bodies.size, bodies.D, bodies.A
+    for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
+        b = bodies.mb_idx[e]
+        pi = -1
+        for k in range(size[b]):
+            if members[b, k] == m:
+                pi = k
+        for k in range(size[b]):
+            o = members[b, k]
+            if o == m or o == partner or assigned[o] < 0:  # noqa: SIM109 (numba: no mixed-int tuple)
+                continue
+            t = _pair_term(D[b], A[b], pi, k, a_floor, a_rel, miss_term, points, q, assigned[o])
+            if t < miss_term:
+                return False
+    return True
+
+
+@njit
+def _exchange(points, tracks, bodies, scratch, params):
+    """Track continuity between two tracked markers that hold each other's points (ours).
+
+    A body whose shape is nearly symmetric (a pelvis triangle with its third marker near the
+    midline: exchanging ``RASI`` and ``LASI`` is a proper rotation) cannot tell two readings
+    apart by Eq. 5 or the 3D check, and a prediction a few deviations off leaves the motion
+    term no weight: at 25 Hz such a pair was exchanged for 20 frames while each point lay
+    40 mm from its own marker's prediction and 240 mm from the other's. For every marker ``m``
+    observed in the previous frame whose point lies more than ``jump_mm`` from its prediction,
+    and every co-member ``m2`` (a marker sharing a body with it) also observed then: the two
+    exchange their points when that halves their summed distances to their predictions and the
+    exchanged reading fits each one's body links no worse than a missing marker would (shape
+    does not refute it). Changes ``scratch.assigned`` and ``owner``; returns the exchanges."""
+    assigned, owner = scratch.assigned, scratch.owner
+    active, prev_state, x = tracks.active, tracks.state, tracks.x
+    jump2 = params.jump_mm * params.jump_mm
+    a_floor, a_rel, miss_term = params.a_floor_mm, params.a_relative, params.miss_term
+    members, size = bodies.members, bodies.size
+    changes = 0
+    for m in range(assigned.shape[0]):
+        a = assigned[m]
+        if a < 0 or not active[m] or prev_state[m] != OBSERVED:
+            continue
+        e11 = 0.0
+        for c in range(3):
+            d = points[a, c] - x[m, c]
+            e11 += d * d
+        if e11 <= jump2:
+            continue
+        e11 = np.sqrt(e11)
+        for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
+            b = bodies.mb_idx[e]
+            done = False
+            for k in range(size[b]):
+                m2 = members[b, k]
+                a2 = assigned[m2]
+                if m2 == m or a2 < 0 or prev_state[m2] != OBSERVED:
+                    continue
+                e22 = e12 = e21 = 0.0
+                for c in range(3):
+                    d = points[a2, c] - x[m2, c]
+                    e22 += d * d
+                    d = points[a2, c] - x[m, c]
+                    e12 += d * d
+                    d = points[a, c] - x[m2, c]
+                    e21 += d * d
+                if np.sqrt(e12) + np.sqrt(e21) >= params.exchange_ratio * (e11 + np.sqrt(e22)):
+                    continue
+                if not _shape_allows(m, a2, m2, points, bodies, assigned, a_floor, a_rel,
+                                     miss_term):  # fmt: skip
+                    continue
+                if not _shape_allows(m2, a, m, points, bodies, assigned, a_floor, a_rel,
+                                     miss_term):  # fmt: skip
+                    continue
+                assigned[m], assigned[m2] = a2, a
+                owner[a], owner[a2] = m2, m
+                changes += 1
+                done = True
+                break
+            if done:
+                break
     return changes
 
 

@@ -40,6 +40,7 @@ from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
     _contest,
+    _exchange,
     _max_residual,
     _recover,
     _set_estimate,
@@ -121,6 +122,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _contest(points, tracks, recovery, scratch, params)
     if params.reacquire_mm > 0.0:
         _reacquire(points, index, tracks, bodies, recovery, scratch, params)
+    if params.exchange:  # two tracked markers on each other's points (ours, kernels/rigid.py)
+        _exchange(points, tracks, bodies, scratch, params)
     _observed(assigned, points, obs)
     if params.verify_mm > 0.0:
         _verify(points, index, frame_no, tracks, recovery, scratch, params)
