@@ -46,7 +46,8 @@ takes a snapshot when an attempt is due and none is in flight; the server runs
 labeling time). Until a subject boots its points go out unlabeled; frames keep flowing. A frame
 that carries labels is used as the answer for its subjects (no boot needed for them), so a
 client that sends labeled init frames still starts as before. A performer who leaves is dropped
-by the labeler and booted again when back (the ``lost`` status needs nothing more).
+by the labeler and booted again when back (the ``lost`` status needs nothing more). A new run
+whose ``t`` jumped starts a fresh booting labeler of the same model (:meth:`StreamState.reboot`).
 
 Health: the labeled fraction (observed markers / model markers; for a booting labeler, / the
 markers of the subjects it has booted, so a model listing performers who are not in the volume
@@ -353,6 +354,7 @@ class StreamState:
         self.recovering = False
         self.recoveries = 0  # recoveries started (lost, or a new run after a long gap)
         self.handbacks = 0  # recoveries that ended with every subject labeled again
+        self.reboots = 0  # booting labelers started afresh (a new run after a time jump)
         #: the recovery labeler's last frames (points, t, labels) while it labels every subject
         self._handback: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
 
@@ -899,6 +901,8 @@ class StreamState:
             # trusted; boot them from the stream's model (its own trained templates)
             if self.start_recovery("new run after a time jump"):
                 return
+            if self.reboot("new run after a time jump"):
+                return
         log.info("stream %s: new run %d without labels: continuing from the current model",
                  self.name, self.runs)  # fmt: skip
 
@@ -956,6 +960,32 @@ class StreamState:
         log.warning("stream %s: %s: booting its %s from the stream's model (recovery "
                     "%d)", self.name, why, plural(len(model.subjects), "subject"),
                     self.recoveries)  # fmt: skip
+        return True
+
+    def reboot(self, why: str) -> bool:
+        """A booting labeler that no recovery replaces (a model stream that boots, or a
+        recovery in progress) is replaced by a fresh one of the same model and settings: every
+        subject is booted again. Its tracks, active subjects and window belong to the frames
+        before ``why``; kept, they carried labels over a restarted sender's take (a second
+        replay of the tennis take: 200 wrong labels against the first replay's 67, two marker
+        pairs exchanged to its end, the stream ``online``). False when the labeler does not
+        boot."""
+        lab = self.booting
+        if lab is None:
+            return False
+        fresh = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
+                              config=self.settings.labeler_config,
+                              boot=lab.boot_config)  # fmt: skip
+        if not _off_the_loop(fresh):
+            return False
+        assert isinstance(fresh, BootingLabeler)
+        fresh.key = lab.key  # (same model and settings: the boot worker's booter serves it)
+        recovering = self.recovering
+        self._swap(fresh)
+        self.recovering = recovering
+        self.reboots += 1
+        log.warning("stream %s: %s: booting its %s again (the tracks before it are stale)",
+                    self.name, why, plural(len(lab.model.subjects), "subject"))  # fmt: skip
         return True
 
     def _swap(self, labeler: FrameLabeler) -> None:
