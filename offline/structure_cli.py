@@ -5,8 +5,12 @@ train on (``start`` inclusive, ``stop`` exclusive, in the take's own frames), so
 can be trained on other segments of the takes a scene is made of. Subjects are named as
 ``compose`` names them: a take's own subject prefix, else its file stem (an unprefixed
 single-person take ``walk.c3d`` trains subject ``walk``); ``--rename OLD=NEW`` renames a
-subject of the model (repeatable). A model whose subject names match the scene's is what
-``evaluate --model`` and ``label --model`` score and label against.
+subject of the model (repeatable), ``--rename K:OLD=NEW`` in the K-th input only (``compose``
+names a second subject of the same name ``NAME_2``: ``--rename 2:NAME=NAME_2`` trains it apart).
+One name in two inputs is one person's template; inputs whose marker sets under that name
+share less than half of the smaller one are refused (two people under one name). A model whose
+subject names match the scene's is what ``evaluate --model`` and ``label --model`` score and
+label against.
 """
 
 from __future__ import annotations
@@ -26,8 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--rename",
         action="append",
         default=[],
-        metavar="OLD=NEW",
-        help="rename subject OLD of the model to NEW (repeatable)",
+        metavar="[K:]OLD=NEW",
+        help="rename subject OLD to NEW in every input, or in the K-th input only (from 1; "
+        "e.g. 2:Derrick=Derrick_2, as compose names a second subject of the same name); "
+        "repeatable",
     )
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (JSON)")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the files")
@@ -124,19 +130,34 @@ def parse_take(text: str) -> tuple[str, int, int | None]:
     return path, start, stop
 
 
-def _renames(items: list[str]) -> dict[str, str]:
+#: A subject name two takes share is one person only when their marker sets share at least this
+#: fraction of the smaller one (:func:`_check_shared_names`).
+SHARED_MARKERS_MIN = 0.5
+
+
+def _renames(items: list[str]) -> dict[int | None, dict[str, str]]:
+    """``--rename [K:]OLD=NEW`` -> per input (1-based ``K``; None: every input) ``{OLD: NEW}``."""
     from labeler_service.errors import ModelError
 
-    out = {}
+    out: dict[int | None, dict[str, str]] = {}
     for it in items:
-        old, sep, new = it.partition("=")
-        if not sep or not old or not new or ":" in new:
-            raise ModelError(f"bad --rename {it!r}: expected OLD=NEW (no ':' in NEW)")
-        out[old] = new
+        spec, sep, new = it.partition("=")
+        k_text, colon, old = spec.rpartition(":")
+        if not colon:
+            k_text, old = "", spec
+        if not sep or not old or not new or ":" in new or (colon and not k_text.isdigit()):
+            raise ModelError(
+                f"bad --rename {it!r}: expected OLD=NEW, or K:OLD=NEW for the K-th input only "
+                "(no ':' in NEW)"
+            )
+        k = int(k_text) if colon else None
+        if k is not None and k < 1:
+            raise ModelError(f"bad --rename {it!r}: inputs are counted from 1")
+        out.setdefault(k, {})[old] = new
     return out
 
 
-def _read_takes(texts: list[str], up: str, rename: dict[str, str]) -> list:
+def _read_takes(texts: list[str], up: str, rename: dict[int | None, dict[str, str]]) -> list:
     """The takes, renamed; an OLD name no take has is an error (a misspelt one renamed
     nothing, and the model kept a name the scene does not use). A subject never seen in a
     take is left out of it, with a note (training stopped at it)."""
@@ -152,14 +173,50 @@ def _read_takes(texts: list[str], up: str, rename: dict[str, str]) -> list:
                 f"note: {text}: subject {name} is never seen in the take: left out", file=sys.stderr
             )
         caps.append(cap)
-    found = {s for c in caps for s in c.subjects if s}
-    for old in rename:
-        if old not in found:
-            raise ModelError(
-                f"--rename {old}={rename[old]}: no subject {old!r} in the takes "
-                f"(found {', '.join(sorted(found))})"
-            )
-    return [_renamed(c, rename) for c in caps]
+    for k, names in rename.items():
+        if k is not None and k > len(caps):
+            raise ModelError(f"--rename {k}:...: there are only {len(caps)} inputs")
+        scope = caps if k is None else [caps[k - 1]]
+        found = {s for c in scope for s in c.subjects if s}
+        for old, new in names.items():
+            if old not in found:
+                where = "the takes" if k is None else f"input {k} ({texts[k - 1]})"
+                raise ModelError(
+                    f"--rename {'' if k is None else f'{k}:'}{old}={new}: no subject {old!r} in "
+                    f"{where} (found {', '.join(sorted(found))})"
+                )
+    out = []
+    for i, c in enumerate(caps):
+        out.append(_renamed(c, {**rename.get(None, {}), **rename.get(i + 1, {})}))
+    _check_shared_names(out, texts)
+    return out
+
+
+def _check_shared_names(caps: list, texts: list[str]) -> None:
+    """Takes that give one subject name marker sets sharing less than
+    :data:`SHARED_MARKERS_MIN` of the smaller are two people under one name: refused (their
+    markers were merged into one template that fitted neither, silently)."""
+    from labeler_service.capture import split_label
+    from labeler_service.errors import ModelError
+
+    seen: dict[str, tuple[int, set[str]]] = {}
+    for i, cap in enumerate(caps):
+        for subj in cap.subjects:
+            if not subj:
+                continue
+            markers = {split_label(cap.labels[j])[1] for j in cap.subject_columns(subj)}
+            if subj not in seen:
+                seen[subj] = (i, markers)
+                continue
+            j, first = seen[subj]
+            common = len(markers & first)
+            if common < SHARED_MARKERS_MIN * min(len(markers), len(first)):
+                raise ModelError(
+                    f"subject {subj}: input {j + 1} ({texts[j]}) has {len(first)} markers, "
+                    f"input {i + 1} ({texts[i]}) {len(markers)}, {common} of them in common: two "
+                    f"people under one name? Name one apart with --rename {i + 1}:{subj}=NEW "
+                    "(compose names a second subject of the same name NAME_2)"
+                )
 
 
 def _read_take(text: str, up: str):
@@ -175,6 +232,8 @@ def _read_take(text: str, up: str):
     cap = read_capture(path, up=up)
     if start >= cap.n_frames:
         raise ModelError(f"{text}: start {start} is past the take's {cap.n_frames} frames")
+    if stop is not None and stop > cap.n_frames:
+        raise ModelError(f"{text}: stop {stop} is past the take's {cap.n_frames} frames")
     cap = cap.frames(start, stop)
     if not [s for s in cap.subjects if s]:
         cap = cap.with_subject(Path(path).stem.replace(":", "_") or "subject")
@@ -182,7 +241,7 @@ def _read_take(text: str, up: str):
 
 
 def _renamed(cap, rename: dict[str, str]):
-    """``cap`` with its subjects OLD named NEW (``--rename OLD=NEW``)."""
+    """``cap`` with its subjects OLD named NEW (``--rename [K:]OLD=NEW``)."""
     from labeler_service.capture import Capture, split_label
 
     if not rename:

@@ -20,6 +20,7 @@ structure``) adds it on top of this class.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -27,6 +28,7 @@ import numpy as np
 from labeler_service.capture.model import Capture, split_label
 from labeler_service.errors import LabelerError, ModelError
 from labeler_service.labeling.kernels.chirality import volume_stats
+from labeler_service.labeling.kernels.state import MAX_BODY
 from labeler_service.labeling.templates import LabelerModel, reversed_in_shape
 from labeler_service.labeling.training import motion_noise, train_subject
 
@@ -281,6 +283,21 @@ class StructureTrainer:
         all_seeds: bool = True,
         glimpsed: bool = False,
     ) -> None:
+        # (``train structure``'s options are named too: a NaN weight made every marker a body
+        # of its own, and a negative one was blamed on the training frames' labels)
+        if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
+            raise ModelError(f"--tolerance-mm must be a finite distance > 0 mm, got {tolerance_mm}")
+        if not (math.isfinite(distance_weight) and distance_weight >= 0):
+            raise ModelError(
+                f"--distance-weight must be a finite number >= 0, got {distance_weight}"
+            )
+        if not 1 <= min_size <= max_size <= MAX_BODY:
+            raise ModelError(
+                f"--min-size and --max-size need 1 <= min <= max <= {MAX_BODY} markers per body, "
+                f"got {min_size} and {max_size}"
+            )
+        if min_pair_frames < 1:
+            raise ModelError(f"min_pair_frames must be >= 1, got {min_pair_frames}")
         self.tolerance_mm = tolerance_mm
         self.distance_weight = distance_weight
         self.min_size = min_size

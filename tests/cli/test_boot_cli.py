@@ -54,7 +54,8 @@ def test_train_structure_on_a_frame_range_names_subjects_like_compose(scene, tmp
     assert main(args) == 0
     assert [s.name for s in load_model(out).subjects] == ["P2"]
     for bad, why in ((f"{solo}:5:2", "start < stop"), (f"{solo}:x", "TAKE[:start[:stop]]"),
-                     (f"{solo}:99999", "past the take")):  # fmt: skip
+                     (f"{solo}:99999", "past the take"),
+                     (f"{solo}:100:99999", "stop 99999 is past the take")):  # fmt: skip
         assert main(["train", "structure", bad, "--out", str(out)]) == 2
         assert why in capsys.readouterr().err
     assert main(["train", "structure", str(solo), "--rename", "nope", "--out", str(out)]) == 2
@@ -63,6 +64,63 @@ def test_train_structure_on_a_frame_range_names_subjects_like_compose(scene, tmp
     args = ["train", "structure", str(solo), "--rename", "solo-take=P2", "--out", str(out)]
     assert main(args) == 2
     assert "no subject 'solo-take' in the takes (found solo_take)" in capsys.readouterr().err
+
+
+def test_train_structure_keeps_two_people_of_one_name_apart(scene, tmp_path, capsys):
+    """One subject name in two inputs is one person's template: two different marker sets
+    under one name are refused (they were merged into a template that fitted neither), and
+    ``--rename K:OLD=NEW`` names a subject in one input only (as ``compose`` names a second
+    subject of the same name ``NAME_2``)."""
+    d, cap, path, _, _ = scene
+    p1, p2 = cap.subject_columns("P1"), cap.subject_columns("P2")
+    other = Capture(
+        cap.positions[:, p2[:10]],
+        tuple(f"P1:X{i}" for i in range(10)),  # P2's body, other markers, named P1
+        cap.rate,
+    )
+    impostor = tmp_path / "impostor.npz"
+    write_capture(other, impostor)
+    one = tmp_path / "p1.npz"
+    write_capture(cap.select(list(p1)), one)
+    out = tmp_path / "m.json"
+    assert main(["train", "structure", f"{one}:0:400", f"{impostor}:0:400", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "subject P1: input 1" in err and "0 of them in common" in err
+    assert "--rename 2:P1=NEW" in err and not out.exists()
+    args = ["train", "structure", f"{one}:0:400", f"{impostor}:0:400", "--rename", "2:P1=P1_2",
+            "--out", str(out), "--json"]  # fmt: skip
+    assert main(args) == 0
+    summary = _last_json(capsys)
+    assert summary["subjects"]["P1"]["markers"] == len(p1)
+    assert summary["subjects"]["P1_2"]["markers"] == 10
+    # two segments of one person under one name stay one template
+    args = ["train", "structure", f"{one}:0:300", f"{one}:300:600", "--out", str(out), "--json"]
+    assert main(args) == 0
+    assert list(_last_json(capsys)["subjects"]) == ["P1"]
+    for bad, why in (
+        (["--rename", "3:P1=Q"], "only 2 inputs"),
+        (["--rename", "2:P2=Q"], "no subject 'P2' in input 2"),
+        (["--rename", "x:P1=Q"], "K:OLD=NEW"),
+        (["--rename", "0:P1=Q"], "from 1"),
+    ):
+        assert main(["train", "structure", str(one), str(impostor), *bad, "--out", str(out)]) == 2
+        assert why in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "why"),
+    [("--tolerance-mm", "nan", "--tolerance-mm must be a finite distance > 0"),
+     ("--tolerance-mm", "0", "--tolerance-mm must be"),
+     ("--distance-weight", "nan", "--distance-weight must be a finite number >= 0"),
+     ("--distance-weight", "-5", "--distance-weight must be"),
+     ("--min-size", "7", "1 <= min <= max <= 8"), ("--max-size", "9", "1 <= min <= max <= 8")],
+)  # fmt: skip
+def test_train_structure_refuses_rule_values_that_make_no_body(scene, tmp_path, capsys, option,
+                                                              value, why):  # fmt: skip
+    _, _, path, _, _ = scene
+    out = tmp_path / "m.json"
+    assert main(["train", "structure", f"{path}:0:200", option, value, "--out", str(out)]) == 2
+    assert why in capsys.readouterr().err and not out.exists()
 
 
 def test_label_an_unlabeled_take_from_a_model(scene, tmp_path, capsys):
