@@ -172,6 +172,8 @@ class StreamSettings(_Section):
     @field_validator("model")
     @classmethod
     def _model_exists(cls, v: Path | None) -> Path | None:
+        if v is not None and Path(v).is_dir():
+            raise ValueError(f"model {v} is a folder, not a model file (train structure's JSON)")
         if v is not None and not Path(v).is_file():
             raise ValueError(f"model file {v} does not exist")
         return v
@@ -482,7 +484,28 @@ def read_settings_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"settings file {p} cannot be read: {type(exc).__name__}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"settings file {p} must hold a table/object at the top level")
+    _paths_from_file(data, p.parent)
     return data
+
+
+#: Settings naming files, per table (``streams`` is a list of tables): a relative path in a
+#: settings file is read from the file's folder, as users write them (it was read from the
+#: service's working folder: ``model = "../models/m.json"`` beside the config "did not exist").
+FILE_SETTINGS = {"streams": ("model",), "mqtt": ("ca_file", "cert_file", "key_file")}
+
+
+def _paths_from_file(data: dict[str, Any], base: Path) -> None:
+    """Makes the relative file paths of ``data`` (:data:`FILE_SETTINGS`) relative to ``base``
+    in place; values of other types are left for validation to refuse."""
+    for table, keys in FILE_SETTINGS.items():
+        sections = data.get(table)
+        for sec in sections if isinstance(sections, list) else [sections]:
+            if not isinstance(sec, dict):
+                continue
+            for key in keys:
+                v = sec.get(key)
+                if isinstance(v, str) and v and not v.startswith("~") and not Path(v).is_absolute():
+                    sec[key] = str(base / v)
 
 
 def load_settings(path: str | Path | None = None, **overrides: Any) -> ServiceSettings:

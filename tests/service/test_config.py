@@ -192,3 +192,27 @@ def test_a_misspelt_or_flat_variable_says_what_was_meant(monkeypatch):
     assert "MOCAP_QUEUE_SISE (did you mean MOCAP_QUEUE_SIZE?)" in text
     assert "MOCAP_UDP_PORT (nested keys are joined with '__': MOCAP_UDP__PORT)" in text
     assert "(nested keys are joined with '__': MOCAP_BOOT_CONFIG__WINDOW_S)" in text
+
+
+def test_relative_paths_in_a_settings_file_are_read_from_its_folder(tmp_path, monkeypatch):
+    """``model = "../models/m.json"`` beside the config: read from the config's folder, not
+    the service's working folder (it "did not exist" when the service ran elsewhere)."""
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "m.json").write_text("{}")
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    path = conf / "s.toml"
+    path.write_text('[[streams]]\nname = "v"\nmodel = "../models/m.json"\n')
+    elsewhere = tmp_path / "run"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    s = load_settings(path)
+    assert s.streams[0].model is not None
+    assert s.streams[0].model.resolve() == (tmp_path / "models" / "m.json").resolve()
+    absolute = conf / "abs.toml"
+    absolute.write_text(f'[[streams]]\nname = "v"\nmodel = "{tmp_path / "models" / "m.json"}"\n')
+    assert load_settings(absolute).streams[0].model == tmp_path / "models" / "m.json"
+    folder = conf / "dir.toml"
+    folder.write_text('[[streams]]\nname = "v"\nmodel = "../models"\n')
+    with pytest.raises(ConfigError, match="is a folder, not a model file"):
+        load_settings(folder)
