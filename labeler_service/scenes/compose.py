@@ -42,10 +42,13 @@ from pathlib import Path
 import numpy as np
 
 from labeler_service.capture import Capture, read_capture, side_pairs, split_label
+from labeler_service.capture.model import MAX_COORD_MM
 from labeler_service.errors import SceneError
 
 #: A marker must be visible in at least this fraction of the window to be kept.
 MIN_VISIBLE_FRACTION = 0.5
+#: Largest ``--radius``: half the distance past which readers map coordinates to missing.
+MAX_RADIUS_MM = MAX_COORD_MM / 2
 CENTRE_SMOOTH_S = 0.25  # Gaussian smoothing of the removed horizontal drift (seconds)
 #: Half-width of the seeded random yaw offset added to "facing the centre" (degrees).
 YAW_JITTER_DEG = 10.0
@@ -391,6 +394,12 @@ def compose_scene(
         math.isfinite(float(radius)) and radius >= 0
     ):
         raise SceneError(f"--radius must be a finite distance >= 0 mm, got {radius}")
+    if radius > MAX_RADIUS_MM:
+        # (1e8 mm wrote a scene that every reader maps to missing: beyond MAX_COORD_MM)
+        raise SceneError(
+            f"--radius {radius:g} mm is past {MAX_RADIUS_MM:g} mm: the scene's coordinates would "
+            f"leave the {MAX_COORD_MM / 1e6:g} km that captures are read within"
+        )
     if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1:
         raise SceneError(f"--frames must be a positive integer, got {frames}")
     rng = np.random.default_rng(seed)
@@ -439,8 +448,20 @@ def compose_scene(
             )
         win = win.with_positions(win.positions, notes=()).without_empty()
         notes += [f"{name}: {x}" for x in win.notes]
-        frac = win.visible[:covered].mean(axis=0) if win.n_markers else np.zeros(0)
+        if win.n_markers == 0:
+            raise SceneError(f"{spec.name}: no marker is visible in the chosen window")
+        frac = win.visible[:covered].mean(axis=0)
         sparse = np.flatnonzero(frac < MIN_VISIBLE_FRACTION)
+        if sparse.size == win.n_markers:
+            # (it said "no marker is visible" of a take whose markers were all there, late)
+            first = int(np.flatnonzero(win.visible[:covered].any(axis=1))[0])
+            at = spec.start + first * cap.rate / out_rate
+            raise SceneError(
+                f"{spec.name}: every marker is visible in fewer than {MIN_VISIBLE_FRACTION:.0%} "
+                f"of the {covered} scene frames the take covers (best "
+                f"{frac.max():.0%}), so none is kept; the first appears at take frame "
+                f"~{at:.0f}: start the take there (TAKE:{at:.0f}) or compose fewer --frames"
+            )
         if sparse.size:
             notes.append(
                 f"{name}: dropped markers visible in < {MIN_VISIBLE_FRACTION:.0%} of the "
@@ -448,8 +469,6 @@ def compose_scene(
                 + ", ".join(f"{win.labels[i]} ({frac[i]:.0%})" for i in sparse)
             )
             win = win.select(np.flatnonzero(frac >= MIN_VISIBLE_FRACTION))
-        if win.n_markers == 0:
-            raise SceneError(f"{spec.name}: no marker is visible in the chosen window")
 
         theta = phase + 2.0 * math.pi * k / n
         inside = win.frames(0, covered)

@@ -204,6 +204,19 @@ def test_take_syntax_errors(text, message):
         TakeSpec.parse(text)
 
 
+def test_a_take_whose_markers_all_appear_late_says_where_to_start(rng):
+    """Every marker dropped by the half-the-window rule: the error says so and where the
+    markers appear (it said "no marker is visible" of a take whose markers were there)."""
+    take = synthetic_take(rng, frames=300, name="A")
+    pos = take.positions.copy()
+    pos[:180] = np.nan  # the performer walks in at frame 180
+    take = take.with_positions(pos)
+    with pytest.raises(SceneError, match=r"fewer than 50% .* first appears at take frame ~180"):
+        compose_scene([take], radius=300.0, frames=300, seed=0)
+    scene = compose_scene([TakeSpec(capture=take, start=180)], radius=300.0, frames=100, seed=0)
+    assert scene.n_markers == len(_NAMES)
+
+
 def test_errors(rng):
     a = synthetic_take(rng, frames=200, rate=120.0, name="A")
     b = synthetic_take(rng, frames=200, rate=100.0, name="B")
@@ -221,6 +234,9 @@ def test_errors(rng):
             compose_scene([a], radius=300.0, frames=frames, seed=0)
     with pytest.raises(SceneError, match="at least one take"):
         compose_scene([], radius=300.0, frames=10, seed=0)
+    # a scene readers would map to missing (coordinates past 10 km)
+    with pytest.raises(SceneError, match="past 5e\\+06 mm"):
+        compose_scene([a], radius=1e8, frames=10, seed=0)
     two = Capture.concat_markers([a, synthetic_take(rng, frames=200, name="C")])
     with pytest.raises(SceneError, match="single-person.*pick one"):
         compose_scene([two], radius=300.0, frames=10, seed=0)
