@@ -125,6 +125,12 @@ def train(cfg: TrainConfig) -> dict:
     truth: Truth | None = read_truth(cfg.truth).aligned(labels) if cfg.truth else None
     if any(k < 2 for k in cfg.ks):
         raise ModelError(f"every k must be >= 2, got {list(cfg.ks)}")
+    most = pos.shape[1] // 3  # a segment's pose needs 3 markers (k = 216 of 215 ran for minutes)
+    if max(cfg.ks) > most:
+        raise ModelError(
+            f"every k must be <= {most} (3 markers per segment, {pos.shape[1]} markers), got "
+            f"{list(cfg.ks)}"
+        )
     if cfg.restarts < 1:
         raise ModelError(f"--restarts must be >= 1, got {cfg.restarts}")
     out = cfg.out
@@ -135,6 +141,11 @@ def train(cfg: TrainConfig) -> dict:
     faces = read_faces(cfg.faces, labels) if cfg.faces else None
     surface = prepare_surface(pos, faces=faces, max_strain=cfg.max_strain)
     write_faces(out / "faces.txt", surface.faces, labels)
+    if max(cfg.ks) > len(surface.faces):
+        raise ModelError(
+            f"every k must be <= {len(surface.faces)}, the near-rigid triangles segmented, got "
+            f"{list(cfg.ks)}"
+        )
     timings["surface_s"] = time.perf_counter() - t
 
     models: dict[int, ShoulderSkeleton] = {}

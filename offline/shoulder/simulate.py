@@ -30,6 +30,7 @@ positions of the SC, GH and elbow joint centres) is returned with each motion.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -293,6 +294,31 @@ def _skin(body: ShoulderBody, T: np.ndarray) -> np.ndarray:
     return np.einsum("mb,fbmi->fmi", body.weights, per_bone)
 
 
+#: Frame rates the motions are simulated at (their angle noise is low-passed at up to a few
+#: Hz: below 10 Hz the filter is undefined; NaN or inf crashed it).
+MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 10_000.0
+#: Most occlusion gaps per marker per 1000 frames (gaps last 10-60 frames: 25 leave about
+#: 1/8 of the samples; 2000 left 99.8 % missing).
+MAX_GAP_RATE = 25.0
+
+
+def check_motion(
+    n_frames: int, rate: float, noise_mm: float, gap_rate: float, frames_name: str = "n_frames"
+) -> None:
+    """Refuses what :func:`simulate_motion` cannot simulate (``frames_name``: the frame
+    count's name in the message, e.g. a command's option)."""
+    if n_frames < 10:
+        raise SceneError(f"{frames_name} must be >= 10 frames, got {n_frames}")
+    if not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
+        raise SceneError(f"rate must be {MIN_RATE_HZ:g}-{MAX_RATE_HZ:g} Hz, got {rate}")
+    if not (math.isfinite(noise_mm) and noise_mm >= 0):
+        raise SceneError(f"noise must be a finite distance >= 0 mm, got {noise_mm}")
+    if not (math.isfinite(gap_rate) and 0 <= gap_rate <= MAX_GAP_RATE):
+        raise SceneError(
+            f"gap rate must be 0-{MAX_GAP_RATE:g} gaps per marker per 1000 frames, got {gap_rate}"
+        )
+
+
 def simulate_motion(
     body: ShoulderBody,
     name: str,
@@ -307,10 +333,7 @@ def simulate_motion(
     ``gap_rate`` is the expected number of occlusion gaps (10-60 frames) per marker per 1000
     frames, to exercise missing-sample handling.
     """
-    if n_frames < 10:
-        raise SceneError(f"need at least 10 frames, got {n_frames}")
-    if noise_mm < 0 or gap_rate < 0 or rate <= 0:
-        raise SceneError("noise_mm, gap_rate must be >= 0 and rate > 0")
+    check_motion(n_frames, rate, noise_mm, gap_rate)
     rng = np.random.default_rng(random_state)
     T = _pose(_angles(name, n_frames, rate, rng))  # (F, 4, 4, 4)
     pos = _skin(body, T)

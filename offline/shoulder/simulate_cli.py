@@ -36,9 +36,22 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from labeler_service.capture import write_capture
-    from offline.shoulder.simulate import MOTIONS, build_body, simulate_motion, truth_arrays
+    from labeler_service.errors import SceneError
+    from offline.shoulder.simulate import (
+        MOTIONS,
+        build_body,
+        check_motion,
+        simulate_motion,
+        truth_arrays,
+    )
 
     out = Path(args.out)
+    # every argument checked before the first file is written (a refused --test-frames left
+    # a new rom capture beside an earlier run's test captures and truth)
+    for n, option in ((args.frames, "--frames"), (args.test_frames, "--test-frames")):
+        check_motion(n, args.rate, args.noise, args.gap_rate, frames_name=option)
+    if out.exists() and not out.is_dir():
+        raise SceneError(f"{out}: exists and is not a folder")
     body = build_body(args.spacing)
     rng = np.random.default_rng(args.seed)
     motions = []

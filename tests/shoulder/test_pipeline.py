@@ -151,5 +151,8 @@ def test_train_shoulder_cli_errors(tmp_path, capsys):
     rom = str(sim / "rom.c3d")
     assert main(["train", "shoulder", rom, "--test", "x=", "--out", str(tmp_path / "o")]) == 2
     assert main(["train", "shoulder", rom, "--k", "1", "--out", str(tmp_path / "o")]) == 2
+    # at most 3 markers per segment (k = 216 of 215 markers ran for minutes)
+    assert main(["train", "shoulder", rom, "--k", "3", "500", "--out", str(tmp_path / "o")]) == 2
+    assert "3 markers per segment" in capsys.readouterr().err
     assert main(["train", "shoulder", rom, "--subject", "nobody", "--out", str(tmp_path)]) == 2
     assert "no subject 'nobody'" in capsys.readouterr().err

@@ -61,8 +61,13 @@ def test_noise_gaps_and_seed():
     assert 1.0 < np.nanmean(diff) < 6.0
     with pytest.raises(SceneError, match="unknown shoulder motion"):
         simulate_motion(body, "golf", 100)
-    with pytest.raises(SceneError, match="at least 10 frames"):
+    with pytest.raises(SceneError, match=">= 10 frames"):
         simulate_motion(body, "rom", 5)
+    for kw, why in (({"rate": float("nan")}, "rate must be"), ({"rate": 1e-3}, "rate must be"),
+                    ({"noise_mm": float("nan")}, "noise must be"),
+                    ({"gap_rate": 2000.0}, "gap rate must be")):  # fmt: skip
+        with pytest.raises(SceneError, match=why):
+            simulate_motion(body, "rom", 100, **kw)
     t = truth_arrays(body, [a])
     assert t["joints:curls"].shape == (300, 3, 3)
     np.testing.assert_array_equal(t["joint_segments"], JOINT_SEGMENTS)
@@ -80,3 +85,19 @@ def test_simulate_shoulder_cli(tmp_path, capsys):
         assert z["joints:rom"].shape == (60, 3, 3)
         assert z["labels"].shape[0] == summary["markers"]
     assert main(["simulate-shoulder", str(tmp_path), "--spacing", "3"]) == 2
+
+
+def test_simulate_shoulder_refuses_before_writing(tmp_path, capsys):
+    """A refused argument leaves the folder as it was (``--test-frames 3`` had written a new
+    ``rom`` capture beside an earlier run's test captures and truth), naming the option."""
+    out = tmp_path / "sim"
+    for args, why in (
+        (["--test-frames", "3"], "--test-frames must be >= 10"),
+        (["--rate", "nan"], "rate must be"),
+        (["--rate", "inf"], "rate must be"),
+        (["--noise", "nan"], "noise must be"),
+        (["--gap-rate", "2000"], "gap rate"),
+    ):
+        assert main(["simulate-shoulder", str(out), "--frames", "30", *args]) == 2
+        assert why in capsys.readouterr().err
+        assert not out.exists()
