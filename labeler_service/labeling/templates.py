@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from labeler_service.capture.io import os_reason, replace_file
-from labeler_service.capture.model import join_label
+from labeler_service.capture.model import is_ghost, join_label
 from labeler_service.errors import ModelError
 
 SCHEMA_VERSION: Literal[1] = 1
@@ -112,6 +112,17 @@ class SubjectTemplate(BaseModel):
     def _check(self) -> SubjectTemplate:
         m = len(self.markers)
         where = f"subject {self.name!r}"
+        # names that would not read back from a labeled capture (a hand-edited model)
+        if ":" in self.name:
+            raise ValueError(
+                f"{where}: a subject name cannot hold ':' (labels are subject:marker; it would "
+                f"read back as subject {self.name.partition(':')[0]!r})"
+            )
+        for mk in self.markers:
+            if not mk.strip() or is_ghost(mk):
+                raise ValueError(
+                    f"{where}: marker name {mk!r} is empty or named like an unlabeled track (*N)"
+                )
         if len(set(self.markers)) != m:
             raise ValueError(f"{where}: duplicate marker names")
         for key in ("D", "A"):

@@ -41,6 +41,10 @@ def test_round_trip(tmp_path):
         (lambda d: d["subjects"][0].update(shapes=[]), "1 bodies but 0 shapes"),
         (lambda d: d.update(rate=0), "rate"),
         (lambda d: d["subjects"].append(d["subjects"][0]), "duplicate subject"),
+        # names a labeled capture would not give back (a hand-edited model)
+        (lambda d: d["subjects"][0].update(name="Der:rick"), "would read back as subject 'Der'"),
+        (lambda d: d["subjects"][0].update(markers=["a", "*0", "c"]), "unlabeled track"),
+        (lambda d: d["subjects"][0].update(markers=["a", " ", "c"]), "is empty"),
     ],
 )
 def test_invalid_models_raise_model_error(tmp_path, edit, message):
