@@ -229,7 +229,9 @@ def run(args: argparse.Namespace) -> int:
     summary = {
         "input": args.input,
         "output": args.output,
-        "frames": frames,
+        "frames": frames,  # labeled by the labeler: the per-frame figures' frames
+        "init_frames": init,  # written with their input labels, before those
+        "frames_written": cap.n_frames,
         "markers": m,
         "observed_per_frame": round(observed / frames, 3),
         "recovered_per_frame": round(recovered / frames, 3),

@@ -784,7 +784,7 @@ def evaluate(
             "model": None if model is None else str(getattr(loaded, "source", "") or model),
             "leave": leave,
             "leave_seconds": leave_seconds,
-            "labeled_start": labeled_start,
+            "labeled_start": labeled_start if init_frames > 0 and model is None else None,
             "labeled_start_asked": asked,
         },
         departures=[

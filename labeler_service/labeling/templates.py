@@ -235,7 +235,9 @@ class LabelerModel(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     version: Literal[1] = SCHEMA_VERSION
-    rate: float = Field(gt=0, le=100_000, description="frame rate (Hz) of the training data")
+    rate: float = Field(
+        gt=0, le=100_000, allow_inf_nan=False, description="frame rate (Hz) of the training data"
+    )
     subjects: list[SubjectTemplate] = Field(min_length=1)
     source: str = ""
 

@@ -277,7 +277,11 @@ class Subscriber:
             if self.silent:
                 self.silent = False
                 # the first frame after a silence since the start is no resumption
-                what = "labeled frames again" if self._any_frame else "first labeled frames"
+                # (a booting stream's frames carry no label yet: not called labeled)
+                noun = "labeled frames" if (msg.state == MarkerState.OBSERVED).any() else "frames"
+                what = f"{noun} again" if self._any_frame else f"first {noun}"
+                if noun == "frames":
+                    what += " with no marker labeled yet"
                 self._warn("subscribe %s: %s (stream %s) after %.1f s", self._what(), what,
                            msg.stream, now - self._last_frame)  # fmt: skip
             self._any_frame = True

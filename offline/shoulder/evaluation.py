@@ -53,8 +53,13 @@ def read_truth(path: str | Path) -> Truth:
                 joint_segments=np.asarray(z["joint_segments"], dtype=np.intp),
                 joints=joints,
             )
-    except (KeyError, ValueError, OSError) as exc:
-        raise ModelError(f"{p}: not a shoulder truth file: {exc}") from exc
+    except KeyError as exc:
+        raise ModelError(f"{p}: not a shoulder truth file: no {exc} in it") from exc
+    except (ValueError, OSError) as exc:
+        # (numpy's own message suggested allow_pickle for a JSON file given here)
+        raise ModelError(
+            f"{p}: not a shoulder truth file (the truth.npz simulate-shoulder writes)"
+        ) from exc
 
 
 def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:

@@ -117,8 +117,10 @@ def auto_faces(rest: np.ndarray, n_neighbors: int = 6, min_angle_deg: float = 25
 def read_faces(path: str | Path, labels: Sequence[str]) -> np.ndarray:
     """Faces from a text file (module doc); names match with or without a subject prefix."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise ModelError(f"{p}: no such faces file")
+    if not p.is_file():
+        raise ModelError(f"{p}: not a regular file (faces are a text file, module doc)")
     index = {}
     for i, label in enumerate(labels):
         index[label] = i

@@ -105,6 +105,10 @@ def test_label_with_model(take, tmp_path, capsys):
     assert summary["agreement_with_input_labels"] >= 0.999
     assert summary["markers"] == len(names)
     assert summary["labeled_start"] is None  # a model file is its own start
+    # the frames the figures count, and the frames the file holds (init frames included)
+    n = read_capture(out).n_frames
+    assert summary["frames_written"] == n and summary["init_frames"] == 1
+    assert summary["frames"] == n - 1
     assert main([*args, "--labeled-start", "model"]) == 2
     assert "--labeled-start model trains its model on the init frames" in capsys.readouterr().err
 

@@ -85,7 +85,7 @@ def test_auto_start_is_the_window_model_wherever_it_applies(rng):
     assert baseline["settings"]["labeled_start"] == "labeler"
     assert any("online labeler only" in n for n in baseline["notes"])
     booted, _ = evaluate(cap, init_frames=0, model=_window_model(rng))
-    assert booted["settings"]["labeled_start"] == "labeler"
+    assert booted["settings"]["labeled_start"] is None  # the model file is the start (as label)
     assert not any("labeled start" in n for n in booted["notes"])
 
 

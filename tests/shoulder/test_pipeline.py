@@ -154,5 +154,12 @@ def test_train_shoulder_cli_errors(tmp_path, capsys):
     # at most 3 markers per segment (k = 216 of 215 markers ran for minutes)
     assert main(["train", "shoulder", rom, "--k", "3", "500", "--out", str(tmp_path / "o")]) == 2
     assert "3 markers per segment" in capsys.readouterr().err
+    other = tmp_path / "model.json"
+    other.write_text("{}")
+    assert main(["train", "shoulder", rom, "--truth", str(other), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "not a shoulder truth file" in err and "allow_pickle" not in err
+    assert main(["train", "shoulder", rom, "--faces", "/dev/null", "--out", str(tmp_path)]) == 2
+    assert "not a regular file" in capsys.readouterr().err
     assert main(["train", "shoulder", rom, "--subject", "nobody", "--out", str(tmp_path)]) == 2
     assert "no subject 'nobody'" in capsys.readouterr().err
