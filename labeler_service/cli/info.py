@@ -84,9 +84,13 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(s))
         return 0
     print(f"{s['file']}")
+    # the fraction is of the labeled markers' samples (the unlabeled tracks are said below;
+    # "136 markers, 100 % missing" of a label output read as if nothing was there)
+    named = s["markers"] - s["unlabeled_tracks"]
+    cols = plural(named, "marker") if named else plural(s["unlabeled_tracks"], "unlabeled track")
     print(
         f"  {plural(s['frames'], 'frame')} at {s['rate_hz']:g} Hz ({s['duration_s']:.2f} s), "
-        f"{plural(s['markers'], 'marker')}, {s['missing_fraction']:.1%} samples missing"
+        f"{cols}, {s['missing_fraction']:.1%} of their samples missing"
     )
     for name, sub in s["subjects"].items():
         print(
