@@ -196,6 +196,11 @@ RATE_WINDOW_S = 2.0
 RATE_MIN_STEPS = 20
 #: measured / stream rate outside [1 / RATE_OFF, RATE_OFF]: said in the log
 RATE_OFF = 1.25
+#: frame steps whose interquartile range exceeds this fraction of their median are irregular,
+#: and a measured rate outside this range (Hz) is no capture's: the log then asks about the
+#: sender's ``t`` instead of advising a rate setting
+RATE_IRREGULAR = 0.25
+RATE_PLAUSIBLE = (10.0, 10_000.0)
 
 
 class RateCheck:
@@ -223,11 +228,25 @@ class RateCheck:
         self._steps.append(t - last)
         if t - self._since < RATE_WINDOW_S or len(self._steps) < RATE_MIN_STEPS:
             return None
-        measured = 1.0 / float(np.median(self._steps))
+        steps = np.asarray(self._steps)
+        step = float(np.median(steps))
+        measured = 1.0 / step
         self._steps, self._since = [], None
         if 1.0 / RATE_OFF <= measured / rate <= RATE_OFF:
             return None
         self._warned = rate
+        q1, q3 = np.percentile(steps, [25, 75])
+        if (
+            q3 - q1 > RATE_IRREGULAR * step
+            or not RATE_PLAUSIBLE[0] <= measured <= RATE_PLAUSIBLE[1]
+        ):
+            # no capture rate to advise (a hostile or broken sender was told "set rate = 1")
+            how = "irregularly" if q3 - q1 > RATE_IRREGULAR * step else "steadily"
+            return (
+                f"stream {stream}: its frames' t step {step:.4g} s apart ({how}; median) where "
+                f"the stream runs at {rate:.4g} Hz: no capture rate - is the sender's t the "
+                "capture time in seconds? (docs/protocol.md)"
+            )
         return (
             f"stream {stream}: its frames come at {measured:.4g} Hz (the steps of their t) where "
             f"the stream runs at {rate:.4g} Hz (streams[].rate, else its model's rate): the boot "

@@ -208,3 +208,18 @@ def test_the_rate_check_measures_again_after_a_time_jump():
     said = [chk.update("v", 1.6 + k / 25, 100.0) for k in range(1, 20)]
     assert sum(s is not None for s in said) == 1
     assert all(chk.update("v", 3 + k / 25, 100.0) is None for k in range(200))  # said once
+
+
+def test_the_rate_check_advises_no_rate_for_times_no_capture_has():
+    """Frames whose ``t`` steps irregularly, or at no capture's rate, ask about the sender's
+    ``t`` instead of advising ``set rate = 1`` (what a hostile stream was told)."""
+    from labeler_service.service.units import RateCheck
+
+    rng = np.random.default_rng(0)
+    chk = RateCheck()
+    t = np.cumsum(rng.uniform(0.001, 0.05, 400))  # steps of 1-50 ms at random
+    said = [s for s in (chk.update("v", float(x), 120.0) for x in t) if s is not None]
+    assert len(said) == 1 and "irregularly" in said[0] and "set rate" not in said[0]
+    chk = RateCheck()
+    said = [s for s in (chk.update("v", float(k), 120.0) for k in range(40)) if s]  # 1 Hz
+    assert len(said) == 1 and "steadily" in said[0] and "seconds?" in said[0]
