@@ -145,14 +145,17 @@ def _renames(items: list[str]) -> dict[int | None, dict[str, str]]:
         k_text, colon, old = spec.rpartition(":")
         if not colon:
             k_text, old = "", spec
-        if not sep or not old or not new or ":" in new or (colon and not k_text.isdigit()):
+        digits = k_text.isascii() and k_text.isdigit()
+        if not sep or not old or not new or ":" in new or "=" in new or (colon and not digits):
             raise ModelError(
                 f"bad --rename {it!r}: expected OLD=NEW, or K:OLD=NEW for the K-th input only "
-                "(no ':' in NEW)"
+                "(no ':' or '=' in NEW)"
             )
         k = int(k_text) if colon else None
         if k is not None and k < 1:
             raise ModelError(f"bad --rename {it!r}: inputs are counted from 1")
+        if out.get(k, {}).get(old, new) != new:
+            raise ModelError(f"--rename {it!r}: {old} is renamed twice")
         out.setdefault(k, {})[old] = new
     return out
 
@@ -164,7 +167,11 @@ def _read_takes(texts: list[str], up: str, rename: dict[int | None, dict[str, st
     import sys
 
     from labeler_service.errors import ModelError
+    from labeler_service.wording import plural
 
+    for k in rename:
+        if k is not None and k > len(texts):
+            raise ModelError(f"--rename {k}:...: only {plural(len(texts), 'input')} given")
     caps = []
     for text in texts:
         cap, absent = _read_take(text, up).without_absent_subjects()
@@ -174,8 +181,6 @@ def _read_takes(texts: list[str], up: str, rename: dict[int | None, dict[str, st
             )
         caps.append(cap)
     for k, names in rename.items():
-        if k is not None and k > len(caps):
-            raise ModelError(f"--rename {k}:...: there are only {len(caps)} inputs")
         scope = caps if k is None else [caps[k - 1]]
         found = {s for c in scope for s in c.subjects if s}
         for old, new in names.items():
@@ -185,17 +190,20 @@ def _read_takes(texts: list[str], up: str, rename: dict[int | None, dict[str, st
                     f"--rename {'' if k is None else f'{k}:'}{old}={new}: no subject {old!r} in "
                     f"{where} (found {', '.join(sorted(found))})"
                 )
-    out = []
+    out, given = [], []
     for i, c in enumerate(caps):
-        out.append(_renamed(c, {**rename.get(None, {}), **rename.get(i + 1, {})}))
-    _check_shared_names(out, texts)
+        ren = {**rename.get(None, {}), **rename.get(i + 1, {})}
+        out.append(_renamed(c, ren))
+        given.append({new: old for old, new in ren.items()})  # model name -> the take's
+    _check_shared_names(out, texts, given)
     return out
 
 
-def _check_shared_names(caps: list, texts: list[str]) -> None:
+def _check_shared_names(caps: list, texts: list[str], given: list[dict[str, str]]) -> None:
     """Takes that give one subject name marker sets sharing less than
     :data:`SHARED_MARKERS_MIN` of the smaller are two people under one name: refused (their
-    markers were merged into one template that fitted neither, silently)."""
+    markers were merged into one template that fitted neither, silently). ``given[i]``: input
+    ``i``'s renames, model name -> the name in the take (what ``--rename i:`` must name)."""
     from labeler_service.capture import split_label
     from labeler_service.errors import ModelError
 
@@ -214,7 +222,8 @@ def _check_shared_names(caps: list, texts: list[str]) -> None:
                 raise ModelError(
                     f"subject {subj}: input {j + 1} ({texts[j]}) has {len(first)} markers, "
                     f"input {i + 1} ({texts[i]}) {len(markers)}, {common} of them in common: two "
-                    f"people under one name? Name one apart with --rename {i + 1}:{subj}=NEW "
+                    f"people under one name? Name one apart with --rename "
+                    f"{i + 1}:{given[i].get(subj, subj)}=NEW "
                     "(compose names a second subject of the same name NAME_2)"
                 )
 

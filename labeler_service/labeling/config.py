@@ -45,8 +45,9 @@ class LabelerConfig(BaseModel):
     exchange: bool = Field(
         True,
         description="two markers tracked in the previous frame that hold each other's points "
-        "exchange them when that halves their distances to their predictions and their bodies' "
-        "shape does not refute it (a symmetric body's pair)",
+        "exchange them when that brings their distances to their predictions below "
+        "exchange_ratio of the current ones and their bodies' shape does not refute it (a "
+        "symmetric body's pair)",
     )
     exchange_ratio: float = Field(
         0.25,

@@ -283,21 +283,6 @@ class StructureTrainer:
         all_seeds: bool = True,
         glimpsed: bool = False,
     ) -> None:
-        # (``train structure``'s options are named too: a NaN weight made every marker a body
-        # of its own, and a negative one was blamed on the training frames' labels)
-        if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
-            raise ModelError(f"--tolerance-mm must be a finite distance > 0 mm, got {tolerance_mm}")
-        if not (math.isfinite(distance_weight) and distance_weight >= 0):
-            raise ModelError(
-                f"--distance-weight must be a finite number >= 0, got {distance_weight}"
-            )
-        if not 1 <= min_size <= max_size <= MAX_BODY:
-            raise ModelError(
-                f"--min-size and --max-size need 1 <= min <= max <= {MAX_BODY} markers per body, "
-                f"got {min_size} and {max_size}"
-            )
-        if min_pair_frames < 1:
-            raise ModelError(f"min_pair_frames must be >= 1, got {min_pair_frames}")
         self.tolerance_mm = tolerance_mm
         self.distance_weight = distance_weight
         self.min_size = min_size
@@ -306,8 +291,30 @@ class StructureTrainer:
         self.all_seeds = all_seeds
         self.glimpsed = glimpsed
 
+    def _check_rule(self) -> None:
+        """Refuses rule values that make no body (``train structure``'s options named beside
+        the parameters: a NaN weight made every marker a body of its own, and a negative one
+        was blamed on the training frames' labels)."""
+        tol, w = self.tolerance_mm, self.distance_weight
+        if not (math.isfinite(tol) and tol > 0):
+            raise ModelError(
+                f"tolerance_mm (--tolerance-mm) must be a finite distance > 0 mm, got {tol}"
+            )
+        if not (math.isfinite(w) and w >= 0):
+            raise ModelError(
+                f"distance_weight (--distance-weight) must be a finite number >= 0, got {w}"
+            )
+        if not 1 <= self.min_size <= self.max_size <= MAX_BODY:
+            raise ModelError(
+                f"min_size and max_size (--min-size, --max-size) need 1 <= min <= max <= "
+                f"{MAX_BODY} markers per body, got {self.min_size} and {self.max_size}"
+            )
+        if self.min_pair_frames < 1:
+            raise ModelError(f"min_pair_frames must be >= 1, got {self.min_pair_frames}")
+
     def fit(self, captures: Sequence[Capture]) -> StructureTrainer:
         """Learns ``model_`` (one template per subject found in the captures)."""
+        self._check_rule()
         caps = list(captures)
         if not caps:
             raise ModelError("train structure needs at least one capture")

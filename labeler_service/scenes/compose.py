@@ -456,11 +456,16 @@ def compose_scene(
             # (it said "no marker is visible" of a take whose markers were all there, late)
             first = int(np.flatnonzero(win.visible[:covered].any(axis=1))[0])
             at = spec.start + first * cap.rate / out_rate
+            where = (
+                f"the first appears at take frame ~{at:.0f}: start the take there or compose "
+                "fewer --frames"
+                if first > 0
+                else "they come and go: compose fewer --frames or another segment"
+            )
             raise SceneError(
                 f"{spec.name}: every marker is visible in fewer than {MIN_VISIBLE_FRACTION:.0%} "
-                f"of the {covered} scene frames the take covers (best "
-                f"{frac.max():.0%}), so none is kept; the first appears at take frame "
-                f"~{at:.0f}: start the take there (TAKE:{at:.0f}) or compose fewer --frames"
+                f"of the {covered} scene frames the take covers (best {frac.max():.0%}), so none "
+                f"is kept; {where}"
             )
         if sparse.size:
             notes.append(

@@ -139,6 +139,7 @@ class MqttSettings(_Section):
     @field_validator("ca_file", "cert_file", "key_file")
     @classmethod
     def _file_exists(cls, v: Path | None) -> Path | None:
+        v = None if v is None else Path(v).expanduser()
         if v is not None and not Path(v).is_file():
             raise ValueError(f"file {v} does not exist")
         return v
@@ -172,6 +173,7 @@ class StreamSettings(_Section):
     @field_validator("model")
     @classmethod
     def _model_exists(cls, v: Path | None) -> Path | None:
+        v = None if v is None else Path(v).expanduser()  # (a MOCAP_ variable's ~ too)
         if v is not None and Path(v).is_dir():
             raise ValueError(f"model {v} is a folder, not a model file (train structure's JSON)")
         if v is not None and not Path(v).is_file():
@@ -484,7 +486,7 @@ def read_settings_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"settings file {p} cannot be read: {type(exc).__name__}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"settings file {p} must hold a table/object at the top level")
-    _paths_from_file(data, p.parent)
+    _paths_from_file(data, p.resolve().parent)
     return data
 
 
@@ -504,8 +506,9 @@ def _paths_from_file(data: dict[str, Any], base: Path) -> None:
                 continue
             for key in keys:
                 v = sec.get(key)
-                if isinstance(v, str) and v and not v.startswith("~") and not Path(v).is_absolute():
-                    sec[key] = str(base / v)
+                if isinstance(v, str) and v:
+                    path = Path(v).expanduser()  # (~ is the user's home, as in a shell)
+                    sec[key] = str(path if path.is_absolute() else base / path)
 
 
 def load_settings(path: str | Path | None = None, **overrides: Any) -> ServiceSettings:

@@ -329,6 +329,10 @@ class StreamState:
         self.on_lost: Callable[[StreamState], None] | None = None
         # boot (model streams, see the module docstring)
         self.boot_inflight = False  # a boot job runs or waits to be installed
+        #: the boot job out (None: none): a labeler replaced meanwhile keeps the stream's one
+        #: job in flight until it returns (its result discarded), so the new labeler's first
+        #: attempt is not queued behind a stale one (:meth:`boot_done`)
+        self._boot_request: BootRequest | None = None
         self._labels_seen = False  # a labeled frame reached the current labeler (_install)
         self._warned_unknown = False
         #: the stream's model file as read at its first start (``start_from_model``)
@@ -410,7 +414,7 @@ class StreamState:
         labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
                                 boot=self.settings.boot_config if boot else False)  # fmt: skip
         _off_the_loop(labeler)
-        self.boot_inflight = False
+        self.boot_inflight = self._boot_request is not None
         self._boot_result = None
         self._install(labeler, rate)
 
@@ -772,7 +776,7 @@ class StreamState:
         self.handover = None
         self.window_frames = lab.window_frames if isinstance(lab, BootingLabeler) else None
         self._boot_result = None
-        self.boot_inflight = False
+        self.boot_inflight = self._boot_request is not None
         self._handback.clear()
         self.recovering = False
         self.labeler = lab
@@ -979,11 +983,19 @@ class StreamState:
         if not _off_the_loop(fresh):
             return False
         assert isinstance(fresh, BootingLabeler)
-        fresh.key = lab.key  # (same model and settings: the boot worker's booter serves it)
+        # the boot worker's booter for the old key serves the fresh labeler: it depends only
+        # on the model and the boot settings, both the same, and is read-only (the labeler's
+        # own relearn, which replaces its booter, runs only with inline_extend, off here)
+        fresh.key = lab.key
         recovering = self.recovering
         self._swap(fresh)
         self.recovering = recovering
+        # its status reads ``booting`` until a subject is booted again (the averages of the
+        # labeler replaced decayed to ``lost`` over frames nobody could be labeled in)
+        self._booted_once = False
+        self.labeled_fraction = self.recovered_fraction = float("nan")
         self.reboots += 1
+        self.recoveries += 1  # (mocap_recoveries_total: a boot from the stream's model)
         log.warning("stream %s: %s: booting its %s again (the tracks before it are stale)",
                     self.name, why, plural(len(lab.model.subjects), "subject"))  # fmt: skip
         return True
@@ -991,7 +1003,7 @@ class StreamState:
     def _swap(self, labeler: FrameLabeler) -> None:
         """Installs another labeler of the same marker set (recovery, hand-back): the model
         message and the health averages stay as they are."""
-        self.boot_inflight = False
+        self.boot_inflight = self._boot_request is not None  # (a job out stays: boot_done)
         self._boot_result = None
         self._handback.clear()
         if tuple(labeler.marker_names) != self.names:
@@ -1130,7 +1142,9 @@ class StreamState:
         # worker's start-up (seconds: imports and kernels); a worker killed since (an
         # abandoned attempt) is started again by the request
         w = self.boot_worker
-        return BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.enabled else None)
+        req = BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.enabled else None)
+        self._boot_request = req
+        return req
 
     @staticmethod
     def boot_job(request: BootRequest, cancel: threading.Event | None = None) -> BootOutcome:
@@ -1155,8 +1169,13 @@ class StreamState:
 
     def boot_done(self, request: BootRequest, outcome: BootOutcome | None) -> None:
         """Hands a finished attempt to the next :meth:`process` (``None``: abandoned or
-        failed). A result for a labeler replaced meanwhile (a new run) is discarded."""
+        failed). A result for a labeler replaced meanwhile (a new run) is discarded, and the
+        next attempt may start."""
+        if request is self._boot_request:
+            self._boot_request = None
         if request.labeler is not self.labeler:
+            if self._boot_request is None and self._boot_result is None:
+                self.boot_inflight = False
             return
         self._boot_result = (request, outcome)
 

@@ -140,12 +140,12 @@ def train(cfg: TrainConfig) -> dict:
     t = time.perf_counter()
     faces = read_faces(cfg.faces, labels) if cfg.faces else None
     surface = prepare_surface(pos, faces=faces, max_strain=cfg.max_strain)
-    write_faces(out / "faces.txt", surface.faces, labels)
     if max(cfg.ks) > len(surface.faces):
         raise ModelError(
             f"every k must be <= {len(surface.faces)}, the near-rigid triangles segmented, got "
             f"{list(cfg.ks)}"
         )
+    write_faces(out / "faces.txt", surface.faces, labels)
     timings["surface_s"] = time.perf_counter() - t
 
     models: dict[int, ShoulderSkeleton] = {}

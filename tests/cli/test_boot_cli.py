@@ -87,6 +87,13 @@ def test_train_structure_keeps_two_people_of_one_name_apart(scene, tmp_path, cap
     err = capsys.readouterr().err
     assert "subject P1: input 1" in err and "0 of them in common" in err
     assert "--rename 2:P1=NEW" in err and not out.exists()
+    # a clash made by a rename names the take's own name in the way out
+    renamed = tmp_path / "other.npz"
+    write_capture(Capture(other.positions, tuple(f"Q:X{i}" for i in range(10)), cap.rate), renamed)
+    args = ["train", "structure", f"{one}:0:400", f"{renamed}:0:400", "--rename", "2:Q=P1",
+            "--out", str(out)]  # fmt: skip
+    assert main(args) == 2
+    assert "--rename 2:Q=NEW" in capsys.readouterr().err
     args = ["train", "structure", f"{one}:0:400", f"{impostor}:0:400", "--rename", "2:P1=P1_2",
             "--out", str(out), "--json"]  # fmt: skip
     assert main(args) == 0
@@ -98,7 +105,10 @@ def test_train_structure_keeps_two_people_of_one_name_apart(scene, tmp_path, cap
     assert main(args) == 0
     assert list(_last_json(capsys)["subjects"]) == ["P1"]
     for bad, why in (
-        (["--rename", "3:P1=Q"], "only 2 inputs"),
+        (["--rename", "3:P1=Q"], "only 2 inputs given"),
+        (["--rename", "P1=a=b"], "no ':' or '=' in NEW"),
+        (["--rename", "\u00b2:P1=Q"], "K:OLD=NEW"),
+        (["--rename", "P1=Q", "--rename", "P1=R"], "renamed twice"),
         (["--rename", "2:P2=Q"], "no subject 'P2' in input 2"),
         (["--rename", "x:P1=Q"], "K:OLD=NEW"),
         (["--rename", "0:P1=Q"], "from 1"),
@@ -109,10 +119,10 @@ def test_train_structure_keeps_two_people_of_one_name_apart(scene, tmp_path, cap
 
 @pytest.mark.parametrize(
     ("option", "value", "why"),
-    [("--tolerance-mm", "nan", "--tolerance-mm must be a finite distance > 0"),
-     ("--tolerance-mm", "0", "--tolerance-mm must be"),
-     ("--distance-weight", "nan", "--distance-weight must be a finite number >= 0"),
-     ("--distance-weight", "-5", "--distance-weight must be"),
+    [("--tolerance-mm", "nan", "(--tolerance-mm) must be a finite distance > 0"),
+     ("--tolerance-mm", "0", "(--tolerance-mm) must be"),
+     ("--distance-weight", "nan", "(--distance-weight) must be a finite number >= 0"),
+     ("--distance-weight", "-5", "(--distance-weight) must be"),
      ("--min-size", "7", "1 <= min <= max <= 8"), ("--max-size", "9", "1 <= min <= max <= 8")],
 )  # fmt: skip
 def test_train_structure_refuses_rule_values_that_make_no_body(scene, tmp_path, capsys, option,

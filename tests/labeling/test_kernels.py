@@ -794,8 +794,14 @@ def test_exchange_leaves_what_shape_or_tracking_does_not_support():
     # predictions that favour the exchange by less than the ratio asked (0.18 here)
     assert _run_exchange(points, x, bodies, wrong.copy(), exchange_ratio=0.1)[0] == 0
     assert _run_exchange(points, x, bodies, wrong.copy(), exchange_ratio=0.2)[0] == 1
-    # markers in no shared body are never exchanged (marker 3 holds the right hip's point)
+    # markers in no shared body are never exchanged: marker 0 holds marker 3's point and the
+    # other way round, each predicted 5 mm from its own point (only the body rule stops it)
     a = np.array([3, 1, 2, 0], dtype=np.int32)
-    x[3, :3] = points[0] + 5.0
-    x[0, :3] = points[3] + 5.0
+    x[0, :3] = points[0] + 5.0
+    x[3, :3] = points[3] + 5.0
     assert _run_exchange(points, x, bodies, a)[0] == 0
+    np.testing.assert_array_equal(a, [3, 1, 2, 0])
+    # a NaN prediction never exchanges
+    x = _exchange_scene(apex_offset=0.5)[1]
+    x[0, :3] = np.nan
+    assert _run_exchange(points, x, bodies, wrong.copy())[0] == 0

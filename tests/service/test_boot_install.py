@@ -159,7 +159,7 @@ def test_server_installs_a_result_with_no_frame_after_it(scene_model):
 def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None) -> list:
     """Feeds every frame of ``frames`` to ``st`` (seq from ``seq0``; ``first_verdict`` for the
     first), running each due boot attempt at once; returns what each frame published
-    (marker states, positions)."""
+    (marker states, positions) and the stream's status after it."""
     from labeler_service.service.continuity import ACCEPT
 
     published = []
@@ -170,7 +170,8 @@ def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None) -> lis
         out = st.process(msg, 0, verdict)
         assert out is not None
         lab = decode(out.payload)
-        published.append((lab.state, lab.positions))
+        st.update_health(out)  # (the server's per-frame health: the stream's status)
+        published.append((lab.state, lab.positions, st.status))
         if st.boot_due():
             req = st.boot_request()
             assert req is not None
@@ -194,11 +195,12 @@ def test_a_model_stream_boots_again_after_a_time_jump(scene_model):
     first = _feed_booting(st, frames, 0)
     assert len(st.subjects_booted) == PERFORMERS
     again = _feed_booting(st, frames, 10_000, Verdict(new_run=True, time_jumped=True))
-    assert st.reboots == 1
-    for (s1, p1), (s2, p2) in zip(first, again, strict=True):
+    assert st.reboots == 1 and st.recoveries == 1
+    for (s1, p1, h1), (s2, p2, h2) in zip(first, again, strict=True):
         np.testing.assert_array_equal(s1, s2)
         np.testing.assert_allclose(p1, p2, atol=1e-3)
-        np.testing.assert_allclose(p1, p2, atol=1e-3)
+        assert h1 == h2  # "booting" again until the subjects are booted, then as before
+    assert first[0][2] == "booting" and first[-1][2] == "online"
 
 
 @pytest.mark.realdata
@@ -233,12 +235,40 @@ def test_a_second_replay_of_a_real_take_labels_as_the_first(real_path, tmp_path)
     index = {n: i for i, n in enumerate(test.labels)}
     wrong = [0, 0]
     for k, run_ in enumerate((first, again)):
-        for f, (state, pos) in enumerate(run_):
+        for f, (state, pos, _) in enumerate(run_):
             for m, name in enumerate(st.names):
                 if state[m] == MarkerState.OBSERVED:  # on the point of its own marker?
                     wrong[k] += not np.allclose(pos[m], test.positions[f][index[name]], atol=1e-3)
     print(f"wrong labels: first replay {wrong[0]}, second {wrong[1]}")
     assert wrong[1] == wrong[0]
-    for (s1, p1), (s2, p2) in zip(first, again, strict=True):
+    for (s1, p1, h1), (s2, p2, h2) in zip(first, again, strict=True):
         np.testing.assert_array_equal(s1, s2)
         np.testing.assert_allclose(p1, p2, atol=1e-3)
+        assert h1 == h2
+
+
+def test_a_replaced_labelers_boot_job_holds_the_next_attempt_until_it_returns(scene_model):
+    """A reboot while an attempt is out: the new labeler's first attempt waits for the stale
+    job to return (its result discarded) instead of queueing behind it as a second job of the
+    stream, and starts then."""
+    from labeler_service.service.continuity import Verdict
+
+    path, frames = scene_model
+    settings = _settings(path, boot_worker="thread")
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    f = 0
+    while not st.boot_due():
+        st.process(decode(encode_frame("vol", f, float(frames.times[f]), frames.points[f])), 0)
+        f += 1
+    stale = st.boot_request()
+    assert stale is not None and st.boot_inflight
+    jump = Verdict(new_run=True, time_jumped=True)
+    for k in range(30):  # the new run: the fresh labeler's window fills
+        msg = decode(encode_frame("vol", 5000 + k, float(frames.times[k]), frames.points[k]))
+        st.process(msg, 0, jump if k == 0 else Verdict())
+    assert st.reboots == 1 and st.boot_inflight and not st.boot_due()
+    st.boot_done(stale, StreamState.boot_job(stale))  # the stale job returns: discarded
+    assert not st.install_due and not st.boot_inflight and st.boot_due()
+    fresh = st.boot_request()
+    assert fresh is not None and fresh.labeler is st.labeler is not stale.labeler

@@ -212,6 +212,19 @@ def test_relative_paths_in_a_settings_file_are_read_from_its_folder(tmp_path, mo
     absolute = conf / "abs.toml"
     absolute.write_text(f'[[streams]]\nname = "v"\nmodel = "{tmp_path / "models" / "m.json"}"\n')
     assert load_settings(absolute).streams[0].model == tmp_path / "models" / "m.json"
+    # JSON alike; a MOCAP_ variable's path stays relative to the working folder
+    as_json = conf / "s.json"
+    as_json.write_text(json.dumps({"streams": [{"name": "v", "model": "../models/m.json"}]}))
+    assert load_settings(as_json).streams[0].model.resolve() == s.streams[0].model.resolve()
+    (elsewhere / "m.json").write_text("{}")
+    monkeypatch.setenv("MOCAP_STREAMS", json.dumps([{"name": "v", "model": "m.json"}]))
+    assert load_settings().streams[0].model.resolve() == (elsewhere / "m.json").resolve()
+    monkeypatch.delenv("MOCAP_STREAMS")
+    # ~ is the user's home
+    monkeypatch.setenv("HOME", str(tmp_path))
+    home = conf / "home.toml"
+    home.write_text('[[streams]]\nname = "v"\nmodel = "~/models/m.json"\n')
+    assert load_settings(home).streams[0].model == tmp_path / "models" / "m.json"
     folder = conf / "dir.toml"
     folder.write_text('[[streams]]\nname = "v"\nmodel = "../models"\n')
     with pytest.raises(ConfigError, match="is a folder, not a model file"):

@@ -572,9 +572,10 @@ def _exchange(points, tracks, bodies, scratch, params):
     40 mm from its own marker's prediction and 240 mm from the other's. For every marker ``m``
     observed in the previous frame whose point lies more than ``jump_mm`` from its prediction,
     and every co-member ``m2`` (a marker sharing a body with it) also observed then: the two
-    exchange their points when that halves their summed distances to their predictions and the
-    exchanged reading fits each one's body links no worse than a missing marker would (shape
-    does not refute it). Changes ``scratch.assigned`` and ``owner``; returns the exchanges."""
+    exchange their points when that brings their summed distances to their predictions below
+    ``exchange_ratio`` (a quarter) of the current ones and the exchanged reading fits each one's
+    body links no worse than a missing marker would (shape does not refute it). Changes
+    ``scratch.assigned`` and ``owner``; returns the exchanges."""
     assigned, owner = scratch.assigned, scratch.owner
     active, prev_state, x = tracks.active, tracks.state, tracks.x
     jump2 = params.jump_mm * params.jump_mm
@@ -608,7 +609,8 @@ def _exchange(points, tracks, bodies, scratch, params):
                     e12 += d * d
                     d = points[a, c] - x[m2, c]
                     e21 += d * d
-                if np.sqrt(e12) + np.sqrt(e21) >= params.exchange_ratio * (e11 + np.sqrt(e22)):
+                # (written so that a NaN prediction never exchanges)
+                if not np.sqrt(e12) + np.sqrt(e21) < params.exchange_ratio * (e11 + np.sqrt(e22)):
                     continue
                 if not _shape_allows(m, a2, m2, points, bodies, assigned, a_floor, a_rel,
                                      miss_term):  # fmt: skip
