@@ -32,12 +32,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gap-at", type=int, default=200, help="first streamed frame left out")
     ap.add_argument("--gap-frames", type=int, default=25, help="frames left out (0: none)")
     ap.add_argument("--seed", type=int, default=0, help="point order")
+    ap.add_argument(
+        "--continuity",
+        action="store_true",
+        help="frames go through the service's restart rule (a gap over 1 s is a new run: the "
+        "stream boots again; its first two frames are dropped)",
+    )
+    ap.add_argument(
+        "--keep-tracks",
+        action="store_true",
+        help="compare: a new run keeps the booting labeler (as before StreamState.reboot)",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     a = ap.parse_args(argv)
 
     from labeler_service.capture.io import read_segment
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.templates import save_model
+    from labeler_service.service.continuity import ACCEPT
     from labeler_service.service.protocol import decode, encode_frame
     from labeler_service.service.settings import load_settings
     from labeler_service.service.stream import StreamState
@@ -53,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
                                  streams=[{"name": "vol", "model": str(path)}])  # fmt: skip
         st = StreamState("vol", settings, settings.streams[0])
         st.start_from_model()
+    if a.keep_tracks:
+        st.reboot = lambda why: False  # type: ignore[method-assign]
     rng = np.random.default_rng(a.seed)
     column = {n: i for i, n in enumerate(test.labels)}
     own = np.array([column[n] for n in st.names])
@@ -63,7 +77,11 @@ def main(argv: list[str] | None = None) -> int:
             continue
         pos = test.positions[f]
         vis = rng.permutation(np.flatnonzero(~np.isnan(pos[:, 0])))
-        out = st.process(decode(encode_frame("vol", f, f / test.rate, pos[vis])), 0)
+        msg = decode(encode_frame("vol", f, f / test.rate, pos[vis]))
+        verdict = st.check_frame(msg) if a.continuity else ACCEPT
+        if verdict.reason is not None:
+            continue  # dropped by the restart rule (a new run's first frames)
+        out = st.process(msg, 0, verdict)
         assert out is not None
         lab = decode(out.payload)
         seen = lab.state == MarkerState.OBSERVED
@@ -87,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
             "observed": observed,
             "wrong_after_gap": wrong_after,
             "observed_after_gap": observed_after,
+            "continuity": a.continuity,
+            "keep_tracks": a.keep_tracks,
             "reboots": st.reboots,
         },
         a.out,
