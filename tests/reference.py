@@ -332,6 +332,63 @@ def contest(assigned, owner, active, prev_state, x, s, gate, points, obs, member
     return changes
 
 
+def exchange(assigned, owner, active, prev_state, x, points, bodies, D, A, a_floor, a_rel,
+             miss_term, jump, ratio):  # fmt: skip
+    """Two tracked markers on each other's points, marker by marker in index order: for a marker
+    observed in the previous frame more than ``jump`` from its prediction, its co-members (body
+    order, member order) also observed then, the first whose exchange brings the summed
+    prediction distances below ``ratio`` of the current ones while each exchanged marker keeps
+    every Eq. 5 link to an assigned co-member (the partner left out) at ``miss_term`` or better.
+    ``bodies``: member lists; ``D``, ``A``: per body, (k, k). Returns the exchanges (in place)."""
+
+    def allows(m, q, partner):
+        for b, mem in enumerate(bodies):
+            if m not in mem:
+                continue
+            i = mem.index(m)
+            for j, o in enumerate(mem):
+                if o in (m, partner) or assigned[o] < 0:
+                    continue
+                t = pair_term(D[b][i, j], A[b][i, j], a_floor, a_rel, miss_term, points[q],
+                              points[assigned[o]])  # fmt: skip
+                if t < miss_term:
+                    return False
+        return True
+
+    changes = 0
+    for m in range(len(assigned)):
+        a = assigned[m]
+        if a < 0 or not active[m] or prev_state[m] != 1:
+            continue
+        e11 = np.linalg.norm(points[a] - x[m, :3])
+        if not e11 > jump:
+            continue
+        done = False
+        for mem in bodies:
+            if m not in mem:
+                continue
+            for m2 in mem:
+                a2 = assigned[m2]
+                if m2 == m or a2 < 0 or prev_state[m2] != 1:
+                    continue
+                now = e11 + np.linalg.norm(points[a2] - x[m2, :3])
+                after = np.linalg.norm(points[a2] - x[m, :3]) + np.linalg.norm(
+                    points[a] - x[m2, :3]
+                )
+                if not after < ratio * now:
+                    continue
+                if not (allows(m, a2, m2) and allows(m2, a, m)):
+                    continue
+                assigned[m], assigned[m2] = a2, a
+                owner[a], owner[a2] = m2, m
+                changes += 1
+                done = True
+                break
+            if done:
+                break
+    return changes
+
+
 def max_residual(src, dst, R, t):
     """Largest ``|R src_i + t - dst_i|``."""
     return float(np.max(np.linalg.norm(np.asarray(src) @ R.T + t - np.asarray(dst), axis=1)))

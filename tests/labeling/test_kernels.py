@@ -805,3 +805,50 @@ def test_exchange_leaves_what_shape_or_tracking_does_not_support():
     x = _exchange_scene(apex_offset=0.5)[1]
     x[0, :3] = np.nan
     assert _run_exchange(points, x, bodies, wrong.copy())[0] == 0
+
+
+def test_exchange_equals_its_twin_on_random_scenes(rng):
+    """``_exchange`` against ``reference.exchange`` (marker by marker, plain Python): random
+    overlapping bodies, some of them near-symmetric, points exchanged in pairs and chains,
+    predictions near the truth or near another marker's point, some markers not tracked."""
+    cfg = LabelerConfig()
+    params = kernel_params(cfg)
+    exchanged = 0
+    for _ in range(150):
+        m = int(rng.integers(4, 10))
+        truth = rng.normal(0, 120.0, (m, 3))
+        if rng.random() < 0.5:  # a near-symmetric pair about marker 2
+            truth[1] = truth[0] * np.array([-1.0, 1.0, 1.0])
+            truth[2] = np.array([0.0, 0.0, truth[0, 2] - 200.0])
+        nb = int(rng.integers(1, 4))
+        bodies = [sorted(rng.choice(m, int(rng.integers(2, min(m, 6) + 1)), replace=False).tolist())
+                  for _ in range(nb)]  # fmt: skip
+        D = [np.linalg.norm(truth[b][:, None] - truth[b][None], axis=2) for b in bodies]
+        A = [np.full((len(b), len(b)), float(rng.uniform(1.0, 6.0))) for b in bodies]
+        points = truth + rng.normal(0, 2.0, truth.shape)
+        assigned = np.arange(m, dtype=np.int32)
+        for _ in range(int(rng.integers(0, 3))):  # exchanges and chains
+            i, j = rng.choice(m, 2, replace=False)
+            assigned[[i, j]] = assigned[[j, i]]
+        assigned[rng.random(m) < 0.15] = -1
+        owner = np.full(m, -1, dtype=np.int32)
+        owner[assigned[assigned >= 0]] = np.flatnonzero(assigned >= 0)
+        x = np.zeros((m, 6))
+        x[:, :3] = truth + rng.normal(0, 8.0, truth.shape)
+        far = rng.random(m) < 0.2
+        x[far, :3] = points[rng.integers(0, m, int(far.sum()))]
+        prev = np.where(rng.random(m) < 0.85, 1, 2).astype(np.uint8)
+        want_a, want_o = assigned.copy(), owner.copy()
+        n_ref = ref.exchange(want_a, want_o, np.ones(m, bool), prev, x, points, bodies, D, A,
+                             cfg.a_floor_mm, cfg.a_relative, params.miss_term, cfg.jump_mm,
+                             cfg.exchange_ratio)  # fmt: skip
+        b = new_bodies(m, bodies, D, A, 2)
+        scratch = _scratch(m, m, assigned=assigned, owner=owner)
+        n = _exchange(points, _tracks(x, prev), b, scratch, params)
+        assert n == n_ref
+        np.testing.assert_array_equal(assigned, want_a)
+        np.testing.assert_array_equal(owner, want_o)
+        has = assigned >= 0
+        np.testing.assert_array_equal(owner[assigned[has]], np.flatnonzero(has))
+        exchanged += n > 0
+    assert exchanged >= 10  # (the scenes do exercise the exchange)
