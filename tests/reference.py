@@ -355,18 +355,9 @@ def exchange(assigned, owner, active, prev_state, x, points, bodies, D, A, a_flo
                     return False
         return True
 
-    changes = 0
-    for m in range(len(assigned)):
-        a = assigned[m]
-        if a < 0 or not active[m] or prev_state[m] != 1:
-            continue
-        e11 = np.linalg.norm(points[a] - x[m, :3])
-        if not e11 > jump:
-            continue
-        done = False
-        for mem in bodies:
-            if m not in mem:
-                continue
+    def partner(m, a, e11):
+        """The first co-member the exchange applies to (body order, member order), or None."""
+        for mem in (mem for mem in bodies if m in mem):
             for m2 in mem:
                 a2 = assigned[m2]
                 if m2 == m or a2 < 0 or prev_state[m2] != 1:
@@ -375,17 +366,23 @@ def exchange(assigned, owner, active, prev_state, x, points, bodies, D, A, a_flo
                 after = np.linalg.norm(points[a2] - x[m, :3]) + np.linalg.norm(
                     points[a] - x[m2, :3]
                 )
-                if not after < ratio * now:
-                    continue
-                if not (allows(m, a2, m2) and allows(m2, a, m)):
-                    continue
-                assigned[m], assigned[m2] = a2, a
-                owner[a], owner[a2] = m2, m
-                changes += 1
-                done = True
-                break
-            if done:
-                break
+                if after < ratio * now and allows(m, a2, m2) and allows(m2, a, m):
+                    return m2
+        return None
+
+    changes = 0
+    for m in range(len(assigned)):
+        a = assigned[m]
+        if a < 0 or not active[m] or prev_state[m] != 1:
+            continue
+        e11 = np.linalg.norm(points[a] - x[m, :3])
+        m2 = partner(m, a, e11) if e11 > jump else None
+        if m2 is None:
+            continue
+        a2 = assigned[m2]
+        assigned[[m, m2]] = a2, a
+        owner[[a, a2]] = m2, m
+        changes += 1
     return changes
 
 
