@@ -238,7 +238,14 @@ class Subscriber:
                     "the limit)"
                 )
             elif self.stats.frames == 0 and self.stats.undecodable == 0:
-                why = "the service answers; the stream has not sent labeled frames yet"
+                # (a stream announced online may be idle: its sender between two takes)
+                state = self.status.get(self.stream) if self.stream else None
+                why = (
+                    f"the service answers and says the stream is {state}, but no frame came "
+                    "to this subscriber yet: is the stream's sender sending?"
+                    if state
+                    else "the service answers; the stream has not sent labeled frames yet"
+                )
             else:
                 why = "the service stopped, the stream paused, or the network drops them"
             self._warn("subscribe %s: no labeled frames for %.1f s: %s", self._what(), quiet,

@@ -200,3 +200,25 @@ def test_the_first_frames_after_a_silence_at_the_start_are_not_called_a_resumpti
     first = [w for w in warnings if "labeled frames" in w and " after " in w]
     assert first and "first labeled frames (stream v)" in first[0], warnings
     assert not any("frames again" in w for w in warnings), warnings
+
+
+def test_a_subscriber_joining_an_idle_online_stream_asks_about_the_sender(rng):
+    """A subscriber that joins a stream announced ``online`` whose sender is between two takes
+    was told the stream "has not sent labeled frames yet"; it says the status it heard and
+    asks whether the sender is sending."""
+    cap = moving_clusters(rng, frames=40, rate=120.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
+
+    async def go():
+        async with Server(_settings()) as srv:
+            host, port = srv.transports[0].address
+            url = f"udp://{host}:{port}/v"
+            async with open_sender(url) as (send, stream):
+                await replay(frames, send, stream=stream, init_frames=10, speed=4.0)
+            async with Subscriber(url, silence_s=0.3) as sub:  # joins after the take ended
+                await until(lambda: sub.silent, "the silence warning", timeout=5)
+                return list(sub.warnings)
+
+    warnings = run(go())
+    said = [w for w in warnings if "no labeled frames for" in w]
+    assert said and "says the stream is online, but no frame came" in said[0], warnings
