@@ -486,7 +486,7 @@ def read_settings_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"settings file {p} cannot be read: {type(exc).__name__}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"settings file {p} must hold a table/object at the top level")
-    _paths_from_file(data, p.resolve().parent)
+    resolve_file_paths(data, p.resolve().parent)
     return data
 
 
@@ -496,9 +496,10 @@ def read_settings_file(path: str | Path) -> dict[str, Any]:
 FILE_SETTINGS = {"streams": ("model",), "mqtt": ("ca_file", "cert_file", "key_file")}
 
 
-def _paths_from_file(data: dict[str, Any], base: Path) -> None:
+def resolve_file_paths(data: dict[str, Any], base: Path) -> None:
     """Makes the relative file paths of ``data`` (:data:`FILE_SETTINGS`) relative to ``base``
-    in place; values of other types are left for validation to refuse."""
+    in place (a settings file's folder; a tool writing settings for a service, its own working
+    folder); values of other types are left for validation to refuse."""
     for table, keys in FILE_SETTINGS.items():
         sections = data.get(table)
         for sec in sections if isinstance(sections, list) else [sections]:
@@ -506,7 +507,7 @@ def _paths_from_file(data: dict[str, Any], base: Path) -> None:
                 continue
             for key in keys:
                 v = sec.get(key)
-                if isinstance(v, str) and v:
+                if isinstance(v, str | os.PathLike) and str(v):
                     path = Path(v).expanduser()  # (~ is the user's home, as in a shell)
                     sec[key] = str(path if path.is_absolute() else base / path)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import gc
 import json
 import os
@@ -24,6 +25,7 @@ from urllib.parse import urlsplit
 
 from labeler_service.errors import MocapError
 from labeler_service.scenes.corrupt import StreamFrames
+from labeler_service.service.settings import resolve_file_paths
 
 
 def simulated_frames(
@@ -84,7 +86,11 @@ class ServiceProcess:
     async def __aenter__(self) -> ServiceProcess:
         self.workdir.mkdir(parents=True, exist_ok=True)
         cfg = self.workdir / "service.json"
-        cfg.write_text(json.dumps(self.settings, indent=1, default=str))
+        # file paths as the caller meant them (its working folder): the service reads a
+        # settings file's relative paths from the file's folder
+        settings = copy.deepcopy(self.settings)
+        resolve_file_paths(settings, Path.cwd())
+        cfg.write_text(json.dumps(settings, indent=1, default=str))
         self._log = self.log_path.open("w")
         env = {k: v for k, v in os.environ.items() if not k.startswith("MOCAP_")}
         if "MOCAP_DATA_DIR" in os.environ:
