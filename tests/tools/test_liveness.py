@@ -179,24 +179,38 @@ def test_subscribe_says_what_training_failed_means():
     assert "the service log says why" in sub.warnings[-1]
 
 
-def test_the_first_frames_after_a_silence_at_the_start_are_not_called_a_resumption(rng):
-    """A subscriber started before the stream warned of the silence, then said "labeled
-    frames again" at the first frame it ever got; it says "first labeled frames" now."""
-    cap = moving_clusters(rng, frames=60, rate=120.0)
-    frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
+def _subscriber_warnings(frames, *, joins_after: bool, speed: float) -> list[str]:
+    """The warnings of a subscriber (silence after 0.3 s) around one replay of ``frames`` to a
+    baseline service: started before the replay (the silence warning first, then the frames)
+    or after it (``joins_after``: the stream announced, its sender idle)."""
 
     async def go():
         async with Server(_settings()) as srv:
             host, port = srv.transports[0].address
             url = f"udp://{host}:{port}/v"
+
+            async def send_take():
+                async with open_sender(url) as (send, stream):
+                    await replay(frames, send, stream=stream, init_frames=10, speed=speed)
+
+            if joins_after:
+                await send_take()
             async with Subscriber(url, silence_s=0.3) as sub:
                 await until(lambda: sub.silent, "the silence warning", timeout=5)
-                async with open_sender(url) as (send, stream):
-                    await replay(frames, send, stream=stream, init_frames=10, speed=2.0)
-                await until(lambda: not sub.silent, "the first frames", timeout=5)
+                if not joins_after:
+                    await send_take()
+                    await until(lambda: not sub.silent, "the first frames", timeout=5)
                 return list(sub.warnings)
 
-    warnings = run(go())
+    return run(go())
+
+
+def test_the_first_frames_after_a_silence_at_the_start_are_not_called_a_resumption(rng):
+    """A subscriber started before the stream warned of the silence, then said "labeled
+    frames again" at the first frame it ever got; it says "first labeled frames" now."""
+    cap = moving_clusters(rng, frames=60, rate=120.0)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
+    warnings = _subscriber_warnings(frames, joins_after=False, speed=2.0)
     first = [w for w in warnings if "labeled frames" in w and " after " in w]
     assert first and "first labeled frames (stream v)" in first[0], warnings
     assert not any("frames again" in w for w in warnings), warnings
@@ -208,17 +222,6 @@ def test_a_subscriber_joining_an_idle_online_stream_asks_about_the_sender(rng):
     asks whether the sender is sending."""
     cap = moving_clusters(rng, frames=40, rate=120.0)
     frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
-
-    async def go():
-        async with Server(_settings()) as srv:
-            host, port = srv.transports[0].address
-            url = f"udp://{host}:{port}/v"
-            async with open_sender(url) as (send, stream):
-                await replay(frames, send, stream=stream, init_frames=10, speed=4.0)
-            async with Subscriber(url, silence_s=0.3) as sub:  # joins after the take ended
-                await until(lambda: sub.silent, "the silence warning", timeout=5)
-                return list(sub.warnings)
-
-    warnings = run(go())
+    warnings = _subscriber_warnings(frames, joins_after=True, speed=4.0)
     said = [w for w in warnings if "no labeled frames for" in w]
     assert said and "says the stream is online, but no frame came" in said[0], warnings
