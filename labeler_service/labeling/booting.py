@@ -113,23 +113,28 @@ _prepared_lock = threading.Lock()
 
 
 def prepare_boot(
-    model: LabelerModel, config: BootConfig, rate: float
+    model: LabelerModel, config: BootConfig, rate: float, keep: bool = True
 ) -> tuple[Booter, BootVerifier | None]:
     """The :class:`Booter` of ``model`` and a fresh :class:`BootVerifier` (None when
     ``config.verify`` is off), from the preparation of an earlier call with the same model object
     and settings when one is kept (the booter is read-only once built, so labelers share it; the
-    verifier, which keeps evidence over time, is a copy of a prepared one)."""
+    verifier, which keeps evidence over time, is a copy of a prepared one). ``keep=False``: a
+    model used once (a relearn's), neither looked up nor kept (it would push out the models
+    that recoveries come back to)."""
     key = (id(model), config.model_dump_json())
-    with _prepared_lock:
-        hit = _prepared.get(key)
-        if hit is not None and hit[0] is model:
-            _prepared[key] = _prepared.pop(key)  # most recently used last
+    hit = None
+    if keep:
+        with _prepared_lock:
+            hit = _prepared.get(key)
+            if hit is not None and hit[0] is model:
+                _prepared[key] = _prepared.pop(key)  # most recently used last
     if hit is None or hit[0] is not model:
         hit = (model, Booter(model, config), {})
-        with _prepared_lock:
-            _prepared[key] = hit
-            while len(_prepared) > PREPARED_KEPT:
-                del _prepared[next(iter(_prepared))]
+        if keep:
+            with _prepared_lock:
+                _prepared[key] = hit
+                while len(_prepared) > PREPARED_KEPT:
+                    del _prepared[next(iter(_prepared))]
     booter, verifiers = hit[1], hit[2]
     if not config.verify:
         return booter, None
@@ -571,7 +576,7 @@ class BootingLabeler:
             model = window_model(Capture(pos.astype(np.float32), self._names, self.rate))
         except MocapError:
             return False
-        self._booter, self._verifier = prepare_boot(model, self.boot_config, self.rate)
+        self._booter, self._verifier = prepare_boot(model, self.boot_config, self.rate, False)
         self.relearned += 1
         return True
 
