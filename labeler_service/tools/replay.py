@@ -26,8 +26,8 @@ import numpy as np
 from labeler_service.capture import Capture, read_capture
 from labeler_service.errors import ConfigError
 from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
-from labeler_service.service.protocol import STREAM_NAME, encode_frame
-from labeler_service.service.settings import MqttSettings
+from labeler_service.service.protocol import encode_frame
+from labeler_service.service.settings import MqttSettings, check_stream_name
 from labeler_service.service.transports.url import Endpoint, parse_endpoint
 
 SendFn = Callable[[bytes], Awaitable[bool]]
@@ -131,11 +131,14 @@ def replay_stream(url: str, stream: str | None = None) -> str:
     ``default``. Raises :class:`ConfigError` for a bad URL or stream name (the service refuses
     every frame of a stream name it cannot take, so a replay would send them all for nothing)."""
     ep = parse_endpoint(url)
-    if stream is not None and not STREAM_NAME.match(stream):
-        raise ConfigError(
-            f"--stream {stream!r}: bad stream name (1-64 letters, digits, _ . -; the service "
-            "refuses frames of such a stream)"
-        )
+    if stream is not None:
+        try:
+            check_stream_name(stream)  # (the service's own rule)
+        except ValueError as exc:
+            raise ConfigError(
+                f"--stream {stream!r}: bad stream name ({exc}; the service refuses frames of "
+                "such a stream)"
+            ) from None
     return stream or ep.stream or "default"
 
 
