@@ -259,6 +259,14 @@ class BootConfig(BaseModel):
         description="re-verification: a marker's joint pairs count with its rigid ones when "
         "deciding that it alone is off",
     )
+    verify_support: int = Field(
+        2,
+        ge=1,
+        description="re-verification: a marker is withdrawn alone only while fewer than this "
+        "many pairs of its trained bodies hold (partners that agree with it: a plate of its "
+        "own; a model trained on a still segment calls pairs across a joint rigid, and they "
+        "break when the subject bends)",
+    )
     verify_cut: bool = Field(
         True,
         description="re-verification: a broken joint withdraws the segments beyond it",
@@ -282,5 +290,6 @@ class BootConfig(BaseModel):
         250.0,
         ge=0,
         description="re-verification: labels are withdrawn only from a marker group with a "
-        "marker this close to another subject's (0: everywhere)",
+        "marker this close to another subject's, and the extension exchanges no two markers "
+        "of a segment this close to another subject (0: everywhere)",
     )

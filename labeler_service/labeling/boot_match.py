@@ -2823,9 +2823,12 @@ def _in_contact(
 
 def _touches(points: np.ndarray, others: np.ndarray | None, contact_mm: float) -> bool:
     """Is one of ``points`` within ``contact_mm`` of ``others`` (other subjects' labeled
-    points; untracked points, NaN, are never near)?"""
-    if others is None or others.shape[0] == 0 or contact_mm <= 0:
+    points; untracked points, NaN, are never near)? ``contact_mm`` 0: everywhere (any other
+    subject labeled), as ``BootConfig.verify_contact_mm`` says."""
+    if others is None or others.shape[0] == 0:
         return False
+    if contact_mm <= 0:
+        return True
     with np.errstate(invalid="ignore"):
         near = np.linalg.norm(points[:, None] - others[None], axis=2)
     return bool(np.any(near < contact_mm))

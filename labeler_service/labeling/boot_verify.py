@@ -390,9 +390,11 @@ class BootVerifier:
     def _contact(self, observed: np.ndarray, p: np.ndarray) -> np.ndarray:
         """``(M,)`` observed markers within ``verify_contact_mm`` of an observed marker of
         another subject: only there can a label be another performer's."""
+        if self.config.verify_contact_mm <= 0:
+            return observed.copy()  # (0: everywhere, as the setting says)
         out = np.zeros(self.n_markers, dtype=bool)
         idx = np.flatnonzero(observed)
-        if idx.size < 2 or self.config.verify_contact_mm <= 0:
+        if idx.size < 2:
             return out
         pairs = cKDTree(p[idx]).query_pairs(self.config.verify_contact_mm, output_type="ndarray")
         if pairs.size == 0:
@@ -456,13 +458,21 @@ class BootVerifier:
         if (bad & rig).any():
             m = self.n_markers
             ea, eb, eb_bad = self.ea[ready[rig]], self.eb[ready[rig]], bad[rig]
+            # edges of one trained body (the others are a joint's pairs)
+            eb_body = self.joint[ready[rig]] < 0
             live = np.ones(ea.size, dtype=bool)
             while True:
                 ends = np.concatenate([ea[live], eb[live]])
                 b2 = np.concatenate([eb_bad[live], eb_bad[live]])
                 n_bad = np.bincount(ends, weights=b2, minlength=m)
                 n_all = np.bincount(ends, minlength=m)
-                off = (n_bad >= 2) & (2 * n_bad > n_all)
+                g2 = np.concatenate([~eb_bad[live] & eb_body[live]] * 2)
+                n_good = np.bincount(ends, weights=g2, minlength=m)
+                s2 = np.concatenate([eb_bad[live] & eb_body[live]] * 2)
+                split = np.bincount(ends, weights=s2, minlength=m) > 0
+                # (a trained body split into two groups that each hold, the marker with
+                # verify_support partners of its own: a body trained still across a joint)
+                off = (n_bad >= 2) & (2 * n_bad > n_all) & ~(split & (n_good >= c.verify_support))
                 if not off.any():
                     break
                 mk = int(np.argmax(np.where(off, n_bad - 0.5 * (n_all - n_bad), -np.inf)))

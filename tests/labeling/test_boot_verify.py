@@ -251,3 +251,58 @@ def test_the_catch_up_benchmark_boots_and_digests_the_same_labels_twice():
         outs.append(json.loads(buf.getvalue()))
     assert outs[0]["subjects_booted"] == 3 and outs[0]["attempt_cpu_ms"] > 0
     assert outs[0]["labels_sha256"] == outs[1]["labels_sha256"]
+
+
+@pytest.mark.realdata
+def test_a_body_trained_still_across_a_joint_keeps_its_right_labels(real_path):
+    """A model trained on 0.56 s of a kneeling performer made the lower-back plate and two
+    pelvis markers one rigid body (deviations under 1 mm); once she bends, the plate's pairs to
+    the pelvis are 50 mm off. Those labels are right: the plate's markers each keep three pairs
+    of their body, so none is withdrawn - also next to a walker (``verify_contact_mm`` 0: every
+    marker counts as in contact). Without the support rule (``verify_support`` past any count)
+    the plate is withdrawn, as it was on the ``--start boot`` matrix (tune27)."""
+    from labeler_service.scenes.compose import TakeSpec, compose_scene
+
+    kneel = real_path("kneel_to_prone_62markers_240hz.c3d")
+    gait = real_path("clinical_gait_pig_35markers_100hz.c3d")
+    train = compose_scene(
+        [TakeSpec(path=gait), TakeSpec(path=kneel)], radius=220.0, frames=56, seed=128, rate=100.0
+    )
+    model = _train(train)
+    test = compose_scene(
+        [TakeSpec(path=gait, start=56), TakeSpec(path=kneel, start=285)],
+        radius=220.0,
+        frames=608,
+        seed=127,
+        rate=100.0,
+    )
+    col = {lab: i for i, lab in enumerate(test.labels)}
+    gidx = np.array([col[n] for n in model.marker_names])
+    pos = test.positions[:, gidx].astype(np.float64)
+    plate = {f"kneel_to_prone_62markers_240hz:{m}" for m in ("LBUL", "LBLL", "LBUR", "LBLR")}
+    subject = model.subjects[
+        [s.name for s in model.subjects].index("kneel_to_prone_62markers_240hz")
+    ]
+    body = [
+        b
+        for b in subject.bodies
+        if {subject.markers[i] for i in b} >= {m.split(":")[1] for m in plate}
+    ]
+    assert body, "the still training no longer glues the plate into one body: test moot"
+
+    def withdrawn(support: int) -> set[str]:
+        cfg = BootConfig(verify_contact_mm=0.0, verify_support=support)
+        v = BootVerifier(Booter(model, cfg), 100.0, cfg)
+        for s in range(len(model.subjects)):
+            v.start(s)
+        track = np.arange(pos.shape[1], dtype=np.int64)
+        out = []
+        for f in range(pos.shape[0]):
+            obs = np.isfinite(pos[f, :, 0])
+            verdict = v.update(pos[f], obs, np.where(obs, track, -1))
+            if verdict is not None:
+                out.append((f, verdict))
+        return _withdrawn(model, out)
+
+    assert not plate & withdrawn(BootConfig().verify_support)
+    assert plate & withdrawn(10_000)
