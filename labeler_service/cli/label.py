@@ -36,6 +36,7 @@ import json
 import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.labeling.registry import LABELED_STARTS
@@ -224,8 +225,12 @@ def run(args: argparse.Namespace) -> int:
         source=args.output,
         notes=(f"labeled by mocap-labeler label from {args.input}",),
     )
-    write_capture(result, args.output)
     frames = cap.n_frames - init
+    failed = observed == 0 and frames > 0  # (a run that labeled nothing is no success)
+    # such a run writes OUT for inspection, but never over an earlier OUT (a good one)
+    kept = failed and Path(args.output).exists()
+    if not kept:
+        write_capture(result, args.output)
     summary = {
         "input": args.input,
         "output": args.output,
@@ -264,12 +269,12 @@ def run(args: argparse.Namespace) -> int:
             )
         if never:
             print(f"  never labeled: {', '.join(never)}")
-    if observed == 0 and frames > 0:
-        # the output is written (nothing lost), but a run that labeled nothing is no success
+    if failed:
+        where = f"{args.output} left as it was" if kept else f"output written to {args.output}"
         raise LabelerError(
             f"{args.input}: no point was labeled in {plural(frames, 'frame')}; does the model's "
             "marker set match the capture's (names, subjects), and are the performers in view? "
-            f"(output written to {args.output})"
+            f"({where})"
         )
     return 0
 

@@ -129,7 +129,8 @@ def test_label_errors_are_clean(take, tmp_path, capsys):
 
 def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, capsys):
     """A model that matches nothing in the capture (here: only two random points per frame)
-    must not look like success: one line naming the input, exit 2, the output still written."""
+    must not look like success: one line naming the input, exit 2, the output still written -
+    unless that would replace an earlier output, which stays as it was."""
     from labeler_service.scenes.simulate import simulate_scene
 
     scene = simulate_scene(2, 2.0, "walk", 1, rate=120.0)
@@ -147,6 +148,13 @@ def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, c
     err = capsys.readouterr().err
     assert "no point was labeled" in err and str(raw) in err
     assert out.exists()
+    # a good earlier OUT is not replaced by a run that labels nothing
+    assert main(["label", str(src), str(out), "--model", str(model)]) == 0
+    good = out.read_bytes()
+    capsys.readouterr()
+    assert main(["label", str(raw), str(out), "--model", str(model)]) == 2
+    assert f"{out} left as it was" in capsys.readouterr().err
+    assert out.read_bytes() == good
 
 
 def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, monkeypatch):
