@@ -545,10 +545,14 @@ class Server:
         if verdict.reason is not None:
             self.metrics.drop(verdict.reason, msg.stream)
             if verdict.reason in ("seq_jump", "time_jump"):
+                last_t = state.continuity.last_t
                 self._rlog.warning(f"jump-{msg.stream}", "stream %s: %s at seq %d t %.6g "
-                                   "(last seq %s): suspect frame dropped", msg.stream,
-                                   verdict.reason, msg.seq, msg.t, state.last_seq)  # fmt: skip
+                                   "(last accepted seq %s t %.6g): suspect frame dropped",
+                                   msg.stream, verdict.reason, msg.seq, msg.t, state.last_seq,
+                                   float("nan") if last_t is None else last_t)  # fmt: skip
+                self._stalled(state, msg)
             return
+        state.stalled_since = None
         if verdict.gap:
             self.metrics.gap(msg.stream, verdict.gap)
         self.metrics.frame_in(msg.stream)
@@ -556,6 +560,37 @@ class Server:
             self.metrics.drop("queue_full", msg.stream)
             self._rlog.warning(f"queue-{msg.stream}", "stream %s: falling behind, dropping the "
                                "oldest frame", msg.stream)  # fmt: skip
+
+    def _stalled(self, state: StreamState, msg: FrameMsg) -> None:
+        """Frames keep arriving and none continues the stream (each dropped as a jump: a
+        sender whose ``t`` is frozen or runs backwards while ``seq`` counts on). After
+        ``health_window_s`` of that the status turns ``lost`` and the log says what the frames
+        carry (logged once; the labeled fraction starts again with the next accepted frame). A
+        stream that publishes nothing must not stay ``online``."""
+        now = time.monotonic()
+        if state.stalled_since is None:
+            state.stalled_since = now
+        if now - state.stalled_since < self.settings.health_window_s or state.status == "lost":
+            return
+        last_t = state.continuity.last_t
+        if last_t is not None and msg.t <= last_t:
+            why = (
+                f"their t ({msg.t:.6g} s) does not advance past the last accepted frame's "
+                f"({last_t:.6g} s): is the sender's clock frozen or running backwards?"
+            )
+        else:
+            why = (
+                f"their seq ({msg.seq}) and t ({msg.t:.6g} s) do not continue the last "
+                f"accepted frame's (seq {state.last_seq}, t "
+                f"{float('nan') if last_t is None else last_t:.6g} s) nor each other: "
+                "does the sender number its frames and stamp their times?"
+            )
+        log.warning("stream %s: frames arrive but none continued the stream for %.1f s (%s): "
+                    "status lost", state.name, now - state.stalled_since, why)  # fmt: skip
+        state.status = "lost"
+        state.labeled_fraction = float("nan")  # (the next accepted frame starts it again)
+        self.metrics.health(state.name, 0.0, 0.0)
+        self._spawn(self._status(state.name, "lost"), f"status-{state.name}-stalled")
 
     # ------------------------------------------------------------------ workers
     async def _worker(self, state: StreamState) -> None:

@@ -322,6 +322,9 @@ class StreamState:
         self._booted_once = False
         #: monotonic time of the first of the frames that failed in a row (server); None
         self.failing_since: float | None = None
+        #: monotonic time of the first of the frames in a row that arrive and continue nothing
+        #: (dropped as ``seq_jump``/``time_jump``), None while frames are accepted
+        self.stalled_since: float | None = None
         self.labeled_fraction = float("nan")
         self.recovered_fraction = float("nan")
         #: Called (by the server) when the status turns ``lost``: the hook for boot from a

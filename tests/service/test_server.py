@@ -272,6 +272,51 @@ def test_a_stream_whose_every_frame_fails_turns_lost_and_says_why(rng, caplog):
     )
 
 
+@pytest.mark.parametrize("clock", ["frozen", "backwards"])
+def test_a_sender_whose_clock_stops_turns_lost_and_says_why_then_online_again(rng, caplog, clock):
+    """After 80 good frames the sender's ``seq`` counts on but ``t`` stays put (or runs back)
+    for 60 frames:
+    every frame is dropped as a jump. After ``health_window_s`` of that the status turns
+    ``lost`` with one line saying the frames' t does not advance (it stayed ``online``, the
+    labeled fraction stale at its last value); a sender back to a sane clock is labeled again
+    and the stream reads ``online``."""
+    import logging
+
+    cap = moving_clusters(rng, frames=100)
+    frames = frames_of(cap, np.random.default_rng(4))
+    stuck = 79 / cap.rate
+    payloads = []
+    for f, (pts, truth) in enumerate(frames[:80]):
+        labels = [cap.labels[i] for i in truth] if f < 10 else None
+        payloads.append(encode_frame("default", f, f / cap.rate, pts, labels))
+    for k in range(60):  # the sender repeats its last frame, seq counting on
+        t = stuck if clock == "frozen" else stuck - (k + 1) / cap.rate
+        payloads.append(encode_frame("default", 80 + k, t, frames[79][0], None))
+    for f, (pts, _) in enumerate(frames[80:], start=80):  # a sane clock again: a new run
+        payloads.append(encode_frame("default", 60 + f, 10.0 + f / cap.rate, pts, None))
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.server")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False, health_window_s=0.2), [mem]) as srv:
+            await _feed(mem, payloads[:140], pause=1 / 120)
+            await until(lambda: any(decode(x).state == "lost" for _, k, x, _ in mem.sent
+                                    if k == "status"), "status lost")  # fmt: skip
+            lost_fraction = srv.metrics.value("mocap_labeled_fraction", stream="default")
+            await _feed(mem, payloads[140:], pause=1 / 120)
+            await until(lambda: [decode(x).state for _, k, x, _ in mem.sent
+                                 if k == "status"][-1] == "online", "online again")  # fmt: skip
+            states = [decode(x).state for s, k, x, _ in mem.sent if k == "status"]
+            return states, lost_fraction
+
+    states, lost_fraction = run(go())
+    assert states[-3:] == ["online", "lost", "online"], states
+    assert lost_fraction == 0.0
+    assert "none continued the stream" in caplog.text
+    assert "does not advance past the last accepted frame's" in caplog.text
+    assert caplog.text.count("status lost") == 1
+
+
 def test_status_is_retained_booting_until_labeled_then_offline_and_tasks_end(rng):
     """A configured stream without a model has no labeler until its labeled init frames have
     trained one: it reads ``booting`` (ready, nobody labeled yet), not ``online``, and turns
