@@ -62,9 +62,11 @@ one the server starts a recovery.
 :class:`~labeler_service.labeling.booting.BootingLabeler` of that model, booted off the frame
 path exactly like a model stream's (``boot_due`` / ``boot_request`` / ``boot_job`` /
 ``boot_done``); points go out unlabeled until their performer is booted. Once every subject of
-the model has been labeled for ``HANDBACK_FRAMES`` frames, a plain labeler of the model is
-started from those frames' labels and takes over (no booting cost afterwards). A subject that
-never comes back keeps the stream on the booting labeler, which boots it when it does. A model
+the model has been labeled for ``HANDBACK_FRAMES`` frames, and every marker of the model in
+one of them, a plain labeler of the model is started from those frames' labels and takes over
+(no booting cost afterwards; a marker not in them it would never label: a forearm the boot had
+not placed yet stayed unlabeled for good). A subject that never comes back, or a marker never
+labeled, keeps the stream on the booting labeler, which places it when it appears. A model
 stream with ``boot = false`` whose first frame carries no labels (a live source, ``replay
 --init-frames 0``) starts the same way instead of refusing every frame.
 """
@@ -322,6 +324,8 @@ class StreamState:
         self._booted_once = False
         #: monotonic time of the first of the frames that failed in a row (server); None
         self.failing_since: float | None = None
+        #: who sent the last accepted frame (UDP: its address; MQTT: the transport)
+        self.sender: object = None
         #: monotonic time of the first of the frames in a row that arrive and continue nothing
         #: (dropped as ``seq_jump``/``time_jump``), None while frames are accepted
         self.stalled_since: float | None = None
@@ -364,6 +368,7 @@ class StreamState:
         self.reboots = 0  # booting labelers started afresh (a new run after a time jump)
         #: the recovery labeler's last frames (points, t, labels) while it labels every subject
         self._handback: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
+        self._handback_waiting = False  # (logged that markers are still missing)
 
     @property
     def last_seq(self) -> int | None:
@@ -405,9 +410,14 @@ class StreamState:
         if path is None:
             raise ModelError(f"stream {self.name}: no model file configured")
         if self._model_file is None:
-            from labeler_service.labeling.templates import load_model
+            from labeler_service.labeling.templates import load_model, same_templates
 
             self._model_file = load_model(path)
+            for a, b in same_templates(self._model_file):
+                log.warning("stream %s: subjects %s and %s of %s have one template: a boot "
+                            "cannot tell them apart (each keeps its name only by continuity; "
+                            "which is which at the first boot is arbitrary)", self.name, a, b,
+                            path)  # fmt: skip
         model = self._model_file
         rate = self.stream_settings.rate
         if rate is None:
@@ -963,6 +973,7 @@ class StreamState:
             return False
         self._swap(lab)
         self.recovering = True
+        self._handback_waiting = False
         self.recoveries += 1
         log.warning("stream %s: %s: booting its %s from the stream's model (recovery "
                     "%d)", self.name, why, plural(len(model.subjects), "subject"),
@@ -1029,6 +1040,22 @@ class StreamState:
         self._handback.append((f.points, t, out.point_labels))
         if len(self._handback) < HANDBACK_FRAMES:
             return
+        # the plain labeler labels only markers its first frames carry (one never labeled in
+        # them stays unlabeled for good): the stream stays on the booting labeler, which
+        # places markers as they appear, until every marker of the model is in them
+        held = np.zeros(len(lab.marker_names), dtype=bool)
+        for _, _, labels in self._handback:
+            held[labels[labels >= 0]] = True
+        if not held.all():
+            if not self._handback_waiting:
+                self._handback_waiting = True
+                missing = [lab.marker_names[i] for i in np.flatnonzero(~held)]
+                shown = ", ".join(missing[:6]) + (", ..." if len(missing) > 6 else "")
+                log.info("stream %s: every subject labeled again; the booting labeler stays "
+                         "until it labels %s too (%s)", self.name,
+                         plural(len(missing), "marker"), shown)  # fmt: skip
+            return
+        self._handback_waiting = False
         plain: FrameLabeler
         if self.window_frames is not None:  # back to the window start's labeler
             plain = make_window_labeler(lab.model, rate=lab.rate, window_frames=self.window_frames,
