@@ -551,8 +551,18 @@ class Server:
                                    msg.stream, verdict.reason, msg.seq, msg.t, state.last_seq,
                                    float("nan") if last_t is None else last_t)  # fmt: skip
                 self._stalled(state, msg)
+                if state.sender is not None and source != state.sender:
+                    self._rlog.warning(f"second-{msg.stream}", "stream %s: frames from a second "
+                                       "sender (%s) dropped while %s sends: one stream takes one "
+                                       "sender's frames (give each sender its own stream "
+                                       "name)", msg.stream, _who(source),
+                                       _who(state.sender))  # fmt: skip
             return
         state.stalled_since = None
+        if state.sender is not None and source != state.sender:
+            log.info("stream %s: frames now come from %s (before: %s)", msg.stream, _who(source),
+                     _who(state.sender))  # fmt: skip
+        state.sender = source
         if verdict.gap:
             self.metrics.gap(msg.stream, verdict.gap)
         self.metrics.frame_in(msg.stream)
@@ -1041,3 +1051,10 @@ class Server:
             await asyncio.sleep(self.settings.log_interval_s)
             log.info("%s", self.metrics.log_line(self._log_streams()))
             self._transport_health(log_all=True)
+
+
+def _who(source: object) -> str:
+    """A frame's sender for the log: ``host:port`` for UDP, else the transport's name."""
+    if isinstance(source, tuple) and len(source) >= 2:
+        return f"{source[0]}:{source[1]}"
+    return str(getattr(source, "name", source))

@@ -317,6 +317,39 @@ def test_a_sender_whose_clock_stops_turns_lost_and_says_why_then_online_again(rn
     assert caplog.text.count("status lost") == 1
 
 
+def test_a_second_sender_on_one_stream_is_named_in_the_log(rng, caplog):
+    """Two replays sending to one stream (their seq and t far apart): the second one's frames
+    are dropped as jumps while the first sends, and the log names both senders; once the first
+    stops, the stream takes the second's frames (a new run) and says so. Before, the log said
+    only ``seq_jump``."""
+    import logging
+
+    cap = moving_clusters(rng, frames=120)
+    first = stream_payloads(cap, rng, init=10)
+    second = [encode_frame("default", 5000 + f, 100.0 + f / cap.rate, pts, None)
+              for f, (pts, _) in enumerate(frames_of(cap, np.random.default_rng(5)))]  # fmt: skip
+    caplog.set_level(logging.INFO, logger="labeler_service.service.server")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False), [mem]) as srv:
+            for k in range(60):
+                mem.inject(first[k], reply_to=("10.0.0.1", 4001))
+                mem.inject(second[k], reply_to=("10.0.0.2", 4002))
+                await asyncio.sleep(1 / 120)
+            for k in range(60, 120):
+                mem.inject(second[k], reply_to=("10.0.0.2", 4002))
+                await asyncio.sleep(1 / 120)
+            await until(lambda: srv.metrics.value("mocap_frames_in_total", stream="default")
+                        >= 60 + 60 - 3, "the second sender's frames in")  # fmt: skip
+
+    run(go())
+    assert "frames from a second sender (10.0.0.2:4002) dropped while 10.0.0.1:4001 sends" in (
+        caplog.text
+    )
+    assert "frames now come from 10.0.0.2:4002 (before: 10.0.0.1:4001)" in caplog.text
+
+
 def test_status_is_retained_booting_until_labeled_then_offline_and_tasks_end(rng):
     """A configured stream without a model has no labeler until its labeled init frames have
     trained one: it reads ``booting`` (ready, nobody labeled yet), not ``online``, and turns
