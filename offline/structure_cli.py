@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from labeler_service.labeling.templates import save_model
+    from labeler_service.labeling.templates import same_templates, save_model
     from labeler_service.labeling.training import DUPLICATE_MM
     from offline.structure import StructureTrainer
 
@@ -59,9 +59,11 @@ def run(args: argparse.Namespace) -> int:
     ).fit(_read_takes(args.inputs, args.up, _renames(args.rename)))
     model = trainer.model_
     save_model(model, args.out)
+    twins = same_templates(model)
     summary = {
         "out": args.out,
         "frames": trainer.n_frames_,
+        "same_template": [list(p) for p in twins],
         "subjects": {
             s.name: {
                 "markers": len(s.markers),
@@ -87,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
                 print(f"  never labeled (no body: seen in fewer than 3 frames, or a duplicate "
                       f"track within {DUPLICATE_MM:g} mm of another marker): "
                       f"{', '.join(s['no_body'])}")  # fmt: skip
+        for a, b in twins:
+            print(f"{a} and {b} have one template (same markers and distances): a boot cannot "
+                  "tell them apart, so each keeps its name only by continuity and which one is "
+                  "called which at the first boot is arbitrary")  # fmt: skip
         print(f"wrote {args.out}")
     return 0
 

@@ -254,6 +254,30 @@ class LabelerModel(BaseModel):
         return tuple(label for s in self.subjects for label in s.labels)
 
 
+#: Two subjects whose trained pair distances differ by at most this (median over the pairs
+#: both trained) with the same marker names have one template: a boot cannot tell them apart.
+SAME_TEMPLATE_MM = 5.0
+
+
+def same_templates(model: LabelerModel) -> list[tuple[str, str]]:
+    """Pairs of the model's subjects with one template: the same marker names and pair
+    distances within ``SAME_TEMPLATE_MM`` at the median (a take and its copy; one performer
+    trained twice under two names). Such subjects keep their names only by continuity: which
+    one a boot calls which is arbitrary (issue 11)."""
+    out = []
+    subjects = model.subjects
+    for i, a in enumerate(subjects):
+        for b in subjects[i + 1 :]:
+            if list(a.markers) != list(b.markers):
+                continue
+            da, db = a.D_array(), b.D_array()
+            both = np.isfinite(da) & np.isfinite(db)
+            np.fill_diagonal(both, False)
+            if both.any() and float(np.median(np.abs(da[both] - db[both]))) <= SAME_TEMPLATE_MM:
+                out.append((a.name, b.name))
+    return out
+
+
 def _matrix(a: np.ndarray) -> list[list[float | None]]:
     return [[None if not np.isfinite(v) else round(float(v), 4) for v in row] for row in a]
 

@@ -94,6 +94,28 @@ def test_cli_writes_a_loadable_model(rng, tmp_path, capsys):
     assert summary["subjects"]["P0"]["no_body"] == [] and "never labeled" not in text
 
 
+def test_cli_says_when_two_subjects_have_one_template(rng, tmp_path, capsys):
+    """A take and its copy 2 m away under another name (the tennis data's two players): one
+    template, which a boot cannot tell apart; the summary and the text say so. Two different
+    performers are not flagged (test above: ``same_template`` empty)."""
+    cap = _capture(rng, subjects=1, frames=150)
+    copy = cap.positions + np.array([2000.0, 0.0, 0.0], dtype=np.float32)
+    names = list(cap.labels) + [n.replace("P0:", "Q0:") for n in cap.labels]
+    pair = Capture(np.concatenate([cap.positions, copy], axis=1), names, cap.rate)
+    src = tmp_path / "pair.npz"
+    write_capture(pair, src)
+    out = tmp_path / "model.json"
+    assert main(["train", "structure", str(src), "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["same_template"] == [["P0", "Q0"]]
+    assert main(["train", "structure", str(src), "--out", str(out)]) == 0
+    assert "P0 and Q0 have one template" in capsys.readouterr().out
+    two = tmp_path / "two.npz"
+    write_capture(_capture(rng, frames=150), two)
+    assert main(["train", "structure", str(two), "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["same_template"] == []
+
+
 def test_cli_names_a_split_track_that_will_never_be_labeled(rng, tmp_path, capsys):
     """A second name for one physical marker (4 mm off it, for 10 frames) is left out of the
     bodies, and the summary says which marker will never be labeled."""
