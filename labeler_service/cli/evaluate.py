@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     )
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
+    _warm_up(cap.rate, boot=args.model is not None and args.init_frames == 0)
     common = dict(
         methods=methods,
         init_frames=args.init_frames,
@@ -288,3 +289,22 @@ def plot_accuracy_vs_downsampling(
 
 
 __all__ = ["add_arguments", "plot_accuracy_vs_downsampling", "resolve_methods", "run"]
+
+
+def _warm_up(rate: float, boot: bool) -> None:
+    """Compiles (or loads from numba's cache) the kernels before the run, saying so on stderr
+    when that takes long: the first run after an install compiles for a minute or more, which
+    ``--no-progress`` (or output to a file) left silent (as ``label`` says it,
+    :func:`~labeler_service.cli.label.notice_if_slow`)."""
+    from labeler_service.cli.label import notice_if_slow
+    from labeler_service.labeling.labeler import Labeler
+
+    with notice_if_slow(
+        "compiling the labeling kernels (numba; the first run after an install takes a minute "
+        "or more, later runs load them from the cache)..."
+    ):
+        Labeler(["w:a", "w:b", "w:c"], rate).warmup()
+        if boot:
+            from labeler_service.labeling.boot import warmup_kernels
+
+            warmup_kernels()

@@ -176,3 +176,24 @@ def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, m
     src = take[0]
     assert main(["label", str(src), str(tmp_path / "o.npz"), "--init-frames", "40"]) == 0
     assert "compiling the labeling kernels" in capsys.readouterr().err
+
+
+def test_evaluate_says_the_kernels_are_compiling_without_a_progress_bar(take, capsys, monkeypatch):
+    """``evaluate --no-progress`` (or into a file) printed nothing during a first run's minute
+    of compiling: the warm-up before the run says it too, as ``label`` does."""
+    import time
+
+    from labeler_service.cli import label as label_cmd
+    from labeler_service.labeling.labeler import Labeler
+
+    warm = Labeler.warmup
+
+    def slow(self) -> None:
+        time.sleep(0.5)
+        warm(self)
+
+    monkeypatch.setattr(Labeler, "warmup", slow)
+    monkeypatch.setattr(label_cmd, "NOTICE_AFTER_S", 0.05)
+    args = ["evaluate", str(take[0]), "--init-frames", "40", "--no-progress", "--json"]
+    assert main(args) == 0
+    assert "compiling the labeling kernels" in capsys.readouterr().err
