@@ -899,6 +899,7 @@ class StreamState:
     def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
         """Applies a new run (see the module docstring) before ``f`` is processed."""
         self.runs += 1
+        self.units.new_run()
         self.abandon_handover(f"new run {self.runs}")
         if f.labels is not None:
             log.info("stream %s: new run %d with labeled init frames: retraining", self.name,

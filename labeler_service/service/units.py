@@ -128,6 +128,13 @@ class UnitCheck:
     def reset(self) -> None:
         self._since, self._span = None, 0.0
 
+    def new_run(self) -> None:
+        """Forgets the frames before a new run (another sender, or one back after a pause):
+        the nothing-labeled time and points per frame were theirs (a warning at the new run's
+        first frame gave the previous run's counts and the jump in ``t`` as its duration)."""
+        self.reset()
+        self._reset_match()
+
     def _reset_match(self) -> None:
         self._quiet_since, self._counts, self._units_off = None, [], False
 

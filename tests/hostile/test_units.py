@@ -168,6 +168,22 @@ def test_the_match_check_waits_for_points_and_gives_way_to_the_unit_warning(mode
     assert said and all("metres" in g for g in said)
 
 
+def test_a_new_run_forgets_the_previous_runs_points_for_the_match_check(model_path):
+    """A sender of another marker set (62 points) for 5 s, then the right one from ``t`` =
+    100 (a new run): the match check said at the new run's first frame "nothing labeled for
+    100 s; its frames carry 62 points". The new run starts its own count."""
+    model = load_model(model_path)
+    rng = np.random.default_rng(0)
+    wrong = rng.normal(scale=300.0, size=(62, 3)).astype(np.float32)
+    right = rng.normal(scale=300.0, size=(12, 3)).astype(np.float32)
+    chk = UnitCheck()
+    assert all(chk.update("v", wrong, k / 100, 0, model) is None for k in range(500))
+    chk.new_run()
+    got = [chk.update("v", right, 100 + k / 100, 0, model) for k in range(1001)]
+    assert all(g is None for g in got[:-1])
+    assert "12 points (median)" in (got[-1] or "") and "10.0 s of stream" in (got[-1] or "")
+
+
 def _rate_warnings(scene, model_path, step: int, caplog) -> tuple[int, list[str]]:
     frames = frames_of(scene, np.random.default_rng(1))
     items = [
