@@ -157,9 +157,9 @@ def test_label_that_labels_nothing_is_an_error_but_writes_its_output(tmp_path, c
     assert out.read_bytes() == good
 
 
-def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, monkeypatch):
-    """The first run after an install compiles the kernels for about a minute: said on stderr
-    instead of a silent minute (the warm-up is made slow here, the notice made early)."""
+@pytest.fixture
+def slow_warm_up(monkeypatch):
+    """The kernels' warm-up made slow (a first run's compilation) and the notice made early."""
     import time
 
     from labeler_service.cli import label as label_cmd
@@ -173,27 +173,19 @@ def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, m
 
     monkeypatch.setattr(Labeler, "warmup", slow)
     monkeypatch.setattr(label_cmd, "NOTICE_AFTER_S", 0.05)
+
+
+def test_a_slow_warm_up_says_the_kernels_are_compiling(take, tmp_path, capsys, slow_warm_up):
+    """The first run after an install compiles the kernels for about a minute: said on stderr
+    instead of a silent minute."""
     src = take[0]
     assert main(["label", str(src), str(tmp_path / "o.npz"), "--init-frames", "40"]) == 0
     assert "compiling the labeling kernels" in capsys.readouterr().err
 
 
-def test_evaluate_says_the_kernels_are_compiling_without_a_progress_bar(take, capsys, monkeypatch):
+def test_evaluate_says_the_kernels_are_compiling_without_a_progress_bar(take, capsys, slow_warm_up):
     """``evaluate --no-progress`` (or into a file) printed nothing during a first run's minute
     of compiling: the warm-up before the run says it too, as ``label`` does."""
-    import time
-
-    from labeler_service.cli import label as label_cmd
-    from labeler_service.labeling.labeler import Labeler
-
-    warm = Labeler.warmup
-
-    def slow(self) -> None:
-        time.sleep(0.5)
-        warm(self)
-
-    monkeypatch.setattr(Labeler, "warmup", slow)
-    monkeypatch.setattr(label_cmd, "NOTICE_AFTER_S", 0.05)
     args = ["evaluate", str(take[0]), "--init-frames", "40", "--no-progress", "--json"]
     assert main(args) == 0
     assert "compiling the labeling kernels" in capsys.readouterr().err
