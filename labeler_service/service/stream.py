@@ -128,6 +128,8 @@ log = logging.getLogger(__name__)
 #: Frames every subject must have been labeled by a recovery labeler before the stream is
 #: handed back to a plain labeler (they are its labeled first frames).
 HANDBACK_FRAMES = 4
+#: Stream seconds the hand-back waits, every subject labeled, for markers not labeled yet.
+HANDBACK_WAIT_S = 2.0
 #: Bytes an init frame costs besides its arrays' data (the message object, two array headers),
 #: counted against ``max_init_bytes``.
 INIT_FRAME_OVERHEAD = 320
@@ -329,6 +331,7 @@ class StreamState:
         #: monotonic time of the first of the frames in a row that arrive and continue nothing
         #: (dropped as ``seq_jump``/``time_jump``), None while frames are accepted
         self.stalled_since: float | None = None
+        self.stalled_last = 0.0  # monotonic time of the last of those frames
         self.labeled_fraction = float("nan")
         self.recovered_fraction = float("nan")
         #: Called (by the server) when the status turns ``lost``: the hook for boot from a
@@ -368,7 +371,9 @@ class StreamState:
         self.reboots = 0  # booting labelers started afresh (a new run after a time jump)
         #: the recovery labeler's last frames (points, t, labels) while it labels every subject
         self._handback: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
-        self._handback_waiting = False  # (logged that markers are still missing)
+        #: stream time since which every subject is labeled but markers are missing (the
+        #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
+        self._handback_since: float | None = None
 
     @property
     def last_seq(self) -> int | None:
@@ -974,7 +979,6 @@ class StreamState:
             return False
         self._swap(lab)
         self.recovering = True
-        self._handback_waiting = False
         self.recoveries += 1
         log.warning("stream %s: %s: booting its %s from the stream's model (recovery "
                     "%d)", self.name, why, plural(len(model.subjects), "subject"),
@@ -1021,6 +1025,7 @@ class StreamState:
         self.boot_inflight = self._boot_request is not None  # (a job out stays: boot_done)
         self._boot_result = None
         self._handback.clear()
+        self._handback_since = None
         if tuple(labeler.marker_names) != self.names:
             assert self.rate is not None
             self._install(labeler, self.rate)
@@ -1037,26 +1042,33 @@ class StreamState:
         assert isinstance(lab, BootingLabeler)
         if lab.n_active < len(lab.model.subjects) or self.boot_inflight:
             self._handback.clear()
+            self._handback_since = None
             return
         self._handback.append((f.points, t, out.point_labels))
         if len(self._handback) < HANDBACK_FRAMES:
             return
         # the plain labeler labels only markers its first frames carry (one never labeled in
         # them stays unlabeled for good): the stream stays on the booting labeler, which
-        # places markers as they appear, until every marker of the model is in them
-        held = np.zeros(len(lab.marker_names), dtype=bool)
+        # places markers as they appear, until every marker of a body is in them, for at
+        # most HANDBACK_WAIT_S (a marker fallen off, or not worn, must not keep the booting
+        # labeler's cost for good); a marker in no trained body no labeler labels
+        held = ~_body_markers(lab.model)
         for _, _, labels in self._handback:
             held[labels[labels >= 0]] = True
         if not held.all():
-            if not self._handback_waiting:
-                self._handback_waiting = True
-                missing = [lab.marker_names[i] for i in np.flatnonzero(~held)]
-                shown = ", ".join(missing[:6]) + (", ..." if len(missing) > 6 else "")
+            missing = [lab.marker_names[i] for i in np.flatnonzero(~held)]
+            shown = ", ".join(missing[:6]) + (", ..." if len(missing) > 6 else "")
+            if self._handback_since is None:
+                self._handback_since = t
                 log.info("stream %s: every subject labeled again; the booting labeler stays "
-                         "until it labels %s too (%s)", self.name,
-                         plural(len(missing), "marker"), shown)  # fmt: skip
-            return
-        self._handback_waiting = False
+                         "until it labels %s too (%s), at most %g s", self.name,
+                         plural(len(missing), "marker"), shown, HANDBACK_WAIT_S)  # fmt: skip
+            if t - self._handback_since < HANDBACK_WAIT_S:
+                return
+            log.warning("stream %s: %s not labeled within %g s (%s): back to the plain "
+                        "labeler without them (it will not label them; boot = true labels "
+                        "markers as they appear)", self.name, plural(len(missing), "marker"),
+                        HANDBACK_WAIT_S, shown)  # fmt: skip
         plain: FrameLabeler
         if self.window_frames is not None:  # back to the window start's labeler
             plain = make_window_labeler(lab.model, rate=lab.rate, window_frames=self.window_frames,
@@ -1355,6 +1367,17 @@ def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, 
         for _, kind, name in lab.events[n_events - lab.events.total :]
         if kind in ("withdraw", "reject", "drop")
     )
+
+
+def _body_markers(model: LabelerModel) -> np.ndarray:
+    """``(M,)`` the model's markers in a trained body (the others no labeler labels)."""
+    out = []
+    for subj in model.subjects:
+        inside = np.zeros(len(subj.markers), dtype=bool)
+        for body in subj.bodies:
+            inside[list(body)] = True
+        out.append(inside)
+    return np.concatenate(out) if out else np.zeros(0, dtype=bool)
 
 
 def no_start(stream: str, failed: bool = False) -> str:
