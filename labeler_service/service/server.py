@@ -550,6 +550,7 @@ class Server:
                                    "(last accepted seq %s t %.6g): suspect frame dropped",
                                    msg.stream, verdict.reason, msg.seq, msg.t, state.last_seq,
                                    float("nan") if last_t is None else last_t)  # fmt: skip
+            if verdict.reason in _CONTINUITY_DROPS:
                 self._stalled(state, msg)
                 if state.sender is not None and source != state.sender:
                     self._rlog.warning(f"second-{msg.stream}", "stream %s: frames from a second "
@@ -560,8 +561,9 @@ class Server:
             return
         state.stalled_since = None
         if state.sender is not None and source != state.sender:
-            log.info("stream %s: frames now come from %s (before: %s)", msg.stream, _who(source),
-                     _who(state.sender))  # fmt: skip
+            self._rlog.info(f"sender-{msg.stream}", "stream %s: frames now come from %s "
+                            "(before: %s)", msg.stream, _who(source),
+                            _who(state.sender))  # fmt: skip
         state.sender = source
         if verdict.gap:
             self.metrics.gap(msg.stream, verdict.gap)
@@ -572,18 +574,27 @@ class Server:
                                "oldest frame", msg.stream)  # fmt: skip
 
     def _stalled(self, state: StreamState, msg: FrameMsg) -> None:
-        """Frames keep arriving and none continues the stream (each dropped as a jump: a
-        sender whose ``t`` is frozen or runs backwards while ``seq`` counts on). After
-        ``health_window_s`` of that the status turns ``lost`` and the log says what the frames
-        carry (logged once; the labeled fraction starts again with the next accepted frame). A
-        stream that publishes nothing must not stay ``online``."""
+        """Frames keep arriving and none continues the stream (each dropped by the continuity
+        rule: a sender whose ``t`` is frozen or runs backwards while ``seq`` counts on, whose
+        ``seq`` is frozen, or a second sender's frames only). After ``health_window_s`` of such
+        arrivals, with no quiet gap that long between them, the status turns ``lost``, the
+        labeled fraction 0 (it climbs back through the usual average with the accepted frames
+        that follow), and the log says what the frames carry (rate-limited). A stream that
+        publishes nothing must not stay ``online``."""
         now = time.monotonic()
-        if state.stalled_since is None:
-            state.stalled_since = now
-        if now - state.stalled_since < self.settings.health_window_s or state.status == "lost":
+        window = self.settings.health_window_s
+        if state.stalled_since is None or now - state.stalled_last > window:
+            state.stalled_since = now  # (a pause is no stall: the arrivals must go on)
+        state.stalled_last = now
+        if now - state.stalled_since < window or state.status == "lost":
             return
         last_t = state.continuity.last_t
-        if last_t is not None and msg.t <= last_t:
+        if state.last_seq is not None and msg.seq == state.last_seq:
+            why = (
+                f"their seq ({msg.seq}) does not advance past the last accepted frame's: does "
+                "the sender number its frames?"
+            )
+        elif last_t is not None and msg.t <= last_t:
             why = (
                 f"their t ({msg.t:.6g} s) does not advance past the last accepted frame's "
                 f"({last_t:.6g} s): is the sender's clock frozen or running backwards?"
@@ -595,10 +606,12 @@ class Server:
                 f"{float('nan') if last_t is None else last_t:.6g} s) nor each other: "
                 "does the sender number its frames and stamp their times?"
             )
-        log.warning("stream %s: frames arrive but none continued the stream for %.1f s (%s): "
-                    "status lost", state.name, now - state.stalled_since, why)  # fmt: skip
+        self._rlog.warning(f"stalled-{state.name}", "stream %s: frames arrive but none "
+                           "continued the stream for %.1f s (%s): status lost", state.name,
+                           now - state.stalled_since, why)  # fmt: skip
         state.status = "lost"
-        state.labeled_fraction = float("nan")  # (the next accepted frame starts it again)
+        state.labeled_fraction = 0.0
+        state.recovered_fraction = 0.0
         self.metrics.health(state.name, 0.0, 0.0)
         self._spawn(self._status(state.name, "lost"), f"status-{state.name}-stalled")
 
@@ -1051,6 +1064,10 @@ class Server:
             await asyncio.sleep(self.settings.log_interval_s)
             log.info("%s", self.metrics.log_line(self._log_streams()))
             self._transport_health(log_all=True)
+
+
+#: drops by the continuity rule (service/continuity.py): frames that continue nothing
+_CONTINUITY_DROPS = ("seq_jump", "time_jump", "duplicate", "late")
 
 
 def _who(source: object) -> str:
