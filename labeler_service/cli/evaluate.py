@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
     )
     methods = _methods(args.method)
     show = not args.no_progress and sys.stderr.isatty()
-    _warm_up(cap.rate, boot=args.model is not None and args.init_frames == 0)
+    # (the online method runs through a booting labeler, the window start's too: its kernels)
+    _warm_up(cap.rate, boot=methods is None or "online" in methods)
     common = dict(
         methods=methods,
         init_frames=args.init_frames,

@@ -470,8 +470,9 @@ class BootVerifier:
                 n_good = np.bincount(ends, weights=g2, minlength=m)
                 s2 = np.concatenate([eb_bad[live] & eb_body[live]] * 2)
                 split = np.bincount(ends, weights=s2, minlength=m) > 0
-                # (a trained body split into two groups that each hold, the marker with
-                # verify_support partners of its own: a body trained still across a joint)
+                # (a pair of the marker's own trained body bad while verify_support of its
+                # body pairs hold: a body trained still across a joint has split; whether the
+                # bad partners agree among themselves is not checked)
                 off = (n_bad >= 2) & (2 * n_bad > n_all) & ~(split & (n_good >= c.verify_support))
                 if not off.any():
                     break

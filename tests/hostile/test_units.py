@@ -239,3 +239,19 @@ def test_the_rate_check_advises_no_rate_for_times_no_capture_has():
     chk = RateCheck()
     said = [s for s in (chk.update("v", float(k), 120.0) for k in range(40)) if s]  # 1 Hz
     assert len(said) == 1 and "steadily" in said[0] and "seconds?" in said[0]
+
+
+def test_a_streams_new_run_restarts_its_match_check():
+    """The wiring of the test above: ``StreamState.new_run`` restarts the stream's check."""
+    from labeler_service.service.continuity import Verdict
+    from labeler_service.service.protocol import FrameMsg
+    from labeler_service.service.settings import load_settings
+    from labeler_service.service.stream import StreamState
+
+    settings = load_settings(labeler="online", metrics_port=None, warmup=False,
+                             streams=[{"name": "vol"}])  # fmt: skip
+    st = StreamState("vol", settings, settings.streams[0])
+    st.units._quiet_since, st.units._counts = 0.0, [62, 62]
+    frame = FrameMsg("vol", 5, 100.0, np.zeros((3, 3), np.float32))
+    st.new_run(frame, Verdict(new_run=True, time_jumped=True))
+    assert st.units._quiet_since is None and st.units._counts == []
