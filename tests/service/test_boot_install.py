@@ -275,6 +275,19 @@ def test_a_replaced_labelers_boot_job_holds_the_next_attempt_until_it_returns(sc
     assert fresh is not None and fresh.labeler is st.labeler is not stale.labeler
 
 
+def _boot_off_stream(scene_model):
+    """A ``boot = false`` model stream (it boots as a recovery when no labels come), the
+    stream's frames, and the model indices of P1's right hand."""
+    path, frames = scene_model
+    settings = _settings(path, boot_worker="thread", boot=False)
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    names = frames.marker_names
+    hand = [names.index(f"P1:{m}") for m in ("RWRA", "RWRB", "RFIN") if f"P1:{m}" in names]
+    assert len(hand) >= 2
+    return st, frames, hand
+
+
 def test_boot_off_hands_back_only_once_every_marker_is_labeled(scene_model):
     """``boot = false`` and no labels: the stream boots as a recovery and hands back to a plain
     labeler, which labels only the markers its first frames carry. P1's right hand (three
@@ -288,13 +301,8 @@ def test_boot_off_hands_back_only_once_every_marker_is_labeled(scene_model):
     from labeler_service.labeling.booting import BootingLabeler
     from labeler_service.labeling.frame import MarkerState
 
-    path, frames = scene_model
-    settings = _settings(path, boot_worker="thread", boot=False)
-    st = StreamState("vol", settings, settings.streams[0])
-    st.start_from_model()
+    st, frames, hand = _boot_off_stream(scene_model)
     names = frames.marker_names
-    hand = [names.index(f"P1:{m}") for m in ("RWRA", "RWRB", "RFIN") if f"P1:{m}" in names]
-    assert len(hand) >= 2
     half = frames.n_frames // 2
     pts = []
     for f in range(frames.n_frames):
@@ -327,12 +335,7 @@ def test_boot_off_hands_back_after_a_wait_when_markers_never_appear(scene_model,
     from labeler_service.service.stream import HANDBACK_WAIT_S
 
     caplog.set_level(logging.INFO, logger="labeler_service.service.stream")
-    path, frames = scene_model
-    settings = _settings(path, boot_worker="thread", boot=False)
-    st = StreamState("vol", settings, settings.streams[0])
-    st.start_from_model()
-    names = frames.marker_names
-    hand = [names.index(f"P1:{m}") for m in ("RWRA", "RWRB", "RFIN") if f"P1:{m}" in names]
+    st, frames, hand = _boot_off_stream(scene_model)
     pts = [frames.points[f][~np.isin(frames.truth[f], hand)] for f in range(frames.n_frames)]
     assert frames.times[-1] - frames.times[0] > HANDBACK_WAIT_S + 0.3
     _feed_booting(st, SimpleNamespace(n_frames=frames.n_frames, times=frames.times, points=pts), 0)
