@@ -62,11 +62,13 @@ one the server starts a recovery.
 :class:`~labeler_service.labeling.booting.BootingLabeler` of that model, booted off the frame
 path exactly like a model stream's (``boot_due`` / ``boot_request`` / ``boot_job`` /
 ``boot_done``); points go out unlabeled until their performer is booted. Once every subject of
-the model has been labeled for ``HANDBACK_FRAMES`` frames, and every marker of the model in
-one of them, a plain labeler of the model is started from those frames' labels and takes over
-(no booting cost afterwards; a marker not in them it would never label: a forearm the boot had
-not placed yet stayed unlabeled for good). A subject that never comes back, or a marker never
-labeled, keeps the stream on the booting labeler, which places it when it appears. A model
+the model has been labeled for ``HANDBACK_FRAMES`` frames, and every marker of a trained body
+in one of them, a plain labeler of the model is started from those frames' labels and takes
+over (no booting cost afterwards; a marker not in them it would never label: a forearm the boot
+had not placed yet stayed unlabeled for good). Markers still missing are waited for at most
+``HANDBACK_WAIT_S`` of stream (a marker fallen off must not keep the booting cost), then named
+in the log. A subject that never comes back keeps the stream on the booting labeler, which
+boots it when it does. A model
 stream with ``boot = false`` whose first frame carries no labels (a live source, ``replay
 --init-frames 0``) starts the same way instead of refusing every frame.
 """
@@ -329,7 +331,7 @@ class StreamState:
         #: who sent the last accepted frame (UDP: its address; MQTT: the transport)
         self.sender: object = None
         #: monotonic time of the first of the frames in a row that arrive and continue nothing
-        #: (dropped as ``seq_jump``/``time_jump``), None while frames are accepted
+        #: (dropped by the continuity rule, server ``_stalled``), None while frames are accepted
         self.stalled_since: float | None = None
         self.stalled_last = 0.0  # monotonic time of the last of those frames
         self.labeled_fraction = float("nan")
@@ -374,6 +376,8 @@ class StreamState:
         #: stream time since which every subject is labeled but markers are missing (the
         #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
         self._handback_since: float | None = None
+        #: (model, its markers in a trained body) of the last hand-back check
+        self._body_mask: tuple[object, np.ndarray] = (None, np.zeros(0, dtype=bool))
 
     @property
     def last_seq(self) -> int | None:
@@ -1052,7 +1056,9 @@ class StreamState:
         # places markers as they appear, until every marker of a body is in them, for at
         # most HANDBACK_WAIT_S (a marker fallen off, or not worn, must not keep the booting
         # labeler's cost for good); a marker in no trained body no labeler labels
-        held = ~_body_markers(lab.model)
+        if self._body_mask[0] is not lab.model:
+            self._body_mask = (lab.model, _body_markers(lab.model))
+        held = ~self._body_mask[1]
         for _, _, labels in self._handback:
             held[labels[labels >= 0]] = True
         if not held.all():
