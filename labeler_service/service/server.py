@@ -195,6 +195,21 @@ def warm_up_window_start(config) -> float:
     return time.perf_counter() - t0
 
 
+def warm_up_recovery(config) -> float:
+    """Compiles (or loads) what a recovery runs (docs/service.md "Recovery"): the boot's
+    kernels and the booting labeler's inner labeler, as :meth:`BootingLabeler.warmup` does.
+    Every stream of the online labeler may recover through a booting labeler; without this a
+    first recovery on a cold cache compiled them in the frame path (a helper's replay: 2.4 s,
+    127 frames dropped as ``queue_full``). Returns the seconds it took."""
+    from labeler_service.labeling.boot import warmup_kernels
+    from labeler_service.labeling.booting import warmup_labeler
+
+    t0 = time.perf_counter()
+    warmup_kernels()
+    warmup_labeler(120.0, config)
+    return time.perf_counter() - t0
+
+
 class Server:
     """The labeling service over the given transports. Use as ``async with Server(...)``."""
 
@@ -276,6 +291,10 @@ class Server:
                 if window_starts(self.settings):
                     self.warmup_s += await asyncio.to_thread(
                         warm_up_window_start, self.settings.labeler_config
+                    )
+                elif self.settings.labeler == "online":  # (the window start's covers it)
+                    self.warmup_s += await asyncio.to_thread(
+                        warm_up_recovery, self.settings.labeler_config
                     )
                 log.info("kernels warm (%.2f s)", self.warmup_s)
             for s in self.settings.streams:

@@ -449,3 +449,27 @@ def test_performers_the_model_lists_but_who_are_absent_do_not_degrade_the_stream
     assert "online" in states, states
     assert "degraded" not in states[states.index("online") :], states
     assert st.status == "online"
+
+
+def test_a_service_that_may_recover_warms_the_boot_kernels_at_start(model_path, monkeypatch):
+    """A model stream with ``boot = false`` recovers through a booting labeler: its kernels are
+    compiled (or loaded) at start, not in the first recovery's frame path (a cold cache
+    stalled it 2.4 s there, 127 frames dropped)."""
+    import labeler_service.labeling.boot as boot_mod
+
+    calls = []
+    real = boot_mod.warmup_kernels
+
+    def counted():
+        calls.append(1)
+        real()
+
+    monkeypatch.setattr(boot_mod, "warmup_kernels", counted)
+
+    async def go():
+        async with Server(_settings(model_path, False, boot=False, warmup=True),
+                          [MemoryTransport()]) as srv:  # fmt: skip
+            return srv.warmup_s
+
+    assert run(go(), timeout=300.0) > 0
+    assert calls
