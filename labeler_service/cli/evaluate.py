@@ -298,14 +298,15 @@ def _warm_up(rate: float, boot: bool) -> None:
     ``--no-progress`` (or output to a file) left silent (as ``label`` says it,
     :func:`~labeler_service.cli.label.notice_if_slow`)."""
     from labeler_service.cli.label import notice_if_slow
+    from labeler_service.labeling.booting import warmup_booting
+    from labeler_service.labeling.config import LabelerConfig
     from labeler_service.labeling.labeler import Labeler
 
     with notice_if_slow(
         "compiling the labeling kernels (numba; the first run after an install takes a minute "
         "or more, later runs load them from the cache)..."
     ):
-        Labeler(["w:a", "w:b", "w:c"], rate).warmup()
         if boot:
-            from labeler_service.labeling.boot import warmup_kernels
-
-            warmup_kernels()
+            warmup_booting(rate, LabelerConfig())
+        else:
+            Labeler(["w:a", "w:b", "w:c"], rate).warmup()

@@ -1302,8 +1302,14 @@ class BootingLabeler:
     def warmup(self) -> None:
         """Compiles the boot's and the inner labeler's kernels (see :meth:`Labeler.warmup`)
         without touching this labeler's state."""
-        warmup_kernels()
-        warmup_labeler(self.rate, self.config)
+        warmup_booting(self.rate, self.config)
+
+
+def warmup_booting(rate: float, config: LabelerConfig) -> None:
+    """Compiles (or loads) everything a booting labeler runs: the boot's kernels and the inner
+    labeler's (:func:`warmup_labeler`), on tiny labelers of their own."""
+    warmup_kernels()
+    warmup_labeler(rate, config)
 
 
 def warmup_labeler(rate: float, config: LabelerConfig) -> None:

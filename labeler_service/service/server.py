@@ -196,17 +196,15 @@ def warm_up_window_start(config) -> float:
 
 
 def warm_up_recovery(config) -> float:
-    """Compiles (or loads) what a recovery runs (docs/service.md "Recovery"): the boot's
-    kernels and the booting labeler's inner labeler, as :meth:`BootingLabeler.warmup` does.
+    """Compiles (or loads) what a recovery runs (docs/service.md "Recovery"): a booting
+    labeler's kernels (:func:`~labeler_service.labeling.booting.warmup_booting`).
     Every stream of the online labeler may recover through a booting labeler; without this a
     first recovery on a cold cache compiled them in the frame path (a helper's replay: 2.4 s,
     127 frames dropped as ``queue_full``). Returns the seconds it took."""
-    from labeler_service.labeling.boot import warmup_kernels
-    from labeler_service.labeling.booting import warmup_labeler
+    from labeler_service.labeling.booting import warmup_booting
 
     t0 = time.perf_counter()
-    warmup_kernels()
-    warmup_labeler(120.0, config)
+    warmup_booting(120.0, config)
     return time.perf_counter() - t0
 
 

@@ -455,16 +455,16 @@ def test_a_service_that_may_recover_warms_the_boot_kernels_at_start(model_path, 
     """A model stream with ``boot = false`` recovers through a booting labeler: its kernels are
     compiled (or loaded) at start, not in the first recovery's frame path (a cold cache
     stalled it 2.4 s there, 127 frames dropped)."""
-    import labeler_service.labeling.boot as boot_mod
+    import labeler_service.labeling.booting as booting_mod
 
     calls = []
-    real = boot_mod.warmup_kernels
+    real = booting_mod.warmup_kernels
 
     def counted():
         calls.append(1)
         real()
 
-    monkeypatch.setattr(boot_mod, "warmup_kernels", counted)
+    monkeypatch.setattr(booting_mod, "warmup_kernels", counted)
 
     async def go():
         async with Server(_settings(model_path, False, boot=False, warmup=True),
