@@ -73,7 +73,10 @@ def _hinge_quads(bodies: Sequence[Sequence[int]]) -> set[tuple[int, int, int, in
 
 
 def chirality_quads(
-    pos: np.ndarray, A: np.ndarray, bodies: Sequence[Sequence[int]] = ()
+    pos: np.ndarray,
+    A: np.ndarray,
+    bodies: Sequence[Sequence[int]] = (),
+    steady_pool: bool = True,
 ) -> list[list[int]]:
     """Quadruples ``[a, b, c, d]`` of markers whose signed volume ``det(b - a, c - a, d - a)``
     is positive in the training frames ``pos (F, m, 3)``: every pair of the four steady
@@ -86,10 +89,15 @@ def chirality_quads(
     Quadruples of one body or two bodies on a hinge (:func:`_hinge_quads`) are also tried
     without the steadiness test and chosen before the others: a leg's knee, ankle and toes are
     not all steady to 20 mm, yet their volume keeps its sign, and without them a dancer's
-    left foot read as the right one reverses no quadruple."""
+    left foot read as the right one reverses no quadruple.
+    ``steady_pool`` False: only those (no quadruple across bodies chosen for its steadiness;
+    the window model's trainer, :func:`window_model`: in a labeled start's 0.4 s every pair
+    is steady, and a head-knee-sternum-elbow quadruple turns over at the first serve)."""
     m = A.shape[0]
     steady = np.isfinite(A) & (A <= CHIRALITY_A_MM)
     np.fill_diagonal(steady, False)
+    if not steady_pool:
+        steady[:] = False
     quads: list[tuple[int, int, int, int]] = []
     for a in range(m):
         nb = np.flatnonzero(steady[a, a + 1 :]) + a + 1
@@ -270,7 +278,9 @@ class StructureTrainer:
     pair's statistics) and ``all_seeds`` (every marker seeds a body: there is time for the
     richer, overlapping body set); ``glimpsed``: a marker seen in fewer than
     ``min_pair_frames`` frames joins a body of its nearest markers
-    (:func:`~labeler_service.labeling.training.glimpse_bodies`; the window model's trainer).
+    (:func:`~labeler_service.labeling.training.glimpse_bodies`; the window model's trainer);
+    ``steady_pool``: chirality quadruples across bodies chosen for their steadiness
+    (:func:`chirality_quads`; the window model's trainer goes without).
     """
 
     def __init__(
@@ -282,6 +292,7 @@ class StructureTrainer:
         min_pair_frames: int = 3,
         all_seeds: bool = True,
         glimpsed: bool = False,
+        steady_pool: bool = True,
     ) -> None:
         self.tolerance_mm = tolerance_mm
         self.distance_weight = distance_weight
@@ -290,6 +301,7 @@ class StructureTrainer:
         self.min_pair_frames = min_pair_frames
         self.all_seeds = all_seeds
         self.glimpsed = glimpsed
+        self.steady_pool = steady_pool
 
     def _check_rule(self) -> None:
         """Refuses rule values that make no body (``train structure``'s options named beside
@@ -359,7 +371,7 @@ class StructureTrainer:
             # the pooled frames' motion noise is replaced: noise depends on the rate, so it is
             # learned per capture and averaged (positive and finite like each capture's)
             q = np.mean(noises, axis=0)
-            quads = chirality_quads(pos, t.A_array(), t.bodies)
+            quads = chirality_quads(pos, t.A_array(), t.bodies, self.steady_pool)
             shapes = handed_shapes(t.shapes, t.bodies, quads)
             witnesses = twin_witnesses(pos, t.D_array(), t.A_array(), t.bodies, quads)
             templates.append(
@@ -386,11 +398,14 @@ def window_model(window: Capture) -> LabelerModel:
     """The subject templates of a labeled init window (``window``: its frames, true labels):
     what the labeled start through the model-based labeler boots from
     (:func:`~labeler_service.labeling.registry.make_window_labeler`; ``evaluate --labeled-start
-    model``, a service stream with ``labeled_start = "model"``). The default trainer, as
-    ``train structure`` runs it. A window of fewer frames than the trainer needs for a pair's
+    model``, a service stream with ``labeled_start = "model"``; the booter's relearn). The
+    trainer of ``train structure``, without quadruples across bodies chosen for their
+    steadiness (``steady_pool`` off): a window's few frames show every pair steady, and those
+    quadruples turned over in the first stroke (tune24: a head-knee-sternum-elbow quadruple
+    kept the tennis arm's free points from its markers for 1 s). A window of fewer frames than the trainer needs for a pair's
     statistics (``min_pair_frames``, 3) raises :class:`LabelerError`, as the labeler trained in
     place does."""
-    trainer = StructureTrainer(glimpsed=True)
+    trainer = StructureTrainer(glimpsed=True, steady_pool=False)
     if window.n_frames < max(WINDOW_MIN_FRAMES, trainer.min_pair_frames):
         raise LabelerError(
             f"the labeled start through a window model needs at least {WINDOW_MIN_FRAMES} "

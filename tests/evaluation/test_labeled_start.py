@@ -41,14 +41,36 @@ def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
 
 
 def test_window_model_is_the_structure_trainers_model(rng):
-    """The window model is ``train structure``'s default trainer on the window (offline's
-    trainer is the same class plus file reading)."""
+    """The window model is ``train structure``'s trainer on the window (offline's trainer is
+    the same class plus file reading), without the quadruples chosen for steadiness."""
     from offline.structure import StructureTrainer
 
     pos = rng.normal(scale=60.0, size=(1, 6, 3)) + rng.normal(size=(40, 6, 3))
     cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(6)), 50.0)
-    offline = StructureTrainer().fit([cap]).model_
+    offline = StructureTrainer(steady_pool=False).fit([cap]).model_
     assert window_model(cap).model_dump_json() == offline.model_dump_json()
+
+
+def test_a_still_window_learns_no_chirality_across_bodies(rng):
+    """In a still window every pair is steady: the default trainer picks quadruples across
+    its bodies for that (tune24's head-knee-sternum-elbow quadruple, which the first serve
+    turned over and which then kept the arm's points from its markers for 1 s); the window
+    model keeps only quadruples inside a body or a hinge."""
+    from offline.structure import StructureTrainer
+
+    from labeler_service.labeling.structure import _hinge_quads
+
+    pos = rng.uniform(-300.0, 300.0, size=(1, 16, 3)) + rng.normal(scale=0.5, size=(40, 16, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(16)), 50.0)
+
+    def across(model) -> int:
+        subj = model.subjects[0]
+        inside = _hinge_quads(subj.bodies)
+        return sum(tuple(sorted(q)) not in inside for q in subj.chirality)
+
+    assert across(StructureTrainer().fit([cap]).model_) > 0
+    window = window_model(cap).subjects[0]
+    assert window.chirality and across(window_model(cap)) == 0
 
 
 def test_window_model_needs_a_window_and_no_model(rng):
