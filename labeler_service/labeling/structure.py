@@ -402,9 +402,9 @@ def window_model(window: Capture) -> LabelerModel:
     trainer of ``train structure``, without quadruples across bodies chosen for their
     steadiness (``steady_pool`` off): a window's few frames show every pair steady, and those
     quadruples turned over in the first stroke (tune24: a head-knee-sternum-elbow quadruple
-    kept the tennis arm's free points from its markers for 1 s). A window of fewer frames than the trainer needs for a pair's
-    statistics (``min_pair_frames``, 3) raises :class:`LabelerError`, as the labeler trained in
-    place does."""
+    kept the tennis arm's free points from its markers for 1 s). A window of fewer frames than
+    the trainer needs for a pair's statistics (``min_pair_frames``, 3) raises
+    :class:`LabelerError`, as the labeler trained in place does."""
     trainer = StructureTrainer(glimpsed=True, steady_pool=False)
     if window.n_frames < max(WINDOW_MIN_FRAMES, trainer.min_pair_frames):
         raise LabelerError(

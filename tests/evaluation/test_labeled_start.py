@@ -56,9 +56,8 @@ def test_a_still_window_learns_no_chirality_across_bodies(rng):
     its bodies for that (tune24's head-knee-sternum-elbow quadruple, which the first serve
     turned over and which then kept the arm's points from its markers for 1 s); the window
     model keeps only quadruples inside a body or a hinge."""
-    from offline.structure import StructureTrainer
-
     from labeler_service.labeling.structure import _hinge_quads
+    from offline.structure import StructureTrainer
 
     pos = rng.uniform(-300.0, 300.0, size=(1, 16, 3)) + rng.normal(scale=0.5, size=(40, 16, 3))
     cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(16)), 50.0)
