@@ -80,7 +80,9 @@ def chirality_quads(
 ) -> list[list[int]]:
     """Quadruples ``[a, b, c, d]`` of markers whose signed volume ``det(b - a, c - a, d - a)``
     is positive in the training frames ``pos (F, m, 3)``: every pair of the four steady
-    (``A <= CHIRALITY_A_MM`` = 20 mm), the tetrahedron thick (cube root of ``|det|`` >= 20 mm in
+    (``A <= CHIRALITY_A_MM`` = 20 mm) while each of the four moved against some other marker
+    (a pair of it over 20 mm: steadiness in frames where a marker kept still says nothing of
+    other poses), the tetrahedron thick (cube root of ``|det|`` >= 20 mm in
     90 % of the frames where all four are seen, at least 10 such frames) and one sign in 98 %
     of them.
     Pair distances are the same for a subject and its mirror image; these volumes are not, and
@@ -96,6 +98,10 @@ def chirality_quads(
     m = A.shape[0]
     steady = np.isfinite(A) & (A <= CHIRALITY_A_MM)
     np.fill_diagonal(steady, False)
+    # steadiness says "one rigid piece" only of markers the frames moved against some partner
+    # (a marker steady to every other was merely still: a kneeling segment's trunk and arms)
+    moved = np.any(np.isfinite(A) & (A > CHIRALITY_A_MM), axis=1)
+    steady &= moved[:, None] & moved[None, :]
     if not steady_pool:
         steady[:] = False
     quads: list[tuple[int, int, int, int]] = []

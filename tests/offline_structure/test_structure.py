@@ -219,3 +219,17 @@ def test_chirality_quadruples_across_a_hinge_need_no_steady_pairs():
         np.stack([pos[:, b] - pos[:, a], pos[:, c] - pos[:, a], pos[:, e] - pos[:, a]], axis=1)
     )
     assert np.all(det > 0)
+
+
+def test_markers_that_kept_still_give_no_chirality_across_bodies(rng):
+    """Steadiness is evidence of one rigid piece only for markers that moved against some
+    partner: in a still capture (a kneeling segment) no quadruple across bodies is chosen for
+    it, while quadruples inside a body still are."""
+    from labeler_service.labeling.structure import _hinge_quads
+
+    pos = rng.uniform(-300.0, 300.0, size=(1, 16, 3)) + rng.normal(scale=0.5, size=(40, 16, 3))
+    cap = Capture(pos.astype("float32"), tuple(f"s:m{i}" for i in range(16)), 50.0)
+    subj = StructureTrainer().fit([cap]).model_.subjects[0]
+    inside = _hinge_quads(subj.bodies)
+    assert subj.chirality
+    assert all(tuple(sorted(q)) in inside for q in subj.chirality)
