@@ -199,6 +199,8 @@ class ServiceMetrics:
         self._handovers_seen: dict[tuple[str, str], int] = {}
         self._recent_label: dict[str, _Recent] = {}
         self._recent_latency: dict[str, _Recent] = {}
+        #: per stream (unlabeled points, frames out) at the last log line
+        self._logged: dict[str, tuple[float, float]] = {}
         self._out: dict[str, _StreamOut] = {}
         self._children: dict[tuple, object] = {}
         self._http: tuple | None = None
@@ -282,6 +284,7 @@ class ServiceMetrics:
                 self.drop(reason, "", n)
         self._out.pop(stream, None)
         self._recent_label.pop(stream, None)
+        self._logged.pop(stream, None)
         self._recent_latency.pop(stream, None)
 
     def series(self) -> int:
@@ -398,6 +401,13 @@ class ServiceMetrics:
                 f"label p50/p99={v['labeling_ms_p50']:.2f}/{v['labeling_ms_p99']:.2f} ms "
                 f"latency p99={v['latency_ms_p99']:.2f} ms recovered={v['recovered']:.0f}"
             )
+            # points left unlabeled per frame since the last line (a performer the labeler
+            # does not know, ghosts): the labeled fraction counts only the known markers
+            seen = (v["unlabeled"], v["frames_out"])
+            before = self._logged.get(s, (0.0, 0.0))
+            self._logged[s] = seen
+            if seen[1] > before[1]:
+                line += f" unlabeled={(seen[0] - before[0]) / (seen[1] - before[1]):.1f}/frame"
             status, n_subjects = (streams or {}).get(s, ("", 0))
             if status:
                 line += f" status={status} labeled={v['labeled_fraction']:.2f}"

@@ -136,6 +136,7 @@ _STATUS_STATES = (
     "lost",
     "training_failed",
     "booting",
+    "idle",
 )
 
 

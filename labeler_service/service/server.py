@@ -316,6 +316,7 @@ class Server:
             self._spawn(self._transport_drops_loop(), "transport-drops")
             self._spawn(self._log_loop(), "metrics-log")
             self._spawn(self._expire_loop(), "expire")
+            self._spawn(self._silence_loop(), "silence")
             if self.metrics_port is not None:
                 log.info("metrics on http://%s:%d/metrics", self.settings.metrics_host,
                          self.metrics_port)  # fmt: skip
@@ -516,6 +517,28 @@ class Server:
                 self._remove_stream(st.name)
             # what the removed streams held is returned by the next transport-drops tick
 
+    async def _silence_loop(self) -> None:
+        """A stream whose frames stop: after ``silent_after_s`` with no frame arriving, its
+        status turns ``idle`` and its labeled fraction 0 (the log says since when and from
+        whom); its labeler is kept, and the next labeled frame gives the status back. Before,
+        a stream whose sender had stopped read ``online`` (log, status topic, gauge) for as
+        long as the service ran."""
+        window = self.settings.silent_after_s
+        while True:
+            await asyncio.sleep(min(0.5, max(0.05, window / 4)))
+            now = time.monotonic()
+            for name, st in list(self.streams.items()):
+                quiet = now - st.last_activity
+                if st.sender is None or st.status == "idle" or quiet <= window:
+                    continue  # (no frame yet: it reads ``booting`` or ``starting``)
+                st.status = "idle"
+                st.labeled_fraction = st.recovered_fraction = float("nan")
+                self.metrics.health(name, 0.0, 0.0)
+                log.warning("stream %s: no frame for %.1f s (the last from %s): status idle; "
+                            "its labeler is kept for the sender's return", name, quiet,
+                            _who(st.sender))  # fmt: skip
+                await self._status(name, "idle")
+
     # ------------------------------------------------------------------ ingest
     async def _ingest(self, transport: Transport) -> None:
         """Decodes every message of one transport; a bad one is counted and skipped."""
@@ -569,7 +592,8 @@ class Server:
                                    float("nan") if last_t is None else last_t)  # fmt: skip
             if verdict.reason in _CONTINUITY_DROPS:
                 self._stalled(state, msg)
-                if state.sender is not None and source != state.sender:
+                recent = time.monotonic() - state.sender_at <= self.settings.silent_after_s
+                if state.sender is not None and source != state.sender and recent:
                     self._rlog.warning(f"second-{msg.stream}", "stream %s: frames from a second "
                                        "sender (%s) dropped while %s sends: one stream takes one "
                                        "sender's frames (give each sender its own stream "
@@ -582,6 +606,7 @@ class Server:
                             "(before: %s)", msg.stream, _who(source),
                             _who(state.sender))  # fmt: skip
         state.sender = source
+        state.sender_at = time.monotonic()
         if verdict.gap:
             self.metrics.gap(msg.stream, verdict.gap)
         self.metrics.frame_in(msg.stream)

@@ -330,6 +330,9 @@ class StreamState:
         self.failing_since: float | None = None
         #: who sent the last accepted frame (UDP: its address; MQTT: the transport)
         self.sender: object = None
+        #: when the sender's last frame was accepted (monotonic s): a frame from another
+        #: sender while this one is quiet is a sender's restart, not a second sender
+        self.sender_at = 0.0
         #: monotonic time of the first of the frames in a row that arrive and continue nothing
         #: (dropped by the continuity rule, server ``_stalled``), None while frames are accepted
         self.stalled_since: float | None = None
@@ -376,6 +379,7 @@ class StreamState:
         #: stream time since which every subject is labeled but markers are missing (the
         #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
         self._handback_since: float | None = None
+        self._handback_said = -math.inf  # stream time of the last "stays until" line
         #: (model, its markers in a trained body) of the last hand-back check
         self._body_mask: tuple[object, np.ndarray] = (None, np.zeros(0, dtype=bool))
 
@@ -427,6 +431,10 @@ class StreamState:
                             "cannot tell them apart (each keeps its name only by continuity; "
                             "which is which at the first boot is arbitrary)", self.name, a, b,
                             path)  # fmt: skip
+            if self.stream_settings.labeled_start == "auto":
+                log.info("stream %s: starts from its model file %s (labeled_start = 'auto' "
+                         "trains a window model only for a stream without one)", self.name,
+                         path)  # fmt: skip
         model = self._model_file
         rate = self.stream_settings.rate
         if rate is None:
@@ -1061,20 +1069,24 @@ class StreamState:
         held = ~self._body_mask[1]
         for _, _, labels in self._handback:
             held[labels[labels >= 0]] = True
+        back = "the window start's" if self.window_frames is not None else "the plain"
         if not held.all():
             missing = [lab.marker_names[i] for i in np.flatnonzero(~held)]
             shown = ", ".join(missing[:6]) + (", ..." if len(missing) > 6 else "")
             if self._handback_since is None:
                 self._handback_since = t
-                log.info("stream %s: every subject labeled again; the booting labeler stays "
-                         "until it labels %s too (%s), at most %g s", self.name,
-                         plural(len(missing), "marker"), shown, HANDBACK_WAIT_S)  # fmt: skip
+                # (once per wait: a subject that flickers restarts the wait, not the line)
+                if t - self._handback_said >= HANDBACK_WAIT_S:
+                    self._handback_said = t
+                    log.info("stream %s: every subject labeled again; the booting labeler "
+                             "stays until it labels %s too (%s), at most %g s", self.name,
+                             plural(len(missing), "marker"), shown, HANDBACK_WAIT_S)  # fmt: skip
             if t - self._handback_since < HANDBACK_WAIT_S:
                 return
-            log.warning("stream %s: %s not labeled within %g s (%s): back to the plain "
-                        "labeler without them (it will not label them; boot = true labels "
-                        "markers as they appear)", self.name, plural(len(missing), "marker"),
-                        HANDBACK_WAIT_S, shown)  # fmt: skip
+            log.warning("stream %s: %s not labeled within %g s (%s): back to %s labeler "
+                        "without them (it will not label them; boot = true labels markers as "
+                        "they appear)", self.name, plural(len(missing), "marker"),
+                        HANDBACK_WAIT_S, shown, back)  # fmt: skip
         plain: FrameLabeler
         if self.window_frames is not None:  # back to the window start's labeler
             plain = make_window_labeler(lab.model, rate=lab.rate, window_frames=self.window_frames,
@@ -1088,8 +1100,8 @@ class StreamState:
         self._swap(plain)
         self._labels_seen = True  # it starts from the hand-back frames' labels
         self.handbacks += 1
-        log.info("stream %s: recovered: every subject labeled again; back to the plain "
-                 "labeler", self.name)  # fmt: skip
+        log.info("stream %s: recovered: every subject labeled again; back to %s labeler",
+                 self.name, back)  # fmt: skip
 
     # --------------------------------------------------------------------- per frame
     def process(self, f: FrameMsg, recv_ns: int, verdict: Verdict = ACCEPT) -> Output | None:

@@ -126,10 +126,18 @@ def _check_recovered(back, srv, mem, msgs):
 
 
 @pytest.mark.parametrize("start", ["labeler", "model"])
-def test_a_stream_trained_from_init_frames_reboots_after_a_gap_with_performers_displaced(start):
+def test_a_stream_trained_from_init_frames_reboots_after_a_gap_with_performers_displaced(
+    start, caplog
+):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="labeler_service.service.stream")
     cfg = settings(streams=[{"name": "default", "labeled_start": start}])
     cap, back, srv, mem, msgs = _gap_run(cfg, INIT, handover=start == "model")
     _check_recovered(back, srv, mem, msgs)
+    # the log names the labeler it hands back to (it said "the plain labeler" for both)
+    back_to = "the window start's labeler" if start == "model" else "the plain labeler"
+    assert f"every subject labeled again; back to {back_to}" in caplog.text
     assert (srv.streams["default"].window_frames == INIT) == (start == "model")
     assert srv.metrics.drops("time_jump") == 2  # run_confirm_frames - 1
     before = [m for m in msgs if m.seq < BEFORE]

@@ -647,3 +647,46 @@ def test_unlabeled_frames_with_nothing_to_start_from_name_the_two_fixes(caplog):
         assert "boot = true at the top of the settings, outside any table" in line[0]
         assert "replay --init-frames 50" in line[0]
     assert any(m.startswith("udp: frames dropped unread (unknown_stream)") for m in said)
+
+
+def test_a_stream_whose_sender_stops_turns_idle_then_online_again(rng, caplog):
+    """The sender stops mid-stream: after ``silent_after_s`` without a frame the status turns
+    ``idle`` (announced, logged with the last sender, the labeled fraction 0); the same take
+    sent again from another port (a restarted sender) is taken without a "second sender"
+    line (the first is quiet) and the status reads ``online`` again. Before, the stream read
+    ``online`` with its last labeled fraction for as long as the service ran. The periodic
+    log line counts the points left unlabeled per frame."""
+    import logging
+
+    cap = moving_clusters(rng, frames=120)
+    first = stream_payloads(cap, rng, init=10)
+    again = stream_payloads(cap, np.random.default_rng(5), init=10, seq0=5000)
+    caplog.set_level(logging.INFO, logger="labeler_service.service.server")
+
+    def states(mem):
+        return [decode(x).state for _, k, x, _ in mem.sent if k == "status"]
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False, silent_after_s=0.3, log_interval_s=0.2),
+                          [mem]) as srv:  # fmt: skip
+            for p in first[:80]:
+                mem.inject(p, reply_to=("10.0.0.1", 4001))
+                await asyncio.sleep(1 / 120)
+            await until(lambda: states(mem)[-1:] == ["idle"], "idle")
+            idle_fraction = srv.metrics.value("mocap_labeled_fraction", stream="default")
+            for p in again[:60]:
+                mem.inject(p, reply_to=("10.0.0.1", 4002))
+                await asyncio.sleep(1 / 120)
+            await until(lambda: states(mem)[-1:] == ["online"], "online again")
+            return states(mem), idle_fraction
+
+    seen, idle_fraction = run(go())
+    assert seen.index("online") < seen.index("idle") < len(seen) - 1, seen
+    assert idle_fraction == 0.0
+    assert "no frame for" in caplog.text and "(the last from 10.0.0.1:4001): status idle" in (
+        caplog.text
+    )
+    assert "second sender" not in caplog.text
+    assert "frames now come from 10.0.0.1:4002 (before: 10.0.0.1:4001)" in caplog.text
+    assert "unlabeled=" in caplog.text and "/frame status=" in caplog.text
