@@ -267,10 +267,18 @@ class BootSnapshot:
     age: np.ndarray | None = None
     #: the active subjects whose readings the extension re-checks (:meth:`Booter.extend`)
     checked: list[int] = field(default_factory=list)
+    #: a relearn due off the frame path (``inline_extend=False``): its clean frames
+    #: ``(t, points, labels)``; :meth:`BootingLabeler.boot_step` trains on them and puts the
+    #: model, booter and verifier in ``relearned``, which :meth:`~BootingLabeler.install_boot`
+    #: installs
+    relearn: list | None = None
+    relearned: tuple | None = None
 
     def remote(self) -> BootSnapshot:
         """The part a boot step reads (no frames, no catch-up): what goes to a worker process."""
-        return dataclasses.replace(self, since=None, shadow=None, caught=None)
+        return dataclasses.replace(
+            self, since=None, shadow=None, caught=None, relearn=None, relearned=None
+        )
 
 
 @dataclass
@@ -319,7 +327,10 @@ class BootingLabeler:
         self._relearn_frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=hist)
         self._relearn_clean: deque[bool] = deque(maxlen=hist)
         self._since_relearn = 0
+        self._relearn_pending = False  # due, for the next boot job (off the frame path)
         self.relearned = 0
+        #: the model of the booter's templates: ``model``, or the last relearn's
+        self.boot_model = model
         c = self.boot_config
         self._names = model.marker_names
         self._booter, verifier = prepare_boot(model, c, self.rate)
@@ -484,7 +495,10 @@ class BootingLabeler:
                 glab = self._window[-1].labels
                 _mark_observed(glab, pts, pos, state)
         if self._relearn_record(t, pts, glab, clean=not np.any(glab < 0)):
-            self._relearn()
+            if self.inline_extend:
+                self._relearn()
+            else:  # (the next boot job trains it: boot_snapshot, boot_step, install_boot)
+                self._relearn_pending = True
         return LabeledFrame(
             t=t,
             point_labels=glab.astype(np.int32),
@@ -530,10 +544,10 @@ class BootingLabeler:
 
     # ------------------------------------------------------------------ relearn
     def _relearn_record(self, t: float, pts: np.ndarray, labels: np.ndarray, clean: bool) -> bool:
-        """Keeps a frame and its labels for :meth:`_relearn` (only when relearning is on and
-        the extension runs here); True when a relearn is due: ``relearn_every_s`` of unlabeled
-        frames since the last one, the last ``window_frames`` frames clean."""
-        if not (self._relearn_every and self.inline_extend):
+        """Keeps a frame and its labels for :meth:`_relearn` (only when relearning is on); True
+        when a relearn is due: ``relearn_every_s`` of unlabeled frames since the last one, the
+        last ``window_frames`` frames clean."""
+        if not self._relearn_every:
             return False
         self._relearn_frames.append((t, pts, np.asarray(labels, dtype=np.int64).copy()))
         self._relearn_clean.append(bool(clean))
@@ -558,11 +572,16 @@ class BootingLabeler:
         window; the tennis take's arm, still there, was lost for 4.6 s at the third serve
         (docs/algorithm.md). False when too few clean frames (``relearn_min_frames``) or the
         training refuses them."""
-        from labeler_service.capture import Capture
-        from labeler_service.errors import MocapError
-        from labeler_service.labeling.frame import window_observations
-        from labeler_service.labeling.structure import window_model
+        frames = self._relearn_take()
+        built = None if frames is None else self._relearn_build(frames)
+        if built is None:
+            return False
+        self._relearn_use(built)
+        return True
 
+    def _relearn_take(self) -> list | None:
+        """The clean frames a relearn trains on (frame thread), None when too few."""
+        self._relearn_pending = False
         ok = np.array(self._relearn_clean, dtype=bool)
         good = ok.copy()
         for k in range(1, RELEARN_MARGIN + 1):
@@ -570,15 +589,33 @@ class BootingLabeler:
             good[:-k] &= ok[k:]
         frames = [f for f, g in zip(self._relearn_frames, good, strict=True) if g]
         if len(frames) < max(self.window_frames or 1, self.boot_config.relearn_min_frames):
-            return False
+            return None
+        return frames
+
+    def _relearn_build(self, frames: list) -> tuple | None:
+        """The relearned ``(model, booter, verifier)`` of ``frames`` (reads nothing else of this
+        labeler but its names, rate and settings: a boot job's thread may run it), None when
+        the training refuses them."""
+        from labeler_service.capture import Capture
+        from labeler_service.errors import MocapError
+        from labeler_service.labeling.frame import window_observations
+        from labeler_service.labeling.structure import window_model
+
         pos = window_observations(frames, np.ones(len(self._names), dtype=bool))
         try:
             model = window_model(Capture(pos.astype(np.float32), self._names, self.rate))
         except MocapError:
-            return False
-        self._booter, self._verifier = prepare_boot(model, self.boot_config, self.rate, False)
+            return None
+        if model.marker_names != self._names:
+            return None  # (cannot happen: the window model keeps the stream's names)
+        return (model, *prepare_boot(model, self.boot_config, self.rate, False))
+
+    def _relearn_use(self, built: tuple) -> None:
+        """Installs a relearned booter (frame thread); a worker process's booter cache knows
+        it by a new :attr:`key`."""
+        self.boot_model, self._booter, self._verifier = built
+        self.key = uuid.uuid4().hex
         self.relearned += 1
-        return True
 
     # ------------------------------------------------------------------ steps
     def _drop_vanished(
@@ -843,7 +880,7 @@ class BootingLabeler:
         ``inline_boot=False`` the owner checks this after each frame and runs the attempt
         itself (:meth:`boot_snapshot`, :meth:`boot_step`, :meth:`install_boot`). With
         ``inline_extend=False`` also True when an extension of the active subjects is due."""
-        return self._boot_due() or self._extend_due()
+        return self._boot_due() or self._extend_due() or self._relearn_pending
 
     def _boot_due(self) -> bool:
         return (
@@ -887,6 +924,8 @@ class BootingLabeler:
                 # the frames from now on are recorded for the attempt's catch-up
                 snap.shadow = self._shadow()
                 self._since = snap.since = []
+        if self._relearn_pending:
+            snap.relearn = self._relearn_take()
         if extend:
             self._since_extend = 0
             snap.labels = last.labels.copy()
@@ -911,6 +950,9 @@ class BootingLabeler:
             snapshot.extended = extended
         if snapshot.subjects:
             self.boot_ms.append(ms)
+        if snapshot.relearn is not None:  # (in the job's thread: off the frame path)
+            snapshot.relearned = self._relearn_build(snapshot.relearn)
+            snapshot.relearn = None
         return res
 
     def install_boot(self, snapshot: BootSnapshot, result: BootResult | None) -> np.ndarray:
@@ -926,6 +968,9 @@ class BootingLabeler:
         After :meth:`catch_up` on the same snapshot and result the booted subjects are instead
         installed by swapping in the caught-up inner labeler (:meth:`_install_caught`): no
         label is carried along the tracks and no subject is added on the frame path."""
+        if snapshot.relearned is not None:  # the relearn the attempt trained
+            self._relearn_use(snapshot.relearned)
+            snapshot.relearned = None
         recording = snapshot.since is not None and snapshot.since is self._since
         if snapshot.since is self._since:
             self._since = None  # the attempt ends here: stop recording frames for it
@@ -1085,6 +1130,7 @@ class BootingLabeler:
             # window's labels (as an install would: ~10 ms)
             shadow = remote.finish()
             shadow._booter, shadow.model = self._booter, self.model
+            shadow.boot_model = self.boot_model
             shadow._inner_from_window()
         done = shadow._catch_last(since, done, cancel)
         if done < 0:
@@ -1168,10 +1214,13 @@ class BootingLabeler:
 
     def for_transfer(self) -> BootingLabeler:
         """This (shadow) labeler without what a worker process has or rebuilds (the booter,
-        the model, the inner labeler): what crosses the pipe (~0.5 MB, not ~16 MB)."""
+        the model, the inner labeler): what crosses the pipe (~0.5 MB, not ~16 MB). After a
+        relearn the model is not the booter's and goes along."""
         out = copy.copy(self)
         out._booter = None  # type: ignore[assignment]
-        out.model = None  # type: ignore[assignment]
+        if self.model is self.boot_model:
+            out.model = None  # type: ignore[assignment]
+        out.boot_model = None  # type: ignore[assignment]
         out._inner = None  # type: ignore[assignment]
         return out
 

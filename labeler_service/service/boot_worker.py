@@ -107,7 +107,7 @@ class _Session:
         w._lock.acquire()
         self._held = True
         try:
-            spec = None if lab.key in w._known else (lab.model, lab.boot_config)
+            spec = None if lab.key in w._known else (lab.boot_model, lab.boot_config)
             msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
             booted = w._request(msg, self.cancel, "catch-up")
             w._note(lab.key)
@@ -327,7 +327,9 @@ def _serve(
         if kind == "catch":
             _, key, spec, shadow, snapshot, result = msg
             booter = booters.get(key, spec)
-            shadow._booter, shadow.model = booter, booter.model
+            shadow._booter, shadow.boot_model = booter, booter.model
+            if shadow.model is None:  # (sent only when a relearn made it another model)
+                shadow.model = booter.model
             return shadow._begin_catch_up(snapshot, result)
         if kind == "frames":
             shadow._catch_up_frames(msg[1])
@@ -384,14 +386,14 @@ class BootWorker:
         with self._lock:
             if labeler.key in self._known:
                 return
-            spec = (labeler.model, labeler.boot_config)
+            spec = (labeler.boot_model, labeler.boot_config)
             self._request(("prepare", labeler.key, spec, labeler.rate, labeler.config), None,
                           "preparation")  # fmt: skip
             self._note(labeler.key)
 
     def runner(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> StepRunner:
         """The ``runner`` for ``labeler.boot_step`` (see the module docstring)."""
-        spec = (labeler.model, labeler.boot_config)
+        spec = (labeler.boot_model, labeler.boot_config)
 
         def run(snapshot: BootSnapshot):
             return self.step(labeler.key, spec, snapshot, cancel)

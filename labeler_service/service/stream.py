@@ -952,8 +952,11 @@ class StreamState:
             return None
         if self.booting is not None:
             # the window start's labeler boots already, but only the subjects it drops: a
-            # recovery boots every subject from its window model (not while recovering)
-            return lab.model if self.window_frames is not None and not self.recovering else None
+            # recovery boots every subject from its window model, or the model its booter
+            # learned again from the stream since (not while recovering)
+            if self.window_frames is None or self.recovering:
+                return None
+            return lab.boot_model
         return lab.model
 
     def _waits_for_labels(self) -> bool:
@@ -1015,9 +1018,10 @@ class StreamState:
             return False
         assert isinstance(fresh, BootingLabeler)
         # the boot worker's booter for the old key serves the fresh labeler: it depends only
-        # on the model and the boot settings, both the same, and is read-only (the labeler's
-        # own relearn, which replaces its booter, runs only with inline_extend, off here)
-        fresh.key = lab.key
+        # on the model and the boot settings, both the same, and is read-only; unless a
+        # relearn replaced the old labeler's booter (the fresh one starts from the model)
+        if lab.boot_model is lab.model:
+            fresh.key = lab.key
         recovering = self.recovering
         self._swap(fresh)
         self.recovering = recovering

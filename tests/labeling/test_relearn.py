@@ -64,14 +64,30 @@ def test_no_relearn_from_frames_with_an_unlabeled_point_or_too_few(walk):
     assert lab.relearned == 0
 
 
-def test_no_relearn_where_the_extension_runs_elsewhere(walk):
+def test_where_the_extension_runs_elsewhere_the_boot_job_relearns(walk):
     """The service runs the extension off the frame path (``inline_extend`` off), where a
-    window model trained on the frame path would stall the stream: no relearn there."""
+    window model trained on the frame path would stall the stream: the relearn that falls due
+    rides on the next boot job instead. :meth:`needs_boot` asks for one, the snapshot carries
+    the clean frames (not to a worker process: ``remote``), the job's ``boot_step`` trains,
+    and the install between two frames takes the booter over under a new worker key. Before,
+    the service never relearned, and ``evaluate`` (which does) did not predict it."""
     model, cap = walk
     lab, _ = _run(walk, 2)
     lab.inline_extend = False
+    lab.inline_boot = False
     s = Stream(cap, model, seed=3, hide=0.0)
     for f in range(2, WINDOW + round(2.2 * RATE)):
         pts, tr = s.frame(f)
         lab.process(pts, f / RATE, tr if f < WINDOW else None)
-    assert lab.relearned == 0 and len(lab._relearn_frames) == 2
+        if lab._relearn_pending:
+            break
+    assert lab.relearned == 0 and lab._relearn_pending and lab.needs_boot()
+    key, booter = lab.key, lab._booter
+    snap = lab.boot_snapshot()
+    assert snap.relearn and len(snap.relearn) >= lab.boot_config.relearn_min_frames
+    assert snap.remote().relearn is None and not lab._relearn_pending
+    result = lab.boot_step(snap)
+    assert snap.relearned is not None and lab._booter is booter  # trained, not installed
+    lab.install_boot(snap, result)
+    assert lab.relearned == 1 and lab.key != key and lab._booter is not booter
+    assert lab.boot_model is lab._booter.model and lab.model is not lab.boot_model
