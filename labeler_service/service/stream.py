@@ -950,13 +950,14 @@ class StreamState:
         lab = self.labeler
         if lab is None or self.settings.labeler != "online":
             return None
-        if self.booting is not None:
+        booting = self.booting
+        if booting is not None:
             # the window start's labeler boots already, but only the subjects it drops: a
             # recovery boots every subject from its window model, or the model its booter
             # learned again from the stream since (not while recovering)
             if self.window_frames is None or self.recovering:
                 return None
-            return lab.boot_model
+            return booting.boot_model
         return lab.model
 
     def _waits_for_labels(self) -> bool:
