@@ -75,6 +75,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import threading
 import time
 import uuid
@@ -101,6 +102,8 @@ from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_labe
 from labeler_service.labeling.kernels.stacked import _spread_labels
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
+
+log = logging.getLogger(__name__)
 
 #: Models whose boot preparation (:class:`Booter`, the :class:`BootVerifier`'s structures) is
 #: kept for the next labeler of the same model: a stream's recovery builds a
@@ -150,6 +153,9 @@ def prepare_boot(
 RELEARN_HISTORY_S = 10.0
 #: Frames on either side of a frame with an unlabeled point that a relearn leaves out too.
 RELEARN_MARGIN = 5
+#: Most frames a relearn trains on, evenly spread over its clean frames (the training's cost
+#: grows with them: 0.67 s on 987 frames of three performers, in the service's process).
+RELEARN_MAX_FRAMES = 250
 
 
 #: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
@@ -590,6 +596,9 @@ class BootingLabeler:
         frames = [f for f, g in zip(self._relearn_frames, good, strict=True) if g]
         if len(frames) < max(self.window_frames or 1, self.boot_config.relearn_min_frames):
             return None
+        if len(frames) > RELEARN_MAX_FRAMES:  # evenly spread: the training's cost is per frame
+            pick = np.linspace(0, len(frames) - 1, RELEARN_MAX_FRAMES).round().astype(int)
+            frames = [frames[i] for i in pick]
         return frames
 
     def _relearn_build(self, frames: list) -> tuple | None:
@@ -951,7 +960,10 @@ class BootingLabeler:
         if snapshot.subjects:
             self.boot_ms.append(ms)
         if snapshot.relearn is not None:  # (in the job's thread: off the frame path)
-            snapshot.relearned = self._relearn_build(snapshot.relearn)
+            try:
+                snapshot.relearned = self._relearn_build(snapshot.relearn)
+            except Exception:  # (a failed relearn must not cost the attempt its result)
+                log.exception("relearn failed; the booter keeps its templates")
             snapshot.relearn = None
         return res
 
@@ -1276,6 +1288,11 @@ class BootingLabeler:
         sh._active = set(self._active)
         for name in ("_gone", "_recent", "_inner_state", "_inner_known", "_acq_ids", "_acq_tries"):
             setattr(sh, name, getattr(self, name).copy())
+        # no relearn history: a shallow copy shared this labeler's deques, and the shadow's
+        # frames (in the job's thread) went into them; nor its weight across the pipe
+        sh._relearn_every = 0
+        sh._relearn_pending = False
+        sh._relearn_frames, sh._relearn_clean = deque(maxlen=1), deque(maxlen=1)
         sh._tracker = copy.copy(self._tracker)
         # (no re-verification while catching up: the catch-up races the stream within the
         # attempt's budget; the subjects it books are verified from the install on)

@@ -518,7 +518,8 @@ class Server:
             # what the removed streams held is returned by the next transport-drops tick
 
     async def _silence_loop(self) -> None:
-        """A stream whose frames stop: after ``silent_after_s`` with no frame arriving, its
+        """A stream whose frames stop: after ``silent_after_s`` with no frame arriving (or
+        three of its usual gaps between frames, when longer), its
         status turns ``idle`` and its labeled fraction 0 (the log says since when and from
         whom); its labeler is kept, and the next labeled frame gives the status back. Before,
         a stream whose sender had stopped read ``online`` (log, status topic, gauge) for as
@@ -528,15 +529,21 @@ class Server:
             await asyncio.sleep(min(0.5, max(0.05, window / 4)))
             now = time.monotonic()
             for name, st in list(self.streams.items()):
+                if not st.arrival_gaps or st.status in ("idle", "training_failed"):
+                    continue  # (fewer than two frames: it reads ``booting`` or ``starting``)
+                # at least three of its usual gaps between frames: a sender at 1 Hz is slow, not
+                # gone (at one frame per 1.1 s every frame turned the status over)
                 quiet = now - st.last_activity
-                if st.sender is None or st.status == "idle" or quiet <= window:
-                    continue  # (no frame yet: it reads ``booting`` or ``starting``)
+                usual = float(np.median(st.arrival_gaps)) if st.arrival_gaps else 0.0
+                if quiet <= max(window, 3.0 * usual):
+                    continue
                 st.status = "idle"
                 st.labeled_fraction = st.recovered_fraction = float("nan")
                 self.metrics.health(name, 0.0, 0.0)
-                log.warning("stream %s: no frame for %.1f s (the last from %s): status idle; "
-                            "its labeler is kept for the sender's return", name, quiet,
-                            _who(st.sender))  # fmt: skip
+                self._rlog.warning(f"idle-{name}", "stream %s: no frame for %.1f s (the last "
+                                   "from %s): status idle; its labeler is kept for the "
+                                   "sender's return", name, quiet,
+                                   _who(st.sender))  # fmt: skip
                 await self._status(name, "idle")
 
     # ------------------------------------------------------------------ ingest
@@ -605,8 +612,11 @@ class Server:
             self._rlog.info(f"sender-{msg.stream}", "stream %s: frames now come from %s "
                             "(before: %s)", msg.stream, _who(source),
                             _who(state.sender))  # fmt: skip
+        now = time.monotonic()
+        if state.sender_at > 0:
+            state.arrival_gaps.append(now - state.sender_at)
         state.sender = source
-        state.sender_at = time.monotonic()
+        state.sender_at = now
         if verdict.gap:
             self.metrics.gap(msg.stream, verdict.gap)
         self.metrics.frame_in(msg.stream)

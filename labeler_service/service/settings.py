@@ -264,8 +264,9 @@ class ServiceSettings(BaseSettings):
     degraded_below: float = Field(0.5, ge=0, le=1)
     lost_below: float = Field(0.1, ge=0, le=1)
     health_window_s: float = Field(1.0, gt=0)
-    #: A stream that has had frames and gets none for this long reads ``idle`` (its labeler
-    #: kept; the next frame gives the status back).
+    #: A stream that has had frames and gets none for this long (or three of its usual gaps
+    #: between frames, when longer) reads ``idle`` (its labeler kept; the next frame gives the
+    #: status back).
     silent_after_s: float = Field(1.0, gt=0)
     #: Input validation caps (checked once, at decode).
     max_points: int = Field(2000, ge=1)

@@ -333,6 +333,8 @@ class StreamState:
         #: when the sender's last frame was accepted (monotonic s): a frame from another
         #: sender while this one is quiet is a sender's restart, not a second sender
         self.sender_at = 0.0
+        #: wall seconds between the last accepted frames (the silence rule's "usual gap")
+        self.arrival_gaps: deque[float] = deque(maxlen=9)
         #: monotonic time of the first of the frames in a row that arrive and continue nothing
         #: (dropped by the continuity rule, server ``_stalled``), None while frames are accepted
         self.stalled_since: float | None = None
@@ -919,6 +921,7 @@ class StreamState:
         self.units.new_run()
         self.abandon_handover(f"new run {self.runs}")
         if f.labels is not None:
+            self._handback_said = -math.inf
             log.info("stream %s: new run %d with labeled init frames: retraining", self.name,
                      self.runs)  # fmt: skip
             self.take_init()
@@ -950,14 +953,13 @@ class StreamState:
         lab = self.labeler
         if lab is None or self.settings.labeler != "online":
             return None
-        booting = self.booting
-        if booting is not None:
+        if self.booting is not None:
             # the window start's labeler boots already, but only the subjects it drops: a
-            # recovery boots every subject from its window model, or the model its booter
-            # learned again from the stream since (not while recovering)
-            if self.window_frames is None or self.recovering:
-                return None
-            return booting.boot_model
+            # recovery boots every subject from its window model (not while recovering; not
+            # from a relearned model: prepared for the recovery's settings on the frame path,
+            # 0.1 s for two walkers, seconds for a large model, where the window model's
+            # preparation was made off it)
+            return lab.model if self.window_frames is not None and not self.recovering else None
         return lab.model
 
     def _waits_for_labels(self) -> bool:

@@ -91,3 +91,18 @@ def test_where_the_extension_runs_elsewhere_the_boot_job_relearns(walk):
     lab.install_boot(snap, result)
     assert lab.relearned == 1 and lab.key != key and lab._booter is not booter
     assert lab.boot_model is lab._booter.model and lab.model is not lab.boot_model
+
+
+def test_a_catch_up_shadow_keeps_no_relearn_history(walk):
+    """The catch-up's shadow is a shallow copy: it shared the labeler's relearn deques, and
+    its frames (fed in the boot job's thread) went into the stream's history."""
+    model, cap = walk
+    lab, _ = _run(walk, WINDOW + 10)
+    n = len(lab._relearn_frames)
+    sh = lab._shadow()
+    assert sh._relearn_frames is not lab._relearn_frames and not sh._relearn_every
+    s = Stream(cap, model, seed=3, hide=0.0)
+    sh._inner_from_window()
+    for f in range(WINDOW + 10, WINDOW + 20):
+        sh.process(*s.frame(f)[:1], f / RATE)
+    assert len(lab._relearn_frames) == n

@@ -690,3 +690,24 @@ def test_a_stream_whose_sender_stops_turns_idle_then_online_again(rng, caplog):
     assert "second sender" not in caplog.text
     assert "frames now come from 10.0.0.1:4002 (before: 10.0.0.1:4001)" in caplog.text
     assert "unlabeled=" in caplog.text and "/frame status=" in caplog.text
+
+
+def test_a_slow_sender_is_not_idle_between_its_frames(rng):
+    """Frames at 4 Hz (``t`` 0.25 s apart, sent 0.25 s apart) with ``silent_after_s`` = 0.2:
+    the stream waits three frame periods before it reads ``idle``, so the status does not turn
+    over at every frame (at a rate slower than 1 / ``silent_after_s`` every frame did)."""
+    cap = moving_clusters(rng, frames=30)
+    frames = frames_of(cap, np.random.default_rng(4))
+    payloads = [encode_frame("default", f, f * 0.25, pts,
+                             [cap.labels[i] for i in truth] if f < 10 else None)
+                for f, (pts, truth) in enumerate(frames[:22])]  # fmt: skip
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False, silent_after_s=0.2), [mem]):
+            await _feed(mem, payloads, pause=0.25)
+            await asyncio.sleep(0.1)
+            return [decode(x).state for _, k, x, _ in mem.sent if k == "status"]
+
+    states = run(go())
+    assert "idle" not in states, states
