@@ -156,6 +156,10 @@ RELEARN_MARGIN = 5
 #: Most frames a relearn trains on, evenly spread over its clean frames (the training's cost
 #: grows with them: 0.67 s on 987 frames of three performers, in the service's process).
 RELEARN_MAX_FRAMES = 250
+#: Off the frame path (the service) a relearn's Python shares the process with the frame path:
+#: the next one waits at least this many times the last one's duration (at most a tenth of
+#: the stream's time spent relearning: three performers at 120 Hz took 0.3 s a relearn).
+RELEARN_LOAD = 10.0
 
 
 #: Longest wait between fruitless extensions off the frame path, in ``extend_every_s`` periods.
@@ -334,6 +338,7 @@ class BootingLabeler:
         self._relearn_clean: deque[bool] = deque(maxlen=hist)
         self._since_relearn = 0
         self._relearn_pending = False  # due, for the next boot job (off the frame path)
+        self._relearn_cost_s = 0.0  # the last relearn's wall time (off the frame path)
         self.relearned = 0
         #: the model of the booter's templates: ``model``, or the last relearn's
         self.boot_model = model
@@ -561,7 +566,10 @@ class BootingLabeler:
             return False
         self._since_relearn += 1
         feed = self.window_frames or 1
-        if self._since_relearn < self._relearn_every:
+        every = self._relearn_every
+        if not self.inline_extend:
+            every = max(every, round(RELEARN_LOAD * self._relearn_cost_s * self.rate))
+        if self._since_relearn < every:
             return False
         clean_tail = list(self._relearn_clean)[-feed:]
         if not all(clean_tail):
@@ -610,6 +618,7 @@ class BootingLabeler:
         from labeler_service.labeling.frame import window_observations
         from labeler_service.labeling.structure import window_model
 
+        t0 = time.perf_counter()
         pos = window_observations(frames, np.ones(len(self._names), dtype=bool))
         try:
             model = window_model(Capture(pos.astype(np.float32), self._names, self.rate))
@@ -617,7 +626,9 @@ class BootingLabeler:
             return None
         if model.marker_names != self._names:
             return None  # (cannot happen: the window model keeps the stream's names)
-        return (model, *prepare_boot(model, self.boot_config, self.rate, False))
+        built = (model, *prepare_boot(model, self.boot_config, self.rate, False))
+        self._relearn_cost_s = time.perf_counter() - t0
+        return built
 
     def _relearn_use(self, built: tuple) -> None:
         """Installs a relearned booter (frame thread); a worker process's booter cache knows

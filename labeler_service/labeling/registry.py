@@ -234,6 +234,7 @@ def make_window_labeler(
     rate: float,
     window_frames: int,
     config: LabelerConfig | None = None,
+    relearn_every_s: float = 2.0,
 ) -> FrameLabeler:
     """The labeled start through the model-based labeler: a
     :class:`~labeler_service.labeling.booting.BootingLabeler` from ``model``, the subject
@@ -283,7 +284,7 @@ def make_window_labeler(
         fill_agreement=False,
         release_loose=False,
         fill_past_partner=False,
-        relearn_every_s=2.0,
+        relearn_every_s=relearn_every_s,
     )
     from labeler_service.labeling.booting import BootingLabeler
 

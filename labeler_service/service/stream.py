@@ -615,6 +615,7 @@ class StreamState:
             rate=rate,
             window_frames=len(init.frames),
             config=self.settings.labeler_config,
+            relearn_every_s=self.stream_settings.relearn_every_s,
         )
         if self.settings.warmup:
             labeler.warmup()
@@ -1096,8 +1097,13 @@ class StreamState:
                         HANDBACK_WAIT_S, shown, back)  # fmt: skip
         plain: FrameLabeler
         if self.window_frames is not None:  # back to the window start's labeler
-            plain = make_window_labeler(lab.model, rate=lab.rate, window_frames=self.window_frames,
-                                        config=self.settings.labeler_config)  # fmt: skip
+            plain = make_window_labeler(
+                lab.model,
+                rate=lab.rate,
+                window_frames=self.window_frames,
+                config=self.settings.labeler_config,
+                relearn_every_s=self.stream_settings.relearn_every_s,
+            )
         else:
             plain = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
                                   config=self.settings.labeler_config)  # fmt: skip

@@ -38,6 +38,11 @@ def test_window_labeler_counts_the_model_as_the_windows_samples(rng):
     assert not lab.boot_config.fill_past_partner
     with pytest.raises(LabelerError, match="at least one labeled frame"):
         make_window_labeler(model, rate=25.0, window_frames=0)
+    # the booter learns again from the stream every 2 s, unless the caller (a service stream's
+    # ``relearn_every_s``) says otherwise
+    assert lab.boot_config.relearn_every_s == 2.0
+    off = make_window_labeler(model, rate=25.0, window_frames=10, relearn_every_s=0.0)
+    assert off.boot_config.relearn_every_s == 0.0 and not off._relearn_every
 
 
 def test_window_model_is_the_structure_trainers_model(rng):
