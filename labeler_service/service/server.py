@@ -519,11 +519,10 @@ class Server:
 
     async def _silence_loop(self) -> None:
         """A stream whose frames stop: after ``silent_after_s`` with no frame arriving (or
-        three of its usual gaps between frames, when longer), its
-        status turns ``idle`` and its labeled fraction 0 (the log says since when and from
-        whom); its labeler is kept, and the next labeled frame gives the status back. Before,
-        a stream whose sender had stopped read ``online`` (log, status topic, gauge) for as
-        long as the service ran."""
+        three of its usual gaps between frames, when longer), its status turns ``idle`` and
+        its labeled fraction 0 (the log says since when and from whom); its labeler is kept,
+        and the next labeled frame gives the status back. Before, a stream whose sender had
+        stopped read ``online`` (log, status topic, gauge) for as long as the service ran."""
         window = self.settings.silent_after_s
         while True:
             await asyncio.sleep(min(0.5, max(0.05, window / 4)))
@@ -534,8 +533,7 @@ class Server:
                 # at least three of its usual gaps between frames: a sender at 1 Hz is slow, not
                 # gone (at one frame per 1.1 s every frame turned the status over)
                 quiet = now - st.last_activity
-                usual = float(np.median(st.arrival_gaps)) if st.arrival_gaps else 0.0
-                if quiet <= max(window, 3.0 * usual):
+                if quiet <= max(window, 3.0 * float(np.median(st.arrival_gaps))):
                     continue
                 st.status = "idle"
                 st.labeled_fraction = st.recovered_fraction = float("nan")
