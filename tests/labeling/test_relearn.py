@@ -83,6 +83,8 @@ def test_where_the_extension_runs_elsewhere_the_boot_job_relearns(walk):
             break
     assert lab.relearned == 0 and lab._relearn_pending and lab.needs_boot()
     key, booter = lab.key, lab._booter
+    # what crosses to a worker process: no model while the booter's is the labeler's
+    assert lab._shadow().for_transfer().model is None
     snap = lab.boot_snapshot()
     assert snap.relearn and len(snap.relearn) >= lab.boot_config.relearn_min_frames
     assert snap.remote().relearn is None and not lab._relearn_pending
@@ -91,6 +93,9 @@ def test_where_the_extension_runs_elsewhere_the_boot_job_relearns(walk):
     lab.install_boot(snap, result)
     assert lab.relearned == 1 and lab.key != key and lab._booter is not booter
     assert lab.boot_model is lab._booter.model and lab.model is not lab.boot_model
+    # after it the worker could not rebuild the labeler's model from the booter: it goes along
+    sent = lab._shadow().for_transfer()
+    assert sent.model is lab.model and sent.boot_model is None and sent._booter is None
 
 
 def test_a_catch_up_shadow_keeps_no_relearn_history(walk):
