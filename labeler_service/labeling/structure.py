@@ -98,11 +98,12 @@ def chirality_quads(
     m = A.shape[0]
     steady = np.isfinite(A) & (A <= CHIRALITY_A_MM)
     np.fill_diagonal(steady, False)
-    # steadiness says "one rigid piece" only of markers the frames moved against some partner
-    # (a marker steady to every other was merely still: a kneeling segment's trunk and arms)
-    moved = np.any(np.isfinite(A) & (A > CHIRALITY_A_MM), axis=1)
-    steady &= moved[:, None] & moved[None, :]
-    if not steady_pool:
+    if steady_pool:
+        # steadiness says "one rigid piece" only of markers the frames moved against some
+        # partner (a marker steady to every other was merely still: a kneeling segment's trunk)
+        moved = np.any(np.isfinite(A) & (A > CHIRALITY_A_MM), axis=1)
+        steady &= moved[:, None] & moved[None, :]
+    else:
         steady[:] = False
     quads: list[tuple[int, int, int, int]] = []
     for a in range(m):
