@@ -402,6 +402,11 @@ class BootingLabeler:
 
     # ------------------------------------------------------------------ protocol
     @property
+    def boot_spec(self) -> tuple[LabelerModel, BootConfig]:
+        """What a worker process builds this labeler's booter from (its cache key: :attr:`key`)."""
+        return self.boot_model, self.boot_config
+
+    @property
     def marker_names(self) -> tuple[str, ...]:
         return self._names
 

@@ -107,7 +107,7 @@ class _Session:
         w._lock.acquire()
         self._held = True
         try:
-            spec = None if lab.key in w._known else (lab.boot_model, lab.boot_config)
+            spec = None if lab.key in w._known else lab.boot_spec
             msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
             booted = w._request(msg, self.cancel, "catch-up")
             w._note(lab.key)
@@ -386,14 +386,14 @@ class BootWorker:
         with self._lock:
             if labeler.key in self._known:
                 return
-            spec = (labeler.boot_model, labeler.boot_config)
+            spec = labeler.boot_spec
             self._request(("prepare", labeler.key, spec, labeler.rate, labeler.config), None,
                           "preparation")  # fmt: skip
             self._note(labeler.key)
 
     def runner(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> StepRunner:
         """The ``runner`` for ``labeler.boot_step`` (see the module docstring)."""
-        spec = (labeler.boot_model, labeler.boot_config)
+        spec = labeler.boot_spec
 
         def run(snapshot: BootSnapshot):
             return self.step(labeler.key, spec, snapshot, cancel)
