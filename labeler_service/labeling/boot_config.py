@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+#: How often the labeled start's booter learns again from the stream (s): the window labeler's
+#: ``relearn_every_s`` (registry.make_window_labeler) and a service stream's default.
+WINDOW_RELEARN_S = 2.0
+
 
 class BootConfig(BaseModel):
     """Parameters of the boot (defaults measured on the simulated and composed scenes)."""

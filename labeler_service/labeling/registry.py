@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Protocol, overload
 
 from labeler_service.errors import LabelerError
+from labeler_service.labeling.boot_config import WINDOW_RELEARN_S
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootConfig
@@ -234,7 +235,7 @@ def make_window_labeler(
     rate: float,
     window_frames: int,
     config: LabelerConfig | None = None,
-    relearn_every_s: float = 2.0,
+    relearn_every_s: float = WINDOW_RELEARN_S,
 ) -> FrameLabeler:
     """The labeled start through the model-based labeler: a
     :class:`~labeler_service.labeling.booting.BootingLabeler` from ``model``, the subject

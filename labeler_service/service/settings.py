@@ -40,7 +40,7 @@ from pydantic import (
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from labeler_service.errors import ConfigError
-from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.boot_config import WINDOW_RELEARN_S, BootConfig
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.service.protocol import STREAM_NAME
 
@@ -168,7 +168,7 @@ class StreamSettings(_Section):
     #: ``evaluate`` does (``BootConfig.relearn_every_s``): a performer who left is read again
     #: with what the stream showed of him. Its Python shares the process with the frame path
     #: (labeling p99 1 -> 3 ms for three performers at 120 Hz; docs/service.md).
-    relearn_every_s: float = Field(2.0, ge=0, allow_inf_nan=False)
+    relearn_every_s: float = Field(WINDOW_RELEARN_S, ge=0, allow_inf_nan=False)
 
     @field_validator("name")
     @classmethod
