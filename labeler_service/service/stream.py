@@ -115,6 +115,7 @@ from labeler_service.service.handover import (
     Handover,
     catch_up_plan,
 )
+from labeler_service.service.metrics import RateLimitedLog
 from labeler_service.service.protocol import FrameMsg, encode_labeled, encode_model
 from labeler_service.service.settings import ServiceSettings, StreamSettings
 from labeler_service.service.units import RateCheck, UnitCheck, init_span_warning
@@ -381,7 +382,9 @@ class StreamState:
         #: stream time since which every subject is labeled but markers are missing (the
         #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
         self._handback_since: float | None = None
-        self._handback_said = -math.inf  # stream time of the last "stays until" line
+        #: the hand-back's "stays until" line, once per wait (a subject that flickers restarts
+        #: the wait, not the line)
+        self._handback_log = RateLimitedLog(log, period=HANDBACK_WAIT_S)
         #: (model, its markers in a trained body) of the last hand-back check
         self._body_mask: tuple[object, np.ndarray] = (None, np.zeros(0, dtype=bool))
 
@@ -922,7 +925,6 @@ class StreamState:
         self.units.new_run()
         self.abandon_handover(f"new run {self.runs}")
         if f.labels is not None:
-            self._handback_said = -math.inf
             log.info("stream %s: new run %d with labeled init frames: retraining", self.name,
                      self.runs)  # fmt: skip
             self.take_init()
@@ -1083,12 +1085,10 @@ class StreamState:
             shown = ", ".join(missing[:6]) + (", ..." if len(missing) > 6 else "")
             if self._handback_since is None:
                 self._handback_since = t
-                # (once per wait: a subject that flickers restarts the wait, not the line)
-                if t - self._handback_said >= HANDBACK_WAIT_S:
-                    self._handback_said = t
-                    log.info("stream %s: every subject labeled again; the booting labeler "
-                             "stays until it labels %s too (%s), at most %g s", self.name,
-                             plural(len(missing), "marker"), shown, HANDBACK_WAIT_S)  # fmt: skip
+                self._handback_log.info("handback", "stream %s: every subject labeled again; "
+                                        "the booting labeler stays until it labels %s too (%s), "
+                                        "at most %g s", self.name, plural(len(missing), "marker"),
+                                        shown, HANDBACK_WAIT_S)  # fmt: skip
             if t - self._handback_since < HANDBACK_WAIT_S:
                 return
             log.warning("stream %s: %s not labeled within %g s (%s): back to %s labeler "
