@@ -341,3 +341,37 @@ def test_a_prepared_boot_is_shared_and_labels_as_a_fresh_one(walk):
     for _ in range(booting.PREPARED_KEPT + 1):  # the cache holds a few models, not all
         booting.prepare_boot(model.model_copy(), cfg, RATE)
     assert len(booting._prepared) == booting.PREPARED_KEPT
+
+
+def test_the_last_catch_up_strides_to_the_newest_frame_while_far_behind(walk, monkeypatch):
+    """The catch-up's last part runs in the service's own process, beside the frame path: far
+    behind, it labels every ``rate // CATCH_UP_HZ``-th frame (as the catch-up does while
+    behind), only the newest ``CATCH_LAST_FULL`` or so at the full rate, and it ends at the
+    newest frame, one the frame thread appended meanwhile included."""
+    from labeler_service.labeling import booting
+
+    model, _ = walk
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    stride = int(RATE // booting.CATCH_UP_HZ)
+    assert stride >= 2  # (else there is nothing to stride over)
+    pts = np.zeros((3, 3), dtype=np.float32)
+
+    def frame(k: int):
+        return booting._Frame(k / RATE, pts, np.arange(3), np.full(3, -1))
+
+    since = [frame(k) for k in range(60)]
+    fed: list[int] = []
+
+    def feed(batch):
+        fed.extend(round(t * RATE) for t, _ in batch)
+        if len(since) == 60:  # a frame arrives while the shadow labels
+            since.append(frame(60))
+
+    monkeypatch.setattr(lab, "_catch_up_frames", feed)
+    assert lab._catch_last(since, 10, None) == 61
+    full = booting.CATCH_LAST_FULL + stride
+    assert fed[-1] == 60 and fed == sorted(set(fed)) and fed[0] == 10
+    steps = np.diff(fed)
+    assert set(steps[: -full - 1].tolist()) == {stride}  # far behind: strided
+    assert set(steps[-full + 1 :].tolist()) == {1}  # the newest at the full rate
+    assert len(fed) <= (61 - 10) / stride + full < 61 - 10
