@@ -1116,6 +1116,10 @@ class BootingLabeler:
             booted = shadow._begin_catch_up(plain, result)
             feed = shadow._catch_up_frames
         else:
+            # the inner labeler the shadow restarts from after the hand-back, built now: each
+            # ms after the hand-back is a ms of frames labeled in this process (below), while
+            # the worker's rounds stride past a delay here (10 performers: ~20 ms of ~30)
+            fresh = Labeler.from_model(self.model, self.rate, self.config, subjects=())
             # the shadow's frames run in the worker process (its Python holds the worker's
             # GIL, not the frame path's)
             booted = remote.begin(shadow, plain, result)
@@ -1162,7 +1166,7 @@ class BootingLabeler:
             shadow = remote.finish()
             shadow._booter, shadow.model = self._booter, self.model
             shadow.boot_model = self.boot_model
-            shadow._inner_from_window()
+            shadow._inner_from_window(fresh)
         done = shadow._catch_last(since, done, cancel)
         if done < 0:
             return False
@@ -1232,10 +1236,12 @@ class BootingLabeler:
         if self._active and full and np.any(self._window[-1].labels < 0):
             self._extend()
 
-    def _restart_inner(self) -> None:
-        """On a shadow: a new inner labeler, started from the window's labels of the active
-        subjects."""
-        self._inner = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+    def _restart_inner(self, fresh: Labeler | None = None) -> None:
+        """On a shadow: a new inner labeler (``fresh``, built with no subject, or built here),
+        started from the window's labels of the active subjects."""
+        if fresh is None:
+            fresh = Labeler.from_model(self.model, self.rate, self.config, subjects=())
+        self._inner = fresh
         self._inner_known[:] = False
         names = [self.model.subjects[s].name for s in sorted(self._active)]
         if names:
@@ -1243,10 +1249,11 @@ class BootingLabeler:
             for f in self._window:
                 self._inner_known[f.labels[f.labels >= 0]] = True
 
-    def _inner_from_window(self) -> None:
-        """On a shadow back from the worker process: its inner labeler, started from its
-        window's labels (every subject it labels), and its marker states from the last frame."""
-        self._restart_inner()
+    def _inner_from_window(self, fresh: Labeler | None = None) -> None:
+        """On a shadow back from the worker process: its inner labeler (``fresh``, see
+        :meth:`_restart_inner`), started from its window's labels (every subject it labels),
+        and its marker states from the last frame."""
+        self._restart_inner(fresh)
         last = self._window[-1].labels
         self._inner_state = np.zeros(len(self._names), dtype=np.uint8)
         self._inner_state[last[last >= 0]] = MarkerState.OBSERVED
