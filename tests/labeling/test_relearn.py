@@ -20,9 +20,10 @@ def walk():
     return split_walk(2, 8.0, seed=5, rate=RATE)
 
 
-def _run(walk, frames: int, ghost: bool = False, **boot):
+def _run(walk, frames: int, ghost: bool = False, hidden: int = -1, **boot):
     """A labeled start (window model of the first ``WINDOW`` frames, as ``evaluate`` makes it)
-    fed ``frames`` frames of the walk; ``ghost``: one stray point in every frame."""
+    fed ``frames`` frames of the walk; ``ghost``: one stray point in every frame; ``hidden``:
+    a marker whose point every frame after the window leaves out."""
     model, cap = walk
     s = Stream(cap, model, seed=2, hide=0.0)
     first = [s.frame(f) for f in range(WINDOW)]
@@ -37,6 +38,8 @@ def _run(walk, frames: int, ghost: bool = False, **boot):
         lab._relearn_every = round(every * RATE) if every > 0 else 0
     for f in range(frames):
         pts, tr = s.frame(f)
+        if f >= WINDOW and hidden >= 0:
+            pts, tr = pts[tr != hidden], tr[tr != hidden]
         if ghost:
             pts = np.concatenate([pts, np.array([[5000.0, 5000.0, 5000.0]], np.float32)])
             tr = np.concatenate([tr, [-1]])
@@ -57,10 +60,21 @@ def test_the_booter_learns_again_from_the_clean_stream_and_the_labeler_stays(wal
     assert not np.allclose(np.asarray(new.A, float), np.asarray(old.A, float), equal_nan=True)
 
 
-def test_no_relearn_from_frames_with_an_unlabeled_point_or_too_few(walk):
-    lab, window = _run(walk, WINDOW + round(2.2 * RATE), ghost=True)
+def test_no_relearn_from_frames_with_an_unlabeled_point_and_marker_or_too_few(walk):
+    """A free point makes a frame unclean only while some marker of the active subjects is
+    unlabeled too (it may be that marker's point); a stray point beside every marker labeled
+    is none of theirs: a stream with ghosts relearns (it never did)."""
+    frames = WINDOW + round(2.2 * RATE)
+    lab, _ = _run(walk, WINDOW + 1)
+    every = np.arange(len(lab._names))
+    assert lab._clean(every) and lab._clean(np.append(every, -1))  # a stray point: clean
+    assert lab._clean(every[1:])  # a hidden marker, every point labeled
+    assert not lab._clean(np.append(every[1:], -1))  # the free point may be that marker
+    lab, window = _run(walk, frames, ghost=True, hidden=3)
     assert lab.relearned == 0 and lab._booter.model is window
-    lab, window = _run(walk, WINDOW + round(2.2 * RATE), relearn_min_frames=10_000)
+    lab, window = _run(walk, frames, hidden=3)  # a hidden marker alone: every point labeled
+    assert lab.relearned == 1
+    lab, window = _run(walk, frames, relearn_min_frames=10_000)
     assert lab.relearned == 0
 
 
