@@ -91,7 +91,7 @@ import numpy as np
 from labeler_service.capture import Capture, is_ghost, split_label, subject_groups
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.booting import BootingLabeler, prepare_boot
-from labeler_service.labeling.frame import FrameLabeler, LabeledFrame
+from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.registry import (
     LabelerFactory,
@@ -379,6 +379,10 @@ class StreamState:
         self.reboots = 0  # booting labelers started afresh (a new run after a time jump)
         #: the recovery labeler's last frames (points, t, labels) while it labels every subject
         self._handback: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
+        #: the plain online labeler's last frames (points, t, labels) and, per subject, the frame
+        #: time it last had a marker observed (NaN: not yet): :meth:`_watch_subjects`
+        self._recent: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
+        self._seen_t: np.ndarray | None = None
         #: stream time since which every subject is labeled but markers are missing (the
         #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
         self._handback_since: float | None = None
@@ -467,6 +471,12 @@ class StreamState:
         self._health_alpha = min(1.0, 1.0 / max(1.0, self.rate * self.settings.health_window_s))
         self.model_id += 1
         subjects = subject_slices(self.names)
+        groups = subject_groups(self.names)
+        #: (subject names, each marker's subject index): :meth:`_watch_subjects`
+        self._subject_of = (list(groups), np.zeros(len(self.names), dtype=np.int64))
+        for k, cols in enumerate(groups.values()):
+            self._subject_of[1][cols] = k
+        self._seen_t = None
         self.bodies = rigid_bodies(labeler, self.names)
         self.model_payload = self._encode_model()
         self.window_frames = labeler.window_frames if isinstance(labeler, BootingLabeler) else None
@@ -985,10 +995,13 @@ class StreamState:
         gap = t - self._t_last
         return gap if gap > gap_s else 0.0
 
-    def start_recovery(self, why: str) -> bool:
+    def start_recovery(self, why: str, keep: list | None = None) -> bool:
         """Replaces the labeler by a :class:`BootingLabeler` of its own model (boot off the
         frame path, driven by the server like a model stream's boot); False when there is no
-        model to boot from (the labeler's own re-acquisition is then the only recovery)."""
+        model to boot from (the labeler's own re-acquisition is then the only recovery).
+        ``keep``: the last frames ``(points, t, labels)`` of the labeler replaced, given to the
+        new one with their labels, so that the subjects labeled in them stay labeled (only the
+        others are booted)."""
         model = self.recovery_model()
         if model is None or self.rate is None:
             return False
@@ -998,13 +1011,49 @@ class StreamState:
                             boot=self.settings.boot_config)  # fmt: skip
         if not _off_the_loop(lab):
             return False
+        if keep and tuple(lab.marker_names) == self.names:
+            for pts, t, labels in keep:
+                lab.process(pts, t, labels)
         self._swap(lab)
         self.recovering = True
         self.recoveries += 1
-        log.warning("stream %s: %s: booting its %s from the stream's model (recovery "
-                    "%d)", self.name, why, plural(len(model.subjects), "subject"),
-                    self.recoveries)  # fmt: skip
+        n = plural(len(model.subjects), "subject")
+        what = "whoever is missing (the others keep their labels)" if keep else f"its {n}"
+        log.warning("stream %s: %s: booting %s from the stream's model (recovery %d)",
+                    self.name, why, what, self.recoveries)  # fmt: skip
         return True
+
+    def _watch_subjects(self, pts: np.ndarray, t: float, out: LabeledFrame) -> None:
+        """The plain online labeler of a model (``boot = false``, after a recovery's hand-back,
+        or trained from the init frames): a subject labeled before that has had no marker
+        observed for the boot's ``drop_after_s`` left the volume, and the plain labeler would
+        never label him again when he comes back (it re-acquires markers near where they were;
+        a helper's replay: a performer of two who left for 1 s was unlabeled for the remaining
+        7 s, the stream ``degraded``). Starts a recovery that keeps the others' labels (the
+        last frames go to the booting labeler with them), which boots him when he returns and
+        hands back once every subject is labeled again."""
+        lab = self.labeler
+        if (
+            self.recovering
+            or not isinstance(lab, Labeler)
+            or self.settings.labeler != "online"
+            or self.rate is None
+        ):
+            return
+        self._recent.append((pts, t, out.point_labels))
+        names, subject_of = self._subject_of
+        if self._seen_t is None:
+            self._seen_t = np.full(len(names), np.nan)
+        self._seen_t[subject_of[out.state == MarkerState.OBSERVED]] = t
+        gone = np.flatnonzero(t - self._seen_t > self.settings.boot_config.drop_after_s)
+        if gone.size == 0:
+            return
+        who = ", ".join(names[int(k)] for k in gone)
+        keep = list(self._recent)
+        self._seen_t = None
+        self._recent.clear()
+        drop = self.settings.boot_config.drop_after_s
+        self.start_recovery(f"{who}: no marker seen for {drop:g} s", keep)
 
     def reboot(self, why: str) -> bool:
         """A booting labeler that no recovery replaces (a model stream that boots, or a
@@ -1175,6 +1224,8 @@ class StreamState:
         self.verify_events = _verify_events(lab, n_events)
         if self.recovering:
             self._after_recovery_frame(f, t, out)
+        else:
+            self._watch_subjects(f.points, t, out)
         label_ns = time.perf_counter_ns() - t0
         self._t_last = t
         return self.encode(f, out, recv_ns, label_ns)
@@ -1312,8 +1363,13 @@ class StreamState:
         """The status the stream announces when the service is ready (or the stream gets its
         slot): ``booting`` while nobody can be labeled yet — the stream boots its performers
         from a model, or it has no labeler until its labeled init frames have trained one
-        (the server turns it ``online`` then, :meth:`Server._train`) —, else ``online``."""
-        waiting = self.labeler is None or isinstance(self.labeler, BootingLabeler)
+        (the server turns it ``online`` then, :meth:`Server._train`), or its plain labeler of a
+        model (``boot = false``) waits for a first labeled frame —, else ``online``."""
+        waiting = (
+            self.labeler is None
+            or isinstance(self.labeler, BootingLabeler)
+            or self._waits_for_labels()
+        )
         self.status = "booting" if waiting else "online"
         return self.status
 

@@ -342,3 +342,52 @@ def test_boot_off_hands_back_after_a_wait_when_markers_never_appear(scene_model,
     assert st.handbacks == 1 and not isinstance(st.labeler, BootingLabeler)
     assert "the booting labeler stays until it labels" in caplog.text
     assert f"not labeled within {HANDBACK_WAIT_S:g} s" in caplog.text and "P1:RWRA" in caplog.text
+
+
+def test_a_performer_who_leaves_a_plain_labeled_stream_is_booted_when_back(scene_model, caplog):
+    """``boot = false``: after the recovery's hand-back the plain labeler labels the stream.
+    P2 leaves for 0.8 s and comes back: the plain labeler would never label him again (a
+    helper's replay: unlabeled for the remaining 7 s, the stream ``degraded``). His absence
+    starts a recovery that keeps the others' labels; he is booted when back, and P1 and P3
+    stay labeled throughout."""
+    import logging
+    from types import SimpleNamespace
+
+    from labeler_service.labeling.frame import MarkerState
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.stream")
+    st, frames, _ = _boot_off_stream(scene_model)
+    names = frames.marker_names
+    p2 = np.array([k for k, n in enumerate(names) if n.startswith("P2:")])
+    n = frames.n_frames
+    away0, away1 = n // 3, n // 3 + int(0.8 * RATE)
+    keep = [
+        ~np.isin(frames.truth[f], p2) if away0 <= f < away1 else np.ones(len(frames.truth[f]), bool)
+        for f in range(n)
+    ]
+    first = SimpleNamespace(n_frames=away0, times=frames.times[:away0],
+                            points=[frames.points[f] for f in range(away0)])  # fmt: skip
+    _feed_booting(st, first, 0)
+    assert st.handbacks == 1 and not st.recovering  # the plain labeler labels everyone
+    rest = SimpleNamespace(n_frames=n - away0, times=frames.times[away0:],
+                           points=[frames.points[f][keep[f]] for f in range(away0, n)])  # fmt: skip
+    out = _feed_booting(st, rest, away0)
+    assert st.recoveries == 2 and "P2: no marker seen for" in caplog.text
+    index = {m: st.names.index(nm) for m, nm in enumerate(names)}
+
+    def labeled(f: int, subject: str) -> float:
+        """Share of the subject's visible markers published at their true points."""
+        state, pos, _ = out[f - away0]
+        tr = frames.truth[f][keep[f]]
+        pts = frames.points[f][keep[f]]
+        ok = [
+            state[index[m]] == MarkerState.OBSERVED
+            and np.allclose(pos[index[m]], pts[k], atol=1e-3)
+            for k, m in enumerate(tr)
+            if m >= 0 and names[m].startswith(subject + ":")
+        ]
+        return float(np.mean(ok)) if ok else 1.0
+
+    for subject in ("P1", "P3"):  # the others lose nothing to the recovery
+        assert min(labeled(f, subject) for f in range(away0, n)) >= 0.9, subject
+    assert np.mean([labeled(f, "P2") for f in range(n - 20, n)]) >= 0.9  # back and labeled

@@ -246,6 +246,8 @@ def test_boot_off_keeps_the_labeled_start(model_path):
             st = srv.streams["vol"]
             assert isinstance(st.labeler, Labeler) and st.booting is None
             assert not st.boot_due()
+            # nobody can be labeled before a labeled frame or a boot (it read ``online``)
+            assert st.status == "booting"
 
     run(go(), timeout=120.0)
 
