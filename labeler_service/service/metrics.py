@@ -24,6 +24,7 @@ SERVICE_DROP_REASONS = (
     "late",  # seq lower than the last one seen, by at most max_seq_step
     "seq_jump",  # seq jumped (forward or back beyond max_seq_step): suspect, not yet a new run
     "time_jump",  # t did not advance, or jumped beyond max_time_step_s: suspect
+    "second_sender",  # another sender's frame while the stream's sender sends (silent_after_s)
     "marker_cap",  # init frames would define more than max_markers distinct markers
     "training_failed",  # in-stream training failed or ran over train_budget_s
     "no_model",  # unlabeled frame on a stream with neither model nor labeled init frames

@@ -324,9 +324,9 @@ def test_a_sender_whose_clock_stops_turns_lost_and_says_why_then_online_again(rn
 
 def test_a_second_sender_on_one_stream_is_named_in_the_log(rng, caplog):
     """Two replays sending to one stream (their seq and t far apart): the second one's frames
-    are dropped as jumps while the first sends, and the log names both senders; once the first
-    stops, the stream takes the second's frames (a new run) and says so. Before, the log said
-    only ``seq_jump``."""
+    are dropped (``second_sender``) while the first sends, and the log names both senders;
+    once the first has been quiet for ``silent_after_s``, the stream takes the second's frames
+    (a new run) and says so. Before, the log said only ``seq_jump``."""
     import logging
 
     cap = moving_clusters(rng, frames=120)
@@ -337,7 +337,7 @@ def test_a_second_sender_on_one_stream_is_named_in_the_log(rng, caplog):
 
     async def go():
         mem = MemoryTransport()
-        async with Server(_settings(warmup=False), [mem]) as srv:
+        async with Server(_settings(warmup=False, silent_after_s=0.2), [mem]) as srv:
             for k in range(60):
                 mem.inject(first[k], reply_to=("10.0.0.1", 4001))
                 mem.inject(second[k], reply_to=("10.0.0.2", 4002))
@@ -346,13 +346,42 @@ def test_a_second_sender_on_one_stream_is_named_in_the_log(rng, caplog):
                 mem.inject(second[k], reply_to=("10.0.0.2", 4002))
                 await asyncio.sleep(1 / 120)
             await until(lambda: srv.metrics.value("mocap_frames_in_total", stream="default")
-                        >= 60 + 60 - 3, "the second sender's frames in")  # fmt: skip
+                        >= 60 + 20, "the second sender's frames in")  # fmt: skip
+            return srv.metrics.drops("second_sender", "default")
 
-    run(go())
+    assert run(go()) >= 60
     assert "frames from a second sender (10.0.0.2:4002) dropped while 10.0.0.1:4001 sends" in (
         caplog.text
     )
     assert "frames now come from 10.0.0.2:4002 (before: 10.0.0.1:4001)" in caplog.text
+
+
+def test_bursts_from_a_second_sender_do_not_take_a_sending_stream_over(rng):
+    """Three frames in a row that continue each other are a new run by the restart rule: a
+    second sender's burst of three every 0.5 s took a live stream over (its points published
+    as the stream's frames, the stream's own labels 0.47 correct for 6 s). While the stream's
+    sender sends, another sender's frames are dropped before the rule sees them."""
+    cap = moving_clusters(rng, frames=240)
+    first = stream_payloads(cap, rng, init=10)
+    burst = [encode_frame("default", 10**9 + k, 5000.0 + k / cap.rate,
+                          np.full((4, 3), 9.0, np.float32), None) for k in range(60)]  # fmt: skip
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False), [mem]) as srv:
+            for k in range(240):
+                mem.inject(first[k], reply_to=("10.0.0.1", 4001))
+                if k % 60 == 30:
+                    for b in range(3):
+                        mem.inject(burst[k // 60 * 3 + b], reply_to=("10.0.0.9", 9))
+                await asyncio.sleep(1 / 120)
+            await until(lambda: srv.metrics.value("mocap_frames_out_total", stream="default")
+                        >= 240 - 10, "the stream's frames out")  # fmt: skip
+            seqs = [decode(p).seq for _, kind, p, _ in mem.sent if kind == "labeled"]
+            return seqs, srv.metrics.drops("second_sender", "default")
+
+    seqs, dropped = run(go())
+    assert dropped == 12 and max(seqs) < 10**9  # no burst frame published
 
 
 def test_a_second_sender_a_few_frames_behind_is_named_and_the_stream_turns_lost(rng, caplog):
