@@ -556,6 +556,8 @@ def decode(
     if m.get("v") != VERSION or isinstance(m.get("v"), bool):
         raise _reject("version", f"unsupported protocol version {m.get('v')!r}")
     kind = m.get("type", "frame")
+    if not isinstance(kind, str):  # (a list or map is unhashable: ``in accept`` raised)
+        raise _reject("type", f"message type must be a string, got {type(kind).__name__}")
     if accept is not None and kind not in accept:
         raise _reject("type", f"a {kind!r} message is not accepted here")
     if kind == "frame":

@@ -160,6 +160,16 @@ def test_a_service_output_type_sent_to_the_service_is_refused_for_its_type(kind)
     assert isinstance(decode(_frame(), accept=frozenset({"frame"})), FrameMsg)
 
 
+@pytest.mark.parametrize("kind", [["frame"], {"a": 1}, 3, None])
+@pytest.mark.parametrize("accept", [None, frozenset({"frame"})])
+def test_a_type_that_is_not_a_string_is_refused_for_its_type(kind, accept):
+    # a list or map raised TypeError (unhashable) in the service's check: counted ``internal``
+    # with a traceback in the log
+    with pytest.raises(ProtocolError) as info:
+        decode(_frame(type=kind), accept=accept)
+    assert info.value.reason == "type"
+
+
 def test_size_bound_covers_a_large_labeled_frame(rng):
     m, k = 600, 400
     pos = rng.normal(size=(m, 3)).astype(np.float32)
