@@ -657,6 +657,18 @@ class Server:
                 f"their t ({msg.t:.6g} s) does not advance past the last accepted frame's "
                 f"({last_t:.6g} s): is the sender's clock frozen or running backwards?"
             )
+        elif (
+            state.last_seq is not None
+            and last_t is not None
+            and msg.seq > state.last_seq
+            and (msg.t - last_t) / (msg.seq - state.last_seq) > self.settings.max_time_step_s
+        ):
+            step = (msg.t - last_t) / (msg.seq - state.last_seq)
+            why = (
+                f"their seq counts on but t advances {step:.6g} per frame, more than "
+                f"max_time_step_s ({self.settings.max_time_step_s:g} s): is t in milliseconds? "
+                "Frame times travel in seconds (docs/protocol.md)"
+            )
         else:
             why = (
                 f"their seq ({msg.seq}) and t ({msg.t:.6g} s) do not continue the last "

@@ -322,6 +322,29 @@ def test_a_sender_whose_clock_stops_turns_lost_and_says_why_then_online_again(rn
     assert caplog.text.count("status lost") == 1
 
 
+def test_a_sender_stamping_t_in_milliseconds_is_told_so(rng, caplog):
+    """Frame times in ms (every step 8.3 "s" at 120 Hz): every frame after the first is a
+    ``time_jump`` and the stream turns ``lost``; the log said seq and t "do not continue ...
+    nor each other" though seq counted on, and never named the unit."""
+    import logging
+
+    cap = moving_clusters(rng, frames=80)
+    payloads = [encode_frame("default", f, f * 1000.0 / cap.rate, pts, None)
+                for f, (pts, _) in enumerate(frames_of(cap, np.random.default_rng(4)))]  # fmt: skip
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.server")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False, health_window_s=0.2), [mem]) as srv:
+            await _feed(mem, payloads, pause=1 / 120)
+            await until(lambda: any(decode(x).state == "lost" for _, k, x, _ in mem.sent
+                                    if k == "status"), "status lost")  # fmt: skip
+            return srv.metrics.drops("time_jump", "default")
+
+    assert run(go()) >= 60
+    assert "t advances 8.33333 per frame" in caplog.text and "is t in milliseconds?" in caplog.text
+
+
 def test_a_second_sender_on_one_stream_is_named_in_the_log(rng, caplog):
     """Two replays sending to one stream (their seq and t far apart): the second one's frames
     are dropped (``second_sender``) while the first sends, and the log names both senders;
