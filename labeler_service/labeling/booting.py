@@ -594,7 +594,9 @@ class BootingLabeler:
         ``--ghosts 3``: 1 % of its frames clean, 0 relearns against 2 without ghosts; the
         window's template then refused the toe's point for 1 s, its pair to the other foot
         beyond the quiet window's reach). A free point while a marker is unlabeled still makes
-        the frame unclean, however young (a marker back from a gap, where swaps start)."""
+        the frame unclean, however young (a marker back from a gap, where swaps start): so a
+        marker hidden, or in no trained body and never labeled, beside a ghost still keeps a
+        frame out; the rule is narrower than "no ghost"."""
         free = glab < 0
         if not free.any():
             return True

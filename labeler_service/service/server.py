@@ -586,14 +586,18 @@ class Server:
             self.metrics.drop("unknown_stream")  # one series: stream names are not labels
             self._rlog.warning("unknown", "frame for unknown stream %r dropped", msg.stream)
             return
+        now = time.monotonic()
+        busier = state.busier_than_sender(source, now, self.settings.silent_after_s)
         if (
             state.sender is not None
             and source != state.sender
-            and time.monotonic() - state.sender_at <= self.settings.silent_after_s
+            and now - state.sender_at <= self.settings.silent_after_s
+            and not busier
         ):
-            # another sender's frames while the stream's sender sends: dropped before the
-            # restart rule sees them (three of them in a row were adopted as a new run, and a
-            # burst every 0.5 s took a live stream over: its labels 0.47 correct for 6 s)
+            # another sender's frames while the stream's sender sends (and sends more):
+            # dropped before the restart rule sees them (three of them in a row were adopted
+            # as a new run, and a burst every 0.5 s took a live stream over: its labels 0.47
+            # correct for 6 s)
             self.metrics.drop("second_sender", msg.stream)
             self._stalled(state, msg)
             self._rlog.warning(f"second-{msg.stream}", "stream %s: frames from a second sender "

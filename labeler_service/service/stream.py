@@ -133,6 +133,11 @@ log = logging.getLogger(__name__)
 HANDBACK_FRAMES = 4
 #: Stream seconds the hand-back waits, every subject labeled, for markers not labeled yet.
 HANDBACK_WAIT_S = 2.0
+#: Sources whose frame counts a stream keeps (``StreamState.busier_than_sender``).
+SOURCES_KEPT = 8
+#: A second sender takes a sending stream only sending this many times as many frames (two
+#: equal senders: the first keeps it; a 120 Hz sender against bursts of 3 every 0.5 s: ~20x).
+BUSIER = 2.0
 #: Bytes an init frame costs besides its arrays' data (the message object, two array headers),
 #: counted against ``max_init_bytes``.
 INIT_FRAME_OVERHEAD = 320
@@ -336,6 +341,9 @@ class StreamState:
         self.sender_at = 0.0
         #: wall seconds between the last accepted frames (the silence rule's "usual gap")
         self.arrival_gaps: deque[float] = deque(maxlen=9)
+        #: per source: (frames arriving, decayed over ``silent_after_s``; monotonic s of the
+        #: last), the few busiest kept (:meth:`busier_than_sender`)
+        self.source_rate: dict[object, tuple[float, float]] = {}
         #: monotonic time of the first of the frames in a row that arrive and continue nothing
         #: (dropped by the continuity rule, server ``_stalled``), None while frames are accepted
         self.stalled_since: float | None = None
@@ -408,6 +416,22 @@ class StreamState:
         else:
             self.progress += 1
         return verdict
+
+    def busier_than_sender(self, source: object, now: float, tau: float) -> bool:
+        """Counts a frame of ``source`` (arrival time ``now``; counts decay with time constant
+        ``tau``) and tells whether ``source`` now sends ``BUSIER`` times as many frames as the
+        stream's sender: a second sender's frames go to the restart rule only then (or once
+        the sender is quiet). A burst sender that got the stream first must not keep a steady
+        sender out, and a steady sender must not lose the stream to bursts."""
+
+        def count(src: object) -> float:
+            n, t = self.source_rate.get(src, (0.0, now))
+            return n * math.exp(-(now - t) / tau)
+
+        self.source_rate[source] = (count(source) + 1.0, now)
+        if len(self.source_rate) > SOURCES_KEPT:  # (spoofed sources: the quietest forgotten)
+            del self.source_rate[min(self.source_rate, key=count)]
+        return count(source) > BUSIER * count(self.sender)
 
     def needs_training(self, f: FrameMsg) -> bool:
         """True when labeling ``f`` trains the labeler (first unlabeled frame after the init
@@ -1097,6 +1121,8 @@ class StreamState:
         self._boot_result = None
         self._handback.clear()
         self._handback_since = None
+        self._recent.clear()  # (the watcher starts over with the labeler: _watch_subjects)
+        self._seen_t = None
         if tuple(labeler.marker_names) != self.names:
             assert self.rate is not None
             self._install(labeler, self.rate)

@@ -63,7 +63,7 @@ def test_the_booter_learns_again_from_the_clean_stream_and_the_labeler_stays(wal
 def test_no_relearn_from_frames_with_an_unlabeled_point_and_marker_or_too_few(walk):
     """A free point makes a frame unclean only while some marker of the active subjects is
     unlabeled too (it may be that marker's point); a stray point beside every marker labeled
-    is none of theirs: a stream with ghosts relearns (it never did)."""
+    is none of theirs (before, any free point made the frame unclean)."""
     frames = WINDOW + round(2.2 * RATE)
     lab, _ = _run(walk, WINDOW + 1)
     every = np.arange(len(lab._names))

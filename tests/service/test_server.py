@@ -407,6 +407,39 @@ def test_bursts_from_a_second_sender_do_not_take_a_sending_stream_over(rng):
     assert dropped == 12 and max(seqs) < 10**9  # no burst frame published
 
 
+def test_a_burst_sender_that_got_the_stream_first_does_not_keep_a_steady_one_out(rng):
+    """The bursts reach an idle stream first and become its sender: the steady sender's
+    frames, many more, take the stream back through the restart rule (a review found every
+    frame of a 120 Hz replay dropped as ``second_sender`` behind bursts every 0.5 s)."""
+    cap = moving_clusters(rng, frames=240)
+    steady = [encode_frame("default", f, f / cap.rate, pts, [cap.labels[i] for i in tr]
+                           if f < 10 else None)
+              for f, (pts, tr) in enumerate(frames_of(cap, np.random.default_rng(4)))]  # fmt: skip
+    burst = [encode_frame("default", 10**9 + k, 5000.0 + k / cap.rate,
+                          np.full((4, 3), 9.0, np.float32), None) for k in range(60)]  # fmt: skip
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False), [mem]) as srv:
+            for b in range(3):
+                mem.inject(burst[b], reply_to=("10.0.0.9", 9))
+            await asyncio.sleep(0.05)
+            for k in range(240):
+                mem.inject(steady[k], reply_to=("10.0.0.1", 4001))
+                if k % 60 == 30:
+                    for b in range(3):
+                        mem.inject(burst[3 + k // 60 * 3 + b], reply_to=("10.0.0.9", 9))
+                await asyncio.sleep(1 / 120)
+            await until(lambda: srv.metrics.value("mocap_frames_out_total", stream="default")
+                        >= 200, "the steady sender's frames out")  # fmt: skip
+            seqs = [decode(p).seq for _, kind, p, _ in mem.sent if kind == "labeled"]
+            return seqs, srv.streams["default"].sender
+
+    seqs, sender = run(go())
+    assert sender == ("10.0.0.1", 4001)
+    assert sum(s < 10**9 for s in seqs) >= 200 and max(seqs[-100:]) < 10**9
+
+
 def test_a_second_sender_a_few_frames_behind_is_named_and_the_stream_turns_lost(rng, caplog):
     """Two replays started 40 frames apart: the second one's frames are ``late`` (seq behind
     by less than ``max_seq_step``) and dropped, while the first sends and after it stopped;
