@@ -420,7 +420,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "relearn-from-unclean-frames",
         "labeler_service/labeling/booting.py",
-        "        if self._relearn_record(t, pts, glab, clean=not np.any(glab < 0)):",
+        "        if self._relearn_record(t, pts, glab, clean=self._clean(glab)):",
         "        if self._relearn_record(t, pts, glab, clean=True):",
         (T + "labeling/test_relearn.py",),
         "the booter is learned again from frames with unlabeled points (the labeler's losses)",

@@ -160,7 +160,8 @@ class BootConfig(BaseModel):
         ge=0,
         description="BootingLabeler of a labeled start (registry.make_window_labeler sets 2): "
         "the booter's templates learned again this often from the stream's own clean frames "
-        "(every point labeled, and the 5 frames either side), the labeler kept (0 = off; "
+        "(every point, or every marker of the active subjects, labeled, and the 5 frames either "
+        "side), the labeler kept (0 = off; "
         "BootingLabeler._relearn). Where the extension runs in the labeler (inline_extend: "
         "evaluate, label) in the frame that falls due; in the service on the next boot job",
     )

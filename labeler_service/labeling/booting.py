@@ -609,8 +609,8 @@ class BootingLabeler:
     def _relearn(self) -> bool:
         """The booter's templates - the model the boot and the extension place markers with -
         trained again (:func:`~labeler_service.labeling.structure.window_model`) on the
-        stream's own clean frames of the last :data:`RELEARN_HISTORY_S` seconds: every point
-        labeled, and no frame within :data:`RELEARN_MARGIN` of one that was not. The labeler
+        stream's own clean frames of the last :data:`RELEARN_HISTORY_S` seconds (:meth:`_clean`),
+        and no frame within :data:`RELEARN_MARGIN` of one that was not. The labeler
         (its tracks, bodies, windows) is kept. Why: a labeled start knows the 0.4 s of its
         window; the tennis take's arm, still there, was lost for 4.6 s at the third serve
         (docs/algorithm.md). False when too few clean frames (``relearn_min_frames``) or the
