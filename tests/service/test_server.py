@@ -379,63 +379,58 @@ def test_a_second_sender_on_one_stream_is_named_in_the_log(rng, caplog):
     assert "frames now come from 10.0.0.2:4002 (before: 10.0.0.1:4001)" in caplog.text
 
 
+def _steady_and_bursts(rng, bursts_first: bool) -> tuple[list[int], int, object]:
+    """A 120 Hz sender's 240 frames (10.0.0.1:4001) and, from 10.0.0.9:9, bursts of three
+    far-off frames every 0.5 s (``bursts_first``: one burst before the steady sender's first
+    frame too): the seqs published, the ``second_sender`` drops and the stream's sender."""
+    cap = moving_clusters(rng, frames=240)
+    steady = stream_payloads(cap, rng, init=10)
+    far = np.full((4, 3), 9.0, np.float32)
+    burst = iter(
+        [encode_frame("default", 10**9 + k, 5000.0 + k / cap.rate, far, None) for k in range(60)]
+    )
+    intruder = ("10.0.0.9", 9)
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False), [mem]) as srv:
+            if bursts_first:
+                for _ in range(3):
+                    mem.inject(next(burst), reply_to=intruder)
+                await asyncio.sleep(0.05)
+            for k in range(240):
+                mem.inject(steady[k], reply_to=("10.0.0.1", 4001))
+                if k % 60 == 30:
+                    for _ in range(3):
+                        mem.inject(next(burst), reply_to=intruder)
+                await asyncio.sleep(1 / 120)
+            await until(lambda: srv.metrics.value("mocap_frames_out_total", stream="default")
+                        >= 200, "the steady sender's frames out")  # fmt: skip
+            seqs = [decode(p).seq for _, kind, p, _ in mem.sent if kind == "labeled"]
+            return (
+                seqs,
+                srv.metrics.drops("second_sender", "default"),
+                srv.streams["default"].sender,
+            )
+
+    return run(go())
+
+
 def test_bursts_from_a_second_sender_do_not_take_a_sending_stream_over(rng):
     """Three frames in a row that continue each other are a new run by the restart rule: a
     second sender's burst of three every 0.5 s took a live stream over (its points published
     as the stream's frames, the stream's own labels 0.47 correct for 6 s). While the stream's
     sender sends, another sender's frames are dropped before the rule sees them."""
-    cap = moving_clusters(rng, frames=240)
-    first = stream_payloads(cap, rng, init=10)
-    burst = [encode_frame("default", 10**9 + k, 5000.0 + k / cap.rate,
-                          np.full((4, 3), 9.0, np.float32), None) for k in range(60)]  # fmt: skip
-
-    async def go():
-        mem = MemoryTransport()
-        async with Server(_settings(warmup=False), [mem]) as srv:
-            for k in range(240):
-                mem.inject(first[k], reply_to=("10.0.0.1", 4001))
-                if k % 60 == 30:
-                    for b in range(3):
-                        mem.inject(burst[k // 60 * 3 + b], reply_to=("10.0.0.9", 9))
-                await asyncio.sleep(1 / 120)
-            await until(lambda: srv.metrics.value("mocap_frames_out_total", stream="default")
-                        >= 240 - 10, "the stream's frames out")  # fmt: skip
-            seqs = [decode(p).seq for _, kind, p, _ in mem.sent if kind == "labeled"]
-            return seqs, srv.metrics.drops("second_sender", "default")
-
-    seqs, dropped = run(go())
+    seqs, dropped, sender = _steady_and_bursts(rng, bursts_first=False)
     assert dropped == 12 and max(seqs) < 10**9  # no burst frame published
+    assert sender == ("10.0.0.1", 4001)
 
 
 def test_a_burst_sender_that_got_the_stream_first_does_not_keep_a_steady_one_out(rng):
     """The bursts reach an idle stream first and become its sender: the steady sender's
     frames, many more, take the stream back through the restart rule (a review found every
     frame of a 120 Hz replay dropped as ``second_sender`` behind bursts every 0.5 s)."""
-    cap = moving_clusters(rng, frames=240)
-    steady = [encode_frame("default", f, f / cap.rate, pts, [cap.labels[i] for i in tr]
-                           if f < 10 else None)
-              for f, (pts, tr) in enumerate(frames_of(cap, np.random.default_rng(4)))]  # fmt: skip
-    burst = [encode_frame("default", 10**9 + k, 5000.0 + k / cap.rate,
-                          np.full((4, 3), 9.0, np.float32), None) for k in range(60)]  # fmt: skip
-
-    async def go():
-        mem = MemoryTransport()
-        async with Server(_settings(warmup=False), [mem]) as srv:
-            for b in range(3):
-                mem.inject(burst[b], reply_to=("10.0.0.9", 9))
-            await asyncio.sleep(0.05)
-            for k in range(240):
-                mem.inject(steady[k], reply_to=("10.0.0.1", 4001))
-                if k % 60 == 30:
-                    for b in range(3):
-                        mem.inject(burst[3 + k // 60 * 3 + b], reply_to=("10.0.0.9", 9))
-                await asyncio.sleep(1 / 120)
-            await until(lambda: srv.metrics.value("mocap_frames_out_total", stream="default")
-                        >= 200, "the steady sender's frames out")  # fmt: skip
-            seqs = [decode(p).seq for _, kind, p, _ in mem.sent if kind == "labeled"]
-            return seqs, srv.streams["default"].sender
-
-    seqs, sender = run(go())
+    seqs, _, sender = _steady_and_bursts(rng, bursts_first=True)
     assert sender == ("10.0.0.1", 4001)
     assert sum(s < 10**9 for s in seqs) >= 200 and max(seqs[-100:]) < 10**9
 
