@@ -604,7 +604,7 @@ class BootingLabeler:
             return False
         known = np.zeros(len(self._names), dtype=bool)
         known[glab[~free]] = True
-        return bool(np.all(known[self._subjects_in(sorted(self._active))[self._subject_of]]))
+        return bool(np.all(known[self._subjects_in(self._active)[self._subject_of]]))
 
     def _relearn(self) -> bool:
         """The booter's templates - the model the boot and the extension place markers with -

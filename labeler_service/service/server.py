@@ -622,7 +622,6 @@ class Server:
             self._rlog.info(f"sender-{msg.stream}", "stream %s: frames now come from %s "
                             "(before: %s)", msg.stream, _who(source),
                             _who(state.sender))  # fmt: skip
-        now = time.monotonic()
         if state.sender_at > 0:
             state.arrival_gaps.append(now - state.sender_at)
         state.sender = source

@@ -1035,9 +1035,9 @@ class StreamState:
                             boot=self.settings.boot_config)  # fmt: skip
         if not _off_the_loop(lab):
             return False
-        if keep and tuple(lab.marker_names) == self.names:
-            for pts, t, labels in keep:
-                lab.process(pts, t, labels)
+        keep = keep if keep and tuple(lab.marker_names) == self.names else None
+        for pts, t, labels in keep or ():
+            lab.process(pts, t, labels)
         self._swap(lab)
         self.recovering = True
         self.recoveries += 1
