@@ -12,8 +12,12 @@ from labeler_service.labeling.kernels.gating import _common_mode, _gate, _median
 from labeler_service.labeling.kernels.kalman import _predict, _update
 from labeler_service.labeling.kernels.params import DISPLACEMENT, KABSCH, kernel_params
 from labeler_service.labeling.kernels.rigid import (
+    COV0,
     _contest,
+    _cov_add,
     _exchange,
+    _horn_closed,
+    _horn_jacobi,
     _kabsch,
     _max_residual,
     _recover,
@@ -450,6 +454,61 @@ def test_kabsch_equals_svd_twin_on_hard_cases(rng):
         assert cost == pytest.approx(cost_r, rel=1e-9, abs=1e-6)
         if case % 6 != 2:  # a unique optimum: the same rotation
             np.testing.assert_allclose(R, Rr, atol=1e-7)
+
+
+def _cov(src, dst):
+    """The centred cross-covariance 9-tuple of :func:`_kabsch`."""
+    cov = COV0
+    for a, b in zip(src - src.mean(0), dst - dst.mean(0), strict=True):
+        cov = _cov_add(cov, *a, *b)
+    return cov
+
+
+def _quat_rot(q):
+    w, x, y, z = q
+    return np.array([
+        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (y * x + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+        [2 * (z * x - w * y), 2 * (z * y + w * x), w * w - x * x - y * y + z * z],
+    ])  # fmt: skip
+
+
+def test_horn_closed_form_is_jacobis_rotation_or_declines(rng):
+    """The closed form (Newton root + adjugate) gives Jacobi's rotation on well-conditioned
+    sets - full 3D, planar (triangles), noisy, half-turns, mirrored - and declines (NaN, so
+    ``_kabsch`` falls back to Jacobi) on collinear and single-point sets."""
+    used = 0
+    for case in range(400):
+        n = 3 + case % 6
+        src = rng.normal(0, 100, (n, 3))
+        if case % 4 == 1:
+            src[:, 2] = 0.0  # planar
+        R0 = _rot(rng)
+        if case % 8 == 3:  # a half-turn
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)
+            R0 = 2.0 * np.outer(axis, axis) - np.eye(3)
+        dst = src @ R0.T + rng.normal(0, 300, 3) + rng.normal(0, [0.0, 1.0, 20.0][case % 3], (n, 3))
+        if case % 8 == 5:
+            dst[:, 0] *= -1.0  # mirrored
+        cov = _cov(src, dst)
+        q = _horn_closed(cov)
+        if np.isnan(q[0]):
+            continue
+        used += 1
+        assert np.linalg.norm(q) == pytest.approx(1.0)
+        np.testing.assert_allclose(_quat_rot(q), _quat_rot(_horn_jacobi(cov)), atol=1e-9)
+    assert used >= 390  # declining is for ill-conditioned sets only
+    line = np.outer(np.arange(4.0), [1.0, 2.0, 3.0])
+    assert np.isnan(_horn_closed(_cov(line, line @ _rot(rng).T))[0])
+    one = np.ones((3, 3))
+    assert np.isnan(_horn_closed(_cov(one, one))[0])
+    # nearly collinear: declined, or agrees with Jacobi
+    thin = line + rng.normal(0, 1e-4, line.shape)
+    cov = _cov(thin, thin @ _rot(rng).T)
+    q = _horn_closed(cov)
+    if not np.isnan(q[0]):
+        np.testing.assert_allclose(_quat_rot(q), _quat_rot(_horn_jacobi(cov)), atol=1e-9)
 
 
 def test_robust_kabsch_drops_outlier(rng):
