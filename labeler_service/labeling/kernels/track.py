@@ -11,7 +11,8 @@ Here the same pairs come from the sweep index of :mod:`.spatial`, with bounded s
 
 1. the nearest prediction ``j`` of point ``i`` is looked for within the largest gate only: if
    the unbounded nearest lies farther, no gate holds it anyway, and if it lies within, the
-   bounded search finds that same one; the pair needs ``d(i, j) <= gate[j]``;
+   bounded search finds that same one; the pair needs ``d(i, j) <= gate[j]``. The search
+   tries the smallest gate first (a nearest found there is the nearest);
 2. mutuality: prediction ``j``'s nearest point is ``i`` exactly when no other point lies
    closer to ``j`` than ``i`` does, so one search within radius ``d(i, j)`` decides it.
 
@@ -44,15 +45,22 @@ def _match_tracks(pts, pred, gate):
     if n == 0 or k == 0:
         return out
     gmax = 0.0
+    gmin = np.inf
     for j in range(k):
-        if gate[j] > gmax:
-            gmax = gate[j]
+        gmax = max(gmax, gate[j])
+        gmin = min(gmin, gate[j])
     lim = gmax * gmax * (1.0 + _REL) + 1e-12
+    # first within the smallest gate: a prediction found there is the nearest (any nearer one
+    # lies there too), and most points continue a track that close; the largest gate (a track
+    # without velocity: ~5 times wider) only for the others
+    lim0 = min(gmin * gmin * (1.0 + _REL) + 1e-12, lim)
     ipred = _index(pred)
     ipts = _index(pts)
     none = np.empty(0, dtype=np.int64)
     for i in range(n):
-        j, d2 = _nearest(pred, ipred, pts[i], lim, none, ANY, -1)
+        j, d2 = _nearest(pred, ipred, pts[i], lim0, none, ANY, -1)
+        if j < 0 and lim0 < lim:
+            j, d2 = _nearest(pred, ipred, pts[i], lim, none, ANY, -1)
         if j < 0 or d2 > gate[j] * gate[j]:
             continue
         back, _ = _nearest(pts, ipts, pred[j], d2 * (1.0 + _REL) + 1e-12, none, ANY, -1)
