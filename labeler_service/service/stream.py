@@ -363,6 +363,9 @@ class StreamState:
         self._warned_unknown = False
         #: the stream's model file as read at its first start (``start_from_model``)
         self._model_file: LabelerModel | None = None
+        #: a ``boot = false`` model stream's recovery labeler, built unused at its start
+        #: (:meth:`start_from_model`) and taken by its first recovery
+        self._spare: BootingLabeler | None = None
         #: points in another unit than the model's (metres): warned by the server
         self.units = UnitCheck()
         self.rate_check = RateCheck()
@@ -443,8 +446,9 @@ class StreamState:
     def started(self) -> bool:
         return self.labeler is not None
 
-    def start_from_model(self) -> None:
-        """Builds the labeler from the stream's model file (mode 1).
+    def start_from_model(self, spare: bool = True) -> None:
+        """Builds the labeler from the stream's model file (mode 1); with ``spare`` (not on
+        the frame path) also the recovery labeler a ``boot = false`` stream will need.
 
         The file is read once, at the stream's first start; a new labeled run rebuilds from
         that model. It used to be read again at every new run: a model file replaced, deleted
@@ -477,6 +481,12 @@ class StreamState:
         labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
                                 boot=self.settings.boot_config if boot else False)  # fmt: skip
         _off_the_loop(labeler)
+        if spare and not boot and self.settings.labeler == "online" and self._spare is None:
+            # boot = false: the first unlabeled frame (or a performer who leaves) starts a
+            # recovery, a BootingLabeler of this model; built in that frame it took 0.1 s for
+            # two walkers, 0.4-1 s for ten hugging performers (its boot's preparation, then
+            # ~30 ms for the rest). Built here, at the stream's start and off the loop
+            self._spare = self._recovery_labeler(model, rate)
         self.boot_inflight = self._boot_request is not None
         self._boot_result = None
         self._install(labeler, rate)
@@ -966,7 +976,7 @@ class StreamState:
             self._t_offset = 0.0
             self._t_last = None
             if self.stream_settings.model is not None:
-                self.start_from_model()
+                self.start_from_model(spare=False)  # (the frame path: prepared at the start)
             else:
                 self.labeler = None
             return
@@ -1030,10 +1040,10 @@ class StreamState:
         if model is None or self.rate is None:
             return False
         self.abandon_handover(f"recovery: {why}")
-        lab = self._factory(self.settings.labeler, rate=self.rate, model=model,
-                            config=self.settings.labeler_config,
-                            boot=self.settings.boot_config)  # fmt: skip
-        if not _off_the_loop(lab):
+        lab, self._spare = self._spare, None
+        if lab is None or lab.model is not model or lab.rate != self.rate:
+            lab = self._recovery_labeler(model, self.rate)
+        if lab is None:
             return False
         keep = keep if keep and tuple(lab.marker_names) == self.names else None
         for pts, t, labels in keep or ():
@@ -1046,6 +1056,17 @@ class StreamState:
         log.warning("stream %s: %s: booting %s from the stream's model (recovery %d)",
                     self.name, why, what, self.recoveries)  # fmt: skip
         return True
+
+    def _recovery_labeler(self, model: LabelerModel, rate: float) -> BootingLabeler | None:
+        """A :class:`BootingLabeler` of ``model`` as a recovery runs it (boot off the frame
+        path); None when the stream's labeler kind does not boot."""
+        lab = self._factory(self.settings.labeler, rate=rate, model=model,
+                            config=self.settings.labeler_config,
+                            boot=self.settings.boot_config)  # fmt: skip
+        if not _off_the_loop(lab):
+            return None
+        assert isinstance(lab, BootingLabeler)
+        return lab
 
     def _watch_subjects(self, pts: np.ndarray, t: float, out: LabeledFrame) -> None:
         """The plain online labeler of a model (``boot = false``, after a recovery's hand-back,

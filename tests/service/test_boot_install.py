@@ -288,6 +288,34 @@ def _boot_off_stream(scene_model):
     return st, frames, hand
 
 
+def test_boot_off_stream_builds_its_recovery_at_start_not_in_a_frame(scene_model, monkeypatch):
+    """``boot = false``: the first unlabeled frame starts a recovery. Its booting labeler is
+    built when the stream starts (off the loop at the server's start), so that frame builds no
+    booter and no labeler: built in the frame it took 0.1 s for two walkers and 0.4-1 s for
+    ten hugging performers, frames waiting behind it."""
+    import labeler_service.labeling.booting as booting
+    from labeler_service.service.continuity import ACCEPT
+
+    built = []
+
+    class Counting(booting.Booter):
+        def __init__(self, *a, **k):
+            built.append(1)
+            super().__init__(*a, **k)
+
+    monkeypatch.setattr(booting, "Booter", Counting)
+    monkeypatch.setattr(booting, "_prepared", {})  # (no model prepared by another test)
+    st, frames, _ = _boot_off_stream(scene_model)
+    spare = st._spare
+    assert spare is not None and len(built) == 1
+    calls = []
+    factory = st._factory
+    monkeypatch.setattr(st, "_factory", lambda *a, **k: calls.append(1) or factory(*a, **k))
+    st.process(decode(encode_frame("vol", 0, float(frames.times[0]), frames.points[0])), 0, ACCEPT)
+    assert st.recovering and st.labeler is spare and st._spare is None
+    assert calls == [] and len(built) == 1
+
+
 def test_boot_off_hands_back_only_once_every_marker_is_labeled(scene_model):
     """``boot = false`` and no labels: the stream boots as a recovery and hands back to a plain
     labeler, which labels only the markers its first frames carry. P1's right hand (three
