@@ -2,8 +2,9 @@
 kernel.
 
 The online labeler's rigid-body kernels (:mod:`labeler_service.labeling.kernels.rigid`: Horn's
-closed-form absolute orientation, Horn 1987, solved by cyclic Jacobi rotations with no LAPACK
-call) take raw arrays and trust them. The public functions here check shapes, dtypes and
+closed-form absolute orientation, Horn 1987: Newton's root of its characteristic polynomial
+and the adjugate, cyclic Jacobi rotations where that is ill-conditioned, no LAPACK call) take
+raw arrays and trust them. The public functions here check shapes, dtypes and
 finiteness once, raise a :class:`ValueError` naming the offending argument, and call them:
 
 - :func:`kabsch`: the rotation and translation that best map one point set onto another;

@@ -9,8 +9,9 @@ eigenvalue of ``N``. The feature of the triangle is ``F_i = [v_i^1 ... v_i^T]`` 
 ``v`` is the rotation axis times *half* the rotation angle, taken on the hemisphere ``w >= 0``.
 
 The eigenvector comes from the labeler's own Horn solver through its public, validating entry
-:func:`labeler_service.labeling.geometry.horn_quaternions` (cyclic Jacobi rotations of ``N``, no
-LAPACK call; the one the online labeler's Kabsch fits use). Its plain-numpy twin
+:func:`labeler_service.labeling.geometry.horn_quaternions` (Newton's root of ``N``'s
+characteristic polynomial and its adjugate, cyclic Jacobi rotations where that is
+ill-conditioned, no LAPACK call; the one the online labeler's Kabsch fits use). Its plain-numpy twin
 (``numpy.linalg.eigh``) is in tests/shoulder/reference.py.
 """
 

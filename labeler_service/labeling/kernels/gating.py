@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.spatial import _SLACK, _key_ordered, _span
+from labeler_service.labeling.kernels.spatial import _SLACK, _key_ordered, _lower, _span, _upper
 
 
 @njit
@@ -64,7 +64,7 @@ def _candidates(
 def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
     """Fills ``cand (M, K)``, ``cand_d2 (M, K)`` and ``ncand (M,)`` in place (``index``: the
     sweep index of ``points``, :func:`.spatial._index`)."""
-    order, keys, axis = index.order, index.keys, index.axis
+    order, axis = index.order, index.axis
     sp = _key_ordered(points, index)  # a slab is contiguous
     for i in range(pred.shape[0]):
         ncand[i] = 0
@@ -79,8 +79,8 @@ def _gate(pred, s, active, points, index, gate, K, cand, cand_d2, ncand):
         if not (np.isfinite(ca) and radius >= 0.0):
             continue  # (_span: empty)
         rs = radius + _SLACK
-        lo = np.searchsorted(keys, ca - rs, side="left")
-        hi = np.searchsorted(keys, ca + rs, side="right")
+        lo = _lower(index, ca - rs)
+        hi = _upper(index, ca + rs)
         for k in range(lo, hi):
             dx = sp[k, 0] - px
             dy = sp[k, 1] - py
@@ -167,7 +167,7 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
     ``buf`` (:func:`_median_inplace`: ``np.median``'s value without its copy).
     """
     r2 = radius * radius
-    order, keys, axis = index.order, index.keys, index.axis
+    order, axis = index.order, index.axis
     sp = _key_ordered(points, index)  # a slab is contiguous
     near = np.empty(subj_idx.shape[0], np.int64)  # each entry's nearest (key position), last pass
     for s in range(subj_ptr.shape[0] - 1):
@@ -198,8 +198,8 @@ def _common_mode(x, active, subj_ptr, subj_idx, points, index, radius, iters, bu
                     lim = _CM_FIRST_MM * _CM_FIRST_MM  # a point within it is the nearest
                 for _try in range(2):
                     rs = np.sqrt(lim) + _SLACK
-                    lo = np.searchsorted(keys, ca - rs, side="left")
-                    hi = np.searchsorted(keys, ca + rs, side="right")
+                    lo = _lower(index, ca - rs)
+                    hi = _upper(index, ca + rs)
                     best = lim
                     bk = -1
                     bj = -1

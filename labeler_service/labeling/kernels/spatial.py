@@ -11,8 +11,19 @@ Results are those of the full scan: candidates are ordered by distance, ties by 
 whatever order the slab is visited in. Points with a non-finite key sort last and are never
 visited (they fail every distance test of the full scan too).
 
-An index is a :class:`SweepIndex` ``(order, keys, axis)``: ``keys`` the sorted coordinates
-(``inf`` for non-finite), ``order`` the point index of each key, ``axis`` the coordinate sorted.
+An index is a :class:`SweepIndex` ``(order, keys, axis, lo, inv_w, start)``: ``keys`` the sorted
+coordinates (``inf`` for non-finite), ``order`` the point index of each key, ``axis`` the
+coordinate sorted, and a bucket table over the keys' range: bucket ``b`` holds the keys ``v``
+with ``floor((v - lo) * inv_w) = b`` and starts at position ``start[b]``.
+
+The buckets (as many as points, ~4 mm each for a 2 m crowd) make both steps cheap where a
+frame's data defeats the branch predictor: the sort is a counting sort by bucket then an
+insertion sort inside each (stable, so the same order as a stable argsort: ties by point
+index), and a slab's bounds are its bucket's start plus a step or two, not a binary search
+(:func:`_lower`, :func:`_upper`: ``np.searchsorted``'s results). 10 performers at 360 Hz build
+three indexes and search ~6,000 slabs a frame. A bucket that gets more than ``_BUCKET_MAX``
+keys (a far outlier squeezes the others into a few buckets) falls back to ``np.argsort`` and
+binary searches (``start`` empty).
 """
 
 from __future__ import annotations
@@ -31,13 +42,32 @@ FREE = 1  # not owned by a marker
 OWNED = 2  # owned by a marker
 
 
+# most keys a bucket may hold before the index falls back to a sort and binary searches
+_BUCKET_MAX = 24
+
+
 class SweepIndex(NamedTuple):
     """The points of one frame sorted along ``axis`` (0 = x, 1 = y): ``keys (N,)`` the sorted
-    coordinates, ``order (N,)`` the point of each key."""
+    coordinates, ``order (N,)`` the point of each key; the bucket table ``lo``, ``inv_w``,
+    ``start (B + 1,)`` (empty: none, binary searches; see the module docstring)."""
 
     order: np.ndarray
     keys: np.ndarray
     axis: int
+    lo: float
+    inv_w: float
+    start: np.ndarray
+
+
+@njit(inline="always")
+def _bucket(v, lo, inv_w, nb):
+    """The bucket of key ``v`` (clipped to ``[0, nb)``; NaN: 0)."""
+    x = (v - lo) * inv_w
+    if not x >= 1.0:  # (NaN too)
+        return 0
+    if x >= nb - 1:
+        return nb - 1
+    return int(x)
 
 
 @njit
@@ -57,28 +87,100 @@ def _index(points):
                 hi[a] = v
     axis = 1 if hi[1] - lo[1] > hi[0] - lo[0] else 0
     raw = np.empty(n)
+    n_fin = 0
     for j in range(n):
         v = np.float64(points[j, axis])
-        raw[j] = v if np.isfinite(v) else np.inf
-    order = np.argsort(raw, kind="mergesort")
+        if np.isfinite(v):
+            raw[j] = v
+            n_fin += 1
+        else:
+            raw[j] = np.inf
+    a0, a1 = lo[axis], hi[axis]
+    nb = max(n_fin, 1)
+    inv_w = nb / (a1 - a0) if n_fin > 0 and a1 > a0 else 0.0
+    if n_fin == 0:
+        a0 = 0.0
+    # counting sort by bucket (point order kept inside a bucket), non-finite keys last
+    count = np.zeros(nb + 1, dtype=np.int64)
+    bk = np.empty(n, dtype=np.int64)
+    for j in range(n):
+        b = _bucket(raw[j], a0, inv_w, nb) if raw[j] != np.inf else nb
+        bk[j] = b
+        count[b] += 1
+    start = np.empty(nb + 1, dtype=np.int64)
+    c = 0
+    big = False
+    for b in range(nb + 1):
+        start[b] = c
+        c += count[b]
+        if b < nb and count[b] > _BUCKET_MAX:
+            big = True
+    if big:  # a few crowded buckets: sort, and search by halves
+        order = np.argsort(raw, kind="mergesort")
+        keys = np.empty(n)
+        for k in range(n):
+            keys[k] = raw[order[k]]
+        return SweepIndex(order, keys, axis, a0, inv_w, np.empty(0, dtype=np.int64))
+    order = np.empty(n, dtype=np.int64)
     keys = np.empty(n)
-    for k in range(n):
-        keys[k] = raw[order[k]]
-    return SweepIndex(order, keys, axis)
+    fill = start.copy()
+    for j in range(n):
+        k = fill[bk[j]]
+        fill[bk[j]] += 1
+        order[k] = j
+        keys[k] = raw[j]
+    for b in range(nb):  # insertion sort inside each bucket: stable (ties keep point order)
+        for k in range(start[b] + 1, start[b + 1]):
+            v = keys[k]
+            o = order[k]
+            q = k
+            while q > start[b] and keys[q - 1] > v:
+                keys[q] = keys[q - 1]
+                order[q] = order[q - 1]
+                q -= 1
+            keys[q] = v
+            order[q] = o
+    return SweepIndex(order, keys, axis, a0, inv_w, start)
+
+
+@njit(inline="always")
+def _lower(index, v):
+    """``np.searchsorted(index.keys, v, side="left")``: the first position whose key is not
+    below ``v`` (``v`` not NaN)."""
+    keys, start = index.keys, index.start
+    if start.shape[0] == 0:
+        return np.searchsorted(keys, v, side="left")
+    # every key of an earlier bucket is below v (the bucket is monotone in the key)
+    k = start[_bucket(v, index.lo, index.inv_w, start.shape[0] - 1)]
+    n = keys.shape[0]
+    while k < n and keys[k] < v:
+        k += 1
+    return k
+
+
+@njit(inline="always")
+def _upper(index, v):
+    """``np.searchsorted(index.keys, v, side="right")``: the first position whose key is
+    above ``v`` (``v`` not NaN)."""
+    keys, start = index.keys, index.start
+    if start.shape[0] == 0:
+        return np.searchsorted(keys, v, side="right")
+    k = start[_bucket(v, index.lo, index.inv_w, start.shape[0] - 1)]
+    n = keys.shape[0]
+    while k < n and keys[k] <= v:
+        k += 1
+    return k
 
 
 @njit
 def _span(index, centre, radius):
     """``[lo, hi)``: the positions in ``index`` whose key is within ``radius`` of ``centre``'s
     (``centre`` a 3-vector; empty when it is not finite)."""
-    keys = index.keys
     c = centre[index.axis]
     if not (np.isfinite(c) and radius >= 0.0):
         return 0, 0
     r = radius + _SLACK
-    lo = np.searchsorted(keys, c - r, side="left")
-    hi = np.searchsorted(keys, c + r, side="right")
-    return lo, hi
+    return _lower(index, c - r), _upper(index, c + r)
 
 
 @njit
