@@ -775,6 +775,22 @@ class Server:
                 await self._start_boot(state, executor)
             if state.handover_due():
                 self._start_handover(state)
+            if state.spare_due():
+                state.spare_building = True
+                self._spawn(self._build_spare(state), f"spare-{state.name}")
+
+    async def _build_spare(self, state: StreamState) -> None:
+        """The next recovery labeler of a ``boot = false`` stream, built in a thread
+        (:meth:`StreamState.build_spare`); a failure is logged, and the next recovery builds
+        its own in the frame as before."""
+        try:
+            await asyncio.to_thread(state.build_spare)
+        except Exception:
+            if self._rlog.warning(f"spare-{state.name}", "stream %s: building the next "
+                                  "recovery labeler failed", state.name):  # fmt: skip
+                log.exception("spare error")
+        finally:
+            state.spare_building = False
 
     # ------------------------------------------------------------------ handover
     def _start_handover(self, state: StreamState) -> None:

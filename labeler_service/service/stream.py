@@ -364,8 +364,11 @@ class StreamState:
         #: the stream's model file as read at its first start (``start_from_model``)
         self._model_file: LabelerModel | None = None
         #: a ``boot = false`` model stream's recovery labeler, built unused at its start
-        #: (:meth:`start_from_model`) and taken by its first recovery
+        #: (:meth:`start_from_model`) and again after each hand-back (:meth:`build_spare`, off
+        #: the loop), taken by the next recovery; ``_spare_for``: the model it is built for
         self._spare: BootingLabeler | None = None
+        self._spare_for: LabelerModel | None = None
+        self.spare_building = False  # a build_spare job is out (the server's)
         #: points in another unit than the model's (metres): warned by the server
         self.units = UnitCheck()
         self.rate_check = RateCheck()
@@ -481,12 +484,15 @@ class StreamState:
         labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
                                 boot=self.settings.boot_config if boot else False)  # fmt: skip
         _off_the_loop(labeler)
-        if spare and not boot and self.settings.labeler == "online" and self._spare is None:
+        if not boot and self.settings.labeler == "online":
             # boot = false: the first unlabeled frame (or a performer who leaves) starts a
             # recovery, a BootingLabeler of this model; built in that frame it took 0.1 s for
             # two walkers, 0.4-1 s for ten hugging performers (its boot's preparation, then
-            # ~30 ms for the rest). Built here, at the stream's start and off the loop
-            self._spare = self._recovery_labeler(model, rate)
+            # 0.06-0.1 s for the rest). Built here, at the stream's start and off the loop, and
+            # again by the server after each recovery's hand-back (spare_due)
+            self._spare_for = model
+            if spare and self._spare is None:
+                self._spare = self._recovery_labeler(model, rate)
         self.boot_inflight = self._boot_request is not None
         self._boot_result = None
         self._install(labeler, rate)
@@ -1056,6 +1062,34 @@ class StreamState:
         log.warning("stream %s: %s: booting %s from the stream's model (recovery %d)",
                     self.name, why, what, self.recoveries)  # fmt: skip
         return True
+
+    def spare_due(self) -> bool:
+        """A ``boot = false`` model stream whose spare recovery labeler was taken: the server
+        builds the next one off the loop (:meth:`build_spare`) once the recovery has handed
+        back (during one, no other can start). Built in the frame, a leaver's recovery after
+        a hand-back held it 7-10 ms at two performers, 0.06-0.1 s at ten (a review)."""
+        return (
+            self._spare_for is not None
+            and self._spare is None
+            and not self.spare_building
+            and not self.recovering
+            and self.rate is not None
+        )
+
+    def build_spare(self) -> None:
+        """Builds the spare recovery labeler (a job thread: :meth:`spare_due`). Kept only if
+        the stream still wants one of that model and rate when it is done."""
+        model, rate = self._spare_for, self.rate
+        if model is None or rate is None:
+            return
+        lab = self._recovery_labeler(model, rate)
+        if (
+            lab is not None
+            and self._spare is None
+            and self._spare_for is model
+            and self.rate == rate
+        ):
+            self._spare = lab
 
     def _recovery_labeler(self, model: LabelerModel, rate: float) -> BootingLabeler | None:
         """A :class:`BootingLabeler` of ``model`` as a recovery runs it (boot off the frame

@@ -511,6 +511,18 @@ def test_horn_closed_form_is_jacobis_rotation_or_declines(rng):
         np.testing.assert_allclose(_quat_rot(q), _quat_rot(_horn_jacobi(cov)), atol=1e-9)
 
 
+@pytest.mark.parametrize("scale", [1e-30, 1e-12, 1.0, 1e12, 1e24])
+def test_kabsch_holds_at_any_scale(rng, scale):
+    """The closed form's cofactors grow as the cube of the spread: unscaled, a 1e25 mm body gave
+    a zero matrix and a 1e-27 mm one a division by zero (a review)."""
+    src = rng.normal(0, 100, (6, 3)) * scale
+    R0 = _rot(rng)
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    _kabsch(src, src @ R0.T, 6, R, t)
+    np.testing.assert_allclose(R, R0, atol=1e-9)
+
+
 def test_robust_kabsch_drops_outlier(rng):
     src = rng.normal(0, 100, (6, 3))
     R0 = _rot(rng)

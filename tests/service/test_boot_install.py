@@ -292,7 +292,8 @@ def test_boot_off_stream_builds_its_recovery_at_start_not_in_a_frame(scene_model
     """``boot = false``: the first unlabeled frame starts a recovery. Its booting labeler is
     built when the stream starts (off the loop at the server's start), so that frame builds no
     booter and no labeler: built in the frame it took 0.1 s for two walkers and 0.4-1 s for
-    ten hugging performers, frames waiting behind it."""
+    ten hugging performers, frames waiting behind it. After the hand-back the next one is built
+    off the loop too, for the next recovery (a leaver's)."""
     import labeler_service.labeling.booting as booting
     from labeler_service.service.continuity import ACCEPT
 
@@ -314,6 +315,16 @@ def test_boot_off_stream_builds_its_recovery_at_start_not_in_a_frame(scene_model
     st.process(decode(encode_frame("vol", 0, float(frames.times[0]), frames.points[0])), 0, ACCEPT)
     assert st.recovering and st.labeler is spare and st._spare is None
     assert calls == [] and len(built) == 1
+    assert not st.spare_due()  # (not while recovering)
+    _feed_booting(st, frames, 1)
+    assert st.handbacks == 1 and not st.recovering
+    assert st.spare_due()  # the next one is built off the loop (the server's job thread)
+    st.build_spare()
+    nxt = st._spare
+    assert nxt is not None and nxt is not spare and not st.spare_due()
+    n_calls = len(calls)  # (the hand-back's plain labeler, the spare)
+    assert st.start_recovery("a performer left") and st.labeler is nxt  # (taken, not built)
+    assert len(calls) == n_calls and len(built) == 1
 
 
 def test_boot_off_hands_back_only_once_every_marker_is_labeled(scene_model):

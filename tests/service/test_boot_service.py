@@ -262,8 +262,13 @@ def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_pa
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
+            st = srv.streams["vol"]
+            assert st._spare is not None  # built at the start, off the loop
             outs = await _stream_all(srv, mem, frames)
-            return srv.streams["vol"], outs, srv.metrics
+            assert st.handbacks >= 1 and not st.recovering, (st.handbacks, st.recovering)
+            # the next recovery's labeler, built in a job thread after the hand-back
+            await until(lambda: st._spare is not None, "a spare again", timeout=60.0)
+            return st, outs, srv.metrics
 
     st, outs, metrics = run(go(), timeout=300.0)
     assert metrics.drops() == 0, metrics.snapshot()["drops"]

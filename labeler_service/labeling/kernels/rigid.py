@@ -15,6 +15,8 @@ estimated from the members observed now:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from labeler_service._numba import njit
@@ -32,11 +34,11 @@ def _kabsch(src, dst, n, R, t):
 
     The minimiser over proper rotations (the Kabsch problem with reflections excluded), solved
     in Horn's closed form: the unit quaternion is the eigenvector of the largest eigenvalue of a
-    symmetric 4x4 matrix built from the cross-covariance, found by cyclic Jacobi rotations.
-    No LAPACK call, no allocation: this runs ~360 times a frame at 10 performers (every body's
-    inter-frame motion, every recovered or checked marker), so :func:`_horn_quaternion` takes
-    the eigenvector in closed form and falls back to Jacobi rotations only when it is
-    ill-conditioned.
+    symmetric 4x4 matrix built from the cross-covariance (:func:`_horn_quaternion`). No LAPACK
+    call: this runs ~360 times a frame at 10 performers (every body's inter-frame motion, every
+    recovered or checked marker), so the eigenvector is taken in closed form, with no
+    allocation, and by cyclic Jacobi rotations (two 4x4 work arrays) only when that is
+    ill-conditioned (nearly collinear members).
     """
     cs0 = cs1 = cs2 = 0.0
     cd0 = cd1 = cd2 = 0.0
@@ -139,7 +141,23 @@ def _horn_closed(cov):
     ``N - lambda_max I`` (rank one, ``prod(gaps) v v^T``): the column of its largest diagonal
     entry. A fifth of the time of the Jacobi sweeps; the same rotation to ~1e-11 (tests).
     """
+    # scaled by a power of two (exact: the same quaternion to the bit) so that the largest
+    # entry is in [0.5, 1): the cofactors grow as the cube of the scale and their norm as its
+    # sixth power, which overflowed to a zero rotation at a 1e25 mm spread and underflowed
+    # to a division by zero at 1e-27 mm (a review); two steps reach subnormal inputs too
+    m = 0.0
+    for v in cov:
+        m = max(m, abs(v))
+    if not (m > 0.0 and m < np.inf):  # (NaN too)
+        return np.nan, np.nan, np.nan, np.nan
+    e = math.frexp(m)[1]
+    h = e // 2
+    s1 = math.ldexp(1.0, -h)
+    s2 = math.ldexp(1.0, h - e)
     sxx, sxy, sxz, syx, syy, syz, szx, szy, szz = cov
+    sxx, sxy, sxz = sxx * s1 * s2, sxy * s1 * s2, sxz * s1 * s2
+    syx, syy, syz = syx * s1 * s2, syy * s1 * s2, syz * s1 * s2
+    szx, szy, szz = szx * s1 * s2, szy * s1 * s2, szz * s1 * s2
     n00 = sxx + syy + szz
     n01 = syz - szy
     n02 = szx - sxz
@@ -211,6 +229,8 @@ def _horn_closed(cov):
         q2 = -_det3(m00, n01, n03, n01, m11, n13, n02, n12, n23)
         q3 = a3
     norm = np.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    if not (norm > 0.0 and norm < np.inf):
+        return np.nan, np.nan, np.nan, np.nan
     return q0 / norm, q1 / norm, q2 / norm, q3 / norm
 
 
