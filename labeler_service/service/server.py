@@ -781,14 +781,14 @@ class Server:
 
     async def _build_spare(self, state: StreamState) -> None:
         """The next recovery labeler of a ``boot = false`` stream, built in a thread
-        (:meth:`StreamState.build_spare`); a failure is logged, and the next recovery builds
-        its own in the frame as before."""
+        (:meth:`StreamState.build_spare`); a failure is logged and not tried again (every
+        later recovery builds its own in the frame, as before)."""
         try:
             await asyncio.to_thread(state.build_spare)
         except Exception:
-            if self._rlog.warning(f"spare-{state.name}", "stream %s: building the next "
-                                  "recovery labeler failed", state.name):  # fmt: skip
-                log.exception("spare error")
+            state._spare_for = None
+            log.exception("stream %s: building the next recovery labeler failed (recoveries "
+                          "build theirs in the frame from now on)", state.name)  # fmt: skip
         finally:
             state.spare_building = False
 

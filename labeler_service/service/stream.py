@@ -493,6 +493,8 @@ class StreamState:
             self._spare_for = model
             if spare and self._spare is None:
                 self._spare = self._recovery_labeler(model, rate)
+                if self._spare is None:
+                    self._spare_for = None  # (a labeler kind that does not boot)
         self.boot_inflight = self._boot_request is not None
         self._boot_result = None
         self._install(labeler, rate)
@@ -1083,12 +1085,10 @@ class StreamState:
         if model is None or rate is None:
             return
         lab = self._recovery_labeler(model, rate)
-        if (
-            lab is not None
-            and self._spare is None
-            and self._spare_for is model
-            and self.rate == rate
-        ):
+        if lab is None:
+            self._spare_for = None  # (a labeler kind that does not boot: never again)
+            return
+        if self._spare is None and self._spare_for is model and self.rate == rate:
             self._spare = lab
 
     def _recovery_labeler(self, model: LabelerModel, rate: float) -> BootingLabeler | None:

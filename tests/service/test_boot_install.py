@@ -327,6 +327,26 @@ def test_boot_off_stream_builds_its_recovery_at_start_not_in_a_frame(scene_model
     assert len(calls) == n_calls and len(built) == 1
 
 
+def test_a_spare_that_cannot_be_built_is_not_tried_again(scene_model, monkeypatch, caplog):
+    """The server's job that builds the next recovery labeler fails (here: no memory): said
+    once with the traceback, and the stream stops asking for one (it asked again after every
+    frame otherwise); recoveries build theirs in the frame as before."""
+    import logging
+
+    def broken(*a, **k):
+        raise MemoryError("no room")
+
+    caplog.set_level(logging.ERROR, logger="labeler_service.service.server")
+    st, _, _ = _boot_off_stream(scene_model)
+    st._spare = None  # (taken by a recovery that has handed back)
+    assert st.spare_due()
+    monkeypatch.setattr(st, "_factory", broken)
+    st.spare_building = True  # (as the server sets it)
+    run(Server._build_spare(None, st), timeout=30.0)
+    assert not st.spare_due() and not st.spare_building
+    assert caplog.text.count("building the next recovery labeler failed") == 1
+
+
 def test_boot_off_hands_back_only_once_every_marker_is_labeled(scene_model):
     """``boot = false`` and no labels: the stream boots as a recovery and hands back to a plain
     labeler, which labels only the markers its first frames carry. P1's right hand (three

@@ -150,9 +150,12 @@ def _lower(index, v):
     keys, start = index.keys, index.start
     if start.shape[0] == 0:
         return np.searchsorted(keys, v, side="left")
-    # every key of an earlier bucket is below v (the bucket is monotone in the key)
+    # every key of an earlier bucket is below v (the bucket is monotone in the key); the step
+    # back guards a bucket computed one off (the same formula, compiled in another function)
     k = start[_bucket(v, index.lo, index.inv_w, start.shape[0] - 1)]
     n = keys.shape[0]
+    while k > 0 and keys[k - 1] >= v:
+        k -= 1
     while k < n and keys[k] < v:
         k += 1
     return k
@@ -167,6 +170,8 @@ def _upper(index, v):
         return np.searchsorted(keys, v, side="right")
     k = start[_bucket(v, index.lo, index.inv_w, start.shape[0] - 1)]
     n = keys.shape[0]
+    while k > 0 and keys[k - 1] > v:
+        k -= 1
     while k < n and keys[k] <= v:
         k += 1
     return k
