@@ -144,37 +144,35 @@ def _index(points):
 
 
 @njit(inline="always")
-def _lower(index, v):
-    """``np.searchsorted(index.keys, v, side="left")``: the first position whose key is not
-    below ``v`` (``v`` not NaN)."""
+def _bound(index, v, right):
+    """``np.searchsorted(index.keys, v, side="right" if right else "left")`` (``v`` not NaN):
+    the first position whose key is above ``v`` (``right``), else not below it."""
     keys, start = index.keys, index.start
     if start.shape[0] == 0:
+        if right:
+            return np.searchsorted(keys, v, side="right")
         return np.searchsorted(keys, v, side="left")
     # every key of an earlier bucket is below v (the bucket is monotone in the key); the step
     # back guards a bucket computed one off (the same formula, compiled in another function)
     k = start[_bucket(v, index.lo, index.inv_w, start.shape[0] - 1)]
     n = keys.shape[0]
-    while k > 0 and keys[k - 1] >= v:
+    while k > 0 and (keys[k - 1] > v or (keys[k - 1] == v and not right)):
         k -= 1
-    while k < n and keys[k] < v:
+    while k < n and (keys[k] < v or (keys[k] == v and right)):
         k += 1
     return k
 
 
 @njit(inline="always")
+def _lower(index, v):
+    """``np.searchsorted(index.keys, v, side="left")`` (:func:`_bound`)."""
+    return _bound(index, v, False)
+
+
+@njit(inline="always")
 def _upper(index, v):
-    """``np.searchsorted(index.keys, v, side="right")``: the first position whose key is
-    above ``v`` (``v`` not NaN)."""
-    keys, start = index.keys, index.start
-    if start.shape[0] == 0:
-        return np.searchsorted(keys, v, side="right")
-    k = start[_bucket(v, index.lo, index.inv_w, start.shape[0] - 1)]
-    n = keys.shape[0]
-    while k > 0 and keys[k - 1] > v:
-        k -= 1
-    while k < n and keys[k] <= v:
-        k += 1
-    return k
+    """``np.searchsorted(index.keys, v, side="right")`` (:func:`_bound`)."""
+    return _bound(index, v, True)
 
 
 @njit
