@@ -491,13 +491,11 @@ class StreamState:
             # 0.06-0.1 s for the rest). Built here, at the stream's start and off the loop, and
             # again by the server after each recovery's hand-back (spare_due)
             self._spare_for = model
-            if spare and self._spare is None:
-                self._spare = self._recovery_labeler(model, rate)
-                if self._spare is None:
-                    self._spare_for = None  # (a labeler kind that does not boot)
         self.boot_inflight = self._boot_request is not None
         self._boot_result = None
         self._install(labeler, rate)
+        if spare:
+            self.build_spare()
 
     def _install(self, labeler: FrameLabeler, rate: float) -> None:
         self.abandon_handover("another labeler was installed")
@@ -1079,10 +1077,11 @@ class StreamState:
         )
 
     def build_spare(self) -> None:
-        """Builds the spare recovery labeler (a job thread: :meth:`spare_due`). Kept only if
-        the stream still wants one of that model and rate when it is done."""
+        """Builds the spare recovery labeler when the stream wants one and has none (at its
+        start; after a hand-back in a job thread: :meth:`spare_due`). Kept only if the stream
+        still wants one of that model and rate when it is done."""
         model, rate = self._spare_for, self.rate
-        if model is None or rate is None:
+        if model is None or rate is None or self._spare is not None:
             return
         lab = self._recovery_labeler(model, rate)
         if lab is None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import reference as ref
+from scipy.spatial.transform import Rotation
 
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.kernels.fitting import _fit_bodies, _search_body
@@ -465,12 +466,7 @@ def _cov(src, dst):
 
 
 def _quat_rot(q):
-    w, x, y, z = q
-    return np.array([
-        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (y * x + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-        [2 * (z * x - w * y), 2 * (z * y + w * x), w * w - x * x - y * y + z * z],
-    ])  # fmt: skip
+    return Rotation.from_quat(np.asarray(q), scalar_first=True).as_matrix()
 
 
 def test_horn_closed_form_is_jacobis_rotation_or_declines(rng):
