@@ -794,12 +794,15 @@ def check_npz(path: Path, max_bytes: int | None = None) -> None:
 def _read_npz(path: Path) -> Capture:
     check_npz(path)
     with np.load(path, allow_pickle=False) as z:
-        try:
-            positions = z["positions"]
-            labels = [str(x) for x in z["labels"]]
-            rate = float(z["rate"])
-        except KeyError as exc:
-            raise CaptureFormatError(f"{path}: NPZ capture lacks {exc}") from exc
+        missing = [k for k in ("positions", "labels", "rate") if k not in z.files]
+        if missing:  # (numpy's KeyError text read "lacks 'positions is not a file in ...'")
+            raise CaptureFormatError(
+                f"{path}: not a capture NPZ: it lacks {', '.join(missing)} "
+                f"(it holds {', '.join(z.files) or 'nothing'})"
+            )
+        positions = z["positions"]
+        labels = [str(x) for x in z["labels"]]
+        rate = float(z["rate"])
     return _finish(positions, labels, rate, path, [])
 
 

@@ -18,6 +18,41 @@ def seed(text: str) -> int:
     return value
 
 
+def port(text: str) -> int:
+    """``--port``, ``--view-port``: a TCP port 0-65535 (0: any free one); a bind would raise
+    ``OverflowError`` with a traceback past that."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is a whole number 0-65535, got {text!r}")
+    return value
+
+
+def positive(text: str) -> float:
+    """A limit that must be a finite number > 0 (``--seconds``): a negative one ended the
+    command at once with exit 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """A count that must be a whole number > 0 (``--frames``)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number > 0, got {text!r}")
+    return value
+
+
 def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool = True) -> None:
     """Refuses labeled init frames (the first ``init`` frames, every ``step``-th) that show no
     labeled marker at all (a take that starts before anyone is in view), or, with

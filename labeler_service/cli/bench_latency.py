@@ -276,6 +276,10 @@ def _first_present(frames, subject: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from labeler_service.scenes.simulate import MAX_PERFORMERS
+
+    if not 1 <= args.subjects <= MAX_PERFORMERS:  # (the simulator's message names its own flag)
+        raise MocapError(f"--subjects must be 1..{MAX_PERFORMERS}, got {args.subjects}")
     if args.workdir is not None:
         args.workdir.mkdir(parents=True, exist_ok=True)
         out = asyncio.run(bench(args, args.workdir))

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import port, seed
 from labeler_service.errors import MocapError
 from labeler_service.testing.realdata import real_file
 from labeler_service.wording import plural
@@ -83,7 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--view", action="store_true",
                    help="live 3D view of the stream in a browser (prints the URL; keeps serving "
                         "the last frames after the demo until Ctrl-C)")  # fmt: skip
-    p.add_argument("--view-port", type=int, default=8765, help="HTTP port of the live view")
+    p.add_argument("--view-port", type=port, default=8765, help="HTTP port of the live view")
 
 
 #: The demo's start when neither ``--start`` nor ``--init-frames`` says (module docstring).

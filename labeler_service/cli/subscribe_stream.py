@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from labeler_service.cli.args import positive, positive_int
 from labeler_service.cli.stopping import stop_event
 
 
@@ -16,8 +17,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from", dest="url", required=True, metavar="URL",
                    help="udp://service-host:port[/stream] or mqtt://host:port/stream")  # fmt: skip
     p.add_argument("--out", type=Path, default=None, help="record labeled frames to C3D")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--seconds", type=positive, default=None, help="stop after this long")
+    p.add_argument("--frames", type=positive_int, default=None, help="stop after this many frames")
 
 
 async def _main(args: argparse.Namespace) -> int:

@@ -15,6 +15,7 @@ import asyncio
 import logging
 import sys
 
+from labeler_service.cli.args import port, positive
 from labeler_service.cli.stopping import stop_event
 from labeler_service.tools.priority import PRIORITIES, lower_priority
 
@@ -22,12 +23,12 @@ from labeler_service.tools.priority import PRIORITIES, lower_priority
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from", dest="url", required=True, metavar="URL",
                    help="udp://service-host:port[/stream] or mqtt://host:port/stream")  # fmt: skip
-    p.add_argument("--port", type=int, default=8765, help="HTTP port of the page (0: any free)")
+    p.add_argument("--port", type=port, default=8765, help="HTTP port of the page (0: any free)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default loopback; anything else exposes the "
                         "read-only view without authentication)")  # fmt: skip
     p.add_argument("--fps", type=float, default=60.0, help="frames pushed to a page per second")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    p.add_argument("--seconds", type=positive, default=None, help="stop after this long")
     p.add_argument("--priority", choices=PRIORITIES, default="idle",
                    help="the viewer's CPU priority (default idle: SCHED_IDLE, it only uses CPU "
                         "time the service leaves; low: nice 10; normal: unchanged)")  # fmt: skip

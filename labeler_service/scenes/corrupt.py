@@ -22,6 +22,11 @@ from labeler_service.errors import SceneError
 from labeler_service.wording import plural
 
 
+#: Most ghost points per frame a corruption adds on average: more than any capture shows (a
+#: cluttered volume has tens); 1e9 asked the memory for 200 million points a frame.
+MAX_GHOSTS = 1000.0
+
+
 @dataclass(frozen=True)
 class CorruptionSpec:
     """What to do to a capture before it is streamed. Every random choice uses ``seed``.
@@ -38,7 +43,8 @@ class CorruptionSpec:
       ``protect_frames``.
     - ``dropouts``: fraction of the remaining visible samples dropped as contiguous runs of
       mean length ``dropout_frames`` (occlusion-like), after ``protect_frames``.
-    - ``ghosts``: mean number of ghost points per frame, each living a few frames 20-100 mm
+    - ``ghosts``: mean number of ghost points per frame (at most :data:`MAX_GHOSTS`), each
+      living a few frames 20-100 mm
       from a random visible marker.
     - ``jitter_mm``: Gaussian noise (standard deviation, per axis) on every point.
     - ``shuffle``: permute the points of every frame.
@@ -87,7 +93,7 @@ class CorruptionSpec:
             "occlude_stagger": self.occlude_stagger >= 0,
             "dropouts": 0.0 <= self.dropouts < 1.0,
             "dropout_frames": self.dropout_frames >= 1,
-            "ghosts": self.ghosts >= 0.0 and np.isfinite(self.ghosts),
+            "ghosts": 0.0 <= self.ghosts <= MAX_GHOSTS,
             "ghost_life_frames": self.ghost_life_frames >= 1.0,
             "jitter_mm": self.jitter_mm >= 0.0 and np.isfinite(self.jitter_mm),
             "protect_frames": self.protect_frames >= 0,
@@ -97,7 +103,10 @@ class CorruptionSpec:
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
-            raise SceneError(f"invalid corruption setting: {bad[0]}={getattr(self, bad[0])!r}")
+            hint = f" (0 to {MAX_GHOSTS:g} per frame)" if bad[0] == "ghosts" else ""
+            raise SceneError(
+                f"invalid corruption setting: {bad[0]}={getattr(self, bad[0])!r}{hint}"
+            )
 
 
 @dataclass

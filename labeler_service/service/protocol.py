@@ -475,7 +475,10 @@ def peek_frame_stream(payload: bytes) -> str | None:
             j = 1 + len(_FRAME_HEAD)
             c = b[j]
             if 0xA0 <= c <= 0xBF:
-                value = b[j + 1 : j + 1 + (c & 0x1F)].decode("utf-8")
+                k = j + 1 + (c & 0x1F)
+                if k > len(b):  # cut inside the name: decoded in full, refused as such
+                    return None
+                value = b[j + 1 : k].decode("utf-8")
                 return value if STREAM_NAME.match(value) else None
             c = b[0]
         if 0x80 <= c <= 0x8F:

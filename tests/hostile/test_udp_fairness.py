@@ -62,6 +62,13 @@ def test_peek_reads_the_stream_of_our_frames_and_gives_up_on_anything_else():
     assert peek_frame_stream(_pack({"v": 1, "stream": "bad name"})) is None
     assert peek_frame_stream(_pack({"v": 1, "labels": ["a"], "stream": "x"})) is None
     assert peek_frame_stream(encode_frame("vol", 1, 0.0, pts)[:12]) is None
+    # cut inside the name: every cut gives no name, never a shorter one (a frame for "win" cut
+    # after its "w" was counted unknown_stream and logged as stream "w"; a hostile run)
+    whole = encode_frame("win", 1, 0.0, pts)
+    for k in range(len(whole)):
+        assert peek_frame_stream(whole[:k]) in (None, "win") and (
+            peek_frame_stream(whole[:k]) is None or k > whole.index(b"win") + 2
+        )
     assert peek_frame_stream(_pack([1, 2])) is None
     assert peek_frame_stream(b"") is None
     # another protocol version: decoded in full, so it is refused as ``version`` (it was
