@@ -227,6 +227,14 @@ def run(args: argparse.Namespace) -> int:
     )
     frames = cap.n_frames - init
     failed = observed == 0 and frames > 0  # (a run that labeled nothing is no success)
+    unseen: list[str] = []
+    if init > 0 and model is None:
+        # markers never visible in the init window: the labeled start cannot learn them, so
+        # they stay unlabeled to the end (evaluate counts them as unseen_at_init)
+        in_window = np.zeros(m, dtype=bool)
+        shown = vis[:init].any(axis=0) & (col_label >= 0)
+        in_window[col_label[shown]] = True
+        unseen = [lab.marker_names[i] for i in np.flatnonzero(~in_window)]
     # such a run writes OUT for inspection, but never over an earlier OUT (a good one)
     kept = failed and Path(args.output).exists()
     if not kept:
@@ -245,6 +253,8 @@ def run(args: argparse.Namespace) -> int:
         "labeled_start": start if init > 0 and model is None else None,
         # why ``auto`` fell back to the labeler trained in place (None: it did not)
         "labeled_start_note": why,
+        # markers the init window never showed: this start cannot label them
+        "unseen_at_init": unseen,
     }
     if args.json:
         print(json.dumps(summary))
@@ -269,6 +279,15 @@ def run(args: argparse.Namespace) -> int:
             )
         if never:
             print(f"  never labeled: {', '.join(never)}")
+        if unseen:
+            shown = ", ".join(unseen[:8]) + (
+                f" and {len(unseen) - 8} more" if len(unseen) > 8 else ""
+            )
+            print(
+                f"  {plural(len(unseen), 'marker')} never visible in the {init} init frames, so "
+                f"never labeled from this start: {shown} (a model trained on other frames, "
+                "train structure then --model, labels them)"
+            )
     if failed:
         where = f"{args.output} left as it was" if kept else f"output written to {args.output}"
         raise LabelerError(

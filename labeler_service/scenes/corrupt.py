@@ -21,7 +21,6 @@ from labeler_service.capture import Capture
 from labeler_service.errors import SceneError
 from labeler_service.wording import plural
 
-
 #: Most ghost points per frame a corruption adds on average: more than any capture shows (a
 #: cluttered volume has tens); 1e9 asked the memory for 200 million points a frame.
 MAX_GHOSTS = 1000.0

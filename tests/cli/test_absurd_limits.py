@@ -50,7 +50,11 @@ def test_ghosts_beyond_any_capture_are_refused_before_any_work(rng, tmp_path, ca
     code = main(["evaluate", str(take), "--ghosts", "1e9", "--init-frames", "20"])
     assert code == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err and err.startswith("error: ") and "ghosts=1000000000.0 (0 to 1000 per frame)" in err
+    assert (
+        "Traceback" not in err
+        and err.startswith("error: ")
+        and "ghosts=1000000000.0 (0 to 1000 per frame)" in err
+    )
 
 
 @pytest.mark.parametrize("n", ["0", "11"])
