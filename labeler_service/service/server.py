@@ -961,9 +961,10 @@ class Server:
         active = state.subjects_booted
         self.metrics.subjects(state.name, len(active))
         rec = state.boots[-1] if state.boots else None
-        log.info("stream %s: booted %s (attempt %.3f s in thread %s, caught up over %s); "
+        where = "the boot worker process" if self.settings.boot_worker == "process" else "a thread"
+        log.info("stream %s: booted %s (attempt %.3f s, job %s in %s, caught up over %s); "
                  "labeling %d of %s", state.name, ", ".join(state.just_booted),
-                 rec.seconds if rec else float("nan"), rec.thread if rec else "?",
+                 rec.seconds if rec else float("nan"), rec.thread if rec else "?", where,
                  plural(rec.caught_frames if rec else 0, "frame"), len(active),
                  plural(len(state.booting.model.subjects) if state.booting else 0,
                         "subject"))  # fmt: skip
