@@ -25,6 +25,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from labeler_service.capture import Capture
 from labeler_service.errors import SceneError
+from labeler_service.scenes.corrupt import MAX_GHOSTS
 from labeler_service.scenes.sim import SCENARIOS
 from labeler_service.scenes.sim.body import (
     MARKER_NAMES,
@@ -91,8 +92,10 @@ def _validate(performers, seconds, scenario, seed, rate, ghosts) -> int:
             raise SceneError(f"{name} must be a positive number, got {value!r}")
     if rate > 2000:
         raise SceneError(f"--rate {rate:g} Hz is beyond any optical system (max 2000)")
-    if not (isinstance(ghosts, int | float | np.number) and math.isfinite(ghosts) and ghosts >= 0):
-        raise SceneError(f"--ghosts must be a mean number of points per frame >= 0, got {ghosts}")
+    if not (isinstance(ghosts, int | float | np.number) and 0 <= ghosts <= MAX_GHOSTS):
+        raise SceneError(
+            f"--ghosts must be a mean number of points per frame, 0 to {MAX_GHOSTS:g}, got {ghosts}"
+        )
     frames = round(seconds * rate)
     if frames < 2:
         raise SceneError(f"{seconds:g} s at {rate:g} Hz is {frames} frame(s): need at least 2")

@@ -75,3 +75,14 @@ def test_an_npz_that_is_not_a_capture_says_what_it_lacks(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "not a capture NPZ: it lacks positions, labels (it holds " in err
     assert "is not a file in the archive" not in err
+
+
+@pytest.mark.parametrize("value", ["1e9", "-1", "nan", "inf"])
+def test_simulate_refuses_ghosts_beyond_any_capture(value, tmp_path, capsys):
+    """``simulate --ghosts 1e9`` asked numpy for 179 GiB (a traceback)."""
+    argv = ["simulate", str(tmp_path / "s.c3d"), "--performers", "1", "--seconds", "1",
+            "--scenario", "walk", "--seed", "1", "--ghosts", value]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--ghosts must be a mean number of points per frame, 0 to 1000" in err
+    assert "Traceback" not in err
