@@ -232,8 +232,8 @@ def run(args: argparse.Namespace) -> int:
         # markers never visible in the init window: the labeled start cannot learn them, so
         # they stay unlabeled to the end (evaluate counts them as unseen_at_init)
         in_window = np.zeros(m, dtype=bool)
-        shown = vis[:init].any(axis=0) & (col_label >= 0)
-        in_window[col_label[shown]] = True
+        early = vis[:init].any(axis=0) & (col_label >= 0)  # input columns the window showed
+        in_window[col_label[early]] = True
         unseen = [lab.marker_names[i] for i in np.flatnonzero(~in_window)]
     # such a run writes OUT for inspection, but never over an earlier OUT (a good one)
     kept = failed and Path(args.output).exists()

@@ -43,8 +43,7 @@ class CorruptionSpec:
     - ``dropouts``: fraction of the remaining visible samples dropped as contiguous runs of
       mean length ``dropout_frames`` (occlusion-like), after ``protect_frames``.
     - ``ghosts``: mean number of ghost points per frame (at most :data:`MAX_GHOSTS`), each
-      living a few frames 20-100 mm
-      from a random visible marker.
+      living a few frames 20-100 mm from a random visible marker.
     - ``jitter_mm``: Gaussian noise (standard deviation, per axis) on every point.
     - ``shuffle``: permute the points of every frame.
     - ``leave``, ``leave_seconds``: ``leave`` randomly chosen subjects each vanish entirely once
