@@ -181,6 +181,19 @@ def _read_takes(texts: list[str], up: str, rename: dict[int | None, dict[str, st
     caps = []
     for text in texts:
         cap, absent = _read_take(text, up).without_absent_subjects()
+        named = [x for x in cap.subjects if x]
+        if "" in cap.subjects and named:
+            # the reader names a take's bare labels after its file only when none has a
+            # subject; beside named ones they are subject "" to info, evaluate and label, and a
+            # model could only give them another name (evaluate then scored 955 of them
+            # cross-subject: a hostile run)
+            bare = [cap.labels[i] for i in cap.subject_columns("")]
+            raise ModelError(
+                f"{text}: {plural(len(bare), 'label')} name no subject ({', '.join(bare[:4])}"
+                f"{', ...' if len(bare) > 4 else ''}) beside subject {', '.join(named)}: a model "
+                "names every marker SUBJECT:MARKER; label them so (a take whose labels all lack "
+                "a subject is named after its file)"
+            )
         for name in absent:
             print(
                 f"note: {text}: subject {name} is never seen in the take: left out", file=sys.stderr
