@@ -7,50 +7,38 @@ import argparse
 from labeler_service.wording import plural
 
 
+def _checked(text: str, convert, ok, what: str):
+    """``convert(text)`` when it parses and ``ok`` holds, else argparse's usage error (exit 2,
+    ``what`` and the text given)."""
+    try:
+        value = convert(text)
+    except ValueError:
+        value = None
+    if value is None or not ok(value):
+        raise argparse.ArgumentTypeError(f"{what}, got {text!r}")
+    return value
+
+
 def seed(text: str) -> int:
     """``--seed``: a whole number >= 0 (numpy refuses a negative seed with a traceback)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"a seed is a whole number >= 0, got {text!r}")
-    return value
+    return _checked(text, int, lambda v: v >= 0, "a seed is a whole number >= 0")
 
 
 def port(text: str) -> int:
     """``--port``, ``--view-port``: a TCP port 0-65535 (0: any free one); a bind would raise
     ``OverflowError`` with a traceback past that."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"a port is a whole number 0-65535, got {text!r}")
-    return value
+    return _checked(text, int, lambda v: 0 <= v <= 65535, "a port is a whole number 0-65535")
 
 
 def positive(text: str) -> float:
     """A limit that must be a finite number > 0 (``--seconds``): a negative one ended the
     command at once with exit 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
+    return _checked(text, float, lambda v: 0 < v < float("inf"), "expected a finite number > 0")
 
 
 def positive_int(text: str) -> int:
     """A count that must be a whole number > 0 (``--frames``)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number > 0, got {text!r}")
-    return value
+    return _checked(text, int, lambda v: v > 0, "expected a whole number > 0")
 
 
 def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool = True) -> None:
