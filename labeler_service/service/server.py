@@ -780,15 +780,16 @@ class Server:
                 self._spawn(self._build_spare(state), f"spare-{state.name}")
 
     async def _build_spare(self, state: StreamState) -> None:
-        """The next recovery labeler of a ``boot = false`` stream, built in a thread
-        (:meth:`StreamState.build_spare`); a failure is logged and not tried again (every
-        later recovery builds its own in the frame, as before)."""
+        """A model stream's next booting labeler (for a recovery, or a reboot after a time
+        jump), built in a thread (:meth:`StreamState.build_spare`); a failure is logged and
+        not tried again (every later one is built in the frame, as before)."""
         try:
             await asyncio.to_thread(state.build_spare)
         except Exception:
             state._spare_for = None
-            log.exception("stream %s: building the next recovery labeler failed (recoveries "
-                          "build theirs in the frame from now on)", state.name)  # fmt: skip
+            log.exception("stream %s: building the next booting labeler failed (recoveries "
+                          "and reboots build theirs in the frame from now on)",
+                          state.name)  # fmt: skip
         finally:
             state.spare_building = False
 

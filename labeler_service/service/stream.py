@@ -363,9 +363,10 @@ class StreamState:
         self._warned_unknown = False
         #: the stream's model file as read at its first start (``start_from_model``)
         self._model_file: LabelerModel | None = None
-        #: a ``boot = false`` model stream's recovery labeler, built unused at its start
-        #: (:meth:`start_from_model`) and again after each hand-back (:meth:`build_spare`, off
-        #: the loop), taken by the next recovery; ``_spare_for``: the model it is built for
+        #: a model stream's next booting labeler, built unused at its start
+        #: (:meth:`start_from_model`) and again after each one is taken (:meth:`build_spare`,
+        #: off the loop), taken by the next recovery (``boot = false``) or reboot (``boot =
+        #: true``); ``_spare_for``: the model it is built for
         self._spare: BootingLabeler | None = None
         self._spare_for: LabelerModel | None = None
         self.spare_building = False  # a build_spare job is out (the server's)
@@ -484,12 +485,14 @@ class StreamState:
         labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
                                 boot=self.settings.boot_config if boot else False)  # fmt: skip
         _off_the_loop(labeler)
-        if not boot and self.settings.labeler == "online":
+        if self.settings.labeler == "online":
             # boot = false: the first unlabeled frame (or a performer who leaves) starts a
             # recovery, a BootingLabeler of this model; built in that frame it took 0.1 s for
             # two walkers, 0.4-1 s for ten hugging performers (its boot's preparation, then
-            # 0.06-0.1 s for the rest). Built here, at the stream's start and off the loop, and
-            # again by the server after each recovery's hand-back (spare_due)
+            # 0.06-0.1 s for the rest). boot = true: a new run after a time jump (a restarted
+            # sender) boots every subject again with a fresh one (reboot), built in that
+            # frame in 26-29 ms at ten performers. Built here, at the stream's start and off
+            # the loop, and again by the server after each one is taken (spare_due)
             self._spare_for = model
         self.boot_inflight = self._boot_request is not None
         self._boot_result = None
@@ -1064,10 +1067,11 @@ class StreamState:
         return True
 
     def spare_due(self) -> bool:
-        """A ``boot = false`` model stream whose spare recovery labeler was taken: the server
-        builds the next one off the loop (:meth:`build_spare`) once the recovery has handed
-        back (during one, no other can start). Built in the frame, a leaver's recovery after
-        a hand-back held it 7-10 ms at two performers, 0.06-0.1 s at ten (a review)."""
+        """A model stream whose spare booting labeler was taken (by a recovery or a reboot):
+        the server builds the next one off the loop (:meth:`build_spare`), after a recovery
+        once it has handed back (during one, no other can start). Built in the frame, a
+        leaver's recovery after a hand-back held it 7-10 ms at two performers, 0.06-0.1 s at
+        ten (a review); a reboot 26-29 ms at ten."""
         return (
             self._spare_for is not None
             and self._spare is None
@@ -1144,12 +1148,20 @@ class StreamState:
         lab = self.booting
         if lab is None:
             return False
-        fresh = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
-                              config=self.settings.labeler_config,
-                              boot=lab.boot_config)  # fmt: skip
-        if not _off_the_loop(fresh):
-            return False
-        assert isinstance(fresh, BootingLabeler)
+        fresh, self._spare = self._spare, None  # (prepared off the loop: build_spare)
+        if (
+            fresh is None
+            or fresh.model is not lab.model
+            or fresh.rate != lab.rate
+            or fresh.boot_config != lab.boot_config
+        ):
+            made = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
+                                 config=self.settings.labeler_config,
+                                 boot=lab.boot_config)  # fmt: skip
+            if not _off_the_loop(made):
+                return False
+            assert isinstance(made, BootingLabeler)
+            fresh = made
         # the boot worker's booter for the old key serves the fresh labeler: it depends only
         # on the model and the boot settings, both the same, and is read-only; unless a
         # relearn replaced the old labeler's booter (the fresh one starts from the model)
@@ -1255,6 +1267,7 @@ class StreamState:
         instead, through :meth:`train`).
         """
         self.verify_events = ()
+        t0 = time.perf_counter_ns()  # (a new run's rebuild or reboot counts in this frame)
         if verdict.new_run:
             self.new_run(f, verdict)
         if self.labeler is None:
@@ -1270,7 +1283,6 @@ class StreamState:
             if self._t_last is not None and self.rate:
                 self._t_offset = self._t_last + 1.0 / self.rate - f.t
         t = f.t + self._t_offset
-        t0 = time.perf_counter_ns()
         self.just_booted = ()
         labels = self._label_indices(f)
         if labels is not None:

@@ -195,8 +195,11 @@ def test_a_model_stream_boots_again_after_a_time_jump(scene_model):
     st.start_from_model()
     first = _feed_booting(st, frames, 0)
     assert len(st.subjects_booted) == PERFORMERS
+    spare = st._spare  # built at the start, off the frame path (26-29 ms at ten performers)
+    assert spare is not None and spare is not st.labeler and not st.spare_due()
     again = _feed_booting(st, frames, 10_000, Verdict(new_run=True, time_jumped=True))
     assert st.reboots == 1 and st.recoveries == 1
+    assert st.labeler is spare and st.spare_due()  # the server builds the next one
     for (s1, p1, h1), (s2, p2, h2) in zip(first, again, strict=True):
         np.testing.assert_array_equal(s1, s2)
         np.testing.assert_allclose(p1, p2, atol=1e-3)
@@ -328,7 +331,7 @@ def test_boot_off_stream_builds_its_recovery_at_start_not_in_a_frame(scene_model
 
 
 def test_a_spare_that_cannot_be_built_is_not_tried_again(scene_model, monkeypatch, caplog):
-    """The server's job that builds the next recovery labeler fails (here: no memory): said
+    """The server's job that builds the next booting labeler fails (here: no memory): said
     once with the traceback, and the stream stops asking for one (it asked again after every
     frame otherwise); recoveries build theirs in the frame as before."""
     import logging
@@ -344,7 +347,7 @@ def test_a_spare_that_cannot_be_built_is_not_tried_again(scene_model, monkeypatc
     st.spare_building = True  # (as the server sets it)
     run(Server._build_spare(None, st), timeout=30.0)
     assert not st.spare_due() and not st.spare_building
-    assert caplog.text.count("building the next recovery labeler failed") == 1
+    assert caplog.text.count("building the next booting labeler failed") == 1
 
 
 def test_boot_off_hands_back_only_once_every_marker_is_labeled(scene_model):
