@@ -123,6 +123,7 @@ from labeler_service.wording import plural
 
 if TYPE_CHECKING:
     from labeler_service.labeling.boot import BootResult
+    from labeler_service.labeling.boot_config import BootConfig
     from labeler_service.labeling.booting import BootSnapshot
     from labeler_service.service.boot_worker import BootWorker
 
@@ -482,8 +483,12 @@ class StreamState:
             rate = model.rate
         boot = self.settings.boot and self.settings.labeler == "online"
         cfg = self.settings.labeler_config
-        labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
-                                boot=self.settings.boot_config if boot else False)  # fmt: skip
+        labeler: FrameLabeler | None = None
+        if boot:  # (a new labeled run, in the frame: the spare built off the loop)
+            labeler = self._take_spare(model, rate, self.settings.boot_config)
+        if labeler is None:
+            labeler = self._factory(self.settings.labeler, rate=rate, config=cfg, model=model,
+                                    boot=self.settings.boot_config if boot else False)  # fmt: skip
         _off_the_loop(labeler)
         if self.settings.labeler == "online":
             # boot = false: the first unlabeled frame (or a performer who leaves) starts a
@@ -1049,8 +1054,8 @@ class StreamState:
         if model is None or self.rate is None:
             return False
         self.abandon_handover(f"recovery: {why}")
-        lab, self._spare = self._spare, None
-        if lab is None or lab.model is not model or lab.rate != self.rate:
+        lab = self._take_spare(model, self.rate, self.settings.boot_config)
+        if lab is None:
             lab = self._recovery_labeler(model, self.rate)
         if lab is None:
             return False
@@ -1093,6 +1098,17 @@ class StreamState:
             return
         if self._spare is None and self._spare_for is model and self.rate == rate:
             self._spare = lab
+
+    def _take_spare(
+        self, model: LabelerModel, rate: float, boot: BootConfig
+    ) -> BootingLabeler | None:
+        """The spare booting labeler (built off the loop: :meth:`build_spare`) when it is one
+        of ``model``, ``rate`` and ``boot`` settings, else None; taken either way (the server
+        builds the next one: :meth:`spare_due`)."""
+        lab, self._spare = self._spare, None
+        if lab is None or lab.model is not model or lab.rate != rate or lab.boot_config != boot:
+            return None
+        return lab
 
     def _recovery_labeler(self, model: LabelerModel, rate: float) -> BootingLabeler | None:
         """A :class:`BootingLabeler` of ``model`` as a recovery runs it (boot off the frame
@@ -1148,13 +1164,8 @@ class StreamState:
         lab = self.booting
         if lab is None:
             return False
-        fresh, self._spare = self._spare, None  # (prepared off the loop: build_spare)
-        if (
-            fresh is None
-            or fresh.model is not lab.model
-            or fresh.rate != lab.rate
-            or fresh.boot_config != lab.boot_config
-        ):
+        fresh = self._take_spare(lab.model, lab.rate, lab.boot_config)
+        if fresh is None:
             made = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
                                  config=self.settings.labeler_config,
                                  boot=lab.boot_config)  # fmt: skip

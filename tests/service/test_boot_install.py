@@ -207,6 +207,34 @@ def test_a_model_stream_boots_again_after_a_time_jump(scene_model):
     assert first[0][2] == "booting" and first[-1][2] == "online"
 
 
+def test_a_labeled_new_run_of_a_booting_stream_builds_no_labeler_in_its_frame(
+    scene_model, monkeypatch
+):
+    """A ``boot = true`` model stream's sender restarts with labeled frames: the new run
+    rebuilds from the model with the spare booting labeler built off the loop, not one built in
+    that frame (16-27 ms at ten performers), and the labeled frame's labels are taken."""
+    from labeler_service.labeling.frame import MarkerState
+    from labeler_service.service.continuity import Verdict
+
+    path, frames = scene_model
+    settings = _settings(path, boot_worker="thread")
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    _feed_booting(st, frames, 0)
+    spare = st._spare
+    assert spare is not None and not st.spare_due()
+    calls = []
+    factory = st._factory
+    monkeypatch.setattr(st, "_factory", lambda *a, **k: calls.append(1) or factory(*a, **k))
+    names = frames.marker_names
+    labels = [names[int(m)] if m >= 0 else None for m in frames.truth[0]]
+    msg = decode(encode_frame("vol", 9000, float(frames.times[0]), frames.points[0], labels))
+    out = st.process(msg, 0, Verdict(new_run=True))
+    assert out is not None and calls == [] and st.labeler is spare and st.spare_due()
+    given = sum(m is not None and names.index(m) >= 0 for m in labels)
+    assert np.count_nonzero(decode(out.payload).state == MarkerState.OBSERVED) == given
+
+
 @pytest.mark.realdata
 def test_a_second_replay_of_a_real_take_labels_as_the_first(real_path, tmp_path):
     """The hostile run's case: a model trained on the tennis take's frames 0-550, a stream
