@@ -467,6 +467,28 @@ def _c3d_labels(point: dict, n: int) -> list[str]:
     return labels[:n]
 
 
+def _c3d_header_rate(path: Path) -> float | None:
+    """The 3D frame rate in a C3D file's header (bytes 20-23, a float in the byte order of
+    its processor type: Intel or MIPS), or None when the file is too short or of another
+    processor type (DEC floats). ezc3d divides by it before any check of ours can run: a NaN
+    rate ends in its ``vector::_M_default_append``."""
+    import struct
+
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(512)
+            if len(head) < 24 or head[0] < 2:
+                return None
+            fh.seek(512 * (head[0] - 1))
+            param = fh.read(4)
+    except OSError:
+        return None
+    order = {84: "<", 86: ">"}.get(param[3] if len(param) == 4 else 0)
+    if order is None:
+        return None
+    return float(struct.unpack(order + "f", head[20:24])[0])
+
+
 def _read_c3d(path: Path) -> Capture:
     import ezc3d
 
@@ -476,6 +498,12 @@ def _read_c3d(path: Path) -> Capture:
         if "maximum number of frames is 0" in str(exc):
             raise CaptureFormatError(
                 f"{path}: holds no frame data: the file ends before its first frame (truncated?)"
+            ) from exc
+        rate = _c3d_header_rate(path)
+        if rate is not None and not rate > 0:
+            raise CaptureFormatError(
+                f"{path}: its frame rate (C3D header) is {rate:g}: a capture needs a positive "
+                "frame rate (Hz)"
             ) from exc
         raise CaptureFormatError(
             f"{path}: cannot be read as C3D (damaged or truncated?): {exc}"

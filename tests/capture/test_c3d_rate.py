@@ -1,4 +1,4 @@
-"""A C3D whose POINT:RATE is 0 or negative (a broken export) says so; it said "no POINT:RATE",
+"""A C3D whose POINT:RATE is 0, negative or NaN (a broken export) says so; it said "no POINT:RATE",
 which sends the user looking for a parameter the file has."""
 
 from __future__ import annotations
@@ -23,4 +23,16 @@ def test_a_zero_or_negative_rate_is_named(tmp_path, rng, rate):
     assert raw.count(old) >= 1
     path.write_bytes(bytes(raw).replace(old, new))
     with pytest.raises(CaptureFormatError, match=f"POINT:RATE is {rate:g}.*positive"):
+        read_capture(path)
+
+
+def test_a_nan_rate_is_named_not_left_to_ezc3d(tmp_path, rng):
+    """A NaN rate (header and POINT:RATE) makes ezc3d itself fail (it divides by the rate
+    while reading: ``vector::_M_default_append``), before the POINT:RATE check can run: the
+    header's rate is read first and named."""
+    pos = rng.normal(scale=300.0, size=(5, 3, 3)).astype(np.float32)
+    path = write_capture(Capture(pos, ("S:a", "S:b", "S:c"), MARK), tmp_path / "r.c3d")
+    raw = bytes(path.read_bytes()).replace(struct.pack("<f", MARK), struct.pack("<f", np.nan))
+    path.write_bytes(raw)
+    with pytest.raises(CaptureFormatError, match="frame rate .*is nan.*positive"):
         read_capture(path)
