@@ -366,6 +366,7 @@ class BootWorker:
         self._closed = False
         #: worker processes started so far (restarts after a kill or a crash included)
         self.started = 0
+        self._warm = False  # a worker has answered once (start() or any request)
 
     @property
     def pid(self) -> int | None:
@@ -427,10 +428,16 @@ class BootWorker:
         self._kill()
 
     @property
+    def closed(self) -> bool:
+        """Closed (:meth:`close`): requests are refused."""
+        return self._closed
+
+    @property
     def enabled(self) -> bool:
-        """Started once and not closed: requests go to the worker (a killed or crashed one is
-        started again by the next request)."""
-        return self.started > 0 and not self._closed
+        """Started and warm once, and not closed: requests go to the worker (a killed or
+        crashed one is started again by the next request). Not while the first one starts: a
+        request then would wait for its start-up."""
+        return self._warm and not self._closed
 
     # ------------------------------------------------------------------ internals
     def _note(self, key: str) -> None:
@@ -446,7 +453,9 @@ class BootWorker:
         """One request-reply (the caller holds the lock)."""
         conn = self._ensure()
         conn.send(msg)
-        return self._reply(conn, cancel, what)
+        out = self._reply(conn, cancel, what)
+        self._warm = True
+        return out
 
     def _ensure(self) -> Connection:
         if self._closed:

@@ -1071,6 +1071,11 @@ class StreamState:
                     self.name, why, what, self.recoveries)  # fmt: skip
         return True
 
+    @property
+    def spare(self) -> BootingLabeler | None:
+        """The spare booting labeler (built off the loop; None when none is ready)."""
+        return self._spare
+
     def spare_due(self) -> bool:
         """A model stream whose spare booting labeler was taken (by a recovery or a reboot):
         the server builds the next one off the loop (:meth:`build_spare`), after a recovery
@@ -1365,10 +1370,11 @@ class StreamState:
         if lab is None or not self.boot_due():
             return None
         self.boot_inflight = True
-        # the worker process only once started (by the server, for streams that boot): a
-        # recovery on a service without one boots in the job's thread rather than wait for a
-        # worker's start-up (seconds: imports and kernels); a worker killed since (an
-        # abandoned attempt) is started again by the request
+        # the worker process only once started and warm (by the server: at its start for
+        # streams that boot, at a stream's first recovery otherwise): an attempt before boots
+        # in the job's thread rather than wait for the worker's start-up (seconds: imports and
+        # kernels); a worker killed since (an abandoned attempt) is started again by the
+        # request
         w = self.boot_worker
         req = BootRequest(lab, lab.boot_snapshot(), w if w is not None and w.enabled else None)
         self._boot_request = req

@@ -140,6 +140,9 @@ def test_a_stream_trained_from_init_frames_reboots_after_a_gap_with_performers_d
     assert f"every subject labeled again; back to {back_to}" in caplog.text
     assert (srv.streams["default"].window_frames == INIT) == (start == "model")
     assert srv.metrics.drops("time_jump") == 2  # run_confirm_frames - 1
+    # no configured stream boots, so no boot worker at the start; the recovery started one in
+    # the background (its first attempts ran in the thread meanwhile)
+    assert srv.boot_worker is not None and srv.boot_worker.started == 1
     before = [m for m in msgs if m.seq < BEFORE]
     assert np.mean([np.mean(m.state == MarkerState.OBSERVED) for m in before]) > 0.95
 
@@ -158,6 +161,11 @@ def test_a_model_stream_without_boot_reboots_after_a_gap(tmp_path):
     assert cfg.boot is False
     _, back, srv, mem, msgs = _gap_run(cfg, 5)  # labeled first frames: the assignment
     _check_recovered(back, srv, mem, msgs)
+    # its recovery booted in the boot worker process, started and warmed with the service
+    # (in a thread of the service it held the frame path's GIL: at 10 x 360 Hz 450-770 frames
+    # dropped)
+    boots = [b for b in srv.streams["default"].boots if not b.failed]
+    assert boots and all(b.worker for b in boots)
 
 
 def test_a_stream_without_a_model_cannot_boot_and_says_so():

@@ -264,6 +264,7 @@ def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_pa
         async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
             st = srv.streams["vol"]
             assert st._spare is not None  # built at the start, off the loop
+            assert srv.boot_worker is not None and srv.boot_worker.enabled  # (and the worker)
             outs = await _stream_all(srv, mem, frames)
             assert st.handbacks >= 1 and not st.recovering, (st.handbacks, st.recovering)
             # the next recovery's labeler, built in a job thread after the hand-back
@@ -275,6 +276,7 @@ def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_pa
     assert len(outs) == frames.n_frames
     assert st.recoveries >= 1 and metrics.value("mocap_recoveries_total", stream="vol") >= 1
     assert "frames without labels and boot = false" in caplog.text
+    assert all(b.worker for b in st.boots if not b.failed)  # (the worker's, not a thread's)
     booted = [b for b in st.boots if b.booted]
     assert {n for b in booted for n in b.booted} == {f"P{i + 1}" for i in range(PERFORMERS)}
     last = max(b.installed_t for b in booted if np.isfinite(b.installed_t))

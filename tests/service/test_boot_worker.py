@@ -69,6 +69,9 @@ def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
     lab, snap = _snapshot(model, cap, seed=6)
     w = BootWorker()
     try:
+        assert not w.enabled  # (not before a worker has answered once: attempts would wait)
+        w.start()  # (as the server does)
+        assert w.enabled and w.started == 1
         cancel = threading.Event()
         cancel.set()  # over budget before the reply
         with pytest.raises(BudgetExceeded):
