@@ -792,9 +792,9 @@ class Server:
         after a kill) for a stream whose recovery has begun on a service that started none
         (its configured streams do not boot: a stream trained from labeled init frames, an
         unconfigured one). Without it the recovery's attempts ran in a thread of the service
-        and held the frame path's GIL: 10 x 360 Hz with no labels, 450 and 770 frames dropped
-        against 0 and 110 with the worker, 0.59 and 0.73 correct after boot against 0.92 and
-        0.97. Attempts requested while it starts (~1.2 s) run in a thread as before (a small
+        and held the frame path's GIL: 10 x 360 Hz with no labels and ``boot = false``, 693-716
+        frames dropped against 0-233 with the worker, 0.50-0.67 correct after boot against
+        0.93-0.99. Attempts requested while it starts (~1.2 s) run in a thread as before (a small
         recovery's boot takes milliseconds there)."""
         w = self.boot_worker
         if w is None or w.enabled or self._worker_starting:
