@@ -107,7 +107,7 @@ class _Session:
         w._lock.acquire()
         self._held = True
         try:
-            spec = None if lab.key in w._known else lab.boot_spec
+            spec = w._spec_for(lab.key, lab.boot_spec)
             msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
             booted = w._request(msg, self.cancel, "catch-up")
             w._note(lab.key)
@@ -385,7 +385,7 @@ class BootWorker:
         kernels a catch-up's shadow runs (the inner labeler's), so that the first attempt pays
         neither (blocking, like :meth:`start`; a no-op for a labeler the worker knows)."""
         with self._lock:
-            if labeler.key in self._known:
+            if self._spec_for(labeler.key, labeler.boot_spec) is None:
                 return
             spec = labeler.boot_spec
             self._request(("prepare", labeler.key, spec, labeler.rate, labeler.config), None,
@@ -417,7 +417,7 @@ class BootWorker:
         """:func:`~labeler_service.labeling.booting.boot_step_on` in the worker with the booter
         of ``key`` (built from ``spec`` = ``(model, BootConfig)`` the first time)."""
         with self._lock:
-            msg = ("step", key, None if key in self._known else spec, snapshot)
+            msg = ("step", key, self._spec_for(key, spec), snapshot)
             out = self._request(msg, cancel, "boot step")
             self._note(key)
             return out
@@ -440,6 +440,14 @@ class BootWorker:
         return self._warm and not self._closed
 
     # ------------------------------------------------------------------ internals
+    def _spec_for(self, key: str, spec: Any) -> Any:
+        """``spec`` when the worker lacks ``key``'s booter, else None (the caller holds the
+        lock). A worker that died is started again first: the new one knows no booter (the
+        mirror was read before the restart, so the first attempt after a killed worker went
+        without its model and failed: "no model for labeler ...")."""
+        self._ensure()
+        return None if key in self._known else spec
+
     def _note(self, key: str) -> None:
         """``key``'s booter is in the worker now, most recently used; the worker drops the
         least recently used beyond ``MAX_BOOTERS`` and so does this mirror (a dropped key is

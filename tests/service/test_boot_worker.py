@@ -93,7 +93,9 @@ def test_an_abandoned_request_kills_the_worker_and_the_next_starts_one(walk):
 
 def test_a_worker_killed_from_outside_is_logged_and_started_again(walk, caplog):
     """The OOM killer (or anyone) ends the worker between attempts: the next attempt says so
-    in the log, with the exit code, and runs in a new worker."""
+    in the log, with the exit code, and runs in a new worker - which is sent the model the old
+    one had (the first attempt after a kill failed with "no model for labeler": a hostile
+    run's ``kill -9`` of the service's worker)."""
     import logging
     import signal
 
@@ -102,6 +104,7 @@ def test_a_worker_killed_from_outside_is_logged_and_started_again(walk, caplog):
     w = BootWorker()
     try:
         w.start()
+        w.prepare(lab)  # (the service's start: the old worker has the model)
         pid = w.pid
         assert pid is not None
         os.kill(pid, signal.SIGKILL)
