@@ -169,6 +169,11 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
     removed = np.zeros_like(visible)
 
     if spec.gaps > 0:
+        if n_frames - start < spec.gap_frames:  # (no gap would fit: none was made, silently)
+            raise SceneError(
+                f"--gaps {spec.gaps} x {spec.gap_frames} frames does not fit in "
+                f"{n_frames - start} frames after the init window"
+            )
         period = spec.gap_period or 4 * spec.gap_frames
         sub = Capture(positions, names, cap.rate)
         for subject in sub.subjects:

@@ -34,6 +34,17 @@ def test_seeded_and_reproducible(rng) -> None:
     )
 
 
+def test_gaps_longer_than_the_scene_are_refused_not_skipped(rng) -> None:
+    """``--gaps 1 --gap-frames 600`` on a 200-frame take made no gap at all and scored as the
+    gap-free run (a hostile run: same accuracy, ``recovery_rate`` null, exit 0); ``--occlude``
+    and ``--leave`` already refuse what does not fit."""
+    cap = moving_clusters(rng, frames=200)
+    with pytest.raises(SceneError, match=r"--gaps 1 x 171 frames does not fit in 170 frames"):
+        corrupt(cap, CorruptionSpec(gaps=1, gap_frames=171, protect_frames=30, seed=1))
+    s = corrupt(cap, CorruptionSpec(gaps=1, gap_frames=170, protect_frames=30, seed=1))
+    assert s.removed[30:].all(axis=0).any()  # the one gap that fits: every frame after init
+
+
 def test_gaps_remove_contiguous_runs_after_protected_window(rng) -> None:
     cap = moving_clusters(rng, frames=200)
     s = corrupt(cap, CorruptionSpec(gaps=2, gap_frames=10, protect_frames=30, seed=1))
