@@ -317,6 +317,14 @@ class ServiceSettings(BaseSettings):
                 f"booting labeler; labeler is {self.labeler!r}: set labeler = 'online', or "
                 "labeled_start = 'labeler' on these streams"
             )
+        if self.boot and self.labeler != "online":
+            # (a baseline stream with a model and no labels started, said `ready` and
+            # "re-booting from the model", and labeled nothing: the baseline has no templates)
+            raise ValueError(
+                f"boot = true boots performers from the online labeler's subject templates; "
+                f"labeler is {self.labeler!r}: set labeler = 'online', or boot = false (the "
+                "baseline then starts from labeled frames)"
+            )
         return self
 
     @classmethod

@@ -229,3 +229,12 @@ def test_relative_paths_in_a_settings_file_are_read_from_its_folder(tmp_path, mo
     folder.write_text('[[streams]]\nname = "v"\nmodel = "../models"\n')
     with pytest.raises(ConfigError, match="is a folder, not a model file"):
         load_settings(folder)
+
+
+def test_boot_with_the_baseline_labeler_is_refused():
+    """``labeler = "baseline"`` and ``boot = true``: the baseline has no subject templates, so
+    a model stream without labels started, said ``ready`` and "re-booting from the model",
+    and labeled nothing (a hostile run). Refused at load, saying what to set."""
+    with pytest.raises(ConfigError, match=r"boot = true boots .*labeler is 'baseline'"):
+        load_settings(labeler="baseline", boot=True)
+    assert load_settings(labeler="baseline", boot=False).boot is False
