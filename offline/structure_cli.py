@@ -212,6 +212,17 @@ def _read_takes(texts: list[str], up: str, rename: dict[int | None, dict[str, st
     out, given = [], []
     for i, c in enumerate(caps):
         ren = {**rename.get(None, {}), **rename.get(i + 1, {})}
+        after: dict[str, str] = {}  # new name -> the take's subject it came from
+        for subj in (s for s in c.subjects if s):
+            name = ren.get(subj, subj)
+            if name in after:  # (two people of one take merged into one template, silently)
+                a, b = sorted((after[name], subj), key=lambda x: x != name)
+                raise ModelError(
+                    f"--rename: input {i + 1} ({texts[i]}) would have subjects {a} and {b} both "
+                    f"named {name}: two people under one name (rename one of them to a name the "
+                    "take does not use)"
+                )
+            after[name] = subj
         out.append(_renamed(c, ren))
         given.append({new: old for old, new in ren.items()})  # model name -> the take's
     _check_shared_names(out, texts, given)

@@ -117,6 +117,23 @@ def test_train_structure_keeps_two_people_of_one_name_apart(scene, tmp_path, cap
         assert why in capsys.readouterr().err
 
 
+def test_train_structure_refuses_a_rename_that_merges_two_people_of_one_take(scene, tmp_path,
+                                                                           capsys):
+    """``--rename P2=P1`` (or ``P1=A --rename P2=A``) on a take of three walkers made one
+    template of two people, silently (a hostile run on the tennis file: ``Derrick=Viktor``
+    trained one subject of 39 markers where the take has two). A swap of names is fine."""
+    d, cap, path, _, _ = scene
+    out = tmp_path / "m.json"
+    for ren in (["--rename", "P2=P1"], ["--rename", "P1=A", "--rename", "P2=A"]):
+        assert main(["train", "structure", f"{path}:0:300", *ren, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert "would have subjects P1 and P2 both named" in err and not out.exists()
+    args = ["train", "structure", f"{path}:0:300", "--rename", "P1=P2", "--rename", "P2=P1",
+            "--out", str(out), "--json"]  # fmt: skip
+    assert main(args) == 0
+    assert sorted(_last_json(capsys)["subjects"]) == ["P1", "P2", "P3"]
+
+
 @pytest.mark.parametrize(
     ("option", "value", "why"),
     [("--tolerance-mm", "nan", "(--tolerance-mm) must be a finite distance > 0"),
