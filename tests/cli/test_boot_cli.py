@@ -117,8 +117,9 @@ def test_train_structure_keeps_two_people_of_one_name_apart(scene, tmp_path, cap
         assert why in capsys.readouterr().err
 
 
-def test_train_structure_refuses_a_rename_that_merges_two_people_of_one_take(scene, tmp_path,
-                                                                           capsys):
+def test_train_structure_refuses_a_rename_that_merges_two_people_of_one_take(
+    scene, tmp_path, capsys
+):
     """``--rename P2=P1`` (or ``P1=A --rename P2=A``) on a take of three walkers made one
     template of two people, silently (a hostile run on the tennis file: ``Derrick=Viktor``
     trained one subject of 39 markers where the take has two). A swap of names is fine."""
