@@ -365,12 +365,17 @@ class Recorder:
     trained at (``replay --downsample``) keeps its duration. Frames missing in a ``seq`` gap
     (lost on the network, dropped by the service) are written as missing samples, up to
     :attr:`MAX_FILL_S` of them, so later frames stay at their time; a larger jump or a restart
-    (``seq`` back: a second replay) just continues the file.
+    (``seq`` back: a second replay) just continues the file. One stream is recorded, the
+    first one heard (a URL without a stream hears every stream: their frames interleaved in
+    one file, tens of thousands of missing frames filled between their ``seq``); the others'
+    frames are counted and named in :meth:`report`.
     """
 
     MAX_FILL_S = 10.0
 
     def __init__(self) -> None:
+        self.stream: str | None = None  # the stream recorded (the first one heard)
+        self.others: dict[str, int] = {}  # frames of other streams, not recorded
         self.names: tuple[str, ...] | None = None
         self.rate: float | None = None
         self.positions: list[np.ndarray] = []
@@ -381,6 +386,11 @@ class Recorder:
         self._steps: list[float] = []  # t steps between consecutive seq
 
     def add(self, r: Received, rate: float) -> None:
+        if self.stream is None:
+            self.stream = r.msg.stream
+        if r.msg.stream != self.stream:
+            self.others[r.msg.stream] = self.others.get(r.msg.stream, 0) + 1
+            return
         if self.names is None:
             self.names, self.rate = r.names, rate
         if r.names != self.names:
@@ -408,7 +418,8 @@ class Recorder:
 
     def report(self, path, n: int) -> str:
         """The line the subscriber prints after :meth:`write` returned ``n``: what was written
-        and what was not (frames of a later model, missing frames written for seq gaps)."""
+        and what was not (frames of a later model or of other streams, missing frames written
+        for seq gaps)."""
         if not n:
             why = (
                 f" ({plural(self.skipped, 'frame')} of a later model not recorded)"
@@ -416,7 +427,8 @@ class Recorder:
                 else ""
             )
             return f"no frames received: {path} not written{why}"
-        line = f"wrote {plural(n, 'frame')} to {path} at {self.file_rate():g} Hz"
+        rate = self.file_rate()
+        line = f"wrote {plural(n, 'frame')} of stream {self.stream} to {path} at {rate:g} Hz"
         if self.filled:
             line += f"; {plural(self.filled, 'frame')} lost in seq gaps written as missing"
         if self.skipped:
@@ -424,6 +436,13 @@ class Recorder:
                 f"; {plural(self.skipped, 'frame')} of a later model (marker set changed "
                 "mid-session) "
                 "not recorded"
+            )
+        if self.others:
+            names = ", ".join(sorted(self.others))
+            line += (
+                f"; {plural(sum(self.others.values()), 'frame')} of other streams ({names}) not "
+                "recorded: one file holds one stream (name it in the URL: "
+                "udp://HOST:PORT/STREAM)"
             )
         return line
 

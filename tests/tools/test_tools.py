@@ -167,6 +167,29 @@ def test_recorder_keeps_the_stream_rate_and_the_time_of_frames_after_a_gap(tmp_p
     np.testing.assert_allclose(cap.positions[7:], pos[5:], atol=1e-3)
 
 
+def test_recorder_keeps_one_stream_and_names_the_others(tmp_path, rng):
+    """``subscribe --from udp://HOST:PORT --out F`` (no stream in the URL) hears every stream:
+    two streams' frames went into one file, interleaved, with the other's seq gaps filled as
+    missing frames (a hostile run: 2,053 frames received, 70,452 written). The first stream
+    heard is recorded; the others are counted and named."""
+    from labeler_service.service.protocol import LabeledMsg
+
+    names = ("A:m0", "A:m1")
+    rec = Recorder()
+    pos = rng.normal(scale=100, size=(6, 2, 3)).astype(np.float32)
+    for f in range(6):
+        for stream, seq in (("one", f), ("two", 5000 + 3 * f)):
+            msg = LabeledMsg(stream, 1, seq, f / 100, pos[f], np.array([1, 1], np.uint8),
+                             np.zeros((0, 3), np.float32), None, 0, 0, 0.0)  # fmt: skip
+            rec.add(Received(msg, names, 0), 100.0)
+    assert rec.write(tmp_path / "out.c3d") == 6 and rec.filled == 0
+    line = rec.report(tmp_path / "out.c3d", 6)
+    assert "wrote 6 frames of stream one" in line, line
+    assert "6 frames of other streams (two) not recorded" in line, line
+    cap = read_capture(tmp_path / "out.c3d")
+    np.testing.assert_allclose(cap.positions, pos, atol=1e-3)
+
+
 def test_replay_and_subscribe_commands_end_to_end(tmp_path, rng):
     cap = moving_clusters(rng, subjects=2, markers=5, frames=180, rate=120.0)
     write_capture(cap, tmp_path / "scene.npz")
