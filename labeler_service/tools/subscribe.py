@@ -157,6 +157,7 @@ class Subscriber:
         #: (None: no watch)
         self.silence_s = silence_s
         self._last_frame = time.monotonic()  # last labeled frame (or the start)
+        self._refused_before = 0  # UDP refusals counted when the last labeled frame came
         self._heard = False  # any message from the service so far
         self._any_frame = False  # any labeled frame so far
         self.silent = False  # a silence warning is out and no frame came since
@@ -207,7 +208,6 @@ class Subscriber:
         the stream stopped or the network dropped them) and when they resume; says so too
         when nothing answers at all (UDP: the kernel's "connection refused" reports)."""
         assert self.silence_s is not None
-        refused = 0
         while True:
             await asyncio.sleep(min(0.25, self.silence_s / 4))
             quiet = time.monotonic() - self._last_frame
@@ -216,8 +216,9 @@ class Subscriber:
             self.silent = True
             udp = self._udp
             trouble = self._transport.trouble() if self._transport is not None else None
-            if udp is not None and udp.refused > refused:
-                refused = udp.refused
+            # refused since the last frame (not during an earlier outage the frames ended:
+            # a service restarted since said "nothing listens there" at the next silence)
+            if udp is not None and udp.refused > self._refused_before:
                 why = "nothing listens there (connection refused): is the service running?"
             elif trouble is not None:  # MQTT: the broker, not the service, is out of reach
                 why = trouble
@@ -293,6 +294,8 @@ class Subscriber:
                            msg.stream, now - self._last_frame)  # fmt: skip
             self._any_frame = True
             self._last_frame = now
+            if self._udp is not None:
+                self._refused_before = self._udp.refused
             model = self.models.get(msg.stream)
             if model is None or model.model != msg.model or len(model.names) != len(msg.state):
                 self.stats.undecodable += 1

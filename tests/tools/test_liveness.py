@@ -65,6 +65,42 @@ def test_subscribe_without_a_service_warns_that_nothing_listens():
     assert len(warnings) == 1 and "connection refused" in warnings[0]
 
 
+def test_subscribe_blames_refusals_only_when_they_came_after_the_last_frame():
+    """The service died (refusals), came back and sent frames, then its stream ended: the
+    silence after that was put down to "nothing listens there (connection refused)", the
+    earlier outage's refusals counted against it (a hostile run's ``kill -9`` and restart)."""
+    from labeler_service.service.protocol import encode_labeled, encode_model
+    from labeler_service.service.transports.base import Incoming
+
+    port = _dead_port()
+
+    async def go():
+        async with Subscriber(f"udp://127.0.0.1:{port}/v", silence_s=0.2, renew_s=0.05) as sub:
+            await until(lambda: sub.silent, "the silence warning", timeout=5)
+            assert "connection refused" in sub.warnings[-1]
+            assert sub._udp is not None
+            n = sub._udp.refused  # the outage goes on: more refusals after the warning
+            await until(lambda: sub._udp.refused > n, "another refusal", timeout=5)
+            back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # the service is back
+            back.bind(("127.0.0.1", port))
+            try:
+                names = ("A:m0", "A:m1")
+                sub._handle(Incoming(encode_model("v", 1, names, (("A", 0, 2),), 120.0), 0, "udp"))
+                pos = np.zeros((2, 3), np.float32)
+                sub._handle(Incoming(encode_labeled("v", 1, 0, 0.0, pos, np.ones(2, np.uint8),
+                                                    np.zeros((0, 3), np.float32), None, 0, 0.0),
+                                     0, "udp"))  # fmt: skip
+                assert not sub.silent
+                await until(lambda: sub.silent, "the next silence", timeout=5)
+            finally:
+                back.close()
+            return list(sub.warnings)
+
+    warnings = run(go())
+    assert "connection refused" not in warnings[-1], warnings
+    assert "no labeled frames" in warnings[-1]
+
+
 def test_subscribe_reports_silence_resumption_and_the_services_offline_status(rng):
     cap = moving_clusters(rng, frames=120, rate=120.0)
     frames = corrupt(cap, CorruptionSpec(protect_frames=10, seed=2))
