@@ -233,6 +233,7 @@ class Server:
         #: (``_want_worker``)
         self.boot_worker = BootWorker() if settings.boot_worker == "process" else None
         self._worker_starting = False
+        self._worker_failed = False  # its start failed once: not tried again (_start_worker)
         #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
         self._starting: OrderedDict[str, None] = OrderedDict()
         self._trim_soon = False
@@ -308,9 +309,7 @@ class Server:
                     # a recovery (_want_worker), booted by the spare
                     lab = state.booting or state.spare
                     if lab is not None and self.boot_worker is not None:
-                        await asyncio.to_thread(self.boot_worker.start)  # (once: no-op after)
-                        # its booter and the catch-up's kernels, before the first attempt
-                        await asyncio.to_thread(self.boot_worker.prepare, lab)
+                        await self._start_worker(self.boot_worker, state)
                     await self._publish_model(state)
             # everything alive now (modules, compiled kernels, models) lives as long as the
             # process: the collector skips it from now on (full collections stay cheap)
@@ -797,21 +796,34 @@ class Server:
         0.93-0.99. Attempts requested while it starts (~1.2 s) run in a thread as before (a small
         recovery's boot takes milliseconds there)."""
         w = self.boot_worker
-        if w is None or w.enabled or self._worker_starting:
+        if w is None or w.enabled or self._worker_starting or self._worker_failed:
             return
         self._worker_starting = True
         self._spawn(self._start_worker(w, state), "boot-worker-start")
 
     async def _start_worker(self, w: BootWorker, state: StreamState) -> None:
+        """Starts the worker (once: a no-op after) and sends it the stream's booting labeler's
+        model (its booter and the catch-up's kernels, before the first attempt). A worker
+        that cannot start is logged once and not tried again: boot attempts run in a thread
+        of the service (such a failure used to end the service's start)."""
         try:
-            await asyncio.to_thread(w.start)
+            try:
+                await asyncio.to_thread(w.start)
+            except Exception:
+                if not w.closed:  # (a worker closed by the shutdown while it started: silent)
+                    self._worker_failed = True
+                    log.exception("boot worker: the process could not start; boot attempts run "
+                                  "in a thread of the service")  # fmt: skip
+                return
             lab = state.booting or state.spare
-            if lab is not None:  # (its booter and the catch-up's kernels, as at the start)
-                await asyncio.to_thread(w.prepare, lab)
-        except Exception:
-            if not w.closed:  # (a worker closed by the shutdown while it started: silent)
-                log.exception("boot worker: start failed (recoveries boot in a thread until "
-                              "one starts)")  # fmt: skip
+            if lab is not None:
+                try:
+                    await asyncio.to_thread(w.prepare, lab)
+                except Exception:
+                    if not w.closed:
+                        log.exception("boot worker: preparing stream %s's booter failed "
+                                      "(its first attempt sends the model again)",
+                                      state.name)  # fmt: skip
         finally:
             self._worker_starting = False
 

@@ -285,6 +285,38 @@ def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_pa
     assert ghosts <= 0.02 * scored
 
 
+def test_a_boot_worker_that_cannot_start_leaves_the_service_booting_in_a_thread(
+    model_path, frames, caplog, monkeypatch
+):
+    """The boot worker process cannot start (here: its start raises; a machine out of
+    processes): the service starts anyway, says so once, and boots in a thread of the service,
+    not trying again at every frame. It ended the service's start before."""
+    from labeler_service.service.boot_worker import BootWorker
+
+    tries = []
+
+    def broken(self):
+        tries.append(1)
+        raise OSError("no processes left")
+
+    monkeypatch.setattr(BootWorker, "start", broken)
+    caplog.set_level(logging.ERROR, logger="labeler_service.service.server")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
+            outs = await _stream_all(srv, mem, frames)
+            return srv, outs
+
+    srv, outs = run(go(), timeout=300.0)
+    st = srv.streams["vol"]
+    assert len(outs) == frames.n_frames and tries == [1]
+    assert caplog.text.count("boot worker: the process could not start") == 1
+    booted = [b for b in st.boots if b.booted]
+    assert booted and not any(b.worker for b in st.boots)
+    assert {n for b in booted for n in b.booted} == {f"P{i + 1}" for i in range(PERFORMERS)}
+
+
 def test_labels_naming_no_marker_of_the_model_are_logged_and_ignored(model_path, frames, caplog):
     """A client replays a take whose labels name other subjects than the stream's model (a
     file of another marker set, subjects not renamed): said once in the log with an example
