@@ -13,7 +13,12 @@ JSON object (last line):
   reported separately;
 - frames sent/received and latency percentiles.
 
+With ``--start boot`` the production path: a model trained on ``--train-seconds`` of other
+simulated frames of the same performers, ``boot = true``, no label ever sent (the boot, its
+worker process, the re-verification and the extensions run all along).
+
     .venv/bin/python benchmarks/soak.py --minutes 10 --subjects 10 --rate 360
+    .venv/bin/python benchmarks/soak.py --minutes 10 --subjects 10 --rate 360 --start boot
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from labeler_service.cli.bench_latency import boot_scene
 from labeler_service.testing.harness import (
     run_pipeline,
     service_settings,
@@ -48,17 +54,29 @@ def main() -> int:
     p.add_argument("--sim-seconds", type=float, default=5.0)
     p.add_argument("--transport", choices=["udp", "mqtt"], default="udp")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--start", choices=["model", "boot"], default="model",
+                   help="model: a model of the streamed performers and 5 labeled frames; boot: "
+                        "the production path (a model trained on other frames, boot = true, "
+                        "no label sent)")  # fmt: skip
+    p.add_argument("--train-seconds", type=float, default=3.0, help="--start boot: model's")
     args = p.parse_args()
+    args.scenario, args.seconds = "hug", args.sim_seconds  # (what boot_scene reads)
 
-    frames = simulated_frames(args.subjects, args.sim_seconds, args.rate, args.seed)
-    n_total = int(args.minutes * 60 * frames.rate)
     with tempfile.TemporaryDirectory(prefix="mocap-soak-") as d:
         work = Path(d)
-        model = train_model_file(frames, 50, work / "model.json")
+        if args.start == "boot":
+            frames, model = boot_scene(args, work / "model.json")
+            init = 0
+        else:
+            frames = simulated_frames(args.subjects, args.sim_seconds, args.rate, args.seed)
+            model = train_model_file(frames, 50, work / "model.json")
+            init = 5
+        n_total = int(args.minutes * 60 * frames.rate)
         stream = {"name": "soak", "model": str(model), "rate": frames.rate}
+        settings = service_settings(args.transport, stream, 30.0, boot=args.start == "boot")
         res = asyncio.run(run_pipeline(
-            frames, service_settings(args.transport, stream, 30.0), work,
-            transport=args.transport, stream="soak", init_frames=5, speed=1.0,
+            frames, settings, work,
+            transport=args.transport, stream="soak", init_frames=init, speed=1.0,
             loops=loops_to_cover(frames.n_frames, n_total), max_frames=n_total,
             keep_frames=False, rss_every_s=5.0,
         ))  # fmt: skip
@@ -71,6 +89,7 @@ def main() -> int:
     lat = percentiles(stats.latencies_ms)
     errors = {k: v for k, v in res.drops_service.items() if k not in NOT_FAULTS}
     out = {
+        "start": args.start,
         "minutes": args.minutes,
         "transport": args.transport,
         "subjects": args.subjects,
