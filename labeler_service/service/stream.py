@@ -496,7 +496,7 @@ class StreamState:
             # two walkers, 0.4-1 s for ten hugging performers (its boot's preparation, then
             # 0.06-0.1 s for the rest). boot = true: a new run after a time jump (a restarted
             # sender) boots every subject again with a fresh one (reboot), built in that
-            # frame in 26-29 ms at ten performers. Built here, at the stream's start and off
+            # frame in 16-27 ms at ten performers. Built here, at the stream's start and off
             # the loop, and again by the server after each one is taken (spare_due)
             self._spare_for = model
         self.boot_inflight = self._boot_request is not None
@@ -1081,7 +1081,7 @@ class StreamState:
         the server builds the next one off the loop (:meth:`build_spare`), after a recovery
         once it has handed back (during one, no other can start). Built in the frame, a
         leaver's recovery after a hand-back held it 7-10 ms at two performers, 0.06-0.1 s at
-        ten (a review); a reboot 26-29 ms at ten."""
+        ten (a review); a reboot 16-27 ms at ten."""
         return (
             self._spare_for is not None
             and self._spare is None
