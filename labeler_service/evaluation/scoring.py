@@ -170,8 +170,10 @@ class Scorer:
     ``ghost_taken``. ``out=None`` means the labeler's answer for that frame was lost: every true
     point counts as unlabeled.
 
-    ``unseen_at_init`` counts the scored samples of markers that no init frame showed (they
-    stay in ``accuracy``; ``accuracy_seen`` leaves them out). A *swap run* of a marker is a
+    ``unseen_at_init`` counts the scored samples of markers that no init frame showed and
+    that the labeler did not learn otherwise (``learned``, ``(M,)`` bool: the markers of a
+    model file it started from): markers it never learned (they stay in ``accuracy``;
+    ``accuracy_seen`` leaves them out). A *swap run* of a marker is a
     series of frames in which its point carries a wrong label; frames where the marker is not
     visible neither extend nor end a run, a correct or unlabeled frame ends it;
     ``max_swap_frames`` is the longest run over markers.
@@ -211,6 +213,7 @@ class Scorer:
         rate: float | None = None,
         template_sizes: dict[str, int] | None = None,
         known: np.ndarray | None = None,
+        learned: np.ndarray | None = None,
     ) -> None:
         self.names = tuple(marker_names)
         self._known = None if known is None or np.all(known) else np.asarray(known, dtype=bool)
@@ -221,6 +224,8 @@ class Scorer:
         self._subject = np.array([index[s] for s in subj], dtype=np.int64)
         m = len(self.names)
         self._seen = np.zeros(m, dtype=bool)
+        if learned is not None:  # a model file's start: its markers were learned from it
+            self._seen |= np.asarray(learned, dtype=bool)
         self.n_frames = int(n_frames)
         self._raster = np.full((self.n_frames, m), NOT_VISIBLE, dtype=np.int8)
         self._per_frame = np.full(self.n_frames, np.nan)
@@ -527,12 +532,15 @@ def score_labeler(
     method: str = "",
     progress: Callable[[int], None] | None = None,
     model: LabelerModel | None = None,
+    model_file: bool = False,
 ) -> MethodScore:
     """Feeds ``stream`` to ``labeler`` (labels on the first ``init_frames``) and scores it.
 
     With ``model`` the labeler's markers are the model's (``labeler.marker_names``): they are
     matched to the stream's by name; the model's markers the stream lacks (subjects not in the
-    scene) are scored as extra columns, so labels given to them count in ``absent_labeled``."""
+    scene) are scored as extra columns, so labels given to them count in ``absent_labeled``.
+    ``model_file``: ``model`` was trained elsewhere (``--model``), so its markers count as
+    learned for ``unseen_at_init`` (a window model learned only what the init frames show)."""
     n = stream.n_frames
     if n <= init_frames:
         raise _too_short(n, init_frames)
@@ -561,8 +569,9 @@ def score_labeler(
         known = np.zeros(len(names), dtype=bool)
         known[to_score] = True
     scorer = Scorer(
-        names, init_frames, n, method, rate=stream.rate, template_sizes=sizes, known=known
-    )
+        names, init_frames, n, method, rate=stream.rate, template_sizes=sizes, known=known,
+        learned=known if model_file else None,
+    )  # fmt: skip
     m_all = len(names)
     for f in range(n):
         pts, truth = stream.points[f], stream.truth[f]
@@ -752,7 +761,7 @@ def evaluate(
                 baseline = labeler
         scores[name] = _with_progress(
             lambda cb, lab=labeler, nm=name, st=start: score_labeler(  # type: ignore[misc]
-                lab, stream, init_frames, nm, cb, model=st
+                lab, stream, init_frames, nm, cb, model=st, model_file=st is loaded
             ),
             total=stream.n_frames,
             label=name,

@@ -197,6 +197,8 @@ def test_evaluate_from_a_model_without_labels(scene, capsys):
     assert r["boot_s_max"] is not None and r["boot_s_max"] <= 1.0
     assert r["accuracy_after_boot"] >= 0.9
     assert r["absent_labeled"] == 0 and r["identity_swaps"] == 0
+    # the model's markers are learned (they read unseen: accuracy_seen null, as label did not)
+    assert r["unseen_at_init"] == 0 and r["accuracy_seen"] == r["accuracy"]
     assert main([*args, "--no-progress", "--leave", "1", "--leave-seconds", "0.5"]) == 0
     r = _last_json(capsys)
     assert len(r["departures"]) == 1 and len(r["reid_s"]) >= 1

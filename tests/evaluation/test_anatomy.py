@@ -141,6 +141,29 @@ def test_unseen_at_init_counted_and_kept_in_accuracy(rng) -> None:
     assert s.worst_markers[0]["seen_at_init"] is False
 
 
+def test_a_model_start_counts_unseen_only_the_markers_the_model_lacks(stream) -> None:
+    """Started from a model with no init frame (``evaluate --model M --init-frames 0``): every
+    sample read ``unseen_at_init`` (no init frame showed any marker) and ``accuracy_seen`` was
+    null, where ``label --model`` said none was unseen. The model's markers are learned; only
+    the markers it lacks are unseen."""
+    m = len(stream.marker_names)
+    known = np.ones(m, dtype=bool)
+    known[3] = False  # the model's training never showed marker 3
+
+    def scored(known: np.ndarray):
+        sc = Scorer(stream.marker_names, init_frames=0, n_frames=stream.n_frames, learned=known)
+        lab = _Scripted(stream, lambda *a: None)
+        for f in range(stream.n_frames):
+            sc.add(f, stream.truth[f], lab.process(stream.points[f], 0.0))
+        return sc.result()
+
+    s = scored(known)
+    visible3 = sum(int((t == 3).sum()) for t in stream.truth)
+    assert s.unseen_at_init == visible3 > 0
+    assert s.accuracy_seen == 1.0
+    assert scored(np.ones(m, dtype=bool)).unseen_at_init == 0
+
+
 def test_lost_frame_counts_every_visible_point_unlabeled(stream) -> None:
     sc = Scorer(stream.marker_names, init_frames=20, n_frames=stream.n_frames)
     for f in range(stream.n_frames):
