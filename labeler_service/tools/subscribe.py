@@ -224,6 +224,13 @@ class Subscriber:
                 why = trouble
             elif not self._heard:
                 why = "no answer from the service yet: is it running, is the address right?"
+                if self.endpoint.scheme == "mqtt" and self.stream:
+                    # (it hears only its stream's topics: a stream the service's settings do
+                    # not list is silent there, the service running or not)
+                    why += (
+                        f" Over MQTT the service serves only the streams its settings list: "
+                        f"is {self.stream!r} in its [[streams]]?"
+                    )
             elif (
                 self.stream
                 and self.stream not in self.status

@@ -261,3 +261,27 @@ def test_a_subscriber_joining_an_idle_online_stream_asks_about_the_sender(rng):
     warnings = _subscriber_warnings(frames, joins_after=True, speed=4.0)
     said = [w for w in warnings if "no labeled frames for" in w]
     assert said and "says the stream is online, but no frame came" in said[0], warnings
+
+
+def test_subscribe_over_mqtt_to_a_stream_nobody_serves_names_the_stream_list():
+    """Over MQTT the service subscribes only to the streams its settings list: a replay and a
+    subscriber on ``/volume1`` against a service with only ``default`` got "no answer from the
+    service yet: is it running?" - it was running (the docs' own MQTT example, before it set
+    ``MOCAP_STREAMS``). The reason now names the stream list."""
+    import asyncio
+    import contextlib
+
+    sub = Subscriber("mqtt://127.0.0.1:1883/volume1", silence_s=0.05)  # (not entered: no broker)
+
+    async def go():
+        sub._last_frame -= 1.0
+        with contextlib.suppress(TimeoutError):  # (the watch runs until cancelled)
+            await asyncio.wait_for(sub._watch(), 0.5)
+        return list(sub.warnings)
+
+    warnings = run(go())
+    assert len(warnings) == 1 and "no answer from the service yet" in warnings[0]
+    assert (
+        "serves only the streams its settings list: is 'volume1' in its [[streams]]"
+        in (warnings[0])
+    )
