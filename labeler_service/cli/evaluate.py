@@ -152,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise CaptureError(f"{args.plot}: cannot write the plot: {exc}") from exc
         report["errors_plot"] = str(raster)
+        print(f"wrote {args.plot} and {raster}", file=sys.stderr)  # (said nowhere before)
     if args.json:
         print(json.dumps(report))
     else:

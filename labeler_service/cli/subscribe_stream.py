@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 async def _main(args: argparse.Namespace) -> int:
-    from labeler_service.tools.subscribe import Recorder, Subscriber
+    from labeler_service.tools.subscribe import Recorder, Subscriber, ms
 
     if args.out is not None:
         from labeler_service.capture import check_writable
@@ -58,8 +58,8 @@ async def _main(args: argparse.Namespace) -> int:
         s = sub.stats
         lat = s.latency_percentiles()
         print(("\n" if tty else "") + f"received {s.frames} labeled frames, missing seq "
-              f"{s.missing_seq}, undecodable {s.undecodable}, latency p50 {lat['p50']:.2f} ms "
-              f"p99 {lat['p99']:.2f} ms p99.9 {lat['p99.9']:.2f} ms")  # fmt: skip
+              f"{s.missing_seq}, undecodable {s.undecodable}, latency p50 {ms(lat['p50'])} "
+              f"p99 {ms(lat['p99'])} p99.9 {ms(lat['p99.9'])}")  # fmt: skip
     if recorder is not None:
         n = recorder.write(args.out)
         print(recorder.report(recorder.written or args.out, n))

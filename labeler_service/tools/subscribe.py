@@ -120,7 +120,7 @@ class SubscriberStats:
         per = max(self.frames, 1)
         return (
             f"frames {self.frames} ({window_frames / max(window_s, 1e-9):.0f}/s)  "
-            f"latency p50 {lat['p50']:.2f} ms p99 {lat['p99']:.2f} ms  "
+            f"latency since start p50 {ms(lat['p50'])} p99 {ms(lat['p99'])}  "
             f"missing seq {self.missing_seq}  markers/frame observed {self.observed / per:.1f} "
             f"recovered {self.recovered / per:.1f} missing {self.missing / per:.1f}  "
             f"unlabeled {self.unlabeled / per:.1f}"
@@ -365,6 +365,11 @@ class Subscriber:
         while (r := self._out.get_nowait()) is not None:
             out.append(r)
         return out
+
+
+def ms(value: float) -> str:
+    """A latency for a reader: ``1.23 ms``, or ``-`` when there is none (no frame)."""
+    return "-" if value != value else f"{value:.2f} ms"
 
 
 class Recorder:

@@ -129,6 +129,7 @@ def test_subscribe_without_frames_says_so(tmp_path, capsys):
     assert code == 0
     stdout = capsys.readouterr().out
     assert "no frames received" in stdout and "wrote 0 frames" not in stdout
+    assert "latency p50 - p99 - p99.9 -" in stdout and "nan" not in stdout  # (it said nan ms)
     assert not out.exists()
 
 

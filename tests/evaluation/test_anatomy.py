@@ -183,13 +183,15 @@ def test_cli_json_has_anatomy_and_plot_writes_raster(tmp_path, rng, capsys) -> N
     plot = tmp_path / "acc.png"
     args = ["evaluate", str(path), "--method", "closest-point", "--json", "--init-frames", "20"]
     assert main([*args, "--occlude", "1", "--plot", str(plot)]) == 0
-    rep = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    io = capsys.readouterr()
+    rep = json.loads(io.out.strip().splitlines()[-1])
     assert {"visible", "errors", "unseen_at_init", "max_swap_frames", "worst_markers"} <= rep.keys()
     assert rep["visible"] > 0
     assert set(rep["errors"]) == {"same_subject", "cross_subject", "unlabeled", "ghost_taken"}
     assert rep["settings"]["occlude"] == 1
     assert (tmp_path / "acc_errors.png").stat().st_size > 1000
     assert rep["errors_plot"] == str(tmp_path / "acc_errors.png")
+    assert f"wrote {plot} and {tmp_path / 'acc_errors.png'}" in io.err
 
 
 def test_text_output_names_the_worst_markers(tmp_path, rng, capsys) -> None:
