@@ -57,3 +57,29 @@ def until_first_attempt(lab: Any, frames: Any) -> tuple[Any, int]:
             snap = lab.boot_snapshot()
             if snap.subjects:
                 return snap, f - 1
+
+
+def booting_streams(model: Any, name: str, count: int = 1, rate: float | None = None) -> list:
+    """``count`` :class:`~labeler_service.service.stream.StreamState` of a ``boot = true``
+    model stream ``name`` (``boot_worker = "thread"``: attempts run where the caller runs
+    them), each started from ``model`` as the service starts it (its spare built)."""
+    import tempfile
+
+    from labeler_service.labeling.templates import save_model
+    from labeler_service.service.settings import load_settings
+    from labeler_service.service.stream import StreamState
+
+    stream: dict[str, Any] = {"name": name}
+    if rate is not None:
+        stream["rate"] = rate
+    with tempfile.TemporaryDirectory() as d:
+        stream["model"] = str(Path(d) / "model.json")
+        save_model(model, stream["model"])
+        settings = load_settings(
+            labeler="online", metrics_port=None, boot=True, boot_worker="thread",
+            udp={"port": 0}, streams=[stream],
+        )  # fmt: skip
+        states = [StreamState(name, settings, settings.streams[0]) for _ in range(count)]
+        for st in states:
+            st.start_from_model()
+    return states

@@ -24,16 +24,12 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
-from _common import add_hug_args, emit, hug_scene
+from _common import add_hug_args, booting_streams, emit, hug_scene
 
-from labeler_service.labeling.templates import save_model
 from labeler_service.service.protocol import decode, encode_frame
-from labeler_service.service.settings import load_settings
 from labeler_service.service.stream import StreamState
 
 
@@ -51,18 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     model, frames = hug_scene(a)
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "model.json"
-        save_model(model, path)
-        settings = load_settings(
-            labeler="online", metrics_port=None, boot=True, boot_worker="thread",
-            streams=[{"name": "bench", "model": str(path), "rate": a.rate}],
-        )  # fmt: skip
-        states = {
-            m: StreamState("bench", settings, settings.streams[0]) for m in ("next", "between")
-        }
-        for st in states.values():
-            st.start_from_model()
+    states = dict(zip(("next", "between"), booting_streams(model, "bench", 2, rate=a.rate),
+                      strict=True))  # fmt: skip
     tt = time.thread_time
     cpu: dict[str, list[float]] = {m: [] for m in states}
     carried = {m: 0 for m in states}

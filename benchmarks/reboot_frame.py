@@ -16,25 +16,16 @@ built spare`` interleaves them.
 from __future__ import annotations
 
 import argparse
-import tempfile
-from pathlib import Path
 
-from _common import add_hug_args, emit, hug_scene
+from _common import add_hug_args, booting_streams, emit, hug_scene
 
-from labeler_service.labeling.templates import save_model
 from labeler_service.service.continuity import Verdict
 from labeler_service.service.protocol import decode, encode_frame
-from labeler_service.service.settings import load_settings
 from labeler_service.service.stream import StreamState
 
 
-def run(frames, model_path: Path, mode: str, feed_s: float, rate: float) -> dict:
-    settings = load_settings(
-        labeler="online", metrics_port=None, boot=True, boot_worker="thread",
-        streams=[{"name": "vol", "model": str(model_path)}], udp={"port": 0},
-    )  # fmt: skip
-    st = StreamState("vol", settings, settings.streams[0])
-    st.start_from_model()  # (builds the spare, as the server's start does)
+def run(frames, model, mode: str, feed_s: float, rate: float) -> dict:
+    (st,) = booting_streams(model, "vol")  # (its spare built, as the server's start does)
     n = min(frames.n_frames, int(round(feed_s * rate)))
 
     def frame(seq: int, f: int, verdict: Verdict) -> float:
@@ -71,10 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     model, frames = hug_scene(a)
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "model.json"
-        save_model(model, path)
-        runs = [run(frames, path, m, a.feed_s, a.rate) for m in a.mode]
+    runs = [run(frames, model, m, a.feed_s, a.rate) for m in a.mode]
     emit({"subjects": a.subjects, "rate": a.rate, "runs": runs}, a.out)
     return 0
 

@@ -17,11 +17,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
-from pathlib import Path
 
 import numpy as np
-from _common import emit
+from _common import booting_streams, emit
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,23 +46,14 @@ def main(argv: list[str] | None = None) -> int:
 
     from labeler_service.capture.io import read_segment
     from labeler_service.labeling.frame import MarkerState
-    from labeler_service.labeling.templates import save_model
     from labeler_service.service.continuity import ACCEPT
     from labeler_service.service.protocol import decode, encode_frame
-    from labeler_service.service.settings import load_settings
     from labeler_service.service.stream import StreamState
     from offline.structure import StructureTrainer
 
     test = read_segment(f"{a.take}:{a.test}")
     model = StructureTrainer().fit([read_segment(f"{a.take}:{a.train}")]).model_
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "model.json"
-        save_model(model, path)
-        settings = load_settings(labeler="online", metrics_port=None, boot=True,
-                                 boot_worker="thread", udp={"port": 0},
-                                 streams=[{"name": "vol", "model": str(path)}])  # fmt: skip
-        st = StreamState("vol", settings, settings.streams[0])
-        st.start_from_model()
+    (st,) = booting_streams(model, "vol")
     if a.keep_tracks:
         st.reboot = lambda why: False  # type: ignore[method-assign]
     rng = np.random.default_rng(a.seed)
