@@ -13,7 +13,9 @@ in the service from the labeled init frames in the stream (one-time stall, repor
 as ``training_stall_frames``); ``--start boot`` simulates ``--train-seconds`` more of the scene,
 trains the subject model on them (``StructureTrainer``, as ``train structure``: other frames
 than the ones streamed), and streams with **no labels at all**: the service boots every
-subject off the event loop. Boot adds to the JSON: ``boot_s`` per subject and ``boot_s_max``
+subject off the event loop (``--boot false``: with the service's ``boot = false``, the default
+setting, the stream boots as a recovery instead: its first unlabeled frame starts one). Boot
+adds to the JSON: ``boot_s`` per subject and ``boot_s_max``
 (the ``evaluate`` definition: from the subject's first frame with >= 60 % of its markers
 visible until its visible markers are >= 95 % correct for 10 frames in a row),
 ``accuracy_after_boot``, ``boot_done_s`` (the last subject's boot), ``labeling_ms_p99_9_boot``
@@ -49,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", choices=["model", "init", "boot"], default="model",
                    help="stream start-up: offline model (+ a few labeled frames), in-stream "
                         "training window, or boot from a model with no labels")  # fmt: skip
+    p.add_argument("--boot", choices=["true", "false"], default="true",
+                   help="--start boot: the service's boot setting (false: the stream boots as "
+                        "a recovery)")  # fmt: skip
     p.add_argument(
         "--train-seconds",
         type=float,
@@ -80,6 +85,8 @@ async def bench(args, workdir: Path) -> dict:
     default_init = {"model": 5, "init": 50, "boot": 0}[args.start]
     init = args.init_frames if args.init_frames is not None else default_init
     stream = "bench"
+    if args.boot == "false" and args.start != "boot":
+        raise MocapError("--boot false is for --start boot (the other starts do not boot)")
     if args.start == "boot":
         if args.labeler != "online":
             raise MocapError("--start boot needs --labeler online (only it boots from a model)")
@@ -98,8 +105,9 @@ async def bench(args, workdir: Path) -> dict:
     elif args.start == "boot":
         stream_cfg["model"] = str(model_path)
     settings = service_settings(
-        args.transport, stream_cfg, 5.0, labeler=args.labeler, boot=args.start == "boot"
-    )
+        args.transport, stream_cfg, 5.0, labeler=args.labeler,
+        boot=args.start == "boot" and args.boot == "true",
+    )  # fmt: skip
     res = await run_pipeline(frames, settings, workdir, transport=args.transport, stream=stream,
                              init_frames=init, speed=1.0,
                              loops=loops_to_cover(frames.n_frames, n_total), max_frames=n_total,
@@ -130,6 +138,7 @@ async def bench(args, workdir: Path) -> dict:
         "transport": args.transport,
         "labeler": args.labeler,
         "start": args.start,
+        "boot": settings.get("boot", False),
         "labeled_start": stream_cfg.get("labeled_start"),
         "subjects": args.subjects,
         "markers": len(frames.marker_names),

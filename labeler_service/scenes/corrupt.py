@@ -172,7 +172,8 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
         if n_frames - start < spec.gap_frames:  # (no gap would fit: none was made, silently)
             raise SceneError(
                 f"--gaps {spec.gaps} x {spec.gap_frames} frames does not fit in "
-                f"{n_frames - start} frames after the init window"
+                f"{n_frames - start} frames after the init window (fewer --gap-frames, or "
+                "--gaps 0)"
             )
         period = spec.gap_period or 4 * spec.gap_frames
         sub = Capture(positions, names, cap.rate)

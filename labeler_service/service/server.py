@@ -71,7 +71,7 @@ from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
 from labeler_service.service.background import Background, configure_allocator, release_memory
 from labeler_service.service.boot_worker import BootWorker
-from labeler_service.service.continuity import Verdict
+from labeler_service.service.continuity import ACCEPT, Verdict
 from labeler_service.service.handover import YIELD_S
 from labeler_service.service.metrics import RateLimitedLog, ServiceMetrics
 from labeler_service.service.protocol import FrameMsg, SubscribeMsg, decode, encode_status
@@ -308,7 +308,7 @@ class Server:
                     # boot = true: it boots; boot = false: a live source's first frame starts
                     # a recovery (_want_worker), booted by the spare
                     lab = state.booting or state.spare
-                    if lab is not None and self.boot_worker is not None:
+                    if lab is not None and self.boot_worker is not None and not self._worker_failed:
                         await self._start_worker(self.boot_worker, state)
                     await self._publish_model(state)
             # everything alive now (modules, compiled kernels, models) lives as long as the
@@ -710,14 +710,19 @@ class Server:
             self.metrics.queue(state.name, len(queue))
             n_recoveries = state.recoveries  # a new run or an unlabeled first frame starts one
             try:
+                new_run_ns = 0  # (a rebuild or a reboot: counted in the frame's labeling time)
                 if verdict.new_run:
+                    t0 = time.perf_counter_ns()
                     state.new_run(msg, verdict)
+                    new_run_ns = time.perf_counter_ns() - t0
                 if state.needs_training(msg):
                     out = await self._train(state, msg, recv_ns)
                 elif executor is not None:
-                    out = await loop.run_in_executor(executor, state.process, msg, recv_ns)
+                    out = await loop.run_in_executor(
+                        executor, state.process, msg, recv_ns, ACCEPT, new_run_ns
+                    )
                 else:
-                    out = state.process(msg, recv_ns)
+                    out = state.process(msg, recv_ns, ACCEPT, new_run_ns)
             except BudgetExceeded as exc:
                 self.metrics.drop("training_failed", state.name)
                 log.warning("stream %s: training failed: %s", state.name, exc)
@@ -796,7 +801,7 @@ class Server:
         0.93-0.99. Attempts requested while it starts (~1.2 s) run in a thread as before (a small
         recovery's boot takes milliseconds there)."""
         w = self.boot_worker
-        if w is None or w.enabled or self._worker_starting or self._worker_failed:
+        if w is None or w.enabled or w.closed or self._worker_starting or self._worker_failed:
             return
         self._worker_starting = True
         self._spawn(self._start_worker(w, state), "boot-worker-start")
@@ -804,26 +809,20 @@ class Server:
     async def _start_worker(self, w: BootWorker, state: StreamState) -> None:
         """Starts the worker (once: a no-op after) and sends it the stream's booting labeler's
         model (its booter and the catch-up's kernels, before the first attempt). A worker
-        that cannot start is logged once and not tried again: boot attempts run in a thread
-        of the service (such a failure used to end the service's start)."""
+        that cannot start or prepare is closed, logged once and not tried again: boot attempts
+        run in a thread of the service (such a failure used to end the service's start)."""
         try:
-            try:
-                await asyncio.to_thread(w.start)
-            except Exception:
-                if not w.closed:  # (a worker closed by the shutdown while it started: silent)
-                    self._worker_failed = True
-                    log.exception("boot worker: the process could not start; boot attempts run "
-                                  "in a thread of the service")  # fmt: skip
-                return
+            await asyncio.to_thread(w.start)
             lab = state.booting or state.spare
             if lab is not None:
-                try:
-                    await asyncio.to_thread(w.prepare, lab)
-                except Exception:
-                    if not w.closed:
-                        log.exception("boot worker: preparing stream %s's booter failed "
-                                      "(its first attempt sends the model again)",
-                                      state.name)  # fmt: skip
+                await asyncio.to_thread(w.prepare, lab)
+        except Exception:
+            if not w.closed:  # (a worker closed by the shutdown while it started: silent)
+                self._worker_failed = True
+                log.exception("boot worker: the process could not start or prepare stream %s's "
+                              "booter; boot attempts run in a thread of the service",
+                              state.name)  # fmt: skip
+                w.close()  # (a process left half-started holds nothing for later)
         finally:
             self._worker_starting = False
 

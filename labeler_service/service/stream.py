@@ -453,7 +453,8 @@ class StreamState:
 
     def start_from_model(self, spare: bool = True) -> None:
         """Builds the labeler from the stream's model file (mode 1); with ``spare`` (not on
-        the frame path) also the recovery labeler a ``boot = false`` stream will need.
+        the frame path) also the spare booting labeler an online stream's recovery (``boot =
+        false``) or reboot (``boot = true``) will take.
 
         The file is read once, at the stream's first start; a new labeled run rebuilds from
         that model. It used to be read again at every new run: a model file replaced, deleted
@@ -1091,9 +1092,10 @@ class StreamState:
         )
 
     def build_spare(self) -> None:
-        """Builds the spare recovery labeler when the stream wants one and has none (at its
-        start; after a hand-back in a job thread: :meth:`spare_due`). Kept only if the stream
-        still wants one of that model and rate when it is done."""
+        """Builds the spare booting labeler when the stream wants one and has none (at its
+        start; in a job thread after a recovery's hand-back, a reboot or a labeled new run took
+        it: :meth:`spare_due`). Kept only if the stream still wants one of that model and rate
+        when it is done."""
         model, rate = self._spare_for, self.rate
         if model is None or rate is None or self._spare is not None:
             return
@@ -1274,8 +1276,12 @@ class StreamState:
                  self.name, back)  # fmt: skip
 
     # --------------------------------------------------------------------- per frame
-    def process(self, f: FrameMsg, recv_ns: int, verdict: Verdict = ACCEPT) -> Output | None:
+    def process(
+        self, f: FrameMsg, recv_ns: int, verdict: Verdict = ACCEPT, before_ns: int = 0
+    ) -> Output | None:
         """Labels one frame. Returns ``None`` while the training window is being buffered.
+        ``before_ns``: time this frame already took before the call (the server's
+        :meth:`new_run` on the event loop), counted in its labeling time.
 
         Raises :class:`LabelerError` when an unlabeled frame arrives before any model or init
         frame (``no_model``), :class:`InitBufferFullError`/:class:`LimitExceeded` when an
@@ -1283,7 +1289,8 @@ class StreamState:
         instead, through :meth:`train`).
         """
         self.verify_events = ()
-        t0 = time.perf_counter_ns()  # (a new run's rebuild or reboot counts in this frame)
+        # (a new run's rebuild or reboot counts in this frame)
+        t0 = time.perf_counter_ns() - before_ns
         if verdict.new_run:
             self.new_run(f, verdict)
         if self.labeler is None:

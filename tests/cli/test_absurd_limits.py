@@ -65,6 +65,13 @@ def test_bench_latency_names_its_own_flag(n, capsys):
     assert err.startswith(f"error: --subjects must be 1..10, got {n}") and "--performers" not in err
 
 
+def test_bench_latency_boot_false_is_for_the_boot_start(capsys):
+    """``--boot false`` (the service's default setting: the stream boots as a recovery) only
+    means something with ``--start boot``; refused before the scene is simulated."""
+    assert main(["bench", "latency", "--boot", "false"]) == 2
+    assert "--boot false is for --start boot" in capsys.readouterr().err
+
+
 def test_an_npz_that_is_not_a_capture_says_what_it_lacks(tmp_path, capsys):
     """It said ``NPZ capture lacks 'positions is not a file in the archive'``."""
     import numpy as np

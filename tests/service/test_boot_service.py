@@ -290,7 +290,8 @@ def test_a_boot_worker_that_cannot_start_leaves_the_service_booting_in_a_thread(
 ):
     """The boot worker process cannot start (here: its start raises; a machine out of
     processes): the service starts anyway, says so once, and boots in a thread of the service,
-    not trying again at every frame. It ended the service's start before."""
+    not trying again for its next stream or at every frame. It ended the service's start
+    before."""
     from labeler_service.service.boot_worker import BootWorker
 
     tries = []
@@ -304,14 +305,19 @@ def test_a_boot_worker_that_cannot_start_leaves_the_service_booting_in_a_thread(
 
     async def go():
         mem = MemoryTransport()
-        async with Server(_settings(model_path, False, boot=False), [mem]) as srv:
+        two = load_settings(
+            labeler="online", metrics_port=None, queue_size=4096, boot=False, udp={"port": 0},
+            streams=[{"name": n, "model": str(model_path)} for n in ("vol", "vol2")],
+        )  # fmt: skip
+        async with Server(two, [mem]) as srv:
+            assert srv.boot_worker is not None and srv.boot_worker.closed
             outs = await _stream_all(srv, mem, frames)
             return srv, outs
 
     srv, outs = run(go(), timeout=300.0)
     st = srv.streams["vol"]
     assert len(outs) == frames.n_frames and tries == [1]
-    assert caplog.text.count("boot worker: the process could not start") == 1
+    assert caplog.text.count("boot worker: the process could not start or prepare") == 1
     booted = [b for b in st.boots if b.booted]
     assert booted and not any(b.worker for b in st.boots)
     assert {n for b in booted for n in b.booted} == {f"P{i + 1}" for i in range(PERFORMERS)}
