@@ -500,7 +500,7 @@ def _read_c3d(path: Path) -> Capture:
                 f"{path}: holds no frame data: the file ends before its first frame (truncated?)"
             ) from exc
         rate = _c3d_header_rate(path)
-        if rate is not None and not rate > 0:
+        if rate is not None and not 0 < rate < float("inf"):
             raise CaptureFormatError(
                 f"{path}: its frame rate (C3D header) is {rate:g}: a capture needs a positive "
                 "frame rate (Hz)"
