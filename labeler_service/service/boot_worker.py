@@ -107,9 +107,9 @@ class _Session:
         w._lock.acquire()
         self._held = True
         try:
-            spec = w._spec_for(lab.key, lab.boot_spec)
+            conn, spec = w._spec_for(lab.key, lab.boot_spec)
             msg = ("catch", lab.key, spec, shadow.for_transfer(), snapshot, result)
-            booted = w._request(msg, self.cancel, "catch-up")
+            booted = w._request(msg, self.cancel, "catch-up", conn)
             w._note(lab.key)
         except BaseException:
             self._release()
@@ -385,11 +385,11 @@ class BootWorker:
         kernels a catch-up's shadow runs (the inner labeler's), so that the first attempt pays
         neither (blocking, like :meth:`start`; a no-op for a labeler the worker knows)."""
         with self._lock:
-            if self._spec_for(labeler.key, labeler.boot_spec) is None:
+            conn, spec = self._spec_for(labeler.key, labeler.boot_spec)
+            if spec is None:
                 return
-            spec = labeler.boot_spec
             self._request(("prepare", labeler.key, spec, labeler.rate, labeler.config), None,
-                          "preparation")  # fmt: skip
+                          "preparation", conn)  # fmt: skip
             self._note(labeler.key)
 
     def runner(self, labeler: BootingLabeler, cancel: threading.Event | None = None) -> StepRunner:
@@ -417,8 +417,8 @@ class BootWorker:
         """:func:`~labeler_service.labeling.booting.boot_step_on` in the worker with the booter
         of ``key`` (built from ``spec`` = ``(model, BootConfig)`` the first time)."""
         with self._lock:
-            msg = ("step", key, self._spec_for(key, spec), snapshot)
-            out = self._request(msg, cancel, "boot step")
+            conn, sent = self._spec_for(key, spec)
+            out = self._request(("step", key, sent, snapshot), cancel, "boot step", conn)
             self._note(key)
             return out
 
@@ -440,13 +440,14 @@ class BootWorker:
         return self._warm and not self._closed
 
     # ------------------------------------------------------------------ internals
-    def _spec_for(self, key: str, spec: Any) -> Any:
-        """``spec`` when the worker lacks ``key``'s booter, else None (the caller holds the
-        lock). A worker that died is started again first: the new one knows no booter (the
-        mirror was read before the restart, so the first attempt after a killed worker went
-        without its model and failed: "no model for labeler ...")."""
-        self._ensure()
-        return None if key in self._known else spec
+    def _spec_for(self, key: str, spec: Any) -> tuple[Connection, Any]:
+        """The worker's connection and ``spec`` when the worker lacks ``key``'s booter, else
+        None (the caller holds the lock and sends its request on that connection). A worker
+        that died is started again first: the new one knows no booter (the mirror was read
+        before the restart, so the first attempt after a killed worker went without its model
+        and failed: "no model for labeler ...")."""
+        conn = self._ensure()
+        return conn, None if key in self._known else spec
 
     def _note(self, key: str) -> None:
         """``key``'s booter is in the worker now, most recently used; the worker drops the
@@ -457,9 +458,17 @@ class BootWorker:
         while len(self._known) > MAX_BOOTERS:
             self._known.popitem(last=False)
 
-    def _request(self, msg: tuple, cancel: threading.Event | None, what: str) -> Any:
-        """One request-reply (the caller holds the lock)."""
-        conn = self._ensure()
+    def _request(
+        self,
+        msg: tuple,
+        cancel: threading.Event | None,
+        what: str,
+        conn: Connection | None = None,
+    ) -> Any:
+        """One request-reply (the caller holds the lock), on ``conn`` when given (the worker
+        the message was made for: one started since would lack what it assumes)."""
+        if conn is None:
+            conn = self._ensure()
         conn.send(msg)
         out = self._reply(conn, cancel, what)
         self._warm = True
