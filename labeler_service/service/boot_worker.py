@@ -422,6 +422,10 @@ class BootWorker:
             self._note(key)
             return out
 
+    def reset(self) -> None:
+        """Ends the worker process, if any, without closing: the next request starts one."""
+        self._kill()
+
     def close(self) -> None:
         """Stops the worker (a running attempt is killed); later requests are refused."""
         self._closed = True

@@ -87,6 +87,10 @@ from labeler_service.wording import plural
 
 #: the message types a client may send the service (the others are its output)
 _ACCEPTED = frozenset({"frame", "subscribe"})
+#: Starts of the boot worker tried before it is given up (``Server._start_worker``), and the
+#: wait before the next try, times the failures so far (s).
+WORKER_TRIES = 3
+WORKER_RETRY_S = 10.0
 log = logging.getLogger(__name__)
 
 #: Frames of sequential progress (:attr:`StreamState.progress`) that protect a stream in its
@@ -233,7 +237,9 @@ class Server:
         #: (``_want_worker``)
         self.boot_worker = BootWorker() if settings.boot_worker == "process" else None
         self._worker_starting = False
-        self._worker_failed = False  # its start failed once: not tried again (_start_worker)
+        #: failed starts of the worker and when the next may be tried (_start_worker)
+        self._worker_failures = 0
+        self._worker_retry_at = 0.0
         #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
         self._starting: OrderedDict[str, None] = OrderedDict()
         self._trim_soon = False
@@ -308,7 +314,11 @@ class Server:
                     # boot = true: it boots; boot = false: a live source's first frame starts
                     # a recovery (_want_worker), booted by the spare
                     lab = state.booting or state.spare
-                    if lab is not None and self.boot_worker is not None and not self._worker_failed:
+                    if (
+                        lab is not None
+                        and self.boot_worker is not None
+                        and not self._worker_failures
+                    ):
                         await self._start_worker(self.boot_worker, state)
                     await self._publish_model(state)
             # everything alive now (modules, compiled kernels, models) lives as long as the
@@ -788,7 +798,7 @@ class Server:
             if state.spare_due():
                 state.spare_building = True
                 self._spawn(self._build_spare(state), f"spare-{state.name}")
-            if state.recovering:
+            if state.recovering or (self._worker_failures and state.booting is not None):
                 self._want_worker(state)
 
     def _want_worker(self, state: StreamState) -> None:
@@ -801,7 +811,9 @@ class Server:
         0.93-0.99. Attempts requested while it starts (~1.2 s) run in a thread as before (a small
         recovery's boot takes milliseconds there)."""
         w = self.boot_worker
-        if w is None or w.enabled or w.closed or self._worker_starting or self._worker_failed:
+        if w is None or w.enabled or w.closed or self._worker_starting:
+            return
+        if self._worker_failures and time.monotonic() < self._worker_retry_at:
             return
         self._worker_starting = True
         self._spawn(self._start_worker(w, state), "boot-worker-start")
@@ -809,20 +821,31 @@ class Server:
     async def _start_worker(self, w: BootWorker, state: StreamState) -> None:
         """Starts the worker (once: a no-op after) and sends it the stream's booting labeler's
         model (its booter and the catch-up's kernels, before the first attempt). A worker
-        that cannot start or prepare is closed, logged once and not tried again: boot attempts
-        run in a thread of the service (such a failure used to end the service's start)."""
+        that cannot start or prepare (killed while it started, out of processes) leaves the
+        boot attempts in a thread of the service; the start is tried again after
+        ``WORKER_RETRY_S`` times the failures, ``WORKER_TRIES`` times in all, then the worker
+        is closed. Such a failure used to end the service's start; closed at the first one, a
+        single kill during the start left every later boot in the thread (a hostile run)."""
         try:
             await asyncio.to_thread(w.start)
             lab = state.booting or state.spare
             if lab is not None:
                 await asyncio.to_thread(w.prepare, lab)
-        except Exception:
+        except Exception as exc:
             if not w.closed:  # (a worker closed by the shutdown while it started: silent)
-                self._worker_failed = True
-                log.exception("boot worker: the process could not start or prepare stream %s's "
-                              "booter; boot attempts run in a thread of the service",
-                              state.name)  # fmt: skip
-                w.close()  # (a process left half-started holds nothing for later)
+                self._worker_failures += 1
+                n = self._worker_failures
+                if n < WORKER_TRIES:
+                    self._worker_retry_at = time.monotonic() + WORKER_RETRY_S * n
+                    log.warning("boot worker: the process could not start or prepare stream "
+                                "%s's booter (%s; try %d of %d); boot attempts run in a thread "
+                                "of the service until it starts, tried again in %g s",
+                                state.name, exc, n, WORKER_TRIES, WORKER_RETRY_S * n)  # fmt: skip
+                    w.reset()
+                else:
+                    log.exception("boot worker: the process could not start (%d tries); boot "
+                                  "attempts run in a thread of the service", n)  # fmt: skip
+                    w.close()
         finally:
             self._worker_starting = False
 
@@ -947,6 +970,12 @@ class Server:
         except asyncio.CancelledError:
             state.boot_done(req, None)
             raise
+        except LabelerError as exc:  # the worker died or was killed: restarted next attempt
+            self.metrics.boot_failed(state.name)
+            self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt failed: %s (the "
+                               "next attempt starts a new worker)", state.name, exc)  # fmt: skip
+            self._boot_done(state, req, None)
+            return
         except Exception:
             self.metrics.boot_failed(state.name)
             if self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt failed",
@@ -1009,7 +1038,8 @@ class Server:
         active = state.subjects_booted
         self.metrics.subjects(state.name, len(active))
         rec = state.boots[-1] if state.boots else None
-        where = "the boot worker process" if self.settings.boot_worker == "process" else "a thread"
+        # (where it ran, not the setting: a worker that could not start leaves them in a thread)
+        where = "the boot worker process" if rec is not None and rec.worker else "a thread"
         log.info("stream %s: booted %s (attempt %.3f s, job %s in %s, caught up over %s); "
                  "labeling %d of %s", state.name, ", ".join(state.just_booted),
                  rec.seconds if rec else float("nan"), rec.thread if rec else "?", where,
