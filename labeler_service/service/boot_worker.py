@@ -216,15 +216,24 @@ def _help(conn: Connection, counter: Any, nice: int) -> None:  # pragma: no cove
 def _answer(conn: Connection, handle: Any, failed: Any = None) -> None:  # pragma: no cover
     """A child's request loop (the worker's and its helper's): each request is answered
     ``(True, handle(request))``, or ``(False, traceback text)`` when that raises (``failed()``
-    runs first); returns when the pipe closes."""
+    runs first); returns when the pipe closes, also while answering (the service killed during
+    an attempt: the orphan printed a BrokenPipeError traceback into its log)."""
     while True:
         try:
             msg = conn.recv()
         except (EOFError, OSError):
             return
         try:
-            conn.send((True, handle(msg)))
+            reply = (True, handle(msg))
         except Exception:
+            if failed is not None:
+                failed()
+            reply = (False, traceback.format_exc())
+        try:
+            conn.send(reply)
+        except (EOFError, OSError):
+            return
+        except Exception:  # (an answer that does not pickle)
             if failed is not None:
                 failed()
             conn.send((False, traceback.format_exc()))

@@ -243,3 +243,36 @@ def test_the_service_children_ignore_the_terminals_ctrl_c(worker):
     assert signal.SIGINT in run_in_process(signal.pthread_sigmask, signal.SIG_BLOCK, [])
     assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before
     assert signal.SIGINT not in before
+
+
+def test_a_child_whose_service_is_gone_ends_quietly():
+    """The service killed during an attempt: the worker, an orphan now, finished its step and
+    printed a ``BrokenPipeError`` traceback twice into the service's log while answering. The
+    request loop ends quietly instead; a request that fails is still answered with its
+    traceback."""
+    from labeler_service.service.boot_worker import _answer
+
+    class Gone:
+        def __init__(self, msgs):
+            self.msgs, self.sent = list(msgs), []
+
+        def recv(self):
+            if not self.msgs:
+                raise EOFError
+            return self.msgs.pop(0)
+
+        def send(self, reply):
+            if reply[0] is True and reply[1] == "late":
+                raise BrokenPipeError(32, "Broken pipe")
+            self.sent.append(reply)
+
+    def handle(msg):
+        if msg == "bad":
+            raise ValueError("a failing request")
+        return msg
+
+    conn = Gone(["ok", "bad", "late", "never read"])
+    _answer(conn, handle)  # returns at the broken pipe, raising nothing
+    assert conn.sent[0] == (True, "ok")
+    assert conn.sent[1][0] is False and "a failing request" in conn.sent[1][1]
+    assert conn.msgs == ["never read"]
