@@ -242,6 +242,7 @@ class Server:
         self._worker_retry_at = 0.0
         #: names whose labeled frames the UDP pre-filter let through recently (``_admit``)
         self._starting: OrderedDict[str, None] = OrderedDict()
+        self._configured = frozenset(st.name for st in settings.streams)
         self._trim_soon = False
         self._published_model: dict[str, int] = {}
         self._transport_drops: dict[tuple[str, str, str], int] = {}
@@ -433,6 +434,11 @@ class Server:
         conservative test: a false positive only costs a full decode."""
         if name in self.streams:
             return name
+        if name in self._configured:  # (its slot is made at the start, before `ready`)
+            self._rlog.warning("starting-stream", "udp: frames of stream %s dropped unread: the "
+                               "service is starting (its configured streams are set up before "
+                               "it says ready)", name)  # fmt: skip
+            return None
         if not self.settings.allow_new_streams:
             return None
         starting = self._starting

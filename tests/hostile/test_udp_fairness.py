@@ -176,3 +176,23 @@ def test_a_new_streams_frames_read_before_its_slot_exists_are_kept_in_order():
             return srv.metrics.drops()
 
     assert run(go()) == 0  # no unknown_stream, no late frame
+
+
+def test_a_configured_streams_frames_during_the_start_are_not_called_unknown(caplog):
+    """A sender already live while the service restarts: the UDP receiver drops the frames
+    that come before the configured stream's slot exists, and said "unlabeled frames, and
+    nothing to start the stream from (no model ...): give it a model (a [[streams]] table with
+    name = ..." of a stream configured with a model (a hostile run). It says the service is
+    starting; an unconfigured stream keeps the advice."""
+    import logging
+
+    from labeler_service.service.server import Server
+    from labeler_service.service.settings import load_settings
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.server")
+    srv = Server(load_settings(metrics_port=None, udp={"port": 0}, streams=[{"name": "cmu"}]))
+    assert srv._admit("cmu", b"unlabeled frame") is None  # (not entered: no slot yet)
+    assert "frames of stream cmu dropped unread: the service is starting" in caplog.text
+    assert "nothing to start the stream from" not in caplog.text
+    assert srv._admit("other", b"unlabeled frame") is None
+    assert "stream other: unlabeled frames, and nothing to start the stream from" in caplog.text
