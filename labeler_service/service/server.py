@@ -811,11 +811,12 @@ class Server:
         """Starts the boot worker process in the background (once; the worker restarts itself
         after a kill) for a stream whose recovery has begun on a service that started none
         (its configured streams do not boot: a stream trained from labeled init frames, an
-        unconfigured one). Without it the recovery's attempts ran in a thread of the service
-        and held the frame path's GIL: 10 x 360 Hz with no labels and ``boot = false``, 693-716
-        frames dropped against 0-233 with the worker, 0.50-0.67 correct after boot against
-        0.93-0.99. Attempts requested while it starts (~1.2 s) run in a thread as before (a small
-        recovery's boot takes milliseconds there)."""
+        unconfigured one), and tries a failed start again for any stream that boots. Without
+        it the recovery's attempts ran in a thread of the service and held the frame path's
+        GIL: 10 x 360 Hz with no labels and ``boot = false``, 693-716 frames dropped against
+        0-233 with the worker, 0.50-0.67 correct after boot against 0.93-0.99. Attempts
+        requested while it starts (~1.2 s) run in a thread as before (a small recovery's boot
+        takes milliseconds there)."""
         w = self.boot_worker
         if w is None or w.enabled or w.closed or self._worker_starting:
             return
@@ -976,10 +977,10 @@ class Server:
         except asyncio.CancelledError:
             state.boot_done(req, None)
             raise
-        except LabelerError as exc:  # the worker died or was killed: restarted next attempt
+        except LabelerError as exc:  # ours, e.g. the worker died (the next attempt restarts it)
             self.metrics.boot_failed(state.name)
-            self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt failed: %s (the "
-                               "next attempt starts a new worker)", state.name, exc)  # fmt: skip
+            self._rlog.warning(f"boot-{state.name}", "stream %s: boot attempt failed: %s",
+                               state.name, exc)  # fmt: skip
             self._boot_done(state, req, None)
             return
         except Exception:
