@@ -1117,12 +1117,15 @@ class StreamState:
             return None
         return lab
 
-    def _recovery_labeler(self, model: LabelerModel, rate: float) -> BootingLabeler | None:
-        """A :class:`BootingLabeler` of ``model`` as a recovery runs it (boot off the frame
-        path); None when the stream's labeler kind does not boot."""
+    def _recovery_labeler(
+        self, model: LabelerModel, rate: float, boot: BootConfig | None = None
+    ) -> BootingLabeler | None:
+        """A :class:`BootingLabeler` of ``model`` as a recovery or a reboot runs it (boot off
+        the frame path; ``boot``: its settings, the service's by default); None when the
+        stream's labeler kind does not boot."""
         lab = self._factory(self.settings.labeler, rate=rate, model=model,
                             config=self.settings.labeler_config,
-                            boot=self.settings.boot_config)  # fmt: skip
+                            boot=boot or self.settings.boot_config)  # fmt: skip
         if not _off_the_loop(lab):
             return None
         assert isinstance(lab, BootingLabeler)
@@ -1173,13 +1176,9 @@ class StreamState:
             return False
         fresh = self._take_spare(lab.model, lab.rate, lab.boot_config)
         if fresh is None:
-            made = self._factory(self.settings.labeler, rate=lab.rate, model=lab.model,
-                                 config=self.settings.labeler_config,
-                                 boot=lab.boot_config)  # fmt: skip
-            if not _off_the_loop(made):
-                return False
-            assert isinstance(made, BootingLabeler)
-            fresh = made
+            fresh = self._recovery_labeler(lab.model, lab.rate, lab.boot_config)
+        if fresh is None:
+            return False
         # the boot worker's booter for the old key serves the fresh labeler: it depends only
         # on the model and the boot settings, both the same, and is read-only; unless a
         # relearn replaced the old labeler's booter (the fresh one starts from the model)
