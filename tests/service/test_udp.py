@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -176,3 +177,32 @@ def test_datagrams_the_kernel_refuses_are_counted_as_send_error():
 
     metrics = run(go())
     assert metrics.drops("send_error", stream="default") == 3  # starting, online, offline
+
+
+def test_serve_command_stops_at_once_when_signalled_during_a_cold_warm_up(tmp_path):
+    # an empty numba cache: the warm-up compiles the kernels (minutes); SIGTERM during it used
+    # to wait for the compilation to end
+    env = dict(
+        os.environ, MOCAP_UDP__PORT="0", NUMBA_CACHE_DIR=str(tmp_path / "cache"),
+    )  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "labeler_service.cli.main", "serve"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+    )  # fmt: skip
+    try:
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "warming up the kernels" in line:
+                break
+        assert seen and "warming up" in seen[-1], "".join(seen)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)  # the compilation alone takes minutes
+        assert proc.returncode == 0, err
+        assert "stopped during the start" in err and "Traceback" not in err, err
+        assert "ready" not in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
