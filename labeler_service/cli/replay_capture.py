@@ -106,6 +106,12 @@ async def _main(args: argparse.Namespace) -> int:
         f"sent {plural(stats.sent, 'frame')} ({stats.failed} failed) in {stats.seconds:.1f} s "
         f"({stats.rate:.0f}/s, latest send {stats.max_late_ms:.1f} ms behind schedule)"
     )
+    if stats.stalls:
+        print(
+            f"replay: {plural(stats.stalls, 'stall')} ({stats.stalled_s:.1f} s in all): it went "
+            "on where it stopped each time, at the capture rate",
+            file=sys.stderr,
+        )
     return 0 if stats.failed == 0 else 1
 
 

@@ -5,7 +5,10 @@ down-sampling, gaps, drop-outs, ghosts, jitter; everything seeded), then every f
 (protocol v1, sender stamp ``sent`` = ``time.time_ns()`` at send) and sent at the capture rate
 times ``speed``. The first ``init_frames`` frames carry their true labels (the training window;
 ghosts get ``nil``). Pacing is against absolute deadlines (``perf_counter``), so a late frame
-never makes the next ones late; ``speed=0`` sends as fast as possible.
+never makes the next ones late; ``speed=0`` sends as fast as possible. A send more than
+``STALL_S`` late (the sender was paused, the machine froze) restarts the schedule from that
+frame: the replay goes on where it stopped, at the capture rate, instead of sending the frames
+due meanwhile in a burst (which overflows the service's queues).
 
 ``loops > 1`` plays the capture forward, then backward, and so on (continuous motion, ``t`` and
 ``seq`` keep increasing) for long soak runs without a huge scene in memory.
@@ -34,6 +37,9 @@ SendFn = Callable[[bytes], Awaitable[bool]]
 
 log = logging.getLogger(__name__)
 REFUSED_S = 1.0  # a UDP send this soon after a "connection refused" report counts as failed
+#: a send this late (s) is a stall (the sender paused, the machine froze), not jitter: the
+#: schedule restarts from it instead of sending the missed frames at once
+STALL_S = 0.5
 
 
 def prepare(source: str | Path | Capture, spec: CorruptionSpec, up: str = "z") -> StreamFrames:
@@ -48,6 +54,9 @@ class ReplayStats:
     failed: int = 0
     seconds: float = 0.0
     max_late_ms: float = 0.0
+    #: stalls after which the schedule restarted (``STALL_S``), and the seconds they lasted
+    stalls: int = 0
+    stalled_s: float = 0.0
 
     @property
     def rate(self) -> float:
@@ -103,6 +112,15 @@ async def replay(
                 await asyncio.sleep(delay)
             else:
                 stats.max_late_ms = max(stats.max_late_ms, -delay * 1e3)
+                if -delay > STALL_S:
+                    t_start -= delay  # this frame is on time again
+                    stats.stalls += 1
+                    stats.stalled_s += -delay
+                    log.warning(
+                        "replay: %.1f s behind schedule (paused or stalled): going on from "
+                        "frame %d at the capture rate, not with a burst of the frames due "
+                        "meanwhile", -delay, k,
+                    )  # fmt: skip
         elif k % 64 == 0:
             await asyncio.sleep(0)
         labels = init_labels(frames, int(f)) if k < init_frames else None

@@ -6,6 +6,7 @@ import asyncio
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -68,6 +69,25 @@ def test_replay_rejects_bad_speed_and_loops(rng):
         run(replay(frames, send, speed=-1))
     with pytest.raises(ConfigError, match="loops"):
         run(replay(frames, send, loops=0))
+
+
+def test_replay_goes_on_at_the_capture_rate_after_a_stall_instead_of_a_burst(rng):
+    # a paused sender (SIGSTOP) or a frozen machine: every frame due meanwhile was late, and all
+    # of them went out at once on resume, overflowing the service's queue
+    frames = corrupt(moving_clusters(rng, frames=40), CorruptionSpec(protect_frames=0, seed=1))
+    frames.rate = 100.0
+    when: list[float] = []
+
+    async def send(payload: bytes) -> bool:
+        when.append(time.perf_counter())
+        if len(when) == 10:
+            time.sleep(0.8)  # (blocks the loop, as a stop signal would)
+        return True
+
+    stats = run(replay(frames, send, stream="s", init_frames=0, speed=1.0))
+    assert stats.sent == 40 and stats.stalls == 1 and stats.stalled_s > 0.5
+    # the 30 frames after the stall are paced at 10 ms (at least), not sent together
+    assert when[-1] - when[10] >= 0.8 * 29 * 0.01
 
 
 @pytest.mark.parametrize(
