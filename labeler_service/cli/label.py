@@ -269,7 +269,8 @@ def run(args: argparse.Namespace) -> int:
         if compared:
             print(f"agreement with the input's labels: {100 * agree / compared:.3f} %")
         never = []
-        for name, s in summary["subjects"].items():
+        for subject, s in summary["subjects"].items():
+            name = subject or "(markers without a subject prefix)"
             if s["first_labeled_s"] is None:
                 never.append(name)
                 continue

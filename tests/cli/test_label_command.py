@@ -211,3 +211,22 @@ def test_evaluate_says_the_kernels_are_compiling_without_a_progress_bar(take, ca
     args = ["evaluate", str(take[0]), "--init-frames", "40", "--no-progress", "--json"]
     assert main(args) == 0
     assert "compiling the labeling kernels" in capsys.readouterr().err
+
+
+def test_label_names_a_model_subject_without_a_name_in_its_summary(rng, tmp_path, capsys):
+    """A model whose subject is named ``""`` (its markers' labels carry no prefix) printed its
+    summary line as ``  : labeled from ...``."""
+    truth, names = articulated(rng, subjects=1, frames=300)
+    bare = [n.split(":")[-1] for n in names]
+    take = tmp_path / "bare.npz"
+    write_capture(Capture(truth, bare, 120.0, source="bare"), take)
+    model = tmp_path / "m.json"
+    assert main(["train", "structure", str(take), "--out", str(model)]) == 0
+    data = json.loads(model.read_text())
+    data["subjects"][0]["name"] = ""
+    model.write_text(json.dumps(data))
+    capsys.readouterr()
+    assert main(["label", str(take), str(tmp_path / "out.npz"), "--model", str(model)]) == 0
+    text = capsys.readouterr().out
+    assert "  (markers without a subject prefix): labeled from " in text, text
+    assert "  : " not in text
