@@ -693,11 +693,32 @@ def _write_c3d(capture: Capture, path: Path) -> None:
         (7, capture.n_markers, capture.n_frames), dtype=bool
     )
     c.write(str(path))
-    # ezc3d reports no I/O error: check that the file holds the header and every frame
-    need = 512 + 16 * capture.n_markers * capture.n_frames
+    _check_c3d_written(path, 16 * capture.n_markers * capture.n_frames)
+
+
+def _check_c3d_written(path: Path, data_bytes: int) -> None:
+    """ezc3d reports no I/O error (a full disk): the file must hold its header, its parameter
+    section and every frame after the data start the header names, and that start must lie past
+    the parameter section (a write cut short left it at block 1, and the file read back
+    misaligned: 97 % of the samples wrong)."""
     size = path.stat().st_size if path.exists() else 0
-    if size < need:
-        raise CaptureError(f"C3D writer stored {size} bytes, at least {need} expected (disk full?)")
+    head = b""
+    if size >= 512:
+        with path.open("rb") as f:
+            head = f.read(512)
+            param_block = head[0]
+            f.seek(max(param_block - 1, 0) * 512)
+            param_head = f.read(4)
+    if len(head) < 512 or param_block < 2 or len(param_head) < 4:
+        raise CaptureError(f"C3D writer stored {size} bytes, no complete header (disk full?)")
+    data_block = int.from_bytes(head[16:18], "little")
+    first_free = param_block + param_head[2]  # the block after the parameter section
+    need = (max(data_block, first_free) - 1) * 512 + data_bytes
+    if data_block < first_free or size < need:
+        raise CaptureError(
+            f"C3D writer stored {size} bytes, at least {need} expected, data from block "
+            f"{data_block} (after the parameters: {first_free}; disk full?)"
+        )
 
 
 # --------------------------------------------------------------------------------- TRC

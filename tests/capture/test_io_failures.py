@@ -51,6 +51,34 @@ def test_silent_c3d_writer_is_caught_and_leaves_nothing(tmp_path, rng, monkeypat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o.c3d"]
 
 
+@pytest.mark.parametrize("cut", ["data", "pointer"])
+def test_a_c3d_cut_short_after_its_header_is_caught(tmp_path, rng, monkeypatch, cut):
+    """A nearly full disk (a hostile run, 64 KB tmpfs): ezc3d's file lacked its last ~1,000
+    bytes and its data-start pointer read block 1; the old check (512 header bytes plus the
+    frames) passed it, and the file read back misaligned (97 % of the samples wrong), exit 0."""
+    import ezc3d
+
+    write = ezc3d.c3d.write
+
+    def cut_write(self, path, **kw):
+        write(self, path, **kw)
+        raw = bytearray(Path(path).read_bytes())
+        if cut == "pointer":
+            raw[16:18] = (1).to_bytes(2, "little")  # the data start at block 1, size intact
+        else:
+            del raw[-1000:]
+        Path(path).write_bytes(bytes(raw))
+
+    monkeypatch.setattr(ezc3d.c3d, "write", cut_write)
+    out = tmp_path / "o.c3d"
+    cap = _capture(rng, frames=200, markers=20)
+    with pytest.raises(CaptureError, match=r"o\.c3d: cannot write: C3D writer stored \d+ bytes"):
+        write_capture(cap, out)
+    assert not out.exists()
+    monkeypatch.setattr(ezc3d.c3d, "write", write)
+    np.testing.assert_array_equal(read_capture(write_capture(cap, out)).positions, cap.positions)
+
+
 def test_unwritable_folder_is_an_error(tmp_path, rng):
     target = Path("/proc/self/no-such-dir/o.c3d")
     with pytest.raises(CaptureError, match=r"o\.c3d: cannot write"):
