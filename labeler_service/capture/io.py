@@ -263,6 +263,14 @@ def _finish(
     if infinite.any():  # the labeler takes finite points only: missing, as NaN is
         pos[infinite] = np.nan
         notes.append(f"{int(infinite.sum())} infinite samples mapped to missing")
+    nan = np.isnan(pos)
+    partial = nan.any(axis=2) & ~nan.all(axis=2)
+    if partial.any():  # a sample is a point or missing: one NaN coordinate makes it missing
+        pos[partial] = np.nan
+        notes.append(
+            f"{plural(int(partial.sum()), 'sample')} with some coordinates missing (NaN) mapped "
+            "to missing"
+        )
     with np.errstate(invalid="ignore"):  # NaN compares False
         far = (np.abs(pos) > MAX_COORD_MM).any(axis=2)
     if far.any():  # garbage (a writer's sentinel, a corrupt file): missing, with a note

@@ -62,3 +62,26 @@ def test_samples_beyond_ten_km_read_as_missing_with_a_note(tmp_path, rng, capsys
                for n in cap.notes), cap.notes  # fmt: skip
     assert main(["info", str(tmp_path / "far.c3d")]) == 0
     assert "5 samples beyond 1e+07 mm" in capsys.readouterr().out
+
+
+def test_samples_with_some_coordinates_nan_read_as_missing_with_a_note(tmp_path, rng, capsys):
+    """A TRC row missing its last cell, an NPZ with one NaN coordinate: every command failed
+    with scipy's 'data must be finite, check for nan or inf values' (the duplicate-column check
+    took a sample's visibility from X alone). One NaN coordinate makes the sample missing."""
+    t = np.arange(60)[:, None, None] / 100.0
+    pos = rng.normal(scale=300.0, size=(1, 5, 3)) + np.array([200.0, 0.0, 0.0]) * t
+    pos[3:7, 2, 2] = np.nan
+    pos[9, 4, 1] = np.nan
+    path = tmp_path / "part.npz"
+    np.savez(path, positions=pos, labels=np.array([f"S:m{i}" for i in range(5)]), rate=100.0)
+    cap = read_capture(path)
+    gone = np.isnan(cap.positions).any(axis=2)
+    expected = np.zeros((60, 5), dtype=bool)
+    expected[3:7, 2] = expected[9, 4] = True
+    np.testing.assert_array_equal(gone, expected)
+    assert np.isnan(cap.positions[gone]).all()
+    assert any("5 samples with some coordinates missing" in n for n in cap.notes), cap.notes
+    assert main(["info", str(path)]) == 0
+    assert (
+        "5 samples with some coordinates missing (NaN) mapped to missing" in capsys.readouterr().out
+    )
