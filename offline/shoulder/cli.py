@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from labeler_service.cli.args import seed
+from labeler_service.errors import ModelError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -109,7 +110,11 @@ def run(args: argparse.Namespace) -> int:
         argv=_command_line(args),
     )
     t0 = time.perf_counter()
-    summary = train(cfg)
+    try:
+        summary = train(cfg)
+    except OSError as exc:  # a full disk, a folder gone meanwhile
+        where = exc.filename or cfg.out
+        raise ModelError(f"{where}: cannot write: {exc.strerror or exc}") from exc
     summary["wall_s"] = round(time.perf_counter() - t0, 2)
     print(json.dumps(summary))
     return 0

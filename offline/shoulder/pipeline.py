@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -109,10 +110,23 @@ def _progress(enabled: bool | None):  # -> rich.progress.Progress (a context man
     )
 
 
+def _output_folder(out: Path) -> None:
+    """Creates ``out`` (a folder) or says why it cannot be one."""
+    if out.exists() and not out.is_dir():
+        raise ModelError(f"--out {out}: exists and is not a folder (the study writes files in it)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ModelError(f"--out {out}: cannot create the folder: {exc.strerror or exc}") from exc
+    if not os.access(out, os.W_OK):
+        raise ModelError(f"--out {out}: the folder is not writable")
+
+
 def train(cfg: TrainConfig) -> dict:
     """Runs the study; returns the JSON summary (also in ``results.json``)."""
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    _output_folder(cfg.out)  # before the input is read: a bad --out fails at once
     cap, notes = load_training(cfg.train, cfg.subject, cfg.up)
     labels = cap.labels
     pos = cap.positions.astype(np.float64)
@@ -123,6 +137,13 @@ def train(cfg: TrainConfig) -> dict:
         motions[name], n = load_test(path, labels, cfg.up)
         notes += [f"{name}: {x}" for x in n]
     truth: Truth | None = read_truth(cfg.truth).aligned(labels) if cfg.truth else None
+    for name, joints in (truth.joints if truth is not None else {}).items():
+        if name in motions and joints.shape[0] != motions[name].shape[0]:
+            raise ModelError(
+                f"{cfg.truth}: its {name!r} joints cover {joints.shape[0]} frames, the capture "
+                f"{motions[name].shape[0]}: give the truth file of the simulate-shoulder run "
+                "that wrote the captures"
+            )
     if any(k < 2 for k in cfg.ks):
         raise ModelError(f"every k must be >= 2, got {list(cfg.ks)}")
     most = pos.shape[1] // 3  # a segment's pose needs 3 markers (k = 216 of 215 ran for minutes)
@@ -134,7 +155,6 @@ def train(cfg: TrainConfig) -> dict:
     if cfg.restarts < 1:
         raise ModelError(f"--restarts must be >= 1, got {cfg.restarts}")
     out = cfg.out
-    out.mkdir(parents=True, exist_ok=True)
     timings["load_s"] = time.perf_counter() - t_start
 
     t = time.perf_counter()

@@ -126,7 +126,13 @@ def read_faces(path: str | Path, labels: Sequence[str]) -> np.ndarray:
         index[label] = i
         index.setdefault(split_label(label)[1], i)
     faces = []
-    for lineno, raw in enumerate(p.read_text(encoding="utf-8").splitlines(), start=1):
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ModelError(
+            f"{p}: not a UTF-8 text file (faces are lines of 3 marker names, module doc): {exc}"
+        ) from exc
+    for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].replace(",", " ").split()
         if not line:
             continue

@@ -163,3 +163,25 @@ def test_train_shoulder_cli_errors(tmp_path, capsys):
     assert "not a regular file" in capsys.readouterr().err
     assert main(["train", "shoulder", rom, "--subject", "nobody", "--out", str(tmp_path)]) == 2
     assert "no subject 'nobody'" in capsys.readouterr().err
+
+
+def test_train_shoulder_mistakes_are_one_line_errors(tmp_path, capsys):
+    """A hostile run: an --out that is a file, a faces file not in UTF-8 and the truth file of
+    another simulate-shoulder run each ended in a Python traceback (the last after training)."""
+    sim, other = tmp_path / "sim", tmp_path / "other"
+    for folder, frames in ((sim, "60"), (other, "80")):
+        assert main(["simulate-shoulder", str(folder), "--frames", frames, "--test-frames", "20",
+                     "--spacing", "45"]) == 0  # fmt: skip
+    capsys.readouterr()
+    rom = str(sim / "rom.c3d")
+    base = ["train", "shoulder", rom, "--k", "3", "--restarts", "2", "--no-plots"]
+    assert main([*base, "--out", rom]) == 2
+    err = capsys.readouterr().err
+    assert "exists and is not a folder" in err and "Traceback" not in err
+    latin = tmp_path / "faces.txt"
+    latin.write_bytes("caf\xe9 a b\n".encode("latin-1"))
+    assert main([*base, "--faces", str(latin), "--out", str(tmp_path / "o1")]) == 2
+    assert "not a UTF-8 text file" in capsys.readouterr().err
+    assert main([*base, "--truth", str(other / "truth.npz"), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "cover 80 frames, the capture 60" in err, err
