@@ -137,12 +137,12 @@ def train(cfg: TrainConfig) -> dict:
         motions[name], n = load_test(path, labels, cfg.up)
         notes += [f"{name}: {x}" for x in n]
     truth: Truth | None = read_truth(cfg.truth).aligned(labels) if cfg.truth else None
-    for name, joints in (truth.joints if truth is not None else {}).items():
-        if name in motions and joints.shape[0] != motions[name].shape[0]:
+    for name, true_joints in (truth.joints if truth is not None else {}).items():
+        if name in motions and true_joints.shape[0] != motions[name].shape[0]:
             raise ModelError(
-                f"{cfg.truth}: its {name!r} joints cover {joints.shape[0]} frames, the capture "
-                f"{motions[name].shape[0]}: give the truth file of the simulate-shoulder run "
-                "that wrote the captures"
+                f"{cfg.truth}: its {name!r} joints cover {true_joints.shape[0]} frames, the "
+                f"capture {motions[name].shape[0]}: give the truth file of the "
+                "simulate-shoulder run that wrote the captures"
             )
     if any(k < 2 for k in cfg.ks):
         raise ModelError(f"every k must be >= 2, got {list(cfg.ks)}")
