@@ -38,18 +38,90 @@ def choose_root(R: np.ndarray) -> int:
     return int(np.argmin(med))
 
 
+#: segments up to which every order is tried (7! = 5,040); up to EXACT_MAX the exact dynamic
+#: programme; beyond, a greedy chain improved by 2-opt (the CLI takes k up to markers / 3: a
+#: hostile run's --k 20 tried 19! orders and never ended)
+PERMUTE_MAX = 8
+EXACT_MAX = 14
+
+
 def best_chain(cost: np.ndarray, root: int) -> tuple[list, float]:
     """The single chain from ``root`` through every segment with the smallest summed joint
-    cost (exhaustive over the at most 5! = 120 orders; ties -> lexicographically first)."""
+    cost: exhaustive over the orders up to :data:`PERMUTE_MAX` segments (ties ->
+    lexicographically first; the paper's 3-6), the same minimum by dynamic programming over
+    subsets up to :data:`EXACT_MAX` (Held-Karp, ``O(2^k k^2)``), and beyond a greedy chain (the
+    cheapest next link) improved by 2-opt reversals until none helps (not always the minimum)."""
     k = cost.shape[0]
     others = [s for s in range(k) if s != root]
+    if k > EXACT_MAX:
+        return _greedy_chain(cost, root)
+    if k > PERMUTE_MAX:
+        return _held_karp(cost, root)
     best, best_cost = [root, *others], np.inf
     for perm in permutations(others):
         order = [root, *perm]
-        c = float(sum(cost[order[i], order[i + 1]] for i in range(k - 1)))
+        c = _chain_cost(cost, order)
         if c < best_cost:
             best, best_cost = order, c
     return best, best_cost
+
+
+def _chain_cost(cost: np.ndarray, order: list) -> float:
+    return float(sum(cost[order[i], order[i + 1]] for i in range(len(order) - 1)))
+
+
+def _held_karp(cost: np.ndarray, root: int) -> tuple[list, float]:
+    """Shortest path from ``root`` through every segment (bitmask dynamic programme)."""
+    k = cost.shape[0]
+    c = cost.tolist()
+    # best[(mask, last)] = (cost, previous): paths from root over the segments in mask
+    best: dict[tuple[int, int], tuple[float, int]] = {(1 << root, root): (0.0, -1)}
+    frontier = {(1 << root, root)}
+    for _ in range(k - 1):
+        nxt = set()
+        for mask, last in frontier:
+            base = best[(mask, last)][0]
+            for s in range(k):
+                if mask >> s & 1:
+                    continue
+                key = (mask | 1 << s, s)
+                val = base + c[last][s]
+                if key not in best or val < best[key][0]:
+                    best[key] = (val, last)
+                nxt.add(key)
+        frontier = nxt
+    full = (1 << k) - 1
+    last = min(range(k), key=lambda s: (best.get((full, s), (np.inf, -1))[0], s))
+    total = best[(full, last)][0]
+    order, mask = [], full
+    while last >= 0:
+        order.append(last)
+        prev = best[(mask, last)][1]
+        mask &= ~(1 << last)
+        last = prev
+    return order[::-1], float(total)
+
+
+def _greedy_chain(cost: np.ndarray, root: int) -> tuple[list, float]:
+    """The cheapest next link from ``root`` on, then 2-opt reversals of the tail while one
+    lowers the summed cost."""
+    k = cost.shape[0]
+    order, left = [root], set(range(k)) - {root}
+    while left:
+        nxt = min(left, key=lambda s: (cost[order[-1], s], s))
+        order.append(nxt)
+        left.remove(nxt)
+    total = _chain_cost(cost, order)
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, k - 1):
+            for j in range(i + 1, k):
+                cand = order[:i] + order[i : j + 1][::-1] + order[j + 1 :]
+                c = _chain_cost(cost, cand)
+                if c < total - 1e-12:
+                    order, total, improved = cand, c, True
+    return order, total
 
 
 def spanning_tree(cost: np.ndarray, root: int) -> tuple[list, np.ndarray]:

@@ -150,3 +150,37 @@ def test_mg03_half_rotation_and_nnls_weights(rng):
     pos = skin(rest, w_true, R, t)
     W = fit_weights_nnls(pos, rest, R, t, step=1)
     np.testing.assert_allclose(W, w_true, atol=1e-3)
+
+
+@pytest.mark.parametrize("k", [9, 10])
+def test_best_chain_beyond_the_exhaustive_range_is_still_the_minimum(k):
+    """Past 8 segments the chain comes from a dynamic programme: the same minimum as every
+    order (a hostile run's --k 20 tried 19! orders and never ended)."""
+    from itertools import permutations
+
+    from offline.shoulder.joints import _chain_cost, best_chain
+
+    rng = np.random.default_rng(k)
+    cost = rng.uniform(1.0, 50.0, (k, k))
+    cost = (cost + cost.T) / 2
+    order, total = best_chain(cost, 2)
+    brute = min(_chain_cost(cost, [2, *p]) for p in permutations([s for s in range(k) if s != 2]))
+    assert order[0] == 2 and sorted(order) == list(range(k))
+    assert total == pytest.approx(brute) and total == pytest.approx(_chain_cost(cost, order))
+
+
+def test_best_chain_of_many_segments_ends_with_a_valid_chain():
+    from offline.shoulder.joints import _chain_cost, best_chain
+
+    rng = np.random.default_rng(0)
+    cost = rng.uniform(1.0, 50.0, (40, 40))
+    cost = (cost + cost.T) / 2
+    order, total = best_chain(cost, 5)
+    assert order[0] == 5 and sorted(order) == list(range(40))
+    assert total == pytest.approx(_chain_cost(cost, order))
+    greedy = [5]  # no worse than the plain cheapest-next-link chain it starts from
+    while len(greedy) < 40:
+        greedy.append(
+            min((s for s in range(40) if s not in greedy), key=lambda s: cost[greedy[-1], s])
+        )
+    assert total <= _chain_cost(cost, greedy) + 1e-9
