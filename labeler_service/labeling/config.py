@@ -107,6 +107,13 @@ class LabelerConfig(BaseModel):
         description="after Algorithm 1, a point held by a marker that jumped more than jump_mm "
         "for it goes back to the marker tracked onto it in the previous frame",
     )
+    keep_tracks: bool = Field(
+        True,
+        description="after the contest and the exchange, a marker tracked in the previous frame "
+        "whose track continues unambiguously onto a point (within jump_mm of its last point "
+        "moved by its velocity, no other point within twice its predicted deviation) gets it "
+        "back from a marker not tracked as long (a coasting one, a ghost's), or from nobody",
+    )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )

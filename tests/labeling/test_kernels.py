@@ -8,6 +8,7 @@ import reference as ref
 from scipy.spatial.transform import Rotation
 
 from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.frame import MISSING, OBSERVED
 from labeler_service.labeling.kernels.fitting import _fit_bodies, _search_body
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _median_inplace, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _update
@@ -20,6 +21,7 @@ from labeler_service.labeling.kernels.rigid import (
     _horn_closed,
     _horn_jacobi,
     _kabsch,
+    _keep_tracks,
     _max_residual,
     _recover,
     _robust_kabsch,
@@ -919,3 +921,141 @@ def test_exchange_equals_its_twin_on_random_scenes(rng):
         np.testing.assert_array_equal(owner[assigned[has]], np.flatnonzero(has))
         exchanged += n > 0
     assert exchanged >= 10  # (the scenes do exercise the exchange)
+
+
+# --------------------------------------------------------------------------- keep tracks
+KT_DT = 1 / 100
+GHOST = 12  # the extra point of _kt_scene
+
+
+def _kt_scene(rng, m=12):
+    """``m`` markers 60 mm apart on a line, tracked (age 50) last frame at ``pos`` and moving
+    at 0.5 m/s; this frame's points are their continuations plus a ghost (point 12) 22 mm
+    from marker 3's. Marker 7 (coasting) holds point 3, marker 3 the ghost."""
+    pos = np.zeros((m, 3))
+    pos[:, 0] = 60.0 * np.arange(m)
+    pos[:, 1] = rng.normal(0, 5, m)
+    v = np.array([500.0, 0.0, 0.0])
+    x = np.zeros((m, 6))
+    x[:, :3] = pos + v * KT_DT + 22.0 * np.array([0.0, 0.0, 1.0])  # predictions moved 22 mm
+    x[:, 3:] = v
+    points = np.vstack([pos + v * KT_DT, pos[3] + v * KT_DT + [0.0, 0.0, 22.0]])
+    points = points.astype(np.float32)  # as a decoded frame reaches the kernels
+    assigned = np.arange(m, dtype=np.int32)
+    assigned[3], assigned[7] = GHOST, 3
+    owner = np.full(points.shape[0], -1, dtype=np.int32)
+    for i in range(m):
+        owner[assigned[i]] = i
+    owner[7] = -1  # point 7 left over
+    prev = np.full(m, OBSERVED, dtype=np.uint8)
+    prev[7] = MISSING
+    age = np.full(m, 50, dtype=np.int64)
+    age[7] = 0
+    return pos, x, points, assigned, owner, prev, age
+
+
+def _run_keep(pos, x, points, assigned, owner, prev, age, s=None, sets=None):
+    """``_keep_tracks`` on the caller's arrays; ``sets``: recovery sets (default: none, so no
+    rigid estimate vetoes)."""
+    m = assigned.shape[0]
+    if sets is None:
+        sets = _recovery(
+            np.full((m, 8), -1, dtype=np.int64), np.zeros(m, dtype=np.int64),
+            np.zeros((m, 8, 3)), np.zeros(m, dtype=bool),
+        )  # fmt: skip
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    s = np.full(m, S_FLOOR) if s is None else s
+    scratch = _scratch(m, points.shape[0], assigned=assigned, owner=owner, obs=obs, s=s)
+    tracks = _tracks(x, prev)._replace(pos=pos.astype(np.float32), age=age)
+    n = _keep_tracks(points, _index(points), KT_DT, tracks, sets, scratch, CHECKS)
+    return n, obs
+
+
+def test_keep_tracks_a_coasting_marker_gives_a_tracked_continuation_back(rng):
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    n, obs = _run_keep(pos, x, points, assigned, owner, prev, age)
+    assert n == 1
+    assert assigned[3] == 3 and owner[3] == 3 and assigned[7] == -1
+    assert owner[GHOST] == -1  # marker 3's ghost is free again
+    np.testing.assert_allclose(obs[3], points[3])
+    assert np.isnan(obs[7]).all()
+
+
+def test_keep_tracks_a_young_track_gives_it_back_an_established_one_keeps_it(rng):
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    points[7] += 500.0  # marker 7's own point is elsewhere: only point 3 is in question
+    prev[7] = OBSERVED
+    age[7] = 2  # tracked 2 frames (on a ghost), now on marker 3's continuation
+    assert _run_keep(pos, x, points, assigned, owner, prev, age)[0] == 1
+    assert assigned[3] == 3 and assigned[7] == -1
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    points[7] += 500.0
+    prev[7] = OBSERVED
+    age[7] = 50  # tracked as long: the contest's and the exchange's case
+    before = assigned.copy()
+    assert _run_keep(pos, x, points, assigned, owner, prev, age)[0] == 0
+    np.testing.assert_array_equal(assigned, before)
+
+
+def test_keep_tracks_a_free_continuation_is_taken_back_from_a_ghost(rng):
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    assigned[7], owner[3], owner[7] = 7, -1, 7  # point 3 free, marker 7 on its own point
+    prev[7], age[7] = OBSERVED, 50
+    n, _ = _run_keep(pos, x, points, assigned, owner, prev, age)
+    assert n == 1 and assigned[3] == 3 and owner[3] == 3 and owner[GHOST] == -1
+    assert assigned[7] == 7
+
+
+def test_keep_tracks_no_hand_back_when_the_continuation_is_not_unambiguous(rng):
+    # a second point 12 mm from marker 3's continuation (within twice jump_mm)
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    extra = points[3] + [0.0, 12.0, 0.0]
+    points = np.vstack([points, extra]).astype(np.float32)
+    owner = np.append(owner, -1).astype(np.int32)
+    before = assigned.copy()
+    assert _run_keep(pos, x, points, assigned, owner, prev, age)[0] == 0
+    np.testing.assert_array_equal(assigned, before)
+    # 30 mm away it is no rival for a sharp track, but it is for a loose one (the berth is
+    # twice the predicted deviation, 20 mm)
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    points = np.vstack([points, points[3] + [0.0, 30.0, 0.0]]).astype(np.float32)
+    owner = np.append(owner, -1).astype(np.int32)
+    a2, o2 = assigned.copy(), owner.copy()
+    assert _run_keep(pos, x, points, a2, o2, prev, age)[0] == 1
+    s = np.full(assigned.shape[0], S_FLOOR)
+    s[3] = 20.0**2
+    assert _run_keep(pos, x, points, assigned, owner, prev, age, s=s)[0] == 0
+
+
+def test_keep_tracks_no_hand_back_when_the_track_does_not_continue_onto_the_point(rng):
+    # the point lies 10 mm from marker 3's continuation (beyond jump_mm, 8 mm)
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    points[3] += [10.0, 0.0, 0.0]
+    before = assigned.copy()
+    assert _run_keep(pos, x, points, assigned, owner, prev, age)[0] == 0
+    np.testing.assert_array_equal(assigned, before)
+
+
+def test_keep_tracks_the_holders_rigid_estimate_vetoes(rng):
+    """A marker back beside its body (its Kabsch estimate on the point) keeps the point against
+    a track that took it meanwhile (a pile of performers: the tracked marker on another's
+    point since a contact)."""
+    pos, x, points, assigned, owner, prev, age = _kt_scene(rng)
+    m = assigned.shape[0]
+    members = np.full((m, 8), -1, dtype=np.int64)
+    size = np.zeros(m, dtype=np.int64)
+    refs = np.zeros((m, 8, 3))
+    ok = np.zeros(m, dtype=bool)
+    members[7, :4] = [7, 2, 4, 5]  # marker 7's body places it at point 3
+    size[7] = 4
+    refs[7, :4] = points[[3, 2, 4, 5]]
+    ok[7] = True
+    sets = _recovery(members, size, refs, ok)
+    before = assigned.copy()
+    assert _run_keep(pos, x, points, assigned, owner, prev, age, sets=sets)[0] == 0
+    np.testing.assert_array_equal(assigned, before)
+    # an estimate 20 mm off (beyond verify_mm) does not veto
+    refs[7, 0] = points[3] + [0.0, 20.0, 0.0]
+    sets = _recovery(members, size, refs, ok)
+    assert _run_keep(pos, x, points, assigned, owner, prev, age, sets=sets)[0] == 1
+    assert assigned[3] == 3 and assigned[7] == -1

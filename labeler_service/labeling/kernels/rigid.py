@@ -23,7 +23,7 @@ from labeler_service._numba import njit
 from labeler_service.labeling.frame import OBSERVED
 from labeler_service.labeling.kernels.fitting import _pair_term
 from labeler_service.labeling.kernels.params import KABSCH
-from labeler_service.labeling.kernels.spatial import FREE, OWNED, _nearest
+from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _nearest, _span
 from labeler_service.labeling.kernels.state import NONE
 
 
@@ -775,3 +775,88 @@ def _max_residual(src, dst, n, R, t):
         if e2 > worst:
             worst = e2
     return np.sqrt(worst)
+
+
+@njit
+def _keep_tracks(points, index, dt, tracks, recovery, scratch, params):
+    """Track continuity against untracked takers (ours, docs/algorithm.md).
+
+    A marker ``m`` tracked in the previous frame continues its track onto point ``j`` when
+    ``j`` is the point nearest ``m``'s last point moved by its velocity (the continuation
+    ``c``), within ``jump_mm`` of it, and no other point lies within twice ``m``'s predicted
+    deviation (``sqrt(scratch.s[m])``, at least ``jump_mm``) of ``c``: a loose track (a low
+    rate, a fast limb) needs a wider berth. When the steps before gave ``j`` to a marker that
+    was not tracked in the previous frame, or tracked for fewer frames than ``m`` and than
+    ``snapshot_age``, or to nobody, ``m`` takes it: the other marker is missing, ``m``'s other
+    point (a ghost the shifted prediction fell on) is freed. A coasting state, a prediction the
+    common-mode shift moved (a walker leaving the volume, most of his markers coasting), a
+    track begun on a ghost two frames ago are no evidence against a continuing track; two
+    established tracks are the contest's and the exchange's. A rigid neighbourhood vetoes as in
+    the contest: the holder keeps the point when its Kabsch estimate (3+ observed neighbours)
+    lies within ``verify_mm`` of it and ``m``'s does not lie nearer (a marker back from an
+    occlusion beside its body, the tracked one on its point since a contact). Changes
+    ``scratch.assigned``, ``owner``, ``obs``; returns the points handed over."""
+    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    prev_state, pos, x, active = tracks.state, tracks.pos, tracks.x, tracks.active
+    age, snapshot_age = tracks.age, params.snapshot_age
+    near = params.jump_mm
+    order = index.order
+    kab, tau, verify_mm = scratch.kab, params.robust_fit_mm, params.verify_mm
+    c = np.empty(3)
+    est = np.empty(3)
+    synced = False  # obs follows assigned (the steps before changed it)
+    changes = 0
+    for m in range(assigned.shape[0]):
+        if not active[m] or prev_state[m] != OBSERVED or pos[m, 0] != pos[m, 0]:  # noqa: PLR0124
+            continue
+        for k in range(3):
+            c[k] = pos[m, k] + x[m, 3 + k] * dt
+        j, d2 = _nearest(points, index, c, near * near, owner, ANY, -1)
+        if j < 0 or assigned[m] == j:
+            continue
+        h = owner[j]
+        if h >= 0 and prev_state[h] == OBSERVED and age[h] >= min(snapshot_age, age[m]):
+            continue  # a rival tracked as long (the contest's, the exchange's)
+        # alone within twice the track's predicted deviation (at least jump_mm)
+        iso = 2.0 * max(near, np.sqrt(scratch.s[m]))
+        far2 = iso * iso
+        lo, hi = _span(index, c, iso)
+        alone = True
+        for q in range(lo, hi):
+            jj = order[q]
+            if jj == j:
+                continue
+            e2 = 0.0
+            for k in range(3):
+                d = points[jj, k] - c[k]
+                e2 += d * d
+            if e2 < far2:
+                alone = False
+                break
+        if not alone:
+            continue
+        if h >= 0:
+            if not synced:
+                for i in range(assigned.shape[0]):
+                    a = assigned[i]
+                    for k in range(3):
+                        obs[i, k] = points[a, k] if a >= 0 else np.nan
+                synced = True
+            e_h = _estimate_distance(h, j, points, recovery, obs, kab, est, tau)
+            if e_h <= verify_mm and not (
+                _estimate_distance(m, j, points, recovery, obs, kab, est, tau) < e_h
+            ):
+                continue  # the holder's body places it there
+        old = assigned[m]
+        if old >= 0:
+            owner[old] = NONE
+        if h >= 0:
+            assigned[h] = NONE
+            for k in range(3):
+                obs[h, k] = np.nan
+        owner[j] = m
+        assigned[m] = j
+        for k in range(3):
+            obs[m, k] = points[j, k]
+        changes += 1
+    return changes

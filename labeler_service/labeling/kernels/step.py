@@ -4,7 +4,8 @@ Order (seed 003 Fig. 2 and Algorithm 1): Kalman prediction (Eq. 3), replaced by 
 prediction where that body has predicted the marker better (ours, :mod:`.motion`) -> common-mode
 shift (ours) -> Mahalanobis gating with at
 most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -> track
-continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition and 3D
+continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition, the
+exchange and kept tracks (ours) -> 3D
 check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap repair and joint
 re-acquisition (ours, :mod:`.repair`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
@@ -41,6 +42,7 @@ from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
     _contest,
     _exchange,
+    _keep_tracks,
     _max_residual,
     _recover,
     _set_estimate,
@@ -124,6 +126,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _reacquire(points, index, tracks, bodies, recovery, scratch, params)
     if params.exchange:  # two tracked markers on each other's points (ours, kernels/rigid.py)
         _exchange(points, tracks, bodies, scratch, params)
+    if params.keep_tracks:  # a continuing track keeps its point (ours, kernels/rigid.py)
+        _keep_tracks(points, index, dt, tracks, recovery, scratch, params)
     _observed(assigned, points, obs)
     if params.verify_mm > 0.0:
         _verify(points, index, frame_no, tracks, recovery, scratch, params)
