@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from labeling.walks import absent_walk
 from labeling.walks import train as _train
 
 from labeler_service.capture import Capture, read_capture
@@ -26,11 +27,7 @@ HIDE = 0.15
 def walk():
     """Five simulated walkers; the model knows all five (first half), the stream carries the
     first three (second half): P4 and P5 are absent subjects of the model."""
-    cap = simulate_scene(5, 6.0, "walk", seed=7, rate=RATE, ghosts=2.0)
-    half = cap.n_frames // 2
-    model = _train(cap.frames(0, half))
-    keep = [i for i, lab in enumerate(cap.labels) if not lab.startswith(("P4:", "P5:"))]
-    return model, cap.select(keep).frames(half, cap.n_frames)
+    return absent_walk(RATE)
 
 
 class Stream:

@@ -160,14 +160,9 @@ def test_subject_call_errors(rng, scene):
 @pytest.fixture(scope="module")
 def walkers():
     """Three walkers streamed, a model of five (as ``test_boot.walk``)."""
-    from labeling.walks import train as _train
+    from labeling.walks import absent_walk
 
-    from labeler_service.scenes.simulate import simulate_scene
-
-    cap = simulate_scene(5, 6.0, "walk", seed=7, rate=RATE, ghosts=2.0)
-    half = cap.n_frames // 2
-    keep = [i for i, lab in enumerate(cap.labels) if not lab.startswith(("P4:", "P5:"))]
-    return _train(cap.frames(0, half)), cap.select(keep).frames(half, cap.n_frames)
+    return absent_walk(RATE)
 
 
 def test_booting_labeler_installs_a_later_subject_without_a_rebuild(walkers):

@@ -4,6 +4,9 @@ scored, as the boot issue asks)."""
 
 from __future__ import annotations
 
+import copy
+from functools import cache
+
 from labeler_service.capture import Capture
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.simulate import simulate_scene
@@ -19,10 +22,30 @@ def train(capture: Capture) -> LabelerModel:
 def split_walk(
     performers: int, seconds: float, *, seed: int, rate: float, ghosts: float = 0.0
 ) -> tuple[LabelerModel, Capture]:
-    """A simulated walk: the model of its first half and its second half."""
+    """A simulated walk: the model of its first half and its second half.
+
+    Simulated and trained once per session (1.5-2.5 s each; several boot modules ask for the
+    same walk); every call returns its own deep copy, so a test that changes its walk changes
+    no other module's."""
+    return copy.deepcopy(_split_walk(performers, seconds, seed, rate, ghosts))
+
+
+@cache
+def _split_walk(
+    performers: int, seconds: float, seed: int, rate: float, ghosts: float
+) -> tuple[LabelerModel, Capture]:
     cap = simulate_scene(performers, seconds, "walk", seed=seed, rate=rate, ghosts=ghosts)
     half = cap.n_frames // 2
     return train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+
+
+def absent_walk(rate: float) -> tuple[LabelerModel, Capture]:
+    """Five simulated walkers; the model knows all five (first half), the stream carries the
+    first three (second half): P4 and P5 are absent subjects of the model. (The walk of
+    ``split_walk(5, 6.0, seed=7, ghosts=2.0)``, its second half without P4 and P5.)"""
+    model, cap = split_walk(5, 6.0, seed=7, rate=rate, ghosts=2.0)
+    keep = [i for i, lab in enumerate(cap.labels) if not lab.startswith(("P4:", "P5:"))]
+    return model, cap.select(keep)
 
 
 def subject_on_its_points(walk: tuple[LabelerModel, Capture], subject: str = "P1"):
