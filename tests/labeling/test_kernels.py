@@ -590,6 +590,18 @@ def _contest_scene(rng, m=12):
 S_FLOOR = 30.0**2 / 16.27  # innovation variance at the 30 mm gate floor
 
 
+def _frame(points) -> np.ndarray:
+    """A frame's points as they reach the kernels: float32, as decoded from the wire (a float64
+    frame compiled twins of ``_contest``, ``_verify`` and ``_exchange`` only the tests ran)."""
+    return np.ascontiguousarray(points, dtype=np.float32)
+
+
+def _observed(points, assigned) -> np.ndarray:
+    """Each marker's observed point, NaN for none (float64, as the scratch holds them)."""
+    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    return obs.astype(np.float64)
+
+
 CHECKS = kernel_params(LabelerConfig(gate_chi2=16.27, jump_mm=8.0, verify_mm=8.0))
 
 
@@ -605,7 +617,7 @@ def _run_contest(assigned, owner, prev, x, points, obs, sets, s=None):
 def test_contest_returns_a_point_to_its_tracked_marker(rng):
     pos, members, size, refs, x = _contest_scene(rng)
     m = pos.shape[0]
-    points = pos.copy()
+    points = _frame(pos)
     assigned = np.arange(m, dtype=np.int32)
     # marker 3 (tracked) lost its point to marker 7, which jumped 25 mm for it; 7's own point is
     # hidden in this frame (point 7 is a leftover nobody holds)
@@ -618,7 +630,7 @@ def test_contest_returns_a_point_to_its_tracked_marker(rng):
             owner[assigned[i]] = i
     owner[7] = -1
     prev = np.ones(m, dtype=np.uint8)
-    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    obs = _observed(points, assigned)
     ok = np.ones(m, dtype=bool)
     state = (assigned.copy(), owner.copy(), obs.copy())
     n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok))
@@ -648,7 +660,7 @@ def test_contest_returns_a_point_to_its_tracked_marker(rng):
 def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
     pos, members, size, refs, x = _contest_scene(rng)
     m = pos.shape[0]
-    points = pos.copy()
+    points = _frame(pos)
     assigned = np.arange(m, dtype=np.int32)
     owner = np.arange(m, dtype=np.int32)
     # marker 6 jumped 40 mm onto point 6; marker 9 (tracked, missing) predicts it 10 mm off:
@@ -657,7 +669,7 @@ def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
     x[9, :3] = pos[6] + np.array([0.0, 10.0, 0.0])
     assigned[9] = -1
     owner[9] = -1
-    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    obs = _observed(points, assigned)
     prev = np.ones(m, dtype=np.uint8)
     ok = np.zeros(m, dtype=bool)  # no rigid veto either way
     assert _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok)) == 0
@@ -669,7 +681,7 @@ def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
 def test_contest_keeps_a_point_the_holders_body_supports(rng):
     pos, members, size, refs, x = _contest_scene(rng)
     m = pos.shape[0]
-    points = pos.copy()
+    points = _frame(pos)
     assigned = np.arange(m, dtype=np.int32)
     owner = np.arange(m, dtype=np.int32)
     # marker 5 jumped 20 mm (its prediction was off) but sits exactly where its neighbours say;
@@ -678,7 +690,7 @@ def test_contest_keeps_a_point_the_holders_body_supports(rng):
     x[2, :3] = pos[5] + 1.0
     assigned[2] = -1
     owner[2] = -1
-    obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+    obs = _observed(points, assigned)
     prev = np.ones(m, dtype=np.uint8)
     ok = np.ones(m, dtype=bool)
     n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok))
@@ -691,7 +703,7 @@ def test_contest_matches_twin(rng):
     for trial in range(40):
         pos, members, size, refs, x = _contest_scene(rng, m=14)
         m = pos.shape[0]
-        points = pos + rng.normal(0, 2.0, pos.shape)
+        points = _frame(pos + rng.normal(0, 2.0, pos.shape))
         # random assignment: a permutation with a few markers missing
         perm = rng.permutation(m).astype(np.int32)
         assigned = np.where(rng.random(m) < 0.6, np.arange(m), perm).astype(np.int32)
@@ -705,7 +717,7 @@ def test_contest_matches_twin(rng):
         x[:, :3] = pos + rng.normal(0, 1.0, (m, 3)) * rng.choice([1.0, 15.0], size=(m, 1))
         prev = rng.choice(np.array([0, 1, 2], dtype=np.uint8), size=m, p=[0.1, 0.7, 0.2])
         ok = rng.random(m) < 0.8
-        obs = np.where((assigned >= 0)[:, None], points[np.maximum(assigned, 0)], np.nan)
+        obs = _observed(points, assigned)
         s = S_FLOOR * rng.choice([1.0, 1.0, 4.0], size=m)  # some markers hidden for a while
         a_r, o_r, ob_r = assigned.copy(), owner.copy(), obs.copy()
         n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok), s)
@@ -765,12 +777,12 @@ def test_verify_refuses_a_reacquisition_off_the_rigid_estimate(rng, leap_mm, pre
     # marker 4's own point is hidden; a ghost sits leap_mm from where it is predicted
     x[4, :3] = pos[4]
     ghost = pos[4] + leap_mm * np.array([0.0, 0.6, 0.8])
-    points = np.vstack([np.delete(pos, 4, axis=0), ghost[None]])
+    points = _frame(np.vstack([np.delete(pos, 4, axis=0), ghost[None]]))
     assigned = np.array([i if i < 4 else i - 1 for i in range(m)], dtype=np.int32)
     assigned[4] = m - 1
     owner = np.full(m, -1, dtype=np.int32)
     owner[assigned] = np.arange(m)
-    obs = points[assigned].copy()
+    obs = points[assigned].astype(np.float64)
     prev_state = np.ones(m, dtype=np.uint8)
     prev_state[4] = prev
     n_reject = np.zeros(m, dtype=np.int64)
@@ -809,7 +821,7 @@ def _exchange_scene(apex_offset):
     """A triangle body {0, 1, 2} (a pelvis: 0 and 1 are the hips 215 mm apart, 2 behind them
     ``apex_offset`` mm off the midline) and a fourth marker in no body; every marker tracked in
     the previous frame and predicted 40 mm off its point. Returns ``(points, x, bodies)``."""
-    points = np.array(
+    points = _frame(
         [[108.0, 0.0, 0.0], [-107.0, 0.0, 0.0], [apex_offset, -250.0, 0.0], [0.0, 500.0, 0.0]]
     )
     x = np.zeros((4, 6))
@@ -894,7 +906,7 @@ def test_exchange_equals_its_twin_on_random_scenes(rng):
                   for _ in range(nb)]  # fmt: skip
         D = [np.linalg.norm(truth[b][:, None] - truth[b][None], axis=2) for b in bodies]
         A = [np.full((len(b), len(b)), float(rng.uniform(1.0, 6.0))) for b in bodies]
-        points = truth + rng.normal(0, 2.0, truth.shape)
+        points = _frame(truth + rng.normal(0, 2.0, truth.shape))
         assigned = np.arange(m, dtype=np.int32)
         for _ in range(int(rng.integers(0, 3))):  # exchanges and chains
             i, j = rng.choice(m, 2, replace=False)

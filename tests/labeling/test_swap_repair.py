@@ -37,6 +37,13 @@ MIRROR = np.array(
 )
 
 
+def _frame(points) -> np.ndarray:
+    """``points`` as a frame's points reach the kernels: float32, as decoded from the wire. The
+    tests run the specialization the labeler runs (a float64 frame compiled a twin of
+    ``_repair`` only the tests used: ~25 s of a cold cache)."""
+    return np.ascontiguousarray(points, dtype=np.float32)
+
+
 def _rotation(rng):
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
@@ -72,7 +79,10 @@ def test_fit_template_equals_itertools_product(rng, trial):
     pts = np.array(rng.permutation(np.array(pts)))
     tol = np.full((n, n), 8.0)
     pos, used, choice, best, kab = _work(len(pts))
-    c, rms = _fit_template(n, shape, tol, pts, len(pts), 6.0, 100000, pos, used, choice, best, kab)
+    n32 = np.int32(n)  # (a body's size as _repair passes it)
+    c, rms = _fit_template(
+        n32, shape, tol, pts, len(pts), 6.0, 100000, pos, used, choice, best, kab
+    )
     c2, rms2, choice2 = ref_twin.fit_template(shape, tol, pts, 6.0)
     assert c == c2
     if c2 >= 3:
@@ -128,7 +138,7 @@ def _set_assignment(scratch, points, assigned) -> None:
 def test_mirrored_assignment_is_repaired_after_repair_frames(rng):
     config = LabelerConfig()
     params = kernel_params(config)
-    pts = MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    pts = _frame(MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0])
     swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
     tracks, bodies, scratch = _one_body_state(config, pts, swapped, MIRROR)
     index = _index(pts)
@@ -155,7 +165,7 @@ def test_mirrored_assignment_is_repaired_after_repair_frames(rng):
 def test_body_that_only_deformed_keeps_its_points_and_follows_them():
     config = LabelerConfig()
     params = kernel_params(config)
-    pts = MIRROR.copy()
+    pts = _frame(MIRROR)
     pts[3] += [0.0, 0.0, 25.0]  # one marker slid 25 mm: no permutation fits better
     tracks, bodies, scratch = _one_body_state(config, pts, np.arange(5, dtype=np.int32), MIRROR)
     tracks.x[:, :3] = pts
@@ -170,7 +180,7 @@ def test_body_that_only_deformed_keeps_its_points_and_follows_them():
 def test_reference_follows_slow_drift_of_a_body_that_deformed():
     config = LabelerConfig()
     params = kernel_params(config)
-    pts = MIRROR.copy()
+    pts = _frame(MIRROR)
     tracks, bodies, scratch = _one_body_state(config, pts, np.arange(5, dtype=np.int32), MIRROR)
     for step in range(5):  # 25 mm in 5 mm steps: each within the tolerance of the last reference
         pts = pts.copy()
@@ -189,7 +199,7 @@ def test_joint_reacquisition_assigns_returning_points_together(rng):
     # four of the five markers are back, shuffled, with a distractor 70 mm from the fifth's
     # place; the stale predictions sit 40 mm off (a triangle has no chirality: with three
     # points of a mirror-symmetric body the map is ambiguous, with four it is not)
-    pts = np.array([body[3], body[1], body[4], body[2] + [0.0, 0.0, 70.0], body[0]])
+    pts = _frame([body[3], body[1], body[4], body[2] + [0.0, 0.0, 70.0], body[0]])
     tracks, bodies, scratch = _one_body_state(config, pts, np.full(5, NONE, np.int32), MIRROR)
     tracks.x[:, :3] = body + [40.0, 0.0, 0.0]
     assert _repair(pts, _index(pts), 0, tracks, bodies, scratch, params) == 1
@@ -308,7 +318,7 @@ def _forearm_state(config, points, assigned, young=(1, 2)):
 
 
 def _forearm_points(rng):
-    return FOREARM @ _rotation(rng).T + [300.0, -100.0, 1100.0] + rng.normal(0, 0.5, (4, 3))
+    return _frame(FOREARM @ _rotation(rng).T + [300.0, -100.0, 1100.0] + rng.normal(0, 0.5, (4, 3)))
 
 
 @pytest.mark.parametrize("trial", range(4))
@@ -370,7 +380,7 @@ def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
     d0 = [np.linalg.norm(shape[b][:, None] - shape[b][None], axis=2) for b in lists]
     a0 = [np.full((len(b), len(b)), 1.0) for b in lists]
     pts = FOREARM @ _rotation(rng).T + [300.0, -100.0, 1100.0] + rng.normal(0, 0.5, (4, 3))
-    pts = np.vstack([pts, [[0.0, 900.0, 600.0]]])  # the pelvis elsewhere now
+    pts = _frame(np.vstack([pts, [[0.0, 900.0, 600.0]]]))  # the pelvis elsewhere now
     tracks = new_tracks(np.full(5, 1e6), np.ones(5, dtype=bool), [list(range(5))])
     tracks.x[:, :3] = shape
     tracks.age[:] = 100
@@ -423,15 +433,18 @@ def test_link_excess_matches_twin(rng, trial):
 
 def test_pair_check_refuses_an_exchange_that_mirrors_a_body(rng):
     config = LabelerConfig()
-    pts = MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    pts = _frame(MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0])
     right = np.arange(5, dtype=np.int32)
     tracks, bodies, scratch = _one_body_state(config, pts, right, MIRROR)
     kab = scratch.kab
     # B and C exchanging points keeps every distance (what the pair check sees) but mirrors
     # the body: its 5-point template refuses it; the exchange back from the mirror is allowed
-    assert _mirrors(bodies, pts, scratch.assigned, 1, 2, 2, 1, config.repair_check_mm, kab)
+    # (marker and point indices typed as _repair passes them)
+    m, pm, m2, pm2 = 1, *np.array([2, 2, 1], dtype=np.int32)
+    assert _mirrors(bodies, pts, scratch.assigned, m, pm, m2, pm2, config.repair_check_mm, kab)
     swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
-    assert not _mirrors(bodies, pts, swapped, 1, 1, 2, 2, config.repair_check_mm, kab)
+    pm, m2, pm2 = np.array([1, 2, 2], dtype=np.int32)
+    assert not _mirrors(bodies, pts, swapped, m, pm, m2, pm2, config.repair_check_mm, kab)
 
 
 @pytest.mark.realdata
@@ -462,7 +475,7 @@ def _three_point_case(rng, shape, held, model_ref=True):
     config = LabelerConfig()
     body = shape @ _rotation(rng).T + [100.0, 200.0, 900.0]
     order = np.array([2, 0, 1])  # point i is marker order[i]
-    pts = body[order]
+    pts = _frame(body[order])
     tracks, bodies, scratch = _one_body_state(config, pts, np.array(held, np.int32), shape, age=1)
     bodies.ref_model[0] = model_ref
     tracks.x[:, :3] = body + [40.0, 0.0, 0.0]
