@@ -576,14 +576,21 @@ def _verify(points, index, frame_no, tracks, recovery, scratch, params):
                     obs[m, c] = np.nan
                 changes += 1
             continue
-        if a >= 0:
-            owner[a] = NONE
-        owner[bj] = m
-        assigned[m] = bj
-        for c in range(3):
-            obs[m, c] = points[bj, c]
+        _take(m, bj, points, assigned, owner, obs)
         changes += 1
     return changes
+
+
+@njit(inline="always")
+def _take(m, j, points, assigned, owner, obs):
+    """Marker ``m`` takes point ``j`` (its former point, if any, is free); ``obs`` follows."""
+    a = assigned[m]
+    if a >= 0:
+        owner[a] = NONE
+    owner[j] = m
+    assigned[m] = j
+    for c in range(3):
+        obs[m, c] = points[j, c]
 
 
 @njit
@@ -847,16 +854,10 @@ def _keep_tracks(points, index, dt, tracks, recovery, scratch, params):
                 _estimate_distance(m, j, points, recovery, obs, kab, est, tau) < e_h
             ):
                 continue  # the holder's body places it there
-        old = assigned[m]
-        if old >= 0:
-            owner[old] = NONE
         if h >= 0:
             assigned[h] = NONE
             for k in range(3):
                 obs[h, k] = np.nan
-        owner[j] = m
-        assigned[m] = j
-        for k in range(3):
-            obs[m, k] = points[j, k]
+        _take(m, j, points, assigned, owner, obs)
         changes += 1
     return changes
