@@ -78,15 +78,23 @@ async def _start_unless_stopped(srv, stop: asyncio.Event) -> bool:
     halt = asyncio.ensure_future(stop.wait())
     try:
         await asyncio.wait({start, halt}, return_when=asyncio.FIRST_COMPLETED)
+    except BaseException:  # serve() itself cancelled: the start must not go on alone
+        await _cancelled(start)
+        raise
     finally:
         halt.cancel()
     if start.done():
         start.result()
         return True
-    start.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await start
+    await _cancelled(start)
     return False
+
+
+async def _cancelled(task: asyncio.Future) -> None:
+    """Cancels ``task`` and waits for it to end (the start shuts down what it opened)."""
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
 
 
 def _leave_now() -> None:
