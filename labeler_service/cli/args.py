@@ -36,6 +36,16 @@ def positive(text: str) -> float:
     return _checked(text, float, lambda v: 0 < v < float("inf"), "expected a finite number > 0")
 
 
+def strain_ratio(text: str) -> float:
+    """An edge-length ratio limit (``train shoulder --max-strain``): finite and > 1, as the
+    95th / 5th percentile of a length is at least 1 (nan, -1, 0 and 1 all kept no triangle, and
+    the report said 'edge strain <= nan')."""
+    return _checked(
+        text, float, lambda v: 1 < v < float("inf"),
+        "expected a finite ratio > 1 (an edge's 95th / 5th percentile length)",
+    )  # fmt: skip
+
+
 def positive_int(text: str) -> int:
     """A count that must be a whole number > 0 (``--frames``)."""
     return _checked(text, int, lambda v: v > 0, "expected a whole number > 0")

@@ -25,7 +25,7 @@ import json
 import time
 from pathlib import Path
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import seed, strain_ratio
 from labeler_service.errors import ModelError
 
 
@@ -43,7 +43,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truth", help="ground truth truth.npz from simulate-shoulder")
     p.add_argument("--subject", help="subject to segment (default: the one with most markers)")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the files")
-    p.add_argument("--max-strain", type=float, default=2.0, help="near-rigid triangle filter [2.0]")
+    p.add_argument(
+        "--max-strain", type=strain_ratio, default=2.0,
+        help="near-rigid triangle filter: an edge's 95th / 5th percentile length, > 1 [2.0]",
+    )  # fmt: skip
     p.add_argument(
         "--structure", choices=("auto", "chain", "tree"), default="auto",
         help="skeleton structure [auto: the paper's chain unless the tree reproduces the "

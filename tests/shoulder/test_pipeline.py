@@ -185,3 +185,8 @@ def test_train_shoulder_mistakes_are_one_line_errors(tmp_path, capsys):
     assert main([*base, "--truth", str(other / "truth.npz"), "--out", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
     assert "cover 80 frames, the capture 60" in err, err
+    for bad in ("nan", "-1", "0", "1", "inf"):  # each kept no triangle; the report said "<= nan"
+        with pytest.raises(SystemExit) as stop:
+            main([*base, "--max-strain", bad, "--out", str(tmp_path / "o3")])
+        assert stop.value.code == 2
+        assert "expected a finite ratio > 1" in capsys.readouterr().err
