@@ -119,6 +119,7 @@ def split_segment(text: str) -> tuple[str, int, int | None]:
         if len(parts) > n_nums and all(x == "" or x.isdigit() for x in nums):
             start = int(nums[0]) if nums[0] else 0
             stop = int(nums[1]) if n_nums == 2 and nums[1] else None
+            _no_extra_fields(text, head)
             return head, start, stop
     for n_nums in (2, 1):  # FILE:-5, FILE:a:b - the file exists, its range does not parse
         head = ":".join(parts[: len(parts) - n_nums])
@@ -128,6 +129,20 @@ def split_segment(text: str) -> tuple[str, int, int | None]:
                 "FILE[:start[:stop]] with frame numbers >= 0"
             )
     return text, 0, None
+
+
+def _no_extra_fields(text: str, head: str) -> None:
+    """``FILE:10:20:30`` split as file ``FILE:10``: when that is no file but a shorter prefix
+    is, the spec has a field too many (the message said ``FILE:10: no such file``)."""
+    if Path(head).exists():
+        return
+    cut = head
+    while ":" in cut:
+        cut = cut.rsplit(":", 1)[0]
+        if Path(cut).is_file():
+            raise CaptureError(
+                f"{text}: too many ':' fields after {cut}: expected FILE[:start[:stop]]"
+            )
 
 
 def write_capture(capture: Capture, path: str | Path) -> Path:

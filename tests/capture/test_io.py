@@ -180,6 +180,8 @@ def test_read_segment_reads_a_frame_range_with_clear_errors(tmp_path, rng) -> No
         (f"{path}:-5", "bad frame range '-5'"),
         (f"{path}:3:x", "bad frame range '3:x'"),
         (f"{tmp_path / 'none.npz'}:3", "none.npz: no such file"),
+        # said "take.npz:10: no such file"
+        (f"{path}:10:20:30", "too many ':' fields after .*take.npz: expected FILE"),
     ):
         with pytest.raises(CaptureError, match=why):
             read_segment(bad)
