@@ -63,6 +63,8 @@ def read_capture(path: str | Path, up: str = "z", subject: str | None = None) ->
     if p.is_dir():
         raise CaptureError(f"{p}: is a folder, not a capture file (.c3d, .trc, .npz)")
     if not p.is_file():
+        if p.exists():  # a FIFO, a device: a capture is read twice (its header, its frames)
+            raise CaptureError(f"{p}: not a regular file (a capture must be a file on disk)")
         raise CaptureError(f"{p}: no such file")
     suffix = p.suffix.lower()
     try:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -185,6 +187,10 @@ def test_read_segment_reads_a_frame_range_with_clear_errors(tmp_path, rng) -> No
     ):
         with pytest.raises(CaptureError, match=why):
             read_segment(bad)
+    fifo = tmp_path / "live.c3d"
+    os.mkfifo(fifo)  # said "live.c3d: no such file"
+    with pytest.raises(CaptureError, match="live.c3d: not a regular file"):
+        read_segment(fifo)
 
 
 def test_label_evaluate_and_replay_take_a_frame_range(tmp_path, capsys) -> None:
