@@ -875,7 +875,11 @@ def _read_npz(path: Path) -> Capture:
                 f"(it holds {', '.join(z.files) or 'nothing'})"
             )
         positions = z["positions"]
-        labels = [str(x) for x in z["labels"]]
+        raw = z["labels"]
+        if raw.ndim != 1:  # a (M, 1) column read as "['Derrick:C7']"
+            raise CaptureFormatError(f"{path}: labels must be a 1-D array, got shape {raw.shape}")
+        # bytes (an ``S`` array) read as "b'Derrick:C7'"
+        labels = [x.decode("utf-8", "replace") if isinstance(x, bytes) else str(x) for x in raw]
         rate = float(z["rate"])
     return _finish(positions, labels, rate, path, [])
 

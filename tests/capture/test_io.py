@@ -311,3 +311,17 @@ def test_other_systems_unlabeled_names_are_unlabeled_tracks(tmp_path, rng, suffi
     assert len(set(cap.labels)) == len(labels)
     assert any("5 unlabeled trajectories" in n for n in cap.notes)
     np.testing.assert_allclose(cap.positions, pos, atol=1e-3)
+
+
+def test_npz_labels_as_bytes_or_a_column(tmp_path, rng) -> None:
+    """A hostile run: an NPZ whose labels are bytes read back as subject ``b'Derrick``; a (M, 1)
+    column as ``['Derrick``."""
+    pos = rng.normal(scale=300.0, size=(5, 3, 3))
+    names = np.array(["D:a", "D:b", "D:c"])
+    path = tmp_path / "b.npz"
+    np.savez(path, positions=pos, labels=names.astype("S3"), rate=100.0)
+    cap = read_capture(path)
+    assert cap.labels == ("D:a", "D:b", "D:c") and cap.subjects == ("D",)
+    np.savez(path, positions=pos, labels=names[:, None], rate=100.0)
+    with pytest.raises(CaptureError, match=r"labels must be a 1-D array, got shape \(3, 1\)"):
+        read_capture(path)
