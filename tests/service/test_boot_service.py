@@ -467,26 +467,39 @@ def test_everyone_leaves_the_stream_turns_lost_and_the_performers_reboot(
                            if kind == "status")  # fmt: skip
 
             t0 = loop.time()
+            g0 = None  # the frame the performers leave at
             for f in range(frames.n_frames):
-                if f == gone0 and not online():
-                    # (on a loaded machine the first boot may outlast the first second: the
-                    # performers leave once they are labeled, as the test means)
-                    await until(online, "the first boot installed", timeout=120.0)
-                    t0 = loop.time() - f / frames.rate
+                if g0 is None and f >= gone0:
+                    if online():
+                        g0 = f
+                    elif f == gone0:
+                        # (on a loaded machine the first boot may outlast the first second:
+                        # the performers leave once they are labeled, as the test means; the
+                        # status reads online only from frames labeled after the install, so
+                        # the frames go on until then - waiting for the status with no frame
+                        # to label never ended when the install came after the last one)
+                        await until(
+                            lambda: srv.metrics.value("mocap_subjects_booted", stream="vol")
+                            >= PERFORMERS, "the first boot installed", timeout=120.0,
+                        )  # fmt: skip
+                        t0 = loop.time() - f / frames.rate
                 delay = t0 + f / frames.rate - loop.time()
                 if delay > 0:
                     await asyncio.sleep(delay)
-                pts = stray[f - gone0] if gone0 <= f < gone1 else frames.points[f]
+                away = g0 is not None and g0 <= f < g0 + (gone1 - gone0)
+                pts = stray[f - g0] if away else frames.points[f]
                 mem.inject(encode_frame("vol", f, float(frames.times[f]), pts))
+            assert g0 is not None and g0 + (gone1 - gone0) + 60 <= frames.n_frames, g0
             await until(
                 lambda: srv.metrics.value("mocap_frames_out_total", stream="vol")
                 + srv.metrics.drops() >= frames.n_frames, "every frame handled", timeout=180.0,
             )  # fmt: skip
             outs = [(decode(p), names) for _, kind, p, _ in mem.sent if kind == "labeled"]
             states = [decode(p).state for s, kind, p, _ in mem.sent if kind == "status"]
-            return st, outs, states, srv.metrics
+            return st, outs, states, srv.metrics, g0
 
-    st, outs, states, srv_metrics = run(go(), timeout=300.0)
+    st, outs, states, srv_metrics, gone0 = run(go(), timeout=300.0)
+    gone1 = gone0 + len(stray)
     assert len(outs) == frames.n_frames
     # each drop is counted and logged
     n_drops = sum(kind == "drop" for _, kind, _ in st.labeler.events)
