@@ -818,7 +818,7 @@ def _keep_tracks(points, index, dt, tracks, recovery, scratch, params):
             continue
         for k in range(3):
             c[k] = pos[m, k] + x[m, 3 + k] * dt
-        j, d2 = _nearest(points, index, c, near * near, owner, ANY, -1)
+        j, _ = _nearest(points, index, c, near * near, owner, ANY, -1)
         if j < 0 or assigned[m] == j:
             continue
         h = owner[j]
@@ -854,7 +854,6 @@ def _keep_tracks(points, index, dt, tracks, recovery, scratch, params):
                 _estimate_distance(m, j, points, recovery, obs, kab, est, tau) < e_h
             ):
                 continue  # the holder's body places it there
-        if h >= 0:
             assigned[h] = NONE
             for k in range(3):
                 obs[h, k] = np.nan
