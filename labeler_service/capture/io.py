@@ -747,13 +747,47 @@ def _check_c3d_written(path: Path, data_bytes: int) -> None:
 
 
 # --------------------------------------------------------------------------------- TRC
+def _trc_sep(line: str) -> str:
+    """The separator of one TRC line: tabs (the format's), else commas, else spaces."""
+    return "\t" if "\t" in line else "," if "," in line else " "
+
+
+def _trc_cells(line: str) -> list[str]:
+    """One line's cells, stripped. Between tabs or commas a cell may be empty (a missing
+    coordinate); between spaces none can be."""
+    sep = _trc_sep(line)
+    return line.split() if sep == " " else [x.strip() for x in line.split(sep)]
+
+
+def _trc_row(line: str, lineno: int, n_markers: int, path: Path) -> list[float]:
+    """One data row's coordinates (``3 * n_markers``, NaN where a cell is empty or absent)."""
+    sep, cells = _trc_sep(line), _trc_cells(line)
+    if sep == "," and any(len(x.split()) > 1 for x in cells):
+        raise CaptureFormatError(
+            f"{path}: line {lineno}: cells separated by both commas and spaces (decimal "
+            "commas?): cannot tell the cells apart"
+        )
+    if sep == " " and len(cells) != 2 + 3 * n_markers:
+        raise CaptureFormatError(
+            f"{path}: line {lineno}: {len(cells)} cells separated by spaces, "
+            f"{2 + 3 * n_markers} expected (between spaces no cell can be empty: a missing "
+            "sample needs tab-separated cells or NaN)"
+        )
+    values = cells[2 : 2 + 3 * n_markers]
+    values += [""] * (3 * n_markers - len(values))
+    try:
+        return [float(v) if v else math.nan for v in values]
+    except ValueError as exc:
+        raise CaptureFormatError(f"{path}: line {lineno}: {exc}") from exc
+
+
 def _read_trc(path: Path) -> Capture:
+    """Reads a TRC: five header lines, then a row per frame (Frame#, Time, X Y Z per marker).
+    A line is split at tabs, else at commas, else at spaces (tools write all three)."""
     text = path.read_text(encoding="utf-8", errors="replace").splitlines()
     if len(text) < 5 or not text[0].startswith("PathFileType"):
         raise CaptureFormatError(f"{path}: not a TRC file (no PathFileType header)")
-    keys = text[1].split("\t")
-    vals = text[2].split("\t")
-    header = {k.strip(): v.strip() for k, v in zip(keys, vals, strict=False)}
+    header = dict(zip(_trc_cells(text[1]), _trc_cells(text[2]), strict=False))
     notes: list[str] = []
     try:
         rate = float(header.get("DataRate") or header.get("CameraRate") or "nan")
@@ -761,21 +795,15 @@ def _read_trc(path: Path) -> Capture:
     except (KeyError, ValueError) as exc:
         raise CaptureFormatError(f"{path}: bad TRC header: {exc}") from exc
     scale = _unit_scale(header.get("Units", "mm"), path, notes)
-    names = [x.strip() for x in text[3].split("\t")[2:]]
+    names = _trc_cells(text[3])[2:]
     labels = [x for x in names if x][:n_markers]
     if len(labels) != n_markers:
         raise CaptureFormatError(f"{path}: header says {n_markers} markers, found {len(labels)}")
-    rows = []
-    for lineno, line in enumerate(text[5:], start=6):
-        if not line.strip():
-            continue
-        cells = line.split("\t")
-        values = cells[2 : 2 + 3 * n_markers]
-        values += [""] * (3 * n_markers - len(values))
-        try:
-            rows.append([float(v) if v.strip() else math.nan for v in values])
-        except ValueError as exc:
-            raise CaptureFormatError(f"{path}: line {lineno}: {exc}") from exc
+    rows = [
+        _trc_row(line, lineno, n_markers, path)
+        for lineno, line in enumerate(text[5:], start=6)
+        if line.strip()
+    ]
     pos = np.asarray(rows, dtype=np.float64).reshape(len(rows), n_markers, 3) * scale
     return _finish(pos, labels, rate, path, notes)
 

@@ -1,0 +1,110 @@
+"""The TRC reader on files other tools (and a hostile tester) write: marker and frame counts
+that disagree with the header, rows separated by spaces or commas, the Frame# and Time
+columns, rows cut short. Each case reads right with a note, or is a one-line error naming the
+file; none loses data silently."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labeler_service.capture import Capture, read_capture, write_capture
+from labeler_service.errors import CaptureFormatError
+
+
+def _positions(frames: int = 6, markers: int = 3) -> np.ndarray:
+    """Distinct, exactly printable coordinates: frame f, marker m, axis a -> f.m a."""
+    f, m, a = np.meshgrid(np.arange(frames), np.arange(markers), np.arange(3), indexing="ij")
+    return (100.0 * (f + 1) + 10.0 * m + a + 0.5).astype(np.float32)
+
+
+def _trc(
+    path: Path,
+    pos: np.ndarray,
+    *,
+    rate: float = 100.0,
+    n_frames: int | None = None,
+    n_markers: int | None = None,
+    names: list[str] | None = None,
+    frames: list[int] | None = None,
+    times: list[float] | None = None,
+    sep: str = "\t",
+) -> Path:
+    """A TRC as other tools write one: the header's counts, the marker names, the Frame# and
+    Time columns and the separator of the data rows can each be given wrong."""
+    f, m = pos.shape[:2]
+    names = [f"M{i}" for i in range(m)] if names is None else names
+    frames = list(range(1, f + 1)) if frames is None else frames
+    times = [i / rate for i in range(f)] if times is None else times
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits",
+        f"{rate:g}\t{rate:g}\t{f if n_frames is None else n_frames}\t"
+        f"{m if n_markers is None else n_markers}\tmm",
+        "Frame#\tTime\t" + "\t".join(f"{x}\t\t" for x in names).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(m)),
+        "",
+    ]
+    for i in range(f):
+        cells = ["" if np.isnan(v) else f"{v:g}" for v in pos[i].reshape(-1)]
+        lines.append(sep.join([str(frames[i]), f"{times[i]:.6f}", *cells]))
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def _said(cap: Capture, *words: str) -> bool:
+    return any(all(w in note for w in words) for note in cap.notes)
+
+
+# ------------------------------------------------------------------ 2: separators
+@pytest.mark.parametrize("sep", [" ", "   ", ",", ", "])
+def test_rows_separated_by_spaces_or_commas_read(tmp_path, sep: str) -> None:
+    """Every sample read as missing: the rows were split at tabs only."""
+    pos = _positions()
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, sep=sep))
+    np.testing.assert_array_equal(cap.positions, pos)
+    assert cap.notes == (), cap.notes
+
+
+def test_comma_rows_keep_empty_cells_as_missing_samples(tmp_path) -> None:
+    pos = _positions()
+    pos[2, 1] = np.nan
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, sep=","))
+    np.testing.assert_array_equal(cap.positions, pos)
+
+
+def test_a_space_separated_row_short_of_cells_is_refused(tmp_path) -> None:
+    """Between spaces no cell is empty: a row short of a sample cannot say which one."""
+    pos = _positions()
+    path = _trc(tmp_path / "t.trc", pos, sep=" ")
+    lines = path.read_text().splitlines()
+    lines[8] = " ".join(lines[8].split()[:-3])  # frame 3 lacks a sample
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: line 9: 8 cells .* 11 expected"):
+        read_capture(path)
+
+
+def test_spaces_inside_comma_separated_cells_are_refused(tmp_path) -> None:
+    """``1,5 2,5``: decimal commas between spaces, or commas between cells? Neither is read."""
+    pos = _positions(frames=2, markers=1)
+    path = _trc(tmp_path / "t.trc", pos, sep=",")
+    lines = path.read_text().splitlines()
+    lines[6] = "1 0,0 100,5 101,5 102,5"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: line 7: .*commas and spaces"):
+        read_capture(path)
+
+
+# ------------------------------------------------------------------ the writer
+@pytest.mark.parametrize("rate", [100.0, 59.94, 360.0])
+def test_write_then_read_is_lossless_and_says_nothing(tmp_path, rng, rate: float) -> None:
+    pos = (rng.normal(size=(400, 5, 3)) * 500).astype(np.float32)
+    pos[3, 1] = np.nan
+    pos[10:20, 4] = np.nan
+    cap = Capture(pos, tuple(f"S:m{i}" for i in range(5)), rate, source="mem")
+    back = read_capture(write_capture(cap, tmp_path / "w.trc"))
+    assert back.labels == cap.labels and back.rate == pytest.approx(rate)
+    np.testing.assert_array_equal(back.positions, cap.positions)  # repr() of the float32
+    assert back.notes == (), back.notes
