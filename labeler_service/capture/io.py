@@ -759,15 +759,22 @@ def _trc_cells(line: str) -> list[str]:
     return line.split() if sep == " " else [x.strip() for x in line.split(sep)]
 
 
-def _trc_row(line: str, lineno: int, n_markers: int, path: Path) -> list[float]:
-    """One data row's coordinates (``3 * n_markers``, NaN where a cell is empty or absent)."""
-    sep, cells = _trc_sep(line), _trc_cells(line)
-    if sep == "," and any(len(x.split()) > 1 for x in cells):
+def _trc_row_cells(line: str, lineno: int, path: Path) -> list[str]:
+    """One data row's cells, refusing a row whose cells cannot be told apart."""
+    cells = _trc_cells(line)
+    if _trc_sep(line) == "," and any(len(x.split()) > 1 for x in cells):
         raise CaptureFormatError(
             f"{path}: line {lineno}: cells separated by both commas and spaces (decimal "
             "commas?): cannot tell the cells apart"
         )
-    if sep == " " and len(cells) != 2 + 3 * n_markers:
+    return cells
+
+
+def _trc_row(
+    cells: list[str], n_markers: int, *, spaced: bool, lineno: int, path: Path
+) -> list[float]:
+    """One data row's coordinates (``3 * n_markers``, NaN where a cell is empty or absent)."""
+    if spaced and len(cells) != 2 + 3 * n_markers:
         raise CaptureFormatError(
             f"{path}: line {lineno}: {len(cells)} cells separated by spaces, "
             f"{2 + 3 * n_markers} expected (between spaces no cell can be empty: a missing "
@@ -781,9 +788,45 @@ def _trc_row(line: str, lineno: int, n_markers: int, path: Path) -> list[float]:
         raise CaptureFormatError(f"{path}: line {lineno}: {exc}") from exc
 
 
+def _trc_labels(
+    names: list[str], n_data: int, *, declared: str, spaced: bool, path: Path, notes: list[str]
+) -> list[str]:
+    """The markers' labels: one per named column and one (empty: an unlabeled track) per
+    unnamed column the data rows hold. The header's NumMarkers is only checked (noted)."""
+    if spaced and len(names) != n_data:
+        raise CaptureFormatError(
+            f"{path}: the marker-name row names {len(names)} markers, the data rows hold "
+            f"{n_data} (a name with a space in a file not separated by tabs?)"
+        )
+    if len(names) < n_data:
+        notes.append(
+            f"the marker-name row names {len(names)}, the data rows hold "
+            f"{plural(n_data, 'marker')}: the unnamed ones read as unlabeled tracks"
+        )
+    elif len(names) > n_data:
+        gone = ", ".join(names[n_data:][:3]) + (", ..." if len(names) - n_data > 3 else "")
+        notes.append(
+            f"the marker-name row names {len(names)}, the data rows hold "
+            f"{plural(n_data, 'marker')}: {gone} missing in every frame"
+        )
+    labels = names + [""] * (n_data - len(names))
+    if not labels:
+        raise CaptureFormatError(f"{path}: the TRC names no marker and its rows hold none")
+    if declared != str(len(labels)):
+        msg = f"header NumMarkers {declared or '(none)'}, the file holds " + (
+            f"{plural(len(labels), 'marker')}: all read"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+    return labels
+
+
 def _read_trc(path: Path) -> Capture:
     """Reads a TRC: five header lines, then a row per frame (Frame#, Time, X Y Z per marker).
-    A line is split at tabs, else at commas, else at spaces (tools write all three)."""
+
+    A line is split at tabs, else at commas, else at spaces (tools write all three). The file's
+    columns are trusted over the header's counts: every named column and every column with data
+    is read, and a NumMarkers or NumFrames that disagrees with them is noted."""
     text = path.read_text(encoding="utf-8", errors="replace").splitlines()
     if len(text) < 5 or not text[0].startswith("PathFileType"):
         raise CaptureFormatError(f"{path}: not a TRC file (no PathFileType header)")
@@ -791,21 +834,37 @@ def _read_trc(path: Path) -> Capture:
     notes: list[str] = []
     try:
         rate = float(header.get("DataRate") or header.get("CameraRate") or "nan")
-        n_markers = int(header["NumMarkers"])
-    except (KeyError, ValueError) as exc:
+    except ValueError as exc:
         raise CaptureFormatError(f"{path}: bad TRC header: {exc}") from exc
     scale = _unit_scale(header.get("Units", "mm"), path, notes)
-    names = _trc_cells(text[3])[2:]
-    labels = [x for x in names if x][:n_markers]
-    if len(labels) != n_markers:
-        raise CaptureFormatError(f"{path}: header says {n_markers} markers, found {len(labels)}")
+    names = [x for x in _trc_cells(text[3])[2:] if x]
+    body = [(lineno, line) for lineno, line in enumerate(text[5:], start=6) if line.strip()]
+    cells = [_trc_row_cells(line, lineno, path) for lineno, line in body]
+    width = max((_filled(c) for c in cells), default=0)
+    n_data = max(0, -(-(width - 2) // 3))  # the widest row's markers (the last may be partial)
+    labels = _trc_labels(
+        names,
+        n_data,
+        declared=header.get("NumMarkers", ""),
+        spaced=_trc_sep(text[3]) == " ",
+        path=path,
+        notes=notes,
+    )
+    n_markers = len(labels)
     rows = [
-        _trc_row(line, lineno, n_markers, path)
-        for lineno, line in enumerate(text[5:], start=6)
-        if line.strip()
+        _trc_row(c, n_markers, spaced=_trc_sep(line) == " ", lineno=lineno, path=path)
+        for c, (lineno, line) in zip(cells, body, strict=True)
     ]
+    declared = header.get("NumFrames", "")
+    if declared and declared != str(len(rows)):
+        notes.append(f"header NumFrames {declared}, {plural(len(rows), 'data row')} read")
     pos = np.asarray(rows, dtype=np.float64).reshape(len(rows), n_markers, 3) * scale
     return _finish(pos, labels, rate, path, notes)
+
+
+def _filled(cells: list[str]) -> int:
+    """The number of cells up to the last non-empty one (trailing tabs hold nothing)."""
+    return next((i + 1 for i in range(len(cells) - 1, -1, -1) if cells[i]), 0)
 
 
 def _write_trc(capture: Capture, path: Path, name: str | None = None) -> None:

@@ -58,6 +58,60 @@ def _said(cap: Capture, *words: str) -> bool:
     return any(all(w in note for w in words) for note in cap.notes)
 
 
+# ----------------------------------------------------------- 1: marker and frame counts
+def test_num_markers_below_the_columns_reads_every_column_with_a_note(tmp_path) -> None:
+    """NumMarkers 2 over three named columns of data: the third was dropped silently."""
+    pos = _positions(markers=3)
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, n_markers=2))
+    assert cap.labels == ("t:M0", "t:M1", "t:M2")
+    np.testing.assert_array_equal(cap.positions, pos)
+    assert _said(cap, "NumMarkers 2", "3 markers"), cap.notes
+
+
+def test_num_markers_above_the_columns_reads_the_columns_with_a_note(tmp_path) -> None:
+    """NumMarkers 5 over three named columns of data: refused ("header says 5 markers")."""
+    pos = _positions(markers=3)
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, n_markers=5))
+    assert cap.labels == ("t:M0", "t:M1", "t:M2")
+    np.testing.assert_array_equal(cap.positions, pos)
+    assert _said(cap, "NumMarkers 5", "3 markers"), cap.notes
+
+
+def test_data_columns_without_a_name_read_as_unlabeled_tracks(tmp_path) -> None:
+    pos = _positions(markers=3)
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, names=["M0", "M1"]))
+    assert cap.labels == ("t:M0", "t:M1", "*2")
+    np.testing.assert_array_equal(cap.positions, pos)
+    assert _said(cap, "names 2", "3 markers"), cap.notes
+
+
+def test_named_markers_without_data_are_missing_with_a_note(tmp_path) -> None:
+    pos = _positions(markers=2)
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, names=["M0", "M1", "M2"], n_markers=3))
+    assert cap.labels == ("t:M0", "t:M1", "t:M2")
+    np.testing.assert_array_equal(cap.positions[:, :2], pos)
+    assert np.isnan(cap.positions[:, 2]).all()
+    assert _said(cap, "names 3", "2 markers"), cap.notes
+
+
+def test_num_frames_unlike_the_rows_reads_the_rows_with_a_note(tmp_path) -> None:
+    pos = _positions(frames=6)
+    for declared in (4, 9):
+        cap = read_capture(_trc(tmp_path / "t.trc", pos, n_frames=declared))
+        np.testing.assert_array_equal(cap.positions, pos)
+        assert _said(cap, f"NumFrames {declared}", "6 data rows"), cap.notes
+
+
+def test_marker_names_with_spaces_in_a_file_without_tabs_are_refused(tmp_path) -> None:
+    pos = _positions(markers=2)
+    path = _trc(tmp_path / "t.trc", pos, sep=" ")
+    lines = path.read_text().splitlines()
+    lines[3] = "Frame# Time L Knee R Knee"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: the marker-name row names 4"):
+        read_capture(path)
+
+
 # ------------------------------------------------------------------ 2: separators
 @pytest.mark.parametrize("sep", [" ", "   ", ",", ", "])
 def test_rows_separated_by_spaces_or_commas_read(tmp_path, sep: str) -> None:
