@@ -759,33 +759,49 @@ def _trc_cells(line: str) -> list[str]:
     return line.split() if sep == " " else [x.strip() for x in line.split(sep)]
 
 
-def _trc_row_cells(line: str, lineno: int, path: Path) -> list[str]:
+class _TRCRow(NamedTuple):
+    """A data row as text: its line number, its cells, and whether they must all be there
+    (cells between spaces: none can be empty, so a short row cannot say which are missing)."""
+
+    lineno: int
+    cells: list[str]
+    exact: bool
+
+
+def _trc_data_row(line: str, lineno: int, path: Path) -> _TRCRow:
     """One data row's cells, refusing a row whose cells cannot be told apart."""
-    cells = _trc_cells(line)
-    if _trc_sep(line) == "," and any(len(x.split()) > 1 for x in cells):
+    sep, cells = _trc_sep(line), _trc_cells(line)
+    if sep == "," and any(len(x.split()) > 1 for x in cells):
         raise CaptureFormatError(
             f"{path}: line {lineno}: cells separated by both commas and spaces (decimal "
             "commas?): cannot tell the cells apart"
         )
-    return cells
+    return _TRCRow(lineno, cells, exact=sep == " ")
 
 
-def _trc_row(
-    cells: list[str], n_markers: int, *, spaced: bool, lineno: int, path: Path
-) -> list[float]:
+def _trc_row(row: _TRCRow, n_markers: int, path: Path) -> list[float]:
     """One data row's coordinates (``3 * n_markers``, NaN where a cell is empty or absent)."""
-    if spaced and len(cells) != 2 + 3 * n_markers:
+    if row.exact and len(row.cells) != 2 + 3 * n_markers:
         raise CaptureFormatError(
-            f"{path}: line {lineno}: {len(cells)} cells separated by spaces, "
+            f"{path}: line {row.lineno}: {len(row.cells)} cells separated by spaces, "
             f"{2 + 3 * n_markers} expected (between spaces no cell can be empty: a missing "
             "sample needs tab-separated cells or NaN)"
         )
-    values = cells[2 : 2 + 3 * n_markers]
+    values = row.cells[2 : 2 + 3 * n_markers]
     values += [""] * (3 * n_markers - len(values))
     try:
         return [float(v) if v else math.nan for v in values]
     except ValueError as exc:
-        raise CaptureFormatError(f"{path}: line {lineno}: {exc}") from exc
+        bad = next(v for v in values if v and not _is_number(v))
+        raise CaptureFormatError(f"{path}: line {row.lineno}: {bad!r} is not a number") from exc
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _trc_labels(
@@ -821,15 +837,45 @@ def _trc_labels(
     return labels
 
 
+def _trc_short_rows(
+    rows: list[_TRCRow], expected: int, *, cut: bool, path: Path, notes: list[str]
+) -> None:
+    """Notes rows short of ``expected`` cells (their last samples are missing). ``cut``: the
+    file ends inside the last row, perhaps inside a number: its last cell is dropped too."""
+    if cut:
+        last = rows[-1]
+        msg = (
+            f"truncated: line {last.lineno} ends mid-row ({len(last.cells)} of {expected} "
+            "cells): its last cell and the samples after it read as missing"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+        rows[-1] = _TRCRow(last.lineno, last.cells[:-1], exact=False)  # the leading cells
+    short = [row.lineno for row in rows[: len(rows) - cut] if len(row.cells) < expected]
+    if short:
+        notes.append(
+            f"{plural(len(short), 'row')} short of the {expected} cells of its markers (line "
+            f"{short[0]}{', ...' if len(short) > 1 else ''}): the samples past the row's end "
+            "read as missing"
+        )
+
+
 def _read_trc(path: Path) -> Capture:
     """Reads a TRC: five header lines, then a row per frame (Frame#, Time, X Y Z per marker).
 
     A line is split at tabs, else at commas, else at spaces (tools write all three). The file's
     columns are trusted over the header's counts: every named column and every column with data
-    is read, and a NumMarkers or NumFrames that disagrees with them is noted."""
-    text = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    if len(text) < 5 or not text[0].startswith("PathFileType"):
+    is read, and a NumMarkers or NumFrames that disagrees with them is noted. A row short of
+    cells (at tabs or commas) misses its last samples, with a note; a file that ends mid-row
+    loses that row's last cell too (it may be part of a number)."""
+    raw = path.read_text(encoding="utf-8", errors="replace")
+    text = raw.splitlines()
+    if not text or not text[0].startswith("PathFileType"):
         raise CaptureFormatError(f"{path}: not a TRC file (no PathFileType header)")
+    if len(text) < 5:
+        raise CaptureFormatError(
+            f"{path}: the TRC ends inside its header ({len(text)} of 5 lines; truncated?)"
+        )
     header = dict(zip(_trc_cells(text[1]), _trc_cells(text[2]), strict=False))
     notes: list[str] = []
     try:
@@ -838,9 +884,16 @@ def _read_trc(path: Path) -> Capture:
         raise CaptureFormatError(f"{path}: bad TRC header: {exc}") from exc
     scale = _unit_scale(header.get("Units", "mm"), path, notes)
     names = [x for x in _trc_cells(text[3])[2:] if x]
-    body = [(lineno, line) for lineno, line in enumerate(text[5:], start=6) if line.strip()]
-    cells = [_trc_row_cells(line, lineno, path) for lineno, line in body]
-    width = max((_filled(c) for c in cells), default=0)
+    rows = [
+        _trc_data_row(line, lineno, path)
+        for lineno, line in enumerate(text[5:], start=6)
+        if line.strip()
+    ]
+    if not rows:
+        raise CaptureFormatError(
+            f"{path}: the TRC holds no frame data (truncated after its header?)"
+        )
+    width = max(_filled(row.cells) for row in rows)
     n_data = max(0, -(-(width - 2) // 3))  # the widest row's markers (the last may be partial)
     labels = _trc_labels(
         names,
@@ -850,15 +903,17 @@ def _read_trc(path: Path) -> Capture:
         path=path,
         notes=notes,
     )
-    n_markers = len(labels)
-    rows = [
-        _trc_row(c, n_markers, spaced=_trc_sep(line) == " ", lineno=lineno, path=path)
-        for c, (lineno, line) in zip(cells, body, strict=True)
-    ]
+    expected = 2 + 3 * len(labels)
+    last = rows[-1].cells  # cut: the file ends mid-row (no line end, a cell short or a '-')
+    cut = not raw.endswith(("\n", "\r")) and (
+        len(last) < expected or bool(last[-1]) and not _is_number(last[-1])
+    )
+    _trc_short_rows(rows, expected, cut=cut, path=path, notes=notes)
     declared = header.get("NumFrames", "")
     if declared and declared != str(len(rows)):
         notes.append(f"header NumFrames {declared}, {plural(len(rows), 'data row')} read")
-    pos = np.asarray(rows, dtype=np.float64).reshape(len(rows), n_markers, 3) * scale
+    pos = np.array([_trc_row(row, len(labels), path) for row in rows], dtype=np.float64)
+    pos = pos.reshape(len(rows), len(labels), 3) * scale
     return _finish(pos, labels, rate, path, notes)
 
 

@@ -151,6 +151,72 @@ def test_spaces_inside_comma_separated_cells_are_refused(tmp_path) -> None:
         read_capture(path)
 
 
+# ------------------------------------------------------------------ 4: rows cut short
+def test_a_last_row_cut_mid_line_reads_its_complete_samples_with_a_note(tmp_path) -> None:
+    """The file ends inside a number: '-' failed with "could not convert string to float"."""
+    pos = _positions(frames=4, markers=2)
+    pos[3, 1, 1] = -pos[3, 1, 1]
+    path = _trc(tmp_path / "t.trc", pos)
+    text = path.read_text()
+    path.write_text(text[: text.rindex("\t-") + 2])  # frame 4 ends '...\t-' (no newline)
+    cap = read_capture(path)
+    np.testing.assert_array_equal(cap.positions[:3], pos[:3])
+    np.testing.assert_array_equal(cap.positions[3, 0], pos[3, 0])
+    assert np.isnan(cap.positions[3, 1]).all()
+    assert _said(cap, "truncated", "line 10"), cap.notes
+
+
+def test_a_cut_number_is_not_read_as_a_shorter_one(tmp_path) -> None:
+    """'402.5' cut to '40' at the end of the file was read as Z = 40."""
+    pos = _positions(frames=4, markers=2)
+    path = _trc(tmp_path / "t.trc", pos)
+    text = path.read_text()
+    cut = text.rindex(f"\t{pos[3, 0, 2]:g}") + 3
+    path.write_text(text[:cut])
+    cap = read_capture(path)
+    np.testing.assert_array_equal(cap.positions[:3], pos[:3])
+    assert np.isnan(cap.positions[3]).all()
+    assert _said(cap, "truncated"), cap.notes
+
+
+def test_a_last_cell_cut_to_its_sign_reads_as_missing(tmp_path) -> None:
+    pos = _positions(frames=4, markers=2)
+    pos[3, 1, 2] = -pos[3, 1, 2]
+    path = _trc(tmp_path / "t.trc", pos)
+    text = path.read_text()
+    path.write_text(text[: text.rindex("\t-") + 2])  # every cell there, the last one '-'
+    cap = read_capture(path)
+    np.testing.assert_array_equal(cap.positions[:, 0], pos[:, 0])
+    np.testing.assert_array_equal(cap.positions[:3, 1], pos[:3, 1])
+    assert np.isnan(cap.positions[3, 1]).all()
+    assert _said(cap, "truncated", "line 10"), cap.notes
+
+
+def test_rows_short_of_cells_read_as_missing_with_a_note(tmp_path) -> None:
+    """Tab rows that stop before their last samples were padded with missing silently."""
+    pos = _positions(frames=5, markers=3)
+    path = _trc(tmp_path / "t.trc", pos)
+    lines = path.read_text().splitlines()
+    lines[7] = "\t".join(lines[7].split("\t")[:-4])  # frame 2: marker 1's Z, marker 2 gone
+    path.write_text("\n".join(lines) + "\n")
+    cap = read_capture(path)
+    expected = pos.copy()
+    expected[1, 1:] = np.nan
+    np.testing.assert_array_equal(cap.positions, expected)
+    assert _said(cap, "1 row", "line 8", "missing"), cap.notes
+
+
+def test_a_file_cut_in_or_after_its_header_is_a_clear_error(tmp_path) -> None:
+    path = _trc(tmp_path / "t.trc", _positions())
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[:6]) + "\n")
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: .*no frame data.*truncated"):
+        read_capture(path)
+    path.write_text("\n".join(lines[:3]))
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: .*ends inside its header"):
+        read_capture(path)
+
+
 # ------------------------------------------------------------------ the writer
 @pytest.mark.parametrize("rate", [100.0, 59.94, 360.0])
 def test_write_then_read_is_lossless_and_says_nothing(tmp_path, rng, rate: float) -> None:
