@@ -747,6 +747,11 @@ def _check_c3d_written(path: Path, data_bytes: int) -> None:
 
 
 # --------------------------------------------------------------------------------- TRC
+#: the header's DataRate and the rate the Time column's spacing gives may differ by this
+#: fraction (times are written rounded: to 1 ms, 50 frames at 240 Hz are 0.5 % off at worst)
+TRC_RATE_TOL = 0.01
+
+
 def _trc_sep(line: str) -> str:
     """The separator of one TRC line: tabs (the format's), else commas, else spaces."""
     return "\t" if "\t" in line else "," if "," in line else " "
@@ -860,14 +865,65 @@ def _trc_short_rows(
         )
 
 
+def _trc_column(rows: list[_TRCRow], k: int) -> np.ndarray:
+    """Column ``k`` of the rows as numbers (NaN where a cell is empty, absent or not one)."""
+    cells = [row.cells[k] if len(row.cells) > k else "" for row in rows]
+    return np.array([float(x) if x and _is_number(x) else math.nan for x in cells])
+
+
+def _trc_clock(rows: list[_TRCRow], rate: float, path: Path, notes: list[str]) -> None:
+    """Checks the Frame# and Time columns against reading the rows in file order at the
+    header's rate: frame numbers out of order, repeated or skipped, and a Time column whose
+    spacing gives a rate more than :data:`TRC_RATE_TOL` from DataRate, are noted."""
+    frames = _trc_column(rows, 0)
+    whole = np.isfinite(frames) & (frames == np.round(frames))
+    if not whole.all():
+        notes.append(f"{plural(int((~whole).sum()), 'row')} without a frame number in Frame#")
+    known = frames[whole]
+    step = np.diff(known)
+    back, same = int((step < 0).sum()), int((step == 0).sum())
+    if back:
+        notes.append(f"Frame# out of order ({plural(back, 'step')} back): rows read in file order")
+    if same:
+        notes.append(f"Frame# repeated ({plural(same, 'row')}): rows read in file order")
+    skipped = int(known.max() - known.min() + 1) - np.unique(known).size if known.size else 0
+    if skipped:
+        notes.append(
+            f"Frame# numbers skip {plural(skipped, 'frame')}: rows read as consecutive frames"
+        )
+    times = _trc_column(rows, 1)
+    timed = np.flatnonzero(np.isfinite(times))
+    if timed.size < 2 or not math.isfinite(rate):
+        return
+    t = times[timed]
+    if np.any(np.diff(t) <= 0):
+        if not (back or same):
+            notes.append("Time does not increase row by row: its spacing is not checked")
+        return
+    # the frames between the first and the last timed row: by Frame# where it counts up
+    f = frames[timed]
+    steady = whole[timed].all() and bool(np.all(np.diff(f) > 0))
+    span = f[-1] - f[0] if steady else timed[-1] - timed[0]
+    said = span / (t[-1] - t[0])
+    if abs(said / rate - 1.0) > TRC_RATE_TOL:
+        msg = (
+            f"header DataRate {rate:g} Hz, the Time column's spacing {said:.4g} Hz: read at "
+            f"{rate:g} Hz"
+        )
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+
+
 def _read_trc(path: Path) -> Capture:
     """Reads a TRC: five header lines, then a row per frame (Frame#, Time, X Y Z per marker).
 
     A line is split at tabs, else at commas, else at spaces (tools write all three). The file's
     columns are trusted over the header's counts: every named column and every column with data
-    is read, and a NumMarkers or NumFrames that disagrees with them is noted. A row short of
-    cells (at tabs or commas) misses its last samples, with a note; a file that ends mid-row
-    loses that row's last cell too (it may be part of a number)."""
+    is read, and a NumMarkers or NumFrames that disagrees with them is noted. Rows are read in
+    file order at DataRate; Frame# numbers out of order, repeated or skipped, and a Time column
+    spaced more than 1 % off DataRate are noted (:func:`_trc_clock`). A row short of cells (at
+    tabs or commas) misses its last samples, with a note; a file that ends mid-row loses that
+    row's last cell too (it may be part of a number)."""
     raw = path.read_text(encoding="utf-8", errors="replace")
     text = raw.splitlines()
     if not text or not text[0].startswith("PathFileType"):
@@ -909,6 +965,7 @@ def _read_trc(path: Path) -> Capture:
         len(last) < expected or bool(last[-1]) and not _is_number(last[-1])
     )
     _trc_short_rows(rows, expected, cut=cut, path=path, notes=notes)
+    _trc_clock(rows, rate, path, notes)
     declared = header.get("NumFrames", "")
     if declared and declared != str(len(rows)):
         notes.append(f"header NumFrames {declared}, {plural(len(rows), 'data row')} read")

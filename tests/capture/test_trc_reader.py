@@ -151,6 +151,39 @@ def test_spaces_inside_comma_separated_cells_are_refused(tmp_path) -> None:
         read_capture(path)
 
 
+# ------------------------------------------------------------------ 3: Frame# and Time
+def test_a_data_rate_unlike_the_time_column_is_noted(tmp_path) -> None:
+    """DataRate 100 over a Time column 1/120 s apart: read at 100 Hz without a word."""
+    pos = _positions(frames=30, markers=1)
+    times = [i / 120.0 for i in range(30)]
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, rate=100.0, times=times))
+    assert cap.rate == 100.0
+    assert _said(cap, "DataRate 100", "120 Hz"), cap.notes
+
+
+def test_times_rounded_to_milliseconds_agree_with_the_rate(tmp_path) -> None:
+    pos = _positions(frames=50, markers=1)
+    times = [round(i / 240.0, 3) for i in range(50)]
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, rate=240.0, times=times))
+    assert cap.notes == (), cap.notes
+
+
+@pytest.mark.parametrize(
+    ("frames", "words"),
+    [
+        ([1, 2, 4, 3, 5, 6], ("out of order",)),
+        ([1, 2, 3, 3, 4, 5], ("repeated",)),
+        ([1, 2, 3, 6, 7, 8], ("skip 2 frames",)),
+    ],
+)
+def test_frame_numbers_out_of_order_repeated_or_skipped_are_noted(tmp_path, frames, words):
+    pos = _positions(frames=6, markers=1)
+    times = [(f - 1) / 100.0 for f in frames]
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, frames=frames, times=times))
+    np.testing.assert_array_equal(cap.positions, pos)  # read in file order
+    assert _said(cap, "Frame#", *words), cap.notes
+
+
 # ------------------------------------------------------------------ 4: rows cut short
 def test_a_last_row_cut_mid_line_reads_its_complete_samples_with_a_note(tmp_path) -> None:
     """The file ends inside a number: '-' failed with "could not convert string to float"."""
