@@ -893,7 +893,7 @@ def _trc_clock(rows: list[_TRCRow], rate: float, path: Path, notes: list[str]) -
         )
     times = _trc_column(rows, 1)
     timed = np.flatnonzero(np.isfinite(times))
-    if timed.size < 2 or not math.isfinite(rate):
+    if timed.size < 2 or not (math.isfinite(rate) and rate > 0):
         return
     t = times[timed]
     if np.any(np.diff(t) <= 0):
@@ -907,8 +907,8 @@ def _trc_clock(rows: list[_TRCRow], rate: float, path: Path, notes: list[str]) -
     said = span / (t[-1] - t[0])
     if abs(said / rate - 1.0) > TRC_RATE_TOL:
         msg = (
-            f"header DataRate {rate:g} Hz, the Time column's spacing {said:.4g} Hz: read at "
-            f"{rate:g} Hz"
+            f"header DataRate {rate:g} Hz, the Time column's spacing gives {said:.4g} Hz: read "
+            f"at {rate:g} Hz"
         )
         notes.append(msg)
         log.warning("%s: %s", path, msg)
@@ -964,6 +964,10 @@ def _read_trc(path: Path) -> Capture:
     cut = not raw.endswith(("\n", "\r")) and (
         len(last) < expected or bool(last[-1]) and not _is_number(last[-1])
     )
+    if cut and len(rows) == 1:
+        raise CaptureFormatError(
+            f"{path}: the TRC ends inside its first data row (line {rows[0].lineno}; truncated?)"
+        )
     _trc_short_rows(rows, expected, cut=cut, path=path, notes=notes)
     _trc_clock(rows, rate, path, notes)
     declared = header.get("NumFrames", "")

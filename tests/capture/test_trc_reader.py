@@ -248,6 +248,9 @@ def test_a_file_cut_in_or_after_its_header_is_a_clear_error(tmp_path) -> None:
     path.write_text("\n".join(lines[:3]))
     with pytest.raises(CaptureFormatError, match=r"t\.trc: .*ends inside its header"):
         read_capture(path)
+    path.write_text("\n".join(lines[:7])[:-9])  # the first data row cut mid-number
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: .*ends inside its first data row"):
+        read_capture(path)
 
 
 # ------------------------------------------------------------------ the writer
