@@ -13,8 +13,12 @@ the C3D's POINT parameters list) are left out with a note (:func:`_c3d_markers`)
 
 A C3D that ends before the frames its header declares is read up to its last complete frame
 (ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
-warning (stderr from the CLI). Writers write a temporary file beside the target, check it
-(ezc3d reports no I/O error, so a C3D must have its full size) and rename it over the target.
+warning (stderr from the CLI). A TRC is read from its own columns, split at tabs, commas or
+spaces; where they disagree with its header (NumMarkers, NumFrames, a DataRate unlike the Time
+column) or a row is short or cut, the reader says so in the notes (:func:`_read_trc`).
+
+Writers write a temporary file beside the target, check it (ezc3d reports no I/O error, so a
+C3D must have its full size) and rename it over the target.
 A C3D is written in millimetres with the labels as ``subject:marker`` and the Vicon ``SUBJECTS``
 group (names and label prefixes).
 """
