@@ -949,6 +949,8 @@ def _read_trc(path: Path) -> Capture:
         for lineno, line in enumerate(text[5:], start=6)
         if line.strip()
     ]
+    if not rows and header.get("NumFrames") == "0":  # an empty capture, as written
+        return _finish(np.empty((0, len(names), 3)), names, rate, path, notes)
     if not rows:
         raise CaptureFormatError(
             f"{path}: the TRC holds no frame data (truncated after its header?)"
