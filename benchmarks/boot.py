@@ -22,6 +22,10 @@ on the first half, stream = second half), a leave-and-return case (one performer
 takes, model trained on a composite of other segments of the same takes; the two-player copy
 for two subjects with one template).
 
+``labeled_start_accuracy``: the same stream labeled from the same model and its first 12
+frames' labels (``evaluate --model M --init-frames 12``: the booting labeler given them),
+scored from frame 12 on.
+
     .venv/bin/python benchmarks/boot.py [--quick] [--out FILE]
 """
 
@@ -38,7 +42,6 @@ from scipy.optimize import linear_sum_assignment
 from labeler_service.capture import Capture
 from labeler_service.labeling.boot import BootConfig
 from labeler_service.labeling.booting import BootingLabeler
-from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.compose import compose_scene
 from labeler_service.scenes.simulate import simulate_scene
@@ -86,8 +89,9 @@ def run_case(
         pos[a:b, cols] = np.nan
         pos[b:, cols, 0] += shift
     lab = BootingLabeler(model, truth.rate, boot=boot)
-    # the labeled-window start on the same stream: the model plus the first frames' labels
-    ref = Labeler.from_model(model, truth.rate)
+    # the labeled start on the same stream: the model plus the first frames' labels, as
+    # ``evaluate --model M --init-frames N`` runs it (the booting labeler given those labels)
+    ref = BootingLabeler(model, truth.rate, boot=boot)
     ref_ok = ref_vis = 0
     f_total = truth.n_frames
     ok = np.zeros((f_total, len(subjects)))

@@ -18,8 +18,9 @@ alike) are given anonymously, in a shuffled order.
   no labels at all: the labeler boots the model's subjects from the anonymous points
   (:class:`~labeler_service.labeling.booting.BootingLabeler`, ``make_labeler(..., boot=True)``),
   drops a subject that leaves and boots it again when it returns. ``--init-frames N`` >= 1
-  instead labels the first N frames from IN's columns with the model's names (the initial
-  assignment of :meth:`Labeler.from_model`).
+  instead labels the first N frames from IN's columns with the model's names: the subjects
+  they label start from those labels (no boot), through the same booting labeler, which
+  labels a marker the N frames never showed from its template when it appears.
 
 OUT is in IN's axes and millimetres (a take read with ``--up y`` is rotated back) and holds
 one column per marker (observed and, unless ``--drop-recovered``, recovered
@@ -160,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
             marker_names=names,
             rate=cap.rate,
             model=model,
-            boot=model is not None and init == 0,
+            boot=model is not None,
         )
     index = {n: i for i, n in enumerate(lab.marker_names)}
     col_label = np.array([index.get(n, -1) for n in cap.labels], dtype=np.int32)

@@ -13,8 +13,9 @@ window only:
   labeler's ``body_extent()``; ``recovery_rate`` is the fraction of removed samples recovered;
 - ``ms_per_frame_p50/p99``: wall time of ``process`` per frame in this process, after warm-up.
 - boot and re-identification (``boot_s_max``, ``accuracy_after_boot``, ``reid_s_p95``,
-  ``absent_labeled``, ``identity_swaps``): see :class:`Scorer`. With a model and
-  ``init_frames=0`` nothing is labeled: the labeler boots (``make_labeler(..., boot=True)``).
+  ``absent_labeled``, ``identity_swaps``): see :class:`Scorer`. With a model the online method
+  is the booting labeler (``make_labeler(..., boot=True)``): with ``init_frames=0`` nothing is
+  labeled and it boots; with labeled init frames their subjects start from those labels.
 - ``labeled_start="model"`` (``evaluate --labeled-start model``): the online labeler's labeled
   start goes through the model-based labeler (``make_window_labeler``): subject templates are
   trained on the init window (:func:`~labeler_service.labeling.structure.window_model`), the
@@ -660,8 +661,11 @@ def evaluate(
 
     With ``model`` (``train structure`` output, subjects named as the scene names them) the
     labelers start from the model: with ``init_frames >= 1`` from its templates and the first
-    frames' labels, with ``init_frames == 0`` by booting from anonymous points alone
-    (``make_labeler(..., boot=True)``; the closest-point baseline cannot boot and is skipped).
+    frames' labels, with ``init_frames == 0`` by booting from anonymous points alone (the
+    closest-point baseline cannot boot and is skipped). The online method is the booting
+    labeler either way (``make_labeler(..., boot=True)``): a marker the labeled frames never
+    showed is labeled from its template when it appears, where the plain labeler of the model
+    (``Labeler.from_model``) never labels it and its point goes to others.
     ``leave``/``leave_seconds``: subjects that vanish and return displaced (``CorruptionSpec``).
 
     ``labeled_start="model"`` (without ``model``, ``init_frames >= 3``): the labeled start of the
@@ -755,7 +759,7 @@ def evaluate(
                 marker_names=stream.marker_names,
                 rate=stream.rate,
                 model=loaded,
-                boot=loaded is not None and init_frames == 0,
+                boot=loaded is not None and METHODS[name] == "online",
             )
             if METHODS[name] == "baseline":
                 baseline = labeler
