@@ -32,3 +32,20 @@ def test_a_marker_the_labeled_frames_never_showed_is_labeled_when_it_appears():
     # the plain labeler of the model left it unlabeled in every frame (errors == visible)
     assert wrong.get("P2:LFRM", 0) <= 0.1 * visible
     assert report["accuracy"] >= 0.99
+
+
+def test_the_model_start_benchmark_summarizes_worst_and_mean_per_group_and_cell():
+    from benchmark_scripts import load_benchmark
+
+    ms = load_benchmark("model_start")
+    row = {"group": "tune", "cell": "rate", "max_swap_frames": 0, "ghost_labeled_rate": None}
+    rows = [
+        row | {"scene": "a", "accuracy_seen": 0.99},
+        row | {"scene": "b", "accuracy_seen": 0.97, "max_swap_frames": 12},
+        row | {"scene": "c", "cell": "half", "accuracy_seen": 0.5, "ghost_labeled_rate": 0.01},
+    ]
+    s = ms.summarize(rows)
+    assert s["tune"]["rate"]["worst_scene"] == "b"
+    assert s["tune"]["rate"]["mean_accuracy_seen"] == 0.98
+    assert s["tune"]["rate"]["max_swap_frames"] == 12
+    assert s["tune"]["half"]["ghost_labeled_rate_max"] == 0.01
