@@ -435,4 +435,13 @@ MUTANTS: list[Mutant] = [
         k="exchange",
         kernel=True,
     ),
+    Mutant(
+        "unseen-any-point-in-reach",
+        "labeler_service/labeling/kernels/unseen.py",
+        "            if abs(np.sqrt(d2) - pd[p]) > pt[p]:\n",
+        "            if abs(np.sqrt(d2) - pd[p]) > 1e9 * pt[p]:\n",
+        (T + "labeling/test_unseen_markers.py",),
+        "a marker never observed takes any free point in reach, whatever its trained distances",
+        kernel=True,
+    ),
 ]

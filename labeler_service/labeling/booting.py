@@ -323,7 +323,9 @@ class BootingLabeler:
             raise LabelerError(f"labeled_kept_s must be > 0 seconds, got {labeled_kept_s}")
         self.model = model
         self.rate = float(rate)
-        self.config = config or LabelerConfig()
+        # (the inner labeler's markers never observed are this wrapper's to place: its
+        # acquisition and extension label them and seed their tracks)
+        self.config = (config or LabelerConfig()).model_copy(update={"acquire_unseen": False})
         self.boot_config = boot or BootConfig()
         #: False: :meth:`process` never boots; the owner runs the attempts (see the module doc)
         self.inline_boot = bool(inline_boot)

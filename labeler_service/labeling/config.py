@@ -114,6 +114,12 @@ class LabelerConfig(BaseModel):
         "moved by its velocity, no other point within twice its predicted deviation) gets it "
         "back from a marker not tracked as long (a coasting one, a ghost's), or from nobody",
     )
+    acquire_unseen: bool = Field(
+        True,
+        description="a marker never observed (a labeler started from a model: the labeled frames "
+        "did not show it) takes the free point where the trained shapes of its bodies, fitted to "
+        "3+ tracked members, place it (within reacquire_near_mm, unambiguous)",
+    )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )

@@ -7,7 +7,8 @@ most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition, the
 exchange and kept tracks (ours) -> 3D
 check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap repair and joint
-re-acquisition (ours, :mod:`.repair`) -> Kalman update of the observed markers (Eq. 4) -> recovery
+re-acquisition (ours, :mod:`.repair`) -> markers never observed placed by their bodies' trained
+shapes (ours, :mod:`.unseen`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
 stale state) -> anchored coasting of lost markers without a rigid estimate (ours, :mod:`.anchor`)
@@ -60,6 +61,7 @@ from labeler_service.labeling.kernels.state import (
     Scratch,
     Tracks,
 )
+from labeler_service.labeling.kernels.unseen import _acquire_unseen
 from labeler_service.labeling.kernels.window import _window_update
 
 
@@ -137,6 +139,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _presence(points, tracks, bodies, scratch, params)
     if params.contact_mm > 0.0:  # contacts between performers (ours, kernels/contact.py)
         _contacts(points, index, dt, tracks, bodies, recovery, scratch, params)
+    if params.acquire_unseen:  # markers never observed, placed by their bodies' shapes (ours)
+        _acquire_unseen(points, index, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]

@@ -1,0 +1,197 @@
+"""Markers the stream has not shown yet, placed by their bodies' trained shapes (ours).
+
+A labeler started from a model and a few labeled frames (``Labeler.from_model``) has no
+Kalman state for a marker those frames never showed (``tracks.x`` NaN) and no recovery
+snapshot: it is never predicted, gated or re-acquired, so it never got a label, and in a crowd
+its point went to another marker. The model knows where it sits on its bodies. Only members on
+points this frame that continue their tracks (observed in the previous frame too) are used:
+
+- *shape*: each body of the marker with a reference shape (``bodies.ref``; the trained shape
+  until the stream shows the body whole) and 3+ such members fits that shape onto them (Horn,
+  proper rotations only); a tight fit (RMS within ``repair_check_mm``) places the marker. It
+  takes the free point nearest the place, within ``reacquire_near_mm``, when no other free point
+  lies within twice that and every body that places it points at the same point;
+- *distances*, when no body has 3 such members (a triangle's third corner): the only free
+  point whose distances to the members of all the marker's bodies keep the trained ``D``
+  (within 3 floored trained deviations + ``PAIR_SLACK_MM``), ``MIN_PAIRS`` pairs or more. Two
+  pairs leave a circle of places: a real point on it that the model does not know can be
+  taken (measured in docs/algorithm.md, step 7). Asking 3 pairs did worse: a marker of a
+  triangle placed alone left the triangle holding two points, so the repair's joint
+  re-acquisition of the other two (three points that name themselves) no longer fired.
+
+Its track then starts at the update (Eq. 4), as a first observation does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from labeler_service._numba import njit
+from labeler_service.labeling.frame import OBSERVED
+from labeler_service.labeling.kernels.rigid import _kabsch
+from labeler_service.labeling.kernels.spatial import FREE, _nearest, _span
+
+PAIR_SLACK_MM = 3.0  # distance slack of the pair rule beyond 3 trained deviations, mm
+MAX_PAIRS = 16  # pairs kept per marker for the pair rule
+MIN_PAIRS = 2  # pairs the pair rule needs
+
+
+@njit
+def _acquire_unseen(points, index, tracks, bodies, scratch, params):
+    """Assigns free points to active markers that were never observed (see the module doc).
+
+    Reads ``tracks.state`` as the previous frame's; changes ``scratch.assigned``, ``owner`` and
+    ``obs`` (in sync). Returns the number of markers placed."""
+    x, active, gone = tracks.x, tracks.active, tracks.gone
+    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    est = np.empty(3)
+    pa = np.empty(MAX_PAIRS, dtype=np.int64)  # the pair rule: member's point, D, tolerance
+    pd = np.empty(MAX_PAIRS)
+    pt = np.empty(MAX_PAIRS)
+    placed = 0
+    for m in range(x.shape[0]):
+        if not active[m] or gone[m] or assigned[m] >= 0 or x[m, 0] == x[m, 0]:  # noqa: PLR0124
+            continue
+        pick, shaped = _by_shape(m, points, index, tracks, bodies, scratch, params, est)
+        if pick < 0 and not shaped:
+            pick = _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt)
+        if pick < 0:
+            continue
+        assigned[m] = pick
+        owner[pick] = m
+        for d in range(3):
+            obs[m, d] = points[pick, d]
+        placed += 1
+    return placed
+
+
+@njit
+def _continuing(i, tracks, scratch):
+    """Marker ``i`` is on a point this frame and was observed in the previous one."""
+    return scratch.assigned[i] >= 0 and tracks.state[i] == OBSERVED
+
+
+@njit
+def _by_shape(m, points, index, tracks, bodies, scratch, params, est):
+    """The shape rule: ``(point, shaped)``; point -1 when no agreed unambiguous point;
+    ``shaped``: some body had 3+ continuing members and a tight fit (then the pair rule is not
+    asked)."""
+    kab = scratch.kab
+    src, dst, R, t = kab.src, kab.dst, kab.R, kab.t
+    near = params.reacquire_near_mm
+    tight = params.repair_check_mm
+    owner = scratch.owner
+    pick = -1
+    shaped = False
+    for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
+        b = bodies.mb_idx[e]
+        if not bodies.ref_ok[b]:
+            continue
+        me = -1
+        c = 0
+        for q in range(bodies.size[b]):
+            i = bodies.members[b, q]
+            if i == m:
+                me = q
+                continue
+            if not _continuing(i, tracks, scratch):
+                continue
+            if bodies.ref[b, q, 0] != bodies.ref[b, q, 0]:  # noqa: PLR0124 (NaN test)
+                continue
+            a = scratch.assigned[i]
+            for d in range(3):
+                src[c, d] = bodies.ref[b, q, d]
+                dst[c, d] = points[a, d]
+            c += 1
+        if me < 0 or c < 3 or bodies.ref[b, me, 0] != bodies.ref[b, me, 0]:  # noqa: PLR0124
+            continue
+        _kabsch(src, dst, c, R, t)
+        sq = 0.0
+        for r in range(c):
+            for d in range(3):
+                v = R[d, 0] * src[r, 0] + R[d, 1] * src[r, 1] + R[d, 2] * src[r, 2] + t[d]
+                sq += (v - dst[r, d]) ** 2
+        if sq > tight * tight * c:
+            continue  # the body does not hold its shape now: no place from it
+        shaped = True
+        for d in range(3):
+            est[d] = (
+                R[d, 0] * bodies.ref[b, me, 0]
+                + R[d, 1] * bodies.ref[b, me, 1]
+                + R[d, 2] * bodies.ref[b, me, 2]
+                + t[d]
+            )
+        j, _ = _nearest(points, index, est, near * near, owner, FREE, -1)
+        if j < 0:
+            return -1, True  # this body sees no point at the marker's place
+        if _free_within(points, index, est, 2.0 * near, owner, j) or (pick >= 0 and j != pick):
+            return -1, True  # two free points at the place, or two bodies disagree
+        pick = j
+    return pick, shaped
+
+
+@njit
+def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
+    """The pair rule: the only free point that keeps 3+ trained distances to continuing
+    members of the marker's bodies, or -1."""
+    n = 0
+    floor = params.a_floor_mm
+    for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
+        b = bodies.mb_idx[e]
+        me = -1
+        for q in range(bodies.size[b]):
+            if bodies.members[b, q] == m:
+                me = q
+        for q in range(bodies.size[b]):
+            i = bodies.members[b, q]
+            if i == m or not _continuing(i, tracks, scratch) or n >= MAX_PAIRS:
+                continue
+            dup = False
+            for k in range(n):
+                dup = dup or pa[k] == scratch.assigned[i]
+            if dup:
+                continue
+            pa[n] = scratch.assigned[i]
+            pd[n] = bodies.D0[b, me, q]
+            pt[n] = 3.0 * max(bodies.A0[b, me, q], floor) + PAIR_SLACK_MM
+            n += 1
+    if n < MIN_PAIRS:
+        return -1
+    lo, hi = _span(index, points[pa[0]], pd[0] + pt[0])
+    pick = -1
+    for k in range(lo, hi):
+        j = index.order[k]
+        if scratch.owner[j] >= 0:
+            continue
+        fits = True
+        for p in range(n):
+            d2 = 0.0
+            for d in range(3):
+                v = points[j, d] - points[pa[p], d]
+                d2 += v * v
+            if abs(np.sqrt(d2) - pd[p]) > pt[p]:
+                fits = False
+                break
+        if not fits:
+            continue
+        if pick >= 0:
+            return -1  # two free points keep the distances
+        pick = j
+    return pick
+
+
+@njit
+def _free_within(points, index, centre, radius, owner, skip):
+    """Some free point other than ``skip`` lies within ``radius`` of ``centre``."""
+    lo, hi = _span(index, centre, radius)
+    for k in range(lo, hi):
+        j = index.order[k]
+        if j == skip or owner[j] >= 0:
+            continue
+        d2 = 0.0
+        for d in range(3):
+            v = points[j, d] - centre[d]
+            d2 += v * v
+        if d2 <= radius * radius:
+            return True
+    return False

@@ -1,0 +1,109 @@
+"""A labeler started from a model (``Labeler.from_model``) places a marker its labeled frames
+never showed by its bodies' trained shapes (``kernels/unseen.py``, ``acquire_unseen``): without
+a Kalman state or a recovery snapshot it was never labeled (the service's ``boot = false``
+start from one labeled frame)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.walks import split_walk
+
+from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.labeler import Labeler
+
+LABELED = 12
+PARTNER = {"P2:LFRM": "P2:LWRA", "P2:LKNE": "P2:LTIB", "P2:LANK": "P2:LHEE"}
+HIDDEN = 60  # frames the marker is hidden at the start (0.5 s at 120 Hz)
+
+
+def _labeled_share(marker: str, acquire: bool, decoy_mm: float | None = None) -> tuple[float, int]:
+    """The share of the marker's visible frames (from 5 frames after it appears) in which its
+    own point carries its label, and the frames its label sat on another point. ``decoy_mm``:
+    a free point that far from the marker towards its first body partner, in every frame after
+    the labeled ones (off the marker's trained distances; off its circle of places)."""
+    model, cap = split_walk(3, 6.0, seed=5, rate=120.0)
+    lab = Labeler.from_model(model, cap.rate, LabelerConfig(acquire_unseen=acquire))
+    col = {n: i for i, n in enumerate(cap.labels)}
+    g = np.array([col[n] for n in model.marker_names])
+    k = model.marker_names.index(marker)
+    partner = model.marker_names.index(PARTNER[marker])
+    pos = cap.positions[:, g].copy()
+    pos[:HIDDEN, k] = np.nan
+    rng = np.random.default_rng(0)
+    good = seen = wrong = 0
+    for f in range(cap.n_frames):
+        idx = np.flatnonzero(np.isfinite(pos[f, :, 0]))
+        idx = idx[rng.permutation(idx.size)]
+        given = idx.astype(np.int32) if f < LABELED else None
+        pts = pos[f, idx].astype(np.float32)
+        if decoy_mm is not None and f >= LABELED:
+            here = cap.positions[f, g[k]]
+            toward = cap.positions[f, g[partner]] - here
+            decoy = here + decoy_mm * toward / np.linalg.norm(toward)
+            pts = np.concatenate([pts, decoy[None].astype(np.float32)])
+        out = lab.process(pts, f / cap.rate, given)
+        out_labels = out.point_labels[: idx.size]
+        if f >= HIDDEN + 5 and k in idx:
+            seen += 1
+            good += int(out_labels[np.flatnonzero(idx == k)[0]] == k)
+        wrong += int(np.any(out.point_labels == k) and not np.any((out_labels == k) & (idx == k)))
+    return good / max(seen, 1), wrong
+
+
+@pytest.mark.parametrize("marker", ["P2:LKNE", "P2:LANK", "P2:LFRM"])
+def test_a_marker_the_labeled_frames_never_showed_is_labeled_when_it_appears(marker):
+    # the pair rule (the walkers' bodies are triangles): P2:LKNE is in two (4 members), P2:LANK
+    # in two sharing a member, P2:LFRM in one (2 pairs: the only free point on their circle)
+    share, wrong = _labeled_share(marker, acquire=True)
+    assert share >= 0.95
+    assert wrong == 0
+
+
+def test_a_free_point_off_the_trained_distances_is_not_taken_for_it():
+    # a decoy 40 mm away: the pair rule weighs every distance (a rule that took any free point
+    # in reach would see two candidates and place nothing, or the decoy)
+    share, wrong = _labeled_share("P2:LFRM", acquire=True, decoy_mm=40.0)
+    assert share >= 0.95
+    assert wrong == 0
+
+
+def test_without_the_acquisition_it_is_never_labeled():
+    share, _ = _labeled_share("P2:LKNE", acquire=False)
+    assert share == 0.0
+
+
+def _rigid_cluster(frames: int = 240, rate: float = 120.0):
+    """Six markers on one rigid plate turning and moving (one body of 4+ members)."""
+    from labeler_service.capture import Capture
+
+    rng = np.random.default_rng(3)
+    shape = rng.normal(scale=60.0, size=(6, 3))
+    t = np.arange(frames) / rate
+    pos = np.empty((frames, 6, 3))
+    for f, tt in enumerate(t):
+        a = 0.8 * tt
+        R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0, 0, 1.0]])
+        pos[f] = shape @ R.T + np.array([300.0 * tt, 50.0 * np.sin(tt), 900.0])
+    pos += rng.normal(scale=0.3, size=pos.shape)
+    return Capture(pos.astype(np.float32), tuple(f"s:m{i}" for i in range(6)), rate)
+
+
+def test_a_body_of_four_or_more_places_the_marker_by_its_trained_shape():
+    from labeling.walks import train
+
+    cap = _rigid_cluster()
+    model = train(cap.frames(0, 120))
+    sizes = [len(b) for s in model.subjects for b in s.bodies]
+    assert max(sizes) >= 4  # (the shape rule, not the pair rule)
+    lab = Labeler.from_model(model, cap.rate)
+    later = cap.frames(120, 240)
+    pos = later.positions.copy()
+    pos[:30, 5] = np.nan
+    got = []
+    for f in range(later.n_frames):
+        idx = np.flatnonzero(np.isfinite(pos[f, :, 0]))
+        out = lab.process(pos[f, idx], f / cap.rate, idx.astype(np.int32) if f < 3 else None)
+        if f >= 30:
+            got.append(out.point_labels[np.flatnonzero(idx == 5)[0]] == 5)
+    assert got[0] and all(got)  # labeled in the frame it appears, and kept
