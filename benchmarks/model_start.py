@@ -8,12 +8,17 @@ this asks how well a model start holds up after a few labeled frames: a marker t
 never showed must be labeled from its template. Cells that do not fit a scene cut for room
 are left out (as there).
 
+``--labeler plain`` runs the plain labeler of the model instead (``Labeler.from_model``: the
+service's ``boot = false`` start from labeled frames); ``--set NAME=VALUE`` overrides a
+``LabelerConfig`` field of the online labeler (e.g. ``--set acquire_unseen=false``).
+
 Reported: one line per cell on stderr, then one JSON object: every cell (``accuracy``,
 ``accuracy_seen``, ``errors``, ``max_swap_frames``, ``ghost_labeled_rate``) and per group
 and cell the worst and mean ``accuracy_seen``, the longest swap and the largest ghost rate.
 
     .venv/bin/python benchmarks/model_start.py --jobs 2 --out FILE
     .venv/bin/python benchmarks/model_start.py --cells rate quarter --split tune
+    .venv/bin/python benchmarks/model_start.py --labeler plain --cells rate quarter gaps2 --jobs 2
 """
 
 from __future__ import annotations
@@ -29,7 +34,10 @@ import generalization as gen
 from _common import emit
 
 from labeler_service.errors import MocapError
+from labeler_service.evaluation import scoring
 from labeler_service.evaluation.scoring import evaluate
+from labeler_service.labeling import registry
+from labeler_service.labeling.config import LabelerConfig
 
 CELLS = ("rate", "half", "quarter", "gaps2", "ghosts3", "occlude2")
 
@@ -60,6 +68,28 @@ def run_cell(job: tuple[Any, str, float, int]) -> dict | None:
     )
 
 
+def use_labeler(kind: str, settings: dict[str, Any]) -> None:
+    """Makes ``evaluate``'s online labeler of a model the ``plain`` one (``boot=False``) or
+    keeps the ``booting`` one, with ``settings`` over the default ``LabelerConfig`` (in this
+    process and the workers it forks)."""
+    make = registry.make_labeler
+
+    def made(name: str, **kw: Any) -> Any:
+        if kw.get("model") is not None and name == "online":
+            kw["boot"] = kw["boot"] and kind == "booting"
+            kw["config"] = LabelerConfig(**settings)
+        return make(name, **kw)
+
+    scoring.make_labeler = made  # type: ignore[assignment]
+
+
+def _setting(text: str) -> tuple[str, Any]:
+    name, _, value = text.partition("=")
+    if name not in LabelerConfig.model_fields or not value:
+        raise argparse.ArgumentTypeError(f"{text!r}: not NAME=VALUE of a LabelerConfig field")
+    return name, value
+
+
 def summarize(rows: list[dict]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for r in rows:
@@ -86,9 +116,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cells", nargs="+", choices=CELLS, default=list(CELLS))
     p.add_argument("--seconds", type=float, default=8.0, help="longest scene (s)")
     p.add_argument("--max-frames", type=int, default=1200, help="longest scene (frames)")
+    p.add_argument("--labeler", choices=("booting", "plain"), default="booting")
+    p.add_argument("--set", type=_setting, action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
+    if a.labeler != "booting" or a.set:
+        use_labeler(a.labeler, dict(a.set))
     scenes = gen.matrix(a.split, False)
     jobs = [
         (s, c, a.seconds, a.max_frames)
@@ -106,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
                     file=sys.stderr,
                     flush=True,
                 )
-    emit({"cells": rows, "summary": summarize(rows)}, a.out)
+    settings = {"labeler": a.labeler, "set": dict(a.set)}
+    emit({"settings": settings, "cells": rows, "summary": summarize(rows)}, a.out)
     return 0
 
 
