@@ -9,6 +9,7 @@ from labeling.scene import articulated, frame_points
 from labeling.test_labeler import INIT, run
 
 from labeler_service.errors import LabelerError
+from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import MarkerState
 from labeler_service.labeling.labeler import Labeler
 
@@ -115,7 +116,10 @@ def test_seed_markers_starts_a_marker_hidden_when_its_subject_was_added(rng, sce
     lab = Labeler.from_model(model, RATE, subjects=["P0"])
     lab.add_subjects([], [(0.0, pos[0], np.full(pos.shape[1], -1))])  # no-op: nothing to add
     assert not lab.trained
-    lab = Labeler.from_model(model, RATE, subjects=())
+    # as the booting labeler builds its inner labeler: a marker never observed is its to place
+    # (without acquire_unseen off the kernel places it itself: test_unseen_markers.py)
+    inner = LabelerConfig(acquire_unseen=False)
+    lab = Labeler.from_model(model, RATE, inner, subjects=())
     lab.add_subjects(["P0"], _window(rng, pos, range(W), p0[p0 != late]))
     assert np.isnan(lab._tracks.x[late]).all()
     for f in range(W, 60):
