@@ -236,20 +236,38 @@ def test_model_stream_with_labeled_frames_needs_no_boot(model_path, frames):
     run(go(), timeout=300.0)
 
 
-def test_boot_off_keeps_the_labeled_start(model_path):
+def test_boot_off_keeps_the_labeled_start_and_warms_the_boot_kernels_at_start(
+    model_path, monkeypatch
+):
     """``boot = false``: a model stream builds the plain ``Labeler.from_model`` (its first frame
-    must carry labels)."""
+    must carry labels). Such a stream recovers through a booting labeler: its kernels are
+    compiled (or loaded) at start, not in the first recovery's frame path (a cold cache
+    stalled it 2.4 s there, 127 frames dropped). (One service start for both: they were two
+    tests that started the same service.)"""
+    import labeler_service.labeling.booting as booting_mod
     from labeler_service.labeling.labeler import Labeler
 
+    calls = []
+    real = booting_mod.warmup_kernels
+
+    def counted():
+        calls.append(1)
+        real()
+
+    monkeypatch.setattr(booting_mod, "warmup_kernels", counted)
+
     async def go():
-        async with Server(_settings(model_path, False, boot=False), [MemoryTransport()]) as srv:
+        async with Server(_settings(model_path, False, boot=False, warmup=True),
+                          [MemoryTransport()]) as srv:  # fmt: skip
             st = srv.streams["vol"]
             assert isinstance(st.labeler, Labeler) and st.booting is None
             assert not st.boot_due()
             # nobody can be labeled before a labeled frame or a boot (it read ``online``)
             assert st.status == "booting"
+            return srv.warmup_s
 
-    run(go(), timeout=120.0)
+    assert run(go(), timeout=300.0) > 0
+    assert calls
 
 
 def test_boot_off_model_stream_without_labels_boots_instead_of_refusing(model_path, frames, caplog):
@@ -563,27 +581,3 @@ def test_performers_the_model_lists_but_who_are_absent_do_not_degrade_the_stream
     assert "online" in states, states
     assert "degraded" not in states[states.index("online") :], states
     assert st.status == "online"
-
-
-def test_a_service_that_may_recover_warms_the_boot_kernels_at_start(model_path, monkeypatch):
-    """A model stream with ``boot = false`` recovers through a booting labeler: its kernels are
-    compiled (or loaded) at start, not in the first recovery's frame path (a cold cache
-    stalled it 2.4 s there, 127 frames dropped)."""
-    import labeler_service.labeling.booting as booting_mod
-
-    calls = []
-    real = booting_mod.warmup_kernels
-
-    def counted():
-        calls.append(1)
-        real()
-
-    monkeypatch.setattr(booting_mod, "warmup_kernels", counted)
-
-    async def go():
-        async with Server(_settings(model_path, False, boot=False, warmup=True),
-                          [MemoryTransport()]) as srv:  # fmt: skip
-            return srv.warmup_s
-
-    assert run(go(), timeout=300.0) > 0
-    assert calls
