@@ -171,16 +171,18 @@ def test_an_abandoned_catch_up_frees_the_worker_for_the_next_request(walk):
         w.close()
 
 
-def test_a_prepared_worker_boots_without_the_model_and_its_helper_changes_nothing(walk):
+def test_a_prepared_worker_boots_without_the_model_and_its_helper_changes_nothing(walk, worker):
     """``prepare`` (at service start) builds the labeler's booter in the worker and its
     helper: the first attempt sends no model; with and without the helper (which takes
-    subjects' hypotheses from the same list) the attempt gives the local result."""
+    subjects' hypotheses from the same list) the attempt gives the local result. (Without the
+    helper: the module's worker, which has never seen this labeler.)"""
     model, cap = walk
     lab, snap = _snapshot(model, cap, seed=8)
     here = lab.boot_step(snap)
     assert len(here.subjects) == 3
+    assert worker.helpers == 0 and lab.key not in worker._known
     for helpers in (0, 1):
-        w = BootWorker(helpers=helpers)
+        w = worker if helpers == 0 else BootWorker(helpers=helpers)
         try:
             w.start()
             w.prepare(lab)
@@ -191,7 +193,8 @@ def test_a_prepared_worker_boots_without_the_model_and_its_helper_changes_nothin
             np.testing.assert_array_equal(there.labels, here.labels)
             assert (w._helper is not None) == (helpers == 1)
         finally:
-            w.close()
+            if w is not worker:
+                w.close()
 
 
 def test_a_lost_helper_leaves_the_worker_alone_with_the_same_result(walk):
