@@ -118,7 +118,8 @@ class LabelerConfig(BaseModel):
         True,
         description="a marker never observed (a labeler started from a model: the labeled frames "
         "did not show it) takes the free point where the trained shapes of its bodies, fitted to "
-        "3+ tracked members, place it (within reacquire_near_mm, unambiguous)",
+        "3+ tracked members, place it (within reacquire_near_mm, unambiguous), or else the only "
+        "free point keeping its trained distances to 2+ tracked members",
     )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"

@@ -89,7 +89,10 @@ def _rigid_cluster(frames: int = 240, rate: float = 120.0):
     return Capture(pos.astype(np.float32), tuple(f"s:m{i}" for i in range(6)), rate)
 
 
-def test_a_body_of_four_or_more_places_the_marker_by_its_trained_shape():
+@pytest.mark.parametrize("hidden", [30, 3])
+def test_a_body_of_four_or_more_places_the_marker_by_its_trained_shape(hidden):
+    # hidden 3: it appears in the first unlabeled frame, its neighbours continuing from the
+    # labeled ones (their warm start leaves the state as it was: continuing is by age)
     from labeling.walks import train
 
     cap = _rigid_cluster()
@@ -99,11 +102,52 @@ def test_a_body_of_four_or_more_places_the_marker_by_its_trained_shape():
     lab = Labeler.from_model(model, cap.rate)
     later = cap.frames(120, 240)
     pos = later.positions.copy()
-    pos[:30, 5] = np.nan
+    pos[:hidden, 5] = np.nan
     got = []
     for f in range(later.n_frames):
         idx = np.flatnonzero(np.isfinite(pos[f, :, 0]))
         out = lab.process(pos[f, idx], f / cap.rate, idx.astype(np.int32) if f < 3 else None)
-        if f >= 30:
+        if f >= hidden:
             got.append(out.point_labels[np.flatnonzero(idx == 5)[0]] == 5)
     assert got[0] and all(got)  # labeled in the frame it appears, and kept
+
+
+def test_a_pair_without_a_trained_distance_is_no_evidence():
+    """A model may hold a body pair with no trained distance (``null``): the pair rule must not
+    count it (it passed every distance, and a decoy at the one trained distance was taken)."""
+    from labeling.walks import train
+
+    from labeler_service.capture import Capture
+    from labeler_service.labeling.templates import LabelerModel
+
+    rng = np.random.default_rng(3)
+    tri = np.array([[0, 0, 0], [120.0, 0, 0], [40.0, 90.0, 10.0]])
+    tri2 = np.array([[0, 0, 0], [100.0, 20, 0], [30.0, -80.0, 40.0]])  # (a second plate: the
+    rate, n = 120.0, 240  # subject keeps 3+ markers while c is hidden, so it is present)
+    pos = np.empty((n, 6, 3))
+    for f in range(n):
+        a, b2 = 0.8 * f / rate, 1.7 * np.sin(2.0 * f / rate)
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+        R2 = np.array([[1, 0, 0], [0, np.cos(b2), -np.sin(b2)], [0, np.sin(b2), np.cos(b2)]])
+        pos[f, :3] = tri @ R.T + np.array([300.0 * f / rate, 0, 900.0])
+        pos[f, 3:] = tri2 @ R2.T + np.array([300.0 * f / rate, 600.0, 900.0])
+    pos += rng.normal(scale=0.3, size=pos.shape)
+    cap = Capture(pos.astype(np.float32), tuple(f"s:{c}" for c in "abcdef"), rate)
+    raw = train(cap.frames(0, 120)).model_dump()
+    sub = raw["subjects"][0]
+    sub["D"][1][2] = sub["D"][2][1] = sub["A"][1][2] = sub["A"][2][1] = None
+    sub["chirality"], sub["twin_witnesses"] = [], []
+    lab = Labeler.from_model(LabelerModel.model_validate(raw), rate)
+    later = pos[120:].copy()
+    later[:30, 2] = np.nan
+    taken = 0
+    for f in range(later.shape[0]):
+        idx = np.flatnonzero(np.isfinite(later[f, :, 0]))
+        pts = later[f, idx]
+        if 3 <= f < 30:  # a decoy at the trained a-c distance from a, far off the unknown b-c
+            a, b = later[f, 0], later[f, 1]
+            decoy = a + np.linalg.norm(tri[0] - tri[2]) * (a - b) / np.linalg.norm(a - b)
+            pts = np.concatenate([pts, decoy[None]])
+        out = lab.process(pts.astype(np.float32), f / rate, idx.astype(np.int32) if f < 3 else None)
+        taken += int(3 <= f < 30 and out.point_labels[-1] == 2)
+    assert taken == 0

@@ -4,7 +4,8 @@ A labeler started from a model and a few labeled frames (``Labeler.from_model``)
 Kalman state for a marker those frames never showed (``tracks.x`` NaN) and no recovery
 snapshot: it is never predicted, gated or re-acquired, so it never got a label, and in a crowd
 its point went to another marker. The model knows where it sits on its bodies. Only members on
-points this frame that continue their tracks (observed in the previous frame too) are used:
+points this frame that continue their tracks (observed in the previous frame too, or in the
+last labeled frame) are used:
 
 - *shape*: each body of the marker with a reference shape (``bodies.ref``; the trained shape
   until the stream shows the body whole) and 3+ such members fits that shape onto them (Horn,
@@ -27,7 +28,6 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.frame import OBSERVED
 from labeler_service.labeling.kernels.rigid import _kabsch
 from labeler_service.labeling.kernels.spatial import FREE, _nearest, _span
 
@@ -67,8 +67,10 @@ def _acquire_unseen(points, index, tracks, bodies, scratch, params):
 
 @njit
 def _continuing(i, tracks, scratch):
-    """Marker ``i`` is on a point this frame and was observed in the previous one."""
-    return scratch.assigned[i] >= 0 and tracks.state[i] == OBSERVED
+    """Marker ``i`` is on a point this frame and was observed in the previous one (``age``,
+    frames observed in a row up to the previous frame: the labeled frames' warm start sets it,
+    where ``state`` stays as it was)."""
+    return scratch.assigned[i] >= 0 and tracks.age[i] > 0
 
 
 @njit
@@ -132,8 +134,9 @@ def _by_shape(m, points, index, tracks, bodies, scratch, params, est):
 
 @njit
 def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
-    """The pair rule: the only free point that keeps 3+ trained distances to continuing
-    members of the marker's bodies, or -1."""
+    """The pair rule: the only free point that keeps ``MIN_PAIRS`` or more trained distances to
+    continuing members of the marker's bodies, or -1. A pair without a trained distance (NaN
+    ``D0``: a model may hold one) is no evidence and is not counted."""
     n = 0
     floor = params.a_floor_mm
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
@@ -146,6 +149,8 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
             i = bodies.members[b, q]
             if i == m or not _continuing(i, tracks, scratch) or n >= MAX_PAIRS:
                 continue
+            if not np.isfinite(bodies.D0[b, me, q]):
+                continue
             dup = False
             for k in range(n):
                 dup = dup or pa[k] == scratch.assigned[i]
@@ -153,7 +158,8 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
                 continue
             pa[n] = scratch.assigned[i]
             pd[n] = bodies.D0[b, me, q]
-            pt[n] = 3.0 * max(bodies.A0[b, me, q], floor) + PAIR_SLACK_MM
+            a0 = bodies.A0[b, me, q]
+            pt[n] = 3.0 * (max(a0, floor) if np.isfinite(a0) else floor) + PAIR_SLACK_MM
             n += 1
     if n < MIN_PAIRS:
         return -1
