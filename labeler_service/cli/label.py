@@ -19,8 +19,9 @@ alike) are given anonymously, in a shuffled order.
   (:class:`~labeler_service.labeling.booting.BootingLabeler`, ``make_labeler(..., boot=True)``),
   drops a subject that leaves and boots it again when it returns. ``--init-frames N`` >= 1
   instead labels the first N frames from IN's columns with the model's names: the subjects
-  they label start from those labels (no boot), through the same booting labeler, which
-  labels a marker the N frames never showed from its template when it appears.
+  they label (3 or more points) start from those labels, through the same booting labeler,
+  which boots the others when they are there and labels a marker the N frames never showed
+  from its template when it appears.
 
 OUT is in IN's axes and millimetres (a take read with ``--up y`` is rotated back) and holds
 one column per marker (observed and, unless ``--drop-recovered``, recovered

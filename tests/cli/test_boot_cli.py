@@ -225,6 +225,11 @@ def test_evaluate_table_names_each_subject_and_fits_the_terminal(scene, capsys):
     left = report["departures"][0]
     assert f"left: {left['subject']} (frames {left['first_frame']}-" in out, out
     assert "unseen in the init window" not in out
+    # with labeled init frames and a model the count is of markers the model lacks
+    report["settings"]["init_frames"] = 5
+    _print_table(report)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "samples of markers the model lacks" in out and "init window" not in out, out
 
 
 def test_evaluate_boot_errors(scene, capsys):
