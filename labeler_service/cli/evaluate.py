@@ -198,8 +198,8 @@ def _print_table(report: dict) -> None:
     init = settings.get("init_frames", 0)
     # (from a model the field counts markers the model lacks: the model, not the init frames,
     # is what the labeler learned)
-    never = "the model lacks" if settings.get("model_file") else "unseen in the init window"
-    unseen = f"; {report['unseen_at_init']} samples of markers {never}" if init else ""
+    learned = "the model lacks" if settings.get("model_file") else "unseen in the init window"
+    unseen = f"; {report['unseen_at_init']} samples of markers {learned}" if init else ""
     console.print(
         f"{report['method']}: {report['visible']} visible samples scored; errors: "
         f"{e['same_subject']} same-subject, {e['cross_subject']} cross-subject, "
