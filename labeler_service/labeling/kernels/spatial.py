@@ -223,3 +223,20 @@ def _nearest(points, index, centre, lim2, owner, which, skip):
             best = d2
             bj = j
     return bj, best
+
+
+@njit
+def _free_within(points, index, centre, radius, owner, skip):
+    """Some free point other than ``skip`` lies within ``radius`` of ``centre``."""
+    lo, hi = _span(index, centre, radius)
+    for k in range(lo, hi):
+        j = index.order[k]
+        if j == skip or owner[j] >= 0:
+            continue
+        d2 = 0.0
+        for d in range(3):
+            v = points[j, d] - centre[d]
+            d2 += v * v
+        if d2 <= radius * radius:
+            return True
+    return False

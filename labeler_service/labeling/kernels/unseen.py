@@ -29,7 +29,7 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.kernels.rigid import _kabsch
-from labeler_service.labeling.kernels.spatial import FREE, _nearest, _span
+from labeler_service.labeling.kernels.spatial import FREE, _free_within, _nearest, _span
 
 PAIR_SLACK_MM = 3.0  # distance slack of the pair rule beyond 3 trained deviations, mm
 MAX_PAIRS = 16  # pairs kept per marker for the pair rule
@@ -184,20 +184,3 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
             return -1  # two free points keep the distances
         pick = j
     return pick
-
-
-@njit
-def _free_within(points, index, centre, radius, owner, skip):
-    """Some free point other than ``skip`` lies within ``radius`` of ``centre``."""
-    lo, hi = _span(index, centre, radius)
-    for k in range(lo, hi):
-        j = index.order[k]
-        if j == skip or owner[j] >= 0:
-            continue
-        d2 = 0.0
-        for d in range(3):
-            v = points[j, d] - centre[d]
-            d2 += v * v
-        if d2 <= radius * radius:
-            return True
-    return False
