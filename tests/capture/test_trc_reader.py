@@ -59,22 +59,15 @@ def _said(cap: Capture, *words: str) -> bool:
 
 
 # ----------------------------------------------------------- 1: marker and frame counts
-def test_num_markers_below_the_columns_reads_every_column_with_a_note(tmp_path) -> None:
-    """NumMarkers 2 over three named columns of data: the third was dropped silently."""
+@pytest.mark.parametrize("declared", [2, 5])
+def test_num_markers_unlike_the_columns_reads_every_column_with_a_note(tmp_path, declared) -> None:
+    """NumMarkers 2 or 5 over three named columns of data: the third column was dropped
+    silently (2), or the file refused ("header says 5 markers")."""
     pos = _positions(markers=3)
-    cap = read_capture(_trc(tmp_path / "t.trc", pos, n_markers=2))
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, n_markers=declared))
     assert cap.labels == ("t:M0", "t:M1", "t:M2")
     np.testing.assert_array_equal(cap.positions, pos)
-    assert _said(cap, "NumMarkers 2", "3 markers"), cap.notes
-
-
-def test_num_markers_above_the_columns_reads_the_columns_with_a_note(tmp_path) -> None:
-    """NumMarkers 5 over three named columns of data: refused ("header says 5 markers")."""
-    pos = _positions(markers=3)
-    cap = read_capture(_trc(tmp_path / "t.trc", pos, n_markers=5))
-    assert cap.labels == ("t:M0", "t:M1", "t:M2")
-    np.testing.assert_array_equal(cap.positions, pos)
-    assert _said(cap, "NumMarkers 5", "3 markers"), cap.notes
+    assert _said(cap, f"NumMarkers {declared}", "3 markers"), cap.notes
 
 
 def test_data_columns_without_a_name_read_as_unlabeled_tracks(tmp_path) -> None:
