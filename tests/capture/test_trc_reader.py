@@ -5,6 +5,7 @@ file; none loses data silently."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,14 @@ def _trc(
     return path
 
 
+def _edit_line(path: Path, k: int, edit: Callable[[str], str]) -> Path:
+    """The TRC at ``path`` with its line ``k`` (0-based) replaced by ``edit(line)``."""
+    lines = path.read_text().splitlines()
+    lines[k] = edit(lines[k])
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def _said(cap: Capture, *words: str) -> bool:
     return any(all(w in note for w in words) for note in cap.notes)
 
@@ -97,10 +106,9 @@ def test_num_frames_unlike_the_rows_reads_the_rows_with_a_note(tmp_path) -> None
 
 def test_marker_names_with_spaces_in_a_file_without_tabs_are_refused(tmp_path) -> None:
     pos = _positions(markers=2)
-    path = _trc(tmp_path / "t.trc", pos, sep=" ")
-    lines = path.read_text().splitlines()
-    lines[3] = "Frame# Time L Knee R Knee"
-    path.write_text("\n".join(lines) + "\n")
+    path = _edit_line(
+        _trc(tmp_path / "t.trc", pos, sep=" "), 3, lambda _: "Frame# Time L Knee R Knee"
+    )
     with pytest.raises(CaptureFormatError, match=r"t\.trc: the marker-name row names 4"):
         read_capture(path)
 
@@ -126,9 +134,7 @@ def test_a_space_separated_row_short_of_cells_is_refused(tmp_path) -> None:
     """Between spaces no cell is empty: a row short of a sample cannot say which one."""
     pos = _positions()
     path = _trc(tmp_path / "t.trc", pos, sep=" ")
-    lines = path.read_text().splitlines()
-    lines[8] = " ".join(lines[8].split()[:-3])  # frame 3 lacks a sample
-    path.write_text("\n".join(lines) + "\n")
+    _edit_line(path, 8, lambda line: " ".join(line.split()[:-3]))  # frame 3 lacks a sample
     with pytest.raises(CaptureFormatError, match=r"t\.trc: line 9: 8 cells .* 11 expected"):
         read_capture(path)
 
@@ -136,10 +142,9 @@ def test_a_space_separated_row_short_of_cells_is_refused(tmp_path) -> None:
 def test_spaces_inside_comma_separated_cells_are_refused(tmp_path) -> None:
     """``1,5 2,5``: decimal commas between spaces, or commas between cells? Neither is read."""
     pos = _positions(frames=2, markers=1)
-    path = _trc(tmp_path / "t.trc", pos, sep=",")
-    lines = path.read_text().splitlines()
-    lines[6] = "1 0,0 100,5 101,5 102,5"
-    path.write_text("\n".join(lines) + "\n")
+    path = _edit_line(
+        _trc(tmp_path / "t.trc", pos, sep=","), 6, lambda _: "1 0,0 100,5 101,5 102,5"
+    )
     with pytest.raises(CaptureFormatError, match=r"t\.trc: line 7: .*commas and spaces"):
         read_capture(path)
 
@@ -221,10 +226,8 @@ def test_a_last_cell_cut_to_its_sign_reads_as_missing(tmp_path) -> None:
 def test_rows_short_of_cells_read_as_missing_with_a_note(tmp_path) -> None:
     """Tab rows that stop before their last samples were padded with missing silently."""
     pos = _positions(frames=5, markers=3)
-    path = _trc(tmp_path / "t.trc", pos)
-    lines = path.read_text().splitlines()
-    lines[7] = "\t".join(lines[7].split("\t")[:-4])  # frame 2: marker 1's Z, marker 2 gone
-    path.write_text("\n".join(lines) + "\n")
+    path = _trc(tmp_path / "t.trc", pos)  # frame 2: marker 1's Z and marker 2 gone
+    _edit_line(path, 7, lambda line: "\t".join(line.split("\t")[:-4]))
     cap = read_capture(path)
     expected = pos.copy()
     expected[1, 1:] = np.nan
