@@ -28,8 +28,10 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.rigid import _kabsch
+from labeler_service.labeling.kernels.repair import _shape_rms
+from labeler_service.labeling.kernels.rigid import _take
 from labeler_service.labeling.kernels.spatial import FREE, _free_within, _nearest, _span
+from labeler_service.labeling.kernels.state import MAX_BODY
 
 PAIR_SLACK_MM = 3.0  # distance slack of the pair rule beyond 3 trained deviations, mm
 MAX_PAIRS = 16  # pairs kept per marker for the pair rule
@@ -40,29 +42,41 @@ MIN_PAIRS = 2  # pairs the pair rule needs
 def _acquire_unseen(points, index, tracks, bodies, scratch, params):
     """Assigns free points to active markers that were never observed (see the module doc).
 
-    Reads ``tracks.state`` as the previous frame's; changes ``scratch.assigned``, ``owner`` and
-    ``obs`` (in sync). Returns the number of markers placed."""
-    x, active, gone = tracks.x, tracks.active, tracks.gone
-    assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
+    Reads ``tracks.age`` as the previous frame's; changes ``scratch.assigned``, ``owner`` and
+    ``obs`` (in sync). Returns the number of markers placed. Allocates its work space only in a
+    frame with such a marker (most frames have none)."""
+    m_total = tracks.x.shape[0]
+    first = 0
+    while first < m_total and not _unseen(first, tracks, scratch):
+        first += 1
+    if first == m_total:
+        return 0
     est = np.empty(3)
+    choice = np.empty(MAX_BODY, dtype=np.int64)  # the shape rule: each member's point or -1
     pa = np.empty(MAX_PAIRS, dtype=np.int64)  # the pair rule: member's point, D, tolerance
     pd = np.empty(MAX_PAIRS)
     pt = np.empty(MAX_PAIRS)
     placed = 0
-    for m in range(x.shape[0]):
-        if not active[m] or gone[m] or assigned[m] >= 0 or x[m, 0] == x[m, 0]:  # noqa: PLR0124
+    for m in range(first, m_total):
+        if not _unseen(m, tracks, scratch):
             continue
-        pick, shaped = _by_shape(m, points, index, tracks, bodies, scratch, params, est)
+        pick, shaped = _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice)
         if pick < 0 and not shaped:
             pick = _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt)
         if pick < 0:
             continue
-        assigned[m] = pick
-        owner[pick] = m
-        for d in range(3):
-            obs[m, d] = points[pick, d]
+        _take(m, pick, points, scratch.assigned, scratch.owner, scratch.obs)
         placed += 1
     return placed
+
+
+@njit
+def _unseen(m, tracks, scratch):
+    """Marker ``m`` is active, its subject present, it has no point this frame and it was never
+    observed (no Kalman state)."""
+    if not tracks.active[m] or tracks.gone[m] or scratch.assigned[m] >= 0:
+        return False
+    return tracks.x[m, 0] != tracks.x[m, 0]  # noqa: PLR0124 (NaN test)
 
 
 @njit
@@ -74,14 +88,12 @@ def _continuing(i, tracks, scratch):
 
 
 @njit
-def _by_shape(m, points, index, tracks, bodies, scratch, params, est):
+def _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice):
     """The shape rule: ``(point, shaped)``; point -1 when no agreed unambiguous point;
     ``shaped``: some body had 3+ continuing members and a tight fit (then the pair rule is not
-    asked)."""
+    asked). ``choice (MAX_BODY,)``: work space (each member's point, -1 none)."""
     kab = scratch.kab
-    src, dst, R, t = kab.src, kab.dst, kab.R, kab.t
     near = params.reacquire_near_mm
-    tight = params.repair_check_mm
     owner = scratch.owner
     pick = -1
     shaped = False
@@ -89,33 +101,22 @@ def _by_shape(m, points, index, tracks, bodies, scratch, params, est):
         b = bodies.mb_idx[e]
         if not bodies.ref_ok[b]:
             continue
+        k = bodies.size[b]
         me = -1
-        c = 0
-        for q in range(bodies.size[b]):
+        for q in range(k):
             i = bodies.members[b, q]
+            choice[q] = -1
             if i == m:
                 me = q
-                continue
-            if not _continuing(i, tracks, scratch):
-                continue
-            if bodies.ref[b, q, 0] != bodies.ref[b, q, 0]:  # noqa: PLR0124 (NaN test)
-                continue
-            a = scratch.assigned[i]
-            for d in range(3):
-                src[c, d] = bodies.ref[b, q, d]
-                dst[c, d] = points[a, d]
-            c += 1
-        if me < 0 or c < 3 or bodies.ref[b, me, 0] != bodies.ref[b, me, 0]:  # noqa: PLR0124
+            elif _continuing(i, tracks, scratch) and bodies.ref[b, q, 0] == bodies.ref[b, q, 0]:
+                choice[q] = scratch.assigned[i]
+        if me < 0 or bodies.ref[b, me, 0] != bodies.ref[b, me, 0]:  # noqa: PLR0124 (NaN test)
             continue
-        _kabsch(src, dst, c, R, t)
-        sq = 0.0
-        for r in range(c):
-            for d in range(3):
-                v = R[d, 0] * src[r, 0] + R[d, 1] * src[r, 1] + R[d, 2] * src[r, 2] + t[d]
-                sq += (v - dst[r, d]) ** 2
-        if sq > tight * tight * c:
-            continue  # the body does not hold its shape now: no place from it
+        c, rms = _shape_rms(bodies.ref[b], points, choice, k, kab.src, kab.dst, kab.R, kab.t)
+        if c < 3 or rms > params.repair_check_mm:
+            continue  # too few members, or the body does not hold its shape now
         shaped = True
+        R, t = kab.R, kab.t
         for d in range(3):
             est[d] = (
                 R[d, 0] * bodies.ref[b, me, 0]
