@@ -115,20 +115,22 @@ def _check_out(out: str, inputs: list[str]) -> None:
 
 
 def parse_take(text: str) -> tuple[str, int, int | None]:
-    """``TAKE[:start[:stop]]`` -> ``(path, start, stop)``; a ``TAKE`` that exists as a file is
-    taken whole even if its name holds colons."""
+    """``TAKE[:start[:stop]]`` -> ``(path, start, stop)``; TAKE may hold colons: the longest
+    prefix that exists on disk is the file (:func:`~labeler_service.capture.io.split_spec`)."""
     from pathlib import Path
 
+    from labeler_service.capture.io import split_spec
     from labeler_service.errors import ModelError
 
-    if Path(text).exists():
-        return text, 0, None
-    parts = text.rsplit(":", 2)
-    path, nums = parts[0], parts[1:]
+    syntax = "expected TAKE[:start[:stop]] (frames)"
+    path, nums = split_spec(text, 2)
+    if len(nums) > 2:
+        raise ModelError(f"bad take {text!r}: too many ':' fields after {path}: {syntax}")
     try:
         vals = [int(x) if x != "" else None for x in nums]
     except ValueError:
-        raise ModelError(f"bad take {text!r}: expected TAKE[:start[:stop]] (frames)") from None
+        missing = "" if Path(path).exists() else f" (and no file {text!r} exists)"
+        raise ModelError(f"bad take {text!r}: {syntax}{missing}") from None
     start = vals[0] if vals and vals[0] is not None else 0
     stop = vals[1] if len(vals) > 1 else None
     if start < 0 or (stop is not None and stop <= start):

@@ -114,41 +114,57 @@ def read_segment(spec: str | Path, up: str = "z") -> Capture:
     return replace(cap.frames(start, stop), notes=notes)
 
 
+def split_spec(text: str, fields: int) -> tuple[str, list[str]]:
+    """``PATH[:field...]`` -> ``(PATH, fields)`` for a spec of at most ``fields`` fields after a
+    path that may itself hold colons (``take:2.c3d:240``, ``a:b/walk.trc:0:y``). The path is
+    the longest prefix, cut at a ``:``, that exists on disk with at most ``fields`` fields after
+    it; else the longest existing file before more fields (the caller says there are too
+    many); else, when nothing exists, the longest prefix named like a capture (``.c3d``,
+    ``.trc``, ``.npz``) with at most ``fields`` after it, or the text up to its first ``:``
+    (the reader then says "no such file")."""
+    parts = text.split(":")
+    n = len(parts)
+    heads = [(":".join(parts[:k]), parts[k:]) for k in range(n, 0, -1)]  # longest first
+    for head, rest in heads:
+        if head and len(rest) <= fields and Path(head).exists():
+            return head, rest
+    for head, rest in heads:
+        if head and Path(head).is_file():
+            return head, rest
+    for head, rest in heads:
+        if len(rest) <= fields and Path(head).suffix.lower() in SUFFIXES:
+            return head, rest
+    return parts[0], parts[1:]
+
+
+def _frame_number(text: str) -> bool:
+    """A frame number as a spec writes it: ASCII digits (``int`` takes ``'²'`` as no number
+    but ``str.isdigit`` does)."""
+    return text.isascii() and text.isdigit()
+
+
 def split_segment(text: str) -> tuple[str, int, int | None]:
-    """``FILE[:start[:stop]]`` -> ``(FILE, start, stop)``; a path that exists, or one whose
-    tail is not ``:digits``, is the whole file ``(text, 0, None)``."""
-    if Path(text).exists():
-        return text, 0, None
-    parts = text.rsplit(":", 2)
-    for n_nums in (2, 1):
-        head, nums = ":".join(parts[: len(parts) - n_nums]), parts[len(parts) - n_nums :]
-        if len(parts) > n_nums and all(x == "" or x.isdigit() for x in nums):
-            start = int(nums[0]) if nums[0] else 0
-            stop = int(nums[1]) if n_nums == 2 and nums[1] else None
-            _no_extra_fields(text, head)
-            return head, start, stop
-    for n_nums in (2, 1):  # FILE:-5, FILE:a:b - the file exists, its range does not parse
-        head = ":".join(parts[: len(parts) - n_nums])
-        if len(parts) > n_nums and Path(head).is_file():
+    """``FILE[:start[:stop]]`` -> ``(FILE, start, stop)``; FILE may hold colons
+    (:func:`split_spec`: the longest prefix that exists wins). A spec whose file does not exist
+    and whose tail is not ``:digits`` is the whole file ``(text, 0, None)`` (the reader says
+    "no such file")."""
+    path, nums = split_spec(text, 2)
+    if not nums:
+        return path, 0, None
+    if len(nums) > 2:
+        raise CaptureError(
+            f"{text}: too many ':' fields after {path}: expected FILE[:start[:stop]]"
+        )
+    if not all(x == "" or _frame_number(x) for x in nums):
+        if Path(path).is_file():  # FILE:-5, FILE:a:b - the file exists, its range does not parse
             raise CaptureError(
-                f"{text}: bad frame range {':'.join(parts[len(parts) - n_nums :])!r}: expected "
+                f"{text}: bad frame range {':'.join(nums)!r}: expected "
                 "FILE[:start[:stop]] with frame numbers >= 0"
             )
-    return text, 0, None
-
-
-def _no_extra_fields(text: str, head: str) -> None:
-    """``FILE:10:20:30`` split as file ``FILE:10``: when that is no file but a shorter prefix
-    is, the spec has a field too many (the message said ``FILE:10: no such file``)."""
-    if Path(head).exists():
-        return
-    cut = head
-    while ":" in cut:
-        cut = cut.rsplit(":", 1)[0]
-        if Path(cut).is_file():
-            raise CaptureError(
-                f"{text}: too many ':' fields after {cut}: expected FILE[:start[:stop]]"
-            )
+        return text, 0, None
+    start = int(nums[0]) if nums[0] else 0
+    stop = int(nums[1]) if len(nums) == 2 and nums[1] else None
+    return path, start, stop
 
 
 def write_capture(capture: Capture, path: str | Path) -> Path:

@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from labeler_service.capture import Capture, read_capture, side_pairs, split_label
+from labeler_service.capture.io import split_spec
 from labeler_service.capture.model import MAX_COORD_MM
 from labeler_service.errors import SceneError
 
@@ -93,18 +94,25 @@ class TakeSpec:
     @classmethod
     def parse(cls, text: str) -> TakeSpec:
         """``FILE[:start[:up[:subject]]]`` -> TakeSpec, e.g. ``walk.c3d:240:y`` or
-        ``two.c3d:0::Viktor`` (an empty field keeps its default: 0, auto)."""
+        ``two.c3d:0::Viktor`` (an empty field keeps its default: 0, auto). FILE may hold
+        colons: the longest prefix that exists on disk is the file (:func:`split_spec`)."""
         syntax = "FILE[:start[:up[:subject]]]"
-        parts = str(text).split(":")
-        if len(parts) > 4 or not parts[0]:
+        path, fields = split_spec(str(text), 3)
+        if len(fields) > 3 and path and Path(path).is_file():
+            raise SceneError(
+                f"bad take {text!r}: too many ':' fields after {path}: expected {syntax}"
+            )
+        if len(fields) > 3 or not path:
             raise SceneError(f"bad take {text!r}: expected {syntax}")
+        parts = [path, *fields]
         start = 0
         if len(parts) >= 2 and parts[1] != "":
             try:
                 start = int(parts[1])
             except ValueError:
+                missing = "" if Path(path).exists() else f" (and no file {text!r} exists)"
                 raise SceneError(
-                    f"bad take {text!r}: start {parts[1]!r} is not a frame number"
+                    f"bad take {text!r}: start {parts[1]!r} is not a frame number{missing}"
                 ) from None
             if start < 0:
                 raise SceneError(f"bad take {text!r}: start must be >= 0")
