@@ -17,6 +17,10 @@ warning (stderr from the CLI). A TRC is read from its own columns, split at tabs
 spaces; where they disagree with its header (NumMarkers, NumFrames, a DataRate unlike the Time
 column) or a row is short or cut, the reader says so in the notes (:func:`_read_trc`).
 
+A frame rate no capture has (outside 1 to 10,000 Hz: :func:`~labeler_service.capture.model.
+rate_problem`) is refused, naming it; a TRC whose DataRate is missing or such a rate is read at
+its Time column's spacing instead, with a note (:func:`_trc_rate`).
+
 Writers write a temporary file beside the target, check it (ezc3d reports no I/O error, so a
 C3D must have its full size) and rename it over the target.
 A C3D is written in millimetres with the labels as ``subject:marker`` and the Vicon ``SUBJECTS``
@@ -40,7 +44,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from labeler_service.capture.model import MAX_COORD_MM, Capture, is_ghost, split_label
+from labeler_service.capture.model import (
+    MAX_COORD_MM,
+    MAX_RATE_HZ,
+    MIN_RATE_HZ,
+    Capture,
+    is_ghost,
+    rate_problem,
+    split_label,
+)
 from labeler_service.errors import CaptureError, CaptureFormatError
 from labeler_service.wording import plural
 
@@ -293,7 +305,11 @@ def _write_through(capture: Capture, target: Path, writer: _Writer, suffix: str)
 def _finish(
     positions: np.ndarray, labels: list[str], rate: float, source: Path, notes: list[str]
 ) -> Capture:
-    """Applies the shared missing-sample and label rules, then builds the Capture."""
+    """Applies the shared missing-sample and label rules, then builds the Capture. A frame
+    rate no capture has (:func:`~labeler_service.capture.model.rate_problem`) is refused."""
+    why = rate_problem(rate)
+    if why is not None:
+        raise CaptureFormatError(f"{source}: frame rate {why}")
     with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, mapped below
         pos = np.ascontiguousarray(positions, dtype=np.float32)
     infinite = np.isinf(pos).any(axis=2)
@@ -560,12 +576,10 @@ def _read_c3d(path: Path) -> Capture:
     rate_values = point.get("RATE", {}).get("value", [])
     if len(rate_values) == 0:
         raise CaptureFormatError(f"{path}: no POINT:RATE")
-    if not float(rate_values[0]) > 0:
-        raise CaptureFormatError(
-            f"{path}: POINT:RATE is {float(rate_values[0]):g}: a capture needs a positive "
-            "frame rate (Hz)"
-        )
     rate = float(rate_values[0])
+    why = rate_problem(rate)
+    if why is not None:  # (a C3D has no clock of its own to read the rate from instead)
+        raise CaptureFormatError(f"{path}: frame rate (POINT:RATE) {why}")
     units = point.get("UNITS", {}).get("value", [])
     pos = np.transpose(data[:3], (2, 1, 0))  # (F, M, 3)
     unit = units[0] if len(units) else ""
@@ -891,10 +905,72 @@ def _trc_column(rows: list[_TRCRow], k: int) -> np.ndarray:
     return np.array([float(x) if x and _is_number(x) else math.nan for x in cells])
 
 
-def _trc_clock(rows: list[_TRCRow], rate: float, path: Path, notes: list[str]) -> None:
-    """Checks the Frame# and Time columns against reading the rows in file order at the
-    header's rate: frame numbers out of order, repeated or skipped, and a Time column whose
-    spacing gives a rate more than :data:`TRC_RATE_TOL` from DataRate, are noted."""
+def _trc_time_rate(rows: list[_TRCRow]) -> tuple[float | None, str]:
+    """The rate the Time column's spacing gives: frames between the first and the last timed
+    row (by Frame# where it counts up, else rows) over their time apart, or ``(None, why)``.
+    A rate within the rounding of the written times of a whole number of Hz is that number
+    (240 Hz written to 1 ms gives 240.2 over 50 frames)."""
+    frames, times = _trc_column(rows, 0), _trc_column(rows, 1)
+    timed = np.flatnonzero(np.isfinite(times))
+    if timed.size < 2:
+        return None, "the Time column holds fewer than 2 times"
+    t = times[timed]
+    if np.any(np.diff(t) <= 0):
+        return None, "Time does not increase row by row"
+    f = frames[timed]
+    steady = bool(np.all(np.isfinite(f) & (f == np.round(f)))) and bool(np.all(np.diff(f) > 0))
+    span = f[-1] - f[0] if steady else timed[-1] - timed[0]
+    said = float(span / (t[-1] - t[0]))
+    cells = [rows[i].cells[1] for i in timed]
+    if not any("e" in x.lower() for x in cells):
+        # the times' resolution: their last written non-zero decimal (0.204000 is 1 ms)
+        decimals = max(len(x.partition(".")[2].rstrip("0")) for x in cells)
+        whole = round(said)
+        if whole > 0 and abs(whole - said) <= said * 10.0**-decimals / (t[-1] - t[0]):
+            said = float(whole)
+    return said, ""
+
+
+def _trc_rate(
+    header: dict[str, str], rows: list[_TRCRow], path: Path, notes: list[str]
+) -> tuple[float, str]:
+    """The frame rate and where it came from: DataRate when it is a plausible rate
+    (:func:`~labeler_service.capture.model.rate_problem`); else, with a note, the Time
+    column's spacing, else CameraRate; neither: a one-line error naming both."""
+    text = header.get("DataRate", "").strip()
+    if _is_number(text) and rate_problem(float(text)) is None:
+        return float(text), "header DataRate"
+    plausible = f"{MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz"
+    if not text:
+        said = "no DataRate in the header"
+    elif _is_number(text):
+        said = f"header DataRate {float(text):g} Hz is no frame rate ({plausible})"
+    else:
+        said = f"header DataRate {text!r} is not a number"
+    timed, no_time = _trc_time_rate(rows) if rows else (None, "no data row holds a time")
+    if timed is not None and rate_problem(timed) is None:
+        msg = f"{said}: read at {timed:g} Hz, the Time column's spacing"
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+        return timed, "the Time column"
+    if timed is not None:
+        no_time = f"the Time column's spacing gives {timed:g} Hz"
+    camera = header.get("CameraRate", "").strip()
+    if _is_number(camera) and rate_problem(float(camera)) is None:
+        msg = f"{said} and {no_time}: read at CameraRate {float(camera):g} Hz"
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
+        return float(camera), "header CameraRate"
+    raise CaptureFormatError(
+        f"{path}: {said} and {no_time}: no frame rate to read it at (give DataRate, "
+        f"{plausible}, or a Time column in seconds)"
+    )
+
+
+def _trc_clock(rows: list[_TRCRow], rate: float, origin: str, path: Path, notes: list[str]) -> None:
+    """Checks the Frame# and Time columns against reading the rows in file order at ``rate``
+    (from ``origin``): frame numbers out of order, repeated or skipped, and a Time column whose
+    spacing gives a rate more than :data:`TRC_RATE_TOL` from it, are noted."""
     frames = _trc_column(rows, 0)
     whole = np.isfinite(frames) & (frames == np.round(frames))
     if not whole.all():
@@ -911,23 +987,16 @@ def _trc_clock(rows: list[_TRCRow], rate: float, path: Path, notes: list[str]) -
         notes.append(
             f"Frame# numbers skip {plural(skipped, 'frame')}: rows read as consecutive frames"
         )
-    times = _trc_column(rows, 1)
-    timed = np.flatnonzero(np.isfinite(times))
-    if timed.size < 2 or not (math.isfinite(rate) and rate > 0):
+    if origin == "the Time column":
         return
-    t = times[timed]
-    if np.any(np.diff(t) <= 0):
-        if not (back or same):
+    said, why = _trc_time_rate(rows)
+    if said is None:
+        if why.startswith("Time does not increase") and not (back or same):
             notes.append("Time does not increase row by row: its spacing is not checked")
         return
-    # the frames between the first and the last timed row: by Frame# where it counts up
-    f = frames[timed]
-    steady = whole[timed].all() and bool(np.all(np.diff(f) > 0))
-    span = f[-1] - f[0] if steady else timed[-1] - timed[0]
-    said = span / (t[-1] - t[0])
     if abs(said / rate - 1.0) > TRC_RATE_TOL:
         msg = (
-            f"header DataRate {rate:g} Hz, the Time column's spacing gives {said:.4g} Hz: read "
+            f"{origin} {rate:g} Hz, the Time column's spacing gives {said:.4g} Hz: read "
             f"at {rate:g} Hz"
         )
         notes.append(msg)
@@ -940,7 +1009,8 @@ def _read_trc(path: Path) -> Capture:
     A line is split at tabs, else at commas, else at spaces (tools write all three). The file's
     columns are trusted over the header's counts: every named column and every column with data
     is read, and a NumMarkers or NumFrames that disagrees with them is noted. Rows are read in
-    file order at DataRate; Frame# numbers out of order, repeated or skipped, and a Time column
+    file order at DataRate (missing or implausible: the Time column's rate, :func:`_trc_rate`);
+    Frame# numbers out of order, repeated or skipped, and a Time column
     spaced more than 1 % off DataRate are noted (:func:`_trc_clock`). A row short of cells (at
     tabs or commas) misses its last samples, with a note; a file that ends mid-row loses that
     row's last cell too (it may be part of a number)."""
@@ -954,10 +1024,6 @@ def _read_trc(path: Path) -> Capture:
         )
     header = dict(zip(_trc_cells(text[1]), _trc_cells(text[2]), strict=False))
     notes: list[str] = []
-    try:
-        rate = float(header.get("DataRate") or header.get("CameraRate") or "nan")
-    except ValueError as exc:
-        raise CaptureFormatError(f"{path}: bad TRC header: {exc}") from exc
     scale = _unit_scale(header.get("Units", "mm"), path, notes)
     names = [x for x in _trc_cells(text[3])[2:] if x]
     rows = [
@@ -966,6 +1032,7 @@ def _read_trc(path: Path) -> Capture:
         if line.strip()
     ]
     if not rows and header.get("NumFrames") == "0":  # an empty capture, as written
+        rate, _ = _trc_rate(header, rows, path, notes)
         return _finish(np.empty((0, len(names), 3)), names, rate, path, notes)
     if not rows:
         raise CaptureFormatError(
@@ -991,7 +1058,8 @@ def _read_trc(path: Path) -> Capture:
             f"{path}: the TRC ends inside its first data row (line {rows[0].lineno}; truncated?)"
         )
     _trc_short_rows(rows, expected, cut=cut, path=path, notes=notes)
-    _trc_clock(rows, rate, path, notes)
+    rate, origin = _trc_rate(header, rows, path, notes)
+    _trc_clock(rows, rate, origin, path, notes)
     declared = header.get("NumFrames", "")
     if declared and declared != str(len(rows)):
         notes.append(f"header NumFrames {declared}, {plural(len(rows), 'data row')} read")

@@ -15,6 +15,24 @@ _GHOST = re.compile(r"^\*\d+$")
 #: volume is that large), and near the float32 limit (3.4e38) the labeler's arithmetic overflows.
 #: Readers map such samples to missing; the service refuses such frames (``out_of_range``).
 MAX_COORD_MM = 1.0e7
+#: Frame rates (Hz) a capture may be read, composed or streamed at: optical systems record at
+#: tens to hundreds of Hz and reach a few kHz in windowed high-speed modes; 10 kHz is past all
+#: of them. Below 1 Hz a marker moves metres between frames (nothing to label); a rate of 0,
+#: NaN or 1e7 is a header or a flag typed wrong. One check for every place a rate comes in
+#: (:func:`rate_problem`): the CLI's ``--rate`` options, the readers, the service's settings.
+MIN_RATE_HZ = 1.0
+MAX_RATE_HZ = 10_000.0
+
+
+def rate_problem(rate: object, low: float = MIN_RATE_HZ, high: float = MAX_RATE_HZ) -> str | None:
+    """Why ``rate`` is no plausible frame rate, a phrase to follow the rate's name
+    (``f"--rate {why}"`` reads ``--rate is 0 Hz: expected 1 to 10000 Hz``), or None when it is
+    one. ``low``, ``high``: a narrower range of a caller's own (a simulator's filter)."""
+    if isinstance(rate, bool) or not isinstance(rate, int | float | np.integer | np.floating):
+        return f"is {rate!r}: expected {low:g} to {high:g} Hz"
+    if low <= float(rate) <= high:  # (NaN compares False)
+        return None
+    return f"is {float(rate):g} Hz: expected {low:g} to {high:g} Hz"
 
 
 def split_label(label: str) -> tuple[str | None, str]:

@@ -36,6 +36,17 @@ def positive(text: str) -> float:
     return _checked(text, float, lambda v: 0 < v < float("inf"), "expected a finite number > 0")
 
 
+def rate(text: str) -> float:
+    """``--rate``: a frame rate in Hz that some capture could have
+    (:func:`~labeler_service.capture.model.rate_problem`: 0, NaN and 1e7 were taken)."""
+    from labeler_service.capture.model import MAX_RATE_HZ, MIN_RATE_HZ, rate_problem
+
+    return _checked(
+        text, float, lambda v: rate_problem(v) is None,
+        f"expected a frame rate of {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz",
+    )  # fmt: skip
+
+
 def strain_ratio(text: str) -> float:
     """An edge-length ratio limit (``train shoulder --max-strain``): finite and > 1, as the
     95th / 5th percentile of a length is at least 1 (nan, -1, 0 and 1 all kept no triangle, and

@@ -35,13 +35,13 @@ import sys
 import tempfile
 from pathlib import Path
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import rate, seed
 from labeler_service.errors import MocapError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subjects", type=int, default=10, help="performers (1-10)")
-    p.add_argument("--rate", type=float, default=360.0, help="capture rate (Hz)")
+    p.add_argument("--rate", type=rate, default=360.0, help="capture rate (Hz, at most 2000)")
     p.add_argument("--seconds", type=float, default=20.0, help="streamed duration (s)")
     p.add_argument("--transport", choices=["udp", "mqtt"], default="udp")
     p.add_argument("--broker", default=None, metavar="URL", help="mqtt://host:port (else a "

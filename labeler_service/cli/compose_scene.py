@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import rate, seed
 from labeler_service.wording import plural
 
 
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, required=True, help="seed for phase and yaw offsets")
     p.add_argument(
         "--rate",
-        type=float,
+        type=rate,
         default=None,
         help="resample every take to this rate (Hz, at most the lowest take rate)",
     )

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from labeler_service.cli.args import seed
+from labeler_service.cli.args import rate, seed
 from labeler_service.scenes.sim import SCENARIOS
 from labeler_service.wording import plural
 
@@ -19,7 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, required=True, help="scene length in seconds")
     p.add_argument("--scenario", choices=SCENARIOS, required=True, help="what the people do")
     p.add_argument("--seed", type=seed, required=True, help="seed (bodies, motion, noise)")
-    p.add_argument("--rate", type=float, default=120.0, help="frame rate in Hz (default 120)")
+    p.add_argument(
+        "--rate", type=rate, default=120.0, help="frame rate in Hz, at most 2000 (default 120)"
+    )
     p.add_argument(
         "--ghosts", type=float, default=1.0, help="mean ghost points per frame (default 1)"
     )

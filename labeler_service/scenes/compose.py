@@ -43,7 +43,7 @@ import numpy as np
 
 from labeler_service.capture import Capture, read_capture, side_pairs, split_label
 from labeler_service.capture.io import split_spec
-from labeler_service.capture.model import MAX_COORD_MM
+from labeler_service.capture.model import MAX_COORD_MM, rate_problem
 from labeler_service.errors import SceneError
 
 #: A marker must be visible in at least this fraction of the window to be kept.
@@ -193,8 +193,9 @@ def resample(cap: Capture, start: int, rate: float, frames: int, name: str = "ta
     missing). A rate above the take's own is an error (no upsampling). Frames after the end of
     the take are missing: the performer has left. A whole ratio lands on the take's samples
     exactly (plain decimation)."""
-    if not (math.isfinite(rate) and rate > 0):
-        raise SceneError(f"--rate must be a positive number of Hz, got {rate}")
+    why = rate_problem(rate)
+    if why is not None:
+        raise SceneError(f"--rate {why}")
     if rate > cap.rate * (1 + 1e-9):
         raise SceneError(
             f"{name}: cannot resample {cap.rate:g} Hz up to {rate:g} Hz (choose a rate at or "
@@ -410,6 +411,8 @@ def compose_scene(
         )
     if isinstance(frames, bool) or not isinstance(frames, int | np.integer) or frames < 1:
         raise SceneError(f"--frames must be a positive integer, got {frames}")
+    if rate is not None and rate_problem(rate) is not None:  # (before any take is read)
+        raise SceneError(f"--rate {rate_problem(rate)}")
     rng = np.random.default_rng(seed)
 
     loaded = [s.load() for s in specs]

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from labeler_service.capture import Capture
+from labeler_service.capture.model import rate_problem
 from labeler_service.errors import SceneError
 from labeler_service.scenes.corrupt import MAX_GHOSTS
 from labeler_service.scenes.sim import SCENARIOS
@@ -47,6 +48,9 @@ from labeler_service.scenes.sim.occlusion import (
 )
 
 MAX_PERFORMERS = 10
+#: Highest rate simulated (Hz): a full-frame optical system's; below the captures' limit
+#: (:data:`~labeler_service.capture.model.MAX_RATE_HZ`, windowed high-speed modes).
+MAX_SIM_RATE_HZ = 2000.0
 #: Soft-tissue wobble s.d. per axis (mm): more on fleshy segments.
 WOBBLE_MM = {"thigh": 2.0, "upperarm": 1.8, "pelvis": 1.5, "torso": 1.2}
 WOBBLE_DEFAULT_MM = 1.0
@@ -87,11 +91,13 @@ def _validate(performers, seconds, scenario, seed, rate, ghosts) -> int:
         raise SceneError(f"unknown scenario {scenario!r} (use {', '.join(SCENARIOS)})")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
         raise SceneError(f"--seed must be an integer, got {seed!r}")
-    for name, value in (("--seconds", seconds), ("--rate", rate)):
-        if not (isinstance(value, int | float | np.number) and math.isfinite(value) and value > 0):
-            raise SceneError(f"{name} must be a positive number, got {value!r}")
-    if rate > 2000:
-        raise SceneError(f"--rate {rate:g} Hz is beyond any optical system (max 2000)")
+    if not (
+        isinstance(seconds, int | float | np.number) and math.isfinite(seconds) and seconds > 0
+    ):
+        raise SceneError(f"--seconds must be a positive number, got {seconds!r}")
+    why = rate_problem(rate, high=MAX_SIM_RATE_HZ)
+    if why is not None:
+        raise SceneError(f"--rate {why} (the simulator's range)")
     if not (isinstance(ghosts, int | float | np.number) and 0 <= ghosts <= MAX_GHOSTS):
         raise SceneError(
             f"--ghosts must be a mean number of points per frame, 0 to {MAX_GHOSTS:g}, got {ghosts}"

@@ -39,6 +39,7 @@ from pydantic import (
 )
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from labeler_service.capture.model import rate_problem
 from labeler_service.errors import ConfigError
 from labeler_service.labeling.boot_config import WINDOW_RELEARN_S, BootConfig
 from labeler_service.labeling.config import LabelerConfig
@@ -174,6 +175,14 @@ class StreamSettings(_Section):
     @classmethod
     def _check_name(cls, v: str) -> str:
         return check_stream_name(v)
+
+    @field_validator("rate")
+    @classmethod
+    def _plausible_rate(cls, v: float | None) -> float | None:
+        why = None if v is None else rate_problem(v)  # (inf and 1e7 passed gt=0)
+        if why is not None:
+            raise ValueError(f"rate {why}")
+        return v
 
     @field_validator("model")
     @classmethod

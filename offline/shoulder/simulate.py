@@ -38,6 +38,7 @@ from scipy.signal import butter, sosfiltfilt
 from scipy.spatial.transform import Rotation
 
 from labeler_service.capture import Capture
+from labeler_service.capture.model import rate_problem
 from labeler_service.errors import SceneError
 
 SEGMENT_NAMES = ("chest", "girdle", "upper_arm", "forearm")
@@ -296,7 +297,7 @@ def _skin(body: ShoulderBody, T: np.ndarray) -> np.ndarray:
 
 #: Frame rates the motions are simulated at (their angle noise is low-passed at up to a few
 #: Hz: below 10 Hz the filter is undefined; NaN or inf crashed it).
-MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 10_000.0
+MIN_RATE_HZ = 10.0
 #: Most occlusion gaps per marker per 1000 frames (gaps last 10-60 frames: 25 leave about
 #: 1/8 of the samples; 2000 left 99.8 % missing).
 MAX_GAP_RATE = 25.0
@@ -309,8 +310,9 @@ def check_motion(
     count's name in the message, e.g. a command's option)."""
     if n_frames < 10:
         raise SceneError(f"{frames_name} must be >= 10 frames, got {n_frames}")
-    if not (math.isfinite(rate) and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
-        raise SceneError(f"rate must be {MIN_RATE_HZ:g}-{MAX_RATE_HZ:g} Hz, got {rate}")
+    why = rate_problem(rate, low=MIN_RATE_HZ)
+    if why is not None:
+        raise SceneError(f"rate must be within the simulator's range: rate {why}")
     if not (math.isfinite(noise_mm) and noise_mm >= 0):
         raise SceneError(f"noise must be a finite distance >= 0 mm, got {noise_mm}")
     if not (math.isfinite(gap_rate) and 0 <= gap_rate <= MAX_GAP_RATE):

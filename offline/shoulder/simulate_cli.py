@@ -25,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--gap-rate", type=float, default=0.0, help="occlusion gaps per marker per 1000 frames [0]"
     )
-    p.add_argument("--rate", type=float, default=120.0, help="frame rate, Hz [120]")
+    p.add_argument("--rate", type=float, default=120.0, help="frame rate, 10-10000 Hz [120]")
     p.add_argument("--seed", type=seed, default=0, help="random seed [0]")
     p.add_argument(
         "--format", choices=("c3d", "npz", "trc"), default="c3d", help="capture format [c3d]"

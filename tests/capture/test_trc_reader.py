@@ -166,6 +166,44 @@ def test_times_rounded_to_milliseconds_agree_with_the_rate(tmp_path) -> None:
     assert cap.notes == (), cap.notes
 
 
+def _without_rates(path: Path) -> Path:
+    """The TRC at ``path`` without its DataRate and CameraRate header cells."""
+    lines = path.read_text().splitlines()
+    keys, values = lines[1].split("\t"), lines[2].split("\t")
+    keep = [i for i, k in enumerate(keys) if k not in ("DataRate", "CameraRate")]
+    _edit_line(path, 1, lambda _: "\t".join(keys[i] for i in keep))
+    return _edit_line(path, 2, lambda _: "\t".join(values[i] for i in keep))
+
+
+@pytest.mark.parametrize(("rate", "said"), [(0.0, "DataRate 0 Hz"), (1e7, "DataRate 1e+07 Hz")])
+def test_a_data_rate_no_capture_has_reads_the_time_column(tmp_path, rate, said) -> None:
+    """DataRate 0 was refused as "invalid frame rate 0.0" and 1e7 read as 1e7 Hz (noted):
+    both read at the Time column's rate, saying so."""
+    pos = _positions(frames=30, markers=2)
+    times = [i / 120.0 for i in range(30)]
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, rate=rate, times=times))
+    assert cap.rate == 120.0
+    assert _said(cap, said, "no frame rate", "read at 120 Hz, the Time column"), cap.notes
+    np.testing.assert_array_equal(cap.positions, pos)
+
+
+def test_a_trc_without_data_rate_reads_the_time_column(tmp_path) -> None:
+    """No DataRate (nor CameraRate) was "invalid frame rate nan"; times written to 1 ms at
+    240 Hz (240.2 Hz over 50 frames) read as 240 Hz."""
+    pos = _positions(frames=50, markers=1)
+    times = [round(i / 240.0, 3) for i in range(50)]
+    cap = read_capture(_without_rates(_trc(tmp_path / "t.trc", pos, times=times)))
+    assert cap.rate == 240.0
+    assert _said(cap, "no DataRate", "read at 240 Hz, the Time column"), cap.notes
+
+
+def test_a_trc_with_no_rate_to_read_is_a_clear_error(tmp_path) -> None:
+    pos = _positions(frames=6, markers=1)
+    path = _without_rates(_trc(tmp_path / "t.trc", pos, times=[0.0] * 6))
+    with pytest.raises(CaptureFormatError, match=r"t\.trc: no DataRate .* Time does not increase"):
+        read_capture(path)
+
+
 @pytest.mark.parametrize(
     ("frames", "words"),
     [
