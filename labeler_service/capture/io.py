@@ -14,8 +14,9 @@ the C3D's POINT parameters list) are left out with a note (:func:`_c3d_markers`)
 A C3D that ends before the frames its header declares is read up to its last complete frame
 (ezc3d does so silently); the reader adds the note ``truncated: K of N frames`` and logs it as a
 warning (stderr from the CLI). A TRC is read from its own columns, split at tabs, commas or
-spaces; where they disagree with its header (NumMarkers, NumFrames, a DataRate unlike the Time
-column) or a row is short or cut, the reader says so in the notes (:func:`_read_trc`).
+spaces, each name on the columns it heads (:func:`_trc_names`); where they disagree with its
+header (NumMarkers, NumFrames, a DataRate unlike the Time column) or a row is short or cut, the
+reader says so in the notes (:func:`_read_trc`).
 
 A frame rate no capture has (outside 1 to 10,000 Hz: :func:`~labeler_service.capture.model.
 rate_problem`) is refused, naming it; a TRC whose DataRate is missing or such a rate is read at
@@ -843,6 +844,19 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def _trc_names(line: str) -> list[str]:
+    """The name row's marker names, one per marker. Between tabs or commas each name heads
+    its marker's three columns (cells 2, 5, 8, ...): a blank name there is an unnamed marker
+    (read as an unlabeled track), not a reason to shift the names after it onto the columns
+    before theirs. Names packed into adjacent cells, or separated by spaces, are read in
+    order."""
+    cells = _trc_cells(line)[2:]
+    named = [i for i, x in enumerate(cells) if x]
+    if _trc_sep(line) == " " or any(i % 3 for i in named):
+        return [cells[i] for i in named]
+    return [cells[i] for i in range(0, named[-1] + 1, 3)] if named else []
+
+
 def _trc_labels(
     names: list[str], n_data: int, *, declared: str, spaced: bool, path: Path, notes: list[str]
 ) -> list[str]:
@@ -1025,7 +1039,7 @@ def _read_trc(path: Path) -> Capture:
     header = dict(zip(_trc_cells(text[1]), _trc_cells(text[2]), strict=False))
     notes: list[str] = []
     scale = _unit_scale(header.get("Units", "mm"), path, notes)
-    names = [x for x in _trc_cells(text[3])[2:] if x]
+    names = _trc_names(text[3])
     rows = [
         _trc_data_row(line, lineno, path)
         for lineno, line in enumerate(text[5:], start=6)

@@ -87,6 +87,33 @@ def test_data_columns_without_a_name_read_as_unlabeled_tracks(tmp_path) -> None:
     assert _said(cap, "names 2", "3 markers"), cap.notes
 
 
+@pytest.mark.parametrize(
+    ("names", "labels"),
+    [
+        (["M0", "", "M2"], ("t:M0", "*1", "t:M2")),
+        (["", "M1", "M2"], ("*0", "t:M1", "t:M2")),
+        (["M0", "", "", "M3"], ("t:M0", "*1", "*2", "t:M3")),
+    ],
+)
+def test_a_blank_marker_name_keeps_the_names_after_it_on_their_columns(
+    tmp_path, names, labels
+) -> None:
+    """A blank name in the tab-separated name row shifted every later name one marker to the
+    left (``M2`` read the second marker's data) and left the last column unnamed."""
+    pos = _positions(markers=len(names))
+    cap = read_capture(_trc(tmp_path / "t.trc", pos, names=names))
+    assert cap.labels == labels
+    np.testing.assert_array_equal(cap.positions, pos)
+    assert _said(cap, "empty label", "unlabeled tracks"), cap.notes
+
+
+def test_names_in_adjacent_cells_are_read_in_order(tmp_path) -> None:
+    """A name row without the empty cells between names (some exporters) is read as before."""
+    pos = _positions(markers=3)
+    path = _edit_line(_trc(tmp_path / "t.trc", pos), 3, lambda _: "Frame#\tTime\tA\tB\tC")
+    assert read_capture(path).labels == ("t:A", "t:B", "t:C")
+
+
 def test_named_markers_without_data_are_missing_with_a_note(tmp_path) -> None:
     pos = _positions(markers=2)
     cap = read_capture(_trc(tmp_path / "t.trc", pos, names=["M0", "M1", "M2"], n_markers=3))
