@@ -1116,7 +1116,9 @@ MAX_NPZ_RATIO = 100.0
 NPZ_RATIO_MIN_BYTES = 1 << 20
 
 
-def _max_npz_bytes() -> int:
+def max_npz_bytes() -> int:
+    """The largest capture content read (bytes): :data:`MAX_NPZ_BYTES`, or
+    ``MOCAP_MAX_NPZ_BYTES``."""
     raw = os.environ.get("MOCAP_MAX_NPZ_BYTES")
     if raw is None:
         return MAX_NPZ_BYTES
@@ -1130,7 +1132,7 @@ def check_npz(path: Path, max_bytes: int | None = None) -> None:
     """Refuses, before decompressing anything, an NPZ whose declared size exceeds
     ``max_bytes`` (default :data:`MAX_NPZ_BYTES`), whose members compress more than
     :data:`MAX_NPZ_RATIO`, or whose array headers declare more data than the member holds."""
-    cap = _max_npz_bytes() if max_bytes is None else max_bytes
+    cap = max_npz_bytes() if max_bytes is None else max_bytes
     try:
         zf = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError) as exc:

@@ -4,7 +4,7 @@ Each command module defines ``add_arguments(parser)`` and ``run(args) -> int``. 
 be a group (``train structure``, ``bench latency``): a nested table below. Heavy imports (numba,
 matplotlib) belong inside ``run`` so ``--help`` and ``info`` stay instant. A
 :class:`~labeler_service.errors.MocapError` ends the command with its message and exit code 2,
-never a traceback.
+never a traceback; so does a ``MemoryError`` (the commands refuse the sizes they know of first).
 """
 
 from __future__ import annotations
@@ -101,6 +101,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except MocapError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:  # numpy says what it could not allocate: one line, no traceback
+        print(
+            f"error: out of memory: {exc or 'an allocation failed'} (ask for less: fewer "
+            "frames, a frame range FILE:start:stop)",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

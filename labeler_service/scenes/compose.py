@@ -42,9 +42,10 @@ from pathlib import Path
 import numpy as np
 
 from labeler_service.capture import Capture, read_capture, side_pairs, split_label
-from labeler_service.capture.io import split_spec
+from labeler_service.capture.io import max_npz_bytes, split_spec
 from labeler_service.capture.model import MAX_COORD_MM, rate_problem
 from labeler_service.errors import SceneError
+from labeler_service.wording import plural
 
 #: A marker must be visible in at least this fraction of the window to be kept.
 MIN_VISIBLE_FRACTION = 0.5
@@ -209,7 +210,9 @@ def resample(cap: Capture, start: int, rate: float, frames: int, name: str = "ta
     w = at - i0
     w[w < 1e-9] = 0.0
     inside = (i0 < cap.n_frames) & ((w == 0.0) | (i0 + 1 < cap.n_frames))
-    pos = np.full((frames, cap.n_markers, 3), np.nan, dtype=np.float64)
+    # float32 out, float64 only for the frames inside the take (a scene longer than its take
+    # is mostly missing: its memory is the output's)
+    pos = np.full((frames, cap.n_markers, 3), np.nan, dtype=np.float32)
     src = cap.positions.astype(np.float64)
     k = np.flatnonzero(inside)
     a = src[i0[k]]
@@ -217,7 +220,7 @@ def resample(cap: Capture, start: int, rate: float, frames: int, name: str = "ta
     wk = w[k][:, None, None]
     # w == 0 takes the sample as is (b may be missing or past the end)
     pos[k] = np.where(wk == 0.0, a, (1.0 - wk) * a + wk * b)
-    return cap.with_positions(pos.astype(np.float32), rate=float(rate))
+    return cap.with_positions(pos, rate=float(rate))
 
 
 def detect_up(cap: Capture, name: str = "take") -> tuple[str, str]:
@@ -382,6 +385,25 @@ def _unique(names: Sequence[str]) -> list[str]:
     return out
 
 
+def _check_size(frames: int, caps: Sequence[Capture]) -> None:
+    """Refuses, before any take is resampled, a scene whose float32 positions are larger than
+    a capture the project reads (:func:`~labeler_service.capture.io.max_npz_bytes`, 1.3 GB: a
+    10-minute, 10-person take at 240 Hz; labels and headers aside): ``--frames 10000000``
+    asked numpy for 8.7 GiB per take and ended in a MemoryError traceback. Composing takes
+    about three times the scene's size (a 187 MB scene: 0.55 GB more at its peak)."""
+    markers = sum(int((~c.ghost_mask).sum()) for c in caps)
+    size = frames * markers * 3 * 4
+    cap = max_npz_bytes()
+    if size <= cap:
+        return
+    most = cap // max(1, markers * 3 * 4)
+    raise SceneError(
+        f"--frames {frames} of {plural(markers, 'marker')} is a {size / 1e9:.3g} GB scene "
+        f"(float32 positions), more than the {cap / 1e9:.3g} GB a capture is read within "
+        f"(MOCAP_MAX_NPZ_BYTES): compose at most {most} frames"
+    )
+
+
 def compose_scene(
     takes: Sequence[TakeLike],
     radius: float,
@@ -429,6 +451,7 @@ def compose_scene(
         out_rate = loaded[0][0].rate
     else:
         out_rate = float(rate)
+    _check_size(frames, [c for c, _ in loaded])
 
     n = len(specs)
     phase = rng.uniform(0.0, 2.0 * math.pi)
@@ -501,16 +524,22 @@ def compose_scene(
             notes.append(f"{name}: {how}")
             yaw = (theta + math.pi) - face + float(jitter[k])
         # turn first, then remove the drift: the per-axis median is not rotation-equivariant,
-        # so measuring the centre after the turn puts it exactly on the placement point
-        pos = win.positions.astype(np.float64)
+        # so measuring the centre after the turn puts it exactly on the placement point. The
+        # frames after the take's end are missing (NaN stays NaN): only the covered ones are
+        # placed, in float64
+        part = win.positions[:covered].astype(np.float64)
         c, s = math.cos(yaw), math.sin(yaw)
-        x, y = pos[..., 0].copy(), pos[..., 1].copy()
-        pos[..., 0] = c * x - s * y
-        pos[..., 1] = s * x + c * y
-        pos[:covered, :, :2] -= body_centre(pos[:covered], CENTRE_SMOOTH_S * out_rate)[:, None]
-        pos[..., 0] += radius * math.cos(theta)
-        pos[..., 1] += radius * math.sin(theta)
-        placed = win.with_positions(pos.astype(np.float32), rate=out_rate, notes=())
+        x, y = part[..., 0].copy(), part[..., 1].copy()
+        part[..., 0] = c * x - s * y
+        part[..., 1] = s * x + c * y
+        del x, y
+        part[..., :2] -= body_centre(part, CENTRE_SMOOTH_S * out_rate)[:, None]
+        part[..., 0] += radius * math.cos(theta)
+        part[..., 1] += radius * math.sin(theta)
+        pos = win.positions.copy()
+        pos[:covered] = part
+        del part
+        placed = win.with_positions(pos, rate=out_rate, notes=())
         parts.append(placed.with_subject(name))
         resampled = (
             "" if abs(cap.rate - out_rate) < 1e-9 else f" resampled {cap.rate:g} -> {out_rate:g} Hz"
