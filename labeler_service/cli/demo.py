@@ -293,6 +293,8 @@ def run(args: argparse.Namespace) -> int:
     spec = CorruptionSpec(gaps=args.gaps, gap_frames=args.gap_frames, ghosts=args.ghosts,
                           protect_frames=args.init_frames, seed=args.seed)  # fmt: skip
     frames = corrupt(cap, spec)
+    for note in frames.notes:
+        print(f"note: {note}", file=sys.stderr)
     print(f"scene: {what}: {plural(len(cap.subjects), 'subject')}, "
           f"{plural(len(frames.marker_names), 'marker')}, "
           f"{plural(frames.n_frames, 'frame')} at {frames.rate:g} Hz")  # fmt: skip

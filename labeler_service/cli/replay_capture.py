@@ -91,6 +91,8 @@ async def _main(args: argparse.Namespace) -> int:
         f"-> {redact_url(args.to)}, stream {stream_name}",
         file=sys.stderr,
     )
+    for note in frames.notes:
+        print(f"replay: note: {note}", file=sys.stderr)
     for subject, gone, back in frames.departures:
         print(
             f"replay: {subject} leaves at frame {gone} ({gone / frames.rate:.2f} s) and is back "

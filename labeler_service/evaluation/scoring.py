@@ -731,6 +731,7 @@ def evaluate(
         seed=seed,
     )
     stream = corrupt(capture, spec)
+    notes = [*notes, *stream.notes]  # (where a corruption did less than asked)
     if stream.n_frames <= init_frames:  # before a window model's error (asks for init frames)
         if downsample > 1:
             raise SceneError(

@@ -132,6 +132,9 @@ class StreamFrames:
     occlusions: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)
     #: ``--leave`` events: (subject, first frame gone, first frame back)
     departures: list[tuple[str, int, int]] = field(default_factory=list)
+    #: where a corruption did less than asked, and why (a subject with fewer markers than
+    #: ``--gaps``, an occlusion with no marker in view to hide)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def n_frames(self) -> int:
@@ -151,6 +154,7 @@ class StreamPlan:
     marker_names: tuple[str, ...]
     occlusions: list[tuple[int, tuple[int, ...]]] = field(default_factory=list)
     departures: list[tuple[str, int, int]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
 
 def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> StreamPlan:
@@ -167,6 +171,7 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
     departures = _departures(spec, rng, positions, names, cap.rate, start)
     visible = ~np.isnan(positions).any(axis=2)
     removed = np.zeros_like(visible)
+    notes: list[str] = []
 
     if spec.gaps > 0:
         if n_frames - start < spec.gap_frames:  # (no gap would fit: none was made, silently)
@@ -177,14 +182,15 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
             )
         period = spec.gap_period or 4 * spec.gap_frames
         sub = Capture(positions, names, cap.rate)
+        notes += _gaps_fit(spec.gaps, sub)
         for subject in sub.subjects:
             cols = sub.subject_columns(subject)
-            k = min(spec.gaps, cols.size)
+            k = min(spec.gaps, cols.size)  # (more than a subject has: refused or noted above)
             for f0 in range(start, n_frames - spec.gap_frames + 1, period):
                 chosen = rng.choice(cols, size=k, replace=False)
                 removed[f0 : f0 + spec.gap_frames, chosen] = True
 
-    occlusions = _occlusions(spec, rng, positions, visible, names, cap.rate, start, removed)
+    occlusions = _occlusions(spec, rng, positions, visible, names, cap.rate, start, removed, notes)
 
     if spec.dropouts > 0.0 and n_frames > start:
         span = n_frames - start
@@ -206,7 +212,28 @@ def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> S
         marker_names=names,
         occlusions=occlusions,
         departures=departures,
+        notes=notes,
     )
+
+
+def _gaps_fit(gaps: int, sub: Capture) -> list[str]:
+    """``--gaps K`` against the subjects' marker counts: more than every subject has is
+    refused (it was taken as "all of them" without a word); more than some have is noted
+    (each of their gap events removes all their markers)."""
+    counts = {s: int(sub.subject_columns(s).size) for s in sub.subjects}
+    if gaps <= min(counts.values()):
+        return []
+    listing = ", ".join(f"{s or '(no prefix)'} {n}" for s, n in counts.items())
+    if gaps > max(counts.values()):
+        raise SceneError(
+            f"--gaps {gaps}: no subject has that many markers ({listing}): a gap event removes "
+            f"--gaps markers of each subject, at most {max(counts.values())} here"
+        )
+    fewer = [f"{s or '(no prefix)'} ({n})" for s, n in counts.items() if n < gaps]
+    return [
+        f"--gaps {gaps}: {', '.join(fewer)} {'has' if len(fewer) == 1 else 'have'} fewer "
+        "markers: each of their gap events removes all of them"
+    ]
 
 
 def _departures(
@@ -227,7 +254,12 @@ def _departures(
         raise SceneError(
             f"--leave {spec.leave}: the scene has only {plural(len(subjects), 'subject')}"
         )
-    away = max(1, int(round(spec.leave_seconds * rate)))
+    away = int(round(spec.leave_seconds * rate))
+    if away < 1:  # (it was made one frame without a word)
+        raise SceneError(
+            f"--leave-seconds {spec.leave_seconds:g} is shorter than a frame "
+            f"({1000.0 / rate:.3g} ms at {rate:g} Hz): a departure lasts at least one frame"
+        )
     last = n_frames - 2 * away  # latest first frame gone: back >= leave_seconds before the end
     if last < start:
         raise SceneError(
@@ -287,8 +319,12 @@ def _occlusions(
     rate: float,
     start: int,
     removed: np.ndarray,
+    notes: list[str],
 ) -> list[tuple[int, tuple[int, ...]]]:
-    """Marks ``--occlude`` events in ``removed`` (in place) and returns them."""
+    """Marks ``--occlude`` events in ``removed`` (in place) and returns them. An event's frame
+    is drawn in its slice of the frames; one where the subject shows no marker is drawn again
+    among the slice's frames that show one (the event was dropped without a word), and a slice
+    with none (the subject has left) is noted."""
     events: list[tuple[int, tuple[int, ...]]] = []
     n_frames = positions.shape[0]
     if spec.occlude <= 0:
@@ -305,11 +341,17 @@ def _occlusions(
                 f"{n_frames - start} frames after the init window"
             )
         edges = np.linspace(start, start + span, spec.occlude + 1).astype(np.int64)
+        missed = 0
         for lo, hi in zip(edges[:-1], edges[1:], strict=True):
             f0 = int(rng.integers(lo, max(hi, lo + 1)))
             seen = cols[visible[f0, cols]]
             if seen.size == 0:
-                continue
+                shown = lo + np.flatnonzero(visible[lo : max(hi, lo + 1), cols].any(axis=1))
+                if shown.size == 0:
+                    missed += 1
+                    continue
+                f0 = int(rng.choice(shown))
+                seen = cols[visible[f0, cols]]
             centre = positions[f0, rng.choice(seen)]
             d = np.linalg.norm(positions[f0, seen] - centre, axis=1)
             hidden = seen[d <= spec.occlude_radius_mm]
@@ -318,6 +360,12 @@ def _occlusions(
             for k, m in enumerate(order):
                 removed[f0 : back + k * spec.occlude_stagger, m] = True
             events.append((f0, tuple(int(m) for m in order)))
+        if missed:
+            notes.append(
+                f"--occlude {spec.occlude}: {subject or '(no prefix)'} shows no marker in "
+                f"{plural(missed, 'slice')} of the frames an event is drawn in (gone or "
+                f"occluded throughout): {spec.occlude - missed} of {spec.occlude} events"
+            )
     return events
 
 
@@ -416,4 +464,5 @@ def corrupt(capture: Capture, spec: CorruptionSpec | None = None) -> StreamFrame
         removed=plan.removed,
         occlusions=plan.occlusions,
         departures=plan.departures,
+        notes=plan.notes,
     )

@@ -149,3 +149,77 @@ def test_occlude_that_cannot_fit_is_an_error(rng) -> None:
         corrupt(cap, CorruptionSpec(occlude=2, occlude_frames=40, protect_frames=20))
     with pytest.raises(SceneError, match="occlude_frames"):
         CorruptionSpec(occlude=1, occlude_frames=0)
+
+
+# ------------------------------------------------ what the user asked is done or said
+def _mixed(rng, frames: int = 200) -> Capture:
+    """Subject S0 with 8 markers beside S1 with 3."""
+    big = moving_clusters(rng, subjects=1, markers=8, frames=frames)
+    small = moving_clusters(rng, subjects=1, markers=3, frames=frames)
+    small = Capture(small.positions + 2000.0, ("S1:m0", "S1:m1", "S1:m2"), small.rate)
+    return Capture.concat_markers([big, small])
+
+
+def test_more_gaps_than_any_subject_has_markers_are_refused(rng) -> None:
+    """``--gaps 1000`` was taken as "every marker of each subject" without a word."""
+    with pytest.raises(SceneError, match=r"--gaps 9: no subject has that many markers "
+                       r"\(S0 8, S1 3\).* at most 8 here"):  # fmt: skip
+        corrupt(_mixed(rng), CorruptionSpec(gaps=9, gap_frames=10, protect_frames=30))
+
+
+def test_more_gaps_than_some_subject_has_are_done_and_said(rng) -> None:
+    s = corrupt(_mixed(rng), CorruptionSpec(gaps=5, gap_frames=10, protect_frames=30, seed=1))
+    assert s.notes == ["--gaps 5: S1 (3) has fewer markers: each of their gap events removes all "
+                       "of them"]  # fmt: skip
+    per_frame = s.removed[30:40].sum(axis=1)
+    assert per_frame.tolist() == [5 + 3] * 10
+    assert corrupt(_mixed(rng), CorruptionSpec(gaps=3, gap_frames=10)).notes == []
+
+
+def test_leave_seconds_shorter_than_a_frame_are_refused(rng) -> None:
+    """0.001 s at 120 Hz was made a one-frame (8.3 ms) absence without a word."""
+    cap = moving_clusters(rng, frames=300)
+    with pytest.raises(SceneError, match=r"--leave-seconds 0.001 is shorter than a frame "
+                       r"\(8.33 ms at 120 Hz\)"):  # fmt: skip
+        corrupt(cap, CorruptionSpec(leave=1, leave_seconds=0.001, protect_frames=30))
+    s = corrupt(cap, CorruptionSpec(leave=1, leave_seconds=1 / 120, protect_frames=30))
+    ((_, gone, back),) = s.departures
+    assert back - gone == 1
+
+
+def test_an_occlusion_drawn_where_the_subject_is_unseen_is_drawn_again(rng) -> None:
+    """An event whose frame showed none of the subject's markers was dropped without a word
+    (``--occlude 2`` made one occlusion, or none); it is drawn among the frames of its slice
+    that show the subject, and a slice without any is noted."""
+    cap = moving_clusters(rng, subjects=1, markers=6, frames=300)
+    pos = cap.positions.copy()
+    pos[40:290:2] = np.nan  # the subject is seen in every other frame only
+    spec = CorruptionSpec(occlude=2, occlude_frames=5, protect_frames=40)
+    for seed in range(6):  # (some seed draws an unseen frame)
+        s = corrupt(cap.with_positions(pos), CorruptionSpec(**{**spec.__dict__, "seed": seed}))
+        assert len(s.occlusions) == 2 and s.notes == [], seed
+        assert all(np.isfinite(pos[f0, 0, 0]) for f0, _ in s.occlusions)
+    pos[40:170] = np.nan  # absent through the first slice
+    s = corrupt(cap.with_positions(pos), spec)
+    assert len(s.occlusions) == 1
+    assert s.notes == ["--occlude 2: S0 shows no marker in 1 slice of the frames an event is "
+                       "drawn in (gone or occluded throughout): 1 of 2 events"]  # fmt: skip
+
+
+def test_evaluate_prints_what_a_corruption_could_not_do(rng, tmp_path, capsys) -> None:
+    import json
+
+    from labeler_service.capture import write_capture
+    from labeler_service.cli.main import main
+
+    path = tmp_path / "mixed.npz"
+    write_capture(_mixed(rng), path)
+    argv = ["evaluate", str(path), "--method", "closest-point", "--init-frames", "30",
+            "--gap-frames", "10", "--no-progress", "--json"]  # fmt: skip
+    assert main([*argv, "--gaps", "5"]) == 0
+    out, err = capsys.readouterr()
+    assert "note: --gaps 5: S1 (3) has fewer markers" in err
+    assert any("--gaps 5" in n for n in json.loads(out.splitlines()[-1])["notes"])
+    assert main([*argv, "--gaps", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --gaps 1000: no subject has that many markers")
