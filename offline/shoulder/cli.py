@@ -15,7 +15,9 @@ check segments and joint centres. With several subjects in TRAIN, ``--subject`` 
 to segment (default: the one with most markers); other subjects (e.g. a handled box) and
 unlabeled tracks are excluded. Writes to DIR: ``report.md``, ``results.json``,
 ``skeleton_k<k>.json``, ``faces.txt``, plots ``error_train.png``, ``error_test_full.png``,
-``error_test_reduced.png``, ``segments_k<k>.png``. The last stdout line is a JSON summary.
+``error_test_reduced.png``, ``segments_k<k>.png``; those files of an earlier run in DIR that
+this run does not write (another ``--k``, ``--no-plots``) are removed, with a note. The last
+stdout line is a JSON summary.
 """
 
 from __future__ import annotations

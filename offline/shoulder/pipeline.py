@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -120,6 +121,24 @@ def _output_folder(out: Path) -> None:
         raise ModelError(f"--out {out}: cannot create the folder: {exc.strerror or exc}") from exc
     if not os.access(out, os.W_OK):
         raise ModelError(f"--out {out}: the folder is not writable")
+
+
+#: Files a run writes in its folder: ``<k>`` and the test plots vary with ``--k``, ``--test``
+#: and ``--no-plots``; those of an earlier run that this one does not write are removed
+#: (:func:`_remove_stale`), so a reader never takes ``skeleton_k6.json`` of another run for
+#: this one's. ``faces.txt``, ``results.json`` and ``report.md`` are written every run.
+OWNED = re.compile(
+    r"^(?:skeleton_k\d+\.json|segments_k\d+\.png|error_train\.png|error_test_(?:full|reduced)\.png)$"
+)
+
+
+def _remove_stale(out: Path, written: set[str]) -> list[str]:
+    """Removes the files of :data:`OWNED` in ``out`` that this run did not write; returns their
+    names. Nothing else in the folder is touched."""
+    stale = sorted(p.name for p in out.iterdir() if OWNED.match(p.name) and p.name not in written)
+    for name in stale:
+        (out / name).unlink(missing_ok=True)
+    return stale
 
 
 def train(cfg: TrainConfig) -> dict:
@@ -253,6 +272,16 @@ def train(cfg: TrainConfig) -> dict:
             title = f"k={k}: segments, reduced markers (o), joints (x)"
             plots.append(plot_segmentation(out / f"segments_k{k}.png", model, title).name)
         timings["plots_s"] = time.perf_counter() - t
+    written = {f"skeleton_k{k}.json" for k in cfg.ks} | set(plots)
+    stale = _remove_stale(out, written)
+    if stale:
+        msg = (
+            f"removed {', '.join(stale)}: an earlier run's files in {out} that this run "
+            f"(k = {', '.join(map(str, cfg.ks))}{', no plots' if not cfg.plots else ''}) "
+            "does not write"
+        )
+        notes.append(msg)
+        print(f"note: {msg}", file=sys.stderr)
     timings["total_s"] = time.perf_counter() - t_start
 
     results = {
