@@ -38,7 +38,7 @@ import re
 import struct
 import uuid
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
@@ -1126,6 +1126,20 @@ def max_npz_bytes() -> int:
         return int(raw)
     except ValueError:
         raise CaptureError(f"MOCAP_MAX_NPZ_BYTES={raw!r} is not an integer") from None
+
+
+#: Most bytes numpy's header takes in an NPZ member of a capture (it writes 128 for each of
+#: ``positions``, ``labels`` and ``rate``; 256 leaves room).
+NPZ_HEADER_BYTES = 256
+
+
+def npz_bytes(n_frames: int, labels: Sequence[str]) -> int:
+    """The declared (uncompressed) size :func:`check_npz` counts for the NPZ :func:`_write_npz`
+    writes of ``n_frames`` frames of ``labels``: float32 positions, the labels as a fixed-width
+    unicode array (4 bytes a character of the longest), the float64 rate, and their headers."""
+    width = max((len(x) for x in labels), default=1)
+    markers = len(labels)
+    return n_frames * markers * 3 * 4 + markers * 4 * max(width, 1) + 8 + 3 * NPZ_HEADER_BYTES
 
 
 def check_npz(path: Path, max_bytes: int | None = None) -> None:

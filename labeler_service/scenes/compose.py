@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from labeler_service.capture import Capture, read_capture, side_pairs, split_label
-from labeler_service.capture.io import max_npz_bytes, split_spec
+from labeler_service.capture.io import max_npz_bytes, npz_bytes, split_spec
 from labeler_service.capture.model import MAX_COORD_MM, rate_problem
 from labeler_service.errors import SceneError
 from labeler_service.wording import plural
@@ -385,22 +385,30 @@ def _unique(names: Sequence[str]) -> list[str]:
     return out
 
 
-def _check_size(frames: int, caps: Sequence[Capture]) -> None:
-    """Refuses, before any take is resampled, a scene whose float32 positions are larger than
-    a capture the project reads (:func:`~labeler_service.capture.io.max_npz_bytes`, 1.3 GB: a
-    10-minute, 10-person take at 240 Hz; labels and headers aside): ``--frames 10000000``
-    asked numpy for 8.7 GiB per take and ended in a MemoryError traceback. Composing takes
-    about three times the scene's size (a 187 MB scene: 0.55 GB more at its peak)."""
-    markers = sum(int((~c.ghost_mask).sum()) for c in caps)
-    size = frames * markers * 3 * 4
+def _check_size(frames: int, caps: Sequence[Capture], names: Sequence[str]) -> None:
+    """Refuses, before any take is resampled, a scene larger than a capture the project reads
+    (:func:`~labeler_service.capture.io.max_npz_bytes`, 1.3 GB: a 10-minute, 10-person take at
+    240 Hz), counted as its NPZ is (:func:`~labeler_service.capture.io.npz_bytes`: positions,
+    labels and headers, so that the most frames it names are read back): ``--frames
+    10000000`` asked numpy for 8.7 GiB per take and ended in a MemoryError traceback.
+    Composing takes about three times the scene's size (a 187 MB scene: 0.55 GB more at its
+    peak). ``names``: the subjects the takes are given, as the scene labels them."""
+    labels = [
+        f"{name}:{split_label(label)[1]}"
+        for c, name in zip(caps, names, strict=True)
+        for label, ghost in zip(c.labels, c.ghost_mask, strict=True)
+        if not ghost
+    ]
+    markers = len(labels)
+    size = npz_bytes(frames, labels)
     cap = max_npz_bytes()
     if size <= cap:
         return
-    most = cap // max(1, markers * 3 * 4)
+    most = max(0, cap - npz_bytes(0, labels)) // max(1, markers * 3 * 4)
     raise SceneError(
         f"--frames {frames} of {plural(markers, 'marker')} is a {size / 1e9:.3g} GB scene "
-        f"(float32 positions), more than the {cap / 1e9:.3g} GB a capture is read within "
-        f"(MOCAP_MAX_NPZ_BYTES): compose at most {most} frames"
+        f"(float32 positions and labels, as an NPZ holds them), more than the {cap / 1e9:.3g} "
+        f"GB a capture is read within (MOCAP_MAX_NPZ_BYTES): compose at most {most} frames"
     )
 
 
@@ -451,12 +459,12 @@ def compose_scene(
         out_rate = loaded[0][0].rate
     else:
         out_rate = float(rate)
-    _check_size(frames, [c for c, _ in loaded])
+    names = _unique([_subject_name(c, s.name) for s, (c, _) in zip(specs, loaded, strict=True)])
+    _check_size(frames, [c for c, _ in loaded], names)
 
     n = len(specs)
     phase = rng.uniform(0.0, 2.0 * math.pi)
     jitter = np.deg2rad(rng.uniform(-YAW_JITTER_DEG, YAW_JITTER_DEG, size=n))
-    names = _unique([_subject_name(c, s.name) for s, (c, _) in zip(specs, loaded, strict=True)])
 
     parts: list[Capture] = []
     notes: list[str] = []

@@ -31,20 +31,27 @@ def test_an_absurd_scene_length_is_refused_naming_the_size(take, tmp_path, capsy
     assert err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith("error: --frames 100000000 of 8 markers is a 9.6 GB scene")
     assert "more than the 1.3 GB a capture is read within (MOCAP_MAX_NPZ_BYTES)" in err
-    assert "compose at most 13541666 frames" in err
+    assert "compose at most 13541656 frames" in err
     assert not out.exists()
 
 
-def test_the_limit_itself_composes(take, tmp_path, monkeypatch, capsys):
-    """At most ``limit // (markers x 12)`` frames: that many are written (the take leaves the
-    scene after its 100 frames), one more is refused."""
+def test_the_limit_itself_composes_and_reads_back(take, tmp_path, monkeypatch, capsys):
+    """The most frames the error names are composed, and the scene they make is read back under
+    the same limit (the positions alone were counted: at that many frames the NPZ's labels and
+    headers put it over, and ``info`` refused the scene compose had just written); one more
+    frame is refused."""
+    import re
+
     monkeypatch.setenv("MOCAP_MAX_NPZ_BYTES", str(8 * 12 * 500))
     out = tmp_path / "scene.npz"
-    assert main(_compose(take, out, "501")) == 2
-    assert "compose at most 500 frames" in capsys.readouterr().err
-    assert main(_compose(take, out, "500")) == 0
-    monkeypatch.delenv("MOCAP_MAX_NPZ_BYTES")  # (its labels and headers come on top)
-    assert read_capture(out).n_frames == 500
+    assert main(_compose(take, out, "500")) == 2  # 500 frames of positions alone fill it
+    most = int(re.search(r"compose at most (\d+) frames", capsys.readouterr().err)[1])
+    assert 490 <= most < 500
+    assert main(_compose(take, out, str(most + 1))) == 2
+    assert f"compose at most {most} frames" in capsys.readouterr().err
+    assert main(_compose(take, out, str(most))) == 0
+    assert read_capture(out).n_frames == most  # (under the same limit)
+    assert main(["info", str(out)]) == 0
 
 
 def test_a_memory_error_is_one_line(take, tmp_path, monkeypatch, capsys):
