@@ -116,7 +116,7 @@ def _check_out(out: str, inputs: list[str]) -> None:
 
 def parse_take(text: str) -> tuple[str, int, int | None]:
     """``TAKE[:start[:stop]]`` -> ``(path, start, stop)``; TAKE may hold colons: the longest
-    prefix that exists on disk is the file (:func:`~labeler_service.capture.io.split_spec`)."""
+    prefix that is a capture file is the file (:func:`~labeler_service.capture.io.split_spec`)."""
     from pathlib import Path
 
     from labeler_service.capture.io import split_spec

@@ -129,23 +129,33 @@ def read_segment(spec: str | Path, up: str = "z") -> Capture:
 
 def split_spec(text: str, fields: int) -> tuple[str, list[str]]:
     """``PATH[:field...]`` -> ``(PATH, fields)`` for a spec of at most ``fields`` fields after a
-    path that may itself hold colons (``take:2.c3d:240``, ``a:b/walk.trc:0:y``). The path is
-    the longest prefix, cut at a ``:``, that exists on disk with at most ``fields`` fields after
-    it; else the longest existing file before more fields (the caller says there are too
-    many); else, when nothing exists, the longest prefix named like a capture (``.c3d``,
-    ``.trc``, ``.npz``) with at most ``fields`` after it, or the text up to its first ``:``
-    (the reader then says "no such file")."""
+    path that may itself hold colons (``take:2.c3d:240``, ``a:b/walk.trc:0:y``). The path is,
+    with at most ``fields`` fields after it, the longest prefix cut at a ``:`` that is a file
+    named like a capture (``.c3d``, ``.trc``, ``.npz``), else that is any file; else the longest
+    file before more fields (the caller says there are too many); else, when no file fits, the
+    longest prefix named like a capture (the reader then says "no such file"), then one that
+    exists (a folder: the reader says so), else the text up to its first ``:``. A capture file
+    comes first: ``take.c3d:10:y`` is frame 10 of ``take.c3d`` beside a stray file
+    ``take.c3d:10`` (no capture, by its name), and ``day:1/walk.c3d:5`` beside a folder ``day``
+    looks for ``day:1/walk.c3d`` (frame '1/walk.c3d' of the folder ``day`` was read)."""
     parts = text.split(":")
     n = len(parts)
     heads = [(":".join(parts[:k]), parts[k:]) for k in range(n, 0, -1)]  # longest first
-    for head, rest in heads:
-        if head and len(rest) <= fields and Path(head).exists():
+    fit = [(head, rest) for head, rest in heads if head and len(rest) <= fields]
+    for head, rest in fit:
+        if Path(head).suffix.lower() in SUFFIXES and Path(head).is_file():
+            return head, rest
+    for head, rest in fit:
+        if Path(head).is_file():
             return head, rest
     for head, rest in heads:
         if head and Path(head).is_file():
             return head, rest
-    for head, rest in heads:
-        if len(rest) <= fields and Path(head).suffix.lower() in SUFFIXES:
+    for head, rest in fit:
+        if Path(head).suffix.lower() in SUFFIXES:
+            return head, rest
+    for head, rest in fit:
+        if Path(head).exists():
             return head, rest
     return parts[0], parts[1:]
 
@@ -158,9 +168,9 @@ def _frame_number(text: str) -> bool:
 
 def split_segment(text: str) -> tuple[str, int, int | None]:
     """``FILE[:start[:stop]]`` -> ``(FILE, start, stop)``; FILE may hold colons
-    (:func:`split_spec`: the longest prefix that exists wins). A spec whose file does not exist
-    and whose tail is not ``:digits`` is the whole file ``(text, 0, None)`` (the reader says
-    "no such file")."""
+    (:func:`split_spec`: the longest prefix that is a capture file wins). A spec whose file does
+    not exist and whose tail is not ``:digits`` is the whole file ``(text, 0, None)`` (the
+    reader says "no such file")."""
     path, nums = split_spec(text, 2)
     if not nums:
         return path, 0, None

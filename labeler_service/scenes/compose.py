@@ -96,7 +96,8 @@ class TakeSpec:
     def parse(cls, text: str) -> TakeSpec:
         """``FILE[:start[:up[:subject]]]`` -> TakeSpec, e.g. ``walk.c3d:240:y`` or
         ``two.c3d:0::Viktor`` (an empty field keeps its default: 0, auto). FILE may hold
-        colons: the longest prefix that exists on disk is the file (:func:`split_spec`)."""
+        colons: the longest prefix that is a capture file on disk is the file
+        (:func:`split_spec`)."""
         syntax = "FILE[:start[:up[:subject]]]"
         path, fields = split_spec(str(text), 3)
         if len(fields) > 3 and path and Path(path).is_file():

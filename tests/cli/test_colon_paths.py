@@ -1,9 +1,9 @@
 """A capture path that holds ':' in a take spec (``TAKE[:start[:up[:subject]]]`` of compose,
 ``TAKE[:start[:stop]]`` of train structure, ``FILE[:start[:stop]]`` of evaluate, info, label,
-replay): the longest prefix that exists on disk is the file. Compose split at the first ':'
-("start '1/take.npz' is not a frame number") and train structure at the last two ("bad take")
-of ``day:1/take.npz:10``; evaluate's reader already took such paths (kept by the last test),
-all three now share one splitter (``capture.io.split_spec``)."""
+replay): the longest prefix that is a capture file on disk is the file. Compose split at the
+first ':' ("start '1/take.npz' is not a frame number") and train structure at the last two
+("bad take") of ``day:1/take.npz:10``; evaluate's reader already took such paths (kept by the
+last test), all three now share one splitter (``capture.io.split_spec``)."""
 
 from __future__ import annotations
 
@@ -84,3 +84,36 @@ def test_evaluate_reads_a_range_of_a_file_named_like_a_range(odd, capsys):
     assert '"frames": 100' in capsys.readouterr().out
     with pytest.raises(CaptureError, match="bad frame range 'x'"):
         split_segment(f"{t10}:x")
+
+
+def test_a_capture_file_comes_before_a_stray_file_or_folder_named_like_a_prefix(
+    odd, tmp_path, monkeypatch
+):
+    """``take.npz:10:y`` beside a stray file named ``take.npz:10`` (no capture, by its suffix
+    ``.npz:10``) read the stray file with start 'y' (compose: "start 'y' is not a frame
+    number"; info and train structure ``take.npz:10:40``: "unknown capture format '.npz:10'")
+    where compose and train structure had read frames of ``take.npz``; ``day:1/take.npz:5``
+    beside a folder ``day`` (and no ``day:1``) was the folder with start '1/take.npz'."""
+    from labeler_service.capture import read_segment
+    from labeler_service.capture.io import split_spec
+    from offline.structure_cli import parse_take
+
+    take, _ = odd
+    monkeypatch.chdir(take.parent)
+    (take.parent / "take.npz:10").write_text("a stray file")
+    assert split_spec("take.npz:10:y", 3) == ("take.npz", ["10", "y"])
+    spec = TakeSpec.parse("take.npz:10:y")
+    assert (str(spec.path), spec.start, spec.up) == ("take.npz", 10, "y")
+    assert split_segment("take.npz:10:40") == ("take.npz", 10, 40)
+    assert parse_take("take.npz:10:40") == ("take.npz", 10, 40)
+    # nothing to read but the stray file: it is the file (its reader names it)
+    (take.parent / "lone.c3d:10").write_text("a stray file")
+    assert split_spec("lone.c3d:10", 2) == ("lone.c3d:10", [])
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "day").mkdir()
+    assert split_spec("day:1/gone.npz:5", 3) == ("day:1/gone.npz", ["5"])
+    assert split_segment("day:1/gone.npz:5") == ("day:1/gone.npz", 5, None)
+    with pytest.raises(CaptureError, match=r"day:1/gone\.npz: no such file"):
+        read_segment("day:1/gone.npz:5")
+    assert split_spec("day:1/take.npz:5", 3) == ("day:1/take.npz", ["5"])  # (odd's file)
