@@ -104,7 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except MemoryError as exc:  # numpy says what it could not allocate: one line, no traceback
         print(
-            f"error: out of memory: {exc or 'an allocation failed'} (ask for less: fewer "
+            f"error: out of memory: {str(exc) or 'an allocation failed'} (ask for less: fewer "
             "frames, a frame range FILE:start:stop)",
             file=sys.stderr,
         )

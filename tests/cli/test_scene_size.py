@@ -66,3 +66,18 @@ def test_a_memory_error_is_one_line(take, tmp_path, monkeypatch, capsys):
     assert (
         err.startswith("error: out of memory: Unable to allocate 8.72 GiB") and err.count("\n") == 1
     )
+
+
+def test_a_memory_error_without_a_message_says_what_failed(take, tmp_path, monkeypatch, capsys):
+    """A bare ``MemoryError()`` (Python's own allocations give no text) printed "out of memory:
+    (ask for less ..." with nothing after the colon: an exception is truthy even when its text
+    is empty."""
+    import labeler_service.scenes.compose as compose
+
+    def exhausted(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(compose, "compose_scene", exhausted)
+    assert main(_compose(take, tmp_path / "scene.npz", "10")) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: out of memory: an allocation failed (ask for less")
