@@ -221,6 +221,7 @@ def _gaps_fit(gaps: int, sub: Capture) -> list[str]:
     refused (it was taken as "all of them" without a word); more than some have is noted
     (each of their gap events removes all their markers)."""
     counts = {s: int(sub.subject_columns(s).size) for s in sub.subjects}
+    _need_subjects(f"--gaps {gaps}", counts)
     if gaps <= min(counts.values()):
         return []
     listing = ", ".join(f"{s or '(no prefix)'} {n}" for s, n in counts.items())
@@ -234,6 +235,17 @@ def _gaps_fit(gaps: int, sub: Capture) -> list[str]:
         f"--gaps {gaps}: {', '.join(fewer)} {'has' if len(fewer) == 1 else 'have'} fewer "
         "markers: each of their gap events removes all of them"
     ]
+
+
+def _need_subjects(what: str, subjects: object) -> None:
+    """Refuses a per-subject corruption of a capture with no labeled subject (only unlabeled
+    tracks ``*N``): ``--gaps`` ended in ``min() arg is an empty sequence``, ``--occlude`` made
+    nothing without a word."""
+    if not subjects:
+        raise SceneError(
+            f"{what}: the capture has no labeled marker (only unlabeled tracks), and it acts on "
+            "each subject's markers: leave it out"
+        )
 
 
 def _departures(
@@ -330,6 +342,7 @@ def _occlusions(
     if spec.occlude <= 0:
         return events
     sub = Capture(positions, names, rate)
+    _need_subjects(f"--occlude {spec.occlude}", sub.subjects)
     for subject in sub.subjects:
         cols = sub.subject_columns(subject)
         # longest possible event: hidden frames + every marker back one at a time

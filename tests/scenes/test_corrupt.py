@@ -223,3 +223,20 @@ def test_evaluate_prints_what_a_corruption_could_not_do(rng, tmp_path, capsys) -
     assert main([*argv, "--gaps", "1000"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: --gaps 1000: no subject has that many markers")
+
+
+@pytest.mark.parametrize(
+    ("spec", "what"),
+    [
+        (CorruptionSpec(gaps=2, gap_frames=10, protect_frames=30), "--gaps 2"),
+        (CorruptionSpec(occlude=1, occlude_frames=10, protect_frames=30), "--occlude 1"),
+    ],
+)
+def test_a_per_subject_corruption_of_unlabeled_tracks_only_is_refused(rng, spec, what) -> None:
+    """A capture of unlabeled tracks only (``raw_unlabeled_kneel_to_run_240hz.c3d``): ``replay
+    --gaps 2`` and ``evaluate --gaps 2`` ended in a traceback ("min() arg is an empty
+    sequence"); ``--occlude`` made no event without a word."""
+    tracks = moving_clusters(rng, subjects=1, markers=4, frames=200)
+    cap = Capture(tracks.positions, ("*0", "*1", "*2", "*3"), tracks.rate)
+    with pytest.raises(SceneError, match=f"{what}: the capture has no labeled marker"):
+        corrupt(cap, spec)
