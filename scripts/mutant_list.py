@@ -444,4 +444,14 @@ MUTANTS: list[Mutant] = [
         "a marker never observed takes any free point in reach, whatever its trained distances",
         kernel=True,
     ),
+    Mutant(
+        "presence-ignores-vanish",
+        "labeler_service/labeling/kernels/step.py",
+        "        if not tracks.gone[subj_idx[subj_ptr[s]]] and not labeled < drop * seen:\n",
+        "        if not tracks.gone[subj_idx[subj_ptr[s]]] and not labeled < 0.0 * seen:\n",
+        (T + "labeling/test_presence.py",),
+        "a subject whose markers all vanish in one frame keeps the ghosts taken where he was",
+        k="vanishing",
+        kernel=True,
+    ),
 ]

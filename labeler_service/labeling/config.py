@@ -343,6 +343,16 @@ class LabelerConfig(BaseModel):
         "whose distances agree with the body's D (a subject that left cannot hold isolated ghost "
         "points; 0 = off)",
     )
+    presence_drop: float = Field(
+        0.25,
+        ge=0,
+        le=1,
+        description="a subject labeled in a frame with fewer than this share of the markers "
+        "observed in the previous frame (a sudden vanish: a take that ends, a performer hidden "
+        "at once) is checked as absent: it keeps its labels only if one of its rigid bodies "
+        "shows its shape (points taken near where it was are ghosts or other performers' "
+        "markers; 0 = off)",
+    )
     presence_tol_mm: float = Field(
         15.0,
         gt=0,

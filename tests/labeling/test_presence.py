@@ -5,7 +5,9 @@ the volume (its markers vanish) a third of the way in. Ghost points, one at a ti
 living a few frames, appear where it stood and next to the performer who stays - the situation
 of the ``ghosts3`` cells with a leaver, where the departed subject's predictions took 46-74 %
 of the ghost points. Isolated points cannot show a rigid body's shape, so none may carry the
-departed subject's labels, and the performer who stays keeps his.
+departed subject's labels, and the performer who stays keeps his. A performer who vanishes at
+once (a take that ends) is checked in the frame he vanishes (``presence_drop``), before ghosts
+taken there count as his observed markers.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.kernels.state import Bodies, new_bodies
 from labeler_service.labeling.kernels.step import _consistent
 from labeler_service.labeling.labeler import Labeler
+from labeler_service.scenes.simulate import simulate_scene
 
 RATE = 120.0
 INIT = 30
@@ -63,6 +66,60 @@ def test_without_the_check_the_departed_subject_takes_ghosts():
     """The scene really tempts the departed subject (so the test above can fail)."""
     taken, ghosts, _ = _run(LabelerConfig(presence_min_markers=0))
     assert taken > 0.05 * ghosts
+
+
+VANISH_RATE, VANISH_INIT, VANISH_AT, VANISH_FRAMES = 120.0, 60, 240, 400
+
+
+def _vanish(config: LabelerConfig, ghosts: int = 5, seed: int = 3) -> tuple[int, int, float]:
+    """(ghosts labeled, ghosts, accuracy of the real points): the second of two simulated
+    walkers (51 markers each) vanishes at once - a take that ends, a performer hidden whole -
+    and for 20 frames ghost points stand where ``ghosts`` of his markers would be next."""
+    cap = simulate_scene(2, VANISH_FRAMES / VANISH_RATE, "walk", seed=seed, rate=VANISH_RATE,
+                         ghosts=0.0)  # fmt: skip
+    pos = cap.positions.astype(np.float32)
+    second = len(cap.labels) // 2
+    lab = Labeler(tuple(cap.labels), VANISH_RATE, config)
+    rng = np.random.default_rng(seed)
+    last = np.flatnonzero(np.isfinite(pos[VANISH_AT - 1, second:, 0])) + second
+    at = rng.choice(last, ghosts, replace=False)
+    where = 2 * pos[VANISH_AT - 1, at] - pos[VANISH_AT - 2, at]
+    taken = n_ghosts = correct = total = 0
+    for f in range(VANISH_FRAMES):
+        frame = pos[f].copy()
+        if f >= VANISH_AT:
+            frame[second:] = np.nan
+        vis = np.flatnonzero(np.isfinite(frame[:, 0]))
+        pts, truth = frame[vis], vis.astype(np.int32)
+        if VANISH_AT <= f < VANISH_AT + 20:
+            g = where + rng.normal(0.0, 1.0, where.shape)
+            pts = np.vstack([pts, g.astype(np.float32)])
+            truth = np.append(truth, np.full(ghosts, -1)).astype(np.int32)
+        order = rng.permutation(pts.shape[0])
+        pts, truth = np.ascontiguousarray(pts[order]), truth[order]
+        out = lab.process(pts, f / VANISH_RATE, truth if f < VANISH_INIT else None)
+        ghost = truth < 0
+        n_ghosts += int(ghost.sum())
+        taken += int(np.count_nonzero(out.point_labels[ghost] >= 0))
+        if f >= VANISH_INIT:
+            real = ~ghost
+            correct += int(np.count_nonzero(out.point_labels[real] == truth[real]))
+            total += int(real.sum())
+    return taken, n_ghosts, correct / total
+
+
+def test_a_subject_vanishing_at_once_takes_no_ghost_where_it_was():
+    """Five ghosts where his markers would be are as many "observed" markers in the next
+    frame, so only the vanish itself (5 of 51 labeled) can show he is gone (``presence_drop``)."""
+    taken, ghosts, acc = _vanish(LabelerConfig())
+    assert ghosts == 100
+    assert taken == 0
+    assert acc >= 0.995
+
+
+def test_without_the_drop_check_the_vanished_subject_keeps_the_ghosts():
+    taken, ghosts, _ = _vanish(LabelerConfig(presence_drop=0.0))
+    assert taken > 0.5 * ghosts
 
 
 def _one_body(d: float) -> Bodies:

@@ -304,15 +304,19 @@ def _presence(points, tracks, bodies, scratch, params):
     assigned, owner = scratch.assigned, scratch.owner
     subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
     mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
-    need, tol = params.presence_min_markers, params.presence_tol_mm
+    need, tol, drop = params.presence_min_markers, params.presence_tol_mm, params.presence_drop
     for s in range(subj_ptr.shape[0] - 1):
-        labeled = False
+        labeled = 0
+        seen = 0  # observed in the previous frame (ages change only after this)
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
             if assigned[subj_idx[e]] >= 0:
-                labeled = True
-                break
-        # absent: :func:`_absent` counted this frame's subject (ages change only after this)
-        if not labeled or not tracks.gone[subj_idx[subj_ptr[s]]]:
+                labeled += 1
+            if tracks.age[subj_idx[e]] > 0:
+                seen += 1
+        if labeled == 0:
+            continue
+        # absent (:func:`_absent` counted this frame's subject), or vanishing at once
+        if not tracks.gone[subj_idx[subj_ptr[s]]] and not labeled < drop * seen:
             continue
         present = False
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
