@@ -89,6 +89,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from labeler_service.capture import Capture, is_ghost, split_label, subject_groups
+from labeler_service.capture.model import rate_problem
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.booting import BootingLabeler, prepare_boot
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
@@ -560,8 +561,16 @@ class StreamState:
         steps = np.diff(seqs)
         ok = (steps > 0) & forward
         if ok.any():
-            return float(1.0 / np.median(dt[ok] / steps[ok]))
-        return float(1.0 / np.median(dt[forward]))
+            rate = float(1.0 / np.median(dt[ok] / steps[ok]))
+        else:
+            rate = float(1.0 / np.median(dt[forward]))
+        why = rate_problem(rate)
+        if why is not None:  # (t in milliseconds reads as 0.12 Hz: a labeler at that rate)
+            raise LabelerError(
+                f"stream {self.name}: the frame rate the init frames' times give {why} (is "
+                "t in seconds? it must be); set streams[].rate"
+            )
+        return rate
 
     @property
     def t_last(self) -> float | None:

@@ -128,6 +128,25 @@ def _train(names: list[str], labeled_start: str, rng, state_out: list | None = N
     return state.train(state.take_init(), first)
 
 
+@pytest.mark.parametrize("labeled_start", ["labeler", "model"])
+def test_init_frames_timed_in_milliseconds_are_refused_by_their_rate(rng, labeled_start):
+    """A client that sends ``t`` in milliseconds: the rate read from the init frames' times
+    (0.05 Hz for 50 Hz frames) started a labeler at that rate, which predicted nothing."""
+    from labeler_service.errors import LabelerError
+    from labeler_service.service.protocol import FrameMsg
+    from labeler_service.service.stream import StreamState
+
+    settings = _settings(labeled_start, warmup=False)
+    state = StreamState("vol", settings, settings.streams[0])
+    base = rng.normal(scale=60.0, size=(5, 3))
+    for k in range(12):
+        pts = (base + rng.normal(size=(5, 3)) + k).astype("float32")
+        state.buffer_init(FrameMsg("vol", k, k * 20.0, pts, tuple(f"s:m{i}" for i in range(5))))
+    first = FrameMsg("vol", 12, 240.0, (base + 12).astype("float32"))
+    with pytest.raises(LabelerError, match=r"is 0.05 Hz: expected 1 to 10000 Hz \(is t in sec"):
+        state.train(state.take_init(), first)
+
+
 def test_window_start_needs_subject_labels(rng):
     from labeler_service.errors import LabelerError
 
