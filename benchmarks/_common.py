@@ -20,6 +20,18 @@ def emit(result: dict[str, Any], out: str | Path | None = None) -> None:
         path.write_text(line + "\n")
 
 
+def warm_kernels() -> None:
+    """Compiles (or loads) the labeler's and the boot's kernels in this process before a pool
+    of workers forks from it: they inherit them. Two workers compiling the same kernels at
+    once on a cold numba cache (the first run after a kernel change) raced: one failed with a
+    TypingError listing a kernel's "known signatures" (`generalization.py --jobs 2`,
+    2026-12-02; numba/numba#4807, #10128)."""
+    from labeler_service.labeling.booting import warmup_booting
+    from labeler_service.labeling.config import LabelerConfig
+
+    warmup_booting(120.0, LabelerConfig())
+
+
 def add_hug_args(ap: argparse.ArgumentParser, seconds: float) -> None:
     """The simulated hug the boot-cost benchmarks stream (the service bench's scene): its
     performers, rate, streamed and training seconds, seed."""

@@ -95,7 +95,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from _common import emit
+from _common import emit, warm_kernels
 
 from labeler_service.capture import Capture, read_capture, split_label
 from labeler_service.errors import MocapError
@@ -752,6 +752,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
 
     if args.jobs > 1:
+        warm_kernels()  # (in the parent: the workers inherit them, none compiles)
         with ProcessPoolExecutor(args.jobs) as pool:
             for rows in pool.map(_run, jobs):
                 show(rows)

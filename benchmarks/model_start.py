@@ -31,7 +31,7 @@ from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import generalization as gen
-from _common import emit
+from _common import emit, warm_kernels
 
 from labeler_service.errors import MocapError
 from labeler_service.evaluation import scoring
@@ -130,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         for c in (a.cells if len(s.takes) > 1 else ["alone"])
     ]
     rows = []
+    warm_kernels()  # (in the parent: the workers inherit them, none compiles)
     with ProcessPoolExecutor(max(1, a.jobs)) as ex:
         for r in ex.map(run_cell, jobs):
             if r is not None:
