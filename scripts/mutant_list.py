@@ -447,8 +447,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "presence-ignores-vanish",
         "labeler_service/labeling/kernels/step.py",
-        "        if not tracks.gone[subj_idx[subj_ptr[s]]] and not labeled < drop * seen:\n",
-        "        if not tracks.gone[subj_idx[subj_ptr[s]]] and not labeled < 0.0 * seen:\n",
+        "            labeled < drop * seen\n",
+        "            labeled < 0.0 * seen\n",
         (T + "labeling/test_presence.py",),
         "a subject whose markers all vanish in one frame keeps the ghosts taken where he was",
         k="vanishing",

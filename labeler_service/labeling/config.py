@@ -349,9 +349,10 @@ class LabelerConfig(BaseModel):
         le=1,
         description="a subject labeled in a frame with fewer than this share of the markers "
         "observed in the previous frame (a sudden vanish: a take that ends, a performer hidden "
-        "at once) is checked as absent: it keeps its labels only if one of its rigid bodies "
-        "shows its shape (points taken near where it was are ghosts or other performers' "
-        "markers; 0 = off)",
+        "at once) while the other subjects kept at least half of theirs (not a system dropout) "
+        "is checked as absent: it keeps its labels only if one of its rigid bodies shows its "
+        "shape (points taken near where it was are ghosts or other performers' markers; "
+        "0 = off)",
     )
     presence_tol_mm: float = Field(
         15.0,

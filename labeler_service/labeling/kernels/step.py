@@ -284,6 +284,11 @@ def _consistent(b, points, assigned, bodies, need, tol):
     return True
 
 
+#: A subject vanishing at once is checked only while the other subjects kept at least this
+#: share of the markers they showed in the previous frame (:func:`_presence`).
+VANISH_OTHERS_KEPT = 0.5
+
+
 @njit
 def _presence(points, tracks, bodies, scratch, params):
     """The presence check (ours, class D of docs/diagnosis_issue10.md).
@@ -300,11 +305,25 @@ def _presence(points, tracks, bodies, scratch, params):
     performer shows it with his first three markers on one body. A present subject (3+ markers
     observed in the previous frame) is not checked: a performer seen badly (half his markers
     hidden, his bodies bending at 12.5 Hz) keeps every label Algorithm 1 gave him.
+
+    A subject labeled with fewer than ``presence_drop`` of the markers observed in the previous
+    frame (all of his vanished at once: a take that ends) is checked in the same way while the
+    other subjects kept at least :data:`VANISH_OTHERS_KEPT` of theirs; a frame that lost most
+    points of everyone (a system dropout, a frame thinned at random) is no one leaving, and a
+    lone subject is never checked so.
     """
     assigned, owner = scratch.assigned, scratch.owner
     subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
     mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
     need, tol, drop = params.presence_min_markers, params.presence_tol_mm, params.presence_drop
+    total_labeled = 0
+    total_seen = 0
+    if drop > 0.0:
+        for m in range(tracks.x.shape[0]):
+            if assigned[m] >= 0:
+                total_labeled += 1
+            if tracks.age[m] > 0:
+                total_seen += 1
     for s in range(subj_ptr.shape[0] - 1):
         labeled = 0
         seen = 0  # observed in the previous frame (ages change only after this)
@@ -315,8 +334,15 @@ def _presence(points, tracks, bodies, scratch, params):
                 seen += 1
         if labeled == 0:
             continue
-        # absent (:func:`_absent` counted this frame's subject), or vanishing at once
-        if not tracks.gone[subj_idx[subj_ptr[s]]] and not labeled < drop * seen:
+        # absent (:func:`_absent` counted this frame's subject), or vanishing at once while
+        # the others kept at least half of theirs (a frame that lost most points of everyone,
+        # a system dropout, is no one leaving: no shape can be asked of anyone there)
+        vanishing = (
+            labeled < drop * seen
+            and total_labeled - labeled >= VANISH_OTHERS_KEPT * (total_seen - seen)
+            and total_seen > seen
+        )
+        if not tracks.gone[subj_idx[subj_ptr[s]]] and not vanishing:
             continue
         present = False
         for e in range(subj_ptr[s], subj_ptr[s + 1]):
