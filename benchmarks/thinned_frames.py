@@ -15,41 +15,14 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
 from _common import emit
 
 from labeler_service.labeling.config import LabelerConfig
-from labeler_service.labeling.labeler import Labeler
-from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.testing.dropout import thinned_errors
 
 #: (kept share of the points, frames thinned in a row)
 CASES = ((0.1, 1), (0.2, 3), (0.3, 3))
 SCENES = ((2, "walk"), (3, "hug"))
-
-
-def errors(rate: float, drop: float, keep: float, length: int, performers: int, scenario: str,
-           seed: int) -> int:  # fmt: skip
-    """Errors of one run (module docstring)."""
-    frames, init, at = int(4 * rate), int(0.5 * rate), int(2 * rate)
-    cap = simulate_scene(performers, frames / rate, scenario, seed=seed, rate=rate, ghosts=0.0)
-    pos = cap.positions.astype(np.float32)
-    lab = Labeler(tuple(cap.labels), rate, LabelerConfig(presence_drop=drop))
-    order_rng = np.random.default_rng(seed)
-    thin_rng = np.random.default_rng(100 + seed)
-    wrong = 0
-    for f in range(frames):
-        frame = pos[f].copy()
-        if at <= f < at + length:
-            vis = np.flatnonzero(np.isfinite(frame[:, 0]))
-            hide = thin_rng.choice(vis, vis.size - round(keep * vis.size), replace=False)
-            frame[hide] = np.nan
-        vis = np.flatnonzero(np.isfinite(frame[:, 0]))
-        order = order_rng.permutation(vis.size)
-        pts, truth = np.ascontiguousarray(frame[vis][order]), vis[order].astype(np.int32)
-        out = lab.process(pts, f / rate, truth if f < init else None)
-        if f >= init:
-            wrong += int(np.count_nonzero(out.point_labels != truth))
-    return wrong
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,8 +37,9 @@ def main(argv: list[str] | None = None) -> int:
         for keep, length in CASES:
             row = {"rate": rate, "keep": keep, "frames": length, "errors": {}}
             for drop in a.drops:
+                config = LabelerConfig(presence_drop=drop)
                 runs = [
-                    errors(rate, drop, keep, length, n, scenario, seed)
+                    thinned_errors(config, rate, keep, length, n, scenario, seed)
                     for n, scenario in SCENES
                     for seed in range(1, a.seeds + 1)
                 ]

@@ -21,6 +21,7 @@ from labeler_service.labeling.kernels.state import Bodies, new_bodies
 from labeler_service.labeling.kernels.step import _consistent
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.testing.dropout import thinned_errors
 
 RATE = 120.0
 INIT = 30
@@ -123,38 +124,14 @@ def test_without_the_drop_check_the_vanished_subject_keeps_the_ghosts():
     assert taken > 0.5 * ghosts
 
 
-def _thinned(config: LabelerConfig, keep: float, seed: int) -> int:
-    """Errors over two simulated walkers at 30 Hz whose frame at 2 s keeps only ``keep`` of its
-    points, drawn at random over the volume (a system dropout)."""
-    rate, frames, init, at = 30.0, 120, 15, 60
-    cap = simulate_scene(2, frames / rate, "walk", seed=seed, rate=rate, ghosts=0.0)
-    pos = cap.positions.astype(np.float32)
-    lab = Labeler(tuple(cap.labels), rate, config)
-    rng = np.random.default_rng(seed)
-    thin = np.random.default_rng(100 + seed)
-    errors = 0
-    for f in range(frames):
-        frame = pos[f].copy()
-        if f == at:
-            vis = np.flatnonzero(np.isfinite(frame[:, 0]))
-            frame[thin.choice(vis, vis.size - round(keep * vis.size), replace=False)] = np.nan
-        vis = np.flatnonzero(np.isfinite(frame[:, 0]))
-        order = rng.permutation(vis.size)
-        pts, truth = np.ascontiguousarray(frame[vis][order]), vis[order].astype(np.int32)
-        out = lab.process(pts, f / rate, truth if f < init else None)
-        if f >= init:
-            errors += int(np.count_nonzero(out.point_labels != truth))
-    return errors
-
-
 @pytest.mark.parametrize("seed", [2, 3])
 def test_a_frame_thinned_for_everyone_is_no_subject_vanishing(seed):
-    """A frame that keeps a quarter of every performer's points (a review's dropout run): the
-    vanish check dropped the labels of subjects that fell just under a quarter, and they came
-    back through the narrowest gate (18 and 11 errors instead of 1 and 0 here). The others
-    kept no more than he did, so no one left."""
-    assert _thinned(LabelerConfig(), 0.25, seed) == _thinned(LabelerConfig(presence_drop=0.0),
-                                                             0.25, seed)  # fmt: skip
+    """Two walkers at 30 Hz whose frame at 2 s keeps a quarter of every performer's points (a
+    review's dropout run, :func:`thinned_errors`): the vanish check dropped the labels of
+    subjects that fell just under a quarter, and they came back through the narrowest gate.
+    The others kept no more than he did, so no one left."""
+    on = thinned_errors(LabelerConfig(), 30.0, 0.25, seed=seed)
+    assert on == thinned_errors(LabelerConfig(presence_drop=0.0), 30.0, 0.25, seed=seed)
 
 
 def _one_body(d: float) -> Bodies:
