@@ -179,9 +179,13 @@ def _print_table(report: dict) -> None:
     t.add_column("measure", no_wrap=True)
     for name in report["methods"]:
         t.add_column(name, justify="right", no_wrap=True)
+    shares = {"accuracy", "ghost_labeled_rate"}  # (0.999968 read "1" at 4 digits)
     for c in cols:
         vals = [s.get(c) for s in report["methods"].values()]
-        t.add_row(c, *["-" if v is None else f"{v:.4g}" for v in vals])
+        shown = [
+            "-" if v is None else f"{100 * v:.3f} %" if c in shares else f"{v:.4g}" for v in vals
+        ]
+        t.add_row(c, *shown)
     console = Console()
     console.print(
         f"{plural(report['frames'], 'frame')}, {plural(report['subjects'], 'subject')}, "

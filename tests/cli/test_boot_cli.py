@@ -220,6 +220,10 @@ def test_evaluate_table_names_each_subject_and_fits_the_terminal(scene, capsys):
     out = " ".join(capsys.readouterr().out.split())
     for measure in ("ghost_labeled_rate", "recovery_mean_ratio", "ms_per_frame_p99"):
         assert measure in out, out
+    # shares as percentages that never round a loss away (0.999968 read "1")
+    report["methods"]["online"]["accuracy"] = 0.999968
+    _print_table(report)
+    assert "accuracy 99.997 %" in " ".join(capsys.readouterr().out.replace("│", " ").split())
     assert "P1 " in out and "P2 never" in out and "P3 " in out, out
     assert "never booted: P2" in out, out
     left = report["departures"][0]
