@@ -5,7 +5,7 @@ Precedence, highest first: environment (``MOCAP_UDP__PORT=9999``, nested fields 
 once at start-up; an invalid value raises :class:`~labeler_service.errors.ConfigError` naming the
 field and the problem (the CLI prints it and exits 2).
 
-Example (``docker/service.toml`` is a complete one)::
+Example (``docker/service.toml`` is a short one; docs/service.md lists every key)::
 
     queue_size = 64
     [udp]
@@ -16,7 +16,7 @@ Example (``docker/service.toml`` is a complete one)::
     host = "mosquitto"
     [[streams]]
     name = "volume1"
-    model = "models/volume1.npz"   # else: trained from labeled init frames in the stream
+    model = "models/volume1.json"  # else: trained from labeled init frames in the stream
 """
 
 from __future__ import annotations
