@@ -38,7 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (JSON)")
     p.add_argument("--up", choices=("z", "y"), default="z", help="vertical axis of the files")
     p.add_argument("--tolerance-mm", type=float, default=6.0, help="largest A + w D in a body")
-    p.add_argument("--distance-weight", type=float, default=0.02, help="w: preference for close pairs")
+    p.add_argument(
+        "--distance-weight", type=float, default=0.02, help="w: preference for close pairs"
+    )
     p.add_argument("--min-size", type=int, default=3, help="fewest markers per body")
     p.add_argument("--max-size", type=int, default=6, help="most markers per body (<= 8)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
