@@ -191,6 +191,45 @@ def test_reference_follows_slow_drift_of_a_body_that_deformed():
         assert np.allclose(bodies.ref[0, :5], pts), step  # the new shape is the reference now
 
 
+def _bent_and_exchanged(rng):
+    """A 5-marker body whose fifth marker slid 30 mm while the body was hidden (skin), back with
+    B and C exchanged: every map of all five misses the reference by more than
+    ``repair_check_mm``, the right map of the other four fits it exactly."""
+    pts = _frame(MIRROR @ _rotation(rng).T + [100.0, 200.0, 900.0])
+    pts[4] += np.array([30.0, 0.0, 0.0], dtype=np.float32) @ _rotation(rng).T.astype(np.float32)
+    swapped = np.array([0, 2, 1, 3, 4], dtype=np.int32)
+    return pts, swapped
+
+
+def test_exchange_in_a_body_that_also_bent_is_repaired_by_the_members_that_fit(rng):
+    config = LabelerConfig()
+    params = kernel_params(config)
+    pts, swapped = _bent_and_exchanged(rng)
+    tracks, bodies, scratch = _one_body_state(config, pts, swapped, MIRROR)
+    tracks.age[1:3] = 3  # B and C were re-acquired 3 frames ago; E was tracked throughout
+    index = _index(pts)
+    for frame in range(config.repair_frames - 1):
+        assert _repair(pts, index, frame, tracks, bodies, scratch, params) == 0
+        assert list(scratch.assigned[:5]) == list(swapped)
+    assert _repair(pts, index, 9, tracks, bodies, scratch, params) == 1
+    # B and C take their points back; E, which the map of four leaves out, keeps its own
+    assert list(scratch.assigned[:5]) == [0, 1, 2, 3, 4]
+    assert list(scratch.owner[:5]) == [0, 1, 2, 3, 4]
+    assert np.allclose(scratch.obs[:5], pts)
+
+
+def test_a_map_of_fewer_members_never_moves_a_member_tracked_for_long(rng):
+    config = LabelerConfig()
+    params = kernel_params(config)
+    pts, swapped = _bent_and_exchanged(rng)
+    tracks, bodies, scratch = _one_body_state(config, pts, swapped, MIRROR)
+    tracks.age[2] = 3  # only C was re-acquired: B, tracked for long, keeps its point
+    index = _index(pts)
+    for frame in range(config.repair_frames + 2):
+        assert _repair(pts, index, frame, tracks, bodies, scratch, params) == 0
+    assert list(scratch.assigned[:5]) == list(swapped)
+
+
 def test_joint_reacquisition_assigns_returning_points_together(rng):
     config = LabelerConfig()
     params = kernel_params(config)

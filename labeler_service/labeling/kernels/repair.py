@@ -32,7 +32,11 @@ for fewer than ``repair_age`` frames, a repair pending, or its turn in a round r
    consecutive checks (swap repair). "Clearly better" is an RMS below a third of the current
    one: real repairs on the matrix went from 8-45 mm to 0.5-3.3 mm (ratio <= 0.25, or more
    points); the one false repair seen, a wrist/hand body flexed against a stale reference in
-   the simulated 10-person hug, from 10.1 to 4.4 mm (0.44).
+   the simulated 10-person hug, from 10.1 to 4.4 mm (0.44). A map of *fewer* members than the
+   body holds (its best map within ``repair_check_mm`` leaves a member out: a skin marker that
+   slid while the body was hidden) is taken the same way when it has 4+ points, fits clearly
+   better than the current assignment *of the same members*, and moves no point of a member
+   tracked for ``repair_age`` frames; a member it leaves out keeps its point.
 
 A body whose current assignment no map beats (it deformed, or is not rigid) keeps it, and
 when fully observed by markers tracked for ``repair_age`` frames its points become the new
@@ -558,7 +562,26 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
         c_b, rms_b = _fit_template(
             n, ref, tol, pts, nc, check_mm, params.repair_max_nodes, pos, used, choice, best, kab
         )
-        if c_b < 3 or c_b < c_cur:
+        fewer_fits = False
+        if c_b >= 4 and c_b < c_cur and bad and rms_b < rms_cur / 3.0:
+            # a map of fewer points: clearly better than the current assignment of the same
+            # members (a member the map leaves out may be the one that deformed)
+            r = 0  # pts[:nc] starts with the body's current points, in member order
+            for k in range(n):
+                choice[k] = r if cur[k] >= 0 and best[k] >= 0 else -1
+                if cur[k] >= 0:
+                    r += 1
+            c_sub, rms_sub = _shape_rms(ref, pts, choice, n, kab.src, kab.dst, kab.R, kab.t)
+            fewer_fits = c_sub >= 4 and rms_b < rms_sub / 3.0
+            for k in range(n):
+                # a member tracked for long keeps its point, and no other member takes it
+                if not fewer_fits or cur[k] < 0 or age[members[b, k]] < rep_age:
+                    continue
+                for j in range(n):
+                    p = cand[best[j]] if best[j] >= 0 else -1
+                    if (j == k and p >= 0 and p != cur[k]) or (j != k and p == cur[k]):
+                        fewer_fits = False
+        if c_b < 3 or (c_b < c_cur and not fewer_fits):
             # no map of the body's shape holds as many points: the body deformed (or is not
             # rigid); its current assignment is the best explanation, and becomes the reference
             pending[b] = 0
@@ -616,6 +639,17 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
                 continue
             m = members[b, k]
             p = cand[best[k]]
+            owner[p] = m
+            assigned[m] = p
+            for a in range(3):
+                obs[m, a] = points[p, a]
+        for k in range(n):
+            # a map of fewer members: a member it leaves out keeps its point when no member
+            # took it
+            p = cur[k]
+            if not fewer_fits or best[k] >= 0 or p < 0 or owner[p] >= 0:
+                continue
+            m = members[b, k]
             owner[p] = m
             assigned[m] = p
             for a in range(3):
