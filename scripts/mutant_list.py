@@ -454,4 +454,24 @@ MUTANTS: list[Mutant] = [
         k="vanishing",
         kernel=True,
     ),
+    Mutant(
+        "anonymous-run-refuses-nothing",
+        "labeler_service/labeling/kernels/anonymous.py",
+        "            if run > 0 and s >= start and track_from[i] < start:\n",
+        "            if run > 0 and s >= start and track_from[i] < start - 10**9:\n",
+        (T + "labeling/test_anonymous_tracks.py",),
+        "a marker that vanishes takes the point that stood unlabeled beside it (a ghost, an "
+        "unknown marker)",
+        kernel=True,
+    ),
+    Mutant(
+        "repair-never-maps-fewer-members",
+        "labeler_service/labeling/kernels/repair.py",
+        "            fewer_fits = c_sub >= 4 and rms_b < rms_sub / 3.0\n",
+        "            fewer_fits = False\n",
+        (T + "labeling/test_swap_repair.py",),
+        "a body that deformed while hidden keeps the exchange it came back with",
+        k="bent",
+        kernel=True,
+    ),
 ]

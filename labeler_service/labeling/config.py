@@ -114,6 +114,12 @@ class LabelerConfig(BaseModel):
         "moved by its velocity, no other point within twice its predicted deviation) gets it "
         "back from a marker not tracked as long (a coasting one, a ghost's), or from nobody",
     )
+    anonymous_tracks: bool = Field(
+        True,
+        description="a point followed unlabeled from frame to frame (unambiguously, within "
+        "jump_mm) is refused to every marker that was observed on an established track while "
+        "it was there: it is another point (a ghost, a marker the model does not know)",
+    )
     acquire_unseen: bool = Field(
         True,
         description="a marker never observed (a labeler started from a model: the labeled frames "

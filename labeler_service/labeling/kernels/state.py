@@ -82,6 +82,10 @@ class Tracks(NamedTuple):
       another subject whose point came within ``contact_mm`` (-1 none; both markers point at
       each other); ``ct_t (M,)`` seconds since the contact (on the pair's lower marker);
       ``ct_ref (M, 8, 3)`` the marker's recovery snapshot from before the contact.
+    - ``seen_at (M,)`` int64: the last frame number in which the marker was observed, -1
+      never; ``track_from (M,)`` int64: the frame its track through that observation began
+      (observed in every frame since, each point within ``max(jump_mm, 2 sqrt(P + r))`` of the
+      prediction; :mod:`.anonymous`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -107,6 +111,8 @@ class Tracks(NamedTuple):
     ct_with: np.ndarray
     ct_t: np.ndarray
     ct_ref: np.ndarray
+    seen_at: np.ndarray
+    track_from: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -133,6 +139,8 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         ct_with=np.full(m, -1, dtype=np.int64),
         ct_t=np.zeros(m),
         ct_ref=np.full((m, MAX_BODY, 3), np.nan),
+        seen_at=np.full(m, -1, dtype=np.int64),
+        track_from=np.full(m, -1, dtype=np.int64),
     )
 
 
@@ -390,6 +398,11 @@ class Scratch(NamedTuple):
     - ``cm_buf (3, M)``, ``cm_shift (S, 3)``: the common-mode shift's offsets and result.
     - ``ct_near (M,)`` int64, ``ct_dn (M,)``: each marker's nearest new contact partner and its
       distance (:func:`.contact._contacts`).
+    - Anonymous point tracks (:mod:`.anonymous`; kept between frames): ``anon (N,)`` int64
+      the frames in a row this frame's point ``j`` was unlabeled before (0: none, or not
+      followed), ``avel (N, 3)`` its velocity (mm/s); ``pprev (N, 3)``, ``pvel (N, 3)``,
+      ``panon (N,)`` the same of the last frame's points, carried on; ``pinfo (2,)`` int64 how
+      many there were and their frame number. Grown (emptied) with ``owner``.
     - ``fit``: :class:`FitScratch`; ``kab``: :class:`KabschScratch`.
     """
 
@@ -408,6 +421,12 @@ class Scratch(NamedTuple):
     cm_shift: np.ndarray
     ct_near: np.ndarray
     ct_dn: np.ndarray
+    anon: np.ndarray
+    avel: np.ndarray
+    pprev: np.ndarray
+    pvel: np.ndarray
+    panon: np.ndarray
+    pinfo: np.ndarray
     fit: FitScratch
     kab: KabschScratch
 
@@ -431,6 +450,7 @@ def new_scratch(n_markers: int, n_bodies: int, n_subjects: int, K: int, n_points
         cm_shift=np.zeros((n_subjects, 3)),
         ct_near=np.full(m, -1, dtype=np.int64),
         ct_dn=np.zeros(m),
+        **_point_tracks(n_points),
         fit=new_fit_scratch(m, n_bodies, K),
         kab=new_kabsch_scratch(),
     )
@@ -443,6 +463,21 @@ def fields(structure: tuple) -> tuple:
     return tuple(fields(v) if isinstance(v, tuple) else v for v in structure)
 
 
+def _point_tracks(n_points: int) -> dict[str, np.ndarray]:
+    """The anonymous point tracks of :class:`Scratch` for frames of up to ``n_points`` points,
+    empty."""
+    n = n_points
+    return {
+        "anon": np.zeros(n, dtype=np.int64),
+        "avel": np.zeros((n, 3)),
+        "pprev": np.zeros((n, 3)),
+        "pvel": np.zeros((n, 3)),
+        "panon": np.zeros(n, dtype=np.int64),
+        "pinfo": np.zeros(2, dtype=np.int64),
+    }
+
+
 def grow_scratch(scratch: Scratch, n_points: int) -> Scratch:
-    """``scratch`` with room for frames of ``n_points`` points."""
-    return scratch._replace(owner=np.zeros(n_points, dtype=np.int32))
+    """``scratch`` with room for frames of ``n_points`` points (the point tracks start
+    again)."""
+    return scratch._replace(owner=np.zeros(n_points, dtype=np.int32), **_point_tracks(n_points))

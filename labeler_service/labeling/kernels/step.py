@@ -33,6 +33,13 @@ from labeler_service.labeling.kernels.anchor import (
     _anchor_lost,
     _anchor_snapshot,
 )
+from labeler_service.labeling.kernels.anonymous import (
+    _continue_track,
+    _link_anonymous,
+    _refuse_anonymous,
+    _store_anonymous,
+    _track_taken,
+)
 from labeler_service.labeling.kernels.contact import _contacts
 from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
@@ -113,6 +120,9 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             s[i] = params.s_min  # the subject left: only the narrowest gate at its last place
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
+    if params.anonymous_tracks:  # points seen unlabeled beside a tracked marker (ours)
+        _link_anonymous(points, index, dt, frame_no, scratch, params)
+        _refuse_anonymous(cand, cand_d2, ncand, scratch.anon, tracks, frame_no)
     # Algorithm 1
     for i in range(m_total):
         assigned[i] = UNDECIDED
@@ -125,7 +135,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _observed(assigned, points, obs)
         _contest(points, tracks, recovery, scratch, params)
     if params.reacquire_mm > 0.0:
-        _reacquire(points, index, tracks, bodies, recovery, scratch, params)
+        _reacquire(points, index, frame_no, tracks, bodies, recovery, scratch, params)
     if params.exchange:  # two tracked markers on each other's points (ours, kernels/rigid.py)
         _exchange(points, tracks, bodies, scratch, params)
     if params.keep_tracks:  # a continuing track keeps its point (ours, kernels/rigid.py)
@@ -149,11 +159,15 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             tracks.lost[i] = 0
             n_reject[i] = 0
             age[i] += 1
+            if params.anonymous_tracks:
+                _continue_track(i, a, points, frame_no, tracks, r, params.jump_mm)
             _start_or_update(x, P, i, obs[i, 0], obs[i, 1], obs[i, 2], r, v0)
             state[i] = OBSERVED
             for c in range(3):
                 pos[i, c] = obs[i, c]
         else:
+            if params.anonymous_tracks and state[i] == OBSERVED:
+                _track_taken(i, points, index, owner, tracks, r, params.jump_mm)
             age[i] = 0
             tracks.lost[i] += 1
             for c in range(3):
@@ -190,6 +204,8 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     _window_update(bodies, obs, ptr, params.min_window_samples, guard, params.window_drift_mm)
     # reference snapshots of the recovery sets
     _snapshot(age, params.snapshot_age, obs, recovery)
+    if params.anonymous_tracks:
+        _store_anonymous(points, index, frame_no, scratch, params)
 
 
 @njit
@@ -365,7 +381,7 @@ def _presence(points, tracks, bodies, scratch, params):
 
 
 @njit
-def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
+def _reacquire(points, index, frame_no, tracks, bodies, recovery, scratch, params):
     """The wide re-acquisition pass (ours, docs/algorithm.md) after Algorithm 1.
 
     Bodies with fewer than two observed markers are released (their markers not held by a
@@ -472,6 +488,8 @@ def _reacquire(points, index, tracks, bodies, recovery, scratch, params):
                 _anchor_filter(
                     i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand
                 )
+    if params.anonymous_tracks:
+        _refuse_anonymous(cand, cand_d2, ncand, scratch.anon, tracks, frame_no)
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
         if assigned[i] == UNDECIDED:
