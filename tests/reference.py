@@ -284,7 +284,8 @@ def set_estimate(m, members, ref, obs, tau):
 
 def contest(assigned, owner, active, prev_state, x, s, gate, points, obs, members, refs, rec_ok,
             jump, verify, tau):  # fmt: skip
-    """Track continuity after Algorithm 1, marker by marker in index order: a point held by a
+    """Track continuity after Algorithm 1, marker by marker in index order (and again, up to 3
+    passes, while a pass hands something over): a point held by a
     marker that jumped more than ``jump`` for it goes to the marker missing now with the smallest
     squared Mahalanobis distance ``|y - x|^2 / s`` to it, if that is below ``gate`` and a quarter
     of the holder's (a marker tracked in the previous frame must also predict it within
@@ -292,43 +293,47 @@ def contest(assigned, owner, active, prev_state, x, s, gate, points, obs, member
     taker's estimate is farther from it than the holder's. ``members[m]`` and ``refs[m]`` are
     the recovery set and its snapshot. Returns the number of hand-overs (arrays in place)."""
     changes = 0
-    for m in range(len(assigned)):
-        a = assigned[m]
-        if a < 0:
-            continue
-        jump_m = np.linalg.norm(points[a] - x[m, :3])
-        if jump_m <= jump:
-            continue
-        limit = min(gate, 0.25 * jump_m**2 / s[m])
-        takers = []
-        for m2 in range(len(assigned)):
-            if assigned[m2] >= 0 or not active[m2]:
+    for _pass in range(3):  # again while it hands something over (at most 3 passes)
+        before = changes
+        for m in range(len(assigned)):
+            a = assigned[m]
+            if a < 0:
                 continue
-            d = np.linalg.norm(points[a] - x[m2, :3])
-            if prev_state[m2] == 1 and d >= jump:
+            jump_m = np.linalg.norm(points[a] - x[m, :3])
+            if jump_m <= jump:
                 continue
-            if d**2 / s[m2] < limit:
-                takers.append((d**2 / s[m2], m2))
-        if not takers:
-            continue
-        m2 = min(takers)[1]  # nearest (ties: lowest index)
-        e_m = np.inf
-        if rec_ok[m]:
-            est = set_estimate(m, members[m], refs[m], obs, tau)
-            if est is not None:
-                e_m = np.linalg.norm(points[a] - est)
-        if e_m <= verify:
-            continue
-        if rec_ok[m2]:
-            est = set_estimate(m2, members[m2], refs[m2], obs, tau)
-            if est is not None and np.linalg.norm(points[a] - est) > e_m:
+            limit = min(gate, 0.25 * jump_m**2 / s[m])
+            takers = []
+            for m2 in range(len(assigned)):
+                if assigned[m2] >= 0 or not active[m2]:
+                    continue
+                d = np.linalg.norm(points[a] - x[m2, :3])
+                if prev_state[m2] == 1 and d >= jump:
+                    continue
+                if d**2 / s[m2] < limit:
+                    takers.append((d**2 / s[m2], m2))
+            if not takers:
                 continue
-        owner[a] = m2
-        assigned[m2] = a
-        assigned[m] = -1
-        obs[m2] = points[a]
-        obs[m] = np.nan
-        changes += 1
+            m2 = min(takers)[1]  # nearest (ties: lowest index)
+            e_m = np.inf
+            if rec_ok[m]:
+                est = set_estimate(m, members[m], refs[m], obs, tau)
+                if est is not None:
+                    e_m = np.linalg.norm(points[a] - est)
+            if e_m <= verify:
+                continue
+            if rec_ok[m2]:
+                est = set_estimate(m2, members[m2], refs[m2], obs, tau)
+                if est is not None and np.linalg.norm(points[a] - est) > e_m:
+                    continue
+            owner[a] = m2
+            assigned[m2] = a
+            assigned[m] = -1
+            obs[m2] = points[a]
+            obs[m] = np.nan
+            changes += 1
+        if changes == before:
+            break
     return changes
 
 

@@ -657,6 +657,34 @@ def test_contest_returns_a_point_to_its_tracked_marker(rng):
     assert a3[3] == 3
 
 
+def test_contest_hands_back_along_a_chain(rng):
+    """Algorithm 1 gave marker 2 (its own point hidden) the point of marker 8, 20 mm off, and
+    marker 8 the point of marker 10 (holdout03 `occlude2`: the clavicle set, 20 mm apart). When
+    the contest reached marker 2, marker 8 still held a point, so only marker 10 took its own
+    back, and marker 8 stayed missing beside its point for 35 frames: the contest runs again
+    while it changes something."""
+    pos, members, size, refs, x = _contest_scene(rng)
+    m = pos.shape[0]
+    points = _frame(pos)
+    x[:, :3] = pos  # every tracked marker predicts its own point
+    x[2, :3] = pos[8] + np.array([20.0, 0.0, 0.0])  # marker 2's own point is hidden
+    assigned = np.arange(m, dtype=np.int32)
+    assigned[2] = 8  # 20 mm from marker 2's prediction
+    assigned[8] = 10  # marker 8 took marker 10's point, far from its own prediction
+    assigned[10] = -1
+    owner = np.full(m, -1, dtype=np.int32)
+    for i in range(m):
+        if assigned[i] >= 0:
+            owner[assigned[i]] = i
+    obs = _observed(points, assigned)
+    prev = np.ones(m, dtype=np.uint8)
+    ok = np.zeros(m, dtype=bool)  # no rigid veto either way
+    n = _run_contest(assigned, owner, prev, x, points, obs, (members, size, refs, ok))
+    assert n == 2
+    assert assigned[10] == 10 and assigned[8] == 8 and assigned[2] == -1
+    assert owner[8] == 8 and owner[10] == 10
+
+
 def test_contest_tracked_taker_needs_a_sharp_prediction(rng):
     pos, members, size, refs, x = _contest_scene(rng)
     m = pos.shape[0]

@@ -608,6 +608,9 @@ def _estimate_distance(m, a, points, recovery, obs, kab, est, tau):
     return np.sqrt(e2)
 
 
+CONTEST_PASSES = 3  # a marker that lost its point in one pass may take back its own in the next
+
+
 @njit
 def _contest(points, tracks, recovery, scratch, params):
     """Track continuity after Algorithm 1: a point goes back to the marker that was tracked onto
@@ -623,7 +626,9 @@ def _contest(points, tracks, recovery, scratch, params):
     frame (``tracks.state == OBSERVED``) must moreover predict ``a`` within ``jump_mm``. A rigid
     neighbourhood can veto: ``m`` keeps the point when its Kabsch estimate (3+ observed
     neighbours) lies within ``verify_mm`` of it, and ``m2`` does not take it when its own
-    estimate is farther from the point than ``m``'s.
+    estimate is farther from the point than ``m``'s. The markers are taken in index order, and
+    again (up to :data:`CONTEST_PASSES` passes) while a pass hands something over: a marker that
+    lost a point it jumped for may be the one to take back the point another jumped for.
 
     Changes ``scratch.assigned``, ``owner``; ``scratch.obs (M, 3)`` holds the observed
     positions (NaN otherwise) and is kept in sync. Returns the number of points handed over.
@@ -636,47 +641,51 @@ def _contest(points, tracks, recovery, scratch, params):
     m_total = assigned.shape[0]
     est = np.empty(3)
     changes = 0
-    for m in range(m_total):
-        a = assigned[m]
-        if a < 0:
-            continue
-        i2 = 0.0
-        for c in range(3):
-            d = points[a, c] - x[m, c]
-            i2 += d * d
-        if i2 <= jump_mm * jump_mm:
-            continue
-        # takers compete on the Mahalanobis distance (Sec. 3.1): at most a quarter of the
-        # holder's and inside the gate
-        lim = min(gate, 0.25 * i2 / s[m])
-        bm = -1
-        for m2 in range(m_total):
-            if assigned[m2] >= 0 or not active[m2]:
+    for _pass in range(CONTEST_PASSES):
+        before = changes
+        for m in range(m_total):
+            a = assigned[m]
+            if a < 0:
                 continue
-            d2 = 0.0
+            i2 = 0.0
             for c in range(3):
-                d = points[a, c] - x[m2, c]
-                d2 += d * d
-            if prev_state[m2] == OBSERVED and d2 >= jump_mm * jump_mm:
-                continue  # a tracked marker takes back only a point it predicts sharply
-            if d2 / s[m2] < lim:
-                lim = d2 / s[m2]
-                bm = m2
-        if bm < 0:
-            continue
-        e_m = _estimate_distance(m, a, points, recovery, obs, kab, est, tau)
-        if e_m <= verify_mm:
-            continue
-        e_bm = _estimate_distance(bm, a, points, recovery, obs, kab, est, tau)
-        if np.isfinite(e_bm) and e_bm > e_m:
-            continue
-        owner[a] = bm
-        assigned[bm] = a
-        assigned[m] = NONE
-        for c in range(3):
-            obs[bm, c] = points[a, c]
-            obs[m, c] = np.nan
-        changes += 1
+                d = points[a, c] - x[m, c]
+                i2 += d * d
+            if i2 <= jump_mm * jump_mm:
+                continue
+            # takers compete on the Mahalanobis distance (Sec. 3.1): at most a quarter of the
+            # holder's and inside the gate
+            lim = min(gate, 0.25 * i2 / s[m])
+            bm = -1
+            for m2 in range(m_total):
+                if assigned[m2] >= 0 or not active[m2]:
+                    continue
+                d2 = 0.0
+                for c in range(3):
+                    d = points[a, c] - x[m2, c]
+                    d2 += d * d
+                if prev_state[m2] == OBSERVED and d2 >= jump_mm * jump_mm:
+                    continue  # a tracked marker takes back only a point it predicts sharply
+                if d2 / s[m2] < lim:
+                    lim = d2 / s[m2]
+                    bm = m2
+            if bm < 0:
+                continue
+            e_m = _estimate_distance(m, a, points, recovery, obs, kab, est, tau)
+            if e_m <= verify_mm:
+                continue
+            e_bm = _estimate_distance(bm, a, points, recovery, obs, kab, est, tau)
+            if np.isfinite(e_bm) and e_bm > e_m:
+                continue
+            owner[a] = bm
+            assigned[bm] = a
+            assigned[m] = NONE
+            for c in range(3):
+                obs[bm, c] = points[a, c]
+                obs[m, c] = np.nan
+            changes += 1
+        if changes == before:
+            break
     return changes
 
 
