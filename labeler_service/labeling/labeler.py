@@ -321,6 +321,8 @@ class Labeler:
             a[markers] = 0
         tr.gone[markers] = False
         tr.ct_with[markers] = -1
+        tr.seen_at[markers] = -1  # anonymous point tracks: no track (kernels/anonymous.py)
+        tr.track_from[markers] = -1
         tr.state[markers] = MarkerState.MISSING
         tr.pos[markers] = np.nan
         self._recovery.ok[markers] = False

@@ -16,7 +16,9 @@ import pytest
 from labeling.scene import articulated
 
 from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.frame import OBSERVED
 from labeler_service.labeling.kernels.anonymous import (
+    _continue_track,
     _link_anonymous,
     _refuse_anonymous,
     _store_anonymous,
@@ -168,3 +170,40 @@ def test_a_marker_whose_point_went_to_another_forgets_its_track():
     for i in range(2):
         _track_taken(i, pts, _index(pts), owner, tracks, params.r, params.jump_mm)
     assert list(tracks.seen_at) == [-1, 99] and list(tracks.track_from) == [-1, 50]
+
+
+def test_a_track_begun_before_the_first_frame_still_restarts_on_a_jump():
+    """A labeler seeded before it labeled any frame (``BootingLabeler``'s inner one:
+    ``from_model(subjects=())`` then ``add_subjects``) gives its tracks a start before frame 0;
+    such a track must still restart when the label jumps (review: a negative start read as
+    "not set" was worked out again every frame, so a jump never restarted it)."""
+    tracks = new_tracks(np.ones(1), np.ones(1, dtype=bool), [[0]])
+    tracks.x[:, :3] = 0.0
+    tracks.P[:, 0] = 1.0
+    tracks.state[:] = OBSERVED
+    tracks.age[0] = 140
+    tracks.seen_at[0] = -1  # first kernel frame after the labeled ones
+    near = _frame([[1.0, 0.0, 0.0]])
+    _continue_track(0, 0, near, 100, tracks, 1.0, 8.0)
+    assert tracks.track_from[0] == -39 and tracks.seen_at[0] == 100
+    tracks.age[0] += 1
+    _continue_track(0, 0, near, 101, tracks, 1.0, 8.0)
+    assert tracks.track_from[0] == -39  # goes on
+    tracks.age[0] += 1
+    _continue_track(0, 0, _frame([[100.0, 0.0, 0.0]]), 102, tracks, 1.0, 8.0)
+    assert tracks.track_from[0] == 102  # a 100 mm jump: a new track
+
+
+def test_dropped_and_seeded_markers_start_without_a_track():
+    """``Labeler._reset`` (drop, withdraw, seed, add) forgets the anonymous-track state: a marker
+    seeded again counts from its new labeled frames, not from before it was dropped."""
+    rng = np.random.default_rng(0)
+    pos, names = articulated(rng, subjects=2, frames=140, rate=RATE)
+    lab = Labeler(names, RATE, LabelerConfig())
+    for f in range(100):
+        pts = np.ascontiguousarray(pos[f])
+        lab.process(pts, f / RATE, np.arange(len(names), dtype=np.int32) if f < INIT else None)
+    p1 = np.arange(8, 16)
+    assert (lab._tracks.seen_at[p1] >= 0).all() and (lab._tracks.track_from[p1] >= 0).all()
+    lab._reset(p1, np.empty(0, dtype=np.int64))
+    assert (lab._tracks.seen_at[p1] == -1).all() and (lab._tracks.track_from[p1] == -1).all()

@@ -124,10 +124,12 @@ def _continue_track(i, a, points, frame_no, tracks, r, jump_mm):
     ``tracks.age`` counted): ``tracks.seen_at``; ``tracks.track_from`` goes on only when the
     marker was observed in the previous frame and its point lies within
     ``max(jump_mm, 2 sqrt(P + r))`` of its prediction (a label that moved to another point
-    starts a new track); a track the labeled frames began counts from its first of them."""
+    starts a new track); a track the labeled frames began (the marker never observed here
+    before, or reset) counts from its first of them."""
     x = tracks.x
-    if tracks.track_from[i] < 0 and tracks.age[i] > 1:
-        # begun in labeled frames (they set no track): ``age`` (counted) frames ago
+    if tracks.seen_at[i] < 0 and tracks.age[i] > 1:
+        # begun in labeled frames (they set no track): ``age`` (counted) frames ago; before
+        # frame 0 when a labeler that labeled no frame yet was seeded (``add_subjects``)
         tracks.track_from[i] = frame_no - tracks.age[i] + 1
     else:
         go_on = tracks.state[i] == OBSERVED
