@@ -85,7 +85,8 @@ class Tracks(NamedTuple):
     - ``seen_at (M,)`` int64: the last frame number in which the marker was observed, -1
       never; ``track_from (M,)`` int64: the frame its track through that observation began
       (observed in every frame since, each point within ``max(jump_mm, 2 sqrt(P + r))`` of the
-      prediction; :mod:`.anonymous`).
+      prediction; negative: in labeled frames before the labeler's first; :mod:`.anonymous`).
+      Both -1 again when the marker is reset (``Labeler._reset``).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
