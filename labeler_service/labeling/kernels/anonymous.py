@@ -31,25 +31,7 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.frame import OBSERVED
-from labeler_service.labeling.kernels.spatial import ANY, _nearest, _span
-
-
-@njit
-def _alone(points, index, c, radius, skip):
-    """No point but ``skip`` lies within ``radius`` of ``c``."""
-    r2 = radius * radius
-    lo, hi = _span(index, c, radius)
-    for k in range(lo, hi):
-        j = index.order[k]
-        if j == skip:
-            continue
-        d2 = 0.0
-        for a in range(3):
-            d = points[j, a] - c[a]
-            d2 += d * d
-        if d2 < r2:
-            return False
-    return True
+from labeler_service.labeling.kernels.spatial import ANY, _alone, _nearest
 
 
 @njit

@@ -23,7 +23,7 @@ from labeler_service._numba import njit
 from labeler_service.labeling.frame import OBSERVED
 from labeler_service.labeling.kernels.fitting import _pair_term
 from labeler_service.labeling.kernels.params import KABSCH
-from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _nearest, _span
+from labeler_service.labeling.kernels.spatial import ANY, FREE, OWNED, _alone, _nearest
 from labeler_service.labeling.kernels.state import NONE
 
 
@@ -816,7 +816,6 @@ def _keep_tracks(points, index, dt, tracks, recovery, scratch, params):
     prev_state, pos, x, active = tracks.state, tracks.pos, tracks.x, tracks.active
     age, snapshot_age = tracks.age, params.snapshot_age
     near = params.jump_mm
-    order = index.order
     kab, tau, verify_mm = scratch.kab, params.robust_fit_mm, params.verify_mm
     c = np.empty(3)
     est = np.empty(3)
@@ -835,21 +834,7 @@ def _keep_tracks(points, index, dt, tracks, recovery, scratch, params):
             continue  # a rival tracked as long (the contest's, the exchange's)
         # alone within twice the track's predicted deviation (at least jump_mm)
         iso = 2.0 * max(near, np.sqrt(scratch.s[m]))
-        far2 = iso * iso
-        lo, hi = _span(index, c, iso)
-        alone = True
-        for q in range(lo, hi):
-            jj = order[q]
-            if jj == j:
-                continue
-            e2 = 0.0
-            for k in range(3):
-                d = points[jj, k] - c[k]
-                e2 += d * d
-            if e2 < far2:
-                alone = False
-                break
-        if not alone:
+        if not _alone(points, index, c, iso, j):
             continue
         if h >= 0:
             if not synced:

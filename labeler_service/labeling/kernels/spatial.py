@@ -226,6 +226,25 @@ def _nearest(points, index, centre, lim2, owner, which, skip):
 
 
 @njit
+def _alone(points, index, c, radius, skip):
+    """No point but ``skip`` lies within ``radius`` of ``c`` (strictly: one at ``radius`` does
+    not count)."""
+    r2 = radius * radius
+    lo, hi = _span(index, c, radius)
+    for k in range(lo, hi):
+        j = index.order[k]
+        if j == skip:
+            continue
+        d2 = 0.0
+        for a in range(3):
+            d = points[j, a] - c[a]
+            d2 += d * d
+        if d2 < r2:
+            return False
+    return True
+
+
+@njit
 def _free_within(points, index, centre, radius, owner, skip):
     """Some free point other than ``skip`` lies within ``radius`` of ``centre``."""
     lo, hi = _span(index, centre, radius)
