@@ -117,8 +117,8 @@ class LabelerConfig(BaseModel):
     anonymous_tracks: bool = Field(
         True,
         description="a point followed unlabeled from frame to frame (unambiguously, within "
-        "jump_mm) is refused to every marker that was observed on an established track while "
-        "it was there: it is another point (a ghost, a marker the model does not know)",
+        "jump_mm) is refused to every marker observed while it was there on a track that began "
+        "before it: it is another point (a ghost, a marker the model does not know)",
     )
     acquire_unseen: bool = Field(
         True,

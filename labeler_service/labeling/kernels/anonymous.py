@@ -38,7 +38,8 @@ from labeler_service.labeling.kernels.spatial import ANY, _alone, _nearest
 def _link_anonymous(points, index, dt, frame_no, scratch, params):
     """``scratch.anon[j]``: the frames in a row point ``j``'s track was unlabeled before this
     frame (0: none, or not followed), ``scratch.avel[j]`` its velocity (mm/s), from the last
-    frame's points (:func:`_store_anonymous`) when they were stored the frame before this one."""
+    frame's points (:func:`_store_anonymous`) when they were stored the frame before this one.
+    Returns how many of this frame's points continue a run (0: nothing to refuse)."""
     n = points.shape[0]
     anon, avel = scratch.anon, scratch.avel
     pprev, pvel, panon = scratch.pprev, scratch.pvel, scratch.panon
@@ -48,7 +49,7 @@ def _link_anonymous(points, index, dt, frame_no, scratch, params):
             avel[j, a] = 0.0
     nprev, stored = scratch.pinfo[0], scratch.pinfo[1]
     if nprev == 0 or stored != frame_no - 1 or not dt > 0.0:
-        return
+        return 0
     r = params.jump_mm
     c = np.empty(3)
     for q in range(nprev):
@@ -65,11 +66,15 @@ def _link_anonymous(points, index, dt, frame_no, scratch, params):
         anon[j] = panon[q]
         for a in range(3):
             avel[j, a] = (points[j, a] - pprev[q, a]) / dt
+    runs = 0
     for j in range(n):
         if anon[j] < 0:
             anon[j] = 0
             for a in range(3):
                 avel[j, a] = 0.0
+        elif anon[j] > 0:
+            runs += 1
+    return runs
 
 
 @njit
@@ -82,13 +87,13 @@ def _store_anonymous(points, index, frame_no, scratch, params):
     if n > pprev.shape[0]:
         scratch.pinfo[0] = 0
         return
-    r2 = 2.0 * params.jump_mm
+    iso = 2.0 * params.jump_mm
     c = np.empty(3)
     for j in range(n):
         for a in range(3):
             c[a] = points[j, a]
             pprev[j, a] = c[a]
-        if scratch.owner[j] < 0 and _alone(points, index, c, r2, j):
+        if scratch.owner[j] < 0 and _alone(points, index, c, iso, j):
             panon[j] = scratch.anon[j] + 1
             for a in range(3):
                 pvel[j, a] = scratch.avel[j, a]
@@ -98,6 +103,13 @@ def _store_anonymous(points, index, frame_no, scratch, params):
                 pvel[j, a] = 0.0
     scratch.pinfo[0] = n
     scratch.pinfo[1] = frame_no
+
+
+@njit
+def _track_radius(tracks, i, r, jump_mm):
+    """How far from its prediction marker ``i``'s track may continue: ``jump_mm``, or twice
+    its predicted deviation ``sqrt(P + r)`` when that is wider (a fast limb, a low rate)."""
+    return max(jump_mm, 2.0 * np.sqrt(tracks.P[i, 0] + r))
 
 
 @njit
@@ -116,7 +128,7 @@ def _continue_track(i, a, points, frame_no, tracks, r, jump_mm):
     else:
         go_on = tracks.state[i] == OBSERVED
         if go_on:
-            lim = max(jump_mm, 2.0 * np.sqrt(tracks.P[i, 0] + r))
+            lim = _track_radius(tracks, i, r, jump_mm)
             d2 = 0.0
             for k in range(3):
                 d = points[a, k] - x[i, k]
@@ -134,7 +146,7 @@ def _track_taken(i, points, index, owner, tracks, r, jump_mm):
     went to another marker (a repair, an exchange, a contest took it back), the marker was on
     a point not its own, and its track is no evidence against any point (``seen_at`` and
     ``track_from`` forgotten)."""
-    lim = max(jump_mm, 2.0 * np.sqrt(tracks.P[i, 0] + r))
+    lim = _track_radius(tracks, i, r, jump_mm)
     j, _ = _nearest(points, index, tracks.x[i, :3], lim * lim, owner, ANY, -1)
     if j >= 0 and owner[j] >= 0 and owner[j] != i:
         tracks.seen_at[i] = -1

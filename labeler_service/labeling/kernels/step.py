@@ -120,8 +120,13 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             s[i] = params.s_min  # the subject left: only the narrowest gate at its last place
     cand, cand_d2, ncand = scratch.cand, scratch.cand_d2, scratch.ncand
     _gate(x, s, active, points, index, params.gate_chi2, params.K, cand, cand_d2, ncand)
-    if params.anonymous_tracks:  # points seen unlabeled beside a tracked marker (ours)
+    # points seen unlabeled beside a tracked marker (ours, kernels/anonymous.py)
+    runs = (
         _link_anonymous(points, index, dt, frame_no, scratch, params)
+        if params.anonymous_tracks
+        else 0
+    )
+    if runs > 0:
         _refuse_anonymous(cand, cand_d2, ncand, scratch.anon, tracks, frame_no)
     # Algorithm 1
     for i in range(m_total):
@@ -135,7 +140,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _observed(assigned, points, obs)
         _contest(points, tracks, recovery, scratch, params)
     if params.reacquire_mm > 0.0:
-        _reacquire(points, index, frame_no, tracks, bodies, recovery, scratch, params)
+        _reacquire(points, index, frame_no, runs, tracks, bodies, recovery, scratch, params)
     if params.exchange:  # two tracked markers on each other's points (ours, kernels/rigid.py)
         _exchange(points, tracks, bodies, scratch, params)
     if params.keep_tracks:  # a continuing track keeps its point (ours, kernels/rigid.py)
@@ -381,7 +386,7 @@ def _presence(points, tracks, bodies, scratch, params):
 
 
 @njit
-def _reacquire(points, index, frame_no, tracks, bodies, recovery, scratch, params):
+def _reacquire(points, index, frame_no, runs, tracks, bodies, recovery, scratch, params):
     """The wide re-acquisition pass (ours, docs/algorithm.md) after Algorithm 1.
 
     Bodies with fewer than two observed markers are released (their markers not held by a
@@ -389,7 +394,8 @@ def _reacquire(points, index, frame_no, tracks, bodies, recovery, scratch, param
     for free points within a wide radius: ``reacquire_estimate_mm`` around the rigid estimate
     of 3+ observed neighbours (``reacquire_loose_mm`` when those disagree), else
     ``reacquire_mm`` around the prediction. Algorithm 1 then runs again on those bodies only
-    (everything else stays fixed), with the stricter ``miss_reacq``.
+    (everything else stays fixed), with the stricter ``miss_reacq``. ``runs``: this frame's
+    points that continue an anonymous run (:mod:`.anonymous`; 0: none to refuse).
     """
     x, active, state = tracks.x, tracks.active, tracks.state
     s, assigned, owner, obs = scratch.s, scratch.assigned, scratch.owner, scratch.obs
@@ -488,7 +494,7 @@ def _reacquire(points, index, frame_no, tracks, bodies, recovery, scratch, param
                 _anchor_filter(
                     i, points, obs, anc, anc_ref, slack, tracks.anc_cost, cand, cand_d2, ncand
                 )
-    if params.anonymous_tracks:
+    if params.anonymous_tracks and runs > 0:
         _refuse_anonymous(cand, cand_d2, ncand, scratch.anon, tracks, frame_no)
     _fit_bodies(bodies, points, params.miss_reacq, scratch, params, params.distrust)
     for i in range(m_total):
