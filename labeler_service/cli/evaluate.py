@@ -202,8 +202,15 @@ def _print_table(report: dict) -> None:
     init = settings.get("init_frames", 0)
     # (from a model the field counts markers the model lacks: the model, not the init frames,
     # is what the labeler learned)
-    learned = "the model lacks" if settings.get("model_file") else "unseen in the init window"
-    unseen = f"; {report['unseen_at_init']} samples of markers {learned}" if init else ""
+    from_model = bool(settings.get("model_file"))
+    learned = "the model lacks" if from_model else "unseen in the init window"
+    hint = "" if from_model else "; a --model trained on frames that show them can label them"
+    unseen = (
+        f"; {report['unseen_at_init']} samples of markers {learned} (accuracy without them "
+        f"{100 * report['accuracy_seen']:.3f} %{hint})"
+        if init and report["unseen_at_init"]
+        else ""
+    )
     console.print(
         f"{report['method']}: {report['visible']} visible samples scored; errors: "
         f"{e['same_subject']} same-subject, {e['cross_subject']} cross-subject, "
@@ -227,6 +234,12 @@ def _print_table(report: dict) -> None:
             f"boot (seconds until >= 95 % of a subject's visible markers are right for 10 "
             f"frames): {each}; slowest {sec(report['boot_s_max'])}"
         )
+        known = report.get("boot_s_known") or {}
+        if known:
+            console.print(
+                f"counting only the markers the labeler can name (not those {learned}): "
+                + ", ".join(f"{name} {sec(v)}" for name, v in known.items())
+            )
         if never:
             console.print(
                 f"never booted: {', '.join(never)} (its samples count in accuracy, not in "

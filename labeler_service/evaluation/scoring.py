@@ -200,9 +200,10 @@ class Scorer:
     carry the same-named marker of one other subject B with the same marker set (same
     template), when A's previous frame with visible markers did not show that swap.
     ``known`` (``(M,)`` bool, the markers the labeler can name: a model lacks those its
-    training never showed): ``boot_s_known`` is ``boot_s`` with the 95 % counted over a
-    subject's known visible markers only (the first episode as ``boot_s`` finds it); it is
-    reported only when some marker is unknown.
+    training never showed; without it, a labeled start knows the markers its init frames
+    showed): ``boot_s_known`` is ``boot_s`` with the 95 % counted over a subject's known
+    visible markers only (the first episode as ``boot_s`` finds it); it is reported only when
+    some marker is unknown.
     """
 
     def __init__(
@@ -363,9 +364,13 @@ class Scorer:
         n = vis.shape[0]
         runs = _runs(good)
         runs_known = None
-        if self._known is not None:
-            kv = raster[f0:][:, self._known]
-            oh = self._onehot[self._known]
+        known = self._known
+        if known is None and self.init_frames > 0 and not self._seen.all():
+            # a labeled start learns only the markers its init frames show
+            known = self._seen
+        if known is not None:
+            kv = raster[f0:][:, known]
+            oh = self._onehot[known]
             vis_k = (kv != NOT_VISIBLE).astype(np.int64) @ oh
             ok_k = (kv == CORRECT).astype(np.int64) @ oh
             runs_known = _runs((vis_k > 0) & (ok_k >= BOOT_GOOD * vis_k))

@@ -229,11 +229,28 @@ def test_evaluate_table_names_each_subject_and_fits_the_terminal(scene, capsys):
     left = report["departures"][0]
     assert f"left: {left['subject']} (frames {left['first_frame']}-" in out, out
     assert "unseen in the init window" not in out
-    # with labeled init frames and a model the count is of markers the model lacks
+    # with labeled init frames and a model the count is of markers the model lacks, with the
+    # accuracy over the others and each subject's boot over the markers the model knows
     report["settings"]["init_frames"] = 5
+    report["unseen_at_init"], report["accuracy_seen"] = 12, 0.98765
+    report["boot_s_known"] = {"P1": 0.0, "P2": 0.25, "P3": None}
     _print_table(report)
     out = " ".join(capsys.readouterr().out.split())
-    assert "samples of markers the model lacks" in out and "init window" not in out, out
+    assert "12 samples of markers the model lacks (accuracy without them 98.765 %)" in out, out
+    assert "init window" not in out and "--model" not in out, out
+    assert "can name (not those the model lacks): P1 0.000 s, P2 0.250 s, P3 never" in out, out
+    # a labeled start without a model: markers its init window never showed, and what labels
+    # them; none unseen: no count at all
+    report["settings"]["model_file"] = None
+    _print_table(report)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "12 samples of markers unseen in the init window (accuracy without them" in out, out
+    assert "a --model trained on frames that show them can label them" in out, out
+    assert "(not those unseen in the init window): P1 0.000 s" in out, out
+    report["unseen_at_init"], report["boot_s_known"] = 0, {}
+    _print_table(report)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "samples of markers" not in out and "can name" not in out, out
 
 
 def test_evaluate_boot_errors(scene, capsys):

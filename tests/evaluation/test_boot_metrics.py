@@ -384,3 +384,23 @@ def test_boot_over_the_known_markers_leaves_out_markers_the_labeler_cannot_name(
     assert s["boot_s_known"] == {"A": 0.0, "B": 0.0, "C": 0.15}
     # a labeler that knows every marker: no second criterion
     assert _run(60, _all, answer)["boot_s_known"] == {}
+
+
+def test_a_labeled_start_counts_boot_over_the_markers_its_init_frames_showed():
+    # C:x4 is hidden through the 10 labeled frames, so the start never learns it: it shows up
+    # at frame 12 and stays unlabeled. C (4 of 5 visible right after that) never boots by the
+    # 95 % criterion; over the markers the init frames showed it boots at once
+    x4 = NAMES.index("C:x4")
+
+    def truth_of(f):
+        return np.arange(M) if f >= 12 else np.delete(np.arange(M), x4)
+
+    def answer(f, truth):
+        return np.where(truth == x4, -1, truth)
+
+    s = _run(60, truth_of, answer, init=10)
+    assert s["unseen_at_init"] == 48
+    assert s["boot_s"]["C"] is None
+    assert s["boot_s_known"] == {"A": 0.0, "B": 0.0, "C": 0.0}
+    # every marker shown in the labeled frames: no second criterion
+    assert _run(60, _all, answer, init=10)["boot_s_known"] == {}
