@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
                 "bodies": len(s.bodies),
                 "body_sizes": [len(b) for b in s.bodies],
                 "chirality": len(s.chirality),
-                "no_body": sorted(set(s.markers) - {s.markers[i] for b in s.bodies for i in b}),
+                "no_body": s.no_body,
             }
             for s in model.subjects
         },

@@ -14,12 +14,13 @@ import sys
 import textwrap
 from pathlib import Path
 
-from labeler_service.capture import check_writable, read_segment
+from labeler_service.capture import check_writable, join_label, read_segment, split_label
 from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
 from labeler_service.labeling.registry import LABELED_STARTS
+from labeler_service.labeling.templates import load_model
 from labeler_service.wording import plural
 
 
@@ -156,14 +157,21 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
     else:
-        _print_table(report)
+        # (the model's markers in no body: a subject they keep from booting is told why)
+        no_body = (
+            set()
+            if args.model is None
+            else {join_label(t.name, m) for t in load_model(args.model).subjects for m in t.no_body}
+        )
+        _print_table(report, no_body)
     return 0
 
 
-def _print_table(report: dict) -> None:
+def _print_table(report: dict, no_body: set[str] | frozenset[str] = frozenset()) -> None:
     """The report for a reader: one row per measure, one column per method (so no header is
-    cut at any terminal width), then the error anatomy, the boot of each subject by name and
-    who left and came back."""
+    cut at any terminal width), then the error anatomy, the boot of each subject by name (a
+    subject that never booted with the markers that kept it under 95 %, ``no_body`` the labels
+    its model cannot give) and who left and came back."""
     from rich.console import Console
     from rich.table import Table
 
@@ -245,6 +253,10 @@ def _print_table(report: dict) -> None:
                 f"never booted: {', '.join(never)} (its samples count in accuracy, not in "
                 "accuracy after boot)"
             )
+            for name in never:
+                stuck = _boot_blockers(report["worst_markers"], name, no_body)
+                if stuck:
+                    console.print(f"  {name} stayed under 95 % with {stuck}")
     n_ret = len(report["reid_s"])
     reid = f"re-identification p95 {sec(report['reid_s_p95'])} over {plural(n_ret, 'return')}"
     left = ", ".join(
@@ -260,6 +272,26 @@ def _print_table(report: dict) -> None:
     worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
     if worst:
         console.print(f"worst markers: {worst}")
+
+
+def _boot_blockers(worst: list[dict], subject: str, no_body: set[str] | frozenset[str]) -> str:
+    """The markers of ``subject`` among ``worst`` (the report's ``worst_markers``) wrong in at
+    least half of the frames they were visible in, for the text summary ("" if none): one
+    marker in 20 always wrong keeps a subject under the boot's 95 % for good."""
+    parts = []
+    for w in worst:
+        who, marker = split_label(w["marker"])
+        if (who or "") != subject or not 0 < w["visible"] <= 2 * w["errors"]:
+            continue
+        why = (
+            " (in no body of the model: never labeled)"
+            if w["marker"] in no_body
+            else " (not learned at the start: never labeled)"
+            if not w.get("seen_at_init", True)
+            else ""
+        )
+        parts.append(f"{marker} wrong in {w['errors']} of its {w['visible']} visible frames{why}")
+    return "; ".join(parts)
 
 
 def _check_plot_format(path: Path) -> None:

@@ -103,6 +103,13 @@ class SubjectTemplate(BaseModel):
     twin_witnesses: list[list[int]] = Field(default_factory=list)
 
     @property
+    def no_body(self) -> list[str]:
+        """The markers in no rigid body, sorted (training saw them in fewer than 3 frames, or
+        as a duplicate track): a labeler of this model never labels them."""
+        inside = {i for b in self.bodies for i in b}
+        return sorted(m for i, m in enumerate(self.markers) if i not in inside)
+
+    @property
     def labels(self) -> tuple[str, ...]:
         """``subject:marker`` labels of the markers, in order (a subject ``""``, trained on
         labels without a prefix, gives the bare marker names back)."""

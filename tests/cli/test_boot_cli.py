@@ -226,6 +226,23 @@ def test_evaluate_table_names_each_subject_and_fits_the_terminal(scene, capsys):
     assert "accuracy 99.997 %" in " ".join(capsys.readouterr().out.replace("│", " ").split())
     assert "P1 " in out and "P2 never" in out and "P3 " in out, out
     assert "never booted: P2" in out, out
+    # why it never booted: its markers wrong in at least half their visible frames (a marker
+    # its start never learned says so); a booted subject's markers are not listed
+    w = {"same_subject": 0, "cross_subject": 0, "seen_at_init": True}
+    report["worst_markers"] = [
+        {**w, "marker": "P2:LFIN", "errors": 10, "visible": 10, "unlabeled": 10,
+         "seen_at_init": False},
+        {**w, "marker": "P1:LFIN", "errors": 9, "visible": 9, "unlabeled": 9},
+        {**w, "marker": "P2:C7", "errors": 4, "visible": 8, "unlabeled": 4},
+        {**w, "marker": "P2:T10", "errors": 3, "visible": 8, "unlabeled": 3},
+    ]  # fmt: skip
+    _print_table(report)
+    said = " ".join(capsys.readouterr().out.split())
+    assert (
+        "P2 stayed under 95 % with LFIN wrong in 10 of its 10 visible frames (not learned at "
+        "the start: never labeled); C7 wrong in 4 of its 8 visible frames accuracy" in said
+    ), said
+    assert "P1 stayed" not in said and "T10 wrong" not in said, said
     left = report["departures"][0]
     assert f"left: {left['subject']} (frames {left['first_frame']}-" in out, out
     assert "unseen in the init window" not in out
@@ -251,6 +268,34 @@ def test_evaluate_table_names_each_subject_and_fits_the_terminal(scene, capsys):
     _print_table(report)
     out = " ".join(capsys.readouterr().out.split())
     assert "samples of markers" not in out and "can name" not in out, out
+
+
+def test_evaluate_says_which_markers_kept_a_subject_from_booting(scene, tmp_path, capsys):
+    """A model trained on frames that never show four of P1's markers has no body for them, so
+    P1 never reaches the boot's 95 %; the text says which markers kept it under, and that the
+    model cannot label them (it said only "never booted"); the subjects that booted get no
+    such line."""
+    _, cap, _, _, test = scene
+    hidden = ["P1:LFIN", "P1:LWRA", "P1:LWRB", "P1:LFRM"]
+    assert set(hidden) <= set(cap.labels)
+    half = cap.n_frames // 2
+    train = cap.frames(half, cap.n_frames)
+    pos = train.positions.copy()
+    pos[:, [cap.labels.index(h) for h in hidden]] = np.nan
+    take = tmp_path / "train.npz"
+    write_capture(train.with_positions(pos), take)
+    model = tmp_path / "m.json"
+    assert main(["train", "structure", str(take), "--out", str(model)]) == 0
+    capsys.readouterr()
+    args = ["evaluate", str(test), "--model", str(model), "--init-frames", "0", "--no-progress"]
+    assert main(args) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "never booted: P1 " in out, out
+    line = out.split("P1 stayed under 95 % with ", 1)[1].split(" accuracy after boot")[0]
+    for h in hidden:
+        name = h.split(":")[1]
+        assert f"{name} wrong in " in line and "(in no body of the model: never labeled)" in line
+    assert "P2 stayed under" not in out and "P3 stayed under" not in out, out
 
 
 def test_evaluate_boot_errors(scene, capsys):
