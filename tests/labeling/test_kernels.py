@@ -25,6 +25,7 @@ from labeler_service.labeling.kernels.rigid import (
     _max_residual,
     _recover,
     _robust_kabsch,
+    _snapshot,
     _verify,
 )
 from labeler_service.labeling.kernels.spatial import _index
@@ -566,6 +567,51 @@ def test_recover_matches_twin(rng, method):
         np.testing.assert_allclose(rec[i], expected, atol=1e-7)
     if method == "kabsch":  # exact for a rigid motion
         np.testing.assert_allclose(rec[[1, 4]], shape[[1, 4]] @ R0.T + 50.0, atol=1e-7)
+
+
+def test_a_member_never_seen_leaves_a_partial_snapshot_the_fit_skips(rng):
+    """A recovery set with a member hidden for good still gives its marker a snapshot (the
+    marker and 3+ members); a full one replaces it and is never replaced by a partial one."""
+    m, age_min = 6, 10
+    shape = rng.normal(0, 80, (m, 3))
+    members = np.full((m, 8), -1, dtype=np.int64)
+    members[:, :m] = [[i] + [j for j in range(m) if j != i] for i in range(m)]
+    size = np.full(m, m, dtype=np.int64)
+    rc = _recovery(members, size, np.zeros((m, 8, 3)), np.zeros(m, dtype=bool))
+    age = np.full(m, age_min, dtype=np.int64)
+    age[5] = 0  # never observed
+    obs = shape.copy()
+    obs[5] = np.nan
+    _snapshot(age, age_min, obs, rc)
+    assert rc.ok[:5].all() and not rc.ok[5]  # 5 itself has no snapshot to be estimated from
+    row = members[0, :m].tolist().index(5)
+    assert np.isnan(rc.ref[0, row]).all()
+    np.testing.assert_allclose(rc.ref[0, 0], shape[0])
+    # marker 0 hidden, 5 seen now: the fit uses 1-4 only and is exact for a rigid motion
+    R0 = _rot(rng)
+    now = shape @ R0.T + 30.0
+    obs_now = now.copy()
+    obs_now[0] = np.nan
+    rec = np.full((m, 3), np.nan)
+    has = np.zeros(m, dtype=np.int64)
+    missing = np.zeros(m, dtype=bool)
+    missing[0] = True
+    _recover(missing, rc, obs_now, KABSCH, rec, has, new_kabsch_scratch(), 5.0)
+    assert has[0] == 4
+    np.testing.assert_allclose(rec[0], now[0], atol=1e-7)
+    # too few members seen: no partial snapshot (the marker and 3 members are needed)
+    rc2 = _recovery(members, size, np.zeros((m, 8, 3)), np.zeros(m, dtype=bool))
+    age2 = np.array([age_min, age_min, age_min, 0, 0, 0])
+    _snapshot(age2, age_min, obs, rc2)
+    assert not rc2.ok[0]
+    # a full snapshot replaces the partial one and stays when a member is hidden again
+    age[5] = age_min
+    _snapshot(age, age_min, now, rc)
+    np.testing.assert_allclose(rc.ref[0, :m], now[members[0, :m]])
+    moved = now + 100.0
+    age[5] = 0
+    _snapshot(age, age_min, moved, rc)
+    np.testing.assert_allclose(rc.ref[0, :m], now[members[0, :m]])
 
 
 # --------------------------------------------------------------------------- track continuity

@@ -2,9 +2,9 @@
 
 Each marker has a recovery set: itself and the (up to 7) markers most rigidly linked to it
 (lowest ``A + w D``, the rigid-body cost of :mod:`labeler_service.labeling.training`), and a
-snapshot
-``ref`` of the set's positions the last time all of them were observed. A hidden marker is
-estimated from the members observed now:
+snapshot ``ref`` of the set's positions the last time all of them were observed (or, while that
+cannot happen, of the marker and 3+ members: :func:`_snapshot`). A hidden marker is estimated
+from the members observed now:
 
 - ``displacement`` (the paper): the average over observed markers ``k`` of
   ``y_k + (ref_m - ref_k)``: each visible marker predicts the hidden one by its last displacement;
@@ -361,7 +361,8 @@ def _gather(m, recovery, obs, src, dst):
     c = 0
     for k in range(1, rec_size[m]):
         mk = rec_members[m, k]
-        if obs[mk, 0] == obs[mk, 0]:  # observed (not NaN)
+        # observed (not NaN) and in the snapshot (a partial one leaves a member NaN)
+        if obs[mk, 0] == obs[mk, 0] and rec_ref[m, k, 0] == rec_ref[m, k, 0]:
             for a in range(3):
                 src[c, a] = rec_ref[m, k, a]
                 dst[c, a] = obs[mk, a]
@@ -418,23 +419,52 @@ def _recover(missing, recovery, obs, method, rec, has_rec, kab, tau):
 def _snapshot(age, min_age, obs, recovery):
     """Stores the recovery-set positions of every marker whose whole set is observed and has
     been for at least ``min_age`` frames in a row (``age``): a fresh, possibly wrong, assignment
-    never becomes the reference that later checks it."""
+    never becomes the reference that later checks it.
+
+    While no full snapshot can be taken (a member hidden for good: a marker behind a partner,
+    a heel the cameras lose), the marker and at least 3 members observed that long give a
+    *partial* one: the other members' rows are NaN, and every fit skips them (:func:`_gather`).
+    A partial snapshot is refreshed while it stays partial; a full one replaces it and is never
+    replaced by a partial one.
+    """
     rec_members, rec_size = recovery.members, recovery.size
     rec_ref, rec_ok = recovery.ref, recovery.ok
     for m in range(age.shape[0]):
         n = rec_size[m]
         if n == 0:
             continue
-        full = True
+        seen = 0
         for k in range(n):
-            if age[rec_members[m, k]] < min_age or age[rec_members[m, k]] < 1:
-                full = False
-                break
-        if full:
+            if age[rec_members[m, k]] >= min_age and age[rec_members[m, k]] >= 1:
+                seen += 1
+        if seen == n:
             for k in range(n):
                 for a in range(3):
                     rec_ref[m, k, a] = obs[rec_members[m, k], a]
             rec_ok[m] = True
+        elif (
+            seen >= 4  # the marker itself and 3+ members: a Kabsch fit
+            and age[m] >= min_age
+            and age[m] >= 1
+            and not _full(m, n, rec_ref, rec_ok)
+        ):
+            for k in range(n):
+                mk = rec_members[m, k]
+                ok = age[mk] >= min_age and age[mk] >= 1
+                for a in range(3):
+                    rec_ref[m, k, a] = obs[mk, a] if ok else np.nan
+            rec_ok[m] = True
+
+
+@njit(inline="always")
+def _full(m, n, rec_ref, rec_ok):
+    """``rec_ref[m]`` holds a full snapshot (none of its ``n`` rows NaN)."""
+    full = rec_ok[m]
+    k = 0
+    while full and k < n:
+        full = rec_ref[m, k, 0] == rec_ref[m, k, 0]  # noqa: PLR0124 (NaN: a partial snapshot)
+        k += 1
+    return full
 
 
 @njit

@@ -301,7 +301,9 @@ class Recovery(NamedTuple):
     - ``members (M, 8)`` int64: ``members[m, 0] == m``, then up to 7 neighbours, ``-1`` after
       ``size[m]``; ``size (M,)`` int64 (0 for a marker without a body).
     - ``ref (M, 8, 3)``: the members' positions the last time all of them had been observed
-      for ``snapshot_age`` frames in a row (the reference a hidden marker is estimated from).
+      for ``snapshot_age`` frames in a row (the reference a hidden marker is estimated from);
+      while that cannot happen, a partial snapshot: the marker and 3+ members, NaN rows for
+      the others (:func:`.rigid._snapshot`).
     - ``ok (M,)`` bool: ``ref[m]`` holds a snapshot.
     """
 
