@@ -474,4 +474,25 @@ MUTANTS: list[Mutant] = [
         k="bent",
         kernel=True,
     ),
+    Mutant(
+        "recovery-no-partial-snapshot",
+        "labeler_service/labeling/kernels/rigid.py",
+        "            seen >= 4  # the marker itself and 3+ members: a Kabsch fit\n",
+        "            seen >= 99  # the marker itself and 3+ members: a Kabsch fit\n",
+        (T + "labeling/test_kernels.py",),
+        "a recovery set with a member never seen gives its marker no snapshot (no estimate, no "
+        "3D check)",
+        k="partial",
+        kernel=True,
+    ),
+    Mutant(
+        "recovery-fit-reads-a-missing-reference",
+        "labeler_service/labeling/kernels/rigid.py",
+        "        if obs[mk, 0] == obs[mk, 0] and rec_ref[m, k, 0] == rec_ref[m, k, 0]:\n",
+        "        if obs[mk, 0] == obs[mk, 0]:\n",
+        (T + "labeling/test_kernels.py",),
+        "a partial snapshot's NaN rows enter the Kabsch fit (the recovered marker is NaN)",
+        k="partial",
+        kernel=True,
+    ),
 ]
