@@ -495,4 +495,13 @@ MUTANTS: list[Mutant] = [
         k="partial",
         kernel=True,
     ),
+    Mutant(
+        "boot-anchor-prediction-drops-an-axis",
+        "labeler_service/labeling/kernels/boot_anchor.py",
+        "R[a, 0] * shape[j, 0] + R[a, 1] * shape[j, 1] + R[a, 2] * shape[j, 2] + t[a]",
+        "R[a, 0] * shape[j, 0] + R[a, 1] * shape[j, 1] + t[a]",
+        (T + "labeling/test_boot_anchor_kernel.py",),
+        "a body's members are predicted off their anchor triangle's motion (boot placements)",
+        kernel=True,
+    ),
 ]

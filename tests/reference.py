@@ -739,3 +739,37 @@ def body_scores(
     total = np.where(ok & (frac >= link_fraction), soft, -1.0)
     rsum = np.where(free & ((sup > 0).sum(axis=1) >= 2), sup.sum(axis=1) + shared, 0)
     return total, rsum, count, free & beside, bb
+
+
+def join_triangles(a1, b1, a2s, b2s, keys3, n):
+    """Twin of ``kernels.boot_anchor._join_triangles`` (the numpy join of
+    ``boot_match._triangles`` it replaced)."""
+    lo = np.searchsorted(a2s, a1, side="left")
+    hi = np.searchsorted(a2s, a1, side="right")
+    cnt = hi - lo
+    if cnt.sum() == 0 or keys3.size == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    rep = np.repeat(np.arange(a1.size), cnt)
+    start = np.repeat(lo, cnt)
+    within = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    p, q, r = a1[rep], b1[rep], b2s[start + within]
+    key = q.astype(np.int64) * n + r
+    pos = np.minimum(np.searchsorted(keys3, key), keys3.size - 1)
+    ok = (keys3[pos] == key) & (q != r)
+    return np.stack([p[ok], q[ok], r[ok]], axis=1)
+
+
+def anchor_predict(tri_shape, shape, pts, trip):
+    """Twin of ``kernels.boot_anchor._anchor_predict`` (the batched SVD Kabsch of
+    ``boot_match._body_candidates`` it replaced)."""
+    dst = pts[trip]
+    cs = tri_shape.mean(axis=0)
+    cd = dst.mean(axis=1)
+    H = np.einsum("ki,ckj->cij", tri_shape - cs, dst - cd[:, None, :])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.transpose(Vt, (0, 2, 1))
+    d = np.sign(np.linalg.det(V @ np.transpose(U, (0, 2, 1))))
+    d = np.where(d == 0, 1.0, d)
+    V[:, :, 2] *= d[:, None]
+    R = V @ np.transpose(U, (0, 2, 1))
+    return np.einsum("kj,cij->cki", shape - cs, R) + cd[:, None, :]

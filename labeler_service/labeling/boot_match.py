@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from labeler_service._numba import njit
 from labeler_service.capture import side_pairs
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.kernels.boot_anchor import _anchor_predict, _join_triangles
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _constancy_counts
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
@@ -260,6 +261,19 @@ class _Pairs:
         return self.a[i0:i1], self.b[i0:i1], self.d[i0:i1]
 
 
+def _first_rows(rows: np.ndarray) -> np.ndarray:
+    """Indices of the first occurrence of each distinct row of ``rows (C, k)``, the distinct
+    rows in lexicographic order: ``np.unique(rows, axis=0, return_index=True)[1]`` (a stable
+    lexsort, ~5x cheaper on the ~100-row arrays of a body search)."""
+    if rows.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    ls = np.lexsort(rows.T[::-1])
+    srt = rows[ls]
+    new = np.ones(rows.shape[0], dtype=bool)
+    new[1:] = np.any(srt[1:] != srt[:-1], axis=1)
+    return ls[new]
+
+
 def _triangles(pairs: _Pairs, d: np.ndarray, t: np.ndarray, limit: int) -> np.ndarray:
     """Candidate point triples ``(C, 3)`` whose edges (01, 02, 12) match ``d +- t``."""
     a1, b1, d1 = pairs.within(d[0] - t[0], d[0] + t[0])
@@ -270,25 +284,14 @@ def _triangles(pairs: _Pairs, d: np.ndarray, t: np.ndarray, limit: int) -> np.nd
     a3, b3, _ = pairs.within(d[2] - t[2], d[2] + t[2])
     if a1.size == 0 or a2.size == 0 or a3.size == 0:
         return np.zeros((0, 3), dtype=np.int64)
-    # join edge 01 with edge 02 on vertex 0
+    # join edge 01 with edge 02 on vertex 0; edge 12 must exist (:func:`_join_triangles`)
     o2 = np.argsort(a2, kind="stable")
-    a2s, b2s = a2[o2], b2[o2]
-    lo = np.searchsorted(a2s, a1, side="left")
-    hi = np.searchsorted(a2s, a1, side="right")
-    cnt = hi - lo
-    if cnt.sum() == 0:
-        return np.zeros((0, 3), dtype=np.int64)
-    rep = np.repeat(np.arange(a1.size), cnt)
-    start = np.repeat(lo, cnt)
-    within = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    p, q, r = a1[rep], b1[rep], b2s[start + within]
-    # edge 12 must exist
     n = np.int64(pairs.n)
     keys3 = np.sort(a3.astype(np.int64) * n + b3)
-    key = q.astype(np.int64) * n + r
-    pos = np.minimum(np.searchsorted(keys3, key), keys3.size - 1)
-    ok = (keys3[pos] == key) & (q != r)
-    return np.stack([p[ok], q[ok], r[ok]], axis=1)
+    return _join_triangles(
+        a1.astype(np.int64), b1.astype(np.int64), a2[o2].astype(np.int64),
+        b2[o2].astype(np.int64), keys3, n,
+    )  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- hypotheses
@@ -357,8 +360,7 @@ def _body_candidates(
         trip = _triangles(pairs, d, t, config.max_candidates)
         if trip.shape[0] == 0:
             continue
-        R, cs, cd = _kabsch_batch(body.shape[list(tri)], pts[trip])
-        pred = np.einsum("kj,cij->cki", body.shape - cs, R) + cd[:, None, :]
+        pred = _anchor_predict(body.shape[list(tri)], body.shape, pts, trip)
         dist, near = pairs.tree.query(pred.reshape(-1, 3))
         dist = dist.reshape(trip.shape[0], k)
         near = near.reshape(trip.shape[0], k)
@@ -377,8 +379,7 @@ def _body_candidates(
     pp = np.concatenate(rows)
     err = np.concatenate(errs)
     order = np.argsort(err, kind="stable")
-    _, first = np.unique(pp[order], axis=0, return_index=True)
-    sel = order[first]
+    sel = order[_first_rows(pp[order])]
     pp, err = pp[sel], err[sel]
     # distance constancy of the body's pairs along the tracks
     ok = pp >= 0
