@@ -65,7 +65,8 @@ MAX_BOOTERS = 8
 #: (each takes the next subject nobody has taken; labels as computed alone). Off: on the shared
 #: 2-core machine (load 4-5, autogroup scheduling: a session's processes share one slice) the
 #: first attempt took longer with it (``benchmarks/boot_worker_step.py``: median 1.41 -> 2.07
-#: s); not measured on a quiet machine, where the second core is free before the first boot.
+#: s); on a quiet one 0.63 -> 0.39 s, but beside a 10 x 360 Hz stream on the same 2 cores the
+#: service's attempt gained nothing. The service's setting is ``boot_helpers``.
 HELPERS = 0
 #: How often a waiting request looks at its cancel event and the worker's health (s).
 POLL_S = 0.02

@@ -235,7 +235,9 @@ class Server:
         #: start-up when a configured stream boots (``boot = true``, or a ``boot = false``
         #: model stream's recovery), else in the background at a stream's first recovery
         #: (``_want_worker``)
-        self.boot_worker = BootWorker() if settings.boot_worker == "process" else None
+        self.boot_worker = (
+            BootWorker(helpers=settings.boot_helpers) if settings.boot_worker == "process" else None
+        )
         self._worker_starting = False
         #: failed starts of the worker and when the next may be tried (_start_worker)
         self._worker_failures = 0

@@ -251,6 +251,12 @@ class ServiceSettings(BaseSettings):
     #: ``service/boot_worker.py``; the attempt's Python no longer holds the frame path's GIL)
     #: or ``thread`` (a background thread of the service, as before; no extra process).
     boot_worker: Literal["process", "thread"] = "process"
+    #: Helper processes of that worker (0 or 1): with 1 the worker and its helper share an
+    #: attempt's per-subject hypotheses (the same labels as alone). Alone on a quiet 2-core
+    #: machine a 10-performer attempt took ~0.39 s instead of ~0.63 s, but beside a 10 x 360 Hz
+    #: stream on the same 2 cores it gained nothing, and on a machine loaded by other jobs it was
+    #: slower (BENCHMARKS.md): worth 1 where cores are free while a stream runs.
+    boot_helpers: int = Field(0, ge=0, le=1)
     #: Where the window start's handover trains its window model (``labeled_start``):
     #: ``process`` (default: a ``spawn`` child per handover, which costs its imports, a few
     #: seconds, but holds none of the frame path's GIL) or ``thread`` (the handover's job).

@@ -27,7 +27,7 @@ from labeler_service.scenes.corrupt import CorruptionSpec, StreamFrames, corrupt
 from labeler_service.scenes.simulate import simulate_scene
 from labeler_service.service.protocol import LabeledMsg, decode, encode_frame
 from labeler_service.service.server import Server
-from labeler_service.service.settings import load_settings
+from labeler_service.service.settings import ConfigError, load_settings
 from labeler_service.service.transports.memory import MemoryTransport
 from labeler_service.tools.replay import open_sender, replay
 from labeler_service.tools.subscribe import Subscriber
@@ -581,3 +581,18 @@ def test_performers_the_model_lists_but_who_are_absent_do_not_degrade_the_stream
     assert "online" in states, states
     assert "degraded" not in states[states.index("online") :], states
     assert st.status == "online"
+
+
+@pytest.mark.parametrize("helpers", [0, 1])
+def test_the_boot_worker_takes_its_helpers_from_the_settings(model_path, helpers):
+    """``boot_helpers`` reaches the service's boot worker (0 by default; 1: a helper process
+    shares an attempt's subjects); not 2."""
+
+    async def go():
+        srv = Server(_settings(model_path, False, boot_helpers=helpers), [MemoryTransport()])
+        assert srv.boot_worker is not None and srv.boot_worker.helpers == helpers
+
+    run(go(), timeout=30.0)
+    assert load_settings(labeler="online").boot_helpers == 0
+    with pytest.raises(ConfigError, match="boot_helpers"):
+        load_settings(labeler="online", boot_helpers=2)
