@@ -760,16 +760,10 @@ def join_triangles(a1, b1, a2s, b2s, keys3, n):
 
 
 def anchor_predict(tri_shape, shape, pts, trip):
-    """Twin of ``kernels.boot_anchor._anchor_predict`` (the batched SVD Kabsch of
-    ``boot_match._body_candidates`` it replaced)."""
-    dst = pts[trip]
-    cs = tri_shape.mean(axis=0)
-    cd = dst.mean(axis=1)
-    H = np.einsum("ki,ckj->cij", tri_shape - cs, dst - cd[:, None, :])
-    U, _, Vt = np.linalg.svd(H)
-    V = np.transpose(Vt, (0, 2, 1))
-    d = np.sign(np.linalg.det(V @ np.transpose(U, (0, 2, 1))))
-    d = np.where(d == 0, 1.0, d)
-    V[:, :, 2] *= d[:, None]
-    R = V @ np.transpose(U, (0, 2, 1))
+    """Twin of ``kernels.boot_anchor._anchor_predict``: the batched SVD Kabsch of
+    ``boot_match._body_candidates`` it replaced (``boot_match._kabsch_batch``, still the boot's
+    fit of one placement), applied to every member."""
+    from labeler_service.labeling.boot_match import _kabsch_batch
+
+    R, cs, cd = _kabsch_batch(tri_shape, pts[trip])
     return np.einsum("kj,cij->cki", shape - cs, R) + cd[:, None, :]

@@ -28,31 +28,19 @@ def _join_triangles(a1, b1, a2s, b2s, keys3, n):
     ``a2s, b2s`` (sorted by ``a2s``, stable), ``(q, r)`` an edge whose key ``q * n + r`` is in
     the sorted ``keys3``, and ``q != r``."""
     m1 = a1.shape[0]
-    m2 = a2s.shape[0]
     nk = keys3.shape[0]
     lo = np.searchsorted(a2s, a1, side="left")
     hi = np.searchsorted(a2s, a1, side="right")
-    count = 0
-    for i in range(m1):
-        q = b1[i]
-        for j in range(lo[i], hi[i]):
-            r = b2s[j]
-            if q == r or nk == 0:
-                continue
-            key = q * n + r
-            pos = np.searchsorted(keys3, key)
-            if pos < nk and keys3[pos] == key:
-                count += 1
-    out = np.empty((count, 3), dtype=np.int64)
+    out = np.empty((np.sum(hi - lo) if nk > 0 else 0, 3), dtype=np.int64)
     c = 0
-    if m2 == 0:
-        return out
     for i in range(m1):
+        if nk == 0:
+            break
         p = a1[i]
         q = b1[i]
         for j in range(lo[i], hi[i]):
             r = b2s[j]
-            if q == r or nk == 0:
+            if q == r:
                 continue
             key = q * n + r
             pos = np.searchsorted(keys3, key)
@@ -61,7 +49,7 @@ def _join_triangles(a1, b1, a2s, b2s, keys3, n):
                 out[c, 1] = q
                 out[c, 2] = r
                 c += 1
-    return out
+    return out[:c]
 
 
 @njit
