@@ -27,15 +27,14 @@ def _join_triangles(a1, b1, a2s, b2s, keys3, n):
     """Triples ``(C, 3)`` ``(p, q, r)``: ``(p, q)`` an edge of ``a1, b1``, ``(p, r)`` an edge of
     ``a2s, b2s`` (sorted by ``a2s``, stable), ``(q, r)`` an edge whose key ``q * n + r`` is in
     the sorted ``keys3``, and ``q != r``."""
-    m1 = a1.shape[0]
     nk = keys3.shape[0]
+    if nk == 0:
+        return np.empty((0, 3), dtype=np.int64)
     lo = np.searchsorted(a2s, a1, side="left")
     hi = np.searchsorted(a2s, a1, side="right")
-    out = np.empty((np.sum(hi - lo) if nk > 0 else 0, 3), dtype=np.int64)
+    out = np.empty((np.sum(hi - lo), 3), dtype=np.int64)
     c = 0
-    for i in range(m1):
-        if nk == 0:
-            break
+    for i in range(a1.shape[0]):
         p = a1[i]
         q = b1[i]
         for j in range(lo[i], hi[i]):

@@ -429,30 +429,24 @@ def _snapshot(age, min_age, obs, recovery):
     """
     rec_members, rec_size = recovery.members, recovery.size
     rec_ref, rec_ok = recovery.ref, recovery.ok
+    need = max(min_age, 1)  # frames observed in a row (and observed now)
     for m in range(age.shape[0]):
         n = rec_size[m]
         if n == 0:
             continue
         seen = 0
         for k in range(n):
-            if age[rec_members[m, k]] >= min_age and age[rec_members[m, k]] >= 1:
+            if age[rec_members[m, k]] >= need:
                 seen += 1
-        if seen == n:
-            for k in range(n):
-                for a in range(3):
-                    rec_ref[m, k, a] = obs[rec_members[m, k], a]
-            rec_ok[m] = True
-        elif (
+        if seen == n or (
             seen >= 4  # the marker itself and 3+ members: a Kabsch fit
-            and age[m] >= min_age
-            and age[m] >= 1
+            and age[m] >= need
             and not _full(m, n, rec_ref, rec_ok)
         ):
             for k in range(n):
                 mk = rec_members[m, k]
-                ok = age[mk] >= min_age and age[mk] >= 1
                 for a in range(3):
-                    rec_ref[m, k, a] = obs[mk, a] if ok else np.nan
+                    rec_ref[m, k, a] = obs[mk, a] if age[mk] >= need else np.nan
             rec_ok[m] = True
 
 
