@@ -2109,6 +2109,9 @@ def warmup_kernels() -> None:
         300.0,
     )  # fmt: skip
     _track_history(z, p3, z.copy(), np.array([0, 2]), np.full((2, 1, 3), np.nan))
+    # the body search's anchor triangles (:func:`_triangles`, :func:`_body_candidates`)
+    _join_triangles(z.copy(), z + 1, z.copy(), z + 1, np.array([3]), np.int64(2))
+    _anchor_predict(np.eye(3), np.eye(3), np.eye(3), np.zeros((1, 3), dtype=np.int64))
     # a booting labeler's installs (kernels/stacked.py; the other one warms with the inner
     # labeler's install: BootingLabeler.warmup)
     _spread_labels(z[:1], z[:1], z.copy(), z - 1, np.array([0, 2]), 2)
