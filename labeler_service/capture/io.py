@@ -243,6 +243,8 @@ def check_writable(
     while not parent.exists() and parent != parent.parent:
         created.append(parent)
         parent = parent.parent
+    if not parent.is_dir():  # (mkdir would say only "File exists")
+        raise CaptureError(f"{p}: cannot write: {parent} is a file, not a folder")
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():  # a device or FIFO: opening could block

@@ -42,8 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--init-frames",
         type=int,
-        default=50,
-        help="labeled training frames; 0 with --model: boot from the model, no labels at all",
+        default=None,
+        help="labeled training frames (default 50; with --model default 0: boot from the "
+        "model, no labels at all, as label does)",
     )
     p.add_argument(
         "--model",
@@ -92,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
+    if args.init_frames is None:  # (label's default too: a model boots, as a live stream)
+        args.init_frames = 0 if args.model is not None else 50
     cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
     check_init_window(
         cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None

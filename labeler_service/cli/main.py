@@ -56,18 +56,39 @@ COMMANDS: dict[str, Command | tuple[str, dict[str, Command]]] = {
 }
 
 
+class _Defaults(argparse.HelpFormatter):
+    """``--help`` that says every option's default (argparse's ``ArgumentDefaultsHelpFormatter``,
+    except where the help says it already, ``default ...`` or a closing ``[value]``, or there is
+    none to say: no value, a flag off, an empty list)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        if (
+            not action.option_strings
+            or d is None
+            or d is False
+            or d is argparse.SUPPRESS
+            or (isinstance(d, list | tuple) and not d)
+            or "default" in text
+            or text.rstrip().endswith("]")
+        ):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def _add(sub: argparse._SubParsersAction, name: str, entry: Any, argv: Sequence[str]) -> None:
     """Adds one (possibly nested) command; imports its module only if ``argv`` selects it."""
     selected = bool(argv) and argv[0] == name
     if isinstance(entry[1], dict):
         group_help, children = entry
-        p = sub.add_parser(name, help=group_help, description=group_help)
+        p = sub.add_parser(name, help=group_help, description=group_help, formatter_class=_Defaults)
         inner = p.add_subparsers(dest=f"{name}_command", metavar="COMMAND", required=True)
         for child, child_entry in children.items():
             _add(inner, child, child_entry, argv[1:] if selected else ())
         return
     module_name, help_text = entry
-    p = sub.add_parser(name, help=help_text, description=help_text)
+    p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=_Defaults)
     if selected:
         module = importlib.import_module(module_name)
         module.add_arguments(p)

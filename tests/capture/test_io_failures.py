@@ -169,3 +169,11 @@ def test_a_c3d_cut_before_its_first_frame_says_so_in_our_words(tmp_path, rng):
     with pytest.raises(CaptureError, match="holds no frame data") as info:
         read_capture(cut)
     assert "Data::frame" not in str(info.value)
+
+
+def test_check_writable_names_a_file_where_a_folder_should_be(tmp_path):
+    (tmp_path / "notes.txt").write_text("x")
+    for out in (tmp_path / "notes.txt" / "o.c3d", tmp_path / "notes.txt" / "a" / "o.c3d"):
+        with pytest.raises(CaptureError, match=r"notes.txt is a file, not a folder"):
+            check_writable(out)
+    assert (tmp_path / "notes.txt").read_text() == "x"

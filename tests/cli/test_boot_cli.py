@@ -189,7 +189,8 @@ def test_label_an_unlabeled_take_from_a_model(scene, tmp_path, capsys):
 
 def test_evaluate_from_a_model_without_labels(scene, capsys):
     _, _, _, model, test = scene
-    args = ["evaluate", str(test), "--model", str(model), "--init-frames", "0", "--json"]
+    # with --model the default is no labeled frame (a boot), as label's
+    args = ["evaluate", str(test), "--model", str(model), "--json"]
     assert main([*args, "--no-progress"]) == 0
     r = _last_json(capsys)
     assert r["method"] == "online" and r["settings"]["init_frames"] == 0
