@@ -94,7 +94,7 @@ class ServiceMetrics:
         self.registry = CollectorRegistry()
         r = self.registry
         self.frames_in = Counter(
-            "mocap_frames_in", "Frames accepted for labeling", ["stream"], registry=r
+            "mocap_frames_in", "Frames accepted into the stream's queue", ["stream"], registry=r
         )
         self.frames_out = Counter(
             "mocap_frames_out", "Labeled frames published", ["stream"], registry=r
@@ -413,10 +413,13 @@ class ServiceMetrics:
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
+            def ms(x: float) -> str:  # (no frame labeled yet: none to say, not nan)
+                return f"{x:.2f}" if np.isfinite(x) else "-"
+
             line = (
                 f"[{s}] in={v['frames_in']:.0f} out={v['frames_out']:.0f} "
-                f"label p50/p99={v['labeling_ms_p50']:.2f}/{v['labeling_ms_p99']:.2f} ms "
-                f"latency p99={v['latency_ms_p99']:.2f} ms recovered={v['recovered']:.0f}"
+                f"label p50/p99={ms(v['labeling_ms_p50'])}/{ms(v['labeling_ms_p99'])} ms "
+                f"latency p99={ms(v['latency_ms_p99'])} ms recovered={v['recovered']:.0f}"
             )
             # points left unlabeled per frame since the last line (a performer the labeler
             # does not know, ghosts): the labeled fraction counts only the known markers

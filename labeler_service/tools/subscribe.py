@@ -192,12 +192,12 @@ class Subscriber:
             self._tasks.append(asyncio.create_task(self._watch(), name="subscribe-watch"))
         return self
 
-    def _warn(self, msg: str, *args: object) -> None:
+    def _warn(self, msg: str, *args: object, level: int = logging.WARNING) -> None:
         line = msg % args
         if len(self.warnings) >= 1000:
             del self.warnings[:500]
         self.warnings.append(line)
-        log.warning("%s", line)
+        log.log(level, "%s", line)
 
     def _what(self) -> str:
         ep = self.endpoint
@@ -332,8 +332,10 @@ class Subscriber:
                     # a model stream that has not booted anyone yet reads as lost: say so
                     why = (" (no marker labeled yet: the service is booting its performers "
                            "from the model, or the model does not match them)")  # fmt: skip
+                # (a stream turning online is news, not a warning: the viewer logged it so)
+                level = logging.INFO if msg.state == "online" else logging.WARNING
                 self._warn("subscribe %s: stream %s is %s%s", self._what(), msg.stream,
-                           msg.state, why)  # fmt: skip
+                           msg.state, why, level=level)  # fmt: skip
             self.status[msg.stream] = msg.state
             self._status_changed.set()
         elif isinstance(msg, ChallengeMsg):

@@ -35,3 +35,14 @@ def test_the_log_line_walks_the_registry_once_and_says_what_value_says(monkeypat
         assert v["unlabeled"] == 3 * (k + 1) and v["handovers"] == 0
         assert f"[{n}] in={k + 1} out={k + 1} " in line
     assert snap["drops"]["queue_full"] == 16
+
+
+def test_a_stream_with_no_labeled_frame_logs_no_nan():
+    """Frames in, none labeled (all dropped: no model yet): the line says ``-``, not nan."""
+    m = ServiceMetrics()
+    for _ in range(3):
+        m.frame_in("plain")
+        m.drop("no_model", "plain")
+    line = m.log_line({"plain": ("idle", 0)})
+    assert "[plain] in=3 out=0 label p50/p99=-/- ms latency p99=- ms" in line
+    assert "nan" not in line

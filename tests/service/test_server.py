@@ -767,9 +767,31 @@ def test_a_stream_whose_sender_stops_turns_idle_then_online_again(rng, caplog):
     assert "no frame for" in caplog.text and "(the last from 10.0.0.1:4001): status idle" in (
         caplog.text
     )
+    assert "status idle; its labeler is kept for the sender's return" in caplog.text
     assert "second sender" not in caplog.text
     assert "frames now come from 10.0.0.1:4002 (before: 10.0.0.1:4001)" in caplog.text
     assert "unlabeled=" in caplog.text and "/frame status=" in caplog.text
+
+
+def test_an_idle_stream_that_never_had_a_labeler_says_so(rng, caplog):
+    """Unlabeled frames only, no model: the idle line does not promise a labeler it never
+    had (it said "its labeler is kept for the sender's return")."""
+    import logging
+
+    cap = moving_clusters(rng, frames=40)
+    caplog.set_level(logging.INFO, logger="labeler_service.service.server")
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(warmup=False, silent_after_s=0.3), [mem]):
+            for p in stream_payloads(cap, rng, init=0)[:30]:
+                mem.inject(p, reply_to=("10.0.0.1", 4001))
+                await asyncio.sleep(1 / 120)
+            await until(lambda: "status idle" in caplog.text, "idle")
+
+    run(go())
+    assert "status idle; it has no labeler yet (no model, no labeled frame)" in caplog.text
+    assert "kept for the sender's return" not in caplog.text
 
 
 def test_a_slow_sender_is_not_idle_between_its_frames(rng):

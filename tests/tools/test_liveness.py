@@ -182,6 +182,23 @@ def test_subscribe_says_a_booting_stream_without_a_model_waits_for_labeled_init_
                                      "labeler)"), sub.warnings[-1]  # fmt: skip
 
 
+def test_a_stream_turning_online_is_logged_as_news_not_as_a_warning(caplog):
+    """``online`` at INFO (the viewer logged every start as a WARNING); ``lost`` still warns."""
+    import logging
+
+    from labeler_service.service.protocol import encode_status
+    from labeler_service.service.transports.base import Incoming
+
+    caplog.set_level(logging.INFO, logger="labeler_service.tools.subscribe")
+    sub = Subscriber("udp://127.0.0.1:9/v", silence_s=1.0)
+    for state in ("online", "lost"):
+        sub._handle(Incoming(encode_status("v", state), 0, "udp"))
+    levels = {
+        r.getMessage().split("stream v is ")[1].split()[0]: r.levelno for r in caplog.records
+    }
+    assert levels == {"online": logging.INFO, "lost": logging.WARNING}, levels
+
+
 def test_subscribe_to_a_stream_name_the_service_does_not_have_says_so():
     """A typo in the stream name (``/cour`` for ``court``): the service answers but announces
     no such stream; the silence warning asks whether the name is right."""
