@@ -413,6 +413,7 @@ class ServiceMetrics:
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
+
             def ms(x: float) -> str:  # (no frame labeled yet: none to say, not nan)
                 return f"{x:.2f}" if np.isfinite(x) else "-"
 

@@ -561,8 +561,11 @@ class Server:
                 st.status = "idle"
                 st.labeled_fraction = st.recovered_fraction = float("nan")
                 self.metrics.health(name, 0.0, 0.0)
-                kept = ("its labeler is kept for the sender's return" if st.labeler is not None
-                        else "it has no labeler yet (no model, no labeled frame)")
+                kept = (
+                    "its labeler is kept for the sender's return"
+                    if st.labeler is not None
+                    else "it has no labeler yet (no model, no labeled frame)"
+                )
                 self._rlog.warning(f"idle-{name}", "stream %s: no frame for %.1f s (the last "
                                    "from %s): status idle; %s", name, quiet,
                                    _who(st.sender), kept)  # fmt: skip

@@ -193,9 +193,7 @@ def test_a_stream_turning_online_is_logged_as_news_not_as_a_warning(caplog):
     sub = Subscriber("udp://127.0.0.1:9/v", silence_s=1.0)
     for state in ("online", "lost"):
         sub._handle(Incoming(encode_status("v", state), 0, "udp"))
-    levels = {
-        r.getMessage().split("stream v is ")[1].split()[0]: r.levelno for r in caplog.records
-    }
+    levels = {r.getMessage().split("stream v is ")[1].split()[0]: r.levelno for r in caplog.records}
     assert levels == {"online": logging.INFO, "lost": logging.WARNING}, levels
 
 
