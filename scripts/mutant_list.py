@@ -504,4 +504,12 @@ MUTANTS: list[Mutant] = [
         "a body's members are predicted off their anchor triangle's motion (boot placements)",
         kernel=True,
     ),
+    Mutant(
+        "boot-warmup-misses-a-kernel",
+        "labeler_service/labeling/boot_match.py",
+        "    _anchor_predict(np.eye(3), np.eye(3), np.eye(3), np.zeros((1, 3), dtype=np.int64))\n",
+        "",
+        (T + "labeling/test_boot_warmup.py",),
+        "the boot worker's first attempt compiles a kernel (a fresh checkout boots 1.5 s late)",
+    ),
 ]
