@@ -68,7 +68,10 @@ def boot_through(lab, frames, late=80, gone=()):
     return caught
 """
 
-WORKER = "SECONDS = 4.0\n" + PRELUDE + r"""
+WORKER = (
+    "SECONDS = 4.0\n"
+    + PRELUDE
+    + r"""
 lab = BootingLabeler(model, RATE, inline_boot=False, inline_extend=False)
 warmup_kernels()
 warmup_labeler(RATE, lab.config)
@@ -79,8 +82,12 @@ grown = sorted(k for k, n in after.items() if n > before.get(k, 0))
 print(json.dumps({"grown": grown, "caught": caught, "booted": list(lab.active_subjects),
                   "kernels": len(after)}))
 """
+)
 
-SERVICE = "SECONDS = 8.0\n" + PRELUDE + r"""
+SERVICE = (
+    "SECONDS = 8.0\n"
+    + PRELUDE
+    + r"""
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.registry import make_window_labeler
 from labeler_service.labeling.structure import window_model
@@ -115,6 +122,7 @@ grown = sorted(k for k, n in after.items() if n > before.get(k, 0))
 print(json.dumps({"grown": grown, "caught": caught, "booted": list(lab.active_subjects),
                   "kernels": len(after)}))
 """
+)
 
 
 def _run(code: str) -> dict:
