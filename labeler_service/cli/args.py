@@ -129,3 +129,20 @@ def without_absent_subjects(cap, spec: str):
     for name in absent:
         print(f"note: {spec}: subject {name} is never seen in the take: left out", file=sys.stderr)
     return kept
+
+
+def _labeler_name(text: str) -> str:
+    return "baseline" if text == "closest-point" else text
+
+
+def add_labeler_argument(p) -> None:
+    """``--labeler``: the online labeler or the closest-point baseline, named ``baseline`` (the
+    service's name) or ``closest-point`` (``evaluate --method``'s); parsed to the service's."""
+    p.add_argument(
+        "--labeler",
+        type=_labeler_name,
+        choices=["online", "baseline"],
+        default="online",
+        metavar="{online,closest-point}",
+        help="the online labeler, or the closest-point baseline (also called baseline)",
+    )

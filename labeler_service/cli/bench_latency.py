@@ -35,7 +35,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from labeler_service.cli.args import rate, seed
+from labeler_service.cli.args import add_labeler_argument, rate, seed
 from labeler_service.errors import MocapError
 
 
@@ -62,13 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--init-frames", type=int, default=None,
                    help="labeled frames first (default: 5 with model, 50 with init)")  # fmt: skip
-    p.add_argument(
-        "--labeler",
-        choices=["online", "baseline", "closest-point"],
-        default="online",
-        help="the online labeler, or the closest-point baseline (baseline = closest-point, the "
-        "name evaluate --method uses)",
-    )
+    add_labeler_argument(p)
     p.add_argument("--labeled-start", choices=["auto", "labeler", "model"], default=None,
                    help="--start init: the stream's labeled_start (else the default)")  # fmt: skip
     p.add_argument("--seed", type=seed, default=0)
@@ -293,8 +287,6 @@ def _first_present(frames, subject: str) -> int:
 def run(args: argparse.Namespace) -> int:
     from labeler_service.scenes.simulate import MAX_PERFORMERS
 
-    if args.labeler == "closest-point":
-        args.labeler = "baseline"  # the service's name for it (as demo's)
     if not 1 <= args.subjects <= MAX_PERFORMERS:  # (the simulator's message names its own flag)
         raise MocapError(f"--subjects must be 1..{MAX_PERFORMERS}, got {args.subjects}")
     if args.workdir is not None:

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.cli.args import port, seed
+from labeler_service.cli.args import add_labeler_argument, port, seed
 from labeler_service.errors import MocapError
 from labeler_service.testing.realdata import real_file
 from labeler_service.wording import plural
@@ -69,13 +69,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gap-frames", type=int, default=20, help="frames per gap")
     p.add_argument("--ghosts", type=float, default=1.0, help="mean ghost points per frame")
     p.add_argument("--speed", type=float, default=1.0, help="replay speed x capture rate")
-    p.add_argument(
-        "--labeler",
-        choices=["online", "baseline", "closest-point"],
-        default="online",
-        help="the online labeler, or the closest-point baseline (baseline = closest-point, the "
-        "name evaluate --method uses)",
-    )
+    add_labeler_argument(p)
     p.add_argument("--start", choices=["window", "labeled", "boot"], default=None,
                    help=f"window (= labeled): the first --init-frames frames carry labels; "
                         f"boot: models trained on other segments, no labels sent (default: "
@@ -278,8 +272,6 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
     from labeler_service.tools.subscribe import Recorder, percentiles
 
-    if args.labeler == "closest-point":
-        args.labeler = "baseline"  # the service's name for it
     args.start, args.init_frames = resolve_start(args.start, args.init_frames, args.labeler)
     t_start = time.perf_counter()
     cap, what = _scene(args.seed, args.frames)

@@ -13,4 +13,7 @@ from labeler_service.cli.main import build_parser
 def test_the_baseline_has_one_name_everywhere(command, name):
     argv = [*command, "--labeler", name]
     args = build_parser(argv).parse_args(argv)
-    assert args.labeler == name
+    assert args.labeler == "baseline"  # (the service's name)
+    bad = [*command, "--labeler", "nearest"]
+    with pytest.raises(SystemExit):
+        build_parser(bad).parse_args(bad)
