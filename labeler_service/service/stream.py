@@ -145,6 +145,11 @@ BUSIER = 2.0
 INIT_FRAME_OVERHEAD = 320
 
 
+#: A gap of dropped frames (``recover_gap_s``) is also longer than this many frame periods: at
+#: 2 Hz every frame comes 0.5 s after the last one, and each would start a recovery.
+GAP_PERIODS = 3.0
+
+
 def _natural(s: str) -> tuple:
     return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", s))
 
@@ -1046,10 +1051,13 @@ class StreamState:
 
     def _dropped_gap(self, t: float) -> float:
         """Seconds from the last frame labeled to frame time ``t`` when more than
-        ``recover_gap_s`` and no recovery runs already; else 0."""
+        ``recover_gap_s`` and more than ``GAP_PERIODS`` frame periods (a slow sender's frames
+        are not a gap), and no recovery runs already; else 0."""
         gap_s = self.settings.recover_gap_s
         if gap_s <= 0 or self._t_last is None or self.recovering:
             return 0.0
+        if self.rate:
+            gap_s = max(gap_s, GAP_PERIODS / self.rate)
         gap = t - self._t_last
         return gap if gap > gap_s else 0.0
 
@@ -1322,8 +1330,12 @@ class StreamState:
             # frames dropped in the service (a training stall, a busy machine): the tracks
             # cannot follow the performers over that gap, and the labeler trained in place
             # went on labeling ~75 % of them wrong while its labeled fraction stayed high
-            # (10 performers at 360 Hz after the training's 0.7 s stall)
-            self.start_recovery(f"{gap:.2f} s of stream dropped before this frame")
+            # (10 performers at 360 Hz after the training's 0.7 s stall); a stream that boots
+            # from its model file has no recovery to start: it boots everyone again (kept, a
+            # hostile run's 0.8 s gap left 47 % of the labels wrong, the stream online)
+            why = f"{gap:.2f} s of stream dropped before this frame"
+            if not self.start_recovery(why):
+                self.reboot(why)
         elif self._waits_for_labels():
             # boot = false and no labeled frame: the plain labeler could only refuse every
             # frame (labeler_error); boot the performers from the model instead

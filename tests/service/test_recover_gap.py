@@ -61,3 +61,54 @@ def test_recover_gap_zero_keeps_the_tracks(frames):
     st, f = _stream(frames, 0.0)
     _feed(st, frames, f + 60)
     assert not st.recovering and st.recoveries == 0
+
+
+@pytest.fixture(scope="module")
+def booted(tmp_path_factory):
+    """A model stream that boots (``boot = true``, the model trained on the walk's first
+    half), its performers booted on the second half's first frames."""
+    from labeler_service.labeling.templates import save_model
+    from offline.structure import StructureTrainer
+
+    scene = simulate_scene(2, 4.0, "walk", seed=5, rate=RATE)
+    half = scene.n_frames // 2
+    path = tmp_path_factory.mktemp("gap") / "model.json"
+    save_model(StructureTrainer().fit([scene.frames(0, half)]).model_, path)
+    stream = corrupt(scene.frames(half, scene.n_frames), CorruptionSpec(protect_frames=0, seed=3))
+    return path, stream
+
+
+def _boot_stream(path, stream, gap_s: float) -> tuple[StreamState, int]:
+    settings = load_settings(labeler="online", metrics_port=None, warmup=False, boot=True,
+                             recover_gap_s=gap_s,
+                             streams=[{"name": "vol", "model": str(path)}])  # fmt: skip
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    for f in range(60):
+        st.process(FrameMsg("vol", f, float(stream.times[f]), stream.points[f]), 0)
+        if (req := st.boot_request()) is not None:
+            st.boot_done(req, StreamState.boot_job(req))
+    assert len(st.subjects_booted) == 2
+    return st, 60
+
+
+def test_a_gap_of_dropped_frames_boots_a_model_streams_performers_again(booted, caplog):
+    """A stream booting from its model file has no recovery to start; it used to keep its
+    tracks over the gap (a hostile run: 0.8 s dropped, 47 % of the labels wrong, ``online``)."""
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.stream")
+    st, f = _boot_stream(*booted, 0.25)
+    _feed(st, booted[1], f + 24)  # 0.2 s later: within the gap, the tracks go on
+    assert st.reboots == 0 and len(st.subjects_booted) == 2
+    _feed(st, booted[1], f + 60)  # 0.3 s after the last frame labeled
+    assert st.reboots == 1 and st.subjects_booted == ()
+    assert "0.30 s of stream dropped before this frame: booting its 2 subjects again" in (
+        caplog.text
+    )
+
+
+def test_a_slow_senders_frames_are_no_gap(frames):
+    """At 4 Hz every frame comes 0.25 s after the last: no frame is missing, no recovery."""
+    st, f = _stream(frames, 0.1)
+    st.rate = 4.0
+    _feed(st, frames, f + 30)
+    assert not st.recovering and st.recoveries == 0
