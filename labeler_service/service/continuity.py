@@ -8,14 +8,18 @@ A frame continues the current run when its step from the last accepted frame is 
   checked it).
 
 ``seq`` equal to the last one is a ``duplicate``; lower by at most ``max_seq_step`` it is
-``late``. Anything else (a jump forward or back of ``seq`` or ``t``, a frozen or reversed ``t``)
-makes the frame **suspect**: it is dropped (``seq_jump`` or ``time_jump``) and remembered as the
-start of a candidate run. Only when ``confirm`` consecutive frames (the suspect one included)
-continue each other plausibly, with no frame of the current run in between, is the candidate
-adopted as a **new run**: the verdict of its last frame says ``new_run`` and the frame is
-processed. So one spoofed or broken frame changes nothing (the next genuine frame continues the
-current run and forgets the candidate), while a restarted sender (a second ``replay`` of the
-same file) or a sender back after a long pause costs ``confirm - 1`` dropped frames.
+``late`` — unless the run accepted that ``seq`` already: a late frame fills a hole, while a
+``seq`` seen twice is a ``duplicate`` that may start a new run like a jump (a sender started
+again after a short run: every frame of its new run read ``late`` and was dropped, for as long
+as it kept restarting, a hostile run). Anything else (a jump forward or back of ``seq`` or
+``t``, a frozen or reversed ``t``) makes the frame **suspect**: it is dropped (``seq_jump`` or
+``time_jump``) and remembered as the start of a candidate run. Only when ``confirm``
+consecutive frames (the suspect one included) continue each other plausibly, with no frame of
+the current run in between, is the candidate adopted as a **new run**: the verdict of its last
+frame says ``new_run`` and the frame is processed. So one spoofed or broken frame changes
+nothing (the next genuine frame continues the current run and forgets the candidate), while a
+restarted sender (a second ``replay`` of the same file) or a sender back after a long pause
+costs ``confirm - 1`` dropped frames.
 
 ``time_jumped`` on a new-run verdict tells whether ``t`` jumped too (the stream then re-bases
 time so the labeler sees one frame period, not the jump).
@@ -61,6 +65,18 @@ class Continuity:
         self.last_seq: int | None = None
         self.last_t: float | None = None
         self._cand: _Candidate | None = None
+        # the run's accepted ``seq`` within ``max_seq_step`` of the last (a late one fills a
+        # hole; one of these again is a restart)
+        self._seen: set[int] = set()
+
+    def _accept(self, seq: int, t: float, new_run: bool = False) -> None:
+        self.last_seq, self.last_t = seq, t
+        if new_run:
+            self._seen.clear()
+        self._seen.add(seq)
+        if len(self._seen) > 2 * self.max_seq_step:
+            low = seq - self.max_seq_step
+            self._seen = {s for s in self._seen if s >= low}
 
     def _plausible_seq(self, ds: int) -> bool:
         return 1 <= ds <= self.max_seq_step
@@ -71,17 +87,18 @@ class Continuity:
     def check(self, seq: int, t: float) -> Verdict:
         """The verdict for an arriving frame; updates the run on acceptance."""
         if self.last_seq is None or self.last_t is None:
-            self.last_seq, self.last_t = seq, t
+            self._accept(seq, t, new_run=True)
             return ACCEPT
         ds = seq - self.last_seq
         if ds == 0:
             return Verdict("duplicate")
-        if -self.max_seq_step <= ds < 0:
+        repeat = -self.max_seq_step <= ds < 0
+        if repeat and seq not in self._seen:
             return Verdict("late")
         seq_ok = self._plausible_seq(ds)
         t_ok = self._plausible_t(t - self.last_t)
         if seq_ok and t_ok:
-            self.last_seq, self.last_t = seq, t
+            self._accept(seq, t)
             self._cand = None
             return ACCEPT if ds == 1 else Verdict(None, ds - 1)
         c = self._cand
@@ -89,10 +106,10 @@ class Continuity:
             c.seq, c.t, c.count = seq, t, c.count + 1
             if c.count >= self.confirm:
                 self._cand = None
-                self.last_seq, self.last_t = seq, t
+                self._accept(seq, t, new_run=True)
                 return Verdict(None, 0, new_run=True, time_jumped=c.time_jumped)
             return Verdict(c.reason)
-        reason = "time_jump" if seq_ok else "seq_jump"
+        reason = "duplicate" if repeat else "time_jump" if seq_ok else "seq_jump"
         self._cand = _Candidate(seq, t, 1, reason, not t_ok)
         if self.confirm == 1:
             return self.check_adopt()
@@ -103,5 +120,5 @@ class Continuity:
         c = self._cand
         assert c is not None
         self._cand = None
-        self.last_seq, self.last_t = c.seq, c.t
+        self._accept(c.seq, c.t, new_run=True)
         return Verdict(None, 0, new_run=True, time_jumped=c.time_jumped)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 from hostile.helpers import run
 from hostile.helpers import settings as service_settings
 from hypothesis import HealthCheck, Phase, given, settings
@@ -134,3 +135,21 @@ def test_random_frames_are_counted_and_never_kill_a_worker(frames):
             assert names <= set(srv.streams) | {""}
 
     run(go())
+
+
+@pytest.mark.parametrize("run", [5, 99, 100])
+def test_a_sender_restarted_after_a_short_run_is_a_new_run_not_late_frames(run):
+    """A run of ``run`` frames, then the sender starts again from ``seq`` 0 and ``t`` 0: its
+    frames repeat ``seq`` the run accepted, so they are a restart, not late frames (a hostile
+    run restarting every 100 frames had every later frame dropped as ``late``, silently)."""
+    c = Continuity(max_seq_step=100, max_time_step_s=1.0, confirm=3)
+    for k in range(run):
+        assert c.check(k, k / 120).reason is None
+    verdicts = [c.check(k, k / 120) for k in range(run)]
+    assert [v.reason for v in verdicts[:2]] == ["duplicate", "duplicate"]
+    assert verdicts[2].new_run and all(v.reason is None for v in verdicts[2:])
+    # a frame missing from the run, arriving late, is still late (it fills a hole)
+    c = Continuity(max_seq_step=100, max_time_step_s=1.0, confirm=3)
+    for k in (0, 1, 3, 4):
+        c.check(k, k / 120)
+    assert c.check(2, 2 / 120).reason == "late"

@@ -96,6 +96,21 @@ def test_one_spoofed_frame_changes_nothing(clean_run, name, seq_delta, t_delta, 
     assert srv.metrics.snapshot()["streams"]["default"]["gap_frames"] == 0
 
 
+def test_a_take_restarted_after_a_short_run_is_labeled_not_dropped_as_late():
+    """The sender stops after 60 frames (seq 0-59) and starts the take again from seq 0: its
+    frames repeat seq the run accepted, so they start a new run (before: every one of them
+    was ``late`` until seq passed 59, and a sender restarting every 100 frames had all its
+    later frames dropped)."""
+    cap = _scene()
+    first = payloads(cap, np.random.default_rng(0), INIT)[:60]
+    again = payloads(cap, np.random.default_rng(1), INIT)  # seq and t restart at 0
+    srv, mem, msgs = _run_stream(first + again)
+    assert srv.metrics.drops("late") == 0
+    assert srv.metrics.drops("duplicate") == 2  # (the new run confirmed on its third frame)
+    second = [m.seq for m in msgs[60 - INIT :]]
+    assert second == list(range(INIT, cap.n_frames))
+
+
 def test_replaying_the_same_take_twice_is_a_new_run_that_retrains():
     cap = _scene()
     first = payloads(cap, np.random.default_rng(0), INIT)

@@ -141,19 +141,20 @@ def test_malformed_messages_are_counted_by_reason_and_the_stream_survives(rng):
 def test_duplicate_and_late_seq_are_dropped_and_gaps_counted(rng):
     cap = moving_clusters(rng, frames=60)
     p = stream_payloads(cap, rng, init=10)
-    order = p[:20] + [p[19], p[15]] + p[25:]  # duplicate 19, late 15, gap 20..24
+    # 19 again, 15 again (accepted already: duplicates), 21 late (a hole), gaps 20 and 24
+    order = p[:20] + [p[19], p[15]] + p[22:24] + [p[21]] + p[25:]
 
     async def go():
         mem = MemoryTransport()
         async with Server(_settings(), [mem]) as srv:
             await _feed(mem, order, pause=0.001)
-            got = await _labeled(mem, 10 + 35)
+            got = await _labeled(mem, 10 + 2 + 35)
             return srv.metrics, got
 
     metrics, got = run(go())
-    assert metrics.drops("duplicate") == 1 and metrics.drops("late") == 1
-    assert metrics.value("mocap_seq_gap_frames_total", stream="default") == 5
-    assert [m.seq for m in got] == list(range(10, 20)) + list(range(25, 60))
+    assert metrics.drops("duplicate") == 2 and metrics.drops("late") == 1
+    assert metrics.value("mocap_seq_gap_frames_total", stream="default") == 3
+    assert [m.seq for m in got] == list(range(10, 20)) + [22, 23] + list(range(25, 60))
 
 
 def test_a_restarted_sender_is_accepted_after_a_large_seq_jump_back(rng):
