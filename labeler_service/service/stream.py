@@ -1237,12 +1237,15 @@ class StreamState:
         does); the next frame is its first unlabeled one."""
         lab = self.labeler
         assert isinstance(lab, BootingLabeler)
-        if lab.n_active < len(lab.model.subjects) or self.boot_inflight:
+        if lab.n_active < len(lab.model.subjects):
             self._handback.clear()
             self._handback_since = None
             return
         self._handback.append((f.points, t, out.point_labels))
-        if len(self._handback) < HANDBACK_FRAMES:
+        # (not while a job is out: the next frame without one hands back; the wait goes on
+        # meanwhile: started over at every job, it never ended when jobs came every 0.1 s, a
+        # hostile run's 8 hugging performers)
+        if len(self._handback) < HANDBACK_FRAMES or self.boot_inflight:
             return
         # the plain labeler labels only markers its first frames carry (one never labeled in
         # them stays unlabeled for good): the stream stays on the booting labeler, which

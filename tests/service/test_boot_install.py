@@ -157,14 +157,19 @@ def test_server_installs_a_result_with_no_frame_after_it(scene_model):
     run(go(), timeout=300.0)
 
 
-def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None) -> list:
+def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None, hold: int = 0) -> list:
     """Feeds every frame of ``frames`` to ``st`` (seq from ``seq0``; ``first_verdict`` for the
-    first), running each due boot attempt at once; returns what each frame published
-    (marker states, positions) and the stream's status after it."""
+    first), running each due boot attempt at once (``hold``: its result handed over that many
+    frames later, as a job that takes time); returns what each frame published (marker
+    states, positions) and the stream's status after it."""
     from labeler_service.service.continuity import ACCEPT
 
     published = []
+    held: list = []  # (frame due, request, outcome)
     for f in range(frames.n_frames):
+        while held and held[0][0] <= f:
+            _, req, done = held.pop(0)
+            st.boot_done(req, done)
         t = float(frames.times[f])
         msg = decode(encode_frame("vol", seq0 + f, t, frames.points[f]))
         verdict = first_verdict if f == 0 and first_verdict is not None else ACCEPT
@@ -176,7 +181,10 @@ def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None) -> lis
         if st.boot_due():
             req = st.boot_request()
             assert req is not None
-            st.boot_done(req, StreamState.boot_job(req))
+            if hold:
+                held.append((f + hold, req, StreamState.boot_job(req)))
+            else:
+                st.boot_done(req, StreamState.boot_job(req))
     return published
 
 
@@ -476,6 +484,27 @@ def test_boot_off_hands_back_after_a_wait_when_markers_never_appear(scene_model,
     assert st.handbacks == 1 and not isinstance(st.labeler, BootingLabeler)
     assert "the booting labeler stays until it labels" in caplog.text
     assert f"not labeled within {HANDBACK_WAIT_S:g} s" in caplog.text and "P1:RWRA" in caplog.text
+
+
+def test_the_hand_back_wait_runs_on_while_jobs_are_out(scene_model, caplog):
+    """The same, with every job (attempts, extensions) taking 6 frames as in the service: the
+    wait does not start over whenever a job is out. It did: a hostile run's 8 hugging
+    performers logged "the booting labeler stays ..." 9 times in 20 s, never handed back and
+    never said which markers were missing."""
+    import logging
+    from types import SimpleNamespace
+
+    from labeler_service.labeling.booting import BootingLabeler
+    from labeler_service.service.stream import HANDBACK_WAIT_S
+
+    caplog.set_level(logging.INFO, logger="labeler_service.service.stream")
+    st, frames, hand = _boot_off_stream(scene_model)
+    pts = [frames.points[f][~np.isin(frames.truth[f], hand)] for f in range(frames.n_frames)]
+    feed = SimpleNamespace(n_frames=frames.n_frames, times=frames.times, points=pts)
+    _feed_booting(st, feed, 0, hold=6)
+    assert st.handbacks == 1 and not isinstance(st.labeler, BootingLabeler)
+    assert caplog.text.count("the booting labeler stays until it labels") == 1
+    assert f"not labeled within {HANDBACK_WAIT_S:g} s" in caplog.text
 
 
 def test_a_performer_who_leaves_a_plain_labeled_stream_is_booted_when_back(scene_model, caplog):
