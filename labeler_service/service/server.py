@@ -256,6 +256,7 @@ class Server:
         self._rlog = RateLimitedLog(log)
         self._transport_down: dict[str, str | None] = {}  # transport name -> its trouble
         self.ready: asyncio.Event | None = None
+        self._ready_ns = 0  # time.time_ns() when the transports' frames start being read
         self.metrics_port: int | None = None
         self.warmup_s = 0.0
 
@@ -328,6 +329,10 @@ class Server:
             # process: the collector skips it from now on (full collections stay cheap)
             gc.collect()
             gc.freeze()
+            # frames received before this moment waited out the start (seconds: the warm-up,
+            # the boot worker's): stale, dropped as ``starting`` (labeled after `ready`, they
+            # came out 3.3 s late, a hostile run)
+            self._ready_ns = time.time_ns()
             for t in self.transports:
                 self._spawn(self._ingest(t), f"ingest-{t.name}")
             self._spawn(self._model_repeat(), "model-repeat")
@@ -602,6 +607,11 @@ class Server:
             raise ProtocolError(f"{type(msg).__name__} is not accepted by the service", "type")
 
     def _on_frame(self, msg: FrameMsg, inc: Incoming) -> None:
+        if 0 < inc.recv_ns < self._ready_ns:
+            self.metrics.drop("starting", msg.stream if msg.stream in self.streams else "")
+            self._rlog.warning("starting-frames", "frames received while the service started "
+                               "dropped (stale; it reads frames once it says ready)")  # fmt: skip
+            return
         if inc.stream is not None and inc.stream != msg.stream:
             self.metrics.drop("stream_mismatch")
             self._rlog.warning("mismatch", "topic stream %s carried stream %s", inc.stream,
