@@ -50,6 +50,7 @@ class _Candidate:
     count: int
     reason: str
     time_jumped: bool
+    seqs: list[int]  # its frames' seq (the new run's first ones, when adopted)
 
 
 class Continuity:
@@ -69,10 +70,13 @@ class Continuity:
         # hole; one of these again is a restart)
         self._seen: set[int] = set()
 
-    def _accept(self, seq: int, t: float, new_run: bool = False) -> None:
+    def _accept(self, seq: int, t: float, run: list[int] | None = None) -> None:
+        """``run``: a new run, its seq so far (the candidate's frames, dropped while it was
+        confirmed, belong to it: left out, the next restart read them late, and each restart
+        lost two frames more than the last)."""
         self.last_seq, self.last_t = seq, t
-        if new_run:
-            self._seen.clear()
+        if run is not None:
+            self._seen = set(run)
         self._seen.add(seq)
         if len(self._seen) > 2 * self.max_seq_step:
             low = seq - self.max_seq_step
@@ -87,7 +91,7 @@ class Continuity:
     def check(self, seq: int, t: float) -> Verdict:
         """The verdict for an arriving frame; updates the run on acceptance."""
         if self.last_seq is None or self.last_t is None:
-            self._accept(seq, t, new_run=True)
+            self._accept(seq, t, run=[])
             return ACCEPT
         ds = seq - self.last_seq
         if ds == 0:
@@ -104,13 +108,14 @@ class Continuity:
         c = self._cand
         if c is not None and self._plausible_seq(seq - c.seq) and self._plausible_t(t - c.t):
             c.seq, c.t, c.count = seq, t, c.count + 1
+            c.seqs.append(seq)
             if c.count >= self.confirm:
                 self._cand = None
-                self._accept(seq, t, new_run=True)
+                self._accept(seq, t, run=c.seqs)
                 return Verdict(None, 0, new_run=True, time_jumped=c.time_jumped)
             return Verdict(c.reason)
         reason = "duplicate" if repeat else "time_jump" if seq_ok else "seq_jump"
-        self._cand = _Candidate(seq, t, 1, reason, not t_ok)
+        self._cand = _Candidate(seq, t, 1, reason, not t_ok, [seq])
         if self.confirm == 1:
             return self.check_adopt()
         return Verdict(reason)
@@ -120,5 +125,5 @@ class Continuity:
         c = self._cand
         assert c is not None
         self._cand = None
-        self._accept(c.seq, c.t, new_run=True)
+        self._accept(c.seq, c.t, run=c.seqs)
         return Verdict(None, 0, new_run=True, time_jumped=c.time_jumped)
