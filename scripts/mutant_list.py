@@ -512,4 +512,21 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_boot_warmup.py",),
         "the boot worker's first attempt compiles a kernel (a fresh checkout boots 1.5 s late)",
     ),
+    Mutant(
+        "continuity-repeated-seq-is-late",
+        "labeler_service/service/continuity.py",
+        "        if repeat and seq not in self._seen:\n",
+        "        if repeat:\n",
+        (T + "hostile/test_fuzz_semantics.py",),
+        "a sender restarted after a short run has every frame dropped as late",
+        k="restarted_after_a_short_run",
+    ),
+    Mutant(
+        "gap-no-reboot-of-a-model-stream",
+        "labeler_service/service/stream.py",
+        "            if not self.start_recovery(why):\n                self.reboot(why)\n",
+        "            self.start_recovery(why)\n",
+        (T + "service/test_recover_gap.py",),
+        "a booted stream keeps its stale tracks over a gap of dropped frames",
+    ),
 ]
