@@ -271,8 +271,10 @@ class _Helper:
             spec = None if key in self._known else (booter.model, booter.config)
             try:
                 self.conn.send(("hyps", key, spec, wanted, pts, hist))
-            except (OSError, ValueError):
-                self.conn = None  # (gone: the worker goes on alone)
+            except (OSError, ValueError) as exc:
+                # (gone, killed from outside: the worker goes on alone; said once, it was not)
+                log.warning("boot helper gone (%s); the worker does every subject itself", exc)
+                self.conn = None
                 return run(booter, wanted, pts, hist, pairs)
             self.note(key)
             mine = {}

@@ -196,9 +196,10 @@ def test_a_prepared_worker_boots_without_the_model_and_its_helper_changes_nothin
                 w.close()
 
 
-def test_a_lost_helper_leaves_the_worker_alone_with_the_same_result(walk):
+def test_a_lost_helper_leaves_the_worker_alone_with_the_same_result(walk, capfd):
     """The helper killed from outside: the worker does its subjects itself (the same
-    result) and goes on without it; the worker itself is not restarted."""
+    result) and goes on without it, and says so once on its stderr (the service's log; a
+    hostile run's kill went unsaid); the worker itself is not restarted."""
     import signal
 
     model, cap = walk
@@ -218,6 +219,8 @@ def test_a_lost_helper_leaves_the_worker_alone_with_the_same_result(walk):
         assert w.pid == pid and w.started == 1
     finally:
         w.close()
+    err = capfd.readouterr().err
+    assert err.count("boot helper gone") + err.count("boot helper failed") == 1, err
 
 
 def _blocked(pid: int) -> int:
