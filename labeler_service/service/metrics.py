@@ -53,6 +53,11 @@ _MS_BUCKETS = (
 )  # fmt: skip
 
 
+def _ms(x: float) -> str:
+    """A time in ms for the log line; ``-`` before any frame is labeled (not ``nan``)."""
+    return f"{x:.2f}" if np.isfinite(x) else "-"
+
+
 @dataclass
 class _Recent:
     """A ring of the latest samples (seconds) for the log line's percentiles."""
@@ -415,13 +420,10 @@ class ServiceMetrics:
         parts = []
         for s, v in snap["streams"].items():
 
-            def ms(x: float) -> str:  # (no frame labeled yet: none to say, not nan)
-                return f"{x:.2f}" if np.isfinite(x) else "-"
-
             line = (
                 f"[{s}] in={v['frames_in']:.0f} out={v['frames_out']:.0f} "
-                f"label p50/p99={ms(v['labeling_ms_p50'])}/{ms(v['labeling_ms_p99'])} ms "
-                f"latency p99={ms(v['latency_ms_p99'])} ms recovered={v['recovered']:.0f}"
+                f"label p50/p99={_ms(v['labeling_ms_p50'])}/{_ms(v['labeling_ms_p99'])} ms "
+                f"latency p99={_ms(v['latency_ms_p99'])} ms recovered={v['recovered']:.0f}"
             )
             # points left unlabeled per frame since the last line (a performer the labeler
             # does not know, ghosts): the labeled fraction counts only the known markers
