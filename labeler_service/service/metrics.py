@@ -419,7 +419,6 @@ class ServiceMetrics:
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
-
             line = (
                 f"[{s}] in={v['frames_in']:.0f} out={v['frames_out']:.0f} "
                 f"label p50/p99={_ms(v['labeling_ms_p50'])}/{_ms(v['labeling_ms_p99'])} ms "
