@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 SERVICE_DROP_REASONS = (
     "queue_full",  # processing fell behind: the oldest queued frame was discarded
-    "starting",  # received before the service was ready (stale once it could be labeled)
+    "starting",  # unlabeled, received before the service was ready (stale by then)
     "duplicate",  # seq equal to the last one seen on the stream
     "late",  # seq lower than the last one seen, by at most max_seq_step
     "seq_jump",  # seq jumped (forward or back beyond max_seq_step): suspect, not yet a new run

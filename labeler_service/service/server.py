@@ -329,9 +329,9 @@ class Server:
             # process: the collector skips it from now on (full collections stay cheap)
             gc.collect()
             gc.freeze()
-            # frames received before this moment waited out the start (seconds: the warm-up,
-            # the boot worker's): stale, dropped as ``starting`` (labeled after `ready`, they
-            # came out 3.3 s late, a hostile run)
+            # unlabeled frames received before this moment waited out the start (seconds: the
+            # warm-up, the boot worker's): stale, dropped as ``starting`` (labeled after
+            # `ready`, they came out 3.3 s late, a hostile run)
             self._ready_ns = time.time_ns()
             for t in self.transports:
                 self._spawn(self._ingest(t), f"ingest-{t.name}")
@@ -607,10 +607,12 @@ class Server:
             raise ProtocolError(f"{type(msg).__name__} is not accepted by the service", "type")
 
     def _on_frame(self, msg: FrameMsg, inc: Incoming) -> None:
-        if 0 < inc.recv_ns < self._ready_ns:
+        if 0 < inc.recv_ns < self._ready_ns and msg.labels is None:
+            # (labeled frames are a stream's training window: late, they still train it)
             self.metrics.drop("starting", msg.stream if msg.stream in self.streams else "")
-            self._rlog.warning("starting-frames", "frames received while the service started "
-                               "dropped (stale; it reads frames once it says ready)")  # fmt: skip
+            self._rlog.warning("starting-frames", "unlabeled frames received while the "
+                               "service started dropped (stale: it reads frames once it says "
+                               "ready)")  # fmt: skip
             return
         if inc.stream is not None and inc.stream != msg.stream:
             self.metrics.drop("stream_mismatch")
