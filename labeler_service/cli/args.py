@@ -146,3 +146,15 @@ def add_labeler_argument(p) -> None:
         metavar="{online,closest-point}",
         help="the online labeler, or the closest-point baseline (also called baseline)",
     )
+
+
+#: labeled init frames of ``label`` and ``evaluate`` without ``--model`` (with one: 0, a boot)
+INIT_FRAMES = 50
+
+
+def init_frames(asked: int | None, model: object) -> int:
+    """``--init-frames`` as given, else the default of ``label`` and ``evaluate``: 0 with a
+    model (a boot from anonymous points, as a live stream), else :data:`INIT_FRAMES`."""
+    if asked is not None:
+        return asked
+    return 0 if model is not None else INIT_FRAMES

@@ -15,7 +15,12 @@ import textwrap
 from pathlib import Path
 
 from labeler_service.capture import check_writable, join_label, read_segment, split_label
-from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
+from labeler_service.cli.args import (
+    check_init_window,
+    init_frames,
+    seed,
+    without_absent_subjects,
+)
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
 from labeler_service.evaluation.scoring import evaluate, resolve_methods
@@ -93,8 +98,7 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
         check_writable(args.plot, suffixes=None)
         check_writable(errors_path(args.plot), suffixes=None)
-    if args.init_frames is None:  # (label's default too: a model boots, as a live stream)
-        args.init_frames = 0 if args.model is not None else 50
+    args.init_frames = init_frames(args.init_frames, args.model)
     cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
     check_init_window(
         cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None

@@ -40,7 +40,12 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from labeler_service.cli.args import check_init_window, seed, without_absent_subjects
+from labeler_service.cli.args import (
+    check_init_window,
+    init_frames,
+    seed,
+    without_absent_subjects,
+)
 from labeler_service.labeling.registry import LABELED_STARTS
 from labeler_service.wording import plural
 
@@ -117,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     cap = without_absent_subjects(read_segment(args.input, up=args.up), args.input)
     c3d_frames_fit(args.output, cap.n_frames)  # before minutes of labeling too
     model = load_model(args.model) if args.model else None
-    init = args.init_frames if args.init_frames is not None else (0 if model else 50)
+    init = init_frames(args.init_frames, model)
     if init < 0 or (init == 0 and model is None):
         raise LabelerError(f"--init-frames must be >= 1, or 0 with --model (boot), got {init}")
     if model is None and init < MIN_TRAIN_FRAMES:  # before the labeler's own, vaguer error
