@@ -529,4 +529,21 @@ MUTANTS: list[Mutant] = [
         (T + "service/test_recover_gap.py",),
         "a booted stream keeps its stale tracks over a gap of dropped frames",
     ),
+    Mutant(
+        "scene-jump-drops-everyone",
+        "labeler_service/labeling/booting.py",
+        "    return np.flatnonzero((n_was > 0) & (n_lost >= config.jump_fraction * n_was))\n",
+        "    return np.flatnonzero(n_was > 0)\n",
+        (T + "labeling/test_scene_jump.py",),
+        "a jump drops every subject, also those whose tracks went on",
+    ),
+    Mutant(
+        "scene-jump-not-watched-on-the-plain-labeler",
+        "labeler_service/service/stream.py",
+        "        if self._jumped(pts, t, out):\n            return\n",
+        "",
+        (T + "service/test_boot_install.py",),
+        "a plain service labeler keeps its tracks' wrong points after a jump of the scene",
+        k="scene_jumps",
+    ),
 ]

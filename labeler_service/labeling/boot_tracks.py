@@ -41,11 +41,14 @@ class PointTracker:
         self._birth = np.zeros(0)  # (per current point) when its track started
         self._t = np.nan
         self._empty = 0  # empty frames in a row held over
+        #: tracks the last :meth:`update` began (its other points continue the frame before's)
+        self.born = 0
 
     def update(self, points: np.ndarray, t: float) -> np.ndarray:
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         if pts.shape[0] == 0 and self._ids.size and self._empty < self.config.track_hold_frames:
             self._empty += 1
+            self.born = 0
             return np.zeros(0, dtype=np.int64)
         self._empty = 0
         dt = t - self._t
@@ -72,6 +75,7 @@ class PointTracker:
             float(rel_dt),
             float(c.track_neighbour_mm if g0 + rel_dt <= c.track_neighbour_gate_mm else 0.0),
         )
+        self.born = int(nxt) - self._next  # (ids are numbered in order: new ones from _next)
         self._next = int(nxt)
         self._pts, self._vel, self._has_vel, self._ids, self._t = pts, vel, has_vel, ids, t
         self._birth = birth

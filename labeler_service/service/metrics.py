@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 
+from labeler_service.labeling.boot_config import LOSS_EVENTS
+
 log = logging.getLogger(__name__)
 
 SERVICE_DROP_REASONS = (
@@ -277,7 +279,7 @@ class ServiceMetrics:
         for state in ("observed", "recovered", "missing"):
             with contextlib.suppress(KeyError):
                 self.markers.remove(stream, state)
-        for event in ("withdraw", "reject", "drop"):
+        for event in LOSS_EVENTS:
             with contextlib.suppress(KeyError):
                 self.boot_verify.remove(stream, event)
         for outcome in ("took_over", "abandoned"):

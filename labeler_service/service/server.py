@@ -1083,6 +1083,7 @@ class Server:
                 ("withdraw", "re-verification withdrew labels of"),
                 ("reject", "re-verification dropped (boots again)"),
                 ("drop", "dropped as vanished (boots again when seen)"),
+                ("jump", "dropped: the scene jumped past their tracks (boots again)"),
             )
             if any(k == kind for k, _ in state.verify_events)
         ]

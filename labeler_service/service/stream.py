@@ -91,7 +91,8 @@ import numpy as np
 from labeler_service.capture import Capture, is_ghost, split_label, subject_groups
 from labeler_service.capture.model import rate_problem
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
-from labeler_service.labeling.booting import BootingLabeler, prepare_boot
+from labeler_service.labeling.boot_config import LOSS_EVENTS
+from labeler_service.labeling.booting import BootingLabeler, JumpWatch, prepare_boot
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.registry import (
@@ -390,7 +391,8 @@ class StreamState:
         self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
         #: the last process()'s re-verification and drop events of the booting labeler:
         #: (kind, subject), kind "withdraw" (markers' labels withdrawn), "reject" (dropped by
-        #: the re-verification) or "drop" (vanished); each such subject is booted again
+        #: the re-verification), "drop" (vanished) or "jump" (the scene jumped past its
+        #: tracks); each such subject is booted again
         self.verify_events: tuple[tuple[str, str], ...] = ()
         # recovery by boot (see "Recovery" in the module docstring)
         #: the labeler is a recovery BootingLabeler, handed back to a plain one once every
@@ -532,6 +534,7 @@ class StreamState:
         for k, cols in enumerate(groups.values()):
             self._subject_of[1][cols] = k
         self._seen_t = None
+        self._jump: JumpWatch | None = None  # (the plain labeler's: _jumped)
         self.bodies = rigid_bodies(labeler, self.names)
         self.model_payload = self._encode_model()
         self.window_frames = labeler.window_frames if isinstance(labeler, BootingLabeler) else None
@@ -1165,8 +1168,10 @@ class StreamState:
             or self.rate is None
         ):
             return
-        self._recent.append((pts, t, out.point_labels))
         names, subject_of = self._subject_of
+        if self._jumped(pts, t, out):
+            return
+        self._recent.append((pts, t, out.point_labels))
         if self._seen_t is None:
             self._seen_t = np.full(len(names), np.nan)
         self._seen_t[subject_of[out.state == MarkerState.OBSERVED]] = t
@@ -1179,6 +1184,37 @@ class StreamState:
         self._recent.clear()
         drop = self.settings.boot_config.drop_after_s
         self.start_recovery(f"{who}: no marker seen for {drop:g} s", keep)
+
+    def _jumped(self, pts: np.ndarray, t: float, out: LabeledFrame) -> bool:
+        """The plain labeler's frame after a jump of the whole scene
+        (:func:`~labeler_service.labeling.booting.jumped_subjects`: most point tracks ended
+        and as many began; a sender that loops a take, frames lost with ``seq`` and ``t``
+        continuous): the subjects hit give no label in it, and a recovery boots them again
+        (the others keep their labels). Left alone, the tracks took the nearest points and
+        kept them, the stream ``online`` with a fifth of its labels wrong. True when it
+        started one."""
+        names, subject_of = self._subject_of
+        assert self.rate is not None
+        if self._jump is None:
+            self._jump = JumpWatch(self.rate, self.settings.boot_config, subject_of)
+        hit = self._jump.update(pts, t, out.point_labels)
+        if hit.size == 0:
+            return False
+        gone = np.isin(subject_of, hit)
+        out.point_labels[(out.point_labels >= 0) & gone[np.maximum(out.point_labels, 0)]] = -1
+        out.positions[gone] = np.nan
+        out.state[gone] = MarkerState.MISSING
+        keep = []  # (the frames before, without the subjects hit: they are booted, not given)
+        for p, tk, labels in [*self._recent, (pts, t, out.point_labels)]:
+            labels = labels.copy()
+            labels[(labels >= 0) & gone[np.maximum(labels, 0)]] = -1
+            keep.append((p, tk, labels))
+        self._seen_t = None
+        self._recent.clear()
+        who = ", ".join(names[int(k)] for k in hit)
+        self.start_recovery(f"{who}: the scene jumped past the tracks (most points' tracks "
+                            "ended and as many began)", keep)  # fmt: skip
+        return True
 
     def reboot(self, why: str) -> bool:
         """A booting labeler that no recovery replaces (a model stream that boots, or a
@@ -1223,6 +1259,7 @@ class StreamState:
         self._handback_since = None
         self._recent.clear()  # (the watcher starts over with the labeler: _watch_subjects)
         self._seen_t = None
+        self._jump = None
         if tuple(labeler.marker_names) != self.names:
             assert self.rate is not None
             self._install(labeler, self.rate)
@@ -1584,14 +1621,14 @@ class StreamState:
 
 def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, str], ...]:
     """``(kind, subject)`` of the re-verification's and the vanishing's events
-    (``withdraw``, ``reject``, ``drop``) a booting labeler logged since it counted
+    (``boot_config.LOSS_EVENTS``) a booting labeler logged since it counted
     ``n_events``."""
     if not isinstance(lab, BootingLabeler) or lab.events.total <= n_events:
         return ()
     return tuple(
         (kind, name)
         for _, kind, name in lab.events[n_events - lab.events.total :]
-        if kind in ("withdraw", "reject", "drop")
+        if kind in LOSS_EVENTS
     )
 
 

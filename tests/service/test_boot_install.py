@@ -554,3 +554,90 @@ def test_a_performer_who_leaves_a_plain_labeled_stream_is_booted_when_back(scene
     for subject in ("P1", "P3"):  # the others lose nothing to the recovery
         assert min(labeled(f, subject) for f in range(away0, n)) >= 0.9, subject
     assert np.mean([labeled(f, "P2") for f in range(n - 20, n)]) >= 0.9  # back and labeled
+
+
+def _published_wrong(st: StreamState, frames, published: list, first: int, since: int) -> tuple:
+    """``(wrong, labeled, visible)`` over the published frames from ``since`` on (``published``
+    begins at stream frame ``first``, frame ``f`` showing source frame ``source[f]``): markers
+    published as observed away from their true point, markers at their true point, markers
+    visible."""
+    from labeler_service.labeling.frame import MarkerState
+
+    index = {m: st.names.index(nm) for m, nm in enumerate(frames.marker_names)}
+    wrong = labeled = visible = 0
+    for f, (state, pos, _) in enumerate(published[since:], since):
+        src = frames.source[f]
+        at = {index[m]: frames.points[src][k] for k, m in enumerate(frames.truth[src]) if m >= 0}
+        visible += len(at)
+        for i in np.flatnonzero(state == MarkerState.OBSERVED):
+            if i in at and np.allclose(pos[i], at[i], atol=1e-3):
+                labeled += 1
+            else:
+                wrong += 1
+    return wrong, labeled, visible
+
+
+@pytest.mark.parametrize("rule", [True, False])
+def test_a_plain_labeled_stream_whose_scene_jumps_boots_its_performers_again(
+    scene_model, caplog, rule
+):
+    """``boot = false``, after the recovery's hand-back: 0.375 s of frames lost with ``seq``
+    and ``t`` continuous (a sender that drops frames and renumbers them, or loops a take). The
+    plain labeler's tracks took the nearest points and kept them, the stream ``online``
+    (``rule`` False: ``jump_fraction`` 0, the failure this removes; 28 % of the markers
+    published on wrong points). With the rule the jump starts a recovery that boots the
+    performers again: no marker is published on a wrong point after it."""
+    import logging
+    from types import SimpleNamespace
+
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.stream")
+    path, frames = scene_model
+    boot = {} if rule else {"jump_fraction": 0.0}
+    settings = _settings(path, boot_worker="thread", boot=False, boot_config=boot)
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    n, jump, skip = frames.n_frames, frames.n_frames // 3, 45
+    source = [*range(jump), *range(jump + skip, n)]
+    feed = SimpleNamespace(n_frames=len(source), times=frames.times[: len(source)],
+                           points=[frames.points[f] for f in source])  # fmt: skip
+    first = SimpleNamespace(n_frames=jump, times=feed.times[:jump], points=feed.points[:jump])
+    published = _feed_booting(st, first, 0)
+    assert st.handbacks == 1 and not st.recovering  # the plain labeler labels everyone
+    rest = SimpleNamespace(n_frames=len(source) - jump, times=feed.times[jump:],
+                           points=feed.points[jump:])  # fmt: skip
+    published += _feed_booting(st, rest, jump)
+    view = SimpleNamespace(source=source, points=frames.points, truth=frames.truth,
+                           marker_names=frames.marker_names)  # fmt: skip
+    wrong, labeled, visible = _published_wrong(st, view, published, 0, jump + 40)
+    if not rule:
+        assert st.recoveries == 1 and wrong > 0.1 * visible
+        return
+    assert st.recoveries == 2 and "the scene jumped past the tracks" in caplog.text
+    assert wrong == 0
+    assert labeled >= 0.9 * visible
+
+
+def test_a_booting_stream_whose_scene_jumps_drops_and_boots_its_performers(scene_model):
+    """``boot = true``: the same jump drops the three at once (``jump`` events, counted in
+    ``mocap_boot_verify_total``) and boots them again; no marker on a wrong point after it."""
+    from types import SimpleNamespace
+
+    from labeler_service.labeling.booting import BootingLabeler
+
+    path, frames = scene_model
+    settings = _settings(path, boot_worker="thread")
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    n, jump, skip = frames.n_frames, frames.n_frames // 3, 45
+    source = [*range(jump), *range(jump + skip, n)]
+    feed = SimpleNamespace(n_frames=len(source), times=frames.times[: len(source)],
+                           points=[frames.points[f] for f in source])  # fmt: skip
+    published = _feed_booting(st, feed, 0)
+    lab = st.labeler
+    assert isinstance(lab, BootingLabeler)
+    jumped = sorted(who for t, kind, who in lab.events if kind == "jump")
+    assert jumped == ["P1", "P2", "P3"]
+    view = SimpleNamespace(source=source, points=frames.points, truth=frames.truth,
+                           marker_names=frames.marker_names)  # fmt: skip
+    wrong, labeled, visible = _published_wrong(st, view, published, 0, jump + 40)
+    assert wrong == 0 and labeled >= 0.9 * visible

@@ -1,0 +1,150 @@
+"""A jump of the whole scene (``BootConfig.jump_fraction``, labeling/booting.py): a sender that
+loops a take, or loses frames with ``seq`` and ``t`` continuous, moves every performer at once
+further than any gate. The labeler's tracks would take whatever points they reach next and keep
+them; the subjects the jump took from their tracks are dropped and booted again instead."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from labeling.walks import train
+
+from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.booting import BootingLabeler, JumpWatch, jumped_subjects
+from labeler_service.scenes.simulate import simulate_scene
+
+RATE = 120.0
+#: three subjects of 20 markers: markers 0-19 are subject 0, 20-39 subject 1, 40-59 subject 2
+SUBJECT_OF = np.repeat(np.arange(3), 20)
+CFG = BootConfig()
+
+
+def _prev():
+    """The previous frame: 60 labeled points on tracks 0-59 and 2 ghosts on tracks 60-61."""
+    return np.arange(62), np.concatenate([np.arange(60), [-1, -1]])
+
+
+def _jumped(ids: np.ndarray, labels: np.ndarray, now: np.ndarray, cfg: BootConfig = CFG):
+    """:func:`jumped_subjects` of a frame whose track ids are ``now`` (those not in ``ids``
+    began in it)."""
+    born = int(np.count_nonzero(~np.isin(now, ids)))
+    return jumped_subjects(ids, labels, now, born, SUBJECT_OF, cfg)
+
+
+def test_a_frame_whose_tracks_all_continue_is_no_jump():
+    ids, labels = _prev()
+    assert _jumped(ids, labels, ids[::-1]).size == 0
+
+
+def test_markers_hidden_and_ghosts_flickering_are_no_jump():
+    ids, labels = _prev()
+    # half of subject 0 hidden (tracks end, no new point) and three new ghosts
+    now = np.concatenate([ids[10:], [100, 101, 102]])
+    assert _jumped(ids, labels, now).size == 0
+
+
+def test_one_limb_lost_is_no_jump_of_the_scene():
+    ids, labels = _prev()
+    # 14 of subject 0's tracks end and 14 new ones begin (two limbs beyond the gate)
+    now = np.concatenate([ids[14:], np.arange(200, 214)])
+    assert _jumped(ids, labels, now).size == 0
+
+
+def test_every_track_ending_as_as_many_begin_is_a_jump_of_every_subject():
+    ids, labels = _prev()
+    now = np.arange(300, 362)
+    np.testing.assert_array_equal(_jumped(ids, labels, now), [0, 1, 2])
+    off = BootConfig(jump_fraction=0.0)
+    assert _jumped(ids, labels, now, off).size == 0
+
+
+def test_a_jump_names_only_the_subjects_whose_tracks_it_ended():
+    ids, labels = _prev()
+    # subjects 0 and 1 and the ghosts on new tracks; subject 2 continues
+    now = np.concatenate([np.arange(300, 340), ids[40:60], [360, 361]])
+    np.testing.assert_array_equal(_jumped(ids, labels, now), [0, 1])
+
+
+def test_the_watch_compares_each_frame_with_the_last(rng):
+    pts = rng.uniform(-1000, 1000, (60, 3))
+    watch = JumpWatch(RATE, CFG, SUBJECT_OF)
+    labels = np.arange(60)
+    assert watch.update(pts, 0.0, labels).size == 0  # (no frame before)
+    assert watch.update(pts + 1.0, 1 / RATE, labels).size == 0
+    np.testing.assert_array_equal(watch.update(pts + 300.0, 2 / RATE, labels), [0, 1, 2])
+    assert watch.update(pts + 301.0, 3 / RATE, labels).size == 0  # (tracked again)
+
+
+@pytest.fixture(scope="module")
+def hug():
+    """Three hugging performers: the model of the first half, the stream of the second."""
+    scene = simulate_scene(3, 4.0, "hug", seed=5, rate=RATE)
+    half = scene.n_frames // 2
+    return train(scene.frames(0, half)), scene.frames(half, scene.n_frames)
+
+
+def _skip_frames(model, cap, boot: BootConfig, jump: int, skip: int):
+    """Labels the stream with ``skip`` frames lost after frame ``jump`` (``t`` continuous):
+    ``(right, wrong, visible)`` from 40 frames after the jump on, and the labeler."""
+    names = model.marker_names
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    gidx = np.array([col.get(n, -1) for n in names])
+    ghosts = np.flatnonzero(cap.ghost_mask)
+    rng = np.random.default_rng(3)
+    lab = BootingLabeler(model, RATE, boot=boot)
+    right = wrong = visible = 0
+    for k in range(cap.n_frames - skip):
+        f = k if k < jump else k + skip
+        mk = cap.positions[f, np.maximum(gidx, 0)]
+        vis = np.isfinite(mk[:, 0]) & (gidx >= 0)
+        g = cap.positions[f, ghosts]
+        g = g[np.isfinite(g[:, 0])]
+        pts = np.concatenate([mk[vis], g]).astype(np.float32)
+        truth = np.concatenate([np.flatnonzero(vis), np.full(len(g), -1)])
+        order = rng.permutation(len(pts))
+        pts, truth = pts[order], truth[order]
+        out = lab.process(pts, k / RATE)
+        if k >= jump + 40:
+            pl = out.point_labels
+            right += int(np.count_nonzero((pl == truth) & (truth >= 0)))
+            wrong += int(np.count_nonzero((pl >= 0) & (pl != truth)))
+            visible += int(np.count_nonzero(truth >= 0))
+    return right, wrong, visible, lab
+
+
+def test_frames_lost_with_t_continuous_reboot_the_performers(hug):
+    """0.25 s of frames lost, ``t`` continuous: without the rule the tracks take the nearest
+    points and keep them (hundreds of wrong labels to the end); with it the three are dropped
+    at the jump and booted again, and every label after is right."""
+    model, cap = hug
+    jump, skip = 60, 30
+    _, wrong_off, _, _ = _skip_frames(model, cap, BootConfig(jump_fraction=0.0), jump, skip)
+    assert wrong_off > 200  # (the failure this rule removes: the scene reproduces it)
+    right, wrong, visible, lab = _skip_frames(model, cap, BootConfig(), jump, skip)
+    jumped = [(t, who) for t, kind, who in lab.events if kind == "jump"]
+    assert sorted(who for _, who in jumped) == ["P1", "P2", "P3"]
+    assert all(t == pytest.approx(jump / RATE) for t, _ in jumped)
+    assert wrong <= 0.001 * visible
+    assert right >= 0.99 * visible
+    assert set(lab.active_subjects) == {"P1", "P2", "P3"}
+
+
+def test_a_stream_without_a_jump_drops_nobody_for_one(hug):
+    model, cap = hug
+    *_, lab = _skip_frames(model, cap, BootConfig(), cap.n_frames, 0)
+    assert not [e for e in lab.events if e[1] == "jump"]
+
+
+def test_the_tracker_counts_the_tracks_each_frame_began(rng):
+    from labeler_service.labeling.boot import PointTracker
+
+    pts = rng.uniform(-1000, 1000, (60, 3))
+    tracker = PointTracker(RATE)
+    tracker.update(pts, 0.0)
+    assert tracker.born == 60
+    tracker.update(pts + 1.0, 1 / RATE)
+    assert tracker.born == 0
+    ids = tracker.update(np.concatenate([pts[:50] + 2.0, [[5000.0, 0, 0]]]), 2 / RATE)
+    assert tracker.born == 1 and ids[-1] == ids.max()
+    tracker.update(pts[:0], 3 / RATE)  # (a dropout frame held over: nothing begins)
+    assert tracker.born == 0
