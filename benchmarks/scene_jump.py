@@ -1,0 +1,181 @@
+"""A jump of the whole scene (``BootConfig.jump_fraction``; docs/algorithm.md, "A jump of the
+whole scene"): how far normal frames are from one, and what the rule does at one.
+
+``real``: every scene and cell of the cross-take matrix (``generalization.py``: composed as it
+composes them, corrupted as ``evaluate`` corrupts each cell) run through the anonymous point
+tracker alone; per cell the largest share of a frame's points whose tracks ended while as many
+began (the rule's statistic, ``booting.jumped_subjects``; frames of fewer than
+``jump_min_markers`` such points read 0). The rule fires at ``jump_fraction``.
+
+``sim``: the simulated walk and hug at 120 Hz (model of the first half, stream of the second,
+as the boot tests build them) with ``--skips`` frames lost after frame 60, ``t`` continuous,
+labeled by the booting labeler with the rule off and on: accuracy and wrong labels from 40
+frames after the jump, seconds from the jump until a frame is 95 % right again.
+
+    MOCAP_DATA_DIR=../shared/data/real .venv/bin/python benchmarks/scene_jump.py --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import emit
+from rich.progress import track
+
+from labeler_service.labeling.boot import PointTracker
+from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+
+SIM_RATE = 120.0
+SIM_JUMP = 60  # the frame after which frames are lost
+SIM_SCORED_AFTER = 40  # frames after the jump before scoring starts
+
+
+def switched_shares(points: list[np.ndarray], rate: float, config: BootConfig) -> np.ndarray:
+    """Per frame the share of the previous frame's points whose tracks ended while as many new
+    ones began (0 where fewer than ``jump_min_markers``)."""
+    tracker = PointTracker(rate, config)
+    prev = 0
+    out = np.zeros(len(points))
+    for k, pts in enumerate(points):
+        ids = tracker.update(pts, k / rate)
+        born = tracker.born
+        ended = prev - (ids.size - born)
+        switched = min(ended, born)
+        if prev and switched >= config.jump_min_markers:
+            out[k] = switched / prev
+        if ids.size or not prev:  # (an empty frame held over keeps the tracks: prev stays)
+            prev = ids.size
+    return out
+
+
+def real(seconds: float, max_frames: int) -> dict:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from generalization import INIT_S, _cells, matrix
+
+    config = BootConfig()
+    cells = []
+    scenes = matrix("all", quick=False)
+    for scene in track(scenes, description="matrix scenes", transient=True):
+        rate = scene.rate()
+        cap = scene.compose(scene.frames(seconds, max_frames))
+        chosen = {"alone": {}} if len(scene.takes) == 1 else _cells(rate)
+        for cell, opts in chosen.items():
+            step = opts.get("downsample", 1)
+            init = max(1, round(INIT_S * rate / step))
+            stream = corrupt(cap, CorruptionSpec(**opts, protect_frames=init, seed=scene.seed))
+            share = switched_shares(stream.points, rate / step, config)
+            cells.append({
+                "scene": scene.name, "cell": cell, "rate_hz": rate / step,
+                "frames": len(share), "max_share": round(float(share.max(initial=0.0)), 3),
+                "frames_at_or_above": int(np.count_nonzero(share >= config.jump_fraction)),
+            })  # fmt: skip
+    worst = max(cells, key=lambda c: c["max_share"])
+    return {
+        "jump_fraction": config.jump_fraction,
+        "cells": len(cells),
+        "max_share": worst["max_share"],
+        "max_share_cell": f"{worst['scene']} {worst['cell']} ({worst['rate_hz']:g} Hz)",
+        "frames_at_or_above": sum(c["frames_at_or_above"] for c in cells),
+        "by_rate": {
+            f"{r:g}": max(c["max_share"] for c in cells if c["rate_hz"] == r)
+            for r in sorted({c["rate_hz"] for c in cells})
+        },
+        "per_cell": cells,
+    }
+
+
+def _sim_scene(kind: str):
+    sys.path.insert(0, str(Path(__file__).parents[1] / "tests"))
+    from labeling.walks import absent_walk, train
+
+    from labeler_service.scenes.simulate import simulate_scene
+
+    if kind == "walk":
+        return absent_walk(SIM_RATE)
+    cap = simulate_scene(3, 4.0, kind, seed=5, rate=SIM_RATE)
+    half = cap.n_frames // 2
+    return train(cap.frames(0, half)), cap.frames(half, cap.n_frames)
+
+
+def sim_run(model, cap, skip: int, fraction: float) -> dict:
+    from labeler_service.labeling.booting import BootingLabeler
+
+    names = model.marker_names
+    col = {lab: i for i, lab in enumerate(cap.labels)}
+    gidx = np.array([col.get(n, -1) for n in names])
+    ghosts = np.flatnonzero(cap.ghost_mask)
+    rng = np.random.default_rng(3)
+    lab = BootingLabeler(model, SIM_RATE, boot=BootConfig(jump_fraction=fraction))
+    right = wrong = visible = 0
+    back = None
+    for k in range(cap.n_frames - skip):
+        f = k if k < SIM_JUMP else k + skip
+        mk = cap.positions[f, np.maximum(gidx, 0)]
+        vis = np.isfinite(mk[:, 0]) & (gidx >= 0)
+        g = cap.positions[f, ghosts]
+        g = g[np.isfinite(g[:, 0])]
+        pts = np.concatenate([mk[vis], g]).astype(np.float32)
+        truth = np.concatenate([np.flatnonzero(vis), np.full(len(g), -1)])
+        order = rng.permutation(len(pts))
+        pts, truth = pts[order], truth[order]
+        pl = lab.process(pts, k / SIM_RATE).point_labels
+        ok = int(np.count_nonzero((pl == truth) & (truth >= 0)))
+        n_vis = int(np.count_nonzero(truth >= 0))
+        if k > SIM_JUMP and back is None and ok >= 0.95 * n_vis:
+            back = round((k - SIM_JUMP) / SIM_RATE, 4)
+        if k >= SIM_JUMP + SIM_SCORED_AFTER:
+            right += ok
+            wrong += int(np.count_nonzero((pl >= 0) & (pl != truth)))
+            visible += n_vis
+    return {
+        "accuracy_after": round(right / max(1, visible), 4),
+        "wrong_after": wrong,
+        "back_to_95_s": back,
+        "jump_events": sum(1 for e in lab.events if e[1] == "jump"),
+    }
+
+
+def sim(skips: list[int]) -> list[dict]:
+    rows = []
+    for kind in ("walk", "hug"):
+        model, cap = _sim_scene(kind)
+        for skip in skips:
+            row = {"scene": kind, "lost_s": round(skip / SIM_RATE, 4)}
+            for name, fraction in (("off", 0.0), ("on", BootConfig().jump_fraction)):
+                row[name] = sim_run(model, cap, skip, fraction)
+            rows.append(row)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--parts", nargs="+", choices=("real", "sim"), default=["real", "sim"])
+    ap.add_argument("--skips", type=int, nargs="+", default=[8, 16, 30, 45, 60, 90])
+    ap.add_argument("--seconds", type=float, default=8.0, help="longest matrix scene (s)")
+    ap.add_argument("--max-frames", type=int, default=1200)
+    ap.add_argument("--json", action="store_true", help="(the output is JSON either way)")
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    out: dict = {}
+    if "real" in a.parts:
+        from labeler_service.testing.realdata import real_data_dir
+
+        if real_data_dir() is None:
+            out["real"] = {"skipped": "no real captures (set MOCAP_DATA_DIR)"}
+        else:
+            out["real"] = real(a.seconds, a.max_frames)
+    if "sim" in a.parts:
+        out["sim"] = sim(a.skips)
+    out["wall_s"] = round(time.perf_counter() - t0, 1)
+    emit(out, a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
