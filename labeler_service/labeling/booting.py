@@ -1592,9 +1592,9 @@ def jumped_subjects(
     loops, frames lost with ``seq`` and ``t`` continuous). Markers hidden end tracks without
     new ones; ghosts flicker a few; a fast limb at a low rate mostly stays inside the tracker's
     gate, which grows with the frame period. Left alone, the labeler's tracks take whatever
-    points they reach next and keep them (a looped take: a fifth to a quarter of the labels wrong for good,
-    among markers that read observed). The subjects hit are those whose labeled points of the
-    previous frame lost ``jump_fraction`` of their tracks."""
+    points they reach next and keep them (a looped take: a fifth to a quarter of the labels
+    wrong for good, among markers that read observed). The subjects hit are those whose labeled
+    points of the previous frame lost ``jump_fraction`` of their tracks."""
     if config.jump_fraction <= 0 or prev_ids.size == 0:
         return np.zeros(0, dtype=np.int64)
     ended = prev_ids.size - (ids.size - born)  # (a continued track was in the frame before)
