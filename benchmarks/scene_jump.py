@@ -12,6 +12,10 @@ as the boot tests build them) with ``--skips`` frames lost after frame 60, ``t``
 labeled by the booting labeler with the rule off and on: accuracy and wrong labels from 40
 frames after the jump, seconds from the jump until a frame is 95 % right again.
 
+``service``: a service stream with a labeled start on the plain labeler (three hugging
+performers, 30 labeled frames), the same frames lost after frame 300, the rule off and on:
+markers published on wrong points from 40 frames after the jump.
+
     MOCAP_DATA_DIR=../shared/data/real .venv/bin/python benchmarks/scene_jump.py --json
 """
 
@@ -152,9 +156,88 @@ def sim(skips: list[int]) -> list[dict]:
     return rows
 
 
+def service_run(skip: int, fraction: float, init: int = 30, jump: int = 300) -> dict:
+    """A service stream with a labeled start (``init`` labeled frames, the plain labeler
+    trained in place; its recovery model is the one trained from them), three simulated
+    hugging performers at 120 Hz, ``skip`` frames lost after frame ``jump`` with ``seq`` and
+    ``t`` continuous: markers published on wrong points from 40 frames after the jump, at
+    their true points, visible; recoveries, the worst markers."""
+    from collections import Counter
+
+    from labeler_service.labeling.frame import MarkerState
+    from labeler_service.scenes.simulate import simulate_scene
+    from labeler_service.service.continuity import ACCEPT
+    from labeler_service.service.protocol import FrameMsg, decode
+    from labeler_service.service.settings import load_settings
+    from labeler_service.service.stream import StreamState
+
+    cap = simulate_scene(3, 8.0, "hug", seed=7, rate=SIM_RATE)
+    frames = corrupt(cap, CorruptionSpec(protect_frames=init, seed=11))
+    settings = load_settings(
+        labeler="online", metrics_port=None, queue_size=4096, warmup=False,
+        streams=[{"name": "vol", "labeled_start": "auto"}],
+        boot_config={"jump_fraction": fraction},
+    )  # fmt: skip
+    st = StreamState("vol", settings, settings.streams[0])
+    names = frames.marker_names
+
+    def msg(k: int, f: int, labeled: bool) -> FrameMsg:
+        labels = (
+            tuple(names[m] if m >= 0 else None for m in frames.truth[f].tolist())
+            if labeled
+            else None
+        )
+        return FrameMsg("vol", k, float(frames.times[k]), frames.points[f], labels)
+
+    for f in range(init):
+        st.buffer_init(msg(f, f, True))
+    lab, rate, out, ns, h = st.train_staged(st.take_init(), msg(init, init, False))
+    st.install_trained(lab, rate, msg(init, init, False), out, 0, ns, h)
+    source = [*range(jump), *range(jump + skip, frames.n_frames)]
+    index = {m: st.names.index(nm) for m, nm in enumerate(names)}
+    wrong = right = visible = 0
+    worst: Counter = Counter()
+    for k in range(init + 1, len(source)):
+        f = source[k]
+        published = st.process(msg(k, f, False), 0, ACCEPT)
+        assert published is not None
+        st.update_health(published)
+        if st.boot_due():
+            req = st.boot_request()
+            assert req is not None
+            st.boot_done(req, StreamState.boot_job(req))
+        if k < jump + SIM_SCORED_AFTER:
+            continue
+        out_f = decode(published.payload)
+        at = {index[m]: frames.points[f][i] for i, m in enumerate(frames.truth[f]) if m >= 0}
+        visible += len(at)
+        for i in np.flatnonzero(out_f.state == MarkerState.OBSERVED):
+            if i in at and np.allclose(out_f.positions[i], at[i], atol=1e-3):
+                right += 1
+            else:
+                wrong += 1
+                worst[st.names[i]] += 1
+    return {
+        "wrong_after": wrong, "right_after": round(right / max(1, visible), 4),
+        "recoveries": st.recoveries, "worst_markers": worst.most_common(6),
+    }  # fmt: skip
+
+
+def service(skips: list[int]) -> list[dict]:
+    rows = []
+    for skip in skips:
+        row: dict = {"lost_s": round(skip / SIM_RATE, 4)}
+        for name, fraction in (("off", 0.0), ("on", BootConfig().jump_fraction)):
+            row[name] = service_run(skip, fraction)
+        rows.append(row)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--parts", nargs="+", choices=("real", "sim"), default=["real", "sim"])
+    ap.add_argument(
+        "--parts", nargs="+", choices=("real", "sim", "service"), default=["real", "sim", "service"]
+    )
     ap.add_argument("--skips", type=int, nargs="+", default=[8, 16, 30, 45, 60, 90])
     ap.add_argument("--seconds", type=float, default=8.0, help="longest matrix scene (s)")
     ap.add_argument("--max-frames", type=int, default=1200)
@@ -172,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
             out["real"] = real(a.seconds, a.max_frames)
     if "sim" in a.parts:
         out["sim"] = sim(a.skips)
+    if "service" in a.parts:
+        out["service"] = service(a.skips)
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     emit(out, a.out)
     return 0
