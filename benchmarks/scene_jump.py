@@ -3,9 +3,10 @@ whole scene"): how far normal frames are from one, and what the rule does at one
 
 ``real``: every scene and cell of the cross-take matrix (``generalization.py``: composed as it
 composes them, corrupted as ``evaluate`` corrupts each cell) run through the anonymous point
-tracker alone; per cell the largest share of a frame's points whose tracks ended while as many
-began (the rule's statistic, ``booting.jumped_subjects``; frames of fewer than
-``jump_min_markers`` such points read 0). The rule fires at ``jump_fraction``.
+tracker alone; per cell the largest share of a frame's marker points whose tracks ended while as
+many new tracks began (the rule's statistic, ``booting.jumped_subjects``, with every marker
+labeled right; frames of fewer than ``jump_min_markers`` such points read 0). The rule fires
+at ``jump_fraction``.
 
 ``sim``: the simulated walk and hug at 120 Hz (model of the first half, stream of the second,
 as the boot tests build them) with ``--skips`` frames lost after frame 60, ``t`` continuous,
@@ -39,21 +40,26 @@ SIM_JUMP = 60  # the frame after which frames are lost
 SIM_SCORED_AFTER = 40  # frames after the jump before scoring starts
 
 
-def switched_shares(points: list[np.ndarray], rate: float, config: BootConfig) -> np.ndarray:
-    """Per frame the share of the previous frame's points whose tracks ended while as many new
-    ones began (0 where fewer than ``jump_min_markers``)."""
+def switched_shares(
+    points: list[np.ndarray], truth: list[np.ndarray], rate: float, config: BootConfig
+) -> np.ndarray:
+    """Per frame the rule's share: the previous frame's marker points (``truth`` >= 0, as a
+    labeler that labels every marker right sees them) whose tracks ended, while at least as
+    many new tracks began, over those marker points (0 where fewer than
+    ``jump_min_markers``)."""
     tracker = PointTracker(rate, config)
-    prev = 0
+    prev_ids = np.zeros(0, dtype=np.int64)
+    prev_lab = np.zeros(0, dtype=bool)
     out = np.zeros(len(points))
-    for k, pts in enumerate(points):
+    for k, (pts, tr) in enumerate(zip(points, truth, strict=True)):
         ids = tracker.update(pts, k / rate)
-        born = tracker.born
-        ended = prev - (ids.size - born)
-        switched = min(ended, born)
-        if prev and switched >= config.jump_min_markers:
-            out[k] = switched / prev
-        if ids.size or not prev:  # (an empty frame held over keeps the tracks: prev stays)
-            prev = ids.size
+        if ids.size == 0 and prev_ids.size:  # (an empty frame held over keeps the tracks)
+            continue
+        gone = int(np.count_nonzero(prev_lab & ~np.isin(prev_ids, ids)))
+        switched = min(gone, tracker.born)
+        if prev_lab.any() and switched >= config.jump_min_markers:
+            out[k] = switched / np.count_nonzero(prev_lab)
+        prev_ids, prev_lab = ids, np.asarray(tr) >= 0
     return out
 
 
@@ -72,7 +78,7 @@ def real(seconds: float, max_frames: int) -> dict:
             step = opts.get("downsample", 1)
             init = max(1, round(INIT_S * rate / step))
             stream = corrupt(cap, CorruptionSpec(**opts, protect_frames=init, seed=scene.seed))
-            share = switched_shares(stream.points, rate / step, config)
+            share = switched_shares(stream.points, stream.truth, rate / step, config)
             cells.append({
                 "scene": scene.name, "cell": cell, "rate_hz": rate / step,
                 "frames": len(share), "max_share": round(float(share.max(initial=0.0)), 3),

@@ -1586,26 +1586,29 @@ def jumped_subjects(
 
     ``prev_ids`` and ``prev_labels``: the anonymous track id (:class:`PointTracker`) and the
     marker index (-1: none) of each point of the previous frame; ``ids``: this frame's track
-    ids, of which the last ``born`` tracks began in it (``PointTracker.born``). A jump ends
-    most point tracks and begins as many in the same frame: the points are still there, each
-    beyond the tracker's gate from where it was (every performer moved at once: a take that
-    loops, frames lost with ``seq`` and ``t`` continuous). Markers hidden end tracks without
-    new ones; ghosts flicker a few; a fast limb at a low rate mostly stays inside the tracker's
-    gate, which grows with the frame period. Left alone, the labeler's tracks take whatever
-    points they reach next and keep them (a looped take: a fifth to a quarter of the labels
-    wrong for good, among markers that read observed). The subjects hit are those whose labeled
-    points of the previous frame lost ``jump_fraction`` of their tracks."""
+    ids, of which ``born`` began in it (``PointTracker.born``). A jump ends the tracks of most
+    labeled points and begins as many new ones in the same frame: the points are still there,
+    each beyond the tracker's gate from where it was (every performer moved at once: a take
+    that loops, frames lost with ``seq`` and ``t`` continuous). Markers hidden end tracks
+    without new ones; a fast limb at a low rate mostly stays inside the tracker's gate, which
+    grows with the frame period; ghosts are not counted (a sender's junk, 1,200 random points
+    a frame redrawn each time, ends and begins as many tracks as it has points). Left alone, the
+    labeler's tracks take whatever points they reach next and keep them (a looped take: a fifth
+    to a quarter of the labels wrong for good, among markers that read observed). The subjects
+    hit are those whose labeled points of the previous frame lost ``jump_fraction`` of their
+    tracks, when the labeled points of all subjects did."""
     if config.jump_fraction <= 0 or prev_ids.size == 0:
         return np.zeros(0, dtype=np.int64)
-    ended = prev_ids.size - (ids.size - born)  # (a continued track was in the frame before)
-    switched = min(ended, born)
-    if switched < max(config.jump_min_markers, config.jump_fraction * prev_ids.size):
-        return np.zeros(0, dtype=np.int64)
-    gone = ~np.isin(prev_ids, ids)
     lab = prev_labels >= 0
+    need = max(config.jump_min_markers, config.jump_fraction * np.count_nonzero(lab))
+    if born < need:  # (most frames: no track search)
+        return np.zeros(0, dtype=np.int64)
+    gone = lab & ~np.isin(prev_ids, ids)
+    if np.count_nonzero(gone) < need:
+        return np.zeros(0, dtype=np.int64)
     n = int(subject_of.max()) + 1 if subject_of.size else 0
     n_was = np.bincount(subject_of[prev_labels[lab]], minlength=n)
-    n_lost = np.bincount(subject_of[prev_labels[lab & gone]], minlength=n)
+    n_lost = np.bincount(subject_of[prev_labels[gone]], minlength=n)
     return np.flatnonzero((n_was > 0) & (n_lost >= config.jump_fraction * n_was))
 
 

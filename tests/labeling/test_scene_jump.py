@@ -43,6 +43,15 @@ def test_markers_hidden_and_ghosts_flickering_are_no_jump():
     assert _jumped(ids, labels, now).size == 0
 
 
+def test_a_flood_of_junk_points_redrawn_every_frame_is_no_jump():
+    ids, labels = _prev()
+    # 200 junk points: every one of their tracks ends and as many begin (the labeled go on)
+    ids = np.concatenate([ids, np.arange(62, 262)])
+    labels = np.concatenate([labels, np.full(200, -1)])
+    now = np.concatenate([ids[:62], np.arange(400, 600)])
+    assert _jumped(ids, labels, now).size == 0
+
+
 def test_one_limb_lost_is_no_jump_of_the_scene():
     ids, labels = _prev()
     # 14 of subject 0's tracks end and 14 new ones begin (two limbs beyond the gate)
