@@ -1,14 +1,14 @@
 """One stream that costs more than its frame period beside a light one: what the light stream
-keeps (docs/service.md, "Streams share the loop").
+keeps (BENCHMARKS.md, "One heavy stream beside a light one").
 
 One ``mocap-labeler serve`` subprocess on loopback UDP with two configured streams, both
 started from 50 labeled frames: ``light`` (``--light`` simulated hugging performers at
 ``--light-rate`` Hz) and ``heavy`` (``--heavy`` performers at ``--heavy-rate`` Hz with
 ``--heavy-junk`` random points added to every unlabeled frame, a broken or hostile sender's
-reflections: its labeling takes longer than its period on this machine). Phase ``alone`` replays the light
-stream by itself; phase ``beside`` replays both at once. Per phase and stream: frames sent and
-received, end-to-end latency (sender's clock to our subscriber) p50 / p99 / p99.9 over the
-frames after the first ``--settle-s`` seconds, and the service's drops by stream and reason.
+reflections). Phase ``alone`` replays the light stream by itself; phase ``beside`` replays
+both at once. Per phase and stream: frames sent and received, end-to-end latency (sender's
+clock to our subscriber) p50 / p99 / p99.9 over the frames after the first ``--settle-s``
+seconds, and the service's drops by stream and reason.
 
     .venv/bin/python benchmarks/stream_fairness.py --json
 """
@@ -46,9 +46,10 @@ def _pct(lat: np.ndarray) -> dict[str, float | None]:
     }
 
 
-async def _run(streams: dict, settle_s: float, workdir: Path) -> dict:
-    """Replays every stream of ``streams`` (name -> frames) at once through one service."""
-    settings = service_settings("udp", {"name": "light"}, log_interval_s=5.0)
+async def _run(streams: dict, settle_s: float, workdir: Path, extra: dict) -> dict:
+    """Replays every stream of ``streams`` (name -> frames) at once through one service
+    (``extra``: more service settings)."""
+    settings = service_settings("udp", {"name": "light"}, log_interval_s=5.0, **extra)
     settings["streams"] = [{"name": name} for name in streams]
     async with ServiceProcess(settings, workdir) as svc:
         assert svc.udp is not None
@@ -72,7 +73,8 @@ async def _run(streams: dict, settle_s: float, workdir: Path) -> dict:
                 return st.sent
 
             readers = [asyncio.create_task(consume(n)) for n in streams]
-            sent = dict(zip(streams, await asyncio.gather(*(send(n) for n in streams)), strict=True))
+            counts = await asyncio.gather(*(send(n) for n in streams))
+            sent = dict(zip(streams, counts, strict=True))
             await asyncio.sleep(2.0)  # (the last frames of a backlog)
             for task in readers:
                 task.cancel()
@@ -117,14 +119,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--settle-s", type=float, default=2.0, help="latency after this (s)")
     ap.add_argument("--workdir", default=None, help="keep the services' logs here")
+    ap.add_argument("--jump-fraction", type=float, default=None, help="boot_config's (0: off)")
     ap.add_argument("--json", action="store_true", help="(the output is JSON either way)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     light = simulated_frames(a.light, a.seconds, a.light_rate, seed=1)
     heavy = simulated_frames(a.heavy, a.seconds, a.heavy_rate, seed=2)
     rng = np.random.default_rng(3)
-    lo, hi = np.min([p.min(axis=0) for p in heavy.points], axis=0), np.max(
-        [p.max(axis=0) for p in heavy.points], axis=0
+    lo, hi = (
+        np.min([p.min(axis=0) for p in heavy.points], axis=0),
+        np.max([p.max(axis=0) for p in heavy.points], axis=0),
     )
     for f in range(INIT, heavy.n_frames):  # (the labeled window stays clean: it trains)
         junk = rng.uniform(lo, hi, (a.heavy_junk, 3)).astype(np.float32)
@@ -133,8 +137,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(a.workdir or tmp)
-        alone = asyncio.run(_run({"light": light}, a.settle_s, work / "alone"))
-        beside = asyncio.run(_run({"light": light, "heavy": heavy}, a.settle_s, work / "beside"))
+        extra = (
+            {} if a.jump_fraction is None else {"boot_config": {"jump_fraction": a.jump_fraction}}
+        )
+        alone = asyncio.run(_run({"light": light}, a.settle_s, work / "alone", extra))
+        both = {"light": light, "heavy": heavy}
+        beside = asyncio.run(_run(both, a.settle_s, work / "beside", extra))
     emit({"alone": alone, "beside": beside, "wall_s": round(time.perf_counter() - t0, 1)}, a.out)
     return 0
 

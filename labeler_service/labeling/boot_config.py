@@ -205,8 +205,8 @@ class BootConfig(BaseModel):
         0.6,
         ge=0,
         le=1,
-        description="BootingLabeler: when this share of the previous frame's points lose their "
-        "anonymous tracks in one frame and as many new tracks begin (and at least "
+        description="BootingLabeler: when this share of the previous frame's labeled points "
+        "lose their anonymous tracks in one frame and as many new tracks begin (and at least "
         "jump_min_markers), the points are still there but every one moved beyond the "
         "tracker's gate: the scene jumped (a take looped, frames lost with seq and t "
         "continuous). The subjects that lost this share of their labeled tracks are dropped "
@@ -215,7 +215,7 @@ class BootConfig(BaseModel):
         "(the tennis serve at 12.5 Hz)",
     )
     jump_min_markers: int = Field(
-        8, ge=1, description="BootingLabeler: the fewest unexplained losses that are a jump"
+        8, ge=1, description="BootingLabeler: the fewest labeled tracks ended that are a jump"
     )
     rms_ratio: float = Field(
         1.25,

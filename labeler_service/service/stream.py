@@ -1187,7 +1187,7 @@ class StreamState:
 
     def _jumped(self, pts: np.ndarray, t: float, out: LabeledFrame) -> bool:
         """The plain labeler's frame after a jump of the whole scene
-        (:func:`~labeler_service.labeling.booting.jumped_subjects`: most point tracks ended
+        (:func:`~labeler_service.labeling.booting.jumped_subjects`: most labeled tracks ended
         and as many began; a sender that loops a take, frames lost with ``seq`` and ``t``
         continuous): the subjects hit give no label in it, and a recovery boots them again
         (the others keep their labels). Left alone, the tracks took the nearest points and
@@ -1212,8 +1212,8 @@ class StreamState:
         self._seen_t = None
         self._recent.clear()
         who = ", ".join(names[int(k)] for k in hit)
-        self.start_recovery(f"{who}: the scene jumped past the tracks (most points' tracks "
-                            "ended and as many began)", keep)  # fmt: skip
+        self.start_recovery(f"{who}: the scene jumped past the tracks (most labeled points' "
+                            "tracks ended and as many began)", keep)  # fmt: skip
         return True
 
     def reboot(self, why: str) -> bool:
