@@ -538,6 +538,14 @@ MUTANTS: list[Mutant] = [
         "a jump drops every subject, also those whose tracks went on",
     ),
     Mutant(
+        "scene-jump-counts-junk-points",
+        "labeler_service/labeling/booting.py",
+        "    lab = prev_labels >= 0\n    need = max(config.jump_min_markers,",
+        "    lab = prev_labels >= -1\n    need = max(config.jump_min_markers,",
+        (T + "labeling/test_scene_jump.py",),
+        "unlabeled points (a sender's junk, redrawn every frame) read as a jump of the scene",
+    ),
+    Mutant(
         "scene-jump-not-watched-on-the-plain-labeler",
         "labeler_service/service/stream.py",
         "        if self._jumped(pts, t, out):\n            return\n",
