@@ -3,10 +3,11 @@ whole scene"): how far normal frames are from one, and what the rule does at one
 
 ``real``: every scene and cell of the cross-take matrix (``generalization.py``: composed as it
 composes them, corrupted as ``evaluate`` corrupts each cell) run through the anonymous point
-tracker alone; per cell the largest share of a frame's marker points whose tracks ended while as
-many new tracks began (the rule's statistic, ``booting.jumped_subjects``, with every marker
-labeled right; frames of fewer than ``jump_min_markers`` such points read 0). The rule fires
-at ``jump_fraction``.
+tracker alone; per cell the largest, over frames, of the smaller of the share of the last
+frame's marker points whose tracks ended and the share of the frame's points on new tracks
+(the rule's statistic, ``booting.jumped_subjects``, with every marker labeled right). The rule
+fires at ``jump_fraction``. Also the plain labeler's watch (``booting.JumpWatch``) over the
+same streams: the largest share of its sample that found no point, and the frames it fired.
 
 ``sim``: the simulated walk and hug at 120 Hz (model of the first half, stream of the second,
 as the boot tests build them) with ``--skips`` frames lost after frame 60, ``t`` continuous,
@@ -43,10 +44,10 @@ SIM_SCORED_AFTER = 40  # frames after the jump before scoring starts
 def switched_shares(
     points: list[np.ndarray], truth: list[np.ndarray], rate: float, config: BootConfig
 ) -> np.ndarray:
-    """Per frame the rule's share: the previous frame's marker points (``truth`` >= 0, as a
-    labeler that labels every marker right sees them) whose tracks ended, while at least as
-    many new tracks began, over those marker points (0 where fewer than
-    ``jump_min_markers``)."""
+    """Per frame the rule's share: the smaller of the share of the previous frame's marker
+    points (``truth`` >= 0, as a labeler that labels every marker right sees them) whose
+    tracks ended and the share of this frame's points on new tracks (0 where fewer than
+    ``jump_min_markers`` either way)."""
     tracker = PointTracker(rate, config)
     prev_ids = np.zeros(0, dtype=np.int64)
     prev_lab = np.zeros(0, dtype=bool)
@@ -56,11 +57,33 @@ def switched_shares(
         if ids.size == 0 and prev_ids.size:  # (an empty frame held over keeps the tracks)
             continue
         gone = int(np.count_nonzero(prev_lab & ~np.isin(prev_ids, ids)))
-        switched = min(gone, tracker.born)
-        if prev_lab.any() and switched >= config.jump_min_markers:
-            out[k] = switched / np.count_nonzero(prev_lab)
+        if prev_lab.any() and min(gone, tracker.born) >= config.jump_min_markers:
+            out[k] = min(gone / np.count_nonzero(prev_lab), tracker.born / ids.size)
         prev_ids, prev_lab = ids, np.asarray(tr) >= 0
     return out
+
+
+def watch_shares(stream, rate: float, config: BootConfig) -> tuple[np.ndarray, int]:
+    """The plain labeler's watch (``booting.JumpWatch``) over a stream labeled right: per frame
+    the smaller of its two shares (the sample's markers that found no point, this frame's points
+    that continue no marker), and the frames it named a subject in."""
+    from labeler_service.labeling.booting import JumpWatch
+
+    names = stream.marker_names
+    subjects = {
+        n.split(":")[0]: k for k, n in enumerate(dict.fromkeys(n.split(":")[0] for n in names))
+    }
+    subject_of = np.array([subjects[n.split(":")[0]] for n in names], dtype=np.int64)
+    watch = JumpWatch(rate, config, subject_of)
+    # (a twin that always reaches the second share: its ``share`` is the smaller of the two)
+    probe = JumpWatch(rate, config.model_copy(update={"jump_fraction": 1e-6}), subject_of)
+    out = np.zeros(stream.n_frames)
+    fired = 0
+    for k in range(stream.n_frames):
+        fired += int(watch.update(stream.points[k], k / rate, stream.truth[k]).size > 0)
+        probe.update(stream.points[k], k / rate, stream.truth[k])
+        out[k] = probe.share
+    return out, fired
 
 
 def real(seconds: float, max_frames: int) -> dict:
@@ -79,18 +102,30 @@ def real(seconds: float, max_frames: int) -> dict:
             init = max(1, round(INIT_S * rate / step))
             stream = corrupt(cap, CorruptionSpec(**opts, protect_frames=init, seed=scene.seed))
             share = switched_shares(stream.points, stream.truth, rate / step, config)
+            watch, fired = watch_shares(stream, rate / step, config)
             cells.append({
                 "scene": scene.name, "cell": cell, "rate_hz": rate / step,
                 "frames": len(share), "max_share": round(float(share.max(initial=0.0)), 3),
                 "frames_at_or_above": int(np.count_nonzero(share >= config.jump_fraction)),
+                "watch_max_share": round(float(watch.max(initial=0.0)), 3),
+                "watch_fired": fired,
             })  # fmt: skip
     worst = max(cells, key=lambda c: c["max_share"])
+    worst_watch = max(cells, key=lambda c: c["watch_max_share"])
     return {
         "jump_fraction": config.jump_fraction,
         "cells": len(cells),
         "max_share": worst["max_share"],
         "max_share_cell": f"{worst['scene']} {worst['cell']} ({worst['rate_hz']:g} Hz)",
         "frames_at_or_above": sum(c["frames_at_or_above"] for c in cells),
+        "watch_max_share": worst_watch["watch_max_share"],
+        "watch_max_share_cell": f"{worst_watch['scene']} {worst_watch['cell']} "
+        f"({worst_watch['rate_hz']:g} Hz)",
+        "watch_fired": sum(c["watch_fired"] for c in cells),
+        "watch_by_rate": {
+            f"{r:g}": max(c["watch_max_share"] for c in cells if c["rate_hz"] == r)
+            for r in sorted({c["rate_hz"] for c in cells})
+        },
         "by_rate": {
             f"{r:g}": max(c["max_share"] for c in cells if c["rate_hz"] == r)
             for r in sorted({c["rate_hz"] for c in cells})

@@ -205,17 +205,17 @@ class BootConfig(BaseModel):
         0.6,
         ge=0,
         le=1,
-        description="BootingLabeler: when this share of the previous frame's labeled points "
-        "lose their anonymous tracks in one frame and as many new tracks begin (and at least "
-        "jump_min_markers), the points are still there but every one moved beyond the "
-        "tracker's gate: the scene jumped (a take looped, frames lost with seq and t "
-        "continuous). The subjects that lost this share of their labeled tracks are dropped "
-        "and booted again, not left to the wrong points their tracks take next (0 = off). "
-        "Measured: 0.98-1.0 at the jumps tried, at most 0.41 in a frame of the real matrices "
-        "(the tennis serve at 12.5 Hz)",
+        description="BootingLabeler (and a service stream's plain labeler, JumpWatch): when this "
+        "share of the previous frame's labeled points lose their anonymous tracks in one frame "
+        "and this share of the frame's points are on new tracks (each at least "
+        "jump_min_markers), the points are still there but moved beyond the tracker's gate: "
+        "the scene jumped (a take looped, frames lost with seq and t continuous). The subjects "
+        "that lost this share of their labeled tracks are dropped and booted again, not left to "
+        "the wrong points their tracks take next (0 = off). Measured: 0.98-1.0 at the jumps "
+        "tried, at most 0.415 in a frame of the real matrices (the tennis serve at 12.5 Hz)",
     )
     jump_min_markers: int = Field(
-        8, ge=1, description="BootingLabeler: the fewest labeled tracks ended that are a jump"
+        8, ge=1, description="BootingLabeler: the fewest tracks ended (and begun) that are a jump"
     )
     rms_ratio: float = Field(
         1.25,

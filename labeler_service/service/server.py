@@ -150,10 +150,13 @@ def synthetic_warmup_frames(
 def warm_up(kind: str, config, factory: LabelerFactory = make_labeler) -> float:
     """Runs a labeler of ``kind`` over the synthetic scene (numba compiles or loads its cache);
     returns the seconds it took."""
+    from labeler_service.labeling.booting import warmup_jump_watch
+
     t0 = time.perf_counter()
     names, frames = synthetic_warmup_frames()
     labeler = factory(kind, marker_names=names, rate=120.0, config=config)
     _feed_warmup(labeler, frames, f"labeler warm-up failed ({kind})")
+    warmup_jump_watch(120.0)  # (the online labeler's streams watch for jumps: JumpWatch)
     return time.perf_counter() - t0
 
 

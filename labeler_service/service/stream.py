@@ -1211,6 +1211,8 @@ class StreamState:
             keep.append((p, tk, labels))
         self._seen_t = None
         self._recent.clear()
+        # (counted and logged as a booting labeler's drops are: mocap_boot_verify_total)
+        self.verify_events = (*self.verify_events, *(("jump", names[int(k)]) for k in hit))
         who = ", ".join(names[int(k)] for k in hit)
         self.start_recovery(f"{who}: the scene jumped past the tracks (most labeled points' "
                             "tracks ended and as many began)", keep)  # fmt: skip

@@ -203,3 +203,24 @@ def _track_history(ids, points, fids, starts, out):
                     out[i, w, 2] = points[k, 2]
         for k in range(starts[w], starts[w + 1]):
             table[fids[k] - lo] = -1
+
+
+@njit
+def _no_point_within(points, queries, gate):
+    """``(Q,)`` True where no point of ``points (N, 3)`` lies within ``gate (Q,)`` mm of query
+    ``queries[q] (Q, 3)`` (a jump watch's predictions: a few dozen a frame, so a plain scan
+    that stops at the first point found)."""
+    n = points.shape[0]
+    q = queries.shape[0]
+    out = np.ones(q, dtype=np.bool_)
+    for i in range(q):
+        g2 = gate[i] * gate[i]
+        for j in range(n):
+            d2 = 0.0
+            for c in range(3):
+                d = points[j, c] - queries[i, c]
+                d2 += d * d
+            if d2 <= g2:
+                out[i] = False
+                break
+    return out
