@@ -540,8 +540,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "scene-jump-counts-junk-points",
         "labeler_service/labeling/booting.py",
-        "    lab = prev_labels >= 0\n    need = max(config.jump_min_markers,",
-        "    lab = prev_labels >= -1\n    need = max(config.jump_min_markers,",
+        "    gone = lab & ~np.isin(prev_ids, ids)\n",
+        "    gone = ~np.isin(prev_ids, ids)\n",
         (T + "labeling/test_scene_jump.py",),
         "unlabeled points (a sender's junk, redrawn every frame) read as a jump of the scene",
     ),
