@@ -149,25 +149,14 @@ def _sim_scene(kind: str):
 
 def sim_run(model, cap, skip: int, fraction: float) -> dict:
     from labeler_service.labeling.booting import BootingLabeler
+    from labeler_service.testing.frames import ModelFrames
 
-    names = model.marker_names
-    col = {lab: i for i, lab in enumerate(cap.labels)}
-    gidx = np.array([col.get(n, -1) for n in names])
-    ghosts = np.flatnonzero(cap.ghost_mask)
-    rng = np.random.default_rng(3)
+    frames = ModelFrames(cap, model.marker_names, seed=3)
     lab = BootingLabeler(model, SIM_RATE, boot=BootConfig(jump_fraction=fraction))
     right = wrong = visible = 0
     back = None
     for k in range(cap.n_frames - skip):
-        f = k if k < SIM_JUMP else k + skip
-        mk = cap.positions[f, np.maximum(gidx, 0)]
-        vis = np.isfinite(mk[:, 0]) & (gidx >= 0)
-        g = cap.positions[f, ghosts]
-        g = g[np.isfinite(g[:, 0])]
-        pts = np.concatenate([mk[vis], g]).astype(np.float32)
-        truth = np.concatenate([np.flatnonzero(vis), np.full(len(g), -1)])
-        order = rng.permutation(len(pts))
-        pts, truth = pts[order], truth[order]
+        pts, truth = frames.frame(k if k < SIM_JUMP else k + skip)
         pl = lab.process(pts, k / SIM_RATE).point_labels
         ok = int(np.count_nonzero((pl == truth) & (truth >= 0)))
         n_vis = int(np.count_nonzero(truth >= 0))

@@ -18,6 +18,7 @@ from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, boot
 from labeler_service.labeling.booting import BootingLabeler
 from labeler_service.labeling.templates import LabelerModel
 from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.testing.frames import ModelFrames
 
 RATE = 120.0
 HIDE = 0.15
@@ -30,30 +31,15 @@ def walk():
     return absent_walk(RATE)
 
 
-class Stream:
+class Stream(ModelFrames):
     """Frames of a capture as a live source sends them: shuffled, missing points dropped,
     ``hide`` of the model's markers hidden throughout; ``truth[k]`` = model marker index per
     point (-1 ghost)."""
 
     def __init__(self, capture: Capture, model: LabelerModel, seed: int, hide: float = HIDE):
-        self.rng = np.random.default_rng(seed)
+        super().__init__(capture, model.marker_names, seed, hide=hide)
         self.names = model.marker_names
-        col = {lab: i for i, lab in enumerate(capture.labels)}
-        self.gidx = np.array([col.get(n, -1) for n in self.names])
-        self.hidden = self.rng.random(len(self.names)) < hide
-        self.ghosts = np.flatnonzero(capture.ghost_mask)
-        self.pos = capture.positions
         self.rate = capture.rate
-
-    def frame(self, f: int) -> tuple[np.ndarray, np.ndarray]:
-        mk = np.where((self.gidx >= 0)[:, None], self.pos[f, np.maximum(self.gidx, 0)], np.nan)
-        vis = np.isfinite(mk[:, 0]) & ~self.hidden
-        g = self.pos[f, self.ghosts]
-        g = g[np.isfinite(g[:, 0])]
-        pts = np.concatenate([mk[vis], g]).astype(np.float32)
-        truth = np.concatenate([np.flatnonzero(vis), np.full(len(g), -1)])
-        order = self.rng.permutation(len(pts))
-        return pts[order], truth[order]
 
 
 def _subject(names: tuple[str, ...], labels: np.ndarray) -> np.ndarray:
@@ -432,24 +418,15 @@ def test_a_dense_crowd_boots_without_partners_arms():
     cap = simulate_scene(10, 5.0, "hug", seed=0, rate=rate)
     split = int(round(3.0 * rate))
     model = StructureTrainer().fit([cap.frames(0, split)]).model_
-    col = {lab: i for i, lab in enumerate(cap.labels)}
-    gidx = np.array([col[n] for n in model.marker_names])
-    ghosts = np.flatnonzero(cap.ghost_mask)
-    rng = np.random.default_rng(0)
+    frames = ModelFrames(cap, model.marker_names, seed=0)
     config = BootConfig()
     w = int(np.clip(round(config.window_s * rate), config.min_window_frames,
                     config.max_window_frames))  # fmt: skip
     tracker = PointTracker(rate, config)
     window = []
     for f in range(split, split + w):
-        mk = cap.positions[f, gidx]
-        v = np.isfinite(mk[:, 0])
-        g = cap.positions[f, ghosts]
-        g = g[np.isfinite(g[:, 0])]
-        pts = np.concatenate([mk[v], g]).astype(np.float64)
-        tr = np.concatenate([np.flatnonzero(v), np.full(len(g), -1)])
-        order = rng.permutation(len(pts))
-        pts, tr = pts[order], tr[order]
+        pts, tr = frames.frame(f)
+        pts = pts.astype(np.float64)
         window.append((pts, tracker.update(pts, f / rate), tr))
     pts, ids, truth = window[-1]
     res = Booter(model, config).run(pts, track_history([(p, i) for p, i, _ in window], ids))

@@ -12,6 +12,7 @@ from labeling.walks import train
 from labeler_service.labeling.boot_config import BootConfig
 from labeler_service.labeling.booting import BootingLabeler, JumpWatch, jumped_subjects
 from labeler_service.scenes.simulate import simulate_scene
+from labeler_service.testing.frames import ModelFrames
 
 RATE = 120.0
 #: three subjects of 20 markers: markers 0-19 are subject 0, 20-39 subject 1, 40-59 subject 2
@@ -126,23 +127,11 @@ def hug():
 def _skip_frames(model, cap, boot: BootConfig, jump: int, skip: int):
     """Labels the stream with ``skip`` frames lost after frame ``jump`` (``t`` continuous):
     ``(right, wrong, visible)`` from 40 frames after the jump on, and the labeler."""
-    names = model.marker_names
-    col = {lab: i for i, lab in enumerate(cap.labels)}
-    gidx = np.array([col.get(n, -1) for n in names])
-    ghosts = np.flatnonzero(cap.ghost_mask)
-    rng = np.random.default_rng(3)
+    frames = ModelFrames(cap, model.marker_names, seed=3)
     lab = BootingLabeler(model, RATE, boot=boot)
     right = wrong = visible = 0
     for k in range(cap.n_frames - skip):
-        f = k if k < jump else k + skip
-        mk = cap.positions[f, np.maximum(gidx, 0)]
-        vis = np.isfinite(mk[:, 0]) & (gidx >= 0)
-        g = cap.positions[f, ghosts]
-        g = g[np.isfinite(g[:, 0])]
-        pts = np.concatenate([mk[vis], g]).astype(np.float32)
-        truth = np.concatenate([np.flatnonzero(vis), np.full(len(g), -1)])
-        order = rng.permutation(len(pts))
-        pts, truth = pts[order], truth[order]
+        pts, truth = frames.frame(k if k < jump else k + skip)
         out = lab.process(pts, k / RATE)
         if k >= jump + 40:
             pl = out.point_labels

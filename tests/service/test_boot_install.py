@@ -577,6 +577,25 @@ def _published_wrong(st: StreamState, frames, published: list, first: int, since
     return wrong, labeled, visible
 
 
+#: The jump of the scene tests: frames lost after a third of the stream, ``t`` continuous.
+JUMP_SKIP = 45
+
+
+def _jumping(frames):
+    """``(jump, feed, view)``: ``JUMP_SKIP`` frames of ``frames`` lost after frame ``jump``
+    with ``t`` continuous (``feed``, as :func:`_feed_booting` takes frames), and what
+    :func:`_published_wrong` scores it against."""
+    from types import SimpleNamespace
+
+    n, jump = frames.n_frames, frames.n_frames // 3
+    source = [*range(jump), *range(jump + JUMP_SKIP, n)]
+    feed = SimpleNamespace(n_frames=len(source), times=frames.times[: len(source)],
+                           points=[frames.points[f] for f in source])  # fmt: skip
+    view = SimpleNamespace(source=source, points=frames.points, truth=frames.truth,
+                           marker_names=frames.marker_names)  # fmt: skip
+    return jump, feed, view
+
+
 @pytest.mark.parametrize("rule", [True, False])
 def test_a_plain_labeled_stream_whose_scene_jumps_boots_its_performers_again(
     scene_model, caplog, rule
@@ -596,18 +615,13 @@ def test_a_plain_labeled_stream_whose_scene_jumps_boots_its_performers_again(
     settings = _settings(path, boot_worker="thread", boot=False, boot_config=boot)
     st = StreamState("vol", settings, settings.streams[0])
     st.start_from_model()
-    n, jump, skip = frames.n_frames, frames.n_frames // 3, 45
-    source = [*range(jump), *range(jump + skip, n)]
-    feed = SimpleNamespace(n_frames=len(source), times=frames.times[: len(source)],
-                           points=[frames.points[f] for f in source])  # fmt: skip
+    jump, feed, view = _jumping(frames)
     first = SimpleNamespace(n_frames=jump, times=feed.times[:jump], points=feed.points[:jump])
     published = _feed_booting(st, first, 0)
     assert st.handbacks == 1 and not st.recovering  # the plain labeler labels everyone
-    rest = SimpleNamespace(n_frames=len(source) - jump, times=feed.times[jump:],
+    rest = SimpleNamespace(n_frames=feed.n_frames - jump, times=feed.times[jump:],
                            points=feed.points[jump:])  # fmt: skip
     published += _feed_booting(st, rest, jump)
-    view = SimpleNamespace(source=source, points=frames.points, truth=frames.truth,
-                           marker_names=frames.marker_names)  # fmt: skip
     wrong, labeled, visible = _published_wrong(st, view, published, 0, jump + 40)
     if not rule:
         assert st.recoveries == 1 and wrong > 0.1 * visible
@@ -620,24 +634,17 @@ def test_a_plain_labeled_stream_whose_scene_jumps_boots_its_performers_again(
 def test_a_booting_stream_whose_scene_jumps_drops_and_boots_its_performers(scene_model):
     """``boot = true``: the same jump drops the three at once (``jump`` events, counted in
     ``mocap_boot_verify_total``) and boots them again; no marker on a wrong point after it."""
-    from types import SimpleNamespace
-
     from labeler_service.labeling.booting import BootingLabeler
 
     path, frames = scene_model
     settings = _settings(path, boot_worker="thread")
     st = StreamState("vol", settings, settings.streams[0])
     st.start_from_model()
-    n, jump, skip = frames.n_frames, frames.n_frames // 3, 45
-    source = [*range(jump), *range(jump + skip, n)]
-    feed = SimpleNamespace(n_frames=len(source), times=frames.times[: len(source)],
-                           points=[frames.points[f] for f in source])  # fmt: skip
+    jump, feed, view = _jumping(frames)
     published = _feed_booting(st, feed, 0)
     lab = st.labeler
     assert isinstance(lab, BootingLabeler)
     jumped = sorted(who for t, kind, who in lab.events if kind == "jump")
     assert jumped == ["P1", "P2", "P3"]
-    view = SimpleNamespace(source=source, points=frames.points, truth=frames.truth,
-                           marker_names=frames.marker_names)  # fmt: skip
     wrong, labeled, visible = _published_wrong(st, view, published, 0, jump + 40)
     assert wrong == 0 and labeled >= 0.9 * visible
