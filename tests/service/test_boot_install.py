@@ -157,11 +157,14 @@ def test_server_installs_a_result_with_no_frame_after_it(scene_model):
     run(go(), timeout=300.0)
 
 
-def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None, hold: int = 0) -> list:
+def _feed_booting(
+    st: StreamState, frames, seq0: int, first_verdict=None, hold: int = 0, events=None
+) -> list:
     """Feeds every frame of ``frames`` to ``st`` (seq from ``seq0``; ``first_verdict`` for the
     first), running each due boot attempt at once (``hold``: its result handed over that many
     frames later, as a job that takes time); returns what each frame published (marker
-    states, positions) and the stream's status after it."""
+    states, positions) and the stream's status after it. ``events``: a list that gets each
+    frame's ``verify_events`` (what the server counts in ``mocap_boot_verify_total``)."""
     from labeler_service.service.continuity import ACCEPT
 
     published = []
@@ -175,6 +178,8 @@ def _feed_booting(st: StreamState, frames, seq0: int, first_verdict=None, hold: 
         verdict = first_verdict if f == 0 and first_verdict is not None else ACCEPT
         out = st.process(msg, 0, verdict)
         assert out is not None
+        if events is not None:
+            events.extend(st.verify_events)
         lab = decode(out.payload)
         st.update_health(out)  # (the server's per-frame health: the stream's status)
         published.append((lab.state, lab.positions, st.status))
@@ -621,12 +626,14 @@ def test_a_plain_labeled_stream_whose_scene_jumps_boots_its_performers_again(
     assert st.handbacks == 1 and not st.recovering  # the plain labeler labels everyone
     rest = SimpleNamespace(n_frames=feed.n_frames - jump, times=feed.times[jump:],
                            points=feed.points[jump:])  # fmt: skip
-    published += _feed_booting(st, rest, jump)
+    events: list = []
+    published += _feed_booting(st, rest, jump, events=events)
     wrong, labeled, visible = _published_wrong(st, view, published, 0, jump + 40)
     if not rule:
         assert st.recoveries == 1 and wrong > 0.1 * visible
         return
     assert st.recoveries == 2 and "the scene jumped past the tracks" in caplog.text
+    assert sorted(who for kind, who in events if kind == "jump") == ["P1", "P2", "P3"]
     assert wrong == 0
     assert labeled >= 0.9 * visible
 
