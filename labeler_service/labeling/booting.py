@@ -1654,7 +1654,6 @@ class JumpWatch:
         self._pos = np.full((m, 3), np.nan)  # the last frame's labeled markers
         self._pos2 = np.full((m, 3), np.nan)  # the frame before
         self._t = np.nan
-        self._n = 0  # the last frame's points
         self._order = np.random.default_rng(0).permutation(m)  # (the sample's fixed order)
         #: the last frame's share (diagnostics): the smaller of the sample's share that found
         #: no point and, when that reached ``jump_fraction``, the share of new points
@@ -1671,7 +1670,7 @@ class JumpWatch:
         pos[lab[ok]] = pts[ok]
         # (after a jump the last frame's positions give no velocity: they are across it)
         self._pos2 = self._pos if hit.size == 0 else np.full_like(pos, np.nan)
-        self._pos, self._t, self._n = pos, float(t), pts.shape[0]
+        self._pos, self._t = pos, float(t)
         return hit
 
     def _check(self, pts: np.ndarray, t: float) -> np.ndarray:
