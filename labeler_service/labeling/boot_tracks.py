@@ -12,6 +12,14 @@ from labeler_service.labeling.kernels.track import _track_history, _track_step
 
 
 # ---------------------------------------------------------------------------- tracking
+def track_gates(config: BootConfig, dt: float) -> tuple[float, float]:
+    """The tracker's gates (mm) over a frame step ``dt``: around a constant-velocity prediction
+    (``track_gate_mm`` plus ``track_accel_mm_s2`` dt^2), and around a point with no velocity
+    yet (that plus ``track_speed_mm_s`` dt)."""
+    g0 = config.track_gate_mm + config.track_accel_mm_s2 * dt * dt
+    return g0, g0 + config.track_speed_mm_s * dt
+
+
 class PointTracker:
     """Frame-to-frame identity of anonymous points (nearest neighbour with velocity).
 
@@ -55,7 +63,7 @@ class PointTracker:
         if not (np.isfinite(dt) and dt > 0):
             dt = 1.0 / self.rate
         c = self.config
-        g0 = c.track_gate_mm + c.track_accel_mm_s2 * dt * dt
+        g0, _ = track_gates(c, dt)
         rel_dt = c.track_relative_speed_mm_s * dt
         # mutual nearest prediction within its gate (kernels/track.py: a sweep index with
         # bounded searches; two KD-trees cost ~0.5 ms a frame at 500 points), the prediction,

@@ -99,6 +99,7 @@ from labeler_service.labeling.boot import (
     track_history,
     warmup_kernels,
 )
+from labeler_service.labeling.boot_tracks import track_gates
 from labeler_service.labeling.boot_verify import BootVerifier, extend_blocked
 from labeler_service.labeling.config import LabelerConfig
 from labeler_service.labeling.frame import LabeledFrame, MarkerState, frame_labels, frame_points
@@ -1480,7 +1481,6 @@ def warmup_labeler(rate: float, config: LabelerConfig) -> None:
     inner = Labeler.from_model(train.train_model(), rate, config, subjects=())
     inner.add_subjects(["w"], frames[-4:])
     inner.process(base + np.float32(12), 12 / rate)
-    warmup_jump_watch(rate)
 
 
 def warmup_jump_watch(rate: float) -> None:
@@ -1621,10 +1621,18 @@ def jumped_subjects(
         config.jump_min_markers, config.jump_fraction * np.count_nonzero(lab)
     ):
         return np.zeros(0, dtype=np.int64)
+    return _subjects_losing(subject_of, prev_labels[lab], prev_labels[gone], config.jump_fraction)
+
+
+def _subjects_losing(
+    subject_of: np.ndarray, had: np.ndarray, lost: np.ndarray, fraction: float
+) -> np.ndarray:
+    """The subjects of which ``fraction`` of the markers ``had`` are among those ``lost``
+    (marker indices; ``subject_of`` maps a marker to its subject)."""
     n = int(subject_of.max()) + 1 if subject_of.size else 0
-    n_was = np.bincount(subject_of[prev_labels[lab]], minlength=n)
-    n_lost = np.bincount(subject_of[prev_labels[gone]], minlength=n)
-    return np.flatnonzero((n_was > 0) & (n_lost >= config.jump_fraction * n_was))
+    n_had = np.bincount(subject_of[had], minlength=n)
+    n_lost = np.bincount(subject_of[lost], minlength=n)
+    return np.flatnonzero((n_had > 0) & (n_lost >= fraction * n_had))
 
 
 class JumpWatch:
@@ -1636,8 +1644,8 @@ class JumpWatch:
     latency p50 1.50 -> 1.75 ms. Instead the markers the labeler put on points in the last
     frames are predicted (constant velocity where two frames give one) and ``SAMPLE`` of them,
     a fixed random choice, looked for among this frame's points within the point tracker's
-    gate (``track_gate_mm`` plus ``track_accel_mm_s2`` dt^2, plus ``track_speed_mm_s`` dt
-    without a velocity). A jump leaves none there: the points are elsewhere. When
+    gates (:func:`~labeler_service.labeling.boot_tracks.track_gates`). A jump leaves none
+    there: the points are elsewhere. When
     ``jump_fraction`` of the sample find no point (and at least ``jump_min_markers``) and
     ``jump_fraction`` of up to ``SAMPLE`` of this frame's points continue no marker (no
     prediction within the widest gate: a performer who leaves or is hidden takes his points
@@ -1703,23 +1711,15 @@ class JumpWatch:
         if new < c.jump_fraction * cur.shape[0]:
             return none
         lost = every[self._misses(pts, every, dt)]
-        n = int(self._subject_of.max()) + 1 if self._subject_of.size else 0
-        n_was = np.bincount(self._subject_of[every], minlength=n)
-        n_lost = np.bincount(self._subject_of[lost], minlength=n)
-        return np.flatnonzero((n_was > 0) & (n_lost >= c.jump_fraction * n_was))
+        return _subjects_losing(self._subject_of, every, lost, c.jump_fraction)
 
     def _predict(self, markers: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """``(K, 3)`` predictions of ``markers`` in this frame and ``(K,)`` their gates."""
-        c = self._config
         p1, p2 = self._pos[markers], self._pos2[markers]
         vel = np.isfinite(p2[:, 0])
         pred = np.ascontiguousarray(np.where(vel[:, None], 2.0 * p1 - p2, p1))
-        gate = (
-            c.track_gate_mm
-            + c.track_accel_mm_s2 * dt * dt
-            + np.where(vel, 0.0, c.track_speed_mm_s * dt)
-        )
-        return pred, np.ascontiguousarray(gate, dtype=np.float64)
+        moving, still = track_gates(self._config, dt)
+        return pred, np.where(vel, moving, still).astype(np.float64)
 
     def _misses(self, pts: np.ndarray, markers: np.ndarray, dt: float) -> np.ndarray:
         """Per marker of ``markers``: no point of ``pts`` within the gate of its prediction."""

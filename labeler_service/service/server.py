@@ -156,7 +156,8 @@ def warm_up(kind: str, config, factory: LabelerFactory = make_labeler) -> float:
     names, frames = synthetic_warmup_frames()
     labeler = factory(kind, marker_names=names, rate=120.0, config=config)
     _feed_warmup(labeler, frames, f"labeler warm-up failed ({kind})")
-    warmup_jump_watch(120.0)  # (the online labeler's streams watch for jumps: JumpWatch)
+    if kind == "online":  # (its streams watch for jumps of the scene: StreamState._jumped)
+        warmup_jump_watch(120.0)
     return time.perf_counter() - t0
 
 

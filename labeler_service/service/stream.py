@@ -1187,12 +1187,12 @@ class StreamState:
 
     def _jumped(self, pts: np.ndarray, t: float, out: LabeledFrame) -> bool:
         """The plain labeler's frame after a jump of the whole scene
-        (:func:`~labeler_service.labeling.booting.jumped_subjects`: most labeled tracks ended
-        and as many began; a sender that loops a take, frames lost with ``seq`` and ``t``
-        continuous): the subjects hit give no label in it, and a recovery boots them again
-        (the others keep their labels). Left alone, the tracks took the nearest points and
-        kept them, the stream ``online`` with a fifth of its labels wrong. True when it
-        started one."""
+        (:class:`~labeler_service.labeling.booting.JumpWatch`: most of its markers found no
+        point where they were heading and most points continue no marker; a sender that loops
+        a take, frames lost with ``seq`` and ``t`` continuous): the subjects hit give no label
+        in it, and a recovery boots them again (the others keep their labels). Left alone,
+        the tracks took the nearest points and kept them, the stream ``online`` with a fifth
+        of its labels wrong. True when it started one."""
         names, subject_of = self._subject_of
         assert self.rate is not None
         if self._jump is None:
@@ -1201,21 +1201,23 @@ class StreamState:
         if hit.size == 0:
             return False
         gone = np.isin(subject_of, hit)
-        out.point_labels[(out.point_labels >= 0) & gone[np.maximum(out.point_labels, 0)]] = -1
+
+        def without(labels: np.ndarray) -> np.ndarray:  # (the subjects hit's labels removed)
+            return np.where((labels >= 0) & gone[np.maximum(labels, 0)], -1, labels)
+
+        out.point_labels[:] = without(out.point_labels)
         out.positions[gone] = np.nan
         out.state[gone] = MarkerState.MISSING
-        keep = []  # (the frames before, without the subjects hit: they are booted, not given)
-        for p, tk, labels in [*self._recent, (pts, t, out.point_labels)]:
-            labels = labels.copy()
-            labels[(labels >= 0) & gone[np.maximum(labels, 0)]] = -1
-            keep.append((p, tk, labels))
+        # the frames before, without the subjects hit: they are booted, not given
+        keep = [(p, tk, without(labels)) for p, tk, labels in self._recent]
+        keep.append((pts, t, out.point_labels.copy()))
         self._seen_t = None
         self._recent.clear()
         # (counted and logged as a booting labeler's drops are: mocap_boot_verify_total)
         self.verify_events = (*self.verify_events, *(("jump", names[int(k)]) for k in hit))
         who = ", ".join(names[int(k)] for k in hit)
-        self.start_recovery(f"{who}: the scene jumped past the tracks (most labeled points' "
-                            "tracks ended and as many began)", keep)  # fmt: skip
+        why = "most markers found no point where they were heading, most points are new"
+        self.start_recovery(f"{who}: the scene jumped past the tracks ({why})", keep)
         return True
 
     def reboot(self, why: str) -> bool:
