@@ -532,8 +532,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "scene-jump-drops-everyone",
         "labeler_service/labeling/booting.py",
-        "    return np.flatnonzero((n_was > 0) & (n_lost >= config.jump_fraction * n_was))\n",
-        "    return np.flatnonzero(n_was > 0)\n",
+        "    return np.flatnonzero((n_had > 0) & (n_lost >= fraction * n_had))\n",
+        "    return np.flatnonzero(n_had > 0)\n",
         (T + "labeling/test_scene_jump.py",),
         "a jump drops every subject, also those whose tracks went on",
     ),
