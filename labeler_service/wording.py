@@ -10,3 +10,8 @@ def plural(n: int | float, noun: str, many: str | None = None) -> str:
     the plural when it is not ``noun + "s"`` (``plural(3, "body", "bodies")``)."""
     word = noun if n == 1 else (many if many is not None else noun + "s")
     return f"{n} {word}"
+
+
+def and_list(items: list[str]) -> str:
+    """``"a"``, ``"a and b"``, ``"a, b and c"``."""
+    return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"

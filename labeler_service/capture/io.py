@@ -190,7 +190,12 @@ def split_segment(text: str) -> tuple[str, int, int | None]:
     return path, start, stop
 
 
-def write_capture(capture: Capture, path: str | Path) -> Path:
+def write_capture(
+    capture: Capture,
+    path: str | Path,
+    like: str | Path | None = None,
+    kept: list[str] | None = None,
+) -> Path:
     """Writes a capture as C3D, TRC or NPZ (by suffix), creating parent folders.
 
     The file is written to a temporary name next to the target, checked (a C3D must hold every
@@ -198,10 +203,31 @@ def write_capture(capture: Capture, path: str | Path) -> Path:
     symbolic link is followed (the file it points to is replaced); a target that exists but is
     not a regular file (a device such as ``/dev/full``, a FIFO) is written through directly.
     Any failure raises :class:`CaptureError` naming the file.
+
+    ``like``: the capture ``capture`` was made from (``FILE[:start[:stop]]``, its frames, in its
+    axes, in millimetres). When both are C3D the output keeps everything of ``like`` but its
+    points (:func:`_write_c3d_like`: analog channels, events, force plates, every parameter
+    group, the time base, the units); ``kept`` (a list) is then filled with what was kept.
     """
     p = Path(path)
     target, suffix = _target(p, SUFFIXES)
     writer: _Writer = {".c3d": _write_c3d, ".trc": _write_trc, ".npz": _write_npz}[suffix]
+    if like is not None and suffix == ".c3d":
+        source, start, _ = split_segment(str(like))
+        if Path(source).suffix.lower() == ".c3d" and Path(source).is_file():
+            said = kept if kept is not None else []
+
+            def writer(cap: Capture, tmp: Path) -> None:
+                try:
+                    said[:] = _write_c3d_like(cap, tmp, Path(source), start)
+                except (CaptureError, OSError):
+                    raise
+                except Exception as exc:  # a source ezc3d cannot write back: the points alone
+                    log.warning("%s: written without the rest of %s (%s: %s)", p, source,
+                                type(exc).__name__, exc)  # fmt: skip
+                    said[:] = []
+                    _write_c3d(cap, tmp)
+
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():
@@ -766,6 +792,105 @@ def _write_c3d(capture: Capture, path: Path) -> None:
     )
     c.write(str(path))
     _check_c3d_written(path, 16 * capture.n_markers * capture.n_frames)
+
+
+#: groups every C3D (or every file ezc3d writes) has: not worth naming as kept
+_C3D_OWN_GROUPS = ("POINT", "ANALOG", "SUBJECTS", "EZC3D", "ROTATION")
+#: POINT parameters of a source C3D that name its points: the written file's points are others
+_POINT_OWN = ("LABELS", "DESCRIPTIONS", "USED", "FRAMES", "DATA_START", "TYPE_GROUPS")
+
+
+def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> list[str]:
+    """Writes ``capture`` (frames ``start``... of the C3D ``source``, in its axes, in mm) as
+    ``source`` with only its points replaced, so a labeled take overlays the take it came from:
+    its analog channels (force plates, EMG) cut to the same frames, its events, its force
+    platform and trial parameters, every other parameter group, its first frame (the time
+    base: header and ``TRIAL:ACTUAL_START_FIELD``) and its point units (the points are
+    converted back). The points a processing model wrote (left out when read) are not written:
+    they were computed from the labels this file replaces. ``SUBJECTS`` names the capture's
+    subjects. Returns what was kept, in words."""
+    import ezc3d
+
+    if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
+        raise CaptureError("a C3D holds at least one frame; this capture has none")
+    if capture.n_frames > C3D_MAX_FRAMES:
+        raise CaptureError(_too_many_frames(capture.n_frames))
+    c = ezc3d.c3d(str(source))
+    params = c["parameters"]
+    point = params["POINT"]
+    data = c["data"]
+    n_src = int(np.asarray(data["points"]).shape[2])
+    n, m = capture.n_frames, capture.n_markers
+    if start + n > n_src:
+        raise CaptureError(f"{source}: frames {start}-{start + n} are past its {n_src} frames")
+    # the units the reader converted from (a file without UNITS: as it guessed)
+    units = point.get("UNITS", {}).get("value", [])
+    unit = str(units[0]).strip() if len(units) else ""
+    if not unit:
+        xyz = np.transpose(np.asarray(data["points"], dtype=np.float64)[:3], (2, 1, 0))
+        unit = _guess_units(xyz, []) or "mm"
+    scale = _unit_scale(unit, source, [])
+    for key in [k for k in point if k in _POINT_OWN or k.startswith(("LABELS", "DESCRIPTIONS"))]:
+        del point[key]
+    for key in [k for k in point if k in _NON_MARKER_GROUPS]:
+        del point[key]  # (their points are not written)
+    c.add_parameter("POINT", "LABELS", list(capture.labels))
+    c.add_parameter("POINT", "DESCRIPTIONS", [""] * m)
+    c.add_parameter("POINT", "UNITS", [unit])
+    if float(np.asarray(point.get("SCALE", {}).get("value", [-1.0]))[0]) > 0:
+        point["SCALE"]["value"] = np.array([-1.0])  # the points are written as floats
+    pts = np.ones((4, m, n), dtype=np.float64)
+    pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0)) / scale
+    data["points"] = pts
+    residuals = np.zeros((1, m, n), dtype=np.float64)
+    residuals[0, np.isnan(pts[0])] = -1.0
+    data["meta_points"] = {
+        "residuals": residuals,
+        "camera_masks": np.zeros((7, m, n), dtype=bool),
+    }
+    kept: list[str] = []
+    analogs = np.asarray(data["analogs"])
+    per = analogs.shape[2] // n_src if n_src else 0
+    if analogs.shape[1]:
+        if not per or analogs.shape[2] != per * n_src:
+            raise ValueError(f"{analogs.shape[2]} analog samples for {n_src} frames")
+        data["analogs"] = np.ascontiguousarray(analogs[:, :, start * per : (start + n) * per])
+        kept.append(f"{plural(analogs.shape[1], 'analog channel')}")
+    else:
+        data["analogs"] = np.zeros((1, 0, n * max(per, 1)))
+    if "rotations" in data:
+        rot = np.asarray(data["rotations"])
+        per_r = rot.shape[3] // n_src if rot.ndim == 4 and n_src else 0
+        if rot.ndim == 4 and rot.shape[2] and per_r:
+            data["rotations"] = rot[..., start * per_r : (start + n) * per_r]
+        else:
+            del data["rotations"]
+    events = params.get("EVENT", {}).get("USED", {}).get("value", [])
+    if len(events) and int(events[0]):
+        kept.append(plural(int(events[0]), "event"))
+    first = int(c["header"]["points"]["first_frame"]) + start
+    c["header"]["points"]["first_frame"] = first
+    trial = params.get("TRIAL", {})
+    for key, frame in (("ACTUAL_START_FIELD", first + 1), ("ACTUAL_END_FIELD", first + n)):
+        if key in trial and len(trial[key]["value"]) == 2:  # 1-based, in two 16-bit words
+            trial[key]["value"] = np.array([frame & 0xFFFF, frame >> 16])
+    if first:
+        kept.append(f"time base (first frame {first + 1})")
+    named = [s for s in capture.subjects if s]
+    if "SUBJECTS" in params:
+        del params["SUBJECTS"]
+    if named:
+        c.add_parameter("SUBJECTS", "NAMES", named)
+        c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
+        c.add_parameter("SUBJECTS", "USED", [len(named)])
+        c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
+    other = sorted(g for g in params if g not in _C3D_OWN_GROUPS and g.strip())
+    if other:
+        kept.append(f"parameter groups {', '.join(other)}")
+    c.write(str(path))
+    width = 16 * m + 4 * int(np.asarray(data["analogs"]).shape[1]) * max(per, 1)
+    _check_c3d_written(path, width * n)
+    return kept
 
 
 def _check_c3d_written(path: Path, data_bytes: int) -> None:

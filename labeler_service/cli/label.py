@@ -23,10 +23,14 @@ alike) are given anonymously, in a shuffled order.
   which boots the others when they are there and labels a marker the N frames never showed
   from its template when it appears.
 
-OUT is in IN's axes and millimetres (a take read with ``--up y`` is rotated back) and holds
+OUT is in IN's axes (a take read with ``--up y`` is rotated back) and holds
 one column per marker (observed and, unless ``--drop-recovered``, recovered
 positions) plus the points that stayed unlabeled as ``*N`` columns: ``*N`` is the point's
-column N of IN, so an unlabeled raw track stays one trajectory. If the input carries labels
+column N of IN, so an unlabeled raw track stays one trajectory. A C3D OUT of a C3D IN keeps
+everything of IN but its points (``write_capture(..., like=IN)``): analog channels (force
+plates, EMG) and events of the same frames, every parameter group, the time base (first frame)
+and the point units; the summary's ``kept_from_input`` says what. Other outputs are in
+millimetres and hold the points only. If the input carries labels
 after the init window, the summary also says how often the labeler agreed with them.
 """
 
@@ -47,7 +51,7 @@ from labeler_service.cli.args import (
     without_absent_subjects,
 )
 from labeler_service.labeling.registry import LABELED_STARTS
-from labeler_service.wording import plural
+from labeler_service.wording import and_list, plural
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
 NOTICE_AFTER_S = 3.0
@@ -244,8 +248,9 @@ def run(args: argparse.Namespace) -> int:
         unseen = [lab.marker_names[i] for i in np.flatnonzero(~in_window)]
     # such a run writes OUT for inspection, but never over an earlier OUT (a good one)
     kept = failed and Path(args.output).exists()
+    carried: list[str] = []  # what OUT keeps of a C3D IN besides the points
     if not kept:
-        write_capture(result, args.output)
+        write_capture(result, args.output, like=args.input, kept=carried)
     summary = {
         "input": args.input,
         "output": args.output,
@@ -262,6 +267,8 @@ def run(args: argparse.Namespace) -> int:
         "labeled_start_note": why,
         # markers the init window never showed: this start cannot label them
         "unseen_at_init": unseen,
+        # what OUT keeps of a C3D IN besides its points (analog channels, events, ...)
+        "kept_from_input": carried,
     }
     if args.json:
         print(json.dumps(summary))
@@ -271,6 +278,8 @@ def run(args: argparse.Namespace) -> int:
             f"{summary['observed_per_frame']} of {plural(m, 'marker')} "
             f"observed and {summary['recovered_per_frame']} recovered per frame"
         )
+        if carried:
+            print(f"{args.output} keeps from {args.input}: {and_list(carried)}")
         if why is not None:
             print(f"labeled start: the labeler trained in place ({why})")
         if compared:
