@@ -207,36 +207,48 @@ def write_capture(
     ``like``: the capture ``capture`` was made from (``FILE[:start[:stop]]``, its frames, in its
     axes, in millimetres). When both are C3D the output keeps everything of ``like`` but its
     points (:func:`_write_c3d_like`: analog channels, events, force plates, every parameter
-    group, the time base, the units); ``kept`` (a list) is then filled with what was kept.
+    group, the time base, the units); otherwise a C3D or TRC output keeps ``like``'s time base
+    (the number and time of its first frame, :func:`_time_base`). ``kept`` (a list) is filled
+    with what was kept, in words.
     """
     p = Path(path)
     target, suffix = _target(p, SUFFIXES)
-    writer: _Writer = {".c3d": _write_c3d, ".trc": _write_trc, ".npz": _write_npz}[suffix]
-    if like is not None and suffix == ".c3d":
-        source, start, _ = split_segment(str(like))
-        if Path(source).suffix.lower() == ".c3d" and Path(source).is_file():
-            said = kept if kept is not None else []
+    said = kept if kept is not None else []
+    source, start = (None, 0)
+    if like is not None:
+        name, start, _ = split_segment(str(like))
+        source = Path(name) if Path(name).is_file() else None
 
-            def writer(cap: Capture, tmp: Path) -> None:
-                try:
-                    said[:] = _write_c3d_like(cap, tmp, Path(source), start)
-                except (CaptureError, OSError):
-                    raise
-                except Exception as exc:  # a source ezc3d cannot write back: the points alone
-                    log.warning("%s: written without the rest of %s (%s: %s)", p, source,
-                                type(exc).__name__, exc)  # fmt: skip
-                    said[:] = []
-                    _write_c3d(cap, tmp)
+    def base() -> tuple[int, float] | None:
+        got = None if source is None else _time_base(source, start)
+        if got is not None and got[0] != 1:
+            said[:] = [f"time base (first frame {got[0]})"]
+        return got
 
+    def write_c3d(cap: Capture, tmp: Path) -> None:
+        if source is not None and source.suffix.lower() == ".c3d":
+            try:
+                said[:] = _write_c3d_like(cap, tmp, source, start)
+                return
+            except (CaptureError, OSError):
+                raise
+            except Exception as exc:  # a source ezc3d cannot write back: the points alone
+                log.warning("%s: written without the rest of %s (%s: %s)", p, source,
+                            type(exc).__name__, exc)  # fmt: skip
+        _write_c3d(cap, tmp, base())
+
+    writer: _Writer = {
+        ".c3d": write_c3d,
+        ".trc": lambda cap, tmp: _write_trc(cap, tmp, target.name, base()),
+        ".npz": _write_npz,
+    }[suffix]
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists() and not target.is_file():
             _write_through(capture, target, writer, suffix)
         else:
-            if suffix == ".trc":  # (the header names the file: the target's name)
-                replace_file(target, lambda tmp: _write_trc(capture, tmp, target.name), suffix)
-            else:
-                replace_file(target, lambda tmp: writer(capture, tmp), suffix)
+            # (a TRC's header names the file: the target's name, not the temporary one's)
+            replace_file(target, lambda tmp: writer(capture, tmp), suffix)
     except OSError as exc:
         raise CaptureError(f"{p}: cannot write: {os_reason(exc)}") from exc
     except CaptureError as exc:
@@ -761,7 +773,8 @@ def c3d_frames_fit(path: str | Path, n_frames: int) -> None:
         raise CaptureError(f"{path}: {_too_many_frames(n_frames)}")
 
 
-def _write_c3d(capture: Capture, path: Path) -> None:
+def _write_c3d(capture: Capture, path: Path, base: tuple[int, float] | None = None) -> None:
+    """``base``: the number (1-based) and time of the first frame (:func:`_time_base`)."""
     import ezc3d
 
     if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
@@ -790,8 +803,33 @@ def _write_c3d(capture: Capture, path: Path) -> None:
     c["data"]["meta_points"]["camera_masks"] = np.zeros(
         (7, capture.n_markers, capture.n_frames), dtype=bool
     )
+    if base is not None:
+        c["header"]["points"]["first_frame"] = base[0] - 1
     c.write(str(path))
     _check_c3d_written(path, 16 * capture.n_markers * capture.n_frames)
+
+
+def _time_base(source: Path, start: int) -> tuple[int, float] | None:
+    """The number (1-based) and time (s) of frame ``start`` of ``source``, as its file states
+    them: a C3D's header first frame (its time: frames before it at its rate), a TRC's Frame#
+    and Time cells of that row; None for an NPZ, a row without them or a file that cannot say
+    (a capture's frames are then numbered from 1 at 0 s)."""
+    try:
+        if source.suffix.lower() == ".c3d":
+            import ezc3d
+
+            c = ezc3d.c3d(str(source))
+            first = int(c["header"]["points"]["first_frame"]) + start
+            rate = float(c["parameters"]["POINT"]["RATE"]["value"][0])
+            return first + 1, first / rate
+        if source.suffix.lower() == ".trc":
+            lines = source.read_text(encoding="utf-8", errors="replace").splitlines()[5:]
+            rows = [x for x in lines if x.strip()]
+            cells = _trc_cells(rows[start])
+            return int(float(cells[0])), float(cells[1])
+    except (OSError, ValueError, IndexError, RuntimeError):
+        return None
+    return None
 
 
 #: groups every C3D (or every file ezc3d writes) has: not worth naming as kept
@@ -1224,14 +1262,18 @@ def _filled(cells: list[str]) -> int:
     return next((i + 1 for i in range(len(cells) - 1, -1, -1) if cells[i]), 0)
 
 
-def _write_trc(capture: Capture, path: Path, name: str | None = None) -> None:
-    """``name``: the file name the header states (the target's, not the temporary file's)."""
+def _write_trc(
+    capture: Capture, path: Path, name: str | None = None, base: tuple[int, float] | None = None
+) -> None:
+    """``name``: the file name the header states (the target's, not the temporary file's);
+    ``base``: the number and time of the first frame (default 1 and 0 s)."""
     f, m = capture.n_frames, capture.n_markers
+    first, t0 = base if base is not None else (1, 0.0)
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{name or path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
         "OrigDataStartFrame\tOrigNumFrames",
-        f"{capture.rate:g}\t{capture.rate:g}\t{f}\t{m}\tmm\t{capture.rate:g}\t1\t{f}",
+        f"{capture.rate:g}\t{capture.rate:g}\t{f}\t{m}\tmm\t{capture.rate:g}\t{first}\t{f}",
         "Frame#\tTime\t" + "\t".join(f"{x}\t\t" for x in capture.labels).rstrip("\t"),
         "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(m)),
         "",
@@ -1239,7 +1281,7 @@ def _write_trc(capture: Capture, path: Path, name: str | None = None) -> None:
     pos = capture.positions
     for i in range(f):
         cells = ["" if np.isnan(v) else repr(float(v)) for v in pos[i].reshape(-1)]
-        lines.append(f"{i + 1}\t{i / capture.rate:.6f}\t" + "\t".join(cells))
+        lines.append(f"{first + i}\t{t0 + i / capture.rate:.6f}\t" + "\t".join(cells))
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 

@@ -29,7 +29,8 @@ positions) plus the points that stayed unlabeled as ``*N`` columns: ``*N`` is th
 column N of IN, so an unlabeled raw track stays one trajectory. A C3D OUT of a C3D IN keeps
 everything of IN but its points (``write_capture(..., like=IN)``): analog channels (force
 plates, EMG) and events of the same frames, every parameter group, the time base (first frame)
-and the point units; the summary's ``kept_from_input`` says what. Other outputs are in
+and the point units; any other C3D or TRC OUT keeps IN's time base (the number and time of its
+first frame); the summary's ``kept_from_input`` says what was kept. Those outputs are in
 millimetres and hold the points only. If the input carries labels
 after the init window, the summary also says how often the labeler agreed with them.
 """

@@ -145,8 +145,8 @@ def test_an_input_that_cannot_be_written_back_still_gives_its_labeled_points(
     trial, tmp_path, capsys, monkeypatch, caplog
 ):
     """Whatever keeping IN's content fails on (a file ezc3d reads but will not write back),
-    the labeling run is not lost: OUT holds the labeled points, and the log says why the rest
-    is missing."""
+    the labeling run is not lost: OUT holds the labeled points at IN's time base, and the log
+    says why the rest is missing."""
     import labeler_service.capture.io as io
 
     def refuse(*_a, **_k):
@@ -156,7 +156,42 @@ def test_an_input_that_cannot_be_written_back_still_gives_its_labeled_points(
     src, truth, names, _ = trial
     out = tmp_path / "out.c3d"
     summary = _label(src, out, capsys)
-    assert summary["kept_from_input"] == []
+    assert summary["kept_from_input"] == [f"time base (first frame {FIRST})"]
+    assert ezc3d.c3d(str(out))["header"]["points"]["first_frame"] == FIRST - 1
     assert "written without the rest of" in caplog.text and "bad parameter" in caplog.text
     back = read_capture(out)
     np.testing.assert_allclose(back.positions[:, : len(names)], truth, atol=0.01)
+
+
+def test_a_trc_output_or_input_keeps_the_time_base(trial, rng, tmp_path, capsys):
+    """Frame numbers and times of IN's frames: a TRC OUT of a trimmed C3D trial (frame 833 on)
+    and of a TRC that starts at frame 501, 5.0 s; a C3D OUT of that TRC starts at frame 501."""
+    src, truth, names, _ = trial
+    out = tmp_path / "out.trc"
+    summary = _label(f"{src}:10", out, capsys)
+    assert summary["kept_from_input"] == [f"time base (first frame {FIRST + 10})"]
+    rows = [x.split("\t") for x in out.read_text().splitlines()[5:] if x.strip()]
+    assert [int(r[0]) for r in rows[:2]] == [FIRST + 10, FIRST + 11]
+    np.testing.assert_allclose(
+        [float(r[1]) for r in rows[:2]], [(FIRST + 9) / RATE, (FIRST + 10) / RATE]
+    )
+    assert out.read_text().splitlines()[2].split("\t")[6] == str(FIRST + 10)  # OrigDataStartFrame
+    # a TRC input numbered from 501 at 5.0 s
+    trc = tmp_path / "in.trc"
+    write_capture(Capture(truth, names, RATE, source="in"), trc)
+    lines = trc.read_text().splitlines()
+    body = [x.split("\t") for x in lines[5:] if x.strip()]
+    for i, r in enumerate(body):
+        r[0], r[1] = str(501 + i), f"{5.0 + i / RATE:.6f}"
+    trc.write_text("\n".join(lines[:5] + ["\t".join(r) for r in body]) + "\n")
+    out2 = tmp_path / "out2.trc"
+    assert _label(trc, out2, capsys)["kept_from_input"] == ["time base (first frame 501)"]
+    first = next(x for x in out2.read_text().splitlines()[5:] if x.strip()).split("\t")
+    assert first[0] == "501" and float(first[1]) == pytest.approx(5.0)
+    out3 = tmp_path / "out3.c3d"
+    _label(trc, out3, capsys)
+    assert ezc3d.c3d(str(out3))["header"]["points"]["first_frame"] == 500
+    # a file numbered from 1 has no time base worth a word
+    plain = tmp_path / "plain.trc"
+    write_capture(Capture(truth, names, RATE, source="plain"), plain)
+    assert _label(plain, tmp_path / "o.trc", capsys)["kept_from_input"] == []
