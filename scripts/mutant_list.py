@@ -554,4 +554,20 @@ MUTANTS: list[Mutant] = [
         "a plain service labeler keeps its tracks' wrong points after a jump of the scene",
         k="scene_jumps",
     ),
+    Mutant(
+        "label-segment-keeps-the-whole-takes-analog",
+        "labeler_service/capture/io.py",
+        "analogs[:, :, start * per : (start + n) * per]",
+        "analogs[:, :, : n * per]",
+        (T + "cli/test_label_keeps_input.py",),
+        "a labeled segment's force plates come from the take's first frames, not its own",
+    ),
+    Mutant(
+        "label-output-restarts-at-frame-one",
+        "labeler_service/capture/io.py",
+        '    first = int(c["header"]["points"]["first_frame"]) + start\n    c["header"]',
+        '    first = start\n    c["header"]',
+        (T + "cli/test_label_keeps_input.py",),
+        "a labeled trial's time base is lost: its events and analog exports no longer line up",
+    ),
 ]
