@@ -555,6 +555,14 @@ MUTANTS: list[Mutant] = [
         k="scene_jumps",
     ),
     Mutant(
+        "scene-jump-reach-without-the-last-step",
+        "labeler_service/labeling/booting.py",
+        "    return np.where(vel, moving + last, still).astype(np.float64)\n",
+        "    return np.where(vel, moving, still).astype(np.float64)\n",
+        (T + "labeling/test_scene_jump.py",),
+        "a take played back and forth reads as a jump at every turn (its walkers booted again)",
+    ),
+    Mutant(
         "label-segment-keeps-the-whole-takes-analog",
         "labeler_service/capture/io.py",
         "analogs[:, :, start * per : (start + n) * per]",

@@ -1188,8 +1188,8 @@ class StreamState:
     def _jumped(self, pts: np.ndarray, t: float, out: LabeledFrame) -> bool:
         """The plain labeler's frame after a jump of the whole scene
         (:class:`~labeler_service.labeling.booting.JumpWatch`: most of its markers found no
-        point where they were heading and most points continue no marker; a sender that loops
-        a take, frames lost with ``seq`` and ``t`` continuous): the subjects hit give no label
+        point within reach of where they were and most points continue no marker; a sender that
+        loops a take, frames lost with ``seq`` and ``t`` continuous): the subjects hit give no label
         in it, and a recovery boots them again (the others keep their labels). Left alone,
         the tracks took the nearest points and kept them, the stream ``online`` with a fifth
         of its labels wrong. True when it started one."""
@@ -1216,7 +1216,7 @@ class StreamState:
         # (counted and logged as a booting labeler's drops are: mocap_boot_verify_total)
         self.verify_events = (*self.verify_events, *(("jump", names[int(k)]) for k in hit))
         who = ", ".join(names[int(k)] for k in hit)
-        why = "most markers found no point where they were heading, most points are new"
+        why = "most markers found no point within reach of where they were, most points are new"
         self.start_recovery(f"{who}: the scene jumped past the tracks ({why})", keep)
         return True
 

@@ -116,6 +116,51 @@ def test_the_watch_names_only_the_subjects_that_jumped_and_not_hidden_markers(rn
     np.testing.assert_array_equal(watch.update(pts[27:] + 303.0, 3 / RATE, labels[27:]), [0, 1, 2])
 
 
+def test_the_watch_takes_a_take_played_back_and_forth_for_no_jump(rng):
+    """A sender playing a take back and forth reverses every velocity at once: each point lies
+    two steps from its constant-velocity prediction (20 mm a frame here: 40 mm, past the 13
+    mm gate at 120 Hz), but where its marker was a step before. The watch read a jump at every
+    turn of a service test's replay."""
+    pts = rng.uniform(-1000, 1000, (60, 3))
+    labels = np.arange(60)
+    watch = JumpWatch(RATE, CFG, SUBJECT_OF)
+    step = np.array([20.0, 0.0, 0.0])
+    for k in range(4):
+        assert watch.update(pts + k * step, k / RATE, labels).size == 0
+    for k in range(4, 8):  # back the way it came
+        assert watch.update(pts + (6 - k) * step, k / RATE, labels).size == 0
+    # a jump is still one
+    np.testing.assert_array_equal(watch.update(pts + 300.0, 8 / RATE, labels), [0, 1, 2])
+
+
+def test_a_take_played_back_and_forth_drops_nobody(rng):
+    """The booting labeler's rule on the same turn: the point tracker ends the tracks of the
+    walkers' points (each past its gate), but every point lies within reach of where its
+    marker was, so nobody is dropped and every label across the turn is right (before: both
+    walkers dropped and booted again at the turn, 0.3-0.4 s unlabeled)."""
+    from labeler_service.tools.replay import frame_order
+
+    scene = simulate_scene(2, 4.0, "walk", seed=7, rate=RATE)
+    half = scene.n_frames // 2
+    model = train(scene.frames(0, half))
+    cap = scene.frames(half, scene.n_frames)
+    frames = ModelFrames(cap, model.marker_names, seed=3)
+    lab = BootingLabeler(model, RATE)
+    order = frame_order(cap.n_frames, 3)  # forward, back, forward: two turns
+    right = visible = wrong = 0
+    for k, f in enumerate(order.tolist()):
+        pts, truth = frames.frame(f)
+        out = lab.process(pts, k / RATE)
+        if k >= cap.n_frames - 40:  # from 40 frames before the first turn on
+            pl = out.point_labels
+            right += int(np.count_nonzero((pl == truth) & (truth >= 0)))
+            wrong += int(np.count_nonzero((pl >= 0) & (pl != truth)))
+            visible += int(np.count_nonzero(truth >= 0))
+    assert not [e for e in lab.events if e[1] == "jump"], lab.events
+    assert wrong == 0
+    assert right >= 0.99 * visible
+
+
 @pytest.fixture(scope="module")
 def hug():
     """Three hugging performers: the model of the first half, the stream of the second."""
