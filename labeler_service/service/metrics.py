@@ -134,12 +134,12 @@ class ServiceMetrics:
         self.ready = Gauge("mocap_ready", "1 once kernels are warm and serving", registry=r)
         self.labeled_fraction = Gauge(
             "mocap_labeled_fraction",
-            "Observed (labeled) markers / model markers, averaged over health_window_s",
+            "Observed (labeled) markers / model markers, exponential average over health_window_s",
             ["stream"], registry=r,
         )  # fmt: skip
         self.recovered_fraction = Gauge(
             "mocap_recovered_fraction",
-            "Recovered (predicted) markers / model markers, averaged over health_window_s",
+            "Recovered (predicted) markers / model markers, exp. average over health_window_s",
             ["stream"], registry=r,
         )  # fmt: skip
         self.streams_active = Gauge("mocap_streams", "Streams with a slot", registry=r)

@@ -279,8 +279,9 @@ class ServiceSettings(BaseSettings):
     stream_idle_s: float = Field(60.0, gt=0)
     #: Trained labelers of removed streams kept (least recently used evicted first).
     stream_cache_size: int = Field(4, ge=0, le=64)
-    #: Stream health: labeled fraction (observed markers / model markers, averaged over
-    #: ``health_window_s``) below which the status is ``degraded`` / ``lost``.
+    #: Stream health: labeled fraction (observed markers / model markers, an exponential
+    #: average with the time constant ``health_window_s``) below which the status is
+    #: ``degraded`` / ``lost``.
     degraded_below: float = Field(0.5, ge=0, le=1)
     lost_below: float = Field(0.1, ge=0, le=1)
     health_window_s: float = Field(1.0, gt=0)

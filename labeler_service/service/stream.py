@@ -51,7 +51,8 @@ whose ``t`` jumped starts a fresh booting labeler of the same model (:meth:`Stre
 
 Health: the labeled fraction (observed markers / model markers; for a booting labeler, / the
 markers of the subjects it has booted, so a model listing performers who are not in the volume
-does not read ``degraded``) and the recovered fraction are averaged over ``health_window_s``;
+does not read ``degraded``) and the recovered fraction are exponential averages with the time
+constant ``health_window_s``;
 below ``degraded_below`` / ``lost_below`` the stream's status becomes ``degraded`` / ``lost``
 (:meth:`StreamState.update_health`). ``on_lost`` is the hook the
 server calls then (a booting model stream's only logs: its labeler re-boots by itself); without
@@ -1311,9 +1312,8 @@ class StreamState:
             if t - self._handback_since < HANDBACK_WAIT_S:
                 return
             log.warning("stream %s: %s not labeled within %g s (%s): back to %s labeler "
-                        "without them (it will not label them; boot = true labels markers as "
-                        "they appear)", self.name, plural(len(missing), "marker"),
-                        HANDBACK_WAIT_S, shown, back)  # fmt: skip
+                        "without them (%s)", self.name, plural(len(missing), "marker"),
+                        HANDBACK_WAIT_S, shown, back, self._handback_advice())  # fmt: skip
         plain: FrameLabeler
         if self.window_frames is not None:  # back to the window start's labeler
             plain = make_window_labeler(
@@ -1334,6 +1334,20 @@ class StreamState:
         self.handbacks += 1
         log.info("stream %s: recovered: every subject labeled again; back to %s labeler",
                  self.name, back)  # fmt: skip
+
+    def _handback_advice(self) -> str:
+        """What becomes of markers a hand-back goes without, and what would label them, for
+        this stream's start (a stream without a model file has no ``boot`` to turn on)."""
+        if self.window_frames is not None:
+            return "the window start's labeler places them when they appear"
+        if self.stream_settings.model is not None:
+            return (
+                "the plain labeler will not label them; boot = true labels markers as they appear"
+            )
+        return (
+            'the plain labeler will not label them; labeled_start = "auto" starts a labeler '
+            "that places markers as they appear"
+        )
 
     # --------------------------------------------------------------------- per frame
     def process(

@@ -489,6 +489,25 @@ def test_boot_off_hands_back_after_a_wait_when_markers_never_appear(scene_model,
     assert st.handbacks == 1 and not isinstance(st.labeler, BootingLabeler)
     assert "the booting labeler stays until it labels" in caplog.text
     assert f"not labeled within {HANDBACK_WAIT_S:g} s" in caplog.text and "P1:RWRA" in caplog.text
+    assert "boot = true labels markers as they appear" in caplog.text  # (a model stream's)
+
+
+def test_the_hand_back_says_what_labels_the_markers_it_goes_without(scene_model):
+    """The advice fits the stream: ``boot = true`` exists only for a stream with a model file
+    (a helper's run gave it to a labeled-start stream without one, where it cannot be acted
+    on); the window start's labeler places late markers itself."""
+    from labeler_service.service.settings import load_settings
+
+    st, _, _ = _boot_off_stream(scene_model)
+    assert "boot = true" in st._handback_advice()
+    base = {"labeler": "online", "metrics_port": None, "warmup": False}
+    for start, want in (("labeler", 'labeled_start = "auto"'), ("model", "places them when")):
+        settings = load_settings(**base, streams=[{"name": "v", "labeled_start": start}])
+        plain = StreamState("v", settings, settings.streams[0])
+        if start == "model":
+            plain.window_frames = 30  # (set when its window labeler takes over)
+        advice = plain._handback_advice()
+        assert want in advice and "boot = true" not in advice, advice
 
 
 def test_the_hand_back_wait_runs_on_while_jobs_are_out(scene_model, caplog):
