@@ -563,6 +563,22 @@ MUTANTS: list[Mutant] = [
         "a take played back and forth reads as a jump at every turn (its walkers booted again)",
     ),
     Mutant(
+        "side-exchange-without-its-gain",
+        "labeler_service/labeling/boot_verify.py",
+        "        ok = (now >= EXCHANGE_MIN_EXCESS) & (new <= EXCHANGE_GAIN * now)\n",
+        "        ok = now >= 0.0\n",
+        (T + "labeling/test_side_exchange.py",),
+        "a subject read right has a segment exchanged with its twin whenever a pair is off",
+    ),
+    Mutant(
+        "side-exchange-never-applied",
+        "labeler_service/labeling/booting.py",
+        "                self._exchange(pairs, glab, pos, state)\n",
+        "                pass\n",
+        (T + "labeling/test_side_exchange.py",),
+        "feet read on each other's points stay so for good",
+    ),
+    Mutant(
         "label-segment-keeps-the-whole-takes-analog",
         "labeler_service/capture/io.py",
         "analogs[:, :, start * per : (start + n) * per]",

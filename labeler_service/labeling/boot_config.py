@@ -312,6 +312,15 @@ class BootConfig(BaseModel):
         "(a model trained on another or a still segment: skin slides)",
     )
     verify_tol_mm: float = Field(5.0, ge=0, description="re-verification: ... plus this")
+    verify_exchange: bool = Field(
+        True,
+        description="re-verification: a booted subject whose left and right markers read each "
+        "other's points (two feet exchanged) gets them back when the exchanged reading fits "
+        "its template clearly better for verify_exchange_s (boot_verify.py)",
+    )
+    verify_exchange_s: float = Field(
+        0.2, gt=0, description="re-verification: ... that long, tick after tick"
+    )
     verify_contact_mm: float = Field(
         250.0,
         ge=0,

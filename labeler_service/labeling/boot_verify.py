@@ -62,23 +62,41 @@ from __future__ import annotations
 
 import re
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial import cKDTree
 
+from labeler_service.capture.model import side_pairs
 from labeler_service.labeling.boot import Booter
 from labeler_service.labeling.boot_config import BootConfig
 
 
 @dataclass
 class Verdict:
-    """One tick's decisions: per subject index the global markers to withdraw, and the
-    subjects to drop (booted again)."""
+    """One tick's decisions: per subject index the global markers to withdraw, the subjects to
+    drop (booted again), and per subject the ``(K, 2)`` pairs of left and right markers to
+    exchange (each takes the other's point: :meth:`BootVerifier._exchanges`)."""
 
     withdraw: dict[int, np.ndarray]
     drop: list[int]
+    exchange: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+#: an exchange of left and right markers is made only when its reading's mean excess over the
+#: template's tolerances is at most this share of the current reading's ...
+EXCHANGE_GAIN = 0.25
+#: ... and the current reading's mean excess is at least this (tolerances past, per edge)
+EXCHANGE_MIN_EXCESS = 0.3
+#: an edge's excess counts at most this many tolerances (one wild pair does not decide)
+EXCHANGE_CAP = 10.0
+#: an exchange moves at least this many left-right pairs (a segment and its twin)
+EXCHANGE_MIN_PAIRS = 2
+#: seconds of stream before the same pairs of a subject are exchanged again
+EXCHANGE_HOLD_S = 2.0
+#: left-right pairs tried together at most (every subset of them: 2^n readings)
+EXCHANGE_MAX_PAIRS = 8
 
 
 #: mm of ``A`` per mm of ``D`` when choosing a joint's pairs and the chain: the pairs beside a
@@ -301,6 +319,36 @@ class BootVerifier:
         self._frame = 0
         self.withdrawn = 0  # markers withdrawn so far (diagnostics)
         self.dropped = 0  # subjects dropped so far
+        self.exchanged = 0  # left-right pairs exchanged so far
+        #: per marker its twin of the other side in the same subject (-1: none)
+        self._mirror = np.full(self.n_markers, -1, dtype=np.int64)
+        for tpl in templates:
+            local = [
+                n.split(":", 1)[-1]
+                for n in booter.model.marker_names[tpl.offset : tpl.offset + tpl.n]
+            ]
+            for left, right in side_pairs(local):
+                self._mirror[tpl.offset + left] = tpl.offset + right
+                self._mirror[tpl.offset + right] = tpl.offset + left
+        #: per subject its edges (indices into ea, eb)
+        self._subject_edges = [
+            np.flatnonzero(self._subject_of[self.ea] == s) for s in range(len(n_of))
+        ]
+        self._exchange_n = max(1, round(c.verify_exchange_s * tick_hz))
+        #: per marker: it shares a trained body holding two or more left-right pairs with its
+        #: twin (a symmetric plate: a head, a pelvis), whose own distances cannot tell a
+        #: reading across it; such pairs are not exchanged (the boot's symmetries' business)
+        self._in_plate = np.zeros(self.n_markers, dtype=bool)
+        for mk in self._body_markers:
+            inside = set(mk.tolist())
+            twins = [k for k in mk.tolist() if self._mirror[k] in inside]
+            if len(twins) >= 4:  # (two pairs: four markers)
+                self._in_plate[twins] = True
+        #: per (subject, pairs) exchanged: the frame before which they are not exchanged again
+        self._exchange_done: dict[tuple[int, tuple[tuple[int, int], ...]], int] = {}
+        self._exchange_hold = max(1, round(EXCHANGE_HOLD_S * rate))
+        #: per subject the exchange the last ticks preferred and for how many ticks in a row
+        self._exchange_seen: dict[int, tuple[tuple[tuple[int, int], ...], int]] = {}
 
     # ------------------------------------------------------------------ subjects
     def start(self, subject: int) -> None:
@@ -373,7 +421,118 @@ class BootVerifier:
         self.m1[e] = np.where(first, d, self.m1[e] + self._alpha * (d - self.m1[e]))
         self.m2[e] = np.where(first, d * d, self.m2[e] + self._alpha * (d * d - self.m2[e]))
         self.n[e] += 1
+        exchange = self._exchanges(e, observed, p) if self.config.verify_exchange else {}
+        if exchange:  # (the other decisions wait for the evidence of the new reading)
+            return Verdict({}, [], exchange)
         return self._decide(e, observed, p)
+
+    def _exchanges(
+        self, e: np.ndarray, observed: np.ndarray, p: np.ndarray
+    ) -> dict[int, np.ndarray]:
+        """Left and right markers of a verified subject read on each other's points (a boot
+        from a still window read a returning performer's two feet exchanged: every within-foot
+        distance holds, the pairs across the feet and to the shins do not, and nothing took
+        the reading back: his feet stayed exchanged for good, the stream ``online``).
+
+        Per subject with bad pairs of a trained body (off more often than ``verify_bad``), the
+        left-right pairs (:func:`~labeler_service.capture.model.side_pairs`) of those bodies'
+        markers are tried exchanged, every subset of them (at most :data:`EXCHANGE_MAX_PAIRS`): each
+        reading is scored by its mean excess over the template's tolerances, over every edge of
+        the subject both of whose markers it observes. The best is taken when it scores at most
+        :data:`EXCHANGE_GAIN` of the current reading on the edges it touches, which is at
+        least :data:`EXCHANGE_MIN_EXCESS` there, on every tick for ``verify_exchange_s``: a
+        pose the template has not seen costs every reading alike, a mirrored one only the
+        current."""
+        c = self.config
+        ready = e[self.n[e] >= self._min_n]
+        bad = ready[self.ema[ready] > c.verify_bad]
+        rigid = self.joint[bad] < 0
+        far = np.abs(self.m1[bad] - self.D[bad]) >= c.verify_cut_tol * self.tol[bad]
+        out: dict[int, np.ndarray] = {}
+        # the markers of the trained bodies with a bad pair, and of the far side of a joint
+        # whose pair is far off (a foot read as the other: its pairs to the shin)
+        hit: set[int] = set()
+        for a, b in zip(self.ea[bad[rigid]].tolist(), self.eb[bad[rigid]].tolist(), strict=True):
+            for g in set(self._marker_bodies[a]) & set(self._marker_bodies[b]):
+                hit.update(self._body_markers[g].tolist())
+        for j in np.unique(self.joint[bad[~rigid & far]]).tolist():
+            hit.update(self._body_markers[int(self.joints[j][2])].tolist())
+        # and the bodies that share two markers with them (one segment: a foot's triangles)
+        for _ in range(3):
+            more = {
+                g for k in hit for g in self._marker_bodies[k]
+                if len(hit.intersection(self._body_markers[g].tolist())) >= 2
+            }  # fmt: skip
+            grown = hit.union(*(self._body_markers[g].tolist() for g in more))
+            if grown == hit:
+                break
+            hit = grown
+        ends = np.array(sorted(hit), dtype=np.int64)
+        for s in range(len(self._subject_edges)):
+            mk = ends[self._subject_of[ends] == s] if self._on[s] else ends[:0]
+            mk = mk[~self._in_plate[mk]]
+            tw = self._mirror[mk]
+            units = sorted(
+                {(int(min(a, b)), int(max(a, b))) for a, b in zip(mk, tw, strict=True) if b >= 0}
+            )
+            best = None
+            if 0 < len(units) <= EXCHANGE_MAX_PAIRS:
+                best = self._best_exchange(s, units, observed, p)
+            if best is None:
+                self._exchange_seen.pop(s, None)
+                continue
+            was, n = self._exchange_seen.get(s, ((), 0))
+            n = n + 1 if was == best else 1
+            self._exchange_seen[s] = (best, n)
+            if n >= self._exchange_n and self._frame >= self._exchange_done.get((s, best), -1):
+                del self._exchange_seen[s]
+                # (the same pairs are not exchanged back soon: a dancer's forearms, read right
+                # by one exchange, were read back 0.46 s later, from fresh evidence)
+                self._exchange_done[(s, best)] = self._frame + self._exchange_hold
+                out[s] = np.array(best, dtype=np.int64).reshape(-1, 2)
+                self.exchanged += len(best)
+                self.reset_markers(out[s].ravel())
+        return out
+
+    def _best_exchange(
+        self, s: int, units: list[tuple[int, int]], observed: np.ndarray, p: np.ndarray
+    ) -> tuple[tuple[int, int], ...] | None:
+        """The subset of ``units`` whose exchange reads subject ``s`` best, when it clearly
+        beats the current reading (:meth:`_exchanges`); None otherwise. Each subset is scored
+        on the edges that touch its markers, the exchanged reading against the current one
+        (the other edges read alike in both, and a pose the template never saw adds its own
+        excess to every reading)."""
+        edges = self._subject_edges[s]
+        n_sub = 1 << len(units)
+        sigma = np.tile(np.arange(self.n_markers), (n_sub, 1))
+        inside = np.zeros((n_sub, self.n_markers), dtype=bool)
+        bits = ((np.arange(n_sub)[:, None] >> np.arange(len(units))) & 1).astype(bool)
+        for u, (a, b) in enumerate(units):
+            on = bits[:, u]
+            sigma[on, a], sigma[on, b] = b, a
+            inside[on, a] = inside[on, b] = True
+        ea, eb = self.ea[edges], self.eb[edges]
+        touch = inside[:, ea] | inside[:, eb]
+
+        def mean_excess(ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+            seen = observed[ia] & observed[ib] & touch
+            d = np.sqrt(((p[ia] - p[ib]) ** 2).sum(axis=-1))
+            tol = self.tol[edges]
+            x = np.clip((np.abs(d - self.D[edges]) - tol) / tol, 0.0, EXCHANGE_CAP)
+            x = np.where(seen, np.nan_to_num(x), 0.0)
+            return x.sum(axis=1) / np.maximum(seen.sum(axis=1), 1)
+
+        now = mean_excess(np.broadcast_to(ea, touch.shape), np.broadcast_to(eb, touch.shape))
+        new = mean_excess(sigma[:, ea], sigma[:, eb])
+        ok = (now >= EXCHANGE_MIN_EXCESS) & (new <= EXCHANGE_GAIN * now)
+        # a segment and its twin: two pairs or more (two markers on each other's points are
+        # the labeler's own exchange's; alone, a head plate's front pair read across was
+        # "exchanged" for 13 frames by a ghost in one cell of the boot matrix)
+        ok &= bits.sum(axis=1) >= EXCHANGE_MIN_PAIRS
+        if not ok.any():
+            return None
+        k = int(np.argmax(np.where(ok, now - new, -np.inf)))
+        return tuple(units[u] for u in range(len(units)) if bits[k, u])
 
     def _partner_lacks(self, markers: np.ndarray, observed: np.ndarray) -> bool:
         """Some other subject lacks (has, unobserved) a marker of the same name, either side,

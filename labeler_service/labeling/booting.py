@@ -801,6 +801,10 @@ class BootingLabeler:
         verdict = self._verifier.update(pos, state == MarkerState.OBSERVED, tracks)
         if verdict is None:
             return
+        for s, pairs in verdict.exchange.items():
+            if s in self._active:
+                self._exchange(pairs, glab, pos, state)
+                self.events.append((t, "exchange", self.model.subjects[s].name))
         c = self.boot_config
         for s, mk in verdict.withdraw.items():
             if s not in self._active:
@@ -818,6 +822,25 @@ class BootingLabeler:
         for s in drop:
             self._withhold(s, glab, pos, state)
         self._drop(drop, t, "reject")
+
+    def _exchange(
+        self, pairs: np.ndarray, glab: np.ndarray, pos: np.ndarray, state: np.ndarray
+    ) -> None:
+        """Each marker of ``pairs (K, 2)`` takes the other's points (re-verification: a left
+        and a right marker read on each other's, :meth:`BootVerifier._exchanges`): in this
+        frame, in the window, and in the inner labeler, whose tracks of them start again from
+        the window's exchanged labels (:meth:`Labeler.seed_markers`)."""
+        swap = np.arange(len(self._names) + 1)  # (index -1: the last, itself)
+        swap[pairs[:, 0]], swap[pairs[:, 1]] = pairs[:, 1], pairs[:, 0]
+        for fr in self._window:
+            fr.labels[:] = np.where(fr.labels >= 0, swap[fr.labels], -1)
+        glab[:] = np.where(glab >= 0, swap[glab], -1)
+        a, b = pairs[:, 0], pairs[:, 1]
+        pos[a], pos[b] = pos[b].copy(), pos[a].copy()
+        state[a], state[b] = state[b].copy(), state[a].copy()
+        if not self._labeled_run and self._window:
+            win = [(fr.t, fr.points, fr.labels) for fr in self._window]
+            self._inner.seed_markers(pairs.ravel(), win)
 
     def _withhold(self, s: int, glab: np.ndarray, pos: np.ndarray, state: np.ndarray) -> None:
         """Subject ``s`` gives no label in this frame (its points unlabeled, its markers
