@@ -330,6 +330,8 @@ class BootVerifier:
             for left, right in side_pairs(local):
                 self._mirror[tpl.offset + left] = tpl.offset + right
                 self._mirror[tpl.offset + right] = tpl.offset + left
+        #: per subject its first marker and its count (its markers are contiguous)
+        self._subject_span = [(t.offset, t.n) for t in templates]
         #: per subject its edges (indices into ea, eb)
         self._subject_edges = [
             np.flatnonzero(self._subject_of[self.ea] == s) for s in range(len(n_of))
@@ -504,26 +506,31 @@ class BootVerifier:
         excess to every reading)."""
         edges = self._subject_edges[s]
         n_sub = 1 << len(units)
-        sigma = np.tile(np.arange(self.n_markers), (n_sub, 1))
-        inside = np.zeros((n_sub, self.n_markers), dtype=bool)
+        # (the subject's markers are contiguous: its own columns only, not every subject's)
+        lo, n_s = self._subject_span[s]
+        sigma = np.tile(np.arange(lo, lo + n_s), (n_sub, 1))
+        inside = np.zeros((n_sub, n_s), dtype=bool)
         bits = ((np.arange(n_sub)[:, None] >> np.arange(len(units))) & 1).astype(bool)
         for u, (a, b) in enumerate(units):
             on = bits[:, u]
-            sigma[on, a], sigma[on, b] = b, a
-            inside[on, a] = inside[on, b] = True
+            sigma[on, a - lo], sigma[on, b - lo] = b, a
+            inside[on, a - lo] = inside[on, b - lo] = True
         ea, eb = self.ea[edges], self.eb[edges]
-        touch = inside[:, ea] | inside[:, eb]
+        touch = inside[:, ea - lo] | inside[:, eb - lo]
 
-        def mean_excess(ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
-            seen = observed[ia] & observed[ib] & touch
+        tol, dd = self.tol[edges], self.D[edges]
+
+        def excess(ia: np.ndarray, ib: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Per edge (and subset) its excess over its tolerance, and whether it is seen."""
+            seen = observed[ia] & observed[ib]
             d = np.sqrt(((p[ia] - p[ib]) ** 2).sum(axis=-1))
-            tol = self.tol[edges]
-            x = np.clip((np.abs(d - self.D[edges]) - tol) / tol, 0.0, EXCHANGE_CAP)
-            x = np.where(seen, np.nan_to_num(x), 0.0)
-            return x.sum(axis=1) / np.maximum(seen.sum(axis=1), 1)
+            x = np.clip((np.abs(d - dd) - tol) / tol, 0.0, EXCHANGE_CAP)
+            return np.where(seen, np.nan_to_num(x), 0.0), seen
 
-        now = mean_excess(np.broadcast_to(ea, touch.shape), np.broadcast_to(eb, touch.shape))
-        new = mean_excess(sigma[:, ea], sigma[:, eb])
+        x0, seen0 = excess(ea, eb)  # the current reading: one row, masked per subset below
+        x1, seen1 = excess(sigma[:, ea - lo], sigma[:, eb - lo])
+        now = (touch * x0).sum(axis=1) / np.maximum((touch & seen0).sum(axis=1), 1)
+        new = (touch * x1).sum(axis=1) / np.maximum((touch & seen1).sum(axis=1), 1)
         ok = (now >= EXCHANGE_MIN_EXCESS) & (new <= EXCHANGE_GAIN * now)
         # a segment and its twin: two pairs or more (two markers on each other's points are
         # the labeler's own exchange's; alone, a head plate's front pair read across was
