@@ -773,6 +773,18 @@ def c3d_frames_fit(path: str | Path, n_frames: int) -> None:
         raise CaptureError(f"{path}: {_too_many_frames(n_frames)}")
 
 
+def _c3d_points(capture: Capture, scale: float = 1.0) -> tuple[np.ndarray, dict]:
+    """ezc3d's ``data["points"]`` and ``data["meta_points"]`` of ``capture`` (mm, divided by
+    ``scale`` into the file's units): a missing sample (NaN) has the residual -1, as C3D marks
+    one not captured."""
+    m, n = capture.n_markers, capture.n_frames
+    pts = np.ones((4, m, n), dtype=np.float64)
+    pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0)) / scale
+    residuals = np.zeros((1, m, n), dtype=np.float64)
+    residuals[0, np.isnan(pts[0])] = -1.0
+    return pts, {"residuals": residuals, "camera_masks": np.zeros((7, m, n), dtype=bool)}
+
+
 def _write_c3d(capture: Capture, path: Path, base: tuple[int, float] | None = None) -> None:
     """``base``: the number (1-based) and time of the first frame (:func:`_time_base`)."""
     import ezc3d
@@ -794,15 +806,7 @@ def _write_c3d(capture: Capture, path: Path, base: tuple[int, float] | None = No
         c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
         c.add_parameter("SUBJECTS", "USED", [len(named)])
         c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
-    pts = np.ones((4, capture.n_markers, capture.n_frames), dtype=np.float64)
-    pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0))
-    c["data"]["points"] = pts
-    residuals = np.zeros((1, capture.n_markers, capture.n_frames), dtype=np.float64)
-    residuals[0, np.isnan(pts[0])] = -1.0
-    c["data"]["meta_points"]["residuals"] = residuals
-    c["data"]["meta_points"]["camera_masks"] = np.zeros(
-        (7, capture.n_markers, capture.n_frames), dtype=bool
-    )
+    c["data"]["points"], c["data"]["meta_points"] = _c3d_points(capture)
     if base is not None:
         c["header"]["points"]["first_frame"] = base[0] - 1
     c.write(str(path))
@@ -877,15 +881,7 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
     c.add_parameter("POINT", "UNITS", [unit])
     if float(np.asarray(point.get("SCALE", {}).get("value", [-1.0]))[0]) > 0:
         point["SCALE"]["value"] = np.array([-1.0])  # the points are written as floats
-    pts = np.ones((4, m, n), dtype=np.float64)
-    pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0)) / scale
-    data["points"] = pts
-    residuals = np.zeros((1, m, n), dtype=np.float64)
-    residuals[0, np.isnan(pts[0])] = -1.0
-    data["meta_points"] = {
-        "residuals": residuals,
-        "camera_masks": np.zeros((7, m, n), dtype=bool),
-    }
+    data["points"], data["meta_points"] = _c3d_points(capture, scale)
     kept: list[str] = []
     analogs = np.asarray(data["analogs"])
     per = analogs.shape[2] // n_src if n_src else 0
