@@ -12,6 +12,9 @@ WINDOW_RELEARN_S = 2.0
 #: dropped the subject), ``drop`` (the subject vanished) and ``jump`` (the scene jumped past its
 #: tracks, ``jump_fraction``); a dropped subject is booted again.
 LOSS_EVENTS = ("withdraw", "reject", "drop", "jump")
+#: The events of the re-verification a service counts and logs: the losses, and ``exchange``
+#: (a segment and its mirror twin read on each other's points, exchanged back).
+VERIFY_EVENTS = (*LOSS_EVENTS, "exchange")
 
 
 class BootConfig(BaseModel):

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 
-from labeler_service.labeling.boot_config import LOSS_EVENTS
+from labeler_service.labeling.boot_config import VERIFY_EVENTS
 
 log = logging.getLogger(__name__)
 
@@ -279,7 +279,7 @@ class ServiceMetrics:
         for state in ("observed", "recovered", "missing"):
             with contextlib.suppress(KeyError):
                 self.markers.remove(stream, state)
-        for event in LOSS_EVENTS:
+        for event in VERIFY_EVENTS:
             with contextlib.suppress(KeyError):
                 self.boot_verify.remove(stream, event)
         for outcome in ("took_over", "abandoned"):

@@ -1088,6 +1088,7 @@ class Server:
                 ("reject", "re-verification dropped (boots again)"),
                 ("drop", "dropped as vanished (boots again when seen)"),
                 ("jump", "dropped: the scene jumped past their tracks (boots again)"),
+                ("exchange", "re-verification exchanged left and right markers of"),
             )
             if any(k == kind for k, _ in state.verify_events)
         ]

@@ -92,7 +92,7 @@ import numpy as np
 from labeler_service.capture import Capture, is_ghost, split_label, subject_groups
 from labeler_service.capture.model import rate_problem
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
-from labeler_service.labeling.boot_config import LOSS_EVENTS
+from labeler_service.labeling.boot_config import VERIFY_EVENTS
 from labeler_service.labeling.booting import BootingLabeler, JumpWatch, prepare_boot
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.labeler import Labeler
@@ -1639,14 +1639,14 @@ class StreamState:
 
 def _verify_events(lab: FrameLabeler | None, n_events: int) -> tuple[tuple[str, str], ...]:
     """``(kind, subject)`` of the re-verification's and the vanishing's events
-    (``boot_config.LOSS_EVENTS``) a booting labeler logged since it counted
+    (``boot_config.VERIFY_EVENTS``) a booting labeler logged since it counted
     ``n_events``."""
     if not isinstance(lab, BootingLabeler) or lab.events.total <= n_events:
         return ()
     return tuple(
         (kind, name)
         for _, kind, name in lab.events[n_events - lab.events.total :]
-        if kind in LOSS_EVENTS
+        if kind in VERIFY_EVENTS
     )
 
 

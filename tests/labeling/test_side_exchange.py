@@ -64,6 +64,10 @@ def test_feet_read_exchanged_are_exchanged_back(walk):
     tail = slice(int((back[0] + 0.2) * RATE), cap.n_frames)
     assert wrong[tail].sum() == 0
     assert right[tail].mean() >= 6
+    # a service counts it (mocap_boot_verify_total{event="exchange"}) and logs it
+    from labeler_service.service.stream import _verify_events
+
+    assert ("exchange", "P1") in _verify_events(lab, 0)
 
 
 def test_without_the_check_the_exchange_stays(walk):
