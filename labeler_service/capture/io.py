@@ -531,6 +531,15 @@ def _y_up_to_z_up(cap: Capture) -> Capture:
 METRE_GUESS_MAX = 50.0
 
 
+def _c3d_unit(point: dict, pos: np.ndarray, notes: list[str]) -> str:
+    """A C3D's point units as read: its ``POINT:UNITS``, or without one the guess from its
+    coordinates ``pos (F, M, 3)`` (:func:`_guess_units`: ``"m"``, or ``""`` for millimetres).
+    The reader converts from them and a labeled copy is written back in them."""
+    units = point.get("UNITS", {}).get("value", [])
+    unit = str(units[0]) if len(units) else ""
+    return unit if unit.strip() else _guess_units(pos, notes)
+
+
 def _guess_units(pos: np.ndarray, notes: list[str]) -> str:
     """The units of a C3D without a UNITS parameter: ``"m"`` when every captured coordinate
     (not the (0,0,0) of a gap) lies within :data:`METRE_GUESS_MAX` of the origin (a take in
@@ -631,12 +640,9 @@ def _read_c3d(path: Path) -> Capture:
     why = rate_problem(rate)
     if why is not None:  # (a C3D has no clock of its own to read the rate from instead)
         raise CaptureFormatError(f"{path}: frame rate (POINT:RATE) {why}")
-    units = point.get("UNITS", {}).get("value", [])
     pos = np.transpose(data[:3], (2, 1, 0))  # (F, M, 3)
-    unit = units[0] if len(units) else ""
-    if not unit.strip():
-        unit = _guess_units(pos, notes)
-    elif _unit_scale(unit, path, []) == 1.0 and _guess_units(pos, []) == "m":
+    unit = _c3d_unit(point, pos, notes)
+    if unit.strip() and _unit_scale(unit, path, []) == 1.0 and _guess_units(pos, []) == "m":
         msg = (
             f"UNITS says {unit.strip()} but every coordinate is within "
             f"{METRE_GUESS_MAX:g} of the origin: the take may be in metres (nothing can be "
@@ -773,6 +779,25 @@ def c3d_frames_fit(path: str | Path, n_frames: int) -> None:
         raise CaptureError(f"{path}: {_too_many_frames(n_frames)}")
 
 
+def _c3d_fits(capture: Capture) -> None:
+    """Refuses a capture a C3D cannot hold (no frame, or more than the 16-bit count)."""
+    if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
+        raise CaptureError("a C3D holds at least one frame; this capture has none")
+    if capture.n_frames > C3D_MAX_FRAMES:
+        raise CaptureError(_too_many_frames(capture.n_frames))
+
+
+def _c3d_subjects(c, capture: Capture) -> None:
+    """The Vicon ``SUBJECTS`` group of the ezc3d file ``c``: the labels' ``subject:marker``
+    prefixes, for tools that list subjects from it rather than from the labels."""
+    named = [s for s in capture.subjects if s]
+    if named:
+        c.add_parameter("SUBJECTS", "NAMES", named)
+        c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
+        c.add_parameter("SUBJECTS", "USED", [len(named)])
+        c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
+
+
 def _c3d_points(capture: Capture, scale: float = 1.0) -> tuple[np.ndarray, dict]:
     """ezc3d's ``data["points"]`` and ``data["meta_points"]`` of ``capture`` (mm, divided by
     ``scale`` into the file's units): a missing sample (NaN) has the residual -1, as C3D marks
@@ -789,23 +814,13 @@ def _write_c3d(capture: Capture, path: Path, base: tuple[int, float] | None = No
     """``base``: the number (1-based) and time of the first frame (:func:`_time_base`)."""
     import ezc3d
 
-    if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
-        raise CaptureError("a C3D holds at least one frame; this capture has none")
-    if capture.n_frames > C3D_MAX_FRAMES:
-        raise CaptureError(_too_many_frames(capture.n_frames))
+    _c3d_fits(capture)
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [capture.rate]
     c["parameters"]["POINT"]["LABELS"]["value"] = list(capture.labels)
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = [""] * capture.n_markers
     c.add_parameter("POINT", "UNITS", ["mm"])
-    # the Vicon SUBJECTS group: the labels' subject:marker prefixes, for tools that list
-    # subjects from it rather than from the labels
-    named = [s for s in capture.subjects if s]
-    if named:
-        c.add_parameter("SUBJECTS", "NAMES", named)
-        c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
-        c.add_parameter("SUBJECTS", "USED", [len(named)])
-        c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
+    _c3d_subjects(c, capture)
     c["data"]["points"], c["data"]["meta_points"] = _c3d_points(capture)
     if base is not None:
         c["header"]["points"]["first_frame"] = base[0] - 1
@@ -853,10 +868,7 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
     subjects. Returns what was kept, in words."""
     import ezc3d
 
-    if capture.n_frames == 0:  # (ezc3d fails with a ZeroDivisionError)
-        raise CaptureError("a C3D holds at least one frame; this capture has none")
-    if capture.n_frames > C3D_MAX_FRAMES:
-        raise CaptureError(_too_many_frames(capture.n_frames))
+    _c3d_fits(capture)
     c = ezc3d.c3d(str(source))
     params = c["parameters"]
     point = params["POINT"]
@@ -866,11 +878,8 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
     if start + n > n_src:
         raise CaptureError(f"{source}: frames {start}-{start + n} are past its {n_src} frames")
     # the units the reader converted from (a file without UNITS: as it guessed)
-    units = point.get("UNITS", {}).get("value", [])
-    unit = str(units[0]).strip() if len(units) else ""
-    if not unit:
-        xyz = np.transpose(np.asarray(data["points"], dtype=np.float64)[:3], (2, 1, 0))
-        unit = _guess_units(xyz, []) or "mm"
+    xyz = np.transpose(np.asarray(data["points"], dtype=np.float64)[:3], (2, 1, 0))
+    unit = _c3d_unit(point, xyz, []).strip() or "mm"
     scale = _unit_scale(unit, source, [])
     for key in [k for k in point if k in _POINT_OWN or k.startswith(("LABELS", "DESCRIPTIONS"))]:
         del point[key]
@@ -910,14 +919,9 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
             trial[key]["value"] = np.array([frame & 0xFFFF, frame >> 16])
     if first:
         kept.append(f"time base (first frame {first + 1})")
-    named = [s for s in capture.subjects if s]
-    if "SUBJECTS" in params:
+    if "SUBJECTS" in params:  # (the source's names its own subjects, not the capture's)
         del params["SUBJECTS"]
-    if named:
-        c.add_parameter("SUBJECTS", "NAMES", named)
-        c.add_parameter("SUBJECTS", "LABEL_PREFIXES", [f"{s}:" for s in named])
-        c.add_parameter("SUBJECTS", "USED", [len(named)])
-        c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
+    _c3d_subjects(c, capture)
     other = sorted(g for g in params if g not in _C3D_OWN_GROUPS and g.strip())
     if other:
         kept.append(f"parameter groups {', '.join(other)}")
