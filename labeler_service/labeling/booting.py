@@ -750,13 +750,10 @@ class BootingLabeler:
         prediction, which every point of a take played back and forth is at each turn."""
         m = len(self._names)
         p1, p2 = np.full((m, 3), np.nan), np.full((m, 3), np.nan)
-        for fr, into in (
-            (self._window[-1], p1),
-            (self._window[-2] if len(self._window) > 1 else None, p2),
-        ):
-            if fr is not None:
-                ok = fr.labels >= 0
-                into[fr.labels[ok]] = fr.points[ok]
+        last_two = [self._window[-k] for k in range(1, min(2, len(self._window)) + 1)]
+        for fr, into in zip(last_two, (p1, p2), strict=False):
+            ok = fr.labels >= 0
+            into[fr.labels[ok]] = fr.points[ok]
         seen = np.flatnonzero(np.isfinite(p1[:, 0]) & np.isin(self._subject_of, hit))
         dt = t - self._window[-1].t
         dt = dt if dt > 0 else 1.0 / self.rate
@@ -1762,7 +1759,7 @@ class JumpWatch:
         self.share = min(self.share, new / cur.shape[0])
         if new < c.jump_fraction * cur.shape[0]:
             return none
-        lost = every[self._misses(pts, every, dt)]
+        lost = every[_no_point_within(pts, np.ascontiguousarray(self._pos[every]), reach)]
         return _subjects_losing(self._subject_of, every, lost, c.jump_fraction)
 
     def _reach(self, markers: np.ndarray, dt: float) -> np.ndarray:
