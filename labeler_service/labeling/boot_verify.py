@@ -436,18 +436,21 @@ class BootVerifier:
         distance holds, the pairs across the feet and to the shins do not, and nothing took
         the reading back: his feet stayed exchanged for good, the stream ``online``).
 
-        Per subject with bad pairs of a trained body (off more often than ``verify_bad``), the
-        left-right pairs (:func:`~labeler_service.capture.model.side_pairs`) of those bodies'
-        markers are tried exchanged, every subset of them (at most :data:`EXCHANGE_MAX_PAIRS`): each
-        reading is scored by its mean excess over the template's tolerances, over every edge of
-        the subject both of whose markers it observes. The best is taken when it scores at most
-        :data:`EXCHANGE_GAIN` of the current reading on the edges it touches, which is at
-        least :data:`EXCHANGE_MIN_EXCESS` there, on every tick for ``verify_exchange_s``: a
-        pose the template has not seen costs every reading alike, a mirrored one only the
-        current."""
+        Per verified subject, the markers of its trained bodies with a bad pair (off more often
+        than ``verify_bad``) and of the far side of a joint whose pair is far off, grown by the
+        bodies sharing two markers with them, give left-right pairs
+        (:func:`~labeler_service.capture.model.side_pairs`; none inside a symmetric plate).
+        Every subset of 2 to :data:`EXCHANGE_MAX_PAIRS` of them is tried exchanged
+        (:meth:`_best_exchange`, scored on the edges it touches); the best is taken when it
+        wins on every tick for ``verify_exchange_s`` and the same pairs were not exchanged in
+        the last :data:`EXCHANGE_HOLD_S`: a pose the template has not seen costs every reading
+        alike, a mirrored one only the current."""
         c = self.config
         ready = e[self.n[e] >= self._min_n]
         bad = ready[self.ema[ready] > c.verify_bad]
+        if bad.size == 0:  # (most ticks)
+            self._exchange_seen.clear()
+            return {}
         rigid = self.joint[bad] < 0
         far = np.abs(self.m1[bad] - self.D[bad]) >= c.verify_cut_tol * self.tol[bad]
         out: dict[int, np.ndarray] = {}
@@ -500,10 +503,12 @@ class BootVerifier:
         self, s: int, units: list[tuple[int, int]], observed: np.ndarray, p: np.ndarray
     ) -> tuple[tuple[int, int], ...] | None:
         """The subset of ``units`` whose exchange reads subject ``s`` best, when it clearly
-        beats the current reading (:meth:`_exchanges`); None otherwise. Each subset is scored
-        on the edges that touch its markers, the exchanged reading against the current one
-        (the other edges read alike in both, and a pose the template never saw adds its own
-        excess to every reading)."""
+        beats the current reading; None otherwise. Each subset is scored on the edges that
+        touch its markers (the other edges read alike in both, and a pose the template never
+        saw adds its own excess to every reading): the mean excess over the template's
+        tolerances (each capped at :data:`EXCHANGE_CAP`) of the exchanged reading must be at
+        most :data:`EXCHANGE_GAIN` of the current one's, which is at least
+        :data:`EXCHANGE_MIN_EXCESS`."""
         edges = self._subject_edges[s]
         n_sub = 1 << len(units)
         # (the subject's markers are contiguous: its own columns only, not every subject's)
