@@ -571,6 +571,22 @@ MUTANTS: list[Mutant] = [
         "a subject read right has a segment exchanged with its twin whenever a pair is off",
     ),
     Mutant(
+        "side-exchange-without-whole-limbs",
+        "labeler_service/labeling/boot_verify.py",
+        "            limbs = limbs_of.get(s, set())\n",
+        "            limbs: set = set()\n",
+        (T + "labeling/test_side_exchange.py",),
+        "a leg read as the other from the hip down stays so for good",
+    ),
+    Mutant(
+        "side-exchange-limb-scored-on-every-edge",
+        "labeler_service/labeling/boot_verify.py",
+        "        if limbs is not None and limbs.any():\n",
+        "        if False:\n",
+        (T + "labeling/test_side_exchange.py",),
+        "a whole leg's exchange is thinned by its own pairs below the threshold, never taken",
+    ),
+    Mutant(
         "side-exchange-never-applied",
         "labeler_service/labeling/booting.py",
         "                self._exchange(pairs, glab, pos, state)\n",

@@ -109,6 +109,16 @@ JOINT_D = 0.05
 JOINT_REACH = 1.5
 
 
+def _subsets(units: list, among: list) -> np.ndarray:
+    """``(2^n, len(units))`` every subset of ``among`` (``n`` of the ``units``) as rows of
+    flags over ``units``."""
+    n = len(among)
+    cols = np.array([units.index(u) for u in among], dtype=np.int64)
+    out = np.zeros((1 << n, len(units)), dtype=bool)
+    out[:, cols] = ((np.arange(1 << n)[:, None] >> np.arange(n)) & 1).astype(bool)
+    return out
+
+
 def _sideless(name: str) -> str:
     """A marker name without its body side (``LFRM``, ``RFRM`` -> ``FRM``; ``Ulna_L`` ->
     ``Ulna``; ``l bar 2`` -> ``bar 2``)."""
@@ -346,6 +356,26 @@ class BootVerifier:
             twins = [k for k in mk.tolist() if self._mirror[k] in inside]
             if len(twins) >= 4:  # (two pairs: four markers)
                 self._in_plate[twins] = True
+        #: per trained body the left-right pairs of it and of every body that hangs from it
+        #: (its subtree in the chain from the trunk: a whole limb, tried exchanged at once)
+        self._limb_pairs = [
+            tuple(
+                self._side_units(
+                    {k for h in self._subtree[g].tolist() for k in self._body_markers[h].tolist()}
+                )
+            )
+            for g in range(len(self._body_markers))
+        ]
+        self._has_limb = np.array(
+            [len(u) >= EXCHANGE_MIN_PAIRS for u in self._limb_pairs], dtype=bool
+        )
+        self._body_subject = np.array(
+            [int(self._subject_of[bm[0]]) for bm in self._body_markers], dtype=np.int64
+        )
+        #: ``(bodies, markers)`` membership, for the bodies two of whose markers are hit
+        self._incidence = np.zeros((len(self._body_markers), self.n_markers), dtype=np.float32)
+        for g, bm in enumerate(self._body_markers):
+            self._incidence[g, bm] = 1
         #: per (subject, pairs) exchanged: the frame before which they are not exchanged again
         self._exchange_done: dict[tuple[int, tuple[tuple[int, int], ...]], int] = {}
         self._exchange_hold = max(1, round(EXCHANGE_HOLD_S * rate))
@@ -441,10 +471,12 @@ class BootVerifier:
         bodies sharing two markers with them, give left-right pairs
         (:func:`~labeler_service.capture.model.side_pairs`; none inside a symmetric plate).
         Every subset of 2 to :data:`EXCHANGE_MAX_PAIRS` of them is tried exchanged
-        (:meth:`_best_exchange`, scored on the edges it touches); the best is taken when it
-        wins on every tick for ``verify_exchange_s`` and the same pairs were not exchanged in
-        the last :data:`EXCHANGE_HOLD_S`: a pose the template has not seen costs every reading
-        alike, a mirrored one only the current."""
+        (:meth:`_best_exchange`, scored on the edges it touches), and so is each of their
+        bodies with every segment that hangs from it, whole (a leg read as the other from the
+        hip down; tune18 ``gaps2`` in the boot matrix, a mirrored boot after gaps); the best
+        is taken when it wins on every tick for ``verify_exchange_s`` and the same pairs were
+        not exchanged in the last :data:`EXCHANGE_HOLD_S`: a pose the template has not seen
+        costs every reading alike, a mirrored one only the current."""
         c = self.config
         ready = e[self.n[e] >= self._min_n]
         bad = ready[self.ema[ready] > c.verify_bad]
@@ -472,17 +504,37 @@ class BootVerifier:
             if grown == hit:
                 break
             hit = grown
-        ends = np.array(sorted(hit), dtype=np.int64)
+        by_subject: dict[int, set[int]] = {}
+        for k in hit:
+            by_subject.setdefault(int(self._subject_of[k]), set()).add(k)
+        # the trained bodies among them (two of their markers hit), for their whole limbs
+        mask = np.zeros(self.n_markers, dtype=np.float32)
+        mask[list(hit)] = 1.0
+        limbs_of: dict[int, set[tuple[tuple[int, int], ...]]] = {}
+        for g in np.flatnonzero((self._incidence @ mask >= 2) & self._has_limb).tolist():
+            limbs_of.setdefault(int(self._body_subject[g]), set()).add(self._limb_pairs[g])
         for s in range(len(self._subject_edges)):
-            mk = ends[self._subject_of[ends] == s] if self._on[s] else ends[:0]
-            mk = mk[~self._in_plate[mk]]
-            tw = self._mirror[mk]
-            units = sorted(
-                {(int(min(a, b)), int(max(a, b))) for a, b in zip(mk, tw, strict=True) if b >= 0}
-            )
+            mine = by_subject.get(s) if self._on[s] else None
+            if not mine:
+                self._exchange_seen.pop(s, None)
+                continue
+            units = self._side_units(mine)
+            # each such body with every segment that hangs from it, as one more reading: a leg
+            # read as the other from the hip down (its knee, shin and foot read across with
+            # it) is off only at the hip, and no subset of the thigh's pairs reads it better
+            limbs = limbs_of.get(s, set())
+            every = sorted(set(units).union(*limbs))
+            rows = [] if len(units) > EXCHANGE_MAX_PAIRS else [_subsets(every, units)]
+            n_sub = sum(r.shape[0] for r in rows)  # (the rows after these: whole limbs)
+            rows += [
+                np.isin(np.arange(len(every)), [every.index(u) for u in lm])[None]
+                for lm in sorted(limbs)
+            ]
             best = None
-            if 0 < len(units) <= EXCHANGE_MAX_PAIRS:
-                best = self._best_exchange(s, units, observed, p)
+            if every and rows:
+                bits = np.concatenate(rows)
+                whole = np.arange(bits.shape[0]) >= n_sub
+                best = self._best_exchange(s, every, observed, p, bits, whole)
             if best is None:
                 self._exchange_seen.pop(s, None)
                 continue
@@ -499,23 +551,42 @@ class BootVerifier:
                 self.reset_markers(out[s].ravel())
         return out
 
+    def _side_units(self, markers: set[int]) -> list[tuple[int, int]]:
+        """The left-right pairs among ``markers`` (of one subject), none inside a symmetric
+        plate: ``(lower, higher)`` global marker indices, sorted."""
+        mk = np.array(sorted(markers), dtype=np.int64)
+        mk = mk[~self._in_plate[mk]]
+        tw = self._mirror[mk]
+        return sorted(
+            {(int(min(a, b)), int(max(a, b))) for a, b in zip(mk, tw, strict=True) if b >= 0}
+        )
+
     def _best_exchange(
-        self, s: int, units: list[tuple[int, int]], observed: np.ndarray, p: np.ndarray
+        self,
+        s: int,
+        units: list[tuple[int, int]],
+        observed: np.ndarray,
+        p: np.ndarray,
+        bits: np.ndarray | None = None,
+        limbs: np.ndarray | None = None,
     ) -> tuple[tuple[int, int], ...] | None:
         """The subset of ``units`` whose exchange reads subject ``s`` best, when it clearly
-        beats the current reading; None otherwise. Each subset is scored on the edges that
-        touch its markers (the other edges read alike in both, and a pose the template never
-        saw adds its own excess to every reading): the mean excess over the template's
-        tolerances (each capped at :data:`EXCHANGE_CAP`) of the exchanged reading must be at
-        most :data:`EXCHANGE_GAIN` of the current one's, which is at least
-        :data:`EXCHANGE_MIN_EXCESS`."""
+        beats the current reading; None otherwise. ``bits (R, len(units))``: the subsets
+        tried (default every one); ``limbs (R,)``: those that are a whole limb (a body with
+        every segment that hangs from it). Each subset is scored on the edges that touch its
+        markers (the other edges read alike in both, and a pose the template never saw adds
+        its own excess to every reading), a whole limb on those of them where the two readings
+        differ: the mean excess over the template's tolerances (each capped at
+        :data:`EXCHANGE_CAP`) of the exchanged reading must be at most :data:`EXCHANGE_GAIN` of
+        the current one's, which is at least :data:`EXCHANGE_MIN_EXCESS`."""
         edges = self._subject_edges[s]
-        n_sub = 1 << len(units)
+        if bits is None:
+            bits = _subsets(units, units)
+        n_sub = bits.shape[0]
         # (the subject's markers are contiguous: its own columns only, not every subject's)
         lo, n_s = self._subject_span[s]
         sigma = np.tile(np.arange(lo, lo + n_s), (n_sub, 1))
         inside = np.zeros((n_sub, n_s), dtype=bool)
-        bits = ((np.arange(n_sub)[:, None] >> np.arange(len(units))) & 1).astype(bool)
         for u, (a, b) in enumerate(units):
             on = bits[:, u]
             sigma[on, a - lo], sigma[on, b - lo] = b, a
@@ -534,8 +605,14 @@ class BootVerifier:
 
         x0, seen0 = excess(ea, eb)  # the current reading: one row, masked per subset below
         x1, seen1 = excess(sigma[:, ea - lo], sigma[:, eb - lo])
-        now = (touch * x0).sum(axis=1) / np.maximum((touch & seen0).sum(axis=1), 1)
-        new = (touch * x1).sum(axis=1) / np.maximum((touch & seen1).sum(axis=1), 1)
+        # a whole limb's reading counts the edges on which the two readings differ: its own
+        # pairs read alike either way (a leg's twin holds them too) and would thin the hip's
+        # excess below the threshold; a subset's counts every edge it touches
+        count = touch.copy()
+        if limbs is not None and limbs.any():
+            count[limbs] &= seen0 & seen1[limbs] & (x0 != x1[limbs])
+        now = (count * x0).sum(axis=1) / np.maximum((count & seen0).sum(axis=1), 1)
+        new = (count * x1).sum(axis=1) / np.maximum((count & seen1).sum(axis=1), 1)
         ok = (now >= EXCHANGE_MIN_EXCESS) & (new <= EXCHANGE_GAIN * now)
         # a segment and its twin: two pairs or more (two markers on each other's points are
         # the labeler's own exchange's; alone, a head plate's front pair read across was

@@ -20,6 +20,8 @@ from labeler_service.testing.frames import ModelFrames
 
 RATE = 120.0
 FEET = ("ANK", "HEE", "TOE", "MT5")
+#: a whole leg: thigh, knee, shin and foot (nine pairs, more than every subset takes)
+LEG = ("THI", "THA", "KNE", "TIB", "SHN", *FEET)
 
 
 @pytest.fixture(scope="module")
@@ -29,14 +31,15 @@ def walk():
     return train(scene.frames(0, half)), scene.frames(half, scene.n_frames)
 
 
-def _run(model, cap, boot: BootConfig, swap_at: int | None):
-    """Labels the stream; at frame ``swap_at`` P1's feet are put on each other's points (as a
-    boot that read them mirrored leaves them). Returns the labeler and, per frame, how many
-    of P1's foot markers are on their own points and on wrong ones."""
+def _run(model, cap, boot: BootConfig, swap_at: int | None, segment: tuple[str, ...] = FEET):
+    """Labels the stream; at frame ``swap_at`` P1's feet (or ``segment``'s markers) are put
+    on each other's points (as a boot that read them mirrored leaves them). Returns the
+    labeler and, per frame, how many of those markers are on their own points and on wrong
+    ones."""
     frames = ModelFrames(cap, model.marker_names, seed=3)
     lab = BootingLabeler(model, RATE, boot=boot)
     names = list(model.marker_names)
-    pairs = np.array([[names.index(f"P1:L{m}"), names.index(f"P1:R{m}")] for m in FEET])
+    pairs = np.array([[names.index(f"P1:L{m}"), names.index(f"P1:R{m}")] for m in segment])
     foot = pairs.ravel()
     right, wrong = [], []
     m = len(names)
@@ -68,6 +71,24 @@ def test_feet_read_exchanged_are_exchanged_back(walk):
     from labeler_service.service.stream import _verify_events
 
     assert ("exchange", "P1") in _verify_events(lab, 0)
+
+
+def test_a_whole_leg_read_exchanged_comes_back_whole(walk):
+    """The two legs read on each other's points from the hips down (the still-window boot of
+    a returning performer; a boot matrix cell's legs after gaps): off at the hips and where
+    the two legs' markers are not mirror images, and no subset of the thigh's pairs reads it
+    better. The thigh's body with every segment that hangs from it is one more reading,
+    scored on the edges where the two readings differ (the leg's own pairs that hold either
+    way would thin its excess below the threshold)."""
+    model, cap = walk
+    swap = int(1.0 * RATE)
+    lab, right, wrong = _run(model, cap, BootConfig(), swap, LEG)
+    assert wrong[swap] >= 16
+    back = [t for t, kind, who in lab.events if kind == "exchange" and who == "P1"]
+    assert back and back[0] - swap / RATE <= 1.0, lab.events
+    tail = slice(int((back[-1] + 0.2) * RATE), cap.n_frames)
+    assert wrong[tail].sum() == 0
+    assert right[tail].mean() >= 17
 
 
 def test_without_the_check_the_exchange_stays(walk):
