@@ -195,6 +195,7 @@ def write_capture(
     path: str | Path,
     like: str | Path | None = None,
     kept: list[str] | None = None,
+    calculated: np.ndarray | None = None,
 ) -> Path:
     """Writes a capture as C3D, TRC or NPZ (by suffix), creating parent folders.
 
@@ -209,7 +210,9 @@ def write_capture(
     points (:func:`_write_c3d_like`: analog channels, events, force plates, every parameter
     group, the time base, the units); otherwise a C3D or TRC output keeps ``like``'s time base
     (the number and time of its first frame, :func:`_time_base`). ``kept`` (a list) is filled
-    with what was kept, in words.
+    with what was kept, in words. ``calculated`` (``(F, M)`` bool): samples estimated, not
+    observed (a hidden marker's recovered position); a C3D gives them the residual 0, C3D's
+    mark of a calculated point, and every other present sample the residual 1.
     """
     p = Path(path)
     target, suffix = _target(p, SUFFIXES)
@@ -228,14 +231,14 @@ def write_capture(
     def write_c3d(cap: Capture, tmp: Path) -> None:
         if source is not None and source.suffix.lower() == ".c3d":
             try:
-                said[:] = _write_c3d_like(cap, tmp, source, start)
+                said[:] = _write_c3d_like(cap, tmp, source, start, calculated)
                 return
             except (CaptureError, OSError):
                 raise
             except Exception as exc:  # a source ezc3d cannot write back: the points alone
                 log.warning("%s: written without the rest of %s (%s: %s)", p, source,
                             type(exc).__name__, exc)  # fmt: skip
-        _write_c3d(cap, tmp, base())
+        _write_c3d(cap, tmp, base(), calculated)
 
     writer: _Writer = {
         ".c3d": write_c3d,
@@ -516,7 +519,7 @@ def _default_subject(cap: Capture, stem: str) -> Capture:
     named = [x for x in cap.labels if not is_ghost(x)]
     if named and all(split_label(x)[0] is None for x in named):
         subject = stem.replace(":", "_") or "subject"
-        return cap.with_subject(subject)
+        return replace(cap.with_subject(subject), default_subject=subject)
     return cap
 
 
@@ -555,6 +558,40 @@ def _guess_units(pos: np.ndarray, notes: list[str]) -> str:
         f"no UNITS parameter and every coordinate within {reach:.3g} of the origin: read as metres"
     )
     return "m"
+
+
+#: coordinates said to be in metres (or cm) that reach this far from the origin, in those
+#: units, are millimetres: no capture volume is 200 m across
+MILLIMETRE_GUESS_MIN = 200.0
+
+
+def _units_doubt(said: str, unit: str, pos: np.ndarray, path: Path, notes: list[str]) -> None:
+    """Notes and logs units the coordinates ``pos`` (as stored) contradict: millimetres on a
+    take whose every coordinate lies within :data:`METRE_GUESS_MAX` of the origin (a body a
+    few millimetres tall), or metres/centimetres on one reaching past
+    :data:`MILLIMETRE_GUESS_MIN` (a body a kilometre tall). ``said``: where the units came
+    from (``UNITS``, ``Units``)."""
+    if not unit.strip():
+        return
+    scale = _unit_scale(unit, path, [])
+    seen = np.isfinite(pos).all(axis=2) & np.any(pos != 0.0, axis=2)
+    reach = float(np.abs(pos[seen]).max()) if seen.any() else 0.0
+    msg = None
+    if scale == 1.0 and seen.any() and reach < METRE_GUESS_MAX:
+        msg = (
+            f"{said} says {unit.strip()} but every coordinate is within {METRE_GUESS_MAX:g} of "
+            "the origin: the take may be in metres (nothing can be labeled on a body a few "
+            "millimetres tall)"
+        )
+    elif scale > 1.0 and reach >= MILLIMETRE_GUESS_MIN:
+        msg = (
+            f"{said} says {unit.strip()} but coordinates reach {reach:.4g} from the origin "
+            f"({reach * scale / 1e6:.3g} km): the take may be in millimetres (nothing can be "
+            "labeled on a body a kilometre tall)"
+        )
+    if msg is not None:
+        notes.append(msg)
+        log.warning("%s: %s", path, msg)
 
 
 def _unit_scale(units: str, source: Path, notes: list[str]) -> float:
@@ -642,14 +679,7 @@ def _read_c3d(path: Path) -> Capture:
         raise CaptureFormatError(f"{path}: frame rate (POINT:RATE) {why}")
     pos = np.transpose(data[:3], (2, 1, 0))  # (F, M, 3)
     unit = _c3d_unit(point, pos, notes)
-    if unit.strip() and _unit_scale(unit, path, []) == 1.0 and _guess_units(pos, []) == "m":
-        msg = (
-            f"UNITS says {unit.strip()} but every coordinate is within "
-            f"{METRE_GUESS_MAX:g} of the origin: the take may be in metres (nothing can be "
-            "labeled on a body a few millimetres tall)"
-        )
-        notes.append(msg)
-        log.warning("%s: %s", path, msg)
+    _units_doubt("UNITS", unit, pos, path, notes)
     pos = pos * _unit_scale(unit, path, notes)
     residuals = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, F)
     if residuals.size:
@@ -798,19 +828,29 @@ def _c3d_subjects(c, capture: Capture) -> None:
         c.add_parameter("SUBJECTS", "IS_STATIC", [0] * len(named))
 
 
-def _c3d_points(capture: Capture, scale: float = 1.0) -> tuple[np.ndarray, dict]:
+def _c3d_points(
+    capture: Capture, scale: float = 1.0, calculated: np.ndarray | None = None
+) -> tuple[np.ndarray, dict]:
     """ezc3d's ``data["points"]`` and ``data["meta_points"]`` of ``capture`` (mm, divided by
     ``scale`` into the file's units): a missing sample (NaN) has the residual -1, as C3D marks
-    one not captured."""
+    one not captured; with ``calculated`` (``(F, M)`` bool), those samples have the residual 0
+    (C3D's calculated point) and the other present ones 1 (without it, every present one 0)."""
     m, n = capture.n_markers, capture.n_frames
     pts = np.ones((4, m, n), dtype=np.float64)
     pts[:3] = np.transpose(capture.positions.astype(np.float64), (2, 1, 0)) / scale
     residuals = np.zeros((1, m, n), dtype=np.float64)
+    if calculated is not None:
+        residuals[0] = np.where(np.asarray(calculated, dtype=bool).T, 0.0, 1.0)
     residuals[0, np.isnan(pts[0])] = -1.0
     return pts, {"residuals": residuals, "camera_masks": np.zeros((7, m, n), dtype=bool)}
 
 
-def _write_c3d(capture: Capture, path: Path, base: tuple[int, float] | None = None) -> None:
+def _write_c3d(
+    capture: Capture,
+    path: Path,
+    base: tuple[int, float] | None = None,
+    calculated: np.ndarray | None = None,
+) -> None:
     """``base``: the number (1-based) and time of the first frame (:func:`_time_base`)."""
     import ezc3d
 
@@ -821,7 +861,7 @@ def _write_c3d(capture: Capture, path: Path, base: tuple[int, float] | None = No
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = [""] * capture.n_markers
     c.add_parameter("POINT", "UNITS", ["mm"])
     _c3d_subjects(c, capture)
-    c["data"]["points"], c["data"]["meta_points"] = _c3d_points(capture)
+    c["data"]["points"], c["data"]["meta_points"] = _c3d_points(capture, 1.0, calculated)
     if base is not None:
         c["header"]["points"]["first_frame"] = base[0] - 1
     c.write(str(path))
@@ -857,7 +897,13 @@ _C3D_OWN_GROUPS = ("POINT", "ANALOG", "SUBJECTS", "EZC3D", "ROTATION")
 _POINT_OWN = ("LABELS", "DESCRIPTIONS", "USED", "FRAMES", "DATA_START", "TYPE_GROUPS")
 
 
-def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> list[str]:
+def _write_c3d_like(
+    capture: Capture,
+    path: Path,
+    source: Path,
+    start: int,
+    calculated: np.ndarray | None = None,
+) -> list[str]:
     """Writes ``capture`` (frames ``start``... of the C3D ``source``, in its axes, in mm) as
     ``source`` with only its points replaced, so a labeled take overlays the take it came from:
     its analog channels (force plates, EMG) cut to the same frames, its events, its force
@@ -890,7 +936,7 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
     c.add_parameter("POINT", "UNITS", [unit])
     if float(np.asarray(point.get("SCALE", {}).get("value", [-1.0]))[0]) > 0:
         point["SCALE"]["value"] = np.array([-1.0])  # the points are written as floats
-    data["points"], data["meta_points"] = _c3d_points(capture, scale)
+    data["points"], data["meta_points"] = _c3d_points(capture, scale, calculated)
     kept: list[str] = []
     analogs = np.asarray(data["analogs"])
     per = analogs.shape[2] // n_src if n_src else 0
@@ -908,10 +954,11 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
             data["rotations"] = rot[..., start * per_r : (start + n) * per_r]
         else:
             del data["rotations"]
-    events = params.get("EVENT", {}).get("USED", {}).get("value", [])
-    if len(events) and int(events[0]):
-        kept.append(plural(int(events[0]), "event"))
     first = int(c["header"]["points"]["first_frame"]) + start
+    n_events, n_out = _c3d_events_within(params, first, n, _c3d_rate(params))
+    if n_events or n_out:
+        left = f" ({n_out} outside its frames left out)" if n_out else ""
+        kept.append(f"{plural(n_events, 'event') if n_events else 'no event'}{left}")
     c["header"]["points"]["first_frame"] = first
     trial = params.get("TRIAL", {})
     for key, frame in (("ACTUAL_START_FIELD", first + 1), ("ACTUAL_END_FIELD", first + n)):
@@ -919,9 +966,10 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
             trial[key]["value"] = np.array([frame & 0xFFFF, frame >> 16])
     if first:
         kept.append(f"time base (first frame {first + 1})")
-    if "SUBJECTS" in params:  # (the source's names its own subjects, not the capture's)
-        del params["SUBJECTS"]
-    _c3d_subjects(c, capture)
+    if any(capture.subjects):  # (the source's names its own subjects, not the capture's)
+        if "SUBJECTS" in params:
+            del params["SUBJECTS"]
+        _c3d_subjects(c, capture)
     other = sorted(g for g in params if g not in _C3D_OWN_GROUPS and g.strip())
     if other:
         kept.append(f"parameter groups {', '.join(other)}")
@@ -929,6 +977,44 @@ def _write_c3d_like(capture: Capture, path: Path, source: Path, start: int) -> l
     width = 16 * m + 4 * int(np.asarray(data["analogs"]).shape[1]) * max(per, 1)
     _check_c3d_written(path, width * n)
     return kept
+
+
+def _c3d_rate(params: dict) -> float:
+    """A C3D's point rate from its parameters (0 when it has none)."""
+    rate = params.get("POINT", {}).get("RATE", {}).get("value", [])
+    return float(np.asarray(rate).ravel()[0]) if len(rate) else 0.0
+
+
+#: every EVENT parameter with one entry per event (TIMES: one column per event)
+_EVENT_LISTS = ("LABELS", "CONTEXTS", "DESCRIPTIONS", "ICON_IDS", "GENERIC_FLAGS")
+
+
+def _c3d_events_within(params: dict, first: int, n: int, rate: float) -> tuple[int, int]:
+    """Keeps in ``params["EVENT"]`` the events within the frames ``first`` (0-based, on the
+    file's time base: frame k at k / rate s) to ``first + n - 1``, half a frame either side;
+    returns how many were kept and how many left out. A group it cannot read is kept whole."""
+    ev = params.get("EVENT", {})
+    used = np.asarray(ev.get("USED", {}).get("value", [0])).ravel()
+    total = int(used[0]) if used.size else 0
+    times = np.asarray(ev.get("TIMES", {}).get("value", []), dtype=np.float64)
+    if not total or rate <= 0 or times.ndim != 2 or times.shape != (2, total):
+        return total, 0
+    t = 60.0 * times[0] + times[1]
+    half = 0.5 / rate
+    keep = (t >= first / rate - half) & (t <= (first + n - 1) / rate + half)
+    if keep.all():
+        return total, 0
+    idx = np.flatnonzero(keep)
+    for key in _EVENT_LISTS:
+        if key in ev:
+            vals = ev[key]["value"]
+            if len(vals) == total:
+                ev[key]["value"] = (
+                    [vals[i] for i in idx] if isinstance(vals, list) else np.asarray(vals)[idx]
+                )
+    ev["TIMES"]["value"] = times[:, idx]
+    ev["USED"]["value"] = np.array([idx.size])
+    return int(idx.size), total - int(idx.size)
 
 
 def _check_c3d_written(path: Path, data_bytes: int) -> None:
@@ -1156,10 +1242,19 @@ def _trc_rate(
     )
 
 
-def _trc_clock(rows: list[_TRCRow], rate: float, origin: str, path: Path, notes: list[str]) -> None:
+#: frame numbers that skip frames place the rows by them while the frames they span are at most
+#: this many times the rows (a stray huge number must not allocate gigabytes)
+TRC_SKIP_SPAN = 10
+
+
+def _trc_clock(
+    rows: list[_TRCRow], rate: float, origin: str, path: Path, notes: list[str]
+) -> np.ndarray | None:
     """Checks the Frame# and Time columns against reading the rows in file order at ``rate``
     (from ``origin``): frame numbers out of order, repeated or skipped, and a Time column whose
-    spacing gives a rate more than :data:`TRC_RATE_TOL` from it, are noted."""
+    spacing gives a rate more than :data:`TRC_RATE_TOL` from it, are noted. Frame numbers that
+    count up and skip some (frames the exporter left out: nothing seen) give each row's frame
+    from the first, returned; the skipped frames are read empty. None: rows in file order."""
     frames = _trc_column(rows, 0)
     whole = np.isfinite(frames) & (frames == np.round(frames))
     if not whole.all():
@@ -1172,17 +1267,26 @@ def _trc_clock(rows: list[_TRCRow], rate: float, origin: str, path: Path, notes:
     if same:
         notes.append(f"Frame# repeated ({plural(same, 'row')}): rows read in file order")
     skipped = int(known.max() - known.min() + 1) - np.unique(known).size if known.size else 0
+    placed = None
     if skipped:
-        notes.append(
-            f"Frame# numbers skip {plural(skipped, 'frame')}: rows read as consecutive frames"
-        )
+        span = int(known.max() - known.min() + 1)
+        if whole.all() and not (back or same) and span <= TRC_SKIP_SPAN * len(rows):
+            placed = (known - known.min()).astype(np.int64)
+            notes.append(
+                f"Frame# numbers skip {plural(skipped, 'frame')}: read as frames with no marker "
+                "seen (each row at its frame number)"
+            )
+        else:
+            notes.append(
+                f"Frame# numbers skip {plural(skipped, 'frame')}: rows read as consecutive frames"
+            )
     if origin == "the Time column":
-        return
+        return placed
     said, why = _trc_time_rate(rows)
     if said is None:
         if why.startswith("Time does not increase") and not (back or same):
             notes.append("Time does not increase row by row: its spacing is not checked")
-        return
+        return placed
     if abs(said / rate - 1.0) > TRC_RATE_TOL:
         msg = (
             f"{origin} {rate:g} Hz, the Time column's spacing gives {said:.4g} Hz: read "
@@ -1190,6 +1294,7 @@ def _trc_clock(rows: list[_TRCRow], rate: float, origin: str, path: Path, notes:
         )
         notes.append(msg)
         log.warning("%s: %s", path, msg)
+    return placed
 
 
 def _read_trc(path: Path) -> Capture:
@@ -1198,8 +1303,9 @@ def _read_trc(path: Path) -> Capture:
     A line is split at tabs, else at commas, else at spaces (tools write all three). The file's
     columns are trusted over the header's counts: every named column and every column with data
     is read, and a NumMarkers or NumFrames that disagrees with them is noted. Rows are read in
-    file order at DataRate (missing or implausible: the Time column's rate, :func:`_trc_rate`);
-    Frame# numbers out of order, repeated or skipped, and a Time column
+    file order at DataRate (missing or implausible: the Time column's rate, :func:`_trc_rate`),
+    except that Frame# numbers counting up with frames skipped place each row at its frame
+    (the skipped ones empty); Frame# numbers out of order, repeated or skipped, and a Time column
     spaced more than 1 % off DataRate are noted (:func:`_trc_clock`). A row short of cells (at
     tabs or commas) misses its last samples, with a note; a file that ends mid-row loses that
     row's last cell too (it may be part of a number)."""
@@ -1248,12 +1354,18 @@ def _read_trc(path: Path) -> Capture:
         )
     _trc_short_rows(rows, expected, cut=cut, path=path, notes=notes)
     rate, origin = _trc_rate(header, rows, path, notes)
-    _trc_clock(rows, rate, origin, path, notes)
+    placed = _trc_clock(rows, rate, origin, path, notes)
     declared = header.get("NumFrames", "")
     if declared and declared != str(len(rows)):
         notes.append(f"header NumFrames {declared}, {plural(len(rows), 'data row')} read")
     pos = np.array([_trc_row(row, len(labels), path) for row in rows], dtype=np.float64)
-    pos = pos.reshape(len(rows), len(labels), 3) * scale
+    pos = pos.reshape(len(rows), len(labels), 3)
+    _units_doubt("Units", header.get("Units", "mm"), pos, path, notes)
+    pos = pos * scale
+    if placed is not None:  # (frames the Frame# numbers skip: nothing seen)
+        full = np.full((int(placed[-1]) + 1, len(labels), 3), np.nan)
+        full[placed] = pos
+        pos = full
     return _finish(pos, labels, rate, path, notes)
 
 

@@ -87,6 +87,9 @@ class Capture:
     rate: float
     source: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: the subject a reader gave labels that named none (the file's stem), else None: a tool
+    #: writing them back writes the bare names its input had
+    default_subject: str | None = None
 
     def __post_init__(self) -> None:
         pos = np.asarray(self.positions)

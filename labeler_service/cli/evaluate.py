@@ -270,8 +270,10 @@ def _print_table(report: dict, no_body: set[str] | frozenset[str] = frozenset())
         f"{d['subject']} (frames {d['first_frame']}-{d['back_frame']})"
         for d in report.get("departures") or []
     )
+    after = report["accuracy_after_boot"]
+    after_text = "- (no subject booted)" if after is None else f"{100.0 * after:.3f} %"
     console.print(
-        f"accuracy after boot {report['accuracy_after_boot']}; "
+        f"accuracy after boot {after_text}; "
         f"{reid if n_ret else 'no returns'}{f' (left: {left})' if left else ''}; "
         f"{plural(report['absent_labeled'], 'point')} given labels of absent subjects; "
         f"{plural(report['identity_swaps'], 'identity swap')}"

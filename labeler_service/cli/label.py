@@ -115,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
     from labeler_service.labeling.registry import (
+        low_rate_note,
         make_labeler,
         make_window_labeler,
         resolve_labeled_start,
@@ -138,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
     if cap.n_frames <= init:
         raise LabelerError(
             f"{args.input}: {plural(cap.n_frames, 'frame')}, not more than "
-            f"{plural(init, 'init frame')}"
+            f"{plural(init, 'init frame')}: give fewer --init-frames (at least "
+            f"{MIN_TRAIN_FRAMES} without --model), or a longer segment"
         )
     names = tuple(cap.labels[i] for i in np.flatnonzero(~cap.ghost_mask))
     if model is None and not names:
@@ -148,6 +150,9 @@ def run(args: argparse.Namespace) -> int:
     check_init_window(cap, args.input, init, subjects=model is None)
     for note in thin_subjects(names) if init > 0 else ():
         print(f"note: {args.input}: {note}", file=sys.stderr)
+    slow = low_rate_note(cap.rate)
+    if slow is not None:
+        print(f"note: {args.input}: {slow}", file=sys.stderr)
     # a label without ``subject:`` would come back renamed from the window model
     start, why = resolve_labeled_start(
         args.labeled_start,
@@ -217,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
             loose_all[f, cols[free]] = pts[free]
             if f >= init:
                 observed += res.n_observed
-                recovered += res.n_recovered
+                recovered += 0 if args.drop_recovered else res.n_recovered
                 known = truth >= 0
                 compared += int(np.count_nonzero(known))
                 agree += int(np.count_nonzero(res.point_labels[known] == truth[known]))
@@ -230,9 +235,16 @@ def run(args: argparse.Namespace) -> int:
     positions = np.concatenate([out, loose_all[:, loose_in]], axis=1)
     if args.up == "y":  # back to IN's axes (read rotated to Z up): OUT overlays IN
         positions = np.stack([positions[..., 0], positions[..., 2], -positions[..., 1]], axis=-1)
+    out_names = lab.marker_names
+    bare = cap.default_subject if model is None else None
+    if bare is not None:  # IN's labels named no subject: OUT's name none either
+        out_names = tuple(n.removeprefix(f"{bare}:") for n in out_names)
+    # the recovered samples written: a C3D marks them calculated (residual 0)
+    calculated = np.zeros(positions.shape[:2], dtype=bool)
+    calculated[:, :m] = np.isfinite(out[..., 0]) & ~seen
     result = Capture(
         positions,
-        lab.marker_names + tuple(f"*{j}" for j in loose_in.tolist()),
+        out_names + tuple(f"*{j}" for j in loose_in.tolist()),
         cap.rate,
         source=args.output,
         notes=(f"labeled by mocap-labeler label from {args.input}",),
@@ -251,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
     kept = failed and Path(args.output).exists()
     carried: list[str] = []  # what OUT keeps of a C3D IN besides the points
     if not kept:
-        write_capture(result, args.output, like=args.input, kept=carried)
+        write_capture(result, args.output, like=args.input, kept=carried, calculated=calculated)
     summary = {
         "input": args.input,
         "output": args.output,
@@ -308,10 +320,21 @@ def run(args: argparse.Namespace) -> int:
             )
     if failed:
         where = f"{args.output} left as it was" if kept else f"output written to {args.output}"
+        if model is not None:
+            why = (
+                "the boot found no performer of the model. A model labels the performers it was "
+                "trained on: another person's distances differ by more than its templates "
+                "allow (about 1 %), so train structure on a segment of these performers, or "
+                "give --init-frames N when IN's first frames carry labels. Check too that the "
+                "model's marker set matches the capture's (names) and the performers are in view"
+            )
+        else:
+            why = (
+                "does the capture's marker set match its labeled frames, and are the performers "
+                "in view?"
+            )
         raise LabelerError(
-            f"{args.input}: no point was labeled in {plural(frames, 'frame')}; does the model's "
-            "marker set match the capture's (names, subjects), and are the performers in view? "
-            f"({where})"
+            f"{args.input}: no point was labeled in {plural(frames, 'frame')}: {why} ({where})"
         )
     return 0
 

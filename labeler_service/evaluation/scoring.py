@@ -37,9 +37,11 @@ from typing import Any
 import numpy as np
 
 from labeler_service.capture import Capture, is_ghost, split_label
+from labeler_service.capture.model import rate_problem
 from labeler_service.errors import MocapError, SceneError
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.registry import (
+    low_rate_note,
     make_labeler,
     make_window_labeler,
     resolve_labeled_start,
@@ -737,6 +739,14 @@ def evaluate(
     )
     stream = corrupt(capture, spec)
     notes = [*notes, *stream.notes]  # (where a corruption did less than asked)
+    if downsample > 1 and rate_problem(stream.rate) is not None:
+        raise SceneError(
+            f"--downsample {downsample} leaves {stream.rate:.3g} Hz of the {capture.rate:g} Hz "
+            "capture, where 1 to 10000 Hz are labeled: down-sample less"
+        )
+    slow = low_rate_note(stream.rate)
+    if slow is not None:
+        notes = [*notes, slow]
     if stream.n_frames <= init_frames:  # before a window model's error (asks for init frames)
         if downsample > 1:
             raise SceneError(
@@ -817,7 +827,10 @@ def evaluate(
 
 def _too_short(n: int, init_frames: int) -> SceneError:
     """A stream of ``n`` frames leaves nothing to score after the init window."""
-    return SceneError(f"{plural(n, 'frame')} is not more than the {init_frames}-frame init window")
+    return SceneError(
+        f"{plural(n, 'frame')} is not more than the {init_frames}-frame init window: give fewer "
+        "--init-frames, or a longer capture"
+    )
 
 
 def baseline_gate_note(stream: StreamFrames, init_frames: int, baseline: object) -> str | None:

@@ -230,6 +230,15 @@ class LabelerConfig(BaseModel):
         description="a recovery snapshot is taken only of markers observed this many frames in "
         "a row",
     )
+    recovered_min_neighbours: int = Field(
+        3,
+        ge=1,
+        le=7,
+        description="a hidden marker's estimate is published (state recovered) only when this "
+        "many of its recovery neighbours are observed in the frame: with fewer it is a "
+        "translation of theirs, no rotation (a serving arm's hand put 1 m off), which still "
+        "steers the tracker weakly but is reported missing",
+    )
     recovery: Literal["kabsch", "displacement"] = Field(
         "kabsch", description="rigid fit of the visible body markers, or the paper's averaging"
     )

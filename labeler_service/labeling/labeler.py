@@ -432,11 +432,18 @@ class Labeler:
         self._run(pts, dt, ptr)
         if self._ev is not None:
             self._evidence()
+        pos, state = self._tracks.pos.copy(), self._tracks.state.copy()
+        weak = (state == MarkerState.RECOVERED) & (
+            self._scratch.has_rec < self.config.recovered_min_neighbours
+        )
+        if weak.any():  # (steered the tracker; not an estimate to publish)
+            state[weak] = MarkerState.MISSING
+            pos[weak] = np.nan
         return LabeledFrame(
             t=t,
             point_labels=self._scratch.owner[:n].copy(),
-            positions=self._tracks.pos.copy(),
-            state=self._tracks.state.copy(),
+            positions=pos,
+            state=state,
             process_us=(time.perf_counter_ns() - t0) / 1e3,
         )
 

@@ -61,6 +61,28 @@ def test_declared_units_are_trusted(tmp_path, rng) -> None:
     assert any("UNITS says mm" in n and "metres" in n for n in cap.notes), cap.notes
 
 
+def test_metres_said_of_millimetre_coordinates_are_doubted(tmp_path, rng) -> None:
+    """UNITS "m" on coordinates in millimetres read as a body 1.7 km tall with no word but a
+    Y-up guess that contradicted itself; now the reader says the take may be in millimetres
+    (the units are still trusted: the note says what to fix). A TRC's Units alike."""
+    from labeler_service.capture import Capture, write_capture
+
+    pos = _body(rng)
+    _write(tmp_path / "said_m.c3d", pos, units="m")
+    cap = read_capture(tmp_path / "said_m.c3d")
+    np.testing.assert_allclose(cap.positions, pos * 1000.0, rtol=1e-6)
+    assert any("UNITS says m" in n and "millimetres" in n for n in cap.notes), cap.notes
+    trc = tmp_path / "t.trc"
+    write_capture(Capture(pos, tuple(f"S:m{i}" for i in range(5)), 100.0), trc)
+    lines = trc.read_text().splitlines()
+    lines[2] = lines[2].replace("\tmm\t", "\tm\t")
+    trc.write_text("\n".join(lines) + "\n")
+    cap = read_capture(trc)
+    assert any("Units says m" in n and "millimetres" in n for n in cap.notes), cap.notes
+    _write(tmp_path / "ok.c3d", pos / 1000.0, units="m")
+    assert not any("millimetres" in n for n in read_capture(tmp_path / "ok.c3d").notes)
+
+
 @pytest.mark.parametrize(
     "units, scale",
     [("meter", 1000.0), ("Metres", 1000.0), ("millimetre", 1.0), ("MM", 1.0),

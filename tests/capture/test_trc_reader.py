@@ -236,7 +236,7 @@ def test_a_trc_with_no_rate_to_read_is_a_clear_error(tmp_path) -> None:
     [
         ([1, 2, 4, 3, 5, 6], ("out of order",)),
         ([1, 2, 3, 3, 4, 5], ("repeated",)),
-        ([1, 2, 3, 6, 7, 8], ("skip 2 frames",)),
+        ([1, 2, 3, 6, 1e9, 1e9 + 1], ("skip", "read as consecutive")),
     ],
 )
 def test_frame_numbers_out_of_order_repeated_or_skipped_are_noted(tmp_path, frames, words):
@@ -245,6 +245,21 @@ def test_frame_numbers_out_of_order_repeated_or_skipped_are_noted(tmp_path, fram
     cap = read_capture(_trc(tmp_path / "t.trc", pos, frames=frames, times=times))
     np.testing.assert_array_equal(cap.positions, pos)  # read in file order
     assert _said(cap, "Frame#", *words), cap.notes
+
+
+def test_frame_numbers_that_skip_frames_place_each_row_at_its_frame(tmp_path, rng, capsys):
+    """An exporter that leaves out frames with nothing seen (Frame# 1-3 then 6-8): read as two
+    empty frames, so the rows after the gap keep their times (read as consecutive, they came
+    0.02 s early, a jump tracked as one frame's motion), and ``label`` writes them back at their
+    frame numbers."""
+    pos = _positions(frames=6, markers=1)
+    frames = [1, 2, 3, 6, 7, 8]
+    path = _trc(tmp_path / "t.trc", pos, frames=frames, times=[(f - 1) / 100.0 for f in frames])
+    cap = read_capture(path)
+    assert cap.n_frames == 8
+    np.testing.assert_array_equal(cap.positions[[0, 1, 2, 5, 6, 7]], pos)
+    assert np.isnan(cap.positions[3:5]).all()
+    assert _said(cap, "Frame#", "skip 2 frames", "no marker seen"), cap.notes
 
 
 # ------------------------------------------------------------------ 4: rows cut short

@@ -84,6 +84,9 @@ def test_label_keeps_the_analog_channels_events_groups_time_base_and_units(trial
     # and our own reader reads it back as the labeled take, in millimetres
     back = read_capture(out)
     np.testing.assert_allclose(back.positions[:, : len(names)], truth, atol=0.01)
+    # every sample observed: residual 1 (a recovered one would have 0, C3D's calculated point)
+    res = np.asarray(c["data"]["meta_points"]["residuals"])[0, : len(names)]
+    assert np.all(res == 1.0)
 
 
 def test_a_segment_keeps_its_own_frames_of_the_analog_channels_and_time_base(
@@ -93,7 +96,12 @@ def test_a_segment_keeps_its_own_frames_of_the_analog_channels_and_time_base(
     out = tmp_path / "seg.c3d"
     summary = _label(f"{src}:30:100", out, capsys)
     assert f"time base (first frame {FIRST + 30})" in summary["kept_from_input"]
+    # its events: those within its frames (8.62-9.31 s on the take's time base)
+    assert "1 event (1 outside its frames left out)" in summary["kept_from_input"]
     c = ezc3d.c3d(str(out))
+    assert c["parameters"]["EVENT"]["LABELS"]["value"] == ["Foot Off"]
+    np.testing.assert_allclose(c["parameters"]["EVENT"]["TIMES"]["value"], [[0.0], [9.0]])
+    assert list(c["parameters"]["EVENT"]["USED"]["value"]) == [1]
     np.testing.assert_array_equal(c["data"]["analogs"], analog[:, :, 30 * PER : 100 * PER])
     assert c["header"]["points"]["first_frame"] == FIRST - 1 + 30
     assert list(c["parameters"]["TRIAL"]["ACTUAL_START_FIELD"]["value"]) == [FIRST + 30, 0]
@@ -195,3 +203,48 @@ def test_a_trc_output_or_input_keeps_the_time_base(trial, rng, tmp_path, capsys)
     plain = tmp_path / "plain.trc"
     write_capture(Capture(truth, names, RATE, source="plain"), plain)
     assert _label(plain, tmp_path / "o.trc", capsys)["kept_from_input"] == []
+
+
+def test_a_recovered_sample_is_marked_calculated(rng, tmp_path, capsys):
+    """A hidden marker's estimate written to a C3D has the residual 0 (C3D's calculated point),
+    an observed sample 1, a missing one -1: a user (or Nexus, Mokka) tells them apart. With
+    ``--drop-recovered`` none is written, and the summary counts none."""
+    truth, names = articulated(rng, subjects=2, frames=120, rate=RATE)
+    take = truth.copy()
+    m = 3
+    take[60:70, m] = np.nan
+    src = tmp_path / "gap.c3d"
+    write_capture(Capture(take, names, RATE, source="gap"), src)
+    out = tmp_path / "out.c3d"
+    summary = _label(src, out, capsys)
+    c = ezc3d.c3d(str(out))
+    res = np.asarray(c["data"]["meta_points"]["residuals"])[0].T  # (F, M)
+    assert np.all(res[60:70, m] == 0.0)
+    xyz = np.transpose(c["data"]["points"][:3], (2, 1, 0))
+    assert np.linalg.norm(xyz[60:70, m] - truth[60:70, m], axis=1).max() < 5.0
+    assert np.all(res[:60, m] == 1.0) and np.all(res[70:, m] == 1.0)
+    assert summary["recovered_per_frame"] > 0
+    assert main(["label", str(src), str(tmp_path / "d.c3d"), "--init-frames", "40",
+                 "--drop-recovered", "--json"]) == 0  # fmt: skip
+    dropped = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert dropped["recovered_per_frame"] == 0
+    res = np.asarray(ezc3d.c3d(str(tmp_path / "d.c3d"))["data"]["meta_points"]["residuals"])[0].T
+    assert np.all(res[60:70, m] == -1.0)
+
+
+def test_markers_named_without_a_subject_come_back_so(rng, tmp_path, capsys):
+    """A take whose labels name no subject (``L_IAS``; the reader gives them the file's stem)
+    is written back with those names, not ``stem:L_IAS``: a pipeline reading OUT finds the
+    names it knows."""
+    truth, names = articulated(rng, subjects=1, frames=120, rate=RATE)
+    bare = [n.split(":", 1)[1] for n in names]
+    for suffix in (".c3d", ".trc"):
+        src = tmp_path / f"walk{suffix}"
+        write_capture(Capture(truth, bare, RATE, source="walk"), src)
+        assert read_capture(src).labels[0] == f"walk:{bare[0]}"  # (as the reader names them)
+        out = tmp_path / f"out{suffix}"
+        summary = _label(src, out, capsys)
+        assert summary["agreement_with_input_labels"] == 1.0
+        assert list(read_capture(out).labels) == [f"out:{b}" for b in bare]
+        if suffix == ".c3d":
+            assert ezc3d.c3d(str(out))["parameters"]["POINT"]["LABELS"]["value"] == bare

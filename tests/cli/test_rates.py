@@ -91,3 +91,28 @@ def test_a_stream_rate_no_capture_has_is_a_config_error(value, tmp_path):
     f.write_text(f'[[streams]]\nname = "vol1"\nrate = {value}\n')
     with pytest.raises(ConfigError, match="rate is .* Hz: expected 1 to 10000 Hz"):
         load_settings(f)
+
+
+def test_a_rate_below_the_rates_measured_is_said_and_below_one_hertz_refused(
+    rng, tmp_path, capsys
+):
+    """Below the lowest rate the benchmarks measure (12.5 Hz) ``evaluate`` and ``label`` say
+    so (a helper found 50 % at 5 Hz without a word); ``--downsample`` below 1 Hz is refused
+    as every other rate is (it ran at 0.5 Hz)."""
+    import json
+
+    pos, names = articulated(rng, subjects=1, frames=60, rate=10.0)
+    path = tmp_path / "slow.npz"
+    write_capture(Capture(pos, names, 10.0, source="slow"), path)
+    assert main(["evaluate", str(path), "--init-frames", "10", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert any("10 Hz is below the lowest rate measured (12.5 Hz)" in n for n in report["notes"])
+    assert main(["label", str(path), str(tmp_path / "o.npz"), "--init-frames", "10"]) == 0
+    assert "10 Hz is below the lowest rate measured" in capsys.readouterr().err
+    fast = tmp_path / "fast.npz"
+    write_capture(Capture(pos, names, 120.0, source="fast"), fast)
+    assert main(["evaluate", str(fast), "--init-frames", "10", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert not any("below the lowest rate" in n for n in report["notes"])
+    assert main(["evaluate", str(path), "--init-frames", "3", "--downsample", "15"]) != 0
+    assert "--downsample 15 leaves 0.667 Hz" in capsys.readouterr().err
