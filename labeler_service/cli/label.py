@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
         read_segment,
         write_capture,
     )
+    from labeler_service.capture.io import split_segment
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.frame import MarkerState
     from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
@@ -262,6 +263,13 @@ def run(args: argparse.Namespace) -> int:
     # such a run writes OUT for inspection, but never over an earlier OUT (a good one)
     kept = failed and Path(args.output).exists()
     carried: list[str] = []  # what OUT keeps of a C3D IN besides the points
+    src_name = split_segment(args.input)[0]
+    if Path(src_name).suffix.lower() == ".c3d" and Path(args.output).suffix.lower() != ".c3d":
+        print(
+            f"note: {args.output} holds IN's points only: a C3D's analog channels, events and "
+            "parameter groups are written to a C3D OUT alone",
+            file=sys.stderr,
+        )
     if not kept:
         write_capture(result, args.output, like=args.input, kept=carried, calculated=calculated)
     summary = {

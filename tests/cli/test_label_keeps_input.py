@@ -124,6 +124,9 @@ def test_a_points_only_input_or_output_keeps_nothing_more(trial, rng, tmp_path, 
     assert f"keeps from {src}: 4 analog channels, 2 events, time base (first frame {FIRST})" in text
     assert main(["label", str(npz), str(tmp_path / "t2.c3d"), "--init-frames", "40"]) == 0
     assert "keeps from" not in capsys.readouterr().out
+    # a C3D IN into a TRC OUT: what is not carried over is said, not dropped silently
+    assert main(["label", str(src), str(tmp_path / "t.trc"), "--init-frames", "40"]) == 0
+    assert "t.trc holds IN's points only" in capsys.readouterr().err
 
 
 def test_the_points_a_processing_model_wrote_are_not_written(rng, tmp_path, capsys):
