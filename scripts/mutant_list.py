@@ -619,6 +619,14 @@ MUTANTS: list[Mutant] = [
         "rows after a Frame# hole come early, a jump tracked as one frame's motion",
     ),
     Mutant(
+        "blackout-counts-as-vanishing",
+        "labeler_service/labeling/booting.py",
+        "            if not self._blackout(pts, t):\n",
+        "            if True:\n",
+        (T + "labeling/test_blackout.py",),
+        "a 0.1 s camera dropout drops every performer and boots them again",
+    ),
+    Mutant(
         "side-exchange-never-applied",
         "labeler_service/labeling/booting.py",
         "                self._exchange(pairs, glab, pos, state)\n",

@@ -186,6 +186,13 @@ class BootConfig(BaseModel):
         description="BootingLabeler: a subject with no observed marker this long is dropped "
         "(its labels are given to nobody) and booted again when it comes back",
     )
+    blackout_hold_s: float = Field(
+        0.5,
+        ge=0,
+        description="BootingLabeler: frames with no point at all (a camera dropout) count toward "
+        "no subject's drop_after_s for this long in a row; a performer who left meanwhile is "
+        "dropped once points come back",
+    )
     vanish_fraction: float = Field(
         0.2,
         ge=0,

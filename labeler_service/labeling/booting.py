@@ -365,6 +365,7 @@ class BootingLabeler:
         self._subject_of = np.repeat(np.arange(len(sizes)), sizes)
         self._active: set[int] = set()
         self._gone = np.zeros(len(sizes), dtype=np.int64)
+        self._empty_since: float | None = None  # the first frame of a run with no point at all
         self._recent = np.zeros(len(sizes))  # moving average of observed markers (0: unset)
         self._recent_alpha = min(1.0, 1.0 / max(1.0, c.vanish_memory_s * self.rate))
         self._drop_frames = max(1, round(c.drop_after_s * self.rate))
@@ -482,7 +483,8 @@ class BootingLabeler:
             glab = out.point_labels.astype(np.int64)  # the inner labeler has the model's markers
             pos[:] = out.positions
             state[:] = out.state
-            self._drop_vanished(glab, state, pos, t)
+            if not self._blackout(pts, t):
+                self._drop_vanished(glab, state, pos, t)
             if self.boot_config.jump_fraction > 0 and self._window:
                 self._drop_jumped(pts, ids, glab, pos, state, t)
             if self._verifier is not None:
@@ -677,6 +679,20 @@ class BootingLabeler:
         self.relearned += 1
 
     # ------------------------------------------------------------------ steps
+    def _blackout(self, pts: np.ndarray, t: float) -> bool:
+        """This frame has no point at all and the run of such frames is shorter than
+        ``blackout_hold_s``: the cameras saw nothing (a dropout, a sender's empty frames), which
+        says nothing of who left, so no subject counts as vanished in it. After a 0.1 s
+        dropout the tennis serve's performer was dropped and booted again 0.44 s later, with
+        nothing labeled in between; held, his markers are taken up where they return. A
+        performer who did leave meanwhile is dropped from the first frame with points."""
+        if pts.shape[0]:
+            self._empty_since = None
+            return False
+        if self._empty_since is None:
+            self._empty_since = t
+        return t - self._empty_since < self.boot_config.blackout_hold_s
+
     def _drop_vanished(
         self, glab: np.ndarray, state: np.ndarray, pos: np.ndarray, t: float
     ) -> None:
