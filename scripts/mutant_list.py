@@ -627,6 +627,14 @@ MUTANTS: list[Mutant] = [
         "a 0.1 s camera dropout drops every performer and boots them again",
     ),
     Mutant(
+        "service-blackout-counts-as-leaving",
+        "labeler_service/service/stream.py",
+        "            if prev is not None and t - self._empty_since < hold:\n",
+        "            if False:\n",
+        (T + "service/test_blackout_stream.py",),
+        "a 0.13 s camera dropout on a plain-labeler stream reboots every performer",
+    ),
+    Mutant(
         "side-exchange-never-applied",
         "labeler_service/labeling/booting.py",
         "                self._exchange(pairs, glab, pos, state)\n",

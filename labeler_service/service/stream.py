@@ -408,6 +408,10 @@ class StreamState:
         #: time it last had a marker observed (NaN: not yet): :meth:`_watch_subjects`
         self._recent: deque[tuple[np.ndarray, float, np.ndarray]] = deque(maxlen=HANDBACK_FRAMES)
         self._seen_t: np.ndarray | None = None
+        #: the plain labeler's watch: the last frame's time, and the first of a run of frames
+        #: with no point at all (a dropout: nobody leaves in it, ``blackout_hold_s``)
+        self._watch_t: float | None = None
+        self._empty_since: float | None = None
         #: stream time since which every subject is labeled but markers are missing (the
         #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
         self._handback_since: float | None = None
@@ -1175,6 +1179,16 @@ class StreamState:
         self._recent.append((pts, t, out.point_labels))
         if self._seen_t is None:
             self._seen_t = np.full(len(names), np.nan)
+        prev, self._watch_t = self._watch_t, t
+        if pts.shape[0]:
+            self._empty_since = None
+        else:  # (a dropout is nobody leaving: its time counts toward no one's absence)
+            if self._empty_since is None:
+                self._empty_since = t
+            hold = self.settings.boot_config.blackout_hold_s
+            if prev is not None and t - self._empty_since < hold:
+                self._seen_t += max(t - prev, 0.0)
+                return
         self._seen_t[subject_of[out.state == MarkerState.OBSERVED]] = t
         gone = np.flatnonzero(t - self._seen_t > self.settings.boot_config.drop_after_s)
         if gone.size == 0:
