@@ -95,3 +95,21 @@ def booting_streams(model: Any, name: str, count: int = 1, rate: float | None = 
         for st in states:
             st.start_from_model()
     return states
+
+
+def real_root(out: str | Path | None) -> Path | None:
+    """The real takes' folder (``MOCAP_DATA_DIR``, default ``../shared/data/real``), or None
+    after emitting the skip (a benchmark that needs them then returns)."""
+    from labeler_service.testing.realdata import real_data_dir
+
+    root = real_data_dir()
+    if root is None:
+        emit({"skipped": "no real takes (MOCAP_DATA_DIR or ../shared/data/real)"}, out)
+    return root
+
+
+def real_args(ap: argparse.ArgumentParser) -> tuple[argparse.Namespace, Path | None]:
+    """``ap`` with ``--out``, parsed, and the real takes' folder (None: skipped and said)."""
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args()
+    return a, real_root(a.out)

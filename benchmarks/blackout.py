@@ -13,7 +13,7 @@ import argparse
 import time
 
 import numpy as np
-from _common import emit
+from _common import emit, real_args
 
 
 def run(take: str, at: int, n_empty: int, hold: float, init: int) -> dict:
@@ -64,19 +64,14 @@ def run(take: str, at: int, n_empty: int, hold: float, init: int) -> dict:
 
 
 def main() -> None:
-    from labeler_service.testing.realdata import real_data_dir
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--take", default="tennis_serve_pig_39markers_50hz.c3d:0:400")
     ap.add_argument("--at", type=int, default=200, help="the first empty frame")
     ap.add_argument("--frames", type=int, nargs="+", default=[2, 5, 10, 25])
     ap.add_argument("--hold", type=float, nargs="+", default=[0.0, 0.5])
     ap.add_argument("--init-frames", type=int, default=50)
-    ap.add_argument("--out", default=None)
-    a = ap.parse_args()
-    root = real_data_dir()
+    a, root = real_args(ap)
     if root is None:
-        emit({"skipped": "no real takes (MOCAP_DATA_DIR or ../shared/data/real)"}, a.out)
         return
     t0 = time.perf_counter()
     take = str(root / a.take)

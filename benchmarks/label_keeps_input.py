@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import emit
+from _common import emit, real_args
 
 #: a segment per take that needs one (no labels in the first 50 frames, or none at all)
 SEGMENTS = {"gait_bts_yup_22markers_100hz": ":297:600"}
@@ -100,14 +100,9 @@ def check(take: Path, segment: str, workdir: Path) -> dict:
 
 
 def main() -> None:
-    from labeler_service.testing.realdata import real_data_dir
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default=None)
-    a = ap.parse_args()
-    root = real_data_dir()
+    a, root = real_args(ap)
     if root is None:
-        emit({"skipped": "no real takes (MOCAP_DATA_DIR or ../shared/data/real)"}, a.out)
         return
     t0 = time.perf_counter()
     rows = []

@@ -16,7 +16,7 @@ import argparse
 import time
 
 import numpy as np
-from _common import emit
+from _common import emit, real_args
 
 
 def run(take: str, init: int, min_neighbours: int, far_mm: float) -> dict:
@@ -61,18 +61,13 @@ def run(take: str, init: int, min_neighbours: int, far_mm: float) -> dict:
 
 
 def main() -> None:
-    from labeler_service.testing.realdata import real_data_dir
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--take", default="tennis_serve_pig_39markers_50hz.c3d:0:400")
     ap.add_argument("--init-frames", type=int, default=50)
     ap.add_argument("--min-neighbours", type=int, nargs="+", default=[1, 3])
     ap.add_argument("--far-mm", type=float, default=100.0)
-    ap.add_argument("--out", default=None)
-    a = ap.parse_args()
-    root = real_data_dir()
+    a, root = real_args(ap)
     if root is None:
-        emit({"skipped": "no real takes (MOCAP_DATA_DIR or ../shared/data/real)"}, a.out)
         return
     t0 = time.perf_counter()
     take = str(root / a.take)

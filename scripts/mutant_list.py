@@ -631,7 +631,7 @@ MUTANTS: list[Mutant] = [
         "labeler_service/service/stream.py",
         "            if prev is not None and t - self._empty_since < hold:\n",
         "            if False:\n",
-        (T + "service/test_blackout_stream.py",),
+        (T + "service/test_recover_gap.py",),
         "a 0.13 s camera dropout on a plain-labeler stream reboots every performer",
     ),
     Mutant(

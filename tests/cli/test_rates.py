@@ -93,9 +93,7 @@ def test_a_stream_rate_no_capture_has_is_a_config_error(value, tmp_path):
         load_settings(f)
 
 
-def test_a_rate_below_the_rates_measured_is_said_and_below_one_hertz_refused(
-    rng, tmp_path, capsys
-):
+def test_a_rate_below_the_rates_measured_is_said_and_below_one_hertz_refused(rng, tmp_path, capsys):
     """Below the lowest rate the benchmarks measure (12.5 Hz) ``evaluate`` and ``label`` say
     so (a helper found 50 % at 5 Hz without a word); ``--downsample`` below 1 Hz is refused
     as every other rate is (it ran at 0.5 Hz)."""

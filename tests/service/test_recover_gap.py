@@ -26,20 +26,25 @@ def frames():
     return corrupt(scene, CorruptionSpec(protect_frames=INIT, seed=3))
 
 
-def _stream(frames, gap_s: float) -> tuple[StreamState, int]:
-    """A plain-start stream trained on ``INIT`` labeled frames and fed 30 more; returns it and
-    the next frame index."""
+def _stream(
+    frames, gap_s: float, n: int = INIT + 30, empty: range = range(0), **stream
+) -> tuple[StreamState, int]:
+    """A plain-start stream trained on ``INIT`` labeled frames and fed up to frame ``n``, the
+    frames ``empty`` with no point at all; returns it and the next frame index. ``stream``:
+    the stream's settings, and ``blackout_hold_s``."""
+    hold = {"blackout_hold_s": stream.pop("blackout_hold_s")} if "blackout_hold_s" in stream else {}
     settings = load_settings(labeler="online", metrics_port=None, warmup=False,
-                             recover_gap_s=gap_s, streams=[{"name": "vol"}])  # fmt: skip
+                             recover_gap_s=gap_s, streams=[{"name": "vol", **stream}],
+                             boot_config=hold)  # fmt: skip
     st = StreamState("vol", settings, settings.streams[0])
     names = frames.marker_names
-    for f in range(INIT + 30):
+    for f in range(n):
         labels = None
         if f < INIT:
             labels = tuple(names[i] if i >= 0 else None for i in frames.truth[f])
-        msg = FrameMsg("vol", f, float(frames.times[f]), frames.points[f], labels)
-        st.process(msg, 0)
-    return st, INIT + 30
+        pts = frames.points[f] if f not in empty else frames.points[f][:0]
+        st.process(FrameMsg("vol", f, float(frames.times[f]), pts, labels), 0)
+    return st, n
 
 
 def _feed(st: StreamState, frames, f: int):
@@ -55,6 +60,21 @@ def test_a_gap_of_dropped_frames_boots_the_performers_again(frames, caplog):
     _feed(st, frames, f + 60)  # 0.3 s after the last frame labeled
     assert st.recovering and st.recoveries == 1
     assert "0.30 s of stream dropped before this frame" in caplog.text
+
+
+def test_a_dropout_starts_no_recovery(frames):
+    """Frames with no point at all (a camera dropout) on a stream the plain labeler labels:
+    nobody left, so no recovery starts (``boot_config.blackout_hold_s``); before, 0.1 s of
+    empty frames started one that booted every performer again. A long empty run is everyone
+    leaving."""
+    plain = {"labeled_start": "labeler"}
+    empty = range(INIT + 40, INIT + 56)  # 0.13 s of frames with no point
+    st, _ = _stream(frames, 1.0, INIT + 120, empty, **plain)
+    assert st.recoveries == 0 and not st.recovering
+    st, _ = _stream(frames, 1.0, INIT + 120, empty, blackout_hold_s=0.0, **plain)
+    assert st.recoveries == 1  # (counted as everyone leaving)
+    st, _ = _stream(frames, 1.0, INIT + 120, range(INIT + 20, INIT + 100), **plain)  # 0.67 s
+    assert st.recoveries == 1
 
 
 def test_recover_gap_zero_keeps_the_tracks(frames):
