@@ -653,8 +653,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "label-output-restarts-at-frame-one",
         "labeler_service/capture/io.py",
-        '    first = int(c["header"]["points"]["first_frame"]) + start\n    c["header"]',
-        '    first = start\n    c["header"]',
+        '    first = int(c["header"]["points"]["first_frame"]) + start\n    n_events',
+        '    first = start\n    n_events',
         (T + "cli/test_label_keeps_input.py",),
         "a labeled trial's time base is lost: its events and analog exports no longer line up",
     ),
