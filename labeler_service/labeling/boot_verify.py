@@ -372,10 +372,6 @@ class BootVerifier:
         self._body_subject = np.array(
             [int(self._subject_of[bm[0]]) for bm in self._body_markers], dtype=np.int64
         )
-        #: ``(bodies, markers)`` membership, for the bodies two of whose markers are hit
-        self._incidence = np.zeros((len(self._body_markers), self.n_markers), dtype=np.float32)
-        for g, bm in enumerate(self._body_markers):
-            self._incidence[g, bm] = 1
         #: per (subject, pairs) exchanged: the frame before which they are not exchanged again
         self._exchange_done: dict[tuple[int, tuple[tuple[int, int], ...]], int] = {}
         self._exchange_hold = max(1, round(EXCHANGE_HOLD_S * rate))
@@ -508,10 +504,11 @@ class BootVerifier:
         for k in hit:
             by_subject.setdefault(int(self._subject_of[k]), set()).add(k)
         # the trained bodies among them (two of their markers hit), for their whole limbs
-        mask = np.zeros(self.n_markers, dtype=np.float32)
-        mask[list(hit)] = 1.0
+        n_hit = np.bincount(
+            [g for k in hit for g in self._marker_bodies[k]], minlength=len(self._body_markers)
+        )
         limbs_of: dict[int, set[tuple[tuple[int, int], ...]]] = {}
-        for g in np.flatnonzero((self._incidence @ mask >= 2) & self._has_limb).tolist():
+        for g in np.flatnonzero((n_hit >= 2) & self._has_limb).tolist():
             limbs_of.setdefault(int(self._body_subject[g]), set()).add(self._limb_pairs[g])
         for s in range(len(self._subject_edges)):
             mine = by_subject.get(s) if self._on[s] else None
