@@ -365,7 +365,7 @@ class BootingLabeler:
         self._subject_of = np.repeat(np.arange(len(sizes)), sizes)
         self._active: set[int] = set()
         self._gone = np.zeros(len(sizes), dtype=np.int64)
-        self._empty_since: float | None = None  # the first frame of a run with no point at all
+        self._dropout = DropoutHold()
         self._recent = np.zeros(len(sizes))  # moving average of observed markers (0: unset)
         self._recent_alpha = min(1.0, 1.0 / max(1.0, c.vanish_memory_s * self.rate))
         self._drop_frames = max(1, round(c.drop_after_s * self.rate))
@@ -680,18 +680,12 @@ class BootingLabeler:
 
     # ------------------------------------------------------------------ steps
     def _blackout(self, pts: np.ndarray, t: float) -> bool:
-        """This frame has no point at all and the run of such frames is shorter than
-        ``blackout_hold_s``: the cameras saw nothing (a dropout, a sender's empty frames), which
-        says nothing of who left, so no subject counts as vanished in it. After a 0.1 s
-        dropout the tennis serve's performer was dropped and booted again 0.44 s later, with
+        """This frame has no point at all, within ``blackout_hold_s`` of the run's first
+        (:class:`DropoutHold`): no subject counts as vanished in it. After a 0.1 s dropout the
+        tennis serve's performer was dropped and booted again 0.52 s after it began, with
         nothing labeled in between; held, his markers are taken up where they return. A
         performer who did leave meanwhile is dropped from the first frame with points."""
-        if pts.shape[0]:
-            self._empty_since = None
-            return False
-        if self._empty_since is None:
-            self._empty_since = t
-        return t - self._empty_since < self.boot_config.blackout_hold_s
+        return self._dropout.held(pts.shape[0], t, self.boot_config.blackout_hold_s)
 
     def _drop_vanished(
         self, glab: np.ndarray, state: np.ndarray, pos: np.ndarray, t: float
@@ -1787,6 +1781,26 @@ class JumpWatch:
         """Per marker of ``markers``: no point of ``pts`` within its reach of its last
         position (:func:`_unreached`)."""
         return _unreached(pts, self._pos[markers], self._pos2[markers], dt, self._config)
+
+
+class DropoutHold:
+    """Runs of frames with no point at all (the cameras saw nothing: a dropout, a sender's
+    empty frames), which say nothing of who left: the booting labeler's vanish rule and a
+    service stream's watch on the plain labeler skip such frames while the run is shorter than
+    ``blackout_hold_s``."""
+
+    def __init__(self) -> None:
+        self._since: float | None = None  # the first frame of the current empty run
+
+    def held(self, n_points: int, t: float, hold_s: float) -> bool:
+        """A frame of ``n_points`` at ``t``: True when it is empty and its run began less than
+        ``hold_s`` ago."""
+        if n_points:
+            self._since = None
+            return False
+        if self._since is None:
+            self._since = t
+        return t - self._since < hold_s
 
 
 def marker_reach(p1: np.ndarray, p2: np.ndarray, dt: float, config: BootConfig) -> np.ndarray:

@@ -93,7 +93,7 @@ from labeler_service.capture import Capture, is_ghost, split_label, subject_grou
 from labeler_service.capture.model import rate_problem
 from labeler_service.errors import InitBufferFullError, LabelerError, LimitExceeded, ModelError
 from labeler_service.labeling.boot_config import VERIFY_EVENTS
-from labeler_service.labeling.booting import BootingLabeler, JumpWatch, prepare_boot
+from labeler_service.labeling.booting import BootingLabeler, DropoutHold, JumpWatch, prepare_boot
 from labeler_service.labeling.frame import FrameLabeler, LabeledFrame, MarkerState
 from labeler_service.labeling.labeler import Labeler
 from labeler_service.labeling.registry import (
@@ -411,7 +411,7 @@ class StreamState:
         #: the plain labeler's watch: the last frame's time, and the first of a run of frames
         #: with no point at all (a dropout: nobody leaves in it, ``blackout_hold_s``)
         self._watch_t: float | None = None
-        self._empty_since: float | None = None
+        self._dropout = DropoutHold()
         #: stream time since which every subject is labeled but markers are missing (the
         #: hand-back waits for them, at most ``HANDBACK_WAIT_S``); None otherwise
         self._handback_since: float | None = None
@@ -1180,15 +1180,10 @@ class StreamState:
         if self._seen_t is None:
             self._seen_t = np.full(len(names), np.nan)
         prev, self._watch_t = self._watch_t, t
-        if pts.shape[0]:
-            self._empty_since = None
-        else:  # (a dropout is nobody leaving: its time counts toward no one's absence)
-            if self._empty_since is None:
-                self._empty_since = t
-            hold = self.settings.boot_config.blackout_hold_s
-            if prev is not None and t - self._empty_since < hold:
-                self._seen_t += max(t - prev, 0.0)
-                return
+        hold = self.settings.boot_config.blackout_hold_s
+        if self._dropout.held(pts.shape[0], t, hold) and prev is not None:
+            self._seen_t += max(t - prev, 0.0)  # (a dropout counts toward no one's absence)
+            return
         self._seen_t[subject_of[out.state == MarkerState.OBSERVED]] = t
         gone = np.flatnonzero(t - self._seen_t > self.settings.boot_config.drop_after_s)
         if gone.size == 0:
