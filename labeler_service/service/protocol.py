@@ -81,6 +81,9 @@ class FrameMsg:
     points: np.ndarray  # (N, 3) float32, finite
     labels: tuple[str | None, ...] | None = None
     sent: int | None = None  # sender wall clock, ns since the epoch
+    #: the sender's own ``t`` when the service labels the frame at another ``t`` (a jittered
+    #: clock's step back, re-timed by the restart rule): the labeled frame carries this one
+    t_sent: float | None = None
 
 
 @dataclass(slots=True)

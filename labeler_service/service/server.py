@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import gc
 import logging
 import threading
@@ -661,6 +662,8 @@ class Server:
                 self._stalled(state, msg)
             return
         state.stalled_since = None
+        if verdict.t is not None:  # a jittered clock's step back: labeled at the run's time
+            msg = dataclasses.replace(msg, t=verdict.t, t_sent=msg.t)
         if state.sender is not None and source != state.sender:
             self._rlog.info(f"sender-{msg.stream}", "stream %s: frames now come from %s "
                             "(before: %s)", msg.stream, _who(source),

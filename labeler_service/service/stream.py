@@ -561,22 +561,26 @@ class StreamState:
     def _estimate_rate(self, init: list[FrameMsg]) -> float:
         if self.stream_settings.rate is not None:
             return self.stream_settings.rate
-        t = np.array([f.t for f in init], dtype=np.float64)
-        dt = np.diff(np.sort(t))
-        forward = dt > 0
+        seqs = np.array([f.seq for f in init], dtype=np.float64)
+        order = np.argsort(seqs, kind="stable")
+        seqs = seqs[order]
+        t = np.array([f.t for f in init], dtype=np.float64)[order]
+        # the slope of t over seq between frames half the window apart (their median): a
+        # jittered clock's steps (each frame's own, 139 Hz read for 120 Hz at 3 ms) and gaps
+        # average out, and a seq that counts by 2 (every other capture frame number) is
+        # counted in its own step (the median step per seq read twice the rate)
+        ds = np.diff(seqs)
+        stride = float(ds[ds > 0].min()) if np.any(ds > 0) else 1.0
+        h = max(1, len(t) // 2)
+        span = seqs[h:] - seqs[:-h]
+        slope = np.divide(t[h:] - t[:-h], span, out=np.zeros_like(span), where=span > 0)
+        forward = slope > 0
         if not forward.any():
             raise LabelerError(
                 f"stream {self.name}: cannot infer the frame rate from the init frames; set "
                 "streams[].rate"
             )
-        # seq steps tell how many frames each dt spans (init frames may have gaps)
-        seqs = np.array(sorted(f.seq for f in init), dtype=np.float64)
-        steps = np.diff(seqs)
-        ok = (steps > 0) & forward
-        if ok.any():
-            rate = float(1.0 / np.median(dt[ok] / steps[ok]))
-        else:
-            rate = float(1.0 / np.median(dt[forward]))
+        rate = float(1.0 / (np.median(slope[forward]) * stride))
         why = rate_problem(rate)
         if why is not None:  # (t in milliseconds reads as 0.12 Hz: a labeler at that rate)
             raise LabelerError(
@@ -1624,7 +1628,7 @@ class StreamState:
             self.name,
             self.model_id,
             f.seq,
-            f.t,
+            f.t if f.t_sent is None else f.t_sent,
             out.positions,
             state,
             unlabeled,

@@ -202,7 +202,7 @@ RATE_WINDOW_S = 2.0
 #: frame steps needed at least before the rates are compared
 RATE_MIN_STEPS = 20
 #: measured / stream rate outside [1 / RATE_OFF, RATE_OFF]: said in the log
-RATE_OFF = 1.25
+RATE_OFF = 1.1
 #: frame steps whose interquartile range exceeds this fraction of their median are irregular,
 #: and a measured rate outside this range (Hz) is no capture's: the log then asks about the
 #: sender's ``t`` instead of advising a rate setting

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from hostile.helpers import accuracy, collect, model_names, moving_clusters, payloads, run, settings
 
+from labeler_service.service.continuity import JITTER_MIN_STEPS
 from labeler_service.service.protocol import decode, encode_frame
 from labeler_service.service.server import Server
 from labeler_service.service.transports.memory import MemoryTransport
@@ -203,3 +204,51 @@ def test_the_on_lost_hook_is_called_when_a_stream_is_lost():
 
     run(go())
     assert calls == [("default", "lost")]
+
+
+def test_a_jittered_sender_clock_loses_no_frame():
+    """A sender stamping ``t`` from a host clock with 3 ms of jitter (``seq`` honest): its
+    steps back (about 1 ms, with ``seq`` + 1) were ``time_jump`` drops, 2 % of the frames,
+    and its init frames' steps read 139 Hz for 120 Hz (a rate warning). Now only a step back
+    before the run's step is known (its first frames) is dropped; every later frame is
+    labeled as well as the honest clock's, at the rate the frames come at, and the labeled
+    frames carry the sender's own ``t``."""
+    cap = _scene(frames=400)
+    clean = payloads(cap, np.random.default_rng(0), INIT)
+    t = np.arange(cap.n_frames) / cap.rate + np.random.default_rng(3).normal(0, 0.003, cap.n_frames)
+    assert np.count_nonzero(np.diff(t) <= 0) >= 5
+    items = []
+    for k, p in enumerate(clean):
+        m = decode(p)
+        items.append(encode_frame("default", m.seq, float(t[k]), m.points, m.labels))
+    srv, mem, msgs = _run_stream(items)
+    published = [m.seq for m in msgs]
+    lost = sorted(set(range(INIT, cap.n_frames)) - set(published))
+    assert srv.metrics.drops() == srv.metrics.drops("time_jump") <= 2
+    assert all(s < JITTER_MIN_STEPS for s in lost) and len(lost) <= 2
+    assert published == sorted(published)
+    assert [m.t for m in msgs] == [float(t[s]) for s in published]
+    assert abs(srv.streams["default"].rate - cap.rate) < 0.02 * cap.rate
+    names = model_names(mem)
+    _, _, base = _run_stream(clean)
+    assert accuracy(msgs, names, cap, lambda s: s) >= accuracy(base, names, cap, lambda s: s) - 0.01
+
+
+def test_a_sender_numbering_every_other_frame_is_no_gap_and_no_double_rate():
+    """``seq`` counts by 2 (the capture's numbers of every other frame sent): each frame was
+    one lost frame in ``mocap_seq_gap_frames_total``, the stream never counted as
+    progressing, and the init frames' rate read 240 Hz for 120 Hz (the median step per seq).
+    A frame really lost is still counted, once."""
+    cap = _scene(frames=240)
+    items = []
+    for p in payloads(cap, np.random.default_rng(0), INIT):
+        m = decode(p)
+        if m.seq != 150:  # lost on the way
+            items.append(encode_frame("default", 2 * m.seq, m.t, m.points, m.labels))
+    srv, mem, msgs = _run_stream(items)
+    st = srv.streams["default"]
+    assert srv.metrics.drops() == 0
+    assert srv.metrics.snapshot()["streams"]["default"]["gap_frames"] == 1
+    assert abs(st.rate - cap.rate) < 0.01 * cap.rate
+    assert st.progress == cap.n_frames - 1 - 150
+    assert accuracy(msgs, model_names(mem), cap, lambda s: s // 2) > 0.95
