@@ -162,3 +162,40 @@ def test_the_broker_acl_lets_each_role_do_only_its_job(acl_broker):
     assert rejected == 0  # no junk "labeled" message reached the subscriber
     assert names == tuple(sorted(cap.labels))  # the fake retained model never landed
     assert metrics.drops("retained_spoofed") == 0
+
+
+def test_the_services_own_last_will_is_no_spoof(caplog):
+    """Mosquitto publishes every client's will at a clean shutdown: the service then read its
+    own ``offline`` will on its status topic as another client's, counted it in
+    ``retained_spoofed`` (one per stream and broker restart) and logged a warning. Its own will
+    is re-published over quietly now; another client's ``offline`` still counts."""
+    import logging
+
+    from labeler_service.service.settings import MqttSettings
+    from labeler_service.service.transports.mqtt import MqttTransport
+
+    caplog.set_level(logging.INFO, logger="labeler_service.service.transports.mqtt")
+
+    async def go():
+        tr = MqttTransport(MqttSettings(enabled=True), ["vol"])
+        sent = []
+
+        async def publish(topic, payload, qos=0, retain=False):
+            sent.append((topic, payload, retain))
+            return True
+
+        tr.clients["vol"].publish = publish  # (no broker: what would be re-published)
+        ours = encode_status("vol", "online")
+        tr.retained[("vol", "status")] = ours
+        tr._check_retained("vol", "status", tr._wills["vol"])
+        await asyncio.sleep(0.7)
+        will_spoofs = dict(tr.spoofed)
+        tr._check_retained("vol", "status", encode_status("vol", "offline"))
+        await asyncio.sleep(0.7)
+        return will_spoofs, dict(tr.spoofed), sent, ours
+
+    will_spoofs, spoofs, sent, ours = run(go(), timeout=20)
+    assert will_spoofs == {}
+    assert spoofs == {"vol": 1}
+    assert [(t, p, r) for t, p, r in sent] == [("mocap/vol/status", ours, True)] * 2
+    assert "last will" in caplog.text and caplog.text.count("replaced by another client") == 1

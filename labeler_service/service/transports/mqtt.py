@@ -230,16 +230,18 @@ class MqttTransport:
         pid = os.getpid()
         prefix = settings.topic_prefix
         watch = ("model", "status") if settings.reassert_retained else ()
+        #: each stream's last will (its ``offline`` status): the broker publishes it when the
+        #: connection drops, also at a clean broker shutdown; it is ours, not a spoof
+        self._wills: dict[str, bytes] = {}
         for s in self.streams:
+            self._wills[s] = encode_status(s, "offline")
             self.clients[s] = ReconnectingClient(
                 settings,
                 identifier=f"{settings.client_id_prefix}-{s}-{pid}",
                 topics=[topic(prefix, s, "unlabeled")] + [topic(prefix, s, k) for k in watch],
                 on_message=self._receiver(s),
                 on_connect=self._republisher(s),
-                will=aiomqtt.Will(
-                    topic(prefix, s, "status"), encode_status(s, "offline"), qos=1, retain=True
-                ),
+                will=aiomqtt.Will(topic(prefix, s, "status"), self._wills[s], qos=1, retain=True),
             )
 
     def _receiver(self, stream: str) -> Callable[[aiomqtt.Message, int], None]:
@@ -260,14 +262,18 @@ class MqttTransport:
         ours = self.retained.get(key)
         if ours is None or payload == ours or payload in self._recent.get(key, ()):
             return  # nothing of ours yet, or our own message coming back
-        self.spoofed[stream] = self.spoofed.get(stream, 0) + 1
+        own_will = kind == "status" and payload == self._wills.get(stream)
+        if not own_will:  # (our will, fired by the broker as it shut down: no spoof, no alarm)
+            self.spoofed[stream] = self.spoofed.get(stream, 0) + 1
         if key not in self._reasserting:
             self._reasserting.add(key)
             self._tasks.append(
-                asyncio.create_task(self._reassert(stream, kind), name=f"mqtt-reassert-{stream}")
+                asyncio.create_task(
+                    self._reassert(stream, kind, own_will), name=f"mqtt-reassert-{stream}"
+                )
             )
 
-    async def _reassert(self, stream: str, kind: str) -> None:
+    async def _reassert(self, stream: str, kind: str, will: bool = False) -> None:
         key = (stream, kind)
         try:
             wait = self._last_reassert.get(key, 0.0) + 0.5 - time.monotonic()
@@ -277,8 +283,13 @@ class MqttTransport:
             payload = self.retained.get(key)
             if payload is None:
                 return
-            log.warning("mqtt: the retained %s of stream %s was replaced by another client; "
-                        "re-publishing ours", kind, stream)  # fmt: skip
+            if will:
+                log.info("mqtt: the broker published stream %s's last will (offline: the "
+                         "connection dropped); re-publishing its status",
+                         stream)  # fmt: skip
+            else:
+                log.warning("mqtt: the retained %s of stream %s was replaced by another client; "
+                            "re-publishing ours", kind, stream)  # fmt: skip
             await self.clients[stream].publish(
                 topic(self.settings.topic_prefix, stream, kind), payload, qos=1, retain=True
             )
