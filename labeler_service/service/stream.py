@@ -137,6 +137,10 @@ log = logging.getLogger(__name__)
 HANDBACK_FRAMES = 4
 #: Stream seconds the hand-back waits, every subject labeled, for markers not labeled yet.
 HANDBACK_WAIT_S = 2.0
+#: boot and reboot lines of one stream said at most this often (s); this many new runs within
+#: it ask about two senders
+RUNS_LOG_S = 5.0
+RUNS_MANY = 8
 #: Sources whose frame counts a stream keeps (``StreamState.busier_than_sender``).
 SOURCES_KEPT = 8
 #: A second sender takes a sending stream only sending this many times as many frames (two
@@ -418,6 +422,10 @@ class StreamState:
         #: the hand-back's "stays until" line, once per wait (a subject that flickers restarts
         #: the wait, not the line)
         self._handback_log = RateLimitedLog(log, period=HANDBACK_WAIT_S)
+        #: boots and reboots said at most once per ``RUNS_LOG_S`` (frames of two senders on one
+        #: MQTT stream start a new run every few frames: 36 such lines a second, a helper's run)
+        self._runs_log = RateLimitedLog(log, period=RUNS_LOG_S)
+        self._run_times: deque[float] = deque(maxlen=RUNS_MANY)  # (monotonic) of new runs
         #: (model, its markers in a trained body) of the last hand-back check
         self._body_mask: tuple[object, np.ndarray] = (None, np.zeros(0, dtype=bool))
 
@@ -1007,6 +1015,13 @@ class StreamState:
     def new_run(self, f: FrameMsg, verdict: Verdict) -> None:
         """Applies a new run (see the module docstring) before ``f`` is processed."""
         self.runs += 1
+        now = time.monotonic()
+        self._run_times.append(now)
+        if len(self._run_times) == RUNS_MANY and now - self._run_times[0] < RUNS_LOG_S:
+            self._runs_log.warning(
+                "many-runs", "stream %s: %d new runs in %.1f s: are two senders sending to "
+                "this stream (over MQTT the service cannot tell them apart)? Give each sender "
+                "its own stream name", self.name, RUNS_MANY, now - self._run_times[0])  # fmt: skip
         self.units.new_run()
         self.abandon_handover(f"new run {self.runs}")
         if f.labels is not None:
@@ -1097,8 +1112,9 @@ class StreamState:
         self.recoveries += 1
         n = plural(len(model.subjects), "subject")
         what = "whoever is missing (the others keep their labels)" if keep else f"its {n}"
-        log.warning("stream %s: %s: booting %s from the stream's model (recovery %d)",
-                    self.name, why, what, self.recoveries)  # fmt: skip
+        self._runs_log.warning("recovery", "stream %s: %s: booting %s from the stream's "
+                               "model (recovery %d)", self.name, why, what,
+                               self.recoveries)  # fmt: skip
         return True
 
     @property
@@ -1264,8 +1280,9 @@ class StreamState:
         self.labeled_fraction = self.recovered_fraction = float("nan")
         self.reboots += 1
         self.recoveries += 1  # (mocap_recoveries_total: a boot from the stream's model)
-        log.warning("stream %s: %s: booting its %s again (the tracks before it are stale)",
-                    self.name, why, plural(len(lab.model.subjects), "subject"))  # fmt: skip
+        self._runs_log.warning("reboot", "stream %s: %s: booting its %s again (the tracks "
+                               "before it are stale)", self.name, why,
+                               plural(len(lab.model.subjects), "subject"))  # fmt: skip
         return True
 
     def _swap(self, labeler: FrameLabeler) -> None:

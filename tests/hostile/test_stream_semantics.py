@@ -252,3 +252,25 @@ def test_a_sender_numbering_every_other_frame_is_no_gap_and_no_double_rate():
     assert abs(st.rate - cap.rate) < 0.01 * cap.rate
     assert st.progress == cap.n_frames - 1 - 150
     assert accuracy(msgs, model_names(mem), cap, lambda s: s // 2) > 0.95
+
+
+def test_two_senders_on_one_stream_are_named_once_not_logged_every_run(caplog):
+    """Two senders on one MQTT stream (no source address to tell them apart): their frames
+    alternate runs, and every new run logged its recovery or reboot, 36 lines a second in a
+    helper's run, with no word of two senders. Now the boots are said at most once per 5 s
+    and the log asks about two senders once."""
+    import logging
+
+    cap = _scene(frames=240)
+    a = payloads(cap, np.random.default_rng(0), INIT)
+    b = payloads(cap, np.random.default_rng(1), 0, seq0=50_000, t0=1000.0)
+    items = a[:60]
+    for k in range(60, 240, 3):  # the second sender joins: three of each, in turn
+        items += a[k : k + 3] + b[k : k + 3]
+    caplog.set_level(logging.INFO, logger="labeler_service.service.stream")
+    srv, _, _ = _run_stream(items)
+    assert srv.streams["default"].runs >= 20
+    text = caplog.text
+    assert text.count("are two senders sending to this stream") == 1
+    boots = text.count("booting its") + text.count("from the stream's model (recovery")
+    assert 1 <= boots <= 3, boots
