@@ -153,7 +153,7 @@ class StreamSettings(_Section):
     #: Subject model file (``train structure`` output). None: train from labeled init frames.
     model: Path | None = None
     #: Capture rate in Hz. None: estimated from the init frames' times (model: its rate).
-    rate: float | None = Field(None, gt=0)
+    rate: float | None = None  # (checked by _plausible_rate: 0 and NaN said as such)
     #: How a start from labeled init frames runs (no ``model``): ``labeler`` trains the online
     #: labeler in place; ``model`` trains subject templates on the init window (as ``train
     #: structure`` does) and runs the booting labeler from them, fed the window's labels,

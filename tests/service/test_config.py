@@ -57,6 +57,10 @@ def test_json_file_and_labeler_config_embedding(tmp_path):
         ({"labeler_config": {"K": 0}}, "labeler_config.K"),
         ({"mqtt": {"ca_file": "/nonexistent.pem"}}, "mqtt.ca_file"),
         ({"bogus": 1}, "bogus"),
+        # a rate of 0 or NaN said as the README promises (pydantic's "greater than 0" before)
+        ({"streams": [{"name": "a", "rate": 0}]}, "rate is 0 Hz: expected 1 to 10000 Hz"),
+        ({"streams": [{"name": "a", "rate": float("nan")}]}, "rate is nan Hz: expected 1 to"),
+        ({"streams": [{"name": "a", "rate": 1e7}]}, "rate is 1e+07 Hz: expected 1 to"),
     ],
 )
 def test_invalid_settings_raise_config_error_naming_the_field(overrides, needle):
