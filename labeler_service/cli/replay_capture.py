@@ -105,7 +105,8 @@ async def _main(args: argparse.Namespace) -> int:
             speed=args.speed, loops=args.loops,
         )  # fmt: skip
     print(
-        f"sent {plural(stats.sent, 'frame')} ({stats.failed} failed) in {stats.seconds:.1f} s "
+        f"sent {plural(stats.sent, 'frame')} to stream {stream} ({stats.failed} failed) in "
+        f"{stats.seconds:.1f} s "
         f"({stats.rate:.0f}/s, latest send {stats.max_late_ms:.1f} ms behind schedule)"
     )
     if stats.stalls:
@@ -114,6 +115,9 @@ async def _main(args: argparse.Namespace) -> int:
             "on where it stopped each time, at the capture rate",
             file=sys.stderr,
         )
+    if stats.failed:  # (exit 1: frames were lost on the way out, not an error of the input)
+        print(f"replay: {plural(stats.failed, 'frame')} could not be sent (exit 1)",
+              file=sys.stderr)  # fmt: skip
     return 0 if stats.failed == 0 else 1
 
 

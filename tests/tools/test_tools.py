@@ -234,7 +234,7 @@ def test_replay_and_subscribe_commands_end_to_end(tmp_path, rng):
         serve.terminate()
         serve.communicate(timeout=20)
     assert rep.returncode == 0, rep.stderr
-    assert "sent 717 frames (0 failed)" in rep.stdout
+    assert "sent 717 frames to stream default (0 failed)" in rep.stdout
     assert sub.returncode == 0, err
     assert "wrote 100 frames" in out
     got = read_capture(tmp_path / "out.c3d")
