@@ -126,6 +126,10 @@ class _Template:
     #: (w, 4) witness quadruples [i, j, a, b] of twin markers i, j
     #: (``SubjectTemplate.twin_witnesses``, see _twins)
     twins: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), dtype=np.int64))
+    #: (m,) each marker's twin named on the other side (``LFAPA``/``RFAPA``:
+    #: :func:`~labeler_service.capture.side_pairs`), -1 for none and for the markers of mirror
+    #: segments (``mirrors``); see _twin_fits_better
+    twin: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def _anchors(Dm: np.ndarray, Am: np.ndarray, body: list[int], count: int) -> list[tuple]:
@@ -200,6 +204,11 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
         tpl.sided = _sided(tpl.mirrors, list(subj.markers))
+        tpl.twin = np.full(tpl.n, -1, dtype=np.int64)
+        for a, b in side_pairs(list(subj.markers)):
+            tpl.twin[a], tpl.twin[b] = b, a
+        for s1, s2 in tpl.mirrors:  # (their sides are the mirror segments' business)
+            tpl.twin[s1] = tpl.twin[s2] = -1
         _nll_tables(tpl)
         tpl.near = _adjacent(tpl)
         for bd in tpl.bodies:
@@ -1728,6 +1737,7 @@ def _complete(
     loose = _one_sided(tpl, out)
     loose = loose[assign[loose] < 0]
     out[loose] = -1
+    out[_twin_fits_better(tpl, assign, out, hist)] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
         if not reread:
@@ -1737,6 +1747,50 @@ def _complete(
             got = _chiral_exchange(tpl, assign, out, new, pts, hist)
         return got
     return out
+
+
+def _twin_fits_better(
+    tpl: _Template, assign: np.ndarray, out: np.ndarray, hist: np.ndarray
+) -> np.ndarray:
+    """The markers new in ``out`` (not placed in ``assign``) whose named twin on the other
+    side (``tpl.twin``), placed in neither, fits the same point better against the markers
+    ``assign`` placed: by more than ``EXCHANGE_MARGIN`` (:func:`_evidence`) in the median of
+    the window frames (``hist (N, W, 3)``) that track that point and every placed marker.
+    A forearm plate outside every trained body has no mirror segment (:func:`_mirror_pairs`):
+    on a kneeling performer whose left arm was not yet placed, the completion put a left
+    forearm marker on the right forearm's point, next to the placed right upper arm (its twin
+    fits there: 2-3 tolerances better), and the left plate was then read onto the right one
+    for the whole take, the performer booted and online. Such a marker waits for its side's
+    evidence instead. Markers of mirror segments are left to the segments' own tests
+    (``tpl.twin`` is -1 for them): a single marker of a foot judged alone against a body in a
+    pose the model never saw favoured the other foot, and a foot read on a hand at boot kept
+    it (the release that puts the foot back was refused)."""
+    new = np.flatnonzero((out >= 0) & (assign < 0))
+    if new.size == 0 or tpl.twin.size == 0:
+        return new[:0]
+    tw = tpl.twin[new]
+    new = new[(tw >= 0) & (out[np.maximum(tw, 0)] < 0)]
+    if new.size == 0:
+        return new
+    have = np.flatnonzero(assign >= 0)
+    seen = np.all(np.isfinite(hist[assign[have], :, 0]), axis=0)
+    drop = []
+    for m in new.tolist():
+        t = int(tpl.twin[m])
+        p = int(out[m])
+        frames = np.flatnonzero(seen & np.isfinite(hist[p, :, 0]))
+        if frames.size == 0:
+            continue
+        own, alt = assign.copy(), assign.copy()
+        own[m] = alt[t] = p
+        mk, tk, pp = np.array([m]), np.array([t]), np.array([p])
+        gain = [
+            _evidence(tpl, mk, pp, own, hist[:, f]) - _evidence(tpl, tk, pp, alt, hist[:, f])
+            for f in frames
+        ]
+        if np.median(gain) > EXCHANGE_MARGIN:
+            drop.append(m)
+    return np.asarray(drop, dtype=np.int64)
 
 
 def _changed_reversed(tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: np.ndarray) -> bool:
