@@ -691,4 +691,12 @@ MUTANTS: list[Mutant] = [
         "a labeled start numbering every other frame runs at twice the rate",
         k="every_other",
     ),
+    Mutant(
+        "completion-ignores-the-twin",
+        "labeler_service/labeling/boot_match.py",
+        "    out[_twin_fits_better(tpl, assign, out, hist)] = -1\n",
+        "",
+        (T + "labeling/test_twin_side.py",),
+        "a left forearm read onto the right one stays so for a whole take",
+    ),
 ]

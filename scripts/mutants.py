@@ -61,6 +61,11 @@ def _env(tree: Path) -> dict[str, str]:
     env.pop("NUMBA_CACHE_DIR", None)  # in-tree caches (next to the sources) travel with a copy
     env.pop("NUMBA_DISABLE_JIT", None)
     env["PYTHONDONTWRITEBYTECODE"] = "1"
+    real = (ROOT / ".." / "shared" / "data" / "real").resolve()
+    if "MOCAP_DATA_DIR" not in env and real.is_dir():
+        # (a copy in a temporary folder has no ../shared beside it: real-data tests skipped,
+        # and a mutant only they catch survived)
+        env["MOCAP_DATA_DIR"] = str(real)
     return env
 
 
