@@ -422,8 +422,9 @@ class StreamState:
         #: the hand-back's "stays until" line, once per wait (a subject that flickers restarts
         #: the wait, not the line)
         self._handback_log = RateLimitedLog(log, period=HANDBACK_WAIT_S)
-        #: boots and reboots said at most once per ``RUNS_LOG_S`` (frames of two senders on one
-        #: MQTT stream start a new run every few frames: 36 such lines a second, a helper's run)
+        #: a boot or reboot for one reason said at most once per ``RUNS_LOG_S`` (two senders on one
+        #: MQTT stream start a new run every few frames: 36 such lines a second, a helper's run;
+        #: a different reason is said at once: a recovery after a reboot is news)
         self._runs_log = RateLimitedLog(log, period=RUNS_LOG_S)
         self._run_times: deque[float] = deque(maxlen=RUNS_MANY)  # (monotonic) of new runs
         #: (model, its markers in a trained body) of the last hand-back check
@@ -1112,7 +1113,7 @@ class StreamState:
         self.recoveries += 1
         n = plural(len(model.subjects), "subject")
         what = "whoever is missing (the others keep their labels)" if keep else f"its {n}"
-        self._runs_log.warning("recovery", "stream %s: %s: booting %s from the stream's "
+        self._runs_log.warning(f"recovery-{why}", "stream %s: %s: booting %s from the stream's "
                                "model (recovery %d)", self.name, why, what,
                                self.recoveries)  # fmt: skip
         return True
@@ -1280,7 +1281,7 @@ class StreamState:
         self.labeled_fraction = self.recovered_fraction = float("nan")
         self.reboots += 1
         self.recoveries += 1  # (mocap_recoveries_total: a boot from the stream's model)
-        self._runs_log.warning("reboot", "stream %s: %s: booting its %s again (the tracks "
+        self._runs_log.warning(f"reboot-{why}", "stream %s: %s: booting its %s again (the tracks "
                                "before it are stale)", self.name, why,
                                plural(len(lab.model.subjects), "subject"))  # fmt: skip
         return True
