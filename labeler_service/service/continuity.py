@@ -31,7 +31,9 @@ Two habits of real senders are no jump:
   2 % of the frames, each dropped as a ``time_jump`` before). A frame whose ``seq`` continues
   the run and whose ``t`` lies less than ``jitter`` of the run's frame step behind the last
   accepted one continues the run, re-timed: its verdict's ``t`` is the last accepted time plus
-  its ``seq`` steps at the run's step (learned from the accepted frames). A frozen ``t`` (the
+  ``jitter`` of its ``seq`` steps at the run's step (half a frame; the step is learned from the
+  accepted frames' own ``t``), so the labeler's times always increase and stay within a frame
+  of the sender's. A frozen ``t`` (the
   same ``t`` again) or one running back by more is still a ``time_jump``, and a re-timed frame
   is the last accepted one, so a clock that keeps running back falls behind it and is
   dropped.
