@@ -137,8 +137,8 @@ log = logging.getLogger(__name__)
 HANDBACK_FRAMES = 4
 #: Stream seconds the hand-back waits, every subject labeled, for markers not labeled yet.
 HANDBACK_WAIT_S = 2.0
-#: boot and reboot lines of one stream said at most this often (s); this many new runs within
-#: it ask about two senders
+#: a stream's boot and reboot lines for one kind of reason said at most this often (s); this
+#: many new runs within it ask about two senders
 RUNS_LOG_S = 5.0
 RUNS_MANY = 8
 #: Sources whose frame counts a stream keeps (``StreamState.busier_than_sender``).
@@ -210,6 +210,12 @@ def rigid_bodies(labeler: FrameLabeler, names: tuple[str, ...]) -> tuple[tuple[i
         for subj in labeler.model.subjects
         for body in subj.bodies
     )
+
+
+def _reason_key(what: str, why: str) -> str:
+    """The rate-limit key of a boot line: its kind of reason, numbers left out (a key per
+    "0.30 s of stream dropped" would keep one entry per gap for the stream's life)."""
+    return f"{what}-{re.sub(r'[0-9.]+', '#', why)}"
 
 
 def _off_the_loop(labeler: FrameLabeler) -> bool:
@@ -1113,8 +1119,8 @@ class StreamState:
         self.recoveries += 1
         n = plural(len(model.subjects), "subject")
         what = "whoever is missing (the others keep their labels)" if keep else f"its {n}"
-        self._runs_log.warning(f"recovery-{why}", "stream %s: %s: booting %s from the stream's "
-                               "model (recovery %d)", self.name, why, what,
+        self._runs_log.warning(_reason_key("recovery", why), "stream %s: %s: booting %s from "
+                               "the stream's model (recovery %d)", self.name, why, what,
                                self.recoveries)  # fmt: skip
         return True
 
@@ -1281,8 +1287,8 @@ class StreamState:
         self.labeled_fraction = self.recovered_fraction = float("nan")
         self.reboots += 1
         self.recoveries += 1  # (mocap_recoveries_total: a boot from the stream's model)
-        self._runs_log.warning(f"reboot-{why}", "stream %s: %s: booting its %s again (the tracks "
-                               "before it are stale)", self.name, why,
+        self._runs_log.warning(_reason_key("reboot", why), "stream %s: %s: booting its %s "
+                               "again (the tracks before it are stale)", self.name, why,
                                plural(len(lab.model.subjects), "subject"))  # fmt: skip
         return True
 
