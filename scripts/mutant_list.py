@@ -127,8 +127,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "rate-inference-returns-the-period",
         "labeler_service/service/stream.py",
-        "            rate = float(1.0 / np.median(dt[ok] / steps[ok]))",
-        "            rate = float(np.median(dt[ok] / steps[ok]))",
+        "        rate = float(1.0 / (np.median(slope[forward]) * stride))",
+        "        rate = float(np.median(slope[forward]) * stride)",
         (ONLINE,),
         "frame-rate inference from init frames returns seconds per frame",
         k="udp and init-frames and inline",
