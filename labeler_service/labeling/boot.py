@@ -307,7 +307,9 @@ class Booter:
             near = np.linalg.norm(pts - centre, axis=1) <= tpl.extent
             if not np.any(near & (holder >= 0) & (holder != i)):
                 continue
-            grown = _complete(tpl, h.assign, pts, hist, np.zeros(n, dtype=bool), self.config)
+            grown = _complete(
+                tpl, h.assign, pts, hist, np.zeros(n, dtype=bool), self.config, partial=True
+            )
             fresh = np.flatnonzero((grown >= 0) & (h.assign < 0))
             if fresh.size == 0:
                 continue

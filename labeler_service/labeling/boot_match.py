@@ -1681,6 +1681,7 @@ def _complete(
     config: BootConfig,
     reread: bool = False,
     exchange: bool = False,
+    partial: bool = False,
 ) -> np.ndarray:
     """Adds markers to a placed subject ``assign`` from free points near it: body candidates
     (other segments, linked through articulated pairs) and trilateration. Markers already
@@ -1688,7 +1689,9 @@ def _complete(
     a completion refused for a reversed chirality quadruple may read the new markers'
     segments again, moving placed markers (:func:`_chiral_reread`); with ``exchange`` as
     well, when that finds nothing, two placed markers of the reversed quadruples may exchange
-    their points on the window's evidence (:func:`_chiral_exchange`)."""
+    their points on the window's evidence (:func:`_chiral_exchange`). With ``partial`` (and
+    no ``reread``), a completion refused that way keeps the new markers of the segments that
+    reverse nothing (:func:`_without_reversed`) instead of none."""
     have = np.flatnonzero(assign >= 0)
     if have.size == 0:
         return assign
@@ -1741,11 +1744,48 @@ def _complete(
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
         if not reread:
-            return assign
+            return _without_reversed(tpl, assign, out, pts) if partial else assign
         got = _chiral_reread(tpl, assign, out, new, pts)
         if got is assign and exchange:
             got = _chiral_exchange(tpl, assign, out, new, pts, hist)
         return got
+    return out
+
+
+def _without_reversed(
+    tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: np.ndarray
+) -> np.ndarray:
+    """A completion ``out`` of ``assign`` that reverses a thick chirality quadruple, without
+    the new markers of the segments (:func:`_segments`; a marker in none alone) holding a new
+    marker of a reversed quadruple, until none is reversed: the mirrored part of a completion
+    is refused, the rest of it (another limb) kept. Without the refusal being per segment,
+    one arm completed onto a partner's point refused the whole completion, and with it the
+    subject's own foot that a hugging partner's boot had taken as its other foot (a mirror
+    image, three markers: no handedness): :meth:`Booter._reclaim` never saw it, and the two
+    performers' feet stayed exchanged for the rest of the take (hug5 reboot, 8 s)."""
+    out = out.copy()
+    for _ in range(tpl.n):
+        new = np.flatnonzero((out >= 0) & (out != assign))
+        if new.size == 0:
+            break
+        q = tpl.chirality
+        oq = out[q]
+        use = np.all(oq >= 0, axis=1) & np.any(np.isin(q, new), axis=1)
+        det = _volumes(pts[np.where(oq >= 0, oq, 0)])
+        bad_q = q[use & _reversed_thick(det)]
+        if bad_q.shape[0] == 0:
+            break
+        bad = np.intersect1d(bad_q.ravel(), new)
+        drop = set(bad.tolist())
+        for seg in tpl.segments:
+            if np.isin(seg, bad).any():
+                drop.update(np.intersect1d(seg, new).tolist())
+        idx = np.fromiter(drop, dtype=np.int64)
+        out[idx] = assign[idx]
+    # (a mirror segment whose side the dropped markers told is not guessed: _one_sided)
+    loose = _one_sided(tpl, out)
+    loose = loose[assign[loose] < 0]
+    out[loose] = -1
     return out
 
 
