@@ -1737,9 +1737,7 @@ def _complete(
         return assign
     # no thick chirality quadruple with a new marker reversed (a leg completed mirrored), and
     # a new mirror segment with nothing to tell its side yet is not guessed (:func:`_one_sided`)
-    loose = _one_sided(tpl, out)
-    loose = loose[assign[loose] < 0]
-    out[loose] = -1
+    _drop_one_sided(tpl, assign, out)
     out[_twin_fits_better(tpl, assign, out, hist)] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
@@ -1764,15 +1762,13 @@ def _without_reversed(
     image, three markers: no handedness): :meth:`Booter._reclaim` never saw it, and the two
     performers' feet stayed exchanged for the rest of the take (hug5 reboot, 8 s)."""
     out = out.copy()
+    q = tpl.chirality
     for _ in range(tpl.n):
-        new = np.flatnonzero((out >= 0) & (out != assign))
+        fresh = (out >= 0) & (out != assign)
+        new = np.flatnonzero(fresh)
         if new.size == 0:
             break
-        q = tpl.chirality
-        oq = out[q]
-        use = np.all(oq >= 0, axis=1) & np.any(np.isin(q, new), axis=1)
-        det = _volumes(pts[np.where(oq >= 0, oq, 0)])
-        bad_q = q[use & _reversed_thick(det)]
+        bad_q = q[_reversed_quads(q, out, fresh, pts)]
         if bad_q.shape[0] == 0:
             break
         bad = np.intersect1d(bad_q.ravel(), new)
@@ -1783,9 +1779,7 @@ def _without_reversed(
         idx = np.fromiter(drop, dtype=np.int64)
         out[idx] = assign[idx]
     # (a mirror segment whose side the dropped markers told is not guessed: _one_sided)
-    loose = _one_sided(tpl, out)
-    loose = loose[assign[loose] < 0]
-    out[loose] = -1
+    _drop_one_sided(tpl, assign, out)
     return out
 
 
@@ -2365,10 +2359,16 @@ def _fill_reversed(
     out[rows, marks] = points
     new = np.zeros((K, tpl.n), dtype=bool)
     new[rows, marks] = True
-    oq = out[:, q]  # (K, Q, 4)
-    use = np.all(oq >= 0, axis=2) & np.any(new[:, q], axis=2)
-    det = _volumes(pts[np.where(oq >= 0, oq, 0)])  # (K, Q)
-    return np.any(use & _reversed_thick(det), axis=1)
+    return np.any(_reversed_quads(q, out, new, pts), axis=1)
+
+
+def _reversed_quads(q: np.ndarray, out: np.ndarray, new: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``(..., Q)``: the quadruples of ``q (Q, 4)`` with all four markers placed in ``out
+    (..., m)``, one of them ``new (..., m)``, whose thick tetrahedron is reversed."""
+    oq = out[..., q]  # (..., Q, 4)
+    use = np.all(oq >= 0, axis=-1) & np.any(new[..., q], axis=-1)
+    det = _volumes(pts[np.where(oq >= 0, oq, 0)])
+    return use & _reversed_thick(det)
 
 
 def _quads_holding(q: np.ndarray, pairs: np.ndarray) -> np.ndarray:
@@ -2427,6 +2427,13 @@ def _fill_maps(nu: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
     mk.flags.writeable = False  # (cached)
     pt.flags.writeable = False
     return mk, pt
+
+
+def _drop_one_sided(tpl: _Template, assign: np.ndarray, out: np.ndarray) -> None:
+    """Unplaces in ``out`` the markers new to it (not placed in ``assign``) that
+    :func:`_one_sided` leaves unguessed."""
+    loose = _one_sided(tpl, out)
+    out[loose[assign[loose] < 0]] = -1
 
 
 def _one_sided(tpl: _Template, assign: np.ndarray) -> np.ndarray:
