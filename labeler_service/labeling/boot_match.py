@@ -71,6 +71,9 @@ TWIN_MIN_VOTES = 2
 TWIN_RATIO = 1.5
 #: A twin witness whose normalised volume (:func:`_twin_votes`) is within this of zero abstains
 TWIN_ABSTAIN = 0.05
+#: nats by which a body candidate's reading of a superset of another candidate's points must
+#: be more likely to drop that candidate (:func:`_undominated`): a likelihood ratio of e^2
+DOMINATED_MARGIN = 2.0
 
 
 # ---------------------------------------------------------------------------- templates
@@ -1157,6 +1160,9 @@ def _hypotheses(
         return []
     n = pts.shape[0]
     cands, g, seeds, padded, cm, cp = cg.cands, cg.g, cg.seeds, cg.rows, cg.cm, cg.cp
+    # candidates another body explains better (:func:`_undominated`) neither seed nor join
+    dominated = ~_undominated(tpl, cg, pts)
+    padded = np.where(dominated[:, None], -1, padded)
     # seeds by support: rigid links of the rest of the graph that agree with the seed body
     support = np.array([g.support[s].sum() for s in seeds])
     order = np.argsort(-support, kind="stable")
@@ -1175,12 +1181,14 @@ def _hypotheses(
     for ci in order:
         if len(out) >= config.max_hypotheses or tried >= config.max_seeds:
             break
-        if used[ci] or np.any(claimed[cands[ci].points]):
+        if used[ci] or dominated[ci] or np.any(claimed[cands[ci].points]):
             continue
         tried += 1
         best: _Hypothesis | None = None
         for cj in groups[tuple(sorted(cands[ci].points.tolist()))][: config.max_symmetries]:
             used[cj] = True
+            if dominated[cj]:
+                continue
             centre = pts[cands[cj].points].mean(axis=0)
             allowed = ~claimed[g.P] & (np.linalg.norm(node_pos - centre, axis=1) <= extent)
             nodes = _select(g, seeds[cj], allowed, padded, config, cg.near)
@@ -1709,8 +1717,15 @@ def _complete(
     cg = _candidates(tpl, lp, lh, pairs, config, fixed, key)
     out = assign.copy()
     if cg is not None:
+        keep = _undominated(tpl, cg, lp)
         nodes = _select(
-            cg.g, cg.seeds[-1], np.ones(cg.g.M.size, dtype=bool), cg.rows, config, cg.near, True
+            cg.g,
+            cg.seeds[-1],
+            np.ones(cg.g.M.size, dtype=bool),
+            cg.rows[keep],
+            config,
+            cg.near[keep],
+            True,
         )
         la = np.full(tpl.n, -1, dtype=np.int64)
         la[cg.g.M[nodes]] = cg.g.P[nodes]
@@ -1750,6 +1765,59 @@ def _complete(
     return out
 
 
+def _undominated(tpl: _Template, cg: _Candidates, pts: np.ndarray) -> np.ndarray:
+    """``(C,)`` bool: the body candidates of ``cg`` that no candidate of another body explains
+    better. Candidate ``c`` is dominated by a candidate ``o`` of another body on a strict
+    superset of its points when ``o``'s reading of all its points (:func:`_nll` of its pairs)
+    is more likely, by ``DOMINATED_MARGIN``, than ``c``'s reading of its own points with each
+    pair that only ``o`` explains taken as unrelated to the body (a distance anywhere up to
+    the size of ``o``'s body, ``log`` of that size each). A loose body of three markers (a
+    wrist, ulna and hand triangle, an acromion with two upper-arm markers: trained
+    tolerances of 10-20 mm) fits three points of a rigid plate of another segment; the plate
+    fits all four of them within a millimetre, and the fourth point's three distances are
+    what a chance placement would not hold. Without it, the kneeling performer booted from a
+    model of other frames had both wrist triangles read on the upper-arm plates (and the arms
+    unlabeled) for the whole take, through the service as offline."""
+    cands = cg.cands
+    keep = np.ones(len(cands), dtype=bool)
+    if len(cands) < 2:
+        return keep
+    holding: dict[int, set[int]] = {}
+    for i, c in enumerate(cands):
+        for p in c.points.tolist():
+            holding.setdefault(p, set()).add(i)
+    own: dict[int, float] = {}
+    size: dict[int, float] = {}
+
+    def cost(c: _Candidate) -> float:
+        a, b = np.triu_indices(c.points.size, 1)
+        d = np.linalg.norm(pts[c.points[a]] - pts[c.points[b]], axis=1)
+        return float(_nll(tpl, c.markers[a], c.markers[b], d).sum())
+
+    def log_size(body: int) -> float:
+        if body not in size:
+            bm = tpl.bodies[body].markers
+            d = tpl.D[np.ix_(bm, bm)]
+            size[body] = float(np.log(max(float(np.max(d[np.isfinite(d)], initial=1.0)), 1.0)))
+        return size[body]
+
+    for i, c in enumerate(cands):
+        ni = c.points.size
+        for j in set.intersection(*(holding[p] for p in c.points.tolist())):
+            o = cands[j]
+            if o.body == c.body or o.points.size <= ni:
+                continue
+            if i not in own:
+                own[i] = cost(c)
+            if j not in own:
+                own[j] = cost(o)
+            extra = o.points.size * (o.points.size - 1) // 2 - ni * (ni - 1) // 2
+            if own[i] + extra * log_size(o.body) - own[j] > DOMINATED_MARGIN:
+                keep[i] = False
+                break
+    return keep
+
+
 def _without_reversed(
     tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: np.ndarray
 ) -> np.ndarray:
@@ -1786,10 +1854,14 @@ def _without_reversed(
 def _twin_fits_better(
     tpl: _Template, assign: np.ndarray, out: np.ndarray, hist: np.ndarray
 ) -> np.ndarray:
-    """The markers new in ``out`` (not placed in ``assign``) whose named twin on the other
-    side (``tpl.twin``), placed in neither, fits the same point better against the markers
-    ``assign`` placed: by more than ``EXCHANGE_MARGIN`` (:func:`_evidence`) in the median of
-    the window frames (``hist (N, W, 3)``) that track that point and every placed marker.
+    """The markers new in ``out`` (not placed in ``assign``) that do not fit their point
+    better than their named twin on the other side (``tpl.twin``), placed in neither, would
+    against the markers ``assign`` placed: by ``EXCHANGE_MARGIN`` (:func:`_evidence`) in the
+    median of the window frames (``hist (N, W, 3)``) that track that point and every placed
+    marker. Side needs evidence for it, not only none against it: a left forearm marker
+    placed by its articulated ranges alone on the right ulna's point (its twin fitted there
+    no better: neither is that point's marker) was taken by the labeler's re-acquisition of
+    the left forearm body, which then read the whole right forearm plate as the left one.
     A forearm plate outside every trained body has no mirror segment (:func:`_mirror_pairs`):
     on a kneeling performer whose left arm was not yet placed, the completion put a left
     forearm marker on the right forearm's point, next to the placed right upper arm (its twin
@@ -1822,7 +1894,7 @@ def _twin_fits_better(
             _evidence(tpl, mk, pp, own, hist[:, f]) - _evidence(tpl, tk, pp, alt, hist[:, f])
             for f in frames
         ]
-        if np.median(gain) > EXCHANGE_MARGIN:
+        if np.median(gain) > -EXCHANGE_MARGIN:
             drop.append(m)
     return np.asarray(drop, dtype=np.int64)
 
