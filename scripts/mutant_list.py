@@ -699,4 +699,20 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_twin_side.py",),
         "a left forearm read onto the right one stays so for a whole take",
     ),
+    Mutant(
+        "no-candidate-dominated",
+        "labeler_service/labeling/boot_match.py",
+        "                keep[i] = False\n                break\n",
+        "                break\n",
+        (T + "labeling/test_boot_dominated.py",),
+        "a loose wrist triangle read on an upper-arm plate for a whole take",
+    ),
+    Mutant(
+        "twin-side-without-evidence",
+        "labeler_service/labeling/boot_match.py",
+        "        if np.median(gain) > -EXCHANGE_MARGIN:",
+        "        if np.median(gain) > EXCHANGE_MARGIN:",
+        (T + "labeling/test_twin_side.py",),
+        "a left forearm marker on the right ulna grows into the left plate on the right arm",
+    ),
 ]
