@@ -4,6 +4,8 @@ the true marker of each point (the operator's run through the service, offline).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 from labeler_service.capture import split_label
@@ -32,3 +34,11 @@ def kneel_booted(real_path, start: int, frames: int) -> tuple[list[str], list[tu
         got = np.asarray(lab.process(pts, (k - start) / take.rate).point_labels)
         out.append((got, truth))
     return names, out
+
+
+def kneel_labeled(real_path, start: int, frames: int) -> Iterator[tuple[str, str]]:
+    """``(given, true)`` marker names of every point :func:`kneel_booted` labeled."""
+    names, run = kneel_booted(real_path, start, frames)
+    for got, truth in run:
+        for g, t in zip(got[got >= 0], truth[got >= 0], strict=True):
+            yield names[g], names[t]
