@@ -806,7 +806,10 @@ class Server:
                 self._rlog.warning(f"units-{state.name}", "%s", units)
             rate = state.rate_check.update(state.name, msg.t, state.rate)
             if rate is not None:
-                log.warning("%s", rate)
+                doubt = ""
+                if state.stream_settings.rate is None:  # (the model's rate: the model in doubt)
+                    doubt = state.units.model_doubt(getattr(state.labeler, "model", None))
+                log.warning("%s%s", rate, doubt)
             self._boot_news(state)
             if self._published_model.get(state.name) != state.model_id:
                 await self._publish_model(state)

@@ -155,6 +155,23 @@ class UnitCheck:
         self.warnings += 1
         return match_warning(stream, model, counts, dt)
 
+    def model_doubt(self, model: object) -> str:
+        """While the stream has labeled nothing: its points per frame so far beside its
+        model's markers, as a clause for the rate warning (:class:`RateCheck`), which comes
+        before :func:`match_warning` does (``WINDOW_S`` against ``MATCH_S``): a model of
+        other performers, whose rate the stream then runs at, was told to set a rate 8 s
+        before it heard that the model may not be theirs. Empty once anything is labeled."""
+        if not isinstance(model, LabelerModel) or self._quiet_since is None or not self._counts:
+            return ""
+        points = int(np.median(self._counts))
+        total = sum(len(s.markers) for s in model.subjects)
+        return (
+            f"; nothing is labeled yet and its frames carry {plural(points, 'point')} (median) "
+            f"where its model has {plural(total, 'marker')}: if the model is not of these "
+            "performers and marker set, train one on a labeled take of theirs (its rate is "
+            "theirs) instead"
+        )
+
     def update(
         self, stream: str, points: np.ndarray, t: float, observed: int, model: object
     ) -> str | None:

@@ -146,6 +146,34 @@ def test_points_of_another_marker_set_are_named_in_the_log(model_path, caplog):
     assert "metres" not in warned[0]
 
 
+def test_a_rate_warning_doubts_the_model_while_nothing_is_labeled(model_path, caplog):
+    """Another marker set's points (3 x 7 markers) at 30 Hz on a stream of a 120 Hz model of 2
+    x 6 markers, no ``streams[].rate``: the rate warning (after 2 s of stream) told the
+    operator to set a rate, 8 s before the match check said the model may not be theirs. While
+    nothing is labeled, the rate warning says it too, with the points per frame."""
+    other = moving_clusters(np.random.default_rng(9), subjects=3, markers=7, frames=400)
+    frames = frames_of(other, np.random.default_rng(1))
+    items = [encode_frame("vol", k, k / 30.0, frames[k][0]) for k in range(other.n_frames)]
+    with caplog.at_level(logging.WARNING, logger="labeler_service.service.server"):
+        run(_serve(model_path, items), timeout=240.0)
+    warned = [r.getMessage() for r in caplog.records if "its frames come at" in r.getMessage()]
+    assert len(warned) == 1, warned
+    assert "set rate = 30" in warned[0] and "nothing is labeled yet" in warned[0]
+    assert "21 points (median) where its model has 12 markers" in warned[0]
+
+
+def test_the_models_doubt_is_said_only_while_nothing_is_labeled(model_path):
+    model = load_model(model_path)
+    person = np.random.default_rng(0).normal(scale=300.0, size=(9, 3)).astype(np.float32)
+    chk = UnitCheck()
+    assert chk.model_doubt(model) == ""
+    for k in range(5):
+        chk.update("v", person, k / 30, 0, model)
+    assert "9 points (median) where its model has 12 markers" in chk.model_doubt(model)
+    chk.update("v", person, 5 / 30, 3, model)  # a label
+    assert chk.model_doubt(model) == ""
+
+
 def test_the_match_check_waits_for_points_and_gives_way_to_the_unit_warning(model_path):
     model = load_model(model_path)
     rng = np.random.default_rng(0)
