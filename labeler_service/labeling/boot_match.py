@@ -1788,11 +1788,10 @@ def _undominated(tpl: _Template, cg: _Candidates, pts: np.ndarray) -> np.ndarray
             holding.setdefault(p, set()).add(i)
     own: dict[int, float] = {}
     size: dict[int, float] = {}
+    alone = np.full(tpl.n, -1, dtype=np.int64)  # (a reading's own pairs only: _pair_error)
 
     def cost(c: _Candidate) -> float:
-        a, b = np.triu_indices(c.points.size, 1)
-        d = np.linalg.norm(pts[c.points[a]] - pts[c.points[b]], axis=1)
-        return float(_nll(tpl, c.markers[a], c.markers[b], d).sum())
+        return _pair_error(tpl, c.markers, c.points, alone, pts)
 
     def log_size(body: int) -> float:
         if body not in size:

@@ -81,12 +81,16 @@ def model_scale(model: LabelerModel) -> float:
     return best
 
 
+def _points_and_markers(model: LabelerModel, counts: list[int]) -> tuple[int, int]:
+    """The median points per frame of ``counts`` and the markers of ``model``."""
+    return int(np.median(counts)), sum(len(s.markers) for s in model.subjects)
+
+
 def match_warning(stream: str, model: LabelerModel, counts: list[int], seconds: float) -> str:
     """The points per frame of a stream that labeled nothing for ``seconds``, beside its model's
     subjects and markers, and what to do about each reading."""
-    points = int(np.median(counts))
+    points, total = _points_and_markers(model, counts)
     sizes = ", ".join(f"{s.name} {len(s.markers)}" for s in model.subjects)
-    total = sum(len(s.markers) for s in model.subjects)
     head = (
         f"stream {stream}: nothing labeled for {seconds:.1f} s of stream; its frames carry "
         f"{plural(points, 'point')} (median) where its model has {plural(total, 'marker')} "
@@ -163,8 +167,7 @@ class UnitCheck:
         before it heard that the model may not be theirs. Empty once anything is labeled."""
         if not isinstance(model, LabelerModel) or self._quiet_since is None or not self._counts:
             return ""
-        points = int(np.median(self._counts))
-        total = sum(len(s.markers) for s in model.subjects)
+        points, total = _points_and_markers(model, self._counts)
         return (
             f"; nothing is labeled yet and its frames carry {plural(points, 'point')} (median) "
             f"where its model has {plural(total, 'marker')}: if the model is not of these "
