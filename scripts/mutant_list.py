@@ -715,12 +715,4 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_twin_side.py",),
         "a left forearm marker on the right ulna grows into the left plate on the right arm",
     ),
-    Mutant(
-        "one-sided-ignores-held",
-        "labeler_service/labeling/boot_match.py",
-        "                out.append(a[[_held(tpl, assign, int(m), rest, pts) == 0 for m in a]])",
-        "                out.append(a)",
-        (T + "labeling/test_one_sided_held.py",),
-        "a wrist triangle beside its forearm plate is dropped whole; the radius goes on the plate",
-    ),
 ]

@@ -1226,7 +1226,7 @@ def _hypotheses(
                 continue
             # a mirror segment placed on one side with nothing to tell the side yet (a foot
             # whose knee is not placed) is not guessed: the extension reads it with the knee
-            assign[_one_sided(tpl, assign, pts)] = -1
+            assign[_one_sided(tpl, assign)] = -1
             if int((assign >= 0).sum()) < need:
                 continue
             best = _Hypothesis(tpl.index, assign, _score(tpl, assign, pts), _rms(tpl, assign, pts))
@@ -1752,7 +1752,7 @@ def _complete(
         return assign
     # no thick chirality quadruple with a new marker reversed (a leg completed mirrored), and
     # a new mirror segment with nothing to tell its side yet is not guessed (:func:`_one_sided`)
-    _drop_one_sided(tpl, assign, out, pts)
+    _drop_one_sided(tpl, assign, out)
     out[_twin_fits_better(tpl, assign, out, hist)] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
@@ -1846,7 +1846,7 @@ def _without_reversed(
         idx = np.fromiter(drop, dtype=np.int64)
         out[idx] = assign[idx]
     # (a mirror segment whose side the dropped markers told is not guessed: _one_sided)
-    _drop_one_sided(tpl, assign, out, pts)
+    _drop_one_sided(tpl, assign, out)
     return out
 
 
@@ -2500,29 +2500,19 @@ def _fill_maps(nu: int, nc: int) -> tuple[np.ndarray, np.ndarray]:
     return mk, pt
 
 
-def _drop_one_sided(tpl: _Template, assign: np.ndarray, out: np.ndarray, pts: np.ndarray) -> None:
+def _drop_one_sided(tpl: _Template, assign: np.ndarray, out: np.ndarray) -> None:
     """Unplaces in ``out`` the markers new to it (not placed in ``assign``) that
     :func:`_one_sided` leaves unguessed."""
-    loose = _one_sided(tpl, out, pts)
+    loose = _one_sided(tpl, out)
     out[loose[assign[loose] < 0]] = -1
 
 
-def _one_sided(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def _one_sided(tpl: _Template, assign: np.ndarray) -> np.ndarray:
     """Markers of mirror segments (:func:`_mirror_pairs`) placed whole on one side while no
     marker of the other side is placed and no thick-trained chirality quadruple has all four
     markers placed and one of them in the segment (nothing has told which side it is), while
     a local quadruple over it (:func:`_local_quads`: its leg's knee, ankle and toes) still
-    lacks a marker (its knee), which will tell the side once placed. A marker held to the
-    rest of the subject by a pair of one trained body within its tolerance (:func:`_held`;
-    not to the other mirror segment) has its side told by that marker and stays. Dropped
-    with its segment, the kneeling performer's wrist triangle (radius, ulna, hand; placed
-    right, beside the forearm plate it shares a trained body with) left the radius to the
-    next completion, which put it alone (one marker of the segment: not this test's) on the
-    plate's proximal point; the labeler added the ulna and hand next to it, and a window
-    mirror test then moved all three to the right arm (a stream whose boot results come 5-80
-    frames late: 4 of 61 runs, 530 wrong labels; 15 with this). The hand, held by nothing outside the triangle, still
-    waits: a triangle's distances cannot tell its reading from the mirror about the
-    radius-ulna axis (which put it on that proximal plate point in another start)."""
+    lacks a marker (its knee), which will tell the side once placed."""
     q = tpl.chirality
     if q.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
@@ -2532,8 +2522,6 @@ def _one_sided(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarra
     pending[q[np.any(assign[q] < 0, axis=1) & tpl.chiral_local].ravel()] = True
     out = []
     for s1, s2 in tpl.mirrors:
-        rest = assign >= 0
-        rest[s1] = rest[s2] = False
         for a, b in ((s1, s2), (s2, s1)):
             if (
                 np.all(assign[a] >= 0)
@@ -2541,7 +2529,7 @@ def _one_sided(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> np.ndarra
                 and not covered[a].any()
                 and pending[a].any()
             ):
-                out.append(a[[_held(tpl, assign, int(m), rest, pts) == 0 for m in a]])
+                out.append(a)
     return np.unique(np.concatenate(out)) if out else np.zeros(0, dtype=np.int64)
 
 
