@@ -19,7 +19,7 @@ import argparse
 import time
 
 import numpy as np
-from _common import booting_streams, emit, real_root
+from _common import booting_streams, emit, real_args
 
 
 def _seeds(spec: str) -> list[int]:
@@ -41,9 +41,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="20-80", help="A-B (inclusive) or one seed")
     ap.add_argument("--hold-min", type=int, default=5)
     ap.add_argument("--hold-max", type=int, default=80)
-    ap.add_argument("--out", default=None)
-    a = ap.parse_args()
-    root = real_root(a.out)
+    a, root = real_args(ap)
     if root is None:
         return 0
     take = read_capture(root / "kneel_to_prone_62markers_240hz.c3d")
