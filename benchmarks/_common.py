@@ -108,8 +108,11 @@ def real_root(out: str | Path | None) -> Path | None:
     return root
 
 
-def real_args(ap: argparse.ArgumentParser) -> tuple[argparse.Namespace, Path | None]:
-    """``ap`` with ``--out``, parsed, and the real takes' folder (None: skipped and said)."""
+def real_args(
+    ap: argparse.ArgumentParser, argv: list[str] | None = None
+) -> tuple[argparse.Namespace, Path | None]:
+    """``ap`` with ``--out``, parsed (``argv``, else the command line), and the real takes'
+    folder (None: skipped and said)."""
     ap.add_argument("--out", default=None)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     return a, real_root(a.out)

@@ -27,7 +27,7 @@ def _seeds(spec: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     from labeler_service.capture import split_label
     from labeler_service.capture.io import read_capture
     from labeler_service.service.continuity import ACCEPT
@@ -41,7 +41,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="20-80", help="A-B (inclusive) or one seed")
     ap.add_argument("--hold-min", type=int, default=5)
     ap.add_argument("--hold-max", type=int, default=80)
-    a, root = real_args(ap)
+    a, root = real_args(ap, argv)
     if root is None:
         return 0
     take = read_capture(root / "kneel_to_prone_62markers_240hz.c3d")

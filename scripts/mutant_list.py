@@ -715,4 +715,21 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_twin_side.py",),
         "a left forearm marker on the right ulna grows into the left plate on the right arm",
     ),
+    Mutant(
+        "completion-places-ambiguous-markers",
+        "labeler_service/labeling/boot_match.py",
+        "    out[ambiguous] = -1\n",
+        "",
+        (T + "labeling/test_late_install.py",),
+        "a radius placed on the forearm plate's point, which fits its two partners as well",
+    ),
+    Mutant(
+        "completion-keeps-orphans",
+        "labeler_service/labeling/boot_match.py",
+        "    _orphans(tpl, la, had, fresh)\n",
+        "",
+        (T + "labeling/test_boot_match.py",),
+        "a hand kept alone on the other wrist after its radius and ulna were refuted",
+        k="refuted",
+    ),
 ]

@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 from mutant_list import MUTANTS, Mutant  # noqa: E402
 
-COPY = ("labeler_service", "offline", "tests", "pyproject.toml")
+COPY = ("labeler_service", "offline", "tests", "benchmarks", "pyproject.toml")
 NUMBA_CACHE_SUFFIXES = (".nbi", ".nbc")
 
 

@@ -927,6 +927,26 @@ def _constancy(
     return assign
 
 
+def _strict_partners(tpl: _Template, assign: np.ndarray) -> np.ndarray:
+    """``(n,)`` per marker, how many placed markers a pair of one trained body ties it to."""
+    placed = assign >= 0
+    return (tpl.strict & placed[None, :]).sum(axis=1) * placed
+
+
+def _orphans(tpl: _Template, assign: np.ndarray, had: np.ndarray, movable: np.ndarray) -> None:
+    """Unplaces the ``movable`` markers (a completion's new ones) that had strict partners
+    (``had``, :func:`_strict_partners` before :func:`_constancy`) and have none left: the body
+    candidate that placed them was refuted and nothing else vouches for them. A model's wrist
+    triangle read on the other wrist's points lost its radius and ulna to the check and kept
+    its hand, alone on the other radius's point, for the labeler to grow the wrong side from
+    (kneel from frame 900 through the service, boot results installed late)."""
+    while True:
+        lost = movable & (had > 0) & (assign >= 0) & (_strict_partners(tpl, assign) == 0)
+        if not lost.any():
+            return
+        assign[lost] = -1
+
+
 def _score(tpl: _Template, assign: np.ndarray, pts: np.ndarray) -> float:
     """Markers explained, less per marker the mean squared distance error of its rigid pairs
     (in tolerances) and of its articulated pairs (in link tolerances, capped at 1): a leg read
@@ -1738,13 +1758,17 @@ def _complete(
     la[fixed >= 0] = fixed[fixed >= 0]
     ltaken[la[la >= 0]] = True
     _articulate(tpl, la, ltaken, lp, lh, ltree, config)
+    had = _strict_partners(tpl, la)
     checked = _constancy(tpl, la.copy(), lh, config)
     fresh = (fixed < 0) & (la >= 0) & (checked == la)
-    # the new markers' segments read again (a hidden forearm and hand that appear mirrored)
     la = np.where(fresh | (fixed >= 0), la, -1)
+    _orphans(tpl, la, had, fresh)
+    fresh = (fixed < 0) & (la >= 0)
+    # the new markers' segments read again (a hidden forearm and hand that appear mirrored)
     _readings(tpl, la, lp, movable=fresh)
     _twins(tpl, la, lp, lh, movable=fresh)
     fresh = (fixed < 0) & (la >= 0)
+    ambiguous = _ambiguous(tpl, la, lh, fresh, config)
     out[fresh] = local[la[fresh]]
     # one point per marker and one marker per point
     pts_used = out[out >= 0]
@@ -1754,6 +1778,8 @@ def _complete(
     # a new mirror segment with nothing to tell its side yet is not guessed (:func:`_one_sided`)
     _drop_one_sided(tpl, assign, out)
     out[_twin_fits_better(tpl, assign, out, hist)] = -1
+    # (after the side tests: a segment read whole on one side is judged whole)
+    out[ambiguous] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
         if not reread:
@@ -1762,6 +1788,38 @@ def _complete(
         if got is assign and exchange:
             got = _chiral_exchange(tpl, assign, out, new, pts, hist)
         return got
+    return out
+
+
+def _ambiguous(
+    tpl: _Template, la: np.ndarray, lh: np.ndarray, fresh: np.ndarray, config: BootConfig
+) -> np.ndarray:
+    """``(n,)`` bool: the new markers (``fresh``) of reading ``la`` whose placed strict
+    partners another unused point (``lh (L, W, 3)``, the local tracks) fits as well: each of
+    those pairs within its tolerance in a ``config.constancy`` share of the frames both are
+    tracked. Nothing tells which of the two points the marker is on. A forearm plate's two
+    distal markers placed, the radius went on the plate's proximal point, 73 and 55 mm from
+    them against 83 +- 10 and 52 +- 17 trained, as well as on its own; the labeler then grew
+    the wrist onto the plate (kneel from frame 900, boot results 5-80 frames late)."""
+    out = np.zeros(tpl.n, dtype=bool)
+    placed = la >= 0
+    unused = np.ones(lh.shape[0], dtype=bool)
+    unused[la[placed]] = False
+    alt = np.flatnonzero(unused)
+    if alt.size == 0:
+        return out
+    for m in np.flatnonzero(fresh):
+        partners = np.flatnonzero(tpl.strict[m] & placed)
+        if partners.size == 0:
+            continue
+        # (A, P, W) distances from each unused point to each partner's point along the window
+        d = np.linalg.norm(lh[alt][:, None] - lh[la[partners]][None], axis=3)
+        seen = np.isfinite(d)
+        off = np.abs(d - tpl.D[m, partners][None, :, None])
+        within = seen & (off <= tpl.tol[m, partners][None, :, None])
+        share = within.sum(axis=2) / np.maximum(seen.sum(axis=2), 1)
+        fits = np.all((share >= config.constancy) & seen.any(axis=2), axis=1)
+        out[m] = bool(fits.any())
     return out
 
 

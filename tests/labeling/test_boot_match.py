@@ -11,15 +11,18 @@ from scipy.spatial import cKDTree
 
 from labeler_service.labeling.boot import BootConfig, Booter, PointTracker, track_history
 from labeler_service.labeling.boot_match import (
+    _ambiguous,
     _articulate,
     _exchange,
     _fill_reversed,
     _handedness,
     _hypotheses,
     _one_sided,
+    _orphans,
     _pair_error,
     _Pairs,
     _relocate,
+    _strict_partners,
     _swap_mirrors,
 )
 from labeler_service.scenes.simulate import simulate_scene
@@ -425,3 +428,106 @@ def test_completions_in_a_memo_reuse_candidates_and_give_the_same_markers(walker
         again, bm._complete(tpl, assign.copy(), pts, hist, taken, cfg, reread=True)
     )
     assert bm._MEMO.get() is None  # closed
+
+
+def _turned_about(h, a, b, angle=np.pi):
+    """Track ``h (W, 3)`` turned by ``angle`` about the axis through tracks ``a`` and ``b``,
+    frame by frame (Rodrigues): its distances to ``a`` and ``b`` are kept."""
+    k = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    v = h - a
+    c, s = np.cos(angle), np.sin(angle)
+    kv = np.sum(k * v, axis=1, keepdims=True)
+    return a + v * c + np.cross(k, v) * s + k * kv * (1 - c)
+
+
+def test_a_new_marker_another_free_point_fits_as_well_is_not_placed(walker):
+    """``_ambiguous``: a marker placed beside two strict partners only, while another unused
+    point keeps the same two distances (its own point turned about their axis), has nothing
+    to tell the two points apart; a third partner placed tells them."""
+    tpl, hist, truth = walker
+    config = BootConfig()
+    placed = truth >= 0
+    cands = [m for m in np.flatnonzero(placed) if np.count_nonzero(tpl.strict[m] & placed) >= 3]
+    assert cands
+    m = cands[0]
+    partners = np.flatnonzero(tpl.strict[m] & placed)
+    p1, p2, p3 = partners[:3]
+    alt = _turned_about(hist[truth[m]], hist[truth[p1]], hist[truth[p2]])
+    lh = np.concatenate([hist, alt[None]])
+    assert np.linalg.norm(alt[-1] - hist[truth[m], -1]) > 20.0  # (another point, not a twin)
+    fresh = np.zeros(tpl.n, dtype=bool)
+    fresh[m] = True
+    la = np.full(tpl.n, -1, dtype=np.int64)
+    la[[m, p1, p2]] = truth[[m, p1, p2]]
+    assert _ambiguous(tpl, la, lh, fresh, config)[m]
+    la[p3] = truth[p3]  # the third distance differs on the turned point
+    assert not _ambiguous(tpl, la, lh, fresh, config).any()
+    la[[p1, p2, p3]] = -1  # (no partner placed: nothing to judge here)
+    assert not _ambiguous(tpl, la, lh, fresh, config).any()
+
+
+def test_a_marker_whose_strict_partners_were_all_refuted_goes_with_them(walker):
+    """``_orphans``, as a completion runs it after ``_constancy``: a new marker whose strict
+    partners the check dropped, all of them (its candidate refuted), goes too; a marker placed
+    before the completion (not movable), or one that had no strict partner placed, keeps its
+    place, and so does one with a partner left."""
+    tpl, hist, truth = walker
+    placed = truth >= 0
+    n_strict = (tpl.strict & placed[None]).sum(axis=1)
+    m = int(np.flatnonzero(placed & (n_strict >= 2))[np.argmin(n_strict[placed & (n_strict >= 2)])])
+    partners = np.flatnonzero(tpl.strict[m] & placed)
+    assign = np.full(tpl.n, -1, dtype=np.int64)
+    assign[np.r_[partners, m]] = truth[np.r_[partners, m]]
+    had = _strict_partners(tpl, assign)
+    assert had[m] == partners.size
+    refuted = assign.copy()
+    refuted[partners] = -1  # (what the check dropped)
+    movable = np.zeros(tpl.n, dtype=bool)
+    kept = refuted.copy()
+    _orphans(tpl, kept, had, movable)
+    assert kept[m] == truth[m]  # placed before: not this test's
+    movable[m] = True
+    _orphans(tpl, kept, np.zeros_like(had), movable)
+    assert kept[m] == truth[m]  # no strict partner at the start: not this test's either
+    _orphans(tpl, kept, had, movable)
+    assert kept[m] == -1
+    one_left = assign.copy()
+    one_left[partners[1:]] = -1
+    _orphans(tpl, one_left, had, movable)
+    assert one_left[m] == truth[m]
+
+
+def test_a_completion_does_not_keep_a_marker_whose_candidate_was_refuted(walker, monkeypatch):
+    """``_complete``: a triangle body whose markers are each other's only strict partners is
+    placed whole; when the constancy check drops two of them (here forced: the check's verdict
+    on a candidate read on another limb's points), the third is not kept alone."""
+    import labeler_service.labeling.boot_match as bm
+
+    tpl, hist, truth = walker
+    config = BootConfig()
+    pts = hist[:, -1]
+    # a three-marker body whose markers have no strict partner outside it
+    seg = next(
+        b.markers
+        for b in tpl.bodies
+        if b.markers.size == 3
+        and np.all(truth[b.markers] >= 0)
+        and np.all(tpl.strict[b.markers].sum(axis=1) == 2)
+    )
+    assign = truth.copy()
+    assign[seg] = -1
+    taken = np.zeros(len(pts), dtype=bool)
+    taken[assign[assign >= 0]] = True
+    out = bm._complete(tpl, assign, pts, hist, taken, config)
+    np.testing.assert_array_equal(out[seg], truth[seg])
+    check = bm._constancy
+
+    def refuted(tpl_, a, h, c):
+        a = check(tpl_, a, h, c)
+        a[seg[:2]] = -1
+        return a
+
+    monkeypatch.setattr(bm, "_constancy", refuted)
+    out = bm._complete(tpl, assign, pts, hist, taken, config)
+    assert np.all(out[seg] == -1)
+    np.testing.assert_array_equal(out[assign >= 0], assign[assign >= 0])
