@@ -103,6 +103,10 @@ def refusal(host_header: str, origin: str | None, bound: str) -> str | None:
     return None
 
 
+#: the window of the input rate the page shows (s)
+RATE_WINDOW_S = 1.0
+
+
 class Viewer:
     """``async with Viewer("udp://127.0.0.1:9870/demo") as v: print(v.url)``
 
@@ -136,7 +140,9 @@ class Viewer:
         self.clock = clock
         self.decimator: Decimator[Received] = Decimator(fps)
         self.history: deque[tuple[int, bytes]] = deque(maxlen=history)
-        self.rate_in = Window(window_s)
+        # the input rate over the last second: a stream that stops reads 0 within a second
+        # (over the 5 s of the latency window it lingered, falling for 4 s after `idle`)
+        self.rate_in = Window(min(window_s, RATE_WINDOW_S))
         self.latency = Window(window_s)
         self.stream: str | None = None
         self.model: ModelMsg | None = None

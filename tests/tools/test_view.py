@@ -118,6 +118,25 @@ def test_window_rate_and_percentiles_forget_old_samples():
     assert np.isnan(w.percentiles(10.0)["p50"]) and w.rate(10.0) == 0.0
 
 
+def test_the_input_rate_falls_to_zero_within_a_second_of_the_last_frame():
+    """The overlay's input rate after a stream stops (``idle``): it stayed above 0 for the 5 s
+    of the latency window, falling slowly, as if frames still came; the latency window keeps
+    its 5 s."""
+    now = [0.0]
+    v = Viewer("udp://127.0.0.1:9/v", port=0, clock=lambda: now[0])
+    for i in range(600):  # 5 s at 120 Hz
+        now[0] = i / 120.0
+        v.rate_in.add(now[0])
+        v.latency.add(now[0], 2.0)
+    assert v.stats()["rate_in"] == pytest.approx(120.0, rel=0.02)
+    last = now[0]
+    now[0] = last + 0.5
+    assert v.stats()["rate_in"] == pytest.approx(60.0, rel=0.05)
+    now[0] = last + 1.01
+    assert v.stats()["rate_in"] == 0.0
+    assert v.stats()["lat_p50"] == 2.0  # (the latency window still holds the last 5 s)
+
+
 # ----------------------------------------------------------------------------- encoding
 def _received(rng, m=7, k=3) -> Received:
     pos = rng.normal(scale=500, size=(m, 3)).astype(np.float32)
