@@ -1713,7 +1713,9 @@ def _complete(
 ) -> np.ndarray:
     """Adds markers to a placed subject ``assign`` from free points near it: body candidates
     (other segments, linked through articulated pairs) and trilateration. Markers already
-    placed stay; new ones must pass the distance constancy along the tracks. With ``reread``,
+    placed stay; new ones must pass the distance constancy along the tracks, keep a strict
+    partner when they had one (:func:`_orphans`) and have no other free point fit their
+    placed strict partners as well (:func:`_ambiguous`). With ``reread``,
     a completion refused for a reversed chirality quadruple may read the new markers'
     segments again, moving placed markers (:func:`_chiral_reread`); with ``exchange`` as
     well, when that finds nothing, two placed markers of the reversed quadruples may exchange
