@@ -718,7 +718,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "completion-places-ambiguous-markers",
         "labeler_service/labeling/boot_match.py",
-        "    out[ambiguous] = -1\n",
+        "    out[_ambiguous(tpl, la, lh, fresh & (out >= 0), config)] = -1\n",
         "",
         (T + "labeling/test_late_install.py",),
         "a radius placed on the forearm plate's point, which fits its two partners as well",

@@ -1770,7 +1770,6 @@ def _complete(
     _readings(tpl, la, lp, movable=fresh)
     _twins(tpl, la, lp, lh, movable=fresh)
     fresh = (fixed < 0) & (la >= 0)
-    ambiguous = _ambiguous(tpl, la, lh, fresh, config)
     out[fresh] = local[la[fresh]]
     # one point per marker and one marker per point
     pts_used = out[out >= 0]
@@ -1781,7 +1780,7 @@ def _complete(
     _drop_one_sided(tpl, assign, out)
     out[_twin_fits_better(tpl, assign, out, hist)] = -1
     # (after the side tests: a segment read whole on one side is judged whole)
-    out[ambiguous] = -1
+    out[_ambiguous(tpl, la, lh, fresh & (out >= 0), config)] = -1
     new = np.flatnonzero(out != assign)
     if new.size and _fill_reversed(tpl, assign, pts, new[None], out[new][None])[0]:
         if not reread:

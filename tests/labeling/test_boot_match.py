@@ -474,7 +474,8 @@ def test_a_marker_whose_strict_partners_were_all_refuted_goes_with_them(walker):
     tpl, hist, truth = walker
     placed = truth >= 0
     n_strict = (tpl.strict & placed[None]).sum(axis=1)
-    m = int(np.flatnonzero(placed & (n_strict >= 2))[np.argmin(n_strict[placed & (n_strict >= 2)])])
+    ok = placed & (n_strict >= 2)
+    m = int(np.flatnonzero(ok)[np.argmin(n_strict[ok])])
     partners = np.flatnonzero(tpl.strict[m] & placed)
     assign = np.full(tpl.n, -1, dtype=np.int64)
     assign[np.r_[partners, m]] = truth[np.r_[partners, m]]
