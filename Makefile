@@ -19,7 +19,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	bash scripts/ensure-mosquitto.sh
 	bash scripts/ensure-chromium.sh
-	$(BIN)/python -m pytest -q --durations=25
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check labeler_service offline tests benchmarks
