@@ -569,7 +569,7 @@ def pair_error(D, scale, logs, gauss, use, markers, points, assign, pts, sigmas)
     return total
 
 
-def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link):
+def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link, own):
     """Twin of ``kernels/boot_grow.py:_grow`` (the numpy ``boot_match._grow`` it replaced, with
     its KD-tree ball query), in place on ``assign`` and ``taken``."""
     from scipy.spatial import cKDTree
@@ -580,7 +580,7 @@ def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link):
         have = np.flatnonzero(assign >= 0)
         for m in np.flatnonzero(assign < 0):
             part = have[rigid[m, have]]
-            if part.size < 2:
+            if part.size < 2 or (own and not strict[m, have].any()):
                 continue
             j = part[np.argmin(D[m, part])]
             near = tree.query_ball_point(pts[assign[j]], D[m, j] + TOL[m, j])

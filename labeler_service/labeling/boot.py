@@ -247,7 +247,7 @@ class Booter:
                 else:
                     lost[k] = True
             assign[have[lost]] = -1
-            if int((assign >= 0).sum()) < max(3, int(np.ceil(self.config.min_fraction * tpl.n))):
+            if int((assign >= 0).sum()) < self.config.boot_markers(tpl.n):
                 continue
             for j, o_m in wins:
                 other, _ = accepted[j]
@@ -322,7 +322,7 @@ class Booter:
                 # the same points as the other subject's markers
                 ot = self._templates[other.template]
                 theirs = np.flatnonzero(np.isin(other.assign, grown[mine]))
-                need = max(3, int(np.ceil(self.config.min_fraction * ot.n)))
+                need = self.config.boot_markers(ot.n)
                 if int((other.assign >= 0).sum()) - theirs.size < need:
                     continue
                 # the likelihood of those points under each subject, given the rest of it,

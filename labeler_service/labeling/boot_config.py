@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from pydantic import BaseModel, ConfigDict, Field
 
 #: How often the labeled start's booter learns again from the stream (s): the window labeler's
@@ -338,3 +340,8 @@ class BootConfig(BaseModel):
         "marker this close to another subject's, and the extension exchanges no two markers "
         "of a segment this close to another subject (0: everywhere)",
     )
+
+    def boot_markers(self, n: int) -> int:
+        """Markers a hypothesis of an ``n``-marker template must hold to boot its subject
+        (``min_fraction`` of them, 3 at least)."""
+        return max(3, math.ceil(self.min_fraction * n))

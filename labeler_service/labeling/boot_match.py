@@ -828,13 +828,23 @@ def _grow(
     """Markers with no node yet: a free point that keeps the rigid distances (3 or more) to the
     markers placed, and clashes with none of them, joins (trilateration). With two rigid
     partners only, the point must be the only one that also keeps every articulated pair in
-    its trained range."""
+    its trained range.
+
+    Own evidence first: a marker joins only when a partner of its own trained body
+    (``tpl.strict``) is among those placed. A pair rigid by ``A`` alone may cross a joint that
+    never moved in training (a model trained kneeling, the stream prone: the right heel read
+    from the right thigh plate and the pelvis landed on the left thigh). Only when that leaves
+    the subject under the boot gate (``min_fraction``) are the other rigid pairs let in: a
+    pelvis of two triangles with one marker hidden has no body candidate, so none of its
+    markers has a placed partner of its own bodies, and only the trunk can bring it in."""
     # one numba loop (kernels/boot_grow.py; ``tree`` is not needed there: the ball query is
     # a scan of the points; the numpy version is the twin tests/reference.py:grow)
-    _grow_kernel(
-        assign, taken, np.ascontiguousarray(pts, dtype=np.float64), tpl.D, tpl.tol, tpl.bound,
-        tpl.rigid, tpl.strict, tpl.link,
-    )  # fmt: skip
+    del tree
+    p = np.ascontiguousarray(pts, dtype=np.float64)
+    rest = (tpl.D, tpl.tol, tpl.bound, tpl.rigid, tpl.strict, tpl.link)
+    _grow_kernel(assign, taken, p, *rest, True)
+    if int((assign >= 0).sum()) < config.boot_markers(tpl.n):
+        _grow_kernel(assign, taken, p, *rest, False)
 
 
 def _articulate(
@@ -1187,7 +1197,7 @@ def _hypotheses(
     support = np.array([g.support[s].sum() for s in seeds])
     order = np.argsort(-support, kind="stable")
     extent = float(np.nanmax(tpl.D)) if np.isfinite(tpl.D).any() else 2000.0
-    need = max(3, int(np.ceil(config.min_fraction * tpl.n)))
+    need = config.boot_markers(tpl.n)
     out: list[_Hypothesis] = []
     claimed = np.zeros(n, dtype=bool)  # points of this template's accepted hypotheses
     used = np.zeros(len(cands), dtype=bool)
@@ -2319,7 +2329,7 @@ def warmup_kernels() -> None:
     )  # fmt: skip
     p3 = np.zeros((2, 3))
     _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
-    _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m)
+    _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m, True)
     _constancy_counts(np.zeros((2, 2, 3)), z.copy(), np.zeros((2, 2)), np.ones((2, 2)), ~out_b)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
     _track_step(
@@ -2647,7 +2657,7 @@ def _fill(
     tried again with the same rules. Returns the new assignment (a copy when changed)."""
     n = tpl.n
     have = np.flatnonzero(assign >= 0)
-    if have.size < max(3, int(np.ceil(config.min_fraction * n))) or have.size == n:
+    if have.size < config.boot_markers(n) or have.size == n:
         return assign
     miss = np.flatnonzero(assign < 0)
     miss = miss[np.isfinite(tpl.D[np.ix_(miss, have)]).any(axis=1)]

@@ -18,9 +18,10 @@ from labeler_service._numba import njit
 
 
 @njit(fastmath=False)
-def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link):
+def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link, own):
     """In place on ``assign (m,)`` (point per marker, -1) and ``taken (N,)``; see the module
-    docstring and ``boot_match._grow``."""
+    docstring and ``boot_match._grow``. ``own``: a marker joins only when a partner of its own
+    trained body (``strict``) is among the markers placed."""
     m_all = assign.shape[0]
     n = pts.shape[0]
     have = np.empty(m_all, dtype=np.int64)
@@ -41,12 +42,15 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link):
             m = todo[t]
             # rigid partners placed; the one nearest in D (the first minimum, NaN first)
             n_part = 0
+            n_strict = 0
             j = -1
             for h in range(nh):
                 b = have[h]
                 if not rigid[m, b]:
                     continue
                 n_part += 1
+                if strict[m, b]:
+                    n_strict += 1
                 if j < 0:
                     j = b
                 elif np.isnan(D[m, b]):
@@ -54,7 +58,7 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link):
                         j = b
                 elif not np.isnan(D[m, j]) and D[m, b] < D[m, j]:
                     j = b
-            if n_part < 2:
+            if n_part < 2 or (own and n_strict == 0):
                 continue
             r = D[m, j] + tol[m, j]
             c = pts[assign[j]]
