@@ -580,7 +580,7 @@ def grow(assign, taken, pts, D, TOL, bound, rigid, strict, link, own):
         have = np.flatnonzero(assign >= 0)
         for m in np.flatnonzero(assign < 0):
             part = have[rigid[m, have]]
-            if part.size < 2 or (own and not strict[m, have].any()):
+            if part.size < 2 or not own[m, have].any():
                 continue
             j = part[np.argmin(D[m, part])]
             near = tree.query_ball_point(pts[assign[j]], D[m, j] + TOL[m, j])

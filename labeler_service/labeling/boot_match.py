@@ -100,6 +100,9 @@ class _Template:
     #: pair rigid by ``A`` alone (an arm held still against the chest in the training frames)
     #: may change with the pose, so its mismatch is no evidence against a placement
     strict: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    #: (m, m) pairs inside one trained body, rigid or not (``strict`` is its rigid part): a
+    #: marker's own evidence in the trilateration (_grow)
+    same: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     #: (m, m) pairs inside a trained body whose every pair is rigid (one segment); a pair of
     #: ``strict`` outside every such body sits in a body the trainer completed across a joint
     #: (one of its pairs moved in training): see _stale_pairs
@@ -181,6 +184,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
             same[np.ix_(members, members)] = True
         np.fill_diagonal(same, False)
         tpl = _Template(s, subj.name, offset, m, Dm, Am, tol, bound, rigid, link, same & rigid)
+        tpl.same = same
         tpl.whole = np.zeros((m, m), dtype=bool)
         for body in subj.bodies:
             members = np.asarray(body, dtype=np.int64)
@@ -830,21 +834,22 @@ def _grow(
     partners only, the point must be the only one that also keeps every articulated pair in
     its trained range.
 
-    Own evidence first: a marker joins only when a partner of its own trained body
-    (``tpl.strict``) is among those placed. A pair rigid by ``A`` alone may cross a joint that
-    never moved in training (a model trained kneeling, the stream prone: the right heel read
-    from the right thigh plate and the pelvis landed on the left thigh). Only when that leaves
-    the subject under the boot gate (``min_fraction``) are the other rigid pairs let in: a
-    pelvis of two triangles with one marker hidden has no body candidate, so none of its
-    markers has a placed partner of its own bodies, and only the trunk can bring it in."""
+    Own evidence first: a marker joins only when a marker of its own trained body is among
+    those placed (``tpl.same``; rigid to it or not: a toe whose only rigid partner of its body
+    is the other toe, hidden with it, has the ankle). A pair rigid by ``A`` alone may cross a
+    joint that never moved in training (a model trained kneeling, the stream prone: the right
+    heel read from the right thigh plate and the pelvis landed on the left thigh). Only when
+    that leaves the subject under the boot gate (``min_fraction``) are the other rigid pairs
+    let in: a pelvis of two triangles with one marker hidden has no body candidate, so none of
+    its markers has a placed partner of its own bodies, and only the trunk can bring it in."""
     # one numba loop (kernels/boot_grow.py; ``tree`` is not needed there: the ball query is
     # a scan of the points; the numpy version is the twin tests/reference.py:grow)
     del tree
     p = np.ascontiguousarray(pts, dtype=np.float64)
     rest = (tpl.D, tpl.tol, tpl.bound, tpl.rigid, tpl.strict, tpl.link)
-    _grow_kernel(assign, taken, p, *rest, True)
+    _grow_kernel(assign, taken, p, *rest, tpl.same)
     if int((assign >= 0).sum()) < config.boot_markers(tpl.n):
-        _grow_kernel(assign, taken, p, *rest, False)
+        _grow_kernel(assign, taken, p, *rest, tpl.rigid)  # (every rigid partner is evidence)
 
 
 def _articulate(
@@ -2329,7 +2334,7 @@ def warmup_kernels() -> None:
     )  # fmt: skip
     p3 = np.zeros((2, 3))
     _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
-    _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m, True)
+    _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m, rigid)
     _constancy_counts(np.zeros((2, 2, 3)), z.copy(), np.zeros((2, 2)), np.ones((2, 2)), ~out_b)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
     _track_step(

@@ -504,6 +504,29 @@ def test_dance_forearm_swap_after_occlusion_is_undone(real_path):
     assert report["max_swap_frames"] <= 30
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_dance_toes_hidden_together_come_back_in_place(real_path):
+    """The cross-take matrix's tune09 ``occlude2`` cell (60 Hz, the labeled start's window
+    model): the dancer's left big toe and little toe were hidden together; their only rigid
+    partner of their own body is each other (the ankle, in the same trained body, moved
+    against them in the window). Trilateration that counted only rigid partners of the
+    marker's own body as its own evidence left both out of the completion when they came
+    back; the inner labeler then read one on the other's point and the two stayed exchanged
+    for 387 frames. Any placed marker of the marker's trained body (the ankle) is its own
+    evidence (``boot_match._grow``)."""
+    from labeler_service.evaluation.scoring import evaluate
+    from labeler_service.scenes.compose import TakeSpec, compose_scene
+
+    takes = [
+        TakeSpec(path=real_path("kneel_to_prone_62markers_240hz.c3d"), start=960),
+        TakeSpec(path=real_path("dance_qualisys_28markers_60hz.c3d"), start=240),
+    ]
+    scene = compose_scene(takes, radius=220.0, frames=480, seed=109, rate=60.0)
+    report, _ = evaluate(scene, ["online"], init_frames=24, seed=109, occlude=2, occlude_frames=18)
+    assert report["max_swap_frames"] <= 30  # (387 with rigid partners only, 0 now)
+
+
 SCALENE = np.array([[0.0, 0.0, 0.0], [140.0, 0.0, 0.0], [100.0, 70.0, 0.0]])  # sides 140, 122, 81
 ISOSCELES = np.array([[0.0, 0.0, 0.0], [120.0, 0.0, 0.0], [60.0, 90.0, 0.0]])  # sides 120, 108, 108
 

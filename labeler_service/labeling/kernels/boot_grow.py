@@ -20,8 +20,9 @@ from labeler_service._numba import njit
 @njit(fastmath=False)
 def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link, own):
     """In place on ``assign (m,)`` (point per marker, -1) and ``taken (N,)``; see the module
-    docstring and ``boot_match._grow``. ``own``: a marker joins only when a partner of its own
-    trained body (``strict``) is among the markers placed."""
+    docstring and ``boot_match._grow``. ``own (m, m)``: a marker ``m`` joins only when a
+    marker ``b`` with ``own[m, b]`` is among those placed (its own trained body's; ``rigid``
+    lets every rigid partner count)."""
     m_all = assign.shape[0]
     n = pts.shape[0]
     have = np.empty(m_all, dtype=np.int64)
@@ -42,15 +43,15 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link, own):
             m = todo[t]
             # rigid partners placed; the one nearest in D (the first minimum, NaN first)
             n_part = 0
-            n_strict = 0
+            n_own = 0
             j = -1
             for h in range(nh):
                 b = have[h]
+                if own[m, b]:
+                    n_own += 1
                 if not rigid[m, b]:
                     continue
                 n_part += 1
-                if strict[m, b]:
-                    n_strict += 1
                 if j < 0:
                     j = b
                 elif np.isnan(D[m, b]):
@@ -58,7 +59,7 @@ def _grow(assign, taken, pts, D, tol, bound, rigid, strict, link, own):
                         j = b
                 elif not np.isnan(D[m, j]) and D[m, b] < D[m, j]:
                     j = b
-            if n_part < 2 or (own and n_strict == 0):
+            if n_part < 2 or n_own == 0:
                 continue
             r = D[m, j] + tol[m, j]
             c = pts[assign[j]]
