@@ -309,11 +309,11 @@ def _target(p: Path, suffixes: tuple[str, ...] | None) -> tuple[Path, str]:
     """``(the file a write of p replaces, p's lower-case suffix)``: the suffix must be one of
     ``suffixes`` (``None``: any) and the path not a directory; symbolic links resolved."""
     suffix = p.suffix.lower()
-    if suffixes is not None and suffix not in suffixes:
-        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
     target = Path(os.path.realpath(p))
     if target.is_dir():
         raise CaptureError(f"{p}: cannot write: is a directory")
+    if suffixes is not None and suffix not in suffixes:
+        raise CaptureError(f"{p}: unknown capture format {suffix!r} (use .c3d, .trc or .npz)")
     return target, suffix
 
 

@@ -63,12 +63,13 @@ def positive_int(text: str) -> int:
 
 
 def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool = True) -> None:
-    """Refuses labeled init frames (the first ``init`` frames, every ``step``-th) that show no
-    labeled marker at all (a take that starts before anyone is in view), or, with
-    ``subjects``, that show a subject in fewer than the trainer's ``min_pair_frames`` (3)
-    frames (no marker of his can be trained: he walks in later), naming the frame to start at
-    as ``FILE:start`` (in the file's numbering, as ``spec``'s range is); the labeler's own
-    error said only "start where the subject is in the volume"."""
+    """Refuses a capture with no frames, and labeled init frames (the first ``init`` frames,
+    every ``step``-th) that show no labeled marker at all (a take that starts before anyone
+    is in view), or, with ``subjects``, that show a subject in fewer than the trainer's
+    ``min_pair_frames`` (3) frames (no marker of his can be trained: he walks in later),
+    naming the frame to start at as ``FILE:start`` (in the file's numbering, as ``spec``'s
+    range is); the labeler's own error said only "start where the subject is in the
+    volume"."""
     import numpy as np
 
     from labeler_service.capture import subject_groups
@@ -76,6 +77,8 @@ def check_init_window(cap, spec: str, init: int, step: int = 1, subjects: bool =
     from labeler_service.errors import LabelerError
     from labeler_service.labeling.structure import StructureTrainer
 
+    if cap.n_frames == 0:
+        raise LabelerError(f"{spec}: no frames (nothing to label)")
     if init <= 0:
         return
     need = StructureTrainer().min_pair_frames  # frames a marker must be seen in to be trained

@@ -127,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
 
     check_writable(args.output, inputs=(args.input,))  # before minutes of labeling
     cap = without_absent_subjects(read_segment(args.input, up=args.up), args.input)
+    if cap.n_frames == 0:
+        raise LabelerError(f"{args.input}: no frames (nothing to label)")
     c3d_frames_fit(args.output, cap.n_frames)  # before minutes of labeling too
     model = load_model(args.model) if args.model else None
     init = init_frames(args.init_frames, model)

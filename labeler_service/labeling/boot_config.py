@@ -11,9 +11,10 @@ from pydantic import BaseModel, ConfigDict, Field
 WINDOW_RELEARN_S = 2.0
 #: The events of :attr:`BootingLabeler.events` that take labels from a booted subject:
 #: ``withdraw`` (the re-verification withdrew some of its markers' labels), ``reject`` (it
-#: dropped the subject), ``drop`` (the subject vanished) and ``jump`` (the scene jumped past its
-#: tracks, ``jump_fraction``); a dropped subject is booted again.
-LOSS_EVENTS = ("withdraw", "reject", "drop", "jump")
+#: dropped the subject), ``drop`` (the subject vanished), ``jump`` (the scene jumped past its
+#: tracks, ``jump_fraction``) and ``blackout`` (points back after ``blackout_reboot_s`` with
+#: none); a dropped subject is booted again.
+LOSS_EVENTS = ("withdraw", "reject", "drop", "jump", "blackout")
 #: The events of the re-verification a service counts and logs: the losses, and ``exchange``
 #: (a segment and its mirror twin read on each other's points, exchanged back).
 VERIFY_EVENTS = (*LOSS_EVENTS, "exchange")
@@ -194,6 +195,13 @@ class BootConfig(BaseModel):
         description="BootingLabeler: frames with no point at all (a camera dropout) count toward "
         "no subject's drop_after_s for this long in a row; a performer who left meanwhile is "
         "dropped once points come back",
+    )
+    blackout_reboot_s: float = Field(
+        0.25,
+        ge=0,
+        description="BootingLabeler: when points come back after this long with none (a camera "
+        "dropout, frames lost), every active subject is dropped and booted again: the tracks "
+        "cannot follow the performers over it (0 turns that off)",
     )
     vanish_fraction: float = Field(
         0.2,

@@ -158,6 +158,8 @@ class StreamPlan:
 
 
 def _plan(capture: Capture, spec: CorruptionSpec, rng: np.random.Generator) -> StreamPlan:
+    if capture.n_frames == 0:
+        raise SceneError(f"{capture.source or 'capture'}: no frames")
     cap = capture.frames(step=spec.downsample) if spec.downsample > 1 else capture
     if cap.n_frames == 0:
         raise SceneError(f"{capture.source or 'capture'}: no frames left after down-sampling")

@@ -192,7 +192,9 @@ class ServiceMetrics:
         self.boot_verify = Counter(
             "mocap_boot_verify",
             "Booted subjects' events: markers withdrawn by the re-verification (withdraw), "
-            "subject dropped by it (reject) or because it vanished (drop)",
+            "subject dropped by it (reject), because it vanished (drop), the scene jumped past "
+            "its tracks (jump) or after a camera dropout (blackout); left and right exchanged "
+            "back (exchange)",
             ["stream", "event"], registry=r,
         )  # fmt: skip
         self.recoveries = Counter(

@@ -1094,6 +1094,7 @@ class Server:
                 ("reject", "re-verification dropped (boots again)"),
                 ("drop", "dropped as vanished (boots again when seen)"),
                 ("jump", "dropped: the scene jumped past their tracks (boots again)"),
+                ("blackout", "dropped after a camera dropout past blackout_reboot_s (boots again)"),
                 ("exchange", "re-verification exchanged left and right markers of"),
             )
             if any(k == kind for k, _ in state.verify_events)

@@ -503,6 +503,8 @@ def exposure_warnings(settings: ServiceSettings) -> list[str]:
 def read_settings_file(path: str | Path) -> dict[str, Any]:
     """Reads a ``.toml`` or ``.json`` settings file into a dict (no validation yet)."""
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"settings file {p} is a folder: give a .toml or .json file")
     if not p.is_file():
         raise ConfigError(f"settings file {p} does not exist")
     try:

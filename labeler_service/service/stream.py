@@ -325,6 +325,8 @@ class StreamState:
         self._init_subjects: dict[str, int] = {}  # subject -> distinct markers in the buffer
         self._t_offset = 0.0  # added to t before the labeler sees it (re-based runs)
         self._t_last: float | None = None  # last (re-based) t given to the labeler
+        #: the last (re-based) t of a frame with a point given to this labeler (a blackout)
+        self._t_points: float | None = None
         self._rebase = False  # re-base time at the next frame (the run's t jumped)
         self.runs = 1
         self.last_activity = time.monotonic()
@@ -402,8 +404,9 @@ class StreamState:
         self.just_booted: tuple[str, ...] = ()  # subjects installed by the last process()
         #: the last process()'s re-verification and drop events of the booting labeler:
         #: (kind, subject), kind "withdraw" (markers' labels withdrawn), "reject" (dropped by
-        #: the re-verification), "drop" (vanished) or "jump" (the scene jumped past its
-        #: tracks); each such subject is booted again
+        #: the re-verification), "drop" (vanished), "jump" (the scene jumped past its
+        #: tracks) or "blackout" (points back after blackout_reboot_s without any); each such
+        #: subject is booted again
         self.verify_events: tuple[tuple[str, str], ...] = ()
         # recovery by boot (see "Recovery" in the module docstring)
         #: the labeler is a recovery BootingLabeler, handed back to a plain one once every
@@ -614,6 +617,7 @@ class StreamState:
         first frame's time is re-based onto the labeler's last one."""
         self._install(labeler, rate)
         self._t_last = t_last
+        self._t_points = None
         self._rebase = True
 
     def _labeler_for(
@@ -791,6 +795,7 @@ class StreamState:
         self._install(labeler, rate)
         self._t_offset = 0.0
         self._t_last = first.t
+        self._t_points = None
         if handover is not None:
             handover.plain = labeler
             self.handover = handover
@@ -1038,6 +1043,7 @@ class StreamState:
             self.recovering = False
             self._t_offset = 0.0
             self._t_last = None
+            self._t_points = None
             if self.stream_settings.model is not None:
                 self.start_from_model(spare=False)  # (the frame path: prepared at the start)
             else:
@@ -1093,6 +1099,22 @@ class StreamState:
         if self.rate:
             gap_s = max(gap_s, GAP_PERIODS / self.rate)
         gap = t - self._t_last
+        return gap if gap > gap_s else 0.0
+
+    def _blackout_gap(self, t: float, n_points: int) -> float:
+        """Seconds from the last frame with a point to frame time ``t`` when this frame has
+        points again after more than ``recover_gap_s`` (and ``GAP_PERIODS`` frame periods) of
+        frames with none, and no recovery runs already; else 0. Shorter dropouts are held
+        (the booting labeler's ``blackout_hold_s``)."""
+        last = self._t_points
+        if n_points:
+            self._t_points = t
+        gap_s = self.settings.recover_gap_s
+        if not n_points or last is None or gap_s <= 0 or self.recovering:
+            return 0.0
+        if self.rate:
+            gap_s = max(gap_s, GAP_PERIODS / self.rate)
+        gap = t - last
         return gap if gap > gap_s else 0.0
 
     def start_recovery(self, why: str, keep: list | None = None) -> bool:
@@ -1418,6 +1440,7 @@ class StreamState:
                 self._t_offset = self._t_last + 1.0 / self.rate - f.t
         t = f.t + self._t_offset
         self.just_booted = ()
+        blackout = self._blackout_gap(t, len(f.points))
         labels = self._label_indices(f)
         if labels is not None:
             self._labels_seen = True
@@ -1429,6 +1452,13 @@ class StreamState:
             # from its model file has no recovery to start: it boots everyone again (kept, a
             # hostile run's 0.8 s gap left 47 % of the labels wrong, the stream online)
             why = f"{gap:.2f} s of stream dropped before this frame"
+            if not self.start_recovery(why):
+                self.reboot(why)
+        elif blackout:
+            # the same gap sent as frames with no point (a camera dropout): a hostile run's
+            # 0.3 s of empty frames left two performers' pelvis mirrored and feet exchanged
+            # to the end of the stream (540-765 wrong labels a half second), the stream online
+            why = f"{blackout:.2f} s without a point (a camera dropout) before this frame"
             if not self.start_recovery(why):
                 self.reboot(why)
         elif self._waits_for_labels():

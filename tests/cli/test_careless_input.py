@@ -122,6 +122,34 @@ def test_subscribe_checks_out_before_connecting(capsys):
     _one_error_line(capsys.readouterr().err, "out.c3d: cannot write")
 
 
+def test_subscribe_to_a_folder_says_so(tmp_path, capsys):
+    code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", str(tmp_path)])
+    assert code == 2  # (it said: unknown capture format '')
+    _one_error_line(capsys.readouterr().err, "cannot write: is a directory")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["evaluate", "{f}", "--json"],
+        ["label", "{f}", "{out}", "--init-frames", "0", "--model", "{model}"],
+        ["replay", "{f}", "--to", "udp://127.0.0.1:9", "--init-frames", "0"],
+    ],
+)
+def test_a_capture_with_no_frames_says_so(take, tmp_path, capsys, argv):
+    """(``evaluate`` said "no frames left after down-sampling" with no --downsample, after the
+    numba compile; ``label``: "give fewer --init-frames" than 0.)"""
+    empty = tmp_path / "zero.npz"
+    write_capture(Capture(np.zeros((0, 2, 3)), ("S:a", "S:b"), 120.0, source="zero"), empty)
+    model = tmp_path / "m.json"
+    if "{model}" in argv:
+        assert main(["train", "structure", str(take), "--out", str(model)]) == 0
+        capsys.readouterr()
+    fill = {"f": str(empty), "out": str(tmp_path / "out.c3d"), "model": str(model)}
+    assert main([a.format(**fill) for a in argv]) == 2
+    _one_error_line(capsys.readouterr().err, "zero.npz: no frames")
+
+
 def test_subscribe_without_frames_says_so(tmp_path, capsys):
     out = tmp_path / "rec.c3d"
     code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", str(out),

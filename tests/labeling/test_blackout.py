@@ -61,3 +61,26 @@ def test_a_long_empty_run_drops_the_subjects_once_points_return(walk):
     assert drops and min(drops) < 250 / RATE
     assert [e for e in lab.events if e[1] == "boot" and e[0] > 250 / RATE]
     assert wrong[-int(RATE) :].sum() == 0
+
+
+def test_a_blackout_past_the_tracks_boots_everyone_again(walk):
+    """Points back after more than ``blackout_reboot_s`` (0.25 s) with none: the tracks cannot
+    follow the performers over it, so every subject is dropped ("blackout") and booted again
+    at once. A hostile run's 0.3 s of empty frames (two CMU performers 300 mm apart) left a
+    pelvis read mirrored and the feet exchanged to the end of the take, the labeled fraction
+    high. Within it, a dropout is held (the test above)."""
+    model, cap = walk
+    gap = range(150, 186)  # 0.3 s
+    lab, right, wrong = _run(model, cap, BootConfig(), gap)
+    back = [(t, w) for t, k, w in lab.events if k == "blackout"]
+    assert {w for _, w in back} == {"P1", "P2"}
+    assert all(abs(t - gap.stop / RATE) < 1e-9 for t, _ in back)  # when the points return
+    reboot = [t for t, k, _ in lab.events if k == "boot" and t >= gap.stop / RATE]
+    assert reboot and max(reboot) < (gap.stop + 0.5 * RATE) / RATE
+    assert wrong[gap.stop :].sum() == 0
+    # 0.2 s is held
+    lab, right, wrong = _run(model, cap, BootConfig(), range(150, 174))
+    assert not [e for e in lab.events if e[1] in ("blackout", "drop")], lab.events
+    # blackout_reboot_s = 0 turns it off
+    lab, _, _ = _run(model, cap, BootConfig(blackout_reboot_s=0.0), gap)
+    assert not [e for e in lab.events if e[1] == "blackout"], lab.events

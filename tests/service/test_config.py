@@ -72,6 +72,8 @@ def test_invalid_settings_raise_config_error_naming_the_field(overrides, needle)
 def test_unreadable_files_raise_config_error(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_settings(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="is a folder"):  # (it said "does not exist")
+        load_settings(tmp_path)
     bad = tmp_path / "bad.toml"
     bad.write_text("[udp\n")
     with pytest.raises(ConfigError, match="cannot be parsed"):

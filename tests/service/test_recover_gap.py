@@ -132,3 +132,40 @@ def test_a_slow_senders_frames_are_no_gap(frames):
     st.rate = 4.0
     _feed(st, frames, f + 30)
     assert not st.recovering and st.recoveries == 0
+
+
+def test_a_long_dropout_boots_the_performers_again(frames, caplog):
+    """Frames with no point at all for longer than ``recover_gap_s`` are the same gap as
+    frames dropped: a hostile run's 0.3 s of empty frames left a plain-start stream labeling
+    two performers' pelvis mirrored and their feet exchanged to its end (540-765 wrong labels
+    a half second, the stream online, nothing logged)."""
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.stream")
+    plain = {"labeled_start": "labeler"}
+    empty = range(INIT + 40, INIT + 76)  # 0.3 s
+    st, _ = _stream(frames, 0.25, INIT + 80, empty, **plain)
+    assert st.recoveries == 1
+    assert "0.31 s without a point (a camera dropout) before this frame" in caplog.text
+    st, _ = _stream(frames, 0.25, INIT + 80, range(INIT + 40, INIT + 64), **plain)  # 0.2 s
+    assert st.recoveries == 0
+
+
+def test_a_long_dropout_boots_a_model_streams_performers_again(booted, caplog):
+    caplog.set_level(logging.WARNING, logger="labeler_service.service.stream")
+    path, stream = booted
+    settings = load_settings(labeler="online", metrics_port=None, warmup=False, boot=True,
+                             recover_gap_s=0.25,
+                             streams=[{"name": "vol", "model": str(path)}])  # fmt: skip
+    st = StreamState("vol", settings, settings.streams[0])
+    st.start_from_model()
+    for f in range(120):
+        pts = stream.points[f] if not 60 <= f < 96 else stream.points[f][:0]  # 0.3 s empty
+        st.process(FrameMsg("vol", f, float(stream.times[f]), pts), 0)
+        if f < 60 and (req := st.boot_request()) is not None:
+            st.boot_done(req, StreamState.boot_job(req))
+        if f == 59:
+            assert len(st.subjects_booted) == 2
+        if f == 96:
+            assert st.reboots == 1 and st.subjects_booted == ()
+    assert "without a point (a camera dropout) before this frame: booting its 2 subjects" in (
+        caplog.text
+    )
