@@ -758,4 +758,22 @@ MUTANTS: list[Mutant] = [
         "a walker with one pelvis, knee and ankle marker hidden boots only when they appear",
         k="hidden_at_boot",
     ),
+    Mutant(
+        "blackout-held-past-the-tracks",
+        "labeler_service/labeling/booting.py",
+        "        if t - last > c.blackout_reboot_s:\n",
+        "        if False:\n",
+        (T + "labeling/test_blackout.py",),
+        "a pelvis read mirrored after 0.3 s of empty frames, to the end of the take",
+        k="past_the_tracks",
+    ),
+    Mutant(
+        "service-holds-a-long-dropout",
+        "labeler_service/service/stream.py",
+        "        elif blackout:\n",
+        "        elif False:\n",
+        (T + "service/test_recover_gap.py",),
+        "a plain-start stream labels two performers mirrored after a 0.3 s dropout, online",
+        k="long_dropout",
+    ),
 ]
