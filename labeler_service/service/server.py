@@ -574,7 +574,8 @@ class Server:
                 kept = (
                     "its labeler is kept for the sender's return"
                     if st.labeler is not None
-                    else "it has no labeler yet (no model, no labeled frame)"
+                    else "it has no labeler yet (no model, and no labeled init frames kept to "
+                    "train one)"
                 )
                 self._rlog.warning(f"idle-{name}", "stream %s: no frame for %.1f s (the last "
                                    "from %s): status idle; %s", name, quiet,

@@ -815,7 +815,8 @@ def test_an_idle_stream_that_never_had_a_labeler_says_so(rng, caplog):
             await until(lambda: "status idle" in caplog.text, "idle")
 
     run(go())
-    assert "status idle; it has no labeler yet (no model, no labeled frame)" in caplog.text
+    no_labeler = "it has no labeler yet (no model, and no labeled init frames kept to train one)"
+    assert f"status idle; {no_labeler}" in caplog.text
     assert "kept for the sender's return" not in caplog.text
 
 

@@ -2,7 +2,8 @@
 
 Every hypothesis and every completion of a boot ends with it: a marker with no node yet takes
 the free point that keeps its rigid distances to the markers placed (three or more; with two,
-the point must be the only one that also keeps its articulated pairs in range). In numpy it
+the point must be the only one that also keeps its articulated pairs in range), when a marker
+it may take its evidence from (``own``: its trained body's) is among them. In numpy it
 was a KD-tree ball query and a dozen small array operations per missing marker and round:
 ~1 ms per call, ~130 calls per 10-performer attempt (a tenth of its CPU). Same rules, same
 order (markers by index, three rounds, each placement seen by the next marker); the ball query
