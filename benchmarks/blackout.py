@@ -1,8 +1,8 @@
 """A dropout: frames with no point at all in a real take, labeled from its first labeled
-frames through the window model (``label``'s default start). Per dropout length and
-``BootConfig.blackout_hold_s``: the frames after the return until half and all of the take's
-visible markers are labeled right, the wrong labels over the 40 frames after it, and the
-labeler's drop and boot events.
+frames through the window model (``label``'s default start). Per dropout length,
+``BootConfig.blackout_hold_s`` and ``blackout_reboot_s`` (``--reboot``): the frames after the
+return until half and all of the take's visible markers are labeled right, the wrong labels
+over the 40 frames after it, and the labeler's drop and boot events.
 
     MOCAP_DATA_DIR=../shared/data/real .venv/bin/python benchmarks/blackout.py
 """
@@ -16,7 +16,7 @@ import numpy as np
 from _common import emit, real_args
 
 
-def run(take: str, at: int, n_empty: int, hold: float, init: int) -> dict:
+def run(take: str, at: int, n_empty: int, hold: float, init: int, reboot: float) -> dict:
     from labeler_service.capture import Capture
     from labeler_service.capture.io import read_segment
     from labeler_service.labeling.boot_config import BootConfig
@@ -28,7 +28,8 @@ def run(take: str, at: int, n_empty: int, hold: float, init: int) -> dict:
     names = list(cap.labels)
     win = window_model(Capture(cap.positions[:init], tuple(names), cap.rate))
     lab = make_window_labeler(win, rate=cap.rate, window_frames=init)
-    lab.boot_config = lab.boot_config.model_copy(update={"blackout_hold_s": hold})
+    update = {"blackout_hold_s": hold, "blackout_reboot_s": reboot}
+    lab.boot_config = lab.boot_config.model_copy(update=update)
     assert isinstance(lab.boot_config, BootConfig)
     idx = {n: i for i, n in enumerate(lab.marker_names)}
     rng = np.random.default_rng(0)
@@ -56,6 +57,7 @@ def run(take: str, at: int, n_empty: int, hold: float, init: int) -> dict:
     return {
         "empty_frames": n_empty,
         "blackout_hold_s": hold,
+        "blackout_reboot_s": reboot,
         "frames_to_half_right": half,
         "frames_to_all_right": full,
         "wrong_in_40_frames_after": wrong,
@@ -70,12 +72,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, nargs="+", default=[2, 5, 10, 25])
     ap.add_argument("--hold", type=float, nargs="+", default=[0.0, 0.5])
     ap.add_argument("--init-frames", type=int, default=50)
+    ap.add_argument("--reboot", type=float, nargs="+", default=[0.25], help="blackout_reboot_s")
     a, root = real_args(ap)
     if root is None:
         return
     t0 = time.perf_counter()
     take = str(root / a.take)
-    rows = [run(take, a.at, n, h, a.init_frames) for n in a.frames for h in a.hold]
+    rows = [
+        run(take, a.at, n, h, a.init_frames, r) for n in a.frames for h in a.hold for r in a.reboot
+    ]
     emit({"take": a.take, "runs": rows, "wall_s": round(time.perf_counter() - t0, 1)}, a.out)
 
 
