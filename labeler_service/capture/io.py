@@ -35,7 +35,10 @@ import logging
 import math
 import os
 import re
+import signal
 import struct
+import threading
+import time
 import uuid
 import zipfile
 from collections.abc import Callable, Sequence
@@ -647,9 +650,150 @@ def _c3d_header_rate(path: Path) -> float | None:
     return float(struct.unpack(order + "f", head[20:24])[0])
 
 
+#: parameter data types of C3D (bytes per element): char, byte, 16-bit int, float
+_C3D_TYPES = {-1: 1, 1: 1, 2: 2, 4: 4}
+
+
+def _c3d_structure_problem(path: Path) -> str | None:
+    """What in a C3D's parameter section points outside the file or makes no sense as C3D (a
+    pointer backwards, an unknown data type, data past the end), or None. ezc3d follows these
+    values unchecked: a few damaged bytes there (a helper's 8 bytes of 0xFF at offset 520 of a
+    real take) end the process with a segmentation fault, no error, no output. Only the
+    structure ezc3d walks is checked (entry names, next-entry offsets, types, dimensions, data
+    and description sizes); values are ezc3d's and ours to judge later."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            head = fh.read(512)
+            if len(head) < 512:
+                return None  # (too short for ezc3d to get that far: its own error)
+            block = head[0]
+            if block < 2:
+                return f"its header points to parameter block {block} (the header is block 1)"
+            start = 512 * (block - 1)
+            if start + 4 > size:
+                return f"its parameters start at byte {start}, past its end ({size:,} bytes)"
+            fh.seek(start)
+            section = fh.read()
+    except OSError:
+        return None  # (the reader's own error says it)
+    order = ">" if section[3] == 86 else "<"  # processor type MIPS: big-endian
+    pos = 4
+    for _ in range(65536):  # (every step moves forward: this bounds a loop, not a file)
+        if pos + 2 > len(section):
+            return f"its parameter list runs past the end of the file (byte {start + pos:,})"
+        n_chars = abs(struct.unpack_from("b", section, pos)[0])
+        ident = struct.unpack_from("b", section, pos + 1)[0]
+        if n_chars == 0:
+            return None  # the end of the list
+        at = start + pos
+        link = pos + 2 + n_chars
+        if ident == 0 or link + 2 > len(section):
+            return f"a damaged parameter entry at byte {at:,}"
+        offset = struct.unpack_from(order + "h", section, link)[0]
+        nxt = link + offset
+        if offset != 0 and (offset < 0 or nxt > len(section)):
+            return (
+                f"the parameter entry at byte {at:,} points to byte {start + nxt:,}, "
+                f"{'backwards' if offset < 0 else 'past the end of the file'}"
+            )
+        body = link + 2
+        if ident > 0:  # a parameter: type, dimensions, data
+            if body + 2 > len(section):
+                return f"a damaged parameter entry at byte {at:,}"
+            kind, n_dims = struct.unpack_from("bB", section, body)
+            if kind not in _C3D_TYPES or n_dims > 7:
+                return (
+                    f"the parameter entry at byte {at:,} has data type {kind} and {n_dims} "
+                    "dimensions (C3D knows types -1, 1, 2, 4 and at most 7 dimensions)"
+                )
+            dims = section[body + 2 : body + 2 + n_dims]
+            if len(dims) < n_dims:
+                return f"a damaged parameter entry at byte {at:,}"
+            body += 2 + n_dims + _C3D_TYPES[kind] * math.prod(dims)
+        if body + 1 > len(section) or body + 1 + section[body] > len(section):
+            return f"the parameter entry at byte {at:,} runs past the end of the file"
+        if offset == 0:
+            return None  # the last entry
+        pos = nxt
+    return "its parameter list does not end"
+
+
+#: seconds the forked reader of :func:`_ezc3d_trouble` gets, plus this per MB of file (a real
+#: 2 MB take reads in 0.07 s)
+EZC3D_PROBE_S, EZC3D_PROBE_S_PER_MB = 10.0, 2.0
+
+
+def _ezc3d_trouble(path: Path) -> str | None:
+    """Why ezc3d cannot read ``path`` without taking the process down, or None: it is read in
+    a forked child, which a signal may kill (a segmentation fault: ezc3d trusts every value of
+    the parameter section, e.g. a ``POINT:USED`` stored as text) or which may not finish
+    (:data:`EZC3D_PROBE_S`). The child costs one to two reads (25-90 ms; copy-on-write makes
+    its read slower than the parent's), once per file content (:data:`_EZC3D_PROBED`). Skipped (None) where there is no ``fork`` or the process runs other threads (a fork copies
+    none of them, and a lock one of them holds would stay held in the child): the structure
+    check (:func:`_c3d_structure_problem`) alone stands there."""
+    if not hasattr(os, "fork") or threading.active_count() > 1:
+        return None
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key in _EZC3D_PROBED:  # (a file read again unchanged: the tests' fixtures)
+        return _EZC3D_PROBED[key]
+    if len(_EZC3D_PROBED) >= 256:
+        _EZC3D_PROBED.clear()
+    _EZC3D_PROBED[key] = why = _ezc3d_probe(path, st.st_size)
+    return why
+
+
+#: :func:`_ezc3d_trouble`'s answers by (path, size, modification time)
+_EZC3D_PROBED: dict[tuple[str, int, int], str | None] = {}
+
+
+def _ezc3d_probe(path: Path, size: int) -> str | None:
+    """:func:`_ezc3d_trouble`'s forked read."""
+    limit = EZC3D_PROBE_S + EZC3D_PROBE_S_PER_MB * size / 1e6
+    pid = os.fork()
+    if pid == 0:  # the child: read, and leave without running anything of the parent's
+        code = 0
+        try:
+            import faulthandler
+
+            import ezc3d
+
+            faulthandler.disable()  # (pytest's or a user's dump of the expected crash)
+            with open(os.devnull, "w") as null:
+                os.dup2(null.fileno(), 1)
+                os.dup2(null.fileno(), 2)
+            ezc3d.c3d(str(path))
+        except BaseException:
+            code = 1  # (an exception is the parent's to report, from its own read)
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + limit
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            return f"the C3D reader (ezc3d) does not finish reading it in {limit:.0f} s"
+        time.sleep(0.002)
+    if os.WIFSIGNALED(status):
+        name = signal.Signals(os.WTERMSIG(status)).name
+        return f"the C3D reader (ezc3d) crashes on it ({name})"
+    return None
+
+
 def _read_c3d(path: Path) -> Capture:
     import ezc3d
 
+    problem = _c3d_structure_problem(path)
+    if problem is None:
+        problem = _ezc3d_trouble(path)
+    if problem is not None:
+        raise CaptureFormatError(
+            f"{path}: cannot be read as C3D (damaged or truncated?): {problem}"
+        )
     try:
         c = ezc3d.c3d(str(path))
     except Exception as exc:  # ezc3d's own words, e.g. "Data::frame method is trying to ..."

@@ -80,30 +80,48 @@ class CorruptionSpec:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        fin = np.isfinite
+        # setting -> (holds, what it must be); the command-line flags have the same names
         checks = {
-            "downsample": self.downsample >= 1,
-            "gaps": self.gaps >= 0,
-            "gap_frames": self.gap_frames >= 1,
-            "gap_period": self.gap_period is None or self.gap_period >= self.gap_frames,
-            "occlude": self.occlude >= 0,
-            "occlude_frames": self.occlude_frames >= 1,
-            "occlude_radius_mm": self.occlude_radius_mm > 0 and np.isfinite(self.occlude_radius_mm),
-            "occlude_stagger": self.occlude_stagger >= 0,
-            "dropouts": 0.0 <= self.dropouts < 1.0,
-            "dropout_frames": self.dropout_frames >= 1,
-            "ghosts": 0.0 <= self.ghosts <= MAX_GHOSTS,
-            "ghost_life_frames": self.ghost_life_frames >= 1.0,
-            "jitter_mm": self.jitter_mm >= 0.0 and np.isfinite(self.jitter_mm),
-            "protect_frames": self.protect_frames >= 0,
-            "leave": self.leave >= 0,
-            "leave_seconds": self.leave_seconds > 0 and np.isfinite(self.leave_seconds),
-            "leave_shift_mm": self.leave_shift_mm >= 0 and np.isfinite(self.leave_shift_mm),
+            "downsample": (self.downsample >= 1, ">= 1"),
+            "gaps": (self.gaps >= 0, ">= 0"),
+            "gap_frames": (self.gap_frames >= 1, ">= 1"),
+            "gap_period": (
+                self.gap_period is None or self.gap_period >= self.gap_frames,
+                "at least the gap's frames",
+            ),
+            "occlude": (self.occlude >= 0, ">= 0"),
+            "occlude_frames": (self.occlude_frames >= 1, ">= 1"),
+            "occlude_radius_mm": (
+                self.occlude_radius_mm > 0 and fin(self.occlude_radius_mm),
+                "positive and finite (mm)",
+            ),
+            "occlude_stagger": (self.occlude_stagger >= 0, ">= 0"),
+            "dropouts": (0.0 <= self.dropouts < 1.0, "a fraction from 0 to below 1"),
+            "dropout_frames": (self.dropout_frames >= 1, ">= 1"),
+            "ghosts": (0.0 <= self.ghosts <= MAX_GHOSTS, f"from 0 to {MAX_GHOSTS:g} per frame"),
+            "ghost_life_frames": (self.ghost_life_frames >= 1.0, ">= 1"),
+            "jitter_mm": (self.jitter_mm >= 0.0 and fin(self.jitter_mm), ">= 0 and finite (mm)"),
+            "protect_frames": (self.protect_frames >= 0, ">= 0"),
+            "leave": (self.leave >= 0, ">= 0"),
+            "leave_seconds": (
+                self.leave_seconds > 0 and fin(self.leave_seconds),
+                "positive and finite (seconds)",
+            ),
+            "leave_shift_mm": (
+                self.leave_shift_mm >= 0 and fin(self.leave_shift_mm),
+                ">= 0 and finite (mm)",
+            ),
         }
-        bad = [k for k, ok in checks.items() if not ok]
+        bad = [k for k, (ok, _) in checks.items() if not ok]
         if bad:
-            hint = f" (0 to {MAX_GHOSTS:g} per frame)" if bad[0] == "ghosts" else ""
+            name = bad[0]
+            flag = {"jitter_mm": "jitter", "protect_frames": "init-frames"}.get(
+                name, name.replace("_", "-")
+            )
             raise SceneError(
-                f"invalid corruption setting: {bad[0]}={getattr(self, bad[0])!r}{hint}"
+                f"invalid corruption setting: --{flag} must be {checks[name][1]} "
+                f"(got {getattr(self, name)!r})"
             )
 
 

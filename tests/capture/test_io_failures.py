@@ -177,3 +177,66 @@ def test_check_writable_names_a_file_where_a_folder_should_be(tmp_path):
         with pytest.raises(CaptureError, match=r"notes.txt is a file, not a folder"):
             check_writable(out)
     assert (tmp_path / "notes.txt").read_text() == "x"
+
+
+def _parameter_entry(data: bytes, name: bytes) -> int:
+    """Byte offset of the first parameter entry called ``name`` in a C3D's parameter section
+    (Intel byte order, as our writer writes)."""
+    pos = 512 * (data[0] - 1) + 4
+    while True:
+        n = abs(int.from_bytes(data[pos : pos + 1], "little", signed=True))
+        assert n, f"no entry {name!r}"
+        if data[pos + 2 : pos + 2 + n] == name and data[pos + 1] < 128:  # a parameter (id > 0)
+            return pos
+        pos += 2 + n + int.from_bytes(data[pos + 2 + n : pos + 4 + n], "little", signed=True)
+
+
+def _damaged(tmp_path: Path, rng, at: int | None, raw: bytes, name: bytes = b"") -> Path:
+    good = tmp_path / "good.c3d"
+    write_capture(_capture(rng), good)
+    data = bytearray(good.read_bytes())
+    if at is None:  # the data type byte of parameter ``name``
+        at = _parameter_entry(bytes(data), name) + 2 + len(name) + 2
+    data[at : at + len(raw)] = raw
+    bad = tmp_path / "bad.c3d"
+    bad.write_bytes(bytes(data))
+    return bad
+
+
+def test_a_c3d_whose_parameter_pointers_are_damaged_is_refused_before_ezc3d(tmp_path, rng):
+    """A helper's hostile run: 8 bytes of 0xFF at offset 520 of a real take (the first
+    parameter entry) and ezc3d ended the process with a segmentation fault, no word said."""
+    bad = _damaged(tmp_path, rng, 512 + 8, b"\xff" * 8)
+    with pytest.raises(CaptureError, match=r"bad\.c3d: cannot be read as C3D \(damaged or trunc"):
+        read_capture(bad)
+    many = _damaged(tmp_path, rng, None, b"\xff\x70", b"USED")  # a type -1 with 112 dimensions
+    with pytest.raises(CaptureError, match=r"112 dimensions \(C3D knows types -1, 1, 2, 4"):
+        read_capture(many)
+
+
+def test_a_c3d_ezc3d_crashes_on_is_an_error_not_a_dead_process(tmp_path, rng):
+    """``POINT:USED`` stored as text (its type byte -1): every structure is sound and ezc3d
+    still dies of a segmentation fault; the forked reader sees it first."""
+    bad = _damaged(tmp_path, rng, None, b"\xff", b"USED")
+    with pytest.raises(CaptureError, match=r"the C3D reader \(ezc3d\) crashes on it \(SIG"):
+        read_capture(bad)
+    assert read_capture(tmp_path / "good.c3d").n_frames == 40  # an intact file still reads
+
+
+def test_the_forked_reader_is_skipped_while_other_threads_run(tmp_path, rng):
+    """A fork copies only the calling thread; a lock another thread holds stays held in the
+    child. With a thread running, the check forks nothing (the structure check stands)."""
+    import threading
+
+    from labeler_service.capture.io import _ezc3d_trouble
+
+    bad = _damaged(tmp_path, rng, None, b"\xff", b"USED")
+    assert _ezc3d_trouble(bad) is not None
+    stop = threading.Event()
+    t = threading.Thread(target=stop.wait)
+    t.start()
+    try:
+        assert _ezc3d_trouble(bad) is None
+    finally:
+        stop.set()
+        t.join()

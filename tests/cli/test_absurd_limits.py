@@ -41,7 +41,10 @@ def test_ports_and_limits_in_range_parse():
 
 
 def test_ghosts_beyond_any_capture_are_refused_before_any_work(rng, tmp_path, capsys):
-    with pytest.raises(SceneError, match=f"ghosts=1000000000.0 \\(0 to {MAX_GHOSTS:g} per frame"):
+    with pytest.raises(
+        SceneError,
+        match=f"--ghosts must be from 0 to {MAX_GHOSTS:g} per frame \\(got 1000000000.0\\)",
+    ):
         CorruptionSpec(ghosts=1e9)
     CorruptionSpec(ghosts=MAX_GHOSTS)  # the limit itself is allowed
     truth, names = articulated(rng, subjects=1, frames=80)
@@ -53,8 +56,30 @@ def test_ghosts_beyond_any_capture_are_refused_before_any_work(rng, tmp_path, ca
     assert (
         "Traceback" not in err
         and err.startswith("error: ")
-        and "ghosts=1000000000.0 (0 to 1000 per frame)" in err
+        and "--ghosts must be from 0 to 1000 per frame (got 1000000000.0)" in err
     )
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "rule"),
+    [
+        ("--leave", "-1", "--leave must be >= 0 (got -1)"),
+        ("--downsample", "0", "--downsample must be >= 1 (got 0)"),
+        ("--gap-frames", "0", "--gap-frames must be >= 1 (got 0)"),
+        ("--leave-seconds", "0", "--leave-seconds must be positive and finite (seconds) (got 0.0)"),
+    ],
+)
+def test_evaluate_names_the_flag_of_a_bad_corruption_setting(
+    tmp_path, rng, capsys, flag, value, rule
+):
+    """A helper's run: ``--leave -1`` said "invalid corruption setting: leave=-1", naming no
+    flag and no range."""
+    truth, names = articulated(rng, subjects=1, frames=80)
+    take = tmp_path / "take.c3d"
+    write_capture(Capture(truth, names, 120.0, source="take"), take)
+    assert main(["evaluate", str(take), flag, value, "--init-frames", "20"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and rule in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("n", ["0", "11"])

@@ -147,7 +147,7 @@ def test_occlude_that_cannot_fit_is_an_error(rng) -> None:
     cap = moving_clusters(rng, subjects=1, markers=6, frames=60)
     with pytest.raises(SceneError, match="--occlude"):
         corrupt(cap, CorruptionSpec(occlude=2, occlude_frames=40, protect_frames=20))
-    with pytest.raises(SceneError, match="occlude_frames"):
+    with pytest.raises(SceneError, match="--occlude-frames must be >= 1"):
         CorruptionSpec(occlude=1, occlude_frames=0)
 
 
