@@ -776,4 +776,22 @@ MUTANTS: list[Mutant] = [
         "a plain-start stream labels two performers mirrored after a 0.3 s dropout, online",
         k="long_dropout",
     ),
+    Mutant(
+        "c3d-backward-pointer-followed",
+        "labeler_service/capture/io.py",
+        "        if offset != 0 and (offset < 0 or nxt > len(section)):\n",
+        "        if offset != 0 and nxt > len(section):\n",
+        (T + "capture/test_io_failures.py",),
+        "ezc3d follows a damaged parameter entry's pointer backwards and the process dies",
+        k="parameter_pointers",
+    ),
+    Mutant(
+        "c3d-no-forked-read",
+        "labeler_service/capture/io.py",
+        "    if problem is None:\n        problem = _ezc3d_trouble(path)\n",
+        "",
+        (T + "capture/test_io_failures.py",),
+        "a POINT:USED stored as text kills the process inside ezc3d (segmentation fault)",
+        k="crashes_on",
+    ),
 ]

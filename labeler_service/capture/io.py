@@ -729,9 +729,10 @@ def _ezc3d_trouble(path: Path) -> str | None:
     a forked child, which a signal may kill (a segmentation fault: ezc3d trusts every value of
     the parameter section, e.g. a ``POINT:USED`` stored as text) or which may not finish
     (:data:`EZC3D_PROBE_S`). The child costs one to two reads (25-90 ms; copy-on-write makes
-    its read slower than the parent's), once per file content (:data:`_EZC3D_PROBED`). Skipped (None) where there is no ``fork`` or the process runs other threads (a fork copies
-    none of them, and a lock one of them holds would stay held in the child): the structure
-    check (:func:`_c3d_structure_problem`) alone stands there."""
+    its read slower than the parent's), once per file content (:data:`_EZC3D_PROBED`).
+    Skipped (None) where there is no ``fork`` or the process runs other threads (a fork
+    copies none of them, and a lock one of them holds would stay held in the child): the
+    structure check (:func:`_c3d_structure_problem`) alone stands there."""
     if not hasattr(os, "fork") or threading.active_count() > 1:
         return None
     st = path.stat()

@@ -207,7 +207,9 @@ def test_a_c3d_whose_parameter_pointers_are_damaged_is_refused_before_ezc3d(tmp_
     """A helper's hostile run: 8 bytes of 0xFF at offset 520 of a real take (the first
     parameter entry) and ezc3d ended the process with a segmentation fault, no word said."""
     bad = _damaged(tmp_path, rng, 512 + 8, b"\xff" * 8)
-    with pytest.raises(CaptureError, match=r"bad\.c3d: cannot be read as C3D \(damaged or trunc"):
+    with pytest.raises(
+        CaptureError, match=r"bad\.c3d: cannot be read as C3D \(damaged or trunc.*backwards"
+    ):
         read_capture(bad)
     many = _damaged(tmp_path, rng, None, b"\xff\x70", b"USED")  # a type -1 with 112 dimensions
     with pytest.raises(CaptureError, match=r"112 dimensions \(C3D knows types -1, 1, 2, 4"):
@@ -216,10 +218,21 @@ def test_a_c3d_whose_parameter_pointers_are_damaged_is_refused_before_ezc3d(tmp_
 
 def test_a_c3d_ezc3d_crashes_on_is_an_error_not_a_dead_process(tmp_path, rng):
     """``POINT:USED`` stored as text (its type byte -1): every structure is sound and ezc3d
-    still dies of a segmentation fault; the forked reader sees it first."""
+    still dies of a segmentation fault; the forked reader sees it first. Run as a user runs
+    it (``info``, its own process): the command says so and exits 2, it is not killed."""
+    import subprocess
+    import sys
+
     bad = _damaged(tmp_path, rng, None, b"\xff", b"USED")
-    with pytest.raises(CaptureError, match=r"the C3D reader \(ezc3d\) crashes on it \(SIG"):
-        read_capture(bad)
+    code = "import sys; from labeler_service.cli.main import main; sys.exit(main(sys.argv[1:]))"
+    run = subprocess.run(
+        [sys.executable, "-c", code, "info", str(bad)], capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 2, (run.returncode, run.stderr[-500:])
+    assert (
+        "bad.c3d: cannot be read as C3D (damaged or truncated?): the C3D reader (ezc3d) "
+        "crashes on it (SIGSEGV)" in run.stderr
+    )
     assert read_capture(tmp_path / "good.c3d").n_frames == 40  # an intact file still reads
 
 
