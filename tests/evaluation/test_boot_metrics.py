@@ -319,7 +319,7 @@ def test_leave_errors(rng):
         corrupt(cap, CorruptionSpec(leave=3))
     with pytest.raises(SceneError, match="does not fit"):
         corrupt(cap, CorruptionSpec(leave=1, leave_seconds=0.6))
-    with pytest.raises(SceneError, match="leave_seconds"):
+    with pytest.raises(SceneError, match="--leave-seconds must be positive"):
         CorruptionSpec(leave=1, leave_seconds=0.0)
 
 
