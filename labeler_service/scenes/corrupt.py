@@ -26,6 +26,22 @@ from labeler_service.wording import plural
 MAX_GHOSTS = 1000.0
 
 
+#: the command-line flag of each corruption setting that has one (evaluate, replay, demo)
+_FLAGS = {
+    "downsample": "--downsample",
+    "gaps": "--gaps",
+    "gap_frames": "--gap-frames",
+    "occlude": "--occlude",
+    "occlude_frames": "--occlude-frames",
+    "dropouts": "--dropouts",
+    "ghosts": "--ghosts",
+    "jitter_mm": "--jitter",
+    "protect_frames": "--init-frames",
+    "leave": "--leave",
+    "leave_seconds": "--leave-seconds",
+}
+
+
 @dataclass(frozen=True)
 class CorruptionSpec:
     """What to do to a capture before it is streamed. Every random choice uses ``seed``.
@@ -81,7 +97,7 @@ class CorruptionSpec:
 
     def __post_init__(self) -> None:
         fin = np.isfinite
-        # setting -> (holds, what it must be); the command-line flags have the same names
+        # setting -> (holds, what it must be)
         checks = {
             "downsample": (self.downsample >= 1, ">= 1"),
             "gaps": (self.gaps >= 0, ">= 0"),
@@ -116,11 +132,9 @@ class CorruptionSpec:
         bad = [k for k, (ok, _) in checks.items() if not ok]
         if bad:
             name = bad[0]
-            flag = {"jitter_mm": "jitter", "protect_frames": "init-frames"}.get(
-                name, name.replace("_", "-")
-            )
+            said = _FLAGS.get(name, name)  # (a setting no command-line flag sets: its name)
             raise SceneError(
-                f"invalid corruption setting: --{flag} must be {checks[name][1]} "
+                f"invalid corruption setting: {said} must be {checks[name][1]} "
                 f"(got {getattr(self, name)!r})"
             )
 
