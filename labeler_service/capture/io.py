@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import mmap
 import os
 import re
 import signal
@@ -662,22 +663,37 @@ def _c3d_structure_problem(path: Path) -> str | None:
     structure ezc3d walks is checked (entry names, next-entry offsets, types, dimensions, data
     and description sizes); values are ezc3d's and ours to judge later."""
     try:
-        size = path.stat().st_size
         with open(path, "rb") as fh:
-            head = fh.read(512)
-            if len(head) < 512:
+            size = os.fstat(fh.fileno()).st_size
+            if size < 512:
                 return None  # (too short for ezc3d to get that far: its own error)
-            block = head[0]
-            if block < 2:
-                return f"its header points to parameter block {block} (the header is block 1)"
-            start = 512 * (block - 1)
-            if start + 4 > size:
-                return f"its parameters start at byte {start}, past its end ({size:,} bytes)"
-            fh.seek(start)
-            section = fh.read()
+            # mapped, not read: the walk touches the parameter blocks, never the frames
+            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                block = mm[0]
+                if block < 2:
+                    return f"its header points to parameter block {block} (the header is block 1)"
+                start = 512 * (block - 1)
+                if start + 4 > size:
+                    return f"its parameters start at byte {start}, past its end ({size:,} bytes)"
+                section = memoryview(mm)[start:]
+                try:
+                    return _c3d_walk(section, start)
+                finally:
+                    section.release()
     except OSError:
         return None  # (the reader's own error says it)
-    order = ">" if section[3] == 86 else "<"  # processor type MIPS: big-endian
+
+
+def _c3d_int_order(processor: int) -> str:
+    """The ``struct`` byte order of a C3D's integers for its processor type byte (the fourth
+    of its parameter section): big-endian for MIPS (86), else little-endian (Intel, DEC)."""
+    return ">" if processor == 86 else "<"
+
+
+def _c3d_walk(section: memoryview, start: int) -> str | None:
+    """:func:`_c3d_structure_problem` over the parameter section ``section`` (to the end of the
+    file), which starts at byte ``start`` of the file."""
+    order = _c3d_int_order(section[3])
     pos = 4
     for _ in range(65536):  # (every step moves forward: this bounds a loop, not a file)
         if pos + 2 > len(section):
@@ -707,7 +723,7 @@ def _c3d_structure_problem(path: Path) -> str | None:
                     f"the parameter entry at byte {at:,} has data type {kind} and {n_dims} "
                     "dimensions (C3D knows types -1, 1, 2, 4 and at most 7 dimensions)"
                 )
-            dims = section[body + 2 : body + 2 + n_dims]
+            dims = bytes(section[body + 2 : body + 2 + n_dims])
             if len(dims) < n_dims:
                 return f"a damaged parameter entry at byte {at:,}"
             body += 2 + n_dims + _C3D_TYPES[kind] * math.prod(dims)
@@ -917,8 +933,7 @@ def _c3d_frame_counts(path: Path, point: dict) -> _C3DFrames | None:
             return None
         f.seek((header[0] - 1) * 512 + 3)
         proc = f.read(1)
-    big = proc == bytes([86])  # processor type 3 (MIPS): big-endian integers
-    words = struct.unpack((">" if big else "<") + "256H", header)
+    words = struct.unpack(_c3d_int_order(proc[0] if proc else 0) + "256H", header)
     n_points, n_analog, first, last, data_block = words[1], words[2], words[3], words[4], words[8]
     full = last == 0xFFFF and first == 1  # the 16-bit count is full: data may run past it
     if (last == 0xFFFF and not full) or last < first or data_block < 1:
