@@ -224,9 +224,11 @@ def test_a_c3d_ezc3d_crashes_on_is_an_error_not_a_dead_process(tmp_path, rng):
     import sys
 
     bad = _damaged(tmp_path, rng, None, b"\xff", b"USED")
-    code = "import sys; from labeler_service.cli.main import main; sys.exit(main(sys.argv[1:]))"
     run = subprocess.run(
-        [sys.executable, "-c", code, "info", str(bad)], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "labeler_service.cli.main", "info", str(bad)],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert run.returncode == 2, (run.returncode, run.stderr[-500:])
     assert (
