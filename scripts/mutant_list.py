@@ -81,11 +81,11 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "pair-check-trusts-bending-links",
         "labeler_service/labeling/kernels/repair.py",
-        "            if A[b, i, j] > 3.0 * a0:\n",  # a link that bends now counts as evidence
-        "            if False:\n",
-        (T + "labeling/test_swap_repair.py",),
-        "the pair check weighs links trained across a joint held still",
-        k="pair_check or link_excess",
+        "    return a > 3.0 * max(a0, a_floor, a_rel * d0)\n",  # a bending link is evidence
+        "    return False\n",
+        (T + "labeling/test_swap_repair.py", T + "labeling/test_unseen_markers.py"),
+        "the pair check and the lost-marker rule weigh links trained across a joint held still",
+        k="pair_check or link_excess or lost",
         kernel=True,
     ),
     # ------------------------------------------------------------------ labeler, training
@@ -433,6 +433,27 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_kernels.py",),
         "two tracked markers exchange their points whatever their bodies' shape says",
         k="exchange",
+        kernel=True,
+    ),
+    Mutant(
+        "pair-senior-at-once",
+        "labeler_service/labeling/kernels/repair.py",
+        "            if m2 >= 0 and wait[m] != m2:\n",
+        "            if False:\n",
+        (T + "labeling/test_swap_repair.py",),
+        "a change the young (senior) anchors ask for is made at once, not when asked twice",
+        k="senior",
+        kernel=True,
+    ),
+    Mutant(
+        "lost-takes-a-point-seen-beside-it",
+        "labeler_service/labeling/kernels/unseen.py",
+        "        if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, tracks, "
+        "frame_no):\n",
+        "        if False:\n",
+        (T + "labeling/test_unseen_markers.py",),
+        "a lost marker takes a point that was there, unlabeled, while it was on its own",
+        k="lost",
         kernel=True,
     ),
     Mutant(

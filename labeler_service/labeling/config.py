@@ -127,6 +127,13 @@ class LabelerConfig(BaseModel):
         "3+ tracked members, place it (within reacquire_near_mm, unambiguous), or else the only "
         "free point keeping its trained distances to 2+ tracked members",
     )
+    acquire_lost_frames: int = Field(
+        5,
+        ge=0,
+        description="a marker lost this many frames in a row is placed like a never-observed one "
+        "(acquire_unseen's shape rule, or the only free point keeping 3+ trained distances over "
+        "its links that do not bend now; 0 = off)",
+    )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )
@@ -307,6 +314,14 @@ class LabelerConfig(BaseModel):
         description="pair check: a freshly re-acquired marker's point goes to a body partner "
         "when the mean excess of its trained links to long-tracked anchors (beyond 3 trained "
         "deviations) exceeds repair_check_mm and the change cuts it to a third (False = off)",
+    )
+    repair_senior_frames: int = Field(
+        3,
+        ge=0,
+        description="pair check: when the long-tracked anchors ask for nothing, anchors observed "
+        "this many frames longer than the marker are asked (a limb re-acquired whole after a "
+        "fast move), and their change is made when asked for in two frames in a row (0 = only "
+        "anchors observed repair_age frames)",
     )
     contact_mm: float = Field(
         25.0,

@@ -212,8 +212,12 @@ def test_lost_hand_marker_is_re_acquired_within_a_few_frames():
     glued = {"repair": False}
     assert _frames_to_reacquire(LabelerConfig(**glued)) <= 3
     assert _frames_to_reacquire(LabelerConfig(anchor_state=True, **glued)) <= 3
-    # without anchored coasting it coasts away and stays unlabeled while visible
-    assert _frames_to_reacquire(LabelerConfig(anchor_lost=False, **glued)) >= 20
+    # without anchored coasting it coasts away and stays unlabeled while visible until the
+    # lost-marker rule places it by its links that hold (acquire_lost_frames), or for good
+    late = LabelerConfig().acquire_lost_frames
+    assert _frames_to_reacquire(LabelerConfig(anchor_lost=False, **glued)) == late
+    never = LabelerConfig(anchor_lost=False, acquire_lost_frames=0, **glued)
+    assert _frames_to_reacquire(never) >= 20
 
 
 def test_lost_hand_marker_with_a_loose_far_estimate_is_re_acquired_at_its_anchors():
@@ -221,6 +225,7 @@ def test_lost_hand_marker_with_a_loose_far_estimate_is_re_acquired_at_its_anchor
     # it lies 400 mm off: it breaks the anchor links, so the search is anchored (anchor_loose)
     glued = {"repair": False}
     assert _frames_to_reacquire(LabelerConfig(**glued), loose_set=True) <= 3
-    # searched around the loose estimate alone (90 mm), the marker stays unlabeled
-    off = LabelerConfig(anchor_loose=False, **glued)
+    # searched around the loose estimate alone (90 mm; the lost-marker rule off), the marker
+    # stays unlabeled
+    off = LabelerConfig(anchor_loose=False, acquire_lost_frames=0, **glued)
     assert _frames_to_reacquire(off, loose_set=True) >= 20

@@ -407,12 +407,12 @@ def test_pair_check_leaves_tracked_markers_and_bending_bodies_alone(rng):
     assert list(scratch.assigned[:4]) == [0, 2, 1, 3]
 
 
-def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
-    # the tennis hand of issue 10: trained on a window held still, the only body holding the
-    # finger F and the wrist pair R, U also holds a pelvis marker P (its links to the hand bend
-    # once the arm moves). R took U's point and U is missing. The elbow's links (272 / 265 mm)
-    # cannot tell R from U; F's (159 / 108 mm) can, inside the body that bends elsewhere.
-    config = LabelerConfig()
+def limb(rng, config, assigned):
+    """The tennis hand of issue 10, trained on a window held still: the only body holding the
+    finger F and the wrist pair R, U also holds a pelvis marker P, whose links to the hand bend
+    in the window once the arm moves (the pelvis is elsewhere now); the elbow triangle E, R, U.
+    ``(points, tracks, bodies, scratch)`` with marker ``m`` on point ``assigned[m]``; every
+    marker observed before (its Kalman state set), for 100 frames."""
     pelvis = np.array([[-150.0, 300.0, -400.0]])
     shape = np.vstack([FOREARM, pelvis])  # E, R, U, F, P
     lists = [[1, 2, 3, 4], [0, 1, 2]]
@@ -423,12 +423,20 @@ def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
     tracks = new_tracks(np.full(5, 1e6), np.ones(5, dtype=bool), [list(range(5))])
     tracks.x[:, :3] = shape
     tracks.age[:] = 100
-    tracks.age[1] = 3  # R re-acquired 3 frames ago (on U's point)
     bodies = new_bodies(5, lists, d0, a0, 20)
     bodies.A[0, 3, :3] = bodies.A[0, :3, 3] = 40.0  # every link to P bends in the window
     scratch = new_scratch(5, len(lists), 1, config.K, 64)
+    _set_assignment(scratch, pts, np.asarray(assigned, dtype=np.int32))
+    return pts, tracks, bodies, scratch
+
+
+def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
+    # R took U's point and U is missing. The elbow's links (272 / 265 mm) cannot tell R from U;
+    # F's (159 / 108 mm) can, inside the body that bends elsewhere.
+    config = LabelerConfig()
     assigned = np.array([0, 2, NONE, 3, 4], dtype=np.int32)
-    _set_assignment(scratch, pts, assigned)
+    pts, tracks, bodies, scratch = limb(rng, config, assigned)
+    tracks.age[1] = 3  # R re-acquired 3 frames ago (on U's point)
     params = kernel_params(config)
     assert _pair_check(pts, tracks, bodies, scratch, params) == 1
     assert list(scratch.assigned[:5]) == [0, NONE, 2, 3, 4]  # U's point back to U
@@ -437,6 +445,50 @@ def test_pair_check_keeps_the_rigid_links_of_a_body_that_bends(rng):
     bodies.A[0, :4, :4] = 40.0
     assert _pair_check(pts, tracks, bodies, scratch, params) == 0
     assert list(scratch.assigned[:5]) == list(assigned)
+
+
+def _limb_state(config, rng, anchor_age):
+    """:func:`limb` with R on U's point, re-acquired 1 frame ago, U missing, and E, F, P
+    observed ``anchor_age`` frames."""
+    pts, tracks, bodies, scratch = limb(rng, config, [0, 2, NONE, 3, 4])
+    tracks.age[:] = anchor_age
+    tracks.age[1] = 1
+    return pts, tracks, bodies, scratch
+
+
+def test_senior_anchors_undo_a_limb_reacquired_whole_after_two_frames(rng):
+    # the tennis serve (issue 10): the whole arm was lost in the fast swing and came back; its
+    # markers were re-acquired a few frames apart, none is tracked for repair_age frames yet
+    config = LabelerConfig()
+    assert config.repair_senior_frames == 3
+    assert config.repair_age > 8
+    pts, tracks, bodies, scratch = _limb_state(config, rng, anchor_age=8)
+    off = kernel_params(LabelerConfig(repair_senior_frames=0))
+    assert _pair_check(pts, tracks, bodies, scratch, off) == 0  # no long-tracked anchor
+    params = kernel_params(config)
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0  # asked once: it waits
+    assert tracks.pair_wait[1] == 2
+    assert list(scratch.assigned[:5]) == [0, 2, NONE, 3, 4]
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 1  # asked again: made
+    assert list(scratch.assigned[:5]) == [0, NONE, 2, 3, 4]
+    assert tracks.pair_wait[1] == -1
+
+
+def test_senior_anchors_need_to_be_older_than_the_marker_and_ask_twice_in_a_row(rng):
+    config = LabelerConfig()
+    params = kernel_params(config)
+    # anchors observed only 3 frames, the marker 1: not senior enough (1 + 3 > 3)
+    pts, tracks, bodies, scratch = _limb_state(config, rng, anchor_age=3)
+    for _ in range(3):
+        assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    assert list(scratch.assigned[:5]) == [0, 2, NONE, 3, 4]
+    # asked once, then not (R back on its own point): the wait is cleared
+    pts, tracks, bodies, scratch = _limb_state(config, rng, anchor_age=8)
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    assert tracks.pair_wait[1] == 2
+    _set_assignment(scratch, pts, np.array([0, 1, NONE, 3, 4], dtype=np.int32))
+    assert _pair_check(pts, tracks, bodies, scratch, params) == 0
+    assert tracks.pair_wait[1] == -1
 
 
 @pytest.mark.parametrize("trial", range(6))

@@ -154,21 +154,26 @@ def _track_taken(i, points, index, owner, tracks, r, jump_mm):
 
 
 @njit
+def _refused(i, j, anon, tracks, frame_no):
+    """Point ``j`` continues an anonymous run that began while marker ``i`` was on a track that
+    had begun before it and went on into it: it is not marker ``i``."""
+    run = anon[j]
+    start = frame_no - run
+    return run > 0 and tracks.seen_at[i] >= start and tracks.track_from[i] < start
+
+
+@njit
 def _refuse_anonymous(cand, cand_d2, ncand, anon, tracks, frame_no):
     """Drops from each marker's gate candidates (in order) the points that continue an
     anonymous run which began while the marker was on a track that had begun before it and
     went on into it."""
-    seen_at, track_from = tracks.seen_at, tracks.track_from
     for i in range(ncand.shape[0]):
-        s = seen_at[i]
-        if s < 0:
+        if tracks.seen_at[i] < 0:
             continue
         k2 = 0
         for k in range(ncand[i]):
             j = cand[i, k]
-            run = anon[j]
-            start = frame_no - run
-            if run > 0 and s >= start and track_from[i] < start:
+            if _refused(i, j, anon, tracks, frame_no):
                 continue
             cand[i, k2] = j
             cand_d2[i, k2] = cand_d2[i, k]

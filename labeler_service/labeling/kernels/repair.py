@@ -257,6 +257,14 @@ def _unique3(ref, pts, best, n, rms, check_mm, kab):
 
 
 @njit
+def _bends(a, a0, d0, a_floor, a_rel):
+    """A body link bends now: its window deviation ``a`` exceeds 3 trained deviations ``a0``
+    floored as in Eq. 5 (``a_floor``, ``a_rel`` times its distance ``d0``) - a link trained
+    across a joint held still."""
+    return a > 3.0 * max(a0, a_floor, a_rel * d0)
+
+
+@njit
 def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_rel):
     """``(sum, count)`` over the trained links of marker ``m`` (every body that contains it) to
     *anchors* - members observed now and for at least ``min_age`` frames before, other than
@@ -282,9 +290,9 @@ def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_
             a0 = A0[b, i, j]
             if d0 != d0 or a0 != a0:
                 continue
-            a0 = max(a0, a_floor, a_rel * d0)  # the floor of Eq. 5
-            if A[b, i, j] > 3.0 * a0:
+            if _bends(A[b, i, j], a0, d0, a_floor, a_rel):
                 continue  # a link that bends now (trained across a joint held still)
+            a0 = max(a0, a_floor, a_rel * d0)  # the floor of Eq. 5
             q = assigned[k]
             d2 = 0.0
             for a in range(3):
@@ -298,8 +306,9 @@ def _link_excess(m, p, skip, points, bodies, assigned, age, min_age, a_floor, a_
 
 
 @njit
-def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links):
-    """Mean of :func:`_link_excess` per link; ``nan`` with fewer than ``min_links`` links."""
+def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links, min_age):
+    """Mean of :func:`_link_excess` per link (anchors observed ``min_age`` frames); ``nan`` with
+    fewer than ``min_links`` links."""
     tot, cnt = _link_excess(
         m,
         p,
@@ -308,7 +317,7 @@ def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links):
         bodies,
         assigned,
         age,
-        params.repair_age,
+        min_age,
         params.a_floor_mm,
         params.a_relative,
     )
@@ -354,6 +363,48 @@ def _mirrors(bodies, points, assigned, m, pm, m2, pm2, check_mm, kab):
 
 
 @njit
+def _best_partner(m, a, points, bodies, assigned, age, active, params, anchor_age, scratch):
+    """The body partner of marker ``m`` (holding point ``a``) that :func:`_pair_check` gives
+    ``a`` to, judged on anchors observed ``anchor_age`` frames, or -1."""
+    members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
+    min_age = params.repair_age
+    floor = params.repair_check_mm
+    now_m = _link_mean(m, a, -1, points, bodies, assigned, age, params, 2, anchor_age)
+    if not now_m > 0.0:
+        return -1
+    best_gain = 0.0
+    best_m2 = -1
+    for e in range(mb_ptr[m], mb_ptr[m + 1]):
+        b = mb_idx[e]
+        for j in range(size[b]):
+            m2 = members[b, j]
+            if m2 == m or not active[m2]:
+                continue
+            p2 = assigned[m2]
+            if p2 >= 0 and age[m2] >= min_age:
+                continue  # a marker tracked for long keeps its point (its track says so)
+            after = _link_mean(m2, a, m, points, bodies, assigned, age, params, 2, anchor_age)
+            if after != after:
+                continue
+            before = _link_mean(m, a, m2, points, bodies, assigned, age, params, 2, anchor_age)
+            if before != before:
+                continue
+            if p2 >= 0:
+                b2 = _link_mean(m2, p2, m, points, bodies, assigned, age, params, 2, anchor_age)
+                a2 = _link_mean(m, p2, m2, points, bodies, assigned, age, params, 2, anchor_age)
+                if b2 != b2 or a2 != a2:
+                    continue
+                before += b2
+                after += a2
+            if before > floor and 3.0 * after <= before and before - after > best_gain:
+                if _mirrors(bodies, points, assigned, m, p2, m2, a, floor, scratch.kab):
+                    continue
+                best_gain = before - after
+                best_m2 = m2
+    return best_m2
+
+
+@njit
 def _pair_check(points, tracks, bodies, scratch, params):
     """Relabels a freshly re-acquired marker's point when a body partner fits it by the trained
     pair distances and the long-tracked anchors (the module docstring, "pair check"): for every
@@ -363,53 +414,33 @@ def _pair_check(points, tracks, bodies, scratch, params):
     loses the point) or exchanging the two points (``m2`` holds one and was also observed for
     fewer than ``repair_age`` frames). The change with the largest gain is made when the excess
     after is at most a third of the excess before, the excess before exceeds
-    ``repair_check_mm``, and :func:`_mirrors` does not refuse it. Returns the number of
-    changes."""
+    ``repair_check_mm``, and :func:`_mirrors` does not refuse it.
+
+    *Senior anchors* (``repair_senior_frames`` = S > 0): when the long-tracked anchors ask for
+    no change, anchors observed S frames longer than ``m`` (not yet ``repair_age``) are asked:
+    a whole limb re-acquired after a fast move has no long-tracked member, and its links to the
+    trunk bend. Such a change is made only when the same partner is asked for in two
+    consecutive frames (``tracks.pair_wait``): young anchors can be wrong themselves. Returns
+    the number of changes."""
     assigned, owner, obs = scratch.assigned, scratch.owner, scratch.obs
-    active, age = tracks.active, tracks.age
-    members, size, mb_ptr, mb_idx = bodies.members, bodies.size, bodies.mb_ptr, bodies.mb_idx
+    active, age, wait = tracks.active, tracks.age, tracks.pair_wait
     min_age = params.repair_age
-    floor = params.repair_check_mm
     changes = 0
     for m in range(assigned.shape[0]):
         a = assigned[m]
         if a < 0 or not active[m] or age[m] >= min_age:
+            wait[m] = -1
             continue
-        now_m = _link_mean(m, a, -1, points, bodies, assigned, age, params, 2)
-        if not now_m > 0.0:
+        m2 = _best_partner(m, a, points, bodies, assigned, age, active, params, min_age, scratch)
+        senior = min(min_age, age[m] + params.repair_senior_frames)
+        if m2 < 0 and params.repair_senior_frames > 0 and senior < min_age:
+            m2 = _best_partner(m, a, points, bodies, assigned, age, active, params, senior, scratch)
+            if m2 >= 0 and wait[m] != m2:
+                wait[m] = m2  # asked for once: made if asked for again in the next frame
+                continue
+        wait[m] = -1
+        if m2 < 0:
             continue
-        best_gain = 0.0
-        best_m2 = -1
-        for e in range(mb_ptr[m], mb_ptr[m + 1]):
-            b = mb_idx[e]
-            for j in range(size[b]):
-                m2 = members[b, j]
-                if m2 == m or not active[m2]:
-                    continue
-                p2 = assigned[m2]
-                if p2 >= 0 and age[m2] >= min_age:
-                    continue  # a marker tracked for long keeps its point (its track says so)
-                after = _link_mean(m2, a, m, points, bodies, assigned, age, params, 2)
-                if after != after:
-                    continue
-                before = _link_mean(m, a, m2, points, bodies, assigned, age, params, 2)
-                if before != before:
-                    continue
-                if p2 >= 0:
-                    b2 = _link_mean(m2, p2, m, points, bodies, assigned, age, params, 2)
-                    a2 = _link_mean(m, p2, m2, points, bodies, assigned, age, params, 2)
-                    if b2 != b2 or a2 != a2:
-                        continue
-                    before += b2
-                    after += a2
-                if before > floor and 3.0 * after <= before and before - after > best_gain:
-                    if _mirrors(bodies, points, assigned, m, p2, m2, a, floor, scratch.kab):
-                        continue
-                    best_gain = before - after
-                    best_m2 = m2
-        if best_m2 < 0:
-            continue
-        m2 = best_m2
         p2 = assigned[m2]
         owner[a] = m2
         assigned[m2] = a

@@ -87,6 +87,8 @@ class Tracks(NamedTuple):
       (observed in every frame since, each point within ``max(jump_mm, 2 sqrt(P + r))`` of the
       prediction; negative: in labeled frames before the labeler's first; :mod:`.anonymous`).
       Both -1 again when the marker is reset (``Labeler._reset``).
+    - ``pair_wait (M,)`` int64: the body partner the pair check's senior anchors asked to give
+      the marker's point to in the last frame, -1 none (:func:`.repair._pair_check`).
 
     Per-marker state of later work goes here: swap-repair bookkeeping (frames since a marker was
     last exchanged, the marker it was exchanged with), a per-marker confidence.
@@ -114,6 +116,7 @@ class Tracks(NamedTuple):
     ct_ref: np.ndarray
     seen_at: np.ndarray
     track_from: np.ndarray
+    pair_wait: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -142,6 +145,7 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         ct_ref=np.full((m, MAX_BODY, 3), np.nan),
         seen_at=np.full(m, -1, dtype=np.int64),
         track_from=np.full(m, -1, dtype=np.int64),
+        pair_wait=np.full(m, -1, dtype=np.int64),
     )
 
 

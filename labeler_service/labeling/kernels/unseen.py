@@ -28,7 +28,8 @@ from __future__ import annotations
 import numpy as np
 
 from labeler_service._numba import njit
-from labeler_service.labeling.kernels.repair import _shape_rms
+from labeler_service.labeling.kernels.anonymous import _refused
+from labeler_service.labeling.kernels.repair import _bends, _shape_rms
 from labeler_service.labeling.kernels.rigid import _take
 from labeler_service.labeling.kernels.spatial import FREE, _free_within, _nearest, _span
 from labeler_service.labeling.kernels.state import MAX_BODY
@@ -36,10 +37,11 @@ from labeler_service.labeling.kernels.state import MAX_BODY
 PAIR_SLACK_MM = 3.0  # distance slack of the pair rule beyond 3 trained deviations, mm
 MAX_PAIRS = 16  # pairs kept per marker for the pair rule
 MIN_PAIRS = 2  # pairs the pair rule needs
+LOST_PAIRS = 3  # pairs it needs for a marker observed before and lost (its links that hold)
 
 
 @njit
-def _acquire_unseen(points, index, tracks, bodies, scratch, params):
+def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
     """Assigns free points to active markers that were never observed (see the module doc).
 
     Reads ``tracks.age`` as the previous frame's; changes ``scratch.assigned``, ``owner`` and
@@ -47,7 +49,7 @@ def _acquire_unseen(points, index, tracks, bodies, scratch, params):
     frame with such a marker (most frames have none)."""
     m_total = tracks.x.shape[0]
     first = 0
-    while first < m_total and not _unseen(first, tracks, scratch):
+    while first < m_total and not _wanted(first, tracks, scratch, params):
         first += 1
     if first == m_total:
         return 0
@@ -58,13 +60,16 @@ def _acquire_unseen(points, index, tracks, bodies, scratch, params):
     pt = np.empty(MAX_PAIRS)
     placed = 0
     for m in range(first, m_total):
-        if not _unseen(m, tracks, scratch):
+        if not _wanted(m, tracks, scratch, params):
             continue
+        lost = not _unseen(m, tracks, scratch)
         pick, shaped = _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice)
         if pick < 0 and not shaped:
-            pick = _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt)
+            pick = _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, lost)
         if pick < 0:
             continue
+        if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, tracks, frame_no):
+            continue  # the point was there, unlabeled, while the marker was on its own
         _take(m, pick, points, scratch.assigned, scratch.owner, scratch.obs)
         placed += 1
     return placed
@@ -77,6 +82,20 @@ def _unseen(m, tracks, scratch):
     if not tracks.active[m] or tracks.gone[m] or scratch.assigned[m] >= 0:
         return False
     return tracks.x[m, 0] != tracks.x[m, 0]  # noqa: PLR0124 (NaN test)
+
+
+@njit
+def _wanted(m, tracks, scratch, params):
+    """Marker ``m`` is placed here: never observed (``acquire_unseen``), or observed before and
+    lost (active, its subject present, no point this frame) for ``acquire_lost_frames`` frames
+    or more."""
+    if params.acquire_unseen and _unseen(m, tracks, scratch):
+        return True
+    if params.acquire_lost_frames <= 0 or not tracks.active[m] or tracks.gone[m]:
+        return False
+    if scratch.assigned[m] >= 0 or tracks.x[m, 0] != tracks.x[m, 0]:  # noqa: PLR0124 (NaN)
+        return False  # on a point, or never observed (acquire_unseen's)
+    return tracks.lost[m] >= params.acquire_lost_frames
 
 
 @njit
@@ -134,7 +153,7 @@ def _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice):
 
 
 @njit
-def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
+def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, lost):
     """The pair rule: the only free point that keeps ``MIN_PAIRS`` or more trained distances to
     continuing members of the marker's bodies, or -1. A pair without a trained distance (NaN
     ``D0``: a model may hold one) is no evidence and is not counted."""
@@ -150,19 +169,23 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt):
             i = bodies.members[b, q]
             if i == m or not _continuing(i, tracks, scratch) or n >= MAX_PAIRS:
                 continue
-            if not np.isfinite(bodies.D0[b, me, q]):
+            d0 = bodies.D0[b, me, q]
+            if not np.isfinite(d0):
                 continue
+            a0 = bodies.A0[b, me, q]
+            a0 = a0 if np.isfinite(a0) else 0.0  # (no trained deviation: the floor)
+            if lost and _bends(bodies.A[b, me, q], a0, d0, floor, params.a_relative):
+                continue  # a link that bends now is no evidence of where a lost marker is
             dup = False
             for k in range(n):
                 dup = dup or pa[k] == scratch.assigned[i]
             if dup:
                 continue
             pa[n] = scratch.assigned[i]
-            pd[n] = bodies.D0[b, me, q]
-            a0 = bodies.A0[b, me, q]
-            pt[n] = 3.0 * (max(a0, floor) if np.isfinite(a0) else floor) + PAIR_SLACK_MM
+            pd[n] = d0
+            pt[n] = 3.0 * max(a0, floor) + PAIR_SLACK_MM
             n += 1
-    if n < MIN_PAIRS:
+    if n < (LOST_PAIRS if lost else MIN_PAIRS):
         return -1
     lo, hi = _span(index, points[pa[0]], pd[0] + pt[0])
     pick = -1
