@@ -457,6 +457,17 @@ MUTANTS: list[Mutant] = [
         kernel=True,
     ),
     Mutant(
+        "lost-on-two-pairs",
+        "labeler_service/labeling/kernels/unseen.py",
+        "LOST_PAIRS = 3  # pairs it needs for a marker observed before and lost (its links that "
+        "hold)\n",
+        "LOST_PAIRS = 2\n",
+        (T + "labeling/test_unseen_markers.py",),
+        "a lost marker is placed on the circle two links leave",
+        k="lost",
+        kernel=True,
+    ),
+    Mutant(
         "unseen-any-point-in-reach",
         "labeler_service/labeling/kernels/unseen.py",
         "            if abs(np.sqrt(d2) - pd[p]) > pt[p]:\n",

@@ -197,10 +197,14 @@ def test_a_lost_marker_is_not_placed_early_nor_on_a_point_seen_beside_it(rng):
     pts, tracks, bodies, scratch = _lost_limb(4, rng)
     assert _place_lost(pts, tracks, bodies, scratch, config) == 0
     # the point was there, unlabeled (an anonymous run of 20 frames), while the marker was still
-    # on a track of its own 5 frames ago: another point
+    # on a track of its own 10 frames ago: another point
     pts, tracks, bodies, scratch = _lost_limb(10, rng)
     scratch.anon[1] = 20
-    tracks.seen_at[1], tracks.track_from[1] = 95, 10
+    tracks.seen_at[1], tracks.track_from[1] = 90, 10
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+    # F's link bends too: two links hold (to E and U), a circle of places; a lost marker needs 3
+    pts, tracks, bodies, scratch = _lost_limb(10, rng)
+    bodies.A[0, 0, 2] = bodies.A[0, 2, 0] = 40.0
     assert _place_lost(pts, tracks, bodies, scratch, config) == 0
     # every link bends (the pelvis's and the hand's): no evidence, nothing placed
     pts, tracks, bodies, scratch = _lost_limb(10, rng)

@@ -21,6 +21,13 @@ last labeled frame) are used:
   re-acquisition of the other two (three points that name themselves) no longer fired.
 
 Its track then starts at the update (Eq. 4), as a first observation does.
+
+*Markers lost for long* (``acquire_lost_frames`` > 0): a marker observed before and missing
+that many frames in a row is placed the same way, except that the pair rule counts only links
+that do not bend now (:func:`.repair._bends`), needs ``LOST_PAIRS`` of them, and the point
+must not continue an anonymous run that began while the marker was still on a track of its own
+(:func:`.anonymous._refused`). Its prediction coasted away and its recovery set may hold
+markers across a joint held still in training (the tennis wrist after the serve).
 """
 
 from __future__ import annotations
@@ -42,7 +49,9 @@ LOST_PAIRS = 3  # pairs it needs for a marker observed before and lost (its link
 
 @njit
 def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
-    """Assigns free points to active markers that were never observed (see the module doc).
+    """Assigns free points to active markers that were never observed, or observed and lost
+    for ``acquire_lost_frames`` frames (see the module doc); ``frame_no`` as the anonymous point
+    runs count it.
 
     Reads ``tracks.age`` as the previous frame's; changes ``scratch.assigned``, ``owner`` and
     ``obs`` (in sync). Returns the number of markers placed. Allocates its work space only in a
@@ -156,7 +165,9 @@ def _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice):
 def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, lost):
     """The pair rule: the only free point that keeps ``MIN_PAIRS`` or more trained distances to
     continuing members of the marker's bodies, or -1. A pair without a trained distance (NaN
-    ``D0``: a model may hold one) is no evidence and is not counted."""
+    ``D0``: a model may hold one) is no evidence and is not counted; a trained distance without
+    a deviation gets the floor. ``lost``: a marker observed before - only links that do not bend
+    now count, ``LOST_PAIRS`` or more."""
     n = 0
     floor = params.a_floor_mm
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
