@@ -154,7 +154,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _presence(points, tracks, bodies, scratch, params)
     if params.contact_mm > 0.0:  # contacts between performers (ours, kernels/contact.py)
         _contacts(points, index, dt, tracks, bodies, recovery, scratch, params)
-    if params.acquire_unseen or params.acquire_lost_frames > 0:  # placed by shapes (ours)
+    if params.acquire_unseen or params.acquire_lost_frames > 0:  # unseen, or lost (ours)
         _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):

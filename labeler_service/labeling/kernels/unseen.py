@@ -54,8 +54,10 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
     runs count it.
 
     Reads ``tracks.age`` as the previous frame's; changes ``scratch.assigned``, ``owner`` and
-    ``obs`` (in sync). Returns the number of markers placed. Allocates its work space only in a
-    frame with such a marker (most frames have none)."""
+    ``obs`` (in sync). Returns the number of markers placed. Allocates its work space (five
+    small arrays) only in a frame with such a marker: none in most frames of a labeler started
+    on labeled frames, every frame while a marker stays lost (measured: no cost,
+    BENCHMARKS.md)."""
     m_total = tracks.x.shape[0]
     first = 0
     while first < m_total and not _wanted(first, tracks, scratch, params):
@@ -71,7 +73,7 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
     for m in range(first, m_total):
         if not _wanted(m, tracks, scratch, params):
             continue
-        lost = not _unseen(m, tracks, scratch)
+        lost = not _never_observed(m, tracks)
         pick, shaped = _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice)
         if pick < 0 and not shaped:
             pick = _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, lost)
@@ -85,26 +87,21 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
 
 
 @njit
-def _unseen(m, tracks, scratch):
-    """Marker ``m`` is active, its subject present, it has no point this frame and it was never
-    observed (no Kalman state)."""
+def _wanted(m, tracks, scratch, params):
+    """Marker ``m`` is placed here: active, its subject present, no point this frame, and either
+    never observed (``acquire_unseen``) or observed before and lost for
+    ``acquire_lost_frames`` frames or more."""
     if not tracks.active[m] or tracks.gone[m] or scratch.assigned[m] >= 0:
         return False
-    return tracks.x[m, 0] != tracks.x[m, 0]  # noqa: PLR0124 (NaN test)
+    if _never_observed(m, tracks):
+        return params.acquire_unseen
+    return 0 < params.acquire_lost_frames <= tracks.lost[m]
 
 
 @njit
-def _wanted(m, tracks, scratch, params):
-    """Marker ``m`` is placed here: never observed (``acquire_unseen``), or observed before and
-    lost (active, its subject present, no point this frame) for ``acquire_lost_frames`` frames
-    or more."""
-    if params.acquire_unseen and _unseen(m, tracks, scratch):
-        return True
-    if params.acquire_lost_frames <= 0 or not tracks.active[m] or tracks.gone[m]:
-        return False
-    if scratch.assigned[m] >= 0 or tracks.x[m, 0] != tracks.x[m, 0]:  # noqa: PLR0124 (NaN)
-        return False  # on a point, or never observed (acquire_unseen's)
-    return tracks.lost[m] >= params.acquire_lost_frames
+def _never_observed(m, tracks):
+    """Marker ``m`` has no Kalman state: the stream never showed it."""
+    return tracks.x[m, 0] != tracks.x[m, 0]  # noqa: PLR0124 (NaN test)
 
 
 @njit
