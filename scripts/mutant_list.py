@@ -489,8 +489,9 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "anonymous-run-refuses-nothing",
         "labeler_service/labeling/kernels/anonymous.py",
-        "            if run > 0 and s >= start and track_from[i] < start:\n",
-        "            if run > 0 and s >= start and track_from[i] < start - 10**9:\n",
+        "    return run > 0 and tracks.seen_at[i] >= start and tracks.track_from[i] < start\n",
+        "    return run > 0 and tracks.seen_at[i] >= start and tracks.track_from[i] < start - 10**9"
+        "\n",
         (T + "labeling/test_anonymous_tracks.py",),
         "a marker that vanishes takes the point that stood unlabeled beside it (a ghost, an "
         "unknown marker)",
@@ -556,7 +557,9 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "gap-no-reboot-of-a-model-stream",
         "labeler_service/service/stream.py",
+        '            why = f"{gap:.2f} s of stream dropped before this frame"\n'
         "            if not self.start_recovery(why):\n                self.reboot(why)\n",
+        '            why = f"{gap:.2f} s of stream dropped before this frame"\n'
         "            self.start_recovery(why)\n",
         (T + "service/test_recover_gap.py",),
         "a booted stream keeps its stale tracks over a gap of dropped frames",
