@@ -134,6 +134,17 @@ class LabelerConfig(BaseModel):
         "(acquire_unseen's shape rule, or the only free point keeping 3+ trained distances over "
         "its links that do not bend now; 0 = off)",
     )
+    acquire_restart: bool = Field(
+        True,
+        description="a lost marker placed by acquire_lost_frames' rules starts a new track on its "
+        "point, moving as the members that place it move (not with its coasted velocity)",
+    )
+    acquire_together: bool = Field(
+        True,
+        description="markers of one body lost together (3+, one for acquire_lost_frames) take "
+        "together the free points their reference shape fits, when the trained distances to "
+        "the members on points name one reading (with acquire_lost_frames > 0)",
+    )
     reacquire_near_mm: float = Field(
         12.0, ge=0, description="a missing marker takes a free point this close to its estimate"
     )

@@ -407,14 +407,16 @@ def test_pair_check_leaves_tracked_markers_and_bending_bodies_alone(rng):
     assert list(scratch.assigned[:4]) == [0, 2, 1, 3]
 
 
+PELVIS = np.array([[-150.0, 300.0, -400.0]])  # where :func:`limb`'s window held the pelvis
+
+
 def limb(rng, config, assigned):
     """The tennis hand of issue 10, trained on a window held still: the only body holding the
     finger F and the wrist pair R, U also holds a pelvis marker P, whose links to the hand bend
     in the window once the arm moves (the pelvis is elsewhere now); the elbow triangle E, R, U.
     ``(points, tracks, bodies, scratch)`` with marker ``m`` on point ``assigned[m]``; every
     marker observed before (its Kalman state set), for 100 frames."""
-    pelvis = np.array([[-150.0, 300.0, -400.0]])
-    shape = np.vstack([FOREARM, pelvis])  # E, R, U, F, P
+    shape = np.vstack([FOREARM, PELVIS])  # E, R, U, F, P
     lists = [[1, 2, 3, 4], [0, 1, 2]]
     d0 = [np.linalg.norm(shape[b][:, None] - shape[b][None], axis=2) for b in lists]
     a0 = [np.full((len(b), len(b)), 1.0) for b in lists]

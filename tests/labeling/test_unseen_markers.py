@@ -10,6 +10,7 @@ import pytest
 from labeling.walks import split_walk
 
 from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.kernels.params import V0
 from labeler_service.labeling.labeler import Labeler
 
 LABELED = 12
@@ -210,3 +211,98 @@ def test_a_lost_marker_is_not_placed_early_nor_on_a_point_seen_beside_it(rng):
     pts, tracks, bodies, scratch = _lost_limb(10, rng)
     bodies.A[:, :4, :4] = 40.0
     assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+
+
+def _lost_hand(rng, lost_frames=10):
+    """The tennis hand of ``test_swap_repair.limb`` lost whole: R, U and F observed before and
+    lost ``lost_frames`` frames, their points back and free; the elbow E (its links to R and U
+    hold) and the pelvis P (its links to the hand bend, 539 mm from R: the repair searches
+    around it) on theirs, observed 8 frames; the hand
+    body's reference is its trained shape. Each rule alone places nothing here: R and U keep
+    one link that holds (to E), F none."""
+    from labeling.test_swap_repair import FOREARM, PELVIS, limb
+
+    from labeler_service.labeling.kernels.state import NONE
+
+    pts, tracks, bodies, scratch = limb(rng, LabelerConfig(), [0, NONE, NONE, NONE, 4])
+    pts[4] = scratch.obs[4] = pts[1] + np.float32([200.0, 400.0, -300.0])  # within the search
+    tracks.age[:] = 8
+    tracks.age[1:4] = 0
+    tracks.lost[1:4] = lost_frames
+    bodies.ref[0, :4] = np.vstack([FOREARM, PELVIS])[1:]  # R, U, F, P
+    bodies.ref_ok[0] = True
+    return pts, tracks, bodies, scratch
+
+
+def test_markers_of_a_body_lost_together_are_placed_together(rng):
+    # the tennis hand after the serve (issue 10): wrist and finger lost in the swing; their
+    # triangle's shape and the elbow's links name its three points at once
+    config = LabelerConfig()
+    assert config.acquire_together
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    alone = LabelerConfig(acquire_together=False)
+    assert _place_lost(pts, tracks, bodies, scratch, alone) == 0
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 3
+    assert list(scratch.assigned[:5]) == [0, 1, 2, 3, 4]
+    assert list(scratch.owner[:5]) == [0, 1, 2, 3, 4]
+
+
+def test_markers_lost_together_are_not_placed_without_evidence(rng):
+    config = LabelerConfig()
+    # lost 4 frames: their predictions still search for them
+    pts, tracks, bodies, scratch = _lost_hand(rng, lost_frames=4)
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+    # the elbow's links bend too: the triangle is anchored to nothing
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    bodies.A[1] = 40.0
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+    # the finger's point 30 mm off: the three points are not the hand's shape
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    pts[3] += np.float32(30.0)
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+    # the elbow 40 mm off where it should be for R and U: the shape fits, the anchor refuses it
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    pts[0] += np.float32(40.0) * (pts[0] - pts[1]) / np.linalg.norm(pts[0] - pts[1])
+    scratch.obs[0] = pts[0]
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+    assert all(scratch.assigned[1:4] < 0)
+
+
+def _equidistant(f, r, u):
+    """``f`` moved along the line ``r``-``u`` to be as far from ``r`` as from ``u``."""
+    axis = (u - r) / np.linalg.norm(u - r)
+    return f - np.dot(f - (r + u) / 2.0, axis) * axis
+
+
+def test_two_readings_the_anchors_cannot_tell_apart_place_nothing(rng):
+    # the finger as far from one wrist marker as from the other: the hand's triangle reads the
+    # two wrist markers either way, and the elbow's links (272 / 265 mm, 16 mm allowed) do too
+    config = LabelerConfig()
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    ref = bodies.ref[0]
+    ref[2] = _equidistant(ref[2], ref[0], ref[1])
+    pts[3] = _equidistant(pts[3].astype(float), pts[1].astype(float), pts[2].astype(float))
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 0
+    assert all(scratch.assigned[1:4] < 0)
+
+
+def test_a_lost_marker_placed_starts_a_new_track_moving_with_its_anchors(rng):
+    # its coasted velocity says nothing of a hand that swung on while it was lost
+    config = LabelerConfig()
+    assert config.acquire_restart
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    tracks.x[0, 3:] = [400.0, -200.0, 100.0]  # the elbow's velocity, mm/s
+    tracks.x[1:4, 3:] = [-900.0, 0.0, 0.0]  # coasted
+    tracks.P[1:4] = [5000.0, 300.0, 9000.0]
+    finger = tracks.x[3].copy()
+    assert _place_lost(pts, tracks, bodies, scratch, config) == 3
+    for m in (1, 2):  # R, U: anchored by the elbow's links
+        assert np.allclose(tracks.x[m, :3], pts[m])
+        assert np.allclose(tracks.x[m, 3:], [400.0, -200.0, 100.0])
+        assert tuple(tracks.P[m]) == pytest.approx((config.measurement_noise_mm**2, 0.0, V0))
+    assert np.array_equal(tracks.x[3], finger)  # F: no link that holds to a tracked member
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    tracks.x[1:4, 3:] = [-900.0, 0.0, 0.0]
+    off = LabelerConfig(acquire_restart=False)
+    assert _place_lost(pts, tracks, bodies, scratch, off) == 3
+    assert np.allclose(tracks.x[1:4, 3:], [-900.0, 0.0, 0.0])

@@ -457,6 +457,66 @@ def _pair_check(points, tracks, bodies, scratch, params):
 
 
 @njit
+def _extent(ref, n):
+    """The largest distance (mm) of a reference position ``ref[:n]`` from their centroid."""
+    cx = cy = cz = 0.0
+    for k in range(n):
+        cx += ref[k, 0]
+        cy += ref[k, 1]
+        cz += ref[k, 2]
+    cx, cy, cz = cx / n, cy / n, cz / n
+    e2 = 0.0
+    for k in range(n):
+        d2 = (ref[k, 0] - cx) ** 2 + (ref[k, 1] - cy) ** 2 + (ref[k, 2] - cz) ** 2
+        e2 = max(e2, d2)
+    return np.sqrt(e2)
+
+
+@njit
+def _near_free(b, cur, n, ref, points, index, owner, x, members, margin, centre, cand, nc):
+    """Appends to ``cand[nc:]`` (up to ``MAX_CAND``) the free points within reach of body
+    ``b``: within twice its reference extent (:func:`_extent`) plus ``margin`` (mm) of the
+    mean of its members' points ``cur`` (rows, -1 none), or of their Kalman estimates when no
+    member has a point; ``centre`` receives that mean. Returns the new count, -1 when the body
+    has neither."""
+    cx = cy = cz = 0.0
+    nx = 0
+    for k in range(n):
+        if cur[k] >= 0:
+            cx += points[cur[k], 0]
+            cy += points[cur[k], 1]
+            cz += points[cur[k], 2]
+            nx += 1
+    if nx == 0:
+        for k in range(n):
+            m = members[b, k]
+            if x[m, 0] == x[m, 0]:
+                cx += x[m, 0]
+                cy += x[m, 1]
+                cz += x[m, 2]
+                nx += 1
+    if nx == 0:
+        return -1
+    centre[0] = cx / nx
+    centre[1] = cy / nx
+    centre[2] = cz / nx
+    radius = 2.0 * _extent(ref, n) + margin
+    lo, hi = _span(index, centre, radius)
+    for i in range(lo, hi):
+        j = index.order[i]
+        if owner[j] >= 0 or nc >= MAX_CAND:
+            continue
+        d2 = 0.0
+        for a in range(3):
+            d = points[j, a] - centre[a]
+            d2 += d * d
+        if d2 <= radius * radius:
+            cand[nc] = j
+            nc += 1
+    return nc
+
+
+@njit
 def _repair(points, index, frame_no, tracks, bodies, scratch, params):
     """The 3D template check, swap repair and joint re-acquisition of the module docstring,
     after Algorithm 1 and the per-marker 3D check. Changes ``scratch.assigned``, ``owner`` and
@@ -529,57 +589,11 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
             if cur[k] >= 0:
                 cand[nc] = cur[k]
                 nc += 1
-        cx = 0.0
-        cy = 0.0
-        cz = 0.0
-        nx = 0
-        for k in range(n):
-            if cur[k] >= 0:
-                cx += points[cur[k], 0]
-                cy += points[cur[k], 1]
-                cz += points[cur[k], 2]
-                nx += 1
-        if nx == 0:
-            for k in range(n):
-                m = members[b, k]
-                if x[m, 0] == x[m, 0]:
-                    cx += x[m, 0]
-                    cy += x[m, 1]
-                    cz += x[m, 2]
-                    nx += 1
-        if nx == 0:
+        nc2 = _near_free(b, cur, n, ref, points, index, owner, x, members, margin, centre, cand, nc)
+        if nc2 < 0:
             continue
-        centre[0] = cx / nx
-        centre[1] = cy / nx
-        centre[2] = cz / nx
-        # the body's extent around its reference centroid
-        rx = 0.0
-        ry = 0.0
-        rz = 0.0
-        for k in range(n):
-            rx += ref[k, 0]
-            ry += ref[k, 1]
-            rz += ref[k, 2]
-        ext2 = 0.0
-        for k in range(n):
-            d2 = (ref[k, 0] - rx / n) ** 2 + (ref[k, 1] - ry / n) ** 2 + (ref[k, 2] - rz / n) ** 2
-            if d2 > ext2:
-                ext2 = d2
-        radius = 2.0 * np.sqrt(ext2) + margin
-        lo, hi = _span(index, centre, radius)
-        n_free = 0
-        for i in range(lo, hi):
-            j = index.order[i]
-            if owner[j] >= 0 or nc >= MAX_CAND:
-                continue
-            d2 = 0.0
-            for a in range(3):
-                d = points[j, a] - centre[a]
-                d2 += d * d
-            if d2 <= radius * radius:
-                cand[nc] = j
-                nc += 1
-                n_free += 1
+        n_free = nc2 - nc
+        nc = nc2
         if not bad and n_free == 0:
             pending[b] = 0
             continue

@@ -28,6 +28,25 @@ that do not bend now (:func:`.repair._bends`), needs ``LOST_PAIRS`` of them, and
 must not continue an anonymous run that began while the marker was still on a track of its own
 (:func:`.anonymous._refused`). Its prediction coasted away and its recovery set may hold
 markers across a joint held still in training (the tennis wrist after the serve).
+
+*Lost together* (``acquire_together``): before those per-marker rules, the members of one body
+that are lost now (observed before, no point this frame), ``TOGETHER_MIN`` or more of them and
+one lost for ``acquire_lost_frames``, are placed as one: the template fit of the swap repair
+(:func:`.repair._fit_template`) maps their reference shape alone onto the free points within
+reach of the body (the repair's own search, :func:`.repair._near_free`), and of the readings
+of those points that keep the shape (3 points: every permutation) exactly one must keep the
+trained distances to their *anchors* (members of their bodies on points that continue their
+tracks, over links that do not bend now; beyond 3 floored deviations by ``PAIR_SLACK_MM`` at
+most in all, per marker; one link at least) and take no point an anonymous run saw beside its
+marker. A hand lost whole in a swing has only
+one link per marker that holds (the elbow), so each per-marker rule refuses it; its triangle
+and the elbow name it.
+
+*A new track* (``acquire_restart``): a lost marker placed by these rules starts a new Kalman
+track on its point, moving with the mean velocity of its anchors (kept as it was when it has
+none). Its coasted velocity says nothing of a limb that swung on while it was lost, and the
+next frame's fit of its body trusted it (the tennis arm read along the chain one frame after
+its hand was placed mid-swing).
 """
 
 from __future__ import annotations
@@ -36,7 +55,13 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.kernels.anonymous import _refused
-from labeler_service.labeling.kernels.repair import _bends, _shape_rms
+from labeler_service.labeling.kernels.repair import (
+    _bends,
+    _fit_template,
+    _link_excess,
+    _near_free,
+    _shape_rms,
+)
 from labeler_service.labeling.kernels.rigid import _take
 from labeler_service.labeling.kernels.spatial import FREE, _free_within, _nearest, _span
 from labeler_service.labeling.kernels.state import MAX_BODY
@@ -45,6 +70,7 @@ PAIR_SLACK_MM = 3.0  # distance slack of the pair rule beyond 3 trained deviatio
 MAX_PAIRS = 16  # pairs kept per marker for the pair rule
 MIN_PAIRS = 2  # pairs the pair rule needs
 LOST_PAIRS = 3  # pairs it needs for a marker observed before and lost (its links that hold)
+TOGETHER_MIN = 3  # members of one body lost together that the together rule places as one
 
 
 @njit
@@ -70,6 +96,8 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
     pd = np.empty(MAX_PAIRS)
     pt = np.empty(MAX_PAIRS)
     placed = 0
+    if params.acquire_together and params.acquire_lost_frames > 0:
+        placed += _acquire_together(points, index, frame_no, tracks, bodies, scratch, params)
     for m in range(first, m_total):
         if not _wanted(m, tracks, scratch, params):
             continue
@@ -82,6 +110,8 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
         if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, tracks, frame_no):
             continue  # the point was there, unlabeled, while the marker was on its own
         _take(m, pick, points, scratch.assigned, scratch.owner, scratch.obs)
+        if lost and params.acquire_restart:
+            _restart(m, pick, points, tracks, bodies, scratch, params)
         placed += 1
     return placed
 
@@ -216,3 +246,166 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, los
             return -1  # two free points keep the distances
         pick = j
     return pick
+
+
+@njit
+def _lost_member(m, tracks, scratch, params):
+    """Marker ``m`` is wanted (:func:`_wanted`) and was observed before: lost for long."""
+    return _wanted(m, tracks, scratch, params) and not _never_observed(m, tracks)
+
+
+@njit
+def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
+    """Members of one body lost together, placed together (*lost together* in the module
+    doc): per body with a reference, its members observed before and without a point now
+    (``TOGETHER_MIN`` or more, one lost ``acquire_lost_frames`` frames); the template fit over
+    the free points within reach of the body (:func:`.repair._near_free`, the swap repair's
+    search); the one reading of those
+    points, within ``repair_check_mm`` of their shape, that :func:`_anchored` accepts. Uses the
+    repair's work space (``bodies.work_*``). Returns the number of markers placed."""
+    members, size, ref_all = bodies.members, bodies.size, bodies.ref
+    assigned, owner, kab = scratch.assigned, scratch.owner, scratch.kab
+    pts, cand, best, pos = bodies.work_pts, bodies.work_cand, bodies.work_best, bodies.work_pos
+    choice, used, tol = bodies.work_choice, bodies.work_used, bodies.work_tol
+    centre, cur = bodies.work_centre, bodies.work_cur
+    lost = np.empty(MAX_BODY, dtype=np.int64)  # the body slots of the lost members
+    ref = np.empty((MAX_BODY, 3))
+    placed = 0
+    for b in range(members.shape[0]):
+        if not bodies.ref_ok[b]:
+            continue
+        n = size[b]
+        nl = 0
+        long_lost = False
+        for q in range(n):
+            m = members[b, q]
+            if ref_all[b, q, 0] != ref_all[b, q, 0] or _never_observed(m, tracks):  # noqa: PLR0124
+                continue
+            if not tracks.active[m] or tracks.gone[m] or assigned[m] >= 0:
+                continue
+            lost[nl] = q
+            nl += 1
+            long_lost = long_lost or _lost_member(m, tracks, scratch, params)
+        if nl < TOGETHER_MIN or not long_lost:
+            continue
+        for i in range(nl):
+            for a in range(3):
+                ref[i, a] = ref_all[b, lost[i], a]
+            for k in range(nl):
+                a0 = bodies.A0[b, lost[i], lost[k]]
+                tol[i, k] = params.repair_tol_mm + (3.0 * a0 if a0 == a0 else 0.0)
+        # the free points within reach of the body (the swap repair's search: around its
+        # members on points, else around its members' estimates)
+        for q in range(n):
+            cur[q] = assigned[members[b, q]]
+        nc = _near_free(b, cur, n, ref_all[b], points, index, owner, tracks.x, members,
+                        params.repair_radius_mm, centre, cand, 0)  # fmt: skip
+        for i in range(max(nc, 0)):
+            for a in range(3):
+                pts[i, a] = points[cand[i], a]
+        if nc < 3:
+            continue
+        check = params.repair_check_mm
+        c, _ = _fit_template(nl, ref, tol, pts, nc, check, params.repair_max_nodes, pos, used,
+                             choice, best, kab)  # fmt: skip
+        if c < 3:
+            continue
+        # every reading of the same points that keeps the shape: the anchors must name one
+        ks = np.empty(MAX_BODY, dtype=np.int64)  # the map's candidate rows, in member order
+        slot = np.empty(MAX_BODY, dtype=np.int64)  # their members (rows of ``lost``)
+        nk = 0
+        for i in range(nl):
+            if best[i] >= 0:
+                ks[nk] = best[i]
+                slot[nk] = i
+                nk += 1
+        take = -1
+        for r in range(_N_READINGS if nk == 3 else 1):
+            for i in range(nl):
+                choice[i] = -1
+            for t in range(nk):
+                choice[slot[t]] = ks[_READINGS[r, t]] if nk == 3 else ks[t]
+            _, rms_r = _shape_rms(ref, pts, choice, nl, kab.src, kab.dst, kab.R, kab.t)
+            if rms_r > check:
+                continue
+            if not _anchored(b, lost, choice, nl, cand, points, tracks, bodies, scratch, params,
+                             frame_no):  # fmt: skip
+                continue
+            if take >= 0:
+                take = -2  # two readings hold: the anchors do not name the points
+                break
+            take = r
+        if take < 0:
+            continue
+        for t in range(nk):
+            p = cand[ks[_READINGS[take, t]] if nk == 3 else ks[t]]
+            _take(members[b, lost[slot[t]]], p, points, assigned, owner, scratch.obs)
+            placed += 1
+        for t in range(nk):
+            if params.acquire_restart:  # after every placement: the partners are on points
+                p = cand[ks[_READINGS[take, t]] if nk == 3 else ks[t]]
+                _restart(members[b, lost[slot[t]]], p, points, tracks, bodies, scratch, params)
+    return placed
+
+
+@njit
+def _restart(m, p, points, tracks, bodies, scratch, params):
+    """Lost marker ``m``, placed on point ``p``, starts a new Kalman track there (``P`` of a
+    first observation) with the mean velocity of the members on points that continue their
+    tracks over its links that do not bend now; without such a member its state is kept. Its
+    coasted velocity says nothing of a limb that moved on while it was lost."""
+    x, P = tracks.x, tracks.P
+    v0 = v1 = v2 = 0.0
+    c = 0
+    for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
+        b = bodies.mb_idx[e]
+        me = 0
+        while bodies.members[b, me] != m:
+            me += 1
+        for q in range(bodies.size[b]):
+            k = bodies.members[b, q]
+            if k == m or not _continuing(k, tracks, scratch):
+                continue
+            d0, a0 = bodies.D0[b, me, q], bodies.A0[b, me, q]
+            if not np.isfinite(d0):
+                continue
+            a0 = a0 if np.isfinite(a0) else 0.0
+            if _bends(bodies.A[b, me, q], a0, d0, params.a_floor_mm, params.a_relative):
+                continue
+            v0 += x[k, 3]
+            v1 += x[k, 4]
+            v2 += x[k, 5]
+            c += 1
+    if c == 0:
+        return
+    for a in range(3):
+        x[m, a] = points[p, a]
+    x[m, 3], x[m, 4], x[m, 5] = v0 / c, v1 / c, v2 / c
+    P[m, 0], P[m, 1], P[m, 2] = params.r, 0.0, params.v0
+
+
+#: the six readings of three points (the together rule's permutations)
+_READINGS = np.array([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]])
+_N_READINGS = 6
+
+
+@njit
+def _anchored(b, lost, choice, nl, cand, points, tracks, bodies, scratch, params, frame_no):
+    """Whether the reading ``choice`` (row of ``cand`` per lost member of body ``b``, -1 none)
+    keeps every trained distance to the members on points that continue their tracks, over the
+    links that do not bend now (:func:`.repair._link_excess`, at most ``PAIR_SLACK_MM`` in all
+    per marker), with one such link at least, and no point continues an anonymous run seen
+    beside its marker."""
+    links = 0
+    for i in range(nl):
+        if choice[i] < 0:
+            continue
+        m, p = bodies.members[b, lost[i]], cand[choice[i]]
+        tot, cnt = _link_excess(m, p, -1, points, bodies, scratch.assigned, tracks.age, 1,
+                                params.a_floor_mm, params.a_relative)  # fmt: skip
+        if tot > PAIR_SLACK_MM:
+            return False
+        if params.anonymous_tracks and _refused(m, p, scratch.anon, tracks, frame_no):
+            return False
+        links += cnt
+    return links > 0
