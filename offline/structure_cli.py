@@ -271,7 +271,7 @@ def _read_take(text: str, up: str):
 
     path, start, stop = parse_take(text)
     if not Path(path).exists():
-        raise ModelError(f"{path}: no such capture")
+        raise ModelError(f"{path}: no such file")
     cap = read_capture(path, up=up)
     if start >= cap.n_frames:
         raise ModelError(f"{text}: start {start} is past the take's {cap.n_frames} frames")

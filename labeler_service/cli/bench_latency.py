@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subjects", type=int, default=10, help="performers (1-10)")
     p.add_argument("--rate", type=rate, default=360.0, help="capture rate (Hz, at most 2000)")
     p.add_argument("--seconds", type=float, default=20.0, help="streamed duration (s)")
-    p.add_argument("--transport", choices=["udp", "mqtt"], default="udp")
+    p.add_argument("--transport", choices=["udp", "mqtt"], default="udp",
+                   help="udp: the embedded loopback path; mqtt: a Mosquitto broker")  # fmt: skip
     p.add_argument("--broker", default=None, metavar="URL", help="mqtt://host:port (else a "
                    "local mosquitto is started)")  # fmt: skip
     p.add_argument("--scenario", default="hug", help="simulated scenario (walk, hug, pile)")
@@ -65,7 +66,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_labeler_argument(p)
     p.add_argument("--labeled-start", choices=["auto", "labeler", "model"], default=None,
                    help="--start init: the stream's labeled_start (else the default)")  # fmt: skip
-    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="scene seed (default 0)")
     p.add_argument("--workdir", type=Path, default=None, help="keep service log/config here")
     p.add_argument("--json", action="store_true", help="print the result as JSON (last line)")
 

@@ -290,8 +290,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"scene: {what}: {plural(len(cap.subjects), 'subject')}, "
           f"{plural(len(frames.marker_names), 'marker')}, "
           f"{plural(frames.n_frames, 'frame')} at {frames.rate:g} Hz")  # fmt: skip
+    labeled = (
+        f"first {plural(args.init_frames, 'frame')} labeled"
+        if args.init_frames
+        else "no labels (the service boots the subjects)"
+    )
     print(f"streaming over loopback UDP at {args.speed:g}x ({frames.n_frames / frames.rate / max(args.speed, 1e-9):.0f} s), "  # noqa: E501
-          f"first {args.init_frames} frames labeled, {args.gaps} gap(s)/subject, "
+          f"{labeled}, {args.gaps} gap(s)/subject, "
           f"{args.ghosts:g} ghosts/frame")  # fmt: skip
     view = _start_view(args, out) if args.view else None  # (process, url)
     print("starting the service: its first start in a fresh checkout compiles the labeling "

@@ -132,12 +132,10 @@ def run(args: argparse.Namespace) -> int:
     c3d_frames_fit(args.output, cap.n_frames)  # before minutes of labeling too
     model = load_model(args.model) if args.model else None
     init = init_frames(args.init_frames, model)
-    if init < 0 or (init == 0 and model is None):
-        raise LabelerError(f"--init-frames must be >= 1, or 0 with --model (boot), got {init}")
-    if model is None and init < MIN_TRAIN_FRAMES:  # before the labeler's own, vaguer error
+    if init < 0 or (model is None and init < MIN_TRAIN_FRAMES):  # before the labeler's own
         raise LabelerError(
             f"--init-frames must be >= {MIN_TRAIN_FRAMES} without --model (the labeler trains "
-            f"on them), got {init}"
+            f"on them), or 0 with --model (boot), got {init}"
         )
     if cap.n_frames <= init:
         raise LabelerError(

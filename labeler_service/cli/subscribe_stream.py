@@ -1,4 +1,5 @@
-"""``mocap-labeler subscribe --from URL [--out FILE]``: live summary of labeled frames."""
+"""``mocap-labeler subscribe --from URL [--out FILE]``: live summary of labeled frames; exits 1
+when no frame arrived."""
 
 from __future__ import annotations
 
@@ -63,7 +64,7 @@ async def _main(args: argparse.Namespace) -> int:
     if recorder is not None:
         n = recorder.write(args.out)
         print(recorder.report(recorder.written or args.out, n))
-    return 0
+    return 0 if s.frames > 0 else 1  # nothing received: a script must not read success
 
 
 def run(args: argparse.Namespace) -> int:

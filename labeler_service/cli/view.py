@@ -32,7 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--priority", choices=PRIORITIES, default="idle",
                    help="the viewer's CPU priority (default idle: SCHED_IDLE, it only uses CPU "
                         "time the service leaves; low: nice 10; normal: unchanged)")  # fmt: skip
-    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                   help="how much the view logs to stderr (default INFO)")  # fmt: skip
 
 
 def warn_if_exposed(host: str) -> bool:

@@ -694,7 +694,12 @@ def evaluate(
             f"(got --init-frames {init_frames}{' and --model' if model is not None else ''})"
         )
     if init_frames < 0 or (init_frames == 0 and model is None):
-        raise SceneError(f"init-frames must be >= 1, or 0 with a model (boot), got {init_frames}")
+        from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
+
+        raise SceneError(
+            f"init-frames must be >= {MIN_TRAIN_FRAMES} without a model (>= 1 for closest-point "
+            f"alone), or 0 with a model (boot), got {init_frames}"
+        )
     loaded = _load_model(model)
     if init_frames == 0 and not methods:
         methods = ["online"]
@@ -716,7 +721,7 @@ def evaluate(
     if model is None and "online" in names and init_frames < MIN_TRAIN_FRAMES:
         raise SceneError(
             f"the online method trains on the init frames: --init-frames must be >= "
-            f"{MIN_TRAIN_FRAMES} without --model, got {init_frames}"
+            f"{MIN_TRAIN_FRAMES} without --model, or 0 with --model (boot), got {init_frames}"
         )
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")

@@ -362,8 +362,8 @@ def _not_a_model(p: Path, why: str) -> ModelError:
     given in its place (``--model take.c3d``), that it is one."""
     if p.suffix.lower() in (".c3d", ".trc", ".npz"):
         return ModelError(
-            f"{p}: a capture, not a subject model; train one on it: mocap-labeler train "
-            f"structure {p.name} --out MODEL.json ({why})"
+            f"{p}: named as a capture, not a subject model ({why}); a model is trained on a "
+            f"labeled capture: mocap-labeler train structure {p} --out MODEL.json"
         )
     return ModelError(f"{p}: {why}: not a subject model; {MODEL_IS}")
 
@@ -388,6 +388,9 @@ def load_model(path: str | Path) -> LabelerModel:
         raise _not_a_model(p, "not a JSON object")
     if "version" not in raw:
         raise _not_a_model(p, "no 'version' key")
+    if "subjects" not in raw:  # another JSON of ours (a shoulder skeleton, a report)
+        kind = raw.get("format")
+        raise _not_a_model(p, f"a {kind!r} file" if isinstance(kind, str) else "no 'subjects'")
     if raw.get("version") != SCHEMA_VERSION:
         raise ModelError(
             f"{p}: unsupported model version {raw.get('version')!r} (expected {SCHEMA_VERSION}; "

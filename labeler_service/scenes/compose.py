@@ -561,5 +561,13 @@ def compose_scene(
     scene = Capture.concat_markers(parts, source="compose: " + " + ".join(s.name for s in specs))
     return scene.with_positions(
         scene.positions,
-        notes=(*notes, f"composed {n} takes on a {radius:g} mm circle, seed {seed}"),
+        notes=(
+            *notes,
+            f"composed {plural(n, 'take')} on a {radius:g} mm circle, seed {seed}",
+            *(
+                [f"radius 0 with {n} takes: every performer stands on the same spot"]
+                if radius == 0 and n > 1
+                else []
+            ),
+        ),
     )

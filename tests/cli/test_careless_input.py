@@ -154,7 +154,7 @@ def test_subscribe_without_frames_says_so(tmp_path, capsys):
     out = tmp_path / "rec.c3d"
     code = main(["subscribe", "--from", "udp://127.0.0.1:9/x", "--out", str(out),
                  "--seconds", "0.2"])  # fmt: skip
-    assert code == 0
+    assert code == 1  # a script sees that nothing came (it exited 0)
     stdout = capsys.readouterr().out
     assert "no frames received" in stdout and "wrote 0 frames" not in stdout
     assert "latency p50 - p99 - p99.9 -" in stdout and "nan" not in stdout  # (it said nan ms)
@@ -293,3 +293,12 @@ def test_info_says_when_a_take_looks_y_up(rng, tmp_path, capsys):
         assert ("note: looks Y-up" in out) == said, (argv, out)
         if said:
             assert "--up y" in out
+
+
+@pytest.mark.parametrize("command", ["label", "evaluate"])
+@pytest.mark.parametrize("init", ["0", "1"])
+def test_too_few_init_frames_name_the_minimum_that_works(take, tmp_path, capsys, command, init):
+    """``--init-frames 0`` said 'must be >= 1', and 1 then said 'must be >= 3'."""
+    argv = [command, str(take)] + ([str(tmp_path / "out.c3d")] if command == "label" else [])
+    assert main([*argv, "--init-frames", init, "--no-progress"]) == 2
+    _one_error_line(capsys.readouterr().err, "must be >= 3 without", "or 0 with")

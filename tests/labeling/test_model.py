@@ -98,10 +98,12 @@ def test_a_file_that_is_no_model_says_what_a_model_is(tmp_path):
     take.write_bytes(b"\x02\x50" + bytes(range(256)))
     with pytest.raises(ModelError) as err:
         load_model(take)
-    assert "a capture, not a subject model" in str(err.value)
-    assert "mocap-labeler train structure take.c3d --out MODEL.json" in str(err.value)
+    assert "named as a capture, not a subject model" in str(err.value)
+    assert f"mocap-labeler train structure {take} --out MODEL.json" in str(err.value)
     other = tmp_path / "settings.json"
-    for text in ('{"udp": {"port": 9870}}', "[1, 2]", "{not json"):
+    # a shoulder skeleton (``train shoulder``) has a version too: it said "rate: Field required"
+    skeleton = '{"format": "mocap-labeler/shoulder-skeleton", "version": 1, "markers": []}'
+    for text in ('{"udp": {"port": 9870}}', "[1, 2]", "{not json", skeleton):
         other.write_text(text)
         with pytest.raises(ModelError) as err:
             load_model(other)

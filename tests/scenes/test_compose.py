@@ -534,3 +534,14 @@ def test_a_one_frame_take_composes_without_numpy_warnings(rng):
             [TakeSpec(capture=one, up="z"), other], radius=300.0, frames=50, seed=0
         )
     assert any("ends at scene frame 1 of 50" in n for n in scene.notes)
+
+
+def test_the_notes_say_how_many_takes_and_that_radius_0_stacks_them(rng):
+    a, b = synthetic_take(rng, name="A"), synthetic_take(rng, name="B")
+    one = compose_scene([a], radius=0.0, frames=50, seed=0)
+    assert "composed 1 take on a 0 mm circle, seed 0" in one.notes  # it said "1 takes"
+    assert not any("same spot" in n for n in one.notes)
+    two = compose_scene([a, b], radius=0.0, frames=50, seed=0)
+    assert "radius 0 with 2 takes: every performer stands on the same spot" in two.notes
+    apart = compose_scene([a, b], radius=300.0, frames=50, seed=0)
+    assert not any("same spot" in n for n in apart.notes)
