@@ -23,7 +23,7 @@ from labeler_service.cli.args import (
 )
 from labeler_service.errors import CaptureError
 from labeler_service.evaluation.plots import errors_path, plot_error_raster
-from labeler_service.evaluation.scoring import evaluate, resolve_methods
+from labeler_service.evaluation.scoring import check_init_frames, evaluate, resolve_methods
 from labeler_service.labeling.registry import LABELED_STARTS
 from labeler_service.labeling.templates import load_model
 from labeler_service.wording import plural
@@ -104,6 +104,9 @@ def run(args: argparse.Namespace) -> int:
         cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None
     )
     methods = _methods(args.method)
+    # before the kernels compile (a minute on a cold cache), not after
+    online = methods is None or "online" in methods
+    check_init_frames(args.init_frames, args.model is not None, online=online)
     show = not args.no_progress and sys.stderr.isatty()
     # (the online method runs through a booting labeler, the window start's too: its kernels)
     _warm_up(cap.rate, boot=methods is None or "online" in methods)

@@ -644,6 +644,25 @@ def resolve_methods(requested: Sequence[str] | None) -> tuple[list[str], list[st
     return methods, notes
 
 
+def check_init_frames(init_frames: int, has_model: bool, online: bool) -> None:
+    """Raises :class:`SceneError` naming the minimum that works when ``init_frames`` is too
+    few: the online method trains on them without a model (``MIN_TRAIN_FRAMES``), the
+    closest-point baseline needs one, a model boots from none. ``evaluate`` checks it, and
+    the CLI before it compiles the kernels (a minute on a cold cache)."""
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
+
+    if init_frames < 0 or (init_frames == 0 and not has_model):
+        raise SceneError(
+            f"init-frames must be >= {MIN_TRAIN_FRAMES} without a model (>= 1 for closest-point "
+            f"alone), or 0 with a model (boot), got {init_frames}"
+        )
+    if online and not has_model and init_frames < MIN_TRAIN_FRAMES:
+        raise SceneError(
+            f"the online method trains on the init frames: --init-frames must be >= "
+            f"{MIN_TRAIN_FRAMES} without --model, or 0 with --model (boot), got {init_frames}"
+        )
+
+
 def evaluate(
     capture: Capture,
     methods: Sequence[str] | None = None,
@@ -693,13 +712,7 @@ def evaluate(
             f"on the init window: it needs --init-frames >= {WINDOW_MIN_FRAMES} and no --model "
             f"(got --init-frames {init_frames}{' and --model' if model is not None else ''})"
         )
-    if init_frames < 0 or (init_frames == 0 and model is None):
-        from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
-
-        raise SceneError(
-            f"init-frames must be >= {MIN_TRAIN_FRAMES} without a model (>= 1 for closest-point "
-            f"alone), or 0 with a model (boot), got {init_frames}"
-        )
+    check_init_frames(init_frames, model is not None, online=False)
     loaded = _load_model(model)
     if init_frames == 0 and not methods:
         methods = ["online"]
@@ -716,13 +729,7 @@ def evaluate(
     if why is not None:
         notes = [*notes, f"labeled start: the labeler trained in place ({why})"]
     notes = [*notes, *thin_subjects(capture.labels)]
-    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
-
-    if model is None and "online" in names and init_frames < MIN_TRAIN_FRAMES:
-        raise SceneError(
-            f"the online method trains on the init frames: --init-frames must be >= "
-            f"{MIN_TRAIN_FRAMES} without --model, or 0 with --model (boot), got {init_frames}"
-        )
+    check_init_frames(init_frames, model is not None, online="online" in names)
     if init_frames == 0 and "closest-point" in names:
         raise MocapError("closest-point cannot start without labeled frames (--init-frames 0)")
     if labeled_start == "model" and "online" not in names:

@@ -268,6 +268,31 @@ def test_markers_lost_together_are_not_placed_without_evidence(rng):
     assert all(scratch.assigned[1:4] < 0)
 
 
+def test_the_together_rule_waits_for_one_member_lost_long_enough(rng):
+    # asked directly (the kernel's entry returns early when no marker is wanted at all)
+    from labeler_service.labeling.kernels.params import kernel_params
+    from labeler_service.labeling.kernels.spatial import _index
+    from labeler_service.labeling.kernels.unseen import _acquire_together
+
+    params = kernel_params(LabelerConfig())
+    for lost_frames, placed in ((4, 0), (5, 3)):
+        pts, tracks, bodies, scratch = _lost_hand(rng, lost_frames=lost_frames)
+        got = _acquire_together(pts, _index(pts), 100, tracks, bodies, scratch, params)
+        assert got == placed, lost_frames
+
+
+def test_markers_lost_together_take_no_point_seen_beside_them(rng):
+    # the wrist point R would take continues an anonymous run that began at frame 80, while R
+    # was still on a track of its own (seen until frame 90, its track from frame 0)
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    tracks.seen_at[1], tracks.track_from[1] = 90, 0
+    scratch.anon[1] = 20  # frame 100 - 20
+    assert _place_lost(pts, tracks, bodies, scratch, LabelerConfig()) == 0
+    assert all(scratch.assigned[1:4] < 0)
+    off = LabelerConfig(anonymous_tracks=False)
+    assert _place_lost(pts, tracks, bodies, scratch, off) == 3
+
+
 def _equidistant(f, r, u):
     """``f`` moved along the line ``r``-``u`` to be as far from ``r`` as from ``u``."""
     axis = (u - r) / np.linalg.norm(u - r)

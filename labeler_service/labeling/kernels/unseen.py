@@ -342,7 +342,7 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
             _take(members[b, lost[slot[t]]], p, points, assigned, owner, scratch.obs)
             placed += 1
         for t in range(nk):
-            if params.acquire_restart:  # after every placement: the partners are on points
+            if params.acquire_restart:  # after every placement (its anchors: continuing tracks)
                 p = cand[ks[_READINGS[take, t]] if nk == 3 else ks[t]]
                 _restart(members[b, lost[slot[t]]], p, points, tracks, bodies, scratch, params)
     return placed
