@@ -870,6 +870,17 @@ MUTANTS: list[Mutant] = [
         kernel=True,
     ),
     Mutant(
+        "together-partial-map",
+        "labeler_service/labeling/kernels/unseen.py",
+        "            continue  # a lost member the map leaves out: which members the points are"
+        " is open\n",
+        "            pass\n",
+        (T + "labeling/test_unseen_markers.py",),
+        "markers lost together are placed by a map that leaves a lost member out",
+        k="each_of_them",
+        kernel=True,
+    ),
+    Mutant(
         "restart-keeps-coasted-velocity",
         "labeler_service/labeling/kernels/unseen.py",
         "    x[m, 3], x[m, 4], x[m, 5] = v0 / c, v1 / c, v2 / c\n",

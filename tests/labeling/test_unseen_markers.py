@@ -293,6 +293,20 @@ def test_markers_lost_together_take_no_point_seen_beside_them(rng):
     assert _place_lost(pts, tracks, bodies, scratch, off) == 3
 
 
+def test_markers_lost_together_are_placed_only_when_the_map_places_each_of_them(rng):
+    # the pelvis P lost too (its point gone): the hand's three points could be any three of the
+    # four lost members, and the readings checked are of the map's members only
+    pts, tracks, bodies, scratch = _lost_hand(rng)
+    scratch.assigned[4], scratch.owner[4] = -1, -1
+    scratch.obs[4] = np.nan
+    tracks.lost[4] = 10
+    tracks.x[4, :3] = pts[4]  # the body, none of it on a point now, is searched around its
+    tracks.x[1:4, :3] = pts[1:4] + 40.0  # members' estimates: the hand's points in reach
+    pts[4] = np.float32(1e5)  # P's point gone far
+    assert _place_lost(pts, tracks, bodies, scratch, LabelerConfig()) == 0
+    assert all(scratch.assigned[1:5] < 0)
+
+
 def _equidistant(f, r, u):
     """``f`` moved along the line ``r``-``u`` to be as far from ``r`` as from ``u``."""
     axis = (u - r) / np.linalg.norm(u - r)

@@ -33,14 +33,15 @@ markers across a joint held still in training (the tennis wrist after the serve)
 that are lost now (observed before, no point this frame), ``TOGETHER_MIN`` or more of them and
 one lost for ``acquire_lost_frames``, are placed as one: the template fit of the swap repair
 (:func:`.repair._fit_template`) maps their reference shape alone onto the free points within
-reach of the body (the repair's own search, :func:`.repair._near_free`), and of the readings
-of those points that keep the shape (3 points: every permutation) exactly one must keep the
-trained distances to their *anchors* (members of their bodies on points that continue their
-tracks, over links that do not bend now; beyond 3 floored deviations by ``PAIR_SLACK_MM`` at
-most in all, per marker; one link at least) and take no point an anonymous run saw beside its
-marker. A hand lost whole in a swing has only
-one link per marker that holds (the elbow), so each per-marker rule refuses it; its triangle
-and the elbow name it.
+reach of the body (the repair's own search, :func:`.repair._near_free`); the map must place
+every lost member (one left out leaves open which members the points are), and of the
+readings of those points that keep the shape (3 points: every permutation) exactly one must
+keep the trained distances to their *anchors* (members of their bodies on points that
+continue their tracks, over links that do not bend now; beyond 3 floored deviations by
+``PAIR_SLACK_MM`` at most in all, per marker; one link at least) and take no point an
+anonymous run saw beside its marker. A hand lost whole in a swing has only one link per
+marker that holds (the elbow), so each per-marker rule refuses it; its triangle and the elbow
+name it.
 
 *A new track* (``acquire_restart``): a lost marker placed by these rules starts a new Kalman
 track on its point, moving with the mean velocity of its anchors (kept as it was when it has
@@ -260,9 +261,9 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
     doc): per body with a reference, its members observed before and without a point now
     (``TOGETHER_MIN`` or more, one lost ``acquire_lost_frames`` frames); the template fit over
     the free points within reach of the body (:func:`.repair._near_free`, the swap repair's
-    search); the one reading of those
-    points, within ``repair_check_mm`` of their shape, that :func:`_anchored` accepts. Uses the
-    repair's work space (``bodies.work_*``). Returns the number of markers placed."""
+    search), placing every lost member; the one reading of those points, within
+    ``repair_check_mm`` of their shape, that :func:`_anchored` accepts. Uses the repair's work
+    space (``bodies.work_*``). Returns the number of markers placed."""
     members, size, ref_all = bodies.members, bodies.size, bodies.ref
     assigned, owner, kab = scratch.assigned, scratch.owner, scratch.kab
     pts, cand, best, pos = bodies.work_pts, bodies.work_cand, bodies.work_best, bodies.work_pos
@@ -319,6 +320,8 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
                 ks[nk] = best[i]
                 slot[nk] = i
                 nk += 1
+        if nk < nl:
+            continue  # a lost member the map leaves out: which members the points are is open
         take = -1
         for r in range(_N_READINGS if nk == 3 else 1):
             for i in range(nl):
