@@ -60,6 +60,10 @@ def train_model_file(frames: StreamFrames, init_frames: int, path: Path, config=
     return path
 
 
+#: seconds between the notes a slow service start prints while :class:`ServiceProcess` waits
+READY_NOTE_S = 60.0
+
+
 class ServiceProcess:
     """``mocap-labeler serve`` in a subprocess with the given settings (a dict, written as JSON).
 
@@ -67,7 +71,7 @@ class ServiceProcess:
     ``metrics_port`` its Prometheus port. Leaving sends SIGTERM and waits for a clean exit.
     """
 
-    def __init__(self, settings: dict, workdir: Path, ready_timeout: float = 180.0) -> None:
+    def __init__(self, settings: dict, workdir: Path, ready_timeout: float = 900.0) -> None:
         self.settings = settings
         self.workdir = Path(workdir)
         self.ready_timeout = ready_timeout
@@ -100,13 +104,23 @@ class ServiceProcess:
             "--log-level", "INFO", stdout=asyncio.subprocess.PIPE, stderr=self._log, env=env,
         )  # fmt: skip
         assert self.proc.stdout is not None
-        try:
-            async with asyncio.timeout(self.ready_timeout):
-                line = (await self.proc.stdout.readline()).decode()
-        except TimeoutError:
+        # a first start compiles the kernels: minutes on a slow or busy machine; say so while
+        # waiting rather than give up early (a loaded 2-core machine passed 180 s)
+        ready = asyncio.ensure_future(self.proc.stdout.readline())
+        waited = 0.0
+        while not ready.done() and waited < self.ready_timeout:
+            step = min(READY_NOTE_S, self.ready_timeout - waited)
+            await asyncio.wait({ready}, timeout=step)
+            waited += step
+            if not ready.done() and waited < self.ready_timeout:
+                print(f"still waiting for the service to start ({waited:.0f} s; a first start "
+                      "compiles its kernels)", file=sys.stderr, flush=True)  # fmt: skip
+        if not ready.done():
+            ready.cancel()
             await self._stop()
             raise MocapError(f"the service did not become ready within {self.ready_timeout} s "
                              f"(log: {self.log_path})") from None  # fmt: skip
+        line = ready.result().decode()
         if not line.startswith("ready"):
             await self._stop()
             raise MocapError(f"the service failed to start (log: {self.log_path}): "
