@@ -69,7 +69,7 @@ import numpy as np
 
 from labeler_service._numba import njit
 from labeler_service.labeling.kernels.rigid import _kabsch
-from labeler_service.labeling.kernels.spatial import _span
+from labeler_service.labeling.kernels.spatial import _free_in
 from labeler_service.labeling.kernels.state import MAX_CAND, NONE
 
 
@@ -501,19 +501,7 @@ def _near_free(b, cur, n, ref, points, index, owner, x, members, margin, centre,
     centre[1] = cy / nx
     centre[2] = cz / nx
     radius = 2.0 * _extent(ref, n) + margin
-    lo, hi = _span(index, centre, radius)
-    for i in range(lo, hi):
-        j = index.order[i]
-        if owner[j] >= 0 or nc >= MAX_CAND:
-            continue
-        d2 = 0.0
-        for a in range(3):
-            d = points[j, a] - centre[a]
-            d2 += d * d
-        if d2 <= radius * radius:
-            cand[nc] = j
-            nc += 1
-    return nc
+    return _free_in(points, index, centre, radius, owner, cand, nc, MAX_CAND)
 
 
 @njit

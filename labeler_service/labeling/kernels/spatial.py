@@ -259,3 +259,24 @@ def _free_within(points, index, centre, radius, owner, skip):
         if d2 <= radius * radius:
             return True
     return False
+
+
+@njit
+def _free_in(points, index, centre, radius, owner, cand, nc, cap):
+    """Appends to ``cand[nc:]`` the free points (``owner < 0``) within ``radius`` of ``centre``,
+    in index order, ``cap`` in all at most. Returns the new count."""
+    lo, hi = _span(index, centre, radius)
+    for k in range(lo, hi):
+        j = index.order[k]
+        if owner[j] >= 0:
+            continue
+        if nc >= cap:
+            break
+        d2 = 0.0
+        for a in range(3):
+            d = points[j, a] - centre[a]
+            d2 += d * d
+        if d2 <= radius * radius:
+            cand[nc] = j
+            nc += 1
+    return nc

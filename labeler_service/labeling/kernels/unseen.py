@@ -200,21 +200,15 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, los
     floor = params.a_floor_mm
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
         b = bodies.mb_idx[e]
-        me = -1
-        for q in range(bodies.size[b]):
-            if bodies.members[b, q] == m:
-                me = q
+        me = _slot(bodies, b, m)
         for q in range(bodies.size[b]):
             i = bodies.members[b, q]
             if i == m or not _continuing(i, tracks, scratch) or n >= MAX_PAIRS:
                 continue
-            d0 = bodies.D0[b, me, q]
-            if not np.isfinite(d0):
+            # a link that bends now is no evidence of where a lost marker is
+            d0, a0 = _link(bodies, b, me, q, params, lost)
+            if d0 != d0:  # noqa: PLR0124 (NaN: no trained distance, or it bends)
                 continue
-            a0 = bodies.A0[b, me, q]
-            a0 = a0 if np.isfinite(a0) else 0.0  # (no trained deviation: the floor)
-            if lost and _bends(bodies.A[b, me, q], a0, d0, floor, params.a_relative):
-                continue  # a link that bends now is no evidence of where a lost marker is
             dup = False
             for k in range(n):
                 dup = dup or pa[k] == scratch.assigned[i]
@@ -250,9 +244,28 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, los
 
 
 @njit
-def _lost_member(m, tracks, scratch, params):
-    """Marker ``m`` is wanted (:func:`_wanted`) and was observed before: lost for long."""
-    return _wanted(m, tracks, scratch, params) and not _never_observed(m, tracks)
+def _slot(bodies, b, m):
+    """Marker ``m``'s row in body ``b`` (a member of it)."""
+    me = 0
+    while bodies.members[b, me] != m:
+        me += 1
+    return me
+
+
+@njit
+def _link(bodies, b, me, q, params, held):
+    """``(D0, A0)`` of body ``b``'s trained link between rows ``me`` and ``q`` (``A0`` 0 when
+    it has no trained deviation: the floor applies); ``D0`` NaN when the link has no trained
+    distance, or with ``held`` when it bends now (:func:`.repair._bends`: window ``A`` beyond 3
+    floored ``A0``, a link trained across a joint held still)."""
+    d0 = bodies.D0[b, me, q]
+    if not np.isfinite(d0):
+        return np.nan, 0.0
+    a0 = bodies.A0[b, me, q]
+    a0 = a0 if np.isfinite(a0) else 0.0
+    if held and _bends(bodies.A[b, me, q], a0, d0, params.a_floor_mm, params.a_relative):
+        return np.nan, a0
+    return d0, a0
 
 
 @njit
@@ -286,7 +299,7 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
                 continue
             lost[nl] = q
             nl += 1
-            long_lost = long_lost or _lost_member(m, tracks, scratch, params)
+            long_lost = long_lost or _wanted(m, tracks, scratch, params)  # lost for long
         if nl < TOGETHER_MIN or not long_lost:
             continue
         for i in range(nl):
@@ -301,33 +314,25 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
             cur[q] = assigned[members[b, q]]
         nc = _near_free(b, cur, n, ref_all[b], points, index, owner, tracks.x, members,
                         params.repair_radius_mm, centre, cand, 0)  # fmt: skip
-        for i in range(max(nc, 0)):
-            for a in range(3):
-                pts[i, a] = points[cand[i], a]
         if nc < 3:
             continue
+        for i in range(nc):
+            for a in range(3):
+                pts[i, a] = points[cand[i], a]
         check = params.repair_check_mm
         c, _ = _fit_template(nl, ref, tol, pts, nc, check, params.repair_max_nodes, pos, used,
                              choice, best, kab)  # fmt: skip
         if c < 3:
             continue
-        # every reading of the same points that keeps the shape: the anchors must name one
-        ks = np.empty(MAX_BODY, dtype=np.int64)  # the map's candidate rows, in member order
-        slot = np.empty(MAX_BODY, dtype=np.int64)  # their members (rows of ``lost``)
-        nk = 0
+        mapped = 0
         for i in range(nl):
-            if best[i] >= 0:
-                ks[nk] = best[i]
-                slot[nk] = i
-                nk += 1
-        if nk < nl:
+            mapped += best[i] >= 0
+        if mapped < nl:
             continue  # a lost member the map leaves out: which members the points are is open
+        # every reading of the same points that keeps the shape: the anchors must name one
         take = -1
-        for r in range(_N_READINGS if nk == 3 else 1):
-            for i in range(nl):
-                choice[i] = -1
-            for t in range(nk):
-                choice[slot[t]] = ks[_READINGS[r, t]] if nk == 3 else ks[t]
+        for r in range(_N_READINGS if nl == 3 else 1):
+            _reading(best, r, nl, choice)
             _, rms_r = _shape_rms(ref, pts, choice, nl, kab.src, kab.dst, kab.R, kab.t)
             if rms_r > check:
                 continue
@@ -340,15 +345,23 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
             take = r
         if take < 0:
             continue
-        for t in range(nk):
-            p = cand[ks[_READINGS[take, t]] if nk == 3 else ks[t]]
-            _take(members[b, lost[slot[t]]], p, points, assigned, owner, scratch.obs)
+        _reading(best, take, nl, choice)
+        for i in range(nl):
+            _take(members[b, lost[i]], cand[choice[i]], points, assigned, owner, scratch.obs)
             placed += 1
-        for t in range(nk):
-            if params.acquire_restart:  # after every placement (its anchors: continuing tracks)
-                p = cand[ks[_READINGS[take, t]] if nk == 3 else ks[t]]
-                _restart(members[b, lost[slot[t]]], p, points, tracks, bodies, scratch, params)
+        for i in range(nl):  # after every placement: a member lost only now anchors the others
+            if params.acquire_restart:
+                m, p = members[b, lost[i]], cand[choice[i]]
+                _restart(m, p, points, tracks, bodies, scratch, params)
     return placed
+
+
+@njit
+def _reading(best, r, nl, choice):
+    """``choice[:nl]`` = reading ``r`` of the map ``best`` (candidate row per lost member):
+    with 3 members, permutation ``r`` of its three points; otherwise the map itself."""
+    for i in range(nl):
+        choice[i] = best[_READINGS[r, i]] if nl == 3 else best[i]
 
 
 @njit
@@ -362,18 +375,13 @@ def _restart(m, p, points, tracks, bodies, scratch, params):
     c = 0
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
         b = bodies.mb_idx[e]
-        me = 0
-        while bodies.members[b, me] != m:
-            me += 1
+        me = _slot(bodies, b, m)
         for q in range(bodies.size[b]):
             k = bodies.members[b, q]
             if k == m or not _continuing(k, tracks, scratch):
                 continue
-            d0, a0 = bodies.D0[b, me, q], bodies.A0[b, me, q]
-            if not np.isfinite(d0):
-                continue
-            a0 = a0 if np.isfinite(a0) else 0.0
-            if _bends(bodies.A[b, me, q], a0, d0, params.a_floor_mm, params.a_relative):
+            d0, _ = _link(bodies, b, me, q, params, True)
+            if d0 != d0:  # noqa: PLR0124 (NaN: no trained distance, or it bends now)
                 continue
             v0 += x[k, 3]
             v1 += x[k, 4]
