@@ -1539,6 +1539,14 @@ def _write_trc(
 ) -> None:
     """``name``: the file name the header states (the target's, not the temporary file's);
     ``base``: the number and time of the first frame (default 1 and 0 s)."""
+    # a TRC is tab-separated lines: a name with a tab or a line break shifts every column
+    # after it (the header's NumMarkers then disagrees with the file), silently
+    bad = [x for x in capture.labels if any(c < " " or c == "\x7f" for c in x)]
+    if bad:
+        raise CaptureError(
+            f"marker name {bad[0]!r} holds a tab, a line break or another control character, "
+            "which a TRC cannot hold (write .c3d or .npz, or rename the marker)"
+        )
     f, m = capture.n_frames, capture.n_markers
     first, t0 = base if base is not None else (1, 0.0)
     lines = [

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import tempfile
+from pathlib import Path
 
+from labeler_service.errors import MocapError
 from labeler_service.wording import plural
 
 
@@ -161,3 +164,17 @@ def init_frames(asked: int | None, model: object) -> int:
     if asked is not None:
         return asked
     return 0 if model is not None else INIT_FRAMES
+
+
+def usable_folder(path: Path, flag: str) -> Path:
+    """Creates the folder a command writes its files into (``demo --out``, ``bench latency
+    --workdir``) and proves it writable before any work is done: a file there, or an
+    unwritable place, ended the command with a traceback after the scene was built."""
+    from labeler_service.capture.io import os_reason
+
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        tempfile.NamedTemporaryFile(dir=path, prefix=".probe-").close()
+    except OSError as exc:
+        raise MocapError(f"{path}: cannot use as {flag}: {os_reason(exc)}") from exc
+    return path

@@ -31,11 +31,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import sys
 import tempfile
 from pathlib import Path
 
-from labeler_service.cli.args import add_labeler_argument, rate, seed
+from labeler_service.cli.args import add_labeler_argument, rate, seed, usable_folder
 from labeler_service.errors import MocapError
 
 
@@ -290,18 +291,55 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1 <= args.subjects <= MAX_PERFORMERS:  # (the simulator's message names its own flag)
         raise MocapError(f"--subjects must be 1..{MAX_PERFORMERS}, got {args.subjects}")
+    for flag, value in (("--seconds", args.seconds), ("--sim-seconds", args.sim_seconds)):
+        if not (math.isfinite(value) and value > 0):  # (the simulator's message says --seconds)
+            raise MocapError(f"{flag} must be a positive number, got {value:g}")
+    _check_init_frames(args)
     if args.workdir is not None:
-        args.workdir.mkdir(parents=True, exist_ok=True)
-        out = asyncio.run(bench(args, args.workdir))
+        out = asyncio.run(bench(args, usable_folder(args.workdir, "--workdir")))
     else:
         with tempfile.TemporaryDirectory(prefix="mocap-bench-") as d:
             out = asyncio.run(bench(args, Path(d)))
+    out = {k: _no_nan(v) for k, v in out.items()}
     if args.json:
-        print(json.dumps(out))
+        print(json.dumps(out, allow_nan=False))
     else:
         for k, v in out.items():
             print(f"{k:>26}: {v}")
     ok = out["drops"] == 0 and out["service_exit_code"] == 0
     if not ok:
         print("bench: frames were lost or the service did not exit cleanly", file=sys.stderr)
-    return 0
+    return 0 if ok else 1
+
+
+def _no_nan(value):
+    """A measurement the run could not make (no frame to take a percentile of) as ``None``:
+    JSON has no NaN, and a strict parser (``jq``) refuses the bare token."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _no_nan(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_no_nan(v) for v in value]
+    return value
+
+
+def _check_init_frames(args: argparse.Namespace) -> None:
+    """``--init-frames`` against the start and the frames the run sends: a labeled window as
+    long as the run left no frame to measure (0 received, drops negative, exit 0)."""
+    n = args.init_frames
+    if n is None:
+        return
+    if n < 0:
+        raise MocapError(f"--init-frames must be >= 0, got {n}")
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
+
+    if args.start == "init" and n < MIN_TRAIN_FRAMES:
+        raise MocapError(f"--start init trains the stream on its labeled frames: --init-frames "
+                         f"must be >= {MIN_TRAIN_FRAMES}, got {n}")  # fmt: skip
+    sent = int(round(args.seconds * args.rate))
+    if args.start != "boot" and n >= sent:
+        raise MocapError(
+            f"--init-frames {n} leaves no unlabeled frame to measure: the run sends {sent} "
+            f"frames (--seconds {args.seconds:g} at {args.rate:g} Hz)"
+        )

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.cli.args import add_labeler_argument, port, seed
+from labeler_service.cli.args import add_labeler_argument, port, seed, usable_folder
 from labeler_service.errors import MocapError
 from labeler_service.testing.realdata import real_file
 from labeler_service.wording import plural
@@ -270,13 +270,14 @@ async def _run_pipeline(args, frames, workdir: Path):
 def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import write_capture
     from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
+    from labeler_service.tools.replay import check_pace
     from labeler_service.tools.subscribe import Recorder, percentiles
 
     args.start, args.init_frames = resolve_start(args.start, args.init_frames, args.labeler)
+    check_pace(args.speed, 1)  # (before the scene is built and the service started)
+    out: Path = usable_folder(args.out, "--out")
     t_start = time.perf_counter()
     cap, what = _scene(args.seed, args.frames)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
     if args.start == "boot":
         if args.labeler != "online":
             raise MocapError("--start boot needs --labeler online")

@@ -41,10 +41,12 @@ async def serve(
     runs in threads that cannot be interrupted: a stop during it cancels the start at once
     (status ``offline``, transports closed) and then calls ``abandon`` (the command ends the
     process there instead of waiting for the thread)."""
-    from labeler_service.service.server import Server
-
+    # the signals first: importing the server takes most of a second, and a SIGINT then went
+    # to asyncio.run's own handler (KeyboardInterrupt, exit 130, not the documented 0)
     stop = stop_event(stop=stop)
     try:
+        from labeler_service.service.server import Server
+
         srv = Server(settings)
         if not await _start_unless_stopped(srv, stop):
             log.warning("stopped during the start; the service did not serve")

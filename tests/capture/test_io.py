@@ -63,6 +63,18 @@ def test_a_trc_header_names_the_file_not_its_temporary_name(tmp_path, rng) -> No
     assert first == "PathFileType\t4\t(X/Y/Z)\twalk.trc", first
 
 
+@pytest.mark.parametrize("name", ["A:R\tASI", "A:R\nASI", "A:R\rASI"])
+def test_a_trc_refuses_a_marker_name_it_cannot_hold(tmp_path, rng, name: str) -> None:
+    """A tab or a line break in a name shifted every later column of the TRC, exit 0."""
+    cap = _capture(rng)
+    cap = Capture(cap.positions, (name,) + cap.labels[1:], cap.rate)
+    with pytest.raises(CaptureError, match="a TRC cannot hold"):
+        write_capture(cap, tmp_path / "x.trc")
+    assert not (tmp_path / "x.trc").exists()
+    back = read_capture(write_capture(cap, tmp_path / "x.npz"))  # a format that can
+    assert back.labels == cap.labels
+
+
 def test_c3d_round_trip_over_255_markers(tmp_path, rng) -> None:
     pos = rng.normal(size=(4, 300, 3)).astype(np.float32)
     cap = Capture(pos, tuple(f"s{i // 50}:m{i}" for i in range(300)), 60.0)

@@ -106,7 +106,10 @@ def test_endpoint_urls(url, scheme, host, port, stream):
         assert ep.tls and ep.username == "u" and ep.password == "p@ss"
 
 
-@pytest.mark.parametrize("url", ["http://x:1", "udp://:9", "udp://h:99999", "mqtt://h:1/a/b"])
+@pytest.mark.parametrize(
+    "url",
+    ["http://x:1", "udp://:9", "udp://h:99999", "mqtt://h:1/a/b", "udp://h:0/s", "mqtt://h:0/s"],
+)
 def test_bad_endpoint_urls_raise_config_error(url):
     with pytest.raises(ConfigError):
         parse_endpoint(url)

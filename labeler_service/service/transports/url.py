@@ -47,9 +47,12 @@ def parse_endpoint(url: str) -> Endpoint:
     if not parts.hostname:
         raise ConfigError(f"URL {shown!r} has no host")
     try:
-        port = parts.port or _DEFAULT_PORTS[scheme]
+        port = parts.port
     except ValueError:
         raise ConfigError(f"URL {shown!r}: bad port") from None
+    if port == 0:  # (it became the default port: a replay went to a live service's 9870)
+        raise ConfigError(f"URL {shown!r}: port 0 names no endpoint (1-65535, or leave it out)")
+    port = port or _DEFAULT_PORTS[scheme]
     stream = parts.path.strip("/") or None
     if stream is not None and not STREAM_NAME.match(stream):
         raise ConfigError(f"URL {shown!r}: bad stream name {stream!r} (letters, digits, _ . -)")
