@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from labeler_service.capture.io import os_reason, replace_file
-from labeler_service.capture.model import is_ghost, join_label
+from labeler_service.capture.model import MAX_RATE_HZ, MIN_RATE_HZ, is_ghost, join_label
 from labeler_service.errors import ModelError
 
 SCHEMA_VERSION: Literal[1] = 1
@@ -242,8 +242,13 @@ class LabelerModel(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     version: Literal[1] = SCHEMA_VERSION
+    # the range every rate is held to (capture.model.rate_problem): 1e-6 Hz was accepted and
+    # the stream then reported 0.0 Hz
     rate: float = Field(
-        gt=0, le=100_000, allow_inf_nan=False, description="frame rate (Hz) of the training data"
+        ge=MIN_RATE_HZ,
+        le=MAX_RATE_HZ,
+        allow_inf_nan=False,
+        description="frame rate (Hz) of the training data",
     )
     subjects: list[SubjectTemplate] = Field(min_length=1)
     source: str = ""

@@ -114,6 +114,15 @@ def test_models_outside_human_ranges_are_refused_naming_file_and_field(
     assert "odd_model.json" in msg and field in msg and "subjects.0" in msg
 
 
+@pytest.mark.parametrize("rate", [1e-6, 0.5, 20_000.0])
+def test_a_model_rate_outside_1_to_10000_hz_is_refused(tmp_path, model_dict, rate):
+    """A hostile run's model at 1e-6 Hz was accepted; its stream reported 0.0 Hz."""
+    d = copy.deepcopy(model_dict)
+    d["rate"] = rate
+    with pytest.raises(ModelError, match="rate"):
+        load_model(_write(tmp_path, d, "slow_model.json"))
+
+
 def test_the_trained_model_passes_validation(model_file):
     assert load_model(model_file).subjects
 
