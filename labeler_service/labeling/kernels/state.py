@@ -87,9 +87,6 @@ class Tracks(NamedTuple):
       (observed in every frame since, each point within ``max(jump_mm, 2 sqrt(P + r))`` of the
       prediction; negative: in labeled frames before the labeler's first; :mod:`.anonymous`).
       Both -1 again when the marker is reset (``Labeler._reset``).
-    - ``fol (M, 3)``, ``fol_v (M, 3)``, ``fol_n (M,)``: the point a lost marker's own point
-      went on as (followed from frame to frame while unambiguous and free: its position and
-      velocity in the last frame, frames followed; 0 none; :mod:`.follow`).
     - ``pair_wait (M,)`` int64: the body partner the pair check's senior anchors asked to give
       the marker's point to in the last frame, -1 none (:func:`.repair._pair_check`).
 
@@ -120,9 +117,6 @@ class Tracks(NamedTuple):
     seen_at: np.ndarray
     track_from: np.ndarray
     pair_wait: np.ndarray
-    fol: np.ndarray
-    fol_v: np.ndarray
-    fol_n: np.ndarray
 
 
 def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]]) -> Tracks:
@@ -152,9 +146,6 @@ def new_tracks(q: np.ndarray, active: np.ndarray, groups: Sequence[Sequence[int]
         seen_at=np.full(m, -1, dtype=np.int64),
         track_from=np.full(m, -1, dtype=np.int64),
         pair_wait=np.full(m, -1, dtype=np.int64),
-        fol=np.full((m, 3), np.nan),
-        fol_v=np.zeros((m, 3)),
-        fol_n=np.zeros(m, dtype=np.int64),
     )
 
 

@@ -7,8 +7,7 @@ most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition, the
 exchange and kept tracks (ours) -> 3D
 check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap repair and joint
-re-acquisition (ours, :mod:`.repair`) -> lost markers take back the point they followed (ours,
-:mod:`.follow`) -> markers never observed placed by their bodies' trained
+re-acquisition (ours, :mod:`.repair`) -> markers never observed placed by their bodies' trained
 shapes (ours, :mod:`.unseen`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
@@ -43,7 +42,6 @@ from labeler_service.labeling.kernels.anonymous import (
 )
 from labeler_service.labeling.kernels.contact import _contacts
 from labeler_service.labeling.kernels.fitting import _fit_bodies
-from labeler_service.labeling.kernels.follow import _acquire_followed, _follow_update
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
 from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
@@ -156,8 +154,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _presence(points, tracks, bodies, scratch, params)
     if params.contact_mm > 0.0:  # contacts between performers (ours, kernels/contact.py)
         _contacts(points, index, dt, tracks, bodies, recovery, scratch, params)
-    if params.acquire_follow:  # a lost marker takes back the point it followed (ours)
-        _acquire_followed(points, index, dt, frame_no, tracks, bodies, scratch, params)
     if params.acquire_unseen or params.acquire_lost_frames > 0:  # unseen, or lost (ours)
         _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params)
     # Eq. 4 for observed markers
@@ -166,7 +162,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         if a >= 0:
             missing[i] = False  # the 3D check used it as scratch
             tracks.lost[i] = 0
-            tracks.fol_n[i] = 0
             n_reject[i] = 0
             age[i] += 1
             if params.anonymous_tracks:
@@ -176,8 +171,6 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
             for c in range(3):
                 pos[i, c] = obs[i, c]
         else:
-            if params.acquire_follow and active[i]:
-                _follow_update(i, points, index, dt, owner, tracks, params)
             if params.anonymous_tracks and state[i] == OBSERVED:
                 _track_taken(i, points, index, owner, tracks, r, params.jump_mm)
             age[i] = 0
