@@ -139,6 +139,12 @@ class LabelerConfig(BaseModel):
         description="a lost marker placed by acquire_lost_frames' rules starts a new track on its "
         "point, moving as the members that place it move (not with its coasted velocity)",
     )
+    acquire_follow: bool = Field(
+        True,
+        description="a marker that loses its point follows the point it went on as (unambiguous, "
+        "free) and takes it back when two or more anchors keep their trained distances over "
+        "links that do not bend",
+    )
     acquire_together: bool = Field(
         True,
         description="markers of one body lost together (3+, one for acquire_lost_frames) take "

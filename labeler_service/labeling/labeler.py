@@ -324,6 +324,7 @@ class Labeler:
         tr.seen_at[markers] = -1  # anonymous point tracks: no track (kernels/anonymous.py)
         tr.track_from[markers] = -1
         tr.pair_wait[markers] = -1
+        tr.fol[markers, 6] = 0.0
         tr.state[markers] = MarkerState.MISSING
         tr.pos[markers] = np.nan
         self._recovery.ok[markers] = False

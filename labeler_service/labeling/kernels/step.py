@@ -7,7 +7,8 @@ most K candidates (Sec. 3.1) -> greedy rigid-body fitting (Eq. 5, Algorithm 1) -
 continuity (points back to the markers tracked onto them, ours) -> wide re-acquisition, the
 exchange and kept tracks (ours) -> 3D
 check (ours, see docs/algorithm.md) -> 3D template check of suspect bodies, swap repair and joint
-re-acquisition (ours, :mod:`.repair`) -> markers never observed placed by their bodies' trained
+re-acquisition (ours, :mod:`.repair`) -> lost markers take back the point they followed (ours,
+:mod:`.follow`) -> markers never observed placed by their bodies' trained
 shapes (ours, :mod:`.unseen`) -> Kalman update of the observed markers (Eq. 4) -> recovery
 of hidden markers from their bodies (Sec. 3.3; the recovered position also updates the Kalman
 state with a larger ``R``, so a marker hidden for long is predicted from its body, not from a
@@ -42,6 +43,7 @@ from labeler_service.labeling.kernels.anonymous import (
 )
 from labeler_service.labeling.kernels.contact import _contacts
 from labeler_service.labeling.kernels.fitting import _fit_bodies
+from labeler_service.labeling.kernels.follow import _acquire_followed, _follow_all
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
 from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
@@ -106,7 +108,11 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     # Eq. 3: predict; S = H P H^T + R
     _predict(x, P, tracks.q, active, dt, params.p_cap)
     if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
-        _body_predict(tracks, bodies, dt)
+        _body_predict(tracks, bodies, dt)  # (keeps the Kalman predictions in tracks.kx)
+    elif params.acquire_follow:
+        for i in range(x.shape[0]):
+            for c in range(3):
+                tracks.kx[i, c] = x[i, c]  # where a marker that loses its point starts following
     if params.common_mode_iters > 0:
         subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
         radius, iters = params.common_mode_radius_mm, params.common_mode_iters
@@ -154,8 +160,12 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
         _presence(points, tracks, bodies, scratch, params)
     if params.contact_mm > 0.0:  # contacts between performers (ours, kernels/contact.py)
         _contacts(points, index, dt, tracks, bodies, recovery, scratch, params)
+    if params.acquire_follow:  # a lost marker takes back the point it followed (ours)
+        _acquire_followed(points, index, dt, frame_no, tracks, bodies, scratch, params)
     if params.acquire_unseen or params.acquire_lost_frames > 0:  # unseen, or lost (ours)
         _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params)
+    if params.acquire_follow:  # (before Eq. 4: tracks.pos and age are the last frame's)
+        _follow_all(points, index, dt, tracks, scratch, params)
     # Eq. 4 for observed markers
     for i in range(m_total):
         a = assigned[i]
