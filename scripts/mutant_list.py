@@ -962,4 +962,13 @@ MUTANTS: list[Mutant] = [
         "two markers lost in one frame follow the one point left",
         kernel=True,
     ),
+    Mutant(
+        "follow-not-hooked",
+        "labeler_service/labeling/kernels/step.py",
+        "        _follow_all(points, index, dt, tracks, scratch, params)\n",
+        "        pass\n",
+        (T + "labeling/test_body_prediction.py",),
+        "the frame never starts following a marker that lost its point",
+        kernel=True,
+    ),
 ]
