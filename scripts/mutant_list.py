@@ -902,8 +902,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "follow-an-ambiguous-point",
         "labeler_service/labeling/kernels/follow.py",
-        "    if j < 0 or owner[j] >= 0 or not _alone(points, index, c, 2.0 * r, j):\n",
-        "    if j < 0 or owner[j] >= 0:\n",
+        "    return _sole_free(points, index, c, r, 2.0 * r, owner)\n",
+        "    return _sole_free(points, index, c, r, 0.0, owner)\n",
         (T + "labeling/test_follow.py",),
         "a followed point with another point beside it is followed on",
         kernel=True,
@@ -911,8 +911,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "follow-a-point-another-marker-holds",
         "labeler_service/labeling/kernels/follow.py",
-        "            if j >= 0 and (owner[j] >= 0 or not _alone(points, index, c, r, j)):\n",
-        "            if j >= 0 and not _alone(points, index, c, r, j):\n",
+        "    if j < 0 or owner[j] >= 0 or not _alone(points, index, c, alone, j):\n",
+        "    if j < 0 or not _alone(points, index, c, alone, j):\n",
         (T + "labeling/test_follow.py",),
         "a marker that lost its point follows a point another marker holds",
         kernel=True,

@@ -32,6 +32,7 @@ from labeler_service.labeling.kernels.anonymous import _refused
 from labeler_service.labeling.kernels.repair import _bends
 from labeler_service.labeling.kernels.rigid import _take
 from labeler_service.labeling.kernels.spatial import ANY, _alone, _nearest
+from labeler_service.labeling.kernels.unseen import _slot
 
 FOLLOW_ANCHORS = 2  # distinct anchors a followed point needs
 FOLLOW_SLACK_MM = 3.0  # as the pair rule's PAIR_SLACK_MM
@@ -52,8 +53,15 @@ def _followed(i, points, index, dt, owner, tracks, params):
     c = np.empty(3)
     for a in range(3):
         c[a] = tracks.fol[i, a] + tracks.fol[i, 3 + a] * dt
-    j, _ = _nearest(points, index, c, r * r, owner, ANY, -1)
-    if j < 0 or owner[j] >= 0 or not _alone(points, index, c, 2.0 * r, j):
+    return _sole_free(points, index, c, r, 2.0 * r, owner)
+
+
+@njit
+def _sole_free(points, index, c, near, alone, owner):
+    """The point nearest ``c`` within ``near`` when it is free and no other point lies within
+    ``alone`` of ``c``; -1 otherwise."""
+    j, _ = _nearest(points, index, c, near * near, owner, ANY, -1)
+    if j < 0 or owner[j] >= 0 or not _alone(points, index, c, alone, j):
         return -1
     return j
 
@@ -84,9 +92,7 @@ def _follow_update(i, points, index, dt, owner, tracks, params):
         r = 2.0 * _floor(params)
         c = tracks.kx[i]
         if c[0] == c[0]:  # noqa: PLR0124 (NaN: no prediction)
-            j, _ = _nearest(points, index, c, r * r, owner, ANY, -1)
-            if j >= 0 and (owner[j] >= 0 or not _alone(points, index, c, r, j)):
-                j = -1
+            j = _sole_free(points, index, c, r, r, owner)
     if j >= 0 and _followed_by_another(i, points[j], tracks):
         j = -1  # (the marker followed first this frame keeps it; the link check judges it)
     if j < 0:
@@ -158,9 +164,7 @@ def _anchors_held(m, p, points, tracks, bodies, assigned, params):
     n = 0
     for e in range(mb_ptr[m], mb_ptr[m + 1]):
         b = mb_idx[e]
-        i = 0
-        while i < size[b] and members[b, i] != m:
-            i += 1
+        i = _slot(bodies, b, m)
         for j in range(size[b]):
             k = members[b, j]
             if j == i or assigned[k] < 0 or tracks.age[k] < 1:

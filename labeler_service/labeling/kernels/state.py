@@ -89,9 +89,7 @@ class Tracks(NamedTuple):
       Both -1 again when the marker is reset (``Labeler._reset``).
     - ``fol (M, 7)``: the point a lost marker's own point went on as (followed from frame to
       frame while unambiguous and free): its position and velocity (mm/s) in the last frame,
-      and the frames followed (column 6; 0 none; :mod:`.follow`). One array, not three: every
-      kernel call that is not inlined copies the structure, and three more arrays cost the
-      frame about 15 % at 10 performers.
+      and the frames followed (column 6; 0 none; :mod:`.follow`).
     - ``pair_wait (M,)`` int64: the body partner the pair check's senior anchors asked to give
       the marker's point to in the last frame, -1 none (:func:`.repair._pair_check`).
 
