@@ -861,7 +861,14 @@ def _read_c3d(path: Path) -> Capture:
         )
         notes.append(msg)
         log.warning("%s: %s", path, msg)
-    elif counts is not None and counts.held < counts.declared and pos.shape[0] < counts.declared:
+    elif (
+        counts is not None
+        and counts.held < counts.declared
+        # no frame at all is no cut: ezc3d read the file, so its POINT:FRAMES says 0 (ezc3d's
+        # own writer puts frames 1 to 1 in the header then); a file cut before its first frame
+        # is an ezc3d error, above
+        and 0 < pos.shape[0] < counts.declared
+    ):
         msg = f"truncated: {pos.shape[0]} of {counts.declared} frames (the file ends early)"
         notes.append(msg)
         log.warning("%s: %s", path, msg)
