@@ -11,21 +11,88 @@ that holds kernels (:func:`kernel_sources`), so any change to one of them recomp
 once. This hooks numba's cache locators (``CacheImpl._locator_classes``, not a public API);
 when a numba version lacks them, the default per-file check stays and :data:`SET_STAMPED` is
 False.
+
+numba caches a kernel beside its source (``__pycache__``), else in the user's cache folder
+(``~/.cache/numba``); when neither is writable (a package installed read-only, run by a user
+whose home is not writable) it refuses to decorate the kernel ("no locator available"). Then,
+unless ``NUMBA_CACHE_DIR`` is set, the cache goes to a folder of this user's under the
+temporary folder (:func:`_temp_cache_dir`): the first run compiles, the next ones read it.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
+import os
+import stat
+import tempfile
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 import numba
+from numba.misc.appdirs import AppDirs
 
 FASTMATH = frozenset({"nsz", "arcp", "contract", "afn", "reassoc"})
 _PACKAGE = Path(__file__).resolve().parent
 #: the folders whose modules define kernels (``labeling`` with ``kernels``, the simulator's)
 _KERNEL_DIRS = (_PACKAGE / "labeling", _PACKAGE / "scenes" / "sim")
+log = logging.getLogger(__name__)
+
+
+def _writable(folder: Path) -> bool:
+    """numba's own test of a cache folder (``_CacheLocator.ensure_cache_path``)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=folder).close()
+    except OSError:
+        return False
+    return True
+
+
+def _temp_cache_dir() -> Path:
+    """``mocap-labeler-numba-<uid>`` under the temporary folder, created private; a folder of
+    that name someone else owns or can write to is not used (numba's cache files are pickles):
+    a new private folder is, for this run."""
+    uid = os.getuid() if hasattr(os, "getuid") else None
+    d = Path(tempfile.gettempdir()) / f"mocap-labeler-numba-{uid if uid is not None else 'user'}"
+    try:
+        d.mkdir(mode=0o700, exist_ok=True)
+        st = d.lstat()
+        if (
+            stat.S_ISDIR(st.st_mode)
+            and (uid is None or st.st_uid == uid)
+            and not st.st_mode & 0o022
+            and _writable(d)
+        ):
+            return d
+    except OSError:
+        pass
+    return Path(tempfile.mkdtemp(prefix="mocap-labeler-numba-"))
+
+
+def _cache_dir_fallback() -> str | None:
+    """Points numba's cache at :func:`_temp_cache_dir` when ``NUMBA_CACHE_DIR`` is not set
+    and neither the kernels' ``__pycache__`` folders nor numba's user-wide cache folder can be
+    written; returns that folder (None: numba's own choice stands). Runs at import, before the
+    first kernel is decorated (numba picks a kernel's cache folder then)."""
+    config: Any = numba.config  # its settings are module globals set at run time
+    if "NUMBA_CACHE_DIR" in os.environ or config.CACHE_DIR or config.DISABLE_JIT:
+        return None
+    sources = {p.parent for d in _KERNEL_DIRS for p in d.rglob("*.py")}
+    if all(_writable(d / "__pycache__") for d in sources if "__pycache__" not in d.parts):
+        return None
+    if _writable(Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)):
+        return None
+    folder = str(_temp_cache_dir())
+    os.environ["NUMBA_CACHE_DIR"] = folder  # read again by numba's compiler, and by children
+    config.CACHE_DIR = folder
+    log.info("numba cache: the package and the home folder are read-only: %s", folder)
+    return folder
+
+
+#: the cache folder chosen by :func:`_cache_dir_fallback`, None when numba's own stands
+CACHE_DIR_FALLBACK = _cache_dir_fallback()
 
 
 def njit(*args: Any, **kwargs: Any) -> Any:

@@ -2,7 +2,9 @@
 
 ``cache=True`` checks only the cached function's own source file: a kernel whose callee in
 another file changed kept its old compiled code. The project's kernels are cached under a stamp
-of every kernel file, so the caller recompiles."""
+of every kernel file, so the caller recompiles. Where numba's default cache folders cannot be
+written, the cache goes to a private folder under the temporary folder (unless
+``NUMBA_CACHE_DIR`` says where)."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -85,3 +88,66 @@ def test_the_stamp_covers_every_kernel_file(tmp_path, monkeypatch):
         assert _numba.kernel_set_stamp() != before
     finally:
         _numba.kernel_set_stamp.cache_clear()
+
+
+def _no_default_cache(tmp_path: Path) -> tuple[Path, dict[str, str]]:
+    """A copy of the package where numba's default cache folders cannot be written, even by
+    root: each source folder's ``__pycache__`` and the home and XDG cache folders are files
+    (a package installed read-only, run by a user whose home is not writable)."""
+    tree = tmp_path / "tree"
+    shutil.copytree(ROOT / "labeler_service", tree / "labeler_service",
+                    ignore=shutil.ignore_patterns("__pycache__", "static"))  # fmt: skip
+    for d in [tree / "labeler_service", *(tree / "labeler_service").rglob("*")]:
+        if d.is_dir():
+            (d / "__pycache__").write_text("")
+    blocked = tmp_path / "blocked"
+    blocked.write_text("")
+    (tmp_path / "tmp").mkdir()
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(tree),
+        "PYTHONDONTWRITEBYTECODE": "1",
+        "HOME": str(blocked),
+        "XDG_CACHE_HOME": str(blocked),
+        "TMPDIR": str(tmp_path / "tmp"),
+    }
+    env.pop("NUMBA_CACHE_DIR", None)
+    env.pop("NUMBA_DISABLE_JIT", None)
+    return tree, env
+
+
+def _simulate(tree: Path, env: dict[str, str], out: Path) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "-m", "labeler_service.cli.main", "simulate", str(out),
+           "--performers", "1", "--seconds", "1", "--scenario", "walk", "--seed", "1"]  # fmt: skip
+    return subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_a_command_runs_when_no_default_cache_folder_is_writable(tmp_path):
+    tree, env = _no_default_cache(tmp_path)
+    done = _simulate(tree, env, tmp_path / "scene.npz")
+    # numba alone: "cannot cache function ...: no locator available for file ...", a traceback
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    assert (tmp_path / "scene.npz").is_file()
+    folder = tmp_path / "tmp" / f"mocap-labeler-numba-{os.getuid()}"
+    assert any(folder.rglob("*.nbi"))  # cached there: the next run reads it
+
+
+def test_a_numba_cache_dir_the_user_set_is_kept(tmp_path):
+    tree, env = _no_default_cache(tmp_path)
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "mine")
+    done = _simulate(tree, env, tmp_path / "scene.npz")
+    assert done.returncode == 0, done.stderr
+    assert any((tmp_path / "mine").rglob("*.nbi"))
+    assert not list((tmp_path / "tmp").glob("mocap-labeler-numba-*"))
+
+
+def test_a_temp_cache_folder_others_can_write_is_not_used(tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    mine = _numba._temp_cache_dir()
+    assert mine == tmp_path / f"mocap-labeler-numba-{os.getuid()}"
+    assert mine.stat().st_mode & 0o777 == 0o700
+    mine.chmod(0o777)  # planted, or opened up: numba's cache files are pickles
+    other = _numba._temp_cache_dir()
+    assert other != mine and other.parent == tmp_path
+    assert other.stat().st_mode & 0o777 == 0o700

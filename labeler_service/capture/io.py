@@ -42,6 +42,7 @@ import threading
 import time
 import uuid
 import zipfile
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -860,7 +861,14 @@ def _read_c3d(path: Path) -> Capture:
         )
         notes.append(msg)
         log.warning("%s: %s", path, msg)
-    elif counts is not None and counts.held < counts.declared and pos.shape[0] < counts.declared:
+    elif (
+        counts is not None
+        and counts.held < counts.declared
+        # no frame at all is no cut: ezc3d read the file, so its POINT:FRAMES says 0 (ezc3d's
+        # own writer puts frames 1 to 1 in the header then); a file cut before its first frame
+        # is an ezc3d error, above
+        and 0 < pos.shape[0] < counts.declared
+    ):
         msg = f"truncated: {pos.shape[0]} of {counts.declared} frames (the file ends early)"
         notes.append(msg)
         log.warning("%s: %s", path, msg)
@@ -1587,6 +1595,10 @@ def max_npz_bytes() -> int:
         raise CaptureError(f"MOCAP_MAX_NPZ_BYTES={raw!r} is not an integer") from None
 
 
+#: What reading a damaged or cut zip member raises (zip's "Bad CRC-32", zlib's "invalid block
+#: type", a local header past the end)
+_ZIP_DAMAGE = (OSError, EOFError, zipfile.BadZipFile, zlib.error)
+
 #: Most bytes numpy's header takes in an NPZ member of a capture (it writes 128 for each of
 #: ``positions``, ``labels`` and ``rate``; 256 leaves room).
 NPZ_HEADER_BYTES = 256
@@ -1609,7 +1621,9 @@ def check_npz(path: Path, max_bytes: int | None = None) -> None:
     try:
         zf = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError) as exc:
-        raise CaptureFormatError(f"{path}: not an NPZ (zip) archive: {exc}") from exc
+        raise CaptureFormatError(
+            f"{path}: not an NPZ (zip) archive (damaged or truncated?): {exc}"
+        ) from exc
     with zf:
         infos = zf.infolist()
         total = sum(i.file_size for i in infos)
@@ -1628,17 +1642,27 @@ def check_npz(path: Path, max_bytes: int | None = None) -> None:
                     )
             if not info.filename.endswith(".npy"):
                 continue
-            with zf.open(info) as f:
-                try:
+            try:
+                with zf.open(info) as f:
                     version = np.lib.format.read_magic(f)
                     if version == (1, 0):
                         shape, _, dtype = np.lib.format.read_array_header_1_0(f)
                     else:
                         shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-                except (ValueError, OSError) as exc:
-                    raise CaptureFormatError(
-                        f"{path}: NPZ member {info.filename} has no valid array header: {exc}"
-                    ) from exc
+            except ValueError as exc:
+                raise CaptureFormatError(
+                    f"{path}: NPZ member {info.filename} has no valid array header: {exc}"
+                ) from exc
+            except _ZIP_DAMAGE as exc:  # a small member is read whole: its CRC is checked here
+                raise CaptureFormatError(
+                    f"{path}: NPZ member {info.filename} cannot be read (damaged or truncated?): "
+                    f"{exc}"
+                ) from exc
+            if dtype.hasobject:  # numpy: "Object arrays cannot be loaded when allow_pickle=False"
+                raise CaptureFormatError(
+                    f"{path}: NPZ member {info.filename} holds Python objects (a pickle), which "
+                    "are not read: a capture NPZ holds numbers and strings"
+                )
             nbytes = math.prod(shape) * dtype.itemsize
             if nbytes > info.file_size:
                 raise CaptureFormatError(
@@ -1656,14 +1680,36 @@ def _read_npz(path: Path) -> Capture:
                 f"{path}: not a capture NPZ: it lacks {', '.join(missing)} "
                 f"(it holds {', '.join(z.files) or 'nothing'})"
             )
-        positions = z["positions"]
-        raw = z["labels"]
+        positions = _npz_member(z, "positions", path)
+        if positions.ndim != 3 or positions.shape[2] != 3:  # (numpy: "axis 2 is out of bounds")
+            raise CaptureFormatError(
+                f"{path}: positions must be (frames, markers, 3), got shape {positions.shape}"
+            )
+        if positions.dtype.kind not in "iuf":  # text, complex numbers, booleans
+            raise CaptureFormatError(
+                f"{path}: positions must be real numbers, got dtype {positions.dtype}"
+            )
+        raw = _npz_member(z, "labels", path)
         if raw.ndim != 1:  # a (M, 1) column read as "['Derrick:C7']"
             raise CaptureFormatError(f"{path}: labels must be a 1-D array, got shape {raw.shape}")
         # bytes (an ``S`` array) read as "b'Derrick:C7'"
         labels = [x.decode("utf-8", "replace") if isinstance(x, bytes) else str(x) for x in raw]
-        rate = float(z["rate"])
-    return _finish(positions, labels, rate, path, [])
+        rate = _npz_member(z, "rate", path)
+        if rate.size != 1 or rate.dtype.kind not in "iuf":
+            said = repr(rate.reshape(-1)[0].item()) if rate.size == 1 else f"shape {rate.shape}"
+            raise CaptureFormatError(f"{path}: rate must be one number (Hz), got {said}")
+    return _finish(positions, labels, float(rate.reshape(-1)[0]), path, [])
+
+
+def _npz_member(z: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
+    """``z[key]``; a member cut short or damaged (numpy's "EOF: reading array data", zip's
+    "Bad CRC-32", zlib's "invalid block type") is a :class:`CaptureFormatError` saying so."""
+    try:
+        return z[key]
+    except (ValueError, *_ZIP_DAMAGE) as exc:
+        raise CaptureFormatError(
+            f"{path}: NPZ member {key}.npy cannot be read (damaged or truncated?): {exc}"
+        ) from exc
 
 
 def _write_npz(capture: Capture, path: Path) -> None:

@@ -71,8 +71,12 @@ def plot_error_raster(
         cmap=cmap,
         vmin=-0.5,
         vmax=4.5,
-        extent=(-0.5 / rate, (n - 0.5) / rate, rows.size - 0.5, -0.5),
+        # no row (every marker correct): one row's height, not an empty range (matplotlib
+        # warned "Attempting to set identical low and high ylims")
+        extent=(-0.5 / rate, (n - 0.5) / rate, max(rows.size, 1) - 0.5, -0.5),
     )
+    if rows.size == 0:
+        ax.text(0.5, 0.5, "no marker with errors", transform=ax.transAxes, ha="center")
     if init_frames:
         ax.axvline(init_frames / rate, color="k", lw=0.8, ls="--")
     if rows.size <= MAX_ROWS:

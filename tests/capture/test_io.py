@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import os
+import zipfile
 
 import numpy as np
 import pytest
@@ -323,6 +325,77 @@ def test_other_systems_unlabeled_names_are_unlabeled_tracks(tmp_path, rng, suffi
     assert len(set(cap.labels)) == len(labels)
     assert any("5 unlabeled trajectories" in n for n in cap.notes)
     np.testing.assert_allclose(cap.positions, pos, atol=1e-3)
+
+
+def _malformed_npz(path, kind: str, rng: np.random.Generator) -> None:
+    """A capture NPZ spoiled one way (``kind``)."""
+    good = {
+        "positions": (rng.normal(size=(400, 3, 3)) * 500).astype(np.float32),
+        "labels": np.array(["A:a", "A:b", "A:c"]),
+        "rate": np.float64(100.0),
+    }
+    if kind == "member cut":  # its zip entry intact, its array data 40 bytes short
+        with zipfile.ZipFile(path, "w") as z:
+            for key, value in good.items():
+                buf = io.BytesIO()
+                np.save(buf, value)
+                z.writestr(
+                    f"{key}.npy", buf.getvalue()[:-40] if key == "positions" else buf.getvalue()
+                )
+        return
+    np.savez_compressed(path, **good)
+    data = path.read_bytes()
+    if kind == "cut":  # a copy that stopped half way
+        path.write_bytes(data[: len(data) // 2])
+        return
+    if kind == "garbage":
+        path.write_bytes(b"not a capture\n" * 40)
+        return
+    if kind == "member damaged":  # bytes inside the (first) positions member's compressed data
+        path.write_bytes(data[:100] + b"\xa5" * 40 + data[140:])
+        return
+    spoil = {
+        "missing key": {"labels": None},
+        "object labels": {"labels": np.array(["A:a", 1, None], dtype=object)},
+        "2-D positions": {"positions": good["positions"][:, :, 0]},
+        "text positions": {"positions": np.full((4, 3, 3), "x")},
+        "complex positions": {"positions": good["positions"] + 1j},
+        "rate array": {"rate": np.array([100.0, 120.0])},
+        "rate text": {"rate": np.array("fast")},
+    }[kind]
+    members = {k: v for k, v in {**good, **spoil}.items() if v is not None}
+    np.savez(path, allow_pickle=True, **members)
+
+
+@pytest.mark.parametrize(
+    ("kind", "says"),
+    [
+        ("cut", "not an NPZ (zip) archive (damaged or truncated?)"),
+        ("garbage", "not an NPZ (zip) archive (damaged or truncated?)"),
+        ("member cut", "NPZ member positions.npy cannot be read (damaged or truncated?)"),
+        ("member damaged", "NPZ member positions.npy cannot be read (damaged or truncated?)"),
+        ("missing key", "not a capture NPZ: it lacks labels (it holds positions, rate)"),
+        ("object labels", "NPZ member labels.npy holds Python objects (a pickle)"),
+        ("2-D positions", "positions must be (frames, markers, 3), got shape (400, 3)"),
+        ("text positions", "positions must be real numbers, got dtype <U1"),
+        ("complex positions", "positions must be real numbers, got dtype complex"),
+        ("rate array", "rate must be one number (Hz), got shape (2,)"),
+        ("rate text", "rate must be one number (Hz), got 'fast'"),
+    ],
+)
+def test_a_malformed_npz_says_what_is_wrong_with_which_file(tmp_path, rng, capsys, kind, says):
+    """A hostile run: numpy's own words ("axis 2 is out of bounds for array of dimension 2",
+    "Object arrays cannot be loaded when allow_pickle=False", "EOF: reading array data",
+    "only 0-dimensional arrays can be converted to Python scalars") or zip's ("File is not a
+    zip file", "Bad CRC-32") with nothing of what a capture NPZ should hold."""
+    path = tmp_path / "take.npz"
+    _malformed_npz(path, kind, rng)
+    with pytest.raises(CaptureFormatError) as caught:
+        read_capture(path)
+    assert str(caught.value).startswith(f"{path}: ") and says in str(caught.value)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {caught.value}\n"
 
 
 def test_npz_labels_as_bytes_or_a_column(tmp_path, rng) -> None:

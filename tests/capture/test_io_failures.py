@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from labeler_service.capture import Capture, check_writable, read_capture, write_capture
+from labeler_service.cli.main import main
 from labeler_service.errors import CaptureError
 
 DEV_FULL = Path("/dev/full")
@@ -169,6 +170,39 @@ def test_a_c3d_cut_before_its_first_frame_says_so_in_our_words(tmp_path, rng):
     with pytest.raises(CaptureError, match="holds no frame data") as info:
         read_capture(cut)
     assert "Data::frame" not in str(info.value)
+
+
+def _zero_frame_c3d(path: Path) -> Path:
+    """A C3D with markers and no frame, as ezc3d writes one (its Python wrapper cannot: a
+    ZeroDivisionError; the C++ writer behind it can): header frames 1 to 1, POINT:FRAMES 0,
+    the file ending where frame data would start."""
+    import ezc3d
+
+    c = ezc3d.ezc3d.c3d()
+    for name in ("A:a", "A:b"):
+        c.point(name)
+    for group, name, value in (("POINT", "RATE", 100.0), ("POINT", "UNITS", "mm")):
+        param = ezc3d.ezc3d.Parameter(name)
+        param.set(value)
+        c.parameter(group, param)
+    c.write(str(path))
+    return path
+
+
+def test_a_c3d_with_no_frames_says_so_not_truncated(tmp_path, caplog, capsys):
+    """A hostile run: a valid zero-frame C3D read as "truncated: 0 of 1 frames (the file ends
+    early)", with that warning on stderr."""
+    path = _zero_frame_c3d(tmp_path / "zero.c3d")
+    with caplog.at_level(logging.WARNING, logger="labeler_service.capture.io"):
+        cap = read_capture(path)
+    assert cap.n_frames == 0 and cap.labels == ("A:a", "A:b") and cap.rate == 100.0
+    assert not any("truncated" in n for n in cap.notes) and not caplog.records
+    assert main(["info", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert "holds no frames" in out and "truncated" not in out + err
+    code = main(["label", str(path), str(tmp_path / "out.c3d"), "--no-progress"])
+    assert code == 2
+    assert capsys.readouterr().err == f"error: {path}: no frames (nothing to label)\n"
 
 
 def test_check_writable_names_a_file_where_a_folder_should_be(tmp_path):

@@ -194,6 +194,22 @@ def test_cli_json_has_anatomy_and_plot_writes_raster(tmp_path, rng, capsys) -> N
     assert f"wrote {plot} and {tmp_path / 'acc_errors.png'}" in io.err
 
 
+def test_plot_of_a_take_without_errors_warns_nothing(tmp_path, rng, capsys) -> None:
+    """A hostile run: more markers than the raster draws (80) and none with an error left no
+    row to draw, and matplotlib warned on stderr "Attempting to set identical low and high
+    ylims makes transformation singular" (pytest makes the warning an error)."""
+    cap = moving_clusters(rng, subjects=9, markers=10, frames=120, speed_mm_s=50.0)
+    path = write_capture(cap, tmp_path / "t.c3d")
+    plot = tmp_path / "acc.png"
+    args = ["evaluate", str(path), "--method", "closest-point", "--json", "--init-frames", "20"]
+    assert main([*args, "--plot", str(plot)]) == 0
+    io = capsys.readouterr()
+    rep = json.loads(io.out.strip().splitlines()[-1])
+    assert rep["markers"] == 90 and rep["accuracy"] == 1.0  # no row with an error
+    assert (tmp_path / "acc_errors.png").stat().st_size > 1000
+    assert "Warning" not in io.err
+
+
 def test_text_output_names_the_worst_markers(tmp_path, rng, capsys) -> None:
     cap = moving_clusters(rng, subjects=3, markers=8, frames=300, spacing_mm=60.0, speed_mm_s=900.0)
     path = write_capture(Capture(cap.positions, cap.labels, 120.0), tmp_path / "t.c3d")
