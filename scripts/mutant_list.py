@@ -498,6 +498,28 @@ MUTANTS: list[Mutant] = [
         kernel=True,
     ),
     Mutant(
+        "three-points-drop-a-held-point",
+        "labeler_service/labeling/kernels/repair.py",
+        "        if not kept:\n            return False\n    return True\n",
+        "        if not kept:\n            return True\n    return True\n",
+        (T + "labeling/test_swap_repair.py",),
+        "a booted marker tracked on its own point is read onto a free point far away that fits "
+        "its body's shape with two others",
+        k="held",
+        kernel=True,
+    ),
+    Mutant(
+        "three-points-never-overturn-a-shared-gate",
+        "labeler_service/labeling/kernels/repair.py",
+        "        if cur[k] < 0 or ncand[members[b, k]] > 1:\n",
+        "        if cur[k] < 0:\n",
+        (T + "labeling/test_swap_repair.py",),
+        "a held point with other points in its gate (12.5 Hz) is never read again by three "
+        "points that name themselves",
+        k="shared",
+        kernel=True,
+    ),
+    Mutant(
         "repair-never-maps-fewer-members",
         "labeler_service/labeling/kernels/repair.py",
         "            fewer_fits = c_sub >= 4 and rms_b < rms_sub / 3.0\n",

@@ -616,3 +616,38 @@ def test_three_points_do_not_read_again_two_held_points_or_an_isosceles_body(rng
     assert _three_point_case(rng, SCALENE, [NONE, 1, 0]) == (0, [NONE, 1, 0])
     # an isosceles triangle fits its own mirror permutation: its points do not name themselves
     assert _three_point_case(rng, ISOSCELES, [NONE, 1, NONE]) == (0, [NONE, 1, NONE])
+
+
+def _held_apart_case(rng, in_gate):
+    """A booted 3-marker body (scalene, a model's reference): marker 0 holds its own point 90
+    mm beside three free points that fit the body's shape, markers 1 and 2 are missing;
+    ``in_gate`` points were in marker 0's gate this frame. Returns ``(changes, assigned)``."""
+    config = LabelerConfig()
+    body = SCALENE @ _rotation(rng).T + [100.0, 200.0, 900.0]
+    held = body[0] + [0.0, 0.0, 90.0]  # marker 0's own point, beside the triangle
+    pts = _frame(np.vstack([held, body[[2, 0, 1]]]))
+    tracks, bodies, scratch = _one_body_state(
+        config, pts, np.array([0, NONE, NONE], np.int32), SCALENE, age=1
+    )
+    bodies.ref_model[0] = True
+    tracks.x[:, :3] = body
+    tracks.x[0, :3] = held  # tracked where its point is
+    scratch.ncand[0] = in_gate
+    changes = _repair(pts, _index(pts), 0, tracks, bodies, scratch, kernel_params(config))
+    return changes, list(scratch.assigned[:3])
+
+
+def test_three_points_do_not_take_a_held_marker_off_its_own_point(rng):
+    """A booted jumper's right shoulder, tracked on its own point since the boot, was moved
+    476 mm onto a neighbour's neck marker: its body's other two members were missing, and three
+    free points (the neck and two of the jumper's own) happened to fit the body's shape. Three
+    points name themselves, a held one among them; a map that leaves a point alone in its
+    marker's gate for others is no reading of what the body holds (holdout21 ``rate`` from a
+    model: the jumper's upper body read wrong for the whole scene, never booted)."""
+    assert _held_apart_case(rng, 1) == (0, [0, NONE, NONE])
+
+
+def test_three_points_overturn_a_held_point_its_gate_shared(rng):
+    # a gate with several points (12.5 Hz) leaves the held one in doubt: the three points read
+    changes, assigned = _held_apart_case(rng, 3)
+    assert changes == 1 and assigned[0] != 0 and NONE not in assigned

@@ -327,6 +327,29 @@ def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links, min
 
 
 @njit
+def _keeps_held(b, cur, best, cand, n, members, ncand):
+    """Whether a map (``best``: rows of ``cand`` per member, -1 none) of body ``b`` keeps every
+    point the body holds (``cur``) that names its member - for the same member or another.
+    Three points that name themselves are a reading of the points the body holds, the held one
+    among them; a map that leaves a held point for others overturns it, which only an
+    ambiguous track allows: a held point is a name when it was the only point in its marker's
+    gate this frame (``ncand``). A booted jumper's shoulder, tracked on its own point, was read
+    476 mm away onto a neighbour's neck marker that fitted with two free points (holdout21
+    ``rate`` from a model: the upper body read wrong for the whole scene); at 12.5 Hz a gate
+    holds several points, and the labeled start's reading of them is the better one."""
+    for k in range(n):
+        if cur[k] < 0 or ncand[members[b, k]] > 1:
+            continue
+        kept = False
+        for j in range(n):
+            if best[j] >= 0 and cand[best[j]] == cur[k]:
+                kept = True
+        if not kept:
+            return False
+    return True
+
+
+@njit
 def _rms_with(b, bodies, points, assigned, m, pm, m2, pm2, kab):
     """``(count, rms)`` of :func:`_shape_rms` for body ``b`` against its reference when marker
     ``m`` holds point ``pm`` and ``m2`` holds ``pm2`` (-1: none), the others what they hold."""
@@ -642,7 +665,12 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
             pending[b] = 0
             ok[b] = True
             continue
-        named = c_b == 3 and c_cur <= 1 and bodies.ref_model[b]
+        named = (
+            c_b == 3
+            and c_cur <= 1
+            and bodies.ref_model[b]
+            and _keeps_held(b, cur, best, cand, n, members, scratch.ncand)
+        )
         if c_b < 4 and not (named and _unique3(ref, pts, best, n, rms_b, check_mm, kab)):
             pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
             continue
