@@ -56,7 +56,7 @@ def _temp_cache_dir() -> Path:
     a new private folder is, for this run."""
     uid = os.getuid() if hasattr(os, "getuid") else None
     d = Path(tempfile.gettempdir()) / f"mocap-labeler-numba-{uid if uid is not None else 'user'}"
-    try:
+    try:  # (gettempdir raises when no temporary folder is usable: the caller says so)
         d.mkdir(mode=0o700, exist_ok=True)
         st = d.lstat()
         if (
@@ -68,7 +68,14 @@ def _temp_cache_dir() -> Path:
             return d
     except OSError:
         pass
-    return Path(tempfile.mkdtemp(prefix="mocap-labeler-numba-"))
+    fresh = Path(tempfile.mkdtemp(prefix="mocap-labeler-numba-"))
+    log.warning(
+        "numba cache: %s is not this user's private folder; compiling into %s for this run "
+        "(set NUMBA_CACHE_DIR to keep a cache)",
+        d,
+        fresh,
+    )
+    return fresh
 
 
 def _cache_dir_fallback() -> str | None:
@@ -84,7 +91,11 @@ def _cache_dir_fallback() -> str | None:
         return None
     if _writable(Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)):
         return None
-    folder = str(_temp_cache_dir())
+    try:
+        folder = str(_temp_cache_dir())
+    except OSError as exc:  # no usable temporary folder either: numba's own error will say so
+        log.warning("numba cache: no writable folder for compiled kernels (%s)", exc)
+        return None
     os.environ["NUMBA_CACHE_DIR"] = folder  # read again by numba's compiler, and by children
     config.CACHE_DIR = folder
     log.info("numba cache: the package and the home folder are read-only: %s", folder)

@@ -151,3 +151,20 @@ def test_a_temp_cache_folder_others_can_write_is_not_used(tmp_path, monkeypatch)
     other = _numba._temp_cache_dir()
     assert other != mine and other.parent == tmp_path
     assert other.stat().st_mode & 0o777 == 0o700
+
+
+def test_no_usable_temp_folder_leaves_numba_its_own_choice(monkeypatch, caplog):
+    """A review: with no writable cache folder and no usable temporary folder either, importing
+    the package died of tempfile's ``FileNotFoundError`` instead of reaching numba's own words."""
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setattr(_numba.numba.config, "CACHE_DIR", "")
+    monkeypatch.setattr(_numba, "_writable", lambda folder: False)
+
+    def no_temp() -> str:
+        raise FileNotFoundError("No usable temporary directory found")
+
+    monkeypatch.setattr(tempfile, "gettempdir", no_temp)
+    with caplog.at_level("WARNING", logger=_numba.__name__):
+        assert _numba._cache_dir_fallback() is None
+    assert "no writable folder for compiled kernels" in caplog.text
+    assert "NUMBA_CACHE_DIR" not in os.environ

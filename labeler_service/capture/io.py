@@ -1613,6 +1613,10 @@ def npz_bytes(n_frames: int, labels: Sequence[str]) -> int:
     return n_frames * markers * 3 * 4 + markers * 4 * max(width, 1) + 8 + 3 * NPZ_HEADER_BYTES
 
 
+#: the members of a capture NPZ the reader loads
+_NPZ_READ = ("positions.npy", "labels.npy", "rate.npy")
+
+
 def check_npz(path: Path, max_bytes: int | None = None) -> None:
     """Refuses, before decompressing anything, an NPZ whose declared size exceeds
     ``max_bytes`` (default :data:`MAX_NPZ_BYTES`), whose members compress more than
@@ -1620,10 +1624,12 @@ def check_npz(path: Path, max_bytes: int | None = None) -> None:
     cap = max_npz_bytes() if max_bytes is None else max_bytes
     try:
         zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
+    except zipfile.BadZipFile as exc:
         raise CaptureFormatError(
             f"{path}: not an NPZ (zip) archive (damaged or truncated?): {exc}"
         ) from exc
+    except OSError as exc:  # (permission denied, a folder: not a damaged archive)
+        raise CaptureFormatError(f"{path}: cannot be read: {exc}") from exc
     with zf:
         infos = zf.infolist()
         total = sum(i.file_size for i in infos)
@@ -1658,7 +1664,9 @@ def check_npz(path: Path, max_bytes: int | None = None) -> None:
                     f"{path}: NPZ member {info.filename} cannot be read (damaged or truncated?): "
                     f"{exc}"
                 ) from exc
-            if dtype.hasobject:  # numpy: "Object arrays cannot be loaded when allow_pickle=False"
+            if dtype.hasobject and info.filename in _NPZ_READ:
+                # numpy: "Object arrays cannot be loaded when allow_pickle=False"; a member the
+                # reader does not read (a producer's own metadata) is left alone
                 raise CaptureFormatError(
                     f"{path}: NPZ member {info.filename} holds Python objects (a pickle), which "
                     "are not read: a capture NPZ holds numbers and strings"

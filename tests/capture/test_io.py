@@ -17,6 +17,7 @@ from labeler_service.capture import (
     split_label,
     write_capture,
 )
+from labeler_service.capture.io import check_npz
 from labeler_service.cli.main import main
 from labeler_service.errors import CaptureError, CaptureFormatError
 
@@ -396,6 +397,26 @@ def test_a_malformed_npz_says_what_is_wrong_with_which_file(tmp_path, rng, capsy
     assert main(["info", str(path)]) == 2
     err = capsys.readouterr().err
     assert err == f"error: {caught.value}\n"
+
+
+def test_npz_with_a_member_the_reader_does_not_read(tmp_path, rng) -> None:
+    """A producer's own metadata beside the capture (here Python objects) is left alone: only
+    the members the reader loads are refused for holding objects (a review of the malformed
+    NPZ fix: it refused such a file, which was read before)."""
+    pos = rng.normal(scale=300.0, size=(5, 2, 3))
+    path = tmp_path / "m.npz"
+    meta = np.array([{"operator": "x"}], dtype=object)
+    np.savez(path, positions=pos, labels=np.array(["D:a", "D:b"]), rate=100.0, meta=meta)
+    cap = read_capture(path)
+    assert cap.labels == ("D:a", "D:b") and cap.rate == 100.0
+
+
+def test_an_npz_that_cannot_be_opened_is_not_called_damaged(tmp_path) -> None:
+    path = tmp_path / "folder.npz"
+    path.mkdir()
+    with pytest.raises(CaptureFormatError) as caught:
+        check_npz(path)
+    assert "cannot be read" in str(caught.value) and "damaged" not in str(caught.value)
 
 
 def test_npz_labels_as_bytes_or_a_column(tmp_path, rng) -> None:
