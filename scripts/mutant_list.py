@@ -511,8 +511,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "three-points-never-overturn-a-shared-gate",
         "labeler_service/labeling/kernels/repair.py",
-        "        if cur[k] < 0 or ncand[members[b, k]] > 1:\n",
-        "        if cur[k] < 0:\n",
+        "        if gate_n[m] != 1 or gate_cand[m, 0] != cur[k]:\n",
+        "        if False:\n",
         (T + "labeling/test_swap_repair.py",),
         "a held point with other points in its gate (12.5 Hz) is never read again by three "
         "points that name themselves",

@@ -9,6 +9,7 @@ import reference as ref_twin
 from labeling.scene import _rot_y, _rot_z, frame_points
 
 from labeler_service.labeling.config import LabelerConfig
+from labeler_service.labeling.kernels.gating import _gate
 from labeler_service.labeling.kernels.params import kernel_params
 from labeler_service.labeling.kernels.repair import (
     _fit_template,
@@ -618,22 +619,29 @@ def test_three_points_do_not_read_again_two_held_points_or_an_isosceles_body(rng
     assert _three_point_case(rng, ISOSCELES, [NONE, 1, NONE]) == (0, [NONE, 1, NONE])
 
 
-def _held_apart_case(rng, in_gate):
+def _held_apart_case(rng, gate_mm):
     """A booted 3-marker body (scalene, a model's reference): marker 0 holds its own point 90
-    mm beside three free points that fit the body's shape, markers 1 and 2 are missing;
-    ``in_gate`` points were in marker 0's gate this frame. Returns ``(changes, assigned)``."""
+    mm beside three free points that fit the body's shape, markers 1 and 2 are missing; the
+    frame's gates (``_gate``) have radius ``gate_mm``. The held point is the frame's last row
+    (rows are not members). Returns ``(changes, assigned)``."""
     config = LabelerConfig()
+    params = kernel_params(config)
     body = SCALENE @ _rotation(rng).T + [100.0, 200.0, 900.0]
     held = body[0] + [0.0, 0.0, 90.0]  # marker 0's own point, beside the triangle
-    pts = _frame(np.vstack([held, body[[2, 0, 1]]]))
+    pts = _frame(np.vstack([body[[2, 0, 1]], held]))
     tracks, bodies, scratch = _one_body_state(
-        config, pts, np.array([0, NONE, NONE], np.int32), SCALENE, age=1
+        config, pts, np.array([3, NONE, NONE], np.int32), SCALENE, age=1
     )
     bodies.ref_model[0] = True
     tracks.x[:, :3] = body
     tracks.x[0, :3] = held  # tracked where its point is
-    scratch.ncand[0] = in_gate
-    changes = _repair(pts, _index(pts), 0, tracks, bodies, scratch, kernel_params(config))
+    scratch.s[:] = gate_mm**2 / params.gate_chi2
+    index = _index(pts)
+    _gate(
+        tracks.x, scratch.s, tracks.active, pts, index, params.gate_chi2, params.K,
+        scratch.cand, scratch.cand_d2, scratch.ncand,
+    )  # fmt: skip
+    changes = _repair(pts, index, 0, tracks, bodies, scratch, params)
     return changes, list(scratch.assigned[:3])
 
 
@@ -644,10 +652,11 @@ def test_three_points_do_not_take_a_held_marker_off_its_own_point(rng):
     points name themselves, a held one among them; a map that leaves a point alone in its
     marker's gate for others is no reading of what the body holds (holdout21 ``rate`` from a
     model: the jumper's upper body read wrong for the whole scene, never booted)."""
-    assert _held_apart_case(rng, 1) == (0, [0, NONE, NONE])
+    assert _held_apart_case(rng, 30.0) == (0, [3, NONE, NONE])
 
 
 def test_three_points_overturn_a_held_point_its_gate_shared(rng):
-    # a gate with several points (12.5 Hz) leaves the held one in doubt: the three points read
-    changes, assigned = _held_apart_case(rng, 3)
-    assert changes == 1 and assigned[0] != 0 and NONE not in assigned
+    # a gate that holds the triangle's points too (12.5 Hz) leaves the held one in doubt: the
+    # three points are read, and the held point is left
+    changes, assigned = _held_apart_case(rng, 250.0)
+    assert changes == 1 and sorted(assigned) == [0, 1, 2]

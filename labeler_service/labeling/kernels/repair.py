@@ -23,7 +23,9 @@ for fewer than ``repair_age`` frames, a repair pending, or its turn in a round r
    (swaps start when markers are re-acquired, and a deforming body must not be "repaired"
    against a stale reference). Every change needs a map of 4+ points: a triangle has no
    chirality, and a near-isosceles one fits its own permutations (Eq. 5 already sees what
-   three points show). A map for a body that had
+   three points show) - except, for a body whose reference is a model's, a map of three points
+   that name themselves (:func:`_unique3`) when the body held at most one of them and it keeps
+   a held point that was alone in its marker's gate (:func:`_keeps_held`). A map for a body that had
    fewer than three points (joint re-acquisition: all returning points are assigned together
    by the body's shape) is taken at once; one that only adds free points to a body seen with
    three or more is left to the per-marker 3D check (:func:`.rigid._verify`, which refuses
@@ -327,19 +329,23 @@ def _link_mean(m, p, skip, points, bodies, assigned, age, params, min_links, min
 
 
 @njit
-def _keeps_held(b, cur, best, cand, n, members, ncand):
+def _keeps_held(b, cur, best, cand, n, members, gate_cand, gate_n):
     """Whether a map (``best``: rows of ``cand`` per member, -1 none) of body ``b`` keeps every
     point the body holds (``cur``) that names its member - for the same member or another.
     Three points that name themselves are a reading of the points the body holds, the held one
-    among them; a map that leaves a held point for others overturns it, which only an
-    ambiguous track allows: a held point is a name when it was the only point in its marker's
-    gate this frame (``ncand``). A booted jumper's shoulder, tracked on its own point, was read
-    476 mm away onto a neighbour's neck marker that fitted with two free points (holdout21
-    ``rate`` from a model: the upper body read wrong for the whole scene); at 12.5 Hz a gate
-    holds several points, and the labeled start's reading of them is the better one."""
+    among them; a map that leaves a held point for others overturns it, which only a doubtful
+    track allows: a held point names its member when it was the only point in the member's
+    gate this frame (``gate_n[m] == 1`` and ``gate_cand[m, 0]`` that point: ``scratch.ncand``,
+    ``scratch.cand``). A booted jumper's shoulder, tracked on its own point, was read 476 mm
+    away onto a neighbour's neck marker that fitted with two free points (holdout21 ``rate``
+    from a model: the upper body read wrong for the whole scene); at 12.5 Hz a gate holds
+    several points, and the labeled start's reading of them is the better one."""
     for k in range(n):
-        if cur[k] < 0 or ncand[members[b, k]] > 1:
+        if cur[k] < 0:
             continue
+        m = members[b, k]
+        if gate_n[m] != 1 or gate_cand[m, 0] != cur[k]:
+            continue  # not alone in its gate (or held from outside it): a doubtful track
         kept = False
         for j in range(n):
             if best[j] >= 0 and cand[best[j]] == cur[k]:
@@ -669,7 +675,7 @@ def _repair(points, index, frame_no, tracks, bodies, scratch, params):
             c_b == 3
             and c_cur <= 1
             and bodies.ref_model[b]
-            and _keeps_held(b, cur, best, cand, n, members, scratch.ncand)
+            and _keeps_held(b, cur, best, cand, n, members, scratch.cand, scratch.ncand)
         )
         if c_b < 4 and not (named and _unique3(ref, pts, best, n, rms_b, check_mm, kab)):
             pending[b] = 0  # three points have no chirality: Eq. 5 already saw what they show
