@@ -39,6 +39,17 @@ from labeler_service.labeling.kernels.rigid import _kabsch, _max_residual
 
 
 @njit
+def _keep_kalman(tracks):
+    """``tracks.kx = tracks.x[:, :3]``: this frame's constant-velocity (Kalman) predictions,
+    kept before the rigid-body ones replace them (and, without those, where a marker that loses
+    its point starts following it, :mod:`.follow`)."""
+    x, kx = tracks.x, tracks.kx
+    for i in range(x.shape[0]):
+        for a in range(3):
+            kx[i, a] = x[i, a]
+
+
+@njit
 def _body_predict(tracks, bodies, dt):
     """The rigid-body predictions of this frame, in the Kalman states ``tracks.x``, in place.
 
@@ -48,14 +59,11 @@ def _body_predict(tracks, bodies, dt):
     Kalman predictions are kept in ``tracks.kx``. A marker takes the prediction of its body with
     the lowest ``err`` below its ``kerr`` (module docstring, step 3).
     """
-    x, pos, kx = tracks.x, tracks.pos, tracks.kx
+    x, pos = tracks.x, tracks.pos
     members, size = bodies.members, bodies.size
     R, t, pred, err, kerr = bodies.R, bodies.t, bodies.pred, bodies.err, bodies.kerr
     moving, motion_dt = bodies.moving, bodies.motion_dt
-    m_total = x.shape[0]
-    for i in range(m_total):
-        for a in range(3):
-            kx[i, a] = x[i, a]
+    _keep_kalman(tracks)
     for b in range(members.shape[0]):
         ok = moving[b] and abs(dt - motion_dt[b]) <= 0.25 * motion_dt[b]
         for k in range(size[b]):
@@ -68,7 +76,7 @@ def _body_predict(tracks, bodies, dt):
             for a in range(3):
                 pred[b, k, a] = R[b, a, 0] * p0 + R[b, a, 1] * p1 + R[b, a, 2] * p2 + t[b, a]
     mb_ptr, mb_idx = bodies.mb_ptr, bodies.mb_idx
-    for m in range(m_total):
+    for m in range(x.shape[0]):
         best_b = -1
         best_k = -1
         for e in range(mb_ptr[m], mb_ptr[m + 1]):

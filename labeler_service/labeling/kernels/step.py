@@ -46,7 +46,7 @@ from labeler_service.labeling.kernels.fitting import _fit_bodies
 from labeler_service.labeling.kernels.follow import _acquire_followed, _follow_all
 from labeler_service.labeling.kernels.gating import _common_mode, _gate, _regate
 from labeler_service.labeling.kernels.kalman import _predict, _start_or_update
-from labeler_service.labeling.kernels.motion import _body_motion, _body_predict
+from labeler_service.labeling.kernels.motion import _body_motion, _body_predict, _keep_kalman
 from labeler_service.labeling.kernels.params import Params
 from labeler_service.labeling.kernels.repair import _repair
 from labeler_service.labeling.kernels.rigid import (
@@ -110,9 +110,7 @@ def _process_frame(points, dt, ptr, frame_no, tracks, bodies, recovery, scratch,
     if params.body_prediction:  # rigid-body prediction (ours, kernels/motion.py)
         _body_predict(tracks, bodies, dt)  # (keeps the Kalman predictions in tracks.kx)
     elif params.acquire_follow:
-        for i in range(x.shape[0]):
-            for c in range(3):
-                tracks.kx[i, c] = x[i, c]  # where a marker that loses its point starts following
+        _keep_kalman(tracks)  # where a marker that loses its point starts following
     if params.common_mode_iters > 0:
         subj_ptr, subj_idx = tracks.subj_ptr, tracks.subj_idx
         radius, iters = params.common_mode_radius_mm, params.common_mode_iters
