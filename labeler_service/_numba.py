@@ -26,6 +26,7 @@ import logging
 import os
 import stat
 import tempfile
+from collections.abc import Iterator
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -78,6 +79,14 @@ def _temp_cache_dir() -> Path:
     return fresh
 
 
+def _kernel_dir_files() -> Iterator[Path]:
+    """The ``.py`` files of :data:`_KERNEL_DIRS` (not their ``__pycache__``)."""
+    for d in _KERNEL_DIRS:
+        for p in d.rglob("*.py"):
+            if "__pycache__" not in p.parts:
+                yield p
+
+
 def _cache_dir_fallback() -> str | None:
     """Points numba's cache at :func:`_temp_cache_dir` when ``NUMBA_CACHE_DIR`` is not set
     and neither the kernels' ``__pycache__`` folders nor numba's user-wide cache folder can be
@@ -86,8 +95,7 @@ def _cache_dir_fallback() -> str | None:
     config: Any = numba.config  # its settings are module globals set at run time
     if "NUMBA_CACHE_DIR" in os.environ or config.CACHE_DIR or config.DISABLE_JIT:
         return None
-    sources = {p.parent for d in _KERNEL_DIRS for p in d.rglob("*.py")}
-    if all(_writable(d / "__pycache__") for d in sources if "__pycache__" not in d.parts):
+    if all(_writable(d / "__pycache__") for d in {p.parent for p in _kernel_dir_files()}):
         return None
     if _writable(Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)):
         return None
@@ -120,12 +128,9 @@ def kernel_sources() -> list[Path]:
     other file of :data:`_KERNEL_DIRS` that uses numba. A file without kernels (the booting
     wrapper, the trainer) recompiles nothing when it changes."""
     files = {Path(__file__).resolve()}
-    for d in _KERNEL_DIRS:
-        for p in d.rglob("*.py"):
-            if "__pycache__" in p.parts:
-                continue
-            if "kernels" in p.parts or _uses_numba(p):
-                files.add(p.resolve())
+    for p in _kernel_dir_files():
+        if "kernels" in p.parts or _uses_numba(p):
+            files.add(p.resolve())
     return sorted(files)
 
 
