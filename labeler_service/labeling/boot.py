@@ -256,6 +256,13 @@ class Booter:
             kept = assign >= 0
             taken[assign[kept]] = len(accepted)
             accepted.append((_Hypothesis(h.template, assign, h.score, h.rms), support))
+        # a reading that gave points to later ones (their rigid evidence stronger) and kept
+        # fewer than its boot count is not enough evidence any more: its subject waits
+        accepted = [
+            (h, s)
+            for h, s in accepted
+            if (h.assign >= 0).sum() >= self.config.boot_markers(self._templates[h.template].n)
+        ]
         self._reclaim([h for h, _ in accepted], sub_pts, sub_hist)
         labels = np.full(n, -1, dtype=np.int64)
         booted: list[str] = []

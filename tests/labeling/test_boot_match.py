@@ -532,3 +532,40 @@ def test_a_completion_does_not_keep_a_marker_whose_candidate_was_refuted(walker,
     out = bm._complete(tpl, assign, pts, hist, taken, config)
     assert np.all(out[seg] == -1)
     np.testing.assert_array_equal(out[assign >= 0], assign[assign >= 0])
+
+
+def test_a_reading_left_below_its_boot_count_by_contested_points_does_not_boot(monkeypatch):
+    """The better-scored hypothesis of subject 0 holds half its boot count on its own points and
+    half on points of subject 1 that subject 1's hypothesis holds with rigid evidence (two
+    placed partners or more; subject 0 has none there). Subject 1 takes those points back, and
+    what subject 0 keeps is below its boot count: subject 0 does not boot from that run (it is
+    searched again at the next attempt), and none of its labels is given."""
+    import labeler_service.labeling.boot as boot_mod
+    from labeler_service.labeling.boot_match import _Hypothesis
+
+    booter, h, pts, t0, t1, a0, a1 = _two_walkers_window()
+    need = booter.config.boot_markers(t0.n)
+    sup1 = boot_mod._rigid_support(t1, a1, pts)
+    strong = np.flatnonzero(sup1 >= 2)
+    own = np.flatnonzero(a0 >= 0)
+    half = need // 2
+    assert strong.size >= need - half and own.size >= half
+    bad0 = np.full(t0.n, -1)
+    bad0[own[:half]] = a0[own[:half]]
+    # the rest of the boot count read on subject 1's rigidly supported points
+    rest = [m for m in range(t0.n) if bad0[m] < 0][: need - half]
+    bad0[rest] = a1[strong[: need - half]]
+    assert (bad0 >= 0).sum() == need
+    assert (boot_mod._rigid_support(t0, bad0, pts)[rest] <= 0).all()
+    hyps = [
+        _Hypothesis(0, bad0, score=100.0, rms=1.0),
+        _Hypothesis(1, a1.copy(), score=50.0, rms=1.0),
+    ]
+    monkeypatch.setattr(boot_mod, "_hypotheses", lambda tpl, *a, **k: [
+        x for x in hyps if x.template == tpl.index
+    ])  # fmt: skip
+    res = booter.run(pts, h)
+    assert res.subjects == [t1.name]
+    assert not ((res.labels >= t0.offset) & (res.labels < t0.offset + t0.n)).any()
+    have1 = np.flatnonzero(a1 >= 0)
+    np.testing.assert_array_equal(res.labels[a1[have1]], t1.offset + have1)
