@@ -402,7 +402,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "boot-keeps-a-reading-below-its-count",
         "labeler_service/labeling/boot.py",
-        "            if (h.assign >= 0).sum() >= self.config.boot_markers(self._templates[h.template].n)\n",
+        "            if (h.assign >= 0).sum()"
+        " >= self.config.boot_markers(self._templates[h.template].n)\n",
         "            if (h.assign >= 0).any()\n",
         (T + "labeling/test_boot_match.py",),
         "a reading that gave most of its points to a later one boots on the few it kept",

@@ -295,12 +295,27 @@ def _two_walkers_window():
     return booter, h, pts, t0, t1, a0, a1
 
 
+def _run_two(monkeypatch, booter, pts, h, a0, a1):
+    """``booter.run`` with the hypotheses fixed: subject 0 reading ``a0`` (the better score),
+    subject 1 reading ``a1``."""
+    import labeler_service.labeling.boot as boot_mod
+    from labeler_service.labeling.boot_match import _Hypothesis
+
+    hyps = [
+        _Hypothesis(0, a0, score=100.0, rms=1.0),
+        _Hypothesis(1, a1.copy(), score=50.0, rms=1.0),
+    ]
+    monkeypatch.setattr(boot_mod, "_hypotheses", lambda tpl, *a, **k: [
+        x for x in hyps if x.template == tpl.index
+    ])  # fmt: skip
+    return booter.run(pts, h)
+
+
 def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkeypatch):
     """Two subjects' hypotheses claim one point: the better-scored one reads it as a loose
     marker (no rigid partner placed), the other as a marker of a placed rigid body. The point
     goes to the second, the first keeps the rest of its subject."""
     import labeler_service.labeling.boot as boot_mod
-    from labeler_service.labeling.boot_match import _Hypothesis
 
     booter, h, pts, t0, t1, a0, a1 = _two_walkers_window()
     # a marker of subject 1 with the most rigid partners: its point is contested
@@ -314,14 +329,7 @@ def test_a_contested_point_goes_to_the_subject_with_rigid_evidence_for_it(monkey
     bad0 = a0.copy()
     bad0[m0] = p
     assert boot_mod._rigid_support(t0, bad0, pts)[m0] <= 1
-    hyps = [
-        _Hypothesis(0, bad0, score=100.0, rms=1.0),
-        _Hypothesis(1, a1.copy(), score=50.0, rms=1.0),
-    ]
-    monkeypatch.setattr(boot_mod, "_hypotheses", lambda tpl, *a, **k: [
-        x for x in hyps if x.template == tpl.index
-    ])  # fmt: skip
-    res = booter.run(pts, h)
+    res = _run_two(monkeypatch, booter, pts, h, bad0, a1)
     assert sorted(res.subjects) == sorted([t0.name, t1.name])
     assert res.labels[p] == t1.offset + m1
     # subject 0 keeps its other markers
@@ -541,7 +549,6 @@ def test_a_reading_left_below_its_boot_count_by_contested_points_does_not_boot(m
     what subject 0 keeps is below its boot count: subject 0 does not boot from that run (it is
     searched again at the next attempt), and none of its labels is given."""
     import labeler_service.labeling.boot as boot_mod
-    from labeler_service.labeling.boot_match import _Hypothesis
 
     booter, h, pts, t0, t1, a0, a1 = _two_walkers_window()
     need = booter.config.boot_markers(t0.n)
@@ -557,14 +564,7 @@ def test_a_reading_left_below_its_boot_count_by_contested_points_does_not_boot(m
     bad0[rest] = a1[strong[: need - half]]
     assert (bad0 >= 0).sum() == need
     assert (boot_mod._rigid_support(t0, bad0, pts)[rest] <= 0).all()
-    hyps = [
-        _Hypothesis(0, bad0, score=100.0, rms=1.0),
-        _Hypothesis(1, a1.copy(), score=50.0, rms=1.0),
-    ]
-    monkeypatch.setattr(boot_mod, "_hypotheses", lambda tpl, *a, **k: [
-        x for x in hyps if x.template == tpl.index
-    ])  # fmt: skip
-    res = booter.run(pts, h)
+    res = _run_two(monkeypatch, booter, pts, h, bad0, a1)
     assert res.subjects == [t1.name]
     assert not ((res.labels >= t0.offset) & (res.labels < t0.offset + t0.n)).any()
     have1 = np.flatnonzero(a1 >= 0)
