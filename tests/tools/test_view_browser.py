@@ -131,15 +131,13 @@ async def _run(chromium: str, out_png) -> tuple:
                     # hover over a drawn ball (paused, so it stays put): its name shows. A
                     # ghost (unlabeled, drawn grey) can lie nearer the pointer than the ball it
                     # sits on (CI, once): the next ball is tried, up to five
-                    tips = []
                     for x, y in _ball_pixels(await page.screenshot()):
                         await page.mouse.move(x, y)
                         await page.wait_for_selector("#tooltip", state="visible", timeout=5000)
-                        tips.append(await page.inner_text("#tooltip"))
-                        if not tips[-1].startswith("unlabeled"):
+                        tooltip = await page.inner_text("#tooltip")
+                        if not tooltip.startswith("unlabeled"):
                             break
                         await page.mouse.move(0, 0)
-                    tooltip = tips[-1]
                     await browser.close()
             finally:
                 await cancel_and_wait(tasks)
