@@ -16,6 +16,7 @@ label against.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 
@@ -278,6 +279,8 @@ def _read_take(text: str, up: str):
     if stop is not None and stop > cap.n_frames:
         raise ModelError(f"{text}: stop {stop} is past the take's {cap.n_frames} frames")
     cap = cap.frames(start, stop)
+    if text != path:  # the segment names itself: the model's ``source`` says which frames
+        cap = dataclasses.replace(cap, source=text)
     if not [s for s in cap.subjects if s]:
         cap = cap.with_subject(Path(path).stem.replace(":", "_") or "subject")
     return cap

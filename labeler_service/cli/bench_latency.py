@@ -295,12 +295,14 @@ def run(args: argparse.Namespace) -> int:
         if not (math.isfinite(value) and value > 0):  # (the simulator's message says --seconds)
             raise MocapError(f"{flag} must be a positive number, got {value:g}")
     _check_init_frames(args)
+    from labeler_service.tools.subscribe import no_nan
+
     if args.workdir is not None:
         out = asyncio.run(bench(args, usable_folder(args.workdir, "--workdir")))
     else:
         with tempfile.TemporaryDirectory(prefix="mocap-bench-") as d:
             out = asyncio.run(bench(args, Path(d)))
-    out = {k: _no_nan(v) for k, v in out.items()}
+    out = no_nan(out)
     if args.json:
         print(json.dumps(out, allow_nan=False))
     else:
@@ -310,18 +312,6 @@ def run(args: argparse.Namespace) -> int:
     if not ok:
         print("bench: frames were lost or the service did not exit cleanly", file=sys.stderr)
     return 0 if ok else 1
-
-
-def _no_nan(value):
-    """A measurement the run could not make (no frame to take a percentile of) as ``None``:
-    JSON has no NaN, and a strict parser (``jq``) refuses the bare token."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _no_nan(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_no_nan(v) for v in value]
-    return value
 
 
 def _check_init_frames(args: argparse.Namespace) -> None:

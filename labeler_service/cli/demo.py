@@ -108,6 +108,14 @@ def resolve_start(
         return start, 0
     if init_frames == 0:
         raise MocapError("--start window needs labeled frames: --init-frames >= 1")
+    from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
+
+    if labeler == "online" and init_frames is not None and init_frames < MIN_TRAIN_FRAMES:
+        # (the service's training refused them and the demo ran on, every frame dropped)
+        raise MocapError(
+            f"--start window trains the labeler on the labeled frames: --init-frames must be "
+            f">= {MIN_TRAIN_FRAMES}, got {init_frames}"
+        )
     return start, DEFAULT_INIT_FRAMES if init_frames is None else init_frames
 
 
@@ -213,7 +221,8 @@ def _plots(out: Path, latency_ms: np.ndarray, per_frame: np.ndarray, rate: float
     ax.set_xlabel("end-to-end latency (ms): sender stamp -> subscriber receipt")
     ax.set_ylabel("frames")
     ax.set_title("demo: replay -> service (UDP loopback) -> subscriber")
-    ax.legend()
+    if latency_ms.size:  # (no frame received: no percentile lines to name)
+        ax.legend()
     fig.tight_layout()
     p1 = out / "latency_histogram.png"
     fig.savefig(p1, dpi=110)
@@ -222,12 +231,14 @@ def _plots(out: Path, latency_ms: np.ndarray, per_frame: np.ndarray, rate: float
     fig, ax = plt.subplots(figsize=(9, 3.6))
     t = np.arange(per_frame.size) / rate
     ax.plot(t[init:], 100 * per_frame[init:], lw=0.8)
-    ax.axvspan(0, init / rate, color="0.85", label="labeled training window")
+    if init > 0:  # (a boot sends no labeled frame: no window to shade)
+        ax.axvspan(0, init / rate, color="0.85", label="labeled training window")
     ax.set_ylim(max(0, np.nanmin(100 * per_frame[init:]) - 5) if per_frame.size > init else 0, 101)
     ax.set_xlabel("capture time (s)")
     ax.set_ylabel("correctly labeled (%)")
     ax.set_title("per-frame labeling accuracy of the streamed output")
-    ax.legend(loc="lower right")
+    if init > 0:
+        ax.legend(loc="lower right")
     fig.tight_layout()
     p2 = out / "accuracy_over_time.png"
     fig.savefig(p2, dpi=110)
@@ -271,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import write_capture
     from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
     from labeler_service.tools.replay import check_pace
-    from labeler_service.tools.subscribe import Recorder, percentiles
+    from labeler_service.tools.subscribe import Recorder, no_nan, percentiles
 
     args.start, args.init_frames = resolve_start(args.start, args.init_frames, args.labeler)
     check_pace(args.speed, 1)  # (before the scene is built and the service started)
@@ -352,7 +363,7 @@ def run(args: argparse.Namespace) -> int:
     for r in res.received:
         rec.add(r, frames.rate)
     rec.write(out / "labeled.c3d")
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+    (out / "report.json").write_text(json.dumps(no_nan(report), indent=2, allow_nan=False))
     p1, p2 = _plots(out, lat, scored.per_frame_accuracy, frames.rate, args.init_frames)
     rec_txt = ("-" if s["recovery_mean_mm"] is None else
                f"{s['recovery_mean_mm']:.1f} mm mean, {s['recovery_p95_mm']:.1f} mm p95 "

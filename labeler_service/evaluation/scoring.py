@@ -769,6 +769,13 @@ def evaluate(
         raise _too_short(stream.n_frames, init_frames)
     if not stream.marker_names:
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
+    if not np.isfinite(stream.positions[init_frames:, :, 0]).any():
+        # (it printed a table of dashes, accuracy null, and exited 0: composed takes that all
+        # end inside the init window)
+        raise SceneError(
+            f"{capture.source or 'capture'}: no marker is visible after the {init_frames}-frame "
+            "init window: nothing to score (give fewer --init-frames, or a longer capture)"
+        )
     scores: dict[str, MethodScore] = {}
     window = None
     if labeled_start == "model":  # (with the online method: checked above)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -52,6 +53,19 @@ def percentiles(values, qs=(50.0, 99.0, 99.9)) -> dict[str, float]:
     if v.size == 0:
         return {f"p{q:g}": float("nan") for q in qs}
     return {f"p{q:g}": float(x) for q, x in zip(qs, np.percentile(v, qs), strict=True)}
+
+
+def no_nan(value):
+    """A measurement a run could not make (NaN: no frame to take a percentile of) as ``None``,
+    through dicts, lists and tuples: JSON has no NaN, and a strict parser (``jq``) refuses the
+    bare token (``bench latency --json``, the demo's ``report.json``)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: no_nan(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [no_nan(v) for v in value]
+    return value
 
 
 #: the statuses of a stream the service is ready to label: ``online``, or ``booting`` for a

@@ -68,3 +68,21 @@ def test_bench_latency_exits_1_when_frames_were_lost(drops, code, rc, capsys, mo
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1], parse_constant=pytest.fail)
     assert out["latency_ms_p99"] is None and out["legs"] == {"udp_ms": [1.0, None]}
     assert out["drops"] == drops
+
+
+def test_demo_report_of_a_run_that_received_nothing_is_strict_json(tmp_path, monkeypatch):
+    """A demo whose service labeled nothing (it once took ``--init-frames 2`` and dropped every
+    frame) wrote bare ``NaN`` latencies into ``report.json``; they are ``null`` now."""
+    from types import SimpleNamespace
+
+    import labeler_service.cli.demo as demo
+
+    async def nothing(_args, _frames, _workdir):
+        return SimpleNamespace(received=[], sent=60, drops_service={"no_model": 60})
+
+    monkeypatch.setattr(demo, "_run_pipeline", nothing)
+    out = tmp_path / "demo"
+    main(["demo", "--frames", "60", "--init-frames", "10", "--out", str(out)])
+    report = json.loads((out / "report.json").read_text(), parse_constant=pytest.fail)
+    assert report["frames_received"] == 0
+    assert report["latency_ms_p50"] is None and report["labeling_ms_p99"] is None

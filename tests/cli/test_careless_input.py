@@ -302,3 +302,19 @@ def test_too_few_init_frames_name_the_minimum_that_works(take, tmp_path, capsys,
     argv = [command, str(take)] + ([str(tmp_path / "out.c3d")] if command == "label" else [])
     assert main([*argv, "--init-frames", init, "--no-progress"]) == 2
     _one_error_line(capsys.readouterr().err, "must be >= 3 without", "or 0 with")
+
+
+def test_evaluate_of_a_scene_empty_after_its_init_window_is_refused(take, tmp_path, capsys):
+    # composed takes that all ended inside the init window: `evaluate` printed a table of
+    # dashes, "visible": 0, accuracy null, and exited 0
+    from labeler_service.capture import read_capture
+
+    cap = read_capture(take)
+    pos = cap.positions.copy()
+    pos[30:] = np.nan  # the performer leaves at frame 30, before the 50-frame window ends
+    empty = tmp_path / "left.c3d"
+    write_capture(Capture(pos, cap.labels, cap.rate), empty)
+    assert main(["evaluate", str(empty), "--init-frames", "50", "--json"]) == 2
+    _one_error_line(capsys.readouterr().err, "no marker is visible after the 50-frame", "init")
+    # with a window that ends while he is there, it scores
+    assert main(["evaluate", str(empty), "--init-frames", "20", "--json"]) == 0

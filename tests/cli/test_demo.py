@@ -67,6 +67,13 @@ def test_start_options_resolve_to_one_start():
         resolve_start("boot", 50)
     with pytest.raises(MocapError, match="needs labeled frames"):
         resolve_start("labeled", 0)
+    # the online labeler trains on 3+ labeled frames: fewer ran the demo with every frame
+    # dropped ("training failed") and exit 0; the closest-point baseline needs one
+    for n in (1, 2):
+        with pytest.raises(MocapError, match="must be >= 3, got"):
+            resolve_start(None, n)
+        assert resolve_start(None, n, "baseline") == ("window", n)
+    assert resolve_start(None, 3) == ("window", 3)
 
 
 def test_simulated_demo_boots_its_performers_from_a_model_of_the_same_people(

@@ -92,6 +92,11 @@ def test_cli_writes_a_loadable_model(rng, tmp_path, capsys):
     for s in model.subjects:
         assert f"{s.name}: 8 markers in" in text and "chirality quadruples" in text
     assert summary["subjects"]["P0"]["no_body"] == [] and "never labeled" not in text
+    assert load_model(out).source == str(src)
+    # a model trained on segments names their frames (it said the whole take: a train / test
+    # split looked like training on the frames scored)
+    assert main(["train", "structure", f"{src}:0:100", f"{src}:120", "--out", str(out)]) == 0
+    assert load_model(out).source == f"{src}:0:100, {src}:120"
 
 
 def test_cli_says_when_two_subjects_have_one_template(rng, tmp_path, capsys):
