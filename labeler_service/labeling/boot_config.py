@@ -130,7 +130,11 @@ class BootConfig(BaseModel):
         0.5, gt=0, le=1, description="a subject boots with this fraction of its markers"
     )
     extend_every_s: float = Field(
-        0.1, gt=0, description="BootingLabeler: free points joined to booted subjects this often"
+        0.04,
+        gt=0,
+        description="BootingLabeler: free points joined to booted subjects this often (a limb "
+        "back from a fast swing is read this late at most; 0.1 s cost the 50-60 Hz takes "
+        "labels: docs/algorithm.md)",
     )
     fill_min_age_s: float = Field(
         0.2,
