@@ -137,19 +137,22 @@ def test_udp_transport_refuses_oversize_output_and_expires_silent_subscribers():
     assert reason == "oversize" and left == 0
 
 
-def test_serve_command_reports_ready_and_shuts_down_on_sigterm(tmp_path):
+# SIGHUP (the terminal closed) killed it: exit 129, no "stopped", no ``offline`` status
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_serve_command_reports_ready_and_shuts_down_on_sigterm(tmp_path, sig):
     env = dict(os.environ, MOCAP_LABELER="baseline", MOCAP_UDP__PORT="0", MOCAP_METRICS_PORT="0")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "labeler_service.cli.main", "serve", "--log-level", "WARNING"],
+        [sys.executable, "-m", "labeler_service.cli.main", "serve", "--log-level", "INFO"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
     )  # fmt: skip
     try:
         line = proc.stdout.readline()
         assert line.startswith("ready udp://127.0.0.1:"), line
         assert "metrics http://127.0.0.1:" in line
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=20)
         assert proc.returncode == 0, err
+        assert "stopped" in err, err
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -236,3 +239,20 @@ def test_serve_command_stops_at_once_when_signalled_during_a_cold_warm_up(tmp_pa
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+def test_a_sighup_ignored_at_start_stays_ignored():
+    """``nohup mocap-labeler serve``: the service must outlive the terminal, so a SIGHUP it was
+    started ignoring does not stop it (only one it would die of does)."""
+    from labeler_service.cli.stopping import _signals
+
+    old = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        assert signal.SIGHUP not in _signals()
+    finally:
+        signal.signal(signal.SIGHUP, old)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        assert set(_signals()) == {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    finally:
+        signal.signal(signal.SIGHUP, old)
