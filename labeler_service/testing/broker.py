@@ -15,6 +15,10 @@ from pathlib import Path
 
 from labeler_service.errors import ConfigError
 
+#: The broker's largest packet (``max_packet_size``), as docker/mosquitto.conf ships it: a
+#: larger publish is refused by the broker, not read whole by the service.
+MAX_PACKET_BYTES = 1_048_576
+
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
@@ -69,7 +73,7 @@ class LocalBroker:
         stay = "user root\n" if hasattr(os, "geteuid") and os.geteuid() == 0 else ""
         self.conf.write_text(
             f"listener {self.port} 127.0.0.1\n{stay}{auth}persistence false\n"
-            "set_tcp_nodelay true\nlog_dest none\n"
+            f"set_tcp_nodelay true\nmax_packet_size {MAX_PACKET_BYTES}\nlog_dest none\n"
         )
         self.proc: subprocess.Popen | None = None
 

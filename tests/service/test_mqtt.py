@@ -4,10 +4,12 @@ retained model/status, the last will, and a broker stop/restart."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -245,6 +247,7 @@ class _Witness:
         self.c.subscribe(topic, qos=0)
 
     def _on_message(self, client, userdata, msg) -> None:
+        self.last = msg.payload
         self.got += 1
         if self.got >= self.n:
             self.done.set()
@@ -387,3 +390,35 @@ def test_a_broker_out_of_reach_is_named_in_the_log_metrics_and_tools(broker, cap
     down = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any(m.startswith("mqtt: not connected to the " + where) for m in down), down
     assert "mqtt: carries frames again" in caplog.text
+
+
+def test_the_broker_refuses_a_packet_above_the_shipped_limit(broker):
+    """A 50 MB publish on a stream's input topic was read whole by the service before its size
+    check (half the stream's frames dropped): the shipped broker config refuses packets above
+    ``MAX_PACKET_BYTES``, and the test broker runs with the same limit."""
+    import re
+    from pathlib import Path
+
+    from labeler_service.testing.broker import MAX_PACKET_BYTES
+
+    shipped = (Path(__file__).parents[2] / "docker" / "mosquitto.conf").read_text()
+    assert re.search(rf"^max_packet_size {MAX_PACKET_BYTES}$", shipped, re.M)
+    topic = "mocap/big/unlabeled"
+    witness = _Witness(broker, topic, 1)
+    try:
+        assert witness.subscribed.wait(5)
+        import paho.mqtt.client as paho
+
+        big = paho.Client(paho.CallbackAPIVersion.VERSION2)
+        big.connect(broker.host, broker.port)
+        big.loop_start()
+        with contextlib.suppress(RuntimeError):  # (the broker drops the connection over it)
+            big.publish(topic, b"x" * (2 * MAX_PACKET_BYTES), qos=0).wait_for_publish(5)
+        big.loop_stop()
+        big.disconnect()
+        _publish_burst(broker, topic, [b"y" * 1000])
+        assert witness.done.wait(5)
+        time.sleep(0.2)
+        assert witness.got == 1 and witness.last == b"y" * 1000
+    finally:
+        witness.close()
