@@ -19,7 +19,10 @@ abandoned: its result, if it ever comes, is discarded.
 At most ``concurrency`` jobs run at once (default 1: CPU jobs share the GIL with the event
 loop, so two at once slow the live streams without finishing sooner); the others wait for a
 slot in the order they asked (first come, first served: a stream whose jobs keep failing cannot
-take every free slot from another's), and the wait counts against their budget - or, with
+take every free slot from another's) within their ``priority`` class (lower first: the service
+puts its configured streams' jobs before those of streams any sender can open by name, whose
+trainings made a configured stream wait 18-54 s for a re-identification), and the wait counts
+against their budget - or, with
 ``wait_s``, against that bound and the budget starts when the job does (a boot waits its turn
 behind the other streams' jobs, each bounded by its budget, instead of failing for their
 sake). A slot is freed when a thread really ends, not when its job is abandoned, so abandoned
@@ -42,7 +45,6 @@ heap so that freeing them returns them at once.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import ctypes
 import ctypes.util
@@ -94,8 +96,9 @@ class Background:
     def __init__(self, concurrency: int = 1) -> None:
         self.concurrency = concurrency
         self._slots = threading.BoundedSemaphore(concurrency)
-        #: tickets of the jobs waiting for a slot, in the order they asked (first come first)
-        self._waiting: collections.deque[int] = collections.deque()
+        #: ``(priority, ticket)`` of the jobs waiting for a slot: the least goes first (within a
+        #: priority, the order they asked)
+        self._waiting: list[tuple[int, int]] = []
         self._tickets = itertools.count()
         self._running: dict[threading.Thread, threading.Event] = {}
         self._closed = False
@@ -115,25 +118,26 @@ class Background:
         budget_s: float,
         name: str = "job",
         wait_s: float | None = None,
+        priority: int = 0,
     ) -> T:
         """``fn(*args)`` in a daemon thread; raises :class:`BudgetExceeded` after ``budget_s``.
 
-        Jobs get a slot in the order they asked. Without ``wait_s`` the wait for it counts
-        against ``budget_s``; with it, the wait is bounded by ``wait_s`` and ``budget_s`` starts
-        when the job does (a wait of a second or more is logged). Exceptions of ``fn``
-        propagate. If ``fn`` accepts a ``cancel`` keyword it gets a :class:`threading.Event`
-        set when the job is abandoned or the runner closes.
+        Jobs get a slot by ``priority`` (lower first), then in the order they asked. Without
+        ``wait_s`` the wait for it counts against ``budget_s``; with it, the wait is bounded by
+        ``wait_s`` and ``budget_s`` starts when the job does (a wait of a second or more is
+        logged). Exceptions of ``fn`` propagate. If ``fn`` accepts a ``cancel`` keyword it gets
+        a :class:`threading.Event` set when the job is abandoned or the runner closes.
         """
         if self._closed:
             raise BudgetExceeded(f"{name}: the background runner is closed")
         loop = asyncio.get_running_loop()
         asked = loop.time()
         deadline = asked + (budget_s if wait_s is None else wait_s)
-        ticket = next(self._tickets)
-        self._waiting.append(ticket)
+        key = (priority, next(self._tickets))
+        self._waiting.append(key)
         try:
-            # wait for a slot, first come first served, within the bound
-            while not (self._waiting[0] == ticket and self._slots.acquire(blocking=False)):
+            # wait for a slot, by priority and then first come first served, within the bound
+            while not (min(self._waiting) == key and self._slots.acquire(blocking=False)):
                 if loop.time() >= deadline:
                     bound = "budget" if wait_s is None else "wait bound"
                     raise BudgetExceeded(
@@ -143,7 +147,7 @@ class Background:
                     )
                 await asyncio.sleep(0.05)
         finally:
-            self._waiting.remove(ticket)
+            self._waiting.remove(key)
         waited = loop.time() - asked
         if waited >= 1.0:
             log.info("%s: waited %.1f s for a free background slot", name, waited)

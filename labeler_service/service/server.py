@@ -921,7 +921,7 @@ class Server:
             while True:
                 fed += await self.background.run(
                     state.handover_job, h, budget_s=self.settings.train_budget_s,
-                    name=f"handover-{state.name}",
+                    name=f"handover-{state.name}", priority=_priority(state),
                 )  # fmt: skip
                 jobs += 1
                 if not h.more or h.abandoned:
@@ -995,7 +995,7 @@ class Server:
             # bounded by its budget: waiting for them is no failure of this stream's boot
             outcome = await self.background.run(
                 state.boot_job, req, budget_s=budget, name=f"boot-{state.name}",
-                wait_s=budget * max(1, len(self.streams)),
+                wait_s=budget * max(1, len(self.streams)), priority=_priority(state),
             )  # fmt: skip
         except BudgetExceeded as exc:
             self.metrics.boot_failed(state.name)
@@ -1125,7 +1125,7 @@ class Server:
         try:
             labeler, rate, out, label_ns, handover = await self.background.run(
                 state.train_staged, init, msg, budget_s=self.settings.train_budget_s,
-                name=f"train-{state.name}",
+                name=f"train-{state.name}", priority=_priority(state),
             )  # fmt: skip
         except BudgetExceeded:
             raise
@@ -1275,6 +1275,14 @@ class Server:
 
 #: drops by the continuity rule (service/continuity.py): frames that continue nothing
 _CONTINUITY_DROPS = ("seq_jump", "time_jump", "duplicate", "late")
+
+
+def _priority(state: StreamState) -> int:
+    """A stream's class for the background slots (:class:`Background`, lower first): the
+    configured streams' jobs (the volumes the operator declared) before those of streams any
+    sender opens by name. Bursts of labeled frames to two new names queued their trainings
+    ahead of a configured stream's re-identification: 18 s, and with six bursts 54 s twice."""
+    return 0 if state.configured else 1
 
 
 def _who(source: object) -> str:

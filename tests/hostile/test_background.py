@@ -106,6 +106,29 @@ def test_slots_go_first_come_first_served():
     assert "".join(order) == "abcdefgh"
 
 
+def test_a_lower_priority_class_goes_first_and_first_come_within_it():
+    # the service's configured streams (priority 0) before streams any sender opens by name
+    # (1): bursts of labeled frames to new names queued trainings ahead of a configured
+    # stream's re-identification for 18-54 s
+    release = threading.Event()
+    order: list[str] = []
+
+    async def go():
+        bg = Background(concurrency=1)
+        first = asyncio.ensure_future(bg.run(lambda: release.wait(10), budget_s=30))
+        await asyncio.sleep(0.1)  # (the first holds the slot)
+        waiters = []
+        for name, priority in zip("abcdef", (1, 1, 0, 1, 0, 0), strict=True):
+            job = bg.run(lambda n=name: order.append(n), budget_s=30, priority=priority)
+            waiters.append(asyncio.ensure_future(job))
+            await asyncio.sleep(0.06)  # asked in this order, over a few polls
+        release.set()
+        await asyncio.gather(first, *waiters)
+
+    run(go(), timeout=30)
+    assert "".join(order) == "cefabd"
+
+
 def test_with_a_wait_bound_the_budget_starts_when_the_job_does():
     # a boot waiting its turn behind another stream's job is not over its own budget: the wait
     # has its bound (wait_s), the budget counts the job

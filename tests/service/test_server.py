@@ -839,3 +839,15 @@ def test_a_slow_sender_is_not_idle_between_its_frames(rng):
 
     states = run(go())
     assert "idle" not in states, states
+
+
+def test_configured_streams_jobs_go_before_those_of_streams_opened_by_name():
+    """The background slots' classes (``Background.run(priority=)``): a configured stream's
+    boot, training or handover before a job of a stream any sender opened by name."""
+    from types import SimpleNamespace
+
+    from labeler_service.service.server import _priority
+
+    assert _priority(SimpleNamespace(configured=True)) < _priority(
+        SimpleNamespace(configured=False)
+    )
