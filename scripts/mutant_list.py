@@ -1003,4 +1003,28 @@ MUTANTS: list[Mutant] = [
         "the frame never starts following a marker that lost its point",
         kernel=True,
     ),
+    Mutant(
+        "evaluate-scores-an-empty-scene",
+        "labeler_service/evaluation/scoring.py",
+        "    if not np.isfinite(stream.positions[init_frames:, :, 0]).any():\n",
+        "    if False:\n",
+        (T + "cli/test_careless_input.py",),
+        "evaluate of a scene empty after its init window prints dashes and exits 0",
+    ),
+    Mutant(
+        "background-ignores-priority",
+        "labeler_service/service/background.py",
+        "        key = (priority, next(self._tickets))\n",
+        "        key = (0, next(self._tickets))\n",
+        (T + "hostile/test_background.py",),
+        "a configured stream's boot waits behind jobs of streams opened by name",
+    ),
+    Mutant(
+        "sighup-kills-serve",
+        "labeler_service/cli/stopping.py",
+        "    return (signal.SIGINT, signal.SIGTERM, *((hup,) if keep else ()))\n",
+        "    return (signal.SIGINT, signal.SIGTERM)\n",
+        (T + "service/test_udp.py",),
+        "SIGHUP kills serve with no offline status",
+    ),
 ]
