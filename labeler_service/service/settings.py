@@ -563,4 +563,26 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> ServiceSe
         raise ConfigError(f"invalid service settings{where}:\n{_format_errors(exc)}") from exc
     except (ValueError, RecursionError) as exc:
         # pydantic-settings parses complex env values (MOCAP_STREAMS) as JSON before validation
-        raise ConfigError(f"invalid service settings{where} (environment): {exc}") from exc
+        raise ConfigError(
+            f"invalid service settings{where} (environment): {_env_reason(exc)}"
+        ) from exc
+
+
+def _env_reason(exc: BaseException) -> str:
+    """What pydantic-settings' ``error parsing value for field "udp" from source
+    "EnvSettingsSource"`` means, naming the variable(s) and the JSON error (a hostile run:
+    ``MOCAP_UDP__PUBLISH_TO=notalist`` said only that)."""
+    import os
+    import re
+
+    found = re.search(r'field "([^"]+)"', str(exc))
+    if found is None:
+        return str(exc)
+    field = found.group(1)
+    prefix = f"MOCAP_{field.upper()}"
+    names = sorted(
+        k for k in os.environ if k.upper() == prefix or k.upper().startswith(prefix + "__")
+    )
+    cause = exc.__cause__ or exc.__context__
+    why = f"not valid JSON ({cause})" if cause is not None else "cannot be read"
+    return f"{', '.join(names) or prefix} (setting {field}): {why}"

@@ -100,6 +100,22 @@ def test_mocap_streams_with_bad_json_is_a_config_error(monkeypatch, capsys):
     _one_line_error(capsys, "invalid service settings")
 
 
+@pytest.mark.parametrize(
+    ("var", "value", "field"),
+    [
+        ("MOCAP_STREAMS", '[{"name": "a"', "streams"),
+        ("MOCAP_BOOT_CONFIG", "{bad", "boot_config"),
+        ("MOCAP_UDP__PUBLISH_TO", "notalist", "udp"),
+    ],
+)
+def test_bad_json_in_the_environment_names_the_variable(monkeypatch, var, value, field):
+    # it said 'error parsing value for field "udp" from source "EnvSettingsSource"'
+    monkeypatch.setenv(var, value)
+    with pytest.raises(ConfigError) as err:
+        load_settings()
+    assert f"{var} (setting {field}): not valid JSON (" in str(err.value)
+
+
 def test_unknown_mocap_variables_are_rejected_documented_ones_allowed(monkeypatch):
     monkeypatch.setenv("MOCAP_DATA_DIR", "/nowhere")
     monkeypatch.setenv("MOCAP_UDP__PORT", "9999")
