@@ -510,6 +510,12 @@ class Server:
         task = self._workers.pop(name, None)
         if task is not None:
             task.cancel()
+        # its boot and handover jobs leave the background queue (a running one is told to stop):
+        # a hostile run's expired streams still ran their queued boots' whole budgets, one
+        # after another, 40 s after their senders had stopped
+        mine = {f"boot-{name}", f"handover-{name}"}
+        for job in [t for t in self._tasks if t.get_name() in mine]:
+            job.cancel()
         self._queues.pop(name, None)
         ex = self._executors.pop(name, None)
         if ex is not None:

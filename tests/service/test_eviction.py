@@ -112,3 +112,25 @@ def test_udp_flood_of_labeled_names_does_not_starve_a_new_stream(caplog):
     assert n_streams <= 16
     churn = [r for r in caplog.records if "removed (idle or evicted)" in r.getMessage()]
     assert len(churn) <= 2 and len(churn) <= max(expired, 1)  # rate-limited, not per stream
+
+
+def test_a_removed_streams_background_jobs_are_cancelled():
+    """Its queued boot (and handover) leave the background queue with it: expired streams'
+    boots ran their whole budget one after another, long after their senders stopped."""
+
+    async def go():
+        mem = MemoryTransport()
+        async with Server(_settings(streams=[]), [mem]) as srv:
+            for seq in range(4):
+                mem.inject(_junk("gone", seq), reply_to=("10.0.0.1", 1))
+            await asyncio.sleep(0.05)
+            assert "gone" in srv.streams
+            boot = srv._spawn(asyncio.sleep(60), "boot-gone")
+            other = srv._spawn(asyncio.sleep(60), "boot-other")
+            srv._remove_stream("gone")
+            await asyncio.sleep(0.01)
+            cancelled = boot.cancelled(), other.cancelled()
+            other.cancel()
+            return cancelled
+
+    assert run(go()) == (True, False)
