@@ -83,9 +83,9 @@ def test_a_slot_held_by_an_abandoned_job_makes_the_next_wait_then_fail():
     run(go())
 
 
-def test_slots_go_first_come_first_served():
-    # a stream whose jobs keep asking must not take every free slot from another's: the jobs
-    # waiting behind a running one start in the order they asked
+def _order(priorities: dict[str, int]) -> str:
+    """The order in which jobs asked in ``priorities``' order (name -> priority), waiting
+    behind a running one, got the slot."""
     release = threading.Event()
     order: list[str] = []
 
@@ -94,31 +94,7 @@ def test_slots_go_first_come_first_served():
         first = asyncio.ensure_future(bg.run(lambda: release.wait(10), budget_s=30))
         await asyncio.sleep(0.1)  # (the first holds the slot)
         waiters = []
-        for name in "abcdefgh":
-            waiters.append(
-                asyncio.ensure_future(bg.run(lambda n=name: order.append(n), budget_s=30))
-            )
-            await asyncio.sleep(0.06)  # asked in this order, over a few polls
-        release.set()
-        await asyncio.gather(first, *waiters)
-
-    run(go(), timeout=30)
-    assert "".join(order) == "abcdefgh"
-
-
-def test_a_lower_priority_class_goes_first_and_first_come_within_it():
-    # the service's configured streams (priority 0) before streams any sender opens by name
-    # (1): bursts of labeled frames to new names queued trainings ahead of a configured
-    # stream's re-identification for 18-54 s
-    release = threading.Event()
-    order: list[str] = []
-
-    async def go():
-        bg = Background(concurrency=1)
-        first = asyncio.ensure_future(bg.run(lambda: release.wait(10), budget_s=30))
-        await asyncio.sleep(0.1)  # (the first holds the slot)
-        waiters = []
-        for name, priority in zip("abcdef", (1, 1, 0, 1, 0, 0), strict=True):
+        for name, priority in priorities.items():
             job = bg.run(lambda n=name: order.append(n), budget_s=30, priority=priority)
             waiters.append(asyncio.ensure_future(job))
             await asyncio.sleep(0.06)  # asked in this order, over a few polls
@@ -126,7 +102,20 @@ def test_a_lower_priority_class_goes_first_and_first_come_within_it():
         await asyncio.gather(first, *waiters)
 
     run(go(), timeout=30)
-    assert "".join(order) == "cefabd"
+    return "".join(order)
+
+
+def test_slots_go_first_come_first_served():
+    # a stream whose jobs keep asking must not take every free slot from another's: the jobs
+    # waiting behind a running one start in the order they asked
+    assert _order(dict.fromkeys("abcdefgh", 0)) == "abcdefgh"
+
+
+def test_a_lower_priority_class_goes_first_and_first_come_within_it():
+    # the service's configured streams (priority 0) before streams any sender opens by name
+    # (1): bursts of labeled frames to new names queued trainings ahead of a configured
+    # stream's re-identification for 18-54 s
+    assert _order(dict(zip("abcdef", (1, 1, 0, 1, 0, 0), strict=True))) == "cefabd"
 
 
 def test_with_a_wait_bound_the_budget_starts_when_the_job_does():
