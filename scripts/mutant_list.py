@@ -1006,7 +1006,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "evaluate-scores-an-empty-scene",
         "labeler_service/evaluation/scoring.py",
-        "    if not np.isfinite(stream.positions[init_frames:, :, 0]).any():\n",
+        "    if not np.isfinite(positions[init_frames:, :, 0]).any():\n",
         "    if False:\n",
         (T + "cli/test_careless_input.py",),
         "evaluate of a scene empty after its init window prints dashes and exits 0",

@@ -103,6 +103,10 @@ def run(args: argparse.Namespace) -> int:
     check_init_window(
         cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None
     )
+    from labeler_service.evaluation.scoring import check_scored_frames
+
+    step = max(args.downsample, 1)
+    check_scored_frames(cap.positions[::step], args.init_frames, args.truth)
     methods = _methods(args.method)
     # before the kernels compile (a minute on a cold cache), not after
     online = methods is None or "online" in methods

@@ -663,6 +663,17 @@ def check_init_frames(init_frames: int, has_model: bool, online: bool) -> None:
         )
 
 
+def check_scored_frames(positions: np.ndarray, init_frames: int, source: str) -> None:
+    """Refuses a stream ``(F, M, 3)`` with no marker visible after its ``init_frames``: it
+    printed a table of dashes, accuracy null, and exited 0 (composed takes that all end inside
+    the init window). ``evaluate`` calls it before its kernels compile, too."""
+    if not np.isfinite(positions[init_frames:, :, 0]).any():
+        raise SceneError(
+            f"{source}: no marker is visible after the {init_frames}-frame init window: "
+            "nothing to score (give fewer --init-frames, or a longer capture)"
+        )
+
+
 def evaluate(
     capture: Capture,
     methods: Sequence[str] | None = None,
@@ -769,13 +780,7 @@ def evaluate(
         raise _too_short(stream.n_frames, init_frames)
     if not stream.marker_names:
         raise SceneError(f"{capture.source or 'capture'}: no labeled markers to score")
-    if not np.isfinite(stream.positions[init_frames:, :, 0]).any():
-        # (it printed a table of dashes, accuracy null, and exited 0: composed takes that all
-        # end inside the init window)
-        raise SceneError(
-            f"{capture.source or 'capture'}: no marker is visible after the {init_frames}-frame "
-            "init window: nothing to score (give fewer --init-frames, or a longer capture)"
-        )
+    check_scored_frames(stream.positions, init_frames, capture.source or "capture")
     scores: dict[str, MethodScore] = {}
     window = None
     if labeled_start == "model":  # (with the online method: checked above)

@@ -144,6 +144,8 @@ def test_serve_command_reports_ready_and_shuts_down_on_sigterm(tmp_path, sig):
     proc = subprocess.Popen(
         [sys.executable, "-m", "labeler_service.cli.main", "serve", "--log-level", "INFO"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+        # (a test run under nohup passes SIGHUP on ignored, which the service rightly keeps)
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),
     )  # fmt: skip
     try:
         line = proc.stdout.readline()
