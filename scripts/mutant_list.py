@@ -1006,7 +1006,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "evaluate-scores-an-empty-scene",
         "labeler_service/evaluation/scoring.py",
-        "    if not np.isfinite(positions[init_frames:, :, 0]).any():\n",
+        "    if positions.shape[0] > init_frames and not np.isfinite(positions[init_frames:, "
+        ":, 0]).any():\n",
         "    if False:\n",
         (T + "cli/test_careless_input.py",),
         "evaluate of a scene empty after its init window prints dashes and exits 0",

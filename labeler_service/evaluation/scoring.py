@@ -666,8 +666,9 @@ def check_init_frames(init_frames: int, has_model: bool, online: bool) -> None:
 def check_scored_frames(positions: np.ndarray, init_frames: int, source: str) -> None:
     """Refuses a stream ``(F, M, 3)`` with no marker visible after its ``init_frames``: it
     printed a table of dashes, accuracy null, and exited 0 (composed takes that all end inside
-    the init window). ``evaluate`` calls it before its kernels compile, too."""
-    if not np.isfinite(positions[init_frames:, :, 0]).any():
+    the init window). ``evaluate`` calls it before its kernels compile, too. A stream no
+    longer than its init window is left to the errors that say so."""
+    if positions.shape[0] > init_frames and not np.isfinite(positions[init_frames:, :, 0]).any():
         raise SceneError(
             f"{source}: no marker is visible after the {init_frames}-frame init window: "
             "nothing to score (give fewer --init-frames, or a longer capture)"
