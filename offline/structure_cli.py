@@ -268,6 +268,7 @@ def _read_take(text: str, up: str):
     from pathlib import Path
 
     from labeler_service.capture import read_capture
+    from labeler_service.capture.io import segment_source
     from labeler_service.errors import ModelError
 
     path, start, stop = parse_take(text)
@@ -279,8 +280,8 @@ def _read_take(text: str, up: str):
     if stop is not None and stop > cap.n_frames:
         raise ModelError(f"{text}: stop {stop} is past the take's {cap.n_frames} frames")
     cap = cap.frames(start, stop)
-    if text != path:  # the segment names itself: the model's ``source`` says which frames
-        cap = dataclasses.replace(cap, source=text)
+    if text != path:  # (the model's ``source`` says which frames)
+        cap = dataclasses.replace(cap, source=segment_source(path, start, stop))
     if not [s for s in cap.subjects if s]:
         cap = cap.with_subject(Path(path).stem.replace(":", "_") or "subject")
     return cap

@@ -129,9 +129,14 @@ def read_segment(spec: str | Path, up: str = "z") -> Capture:
     if stop is not None and stop > cap.n_frames:
         raise CaptureError(f"{text}: stop {stop} is past the capture's {cap.n_frames} frames")
     notes = (*cap.notes, f"frames {start}-{cap.n_frames if stop is None else stop} of {path}")
-    # the segment names itself (a model trained on it says which frames: its ``source``)
-    source = f"{cap.source or path}:{start}" + ("" if stop is None else f":{stop}")
+    source = segment_source(cap.source or path, start, stop)
     return replace(cap.frames(start, stop), notes=notes, source=source)
+
+
+def segment_source(path: str | Path, start: int, stop: int | None) -> str:
+    """How a segment of ``path`` names itself (its ``source``: a model trained on it says
+    which frames, ``FILE:start[:stop]``)."""
+    return f"{path}:{start}" + ("" if stop is None else f":{stop}")
 
 
 def split_spec(text: str, fields: int) -> tuple[str, list[str]]:
