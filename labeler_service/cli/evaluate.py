@@ -100,12 +100,10 @@ def run(args: argparse.Namespace) -> int:
         check_writable(errors_path(args.plot), suffixes=None)
     args.init_frames = init_frames(args.init_frames, args.model)
     cap = without_absent_subjects(read_segment(args.truth, up=args.up), args.truth)
-    check_init_window(
-        cap, args.truth, args.init_frames, max(args.downsample, 1), subjects=args.model is None
-    )
+    step = max(args.downsample, 1)
+    check_init_window(cap, args.truth, args.init_frames, step, subjects=args.model is None)
     from labeler_service.evaluation.scoring import check_scored_frames
 
-    step = max(args.downsample, 1)
     check_scored_frames(cap.positions[::step], args.init_frames, args.truth)
     methods = _methods(args.method)
     # before the kernels compile (a minute on a cold cache), not after

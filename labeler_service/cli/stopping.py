@@ -33,5 +33,5 @@ def stop_event(seconds: float | None = None, stop: asyncio.Event | None = None) 
 def release_signals() -> None:
     """Gives the stopping signals back to their defaults (after :func:`stop_event`)."""
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", signal.SIGTERM)):
+    for sig in _signals():  # (a SIGHUP left ignored was never taken: still ignored)
         loop.remove_signal_handler(sig)

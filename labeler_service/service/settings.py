@@ -24,6 +24,7 @@ from __future__ import annotations
 import difflib
 import json
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -572,9 +573,6 @@ def _env_reason(exc: BaseException) -> str:
     """What pydantic-settings' ``error parsing value for field "udp" from source
     "EnvSettingsSource"`` means, naming the variable(s) and the JSON error (a hostile run:
     ``MOCAP_UDP__PUBLISH_TO=notalist`` said only that)."""
-    import os
-    import re
-
     found = re.search(r'field "([^"]+)"', str(exc))
     if found is None:
         return str(exc)
