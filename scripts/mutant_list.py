@@ -458,7 +458,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "lost-takes-a-point-seen-beside-it",
         "labeler_service/labeling/kernels/unseen.py",
-        "        if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, tracks, "
+        "        if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, *runs, "
         "frame_no):\n",
         "        if False:\n",
         (T + "labeling/test_unseen_markers.py",),
@@ -499,9 +499,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "anonymous-run-refuses-nothing",
         "labeler_service/labeling/kernels/anonymous.py",
-        "    return run > 0 and tracks.seen_at[i] >= start and tracks.track_from[i] < start\n",
-        "    return run > 0 and tracks.seen_at[i] >= start and tracks.track_from[i] < start - 10**9"
-        "\n",
+        "    return run > 0 and seen_at[i] >= start and track_from[i] < start\n",
+        "    return run > 0 and seen_at[i] >= start and track_from[i] < start - 10**9\n",
         (T + "labeling/test_anonymous_tracks.py",),
         "a marker that vanishes takes the point that stood unlabeled beside it (a ghost, an "
         "unknown marker)",
@@ -894,7 +893,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "together-takes-seen-point",
         "labeler_service/labeling/kernels/unseen.py",
-        "        if params.anonymous_tracks and _refused(m, p, scratch.anon, tracks, frame_no):\n",
+        "        if params.anonymous_tracks and _refused(m, p, scratch.anon, *runs, frame_no):\n",
         "        if False:\n",
         (T + "labeling/test_unseen_markers.py",),
         "markers lost together take a point an anonymous run saw beside one of them",
@@ -961,7 +960,7 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "follow-takes-a-point-seen-beside-it",
         "labeler_service/labeling/kernels/follow.py",
-        "        if params.anonymous_tracks and _refused(m, j, scratch.anon, tracks, frame_no):\n",
+        "        if params.anonymous_tracks and _refused(m, j, scratch.anon, *runs, frame_no):\n",
         "        if False:\n",
         (T + "labeling/test_follow.py",),
         "a followed point that was there, unlabeled, beside the marker is taken back",

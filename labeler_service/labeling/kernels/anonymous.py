@@ -154,12 +154,14 @@ def _track_taken(i, points, index, owner, tracks, r, jump_mm):
 
 
 @njit
-def _refused(i, j, anon, tracks, frame_no):
-    """Point ``j`` continues an anonymous run that began while marker ``i`` was on a track that
-    had begun before it and went on into it: it is not marker ``i``."""
+def _refused(i, j, anon, seen_at, track_from, frame_no):
+    """Point ``j`` continues an anonymous run (``anon``) that began while marker ``i`` was on a
+    track that had begun before it and went on into it (``tracks.seen_at``,
+    ``tracks.track_from``): it is not marker ``i``. Arrays, not ``tracks``: called per gate
+    candidate (:func:`.unseen._want`)."""
     run = anon[j]
     start = frame_no - run
-    return run > 0 and tracks.seen_at[i] >= start and tracks.track_from[i] < start
+    return run > 0 and seen_at[i] >= start and track_from[i] < start
 
 
 @njit
@@ -167,13 +169,14 @@ def _refuse_anonymous(cand, cand_d2, ncand, anon, tracks, frame_no):
     """Drops from each marker's gate candidates (in order) the points that continue an
     anonymous run which began while the marker was on a track that had begun before it and
     went on into it."""
+    seen_at, track_from = tracks.seen_at, tracks.track_from
     for i in range(ncand.shape[0]):
-        if tracks.seen_at[i] < 0:
+        if seen_at[i] < 0:
             continue
         k2 = 0
         for k in range(ncand[i]):
             j = cand[i, k]
-            if _refused(i, j, anon, tracks, frame_no):
+            if _refused(i, j, anon, seen_at, track_from, frame_no):
                 continue
             cand[i, k2] = j
             cand_d2[i, k2] = cand_d2[i, k]

@@ -122,6 +122,7 @@ def _followed_by_another(i, q, tracks):
 def _acquire_followed(points, index, dt, frame_no, tracks, bodies, scratch, params):
     """Lost markers take back the point they followed (module doc). Returns how many."""
     assigned, owner = scratch.assigned, scratch.owner
+    runs = tracks.seen_at, tracks.track_from  # (arrays for the per-marker call)
     placed = 0
     for m in range(tracks.x.shape[0]):
         if tracks.fol[m, 6] <= 0 or assigned[m] >= 0 or not tracks.active[m] or tracks.gone[m]:
@@ -132,7 +133,7 @@ def _acquire_followed(points, index, dt, frame_no, tracks, bodies, scratch, para
         tot, cnt = _anchors_held(m, j, points, tracks, bodies, assigned, params)
         if cnt < FOLLOW_ANCHORS or tot > FOLLOW_SLACK_MM:
             continue
-        if params.anonymous_tracks and _refused(m, j, scratch.anon, tracks, frame_no):
+        if params.anonymous_tracks and _refused(m, j, scratch.anon, *runs, frame_no):
             continue
         _take(m, j, points, assigned, owner, scratch.obs)
         # a new track on the point, moving with the velocity it was followed with (the last
@@ -164,7 +165,7 @@ def _anchors_held(m, p, points, tracks, bodies, assigned, params):
     n = 0
     for e in range(mb_ptr[m], mb_ptr[m + 1]):
         b = mb_idx[e]
-        i = _slot(bodies, b, m)
+        i = _slot(members, b, m)
         for j in range(size[b]):
             k = members[b, j]
             if j == i or assigned[k] < 0 or tracks.age[k] < 1:

@@ -86,8 +86,9 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
     on labeled frames, every frame while a marker stays lost (measured: no cost,
     BENCHMARKS.md)."""
     m_total = tracks.x.shape[0]
+    want = _want(tracks, scratch, params)
     first = 0
-    while first < m_total and not _wanted(first, tracks, scratch, params):
+    while first < m_total and not _wanted(first, *want):
         first += 1
     if first == m_total:
         return 0
@@ -99,16 +100,17 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
     placed = 0
     if params.acquire_together and params.acquire_lost_frames > 0:
         placed += _acquire_together(points, index, frame_no, tracks, bodies, scratch, params)
+    runs = tracks.seen_at, tracks.track_from
     for m in range(first, m_total):
-        if not _wanted(m, tracks, scratch, params):
+        if not _wanted(m, *want):
             continue
-        lost = not _never_observed(m, tracks)
+        lost = not _never_observed(m, tracks.x)
         pick, shaped = _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice)
         if pick < 0 and not shaped:
             pick = _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, lost)
         if pick < 0:
             continue
-        if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, tracks, frame_no):
+        if lost and params.anonymous_tracks and _refused(m, pick, scratch.anon, *runs, frame_no):
             continue  # the point was there, unlabeled, while the marker was on its own
         _take(m, pick, points, scratch.assigned, scratch.owner, scratch.obs)
         if lost and params.acquire_restart:
@@ -118,29 +120,42 @@ def _acquire_unseen(points, index, frame_no, tracks, bodies, scratch, params):
 
 
 @njit
-def _wanted(m, tracks, scratch, params):
-    """Marker ``m`` is placed here: active, its subject present, no point this frame, and either
-    never observed (``acquire_unseen``) or observed before and lost for
-    ``acquire_lost_frames`` frames or more."""
-    if not tracks.active[m] or tracks.gone[m] or scratch.assigned[m] >= 0:
+def _want(tracks, scratch, params):
+    """What :func:`_wanted` reads, as a plain tuple of arrays and numbers.
+
+    Helpers called per marker take arrays, never a whole state structure: numba passes a
+    structure as every one of its fields, ~100-400 ns a call (measured with ``_wanted`` itself:
+    402 ns with ``tracks``, ``scratch`` and ``params``, 19 ns with these; at 10 performers it
+    runs ~500 times a frame)."""
+    return (tracks.active, tracks.gone, tracks.lost, tracks.x, scratch.assigned,
+            params.acquire_unseen, params.acquire_lost_frames)  # fmt: skip
+
+
+@njit
+def _wanted(m, active, gone, lost, x, assigned, unseen, lost_frames):
+    """Marker ``m`` is placed here: active, its subject present (not ``gone``), no point this
+    frame (``assigned``), and either never observed (``unseen``: ``acquire_unseen``) or
+    observed before and ``lost`` for ``lost_frames`` (``acquire_lost_frames``) frames or more.
+    The arguments are :func:`_want`'s."""
+    if not active[m] or gone[m] or assigned[m] >= 0:
         return False
-    if _never_observed(m, tracks):
-        return params.acquire_unseen
-    return 0 < params.acquire_lost_frames <= tracks.lost[m]
+    if _never_observed(m, x):
+        return unseen
+    return 0 < lost_frames <= lost[m]
 
 
 @njit
-def _never_observed(m, tracks):
-    """Marker ``m`` has no Kalman state: the stream never showed it."""
-    return tracks.x[m, 0] != tracks.x[m, 0]  # noqa: PLR0124 (NaN test)
+def _never_observed(m, x):
+    """Marker ``m`` has no Kalman state ``x``: the stream never showed it."""
+    return x[m, 0] != x[m, 0]  # noqa: PLR0124 (NaN test)
 
 
 @njit
-def _continuing(i, tracks, scratch):
-    """Marker ``i`` is on a point this frame and was observed in the previous one (``age``,
-    frames observed in a row up to the previous frame: the labeled frames' warm start sets it,
-    where ``state`` stays as it was)."""
-    return scratch.assigned[i] >= 0 and tracks.age[i] > 0
+def _continuing(i, assigned, age):
+    """Marker ``i`` is on a point this frame (``assigned``) and was observed in the previous one
+    (``age``, ``tracks.age``: frames observed in a row up to the previous frame; the labeled
+    frames' warm start sets it, where ``state`` stays as it was)."""
+    return assigned[i] >= 0 and age[i] > 0
 
 
 @njit
@@ -150,7 +165,7 @@ def _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice):
     asked). ``choice (MAX_BODY,)``: work space (each member's point, -1 none)."""
     kab = scratch.kab
     near = params.reacquire_near_mm
-    owner = scratch.owner
+    owner, assigned, age = scratch.owner, scratch.assigned, tracks.age
     pick = -1
     shaped = False
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
@@ -164,8 +179,8 @@ def _by_shape(m, points, index, tracks, bodies, scratch, params, est, choice):
             choice[q] = -1
             if i == m:
                 me = q
-            elif _continuing(i, tracks, scratch) and bodies.ref[b, q, 0] == bodies.ref[b, q, 0]:
-                choice[q] = scratch.assigned[i]
+            elif _continuing(i, assigned, age) and bodies.ref[b, q, 0] == bodies.ref[b, q, 0]:
+                choice[q] = assigned[i]
         if me < 0 or bodies.ref[b, me, 0] != bodies.ref[b, me, 0]:  # noqa: PLR0124 (NaN test)
             continue
         c, rms = _shape_rms(bodies.ref[b], points, choice, k, kab.src, kab.dst, kab.R, kab.t)
@@ -198,23 +213,24 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, los
     now count, ``LOST_PAIRS`` or more."""
     n = 0
     floor = params.a_floor_mm
+    assigned, age, links = scratch.assigned, tracks.age, _links(bodies, params)
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
         b = bodies.mb_idx[e]
-        me = _slot(bodies, b, m)
+        me = _slot(bodies.members, b, m)
         for q in range(bodies.size[b]):
             i = bodies.members[b, q]
-            if i == m or not _continuing(i, tracks, scratch) or n >= MAX_PAIRS:
+            if i == m or not _continuing(i, assigned, age) or n >= MAX_PAIRS:
                 continue
             # a link that bends now is no evidence of where a lost marker is
-            d0, a0 = _link(bodies, b, me, q, params, lost)
+            d0, a0 = _link(b, me, q, lost, *links)
             if d0 != d0:  # noqa: PLR0124 (NaN: no trained distance, or it bends)
                 continue
             dup = False
             for k in range(n):
-                dup = dup or pa[k] == scratch.assigned[i]
+                dup = dup or pa[k] == assigned[i]
             if dup:
                 continue
-            pa[n] = scratch.assigned[i]
+            pa[n] = assigned[i]
             pd[n] = d0
             pt[n] = 3.0 * max(a0, floor) + PAIR_SLACK_MM
             n += 1
@@ -244,26 +260,33 @@ def _by_pairs(m, points, index, tracks, bodies, scratch, params, pa, pd, pt, los
 
 
 @njit
-def _slot(bodies, b, m):
-    """Marker ``m``'s row in body ``b`` (a member of it)."""
+def _slot(members, b, m):
+    """Marker ``m``'s row in body ``b`` (a member of it; ``members``: ``bodies.members``)."""
     me = 0
-    while bodies.members[b, me] != m:
+    while members[b, me] != m:
         me += 1
     return me
 
 
 @njit
-def _link(bodies, b, me, q, params, held):
+def _links(bodies, params):
+    """What :func:`_link` reads after its first four arguments (arrays, not the structures:
+    :func:`_want`)."""
+    return bodies.D0, bodies.A0, bodies.A, params.a_floor_mm, params.a_relative
+
+
+@njit
+def _link(b, me, q, held, D0, A0, A, a_floor, a_rel):
     """``(D0, A0)`` of body ``b``'s trained link between rows ``me`` and ``q`` (``A0`` 0 when
     it has no trained deviation: the floor applies); ``D0`` NaN when the link has no trained
     distance, or with ``held`` when it bends now (:func:`.repair._bends`: window ``A`` beyond 3
-    floored ``A0``, a link trained across a joint held still)."""
-    d0 = bodies.D0[b, me, q]
+    floored ``A0``, a link trained across a joint held still). The rest: :func:`_links`."""
+    d0 = D0[b, me, q]
     if not np.isfinite(d0):
         return np.nan, 0.0
-    a0 = bodies.A0[b, me, q]
+    a0 = A0[b, me, q]
     a0 = a0 if np.isfinite(a0) else 0.0
-    if held and _bends(bodies.A[b, me, q], a0, d0, params.a_floor_mm, params.a_relative):
+    if held and _bends(A[b, me, q], a0, d0, a_floor, a_rel):
         return np.nan, a0
     return d0, a0
 
@@ -282,6 +305,7 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
     pts, cand, best, pos = bodies.work_pts, bodies.work_cand, bodies.work_best, bodies.work_pos
     choice, used, tol = bodies.work_choice, bodies.work_used, bodies.work_tol
     centre, cur = bodies.work_centre, bodies.work_cur
+    want = _want(tracks, scratch, params)
     lost = np.empty(MAX_BODY, dtype=np.int64)  # the body slots of the lost members
     ref = np.empty((MAX_BODY, 3))
     placed = 0
@@ -293,13 +317,13 @@ def _acquire_together(points, index, frame_no, tracks, bodies, scratch, params):
         long_lost = False
         for q in range(n):
             m = members[b, q]
-            if ref_all[b, q, 0] != ref_all[b, q, 0] or _never_observed(m, tracks):  # noqa: PLR0124
+            if ref_all[b, q, 0] != ref_all[b, q, 0] or _never_observed(m, tracks.x):  # noqa: PLR0124
                 continue
             if not tracks.active[m] or tracks.gone[m] or assigned[m] >= 0:
                 continue
             lost[nl] = q
             nl += 1
-            long_lost = long_lost or _wanted(m, tracks, scratch, params)  # lost for long
+            long_lost = long_lost or _wanted(m, *want)  # lost for long
         if nl < TOGETHER_MIN or not long_lost:
             continue
         for i in range(nl):
@@ -371,16 +395,17 @@ def _restart(m, p, points, tracks, bodies, scratch, params):
     tracks over its links that do not bend now; without such a member its state is kept. Its
     coasted velocity says nothing of a limb that moved on while it was lost."""
     x, P = tracks.x, tracks.P
+    assigned, age, links = scratch.assigned, tracks.age, _links(bodies, params)
     v0 = v1 = v2 = 0.0
     c = 0
     for e in range(bodies.mb_ptr[m], bodies.mb_ptr[m + 1]):
         b = bodies.mb_idx[e]
-        me = _slot(bodies, b, m)
+        me = _slot(bodies.members, b, m)
         for q in range(bodies.size[b]):
             k = bodies.members[b, q]
-            if k == m or not _continuing(k, tracks, scratch):
+            if k == m or not _continuing(k, assigned, age):
                 continue
-            d0, _ = _link(bodies, b, me, q, params, True)
+            d0, _ = _link(b, me, q, True, *links)
             if d0 != d0:  # noqa: PLR0124 (NaN: no trained distance, or it bends now)
                 continue
             v0 += x[k, 3]
@@ -416,7 +441,8 @@ def _anchored(b, lost, choice, nl, cand, points, tracks, bodies, scratch, params
                                 params.a_floor_mm, params.a_relative)  # fmt: skip
         if tot > PAIR_SLACK_MM:
             return False
-        if params.anonymous_tracks and _refused(m, p, scratch.anon, tracks, frame_no):
+        runs = tracks.seen_at, tracks.track_from
+        if params.anonymous_tracks and _refused(m, p, scratch.anon, *runs, frame_no):
             return False
         links += cnt
     return links > 0
