@@ -22,6 +22,7 @@ import errno
 import json
 import math
 import os
+import unicodedata
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
@@ -129,6 +130,12 @@ class SubjectTemplate(BaseModel):
             if not mk.strip() or is_ghost(mk):
                 raise ValueError(
                     f"{where}: marker name {mk!r} is empty or named like an unlabeled track (*N)"
+                )
+        for what, name in (("subject", self.name), *(("marker", mk) for mk in self.markers)):
+            if any(unicodedata.category(c) == "Cc" for c in name):  # a newline, a tab, NUL
+                raise ValueError(
+                    f"{where}: {what} name {name!r} holds a control character (no capture file "
+                    "or wire label can carry it back)"
                 )
         if len(set(self.markers)) != m:
             raise ValueError(f"{where}: duplicate marker names")

@@ -45,6 +45,8 @@ def test_round_trip(tmp_path):
         (lambda d: d["subjects"][0].update(name="Der:rick"), "would read back as subject 'Der'"),
         (lambda d: d["subjects"][0].update(markers=["a", "*0", "c"]), "unlabeled track"),
         (lambda d: d["subjects"][0].update(markers=["a", " ", "c"]), "is empty"),
+        (lambda d: d["subjects"][0].update(markers=["a", "b\nc", "c"]), "control character"),
+        (lambda d: d["subjects"][0].update(name="Der\trick"), "subject name 'Der\\\\trick'"),
     ],
 )
 def test_invalid_models_raise_model_error(tmp_path, edit, message):
