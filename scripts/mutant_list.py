@@ -1027,4 +1027,14 @@ MUTANTS: list[Mutant] = [
         (T + "service/test_udp.py",),
         "SIGHUP kills serve with no offline status",
     ),
+    Mutant(
+        "model-keeps-a-newline-name",
+        "labeler_service/labeling/templates.py",
+        '            if any(unicodedata.category(c) == "Cc" for c in name):  # a newline, a tab, '
+        "NUL\n",
+        "            if False:\n",
+        (T + "labeling/test_model.py",),
+        "a model whose marker name holds a newline loads, its labels unreadable",
+        k="invalid_models",
+    ),
 ]
