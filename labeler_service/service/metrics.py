@@ -419,7 +419,9 @@ class ServiceMetrics:
         boots, the number of its model's subjects: the line then says the status (with the
         labeled fraction) and how many subjects are booted after how many attempts, so a
         stream that labels nothing says so; a stream in ``streams`` that has had no frame yet
-        (a configured stream before its first frame) reads ``[name] no frames yet``."""
+        (a configured stream before its first frame) reads ``[name] no frames yet``. Each
+        stream's part ends with its own drops by reason (``drops=queue_full:3`` or
+        ``drops=none``); the line ends with the drops of the whole service (``drops: ...``)."""
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
@@ -443,10 +445,14 @@ class ServiceMetrics:
                     f" booted={v['subjects_booted']:.0f}/{n_subjects} "
                     f"(boot attempts {v['boot_attempts']:.0f}, failed {v['boot_failed']:.0f})"
                 )
+            mine = sorted((r, n) for (st, r), n in self._drops.items() if st == s)
+            line += " drops=" + (",".join(f"{r}:{n}" for r, n in mine) or "none")
             parts.append(line)
         for s, (status, _) in (streams or {}).items():
             if s not in snap["streams"]:  # a configured stream that has had no frame yet
                 parts.append(f"[{s}] no frames yet" + (f" status={status}" if status else ""))
+        # every stream's drops, and those of no stream (a datagram that names none, a stream
+        # removed since): each stream's own are on its part (``drops=``)
         drops = ", ".join(f"{r}={n}" for r, n in sorted(snap["drops"].items())) or "none"
         return " ".join(parts or ["no streams yet"]) + f" drops: {drops}"
 

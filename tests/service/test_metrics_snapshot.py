@@ -8,6 +8,8 @@ streams and a 5 s interval). Counted by registry walks, not timed.
 
 from __future__ import annotations
 
+import re
+
 from labeler_service.service.metrics import ServiceMetrics
 
 
@@ -46,3 +48,20 @@ def test_a_stream_with_no_labeled_frame_logs_no_nan():
     line = m.log_line({"plain": ("idle", 0)})
     assert "[plain] in=3 out=0 label p50/p99=-/- ms latency p99=- ms" in line
     assert "nan" not in line
+
+
+def test_each_stream_part_says_its_own_drops():
+    """Two streams, drops on one: the other's part says none; the end says the service's."""
+    m = ServiceMetrics()
+    for n in ("quiet", "busy"):
+        m.frame_in(n)
+        m.frame_out(n, 0.001, 0.002, 40, 0, 2, 3)
+    m.drop("queue_full", "busy", 3)
+    m.drop("stale", "busy")
+    m.drop("malformed", "")  # (a datagram that names no stream)
+    line = m.log_line({"quiet": ("online", 0), "busy": ("online", 0)})
+    head, _, _ = line.partition(" drops: ")
+    part = dict(re.findall(r"\[(\w+)\] ([^[]*)", head))
+    assert part["quiet"].rstrip().endswith(" drops=none"), line
+    assert part["busy"].rstrip().endswith(" drops=queue_full:3,stale:1"), line
+    assert line.endswith("drops: malformed=1, queue_full=3, stale=1"), line
