@@ -433,6 +433,7 @@ def _anchored(b, lost, choice, nl, cand, points, tracks, bodies, scratch, params
     per marker), with one such link at least, and no point continues an anonymous run seen
     beside its marker."""
     links = 0
+    runs = tracks.seen_at, tracks.track_from
     for i in range(nl):
         if choice[i] < 0:
             continue
@@ -441,7 +442,6 @@ def _anchored(b, lost, choice, nl, cand, points, tracks, bodies, scratch, params
                                 params.a_floor_mm, params.a_relative)  # fmt: skip
         if tot > PAIR_SLACK_MM:
             return False
-        runs = tracks.seen_at, tracks.track_from
         if params.anonymous_tracks and _refused(m, p, scratch.anon, *runs, frame_no):
             return False
         links += cnt
