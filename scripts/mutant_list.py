@@ -1037,4 +1037,13 @@ MUTANTS: list[Mutant] = [
         "a model whose marker name holds a newline loads, its labels unreadable",
         k="invalid_models",
     ),
+    Mutant(
+        "boot-local-search-one-round",
+        "labeler_service/labeling/boot_match.py",
+        "        if np.array_equal(before, assign):\n            break\n",
+        "        break\n",
+        (T + "labeling/test_boot_local_search.py",),
+        "a hypothesis gets one exchange pass and one relocation: a hand read through a far point "
+        "keeps two markers on each other's points",
+    ),
 ]
