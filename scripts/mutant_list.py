@@ -1046,4 +1046,12 @@ MUTANTS: list[Mutant] = [
         "a hypothesis gets one exchange pass and one relocation: a hand read through a far point "
         "keeps two markers on each other's points",
     ),
+    Mutant(
+        "plate-symmetry-never-turned",
+        "labeler_service/labeling/boot_match.py",
+        "            turned[mk] = out[mk[perm]]\n",
+        "            turned[mk] = out[mk]\n",
+        (T + "labeling/test_boot_symmetries.py",),
+        "a head plate booted turned half round is never read back (only its pairs are looked at)",
+    ),
 ]

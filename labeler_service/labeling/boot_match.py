@@ -37,6 +37,12 @@ STRICT_SIGMAS = 4.0
 #: A reading exchange (:func:`_exchange`, :func:`_swap_mirrors`) must lower the negative
 #: log-likelihood by more than this (nats): ties and noise keep the reading the candidates gave.
 EXCHANGE_MARGIN = 1.0
+#: A symmetry of a segment is a reading the stream may need only when it turns the segment by
+#: at least this (degrees): a half turn no joint makes (:func:`_plate_symmetries`).
+HALF_TURN_DEG = 150.0
+#: Segments of at most this many markers are searched for symmetries (:func:`_plate_symmetries`:
+#: every permutation, 5! = 120 at most).
+PLATE_MAX = 5
 #: Rounds of exchanges and relocations (:func:`_local_search`) per hypothesis at most.
 LOCAL_ROUNDS = 4
 #: A placed pair exchanged along the window (:func:`_window_exchange`) must fit better in this
@@ -122,6 +128,9 @@ class _Template:
     #: the mirror pairs whose markers are named as left and right twins (``LKNE``/``RKNE``,
     #: ``Ulna_L``/``Ulna_R``: :func:`~labeler_service.capture.side_pairs`), marker by marker
     sided: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: segments of 4+ markers whose trained distances a permutation of them keeps (a head
+    #: plate turned half round): ``(markers, perm)``, see _plate_symmetries
+    symmetric: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     #: per-pair constants of _nll (see _nll_tables)
     nll_scale: np.ndarray = field(default_factory=lambda: np.ones((0, 0)))
     nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
@@ -213,6 +222,7 @@ def _prepare(model: LabelerModel, config: BootConfig) -> list[_Template]:
         tpl.segments = _segments(tpl)
         tpl.mirrors = _mirror_pairs(tpl)
         tpl.sided = _sided(tpl.mirrors, list(subj.markers))
+        tpl.symmetric = _plate_symmetries(tpl)
         tpl.twin = np.full(tpl.n, -1, dtype=np.int64)
         for a, b in side_pairs(list(subj.markers)):
             tpl.twin[a], tpl.twin[b] = b, a
@@ -3142,6 +3152,100 @@ def _still_doubtful(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b
     arm pairs the stream contradicts either way) is no evidence for it."""
     have = np.flatnonzero(new >= 0)
     return bool(_doubtful(tpl, have, hist[new[have], -1])[np.isin(have, [a, b])].any())
+
+
+def _plate_symmetries(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(markers, perm)`` per segment (:func:`_segments`: a head plate the trainer split into
+    two triangles is one) of 4 to ``PLATE_MAX`` markers and per permutation that moves every
+    marker, keeps every trained distance among them within its tolerance and turns it by at least
+    ``HALF_TURN_DEG`` (the rotation of its shape, embedded from the trained distances, onto
+    the permuted shape): the segment's points read with ``markers[k]`` on the point of
+    ``markers[perm[k]]`` fit it as well, in a pose no joint reaches (a rectangular head plate
+    turned half round; turned over, it also reverses its chirality, which
+    :func:`_window_symmetries` refuses). A quarter turn of a square plate is left out: a
+    dancer's head yawed 90 degrees read its square plate a quarter round better than right,
+    and the reading was taken (its four markers wrong for 245 frames, tune23 ``rate``)."""
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    for mk in tpl.segments:
+        if not 4 <= mk.size <= PLATE_MAX or not np.all(np.isfinite(tpl.D[np.ix_(mk, mk)])):
+            continue
+        D = tpl.D[np.ix_(mk, mk)]
+        tol = tpl.tol[np.ix_(mk, mk)]
+        shape = _embed(D)
+        for perm in itertools.permutations(range(mk.size)):
+            q = np.asarray(perm)
+            if np.any(q == np.arange(mk.size)):
+                continue  # (a marker on the axis: a forearm turned about itself, its wrist bar)
+            if not np.all(np.abs(D - D[np.ix_(q, q)]) <= tol):
+                continue
+            R = _kabsch_batch(shape, shape[q][None])[0][0]
+            angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+            if angle >= HALF_TURN_DEG:
+                out.append((mk, q))
+    return out
+
+
+def _embed(D: np.ndarray) -> np.ndarray:
+    """``(k, 3)`` points whose distances are ``D (k, k)`` as nearly as three dimensions allow
+    (classical multidimensional scaling; mirror-image arbitrary)."""
+    k = D.shape[0]
+    J = np.eye(k) - 1.0 / k
+    B = -0.5 * J @ (D**2) @ J
+    w, V = np.linalg.eigh(B)
+    top = np.argsort(w)[::-1][:3]
+    return V[:, top] * np.sqrt(np.maximum(w[top], 0.0))
+
+
+def _window_symmetries(
+    tpl: _Template,
+    assign: np.ndarray,
+    hist: np.ndarray,
+    others: np.ndarray | None = None,
+    contact_mm: float = 0.0,
+) -> np.ndarray:
+    """Subject ``tpl``'s reading ``assign`` with a symmetric segment (:func:`_plate_symmetries`)
+    read the other way round where the rest of the subject says so along the window (``hist
+    (N, W, 3)``), judged as :func:`_window_mirrors` judges a mirror: by more than
+    ``EXCHANGE_MARGIN`` in ``WINDOW_EXCHANGE_SHARE`` of the frames that track its points (at
+    least half the window), by ``WINDOW_EXCHANGE_NATS`` in the median, reversing no thick
+    chirality quadruple, and not while a point of it is within ``contact_mm`` of ``others``.
+    Its own distances cannot tell: a hugging performer's head plate booted turned half round
+    (front markers on the back ones' points) stayed so for the whole 10 s of ``bench latency
+    --start boot``, and neither the pair exchange (no pair of the plate is off) nor the
+    re-verification's left-right exchanges (front and back differ too) could read it back.
+    Returns ``assign`` itself when nothing changes, else a new reading."""
+    out = assign
+    w = hist.shape[1]
+    by_segment: dict[tuple[int, ...], list[np.ndarray]] = {}
+    for mk, perm in tpl.symmetric:
+        by_segment.setdefault(tuple(mk.tolist()), []).append(perm)
+    for key, perms in by_segment.items():
+        mk = np.array(key, dtype=np.int64)
+        if np.any(out[mk] < 0) or _touches(hist[out[mk], -1], others, contact_mm):
+            continue
+        frames = np.flatnonzero(np.all(np.isfinite(hist[out[mk], :, 0]), axis=0))
+        base = out.copy()
+        base[mk] = -1
+        if frames.size < max(2, w // 2) or not np.any(base >= 0):
+            continue
+        now = np.array([_pair_error(tpl, mk, out[mk], base, hist[:, f]) for f in frames])
+        best, best_gain = None, WINDOW_EXCHANGE_NATS
+        for perm in perms:  # (the best reading of the segment, not the first better one)
+            turned = out.copy()
+            turned[mk] = out[mk[perm]]
+            gain = now - np.array(
+                [_pair_error(tpl, mk, turned[mk], base, hist[:, f]) for f in frames]
+            )
+            if np.mean(gain > EXCHANGE_MARGIN) < WINDOW_EXCHANGE_SHARE:
+                continue
+            if not np.median(gain) > best_gain:
+                continue
+            if _changed_reversed(tpl, out, turned, hist[:, -1]):
+                continue
+            best, best_gain = turned, float(np.median(gain))
+        if best is not None:
+            out = best
+    return out
 
 
 def _window_mirrors(
