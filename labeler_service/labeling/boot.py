@@ -394,7 +394,7 @@ class Booter:
             others = pts[(out >= 0) & ~mine]
             swapped = _window_exchange(tpl, assign, hist, others, self.config.verify_contact_mm)
             swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
-            swapped = _window_symmetries(tpl, swapped, hist, others, self.config.verify_contact_mm)
+            swapped = _window_symmetries(tpl, swapped, hist)
             # a segment of three or more placed markers read again onto free points
             # (:func:`_free_readings`): two points keep one distance, which a plate's two
             # diagonals share (a head plate's LBHD and RFHD read onto RBHD's and LFHD's
