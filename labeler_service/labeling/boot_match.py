@@ -3233,13 +3233,8 @@ def _window_symmetries(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> 
             gain = now - np.array(
                 [_pair_error(tpl, mk, turned[mk], base, hist[:, f]) for f in frames]
             )
-            if np.mean(gain > EXCHANGE_MARGIN) < WINDOW_EXCHANGE_SHARE:
-                continue
-            if not np.median(gain) > best_gain:
-                continue
-            if _changed_reversed(tpl, out, turned, hist[:, -1]):
-                continue
-            best, best_gain = turned, float(np.median(gain))
+            if _window_wins(tpl, out, turned, gain, hist, best_gain):
+                best, best_gain = turned, float(np.median(gain))
         if best is not None:
             out = best
     return out
@@ -3285,11 +3280,24 @@ def _window_mirrors(
                 for f in frames
             ]
         )
-        if np.mean(gain > EXCHANGE_MARGIN) < WINDOW_EXCHANGE_SHARE:
-            continue
-        if not np.median(gain) > WINDOW_EXCHANGE_NATS:
-            continue
-        if _changed_reversed(tpl, out, swapped, hist[:, -1]):
-            continue
-        out = swapped
+        if _window_wins(tpl, out, swapped, gain, hist):
+            out = swapped
     return out
+
+
+def _window_wins(
+    tpl: _Template,
+    out: np.ndarray,
+    new: np.ndarray,
+    gain: np.ndarray,
+    hist: np.ndarray,
+    nats: float = WINDOW_EXCHANGE_NATS,
+) -> bool:
+    """The window's verdict for reading ``new`` instead of ``out`` (mirrors, symmetries):
+    ``gain`` (nats per tracked frame) above ``EXCHANGE_MARGIN`` in ``WINDOW_EXCHANGE_SHARE`` of
+    the frames and above ``nats`` in the median, and no thick chirality quadruple reversed."""
+    return bool(
+        np.mean(gain > EXCHANGE_MARGIN) >= WINDOW_EXCHANGE_SHARE
+        and np.median(gain) > nats
+        and not _changed_reversed(tpl, out, new, hist[:, -1])
+    )
