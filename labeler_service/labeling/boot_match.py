@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from labeler_service._numba import njit
 from labeler_service.capture import side_pairs
 from labeler_service.labeling.boot_config import BootConfig
+from labeler_service.labeling.geometry import rotation_angle
 from labeler_service.labeling.kernels.boot_anchor import _anchor_predict, _join_triangles
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _constancy_counts
@@ -3179,8 +3180,7 @@ def _plate_symmetries(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
             if not np.all(np.abs(D - D[np.ix_(q, q)]) <= tol):
                 continue
             R = _kabsch_batch(shape, shape[q][None])[0][0]
-            angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-            if angle >= HALF_TURN_DEG:
+            if np.degrees(rotation_angle(R)) >= HALF_TURN_DEG:
                 out.append((mk, q))
     return out
 

@@ -11,7 +11,9 @@ finiteness once, raise a :class:`ValueError` naming the offending argument, and 
 - :func:`aligned_mean`: the mean shape of several frames of one point set, each moved onto a
   reference by its fit (a body's reference shape in training);
 - :func:`horn_quaternions`: Horn's unit quaternion of many small point sets at once (the
-  per-triangle rotations of the shoulder pipeline of Hong, Park and Hodgins 2009).
+  per-triangle rotations of the shoulder pipeline of Hong, Park and Hodgins 2009);
+- :func:`rotation_angle`: the angle of rotation matrices (the shoulder's joints, the boot's
+  half-turned segments).
 
 Plain-numpy twins: ``tests/reference.py`` (``kabsch``) and ``tests/shoulder/reference.py``
 (``horn_reference``).
@@ -25,7 +27,7 @@ from labeler_service._numba import njit
 from labeler_service.labeling.kernels.rigid import COV0, _aligned_mean, _cov_add, _horn_quaternion
 from labeler_service.labeling.kernels.rigid import _kabsch as _kabsch_kernel
 
-__all__ = ["aligned_mean", "horn_quaternions", "kabsch"]
+__all__ = ["aligned_mean", "horn_quaternions", "kabsch", "rotation_angle"]
 
 
 def _points(name: str, x: np.ndarray, *, ndim: int, finite: bool = True) -> np.ndarray:
@@ -126,3 +128,9 @@ def horn_quaternions(ref: np.ndarray, cur: np.ndarray) -> np.ndarray:
     out = np.empty((c.shape[0], c.shape[1], 4))
     _horn_batch(ref_c, c, out)
     return out
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle (radians) of rotation matrices (..., 3, 3)."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))

@@ -28,7 +28,7 @@ from itertools import permutations
 
 import numpy as np
 
-from offline.shoulder.rigid import rotation_angle
+from labeler_service.labeling.geometry import rotation_angle
 
 
 def choose_root(R: np.ndarray) -> int:

@@ -100,9 +100,3 @@ def apply(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
 def apply_point(R: np.ndarray, t: np.ndarray, point: np.ndarray) -> np.ndarray:
     """``R @ p + t`` for transforms (F, 3, 3), (F, 3) and one rest point (3,) -> (F, 3)."""
     return np.einsum("fij,j->fi", R, point) + t
-
-
-def rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angle (radians) of rotation matrices (..., 3, 3)."""
-    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(c, -1.0, 1.0))
