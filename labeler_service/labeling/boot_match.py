@@ -129,9 +129,9 @@ class _Template:
     #: the mirror pairs whose markers are named as left and right twins (``LKNE``/``RKNE``,
     #: ``Ulna_L``/``Ulna_R``: :func:`~labeler_service.capture.side_pairs`), marker by marker
     sided: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
-    #: segments of 4+ markers whose trained distances a permutation of them keeps (a head
-    #: plate turned half round): ``(markers, perm)``, see _plate_symmetries
-    symmetric: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: segments of 4+ markers whose trained distances permutations of them keep (a head plate
+    #: turned half round): ``(markers, perms)``, see _plate_symmetries
+    symmetric: list[tuple[np.ndarray, list[np.ndarray]]] = field(default_factory=list)
     #: per-pair constants of _nll (see _nll_tables)
     nll_scale: np.ndarray = field(default_factory=lambda: np.ones((0, 0)))
     nll_log: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
@@ -3155,24 +3155,25 @@ def _still_doubtful(tpl: _Template, new: np.ndarray, hist: np.ndarray, a: int, b
     return bool(_doubtful(tpl, have, hist[new[have], -1])[np.isin(have, [a, b])].any())
 
 
-def _plate_symmetries(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(markers, perm)`` per segment (:func:`_segments`: a head plate the trainer split into
-    two triangles is one) of 4 to ``PLATE_MAX`` markers and per permutation that moves every
-    marker, keeps every trained distance among them within its tolerance and turns it by at least
-    ``HALF_TURN_DEG`` (the rotation of its shape, embedded from the trained distances, onto
-    the permuted shape): the segment's points read with ``markers[k]`` on the point of
-    ``markers[perm[k]]`` fit it as well, in a pose no joint reaches (a rectangular head plate
-    turned half round; turned over, it also reverses its chirality, which
+def _plate_symmetries(tpl: _Template) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+    """``(markers, perms)`` per segment (:func:`_segments`: a head plate the trainer split into
+    two triangles is one) of 4 to ``PLATE_MAX`` markers that has any: the permutations that
+    move every marker, keep every trained distance among them within its tolerance and turn it
+    by at least ``HALF_TURN_DEG`` (the rotation of its shape, embedded from the trained
+    distances, onto the permuted shape): the segment's points read with ``markers[k]`` on the
+    point of ``markers[perm[k]]`` fit it as well, in a pose no joint reaches (a rectangular
+    head plate turned half round; turned over, it also reverses its chirality, which
     :func:`_window_symmetries` refuses). A quarter turn of a square plate is left out: a
     dancer's head yawed 90 degrees read its square plate a quarter round better than right,
     and the reading was taken (its four markers wrong for 245 frames, tune23 ``rate``)."""
-    out: list[tuple[np.ndarray, np.ndarray]] = []
+    out: list[tuple[np.ndarray, list[np.ndarray]]] = []
     for mk in tpl.segments:
         if not 4 <= mk.size <= PLATE_MAX or not np.all(np.isfinite(tpl.D[np.ix_(mk, mk)])):
             continue
         D = tpl.D[np.ix_(mk, mk)]
         tol = tpl.tol[np.ix_(mk, mk)]
         shape = _embed(D)
+        perms = []
         for perm in itertools.permutations(range(mk.size)):
             q = np.asarray(perm)
             if np.any(q == np.arange(mk.size)):
@@ -3181,7 +3182,9 @@ def _plate_symmetries(tpl: _Template) -> list[tuple[np.ndarray, np.ndarray]]:
                 continue
             R = _kabsch_batch(shape, shape[q][None])[0][0]
             if np.degrees(rotation_angle(R)) >= HALF_TURN_DEG:
-                out.append((mk, q))
+                perms.append(q)
+        if perms:
+            out.append((mk, perms))
     return out
 
 
@@ -3213,11 +3216,7 @@ def _window_symmetries(tpl: _Template, assign: np.ndarray, hist: np.ndarray) -> 
     Returns ``assign`` itself when nothing changes, else a new reading."""
     out = assign
     w = hist.shape[1]
-    by_segment: dict[tuple[int, ...], list[np.ndarray]] = {}
-    for mk, perm in tpl.symmetric:
-        by_segment.setdefault(tuple(mk.tolist()), []).append(perm)
-    for key, perms in by_segment.items():
-        mk = np.array(key, dtype=np.int64)
+    for mk, perms in tpl.symmetric:
         if np.any(out[mk] < 0):
             continue
         frames = np.flatnonzero(np.all(np.isfinite(hist[out[mk], :, 0]), axis=0))

@@ -34,7 +34,7 @@ def test_the_head_plate_is_found_symmetric(walker):
     cannot tell), whether the trainer made it one body or two triangles."""
     tpl, ix, hist = walker
     head = sorted(ix[n] for n in HEAD)
-    turns = [p for mk, p in tpl.symmetric if mk.tolist() == head]
+    turns = [p for mk, perms in tpl.symmetric if mk.tolist() == head for p in perms]
     half = np.array([head.index(ix[n]) for n in ("RBHD", "LBHD", "RFHD", "LFHD")])
     assert any(np.array_equal(p, half) for p in turns)
     # (the plate turned over keeps its distances too: the chirality refuses that reading)
@@ -83,7 +83,7 @@ def test_a_square_plate_turned_a_quarter_is_not_a_symmetry():
     """A head yawed 90 degrees reads its square plate a quarter round as well as right (a
     dancer's, tune23 ``rate``): only half turns, which no joint makes, are offered."""
     square = np.array([[0.0, 0, 0], [100, 0, 0], [100, 100, 0], [0, 100, 0]])
-    turns = [p.tolist() for _, p in _plate_symmetries(_segment(square))]
+    turns = [p.tolist() for _, perms in _plate_symmetries(_segment(square)) for p in perms]
     assert [2, 3, 0, 1] in turns  # half round
     assert [1, 2, 3, 0] not in turns and [3, 0, 1, 2] not in turns  # a quarter either way
 
