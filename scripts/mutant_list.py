@@ -1054,4 +1054,13 @@ MUTANTS: list[Mutant] = [
         (T + "labeling/test_boot_symmetries.py",),
         "a head plate booted turned half round is never read back (only its pairs are looked at)",
     ),
+    Mutant(
+        "labeled-start-never-rechecked",
+        "labeler_service/labeling/booting.py",
+        "        return [s for s in sorted(self._active) if v.verifies(s) or s in self._reread]\n",
+        "        return [s for s in sorted(self._active) if v.verifies(s)]\n",
+        (T + "labeling/test_labeled_reread.py",),
+        "a labeled start from a model file keeps a reading its labeler holds wrong after the "
+        "labels stop (two markers on each other's points, for good)",
+    ),
 ]
