@@ -993,7 +993,9 @@ class BootingLabeler:
         frames. They are re-checked only, not verified: the verifier's withdrawals took correct
         labels from a kneeling performer whose model was trained prone (a labeled start knows
         the pose is right; the model does not). Not for a window model: templates from 0.4 s
-        of the stream are no reference to check the stream against."""
+        of the stream are no reference to check the stream against (measured on the labeled
+        matrix, re-checked with them: 23 cells better, 40 worse, 15,352 -> 17,450 wrong or
+        unlabeled samples on the tune takes, 26,090 -> 27,117 on the others)."""
         v = self._verifier
         if v is None:
             return []
