@@ -75,12 +75,15 @@ reach the 95 % criterion) and ``subjects_booted_known_markers`` (every subject-c
 knows). In boot mode the
 labeled-window fields and issue 10's ``bars`` are those of the (possibly cut) scored scenes:
 compare them with a default run only where ``scene_cut_from_frames`` is null. The default mode's
-output is unchanged.
+output is unchanged. ``--start model`` scores the same model cells with the labeled init frames
+of the window cell (``evaluate --model M --init-frames N``: a labeled start from a model file,
+issue 11's re-check of it); its ``boot`` fields and commands say so.
 
     .venv/bin/python benchmarks/generalization.py --out generalization.json      # full
     .venv/bin/python benchmarks/generalization.py --quick                         # a subset
     .venv/bin/python benchmarks/generalization.py --split holdout --jobs 2
     .venv/bin/python benchmarks/generalization.py --start boot --cells rate --jobs 2
+    .venv/bin/python benchmarks/generalization.py --start model --jobs 2
     .venv/bin/python benchmarks/generalization.py --crowd 4 --cells rate half --jobs 2
 """
 
@@ -381,12 +384,14 @@ def run_scene(
     max_frames: int,
     boot: bool = False,
     labeled_start: str = "auto",
+    model_labels: bool = False,
 ) -> list[dict]:
     """Every cell of one scene (a take alone gets only its ``alone`` cell); with ``boot`` also
     scored from a model trained on other segments, with no labeled frame (``--start boot``);
     ``labeled_start``: ``evaluate --labeled-start`` (``auto``, the default, runs the labeled
     start through the model-based labeler, a model trained on the init window; ``labeler``:
-    the labeler trained in place)."""
+    the labeler trained in place); ``model_labels``: the model cells get the labeled init
+    frames too (``--start model``)."""
     rate = scene.rate()
     frames = scene.frames(seconds, max_frames)
     full_frames = frames
@@ -462,7 +467,8 @@ def run_scene(
             }
         )
         if boot:
-            out[-1].update(_boot_fields(scene, plan, model, cap, opts, flags, out[-1]))
+            boot_init = init if model_labels else 0
+            out[-1].update(_boot_fields(scene, plan, model, cap, opts, flags, out[-1], boot_init))
             out[-1]["scene_cut_from_frames"] = full_frames if frames < full_frames else None
     return out
 
@@ -475,14 +481,16 @@ def _boot_fields(
     opts: dict[str, Any],
     flags: str,
     window: dict,
+    init: int = 0,
 ) -> dict[str, Any]:
-    """The ``--start boot`` fields of one cell (see the module docstring)."""
+    """The ``--start boot`` fields of one cell (see the module docstring); ``init``: labeled
+    init frames of the model start (``--start model``; 0: a boot)."""
     if plan is None or model is None:
         why = f"a take leaves < {BOOT_MIN_TRAIN_S:g} s outside its scored segment"
         return {"boot": None, "boot_skipped": why}
     t0 = time.perf_counter()
     report, _ = evaluate(
-        cap, methods=["online"], init_frames=0, seed=scene.seed, model=model, **opts
+        cap, methods=["online"], init_frames=init, seed=scene.seed, model=model, **opts
     )
     fields = (
         "boot_s_max", "boot_s", "boot_s_known", "accuracy_after_boot", "absent_labeled",
@@ -507,7 +515,7 @@ def _boot_fields(
         ),
         "train": "mocap-labeler train structure TRAIN.c3d --out M.json",
         "evaluate_boot": f"mocap-labeler evaluate SCENE.c3d --method online --model M.json "
-        f"--init-frames 0 --seed {scene.seed} {flags} --json".replace("  ", " "),
+        f"--init-frames {init} --seed {scene.seed} {flags} --json".replace("  ", " "),
     }
 
 
@@ -515,7 +523,7 @@ def _pct(x: float | None) -> str:
     return "   -   " if x is None else f"{100 * x:7.3f}"
 
 
-def _run(job: tuple[Scene, tuple[str, ...], float, int, bool, str]) -> list[dict]:
+def _run(job: tuple[Scene, tuple[str, ...], float, int, bool, str, bool]) -> list[dict]:
     return run_scene(*job)
 
 
@@ -695,9 +703,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="also write the JSON here")
     p.add_argument(
         "--start",
-        choices=("window", "boot"),
+        choices=("window", "boot", "model"),
         default="window",
-        help="boot: also score every cell from a model trained on other segments, no labels",
+        help="boot: also score every cell from a model trained on other segments, no labels; "
+        "model: the same model cells with the labeled init frames (a labeled start from a "
+        "model file)",
     )
     p.add_argument(
         "--labeled-start",
@@ -719,8 +729,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         scenes = [s for s in scenes if s.name in args.only]
     cells = tuple(args.cells or (QUICK_CELLS if args.quick else _cells(1.0)))
-    boot = args.start == "boot"
-    jobs = [(s, cells, args.seconds, args.max_frames, boot, args.labeled_start) for s in scenes]
+    boot = args.start in ("boot", "model")
+    jobs = [
+        (s, cells, args.seconds, args.max_frames, boot, args.labeled_start, args.start == "model")
+        for s in scenes
+    ]
     results: list[dict] = []
 
     def show(rows: list[dict]) -> None:
@@ -794,7 +807,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{group:>8} bars: {shown}", file=sys.stderr)
     emit(
         {
-            **({"start": "boot"} if boot else {}),
+            **({"start": args.start} if boot else {}),
             **({"crowd": args.crowd} if args.crowd > 2 else {}),
             "split": args.split,
             "quick": args.quick,
