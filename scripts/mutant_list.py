@@ -1057,10 +1057,19 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "labeled-start-never-rechecked",
         "labeler_service/labeling/booting.py",
-        "        return [s for s in sorted(self._active) if v.verifies(s) or s in self._reread]\n",
-        "        return [s for s in sorted(self._active) if v.verifies(s)]\n",
+        "        reread = self.window_frames is None and not self._labeled_run\n",
+        "        reread = False\n",
         (T + "labeling/test_labeled_reread.py",),
         "a labeled start from a model file keeps a reading its labeler holds wrong after the "
         "labels stop (two markers on each other's points, for good)",
+    ),
+    Mutant(
+        "labeled-subject-verified-after-catch-up",
+        "labeler_service/labeling/booting.py",
+        "                want = s in self._active and s not in self._from_labels\n",
+        "                want = s in self._active\n",
+        (T + "labeling/test_labeled_reread.py",),
+        "a boot installed through the catch-up verifies the subjects the stream's labels placed "
+        "too (withdrawals of correct labels in a pose the model never saw)",
     ),
 ]

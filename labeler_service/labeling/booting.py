@@ -393,8 +393,9 @@ class BootingLabeler:
         self._acq_ids = np.zeros(0, dtype=np.int64)  # free tracks looked at (sorted)
         self._acq_tries = np.zeros(0, dtype=np.int64)  # and how often
         self._labeled_run = False  # labeled frames seen since the last rebuild
-        #: subjects the stream's labels placed, re-checked by the extension (:meth:`_checked`)
-        self._reread: frozenset[int] = frozenset()
+        #: subjects the stream's labels placed (until dropped): never verified, re-checked by
+        #: the extension once the labels stop (:meth:`_checked`)
+        self._from_labels: frozenset[int] = frozenset()
         #: the labeled frames of the current labeled run (the last ``labeled_kept_s``,
         #: default ``LABELED_KEPT_S``): the rebuild starts the inner labeler from all of them,
         #: not only from the window
@@ -477,8 +478,6 @@ class BootingLabeler:
         if self._labeled_run:
             self._labeled_run = False
             self._rebuild()
-            if self.window_frames is None:  # (a model file: see _checked)
-                self._reread = frozenset(self._active)
         glab = np.full(pts.shape[0], -1, dtype=np.int64)
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         state = np.zeros(m, dtype=np.uint8)
@@ -564,7 +563,7 @@ class BootingLabeler:
         for s in np.flatnonzero(counts >= 3):
             if self._verifier is not None:
                 self._verifier.stop(int(s))  # (labels from the stream are not re-verified)
-            self._reread = self._reread - {int(s)}
+            self._from_labels = self._from_labels | {int(s)}
             if int(s) not in self._active:
                 self._active.add(int(s))
                 self._recent[s] = 0.0
@@ -809,7 +808,7 @@ class BootingLabeler:
             self._inner_known[self._offset[s] : self._offset[s + 1]] = False
             if self._verifier is not None:
                 self._verifier.stop(s)
-            self._reread = self._reread - {s}
+            self._from_labels = self._from_labels - {s}
             self._blocked.pop(s, None)
             if not self._labeled_run:  # (else the rebuild due at the next frame drops it)
                 self._inner.drop_subject(self.model.subjects[s].name)
@@ -986,7 +985,7 @@ class BootingLabeler:
         points: :func:`~.boot_match._window_exchange`, mirrors, symmetries, segments read
         again onto free points), with the re-verification on: those booted from the stream's
         points, which it verifies, and, when the model is a trained one (a model file, not a
-        window model), those the stream's labels placed once the labels stop (``_reread``):
+        window model), those the stream's labels placed once the labels stop (``_from_labels``):
         from then on the labeler is on its own. A 25 Hz tennis serve started from 10 labeled
         frames read its trunk one marker along its chain (RBAK's label on C7's point, RSHO's
         on RBAK's, RUPA's on RSHO's) for the remaining 7 s; re-checked, it is read back within
@@ -999,7 +998,9 @@ class BootingLabeler:
         v = self._verifier
         if v is None:
             return []
-        return [s for s in sorted(self._active) if v.verifies(s) or s in self._reread]
+        reread = self.window_frames is None and not self._labeled_run
+        placed = self._from_labels if reread else frozenset()
+        return [s for s in sorted(self._active) if v.verifies(s) or s in placed]
 
     def _unlabel(self, markers: np.ndarray) -> None:
         """Markers withdrawn (re-verification) or moved to other points by an extension: their
@@ -1436,8 +1437,10 @@ class BootingLabeler:
             setattr(self, name, getattr(shadow, name))
         if self._verifier is not None:  # the shadow's subjects, verified from now on
             for s in range(len(self.model.subjects)):
-                if (s in self._active) != self._verifier.verifies(s):
-                    (self._verifier.start if s in self._active else self._verifier.stop)(s)
+                # (not those the stream's labels placed: re-checked only, see _checked)
+                want = s in self._active and s not in self._from_labels
+                if want != self._verifier.verifies(s):
+                    (self._verifier.start if want else self._verifier.stop)(s)
         # the shadow's labels on this labeler's frames (their points, its track ids); frames
         # the shadow skipped (the catch-up's stride) keep none
         by_t = {f.t: f.labels for f in shadow._window}
@@ -1681,7 +1684,7 @@ def _catch_up_plan(
 _SHADOWED = (
     "_active", "_gone", "_recent", "_boot_wait", "_since_attempt", "_since_extend",
     "_extend_wait", "_inner", "_inner_state", "_inner_known", "_acquired_new", "_since_acquire",
-    "_blocked", "_reread",
+    "_blocked", "_from_labels",
 )  # fmt: skip
 
 

@@ -59,3 +59,37 @@ def test_a_reading_held_wrong_after_the_labels_is_read_back(walk, pair):
     right = _run(walk, pair)
     assert np.any(right[0] == False)  # noqa: E712 (the labels' reading, kept at first)
     assert np.all(right[12:] != False)  # noqa: E712 (from 0.1 s on: read back, when visible)
+
+
+def test_a_boot_caught_up_meanwhile_verifies_the_booted_only(walk):
+    """P1 labeled by the stream, P2 and P3 booted by an attempt installed 1 s later through
+    the catch-up (the service's path): the booted are verified, P1 is re-checked by the
+    extension but not verified (before, the catch-up's install verified every active subject,
+    P1 too, whose correct labels a model that never saw its pose may then withdraw)."""
+    from labeler_service.labeling.booting import BootingLabeler
+
+    model, cap = walk
+    names = list(model.marker_names)
+    to_model = np.array([names.index(lab) for lab in cap.labels], dtype=np.int64)
+    p1 = np.array([n.startswith("P1:") for n in names])
+    lab = BootingLabeler(model, RATE, inline_boot=False)
+    pending = None
+    installed = False
+    for f in range(cap.n_frames):
+        if pending is not None and f >= pending[0]:
+            _, snap, res = pending
+            assert lab.catch_up(snap, res)
+            lab.install_boot(snap, res)
+            installed, pending = True, None
+        pos = cap.positions[f]
+        seen = np.flatnonzero(np.isfinite(pos[:, 0]))
+        truth = to_model[seen]
+        labels = np.where(p1[truth], truth, -1).astype(np.int32) if f < LABELED else None
+        lab.process(pos[seen], f / RATE, labels)
+        if f >= LABELED and pending is None and not installed and lab.needs_boot():
+            snap = lab.boot_snapshot()
+            pending = (f + 1 + round(RATE), snap, lab.boot_step(snap))
+    assert installed and set(lab.active_subjects) == {"P1", "P2", "P3"}
+    v = lab._verifier
+    assert [v.verifies(s) for s in range(3)] == [False, True, True]
+    assert lab._checked() == [0, 1, 2]
