@@ -560,15 +560,18 @@ class BootingLabeler:
         self._since_attempt += 1
         self._since_extend += 1
         counts = np.bincount(self._subject_of[lab[lab >= 0]], minlength=len(self.model.subjects))
-        for s in np.flatnonzero(counts >= 3):
-            if self._verifier is not None:
-                self._verifier.stop(int(s))  # (labels from the stream are not re-verified)
-            self._from_labels = self._from_labels | {int(s)}
-            if int(s) not in self._active:
-                self._active.add(int(s))
+        for s in np.flatnonzero(counts >= 3).tolist():
+            # (labels from the stream are not re-verified; the verifier and the set change only
+            # when a subject's labels start: this runs on every labeled frame)
+            if self._verifier is not None and self._verifier.verifies(s):
+                self._verifier.stop(s)
+            if s not in self._from_labels:
+                self._from_labels = self._from_labels | {s}
+            if s not in self._active:
+                self._active.add(s)
                 self._recent[s] = 0.0
                 self._gone[s] = 0
-                self.events.append((t, "labeled", self.model.subjects[int(s)].name))
+                self.events.append((t, "labeled", self.model.subjects[s].name))
         self._labeled_run = True
         pos = np.full((m, 3), np.nan, dtype=np.float32)
         state = np.zeros(m, dtype=np.uint8)
