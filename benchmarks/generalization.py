@@ -382,16 +382,16 @@ def run_scene(
     cells: tuple[str, ...],
     seconds: float,
     max_frames: int,
-    boot: bool = False,
+    start: str = "window",
     labeled_start: str = "auto",
-    model_labels: bool = False,
 ) -> list[dict]:
-    """Every cell of one scene (a take alone gets only its ``alone`` cell); with ``boot`` also
-    scored from a model trained on other segments, with no labeled frame (``--start boot``);
-    ``labeled_start``: ``evaluate --labeled-start`` (``auto``, the default, runs the labeled
-    start through the model-based labeler, a model trained on the init window; ``labeler``:
-    the labeler trained in place); ``model_labels``: the model cells get the labeled init
-    frames too (``--start model``)."""
+    """Every cell of one scene (a take alone gets only its ``alone`` cell); ``start`` as
+    ``--start``: ``boot`` also scores it from a model trained on other segments with no labeled
+    frame, ``model`` from that model with the labeled init frames; ``labeled_start``:
+    ``evaluate --labeled-start`` (``auto``, the default, runs the labeled start through the
+    model-based labeler, a model trained on the init window; ``labeler``: the labeler trained
+    in place)."""
+    boot = start != "window"
     rate = scene.rate()
     frames = scene.frames(seconds, max_frames)
     full_frames = frames
@@ -467,7 +467,7 @@ def run_scene(
             }
         )
         if boot:
-            boot_init = init if model_labels else 0
+            boot_init = init if start == "model" else 0
             out[-1].update(_boot_fields(scene, plan, model, cap, opts, flags, out[-1], boot_init))
             out[-1]["scene_cut_from_frames"] = full_frames if frames < full_frames else None
     return out
@@ -523,7 +523,7 @@ def _pct(x: float | None) -> str:
     return "   -   " if x is None else f"{100 * x:7.3f}"
 
 
-def _run(job: tuple[Scene, tuple[str, ...], float, int, bool, str, bool]) -> list[dict]:
+def _run(job: tuple[Scene, tuple[str, ...], float, int, str, str]) -> list[dict]:
     return run_scene(*job)
 
 
@@ -729,11 +729,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         scenes = [s for s in scenes if s.name in args.only]
     cells = tuple(args.cells or (QUICK_CELLS if args.quick else _cells(1.0)))
-    boot = args.start in ("boot", "model")
-    jobs = [
-        (s, cells, args.seconds, args.max_frames, boot, args.labeled_start, args.start == "model")
-        for s in scenes
-    ]
+    boot = args.start != "window"
+    job = (cells, args.seconds, args.max_frames, args.start, args.labeled_start)
+    jobs = [(s, *job) for s in scenes]
     results: list[dict] = []
 
     def show(rows: list[dict]) -> None:
