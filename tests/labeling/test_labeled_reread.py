@@ -21,9 +21,9 @@ def walk():
     return split_walk(3, 6.0, seed=11, rate=RATE)
 
 
-def _run(walk, exchanged: tuple[str, str], labeled: int = LABELED):
+def _run(walk, exchanged: tuple[str, str]):
     """The second half of the walk through a booting labeler from the first half's model,
-    the first ``labeled`` frames labeled with ``exchanged`` (P1's) on each other's points;
+    the first ``LABELED`` frames labeled with ``exchanged`` (P1's) on each other's points;
     returns per frame after the labels whether each of the two markers' points carries its
     own label (None: not visible)."""
     model, cap = walk
@@ -38,8 +38,8 @@ def _run(walk, exchanged: tuple[str, str], labeled: int = LABELED):
         truth = to_model[seen]
         labels = truth.copy()
         labels[truth == a], labels[truth == b] = b, a
-        out = lab.process(pos[seen], f / RATE, labels.astype(np.int32) if f < labeled else None)
-        if f >= labeled:
+        out = lab.process(pos[seen], f / RATE, labels.astype(np.int32) if f < LABELED else None)
+        if f >= LABELED:
             got = out.point_labels
             # per marker: True right, False wrong, None not visible
             right.append(
