@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import tracemalloc
 import zipfile
 
 import numpy as np
@@ -307,6 +308,30 @@ def test_a_point_written_twice_is_read_once(tmp_path, rng, suffix: str) -> None:
     cap = read_capture(tmp_path / f"d{suffix}")
     assert cap.labels == ("P:M", "P:A", "P:C", "P:C2", "P:D")
     assert any("P:B = P:A" in n for n in cap.notes)
+
+
+def test_many_markers_at_one_position_read_in_linear_memory(tmp_path) -> None:
+    """A broken export that writes thousands of markers at one position (a 120 KB TRC of
+    one long row of ``1.0`` cells) must not make the reader's copy check enumerate every
+    coincident pair: 3,333 such markers took 2.2 GB and 10,000 more than 11 GB. Each point's
+    copies are looked for among its nearest few, so the check stays linear; the copies are
+    still left out, with the note."""
+    n = 2_000
+    np.savez(
+        tmp_path / "same.npz",
+        positions=np.ones((3, n, 3), dtype=np.float32),
+        labels=np.array([f"S:M{i}" for i in range(n)]),
+        rate=100.0,
+    )
+    tracemalloc.start()
+    try:
+        cap = read_capture(tmp_path / "same.npz")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50e6  # every pair (2 million tuples in a set) needed several hundred MB
+    assert cap.labels == ("S:M0",)
+    assert any("repeat another point exactly" in note for note in cap.notes)
 
 
 @pytest.mark.parametrize("suffix", [".c3d", ".trc"])
