@@ -121,5 +121,7 @@ def run(args: argparse.Namespace) -> int:
         where = exc.filename or cfg.out
         raise ModelError(f"{where}: cannot write: {exc.strerror or exc}") from exc
     summary["wall_s"] = round(time.perf_counter() - t0, 2)
-    print(json.dumps(summary))
+    from labeler_service.tools.subscribe import no_nan
+
+    print(json.dumps(no_nan(summary), allow_nan=False))
     return 0

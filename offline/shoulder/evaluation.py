@@ -44,6 +44,13 @@ def read_truth(path: str | Path) -> Truth:
         raise ModelError(f"{p}: no such truth file")
     try:
         with np.load(p, allow_pickle=False) as z:
+            need = ("labels", "segment", "segment_names", "joint_names", "joint_segments")
+            absent = [k for k in need if k not in z.files]
+            if absent:  # (numpy's KeyError read "no 'segment is not a file in the archive'")
+                raise ModelError(
+                    f"{p}: not a shoulder truth file (the truth.npz simulate-shoulder writes): "
+                    f"no {', '.join(repr(k) for k in absent)} array in it"
+                )
             joints = {k.split(":", 1)[1]: z[k] for k in z.files if k.startswith("joints:")}
             return Truth(
                 labels=tuple(str(x) for x in z["labels"]),
@@ -53,8 +60,6 @@ def read_truth(path: str | Path) -> Truth:
                 joint_segments=np.asarray(z["joint_segments"], dtype=np.intp),
                 joints=joints,
             )
-    except KeyError as exc:
-        raise ModelError(f"{p}: not a shoulder truth file: no {exc} in it") from exc
     except (ValueError, OSError) as exc:
         # (numpy's own message suggested allow_pickle for a JSON file given here)
         raise ModelError(

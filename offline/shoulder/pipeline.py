@@ -91,6 +91,11 @@ def load_test(path: Path, labels: tuple[str, ...], up: str) -> tuple[np.ndarray,
             missing.append(label)
     if len(missing) == len(labels):
         raise CaptureFormatError(f"{path}: none of the training markers are in this capture")
+    if not np.isfinite(pos[..., 0]).any():
+        raise CaptureFormatError(
+            f"{path}: no training marker is visible in any of its {cap.n_frames} frames: "
+            "nothing to measure the synthesis error on"
+        )
     notes = [f"{len(missing)} training markers absent: counted as missing"] if missing else []
     return pos, notes
 

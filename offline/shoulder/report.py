@@ -61,7 +61,10 @@ def skeleton_dict(model: ShoulderSkeleton, labels: Sequence[str]) -> dict:
 
 
 def write_json(path: Path, obj: object) -> Path:
-    path.write_text(json.dumps(obj, indent=1) + "\n", encoding="utf-8")
+    """``obj`` as strict JSON: a measurement a run could not make is ``null``, not ``NaN``."""
+    from labeler_service.tools.subscribe import no_nan
+
+    path.write_text(json.dumps(no_nan(obj), indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return path
 
 

@@ -7,6 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from labeler_service.capture import Capture
+from labeler_service.capture.io import read_capture, write_capture
 from labeler_service.cli.main import main
 from offline.shoulder.evaluation import adjusted_rand_index, read_truth
 from offline.shoulder.model import MG03Baseline, ShoulderSkeleton, prepare_surface
@@ -185,6 +187,20 @@ def test_train_shoulder_mistakes_are_one_line_errors(tmp_path, capsys):
     assert main([*base, "--truth", str(other / "truth.npz"), "--out", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
     assert "cover 80 frames, the capture 60" in err, err
+    # a truth file of another kind (a labeler's npz): its missing arrays named plainly (the
+    # message read "no 'segment is not a file in the archive' in it")
+    np.savez(tmp_path / "out.npz", labels=np.array(["a"]), positions=np.zeros((1, 1, 3)))
+    assert main([*base, "--truth", str(tmp_path / "out.npz"), "--out", str(tmp_path / "o4")]) == 2
+    err = capsys.readouterr().err
+    assert "no 'segment', 'segment_names', 'joint_names', 'joint_segments' array" in err, err
+    # a test motion in which no training marker is ever visible: its errors were NaN, printed
+    # as the bare token strict JSON parsers refuse, and the run exited 0
+    blank = read_capture(rom)
+    blank = Capture(np.full_like(blank.positions, np.nan), blank.labels, blank.rate, source="x")
+    write_capture(blank, tmp_path / "blank.c3d")
+    assert main([*base, "--test", str(tmp_path / "blank.c3d"), "--out", str(tmp_path / "o5")]) == 2
+    err = capsys.readouterr().err
+    assert "no training marker is visible in any of its 60 frames" in err, err
     for bad in ("nan", "-1", "0", "1", "inf"):  # each kept no triangle; the report said "<= nan"
         with pytest.raises(SystemExit) as stop:
             main([*base, "--max-strain", bad, "--out", str(tmp_path / "o3")])
