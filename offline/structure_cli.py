@@ -61,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
         up=args.up,
     ).fit(_read_takes(args.inputs, args.up, _renames(args.rename)))
     model = trainer.model_
+    _check_present(model)
     save_model(model, args.out)
     twins = same_templates(model)
     summary = {
@@ -98,6 +99,30 @@ def run(args: argparse.Namespace) -> int:
                   "called which at the first boot is arbitrary")  # fmt: skip
         print(f"wrote {args.out}")
     return 0
+
+
+def _check_present(model) -> None:
+    """Refuses a model with a subject the labeler could never see present: fewer of its
+    markers in rigid bodies (seen in 3 or more training frames) than the presence check needs
+    (``LabelerConfig.presence_min_markers``). Such a template labels nothing, and the boot that
+    then finds no one blamed the performers' distances (a hostile run: a take with one visible
+    marker gave "39 markers in 1 rigid bodies" and exit 0)."""
+    from labeler_service.errors import ModelError
+    from labeler_service.labeling.config import LabelerConfig
+
+    need = LabelerConfig().presence_min_markers
+    thin = []
+    for s in model.subjects:
+        seen = len(s.markers) - len(s.no_body)
+        if seen < need:
+            thin.append(f"{s.name} ({seen} of {len(s.markers)})")
+    if thin:
+        raise ModelError(
+            f"too few markers seen in the training frames to ever label "
+            f"{'this subject' if len(thin) == 1 else 'these subjects'}: {', '.join(thin)}; a "
+            f"subject needs {need} or more markers each seen in 3 or more frames. Train on "
+            "frames where the subject is in view (TAKE:start:stop)"
+        )
 
 
 def _check_out(out: str, inputs: list[str]) -> None:

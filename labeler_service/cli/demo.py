@@ -106,10 +106,11 @@ def resolve_start(
         if init_frames:
             raise MocapError("--start boot sends no labels: leave --init-frames out (or 0)")
         return start, 0
-    if init_frames == 0:
-        raise MocapError("--start window needs labeled frames: --init-frames >= 1")
     from labeler_service.labeling.labeler import MIN_TRAIN_FRAMES
 
+    if init_frames == 0:  # (said ">= 1", and 1 and 2 were then refused for the online labeler)
+        need = MIN_TRAIN_FRAMES if labeler == "online" else 1
+        raise MocapError(f"--start window needs labeled frames: --init-frames >= {need}")
     if labeler == "online" and init_frames is not None and init_frames < MIN_TRAIN_FRAMES:
         # (the service's training refused them and the demo ran on, every frame dropped)
         raise MocapError(

@@ -577,12 +577,16 @@ class Server:
                 st.status = "idle"
                 st.labeled_fraction = st.recovered_fraction = float("nan")
                 self.metrics.health(name, 0.0, 0.0)
-                kept = (
-                    "its labeler is kept for the sender's return"
-                    if st.labeler is not None
-                    else "it has no labeler yet (no model, and no labeled init frames kept to "
-                    "train one)"
-                )
+                if st.labeler is not None:
+                    kept = "its labeler is kept for the sender's return"
+                elif st.init_frames:  # (the labeler is trained when unlabeled frames come)
+                    n_init = len(st.init_frames)
+                    kept = (
+                        f"its {n_init} labeled init frame{'s' * (n_init != 1)} are kept: its "
+                        "labeler is trained when the first unlabeled frame arrives"
+                    )
+                else:
+                    kept = "it has no labeler yet (no model, and no labeled init frames kept)"
                 self._rlog.warning(f"idle-{name}", "stream %s: no frame for %.1f s (the last "
                                    "from %s): status idle; %s", name, quiet,
                                    _who(st.sender), kept)  # fmt: skip

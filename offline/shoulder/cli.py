@@ -9,7 +9,8 @@ Park and Hodgins (2009).
 
 TRAIN is the training capture (range of motion). Each ``--test`` is a test motion with the same
 markers (labels matched by name; a marker the test lacks counts as missing); its name is NAME or
-the file stem. ``--faces`` gives the marker surface (else built from the rest pose, see
+the file stem. TRAIN and each test FILE may be ``FILE[:start[:stop]]`` (a frame range, as
+``train structure`` and ``label`` take it). ``--faces`` gives the marker surface (else built from the rest pose, see
 :mod:`offline.shoulder.triangles`); ``--truth`` a ``truth.npz`` from ``simulate-shoulder`` to
 check segments and joint centres. With several subjects in TRAIN, ``--subject`` picks the one
 to segment (default: the one with most markers); other subjects (e.g. a handled box) and

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from labeler_service.capture import Capture, read_capture
+from labeler_service.capture import Capture
+from labeler_service.capture.io import read_segment
 from labeler_service.errors import CaptureFormatError, ModelError
 from offline.shoulder.evaluation import (
     Truth,
@@ -52,8 +53,9 @@ class TrainConfig:
 
 
 def load_training(path: Path, subject: str | None, up: str) -> tuple[Capture, list[str]]:
-    """The training capture restricted to one subject; notes say what was excluded."""
-    cap = read_capture(path, up=up)
+    """The training capture (``FILE[:start[:stop]]``, frames) restricted to one subject; notes
+    say what was excluded."""
+    cap = read_segment(path, up=up)
     notes = list(cap.notes)
     subjects = cap.subjects
     if not subjects:
@@ -79,8 +81,9 @@ def load_training(path: Path, subject: str | None, up: str) -> tuple[Capture, li
 
 
 def load_test(path: Path, labels: tuple[str, ...], up: str) -> tuple[np.ndarray, list[str]]:
-    """Positions ``(F, M, 3)`` of a test capture in the training marker order."""
-    cap = read_capture(path, up=up)
+    """Positions ``(F, M, 3)`` of a test capture (``FILE[:start[:stop]]``) in the training
+    marker order."""
+    cap = read_segment(path, up=up)
     index = {x: i for i, x in enumerate(cap.labels)}
     pos = np.full((cap.n_frames, len(labels), 3), np.nan)
     missing = []

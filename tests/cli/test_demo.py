@@ -65,8 +65,11 @@ def test_start_options_resolve_to_one_start():
     assert resolve_start("boot", None) == ("boot", 0)
     with pytest.raises(MocapError, match="sends no labels"):
         resolve_start("boot", 50)
-    with pytest.raises(MocapError, match="needs labeled frames"):
+    # the least it takes, per labeler (it said ">= 1", then refused 1 and 2 for the online one)
+    with pytest.raises(MocapError, match="needs labeled frames: --init-frames >= 3"):
         resolve_start("labeled", 0)
+    with pytest.raises(MocapError, match="needs labeled frames: --init-frames >= 1"):
+        resolve_start("labeled", 0, "baseline")
     # the online labeler trains on 3+ labeled frames: fewer ran the demo with every frame
     # dropped ("training failed") and exit 0; the closest-point baseline needs one
     for n in (1, 2):

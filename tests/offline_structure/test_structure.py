@@ -139,6 +139,27 @@ def test_cli_names_a_split_track_that_will_never_be_labeled(rng, tmp_path, capsy
     assert "never labeled (no body" in capsys.readouterr().out
 
 
+def test_cli_refuses_a_subject_it_could_never_label(rng, tmp_path, capsys):
+    """A take in which only two of a subject's markers are ever seen trained a model of one
+    two-marker body (exit 0); the labeler needs three markers to see a subject present, so
+    that template labels nothing, and the boot then blamed the performers' distances. It is
+    refused, naming the subject and what was seen, and no model is written."""
+    cap = _capture(rng, subjects=2, frames=120)
+    pos = cap.positions.copy()
+    p1 = [i for i, name in enumerate(cap.labels) if name.startswith("P1:")]
+    pos[:, p1[2:]] = np.nan  # P1: two markers seen
+    src = tmp_path / "take.npz"
+    write_capture(Capture(pos, cap.labels, cap.rate), src)
+    out = tmp_path / "model.json"
+    assert main(["train", "structure", str(src), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"to ever label this subject: P1 (2 of {len(p1)})" in err, err
+    assert not out.exists()
+    pos[:, p1[2]] = cap.positions[:, p1[2]]  # three: enough
+    write_capture(Capture(pos, cap.labels, cap.rate), src)
+    assert main(["train", "structure", str(src), "--out", str(out)]) == 0
+
+
 @pytest.mark.realdata
 def test_technical_clusters_each_land_in_one_body(real_path):
     model = StructureTrainer().fit([real_path("clusters_73markers_100hz.c3d")]).model_

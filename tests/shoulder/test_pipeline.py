@@ -201,6 +201,16 @@ def test_train_shoulder_mistakes_are_one_line_errors(tmp_path, capsys):
     assert main([*base, "--test", str(tmp_path / "blank.c3d"), "--out", str(tmp_path / "o5")]) == 2
     err = capsys.readouterr().err
     assert "no training marker is visible in any of its 60 frames" in err, err
+    # FILE[:start[:stop]] as every other command takes a capture ("no such file" before)
+    seg = [*base[:2], f"{rom}:0:50", *base[3:], "--test", f"seg={rom}:30:60"]
+    assert main([*seg, "--out", str(tmp_path / "o6")]) == 0
+    capsys.readouterr()
+    assert set(json.loads((tmp_path / "o6" / "results.json").read_text())["errors"]) == {
+        "rom",
+        "seg",
+    }
+    assert main([*base, "--test", f"late={rom}:70", "--out", str(tmp_path / "o7")]) == 2
+    assert "start 70 is past the capture's 60 frames" in capsys.readouterr().err
     for bad in ("nan", "-1", "0", "1", "inf"):  # each kept no triangle; the report said "<= nan"
         with pytest.raises(SystemExit) as stop:
             main([*base, "--max-strain", bad, "--out", str(tmp_path / "o3")])
