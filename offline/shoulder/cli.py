@@ -10,15 +10,15 @@ Park and Hodgins (2009).
 TRAIN is the training capture (range of motion). Each ``--test`` is a test motion with the same
 markers (labels matched by name; a marker the test lacks counts as missing); its name is NAME or
 the file stem. TRAIN and each test FILE may be ``FILE[:start[:stop]]`` (a frame range, as
-``train structure`` and ``label`` take it). ``--faces`` gives the marker surface (else built from the rest pose, see
-:mod:`offline.shoulder.triangles`); ``--truth`` a ``truth.npz`` from ``simulate-shoulder`` to
-check segments and joint centres. With several subjects in TRAIN, ``--subject`` picks the one
-to segment (default: the one with most markers); other subjects (e.g. a handled box) and
-unlabeled tracks are excluded. Writes to DIR: ``report.md``, ``results.json``,
-``skeleton_k<k>.json``, ``faces.txt``, plots ``error_train.png``, ``error_test_full.png``,
-``error_test_reduced.png``, ``segments_k<k>.png``; those files of an earlier run in DIR that
-this run does not write (another ``--k``, ``--no-plots``) are removed, with a note. The last
-stdout line is a JSON summary.
+``train structure`` and ``label`` take it). ``--faces`` gives the marker surface (else built
+from the rest pose, see :mod:`offline.shoulder.triangles`); ``--truth`` a ``truth.npz`` from
+``simulate-shoulder`` to check segments and joint centres. With several subjects in TRAIN,
+``--subject`` picks the one to segment (default: the one with most markers); other subjects
+(e.g. a handled box) and unlabeled tracks are excluded. Writes to DIR: ``report.md``,
+``results.json``, ``skeleton_k<k>.json``, ``faces.txt``, plots ``error_train.png``,
+``error_test_full.png``, ``error_test_reduced.png``, ``segments_k<k>.png``; those files of an
+earlier run in DIR that this run does not write (another ``--k``, ``--no-plots``) are removed,
+with a note. The last stdout line is a JSON summary.
 """
 
 from __future__ import annotations
