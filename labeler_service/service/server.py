@@ -824,6 +824,16 @@ class Server:
             self._boot_news(state)
             if self._published_model.get(state.name) != state.model_id:
                 await self._publish_model(state)
+            behind_s = (time.time_ns() - recv_ns) / 1e9
+            if behind_s > self.settings.behind_warn_s:
+                # (a stream too heavy for its rate, or one that shares the labeling with a
+                # heavy one, aged its frames 0.7 s in its queue and said only ``degraded``)
+                self._rlog.warning(f"behind-{state.name}", "stream %s: falling behind: a "
+                                   "frame published %.0f ms after it arrived (labeling %.1f "
+                                   "ms for its %d points; %d frames queued; %d streams share "
+                                   "the labeling)", state.name, 1e3 * behind_s,
+                                   1e3 * out.label_s, len(msg.points), len(queue),
+                                   len(self.streams))  # fmt: skip
             sent_ok = await self._send_all(state.name, "labeled", out.payload)
             if sent_ok:
                 self.metrics.frame_out(

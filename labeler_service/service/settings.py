@@ -290,6 +290,10 @@ class ServiceSettings(BaseSettings):
     #: between frames, when longer) reads ``idle`` (its labeler kept; the next frame gives the
     #: status back).
     silent_after_s: float = Field(1.0, gt=0)
+    #: A frame published this long after it arrived says the stream is falling behind: a
+    #: rate-limited warning names its labeling time, points and queue (drops, when the queue
+    #: is full, are counted as ``queue_full`` as before; this is said before any is).
+    behind_warn_s: float = Field(0.25, gt=0)
     #: Input validation caps (checked once, at decode).
     max_points: int = Field(2000, ge=1)
     max_message_bytes: int = Field(UDP_MAX_PAYLOAD, ge=64)
