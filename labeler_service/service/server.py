@@ -275,6 +275,13 @@ class Server:
         try:
             for line in exposure_warnings(self.settings):
                 log.warning("%s", line)
+            for s in self.settings.streams:
+                # a broken model file fails before anything binds a port or warms up (it bound
+                # UDP first: a supervisor saw the port taken, then the error)
+                if s.model is not None:
+                    from labeler_service.labeling.templates import load_model
+
+                    await asyncio.to_thread(load_model, s.model)
             if self.settings.metrics_port is not None:
                 # before the warm-up: a port in use fails at once, not after it
                 try:
@@ -294,11 +301,6 @@ class Server:
                     self.metrics.receive_buffer.set(rcvbuf)
             for s in self.settings.streams:
                 await self._status(s.name, "starting")
-            for s in self.settings.streams:
-                if s.model is not None:  # a broken model file fails before the warm-up
-                    from labeler_service.labeling.templates import load_model
-
-                    await asyncio.to_thread(load_model, s.model)
             if self.settings.warmup:
                 log.info("warming up the kernels (the first start after an install compiles "
                          "them: a minute or more)")  # fmt: skip

@@ -866,3 +866,22 @@ def test_configured_streams_jobs_go_before_those_of_streams_opened_by_name():
     assert _priority(SimpleNamespace(configured=True)) < _priority(
         SimpleNamespace(configured=False)
     )
+
+
+def test_a_broken_model_file_fails_before_any_transport_binds(tmp_path):
+    """``serve`` with a stream whose model file is broken bound its UDP port first, then
+    failed: a supervisor saw the port taken before the error. The model is read first."""
+    from labeler_service.errors import ModelError
+
+    bad = tmp_path / "m.json"
+    bad.write_text('{"rate": 100.0, "subjects": [{"name": "P", "markers": ["a"]}]}')
+    mem = MemoryTransport()
+    settings = _settings(warmup=False, streams=[{"name": "vol", "model": str(bad)}])
+
+    async def go():
+        async with Server(settings, [mem]):
+            pass
+
+    with pytest.raises(ModelError):
+        run(go())
+    assert not mem.entered
