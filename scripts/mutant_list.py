@@ -1072,4 +1072,32 @@ MUTANTS: list[Mutant] = [
         "a boot installed through the catch-up verifies the subjects the stream's labels placed "
         "too (withdrawals of correct labels in a pose the model never saw)",
     ),
+    Mutant(
+        "copy-check-every-coincident-pair",
+        "labeler_service/capture/io.py",
+        "            k = min(idx.size, COPY_NEIGHBOURS + 1)\n",
+        "            k = idx.size\n",
+        (T + "capture/test_io.py",),
+        "a capture with thousands of markers at one position is read in memory in the square of "
+        "their count",
+        k="linear_memory",
+    ),
+    Mutant(
+        "model-of-a-subject-never-present",
+        "offline/structure_cli.py",
+        "        if seen < need:\n",
+        "        if seen < 1:\n",
+        (T + "offline_structure/test_structure.py",),
+        "train structure writes a model whose subject the labeler can never see present",
+        k="never_label",
+    ),
+    Mutant(
+        "stream-behind-in-silence",
+        "labeler_service/service/server.py",
+        "            if behind_s > self.settings.behind_warn_s:\n",
+        "            if behind_s > 1e9:\n",
+        (T + "service/test_drops.py",),
+        "a stream whose frames wait in its queue says nothing until frames are dropped",
+        k="falling_behind",
+    ),
 ]
