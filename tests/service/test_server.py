@@ -806,29 +806,20 @@ def test_an_idle_stream_that_never_had_a_labeler_says_so(rng, caplog):
     cap = moving_clusters(rng, frames=40)
     caplog.set_level(logging.INFO, logger="labeler_service.service.server")
 
-    async def go():
+    async def go(init: int, frames: int):  # then a pause
         mem = MemoryTransport()
         async with Server(_settings(warmup=False, silent_after_s=0.3), [mem]):
-            for p in stream_payloads(cap, rng, init=0)[:30]:
+            for p in stream_payloads(cap, rng, init=init)[:frames]:
                 mem.inject(p, reply_to=("10.0.0.1", 4001))
                 await asyncio.sleep(1 / 120)
             await until(lambda: "status idle" in caplog.text, "idle")
 
-    run(go())
+    run(go(0, 30))
     no_labeler = "it has no labeler yet (no model, and no labeled init frames kept)"
     assert f"status idle; {no_labeler}" in caplog.text
     assert "kept for the sender's return" not in caplog.text
     caplog.clear()
-
-    async def init_only():  # labeled init frames, then a pause: they are kept, and it says so
-        mem = MemoryTransport()
-        async with Server(_settings(warmup=False, silent_after_s=0.3), [mem]):
-            for p in stream_payloads(cap, rng, init=20)[:20]:
-                mem.inject(p, reply_to=("10.0.0.1", 4001))
-                await asyncio.sleep(1 / 120)
-            await until(lambda: "status idle" in caplog.text, "idle")
-
-    run(init_only())
+    run(go(20, 20))  # labeled init frames only: they are kept, and it says so
     assert "status idle; its 20 labeled init frames are kept: its labeler is trained when the " in (
         caplog.text
     ), caplog.text
