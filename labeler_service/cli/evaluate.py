@@ -265,6 +265,9 @@ def _print_table(report: dict, no_body: set[str] | frozenset[str] = frozenset())
                 f"never booted: {', '.join(never)} (its samples count in accuracy, not in "
                 "accuracy after boot)"
             )
+            other = _labeled_as_others(report["errors"])
+            if other:
+                console.print(f"  {other}")
             for name in never:
                 stuck = _boot_blockers(report["worst_markers"], name, no_body)
                 if stuck:
@@ -286,6 +289,21 @@ def _print_table(report: dict, no_body: set[str] | frozenset[str] = frozenset())
     worst = ", ".join(f"{w['marker']} {w['errors']}" for w in report["worst_markers"])
     if worst:
         console.print(f"worst markers: {worst}")
+
+
+def _labeled_as_others(errors: dict) -> str:
+    """For the summary of a run where a subject never booted: the samples that carried another
+    subject's labels, when they are at least a tenth of the errors ("" otherwise). A subject
+    booted onto another performer (one person's copy: the same template) read only "never
+    booted", as if nothing had been labeled."""
+    cross = int(errors.get("cross_subject", 0))
+    total = cross + int(errors.get("same_subject", 0)) + int(errors.get("unlabeled", 0))
+    if cross == 0 or 10 * cross < total:
+        return ""
+    return (
+        f"{cross} samples carried another subject's labels: a subject was booted onto another "
+        "performer's points (a model cannot tell two performers of one template apart)"
+    )
 
 
 def _boot_blockers(worst: list[dict], subject: str, no_body: set[str] | frozenset[str]) -> str:

@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     if s["unlabeled_tracks"]:
         print(f"  {plural(s['unlabeled_tracks'], 'unlabeled track')} (*N)")
     if s["never_visible"]:
-        print(f"  never visible: {', '.join(s['never_visible'])}")
+        print(f"  never visible: {_some(s['never_visible'])}")
     print(
         f"  {plural(s['gaps'], 'gap')} inside tracks "
         f"(longest {plural(s['gap_frames_max'], 'frame')}, "
@@ -109,3 +109,16 @@ def run(args: argparse.Namespace) -> int:
     for note in s["notes"]:
         print(f"  note: {note}")
     return 0
+
+
+#: names the text summary lists before "and N more" (the JSON lists them all)
+LISTED = 12
+
+
+def _some(names: list[str]) -> str:
+    """``names`` for one line of the summary: all of them up to :data:`LISTED`, else the first
+    ones and how many more (a recording of a model's 500 markers printed every name on one
+    line); ``--json`` keeps the whole list."""
+    if len(names) <= LISTED:
+        return ", ".join(names)
+    return f"{len(names)} markers: {', '.join(names[:LISTED])} and {len(names) - LISTED} more"

@@ -1458,7 +1458,11 @@ class StreamState:
             # the same gap sent as frames with no point (a camera dropout): a hostile run's
             # 0.3 s of empty frames left two performers' pelvis mirrored and feet exchanged
             # to the end of the stream (540-765 wrong labels a half second), the stream online
-            why = f"{blackout:.2f} s without a point (a camera dropout) before this frame"
+            # (or every performer out of view: the stream cannot tell the two apart)
+            why = (
+                f"{blackout:.2f} s without a point (a camera dropout, or every performer out of "
+                "view) before this frame"
+            )
             if not self.start_recovery(why):
                 self.reboot(why)
         elif self._waits_for_labels():

@@ -127,6 +127,10 @@ class UnitCheck:
         self._quiet_since: float | None = None  # the nothing-labeled run, for the match check
         self._counts: list[int] = []
         self._units_off = False  # a unit warning was given in this run: it says it better
+        #: match warnings given in this nothing-labeled stretch: each waits twice as long as
+        #: the one before (MATCH_S, 2 MATCH_S, 4 MATCH_S...; it came every 10 s for as long
+        #: as a stream of other performers ran)
+        self._repeats = 0
         self.warnings = 0  # warnings returned (tests, the log line)
 
     def reset(self) -> None:
@@ -138,6 +142,7 @@ class UnitCheck:
         first frame gave the previous run's counts and the jump in ``t`` as its duration)."""
         self.reset()
         self._reset_match()
+        self._repeats = 0
 
     def _reset_match(self) -> None:
         self._quiet_since, self._counts, self._units_off = None, [], False
@@ -149,7 +154,7 @@ class UnitCheck:
             self._quiet_since, self._counts = t, []
         self._counts.append(len(points))
         dt = t - self._quiet_since
-        if dt < MATCH_S:
+        if dt < MATCH_S * 2**self._repeats:
             return None
         counts, units_off = self._counts, self._units_off
         self._reset_match()
@@ -157,7 +162,9 @@ class UnitCheck:
         if units_off:
             return None
         self.warnings += 1
-        return match_warning(stream, model, counts, dt)
+        self._repeats += 1
+        again = f" (said again after {MATCH_S * 2**self._repeats:g} s of the same)"
+        return match_warning(stream, model, counts, dt) + again
 
     def model_doubt(self, model: object) -> str:
         """While the stream has labeled nothing: its points per frame so far beside its
@@ -187,6 +194,7 @@ class UnitCheck:
         if self._scale <= 0.0 or observed > 0:
             self.reset()
             self._reset_match()
+            self._repeats = 0
             return None
         match = self._match(stream, points, t, model)
         if match is not None:

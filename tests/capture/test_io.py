@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import os
 import tracemalloc
 import zipfile
@@ -456,3 +457,21 @@ def test_npz_labels_as_bytes_or_a_column(tmp_path, rng) -> None:
     np.savez(path, positions=pos, labels=names[:, None], rate=100.0)
     with pytest.raises(CaptureError, match=r"labels must be a 1-D array, got shape \(3, 1\)"):
         read_capture(path)
+
+
+def test_info_lists_a_few_never_visible_markers_and_counts_the_rest(tmp_path, capsys) -> None:
+    """A recording of a model's many markers, most never seen, printed every name on one
+    "never visible" line; the text lists the first few and counts the rest, ``--json`` all."""
+    n = 40
+    pos = np.full((5, n, 3), np.nan, dtype=np.float32)
+    pos[:, 0] = [[0.0, 0.0, 1000.0]]
+    np.savez(tmp_path / "r.npz", positions=pos, labels=np.array([f"S:M{i}" for i in range(n)]),
+             rate=100.0)  # fmt: skip
+    assert main(["info", str(tmp_path / "r.npz")]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if "never visible" in x][0]
+    assert line.strip() == (
+        "never visible: 39 markers: " + ", ".join(f"S:M{i}" for i in range(1, 13)) + " and 27 more"
+    ), line
+    assert main(["info", str(tmp_path / "r.npz"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert len(summary["never_visible"]) == 39

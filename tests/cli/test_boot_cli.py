@@ -325,3 +325,30 @@ def test_replay_with_no_init_frames_sends_no_labels(scene):
 
     stats = asyncio.run(replay(frames, send, init_frames=0, speed=0))
     assert stats.sent == 20 and all(m.labels is None for m in sent)
+
+
+def test_never_booted_says_when_samples_carried_another_subjects_labels():
+    """A subject booted onto another performer's points (one person's copy: one template)
+    read only "never booted", as if nothing had been labeled; the summary now says the
+    samples carried another subject's labels, and says nothing when they are a small share."""
+    from labeler_service.cli.evaluate import _labeled_as_others
+
+    said = _labeled_as_others({"same_subject": 0, "cross_subject": 23175, "unlabeled": 23547})
+    assert said.startswith("23175 samples carried another subject's labels"), said
+    assert _labeled_as_others({"same_subject": 50, "cross_subject": 4, "unlabeled": 900}) == ""
+    assert _labeled_as_others({"same_subject": 0, "cross_subject": 0, "unlabeled": 10}) == ""
+
+
+@pytest.mark.realdata
+def test_a_copied_performer_booted_onto_the_other_is_said(real_path, tmp_path, capsys):
+    """The tennis data's two players are one person copied: a model of the server boots him
+    on his copy's points; `evaluate` says so beside "never booted"."""
+    tennis = real_path("tennis_serve_pig_39markers_50hz.c3d")
+    copy = real_path("two_players_shifted_copy_50hz.c3d")
+    model = tmp_path / "tennis.json"
+    assert main(["train", "structure", f"{tennis}:0:600", "--out", str(model)]) == 0
+    capsys.readouterr()
+    main(["evaluate", f"{copy}:0:200", "--model", str(model), "--init-frames", "0"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "never booted: Derrick, Viktor" in out, out
+    assert "samples carried another subject's labels" in out, out

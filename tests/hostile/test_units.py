@@ -196,6 +196,22 @@ def test_the_match_check_waits_for_points_and_gives_way_to_the_unit_warning(mode
     assert said and all("metres" in g for g in said)
 
 
+def test_the_match_check_says_it_less_and_less_often(model_path):
+    """A stream of other performers (nothing ever labeled) logged the points-against-markers
+    line every 10 s for as long as it ran. Each repeat now waits twice as long (10, 20, 40 s
+    of stream) and says when it comes again; a label starts the count over."""
+    model = load_model(model_path)
+    person = np.random.default_rng(0).normal(scale=300.0, size=(12, 3)).astype(np.float32)
+    chk = UnitCheck()
+    times = [k / 10 for k in range(1, 751)]  # 75 s at 10 Hz
+    said = [t for t in times if chk.update("v", person, t, 0, model) is not None]
+    assert said == pytest.approx([10.1, 30.2, 70.3], abs=0.05), said
+    chk.update("v", person, 75.1, 4, model)  # a label
+    got = [chk.update("v", person, 75.1 + k / 10, 0, model) for k in range(1, 102)]
+    assert [g is not None for g in got].count(True) == 1 and got[-1] is not None
+    assert "(said again after 20 s of the same)" in got[-1]
+
+
 def test_a_new_run_forgets_the_previous_runs_points_for_the_match_check(model_path):
     """A sender of another marker set (62 points) for 5 s, then the right one from ``t`` =
     100 (a new run): the match check said at the new run's first frame "nothing labeled for
