@@ -48,6 +48,7 @@ async def serve(
         from labeler_service.service.server import Server
 
         srv = Server(settings)
+        srv.compile_apart = True  # (the kernels compile in a child: docs/service.md)
         if not await _start_unless_stopped(srv, stop):
             log.warning("stopped during the start; the service did not serve")
             if abandon is not None:

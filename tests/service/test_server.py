@@ -876,3 +876,33 @@ def test_a_broken_model_file_fails_before_any_transport_binds(tmp_path):
     with pytest.raises(ModelError):
         run(go())
     assert not mem.entered
+
+
+def test_serve_compiles_the_kernels_in_a_child_process(caplog, monkeypatch):
+    """The first ``serve`` after an install compiled the kernels in its own process and kept
+    about 1 GB resident for its life (280 MB after a start from the cache): ``serve`` sets
+    ``compile_apart``, which runs the start's warm-ups in a child first, so the service loads
+    them from numba's cache. Servers built directly (these tests) warm up in process."""
+    import logging
+
+    from labeler_service.cli import serve as serve_cli
+    from labeler_service.service.server import compile_apart
+
+    caplog.set_level(logging.INFO, logger="labeler_service.service.server")
+    run(compile_apart(_settings(warmup=True)))
+    assert "found in the cache by a child process" in caplog.text, caplog.text
+    assert "failed" not in caplog.text
+    assert Server.compile_apart is False
+    seen = []
+
+    class Probe(Server):  # what `serve` starts: records the flag and stops there
+        async def __aenter__(self):
+            seen.append(self.compile_apart)
+            raise RuntimeError("probe")
+
+    import labeler_service.service.server as server_module
+
+    monkeypatch.setattr(server_module, "Server", Probe)
+    with pytest.raises(RuntimeError, match="probe"):
+        run(serve_cli.serve(_settings(warmup=False)))
+    assert seen == [True]
