@@ -70,7 +70,12 @@ from labeler_service.errors import (
 )
 from labeler_service.labeling.frame import FrameLabeler
 from labeler_service.labeling.registry import LabelerFactory, make_labeler
-from labeler_service.service.background import Background, configure_allocator, release_memory
+from labeler_service.service.background import (
+    Background,
+    configure_allocator,
+    release_memory,
+    run_in_process,
+)
 from labeler_service.service.boot_worker import BootWorker
 from labeler_service.service.continuity import ACCEPT, Verdict
 from labeler_service.service.handover import YIELD_S
@@ -229,32 +234,29 @@ def warm_up_all(settings: ServiceSettings, factory: LabelerFactory = make_labele
 
 
 async def compile_apart(settings: ServiceSettings) -> None:
-    """Runs :func:`warm_up_all` in a child process first, so that numba compiles there and the
-    service then loads the compiled kernels from its on-disk cache. Compiling in the service's
-    own process kept about 1 GB resident for its whole life (a hostile soak: 1.03 GB after the
-    first start's compile, 280-290 MB after later starts; ``warm_up`` alone 947 against 214
-    MB). A warm cache costs the child about 1.3 s. A child that fails is logged and the
-    service warms up in process as before; a stop during the start ends the child."""
-    import multiprocessing
-
-    child = multiprocessing.get_context("spawn").Process(
-        target=warm_up_all, args=(settings,), name="kernel-compile", daemon=True
-    )
+    """Runs :func:`warm_up_all` in a child process first (:func:`~.background.run_in_process`,
+    the window model's mechanism: SIGINT blocked in the child, ended on a stop), so that numba
+    compiles there and the service then loads the compiled kernels from its on-disk cache.
+    Compiling in the service's own process kept about 1 GB resident for its whole life (a
+    hostile soak: 1.03 GB after the first start's compile, 280-290 MB after later starts;
+    ``warm_up`` alone 947 against 214 MB). A warm cache costs the child about 1.3 s. A child
+    that fails is logged and the service warms up in process as before; a stop during the
+    start ends the child."""
+    cancel = threading.Event()
     t0 = time.perf_counter()
-    child.start()
     try:
-        while child.is_alive():
-            await asyncio.sleep(0.1)
-    finally:
-        if child.is_alive():  # (cancelled: a stop during the start)
-            child.terminate()
-            child.join(5.0)
-    if child.exitcode != 0:
-        log.warning("the kernels' compile in a child process failed (exit %s): compiling them "
-                    "in the service's process", child.exitcode)  # fmt: skip
-    else:
-        log.info("kernels compiled or found in the cache by a child process (%.1f s)",
-                 time.perf_counter() - t0)  # fmt: skip
+        await asyncio.to_thread(
+            run_in_process, warm_up_all, settings, cancel=cancel, name="kernel compile"
+        )
+    except asyncio.CancelledError:  # a stop during the start
+        cancel.set()
+        raise
+    except LabelerError as exc:
+        log.warning("the kernels' compile in a child process failed (%s): compiling them in "
+                    "the service's process", exc)  # fmt: skip
+        return
+    log.info("kernels compiled or found in the cache by a child process (%.1f s)",
+             time.perf_counter() - t0)  # fmt: skip
 
 
 class Server:
