@@ -15,3 +15,10 @@ def plural(n: int | float, noun: str, many: str | None = None) -> str:
 def and_list(items: list[str]) -> str:
     """``"a"``, ``"a and b"``, ``"a, b and c"``."""
     return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"
+
+
+def first_of(items: list[str], n: int) -> str:
+    """The first ``n`` of ``items``, comma-separated, then ``and K more`` when there are more
+    (a long list of marker names on one line of a summary)."""
+    shown = ", ".join(items[:n])
+    return shown + (f" and {len(items) - n} more" if len(items) > n else "")

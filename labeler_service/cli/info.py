@@ -8,7 +8,7 @@ import json
 import numpy as np
 
 from labeler_service.capture import Capture, read_segment
-from labeler_service.wording import plural
+from labeler_service.wording import first_of, plural
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -119,6 +119,5 @@ def _some(names: list[str]) -> str:
     """``names`` for one line of the summary: all of them up to :data:`LISTED`, else the first
     ones and how many more (a recording of a model's 500 markers printed every name on one
     line); ``--json`` keeps the whole list."""
-    if len(names) <= LISTED:
-        return ", ".join(names)
-    return f"{len(names)} markers: {', '.join(names[:LISTED])} and {len(names) - LISTED} more"
+    head = f"{len(names)} markers: " if len(names) > LISTED else ""
+    return head + first_of(names, LISTED)

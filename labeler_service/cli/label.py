@@ -52,7 +52,7 @@ from labeler_service.cli.args import (
     without_absent_subjects,
 )
 from labeler_service.labeling.registry import LABELED_STARTS
-from labeler_service.wording import and_list, plural
+from labeler_service.wording import and_list, first_of, plural
 
 #: seconds of warm-up after which ``label`` says the kernels are being compiled
 NOTICE_AFTER_S = 3.0
@@ -318,9 +318,7 @@ def run(args: argparse.Namespace) -> int:
         if never:
             print(f"  never labeled: {', '.join(never)}")
         if unseen:
-            shown = ", ".join(unseen[:8]) + (
-                f" and {len(unseen) - 8} more" if len(unseen) > 8 else ""
-            )
+            shown = first_of(unseen, 8)
             print(
                 f"  {plural(len(unseen), 'marker')} never visible in the {init} init frames, so "
                 f"never labeled from this start: {shown} (a model trained on other frames, "
