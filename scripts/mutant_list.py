@@ -1100,4 +1100,32 @@ MUTANTS: list[Mutant] = [
         "a stream whose frames wait in its queue says nothing until frames are dropped",
         k="falling_behind",
     ),
+    Mutant(
+        "swap-kept-when-each-window-is-too-weak",
+        "labeler_service/labeling/boot_match.py",
+        "    ok = (total > LEDGER_NATS) & (calls >= LEDGER_CALLS)\n",
+        "    ok = (total > 1e12) & (calls >= LEDGER_CALLS)\n",
+        (T + "labeling/test_boot_ledger.py",),
+        "two markers of a booted subject on each other's points, every strict pair within its "
+        "tolerance, stay exchanged for good (the tennis serve played backward: 631 frames)",
+    ),
+    Mutant(
+        "ledger-as-a-running-window",
+        "labeler_service/labeling/boot_match.py",
+        "    ledger.total[a, b] += g - EXCHANGE_MARGIN\n",
+        "    ledger.total[a, b] = np.maximum(ledger.total[a, b] + g - EXCHANGE_MARGIN, 0.0)\n",
+        (T + "labeling/test_boot_ledger.py",),
+        "a reading right since its tracks began is exchanged on a late stretch the model "
+        "prefers the other way (the dancer's wrist bar, 100 frames wrong)",
+        k="late_stretch",
+    ),
+    Mutant(
+        "no-recheck-with-every-point-labeled",
+        "labeler_service/labeling/booting.py",
+        "            and (np.any(glab < 0) or bool(self._checked()))\n",
+        "            and np.any(glab < 0)\n",
+        (T + "labeling/test_boot_ledger.py",),
+        "the inline extension never re-checks a booted performer whose points are all labeled",
+        k="rechecked",
+    ),
 ]

@@ -767,3 +767,30 @@ def anchor_predict(tri_shape, shape, pts, trip):
 
     R, cs, cd = _kabsch_batch(tri_shape, pts[trip])
     return np.einsum("kj,cij->cki", shape - cs, R) + cd[:, None, :]
+
+
+def swap_gains(D, scale, logs, gauss, use, have, ka, kb, pts, sigmas):
+    """Twin of ``kernels/boot_pairs.py:_swap_gains``: per pair ``(have[ka], have[kb])`` of
+    placed markers on ``pts (k, 3)``, the negative log-likelihood (as ``boot_match._nll``) of
+    the two markers' pairs with the other placed markers as they are less with their points
+    exchanged; NaN where either point is untracked."""
+    have = np.asarray(have, dtype=np.int64)
+
+    def nll(rows, cols, d):
+        e = np.abs(d - D[rows, cols]) / scale[rows, cols]
+        cost = np.where(gauss[rows, cols], 0.5 * (sigmas * e) ** 2, np.log1p(e**2))
+        cost = cost + logs[rows, cols]
+        return np.where(use[rows, cols] & np.isfinite(cost), cost, 0.0)
+
+    out = np.full(len(ka), np.nan)
+    for p, (i, j) in enumerate(zip(ka, kb, strict=True)):
+        if not (np.isfinite(pts[i, 0]) and np.isfinite(pts[j, 0])):
+            continue
+        rest = np.array([r for r in range(have.size) if r not in (i, j)], dtype=np.int64)
+        di = np.linalg.norm(pts[rest] - pts[i], axis=1)
+        dj = np.linalg.norm(pts[rest] - pts[j], axis=1)
+        a, b, m = have[i], have[j], have[rest]
+        now = nll(a, m, di) + nll(b, m, dj)
+        swap = nll(a, m, dj) + nll(b, m, di)
+        out[p] = float((now - swap).sum())
+    return out

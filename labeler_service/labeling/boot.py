@@ -80,6 +80,8 @@ from labeler_service.labeling.boot_match import (
     _hypotheses,
     _Hypothesis,
     _kabsch_batch,
+    _Ledger,
+    _ledger_exchange,
     _Pairs,
     _prepare,
     _reach,
@@ -142,6 +144,9 @@ class Booter:
         #: per subject: its template knows nothing of some of its markers (no trained distance:
         #: never seen in the training frames, e.g. a labeled init window); see :meth:`extend`
         self._blind = [bool(np.any(_untrained(tpl))) for tpl in self._templates]
+        #: per subject: evidence for exchanging pairs of its placed markers, summed over
+        #: extensions (:func:`_ledger_exchange`)
+        self._ledgers = [_Ledger.of(tpl.n) for tpl in self._templates]
         self._prepare_acquire()
 
     def _prepare_acquire(self) -> None:
@@ -395,6 +400,9 @@ class Booter:
             swapped = _window_exchange(tpl, assign, hist, others, self.config.verify_contact_mm)
             swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
             swapped = _window_symmetries(tpl, swapped, hist)
+            swapped = _ledger_exchange(
+                tpl, swapped, hist, self._ledgers[s], others, self.config.verify_contact_mm, age
+            )
             # a segment of three or more placed markers read again onto free points
             # (:func:`_free_readings`): two points keep one distance, which a plate's two
             # diagonals share (a head plate's LBHD and RFHD read onto RBHD's and LFHD's

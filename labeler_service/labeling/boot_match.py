@@ -25,6 +25,7 @@ from labeler_service.labeling.kernels.boot_anchor import _anchor_predict, _join_
 from labeler_service.labeling.kernels.boot_grow import _grow as _grow_kernel
 from labeler_service.labeling.kernels.boot_pairs import _constancy_counts
 from labeler_service.labeling.kernels.boot_pairs import _pair_error as _pair_error_kernel
+from labeler_service.labeling.kernels.boot_pairs import _swap_gains as _swap_gains_kernel
 from labeler_service.labeling.kernels.stacked import _spread_labels
 from labeler_service.labeling.kernels.track import _match_tracks, _track_history, _track_step
 from labeler_service.labeling.templates import LabelerModel
@@ -2367,6 +2368,7 @@ def warmup_kernels() -> None:
     _pair_error_kernel(m, m, m, rigid, rigid, z[:1], z[:1], z[:1], p3, STRICT_SIGMAS)
     _grow_kernel(z[:1] - 1, ~ones, p3, m, m, m, rigid, rigid, m, rigid)
     _constancy_counts(np.zeros((2, 2, 3)), z.copy(), np.zeros((2, 2)), np.ones((2, 2)), ~out_b)
+    _swap_gains_kernel(m, m, m, rigid, rigid, z, z[:1], z[1:], p3, STRICT_SIGMAS)
     _match_tracks(p3, p3 + 1.0, np.ones(2))
     _track_step(
         p3, p3 + 1.0, p3.copy(), ones.copy(), z.copy(), np.zeros(2), 1.0, 0.0, 1.0, 1.0, 0, 1.0,
@@ -3068,6 +3070,128 @@ def _window_exchange(
             return out
         out = new
     return out
+
+
+#: Evidence for an exchange of two placed markers kept across extensions
+#: (:func:`_ledger_exchange`): a pair is exchanged once its sum of per-extension gains, less
+#: ``EXCHANGE_MARGIN`` each, exceeds this (nats; the bar a triangle exchange must clear in one
+#: window) ...
+LEDGER_NATS = WINDOW_TRIANGLE_NATS
+#: ... and the exchange fit better by ``EXCHANGE_MARGIN`` in ``WINDOW_EXCHANGE_SHARE`` of its
+#: calls, at least this many.
+LEDGER_CALLS = 3
+
+
+@dataclass
+class _Ledger:
+    """Per subject, the evidence :func:`_ledger_exchange` keeps across extensions for
+    exchanging two placed markers: per marker pair ``(n, n)`` the sum of gains less the margin,
+    the calls in which the exchange fit better, the calls; per marker the age of its point's
+    track at the last call (-1: unplaced or not known)."""
+
+    total: np.ndarray
+    better: np.ndarray
+    calls: np.ndarray
+    age: np.ndarray
+
+    @classmethod
+    def of(cls, n: int) -> _Ledger:
+        return cls(np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n)), np.full(n, -1.0))
+
+    def clear(self, markers: np.ndarray) -> None:
+        """Forgets the evidence of every pair with one of ``markers`` (a new reading)."""
+        for t in (self.total, self.better, self.calls):
+            t[markers] = 0.0
+            t[:, markers] = 0.0
+
+
+def _ledger_exchange(
+    tpl: _Template,
+    assign: np.ndarray,
+    hist: np.ndarray,
+    ledger: _Ledger,
+    others: np.ndarray | None = None,
+    contact_mm: float = 0.0,
+    age: np.ndarray | None = None,
+) -> np.ndarray:
+    """Subject ``tpl``'s reading ``assign`` with one pair of its placed markers exchanged when
+    the evidence for the exchange since the two markers' current readings began, summed over
+    extensions in ``ledger`` (updated in place), clears ``LEDGER_NATS``.
+    :func:`_window_exchange` judges one window (0.1 s) and only markers with a pair of one
+    trained body off: a fast wrist bar whose two markers hold each other's points (a tennis
+    serve played backward: ``RWRA`` and ``RWRB`` 99 mm apart, the wrist moving 100-180 mm a
+    frame) keeps every such pair within its tolerance (the exchange costs each 12-15 mm of
+    19-28), and a window tracks both points in one or two frames, so the swap lasted the rest
+    of the take (631 frames). Read by the truth, the exchanged reading fits that take's model
+    worse in every frame, by 6.4 nats in the median: evidence a window cannot hold but the
+    extensions together do.
+
+    Per extension and pair ``(a, b)`` of placed markers of one trained body (``same``: markers
+    of different bodies on each other's points break their bodies' strict pairs, which
+    :func:`_window_exchange` sees) whose points the last frame tracks, how much lower the
+    :func:`_nll` of their pairs with the other placed markers is with their points exchanged
+    (``kernels/boot_pairs.py:_swap_gains``) is added to the pair's sum less
+    ``EXCHANGE_MARGIN``. The sum runs from the start of the reading: a
+    marker unplaced, exchanged here, or whose point starts a new track (``age (N,)``, seconds
+    each point's track has lived, younger than at the last call) clears its pairs. Not a
+    running window: a model trained in other poses may prefer the exchanged reading for a
+    while (the dancer's wrist bar, ``Radius_L``/``Ulna_L``, by 12.7 nats a frame for a second,
+    read right by the truth), and only the whole history of the reading, tracked since it
+    began, tells that apart from a reading wrong since it began. The pair with the largest sum
+    over ``LEDGER_NATS`` whose exchange fit better in ``WINDOW_EXCHANGE_SHARE`` of at least
+    ``LEDGER_CALLS`` calls is exchanged when the exchange reverses no thick chirality
+    quadruple, leaves each of the two consistent with its segment along the window
+    (:func:`_window_consistent`: the broad jumper's arm, a reading the model contradicts
+    either way, was exchanged wrong for 150 frames without it) and neither doubtful, and no
+    point of their segment is within ``contact_mm`` of ``others`` (:func:`_window_exchange`'s
+    guards). Returns ``assign`` itself when nothing changes, else a new reading."""
+    gone = assign < 0
+    now_age = np.full(tpl.n, -1.0)
+    if age is not None:
+        now_age[~gone] = np.asarray(age, dtype=np.float64)[assign[~gone]]
+        fresh = ~gone & (ledger.age >= 0) & (now_age < ledger.age)
+        ledger.clear(np.flatnonzero(gone | fresh))
+        ledger.age = now_age
+    else:
+        ledger.clear(np.flatnonzero(gone))
+    have = np.flatnonzero(~gone)
+    if have.size < 3:
+        return assign
+    ia, ib = np.triu_indices(have.size, 1)
+    a, b = have[ia], have[ib]
+    pair = tpl.same[a, b]
+    a, b, ia, ib = a[pair], b[pair], ia[pair], ib[pair]
+    if a.size == 0:
+        return assign
+    gain = _swap_gains_kernel(
+        tpl.D, tpl.nll_scale, tpl.nll_log, tpl.nll_gauss, tpl.nll_use, have, ia, ib,
+        np.ascontiguousarray(hist[assign[have], -1], dtype=np.float64), STRICT_SIGMAS,
+    )  # fmt: skip
+    rows = np.flatnonzero(np.isfinite(gain))
+    if rows.size == 0:
+        return assign
+    a, b, g = a[rows], b[rows], gain[rows]
+    ledger.total[a, b] += g - EXCHANGE_MARGIN
+    ledger.better[a, b] += g > EXCHANGE_MARGIN
+    ledger.calls[a, b] += 1.0
+    total, calls = ledger.total[a, b], ledger.calls[a, b]
+    ok = (total > LEDGER_NATS) & (calls >= LEDGER_CALLS)
+    ok &= ledger.better[a, b] >= WINDOW_EXCHANGE_SHARE * calls
+    if not ok.any():
+        return assign
+    top = int(np.flatnonzero(ok)[np.argmax(total[ok])])
+    x, y = int(a[top]), int(b[top])
+    new = assign.copy()
+    new[x], new[y] = assign[y], assign[x]
+    if (
+        _changed_reversed(tpl, assign, new, hist[:, -1])
+        or _still_doubtful(tpl, new, hist, x, y)
+        or _in_contact(tpl, new, hist, x, y, others, contact_mm)
+        or not _window_consistent(tpl, new, hist, x, y)
+    ):
+        return assign
+    ledger.clear(np.array([x, y]))
+    return new
 
 
 def _strict_off(tpl: _Template, have: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

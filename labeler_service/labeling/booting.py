@@ -520,7 +520,7 @@ class BootingLabeler:
             and self._active
             and len(self._window) == self._window.maxlen
             and self._since_extend >= self._extend_every
-            and np.any(glab < 0)
+            and (np.any(glab < 0) or bool(self._checked()))
         ):
             self._since_extend = 0
             if self._extend():

@@ -85,3 +85,23 @@ def test_constancy_counts_degenerate():
     assert seen.tolist() == [3, 3] and bad.tolist() == [1, 1]
     seen, bad = _constancy_counts(hist, two[:0], D[:0, :0], tol[:0, :0], strict[:0, :0])
     assert seen.size == 0 and bad.size == 0
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_swap_gains_match_twin(seed):
+    from labeler_service.labeling.kernels.boot_pairs import _swap_gains
+    from tests.reference import swap_gains
+
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(3, 50))
+    D, scale, logs, gauss, use = _tables(rng, m)
+    have = np.sort(rng.permutation(m)[: int(rng.integers(2, m + 1))]).astype(np.int64)
+    pts = rng.uniform(-600, 600, (have.size, 3))
+    pts[rng.random(have.size) < 0.15] = np.nan  # untracked points
+    ka, kb = (x.astype(np.int64) for x in np.triu_indices(have.size, 1))
+    got = _swap_gains(D, scale, logs, gauss, use, have, ka, kb, pts, 4.0)
+    want = swap_gains(D, scale, logs, gauss, use, have, ka, kb, pts, 4.0)
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    ok = ~np.isnan(want)
+    assert got[ok] == pytest.approx(want[ok], rel=1e-9, abs=1e-9)
+    assert ok.any() or np.isnan(pts[:, 0]).sum() >= have.size - 1

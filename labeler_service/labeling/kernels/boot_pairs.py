@@ -26,10 +26,22 @@ def _pair_cost(D, scale, logs, gauss, use, a, b, pa, pb, pts, sigmas):
     """:func:`boot_match._nll` of marker ``a`` on point ``pa`` against ``b`` on ``pb``."""
     if not use[a, b]:
         return 0.0
-    dx = pts[pa, 0] - pts[pb, 0]
-    dy = pts[pa, 1] - pts[pb, 1]
-    dz = pts[pa, 2] - pts[pb, 2]
-    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return _distance_cost(D, scale, logs, gauss, use, a, b, _dist(pts[pa], pts[pb]), sigmas)
+
+
+@njit
+def _dist(p, q):
+    dx = p[0] - q[0]
+    dy = p[1] - q[1]
+    dz = p[2] - q[2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit
+def _distance_cost(D, scale, logs, gauss, use, a, b, d, sigmas):
+    """:func:`boot_match._nll` of markers ``a`` and ``b`` at distance ``d``."""
+    if not use[a, b]:
+        return 0.0
     dab = D[a, b]
     # the inputs are checked, not the cost: with the project's fastmath set (reassoc, ...)
     # LLVM folded ``isfinite(cost)`` to true here and a NaN pair returned NaN (scale and its
@@ -104,3 +116,41 @@ def _constancy_counts(hist, pts, D, tol, strict):
             seen[i] += ns
             bad[i] += nb
     return seen, bad
+
+
+@njit
+def _swap_gains(D, scale, logs, gauss, use, have, ka, kb, pts, sigmas):
+    """``(P,)``: per pair ``(have[ka[p]], have[kb[p]])`` of placed markers, how much lower the
+    :func:`_distance_cost` sum of the two markers' pairs with every other placed marker is
+    with their points exchanged (``pts (k, 3)``: the points of the placed markers ``have
+    (k,)``; NaN where either point is untracked; an untracked third point's pairs count 0).
+    ``boot_match._ledger_exchange``'s evidence; its numpy twin is
+    ``tests/reference.py:swap_gains``."""
+    P = ka.shape[0]
+    k = have.shape[0]
+    d = np.full((k, k), np.nan)
+    now = np.zeros((k, k))  # marker i on its point against marker r on its point
+    for i in range(k):
+        for r in range(k):
+            if r != i:
+                d[i, r] = _dist(pts[i], pts[r])
+                now[i, r] = _distance_cost(D, scale, logs, gauss, use, have[i], have[r],
+                                           d[i, r], sigmas)  # fmt: skip
+    out = np.full(P, np.nan)
+    for p in range(P):
+        i, j = ka[p], kb[p]
+        if not (np.isfinite(pts[i, 0]) and np.isfinite(pts[j, 0])):
+            continue
+        a, b = have[i], have[j]
+        g = 0.0
+        for r in range(k):
+            if r == i or r == j or not np.isfinite(pts[r, 0]):  # noqa: SIM109 (numba)
+                continue
+            m = have[r]
+            if not (use[a, m] or use[b, m]):
+                continue
+            g += now[i, r] + now[j, r]
+            g -= _distance_cost(D, scale, logs, gauss, use, a, m, d[j, r], sigmas)
+            g -= _distance_cost(D, scale, logs, gauss, use, b, m, d[i, r], sigmas)
+        out[p] = g
+    return out
