@@ -1128,4 +1128,14 @@ MUTANTS: list[Mutant] = [
         "the inline extension never re-checks a booted performer whose points are all labeled",
         k="rechecked",
     ),
+    Mutant(
+        "no-recheck-off-the-frame-path",
+        "labeler_service/labeling/booting.py",
+        " or self._acquired_new or self._checked()\n",
+        " or self._acquired_new\n",
+        (T + "labeling/test_boot_ledger.py",),
+        "the service's extension never re-checks a booted performer whose points are all "
+        "labeled (the backward serve's wrist swap, 467 frames through the service's path)",
+        k="rechecked",
+    ),
 ]

@@ -1079,7 +1079,7 @@ class BootingLabeler:
                 self._since_extend >= self._extend_wait
                 or (self._acquired_new and self._since_acquire >= self._extend_every)
             )
-            and bool(np.any(self._window[-1].labels < 0) or self._acquired_new)
+            and bool(np.any(self._window[-1].labels < 0) or self._acquired_new or self._checked())
         )
 
     def boot_snapshot(self) -> BootSnapshot:

@@ -171,10 +171,12 @@ def test_the_tennis_serve_played_backward_keeps_no_wrist_swap(real_path):
     assert report["accuracy"] >= 0.99
 
 
-def test_a_booted_stream_with_every_point_labeled_is_still_rechecked(monkeypatch):
-    """The inline extension re-checks the booted subjects' readings at its cadence also when
-    no point is free (before, it ran only when some point was: a swap among labeled points of
-    a lone performer was never looked at again), as the service's off-path extension does."""
+@pytest.mark.parametrize("inline", [True, False])
+def test_a_booted_stream_with_every_point_labeled_is_still_rechecked(monkeypatch, inline):
+    """The extension re-checks the booted subjects' readings at its cadence also when no
+    point is free, inline (``evaluate``, ``label``) and off the frame path (the service: the
+    owner runs each due job, here at once). Before, it ran only when some point was: a swap
+    among the labeled points of a lone performer was never looked at again."""
     import labeler_service.labeling.booting as booting
     from labeler_service.labeling.booting import BootingLabeler
     from labeler_service.testing.frames import ModelFrames
@@ -188,13 +190,17 @@ def test_a_booted_stream_with_every_point_labeled_is_still_rechecked(monkeypatch
         return real(booter, points, history, labels, subjects, blocked, age, checked)
 
     monkeypatch.setattr(booting, "extend_blocked", spy)
-    lab = BootingLabeler(model, RATE)
+    lab = BootingLabeler(model, RATE, inline_boot=inline, inline_extend=inline)
     s = ModelFrames(cap, model.marker_names, seed=2)
     for f in range(cap.n_frames):
         pts, _ = s.frame(f)
         lab.process(pts, f / RATE)
+        if not inline and lab.needs_boot():
+            snap = lab.boot_snapshot()
+            lab.install_boot(snap, lab.boot_step(snap))
     assert lab.active_subjects == ("P1",)
     rechecks = [c for c in calls if c[0] == 0]
     assert rechecks and all(c[1] == (0,) for c in rechecks)
-    every = max(1, round(BootConfig().extend_every_s * RATE))
+    # inline every extend_every_s; off the path backed off to 4 periods while nothing is found
+    every = max(1, round(BootConfig().extend_every_s * RATE)) * (1 if inline else 4)
     assert len(calls) >= 0.8 * (cap.n_frames - round(1.0 * RATE)) / every
