@@ -1131,8 +1131,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "no-recheck-off-the-frame-path",
         "labeler_service/labeling/booting.py",
-        " or self._acquired_new or self._checked()\n",
-        " or self._acquired_new\n",
+        " or self._acquired_new or self._checked())\n",
+        " or self._acquired_new)\n",
         (T + "labeling/test_boot_ledger.py",),
         "the service's extension never re-checks a booted performer whose points are all "
         "labeled (the backward serve's wrist swap, 467 frames through the service's path)",
