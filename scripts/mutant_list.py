@@ -1122,8 +1122,8 @@ MUTANTS: list[Mutant] = [
     Mutant(
         "no-recheck-with-every-point-labeled",
         "labeler_service/labeling/booting.py",
-        "            and (np.any(glab < 0) or bool(self._checked()))\n",
-        "            and np.any(glab < 0)\n",
+        "                    and bool(self._checked())\n",
+        "                    and False\n",
         (T + "labeling/test_boot_ledger.py",),
         "the inline extension never re-checks a booted performer whose points are all labeled",
         k="rechecked",
@@ -1137,5 +1137,14 @@ MUTANTS: list[Mutant] = [
         "the service's extension never re-checks a booted performer whose points are all "
         "labeled (the backward serve's wrist swap, 467 frames through the service's path)",
         k="rechecked",
+    ),
+    Mutant(
+        "ledger-blind-to-new-tracks",
+        "labeler_service/labeling/boot_match.py",
+        "    out[both] = (elapsed < 0) | (np.abs(step - elapsed) > AGE_TOL_S)\n",
+        "    out[both] = False\n",
+        (T + "labeling/test_boot_ledger.py",),
+        "a marker on a new track keeps the evidence of its old reading (a fresh swap waits "
+        "out the history of the right reading before it)",
     ),
 ]

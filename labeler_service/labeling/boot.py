@@ -400,6 +400,8 @@ class Booter:
             swapped = _window_exchange(tpl, assign, hist, others, self.config.verify_contact_mm)
             swapped = _window_mirrors(tpl, swapped, hist, others, self.config.verify_contact_mm)
             swapped = _window_symmetries(tpl, swapped, hist)
+            # (markers the re-checks above moved start a new reading: their evidence goes)
+            self._ledgers[s].clear(np.flatnonzero(swapped != assign))
             swapped = _ledger_exchange(
                 tpl, swapped, hist, self._ledgers[s], others, self.config.verify_contact_mm, age
             )

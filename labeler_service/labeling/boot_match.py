@@ -3105,6 +3105,26 @@ class _Ledger:
             t[:, markers] = 0.0
 
 
+#: Two track ages advanced by the same time agree to this (seconds; under a frame period).
+AGE_TOL_S = 1e-3
+
+
+def _new_tracks(before: np.ndarray, now: np.ndarray) -> np.ndarray:
+    """Per marker, is its point on another track than at the last call? ``before``/``now``:
+    the age of each marker's point's track then and now (-1: unplaced). Every track that
+    lasted has aged by the same time, the median over the markers placed both times; a marker
+    whose age moved otherwise is on a new track or has moved onto an older one (a re-reading,
+    a fill). An elapsed time below zero (a new take, a tracker restarted) renews them all."""
+    both = (before >= 0) & (now >= 0)
+    out = np.zeros(now.shape[0], dtype=bool)
+    if not both.any():
+        return out
+    step = now[both] - before[both]
+    elapsed = float(np.median(step))
+    out[both] = (elapsed < 0) | (np.abs(step - elapsed) > AGE_TOL_S)
+    return out
+
+
 def _ledger_exchange(
     tpl: _Template,
     assign: np.ndarray,
@@ -3131,13 +3151,14 @@ def _ledger_exchange(
     :func:`_window_exchange` sees) whose points the last frame tracks, how much lower the
     :func:`_nll` of their pairs with the other placed markers is with their points exchanged
     (``kernels/boot_pairs.py:_swap_gains``) is added to the pair's sum less
-    ``EXCHANGE_MARGIN``. The sum runs from the start of the reading: a
-    marker unplaced, exchanged here, or whose point starts a new track (``age (N,)``, seconds
-    each point's track has lived, younger than at the last call) clears its pairs. Not a
-    running window: a model trained in other poses may prefer the exchanged reading for a
-    while (the dancer's wrist bar, ``Radius_L``/``Ulna_L``, by 12.7 nats a frame for a second,
-    read right by the truth), and only the whole history of the reading, tracked since it
-    began, tells that apart from a reading wrong since it began. The pair with the largest sum
+    ``EXCHANGE_MARGIN``. The sum runs from the start of the reading: a marker unplaced,
+    exchanged, or whose point is on another track than at the last call (``age (N,)``,
+    seconds each point's track has lived: :func:`_new_tracks`) clears its pairs (the caller
+    clears the markers the other re-checks moved). Not a running window: a model trained in
+    other poses may prefer the exchanged reading for a while (the dancer's wrist bar,
+    ``Radius_L``/``Ulna_L``, by 12.7 nats a frame for a second, read right by the truth); the
+    calls since the reading began, most of them for it as it is, tell that apart from a
+    reading wrong since it began. The pair with the largest sum
     over ``LEDGER_NATS`` whose exchange fit better in ``WINDOW_EXCHANGE_SHARE`` of at least
     ``LEDGER_CALLS`` calls is exchanged when the exchange reverses no thick chirality
     quadruple, leaves each of the two consistent with its segment along the window
@@ -3146,11 +3167,10 @@ def _ledger_exchange(
     point of their segment is within ``contact_mm`` of ``others`` (:func:`_window_exchange`'s
     guards). Returns ``assign`` itself when nothing changes, else a new reading."""
     gone = assign < 0
-    now_age = np.full(tpl.n, -1.0)
     if age is not None:
+        now_age = np.full(tpl.n, -1.0)
         now_age[~gone] = np.asarray(age, dtype=np.float64)[assign[~gone]]
-        fresh = ~gone & (ledger.age >= 0) & (now_age < ledger.age)
-        ledger.clear(np.flatnonzero(gone | fresh))
+        ledger.clear(np.flatnonzero(gone | _new_tracks(ledger.age, now_age)))
         ledger.age = now_age
     else:
         ledger.clear(np.flatnonzero(gone))

@@ -520,7 +520,15 @@ class BootingLabeler:
             and self._active
             and len(self._window) == self._window.maxlen
             and self._since_extend >= self._extend_every
-            and (np.any(glab < 0) or bool(self._checked()))
+            and (
+                np.any(glab < 0)
+                # (with every point labeled, the re-check of the booted readings only, at the
+                # cadence the service's backed-off jobs keep: EXTEND_BACKOFF periods)
+                or (
+                    self._since_extend >= EXTEND_BACKOFF * self._extend_every
+                    and bool(self._checked())
+                )
+            )
         ):
             self._since_extend = 0
             if self._extend():
