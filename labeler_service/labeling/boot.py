@@ -375,7 +375,9 @@ class Booter:
         the fill may move a subject's weakly placed markers (:func:`_weak_markers`,
         :func:`_complete_weak`), and that the readings of the subjects ``checked`` (booted from
         the stream's points, not labeled by it) first have pairs of markers on each other's
-        points exchanged back (:func:`_window_exchange`). Returns the new labels (a copy).
+        points exchanged back (:func:`_window_exchange` on the window's evidence,
+        :func:`_ledger_exchange` on the evidence summed over calls since the two readings
+        began, kept per subject in this booter). Returns the new labels (a copy).
 
         A subject whose template has untrained markers (no distance to any other: unseen in
         the training frames) cannot tell a free point near it from one of those: it gets only
