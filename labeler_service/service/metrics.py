@@ -421,7 +421,9 @@ class ServiceMetrics:
         stream that labels nothing says so; a stream in ``streams`` that has had no frame yet
         (a configured stream before its first frame) reads ``[name] no frames yet``. Each
         stream's part ends with its own drops by reason (``drops=queue_full:3`` or
-        ``drops=none``); the line ends with the drops of the whole service (``drops: ...``)."""
+        ``drops=none``); the line ends with the drops of the whole service, those of no
+        stream included (``| service drops: ...``: a hostile user read ``drops=seq_jump:2
+        drops: rx_overflow=258`` as two contradicting counts)."""
         snap = self.snapshot()
         parts = []
         for s, v in snap["streams"].items():
@@ -454,7 +456,7 @@ class ServiceMetrics:
         # every stream's drops, and those of no stream (a datagram that names none, a stream
         # removed since): each stream's own are on its part (``drops=``)
         drops = ", ".join(f"{r}={n}" for r, n in sorted(snap["drops"].items())) or "none"
-        return " ".join(parts or ["no streams yet"]) + f" drops: {drops}"
+        return " ".join(parts or ["no streams yet"]) + f" | service drops: {drops}"
 
     # ---------------------------------------------------------------- HTTP endpoint
     def serve_http(self, host: str, port: int) -> int:

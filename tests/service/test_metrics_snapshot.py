@@ -60,8 +60,8 @@ def test_each_stream_part_says_its_own_drops():
     m.drop("stale", "busy")
     m.drop("malformed", "")  # (a datagram that names no stream)
     line = m.log_line({"quiet": ("online", 0), "busy": ("online", 0)})
-    head, _, _ = line.partition(" drops: ")
+    head, _, _ = line.partition(" | service drops: ")
     part = dict(re.findall(r"\[(\w+)\] ([^[]*)", head))
     assert part["quiet"].rstrip().endswith(" drops=none"), line
     assert part["busy"].rstrip().endswith(" drops=queue_full:3,stale:1"), line
-    assert line.endswith("drops: malformed=1, queue_full=3, stale=1"), line
+    assert line.endswith(" | service drops: malformed=1, queue_full=3, stale=1"), line
