@@ -137,14 +137,10 @@ class UnitCheck:
         self._since, self._span = None, 0.0
 
     def new_run(self) -> None:
-        """Forgets the frames before a new run (another sender, or one back after a pause):
-        the nothing-labeled time and points per frame were theirs (a warning at the new run's
-        first frame gave the previous run's counts and the jump in ``t`` as its duration)."""
-        self._forget()
-
-    def _forget(self) -> None:
-        """Both checks start over, and the match warning's repeats with them (a new run, a
-        label, a labeler without a model)."""
+        """Both checks start over, and the match warning's repeats with them: a new run
+        (another sender, or one back after a pause: the nothing-labeled time and points per
+        frame were theirs; a warning at the new run's first frame gave the previous run's
+        counts and the jump in ``t`` as its duration), a label, a labeler without a model."""
         self.reset()
         self._reset_match()
         self._repeats = 0
@@ -191,12 +187,12 @@ class UnitCheck:
         self, stream: str, points: np.ndarray, t: float, observed: int, model: object
     ) -> str | None:
         if not isinstance(model, LabelerModel):
-            self._forget()
+            self.new_run()
             return None
         if id(model) != self._model_id:
             self._model_id, self._scale = id(model), model_scale(model)
         if self._scale <= 0.0 or observed > 0:
-            self._forget()
+            self.new_run()
             return None
         match = self._match(stream, points, t, model)
         if match is not None:
