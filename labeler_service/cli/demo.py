@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import sys
 import time
 from pathlib import Path
@@ -283,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
     from labeler_service.capture import write_capture
     from labeler_service.scenes.corrupt import CorruptionSpec, corrupt
     from labeler_service.tools.replay import check_pace
-    from labeler_service.tools.subscribe import Recorder, no_nan, percentiles
+    from labeler_service.tools.subscribe import Recorder, percentiles, strict_json
 
     args.start, args.init_frames = resolve_start(args.start, args.init_frames, args.labeler)
     check_pace(args.speed, 1)  # (before the scene is built and the service started)
@@ -364,7 +363,7 @@ def run(args: argparse.Namespace) -> int:
     for r in res.received:
         rec.add(r, frames.rate)
     rec.write(out / "labeled.c3d")
-    (out / "report.json").write_text(json.dumps(no_nan(report), indent=2, allow_nan=False))
+    (out / "report.json").write_text(strict_json(report, indent=2))
     p1, p2 = _plots(out, lat, scored.per_frame_accuracy, frames.rate, args.init_frames)
     rec_txt = ("-" if s["recovery_mean_mm"] is None else
                f"{s['recovery_mean_mm']:.1f} mm mean, {s['recovery_p95_mm']:.1f} mm p95 "

@@ -68,6 +68,14 @@ def no_nan(value):
     return value
 
 
+def strict_json(value, **kwargs) -> str:
+    """``value`` as strict JSON text (:func:`no_nan`: ``null`` for a measurement a run could
+    not make, never ``NaN``); ``kwargs`` go to :func:`json.dumps` (``indent``)."""
+    import json
+
+    return json.dumps(no_nan(value), allow_nan=False, **kwargs)
+
+
 #: the statuses of a stream the service is ready to label: ``online``, or ``booting`` for a
 #: stream that has labeled no one yet (it boots its performers from a model, or waits for the
 #: labeled init frames that train its labeler)

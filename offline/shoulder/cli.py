@@ -24,7 +24,6 @@ with a note. The last stdout line is a JSON summary.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -122,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         where = exc.filename or cfg.out
         raise ModelError(f"{where}: cannot write: {exc.strerror or exc}") from exc
     summary["wall_s"] = round(time.perf_counter() - t0, 2)
-    from labeler_service.tools.subscribe import no_nan
+    from labeler_service.tools.subscribe import strict_json
 
-    print(json.dumps(no_nan(summary), allow_nan=False))
+    print(strict_json(summary))
     return 0

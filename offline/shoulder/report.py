@@ -7,7 +7,6 @@ joint centre (rest space, mm), core and reduced markers, dense skin weights, the
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -62,9 +61,9 @@ def skeleton_dict(model: ShoulderSkeleton, labels: Sequence[str]) -> dict:
 
 def write_json(path: Path, obj: object) -> Path:
     """``obj`` as strict JSON: a measurement a run could not make is ``null``, not ``NaN``."""
-    from labeler_service.tools.subscribe import no_nan
+    from labeler_service.tools.subscribe import strict_json
 
-    path.write_text(json.dumps(no_nan(obj), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    path.write_text(strict_json(obj, indent=1) + "\n", encoding="utf-8")
     return path
 
 
