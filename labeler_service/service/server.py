@@ -322,13 +322,14 @@ class Server:
         try:
             for line in exposure_warnings(self.settings):
                 log.warning("%s", line)
+            models = {}  # (read once: each stream starts from the model read here)
             for s in self.settings.streams:
                 # a broken model file fails before anything binds a port or warms up (it bound
                 # UDP first: a supervisor saw the port taken, then the error)
                 if s.model is not None:
                     from labeler_service.labeling.templates import load_model
 
-                    await asyncio.to_thread(load_model, s.model)
+                    models[s.name] = await asyncio.to_thread(load_model, s.model)
             if self.settings.metrics_port is not None:
                 # before the warm-up: a port in use fails at once, not after it
                 try:
@@ -358,7 +359,7 @@ class Server:
             for s in self.settings.streams:
                 state = self._new_stream(s.name, s)
                 if s.model is not None:
-                    await asyncio.to_thread(state.start_from_model)
+                    await asyncio.to_thread(state.start_from_model, model=models[s.name])
                     if self.settings.warmup and state.booting is not None:
                         await asyncio.to_thread(state.booting.warmup)  # the boot's kernels too
                     # boot = true: it boots; boot = false: a live source's first frame starts

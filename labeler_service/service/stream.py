@@ -482,10 +482,11 @@ class StreamState:
     def started(self) -> bool:
         return self.labeler is not None
 
-    def start_from_model(self, spare: bool = True) -> None:
+    def start_from_model(self, spare: bool = True, model: LabelerModel | None = None) -> None:
         """Builds the labeler from the stream's model file (mode 1); with ``spare`` (not on
         the frame path) also the spare booting labeler an online stream's recovery (``boot =
-        false``) or reboot (``boot = true``) will take.
+        false``) or reboot (``boot = true``) will take. ``model``: the file as the service's
+        start already read it (it checks every stream's model before it binds a port).
 
         The file is read once, at the stream's first start; a new labeled run rebuilds from
         that model. It used to be read again at every new run: a model file replaced, deleted
@@ -499,7 +500,7 @@ class StreamState:
         if self._model_file is None:
             from labeler_service.labeling.templates import load_model, same_templates
 
-            self._model_file = load_model(path)
+            self._model_file = model if model is not None else load_model(path)
             for a, b in same_templates(self._model_file):
                 log.warning("stream %s: subjects %s and %s of %s have one template: a boot "
                             "cannot tell them apart (each keeps its name only by continuity; "
